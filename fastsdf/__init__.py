@@ -1,0 +1,23 @@
+"""fastsdf: 2D signed distance functions compiled to parallel machine code.
+
+``import fastsdf as sdf`` gives the notebook's modelling API (``sdf.Circle``, ``sdf.Halfspace``,
+``sdf.Box``, ``|``, ``&``, ``-``, ``sdf.smoothness``, ``sdf.transform``); ``fastsdf.graph``
+is the symbolic layer (``Symbol``, ``Function``, ``sym_*``). Distances are negative inside,
+positive outside, in the units of the coordinates; all arithmetic is float64.
+"""
+
+__version__ = "0.1.0"
+
+from .graph import (Expr, Function, Symbol, sym_abs, sym_cos, sym_exp, sym_length,  # noqa: E402
+                    sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt)
+from .shapes import (SDF, Box, Circle, Difference, Halfspace, Intersection, Union,  # noqa: E402
+                     smoothness, transform)
+
+__all__ = [
+    "__version__",
+    "Expr", "Function", "Symbol",
+    "sym_abs", "sym_cos", "sym_exp", "sym_length", "sym_log", "sym_max", "sym_min", "sym_sin",
+    "sym_smax", "sym_smin", "sym_sqrt",
+    "SDF", "Box", "Circle", "Difference", "Halfspace", "Intersection", "Union",
+    "smoothness", "transform",
+]

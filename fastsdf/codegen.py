@@ -1,0 +1,741 @@
+"""Code generation: an expression DAG becomes Python source that numba compiles.
+
+Design (see the README's design section for the measurements behind it):
+
+* The DAG is flattened into a tape of SSA assignments, one per reachable node, so shared
+  subexpressions are computed once and unreachable nodes never appear. Gradients are carried in
+  forward mode beside each value; a component known to be zero is not emitted at all.
+* Chains of one associative operation (``min``, ``max``, and ``smin``/``smax`` with one ``k``;
+  a long union is such a chain) are flattened into one n-ary operation. Operands whose
+  expressions have the same *shape* (the same operations, differing only in constants, e.g. 20
+  rotated boxes) become one ``for`` loop over a constant table holding each operand's numbers.
+  Generated code therefore grows with the number of distinct shapes, not with the number of
+  primitives, which is what keeps numba's compile time flat (a straight-line function per scene
+  compiles in time that grows much faster than the scene).
+* A smooth chain is evaluated as an online log-sum-exp (the streaming-softmax recurrence):
+  one ``exp`` per operand and one ``log`` per chain, with values that never overflow for any
+  ``k > 0``. This is mathematically the notebook's nested ``-log(exp(-k a) + exp(-k b)) / k``.
+* Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
+  tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
+  makes numba's compile time explode.
+* Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf._cache`)
+  and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
+  compiles gradient code.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import re
+
+import numba
+import numpy as np
+
+from . import __version__
+from ._cache import load_module
+from .graph import Expr, topological_order
+
+__all__ = ["CompiledSDF", "compile_expr", "generate_module_source", "MIN_LOOP", "PARALLEL_MIN_POINTS"]
+
+#: Same-shape operands of a chain needed before they are folded into a loop over a table.
+MIN_LOOP = 4
+#: Inputs with fewer points run serially: thread start-up costs more than it saves.
+PARALLEL_MIN_POINTS = 4096
+
+_CHAIN_OPS = ("min", "max", "smin", "smax")
+_HUGE = "1.7976931348623157e+308"
+
+
+def _lit(v: float) -> str:
+    """A float as Python source that numba types as float64."""
+    if math.isnan(v):
+        return "math.nan"
+    if math.isinf(v):
+        return "math.inf" if v > 0 else "(-math.inf)"
+    s = repr(float(v))
+    return f"({s})" if v < 0 or s.startswith("-") else s
+
+
+class _Val:
+    """An emitted value: Python expressions (usually variable names) for value and gradient.
+
+    A gradient component of ``None`` is known to be zero; ``"1.0"`` is a literal one.
+    """
+
+    __slots__ = ("v", "gx", "gy")
+
+    def __init__(self, v, gx=None, gy=None):
+        self.v, self.gx, self.gy = v, gx, gy
+
+
+def _prod(g, c):
+    """Source for ``g * c`` where g may be None (zero) or '1.0'."""
+    if g is None:
+        return None
+    if g == "1.0":
+        return c
+    return f"{g} * {c}"
+
+
+def _sum(*terms):
+    """Source for a sum of terms (strings or None); terms starting with '-' are subtracted."""
+    terms = [t for t in terms if t is not None]
+    if not terms:
+        return None
+    out = terms[0]
+    for t in terms[1:]:
+        out = f"{out} - {t[1:]}" if t.startswith("-") else f"{out} + {t}"
+    return out
+
+
+def _neg(g):
+    if g is None:
+        return None
+    if g == "1.0":
+        return "(-1.0)"
+    return f"-({g})" if not g.startswith("-") else g[1:]
+
+
+def _zero(g):
+    return "0.0" if g is None else g
+
+
+# ---------------------------------------------------------------------------------------------
+# Shapes of subexpressions (structure with constants abstracted).
+
+def _template(root: Expr):
+    """Linearize the sub-DAG of ``root`` with constants abstracted.
+
+    Returns ``(signature, steps, constants)``: ``steps`` lists ``(node, argrefs)`` in
+    evaluation order, where each argref is ``('c', j)`` for the j-th constant (every occurrence
+    counted separately, so equal constants do not change the shape) or ``('n', i)`` for the
+    value of step i. Two roots with equal signatures evaluate by the same code.
+    """
+    local, steps, sig, consts = {}, [], [], []
+    stack = [(root, False)]
+    while stack:
+        node, expanded = stack.pop()
+        if expanded:
+            if id(node) in local:
+                continue
+            refs = []
+            for a in node.args:
+                if a.op == "const":
+                    refs.append(("c", len(consts)))
+                    consts.append(a.attr)
+                else:
+                    refs.append(("n", local[id(a)]))
+            local[id(node)] = len(steps)
+            steps.append((node, tuple(refs)))
+            sig.append((node.op, node.attr if node.op != "const" else None, tuple(refs)))
+            continue
+        if id(node) in local:
+            continue
+        stack.append((node, True))
+        for a in reversed(node.args):
+            if a.op != "const" and id(a) not in local:
+                stack.append((a, False))
+    return tuple(sig), steps, consts
+
+
+def _varying_columns(rows: list):
+    """Split a group's constants into a table of the columns that differ between members and
+    literals for the columns that are the same in every member (e.g. the 0 of ``max(q, 0)``).
+
+    Returns ``(table_rows, refs)`` where ``refs[j]`` is ``('t', column)`` or ``('l', value)``.
+    """
+    arr = np.asarray(rows, dtype=np.float64)
+    refs, columns = [], []
+    for j in range(arr.shape[1]):
+        col = arr[:, j]
+        if np.all(col.view(np.int64) == col[0:1].view(np.int64)):  # bitwise: keeps -0.0 apart
+            refs.append(("l", float(col[0])))
+        else:
+            refs.append(("t", len(columns)))
+            columns.append(col)
+    table = np.stack(columns, axis=1) if columns else np.zeros((arr.shape[0], 0))
+    return table, refs
+
+
+def _flatten_chain(node: Expr) -> list:
+    """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
+    out, stack = [], [node]
+    while stack:
+        n = stack.pop()
+        if n.op == node.op and n.attr == node.attr:
+            stack.extend(reversed(n.args))
+        else:
+            out.append(n)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Emission.
+
+class _Emitter:
+    """Emits the body of one per-point function (value only, or value and gradient)."""
+
+    def __init__(self, symbol_names, grad: bool, tables: dict):
+        self.grad = grad
+        self.syms = {symbol_names[0]: _Val("x", "1.0", None), symbol_names[1]: _Val("y", None, "1.0")}
+        self.tables = tables  # shared across functions of one module: bytes -> name
+        self.lines: list[str] = []
+        self.n = 0
+
+    def _name(self, prefix="v"):
+        self.n += 1
+        return f"{prefix}{self.n}"
+
+    def _assign(self, out: list, name: str, expr: str) -> str:
+        out.append(f"{name} = {expr}")
+        return name
+
+    def _grad(self, out, name, gx, gy):
+        """Assign gradient expressions to variables named after ``name`` (if nonzero)."""
+        if not self.grad:
+            return None, None
+        def keep(expr):  # nothing to compute: no new variable needed
+            return expr is None or expr == "1.0" or expr.isidentifier()
+        rx = gx if keep(gx) else self._assign(out, f"{name}x", gx)
+        ry = gy if keep(gy) else self._assign(out, f"{name}y", gy)
+        return rx, ry
+
+    # -- one operation ------------------------------------------------------------------------
+    def op(self, out: list, node: Expr, a: list) -> _Val:
+        """Emit ``node`` given its argument values ``a``; returns the result."""
+        op, g = node.op, self.grad
+        r = self._name()
+        A = a[0]
+        B = a[1] if len(a) > 1 else None
+
+        def lin(ca, cb=None):
+            """Gradient of the result as ca * grad(A) + cb * grad(B)."""
+            if not g:
+                return None, None
+            gx = _sum(_prod(A.gx, ca), _prod(B.gx, cb) if B is not None and cb is not None else None)
+            gy = _sum(_prod(A.gy, ca), _prod(B.gy, cb) if B is not None and cb is not None else None)
+            return gx, gy
+
+        if op == "add":
+            self._assign(out, r, f"{A.v} + {B.v}")
+            gx, gy = (_sum(A.gx, B.gx), _sum(A.gy, B.gy)) if g else (None, None)
+        elif op == "sub":
+            self._assign(out, r, f"{A.v} - {B.v}")
+            gx, gy = (_sum(A.gx, _neg(B.gx)), _sum(A.gy, _neg(B.gy))) if g else (None, None)
+        elif op == "mul":
+            self._assign(out, r, f"{A.v} * {B.v}")
+            gx, gy = lin(B.v, A.v)
+        elif op == "div":
+            self._assign(out, r, f"{A.v} / {B.v}")
+            if g:
+                ib = self._assign(out, f"{r}i", f"1.0 / {B.v}")
+                gx, gy = lin(ib, f"(-{r} * {ib})")
+            else:
+                gx = gy = None
+        elif op == "neg":
+            self._assign(out, r, f"-{A.v}")
+            gx, gy = (_neg(A.gx), _neg(A.gy)) if g else (None, None)
+        elif op == "powc":
+            p = node.attr
+            if p == 2.0:
+                self._assign(out, r, f"{A.v} * {A.v}")
+                gx, gy = lin(f"(2.0 * {A.v})")
+            elif p == -1.0:
+                self._assign(out, r, f"1.0 / {A.v}")
+                gx, gy = lin(f"(-{r} * {r})")
+            else:
+                self._assign(out, r, f"{A.v} ** {_lit(p)}")
+                gx, gy = lin(f"({_lit(p)} * {A.v} ** {_lit(p - 1.0)})")
+        elif op == "pow":
+            self._assign(out, r, f"{A.v} ** {B.v}")
+            gx, gy = lin(f"({B.v} * {A.v} ** ({B.v} - 1.0))", f"({r} * math.log({A.v}))")
+        elif op == "sqrt":
+            self._assign(out, r, f"math.sqrt({A.v})")
+            gx, gy = lin(f"_sel({r} > 0.0, 0.5 / {r}, 0.0)")
+        elif op == "exp":
+            self._assign(out, r, f"math.exp({A.v})")
+            gx, gy = lin(r)
+        elif op == "log":
+            self._assign(out, r, f"math.log({A.v})")
+            gx, gy = lin(f"(1.0 / {A.v})")
+        elif op == "sin":
+            self._assign(out, r, f"math.sin({A.v})")
+            gx, gy = lin(f"math.cos({A.v})")
+        elif op == "cos":
+            self._assign(out, r, f"math.cos({A.v})")
+            gx, gy = lin(f"(-math.sin({A.v}))")
+        elif op == "abs":
+            self._assign(out, r, f"abs({A.v})")
+            gx, gy = lin(f"_sel({A.v} >= 0.0, 1.0, -1.0)")
+        elif op == "length":
+            # sqrt(a*a + b*b) unless that over- or underflows; hypot is exact but slower.
+            self._assign(out, r, f"math.sqrt({A.v} * {A.v} + {B.v} * {B.v})")
+            out.append(f"if not (1e-150 < {r} < 1e150):")
+            out.append(f"    {r} = math.hypot({A.v}, {B.v})")
+            if g:
+                self._assign(out, f"{r}i", f"_sel({r} > 0.0, 1.0 / {r}, 0.0)")
+                gx, gy = lin(f"_sel({r} > 0.0, {A.v} * {r}i, 1.0)", f"({B.v} * {r}i)")
+            else:
+                gx = gy = None
+        elif op in _CHAIN_OPS:
+            return self.chain(out, node.op, node.attr, [("val", A), ("val", B)])
+        else:  # pragma: no cover - graph.py creates no other ops
+            raise NotImplementedError(op)
+        gx, gy = self._grad(out, r, gx, gy)
+        return _Val(r, gx, gy)
+
+    # -- n-ary chains -------------------------------------------------------------------------
+    def chain(self, out: list, op: str, k, items: list) -> _Val:
+        """Emit an n-ary min/max/smin/smax over ``items``.
+
+        Each item is ``("val", _Val)`` for an operand already computed, or
+        ``("loop", steps_list, table_name, count)`` for a group of same-shape operands.
+        """
+        g = self.grad
+        c = self._name("c")
+        m, s, gx, gy = f"{c}m", f"{c}s", f"{c}x", f"{c}y"
+        smooth = op in ("smin", "smax")
+        less = "<" if op in ("min", "smin") else ">"
+        first = items[0][1] if items[0][0] == "val" else None
+        if first is not None:
+            items = items[1:]
+            out.append(f"{m} = {first.v}")
+            if smooth:
+                out.append(f"{s} = 1.0")
+            if g:
+                out.append(f"{gx} = {_zero(first.gx)}")
+                out.append(f"{gy} = {_zero(first.gy)}")
+        else:
+            init = _HUGE if less == "<" else f"-{_HUGE}"
+            out.append(f"{m} = {init}")
+            if smooth:
+                out.append(f"{s} = 0.0")
+            if g:
+                out.append(f"{gx} = 0.0")
+                out.append(f"{gy} = 0.0")
+
+        def update(body: list, v: _Val):
+            w = self._name("w")
+            body.append(f"{w} = {v.v} {less} {m}")
+            if smooth:
+                e = f"{w}e"
+                body.append(f"{e} = math.exp(-{_lit(k)} * abs({v.v} - {m}))")
+                body.append(f"{s} = _sel({w}, {s} * {e} + 1.0, {s} + {e})")
+                if g:
+                    for acc, comp in ((gx, v.gx), (gy, v.gy)):
+                        comp = _zero(comp)
+                        body.append(f"{acc} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
+            elif g:
+                body.append(f"{gx} = _sel({w}, {_zero(v.gx)}, {gx})")
+                body.append(f"{gy} = _sel({w}, {_zero(v.gy)}, {gy})")
+            body.append(f"{m} = _sel({w}, {v.v}, {m})")
+
+        for item in items:
+            if item[0] == "val":
+                update(out, item[1])
+            else:
+                _, steps, consts, count = item
+                loop = self._name("i")
+                body: list[str] = []
+                val = self.template(body, steps, [c.format(row=loop) for c in consts])
+                update(body, val)
+                out.append(f"for {loop} in range({count}):")
+                out.extend("    " + line for line in body)
+        if not smooth:
+            return _Val(m, gx if g else None, gy if g else None)
+        r = self._name()
+        sign = "-" if op == "smin" else "+"
+        # Multiplying by 1/k instead of dividing shortens the latency chain (the kernel is bound
+        # by exp -> log -> next blend); it changes the result by at most one rounding.
+        out.append(f"{r} = {m} {sign} math.log({s}) * {_lit(1.0 / k)}")
+        if g:
+            out.append(f"{r}i = 1.0 / {s}")
+            out.append(f"{r}x = {gx} * {r}i")
+            out.append(f"{r}y = {gy} * {r}i")
+            return _Val(r, f"{r}x", f"{r}y")
+        return _Val(r)
+
+    def template(self, body: list, steps: list, consts: list) -> _Val:
+        """Emit one operand of a loop group: its steps, with the j-th constant as ``consts[j]``
+        (a literal, or a table element indexed by the loop variable)."""
+        vals: list[_Val] = []
+        for node, refs in steps:
+            if node.op == "sym":
+                vals.append(self.syms[node.attr])
+                continue
+            args = [_Val(consts[j]) if kind == "c" else vals[j] for kind, j in refs]
+            vals.append(self.op(body, node, args))
+        return vals[-1]
+
+    def table(self, rows: list) -> str:
+        arr = np.asarray(rows, dtype=np.float64)
+        key = (arr.shape, arr.tobytes())
+        name = self.tables.get(key)
+        if name is None:
+            name = f"_T{len(self.tables)}"
+            self.tables[key] = name
+        return name
+
+    # -- the whole function -------------------------------------------------------------------
+    def emit(self, root: Expr) -> _Val:
+        """Emit code for ``root`` (iteratively, flattening chains); returns its value."""
+        done: dict[int, _Val] = {}
+        plans: dict[int, tuple] = {}
+        stack = [root]
+        while stack:
+            node = stack[-1]
+            if id(node) in done:
+                stack.pop()
+                continue
+            plan = plans.get(id(node))
+            if plan is None:
+                plan = plans[id(node)] = self._plan(node)
+            deps, _ = plan
+            missing = [d for d in deps if id(d) not in done]
+            if missing:
+                stack.extend(reversed(missing))
+                continue
+            stack.pop()
+            done[id(node)] = self._emit_planned(node, plan, done)
+        return done[id(root)]
+
+    def _plan(self, node: Expr):
+        if node.op not in _CHAIN_OPS:
+            return list(node.args), None
+        operands = _flatten_chain(node)
+        shapes: dict = {}
+        order: list = []
+        for operand in operands:
+            if operand.op == "const":
+                order.append(("node", operand))
+                continue
+            sig, steps, consts = _template(operand)
+            group = shapes.get(sig)
+            if group is None:
+                group = shapes[sig] = [steps, [], []]
+                order.append(("group", sig))
+            group[1].append(operand)
+            group[2].append(consts)
+        items, deps = [], []
+        for kind, ref in order:
+            if kind == "node":
+                items.append(("node", ref))
+                deps.append(ref)
+                continue
+            steps, members, rows = shapes[ref]
+            if len(members) >= MIN_LOOP:
+                items.append(("loop", steps, _varying_columns(rows)))
+            else:
+                for member in members:
+                    items.append(("node", member))
+                    deps.append(member)
+        # Restore the left-to-right order of single operands relative to each other; loops are
+        # placed where their first member stood. (Ties go to the operand evaluated first.)
+        return deps, items
+
+    def _emit_planned(self, node: Expr, plan, done) -> _Val:
+        deps, items = plan
+        if node.op == "const":
+            return _Val(_lit(node.attr))
+        if node.op == "sym":
+            return self.syms[node.attr]
+        if items is None:
+            return self.op(self.lines, node, [done[id(a)] for a in node.args])
+        chain_items = []
+        for item in items:
+            if item[0] == "node":
+                chain_items.append(("val", done[id(item[1])]))
+            else:
+                _, steps, (table, refs) = item
+                name = self.table(table) if table.shape[1] else None
+                consts = [_lit(v) if kind == "l" else f"{name}[{{row}}, {j}]" for kind, v in refs
+                          for j in [v if kind == "t" else None]]
+                chain_items.append(("loop", steps, consts, table.shape[0]))
+        return self.chain(self.lines, node.op, node.attr, chain_items)
+
+
+_HEADER = '''"""Generated by fastsdf {fastsdf} (numba {numba}, numpy {numpy}, Python {python}).
+
+Expression: {expr}
+Do not edit: the file name is the hash of this content.
+"""
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from fastsdf._intrinsics import select as _sel
+
+'''
+
+_POINT_TEMPLATE = '''
+@njit(cache=True, nogil=True, error_model="numpy")
+def {name}(x, y):
+    """{doc}"""
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return {nan_return}
+{body}
+    return {ret}
+'''
+
+_PAIR_TEMPLATE = '''
+@njit(cache=True, nogil=True, error_model="numpy")
+def {name}(x0, y0, x1, y1):
+    """{doc} at two points at once (finite inputs only; see the batch kernels)."""
+{body}
+    return {ret}
+'''
+
+# Batch kernels walk the points in pairs through the two-lane function: each point's work is
+# one long dependency chain (exp -> log -> next blend), and interleaving two independent chains
+# lets the CPU overlap them. Non-finite points are evaluated at the origin and overwritten.
+_KERNELS = '''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pair_inputs(xs, ys, i, n):
+    j = i + 1 if i + 1 < n else i
+    x0, y0, x1, y1 = xs[i], ys[i], xs[j], ys[j]
+    ok0 = math.isfinite(x0) and math.isfinite(y0)
+    ok1 = math.isfinite(x1) and math.isfinite(y1)
+    if not ok0:
+        x0 = y0 = 0.0
+    if not ok1:
+        x1 = y1 = 0.0
+    return x0, y0, x1, y1, ok0, ok1, j
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _batch_v(xs, ys, out, start, stop, n):
+    for p in range(start, stop):
+        i = 2 * p
+        x0, y0, x1, y1, ok0, ok1, j = _pair_inputs(xs, ys, i, n)
+        d0, d1 = pair_v(x0, y0, x1, y1)
+        out[j] = d1 if ok1 else math.nan
+        out[i] = d0 if ok0 else math.nan
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _batch_vg(xs, ys, out, grad, start, stop, n):
+    for p in range(start, stop):
+        i = 2 * p
+        x0, y0, x1, y1, ok0, ok1, j = _pair_inputs(xs, ys, i, n)
+        d0, gx0, gy0, d1, gx1, gy1 = pair_vg(x0, y0, x1, y1)
+        if not ok1:
+            d1 = gx1 = gy1 = math.nan
+        if not ok0:
+            d0 = gx0 = gy0 = math.nan
+        out[j] = d1
+        grad[j, 0] = gx1
+        grad[j, 1] = gy1
+        out[i] = d0
+        grad[i, 0] = gx0
+        grad[i, 1] = gy0
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def batch_v_par(xs, ys, out, chunks):
+    n = xs.shape[0]
+    pairs = (n + 1) // 2
+    chunks = max(1, min(pairs, chunks))
+    for c in prange(chunks):
+        _batch_v(xs, ys, out, c * pairs // chunks, (c + 1) * pairs // chunks, n)
+
+
+@njit(cache=True, error_model="numpy")
+def batch_v_ser(xs, ys, out):
+    n = xs.shape[0]
+    _batch_v(xs, ys, out, 0, (n + 1) // 2, n)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def batch_vg_par(xs, ys, out, grad, chunks):
+    n = xs.shape[0]
+    pairs = (n + 1) // 2
+    chunks = max(1, min(pairs, chunks))
+    for c in prange(chunks):
+        _batch_vg(xs, ys, out, grad, c * pairs // chunks, (c + 1) * pairs // chunks, n)
+
+
+@njit(cache=True, error_model="numpy")
+def batch_vg_ser(xs, ys, out, grad):
+    n = xs.shape[0]
+    _batch_vg(xs, ys, out, grad, 0, (n + 1) // 2, n)
+'''
+
+_LANE_VARS = re.compile(r"\b([vcw]\d+[a-z]*)\b")
+
+
+def _lane(line: str, k: int) -> str:
+    """Rename one lane's variables: v3 -> v3_1, x -> x1 (loop indices and tables are shared)."""
+    line = _LANE_VARS.sub(lambda mt: f"{mt.group(1)}_{k}", line)
+    return re.sub(r"\b([xy])\b", lambda mt: f"{mt.group(1)}{k}", line)
+
+
+_SHARED_LOOPS = True
+
+
+def _interleave(lines: list, lanes: int = 2) -> list:
+    """Two-lane version of a function body: every statement once per lane, lane after lane, so
+    the two chains are adjacent in the instruction stream; ``for`` loops over tables are shared
+    (both lanes iterate the same rows) and ``if`` blocks are copied whole per lane."""
+    out, i = [], 0
+    while i < len(lines):
+        line = lines[i]
+        indent = len(line) - len(line.lstrip())
+        j = i + 1
+        while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > indent:
+            j += 1
+        block = lines[i + 1:j]
+        if line.lstrip().startswith("for ") and _SHARED_LOOPS:
+            out.append(line)
+            out.extend(_interleave(block, lanes))
+        else:
+            for k in range(lanes):
+                out.extend(_lane(ln, k) for ln in [line] + block)
+        i = j
+    return out
+
+
+def _as_float(expr: str) -> str:
+    """Wrap literal results so that numba types every returned value as float64."""
+    return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
+
+
+def _function_source(root: Expr, symbol_names, grad: bool, tables: dict) -> tuple[str, str]:
+    """Sources of the one-point function and of the two-lane function for the batch kernels."""
+    em = _Emitter(symbol_names, grad, tables)
+    res = em.emit(root)
+    if grad:
+        results = [_as_float(res.v), _as_float(_zero(res.gx)), _as_float(_zero(res.gy))]
+        single = ("point_vg", "Value and gradient (d, dd/dx, dd/dy) at one point.",
+                  "math.nan, math.nan, math.nan")
+        pair = ("pair_vg", "Value and gradient")
+    else:
+        results = [_as_float(res.v)]
+        single = ("point_v", "Value at one point.", "math.nan")
+        pair = ("pair_v", "Value")
+    body = "\n".join("    " + line for line in em.lines) or "    pass"
+    one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
+                                 ret=", ".join(results), nan_return=single[2])
+    body2 = "\n".join("    " + line for line in _interleave(em.lines)) or "    pass"
+    two = _PAIR_TEMPLATE.format(name=pair[0], doc=pair[1], body=body2,
+                                ret=", ".join(_lane(r, k) for k in range(2) for r in results))
+    return one, two
+
+
+def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
+    """Full source of the kernel module for ``root``; also returns each function's source."""
+    tables: dict = {}
+    v_one, v_two = _function_source(root, symbol_names, False, tables)
+    vg_one, vg_two = _function_source(root, symbol_names, True, tables)
+    funcs = {"v": v_one, "vg": vg_one, "pair_v": v_two, "pair_vg": vg_two}
+    parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
+                            python=platform.python_version(),
+                            expr=_short(root).replace('"""', "\'\'\'").replace("\\", "\\\\"))]
+    for (shape, data), name in tables.items():
+        arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
+        rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
+        parts.append(f"{name} = np.array([\n    {rows},\n], dtype=np.float64)\n")
+    parts.extend([v_one, vg_one, v_two, vg_two, _KERNELS])
+    return "\n".join(parts), funcs
+
+
+def _short(root: Expr) -> str:
+    from .graph import _to_str
+    return _to_str(root, limit=300)
+
+
+# ---------------------------------------------------------------------------------------------
+# Input handling shared with grid and particle queries.
+
+def as_points(x, y):
+    """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
+
+    Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
+    """
+    xa, ya = np.asarray(x), np.asarray(y)
+    for name, arr in (("x", xa), ("y", ya)):
+        if arr.dtype.kind not in "iuf":
+            raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype} "
+                            f"(value {_preview(arr)})")
+    if xa.shape != ya.shape:
+        raise ValueError(f"x and y must have the same shape, got x.shape={xa.shape} and "
+                         f"y.shape={ya.shape}")
+    shape = xa.shape if xa.ndim else (1,)
+    xs = np.ascontiguousarray(xa, dtype=np.float64).reshape(-1)
+    ys = np.ascontiguousarray(ya, dtype=np.float64).reshape(-1)
+    return xs, ys, shape
+
+
+def _preview(arr) -> str:
+    text = repr(arr.reshape(-1)[:3].tolist()) if arr.size else "[]"
+    return text if len(text) < 80 else text[:77] + "..."
+
+
+class CompiledSDF:
+    """The compiled kernels of one expression of two coordinates.
+
+    Everything is lazy: the module source is generated on first use, and each numba function
+    compiles (or loads from the disk cache) the first time it is needed.
+    """
+
+    def __init__(self, expr: Expr, symbol_names):
+        self.expr = expr
+        self.symbol_names = tuple(symbol_names)
+        self._source = None
+        self._functions = None
+        self._module = None
+
+    @property
+    def module_source(self) -> str:
+        """The complete generated module (tables, per-point functions, kernels)."""
+        if self._source is None:
+            self._source, self._functions = generate_module_source(self.expr, self.symbol_names)
+        return self._source
+
+    def function_source(self, kind: str = "vg") -> str:
+        """Source of the per-point function: ``kind`` is ``'v'`` (value) or ``'vg'``."""
+        self.module_source  # noqa: B018 - generates on demand
+        return self._functions[_check_kind(kind)]
+
+    @property
+    def module(self):
+        if self._module is None:
+            self._module = load_module(self.module_source, prefix="fastsdf_scene")
+        return self._module
+
+    def point_fn(self, kind: str = "vg"):
+        """The numba dispatcher of the per-point function (``point_v`` or ``point_vg``)."""
+        return getattr(self.module, "point_" + _check_kind(kind))
+
+    def kernel(self, kind: str = "vg", parallel: bool = True):
+        """Batch kernel ``(xs, ys, out[, grad])`` over 1-d float64 arrays."""
+        return getattr(self.module, f"batch_{_check_kind(kind)}_{'par' if parallel else 'ser'}")
+
+    def evaluate(self, x, y, compute_gradient: bool = False):
+        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions."""
+        xs, ys, shape = as_points(x, y)
+        n = xs.shape[0]
+        out = np.empty(n)
+        parallel = n >= PARALLEL_MIN_POINTS
+        extra = (64 * numba.get_num_threads(),) if parallel else ()
+        if compute_gradient:
+            grad = np.empty((n, 2))
+            if n:
+                self.kernel("vg", parallel)(xs, ys, out, grad, *extra)
+            return out.reshape(shape), grad.reshape(shape + (2,))
+        if n:
+            self.kernel("v", parallel)(xs, ys, out, *extra)
+        return out.reshape(shape)
+
+
+def _check_kind(kind: str) -> str:
+    if kind not in ("v", "vg"):
+        raise ValueError(f"kind must be 'v' or 'vg', got kind={kind!r}")
+    return kind
+
+
+def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
+    """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
+    return CompiledSDF(expr, symbol_names)

@@ -1,0 +1,651 @@
+"""Symbolic expression graphs: the cgraph-compatible front end of fastsdf.
+
+An expression is an immutable, hash-consed DAG of :class:`Expr` nodes. Building the same
+subexpression twice returns the same node, so identical subexpressions are shared, symbols with
+the same name are the same object (``Symbol('x') is Symbol('x')``), and constants are folded at
+construction. Every traversal in fastsdf is iterative, so graphs of any depth build, print and
+compile without hitting Python's recursion limit.
+
+The node operations are
+
+    const, sym, add, sub, mul, div, neg, powc (constant exponent), pow, sqrt, exp, log, sin,
+    cos, abs, min, max, length (hypot of two expressions), smin, smax (exponential smooth
+    minimum / maximum with sharpness ``k``).
+
+:class:`Function` binds an expression to two coordinate symbols and evaluates it (value, and the
+analytic gradient) through the compiled kernels of :mod:`fastsdf.codegen`.
+
+Conventions shared by the whole library: distances are in the units of the coordinates, negative
+inside a shape, positive outside; gradients are with respect to the two coordinates, in the order
+the symbols are given to :class:`Function`.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import struct
+import weakref
+
+import numpy as np
+
+__all__ = [
+    "Expr", "Symbol", "Constant", "Function", "as_expr",
+    "sym_sqrt", "sym_exp", "sym_log", "sym_sin", "sym_cos", "sym_abs",
+    "sym_min", "sym_max", "sym_smin", "sym_smax", "sym_length",
+    "evaluate_numpy", "topological_order",
+]
+
+# Operations grouped by arity; attributes (symbol name, constant exponent, smoothness k) are part
+# of a node's identity.
+UNARY_OPS = ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "powc")
+BINARY_OPS = ("add", "sub", "mul", "div", "pow", "min", "max", "length", "smin", "smax")
+LEAF_OPS = ("const", "sym")
+
+_INTERN: "weakref.WeakValueDictionary[tuple, Expr]" = weakref.WeakValueDictionary()
+
+
+def _float_key(value: float) -> bytes:
+    """Bit pattern of a float: distinguishes 0.0 from -0.0 and keeps NaN hashable."""
+    return struct.pack("<d", value)
+
+
+class Expr:
+    """A node of a symbolic expression DAG. Build nodes with operators and ``sym_*`` functions.
+
+    Nodes are immutable and unique: two structurally identical expressions are the same object,
+    so ``==``/``hash`` are identity-based and cheap. ``str(expr)`` gives a readable formula.
+    """
+
+    __slots__ = ("op", "args", "attr", "__weakref__")
+
+    op: str
+    args: tuple
+    attr: object
+
+    def __new__(cls, op: str, args: tuple = (), attr=None):
+        key_attr = _float_key(attr) if op == "const" else attr
+        key = (op, args, key_attr)
+        node = _INTERN.get(key)
+        if node is None:
+            node = object.__new__(cls)
+            object.__setattr__(node, "op", op)
+            object.__setattr__(node, "args", args)
+            object.__setattr__(node, "attr", attr)
+            _INTERN[key] = node
+        return node
+
+    def __setattr__(self, name, value):
+        raise AttributeError("Expr nodes are immutable")
+
+    def __reduce__(self):
+        return (Expr, (self.op, self.args, self.attr))
+
+    # Arithmetic operators build (and fold) new nodes.
+    def __add__(self, other):
+        return _add(self, as_expr(other, "other"))
+
+    def __radd__(self, other):
+        return _add(as_expr(other, "other"), self)
+
+    def __sub__(self, other):
+        return _sub(self, as_expr(other, "other"))
+
+    def __rsub__(self, other):
+        return _sub(as_expr(other, "other"), self)
+
+    def __mul__(self, other):
+        return _mul(self, as_expr(other, "other"))
+
+    def __rmul__(self, other):
+        return _mul(as_expr(other, "other"), self)
+
+    def __truediv__(self, other):
+        return _div(self, as_expr(other, "other"))
+
+    def __rtruediv__(self, other):
+        return _div(as_expr(other, "other"), self)
+
+    def __pow__(self, other):
+        return _pow(self, as_expr(other, "exponent"))
+
+    def __rpow__(self, other):
+        return _pow(as_expr(other, "base"), self)
+
+    def __neg__(self):
+        return _neg(self)
+
+    def __pos__(self):
+        return self
+
+    def __bool__(self):
+        raise TypeError("a symbolic expression has no truth value; use sym_min/sym_max "
+                        "instead of comparisons")
+
+    @property
+    def value(self) -> float:
+        """The value of a constant node (raises ``TypeError`` for other nodes)."""
+        if self.op != "const":
+            raise TypeError(f"{self} is not a constant")
+        return self.attr
+
+    @property
+    def is_const(self) -> bool:
+        return self.op == "const"
+
+    def symbols(self) -> set:
+        """Names of the symbols this expression depends on."""
+        return {n.attr for n in topological_order(self) if n.op == "sym"}
+
+    def __str__(self):
+        return _to_str(self)
+
+    def __repr__(self):
+        return f"Expr({_to_str(self, limit=200)})"
+
+
+def Symbol(name: str) -> Expr:
+    """A named variable. Symbols are identified by name: ``Symbol('x') is Symbol('x')``."""
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ValueError(f"Symbol name must be a Python identifier, got name={name!r}")
+    return Expr("sym", (), name)
+
+
+def Constant(value) -> Expr:
+    """A constant node holding a float64 value."""
+    return as_expr(value, "value")
+
+
+def as_expr(value, name: str = "value") -> Expr:
+    """Return ``value`` as an expression: nodes pass through, real numbers become constants.
+
+    Raises ``TypeError`` naming ``name`` for anything else (strings, complex numbers, arrays).
+    """
+    if isinstance(value, Expr):
+        return value
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        if isinstance(value, np.ndarray) and value.shape == () and np.issubdtype(value.dtype, np.number) \
+                and not np.issubdtype(value.dtype, np.complexfloating):
+            return Expr("const", (), float(value))
+        raise TypeError(f"{name} must be a real number or an expression, got {value!r} "
+                        f"of type {type(value).__name__}")
+    return Expr("const", (), float(value))
+
+
+# ---------------------------------------------------------------------------------------------
+# Constructors with constant folding and light, IEEE-safe simplification (for finite values).
+
+def _both_const(a: Expr, b: Expr) -> bool:
+    return a.op == "const" and b.op == "const"
+
+
+def _fold(fn, *values) -> Expr:
+    with np.errstate(all="ignore"):
+        return Expr("const", (), float(fn(*[np.float64(v) for v in values])))
+
+
+def _is(node: Expr, value: float) -> bool:
+    return node.op == "const" and node.attr == value
+
+
+def _offset(a: Expr):
+    """Split ``a`` into ``(base, c)`` with ``a = base + c`` for a constant ``c`` (else c = 0)."""
+    if a.op in ("add", "sub") and a.args[1].op == "const":
+        c = a.args[1].attr
+        return a.args[0], (c if a.op == "add" else -c)
+    return a, 0.0
+
+
+def _add_const(base: Expr, c: float) -> Expr:
+    if c == 0.0:
+        return base
+    # One canonical form (add a signed constant) so that shapes differing only in the sign of an
+    # offset share generated code; str() prints a negative offset as a subtraction.
+    return Expr("add", (base, Expr("const", (), c)))
+
+
+def _add(a: Expr, b: Expr) -> Expr:
+    if _both_const(a, b):
+        return _fold(np.add, a.attr, b.attr)
+    if _is(a, 0.0):
+        return b
+    if _is(b, 0.0):
+        return a
+    if a.op == "const":
+        a, b = b, a
+    if b.op == "const":
+        # (u + c1) + c2 -> u + (c1 + c2): one operation instead of two, and a canonical form.
+        base, c = _offset(a)
+        return _add_const(base, c + b.attr)
+    if b.op == "neg":
+        return _sub(a, b.args[0])
+    return Expr("add", (a, b))
+
+
+def _sub(a: Expr, b: Expr) -> Expr:
+    if _both_const(a, b):
+        return _fold(np.subtract, a.attr, b.attr)
+    if _is(b, 0.0):
+        return a
+    if _is(a, 0.0):
+        return _neg(b)
+    if b.op == "const":
+        base, c = _offset(a)
+        return _add_const(base, c - b.attr)
+    if b.op == "neg":
+        return _add(a, b.args[0])
+    return Expr("sub", (a, b))
+
+
+def _mul(a: Expr, b: Expr) -> Expr:
+    if _both_const(a, b):
+        return _fold(np.multiply, a.attr, b.attr)
+    # Keep the constant on the right: one canonical form shares more nodes.
+    if a.op == "const":
+        a, b = b, a
+    if b.op == "const":
+        if b.attr == 1.0:
+            return a
+        if b.attr == 0.0:
+            return b  # exact for finite a; non-finite inputs are handled by the kernels
+        if b.attr == -1.0:
+            return _neg(a)
+        if a.op == "neg":
+            return _mul(a.args[0], Expr("const", (), -b.attr))
+        if a.op == "mul" and a.args[1].op == "const":
+            return _mul(a.args[0], _fold(np.multiply, a.args[1].attr, b.attr))
+    return Expr("mul", (a, b))
+
+
+def _div(a: Expr, b: Expr) -> Expr:
+    if _both_const(a, b):
+        return _fold(np.divide, a.attr, b.attr)
+    if _is(b, 1.0):
+        return a
+    if _is(b, -1.0):
+        return _neg(a)
+    return Expr("div", (a, b))
+
+
+def _neg(a: Expr) -> Expr:
+    if a.op == "const":
+        return Expr("const", (), -a.attr)
+    if a.op == "neg":
+        return a.args[0]
+    return Expr("neg", (a,))
+
+
+def _pow(a: Expr, b: Expr) -> Expr:
+    if _both_const(a, b):
+        return _fold(np.power, a.attr, b.attr)
+    if b.op == "const":
+        p = b.attr
+        if p == 1.0:
+            return a
+        if p == 0.0:
+            return Expr("const", (), 1.0)
+        if p == 0.5:
+            return sym_sqrt(a)
+        return Expr("powc", (a,), p)
+    return Expr("pow", (a, b))
+
+
+def _unary(op: str, fn, a, name: str) -> Expr:
+    a = as_expr(a, name)
+    if a.op == "const":
+        return _fold(fn, a.attr)
+    return Expr(op, (a,))
+
+
+def _square_base(node: Expr):
+    """``u`` if ``node`` is ``u**2`` or ``u*u``, else None."""
+    if node.op == "powc" and node.attr == 2.0:
+        return node.args[0]
+    if node.op == "mul" and node.args[0] is node.args[1]:
+        return node.args[0]
+    return None
+
+
+def sym_sqrt(a) -> Expr:
+    """Square root. ``sqrt(u**2 + v**2)`` is recognised and becomes ``length(u, v)``, which does
+    not overflow for huge ``u, v`` and has a defined gradient at ``u = v = 0``."""
+    a = as_expr(a, "a")
+    if a.op == "add":
+        u, v = (_square_base(arg) for arg in a.args)
+        if u is not None and v is not None:
+            return sym_length(u, v)
+    return _unary("sqrt", np.sqrt, a, "a")
+
+
+def sym_exp(a) -> Expr:
+    """Exponential ``e**a``."""
+    return _unary("exp", np.exp, a, "a")
+
+
+def sym_log(a) -> Expr:
+    """Natural logarithm."""
+    return _unary("log", np.log, a, "a")
+
+
+def sym_sin(a) -> Expr:
+    """Sine (radians)."""
+    return _unary("sin", np.sin, a, "a")
+
+
+def sym_cos(a) -> Expr:
+    """Cosine (radians)."""
+    return _unary("cos", np.cos, a, "a")
+
+
+def sym_abs(a) -> Expr:
+    """Absolute value. At ``a = 0`` the gradient is that of ``+a`` (the right-sided one)."""
+    a = as_expr(a, "a")
+    if a.op == "const":
+        return Expr("const", (), abs(a.attr))
+    if a.op in ("abs", "length", "sqrt", "exp"):
+        return a
+    if a.op == "neg":
+        return sym_abs(a.args[0])
+    return Expr("abs", (a,))
+
+
+def sym_min(a, b) -> Expr:
+    """Minimum. At a tie the gradient of ``a`` (the left operand) is returned."""
+    a, b = as_expr(a, "a"), as_expr(b, "b")
+    if _both_const(a, b):
+        return Expr("const", (), a.attr if a.attr <= b.attr else b.attr)
+    if a is b:
+        return a
+    return Expr("min", (a, b))
+
+
+def sym_max(a, b) -> Expr:
+    """Maximum. At a tie the gradient of ``a`` (the left operand) is returned."""
+    a, b = as_expr(a, "a"), as_expr(b, "b")
+    if _both_const(a, b):
+        return Expr("const", (), a.attr if a.attr >= b.attr else b.attr)
+    if a is b:
+        return a
+    return Expr("max", (a, b))
+
+
+def sym_length(a, b) -> Expr:
+    """Euclidean length ``sqrt(a**2 + b**2)`` computed without overflow.
+
+    Where ``a = b = 0`` the gradient is that of ``a`` (for a circle's centre: the local x axis),
+    so it stays finite and, for an SDF, of unit length.
+    """
+    a, b = as_expr(a, "a"), as_expr(b, "b")
+    if _both_const(a, b):
+        return Expr("const", (), float(math.hypot(a.attr, b.attr)))
+    if _is(b, 0.0):
+        return sym_abs(a)
+    if _is(a, 0.0):
+        return sym_abs(b)
+    return Expr("length", (a, b))
+
+
+def _check_k(k, name="k") -> float:
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {k!r} of type {type(k).__name__}")
+    k = float(k)
+    if not math.isfinite(k) or k <= 0.0:
+        raise ValueError(f"{name} must be finite and > 0 for a smooth blend, got {name}={k!r}")
+    return k
+
+
+def _smin_value(a: float, b: float, k: float) -> float:
+    m = min(a, b)
+    return m - math.log1p(math.exp(-k * abs(a - b))) / k
+
+
+def sym_smin(a, b, k) -> Expr:
+    """Exponential smooth minimum ``-log(exp(-k a) + exp(-k b)) / k`` (the notebook's smooth
+    union), evaluated as ``min(a, b) - log1p(exp(-k |a - b|)) / k`` so that it never overflows.
+
+    ``k > 0`` is the sharpness in 1/distance units; the blend deepens the result by at most
+    ``log(2) / k``.
+    """
+    a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
+    if _both_const(a, b):
+        return Expr("const", (), _smin_value(a.attr, b.attr, k))
+    return Expr("smin", (a, b), k)
+
+
+def sym_smax(a, b, k) -> Expr:
+    """Exponential smooth maximum ``log(exp(k a) + exp(k b)) / k`` (the notebook's smooth
+    intersection), evaluated as ``max(a, b) + log1p(exp(-k |a - b|)) / k``."""
+    a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
+    if _both_const(a, b):
+        return Expr("const", (), -_smin_value(-a.attr, -b.attr, k))
+    return Expr("smax", (a, b), k)
+
+
+# ---------------------------------------------------------------------------------------------
+# Traversal and printing (iterative: no recursion-depth limit).
+
+def topological_order(root: Expr) -> list:
+    """All nodes reachable from ``root``, each once, children before parents."""
+    order, seen = [], set()
+    stack = [(root, False)]
+    while stack:
+        node, expanded = stack.pop()
+        if expanded:
+            order.append(node)
+            continue
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        stack.append((node, True))
+        for arg in reversed(node.args):
+            if id(arg) not in seen:
+                stack.append((arg, False))
+    return order
+
+
+_INFIX = {"add": "+", "sub": "-", "mul": "*", "div": "/", "pow": "**"}
+
+
+def _to_str(root: Expr, limit: int | None = None) -> str:
+    text = {}
+    for node in topological_order(root):
+        op, args = node.op, [text[id(a)] for a in node.args]
+        if op == "const":
+            s = repr(node.attr) if not node.attr.is_integer() or abs(node.attr) >= 1e16 \
+                else str(int(node.attr))
+            if node.attr < 0 or (node.attr == 0 and math.copysign(1, node.attr) < 0):
+                s = f"({s})"
+        elif op == "sym":
+            s = node.attr
+        elif op == "add" and node.args[1].op == "const" and node.args[1].attr < 0:
+            s = f"({args[0]} - {_to_str(Expr('const', (), -node.args[1].attr))})"
+        elif op in _INFIX:
+            s = f"({args[0]} {_INFIX[op]} {args[1]})"
+        elif op == "neg":
+            s = f"(-{args[0]})"
+        elif op == "powc":
+            p = node.attr
+            ps = str(int(p)) if p.is_integer() else repr(p)
+            base = args[0]
+            if not (node.args[0].op in ("sym", "const") or base.startswith("(")):
+                base = f"({base})"
+            s = f"{base}**{ps}"
+        elif op in ("smin", "smax"):
+            s = f"{op}({args[0]}, {args[1]}; k={node.attr:g})"
+        else:
+            s = f"{op}({', '.join(args)})"
+        text[id(node)] = s
+    out = text[id(root)]
+    if limit is not None and len(out) > limit:
+        out = out[:limit - 3] + "..."
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Reference evaluation with NumPy (the seed's approach: one array operation per node).
+
+def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False):
+    """Evaluate ``root`` with NumPy, one whole-array operation per node.
+
+    ``symbols`` maps symbol names to arrays of equal shape. With ``compute_gradient`` the result
+    is ``(value, [d/d s for s in symbol order])`` by forward-mode differentiation. This is the
+    independent reference the compiled kernels are tested against, and the baseline the
+    benchmarks time them against; it follows the same tie rules as the kernels.
+    """
+    names = list(symbols)
+    shape = np.broadcast(*[np.asarray(v) for v in symbols.values()]).shape
+    zero = np.zeros(shape)
+    val, grad = {}, {}
+    with np.errstate(all="ignore"):
+        for node in topological_order(root):
+            i, op, a = id(node), node.op, node.args
+            av = [val[id(c)] for c in a]
+            ag = [grad[id(c)] for c in a] if compute_gradient else None
+            if op == "const":
+                v = np.full(shape, node.attr)
+                g = [zero] * len(names)
+            elif op == "sym":
+                if node.attr not in symbols:
+                    raise ValueError(f"no value given for symbol {node.attr!r}")
+                v = np.broadcast_to(np.asarray(symbols[node.attr], dtype=np.float64), shape)
+                g = [np.ones(shape) if n == node.attr else zero for n in names]
+            else:
+                v, g = _np_op(node, av, ag, compute_gradient)
+            val[i] = v
+            if compute_gradient:
+                grad[i] = g
+    if compute_gradient:
+        return val[id(root)], grad[id(root)]
+    return val[id(root)]
+
+
+def _np_op(node, av, ag, with_grad):
+    op = node.op
+    x = av[0]
+    y = av[1] if len(av) > 1 else None
+    gx = ag[0] if with_grad else None
+    gy = ag[1] if with_grad and len(ag) > 1 else None
+
+    def lin(ca, cb=None):
+        if not with_grad:
+            return None
+        if cb is None:
+            return [ca * g for g in gx]
+        return [ca * g1 + cb * g2 for g1, g2 in zip(gx, gy)]
+
+    if op == "add":
+        return x + y, lin(1.0, 1.0)
+    if op == "sub":
+        return x - y, lin(1.0, -1.0)
+    if op == "mul":
+        return x * y, lin(y, x)
+    if op == "div":
+        return x / y, lin(1.0 / y, -x / (y * y))
+    if op == "neg":
+        return -x, lin(-1.0)
+    if op == "powc":
+        p = node.attr
+        return x ** p, lin(p * x ** (p - 1.0))
+    if op == "pow":
+        v = x ** y
+        return v, lin(y * x ** (y - 1.0), v * np.log(x))
+    if op == "sqrt":
+        v = np.sqrt(x)
+        return v, lin(np.where(v > 0, 0.5 / np.where(v > 0, v, 1.0), 0.0))
+    if op == "exp":
+        v = np.exp(x)
+        return v, lin(v)
+    if op == "log":
+        return np.log(x), lin(1.0 / x)
+    if op == "sin":
+        return np.sin(x), lin(np.cos(x))
+    if op == "cos":
+        return np.cos(x), lin(-np.sin(x))
+    if op == "abs":
+        return np.abs(x), lin(np.where(x >= 0, 1.0, -1.0))
+    if op in ("min", "max"):
+        pick_a = (x <= y) if op == "min" else (x >= y)
+        v = np.where(pick_a, x, y)
+        return v, lin(pick_a * 1.0, 1.0 - pick_a)
+    if op == "length":
+        v = np.hypot(x, y)
+        safe = np.where(v > 0, v, 1.0)
+        zero = v == 0
+        return v, lin(np.where(zero, 1.0, x / safe), np.where(zero, 0.0, y / safe))
+    if op in ("smin", "smax"):
+        k = node.attr
+        s = 1.0 if op == "smin" else -1.0
+        xa, ya = s * x, s * y  # smax(a, b) = -smin(-a, -b)
+        m = np.minimum(xa, ya)
+        e = np.exp(-k * np.abs(xa - ya))
+        v = s * (m - np.log1p(e) / k)
+        w_a = np.where(xa <= ya, 1.0 / (1.0 + e), e / (1.0 + e))
+        return v, lin(w_a, 1.0 - w_a)
+    raise NotImplementedError(op)
+
+
+# ---------------------------------------------------------------------------------------------
+# Functions: an expression bound to two coordinate symbols, evaluated by compiled kernels.
+
+class Function:
+    """An expression of two coordinates, callable on points.
+
+    ``Function(expr, [x, y])`` binds ``expr`` to the symbols ``x`` and ``y`` (any two distinct
+    symbols, in this order). ``f(x, y)`` returns the value at every point as float64 array of
+    shape ``(n,)`` (a scalar input gives shape ``(1,)``; an N-d input keeps its shape);
+    ``f(x, y, compute_gradient=True)`` returns ``(d, grad)`` with ``grad[..., 0] = df/dx`` and
+    ``grad[..., 1] = df/dy``. Inputs may be any real dtype (float32 included); all arithmetic is
+    done in float64. A point with a NaN or infinite coordinate gets NaN value and gradient; the
+    other points are unaffected.
+
+    Evaluation runs in a numba kernel generated for this expression (see :mod:`fastsdf.codegen`),
+    compiled on first use and cached on disk; ``source()`` shows the generated Python code and
+    ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
+    """
+
+    def __init__(self, f, symbols):
+        f = as_expr(f, "f")
+        try:
+            symbols = list(symbols)
+        except TypeError:
+            raise TypeError(f"symbols must be a list of two Symbols, got {symbols!r}") from None
+        if len(symbols) != 2 or not all(isinstance(s, Expr) and s.op == "sym" for s in symbols):
+            raise ValueError(f"symbols must be a list of two Symbols, got symbols={symbols!r}")
+        if symbols[0] is symbols[1]:
+            raise ValueError(f"symbols must be two distinct Symbols, got {symbols[0]} twice")
+        unknown = f.symbols() - {s.attr for s in symbols}
+        if unknown:
+            raise ValueError(f"expression depends on symbols {sorted(unknown)} that are not "
+                             f"among symbols={[s.attr for s in symbols]}")
+        self.f = f
+        self.symbols = symbols
+        self._compiled = None
+
+    # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
+    @property
+    def compiled(self):
+        """The :class:`fastsdf.codegen.CompiledSDF` for this function (created on first use)."""
+        if self._compiled is None:
+            from .codegen import compile_expr
+            self._compiled = compile_expr(self.f, [s.attr for s in self.symbols])
+        return self._compiled
+
+    @property
+    def point_fn(self):
+        """Compiled ``@njit`` function ``(x, y) -> (d, ddx, ddy)`` for one point (float64)."""
+        return self.compiled.point_fn("vg")
+
+    @property
+    def point_value_fn(self):
+        """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64)."""
+        return self.compiled.point_fn("v")
+
+    def source(self, gradient: bool = True) -> str:
+        """The generated Python source of the per-point function (with gradient by default)."""
+        return self.compiled.function_source("vg" if gradient else "v")
+
+    def __call__(self, x, y, compute_gradient=False):
+        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient))
+
+    def __repr__(self):
+        return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"

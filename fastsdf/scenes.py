@@ -1,0 +1,39 @@
+"""The notebook's worlds, as reusable builders (used by the demo, the benchmarks and tests)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .shapes import SDF, Box, Circle, Halfspace, smoothness, transform
+
+__all__ = ["funnel", "seed_world", "box_world"]
+
+
+def funnel() -> SDF:
+    """The notebook's floor: three half-spaces forming a funnel (cells 13, 18 and 21)."""
+    return (Halfspace(normal=[0, 1], d=-1.8) | Halfspace(normal=[1, 1], d=-1.8)
+            | Halfspace(normal=[-1, 1], d=-1.8))
+
+
+def seed_world() -> SDF:
+    """Notebook cell 21: the funnel, smoothly united (k=10) with a cut disc."""
+    f = funnel()
+    with smoothness(10):
+        f |= Circle(center=[0, 0.0], radius=0.5) & Halfspace(normal=[0.1, 1], d=0.3)
+    return f
+
+
+def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
+    """Notebook cell 13: the funnel and ``n_boxes`` random rotated boxes, united with
+    smoothness 5. The random draws follow the notebook (angle in [-0.8, 0.8], offset in
+    [-2, 2]^2, corners in [-0.3, -0.1] and [0.1, 0.3]) from ``numpy.random.default_rng(seed)``.
+    """
+    if int(n_boxes) != n_boxes or n_boxes < 0:
+        raise ValueError(f"n_boxes must be a non-negative integer, got n_boxes={n_boxes!r}")
+    rng = np.random.default_rng(seed)
+    f = funnel()
+    for _ in range(int(n_boxes)):
+        with transform(angle=rng.uniform(-0.8, 0.8), offset=rng.uniform(-2, 2, size=2)), \
+                smoothness(5):
+            f |= Box(minc=rng.uniform(-0.3, -0.1, size=2), maxc=rng.uniform(0.1, 0.3, size=2))
+    return f
