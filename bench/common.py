@@ -1,0 +1,125 @@
+"""Shared helpers for benchmark sections: timing, machine facts, markdown tables, progress.
+
+Every speed figure in fastsdf's docs is a median of repeats after warm-up, measured side by side
+with its baseline in the same process (absolute times drift on shared machines; ratios hold).
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def timeit(fn, *args, repeats: int = 5, warmup: int = 1, min_time: float = 0.0):
+    """Run ``fn(*args)`` ``warmup`` times, then ``repeats`` times (more if ``min_time`` seconds
+    have not passed). Returns ``(median_seconds, spread)`` where spread is (max-min)/median."""
+    for _ in range(warmup):
+        fn(*args)
+    times = []
+    start = time.perf_counter()
+    while len(times) < repeats or (time.perf_counter() - start) < min_time:
+        t0 = time.perf_counter()
+        fn(*args)
+        times.append(time.perf_counter() - t0)
+        if len(times) > 1000:
+            break
+    times = np.asarray(times)
+    med = float(np.median(times))
+    return med, float((times.max() - times.min()) / med) if med > 0 else 0.0
+
+
+def fmt_rate(per_second: float, unit: str = "") -> str:
+    """Human-readable rate, e.g. '41.3 M'."""
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if per_second >= scale:
+            return f"{per_second / scale:.3g} {suffix}{unit}"
+    return f"{per_second:.3g} {unit}"
+
+
+def table(headers, rows) -> str:
+    """A markdown table."""
+    out = ["| " + " | ".join(headers) + " |", "|" + "|".join(" --- " for _ in headers) + "|"]
+    for row in rows:
+        out.append("| " + " | ".join(str(c) for c in row) + " |")
+    return "\n".join(out)
+
+
+def machine_info() -> dict:
+    """Facts every results table is stamped with."""
+    import numba
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {
+        "date": datetime.date.today().isoformat(),
+        "cores": os.cpu_count(),
+        "cpu": cpu,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "numba": numba.__version__,
+        "numba_threads": numba.get_num_threads(),
+    }
+
+
+def stamp(command: str) -> str:
+    """A line saying how and where a table was produced."""
+    m = machine_info()
+    return (f"_Command: `{command}`; {m['date']}; {m['cores']} cores ({m['cpu']}); "
+            f"Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}._")
+
+
+def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) -> str:
+    """Run ``code`` in a fresh Python process (for cold compile timings); returns its stdout."""
+    full_env = dict(os.environ)
+    full_env.update(env or {})
+    repo = os.path.dirname(HERE)
+    full_env["PYTHONPATH"] = repo + os.pathsep + full_env.get("PYTHONPATH", "")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=full_env, timeout=timeout)
+    if res.returncode != 0:
+        raise RuntimeError(f"fresh process failed:\n{res.stderr[-3000:]}")
+    return res.stdout
+
+
+class Progress:
+    """A minimal progress bar on stderr (no dependency): ``with Progress(n, 'label') as p: p.step()``."""
+
+    def __init__(self, total: int, label: str = ""):
+        self.total, self.label, self.done = max(1, total), label, 0
+        self.t0 = time.perf_counter()
+
+    def __enter__(self):
+        self._draw()
+        return self
+
+    def step(self, note: str = ""):
+        self.done += 1
+        self._draw(note)
+
+    def _draw(self, note: str = ""):
+        width = 30
+        filled = int(width * self.done / self.total)
+        bar = "#" * filled + "-" * (width - filled)
+        elapsed = time.perf_counter() - self.t0
+        sys.stderr.write(f"\r{self.label:<24} [{bar}] {self.done}/{self.total} "
+                         f"{elapsed:6.1f}s {note[:40]:<40}")
+        sys.stderr.flush()
+
+    def __exit__(self, *exc):
+        sys.stderr.write("\n")
+        sys.stderr.flush()
