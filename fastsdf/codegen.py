@@ -487,9 +487,11 @@ def {name}(x0, y0, x1, y1):
     return {ret}
 '''
 
-# Batch kernels walk the points in pairs through the two-lane function: each point's work is
-# one long dependency chain (exp -> log -> next blend), and interleaving two independent chains
-# lets the CPU overlap them. Non-finite points are evaluated at the origin and overwritten.
+# The parallel kernels walk the points in pairs through the two-lane function: each point's
+# work is one long dependency chain (exp -> log -> next blend), and interleaving two independent
+# chains lets the CPU overlap them. Non-finite points are evaluated at the origin and
+# overwritten. The serial kernels (small inputs) use the one-point function, which compiles in
+# about half the time.
 _KERNELS = '''
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -544,8 +546,8 @@ def batch_v_par(xs, ys, out, chunks):
 
 @njit(cache=True, error_model="numpy")
 def batch_v_ser(xs, ys, out):
-    n = xs.shape[0]
-    _batch_v(xs, ys, out, 0, (n + 1) // 2, n)
+    for i in range(xs.shape[0]):
+        out[i] = point_v(xs[i], ys[i])
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -559,8 +561,11 @@ def batch_vg_par(xs, ys, out, grad, chunks):
 
 @njit(cache=True, error_model="numpy")
 def batch_vg_ser(xs, ys, out, grad):
-    n = xs.shape[0]
-    _batch_vg(xs, ys, out, grad, 0, (n + 1) // 2, n)
+    for i in range(xs.shape[0]):
+        d, gx, gy = point_vg(xs[i], ys[i])
+        out[i] = d
+        grad[i, 0] = gx
+        grad[i, 1] = gy
 '''
 
 _LANE_VARS = re.compile(r"\b([vcw]\d+[a-z]*)\b")

@@ -58,6 +58,8 @@ class Expr:
     """
 
     __slots__ = ("op", "args", "attr", "__weakref__")
+    # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
+    __array_ufunc__ = None
 
     op: str
     args: tuple
