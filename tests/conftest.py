@@ -33,5 +33,6 @@ def brute_distance(points, boundary):
 
 
 def rotate(points, angle):
+    """Rotate row-vector points counter-clockwise by ``angle`` radians."""
     c, s = np.cos(angle), np.sin(angle)
     return points @ np.array([[c, s], [-s, c]])
