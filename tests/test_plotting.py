@@ -1,4 +1,4 @@
-"""Plotting SDFs: plot_sdf."""
+"""Plotting and particle rendering: plot_sdf, density_image, draw_particles."""
 
 import itertools
 
@@ -8,13 +8,18 @@ matplotlib.use("Agg")
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+from matplotlib.collections import EllipseCollection  # noqa: E402
 from matplotlib.colors import to_rgba  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.image import AxesImage  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
 from fastsdf import plotting  # noqa: E402
 from fastsdf.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf  # noqa: E402
+from fastsdf.render import ParticleLayer, density_image, draw_particles  # noqa: E402
 
 BOUNDS = [(-2, 2), (-2, 2)]
 
@@ -172,3 +177,145 @@ def test_plot_sdf_rejects_bad_arguments(kwargs, name):
 def test_plot_sdf_is_exported():
     assert sdf.plot_sdf is plotting.plot_sdf
     assert "plot_sdf" in sdf.__all__
+
+
+# ---------------------------------------------------------------------------------------------
+# density_image
+
+def test_density_image_known_pixels_and_edges():
+    bounds = [(0, 4), (0, 2)]  # unit pixels: 4 columns along x, 2 rows along y
+    pts = {(0.0, 0.0): (0, 0), (4.0, 2.0): (1, 3), (1.0, 0.5): (0, 1), (0.999, 0.999): (0, 0),
+           (3.999, 1.999): (1, 3), (0.5, 1.5): (1, 0), (2.0, 1.0): (1, 2), (4.0, 0.0): (0, 3)}
+    for (x, y), (i, j) in pts.items():
+        img = density_image([x], [y], bounds, shape=(2, 4))
+        expected = np.zeros((2, 4))
+        expected[i, j] = 1.0
+        assert np.array_equal(img, expected), (x, y)
+
+
+def test_density_image_drops_outside_and_non_finite_points():
+    bounds = [(0, 4), (0, 2)]
+    x = np.array([-1e-9, 4 + 1e-9, 1.0, 1.0, np.nan, 1.0, np.inf, -np.inf, 2.0])
+    y = np.array([1.0, 1.0, -1e-9, 2 + 1e-9, 1.0, np.nan, 1.0, 1.0, 1.0])
+    img = density_image(x, y, bounds, shape=(2, 4))
+    assert img.sum() == 1.0 and img[1, 2] == 1.0
+
+
+@pytest.mark.parametrize("parallel", [None, False, True])
+def test_density_image_counts_every_point_inside_once(parallel):
+    rng = np.random.default_rng(1)
+    n = 50_000
+    x, y = rng.uniform(-3, 3, n), rng.normal(0, 1.5, n)
+    x[::97] = np.nan
+    # Points exactly on pixel edges (multiples of 4/64 are exact in binary).
+    x[1::50] = rng.integers(-32, 33, x[1::50].size) / 16.0
+    y[1::50] = rng.integers(-32, 33, y[1::50].size) / 16.0
+    img = density_image(x, y, BOUNDS, shape=(64, 64), parallel=parallel)
+    inside = (x >= -2) & (x <= 2) & (y >= -2) & (y <= 2)
+    assert img.sum() == inside.sum()
+    ref, _, _ = np.histogram2d(x[inside], y[inside], bins=(64, 64), range=BOUNDS)
+    assert np.array_equal(img, ref.T)
+
+
+def test_density_image_weights_and_shapes():
+    x = np.array([[0.1, 0.1], [1.5, -1.5]])
+    y = np.array([[0.1, 0.1], [1.5, -1.5]])
+    w = np.array([[2.0, 0.5], [1.0, -3.0]])
+    img = density_image(x, y, BOUNDS, shape=(4, 4), weights=w)
+    assert img[2, 2] == 2.5 and img[3, 3] == 1.0 and img[0, 0] == -3.0
+    assert img.sum() == 0.5
+    assert density_image([], [], BOUNDS, (3, 5)).shape == (3, 5)
+
+
+def test_density_image_accepts_strided_views():
+    p = np.zeros(1000, dtype=[("x", float, 2), ("r", float)])
+    rng = np.random.default_rng(2)
+    p["x"] = rng.uniform(-2, 2, (1000, 2))
+    img = density_image(p["x"][:, 0], p["x"][:, 1], BOUNDS, (8, 8))
+    ref = density_image(p["x"][:, 0].copy(), p["x"][:, 1].copy(), BOUNDS, (8, 8))
+    assert np.array_equal(img, ref) and img.sum() == 1000
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-3, 3), st.floats(-3, 3)), max_size=40),
+       st.integers(1, 9), st.integers(1, 9))
+def test_density_image_is_histogram2d(points, h, w):
+    xy = np.array(points, dtype=float).reshape(-1, 2)
+    img = density_image(xy[:, 0], xy[:, 1], [(-1, 2), (-2, 1.5)], shape=(h, w))
+    ref, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=(w, h), range=[(-1, 2), (-2, 1.5)])
+    assert np.array_equal(img, ref.T)
+
+
+@pytest.mark.parametrize("kwargs,name", [
+    (dict(shape=(0, 4)), "shape"), (dict(shape=4), "shape"), (dict(shape=(2.0, 4)), "shape"),
+    (dict(bounds=[(0, 0), (0, 1)]), "bounds"), (dict(weights=[1.0]), "weights"),
+])
+def test_density_image_rejects_bad_arguments(kwargs, name):
+    args = dict(bounds=BOUNDS, shape=(4, 4))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=name):
+        density_image([0.0, 1.0], [0.0, 1.0], **args)
+    with pytest.raises(ValueError, match="same number"):
+        density_image([0.0, 1.0], [0.0], BOUNDS)
+
+
+# ---------------------------------------------------------------------------------------------
+# draw_particles
+
+def test_draw_particles_circles_then_update():
+    fig, ax = new_axes()
+    plot_sdf(fig, ax, NumpyCircle(), samples=20, show_quiver=False, filled=True)
+    x, y = np.array([0.0, 1.0, -1.0]), np.array([1.5, 1.5, 1.5])
+    layer = draw_particles(ax, x, y, r=np.array([0.1, 0.2, 0.3]))
+    assert isinstance(layer, ParticleLayer) and layer.mode == "circles"
+    assert isinstance(layer.artist, EllipseCollection)
+    assert np.allclose(layer.artist.get_offsets(), np.column_stack([x, y]))
+    assert np.allclose(layer.artist.get_widths(), [0.2, 0.4, 0.6])
+    assert np.allclose(layer.artist.get_heights(), [0.2, 0.4, 0.6])
+    first = layer.artist
+    (artist,) = layer.update(x + 0.5, y - 1.0)  # radii kept
+    assert artist is first and artist is layer.artist
+    assert np.allclose(artist.get_offsets(), np.column_stack([x + 0.5, y - 1.0]))
+    assert np.allclose(artist.get_widths(), [0.2, 0.4, 0.6])
+    layer.update(x, y, r=0.5)
+    assert layer.artist is first and np.allclose(first.get_widths(), 1.0)
+    fig.canvas.draw()
+    # Without radii: dots of a fixed size in points.
+    dots = draw_particles(ax, x, y)
+    assert dots.mode == "circles" and np.allclose(dots.artist.get_widths(), 4.0)
+
+
+def test_draw_particles_density_image_and_mode_switch():
+    fig, ax = new_axes()
+    plot_sdf(fig, ax, NumpyCircle(), samples=20, show_quiver=False, filled=True)
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(0, 0.3, 2000), rng.normal(1.0, 0.3, 2000)
+    layer = draw_particles(ax, x, y, max_circles=100, shape=(40, 40))
+    assert layer.mode == "density" and isinstance(layer.artist, AxesImage)
+    assert np.array_equal(layer.image, density_image(x, y, BOUNDS, (40, 40)))
+    data = layer.artist.get_array()
+    assert np.array_equal(data.filled(0), density_image(x, y, BOUNDS, (40, 40)))
+    assert np.array_equal(np.ma.getmaskarray(data), data.filled(0) == 0)  # empty: transparent
+    assert layer.artist.get_extent() == [-2, 2, -2, 2]
+    assert layer.artist.get_zorder() > 2  # above the SDF's fill and lines
+    image = layer.artist
+    layer.update(x + 0.5, y)
+    assert layer.artist is image  # updated in place
+    assert np.array_equal(layer.artist.get_array().filled(0),
+                          density_image(x + 0.5, y, BOUNDS, (40, 40)))
+    assert layer.artist.norm.vmax == layer.image.max()
+    fig.canvas.draw()
+    # Fewer particles than max_circles: the image goes, circles come.
+    layer.update(x[:10], y[:10], r=0.05)
+    assert layer.mode == "circles" and len(ax.images) == 0 and layer.artist in ax.collections
+    layer.remove()
+    assert layer.artist is None and not any(isinstance(c, EllipseCollection)
+                                            for c in ax.collections)
+
+
+def test_draw_particles_default_shape_follows_axes_pixels():
+    fig, ax = new_axes(figsize=(4, 4))  # dpi 50: the axes box is ~150 px square
+    plot_sdf(fig, ax, NumpyCircle(), samples=10, show_quiver=False, show_isolines=None)
+    layer = draw_particles(ax, np.zeros(10), np.zeros(10), max_circles=0)
+    box = ax.get_window_extent()
+    assert layer.shape == (round(box.height), round(box.width))
