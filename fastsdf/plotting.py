@@ -2,7 +2,8 @@
 
 :func:`plot_sdf` draws an SDF on an axes: contour lines of the distance (all levels, or only the
 zero level, the surface), optional labels on them, an optional quiver of the gradient coloured by
-the distance, and an optional filled inside/outside view.
+the distance, and an optional filled inside/outside view. :func:`render_frame` puts an SDF and a
+set of particles into one figure and saves it as a PNG (the last frame of a demo).
 
 The SDF can be anything callable as ``f(x, y, compute_gradient=...)`` that returns the distance
 (negative inside, positive outside) for arrays of coordinates and, with ``compute_gradient=True``,
@@ -10,7 +11,7 @@ The SDF can be anything callable as ``f(x, y, compute_gradient=...)`` that retur
 :class:`fastsdf.graph.Function` (every shape of :mod:`fastsdf.shapes`), a grid-sampled SDF, or a
 plain Python function.
 
-matplotlib is imported on first use, so ``import fastsdf`` stays
+matplotlib (and numba, for the particles) is imported on first use, so ``import fastsdf`` stays
 light.
 """
 
@@ -20,7 +21,7 @@ import numbers
 
 import numpy as np
 
-__all__ = ["plot_sdf", "sdf_grid", "check_bounds",
+__all__ = ["plot_sdf", "render_frame", "sdf_grid", "check_bounds",
            "SOLID_COLOR", "BACKGROUND_COLOR", "ISOLINE_OPTIONS", "QUIVER_ARROWS"]
 
 #: Colour of the solid region (``d < 0``) in the filled view (``plot_sdf(..., filled=True)``).
@@ -154,3 +155,38 @@ def plot_sdf(fig, ax, f, bounds=[(-2, 2), (-2, 2)], samples=200, show_quiver=Tru
         ret['quiver'] = ax.quiver(X, Y, grad[::sy, ::sx, 0], grad[::sy, ::sx, 1],
                                   d[::sy, ::sx], zorder=3)
     return ret
+
+
+def render_frame(f, x, y, r=None, bounds=[(-2, 2), (-2, 2)], out_png=None, title=None,
+                 samples=400, max_circles=None, figsize=(6.0, 6.0), dpi=100):
+    """Draw the SDF ``f`` and particles at ``(x, y)`` in one figure and save it as a PNG.
+
+    The figure shows ``f``'s filled view (solid in :data:`SOLID_COLOR`, free space in
+    :data:`BACKGROUND_COLOR`) with its zero contour, over ``bounds`` (data units, sampled
+    ``samples`` times per axis), and the particles on top via
+    :func:`fastsdf.render.draw_particles`: circles of radius ``r`` (data units; scalar or per
+    particle) up to ``max_circles`` particles (default
+    :data:`fastsdf.render.DEFAULT_MAX_CIRCLES`), a density image above that. ``title`` is the
+    axes title. The figure is ``figsize`` inches at ``dpi``; if ``out_png`` is given it is saved
+    there at that dpi (no cropping, so the axes' ``transData`` maps data coordinates to the
+    PNG's pixels, with y counted from the bottom).
+
+    Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
+    closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
+    """
+    from matplotlib.figure import Figure
+
+    from .render import DEFAULT_MAX_CIRCLES, draw_particles
+
+    fig = Figure(figsize=figsize, dpi=dpi)
+    ax = fig.add_subplot()
+    plot_sdf(fig, ax, f, bounds=bounds, samples=samples, show_quiver=False,
+             show_isolines='zero', filled=True)
+    layer = draw_particles(ax, x, y, r=r, bounds=bounds,
+                           max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles)
+    fig.particle_layer = layer
+    if title is not None:
+        ax.set_title(title)
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig

@@ -1,4 +1,4 @@
-"""Plotting and particle rendering: plot_sdf, density_image, draw_particles."""
+"""Plotting and particle rendering: plot_sdf, density_image, draw_particles, render_frame."""
 
 import itertools
 
@@ -6,19 +6,20 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+import matplotlib.image as mpimg  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.collections import EllipseCollection  # noqa: E402
-from matplotlib.colors import to_rgba  # noqa: E402
+from matplotlib.colors import to_rgb, to_rgba  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.image import AxesImage  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
-from fastsdf import plotting  # noqa: E402
-from fastsdf.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf  # noqa: E402
+from fastsdf import plotting, render  # noqa: E402
+from fastsdf.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf, render_frame  # noqa: E402
 from fastsdf.render import ParticleLayer, density_image, draw_particles  # noqa: E402
 
 BOUNDS = [(-2, 2), (-2, 2)]
@@ -27,6 +28,12 @@ BOUNDS = [(-2, 2), (-2, 2)]
 @pytest.fixture(scope="module")
 def circle():
     return sdf.Circle(center=[0.3, -0.2], radius=1.0)
+
+
+@pytest.fixture(scope="module")
+def world():
+    """A floor (y < -1.5) with a disc on it: solid at the bottom, free space above."""
+    return sdf.Halfspace(normal=[0, 1], d=-1.5) | sdf.Circle(center=[1.2, -1.2], radius=0.4)
 
 
 def new_axes(figsize=(4, 4)):
@@ -319,3 +326,40 @@ def test_draw_particles_default_shape_follows_axes_pixels():
     layer = draw_particles(ax, np.zeros(10), np.zeros(10), max_circles=0)
     box = ax.get_window_extent()
     assert layer.shape == (round(box.height), round(box.width))
+
+
+# ---------------------------------------------------------------------------------------------
+# render_frame
+
+def pixel(fig, img, x, y):
+    """The PNG pixel (RGB) that shows data point (x, y) of the figure's axes."""
+    px, py = fig.axes[0].transData.transform((x, y))
+    return img[int(img.shape[0] - py), int(px), :3]
+
+
+@pytest.mark.parametrize("n,max_circles", [(20_000, None), (200, None)])
+def test_render_frame_png_shows_solid_and_particles(world, tmp_path, n, max_circles):
+    rng = np.random.default_rng(4)
+    x, y = rng.normal(-0.5, 0.15, n), rng.normal(0.5, 0.15, n)
+    out = tmp_path / "frame.png"
+    fig = render_frame(world, x, y, r=0.03, bounds=BOUNDS, out_png=str(out), title="frame",
+                       samples=120, max_circles=max_circles, figsize=(4, 4), dpi=80)
+    assert fig.particle_layer.mode == ("density" if n > 5000 else "circles")
+    img = mpimg.imread(str(out))
+    assert img.shape[:2] == (320, 320)
+    assert fig.axes[0].get_title() == "frame"
+    # Inside the floor and inside the disc: the solid colour.
+    for p in [(0.0, -1.8), (-1.5, -1.9), (1.2, -1.2)]:
+        assert np.allclose(pixel(fig, img, *p), to_rgb(SOLID_COLOR), atol=2 / 255), p
+    # Free space far from the particles: the background.
+    for p in [(1.5, 1.5), (-1.6, 1.7)]:
+        assert np.allclose(pixel(fig, img, *p), to_rgb(BACKGROUND_COLOR), atol=2 / 255), p
+    # The particles' cluster above the floor: orange-brown, neither background nor solid.
+    r, g, b = pixel(fig, img, -0.5, 0.5)
+    assert r > g + 0.2 and r > b + 0.3, (r, g, b)
+
+
+def test_render_frame_without_png_returns_figure(world):
+    fig = render_frame(world, [0.0], [0.0], r=0.1, samples=20, figsize=(2, 2), dpi=40)
+    assert isinstance(fig, Figure) and fig.particle_layer.mode == "circles"
+    assert render.DEFAULT_MAX_CIRCLES == 5000
