@@ -145,7 +145,41 @@ def _throughput(quick: bool):
                    f"(timed on {min(n, 200_000):,} points in the same run).")
 
 
+def _jax(quick: bool):
+    """JAX ``jit(vmap(value_and_grad))`` of the same graphs, if JAX is installed."""
+    from .peers import jax_value_and_grad, time_first_call
+
+    fn, err = jax_value_and_grad(seed_world().f)
+    if fn is None:
+        return (f"JAX is not installed ({err}); install the `peers` extra "
+                f"(`pip install -e '.[peers]'`) to add this comparison.")
+    rows = []
+    cases = [("seed world (cell 21)", seed_world(), 1_000_000), ("5-box world", box_world(5), 100_000),
+             ("20-box world (cell 13)", box_world(20), 100_000)]
+    if quick:
+        cases = cases[:2]
+    for name, f, n in cases:
+        rng = np.random.default_rng(7)
+        xs, ys = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
+        jfn, _ = jax_value_and_grad(f.f)
+        compile_s = time_first_call(jfn, xs, ys)
+        t_jax = timeit(jfn, xs, ys, repeats=3)[0]
+        f(xs[:10], ys[:10], compute_gradient=True)
+        t0 = __import__("time").perf_counter()
+        f(xs, ys, compute_gradient=True)
+        t_ours = timeit(f, xs, ys, True, repeats=5)[0]
+        d_ours, g_ours = f(xs, ys, compute_gradient=True)
+        d_jax, (gx, gy) = jfn(xs, ys)
+        err = float(np.nanmax(np.abs(np.asarray(d_jax) - d_ours)))
+        rows.append((name, f"{n:,}", f"{compile_s:.1f} s", f"{fmt_rate(n / t_jax)} pts/s",
+                     f"{fmt_rate(n / t_ours)} pts/s", f"**{t_jax / t_ours:.0f}x**", f"{err:.1e}"))
+    return table(["scene", "points", "JAX compile", "JAX value+gradient", "fastsdf value+gradient",
+                  "fastsdf / JAX", "max |d_jax - d_fastsdf|"], rows) + \
+        "\n\nJAX on the CPU, float64 (`jax_enable_x64`); its smooth blends use `logaddexp`."
+
+
 def run(quick: bool = False) -> str:
     parts = ["## Exact compiled SDFs (issue 2)", stamp(COMMAND + (" --quick" if quick else "")), "",
-             "### Throughput", _throughput(quick), "", "### Compile time", _compile_times(quick)]
+             "### Throughput", _throughput(quick), "", "### Compile time", _compile_times(quick),
+             "", "### Against JAX", _jax(quick)]
     return "\n".join(parts) + "\n"

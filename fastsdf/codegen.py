@@ -620,6 +620,10 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict) -> tupl
         results = [_as_float(res.v)]
         single = ("point_v", "Value at one point.", "math.nan")
         pair = ("pair_v", "Value")
+    # numba lowers every reference to a global array as its own constant: bind each table to
+    # a local once, so a table is embedded once per function however often the loop reads it.
+    used = sorted(set(re.findall(r"\b(_T\d+)\[", "\n".join(em.lines))))
+    em.lines[:0] = [f"{name} = {name}G" for name in used]
     body = "\n".join("    " + line for line in em.lines) or "    pass"
     one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
                                  ret=", ".join(results), nan_return=single[2])
@@ -641,7 +645,7 @@ def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
     for (shape, data), name in tables.items():
         arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
         rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
-        parts.append(f"{name} = np.array([\n    {rows},\n], dtype=np.float64)\n")
+        parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
     parts.extend([v_one, vg_one, v_two, vg_two, _KERNELS])
     return "\n".join(parts), funcs
 
