@@ -36,7 +36,7 @@ def test_value_only_call_compiles_no_gradient_code():
     f(np.zeros(10), np.zeros(10))
     mod = f.compiled.module
     assert mod.point_v.signatures and not mod.point_vg.signatures
-    assert not mod.pair_vg.signatures and not mod.batch_vg_par.signatures
+    assert not mod.lanes_vg.signatures and not mod.batch_vg_par.signatures
 
 
 def test_same_shape_operands_become_one_loop():
@@ -50,17 +50,24 @@ def test_same_shape_operands_become_one_loop():
                                rtol=1e-12, atol=1e-12)
 
 
-def test_parallel_and_serial_kernels_agree():
-    f = box_world(6)
-    for n in (4095, 4096, 9999):  # below/above the parallel threshold, odd tail of the pairs
+@pytest.mark.parametrize("scene,lanes", [(seed_world, 4), (lambda: box_world(6), 2)])
+def test_parallel_and_serial_kernels_agree(scene, lanes):
+    """The multi-lane parallel kernels (every tail length, NaN lanes) against the serial ones."""
+    f = scene()
+    assert f"points at once" in f.compiled.module_source and \
+        f"def lanes_vg({', '.join(f'x{k}, y{k}' for k in range(lanes))}):" in f.compiled.module_source
+    for n in (4096, 4097, 4098, 4099, 9999):
         p = np.random.default_rng(n).uniform(-2, 2, (n, 2))
+        p[np.random.default_rng(n + 1).random(n) < 0.01, n % 2] = np.nan
         d, g = f(*p.T, compute_gradient=True)
-        ds, gs = f.compiled.evaluate(p[:50, 0], p[:50, 1], compute_gradient=True)
-        np.testing.assert_array_equal(d[:50], ds)
-        np.testing.assert_array_equal(g[:50], gs)
+        ds, gs = f.compiled.evaluate(p[-9:, 0], p[-9:, 1], compute_gradient=True)  # serial
+        np.testing.assert_array_equal(d[-9:], ds)
+        np.testing.assert_array_equal(g[-9:], gs)
         np.testing.assert_array_equal(f(*p.T), d)
-        np.testing.assert_allclose(d, evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}),
-                                   rtol=1e-12, atol=1e-12)
+        bad = np.isnan(p).any(axis=1)
+        assert np.all(np.isnan(d[bad])) and np.all(np.isnan(g[bad])) and np.isfinite(d[~bad]).all()
+        ref = evaluate_numpy(f.f, {"x": p[~bad, 0], "y": p[~bad, 1]})
+        np.testing.assert_allclose(d[~bad], ref, rtol=1e-12, atol=1e-12)
 
 
 def test_point_fn_is_callable_from_user_njit_code():
