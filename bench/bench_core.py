@@ -178,8 +178,76 @@ def _jax(quick: bool):
         "\n\nJAX on the CPU, float64 (`jax_enable_x64`); its smooth blends use `logaddexp`."
 
 
+def _scene_of_size(count: int):
+    """A scene of ``count`` primitives: a circle, the seed world, or the funnel plus boxes."""
+    from fastsdf import Circle
+    if count == 1:
+        return Circle([0.1, 0.2], 0.5)
+    if count == 5:
+        return seed_world()
+    return box_world(count - 3)
+
+
+def _scaling(quick: bool):
+    """Throughput against the number of points and against the number of primitives (PNG)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sizes = [10 ** 3, 10 ** 4, 10 ** 5, 10 ** 6] + ([] if quick else [10 ** 7])
+    counts = [1, 5, 20, 50] if quick else [1, 5, 20, 50, 200, 1000]
+    rng = np.random.default_rng(3)
+    xs_all, ys_all = rng.uniform(-2, 2, max(sizes)), rng.uniform(-2, 2, max(sizes))
+    by_points = {}
+    steps = 2 * len(sizes) + len(counts)
+    with Progress(steps, "scaling") as bar:
+        for name, f in (("seed world", seed_world()), ("20-box world", box_world(20))):
+            f(xs_all[:5000], ys_all[:5000], compute_gradient=True)
+            f(xs_all[:10], ys_all[:10], compute_gradient=True)
+            rates = []
+            for n in sizes:
+                xs, ys = xs_all[:n], ys_all[:n]
+                t, _ = timeit(f, xs, ys, True, repeats=3 if n >= 10 ** 6 else 7, warmup=1)
+                rates.append(n / t)
+                bar.step(f"{name} n={n:.0e}")
+            by_points[name] = rates
+        by_prims = []
+        n = 200_000
+        for count in counts:
+            f = _scene_of_size(count)
+            f(xs_all[:n], ys_all[:n], compute_gradient=True)
+            t, _ = timeit(f, xs_all[:n], ys_all[:n], True, repeats=3)
+            by_prims.append(n / t)
+            bar.step(f"{count} primitives")
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 4))
+    for name, rates in by_points.items():
+        a0.loglog(sizes, rates, "o-", label=name)
+    a0.set_xlabel("points per call")
+    a0.set_ylabel("points / s (value + gradient)")
+    a0.set_title("throughput vs call size")
+    a0.legend()
+    a0.grid(True, which="both", alpha=0.3)
+    a1.loglog(counts, by_prims, "o-")
+    a1.set_xlabel("primitives in the scene")
+    a1.set_ylabel("points / s (value + gradient)")
+    a1.set_title(f"throughput vs scene size ({n:,} points)")
+    a1.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    path = os.path.join(os.path.dirname(__file__), "core_scaling.png")
+    if not quick:
+        fig.savefig(path, dpi=100)
+    plt.close(fig)
+    rows = [(f"{n:,}", *(f"{fmt_rate(by_points[k][i])} pts/s" for k in by_points))
+            for i, n in enumerate(sizes)]
+    text = table(["points per call", *by_points], rows)
+    text += "\n\n" + table(["primitives", "value+gradient"],
+                            [(c, f"{fmt_rate(r)} pts/s") for c, r in zip(counts, by_prims)])
+    return text + ("\n\nScenes of 1 (circle), 5 (seed world) and n (funnel + n-3 boxes) primitives. "
+                   "Small calls (< 4096 points) run serially. ![scaling](core_scaling.png)")
+
+
 def run(quick: bool = False) -> str:
     parts = ["## Exact compiled SDFs (issue 2)", stamp(COMMAND + (" --quick" if quick else "")), "",
              "### Throughput", _throughput(quick), "", "### Compile time", _compile_times(quick),
-             "", "### Against JAX", _jax(quick)]
+             "", "### Scaling", _scaling(quick), "", "### Against JAX", _jax(quick)]
     return "\n".join(parts) + "\n"
