@@ -20,6 +20,9 @@ Accuracy (``h`` the node spacing; see :func:`measure_error`): bilinear interpola
 values is exact at the nodes and for affine functions, and in smooth regions its error is at most
 ``h**2 / 8 * (|d_xx| + |d_yy|)`` (second order: halving ``h`` divides it by four). Near corners
 of the shape and on the medial axis (where the SDF has kinks) the error is first order in ``h``.
+The interpolant of an exact (1-Lipschitz) SDF is Lipschitz with constant at most ``sqrt(2)``
+(each partial derivative is a blend of node differences of magnitude <= 1): use that bound for
+conservative advancement (sphere tracing) against a grid.
 
 For numba code (e.g. a fused particle loop) ``g.sampler`` and ``g.sampler_data`` give the same
 interpolation per point: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)``.
@@ -406,9 +409,10 @@ class GridSDF:
         far point is the edge's, not its own).
     dtype : np.float64 or np.float32
         Storage precision. Arithmetic is always float64. float32 halves memory and adds a
-        rounding error of at most ``2**-24 * max|d|`` (``max|d|`` over the nodes) to values and
-        stored gradients; with ``gradient='fd'`` the gradient gains up to ``2**-24 * max|d| /
-        h`` per component, growing as the grid is refined.
+        rounding error of at most ``2**-24 * max|d|`` (``max|d|`` over the nodes) to values, and
+        ``2**-24 * max|grad|`` to stored gradients; with ``gradient='fd'`` the gradient gains up
+        to ``2**-24 * max|d| / h`` per component (4 times that in the cells along the grid's
+        edge), which grows as the grid is refined.
     gradient : 'stored' or 'fd'
         ``'stored'`` (default) keeps the analytic gradient beside each value, interleaved as
         ``(nx, ny, 3)``: **24 bytes per node in float64, 12 in float32**; the query gradient is
@@ -417,10 +421,10 @@ class GridSDF:
         **8 bytes per node in float64, 4 in float32** (a third of the memory); the gradient is
         the bilinear interpolation of central differences of the values (one-sided second-order
         differences on the edges), also second order and continuous, but with a larger constant
-        (about 2 to 4 times the stored-gradient error on smooth regions), smeared over two
-        cells around kinks, and about 2 to 3 times slower to query (12 nodes read instead of
-        4). The derivative of the bilinear interpolant itself was not chosen: it is
-        discontinuous across cell edges and only first order.
+        (measured on a circle: about 2.5 times the stored-gradient angle error), smeared over
+        two cells around kinks, and about 2 times slower to query (12 nodes read instead of 4).
+        The derivative of the bilinear interpolant itself was not chosen: it is discontinuous
+        across cell edges and only first order.
 
     Calling ``g(x, y, compute_gradient=False)`` follows :class:`fastsdf.graph.Function`: any
     real array shapes (equal), float64 results of the input's shape, ``grad[..., 0] = dd/dx``,
@@ -577,8 +581,11 @@ class GridSDF:
         ``(x, y)`` lies outside ``bounds`` (then the values are the clamped, nearest-edge
         answer, whatever ``mode`` is) or has a non-finite coordinate (then they are NaN). To
         honour ``mode='exact'``, fall back to ``g.exact.point_fn(x, y)`` when not inside. The
-        functions are fixed module functions (:func:`sample_stored`, :func:`sample_fd`)
-        compiled with ``cache=True``, so they compile once per machine and dtype.
+        functions are fixed module functions (:func:`sample_stored` for ``gradient='stored'``,
+        :func:`sample_fd` for ``'fd'``) compiled with ``cache=True``, so they compile once per
+        machine and dtype, and marked ``inline='always'``: referenced as a global in your njit
+        code they are inlined into your loop; passed in as an argument (a dispatcher value)
+        numba calls them instead (measured about 30% slower in a tight loop).
         """
         return sample_stored if self.gradient == "stored" else sample_fd
 

@@ -230,6 +230,22 @@ def test_memory_per_node(circle, gradient, dtype):
     assert g.data.shape == ((13, 7, 3) if gradient == "stored" else (13, 7))
 
 
+def test_interpolant_is_sqrt2_lipschitz(circle):
+    # The documented bound for conservative advancement: each partial derivative of the
+    # bilinear interpolant of a 1-Lipschitz SDF is a blend of node differences <= 1.
+    f = circle | sdf.Box(minc=[-1.5, 0.2], maxc=[-0.4, 1.1])
+    g = GridSDF(f, samples=[17, 23])
+    rng = _rng(10)
+    p = rng.uniform(-2, 2, (20_000, 2))
+    q = p + rng.normal(0, 0.2, p.shape)
+    q = np.clip(q, -2, 2)
+    dist = np.hypot(*(p - q).T)
+    change = np.abs(g(p[:, 0], p[:, 1]) - g(q[:, 0], q[:, 1]))
+    ratio = change[dist > 0] / dist[dist > 0]
+    assert ratio.max() <= math.sqrt(2) * (1 + 1e-9)
+    assert ratio.max() > 1.05  # the bound is approached: the grid is not 1-Lipschitz
+
+
 # -- the numba sampler contract (used by compiled particle loops) -----------------------------
 
 @njit
