@@ -87,6 +87,12 @@ def _prefetch(typingctx, arr, idx):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _ld(q, k):
+    """``q[k]`` as float64 (numba's ``float()`` keeps float32 as float32)."""
+    return np.float64(q[k])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _locate(x, y, x0, x1, y0, y1, ihx, ihy, nx, ny):
     """Cell ``(i, j)`` and fractions ``(tx, ty)`` of a point, clamped into the grid, whether
     it was inside ``bounds``, and whether it was finite (``ok``)."""
@@ -130,11 +136,9 @@ def sample_stored(data, x, y):
     # Two contiguous runs of 6 numbers: nodes (i, j), (i, j+1) and (i+1, j), (i+1, j+1).
     a = np.uint64(3 * (i * ny + j))
     c = a + np.uint64(3 * ny)
-    d = _lerp2(tx, ty, np.float64(q[a]), np.float64(q[a + _U3]), np.float64(q[c]), np.float64(q[c + _U3]))
-    gx = _lerp2(tx, ty, np.float64(q[a + _U1]), np.float64(q[a + _U4]), np.float64(q[c + _U1]),
-                np.float64(q[c + _U4]))
-    gy = _lerp2(tx, ty, np.float64(q[a + _U2]), np.float64(q[a + _U5]), np.float64(q[c + _U2]),
-                np.float64(q[c + _U5]))
+    d = _lerp2(tx, ty, _ld(q, a), _ld(q, a + _U3), _ld(q, c), _ld(q, c + _U3))
+    gx = _lerp2(tx, ty, _ld(q, a + _U1), _ld(q, a + _U4), _ld(q, c + _U1), _ld(q, c + _U4))
+    gy = _lerp2(tx, ty, _ld(q, a + _U2), _ld(q, a + _U5), _ld(q, c + _U2), _ld(q, c + _U5))
     return d, gx, gy, inside
 
 
@@ -145,14 +149,14 @@ def _dnode(q, k, n, at, step, ih):
     along the axis. Central differences in the interior; second-order one-sided differences on
     the grid's edges (first order when n == 2)."""
     if k > 0 and k < n - 1:
-        return (np.float64(q[at + step]) - np.float64(q[at - step])) * (0.5 * ih)
+        return (_ld(q, at + step) - _ld(q, at - step)) * (0.5 * ih)
     if n == 2:
-        return (np.float64(q[at + step]) - np.float64(q[at])) * ih if k == 0 else \
-            (np.float64(q[at]) - np.float64(q[at - step])) * ih
+        return (_ld(q, at + step) - _ld(q, at)) * ih if k == 0 else \
+            (_ld(q, at) - _ld(q, at - step)) * ih
     if k == 0:
-        return (-3.0 * np.float64(q[at]) + 4.0 * np.float64(q[at + step]) - np.float64(q[at + step + step])) \
+        return (-3.0 * _ld(q, at) + 4.0 * _ld(q, at + step) - _ld(q, at + step + step)) \
             * (0.5 * ih)
-    return (3.0 * np.float64(q[at]) - 4.0 * np.float64(q[at - step]) + np.float64(q[at - step - step])) \
+    return (3.0 * _ld(q, at) - 4.0 * _ld(q, at - step) + _ld(q, at - step - step)) \
         * (0.5 * ih)
 
 
@@ -173,7 +177,7 @@ def sample_fd(data, x, y):
     row = np.uint64(ny)
     a = np.uint64(i * ny + j)
     c = a + row
-    d = _lerp2(tx, ty, np.float64(q[a]), np.float64(q[a + _U1]), np.float64(q[c]), np.float64(q[c + _U1]))
+    d = _lerp2(tx, ty, _ld(q, a), _ld(q, a + _U1), _ld(q, c), _ld(q, c + _U1))
     gx = _lerp2(tx, ty, _dnode(q, i, nx, a, row, ihx), _dnode(q, i, nx, a + _U1, row, ihx),
                 _dnode(q, i + 1, nx, c, row, ihx), _dnode(q, i + 1, nx, c + _U1, row, ihx))
     gy = _lerp2(tx, ty, _dnode(q, j, ny, a, _U1, ihy), _dnode(q, j + 1, ny, a + _U1, _U1, ihy),
@@ -191,7 +195,7 @@ def _sample_value(data, ch, x, y):
     a = np.uint64(ch * (i * ny + j))
     c = a + np.uint64(ch * ny)
     s = np.uint64(ch)
-    return _lerp2(tx, ty, np.float64(q[a]), np.float64(q[a + s]), np.float64(q[c]), np.float64(q[c + s])), inside
+    return _lerp2(tx, ty, _ld(q, a), _ld(q, a + s), _ld(q, c), _ld(q, c + s)), inside
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -515,8 +519,8 @@ class GridSDF:
         raise ValueError(
             f"f returned a non-finite {what} at grid node ({r0 + i}, {j}) = "
             f"({float(ax[r0 + i])!r}, {float(ay[j])!r}){note}; {int(bad.sum())} node(s) of this "
-            f"block are affected. A GridSDF needs finite values at every node: choose bounds where f is "
-            f"defined, got bounds={[list(b) for b in self.bounds]!r}")
+            f"block are affected. A GridSDF needs finite values at every node: choose bounds "
+            f"where f is defined, got bounds={[list(b) for b in self.bounds]!r}")
 
     # -- queries ------------------------------------------------------------------------------
     def __call__(self, x, y, compute_gradient=False):
