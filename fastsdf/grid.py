@@ -86,7 +86,7 @@ def _prefetch(typingctx, arr, idx):
     return types.void(arr, idx), codegen
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _ld(q, k):
     """``q[k]`` as float64 (numba's ``float()`` keeps float32 as float32)."""
     return np.float64(q[k])
@@ -111,7 +111,7 @@ def _locate(x, y, x0, x1, y0, y1, ihx, ihy, nx, ny):
     return i, j, u - i, v - j, inside, ok
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _lerp2(tx, ty, a, b, c, e):
     """Bilinear blend of nodes a = (i, j), b = (i, j+1), c = (i+1, j), e = (i+1, j+1)."""
     lo = a + ty * (b - a)
@@ -142,7 +142,7 @@ def sample_stored(data, x, y):
     return d, gx, gy, inside
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _dnode(q, k, n, at, step, ih):
     """Derivative of the values along one axis at a node: ``k`` is the node's index along that
     axis (of ``n`` nodes), ``at`` its flat index, ``step`` the flat distance between neighbours
