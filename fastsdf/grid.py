@@ -477,7 +477,7 @@ class GridSDF:
         the bilinear interpolation of central differences of the values (one-sided second-order
         differences on the edges), also second order and continuous, but with a larger constant
         (measured on a circle: about 2.5 times the stored-gradient angle error), smeared over
-        two cells around kinks, and about 2 times slower to query (12 nodes read instead of 4).
+        two cells around kinks, and 1.5 to 2 times slower to query (12 nodes read, not 4).
         The derivative of the bilinear interpolant itself was not chosen: it is discontinuous
         across cell edges and only first order.
 
