@@ -209,7 +209,8 @@ def test_primitive_is_exact_against_sampled_boundary(name):
 # ---------------------------------------------------------------------------------------------
 # The compiled primitives (graph op "prim") against their NumPy references on hard points.
 
-@pytest.mark.parametrize("axes", [(1.0, 0.4), (0.4, 1.0), (1.0, 1e-3), (1.0, 1.0), (2.0, 1.999999)])
+@pytest.mark.parametrize("axes", [(1.0, 0.4), (0.4, 1.0), (1.0, 1e-3), (1e-6, 1.0), (1.0, 1.0),
+                                  (2.0, 1.999999)])
 def test_ellipse_hard_points_match_reference(axes):
     a, b = axes
     rng = np.random.default_rng(7)
