@@ -797,11 +797,14 @@ def _check_simple(v: np.ndarray, name: str) -> None:
         o3, o4 = orient(q1, q2, p1), orient(q1, q2, p2)
         proper = (o1 * o2 < 0) & (o3 * o4 < 0)
 
-        def on_seg(p, q, r, o):  # r on segment p-q given orientation o ~ 0
-            return (np.abs(o) <= tol) & (np.minimum(p[..., 0], q[..., 0]) <= r[..., 0] + 1e-12 * scale) \
-                & (r[..., 0] <= np.maximum(p[..., 0], q[..., 0]) + 1e-12 * scale) \
-                & (np.minimum(p[..., 1], q[..., 1]) <= r[..., 1] + 1e-12 * scale) \
-                & (r[..., 1] <= np.maximum(p[..., 1], q[..., 1]) + 1e-12 * scale)
+        def on_seg(p, q, r, o):  # r on segment p-q, given their orientation o ~ 0
+            eps = 1e-12 * scale
+            ok = np.abs(o) <= tol
+            for c in (0, 1):
+                lo_c = np.minimum(p[..., c], q[..., c])
+                hi_c = np.maximum(p[..., c], q[..., c])
+                ok = ok & (lo_c <= r[..., c] + eps) & (r[..., c] <= hi_c + eps)
+            return ok
 
         touch = on_seg(p1, p2, q1, o1) | on_seg(p1, p2, q2, o2) | \
             on_seg(q1, q2, np.broadcast_to(p1, q1.shape), o3) | \

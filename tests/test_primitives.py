@@ -55,12 +55,15 @@ def _seg_dist(p, a, b):
 def _rounded_box_outline(minc, maxc, r):
     (x0, y0), (x1, y1) = minc, maxc
     ur, ul, ll, lr = r
-    parts = [_arc_points((x1 - ur, y1 - ur), ur, 0, np.pi / 2) if ur else np.array([[x1, y1]]),
-             _arc_points((x0 + ul, y1 - ul), ul, np.pi / 2, np.pi) if ul else np.array([[x0, y1]]),
-             _arc_points((x0 + ll, y0 + ll), ll, np.pi, 1.5 * np.pi) if ll else np.array([[x0, y0]]),
-             _arc_points((x1 - lr, y0 + lr), lr, 1.5 * np.pi, 2 * np.pi) if lr else np.array([[x1, y0]])]
-    corners = np.concatenate(parts)
-    return _polyline(corners)
+    parts = []
+    for rad, (cx, cy), (sx, sy), t0 in [(ur, (x1, y1), (-1, -1), 0.0), (ul, (x0, y1), (1, -1), 0.5),
+                                        (ll, (x0, y0), (1, 1), 1.0), (lr, (x1, y0), (-1, 1), 1.5)]:
+        if rad:
+            parts.append(_arc_points((cx + sx * rad, cy + sy * rad), rad, t0 * np.pi,
+                                     (t0 + 0.5) * np.pi))
+        else:
+            parts.append(np.array([[cx, cy]]))
+    return _polyline(np.concatenate(parts))
 
 
 def _case(name):
@@ -120,7 +123,8 @@ def _case(name):
                  "ellipse_thin_y": ((0.0, 0.1), (1e-3, 1.0))}[name]
         t = np.linspace(0, 2 * np.pi, 100001)
         pts = np.stack([c[0] + ax[0] * np.cos(t), c[1] + ax[1] * np.sin(t)], -1)
-        inside = lambda p: ((p[:, 0] - c[0]) / ax[0]) ** 2 + ((p[:, 1] - c[1]) / ax[1]) ** 2 < 1  # noqa: E731
+        def inside(p):
+            return ((p[:, 0] - c[0]) / ax[0]) ** 2 + ((p[:, 1] - c[1]) / ax[1]) ** 2 < 1
         return (lambda: sdf.Ellipse(c, ax), pts, inside, max(ax))
     if name == "ring":
         c, r, t = (0.1, 0.0), 0.7, 0.3
@@ -374,7 +378,8 @@ def test_exactness_flags():
                   sdf.Arc(aperture=math.pi, thickness=0.2), sdf.Polygon([[0, 0], [1, 0], [0, 1]])],
         "bound": [c | b, c & b, c - b, c.union(b, 0.2, "quadratic"), c.union(b, 5.0),
                   c.intersection(b, 0.1, "cubic"), c.difference(b, 0.1, "quadratic"),
-                  star.round(0.1), star.round(-0.1), b.shell(0.1), sdf.Circle([0.1, 0], 0.3).mirror("x"),
+                  star.round(0.1), star.round(-0.1), b.shell(0.1),
+                  sdf.Circle([0.1, 0], 0.3).mirror("x"),
                   sdf.Circle([0, 0], 0.7).repeat(1.0, 3),
                   sdf.Arc(aperture=6.0, thickness=0.6), c | b.shell(0.1), c.shell(0.1)],
         "none": [user, off.repeat(1.0, 3), user | c, user.scale(2)],
@@ -422,7 +427,8 @@ def test_modifiers_match_analytic_shapes():
     box = sdf.Box([-0.5, -0.3], [0.4, 0.6])
     checks = [
         (box.round(0.1), sdf.RoundedBox([-0.6, -0.4], [0.5, 0.7], 0.1)),
-        (sdf.Segment([-0.5, 0.1], [0.4, 0.3]).round(0.2), sdf.Capsule([-0.5, 0.1], [0.4, 0.3], 0.2)),
+        (sdf.Segment([-0.5, 0.1], [0.4, 0.3]).round(0.2),
+         sdf.Capsule([-0.5, 0.1], [0.4, 0.3], 0.2)),
         (sdf.Circle([0.5, 0.1], 0.3).shell(0.1), sdf.Ring([0.5, 0.1], 0.3, 0.1)),
         (sdf.Circle([0.5, 0.1], 0.3).scale(2.0), sdf.Circle([1.0, 0.2], 0.6)),
         (sdf.Circle([0.5, 0.0], 0.3).mirror("x"),
@@ -433,7 +439,8 @@ def test_modifiers_match_analytic_shapes():
     # rotation and translation as methods = building under transform (values and gradients)
     with sdf.transform(angle=0.7, offset=[0.3, -0.2]):
         built = sdf.Ellipse([0.1, 0.2], [0.5, 0.2]) | sdf.Triangle()
-    moved = (sdf.Ellipse([0.1, 0.2], [0.5, 0.2]) | sdf.Triangle()).rotate(0.7).translate([0.3, -0.2])
+    moved = (sdf.Ellipse([0.1, 0.2], [0.5, 0.2]) | sdf.Triangle()).rotate(0.7)
+    moved = moved.translate([0.3, -0.2])
     d1, g1 = built(X, Y, compute_gradient=True)
     d2, g2 = moved(X, Y, compute_gradient=True)
     np.testing.assert_allclose(d1, d2, atol=1e-12)
