@@ -125,24 +125,24 @@ def _march(data, x0, y0, dx, dy, r, lip):
     tol = CONTACT_TOL * length
     # A step no longer than TRACE_FRACTION * r cannot carry the disc across a wall unseen (the
     # same reason short steps skip this check), so the march never needs smaller steps.
-    min_step = max(TRACE_FRACTION * r, MIN_STEP * length)
+    short = TRACE_FRACTION * r
     t = 0.0
     for _ in range(MAX_MARCH):
         d, gx, gy = _query(data, x0 + t * dx, y0 + t * dy)
         s = d - r
         if not (s == s):
             return 1.0, 0, 0.0, 0.0, 0.0          # non-finite SDF: nothing to trace against
-        step = s / lip
-        if s <= tol:
-            step = min_step
+        if s > tol:
+            step = max(s / lip, short)            # sphere tracing: free within s / L
+        else:
             gl = math.sqrt(gx * gx + gy * gy)
             if gl > 0.0 and gl < math.inf:
                 nx = gx / gl
                 ny = gy / gl
                 if nx * dx + ny * dy < 0.0:
                     return t, 1, s, nx, ny
-        elif step < min_step:
-            step = min_step
+            # touching but leaving (or sliding along) the surface: move on by a short step
+            step = max(short, MIN_STEP * length)
         t += step / length
         if t >= 1.0:
             return 1.0, 0, 0.0, 0.0, 0.0
