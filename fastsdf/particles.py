@@ -307,6 +307,23 @@ def _borrow_expr(value, expr: str = "data") -> str:
     return expr
 
 
+def _grid_margin(f) -> float:
+    """How far a grid in mode 'exact' may jump where it hands over to the exact SDF at its
+    bounds: one node spacing bounds the bilinear error of an exact SDF (0 for SDFs and for
+    grids in mode 'nearest', which are continuous)."""
+    if not _is_grid(f) or f.mode != "exact":
+        return 0.0
+    spacing = getattr(f, "spacing", None)
+    if spacing is None:
+        try:
+            (x0, x1), (y0, y1) = f.bounds
+            nx, ny = f.shape
+            spacing = ((x1 - x0) / (nx - 1), (y1 - y0) / (ny - 1))
+        except (AttributeError, TypeError, ValueError):
+            return 0.1  # unknown grid: a generous margin (skips fewer queries, stays exact)
+    return float(max(abs(float(h)) for h in spacing))
+
+
 _KERNELS: dict = {}
 
 
@@ -457,6 +474,8 @@ class ParticleSimulation:
         self.drawable = None
         self.t = 0.0
         self._module, self._data = _kernel_module(f)
+        self._margin = _grid_margin(f)
+        self._skip = True
         self._ext = None
         self._wall = None
         self.reset()
@@ -600,7 +619,8 @@ class ParticleSimulation:
         bad = kernel(self._data, steps, block, p["x"], p["v"], p["m"], p["r"], p["cr"], p["cf"],
                      ext, self.dt, ax, ay, drag, use_m, use_ext,
                      self.integrator == "euler", self.collision == "notebook",
-                     self.prevent_tunnelling, self.lipschitz)
+                     self.prevent_tunnelling, self.lipschitz, self._margin,
+                     float(np.finfo(self.dtype).eps), self._skip)
         if bad:
             raise _invalid_state_error(p, bad)
 

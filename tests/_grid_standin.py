@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def standin_sampler(data, x, y):
     """Bilinear interpolation of sampled value and gradient: (d, gx, gy, inside)."""
     x0, y0, ihx, ihy, table = data
@@ -51,6 +51,7 @@ class StandinGridSDF:
         table[..., 0] = d.reshape(ny, nx)
         table[..., 1] = g[:, 0].reshape(ny, nx)
         table[..., 2] = g[:, 1].reshape(ny, nx)
+        self.spacing = ((xb - xa) / (nx - 1), (yb - ya) / (ny - 1))
         self.exact = f
         self.mode = mode
         self.sampler = standin_sampler

@@ -288,16 +288,21 @@ def test_same_seed_same_trajectory(world_grid):
     assert not np.array_equal(other.p["x"], runs[0]["x"])
 
 
-def test_blocking_does_not_change_results(world):
-    """run(steps) processes blocks of particles for all steps at once; particles do not
-    interact, so any block size and step-by-step advancing give identical bits."""
-    a = make_sim(world, 5000, seed=9)
-    b = make_sim(world, 5000, seed=9, block=10 ** 9)
-    c = make_sim(world, 5000, seed=9, block=7)
-    a.run(50)
-    for _ in range(50):
+@pytest.mark.parametrize("use_grid, dtype", [(False, np.float64), (True, np.float64),
+                                             (True, np.float32)])
+def test_blocking_and_skipping_do_not_change_results(world, world_grid, use_grid, dtype):
+    """run(steps) processes blocks of particles for all steps at once, and skips the SDF
+    query of a particle while its distance budget proves it cannot touch anything; particles
+    do not interact and a skipped query would have found no contact, so any block size and
+    step-by-step advancing (which never skips) give identical bits."""
+    f = world_grid if use_grid else world
+    a = make_sim(f, 5000, seed=9, dtype=dtype)
+    b = make_sim(f, 5000, seed=9, dtype=dtype, block=10 ** 9)
+    c = make_sim(f, 5000, seed=9, dtype=dtype, block=7)
+    a.run(150)
+    for _ in range(150):
         b.advance()
-    c.run(50)
+    c.run(150)
     for name in ("x", "v"):
         np.testing.assert_array_equal(a.p[name], b.p[name])
         np.testing.assert_array_equal(a.p[name], c.p[name])
