@@ -21,6 +21,8 @@ from .common import HERE, machine_info
 # (name, module, what it measures); each module has run(quick: bool) -> markdown str.
 SECTIONS = [
     ("core", "bench.bench_core", "exact compiled SDFs: throughput and compile time"),
+    ("particles", "bench.bench_particles",
+     "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
 ]
 
 HEADER = """# fastsdf benchmark results

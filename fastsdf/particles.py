@@ -449,17 +449,17 @@ class ParticleSimulation:
         dtype = np.dtype(dtype)
         if dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
             raise ValueError(f"dtype must be float64 or float32, got dtype={dtype}")
-        if lipschitz is None:
-            lipschitz = math.sqrt(2.0) if _is_grid(f) else 1.0
-        lip = _real(lipschitz, "lipschitz")
-        if not (math.isfinite(lip) and lip > 0.0):
-            raise ValueError(f"lipschitz must be finite and > 0, got lipschitz={lipschitz!r}")
+        if lipschitz is not None:
+            lip = _real(lipschitz, "lipschitz")
+            if not (math.isfinite(lip) and lip > 0.0):
+                raise ValueError(f"lipschitz must be finite and > 0, got lipschitz={lipschitz!r}")
         if block is not None:
             if isinstance(block, (bool, np.bool_)) or not isinstance(block, numbers.Integral) \
                     or block <= 0:
                 raise ValueError(f"block must be a positive integer or None, got block={block!r}")
         self.n = int(n)
         self.dt = dt
+        self._lipschitz_arg = lipschitz
         self.sdf = f
         self.seed = seed
         self.integrator = integrator
@@ -468,17 +468,29 @@ class ParticleSimulation:
         self.dtype = dtype
         self.cr = _unit_interval(cr, "cr")
         self.cf = _unit_interval(cf, "cf")
-        self.lipschitz = lip
         self.block = None if block is None else int(block)
         self.force_generators = []
         self.drawable = None
         self.t = 0.0
-        self._module, self._data = _kernel_module(f)
-        self._margin = _grid_margin(f)
         self._skip = True
         self._ext = None
         self._wall = None
         self.reset()
+
+    @property
+    def sdf(self):
+        """The world (SDF or GridSDF). Assigning another one rebinds the compiled step."""
+        return self._sdf
+
+    @sdf.setter
+    def sdf(self, f):
+        module, data = _kernel_module(f)   # raises TypeError for anything else
+        self._sdf = f
+        self._module, self._data = module, data
+        self._margin = _grid_margin(f)
+        #: The Lipschitz bound the tunnelling check and the free-flight budget use.
+        self.lipschitz = float(self._lipschitz_arg) if self._lipschitz_arg is not None \
+            else (math.sqrt(2.0) if _is_grid(f) else 1.0)
 
     # -- notebook interface ----------------------------------------------------------------
     def reset(self, ax=None):

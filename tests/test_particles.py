@@ -441,6 +441,20 @@ def test_notebook_interface(world):
     plt.close(fig)
 
 
+def test_assigning_another_world_rebinds_the_step(floor):
+    sim = phys.ParticleSimulation(floor, n=1, timestep=0.01, seed=0)
+    sim.p["x"] = [[0.0, 0.5]]
+    sim.p["v"] = 0.0
+    sim.p["r"] = 0.05
+    sim.advance()
+    assert sim.p["x"][0, 1] == 0.5
+    sim.sdf = sdf.Halfspace(normal=[0, 1], d=1.0)         # the floor rises to y = 1
+    sim.advance()
+    assert sim.p["x"][0, 1] >= 1.05 - 1e-12                # pushed out of the new floor
+    with pytest.raises(TypeError, match="f must be a fastsdf SDF"):
+        sim.sdf = "floor"
+
+
 def test_user_writes_state_before_stepping(floor):
     sim = phys.ParticleSimulation(floor, n=3, timestep=0.1, seed=0)
     sim.p["x"] = [[0, 1], [1, 1], [2, 1]]
