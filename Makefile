@@ -1,31 +1,40 @@
-# Everything runs inside a local virtual environment created on first use.
+# Everything runs inside a local virtual environment (.venv) created on first use; nothing
+# depends on what is installed elsewhere on the machine.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed
-# Kernels compiled by tests and demos are cached here unless FASTSDF_CACHE_DIR says otherwise.
+# Kernels compiled by tests, demos and benchmarks are cached here unless FASTSDF_CACHE_DIR is set.
 export FASTSDF_CACHE_DIR ?= $(CURDIR)/.cache/kernels
+export MPLBACKEND ?= Agg
 
 .PHONY: venv demo test bench bench-quick clean
 
-$(STAMP): setup.cfg pyproject.toml
+$(VENV)/.base: setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,bench]'
-	touch $(STAMP)
+	$(PY) -m pip install --quiet -e .
+	touch $@
 
-venv: $(STAMP)
+$(VENV)/.test: $(VENV)/.base
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $@
 
-demo: $(STAMP)
+$(VENV)/.bench: $(VENV)/.base
+	$(PY) -m pip install --quiet -e '.[bench]'
+	touch $@
+
+venv: $(VENV)/.base
+
+demo: $(VENV)/.base
 	$(PY) -m fastsdf demo
 
-test: $(STAMP)
+test: $(VENV)/.test
 	$(PY) -m pytest -q
 
-bench: $(STAMP)
+bench: $(VENV)/.bench
 	$(PY) -m bench
 
-bench-quick: $(STAMP)
+bench-quick: $(VENV)/.bench
 	$(PY) -m bench --quick
 
 clean:

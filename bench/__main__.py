@@ -21,6 +21,7 @@ from .common import HERE, machine_info
 # (name, module, what it measures); each module has run(quick: bool) -> markdown str.
 SECTIONS = [
     ("core", "bench.bench_core", "exact compiled SDFs: throughput and compile time"),
+    ("grid", "bench.bench_grid", "GridSDF: build, memory, query speed and error vs resolution"),
     ("particles", "bench.bench_particles",
      "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
 ]

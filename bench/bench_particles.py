@@ -21,20 +21,10 @@ import numpy as np
 from numba import njit, prange
 
 import fastsdf.particles as phys
+from fastsdf import GridSDF
 from fastsdf.scenes import box_world, seed_world
 
 from .common import Progress, fmt_rate, stamp, table
-
-try:  # the grid branch (issue 3)
-    from fastsdf import GridSDF
-    GRID_NOTE = ""
-except ImportError:  # pragma: no cover - until the grid branch is merged
-    import os
-    import sys
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "tests"))
-    from _grid_standin import StandinGridSDF as GridSDF
-    GRID_NOTE = ("(GridSDF not merged yet: measured with the tests' stand-in sampler, "
-                 "bilinear value and stored gradient, float64)")
 
 COMMAND = "python -m bench --only particles"
 PHASES = (("fall", 0), ("impact", 75), ("settled", 200))
@@ -158,8 +148,6 @@ def run(quick: bool = False) -> str:
            stamp(COMMAND + (" --quick" if quick else "")), ""]
     world = seed_world()
     grid = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
-    if GRID_NOTE:
-        out += [f"_{GRID_NOTE}_", ""]
     with Progress(9, "particles") as bar:
         states = _states(grid, n)
         bar.step("states")

@@ -96,30 +96,4 @@ def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) 
     return res.stdout
 
 
-class Progress:
-    """A minimal progress bar on stderr (no dependency): ``with Progress(n, 'label') as p: p.step()``."""
-
-    def __init__(self, total: int, label: str = ""):
-        self.total, self.label, self.done = max(1, total), label, 0
-        self.t0 = time.perf_counter()
-
-    def __enter__(self):
-        self._draw()
-        return self
-
-    def step(self, note: str = ""):
-        self.done += 1
-        self._draw(note)
-
-    def _draw(self, note: str = ""):
-        width = 30
-        filled = int(width * self.done / self.total)
-        bar = "#" * filled + "-" * (width - filled)
-        elapsed = time.perf_counter() - self.t0
-        sys.stderr.write(f"\r{self.label:<24} [{bar}] {self.done}/{self.total} "
-                         f"{elapsed:6.1f}s {note[:40]:<40}")
-        sys.stderr.flush()
-
-    def __exit__(self, *exc):
-        sys.stderr.write("\n")
-        sys.stderr.flush()
+from fastsdf._progress import Progress  # noqa: E402,F401 - re-exported for sections

@@ -12,6 +12,8 @@ from .graph import (Expr, Function, Symbol, sym_abs, sym_cos, sym_exp, sym_lengt
                     sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt)
 from .shapes import (SDF, Box, Circle, Difference, Halfspace, Intersection, Union,  # noqa: E402
                      smoothness, transform)
+from .grid import GridSDF  # noqa: E402
+from .plotting import plot_sdf  # noqa: E402
 
 __all__ = [
     "__version__",
@@ -20,4 +22,5 @@ __all__ = [
     "sym_smax", "sym_smin", "sym_sqrt",
     "SDF", "Box", "Circle", "Difference", "Halfspace", "Intersection", "Union",
     "smoothness", "transform",
+    "GridSDF", "plot_sdf",
 ]

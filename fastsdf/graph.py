@@ -50,6 +50,21 @@ def _float_key(value: float) -> bytes:
     return struct.pack("<d", value)
 
 
+_NO_SYMBOLS = frozenset()
+
+
+def _symbol_set(op, args, attr) -> frozenset:
+    """Symbols a new node depends on, computed once at construction (O(1) per node: the sets
+    of the arguments are reused when they are equal, which they almost always are)."""
+    if op == "sym":
+        return frozenset((attr,))
+    out = _NO_SYMBOLS
+    for a in args:
+        if a.syms is not out and not a.syms <= out:
+            out = a.syms if out <= a.syms else out | a.syms
+    return out
+
+
 class Expr:
     """A node of a symbolic expression DAG. Build nodes with operators and ``sym_*`` functions.
 
@@ -57,7 +72,9 @@ class Expr:
     so ``==``/``hash`` are identity-based and cheap. ``str(expr)`` gives a readable formula.
     """
 
-    __slots__ = ("op", "args", "attr", "__weakref__")
+    __slots__ = ("op", "args", "attr", "syms", "__weakref__")
+    # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
+    __array_ufunc__ = None
 
     op: str
     args: tuple
@@ -72,6 +89,7 @@ class Expr:
             object.__setattr__(node, "op", op)
             object.__setattr__(node, "args", args)
             object.__setattr__(node, "attr", attr)
+            object.__setattr__(node, "syms", _symbol_set(op, args, attr))
             _INTERN[key] = node
         return node
 
@@ -135,7 +153,7 @@ class Expr:
 
     def symbols(self) -> set:
         """Names of the symbols this expression depends on."""
-        return {n.attr for n in topological_order(self) if n.op == "sym"}
+        return set(self.syms)
 
     def __str__(self):
         return _to_str(self)

@@ -10,13 +10,9 @@ import pytest
 
 import fastsdf as sdf
 import fastsdf.particles as phys
+from fastsdf import GridSDF
 from fastsdf.graph import Function, Symbol, sym_abs
 from fastsdf.scenes import seed_world
-
-try:
-    from fastsdf import GridSDF
-except ImportError:  # the grid branch is not merged yet: a stand-in with the same contract
-    from _grid_standin import StandinGridSDF as GridSDF
 
 G = 1.0  # |acceleration| of phys.Gravity() (the notebook's gravity)
 

@@ -1,0 +1,100 @@
+"""Where compile time goes, per scene: graph build, code generation, numba (typing, lowering)
+and LLVM; or print a scene's generated source.
+
+    python -m bench.profile_compile                  # table for the standard scenes
+    python -m bench.profile_compile --scene box20    # one scene
+    python -m bench.profile_compile --source seed    # print the generated per-point code
+
+Runs in this process with a private, empty kernel cache, so every number is a cold compile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+SCENES = {
+    "circle": ("one circle", lambda sdf, sc: sdf.Circle([0.1, 0.2], 0.5)),
+    "seed": ("seed world (cell 21)", lambda sdf, sc: sc.seed_world()),
+    "box20": ("20-box world (cell 13)", lambda sdf, sc: sc.box_world(20)),
+    "box200": ("200-primitive world", lambda sdf, sc: sc.box_world(197)),
+    "box1000": ("1000-primitive world", lambda sdf, sc: sc.box_world(997)),
+}
+
+
+def _timers(dispatcher):
+    """numba's own compile timers of the (single) compiled signature, in seconds."""
+    total = {"compiler_lock": 0.0, "llvm_lock": 0.0}
+    for sig in dispatcher.signatures:
+        timers = dispatcher.get_metadata(sig).get("timers", {})
+        for key in total:
+            total[key] += timers.get(key, 0.0)
+    return total
+
+
+def profile(key: str):
+    import numpy as np
+
+    import fastsdf as sdf
+    from fastsdf import scenes
+
+    name, build = SCENES[key]
+    t0 = time.perf_counter()
+    f = build(sdf, scenes)
+    t_build = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    src = f.compiled.module_source
+    t_codegen = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mod = f.compiled.module
+    t_import = time.perf_counter() - t0
+    p = np.random.default_rng(0).uniform(-2, 2, (2, 8192))
+    t0 = time.perf_counter()
+    f(p[0], p[1], compute_gradient=True)
+    t_first = time.perf_counter() - t0
+    # The parallel kernel's compile includes its callees (pair_vg, helpers); numba's timers
+    # split it into the whole compile (under the compiler lock) and the LLVM part.
+    tm = _timers(mod.batch_vg_par)
+    return dict(name=name, lines=len(f.source().splitlines()), module_bytes=len(src),
+                build=t_build, codegen=t_codegen, import_=t_import, first=t_first,
+                numba=tm["compiler_lock"] - tm["llvm_lock"], llvm=tm["llvm_lock"])
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.profile_compile", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", choices=sorted(SCENES), action="append",
+                        help="scene(s) to profile (default: all but box1000)")
+    parser.add_argument("--source", choices=sorted(SCENES), help="print a scene's generated code")
+    parser.add_argument("--module", action="store_true",
+                        help="with --source: print the whole module (tables, kernels)")
+    args = parser.parse_args(argv)
+    os.environ["FASTSDF_CACHE_DIR"] = tempfile.mkdtemp(prefix="fastsdf-profile-")
+    if args.source:
+        import fastsdf as sdf
+        from fastsdf import scenes
+        f = SCENES[args.source][1](sdf, scenes)
+        print(f.compiled.module_source if args.module else f.source())
+        return 0
+    t0 = time.perf_counter()
+    import numba  # noqa: F401 - import cost shown separately
+    import fastsdf.codegen  # noqa: F401
+    print(f"import numba + fastsdf: {time.perf_counter() - t0:.2f} s (once per process)")
+    keys = args.scene or ["circle", "seed", "box20", "box200"]
+    header = ("scene", "lines", "build graph", "codegen", "import module", "first call",
+              "of which numba", "of which LLVM")
+    print(" | ".join(header))
+    for key in keys:
+        r = profile(key)
+        print(f"{r['name']} | {r['lines']} | {r['build']:.3f} s | {r['codegen']:.3f} s | "
+              f"{r['import_']:.3f} s | {r['first']:.2f} s | {r['numba']:.2f} s | {r['llvm']:.2f} s")
+    print("\n'first call' compiles the parallel value+gradient kernel and its callees; the first "
+          "scene also pays numba's one-time initialisation (~0.4 s).")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,38 @@
+"""Shared fixtures and reference helpers for the fastsdf tests."""
+
+import os
+import tempfile
+
+import numpy as np
+import pytest
+
+# Tests must never depend on a user's kernel cache: use the Makefile's (or a private) directory.
+os.environ.setdefault("FASTSDF_CACHE_DIR", os.path.join(tempfile.gettempdir(), "fastsdf-test-cache"))
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
+
+
+def central_gradient(f, x, y, h=1e-6):
+    """Central finite differences of the value of ``f`` at points (x, y): (n, 2)."""
+    gx = (f(x + h, y) - f(x - h, y)) / (2 * h)
+    gy = (f(x, y + h) - f(x, y - h)) / (2 * h)
+    return np.stack([gx, gy], axis=-1)
+
+
+def brute_distance(points, boundary):
+    """Unsigned distance from each point to the nearest of the densely sampled ``boundary``."""
+    out = np.empty(len(points))
+    for start in range(0, len(points), 256):
+        p = points[start:start + 256, None, :]
+        out[start:start + 256] = np.sqrt(((p - boundary[None]) ** 2).sum(-1)).min(axis=1)
+    return out
+
+
+def rotate(points, angle):
+    """Rotate row-vector points counter-clockwise by ``angle`` radians."""
+    c, s = np.cos(angle), np.sin(angle)
+    return points @ np.array([[c, s], [-s, c]])

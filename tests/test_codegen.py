@@ -1,0 +1,253 @@
+"""The code generator: lazy compilation, loop folding of same-shape operands, the disk cache
+across processes, and property tests of compiled code against the NumPy reference on random
+scenes."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import fastsdf as sdf
+from fastsdf.graph import evaluate_numpy
+from fastsdf.scenes import box_world, seed_world
+
+from conftest import central_gradient
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def test_source_is_inspectable_python():
+    f = seed_world()
+    src = f.source()
+    assert src.lstrip().startswith("@njit") and "def point_vg(x, y):" in src
+    assert "math.exp" in src and "math.log" in src
+    assert "def point_v(x, y):" in f.source(gradient=False)
+    compile(f.compiled.module_source, "<generated>", "exec")
+
+
+def test_value_only_call_compiles_no_gradient_code():
+    with sdf.transform(angle=0.123, offset=[0.2, 0.1]):
+        f = sdf.Circle([0.31, 0.2], 0.4) | sdf.Box([-0.1, -0.2], [0.3, 0.4])
+    f(np.zeros(10), np.zeros(10))
+    mod = f.compiled.module
+    assert mod.point_v.signatures and not mod.point_vg.signatures
+    assert not mod.lanes_vg.signatures and not mod.batch_vg_par.signatures
+
+
+def test_same_shape_operands_become_one_loop():
+    """Generated code grows with distinct shapes, not with the number of primitives."""
+    src20, src60 = box_world(20).source(), box_world(60).source()
+    assert "for i" in src20
+    assert len(src20.splitlines()) == len(src60.splitlines())
+    f = box_world(60)
+    p = np.random.default_rng(0).uniform(-2, 2, (5000, 2))
+    np.testing.assert_allclose(f(*p.T), evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}),
+                               rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("scene,lanes", [(seed_world, 4), (lambda: box_world(6), 2)])
+def test_parallel_and_serial_kernels_agree(scene, lanes):
+    """The multi-lane parallel kernels (every tail length, NaN lanes) against the serial ones."""
+    f = scene()
+    assert f"points at once" in f.compiled.module_source and \
+        f"def lanes_vg({', '.join(f'x{k}, y{k}' for k in range(lanes))}):" in f.compiled.module_source
+    for n in (4096, 4097, 4098, 4099, 9999):
+        p = np.random.default_rng(n).uniform(-2, 2, (n, 2))
+        p[np.random.default_rng(n + 1).random(n) < 0.01, n % 2] = np.nan
+        d, g = f(*p.T, compute_gradient=True)
+        ds, gs = f.compiled.evaluate(p[-9:, 0], p[-9:, 1], compute_gradient=True)  # serial
+        np.testing.assert_array_equal(d[-9:], ds)
+        np.testing.assert_array_equal(g[-9:], gs)
+        np.testing.assert_array_equal(f(*p.T), d)
+        bad = np.isnan(p).any(axis=1)
+        assert np.all(np.isnan(d[bad])) and np.all(np.isnan(g[bad])) and np.isfinite(d[~bad]).all()
+        ref = evaluate_numpy(f.f, {"x": p[~bad, 0], "y": p[~bad, 1]})
+        np.testing.assert_allclose(d[~bad], ref, rtol=1e-12, atol=1e-12)
+
+
+def test_point_fn_is_callable_from_user_njit_code():
+    import numba
+
+    f = seed_world()
+    point = f.point_fn
+
+    @numba.njit
+    def march(x, y, steps):  # sphere tracing downwards from (x, y)
+        for _ in range(steps):
+            d, gx, gy = point(x, y)
+            y -= d
+        return y
+
+    y_hit = march(1.0, 1.9, 100)
+    d = f(np.array([1.0]), np.array([y_hit]))[0]
+    assert abs(d) < 1e-9
+
+
+# ---------------------------------------------------------------------------------------------
+# The disk cache.
+
+def _run(code, cache_dir):
+    env = dict(os.environ, FASTSDF_CACHE_DIR=str(cache_dir), PYTHONPATH=REPO)
+    res = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
+                         text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr
+    return res.stdout.strip().splitlines()[-1]
+
+
+_CACHE_PROBE = """
+import numpy as np
+from fastsdf.scenes import box_world
+f = box_world({n})
+p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
+d, g = f(p[:, 0], p[:, 1], compute_gradient=True)
+k = f.compiled.kernel("vg", parallel=True)
+print(k.stats.cache_hits.__len__() if hasattr(k.stats.cache_hits, '__len__') else 0,
+      sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), repr(float(d.sum())))
+"""
+
+
+@pytest.mark.slow
+def test_second_process_reuses_the_disk_cache(tmp_path):
+    first = _run(_CACHE_PROBE.format(n=5), tmp_path).split()
+    second = _run(_CACHE_PROBE.format(n=5), tmp_path).split()
+    assert int(first[1]) == 0 and int(first[2]) >= 1  # compiled
+    assert int(second[1]) >= 1 and int(second[2]) == 0  # loaded, nothing compiled
+    assert first[3] == second[3]
+    assert len([p for p in os.listdir(tmp_path) if p.endswith(".py")]) == 1
+
+
+@pytest.mark.slow
+def test_changed_scene_never_reuses_a_stale_kernel(tmp_path):
+    a = _run(_CACHE_PROBE.format(n=5), tmp_path).split()
+    b = _run(_CACHE_PROBE.format(n=6), tmp_path).split()
+    assert int(b[2]) >= 1  # a new scene compiles
+    assert a[3] != b[3]
+    f = box_world(6)
+    p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
+    assert repr(float(f(p[:, 0], p[:, 1]).sum())) == b[3] or \
+        abs(float(f(p[:, 0], p[:, 1]).sum()) - float(b[3])) < 1e-9
+
+
+def test_corrupted_cache_file_is_not_used(tmp_path, monkeypatch):
+    from fastsdf import _cache
+
+    monkeypatch.setenv("FASTSDF_CACHE_DIR", str(tmp_path))
+    source = "VALUE = 1\n"
+    key = _cache.source_key(source)
+    (tmp_path / f"fastsdf_probe_{key}.py").write_text("VALUE = 2\n")  # wrong content
+    with pytest.warns(RuntimeWarning, match="cache"):
+        mod = _cache.load_module(source, prefix="fastsdf_probe")
+    assert mod.VALUE == 1
+
+
+@pytest.mark.slow
+def test_concurrent_processes_share_an_empty_cache(tmp_path):
+    env = dict(os.environ, FASTSDF_CACHE_DIR=str(tmp_path), PYTHONPATH=REPO)
+    code = textwrap.dedent(_CACHE_PROBE.format(n=4))
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=env) for _ in range(3)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1] for o in outs]
+    sums = {o[0].split()[3] for o in outs}
+    assert len(sums) == 1
+    assert len([p for p in os.listdir(tmp_path) if p.endswith(".py")]) == 1
+    again = _run(_CACHE_PROBE.format(n=4), tmp_path).split()
+    assert again[3] in sums and int(again[2]) == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Property tests: random scenes against the independent NumPy evaluation of the same graph.
+
+finite = dict(allow_nan=False, allow_infinity=False)
+primitive = st.one_of(
+    st.tuples(st.just("circle"), st.floats(-1.5, 1.5, **finite), st.floats(-1.5, 1.5, **finite),
+              st.floats(0.05, 1.0, **finite)),
+    st.tuples(st.just("halfspace"), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite),
+              st.floats(-1.5, 1.5, **finite)).filter(lambda t: abs(t[1]) + abs(t[2]) > 0.1),
+    st.tuples(st.just("box"), st.floats(-1.5, 1.0, **finite), st.floats(-1.5, 1.0, **finite),
+              st.floats(0.05, 1.0, **finite), st.floats(0.05, 1.0, **finite)),
+)
+placed = st.tuples(primitive, st.one_of(st.none(), st.tuples(
+    st.floats(-3.2, 3.2, **finite), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite))))
+operation = st.tuples(st.sampled_from(["|", "&", "-"]),
+                      st.one_of(st.just(0.0), st.floats(0.5, 40.0, **finite)),
+                      st.integers(0, 10 ** 6))
+
+
+def _make(prim):
+    kind = prim[0]
+    if kind == "circle":
+        return sdf.Circle(center=prim[1:3], radius=prim[3])
+    if kind == "halfspace":
+        return sdf.Halfspace(normal=prim[1:3], d=prim[3])
+    return sdf.Box(minc=prim[1:3], maxc=(prim[1] + prim[3], prim[2] + prim[4]))
+
+
+def build_scene(prims, ops):
+    shapes = []
+    for prim, tf in prims:
+        if tf is None:
+            shapes.append(_make(prim))
+        else:
+            with sdf.transform(angle=tf[0], offset=tf[1:]):
+                shapes.append(_make(prim))
+    for op, k, pick in ops:  # combine random pairs until one shape is left
+        if len(shapes) == 1:
+            break
+        i = pick % len(shapes)
+        a = shapes.pop(i)
+        b = shapes.pop(pick // 7 % len(shapes))
+        with sdf.smoothness(k):
+            shapes.append(a | b if op == "|" else a & b if op == "&" else a - b)
+    f = shapes[0]
+    for s in shapes[1:]:
+        f |= s
+    return f
+
+
+@settings(max_examples=25, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(prims=st.lists(placed, min_size=1, max_size=30),
+       ops=st.lists(operation, min_size=0, max_size=30))
+def test_random_scenes_match_numpy_reference(prims, ops):
+    f = build_scene(prims, ops)
+    p = np.random.default_rng(len(prims)).uniform(-2.5, 2.5, (300, 2))
+    X, Y = p.T
+    d, g = f(X, Y, compute_gradient=True)
+    ref, (rgx, rgy) = evaluate_numpy(f.f, {"x": X, "y": Y}, compute_gradient=True)
+    np.testing.assert_allclose(d, ref, rtol=1e-12, atol=1e-12)
+    # Gradient vs central differences where the function is smooth at the scale of the step
+    # (two step sizes agree); at kinks a one-sided gradient is returned instead.
+    fd1 = central_gradient(f, X, Y, h=1e-6)
+    fd2 = central_gradient(f, X, Y, h=5e-7)
+    smooth = np.all(np.abs(fd1 - fd2) < 1e-6, axis=1)
+    assert smooth.mean() > 0.5
+    np.testing.assert_allclose(g[smooth], fd1[smooth], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(g, np.stack([rgx, rgy], -1), rtol=1e-9, atol=1e-9)
+
+
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(n=st.integers(8, 40), k=st.one_of(st.just(0.0), st.floats(0.5, 50.0, **finite)),
+       union=st.booleans(), seed=st.integers(0, 1000))
+def test_looped_chains_match_numpy_reference(n, k, union, seed):
+    """Chains long enough to be folded into loops over tables (and, for k > 0, evaluated as an
+    online log-sum-exp): boxes and circles in random order, one operation, one k."""
+    rng = np.random.default_rng(seed)
+    f = sdf.Halfspace([0, 1], -1.8) if union else sdf.Circle([0, 0], 2.4)
+    for _ in range(n):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness(k):
+            shape = sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2)) \
+                if rng.random() < 0.5 else sdf.Circle(rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.3))
+            f = f | shape if union else f & sdf.Circle([0, 0], 2.5) - shape
+    assert "for i" in f.source()  # 8+ operands of two kinds: one kind has at least 4
+    p = rng.uniform(-2.5, 2.5, (400, 2))
+    d, g = f(*p.T, compute_gradient=True)
+    ref, (rgx, rgy) = evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}, compute_gradient=True)
+    np.testing.assert_allclose(d, ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(g, np.stack([rgx, rgy], -1), rtol=1e-9, atol=1e-9)

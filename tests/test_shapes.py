@@ -1,0 +1,273 @@
+"""The modelling DSL: primitives against analytic values and brute-force distances, the
+notebook's operations and blends, transforms, numerical hard cases and bad input."""
+
+import math
+
+import numpy as np
+import pytest
+
+import fastsdf as sdf
+from fastsdf.graph import evaluate_numpy
+
+from conftest import brute_distance, central_gradient, rotate
+
+
+def _boundary_circle(center, radius, n=20000):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([center[0] + radius * np.cos(t), center[1] + radius * np.sin(t)], -1)
+
+
+def _boundary_box(minc, maxc, n=5000):
+    (x0, y0), (x1, y1) = minc, maxc
+    s = np.linspace(0, 1, n)
+    edges = [np.stack([x0 + (x1 - x0) * s, np.full(n, y0)], -1),
+             np.stack([x0 + (x1 - x0) * s, np.full(n, y1)], -1),
+             np.stack([np.full(n, x0), y0 + (y1 - y0) * s], -1),
+             np.stack([np.full(n, x1), y0 + (y1 - y0) * s], -1)]
+    return np.concatenate(edges)
+
+
+def test_circle_is_exact_against_sampled_boundary(rng):
+    center, radius = np.array([0.3, -0.2]), 0.7
+    f = sdf.Circle(center=center, radius=radius)
+    pts = np.concatenate([rng.uniform(-2, 2, (300, 2)),                       # far and inside
+                          center + rng.normal(0, 0.05, (100, 2)) + [radius, 0]])  # near boundary
+    d = f(pts[:, 0], pts[:, 1])
+    inside = np.hypot(*(pts - center).T) < radius
+    assert np.all((d < 0) == inside)
+    spacing = 2 * np.pi * radius / 20000
+    brute = brute_distance(pts, _boundary_circle(center, radius))
+    assert np.all(brute >= np.abs(d) - 1e-12)
+    np.testing.assert_allclose(np.abs(d), brute, atol=spacing / 2)
+
+
+@pytest.mark.parametrize("angle,offset", [(0.0, (0.0, 0.0)), (0.4, (0.5, -0.3)), (-2.0, (1.0, 1.0))])
+def test_box_is_exact_against_sampled_boundary(rng, angle, offset):
+    minc, maxc = np.array([-0.5, -0.2]), np.array([0.3, 0.6])
+    with sdf.transform(angle=angle, offset=offset):
+        f = sdf.Box(minc=minc, maxc=maxc)
+    pts = np.concatenate([rng.uniform(-2, 2, (400, 2)), rng.uniform(-0.7, 0.7, (200, 2)) + offset])
+    d = f(pts[:, 0], pts[:, 1])
+    local = rotate(pts - offset, -angle)  # world -> box frame
+    inside = np.all((local > minc) & (local < maxc), axis=1)
+    assert np.all((d < 0) == inside)
+    boundary = rotate(_boundary_box(minc, maxc), angle) + offset
+    brute = brute_distance(pts, boundary)
+    # A sampled boundary can only be farther than the true one, by at most half a spacing.
+    spacing = np.max(maxc - minc) / 4999
+    assert np.all(brute >= np.abs(d) - 1e-12)
+    np.testing.assert_allclose(np.abs(d), brute, atol=spacing / 2)
+
+
+def test_box_matches_notebook_box_inside_and_bounds_it_outside(rng):
+    """The notebook's box (four half-spaces intersected) equals the exact box inside and along the
+    faces; outside the corners it is a lower bound (the L-infinity distance)."""
+    minc, maxc = [-0.4, -0.3], [0.4, 0.3]
+    exact = sdf.Box(minc=minc, maxc=maxc)
+    seed = (sdf.Halfspace([0, -1], -minc[1]) & sdf.Halfspace([1, 0], maxc[0])
+            & sdf.Halfspace([0, 1], maxc[1]) & sdf.Halfspace([-1, 0], -minc[0]))
+    p = rng.uniform(-1.5, 1.5, (2000, 2))
+    de, ds = exact(p[:, 0], p[:, 1]), seed(p[:, 0], p[:, 1])
+    corner = (np.abs(p[:, 0]) > 0.4) & (np.abs(p[:, 1]) > 0.3)
+    np.testing.assert_allclose(de[~corner], ds[~corner], atol=1e-15)
+    assert np.all(ds[corner] < de[corner])
+
+
+def test_halfspace_normalizes_and_is_signed():
+    h = sdf.Halfspace(normal=[3, 4], d=1.0)
+    d, g = h(np.array([0.0, 0.6, 3.0]), np.array([0.0, 0.8, 4.0]), compute_gradient=True)
+    np.testing.assert_allclose(d, [-1.0, 0.0, 4.0], atol=1e-15)
+    np.testing.assert_allclose(g, [[0.6, 0.8]] * 3, atol=1e-15)
+
+
+def test_set_operations_are_min_max(rng):
+    a, b = sdf.Circle([-0.6, 0], 1.0), sdf.Circle([0.6, 0], 1.0)
+    p = rng.uniform(-2, 2, (500, 2))
+    da, db = a(*p.T), b(*p.T)
+    np.testing.assert_array_equal((a | b)(*p.T), np.minimum(da, db))
+    np.testing.assert_array_equal((a & b)(*p.T), np.maximum(da, db))
+    np.testing.assert_array_equal((a - b)(*p.T), np.maximum(da, -db))
+    with sdf.smoothness(10):  # difference stays hard, as in the notebook
+        np.testing.assert_array_equal((a - b)(*p.T), np.maximum(da, -db))
+    f = a
+    f |= b
+    np.testing.assert_array_equal(f(*p.T), np.minimum(da, db))
+
+
+@pytest.mark.parametrize("k", [0.5, 10.0, 30.0])
+def test_smooth_blends_reproduce_the_notebook_formula(rng, k):
+    a, b = sdf.Circle([-0.6, 0], 1.0), sdf.Halfspace([0.3, 1], 0.2)
+    with sdf.smoothness(k):
+        u, i = a | b, a & b
+    p = rng.uniform(-2, 2, (500, 2))
+    da, db = a(*p.T), b(*p.T)
+    notebook_u = -np.log(np.exp(-k * da) + np.exp(-k * db)) / k
+    notebook_i = np.log(np.exp(k * da) + np.exp(k * db)) / k
+    np.testing.assert_allclose(u(*p.T), notebook_u, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(i(*p.T), notebook_i, rtol=1e-12, atol=1e-13)
+    for f, ref in ((u, lambda X, Y: -np.log(np.exp(-k * a(X, Y)) + np.exp(-k * b(X, Y))) / k),
+                   (i, lambda X, Y: np.log(np.exp(k * a(X, Y)) + np.exp(k * b(X, Y))) / k)):
+        _, g = f(*p.T, compute_gradient=True)
+        np.testing.assert_allclose(g, central_gradient(ref, *p.T), rtol=1e-5, atol=1e-6)
+
+
+def test_seed_world_value_matches_notebook_construction(rng):
+    """Notebook cell 21's world, built through the DSL, against the literal notebook formulas."""
+    from fastsdf.scenes import seed_world
+    f = seed_world()
+    p = rng.uniform(-2, 2, (1000, 2))
+    X, Y = p.T
+    n2 = np.array([1, 1]) / math.sqrt(2)
+    floor = np.minimum(np.minimum(Y + 1.8, n2[0] * X + n2[1] * Y + 1.8), -n2[0] * X + n2[1] * Y + 1.8)
+    n4 = np.array([0.1, 1]) / np.hypot(0.1, 1)
+    disc = np.log(np.exp(10 * (np.hypot(X, Y) - 0.5)) + np.exp(10 * (n4[0] * X + n4[1] * Y - 0.3))) / 10
+    ref = -np.log(np.exp(-10 * floor) + np.exp(-10 * disc)) / 10
+    np.testing.assert_allclose(f(X, Y), ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [1e-3, 1.0, 1e3, 1e6])
+@pytest.mark.parametrize("scale", [1.0, 1e4, 1e8])
+def test_smooth_blends_never_overflow(k, scale):
+    """The notebook's literal formula overflows for k*|d| > ~709; fastsdf's does not."""
+    a, b = sdf.Circle([0, 0], 1.0), sdf.Halfspace([0, 1], 0.0)
+    with sdf.smoothness(k):
+        fs = [a | b, a & b]
+    X = np.array([0.0, scale, -scale, scale, 0.3]) * 1.0
+    Y = np.array([scale, -scale, scale, scale, -0.1])
+    for f in fs:
+        d, g = f(X, Y, compute_gradient=True)
+        assert np.all(np.isfinite(d)) and np.all(np.isfinite(g))
+        hard = np.minimum(a(X, Y), b(X, Y)) if f is fs[0] else np.maximum(a(X, Y), b(X, Y))
+        # The blend differs from the hard min/max by at most log(2)/k (plus rounding).
+        assert np.all(np.abs(d - hard) <= math.log(2) / k * (1 + 1e-9) + 1e-12 * np.abs(hard))
+        np.testing.assert_allclose(np.hypot(*g.T), 1.0, atol=1.0)  # convex combination: |g| <= 1
+
+
+def test_gradient_is_finite_and_unit_at_circle_centre():
+    c = sdf.Circle(center=[0.5, -0.25], radius=0.3)
+    d, g = c(np.array([0.5]), np.array([-0.25]), compute_gradient=True)
+    assert d[0] == -0.3
+    np.testing.assert_array_equal(g[0], [1.0, 0.0])  # documented choice: the local +x axis
+    # Under a rotation the centre is only reached up to rounding; any unit direction is valid.
+    with sdf.transform(angle=0.7, offset=[1.0, 2.0]):
+        c = sdf.Circle(center=[0.5, 0.0], radius=0.3)
+    centre = np.array([1.0 + 0.5 * math.cos(0.7)]), np.array([2.0 + 0.5 * math.sin(0.7)])
+    d, g = c(*centre, compute_gradient=True)
+    assert d[0] == pytest.approx(-0.3, abs=1e-15)
+    assert np.hypot(*g[0]) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_gradient_is_finite_on_box_kinks_and_ties():
+    b = sdf.Box([-1, -1], [1, 1])
+    X = np.array([0.0, 1.0, 1.0, 0.0, 0.5, -1.0])
+    Y = np.array([0.0, 1.0, 0.0, 0.0, 0.5, -1.0])  # centre, corner, face, diagonal tie
+    d, g = b(X, Y, compute_gradient=True)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_allclose(np.hypot(*g.T), 1.0, atol=1e-15)  # a one-sided gradient
+
+
+def _unit_gradient_scenes():
+    with sdf.transform(angle=0.3, offset=[0.2, -0.1]):
+        box = sdf.Box([-0.5, -0.3], [0.4, 0.2])
+        circ = sdf.Circle([0.9, 0.4], 0.35)
+    return {"circle": circ, "box": box, "halfspace": sdf.Halfspace([1, -2], 0.3),
+            "union": box | circ, "intersection": box & sdf.Halfspace([1, 1], 0.1),
+            "difference": box - circ}
+
+
+@pytest.mark.parametrize("name", list(_unit_gradient_scenes()))
+def test_exact_sdf_gradients_have_unit_length(name, rng):
+    f = _unit_gradient_scenes()[name]
+    p = rng.uniform(-1.5, 1.5, (3000, 2))
+    d, g = f(*p.T, compute_gradient=True)
+    # Away from kinks (where central differences disagree across the kink) |grad| = 1 to 1e-12.
+    fd = central_gradient(f, *p.T, h=1e-7)
+    smooth = np.hypot(*(fd - g).T) < 1e-5
+    assert smooth.mean() > 0.9
+    np.testing.assert_allclose(np.hypot(*g[smooth].T), 1.0, atol=1e-12)
+
+
+def test_non_finite_points_give_nan_for_those_points_only():
+    from fastsdf.scenes import box_world
+    f = box_world(8)
+    X = np.array([0.1, np.nan, 0.3, np.inf, -np.inf, 0.5, 0.2])
+    Y = np.array([0.2, 0.0, np.nan, 0.0, 1.0, 0.1, np.inf])
+    for n_rep in (1, 2000):  # serial and parallel kernels
+        Xr, Yr = np.tile(X, n_rep), np.tile(Y, n_rep)
+        d, g = f(Xr, Yr, compute_gradient=True)
+        bad = ~(np.isfinite(Xr) & np.isfinite(Yr))
+        assert np.all(np.isnan(d[bad])) and np.all(np.isnan(g[bad]))
+        assert np.all(np.isfinite(d[~bad])) and np.all(np.isfinite(g[~bad]))
+        np.testing.assert_array_equal(f(Xr, Yr), d)
+        ok = ~bad
+        np.testing.assert_allclose(d[ok], evaluate_numpy(f.f, {"x": Xr[ok], "y": Yr[ok]}),
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_huge_coordinates_stay_finite_and_exact():
+    c, b = sdf.Circle([0, 0], 1.0), sdf.Box([-1, -1], [1, 1])
+    X = np.array([1e8, 1e155, 3e200, -1e300])
+    Y = np.array([1e8, 1e155, 4e200, 0.0])
+    d, g = c(X, Y, compute_gradient=True)
+    np.testing.assert_allclose(d, np.hypot(X, Y) - 1, rtol=1e-15)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_allclose(np.hypot(*g.T), 1.0, atol=1e-15)
+    d, g = b(X, Y, compute_gradient=True)
+    assert np.all(np.isfinite(d)) and np.all(np.isfinite(g))
+
+
+def test_float32_inputs_are_computed_in_float64():
+    f = sdf.Circle([0.1, 0.2], 0.5)
+    X = np.linspace(-1, 1, 50, dtype=np.float32)
+    Y = np.linspace(1, -1, 50, dtype=np.float32)
+    d = f(X, Y)
+    assert d.dtype == np.float64
+    np.testing.assert_array_equal(d, f(X.astype(np.float64), Y.astype(np.float64)))
+
+
+def test_context_managers_nest_and_restore():
+    with sdf.transform(angle=0.5, offset=[1.0, 0.0]):
+        with sdf.transform(angle=0.25, offset=[0.0, 2.0]):
+            c = sdf.Circle(center=[0.3, 0.0], radius=0.1)
+        with sdf.smoothness(4):
+            assert sdf.shapes.current_smoothness() == 4
+            with sdf.smoothness(0):
+                assert sdf.shapes.current_smoothness() == 0
+            assert sdf.shapes.current_smoothness() == 4
+    assert sdf.shapes.current_smoothness() == 0
+    # inner transform first, outer applied last: R(0.5) (R(0.25) c + o2) + o1
+    centre = rotate(rotate(np.array([[0.3, 0.0]]), 0.25) + [0.0, 2.0], 0.5) + [1.0, 0.0]
+    assert c(*centre.T)[0] == pytest.approx(-0.1, abs=1e-14)
+    assert sdf.Circle([0, 0], 1)(np.array([1.0]), np.array([0.0]))[0] == 0.0  # state restored
+
+
+def test_context_restored_after_exception():
+    with pytest.raises(RuntimeError):
+        with sdf.smoothness(3), sdf.transform(angle=1.0):
+            raise RuntimeError("boom")
+    assert sdf.shapes.current_smoothness() == 0
+    assert sdf.Halfspace([1, 0], 0)(np.array([2.0]), np.array([0.0]))[0] == 2.0
+
+
+@pytest.mark.parametrize("make,match", [
+    (lambda: sdf.Halfspace(normal=[0, 0]), "normal"),
+    (lambda: sdf.Halfspace(normal=[1, 0, 0]), "normal"),
+    (lambda: sdf.Halfspace(normal="ab"), "normal"),
+    (lambda: sdf.Halfspace(d=float("nan")), "d"),
+    (lambda: sdf.Circle(radius=0), "radius"),
+    (lambda: sdf.Circle(radius=-1), "radius"),
+    (lambda: sdf.Circle(radius="1"), "radius"),
+    (lambda: sdf.Circle(center=[np.inf, 0]), "center"),
+    (lambda: sdf.Box(minc=[0, 0], maxc=[1, 0]), "minc"),
+    (lambda: sdf.Box(minc=[1, 1], maxc=[0, 2]), "minc"),
+    (lambda: sdf.smoothness(-1), "k"),
+    (lambda: sdf.smoothness(float("inf")), "k"),
+    (lambda: sdf.smoothness("10"), "k"),
+    (lambda: sdf.transform(angle=float("nan")), "angle"),
+    (lambda: sdf.transform(offset=[0, np.nan]), "offset"),
+    (lambda: sdf.transform(offset=[0, 1, 2]), "offset"),
+    (lambda: sdf.Circle() | 3, "SDF"),
+])
+def test_bad_input_names_the_parameter(make, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        make()
