@@ -471,6 +471,7 @@ class ParticleSimulation:
         self.block = None if block is None else int(block)
         self.force_generators = []
         self.drawable = None
+        self._layer = None
         self.t = 0.0
         self._skip = True
         self._ext = None
@@ -497,9 +498,10 @@ class ParticleSimulation:
         """Draw a fresh random state (the notebook's distribution) and set ``t = 0``.
 
         ``x ~ N([0, 1.5], 0.05 I)``, ``v ~ N(0, 0.1 I)``, ``m ~ U(1, 10)``, ``r = 0.01 m``,
-        ``cr``, ``cf`` from the constructor. With an ``ax``, (re)creates the drawing: discs of
-        the particles' radii in data units (for large ``n`` prefer a density plot). Returns the
-        drawables (for matplotlib's blitting).
+        ``cr``, ``cf`` from the constructor. With an ``ax``, (re)creates the drawing with
+        :func:`fastsdf.render.draw_particles`: discs of the particles' radii in data units for
+        up to 5000 particles, a density image above. Returns the drawables (for matplotlib's
+        blitting); ``sim.drawable`` is the current artist.
         """
         rng = self.seed if isinstance(self.seed, np.random.Generator) \
             else np.random.default_rng(self.seed)
@@ -531,8 +533,8 @@ class ParticleSimulation:
                 steps = int(min(10, max(1, round((now - self._wall) / self.dt))))
             self._wall = now
         self.run(steps)
-        if self.drawable is not None:
-            self.drawable.set_offsets(np.asarray(self.p["x"], dtype=np.float64))
+        if self._layer is not None:
+            self._draw_update()
         return (self.drawable,) if self.drawable is not None else ()
 
     def advance(self):
@@ -663,20 +665,18 @@ class ParticleSimulation:
 
     # -- drawing -----------------------------------------------------------------------------
     def _draw_init(self, ax):
-        from matplotlib.collections import EllipseCollection
+        from .render import draw_particles
 
-        if self.drawable is not None:
-            try:
-                self.drawable.remove()
-            except (ValueError, NotImplementedError):
-                pass
+        if self._layer is not None:
+            self._layer.remove()
         x = np.asarray(self.p["x"], dtype=np.float64)
-        diam = 2.0 * np.asarray(self.p["r"], dtype=np.float64)
-        colors = np.random.default_rng(0).random(self.n)
-        self.drawable = EllipseCollection(diam, diam, np.zeros(self.n), units="xy", offsets=x,
-                                          offset_transform=ax.transData, alpha=0.6, zorder=10)
-        self.drawable.set_array(colors)
-        ax.add_collection(self.drawable)
+        self._layer = draw_particles(ax, x[:, 0], x[:, 1], r=np.asarray(self.p["r"], np.float64))
+        self.drawable = self._layer.artist
+
+    def _draw_update(self):
+        x = np.asarray(self.p["x"], dtype=np.float64)
+        (self.drawable,) = self._layer.update(x[:, 0], x[:, 1],
+                                              np.asarray(self.p["r"], dtype=np.float64))
 
     def __repr__(self):
         return (f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "

@@ -435,6 +435,15 @@ def test_notebook_interface(world):
     (drawable,) = ps.update(ax, use_wall_time=True)
     np.testing.assert_allclose(drawable.get_offsets(), ps.p["x"])
     plt.close(fig)
+    # many particles: a density image instead of circles
+    fig, ax = plt.subplots()
+    ax.set_xlim(-2, 2)
+    ax.set_ylim(-2, 2)
+    big = phys.ParticleSimulation(world, n=20_000, seed=0)
+    (image,) = big.reset(ax)
+    (image,) = big.update(ax)
+    assert image.get_array().sum() > 0.9 * 20_000
+    plt.close(fig)
 
 
 def test_assigning_another_world_rebinds_the_step(floor):
