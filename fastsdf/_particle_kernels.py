@@ -114,44 +114,50 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always):
 
 
 @njit(cache={CACHE}, nogil=True, error_model="numpy")
-def _march(data, x0, y0, dx, dy, r, lip):
+def _march(data, x0, y0, dx, dy, r, lip, t, t_free):
     """Conservative advancement of a disc of radius r from (x0, y0) along (dx, dy).
 
-    Returns (t, hit, s, nx, ny): hit = 1 for an approaching contact at parameter t (surface
-    distance s <= tolerance, unit normal n), 0 for a free path to t = 1, 2 when the iteration
-    limit stopped it at t (a safe point, short of any contact).
+    The parts of the segment with parameter below ``t`` and above ``t_free`` are already known
+    to be free. Returns (t, hit, s, nx, ny): hit = 1 for an approaching contact at parameter t
+    (surface distance s <= tolerance, unit normal n), 0 for a free path to t = 1, 2 when the
+    iteration limit stopped it at t (a safe point, short of any contact).
     """
     length = math.sqrt(dx * dx + dy * dy)
+    inv_len = 1.0 / length
     tol = CONTACT_TOL * length
     # A step no longer than TRACE_FRACTION * r cannot carry the disc across a wall unseen (the
     # same reason short steps skip this check), so the march never needs smaller steps.
-    short = TRACE_FRACTION * r
-    t = 0.0
+    short = TRACE_FRACTION * r * inv_len          # in units of t
+    far = inv_len / lip                           # t per unit of surface distance
+    leave = max(short, MIN_STEP)
+    if t >= t_free:
+        return 1.0, 0, 0.0, 0.0, 0.0
     for _ in range(MAX_MARCH):
         d, gx, gy = _query(data, x0 + t * dx, y0 + t * dy)
         s = d - r
-        if not (s == s):
-            return 1.0, 0, 0.0, 0.0, 0.0          # non-finite SDF: nothing to trace against
         if s > tol:
-            step = max(s / lip, short)            # sphere tracing: free within s / L
-        else:
+            t += max(s * far, short)              # sphere tracing: free within s / L
+        elif gx * dx + gy * dy < 0.0:             # in contact and approaching
             gl = math.sqrt(gx * gx + gy * gy)
-            if gl > 0.0 and gl < math.inf:
-                nx = gx / gl
-                ny = gy / gl
-                if nx * dx + ny * dy < 0.0:
-                    return t, 1, s, nx, ny
+            if gl < math.inf:
+                return t, 1, s, gx / gl, gy / gl
+            t += leave
+        elif s == s:
             # touching but leaving (or sliding along) the surface: move on by a short step
-            step = max(short, MIN_STEP * length)
-        t += step / length
-        if t >= 1.0:
+            t += leave
+        else:
+            return 1.0, 0, 0.0, 0.0, 0.0          # non-finite SDF: nothing to trace against
+        if t >= t_free:
             return 1.0, 0, 0.0, 0.0, 0.0
     return t, 2, 0.0, 0.0, 0.0
 
 
 @njit(cache={CACHE}, nogil=True, error_model="numpy")
-def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always):
+def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1):
     """Tunnelling check of one step: sweep the disc from (x, y) along (dx, dy).
+
+    ``t0``, ``t1``: the step's parameters below and above which it is already known to be
+    free (from the start's and the end's distance budgets).
 
     Returns the new start point and remaining displacement, the velocity, and whether a
     contact was met (then the displacement and velocity have been reflected) or the end point
@@ -159,7 +165,9 @@ def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always):
     """
     bounced = False
     for b in range(MAX_BOUNCES):
-        t, hit, s, nx, ny = _march(data, x, y, dx, dy, r, lip)
+        t, hit, s, nx, ny = _march(data, x, y, dx, dy, r, lip, t0, t1)
+        t0 = 0.0
+        t1 = 1.0
         if hit == 0:
             break
         x += t * dx
@@ -182,6 +190,15 @@ def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always):
             return x, y, 0.0, 0.0, vx, vy, bounced
         dx = rx
         dy = ry
+        rr = dx * dx + dy * dy
+        short = TRACE_FRACTION * r
+        if rr <= short * short:       # a short rest needs no sweep (see the step's test)
+            break
+        # The rest leaves the contact (or slides along it): the march's first step from the
+        # contact point is a short one, so take it without querying the contact again.
+        length = math.sqrt(rr)
+        if rx * nx + ry * ny >= 0.0:
+            t0 = max(short, MIN_STEP * length) / length
     return x, y, dx, dy, vx, vy, bounced
 
 
@@ -243,7 +260,10 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, dt, ax, ay, drag, use_m
             k = i - lo
             c = clear[k]
             if c > 0.0:
-                c -= math.sqrt(dx * dx + dy * dy) + eps * (abs(x) + abs(y) + 1.0)
+                # (1 + CONTACT_TOL / lip): a skipped step must also be one whose sweep would
+                # not have stopped at a near-contact (s <= CONTACT_TOL |step|).
+                c -= (math.sqrt(dx * dx + dy * dy) * (1.0 + CONTACT_TOL / lip)
+                      + eps * (abs(x) + abs(y) + 1.0))
                 if c > 0.0:
                     clear[k] = c
                     X[i, 0] = x + dx
@@ -261,9 +281,13 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, dt, ax, ay, drag, use_m
                 # everything by the step's length (then no wall can lie across the step).
                 if dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (s * s >= lip * lip * dd
                                                                              and s > 0.0):
+                    # The part within s / L of the end is known to be free. (The start's
+                    # budget is not used: results must not depend on how steps are grouped
+                    # into calls.)
+                    t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
                     x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, vx, vy, r,
                                                            float(CR[i]), float(CF[i]), lip,
-                                                           always)
+                                                           always, 0.0, t1)
                     if bounced:
                         d, gx, gy = _query(data, x + dx, y + dy)
                         s = d - r
