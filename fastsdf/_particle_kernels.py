@@ -18,18 +18,27 @@ Per particle and step (see the module docstring of :mod:`fastsdf.particles` for 
    is used);
 2. integrate: explicit Euler (``x += v dt; v += a dt``) or semi-implicit Euler
    (``v += a dt; x += v dt``); the step's displacement is ``D``;
-3. if ``trace`` and ``|D| > TRACE_FRACTION * r``: conservative advancement of the disc along
-   ``D`` (sphere tracing with steps ``max((d - r) / L, MIN_STEP |D|)``); at an approaching
-   contact the remaining displacement and the velocity are reflected with the collision response
-   (at most ``MAX_BOUNCES`` contacts per step; the last one stops the particle at the contact);
-4. query the SDF at the end point, ``s = d - r``; where ``s <= 0`` respond: ``n = grad / |grad|``,
-   ``x -= (1 + cr) s n``, and (when ``v . n < 0``, or always under the notebook rule)
-   ``v = -cr v_n + (1 - cf) v_t``.
+3. if the particle's free-flight budget (from its last query, minus what it has moved since)
+   exceeds ``|D|``, no query is needed: store and go on;
+4. query the SDF at the end point, ``s = d - r``;
+5. if ``trace``, ``|D| > TRACE_FRACTION * r`` and the end is not clear by ``lip * |D|``:
+   conservative advancement of the disc along ``D`` (sphere tracing, steps
+   ``max((d - r) / lip, TRACE_FRACTION * r)``); at an approaching contact the remaining
+   displacement and the velocity are reflected with the collision response (at most
+   ``MAX_BOUNCES`` contacts per step; the last one stops the particle at the contact);
+6. where ``s <= 0`` respond: ``n = grad / |grad|``, ``x -= (1 + cr) s n``, and (when
+   ``v . n < 0``, or always under the notebook rule) ``v = -cr v_n + (1 - cf) v_t``; where
+   ``s > 0`` the new budget is ``(s - margin) / lip``.
 
-Validation: at the first step of a call every particle of a block is checked (``x``, ``v``
+Validation: at the start of a call every particle of a block is checked (``x``, ``v``
 finite, ``m`` finite and > 0, ``r`` finite and >= 0, ``cr``, ``cf`` in [0, 1]). A particle that
 fails is not touched by this call; the kernel returns how many failed, and the Python side
 raises a ``ValueError`` naming the first one.
+
+Reference counts: passing an array to a function numba does not inline costs an atomic
+increment and decrement per call; the block function is the only one that touches arrays, and
+the query data's arrays are used through :func:`borrowed` views, so the hot loop does no
+reference counting (with two threads, those atomics on one shared grid serialised the threads).
 """
 
 from numba import types

@@ -358,6 +358,34 @@ def test_kernel_query_matches_the_sdf(world, world_grid):
     assert np.all(np.isfinite(simn.p["x"]))
 
 
+def test_grid_with_a_sampler_that_cannot_be_imported(world, world_grid):
+    """A GridSDF-like object whose sampler is made at run time (not importable by name): the
+    kernel binds it without the disk cache and agrees with the real grid."""
+    from numba import njit
+
+    real = world_grid.sampler
+
+    def make():
+        @njit
+        def sampler(data, x, y):
+            return real(data, x, y)
+        return sampler
+
+    class Wrapped:
+        exact, mode, spacing = world_grid.exact, world_grid.mode, world_grid.spacing
+        sampler_data = world_grid.sampler_data
+        sampler = make()
+
+        def __call__(self, x, y, compute_gradient=False):
+            return world_grid(x, y, compute_gradient)
+
+    a = make_sim(Wrapped(), 300, seed=1)
+    b = make_sim(world_grid, 300, seed=1)
+    a.run(100)
+    b.run(100)
+    np.testing.assert_array_equal(a.p["x"], b.p["x"])
+
+
 def test_python_generator_agrees_with_fused_gravity_and_drag(world):
     def gravity(p, t):
         """The notebook's gravity."""
