@@ -782,7 +782,17 @@ def create_animation(fig, ax, sim, frames=300, repeat=True, use_wall_time=False,
     from matplotlib.animation import FuncAnimation
 
     if interval is None:
-        interval = 1000.0 * sim.dt
-    return FuncAnimation(fig, lambda i: sim.update(ax, use_wall_time=use_wall_time),
-                         init_func=lambda: sim.reset(ax), frames=frames, interval=interval,
-                         blit=True, repeat=repeat)
+        interval = 1000.0 * getattr(sim, "dt", 1 / 30)
+
+    def artists(returned):
+        # Any simulation object with reset(ax) / update(ax, use_wall_time) works (the
+        # notebook's own SimpleParticleSimulation returns nothing from reset): blitting needs
+        # the artists, so fall back on sim.drawable.
+        if returned is None:
+            drawable = getattr(sim, "drawable", None)
+            return (drawable,) if drawable is not None else ()
+        return returned
+
+    return FuncAnimation(fig, lambda i: artists(sim.update(ax, use_wall_time=use_wall_time)),
+                         init_func=lambda: artists(sim.reset(ax)), frames=frames,
+                         interval=interval, blit=True, repeat=repeat)

@@ -463,6 +463,24 @@ def test_notebook_interface(world):
     (drawable,) = ps.update(ax, use_wall_time=True)
     np.testing.assert_allclose(drawable.get_offsets(), ps.p["x"])
     plt.close(fig)
+    # the notebook's own SimpleParticleSimulation: reset returns nothing, update its drawable
+    class Simple:
+        def __init__(self):
+            self.drawable, self.dt, self.frames = None, 1 / 30, 0
+
+        def reset(self, ax):
+            self.drawable = ax.scatter([0.0], [0.0])
+
+        def update(self, ax, use_wall_time):
+            self.frames += 1
+            self.drawable.set_offsets([[0.0, -0.1 * self.frames]])
+            return self.drawable,
+
+    fig, ax = plt.subplots()
+    simple = Simple()
+    phys.create_animation(fig, ax, simple, frames=3, repeat=False).to_jshtml()
+    assert simple.frames >= 3
+    plt.close(fig)
     # many particles: a density image instead of circles
     fig, ax = plt.subplots()
     ax.set_xlim(-2, 2)
