@@ -1,7 +1,9 @@
 """fastsdf: 2D signed distance functions compiled to parallel machine code.
 
 ``import fastsdf as sdf`` gives the notebook's modelling API (``sdf.Circle``, ``sdf.Halfspace``,
-``sdf.Box``, ``|``, ``&``, ``-``, ``sdf.smoothness``, ``sdf.transform``); ``fastsdf.graph``
+``sdf.Box``, ``|``, ``&``, ``-``, ``sdf.smoothness``, ``sdf.transform``) and more primitives,
+modifiers and blends (``sdf.Ellipse``, ``sdf.Polygon``, ``f.round(r)``, ``f.repeat(...)``,
+``a.union(b, k=0.1, kind='quadratic')``, ...); ``fastsdf.graph``
 is the symbolic layer (``Symbol``, ``Function``, ``sym_*``). Distances are negative inside,
 positive outside, in the units of the coordinates; all arithmetic is float64.
 """
@@ -12,6 +14,9 @@ from .graph import (Expr, Function, Symbol, sym_abs, sym_cos, sym_exp, sym_lengt
                     sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt)
 from .shapes import (SDF, Box, Circle, Difference, Halfspace, Intersection, Union,  # noqa: E402
                      smoothness, transform)
+from .shapes import (Arc, Capsule, Ellipse, EquilateralTriangle, OrientedBox,  # noqa: E402
+                     Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle,
+                     mirror, offset, repeat, rotate, scale, shell, translate)
 from .grid import GridSDF  # noqa: E402
 from .plotting import plot_sdf  # noqa: E402
 
@@ -22,5 +27,8 @@ __all__ = [
     "sym_smax", "sym_smin", "sym_sqrt",
     "SDF", "Box", "Circle", "Difference", "Halfspace", "Intersection", "Union",
     "smoothness", "transform",
+    "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
+    "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring",
+    "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat",
     "GridSDF", "plot_sdf",
 ]

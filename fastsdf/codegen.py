@@ -280,6 +280,53 @@ class _Emitter:
                 gx = gy = None
         elif op in _CHAIN_OPS:
             return self.chain(out, node.op, node.attr, [("val", A), ("val", B)])
+        # -- issue 7 additions: floor, select, polynomial smooth minima, compiled primitives --
+        elif op == "floor":
+            self._assign(out, r, f"np.floor({A.v})")
+            gx = gy = None  # piecewise constant
+        elif op == "select":
+            cond, T, F = f"{A.v} > 0.0", a[1], a[2]
+            self._assign(out, r, f"_sel({cond}, {T.v}, {F.v})")
+            gx = gy = None
+            if g:
+                gx = None if T.gx is None and F.gx is None else \
+                    f"_sel({cond}, {_zero(T.gx)}, {_zero(F.gx)})"
+                gy = None if T.gy is None and F.gy is None else \
+                    f"_sel({cond}, {_zero(T.gy)}, {_zero(F.gy)})"
+        elif op in ("qmin", "cmin"):
+            # min(a, b) - k h^2/4 (quadratic) or - k h^3/6 (cubic), h = max(k - |a - b|, 0)/k;
+            # the gradient is a convex combination: weight 1 - h/2 (1 - h^2/2) on the smaller.
+            k = node.attr
+            w = self._assign(out, f"{r}w", f"{A.v} <= {B.v}")
+            t = self._assign(out, f"{r}t", f"{_lit(k)} - abs({A.v} - {B.v})")
+            h = self._assign(out, f"{r}h", f"_sel({t} > 0.0, {t}, 0.0) * {_lit(1.0 / k)}")
+            m = f"_sel({w}, {A.v}, {B.v})"
+            if op == "qmin":
+                self._assign(out, r, f"{m} - {h} * {h} * {_lit(k / 4.0)}")
+                other = f"{h} * 0.5"
+            else:
+                self._assign(out, r, f"{m} - {h} * {h} * {h} * {_lit(k / 6.0)}")
+                other = f"{h} * {h} * 0.5"
+            if g:
+                o = self._assign(out, f"{r}o", other)
+                wa = self._assign(out, f"{r}a", f"_sel({w}, 1.0 - {o}, {o})")
+                gx, gy = lin(wa, self._assign(out, f"{r}b", f"1.0 - {wa}"))
+            else:
+                gx = gy = None
+        elif op == "prim":
+            # A fixed compiled function of fastsdf._prims returns (d, dd/du, dd/dv) at the local
+            # coordinates (u, v) = (A, B); structural data (polygon vertices) becomes a table.
+            kind, data = node.attr
+            extra = [c.v for c in a[2:]]
+            if data is not None:
+                extra.insert(0, self.table(np.asarray(data, dtype=np.float64)))
+            call = f"_P.{kind}_{'vg' if g else 'v'}({', '.join([A.v, B.v] + extra)})"
+            if g:
+                out.append(f"{r}, {r}u, {r}v = {call}")
+                gx, gy = lin(f"{r}u", f"{r}v")
+            else:
+                self._assign(out, r, call)
+                gx = gy = None
         else:  # pragma: no cover - graph.py creates no other ops
             raise NotImplementedError(op)
         gx, gy = self._grad(out, r, gx, gy)
@@ -622,7 +669,7 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
     lanes = choose_lanes(em.lines)
     # numba lowers every reference to a global array as its own constant: bind each table to
     # a local once, so a table is embedded once per function however often the loop reads it.
-    used = sorted(set(re.findall(r"\b(_T\d+)\[", "\n".join(em.lines))))
+    used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
     em.lines[:0] = [f"{name} = {name}G" for name in used]
     body = "\n".join("    " + line for line in em.lines) or "    pass"
     one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
@@ -645,12 +692,30 @@ def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
                             expr=_short(root).replace('"""', "\'\'\'").replace("\\", "\\\\"))]
+    if any("_P." in src for src in funcs.values()):
+        parts.append(_prims_import())
     for (shape, data), name in tables.items():
         arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
         rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
         parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
     parts.extend([v_one, vg_one, v_many, vg_many, _kernels_source(lanes)])
     return "\n".join(parts), funcs
+
+
+def _prims_import() -> str:
+    """Import of the compiled primitives, with a hash of their source: numba's cache does not
+    notice changes in a callee's module, so a changed ``_prims.py`` must change the scene file."""
+    global _PRIMS_LINE
+    if _PRIMS_LINE is None:
+        import hashlib
+        from . import _prims
+        with open(_prims.__file__, "rb") as fh:
+            digest = hashlib.sha256(fh.read()).hexdigest()[:16]
+        _PRIMS_LINE = f"from fastsdf import _prims as _P  # _prims.py sha256 {digest}\n"
+    return _PRIMS_LINE
+
+
+_PRIMS_LINE = None
 
 
 def _short(root: Expr) -> str:

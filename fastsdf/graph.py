@@ -10,7 +10,9 @@ The node operations are
 
     const, sym, add, sub, mul, div, neg, powc (constant exponent), pow, sqrt, exp, log, sin,
     cos, abs, min, max, length (hypot of two expressions), smin, smax (exponential smooth
-    minimum / maximum with sharpness ``k``).
+    minimum / maximum with sharpness ``k``), floor, select (``a if cond > 0 else b``), qmin,
+    cmin (quadratic / cubic polynomial smooth minimum with blend width ``k``) and prim (a
+    primitive evaluated by a fixed compiled function of :mod:`fastsdf._prims`).
 
 :class:`Function` binds an expression to two coordinate symbols and evaluates it (value, and the
 analytic gradient) through the compiled kernels of :mod:`fastsdf.codegen`.
@@ -33,14 +35,18 @@ __all__ = [
     "Expr", "Symbol", "Constant", "Function", "as_expr",
     "sym_sqrt", "sym_exp", "sym_log", "sym_sin", "sym_cos", "sym_abs",
     "sym_min", "sym_max", "sym_smin", "sym_smax", "sym_length",
+    "sym_floor", "sym_select", "sym_qmin", "sym_cmin", "sym_prim", "substitute",
     "evaluate_numpy", "topological_order",
 ]
 
 # Operations grouped by arity; attributes (symbol name, constant exponent, smoothness k) are part
 # of a node's identity.
-UNARY_OPS = ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "powc")
-BINARY_OPS = ("add", "sub", "mul", "div", "pow", "min", "max", "length", "smin", "smax")
+UNARY_OPS = ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "powc", "floor")
+BINARY_OPS = ("add", "sub", "mul", "div", "pow", "min", "max", "length", "smin", "smax",
+              "qmin", "cmin")
 LEAF_OPS = ("const", "sym")
+#: ``select(cond, a, b)``; ``prim(u, v, *constants)`` with attr ``(kind, data)``.
+OTHER_OPS = ("select", "prim")
 
 _INTERN: "weakref.WeakValueDictionary[tuple, Expr]" = weakref.WeakValueDictionary()
 
@@ -440,6 +446,156 @@ def sym_smax(a, b, k) -> Expr:
 
 
 # ---------------------------------------------------------------------------------------------
+# Issue 7 additions: floor, select, the polynomial smooth minima and the generic "prim" node
+# (primitives evaluated by fixed numba functions in fastsdf._prims), and graph substitution.
+
+#: Kinds of "prim" nodes: the numba functions ``_prims.<kind>_v``/``<kind>_vg`` evaluate them
+#: and ``_prims_ref.evaluate`` is their independent NumPy reference.
+PRIM_KINDS = ("ellipse", "polygon")
+
+
+def sym_floor(a) -> Expr:
+    """Largest integer ``<= a`` (as a float). Piecewise constant: its gradient is 0."""
+    return _unary("floor", np.floor, a, "a")
+
+
+def sym_select(cond, a, b) -> Expr:
+    """``a`` where ``cond > 0``, else ``b`` (value and gradient of the branch taken).
+
+    Both branches are always evaluated (branch-free), so both must be safe to compute."""
+    cond, a, b = as_expr(cond, "cond"), as_expr(a, "a"), as_expr(b, "b")
+    if cond.op == "const":
+        return a if cond.attr > 0 else b
+    if a is b:
+        return a
+    return Expr("select", (cond, a, b))
+
+
+def _check_width(k, name="k") -> float:
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {k!r} of type {type(k).__name__}")
+    k = float(k)
+    if not math.isfinite(k) or k <= 0.0:
+        raise ValueError(f"{name} (the blend width) must be finite and > 0, got {name}={k!r}")
+    return k
+
+
+def _poly_smin_value(a: float, b: float, k: float, cubic: bool) -> float:
+    h = max(k - abs(a - b), 0.0) / k
+    return min(a, b) - (h * h * h * k / 6.0 if cubic else h * h * k / 4.0)
+
+
+def sym_qmin(a, b, k) -> Expr:
+    """Quadratic polynomial smooth minimum with blend width ``k`` (distance units):
+    ``min(a, b) - k h**2 / 4`` with ``h = max(k - |a - b|, 0) / k``.
+
+    Exactly ``min(a, b)`` where ``|a - b| >= k``; C1 everywhere; at ``a = b`` it is ``k / 4``
+    below the minimum. Its gradient is the convex combination ``(1 - h/2) grad(min operand) +
+    (h/2) grad(other)``. Not associative: chains of it are nested binary operations.
+    """
+    a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_width(k)
+    if _both_const(a, b):
+        return Expr("const", (), _poly_smin_value(a.attr, b.attr, k, False))
+    return Expr("qmin", (a, b), k)
+
+
+def sym_cmin(a, b, k) -> Expr:
+    """Cubic polynomial smooth minimum with blend width ``k``: ``min(a, b) - k h**3 / 6`` with
+    ``h = max(k - |a - b|, 0) / k``; exactly ``min(a, b)`` where ``|a - b| >= k``; C2; at
+    ``a = b`` it is ``k / 6`` below the minimum; gradient ``(1 - h**2/2) grad(min operand) +
+    (h**2/2) grad(other)``."""
+    a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_width(k)
+    if _both_const(a, b):
+        return Expr("const", (), _poly_smin_value(a.attr, b.attr, k, True))
+    return Expr("cmin", (a, b), k)
+
+
+def sym_prim(kind: str, u, v, *constants, data=None) -> Expr:
+    """A primitive evaluated by a fixed compiled function: ``kind`` (one of ``PRIM_KINDS``) at
+    local coordinates ``(u, v)`` (expressions), with numeric ``constants`` (become table columns
+    when same-kind primitives are folded into a loop) and hashable structural ``data`` (e.g. a
+    polygon's vertices, part of the node's shape). The code generator applies the chain rule
+    from ``(d, dd/du, dd/dv)`` to the coordinates."""
+    if kind not in PRIM_KINDS:
+        raise ValueError(f"kind must be one of {PRIM_KINDS}, got kind={kind!r}")
+    consts = tuple(as_expr(float(c), "constant") for c in constants)
+    return Expr("prim", (as_expr(u, "u"), as_expr(v, "v")) + consts, (kind, data))
+
+
+def _rebuild(node: Expr, args: tuple) -> Expr:
+    """``node``'s operation applied to new arguments, through the folding constructors."""
+    op = node.op
+    if op in ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "floor"):
+        return {"neg": _neg, "sqrt": sym_sqrt, "exp": sym_exp, "log": sym_log, "sin": sym_sin,
+                "cos": sym_cos, "abs": sym_abs, "floor": sym_floor}[op](args[0])
+    if op == "powc":
+        return _pow(args[0], Expr("const", (), node.attr))
+    if op in ("add", "sub", "mul", "div", "pow", "min", "max", "length"):
+        return {"add": _add, "sub": _sub, "mul": _mul, "div": _div, "pow": _pow,
+                "min": sym_min, "max": sym_max, "length": sym_length}[op](*args)
+    if op in ("smin", "smax", "qmin", "cmin"):
+        return {"smin": sym_smin, "smax": sym_smax, "qmin": sym_qmin, "cmin": sym_cmin}[op](
+            args[0], args[1], node.attr)
+    if op == "select":
+        return sym_select(*args)
+    return Expr(op, args, node.attr)  # prim (constant arguments stay constants)
+
+
+def substitute(root: Expr, mapping: dict) -> Expr:
+    """``root`` with each symbol named in ``mapping`` replaced by an expression (or number).
+
+    Iterative (no recursion limit); rebuilt nodes go through the folding constructors, and
+    nodes that do not depend on a replaced symbol are shared, not copied.
+    """
+    mapping = {name: as_expr(e, f"mapping[{name!r}]") for name, e in mapping.items()}
+    names = frozenset(mapping)
+    new = {}
+    for node in topological_order(root):
+        if node.op == "sym":
+            new[id(node)] = mapping.get(node.attr, node)
+        elif not (node.syms & names):
+            new[id(node)] = node
+        else:
+            args = tuple(new[id(a)] for a in node.args)
+            new[id(node)] = node if all(x is y for x, y in zip(args, node.args)) \
+                else _rebuild(node, args)
+    return new[id(root)]
+
+
+def _np_op_ext(node, av, ag, with_grad):
+    """NumPy reference of the issue-7 operations (see ``_np_op``)."""
+    op = node.op
+    if op == "floor":
+        zero = np.zeros_like(av[0])
+        return np.floor(av[0]), ([zero] * len(ag[0]) if with_grad else None)
+    if op == "select":
+        pick = av[0] > 0
+        g = [np.where(pick, g1, g2) for g1, g2 in zip(ag[1], ag[2])] if with_grad else None
+        return np.where(pick, av[1], av[2]), g
+    if op in ("qmin", "cmin"):
+        a, b, k = av[0], av[1], node.attr
+        h = np.maximum(k - np.abs(a - b), 0.0) / k
+        m = np.where(a <= b, a, b)
+        if op == "qmin":
+            v, w_other = m - h * h * k / 4.0, h / 2.0
+        else:
+            v, w_other = m - h * h * h * k / 6.0, h * h / 2.0
+        w_a = np.where(a <= b, 1.0 - w_other, w_other)
+        g = [w_a * g1 + (1.0 - w_a) * g2 for g1, g2 in zip(ag[0], ag[1])] if with_grad else None
+        return v, g
+    if op == "prim":
+        from ._prims_ref import evaluate as _prim_reference
+        d, du, dv = _prim_reference(node.attr[0], node.attr[1], av[0], av[1],
+                                    [float(c.attr) for c in node.args[2:]])
+        g = [du * g1 + dv * g2 for g1, g2 in zip(ag[0], ag[1])] if with_grad else None
+        return d, g
+    raise NotImplementedError(op)
+
+
+_EXT_OPS = ("floor", "select", "qmin", "cmin", "prim")
+
+
+# ---------------------------------------------------------------------------------------------
 # Traversal and printing (iterative: no recursion-depth limit).
 
 def topological_order(root: Expr) -> list:
@@ -488,8 +644,14 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
             if not (node.args[0].op in ("sym", "const") or base.startswith("(")):
                 base = f"({base})"
             s = f"{base}**{ps}"
-        elif op in ("smin", "smax"):
+        elif op in ("smin", "smax", "qmin", "cmin"):
             s = f"{op}({args[0]}, {args[1]}; k={node.attr:g})"
+        elif op == "select":
+            s = f"select({args[0]} > 0, {args[1]}, {args[2]})"
+        elif op == "prim":
+            kind, data = node.attr
+            tag = f"{kind}[{len(data)}]" if isinstance(data, tuple) else kind
+            s = f"{tag}({', '.join(args)})"
         else:
             s = f"{op}({', '.join(args)})"
         text[id(node)] = s
@@ -539,6 +701,8 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False):
 
 def _np_op(node, av, ag, with_grad):
     op = node.op
+    if op in _EXT_OPS:
+        return _np_op_ext(node, av, ag, with_grad)
     x = av[0]
     y = av[1] if len(av) > 1 else None
     gx = ag[0] if with_grad else None

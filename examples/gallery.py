@@ -1,0 +1,81 @@
+"""Render one small picture per primitive, modifier and blend into docs/gallery.png.
+
+    python examples/gallery.py [output.png]
+
+Each panel is ``fastsdf.plot_sdf(..., filled=True, show_quiver=False, show_isolines='zero')``
+(the segment, which has no inside, shows distance isolines instead); its title names the
+shape and its ``exactness``.
+"""
+
+import math
+import os
+import sys
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import fastsdf as sdf  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+OUT = os.path.join(HERE, "..", "docs", "gallery.png")
+
+
+def panels():
+    star = sdf.Star([0, 0], 1.1, 5, 0.5)
+    a, b = sdf.Circle([-0.45, -0.1], 0.6), sdf.Box([-0.1, -0.5], [0.9, 0.45])
+    with sdf.transform(angle=0.3):
+        tri = sdf.EquilateralTriangle([0, 0], 1.0)
+    return [
+        ("Segment", sdf.Segment([-1, -0.6], [1, 0.7])),
+        ("Capsule", sdf.Capsule([-0.9, -0.5], [0.8, 0.6], 0.35)),
+        ("RoundedBox", sdf.RoundedBox([-1.1, -0.7], [1.1, 0.7], [0.1, 0.6, 0.0, 0.3])),
+        ("OrientedBox", sdf.OrientedBox([-1, -0.7], [0.9, 0.8], 0.6)),
+        ("Triangle", sdf.Triangle([-1.1, -0.8], [1.2, -0.4], [-0.2, 1.0])),
+        ("EquilateralTriangle", sdf.EquilateralTriangle([0, -0.1], 1.1)),
+        ("RegularPolygon n=7", sdf.RegularPolygon([0, 0], 1.1, 7)),
+        ("Polygon", sdf.Polygon([[-1.1, -1], [1.1, -1], [1.1, 1], [0.2, -0.2], [-1.1, 1]])),
+        ("Star", star),
+        ("Ellipse", sdf.Ellipse([0, 0], [1.2, 0.5])),
+        ("Ellipse 1000:1", sdf.Ellipse([0, 0], [1.2, 1.2e-3]).round(0.05)),
+        ("Arc", sdf.Arc([0, -0.2], 0.9, 4.0, 0.3)),
+        ("Ring", sdf.Ring([0, 0], 0.9, 0.35)),
+        ("star.round(0.15)", star.round(0.15)),
+        ("star.shell(0.12)", star.shell(0.12)),
+        ("tri.scale(0.5)", tri.scale(0.5)),
+        ("tri.rotate(.5).translate", tri.scale(0.7).rotate(0.5).translate([0.3, 0.1])),
+        ("Circle.mirror('x')", sdf.Circle([0.6, 0.3], 0.45).mirror("x")),
+        ("hexagon.repeat(0.7, 4)", sdf.RegularPolygon([0, 0], 0.3, 6).repeat(0.7, 4)
+         .translate([-1.05, -1.05])),
+        ("union (hard)", a | b),
+        ("union exponential k=8", a.union(b, k=8.0)),
+        ("union quadratic k=0.4", a.union(b, k=0.4, kind="quadratic")),
+        ("union cubic k=0.4", a.union(b, k=0.4, kind="cubic")),
+        ("intersection quadratic", sdf.Circle([-0.3, -0.1], 0.9).intersection(
+            b, k=0.4, kind="quadratic")),
+        ("difference cubic", sdf.Box([-1.1, -0.7], [1.1, 0.7]).difference(
+            sdf.Circle([0.6, 0.4], 0.6), k=0.3, kind="cubic")),
+    ]
+
+
+def main(out=OUT):
+    items = panels()
+    cols = 5
+    rows = math.ceil(len(items) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.3 * cols, 2.45 * rows))
+    for ax, (name, f) in zip(axes.flat, items):
+        isolines = "all" if name == "Segment" else "zero"
+        sdf.plot_sdf(fig, ax, f, bounds=[(-1.5, 1.5), (-1.5, 1.5)], samples=160, filled=True,
+                     show_quiver=False, show_isolines=isolines)
+        ax.set_title(f"{name}\n{f.exactness}", fontsize=8)
+    for ax in list(axes.flat)[len(items):]:
+        ax.axis("off")
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=80)
+    print(f"wrote {os.path.abspath(out)}")
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
