@@ -69,6 +69,7 @@ import math
 import numbers
 import sys
 import time
+import warnings
 
 import numba
 import numpy as np
@@ -324,6 +325,18 @@ def _borrow_expr(value, expr: str = "data") -> str:
     return expr
 
 
+def _exactness(f) -> str:
+    """``'exact'``, ``'bound'`` or ``'none'`` (see :attr:`fastsdf.SDF.exactness`) of the world
+    (of a grid's exact SDF); ``'unknown'`` for a bare :class:`fastsdf.graph.Function`."""
+    g = f.exact if _is_grid(f) else f
+    return getattr(g, "exactness", "unknown")
+
+
+def _is_distance_bound(f) -> bool:
+    """Whether the world is known to be 1-Lipschitz (so that a grid of it is sqrt(2))."""
+    return _exactness(f) in ("exact", "bound")
+
+
 def _grid_margin(f) -> float:
     """How far a grid in mode 'exact' may jump where it hands over to the exact SDF at its
     bounds: one node spacing bounds the bilinear error of an exact SDF (0 for SDFs and for
@@ -434,10 +447,13 @@ class ParticleSimulation:
         Restitution and friction given to every particle by :meth:`reset` (the original
         library's defaults); per-particle values can be written to ``p['cr']``, ``p['cf']``.
     lipschitz : float or None
-        A bound on ``|grad d|`` for the tunnelling check: ``None`` takes 1 for an SDF (exact
-        distances and the library's smooth blends are 1-Lipschitz) and ``sqrt(2)`` for a
-        GridSDF (the bound of a bilinear interpolant of a 1-Lipschitz function). Give a larger
-        value for expressions that are not distance bounds.
+        A bound on ``|grad d|`` for the tunnelling check and the free-flight query skipping:
+        ``None`` takes 1 for an SDF and ``sqrt(2)`` for a GridSDF (the bound of a bilinear
+        interpolant of a 1-Lipschitz function). That is right for SDFs whose ``exactness`` is
+        ``'exact'`` or ``'bound'`` (every primitive, transform, hard and smooth blend of the
+        library); for a world not known to be a distance bound (``exactness == 'none'``, or a
+        bare :class:`fastsdf.graph.Function`) a ``RuntimeWarning`` says so, queries are never
+        skipped, and you should pass the bound.
     block : int or None
         Particles per block in :meth:`run` (tuning; ``None``: :data:`DEFAULT_BLOCK`).
 
@@ -481,7 +497,6 @@ class ParticleSimulation:
         self.n = int(n)
         self.dt = dt
         self._lipschitz_arg = lipschitz
-        self.sdf = f
         self.seed = seed
         self.integrator = integrator
         self.collision = collision
@@ -489,12 +504,12 @@ class ParticleSimulation:
         self.dtype = dtype
         self.cr = _unit_interval(cr, "cr")
         self.cf = _unit_interval(cf, "cf")
+        self.sdf = f
         self.block = None if block is None else int(block)
         self.force_generators = []
         self.drawable = None
         self._layer = None
         self.t = 0.0
-        self._skip = True
         self._ext = None
         self._wall = None
         self.reset()
@@ -513,6 +528,16 @@ class ParticleSimulation:
         #: The Lipschitz bound the tunnelling check and the free-flight budget use.
         self.lipschitz = float(self._lipschitz_arg) if self._lipschitz_arg is not None \
             else (math.sqrt(2.0) if _is_grid(f) else 1.0)
+        # Skipping queries is exact only if the bound holds; without a known bound (an SDF
+        # whose exactness is 'none', or a bare expression) every step queries.
+        known = self._lipschitz_arg is not None or _is_distance_bound(f)
+        self._skip = known
+        if not known and self.prevent_tunnelling:
+            warnings.warn(
+                f"the world's value is not known to be a distance bound (exactness "
+                f"{_exactness(f)!r}): the tunnelling check assumes |grad d| <= "
+                f"{self.lipschitz:g}; pass lipschitz= (a bound on |grad d|) if that is wrong",
+                RuntimeWarning, stacklevel=3)
 
     # -- notebook interface ----------------------------------------------------------------
     def reset(self, ax=None):

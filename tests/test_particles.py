@@ -249,7 +249,7 @@ def test_zero_thickness_wall():
     """d = |x|: a wall of no thickness at x = 0."""
     x, y = Symbol("x"), Symbol("y")
     wall = Function(sym_abs(x), [x, y])
-    sim, max_x, r = shoot(wall, seed=2, n=300)
+    sim, max_x, r = shoot(wall, seed=2, n=300, lipschitz=1.0)
     assert np.all(max_x <= -0.99 * r)
     assert np.all(sim.p["v"][sim.would_cross, 0] <= 0)
 
@@ -257,7 +257,7 @@ def test_zero_thickness_wall():
 def test_point_particles_do_not_cross_a_zero_thickness_wall():
     x, y = Symbol("x"), Symbol("y")
     wall = Function(sym_abs(x), [x, y])
-    sim = phys.ParticleSimulation(wall, n=200, timestep=1 / 30, seed=5)
+    sim = phys.ParticleSimulation(wall, n=200, timestep=1 / 30, seed=5, lipschitz=1.0)
     p = sim.p
     rng = np.random.default_rng(5)
     p["r"] = 0.0
@@ -540,6 +540,24 @@ def test_bad_parameters(floor, kw, exc, words):
     args = {"n": 10, **kw}
     with pytest.raises(exc, match=words.replace("(", r"\(").replace(")", r"\)")):
         phys.ParticleSimulation(floor, **args)
+
+
+def test_world_without_a_known_lipschitz_bound_warns():
+    x, y = Symbol("x"), Symbol("y")
+    bare = Function(sym_abs(x) - 0.1, [x, y])
+    with pytest.warns(RuntimeWarning, match="not known to be a distance bound"):
+        sim = phys.ParticleSimulation(bare, n=10)
+    assert not sim._skip
+    rough = sdf.SDF(sym_abs(x) * 3.0 - 0.1)               # steeper than a distance
+    assert rough.exactness == "none"
+    with pytest.warns(RuntimeWarning, match="exactness 'none'"):
+        phys.ParticleSimulation(rough, n=10)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sim = phys.ParticleSimulation(rough, n=10, lipschitz=3.0)
+        phys.ParticleSimulation(rough, n=10, prevent_tunnelling=False)
+    assert sim._skip and sim.lipschitz == 3.0
 
 
 def test_bad_world():
