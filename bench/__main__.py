@@ -22,6 +22,8 @@ from .common import HERE, machine_info
 SECTIONS = [
     ("core", "bench.bench_core", "exact compiled SDFs: throughput and compile time"),
     ("grid", "bench.bench_grid", "GridSDF: build, memory, query speed and error vs resolution"),
+    ("particles", "bench.bench_particles",
+     "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
 ]
 
 HEADER = """# fastsdf benchmark results
