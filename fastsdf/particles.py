@@ -802,7 +802,8 @@ def create_animation(fig, ax, sim, frames=300, repeat=True, use_wall_time=False,
     Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
     calls ``sim.reset(ax)``, which redraws a fresh random state. ``interval`` is the delay
     between frames in milliseconds (default: the simulation's timestep). Returns the animation
-    (keep a reference to it; ``anim.to_html5_video()`` renders it in a notebook).
+    (keep a reference to it; ``anim.to_html5_video()`` renders it in a notebook: an MP4 when
+    ffmpeg is installed, matplotlib's JavaScript player (``to_jshtml``) otherwise).
     """
     from matplotlib.animation import FuncAnimation
 
@@ -818,6 +819,16 @@ def create_animation(fig, ax, sim, frames=300, repeat=True, use_wall_time=False,
             return (drawable,) if drawable is not None else ()
         return returned
 
-    return FuncAnimation(fig, lambda i: artists(sim.update(ax, use_wall_time=use_wall_time)),
-                         init_func=lambda: artists(sim.reset(ax)), frames=frames,
-                         interval=interval, blit=True, repeat=repeat)
+    class _Animation(FuncAnimation):
+        """``to_html5_video`` needs ffmpeg; without it, fall back to matplotlib's JavaScript
+        player (``to_jshtml``) so the notebook's ``HTML(anim.to_html5_video())`` still works."""
+
+        def to_html5_video(self, embed_limit=None):
+            from matplotlib import animation, rcParams
+            if animation.writers.is_available(rcParams["animation.writer"]):
+                return super().to_html5_video(embed_limit=embed_limit)
+            return self.to_jshtml(default_mode="loop" if repeat else "once")
+
+    return _Animation(fig, lambda i: artists(sim.update(ax, use_wall_time=use_wall_time)),
+                      init_func=lambda: artists(sim.reset(ax)), frames=frames,
+                      interval=interval, blit=True, repeat=repeat)

@@ -62,7 +62,7 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     assert res.inside_fraction < 0.01
     img = imread(res.last_frame)[..., :3]
     # Map data coordinates to PNG pixels with the same figure layout render_frame uses.
-    fig = render_frame(box_world(20, seed=3), np.zeros(0), np.zeros(0))
+    fig = render_frame(world, np.zeros(0), np.zeros(0))
     to_px = fig.axes[0].transData
     height = img.shape[0]
 
@@ -70,7 +70,10 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
         px, py = to_px.transform((x, y))
         return img[int(round(height - py)), int(round(px))]
 
-    for x, y in [(0.0, -1.95), (-1.9, 0.5), (1.9, 0.5)]:  # inside the funnel's floor and walls
+    world = box_world(20, seed=3)
+    probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
+    assert np.all(world(*np.array(probes).T) < -0.05)
+    for x, y in probes:
         np.testing.assert_allclose(pixel(x, y), _hex(SOLID_COLOR), atol=0.02)
     # Particles are drawn (as circles at this count) and sit above the floor.
     is_particle = np.all(np.abs(img - _hex(PARTICLE_COLOR)) < 0.08, axis=-1)
