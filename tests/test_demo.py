@@ -61,6 +61,9 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     assert (res.grid_band_value_max is None) == exact
     assert res.inside_fraction < 0.01
     img = imread(res.last_frame)[..., :3]
+    world = box_world(20, seed=3)
+    probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
+    assert np.all(world(*np.array(probes).T) < -0.05)
     # Map data coordinates to PNG pixels with the same figure layout render_frame uses.
     fig = render_frame(world, np.zeros(0), np.zeros(0))
     to_px = fig.axes[0].transData
@@ -70,9 +73,6 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
         px, py = to_px.transform((x, y))
         return img[int(round(height - py)), int(round(px))]
 
-    world = box_world(20, seed=3)
-    probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
-    assert np.all(world(*np.array(probes).T) < -0.05)
     for x, y in probes:
         np.testing.assert_allclose(pixel(x, y), _hex(SOLID_COLOR), atol=0.02)
     # Particles are drawn (as circles at this count) and sit above the floor.
