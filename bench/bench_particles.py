@@ -19,6 +19,7 @@ machine falls on all of them alike. Cells show the median rate and, in parenthes
 
 from __future__ import annotations
 
+import os
 import time
 
 import numba
@@ -318,20 +319,53 @@ def run(quick: bool = False) -> str:
         # 6. Scaling.
         sizes = [1_000, 10_000, 100_000] if quick else [1_000, 10_000, 100_000, 1_000_000,
                                                         4_000_000]
-        rows = []
+        rows, curve = [], {threads: [], 1: []}
         for m in sizes:
             sim = _sim(grid, m)
             (rate,) = compare([Fused(grid, sim.p.copy(), 100)], 2)
-            rows.append([f"{m:,}", cell(rate), f"{m * 64 / 2**20:,.1f} MiB",
-                         f"{m * 32 / 2**20:,.1f} MiB"])
+            numba.set_num_threads(1)
+            try:
+                (rate1,) = compare([Fused(grid, sim.p.copy(), 100)], 2)
+            finally:
+                numba.set_num_threads(threads)
+            curve[threads].append(rate[0])
+            curve[1].append(rate1[0])
+            rows.append([f"{m:,}", cell(rate), cell(rate1), f"{rate[0] / rate1[0]:.2f}x",
+                         f"{m * 64 / 2**20:,.1f} MiB", f"{m * 32 / 2**20:,.1f} MiB"])
         bar.step("scaling")
+        plot = _scaling_plot(sizes, curve, quick)
         out += [
             "### Particle count (steps 0-100 of the notebook scenario, `run(100)`)", "",
             "Below 4096 particles the kernel runs on one thread. State memory: 64 bytes per "
             "particle in float64 (x, v: 16 each; m, r, cr, cf: 8 each), 32 in float32.", "",
-            table(["particles", "particle-steps/s", "state (float64)", "state (float32)"], rows),
-            ""]
+            table(["particles", f"particle-steps/s, {threads} threads", "1 thread",
+                   "parallel speed-up", "state (float64)", "state (float32)"], rows),
+            "", plot, ""]
     return "\n".join(out)
+
+
+def _scaling_plot(sizes, curve, quick) -> str:
+    """Particle-steps/s against particle count, per thread count (PNG beside this file)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for threads, rates in sorted(curve.items(), reverse=True):
+        ax.loglog(sizes, rates, "o-", label=f"{threads} thread{'s' if threads > 1 else ''}")
+    ax.set_xlabel("particles")
+    ax.set_ylabel("particle-steps / s")
+    ax.set_title("fused step, 400x400 grid, run(100)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    if quick:
+        plt.close(fig)
+        return ""
+    fig.savefig(os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                             "particles_scaling.png"), dpi=100)
+    plt.close(fig)
+    return "![particle scaling](particles_scaling.png)"
 
 
 def _copy_state(state, n, dtype=None):

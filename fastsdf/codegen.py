@@ -40,6 +40,8 @@ __all__ = ["CompiledSDF", "compile_expr", "generate_module_source", "MIN_LOOP", 
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
+#: Per-point functions longer than this (in generated lines) are not interleaved.
+LONG_BODY_LINES = 400
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 PARALLEL_MIN_POINTS = 4096
 
@@ -608,8 +610,14 @@ def _kernels_source(lanes: int) -> str:
 def choose_lanes(lines: list) -> int:
     """Points interleaved per iteration of the parallel kernels: 4 for loop-free code (short
     dependency chains, measured 1.4x over 2 lanes on the seed world), 2 when the code has loops
-    over tables (more lanes spill registers: 4 lanes measured slower than 2 on the 20-box world).
+    over tables (more lanes spill registers: 4 lanes measured slower than 2 on the 20-box world),
+    1 for long straight-line bodies (compile time).
     """
+    if len(lines) > LONG_BODY_LINES:
+        # numba's compile time grows faster than linearly with a function's length; copies of a
+        # long straight-line body would multiply it (measured: a 50-primitive scene with no
+        # repeated structure took 98 s cold with 4 lanes).
+        return 1
     return 2 if any(line.lstrip().startswith("for ") for line in lines) else 4
 
 

@@ -54,7 +54,20 @@ def test_same_shape_operands_become_one_loop():
                                rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("scene,lanes", [(seed_world, 4), (lambda: box_world(6), 2)])
+def _long_straight_line_scene():
+    """Alternating kinds and operations: nothing folds into loops, the body is long."""
+    rng = np.random.default_rng(5)
+    f = sdf.Halfspace([0, 1], -1.8)
+    for i in range(9):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness([0, 5, 10][i % 3]):
+            s = sdf.Circle([0, 0], 0.2) if i % 2 else sdf.Box([-0.2, -0.1], [0.1, 0.2])
+            f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
+    return f
+
+
+@pytest.mark.parametrize("scene,lanes", [(seed_world, 4), (lambda: box_world(6), 2),
+                                         (_long_straight_line_scene, 1)])
 def test_parallel_and_serial_kernels_agree(scene, lanes):
     """The multi-lane parallel kernels (every tail length, NaN lanes) against the serial ones."""
     f = scene()
