@@ -569,9 +569,12 @@ def batch_{kind}_ser(xs, ys, out, {grad}):
 '''
 
 
-def _kernels_source(lanes: int) -> str:
+def _kernels_source(lanes_of: dict) -> str:
+    """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
+    shorter than the gradient body, so the two may differ)."""
     parts = []
     for kind in ("v", "vg"):
+        lanes = lanes_of[kind]
         gather, args, scatter, results = [], [], [], []
         for k in range(lanes):
             gather += [f"        j{k} = min(i + {k}, n - 1)",
@@ -694,8 +697,8 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
 def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
     """Full source of the kernel module for ``root``; also returns each function's source."""
     tables: dict = {}
-    v_one, v_many, lanes = _function_source(root, symbol_names, False, tables)
-    vg_one, vg_many, _ = _function_source(root, symbol_names, True, tables)
+    v_one, v_many, lanes_v = _function_source(root, symbol_names, False, tables)
+    vg_one, vg_many, lanes_vg = _function_source(root, symbol_names, True, tables)
     funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many}
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
@@ -706,7 +709,7 @@ def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
         arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
         rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
         parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
-    parts.extend([v_one, vg_one, v_many, vg_many, _kernels_source(lanes)])
+    parts.extend([v_one, vg_one, v_many, vg_many, _kernels_source({"v": lanes_v, "vg": lanes_vg})])
     return "\n".join(parts), funcs
 
 
