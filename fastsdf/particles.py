@@ -74,6 +74,8 @@ import warnings
 import numba
 import numpy as np
 
+from ._validate import real
+from ._validate import vec2 as _vec2
 from . import __version__
 from ._cache import load_module
 from ._particle_kernels import QUERY_EXACT, QUERY_GRID_EXACT, QUERY_GRID_NEAREST, TEMPLATE
@@ -108,9 +110,8 @@ _COLLISIONS = ("approaching", "notebook")
 # Parameter checking: errors name the parameter and the value.
 
 def _real(value, name: str) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {name}={value!r}")
-    return float(value)
+    """A real number, possibly non-finite: callers check the range with their own message."""
+    return real(value, name, finite=False)
 
 
 def _unit_interval(value, name: str) -> float:
@@ -118,18 +119,6 @@ def _unit_interval(value, name: str) -> float:
     if not 0.0 <= v <= 1.0:
         raise ValueError(f"{name} must be in [0, 1], got {name}={value!r}")
     return v
-
-
-def _vec2(value, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}") from None
-    if arr.shape != (2,):
-        raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
-    return arr
 
 
 def _gen_name(gen) -> str:

@@ -35,6 +35,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ._validate import real as _real
+from ._validate import vec2 as _vec2
 from .graph import (Expr, Function, Symbol, substitute, sym_abs, sym_cmin, sym_floor, sym_length,
                     sym_max, sym_min, sym_prim, sym_qmin, sym_select, sym_smax, sym_smin)
 
@@ -65,30 +67,6 @@ _state = {"x": _X, "y": _Y, "smoothness": 0.0, "blend": "exponential", "frame": 
 
 # ---------------------------------------------------------------------------------------------
 # Parameter validation: errors name the parameter and the value.
-
-def _real(value, name: str) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {name}={value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
-    return value
-
-
-def _vec2(value, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value)
-    except Exception:  # noqa: BLE001 - any conversion failure is a type error for the user
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}") from None
-    if arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}")
-    if arr.shape != (2,):
-        raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
-    arr = arr.astype(np.float64)
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
-    return arr
-
 
 def _smoothness_value(k) -> float:
     if k is None:
