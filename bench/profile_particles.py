@@ -76,8 +76,9 @@ def main(argv=None) -> int:
     state = sim.p.copy()
     query_one = sim._module._query  # the fused kernel's own inlined query
 
-    def fresh():
-        sim.p = state.copy()
+    def fresh():  # restore the state in place: no allocation, no page faults in the timings
+        for field in phys.Particles.FIELDS:
+            sim.p[field] = state[field]
 
     def fused(tunnelling, steps=1):
         def go():
@@ -88,17 +89,19 @@ def main(argv=None) -> int:
 
     out = np.empty(n)
     x0, v0, r0 = state["x"].copy(), state["v"].copy(), state["r"].copy()
+    x, v = np.empty_like(x0), np.empty_like(v0)
+
+    def copy_only():
+        np.copyto(x, x0)
+        np.copyto(v, v0)
 
     def integrate():
-        x, v = x0.copy(), v0.copy()
+        copy_only()
         _integrate(x, v, dt, -1.0)
 
     def integrate_query():
-        x, v = x0.copy(), v0.copy()
+        copy_only()
         _integrate_and_query(query_one, sim._data, x, v, r0, dt, -1.0, out)
-
-    def copy_only():
-        x0.copy(), v0.copy()
 
     def copy_state():
         fresh()
