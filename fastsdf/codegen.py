@@ -633,9 +633,6 @@ def _lane(line: str, k: int) -> str:
     return re.sub(r"\b([xy])\b", lambda mt: f"{mt.group(1)}{k}", line)
 
 
-_SHARED_LOOPS = True
-
-
 def _interleave(lines: list, lanes: int = 2) -> list:
     """Two-lane version of a function body: every statement once per lane, lane after lane, so
     the two chains are adjacent in the instruction stream; ``for`` loops over tables are shared
@@ -648,7 +645,7 @@ def _interleave(lines: list, lanes: int = 2) -> list:
         while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > indent:
             j += 1
         block = lines[i + 1:j]
-        if line.lstrip().startswith("for ") and _SHARED_LOOPS:
+        if line.lstrip().startswith("for "):
             out.append(line)
             out.extend(_interleave(block, lanes))
         else:
