@@ -4,8 +4,13 @@ numba lowers ``a if c else b`` to a branch. In SDF code the condition (which ope
 wins, which side of a blend is larger) flips from point to point, so such branches mispredict
 about half the time; :func:`select` emits LLVM's branch-free ``select`` instead. Both operands
 are always evaluated, so they must be safe to compute (no side effects, no traps).
+
+:func:`f64_bits` and :func:`bits_f64` reinterpret a float64 as an int64 and back (no conversion):
+the vectorizable elementary functions of :mod:`fastsdf._vmath` split exponent and mantissa with
+them.
 """
 
+from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
@@ -22,5 +27,33 @@ def select(typingctx, cond, a, b):
         x = context.cast(builder, x, signature.args[1], types.float64)
         y = context.cast(builder, y, signature.args[2], types.float64)
         return builder.select(c, x, y)
+
+    return sig, codegen
+
+
+@intrinsic
+def f64_bits(typingctx, x):
+    """The IEEE-754 bit pattern of a float64 as an int64 (a bit cast, no conversion)."""
+    if not isinstance(x, types.Float):
+        return None
+    sig = types.int64(x)
+
+    def codegen(context, builder, signature, args):
+        v = context.cast(builder, args[0], signature.args[0], types.float64)
+        return builder.bitcast(v, ir.IntType(64))
+
+    return sig, codegen
+
+
+@intrinsic
+def bits_f64(typingctx, i):
+    """The float64 whose IEEE-754 bit pattern is the int64 ``i`` (a bit cast, no conversion)."""
+    if not isinstance(i, types.Integer):
+        return None
+    sig = types.float64(i)
+
+    def codegen(context, builder, signature, args):
+        v = context.cast(builder, args[0], signature.args[0], types.int64)
+        return builder.bitcast(v, ir.DoubleType())
 
     return sig, codegen
