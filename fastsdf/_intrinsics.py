@@ -5,13 +5,14 @@ wins, which side of a blend is larger) flips from point to point, so such branch
 about half the time; :func:`select` emits LLVM's branch-free ``select`` instead. Both operands
 are always evaluated, so they must be safe to compute (no side effects, no traps).
 
-:func:`f64_bits` and :func:`bits_f64` reinterpret a float64 as an int64 and back (no conversion):
-the vectorizable elementary functions of :mod:`fastsdf._vmath` split exponent and mantissa with
-them.
+:func:`f64_bits` and :func:`bits_f64` reinterpret a float64 as an int64 and back (no
+conversion) and :func:`fmuladd` is a multiply-add that may be fused: the vectorizable elementary
+functions of :mod:`fastsdf._vmath` are built from them.
 """
 
 from llvmlite import ir
 from numba import types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 
@@ -55,5 +56,24 @@ def bits_f64(typingctx, i):
     def codegen(context, builder, signature, args):
         v = context.cast(builder, args[0], signature.args[0], types.int64)
         return builder.bitcast(v, ir.DoubleType())
+
+    return sig, codegen
+
+
+@intrinsic
+def fmuladd(typingctx, a, b, c):
+    """``a * b + c`` for float64, fused into one FMA instruction where the CPU has one (then
+    rounded once, so the result may differ from ``a * b + c`` in the last bit); otherwise a
+    multiplication and an addition. Vectorizes like plain arithmetic (LLVM's ``fmuladd``)."""
+    if not all(isinstance(t, types.Float) for t in (a, b, c)):
+        return None
+    sig = types.float64(a, b, c)
+
+    def codegen(context, builder, signature, args):
+        vals = [context.cast(builder, v, t, types.float64) for v, t in zip(args, signature.args)]
+        dbl = ir.DoubleType()
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(dbl, [dbl] * 3),
+                                            "llvm.fmuladd.f64")
+        return builder.call(fn, vals)
 
     return sig, codegen

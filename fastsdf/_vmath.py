@@ -24,17 +24,24 @@ library's:
   ``1 + x`` is already in ``[sqrt(2)/2, sqrt(2))``. ``log1p(-1) = -inf``, below ``-1`` nan,
   ``|x| < 2^-53`` returns ``x`` (so ``-0.0``, subnormals and tiny values are exact).
 
+``vlength(a, b)`` is ``sqrt(a*a + b*b)`` without overflow or underflow and without a branch:
+where ``max(|a|, |b|)`` is outside ``[1e-150, 1e150]`` both are scaled by an exact power of two
+first (elsewhere the result is bit-identical to the plain formula).
+
 Every function is compiled with ``error_model="numpy"``: the Python error model would add a
 branch (a zero-division check) to each division and keep the loop scalar.
 """
 
 from __future__ import annotations
 
+import math
+
 from numba import njit
 
 from ._intrinsics import bits_f64, f64_bits, select
+from ._intrinsics import fmuladd as fma
 
-__all__ = ["vexp", "vlog", "vlog1p"]
+__all__ = ["vexp", "vlog", "vlog1p", "vlength"]
 
 # -- exp -------------------------------------------------------------------------------------
 _LOG2E = 1.4426950408889634
@@ -83,31 +90,31 @@ _SMALL_HI = 0.41421356237309503
 _TINY = 1.1102230246251565e-16       # 2^-53: below it log1p(x) rounds to x
 
 
-@njit(nogil=True, error_model="numpy", fastmath={"contract"}, inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _int_to_f64(k):
     """An int64 ``|k| < 2^51`` as float64 by bit arithmetic (AVX2 has no int64 -> double)."""
     return bits_f64(k + _SHIFT_BITS) - _SHIFT
 
 
-@njit(nogil=True, error_model="numpy", fastmath={"contract"}, inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def vexp(x):
     """``e**x`` for a float64, branch-free (within 2 ulp of ``math.exp``; see the module)."""
     xc = select(x > _EXP_HI, _EXP_HI, x)
     xc = select(xc < _EXP_LO, _EXP_LO, xc)          # nan passes both selects unchanged
-    t = xc * _LOG2E + _SHIFT
+    t = fma(xc, _LOG2E, _SHIFT)
     kf = t - _SHIFT                                  # round(x / ln 2) as a float
     k = f64_bits(t) - _SHIFT_BITS                    # the same integer, from the low bits
-    r = (xc - kf * _LN2_HI) - kf * _LN2_LO
-    q = _Q8 + r * _Q9
-    q = _Q7 + r * q
-    q = _Q6 + r * q
-    q = _Q5 + r * q
-    q = _Q4 + r * q
-    q = _Q3 + r * q
-    q = _Q2 + r * q
-    q = _Q1 + r * q
-    q = _Q0 + r * q
-    p = 1.0 + (r + (r * r) * q)
+    r = fma(kf, -_LN2_LO, fma(kf, -_LN2_HI, xc))
+    q = fma(r, _Q9, _Q8)
+    q = fma(r, q, _Q7)
+    q = fma(r, q, _Q6)
+    q = fma(r, q, _Q5)
+    q = fma(r, q, _Q4)
+    q = fma(r, q, _Q3)
+    q = fma(r, q, _Q2)
+    q = fma(r, q, _Q1)
+    q = fma(r, q, _Q0)
+    p = 1.0 + fma(r * r, q, r)
     # 2^k = 2^k1 * 2^k2 with both factors normal for -1075 <= k <= 1025: p * 2^k1 is exact and
     # the second product rounds once (into the subnormals, or to inf, as the C library does).
     k1 = k >> 1
@@ -115,20 +122,20 @@ def vexp(x):
     return (p * bits_f64((k1 + 1023) << 52)) * bits_f64((k2 + 1023) << 52)
 
 
-@njit(nogil=True, error_model="numpy", fastmath={"contract"}, inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _log1p_kernel(f, kf, c):
     """``kf ln2 + log1p(f) + c`` for ``1 + f`` in ``[sqrt(2)/2, sqrt(2))`` (fdlibm)."""
     hfsq = 0.5 * f * f
     s = f / (2.0 + f)
     z = s * s
     w = z * z
-    t1 = w * (_LG2 + w * (_LG4 + w * _LG6))
-    t2 = z * (_LG1 + w * (_LG3 + w * (_LG5 + w * _LG7)))
+    t1 = w * fma(w, fma(w, _LG6, _LG4), _LG2)
+    t2 = z * fma(w, fma(w, fma(w, _LG7, _LG5), _LG3), _LG1)
     r = t2 + t1
-    return s * (hfsq + r) + (kf * _LN2_LO + c) - hfsq + f + kf * _LN2_HI
+    return fma(s, hfsq + r, fma(kf, _LN2_LO, c)) - hfsq + f + kf * _LN2_HI
 
 
-@njit(nogil=True, error_model="numpy", fastmath={"contract"}, inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def vlog(x):
     """Natural logarithm of a float64, branch-free (within 2 ulp of ``math.log``)."""
     sub = x < _MIN_NORMAL                            # subnormal (or <= 0: replaced below)
@@ -145,7 +152,7 @@ def vlog(x):
     return select(x != x, x, res)
 
 
-@njit(nogil=True, error_model="numpy", fastmath={"contract"}, inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def vlog1p(x):
     """``log(1 + x)`` of a float64, branch-free (within 2 ulp of ``math.log1p``)."""
     u = 1.0 + x
@@ -165,3 +172,20 @@ def vlog1p(x):
     res = select(x < -1.0, _NAN, res)
     res = select(x == _INF, _INF, res)
     return select(x != x, x, res)
+
+
+_BIG = 1e150
+_SMALL = 1e-150
+_DOWN = 2.0 ** -600
+_UP = 2.0 ** 600
+
+
+@njit(nogil=True, error_model="numpy", inline="always")  # no contraction: same bits as a*a+b*b
+def vlength(a, b):
+    """``sqrt(a*a + b*b)`` for float64, branch-free, without overflow or underflow."""
+    m = max(abs(a), abs(b))
+    s = select(m > _BIG, _DOWN, select(m < _SMALL, _UP, 1.0))
+    inv = select(m > _BIG, _UP, select(m < _SMALL, _DOWN, 1.0))
+    sa = a * s
+    sb = b * s
+    return math.sqrt(sa * sa + sb * sb) * inv

@@ -15,9 +15,11 @@ Design (see the README's design section for the measurements behind it):
 * A smooth chain is evaluated as an online log-sum-exp (the streaming-softmax recurrence):
   one ``exp`` per operand and one ``log`` per chain, with values that never overflow for any
   ``k > 0``. This is mathematically the notebook's nested ``-log(exp(-k a) + exp(-k b)) / k``.
-* Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
-  tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
-  makes numba's compile time explode.
+* Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``). The
+  batch kernels run the same statements over blocks of points in a shape LLVM vectorizes
+  (:mod:`fastsdf._simd`), with branch-free ``exp``/``log`` (:mod:`fastsdf._vmath`), from tiny
+  ``prange`` kernels; long generated code inside a ``parallel=True`` body is what makes numba's
+  compile time explode.
 * Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf._cache`)
   and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
   compiles gradient code.
@@ -34,14 +36,13 @@ import numpy as np
 
 from . import __version__
 from ._cache import load_module
+from ._simd import block_source, vectorizable, vmath_import
 from .graph import Expr, topological_order
 
 __all__ = ["CompiledSDF", "compile_expr", "generate_module_source", "MIN_LOOP", "PARALLEL_MIN_POINTS"]
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
-#: Per-point functions longer than this (in generated lines) are not interleaved.
-LONG_BODY_LINES = 400
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 PARALLEL_MIN_POINTS = 4096
 
@@ -528,141 +529,13 @@ def {name}(x, y):
     return {ret}
 '''
 
-_LANES_TEMPLATE = '''
-@njit(cache=True, nogil=True, error_model="numpy")
-def {name}({args}):
-    """{doc} at {lanes} points at once (finite inputs only; see the batch kernels)."""
-{body}
-    return {ret}
-'''
-
-# The parallel kernels walk the points in groups of LANES through the multi-lane function:
-# each point's work is one long dependency chain (exp -> log -> next blend), and interleaving
-# independent chains lets the CPU overlap them. Non-finite points are evaluated at the origin
-# and overwritten; the last group repeats the final point. The serial kernels (small inputs) use
-# the one-point function, which compiles in about half the time.
-_BATCH_TEMPLATE = '''
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _batch_{kind}(xs, ys, out, {grad}start, stop, n):
-    for p in range(start, stop):
-        i = {lanes} * p
-{gather}
-        {results} = lanes_{kind}({args})
-{scatter}
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def batch_{kind}_par(xs, ys, out, {grad}chunks):
-    n = xs.shape[0]
-    groups = (n + {lanes_minus_1}) // {lanes}
-    chunks = max(1, min(groups, chunks))
-    for c in prange(chunks):
-        _batch_{kind}(xs, ys, out, {grad}c * groups // chunks, (c + 1) * groups // chunks, n)
-
-
-@njit(cache=True, error_model="numpy")
-def batch_{kind}_ser(xs, ys, out, {grad}):
-    for i in range(xs.shape[0]):
-        {single} = point_{kind}(xs[i], ys[i])
-{single_store}
-'''
-
-
-def _kernels_source(lanes_of: dict) -> str:
-    """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
-    shorter than the gradient body, so the two may differ)."""
-    parts = []
-    for kind in ("v", "vg"):
-        lanes = lanes_of[kind]
-        gather, args, scatter, results = [], [], [], []
-        for k in range(lanes):
-            gather += [f"        j{k} = min(i + {k}, n - 1)",
-                       f"        x{k} = xs[j{k}]",
-                       f"        y{k} = ys[j{k}]",
-                       f"        ok{k} = math.isfinite(x{k}) and math.isfinite(y{k})",
-                       f"        if not ok{k}:",
-                       f"            x{k} = 0.0",
-                       f"            y{k} = 0.0"]
-            args.append(f"x{k}, y{k}")
-            if kind == "v":
-                results.append(f"d{k}")
-            else:
-                results += [f"d{k}", f"gx{k}", f"gy{k}"]
-        for k in reversed(range(lanes)):  # lane 0 last: a repeated final point stays correct
-            if kind == "v":
-                scatter.append(f"        out[j{k}] = d{k} if ok{k} else math.nan")
-            else:
-                scatter += [f"        if not ok{k}:",
-                            f"            d{k} = gx{k} = gy{k} = math.nan",
-                            f"        out[j{k}] = d{k}",
-                            f"        grad[j{k}, 0] = gx{k}",
-                            f"        grad[j{k}, 1] = gy{k}"]
-        single = "d" if kind == "v" else "d, gx, gy"
-        single_store = "        out[i] = d" if kind == "v" else \
-            "        out[i] = d\n        grad[i, 0] = gx\n        grad[i, 1] = gy"
-        parts.append(_BATCH_TEMPLATE.format(
-            kind=kind, grad="grad, " if kind == "vg" else "", lanes=lanes,
-            lanes_minus_1=lanes - 1, gather="\n".join(gather), args=", ".join(args),
-            results=", ".join(results), scatter="\n".join(scatter), single=single,
-            single_store=single_store).replace("out, grad, )", "out, grad)").replace(
-            "out, )", "out)"))
-    return "".join(parts)
-
-
-def choose_lanes(lines: list) -> int:
-    """Points interleaved per iteration of the parallel kernels: 4 for loop-free code (short
-    dependency chains, measured 1.4x over 2 lanes on the seed world), 2 when the code has loops
-    over tables (more lanes spill registers: 4 lanes measured slower than 2 on the 20-box world),
-    1 for long straight-line bodies (compile time).
-    """
-    if len(lines) > LONG_BODY_LINES:
-        # numba's compile time grows faster than linearly with a function's length; copies of a
-        # long straight-line body would multiply it (measured: a 50-primitive scene with no
-        # repeated structure took 98 s cold with 4 lanes).
-        return 1
-    return 2 if any(line.lstrip().startswith("for ") for line in lines) else 4
-
-
-_LANE_VARS = re.compile(r"\b([vcw]\d+[a-z]*)\b")
-
-
-def _lane(line: str, k: int) -> str:
-    """Rename one lane's variables: v3 -> v3_1, x -> x1 (loop indices and tables are shared)."""
-    line = _LANE_VARS.sub(lambda mt: f"{mt.group(1)}_{k}", line)
-    return re.sub(r"\b([xy])\b", lambda mt: f"{mt.group(1)}{k}", line)
-
-
-def _interleave(lines: list, lanes: int = 2) -> list:
-    """Two-lane version of a function body: every statement once per lane, lane after lane, so
-    the two chains are adjacent in the instruction stream; ``for`` loops over tables are shared
-    (both lanes iterate the same rows) and ``if`` blocks are copied whole per lane."""
-    out, i = [], 0
-    while i < len(lines):
-        line = lines[i]
-        indent = len(line) - len(line.lstrip())
-        j = i + 1
-        while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > indent:
-            j += 1
-        block = lines[i + 1:j]
-        if line.lstrip().startswith("for "):
-            out.append(line)
-            out.extend(_interleave(block, lanes))
-        else:
-            for k in range(lanes):
-                out.extend(_lane(ln, k) for ln in [line] + block)
-        i = j
-    return out
-
-
 def _as_float(expr: str) -> str:
     """Wrap literal results so that numba types every returned value as float64."""
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
 
 
-def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
-    """Sources of the one-point function and of the multi-lane function for the batch kernels;
-    also returns the number of lanes."""
+def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, vmath: bool = True):
+    """Sources of the one-point function and of the block function with its kernels."""
     em = _Emitter(symbol_names, grad, tables)
     res = em.emit(root)
     if grad:
@@ -674,7 +547,8 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
         results = [_as_float(res.v)]
         single = ("point_v", "Value at one point.", "math.nan")
         multi = ("lanes_v", "Value")
-    lanes = choose_lanes(em.lines)
+    if vmath:
+        em.lines = vectorizable(em.lines)
     # numba lowers every reference to a global array as its own constant: bind each table to
     # a local once, so a table is embedded once per function however often the loop reads it.
     used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
@@ -683,20 +557,15 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
     one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
                                  ret=", ".join(results), nan_return=single[2])
     bind, rest = em.lines[:len(used)], em.lines[len(used):]
-    body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
-    many = _LANES_TEMPLATE.format(
-        name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
-        args=", ".join(f"x{k}, y{k}" for k in range(lanes)),
-        ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
-    return one, many, lanes
+    return one, block_source(rest, results, "vg" if grad else "v")
 
 
-def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
+def generate_module_source(root: Expr, symbol_names, vmath: bool = True) -> tuple[str, dict]:
     """Full source of the kernel module for ``root``; also returns each function's source."""
     tables: dict = {}
-    v_one, v_many, lanes_v = _function_source(root, symbol_names, False, tables)
-    vg_one, vg_many, lanes_vg = _function_source(root, symbol_names, True, tables)
-    funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many}
+    v_one, v_block = _function_source(root, symbol_names, False, tables, vmath)
+    vg_one, vg_block = _function_source(root, symbol_names, True, tables, vmath)
+    funcs = {"v": v_one, "vg": vg_one, "block_v": v_block, "block_vg": vg_block}
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
                             expr=_short(root).replace('"""', "\'\'\'").replace("\\", "\\\\"))]
@@ -706,7 +575,9 @@ def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
         arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
         rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
         parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
-    parts.extend([v_one, vg_one, v_many, vg_many, _kernels_source({"v": lanes_v, "vg": lanes_vg})])
+    if vmath:
+        parts.append(vmath_import())
+    parts.extend([v_one, vg_one, v_block, vg_block])
     return "\n".join(parts), funcs
 
 
@@ -765,8 +636,9 @@ class CompiledSDF:
     compiles (or loads from the disk cache) the first time it is needed.
     """
 
-    def __init__(self, expr: Expr, symbol_names):
+    def __init__(self, expr: Expr, symbol_names, vmath: bool = True):
         self.expr = expr
+        self.vmath = vmath
         self.symbol_names = tuple(symbol_names)
         self._source = None
         self._functions = None
@@ -776,7 +648,8 @@ class CompiledSDF:
     def module_source(self) -> str:
         """The complete generated module (tables, per-point functions, kernels)."""
         if self._source is None:
-            self._source, self._functions = generate_module_source(self.expr, self.symbol_names)
+            self._source, self._functions = generate_module_source(self.expr, self.symbol_names,
+                                                                   self.vmath)
         return self._source
 
     def function_source(self, kind: str = "vg") -> str:
@@ -821,6 +694,9 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
-def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
-    """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
-    return CompiledSDF(expr, symbol_names)
+def compile_expr(expr: Expr, symbol_names, vmath: bool = True) -> CompiledSDF:
+    """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet).
+
+    ``vmath=False`` keeps the C library's ``math.exp``/``math.log`` in the block kernels
+    instead of the vectorizable :mod:`fastsdf._vmath` functions (for comparison)."""
+    return CompiledSDF(expr, symbol_names, vmath)

@@ -26,7 +26,7 @@ def test_source_is_inspectable_python():
     f = seed_world()
     src = f.source()
     assert src.lstrip().startswith("@njit") and "def point_vg(x, y):" in src
-    assert "math.exp" in src and "math.log" in src
+    assert "_vexp(" in src and "_vlog(" in src and "math.exp" not in src
     assert "def point_v(x, y):" in f.source(gradient=False)
     compile(f.compiled.module_source, "<generated>", "exec")
 
@@ -39,8 +39,8 @@ def test_value_only_call_compiles_no_gradient_code():
         f = sdf.Circle([0.31, 0.2], unique) | sdf.Box([-0.1, -0.2], [0.3, 0.4])
     f(np.zeros(10), np.zeros(10))
     mod = f.compiled.module
-    assert mod.point_v.signatures and not mod.point_vg.signatures
-    assert not mod.lanes_vg.signatures and not mod.batch_vg_par.signatures
+    assert mod._block_v.signatures and not mod._block_vg.signatures
+    assert not mod.point_vg.signatures and not mod.batch_vg_par.signatures
 
 
 def test_same_shape_operands_become_one_loop():
@@ -66,13 +66,10 @@ def _long_straight_line_scene():
     return f
 
 
-@pytest.mark.parametrize("scene,lanes", [(seed_world, 4), (lambda: box_world(6), 2),
-                                         (_long_straight_line_scene, 1)])
-def test_parallel_and_serial_kernels_agree(scene, lanes):
-    """The multi-lane parallel kernels (every tail length, NaN lanes) against the serial ones."""
+@pytest.mark.parametrize("scene", [seed_world, lambda: box_world(6), _long_straight_line_scene])
+def test_parallel_and_serial_kernels_agree(scene):
+    """The parallel block kernels (every tail length, NaN points) against the serial ones."""
     f = scene()
-    assert f"def lanes_vg({', '.join(f'x{k}, y{k}' for k in range(lanes))}):" in \
-        f.compiled.module_source
     for n in (4096, 4097, 4098, 4099, 9999):
         p = np.random.default_rng(n).uniform(-2, 2, (n, 2))
         p[np.random.default_rng(n + 1).random(n) < 0.01, n % 2] = np.nan

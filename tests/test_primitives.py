@@ -279,7 +279,7 @@ def test_same_kind_prims_fold_into_a_loop_and_polynomial_blends_do_not():
 
 
 def test_parallel_multi_lane_kernels_with_the_new_operations():
-    """Inputs of 4096+ points run the interleaved multi-lane kernels: every new operation
+    """Inputs of 4096+ points run the parallel block kernels: every new operation
     (prim calls, select, floor, polynomial blends) in one scene, against the NumPy reference."""
     f = (sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]])
          .union(sdf.Ellipse([-0.5, 0.2], [0.6, 0.2]), k=0.2, kind="cubic")
