@@ -36,6 +36,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ._validate import real as _real
+from .interval import note_lipschitz
 from ._validate import vec2 as _vec2
 from .graph import (Expr, Function, Symbol, substitute, sym_abs, sym_cmin, sym_floor, sym_length,
                     sym_max, sym_min, sym_prim, sym_qmin, sym_select, sym_smax, sym_smin)
@@ -285,6 +286,8 @@ class SDF(Function):
     def __init__(self, expr: Expr, info: _Info | None = None):
         super().__init__(expr, [_X, _Y])
         self._info = _NONE if info is None else info
+        if self._info.bound:  # interval bounds may use |f(p) - f(c)| <= |p - c|
+            note_lipschitz(self.f, 1.0)
 
     @property
     def sdf(self) -> Expr:
