@@ -713,6 +713,21 @@ class ParticleSimulation:
         (self.drawable,) = self._layer.update(x[:, 0], x[:, 1],
                                               np.asarray(self.p["r"], dtype=np.float64))
 
+    def __getstate__(self):
+        # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
+        # kernel module, scratch buffers and drawing stay behind and are rebuilt on unpickling.
+        state = self.__dict__.copy()
+        for key in ("_module", "_data", "_ext", "_layer", "drawable", "_wall"):
+            state.pop(key, None)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._ext = self._layer = self.drawable = self._wall = None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
+            self.sdf = state["_sdf"]
+
     def __repr__(self):
         return (f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
                 f"integrator={self.integrator!r}, collision={self.collision!r}, "
