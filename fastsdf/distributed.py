@@ -199,48 +199,52 @@ def _set_threads(threads: int):
     numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
 
 
-class _Shard:
-    """One shard on a worker (a Dask actor). Every method returns something small, except
-    :meth:`particles` (for tests and small runs)."""
+class _Group:
+    """The shards on one worker (a Dask actor: one per worker, so a call costs one round trip
+    per worker whatever the shard count). Every method returns ``(steps, payload)``, ``steps``
+    being ``{shard: steps done}``; payloads are small except :meth:`particles`."""
 
-    def __init__(self, config: _Config, index: int, threads: int):
-        self.index = index
+    def __init__(self, config: _Config, indices: list, threads: int):
         self.threads = threads
-        self.steps = 0
         _set_threads(threads)
-        self.sim = config.build(index)
+        self.sims = {i: config.build(i) for i in indices}
+        self.steps = {i: 0 for i in indices}
 
-    def run(self, steps: int, generators: list) -> tuple:
+    def run(self, steps: int, generators: list):
         _set_threads(self.threads)
-        self.sim.force_generators = list(generators)
-        self.sim.run(steps)
-        self.steps += steps
-        return self.index, self.steps, self.sim.t
+        for i, sim in self.sims.items():
+            sim.force_generators = list(generators)
+            sim.run(steps)
+            self.steps[i] += steps
+        return dict(self.steps), {i: sim.t for i, sim in self.sims.items()}
 
-    def steps_done(self) -> tuple:
-        return self.index, self.steps
+    def summary(self, generators: list):
+        out = {}
+        for i, sim in self.sims.items():
+            sim.force_generators = list(generators)
+            x = np.asarray(sim.p["x"], dtype=np.float64)
+            bbox = np.array([x[:, 0].min(), x[:, 1].min(), x[:, 0].max(), x[:, 1].max()])
+            out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
+        return dict(self.steps), out
 
-    def summary(self, generators: list) -> tuple:
-        self.sim.force_generators = list(generators)
-        x = np.asarray(self.sim.p["x"], dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            bbox = (np.array([x[:, 0].min(), x[:, 1].min(), x[:, 0].max(), x[:, 1].max()])
-                    if x.shape[0] else np.full(4, np.nan))
-        return (self.index, self.steps, self.sim.n, self.sim.kinetic_energy(),
-                self.sim.potential_energy(), bbox)
-
-    def density(self, bounds, shape) -> tuple:
+    def density(self, bounds, shape):
         from .render import density_image
         _set_threads(self.threads)
-        x = self.sim.p["x"]
-        return self.index, self.steps, density_image(x[:, 0], x[:, 1], bounds, shape)
+        total = np.zeros(shape)
+        for sim in self.sims.values():
+            x = sim.p["x"]
+            total += density_image(x[:, 0], x[:, 1], bounds, shape)
+        return dict(self.steps), total
 
-    def take(self, local_indices) -> tuple:
-        p = self.sim.p
-        return self.index, self.steps, {k: np.array(p[k][local_indices]) for k in p.keys()}
+    def take(self, local: dict):
+        out = {}
+        for i, rows in local.items():
+            p = self.sims[i].p
+            out[i] = {k: np.array(p[k][rows]) for k in p.keys()}
+        return dict(self.steps), out
 
-    def particles(self) -> tuple:
-        return self.index, self.steps, self.sim.p.copy()
+    def particles(self):
+        return dict(self.steps), {i: sim.p.copy() for i, sim in self.sims.items()}
 
 
 @dataclass(frozen=True)
@@ -361,13 +365,17 @@ class DistributedSimulation:
         self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
         self._config_future = client.scatter(config, broadcast=True, hash=False)
         tag = uuid.uuid4().hex[:12]
+        self._groups = {}
+        for i, w in enumerate(self.workers):
+            self._groups.setdefault(w, []).append(i)
         self._futures = [
-            client.submit(_Shard, self._config_future, i,
+            client.submit(_Group, self._config_future, indices,
                           threads or info[w].get("nthreads", 1), actor=True, workers=[w],
-                          allow_other_workers=False, pure=False, key=f"fastsdf-shard-{tag}-{i}")
-            for i, w in enumerate(self.workers)]
-        self._actors = self._gather([(i, f) for i, f in enumerate(self._futures)],
-                                    check_steps=False)
+                          allow_other_workers=False, pure=False, key=f"fastsdf-shards-{tag}-{k}")
+            for k, (w, indices) in enumerate(self._groups.items())]
+        actors = self._gather([(indices[0], f) for indices, f
+                               in zip(self._groups.values(), self._futures)], check_steps=False)
+        self._actors = dict(zip(self._groups, actors))
 
     # -- calls and loss detection -----------------------------------------------------------
     def _lost_error(self, shards, detail=""):
@@ -387,46 +395,87 @@ class DistributedSimulation:
         Waits in slices of :data:`POLL_SECONDS`; between slices it asks the scheduler which
         workers are alive, so a dead worker raises :class:`ShardLostError` instead of a hang.
         """
-        from distributed.comm.core import CommClosedError
+        from distributed import Future
 
-        results = {}
-        pending = list(pending)
-        while pending:
-            i, fut = pending[0]
-            try:
-                results[i] = fut.result(timeout=POLL_SECONDS)
-                pending.pop(0)
-            except TimeoutError:
-                dead = self._dead_shards()
-                if dead:
-                    raise self._lost_error(dead, "worker no longer in the cluster") from None
-            except (OSError, CommClosedError) as exc:
-                raise self._lost_error([i], f"{type(exc).__name__}: {exc}") from None
-            except RuntimeError as exc:
-                if "lost" in str(exc).lower() or "released" in str(exc).lower():
-                    raise self._lost_error([i], f"{exc}") from None
-                raise
-            except Exception as exc:  # noqa: BLE001
-                if type(exc).__name__ in ("CancelledError", "FutureCancelledError",
-                                          "KilledWorker"):
-                    raise self._lost_error([i], f"{type(exc).__name__}: {exc}") from None
-                raise
+        if pending and not isinstance(pending[0][1], Future):
+            # Actor calls: one wait on the client's event loop for all of them (a blocking
+            # wait per future costs a loop round trip each).
+            results = self.client.sync(self._gather_async, list(pending))
+        else:
+            results = {}
+            for i, fut in pending:
+                while True:
+                    try:
+                        results[i] = fut.result(timeout=POLL_SECONDS)
+                        break
+                    except TimeoutError:
+                        dead = self._dead_shards()
+                        if dead:
+                            raise self._lost_error(dead, "worker no longer in the cluster") \
+                                from None
+                    except Exception as exc:  # noqa: BLE001
+                        self._raise_if_lost(i, exc)
+                        raise
         out = [results[i] for i in sorted(results)]
         if check_steps:
             # A shard re-created behind our back would report fewer steps: never accept it.
-            wrong = [r[0] for r in out if r[1] != self.steps]
+            wrong = [i for steps, _ in out for i, k in steps.items() if k != self.steps]
             if wrong:
                 raise self._lost_error(wrong, "a shard reported a step count other than the "
                                               f"simulation's {self.steps}")
         return out
 
-    def _call(self, method: str, *args, shards=None) -> list:
+    async def _gather_async(self, pending):
+        import asyncio
+
+        async def one(fut):
+            return await fut
+
+        tasks = {asyncio.ensure_future(one(fut)): i for i, fut in pending}
+        results = {}
+        try:
+            while tasks:
+                done, _ = await asyncio.wait(list(tasks), timeout=POLL_SECONDS,
+                                             return_when=asyncio.FIRST_EXCEPTION)
+                for task in done:
+                    i = tasks.pop(task)
+                    exc = task.exception()
+                    if exc is not None:
+                        self._raise_if_lost(i, exc)
+                        raise exc
+                    results[i] = task.result()
+                if tasks and not done:
+                    info = await self.client.scheduler.identity(n_workers=-1)
+                    alive = set(info["workers"])
+                    dead = [i for i, w in enumerate(self.workers) if w not in alive]
+                    if dead:
+                        raise self._lost_error(dead, "worker no longer in the cluster")
+        finally:
+            for task in tasks:
+                task.cancel()
+        return results
+
+    def _raise_if_lost(self, i, exc):
+        """Raise :class:`ShardLostError` if ``exc`` says that shard ``i``'s worker is gone."""
+        from distributed.comm.core import CommClosedError
+        name = type(exc).__name__
+        text = str(exc).lower()
+        if isinstance(exc, (OSError, CommClosedError)) or name in (
+                "CancelledError", "FutureCancelledError", "KilledWorker") or (
+                isinstance(exc, RuntimeError) and ("lost" in text or "released" in text)):
+            raise self._lost_error([i], f"{name}: {exc}") from None
+
+    def _call(self, method: str, *args, workers=None) -> list:
+        """Call ``method(*args)`` on the actor of every worker (or of the given ones, a dict
+        ``{worker: args}``) concurrently; ``[(steps, payload)]`` in worker order."""
         if self._lost is not None:
             raise self._lost
         if self._actors is None:
             raise RuntimeError("this DistributedSimulation is closed")
-        idx = range(self.shards) if shards is None else shards
-        pending = [(i, getattr(self._actors[i], method)(*args)) for i in idx]
+        if workers is None:
+            workers = {w: args for w in self._actors}
+        pending = [(self._groups[w][0], getattr(self._actors[w], method)(*a))
+                   for w, a in workers.items()]
         return self._gather(pending)
 
     # -- stepping -----------------------------------------------------------------------------
@@ -444,23 +493,25 @@ class DistributedSimulation:
             return
         if self._lost is not None:
             raise self._lost
-        pending = [(i, a.run(int(steps), self.force_generators))
-                   for i, a in enumerate(self._actors)]
         self.steps += int(steps)
-        out = self._gather(pending)
-        self.t = out[0][2]
+        out = self._call("run", int(steps), list(self.force_generators))
+        self.t = out[0][1][0]
 
     # -- reductions (small) ------------------------------------------------------------------
     def stats(self) -> SimulationStats:
         """Counts, energies and bounding boxes over all shards (a few numbers per shard)."""
-        out = self._call("summary", self.force_generators)
-        bboxes = np.array([r[5] for r in out], dtype=np.float64).reshape(-1, 4)
+        per = {}
+        for _, payload in self._call("summary", list(self.force_generators)):
+            per.update(payload)
+        rows = [per[i] for i in range(self.shards)]
+        bboxes = np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 4)
         with np.errstate(invalid="ignore"):
             bbox = (float(np.nanmin(bboxes[:, 0])), float(np.nanmin(bboxes[:, 1])),
                     float(np.nanmax(bboxes[:, 2])), float(np.nanmax(bboxes[:, 3])))
-        return SimulationStats(counts=tuple(int(r[2]) for r in out),
-                               kinetic=float(sum(r[3] for r in out)),
-                               potential=float(sum(r[4] for r in out)), bboxes=bboxes, bbox=bbox)
+        return SimulationStats(counts=tuple(int(r[0]) for r in rows),
+                               kinetic=float(sum(r[1] for r in rows)),
+                               potential=float(sum(r[2] for r in rows)), bboxes=bboxes,
+                               bbox=bbox)
 
     def energy(self) -> float:
         """Total kinetic plus gravitational potential energy (sum over shards, shard order)."""
@@ -472,18 +523,16 @@ class DistributedSimulation:
 
     def density(self, bounds=((-2.0, 2.0), (-2.0, 2.0)), shape=(400, 400)) -> np.ndarray:
         """Particle counts per pixel: the sum of the shards' :func:`fastsdf.render.density_image`
-        (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``). The client holds
-        one image at a time per arriving shard: memory O(H W), not O(n)."""
+        (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
+        counts, so the order of summation does not matter). Each worker sends one summed image:
+        the client holds O(workers * H * W), not O(n)."""
         from .plotting import check_bounds
         from .render import _check_shape
         bounds = check_bounds(bounds)
         shape = _check_shape(shape)
-        if self._lost is not None:
-            raise self._lost
-        pending = [(i, a.density(bounds, shape)) for i, a in enumerate(self._actors)]
         total = np.zeros(shape)
-        for r in self._gather(pending):
-            total += r[2]
+        for _, image in self._call("density", bounds, shape):
+            total += image
         return total
 
     def sample(self, k: int, seed=None) -> dict:
@@ -496,20 +545,19 @@ class DistributedSimulation:
         if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Integral) \
                 or not 0 <= k <= self.n:
             raise ValueError(f"k must be an integer in [0, n={self.n}], got k={k!r}")
+        from .particles import Particles
         rng = np.random.default_rng(seed)
         index = np.sort(rng.choice(self.n, size=int(k), replace=False))
         starts = np.concatenate([[0], np.cumsum(self.sizes)])
         shard_of = np.searchsorted(starts, index, side="right") - 1
-        parts = {}
-        pending = []
+        asks = {}
         for i in np.unique(shard_of):
-            local = index[shard_of == i] - starts[i]
-            pending.append((int(i), self._actors[int(i)].take(local)))
-        if self._lost is not None:
-            raise self._lost
-        for r in self._gather(pending):
-            parts[r[0]] = r[2]
-        from .particles import Particles
+            i = int(i)
+            asks.setdefault(self.workers[i], {})[i] = index[shard_of == i] - starts[i]
+        parts = {}
+        if asks:
+            for _, payload in self._call("take", workers={w: (a,) for w, a in asks.items()}):
+                parts.update(payload)
         out = {"index": index}
         for name in Particles.FIELDS:
             arrays = [parts[i][name] for i in sorted(parts)]
@@ -521,10 +569,13 @@ class DistributedSimulation:
         """All particles on the client as one :class:`fastsdf.particles.Particles`, shards in
         order: O(n) memory, for tests and small runs only."""
         from .particles import Particles
-        out = self._call("particles")
+        parts = {}
+        for _, payload in self._call("particles"):
+            parts.update(payload)
         p = Particles(self.n, self.dtype)
         start = 0
-        for _, _, part in out:
+        for i in range(self.shards):
+            part = parts[i]
             for name in Particles.FIELDS:
                 p[name][start:start + len(part)] = part[name]
             start += len(part)
@@ -566,6 +617,6 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
     if threads_per_worker is None:
         threads_per_worker = max(1, (os.cpu_count() or 1) // int(workers))
     options = dict(n_workers=int(workers), threads_per_worker=int(threads_per_worker),
-                   processes=True, host="127.0.0.1", dashboard_address=None)
+                   processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
     options.update(kwargs)
     return LocalCluster(**options)
