@@ -872,8 +872,10 @@ class ParticleSimulation:
     def __getstate__(self):
         # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
         # kernel module, scratch buffers and drawing stay behind and are rebuilt on unpickling.
+        # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
-        for key in ("_module", "_data", "_ext", "_layer", "drawable", "_wall"):
+        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_layer", "drawable",
+                    "_wall"):
             state.pop(key, None)
         return state
 
