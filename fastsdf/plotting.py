@@ -234,6 +234,7 @@ def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
                                   d[::sy, ::sx], zorder=3, norm=norm)
     if colorbar:
         mappable = ret['contour'] if show_isolines == 'all' else ret['quiver']
-        ret['colorbar'] = ax.figure.colorbar(mappable, ax=ax,
+        # fraction/pad: a bar as tall as a square axes beside it.
+        ret['colorbar'] = ax.figure.colorbar(mappable, ax=ax, fraction=0.046, pad=0.04,
                                              label="distance d (negative inside)")
     return ret

@@ -159,3 +159,19 @@ def test_notebook_example_runs_every_cell(tmp_path):
     for name in ("cell_04.png", "cell_09.png", "cell_13.png", "cell_18.html", "cell_21.html",
                  "cell_22.html"):
         assert (tmp_path / name).stat().st_size > 1000, name
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,outputs", [
+    ("custom_scene", ["custom_scene.png"]),
+    ("raymarch", ["raymarch.png"]),
+    ("custom_force", ["custom_force.png"]),
+    ("save_video", ["particles.mp4"]),
+])
+def test_examples_run_at_small_size(tmp_path, name, outputs):
+    env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")
+    res = subprocess.run([sys.executable, os.path.join(REPO, "examples", f"{name}.py"),
+                          str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    for out in outputs:
+        assert (tmp_path / out).stat().st_size > 1000, out
