@@ -26,6 +26,8 @@ SECTIONS = [
      "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
     ("distributed", "bench.bench_distributed",
      "particles sharded over Dask workers: 1 vs 2 processes, per-call overhead, client memory"),
+    ("simd", "bench.bench_simd",
+     "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
 ]
 
 HEADER = """# fastsdf benchmark results

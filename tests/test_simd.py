@@ -6,7 +6,7 @@ import numba
 import numpy as np
 import pytest
 
-from fastsdf._simd import BLOCK
+from fastsdf._simd import BLOCK, choose_lanes
 from fastsdf.codegen import compile_expr
 from fastsdf.graph import Function, Symbol, evaluate_numpy, sym_exp, sym_log, sym_max
 from fastsdf.scenes import box_world, seed_world
@@ -89,8 +89,22 @@ def test_table_loop_becomes_the_outer_loop():
     assert outer, block
     body = outer.group(2)
     assert re.search(r"^        h\w+ = _T0\[" + outer.group(1) + r", \d+\]$", body, re.M)
-    assert "        for i in range(n):" in body
-    assert "_T0[" not in body[body.index("for i in range(n):"):]
+    inner = re.search(r"^        for i in range\((\d+)\):$", body, re.M)
+    assert inner and int(inner.group(1)) == BLOCK  # one lane: a constant trip count per block
+    assert "_T0[" not in body[inner.start():]
+
+
+def test_loop_free_bodies_interleave_two_lanes():
+    """Points i and i + BLOCK/2 are computed in one iteration (two independent dependency
+    chains), each lane reading and writing its own rows of the scratch array."""
+    comp = seed_world().compiled
+    src = comp.module_source
+    block = src[src.index("def _block_vg"):src.index("def batch_vg_par")]
+    lanes = choose_lanes(comp.function_source("vg").splitlines()[4:])
+    assert lanes == 2
+    assert f"    for i in range({BLOCK // 2}):" in block
+    assert f"x_1 = S[{BLOCK // 2} + i]" in block and "x_0 = S[0 + i]" in block
+    assert re.search(r"w\d+e_1 = _vexp\(", block)
 
 
 def _fresh_block(comp, kind="vg"):
@@ -99,9 +113,9 @@ def _fresh_block(comp, kind="vg"):
     xs = np.linspace(-2, 2, BLOCK)
     slots = 64
     if kind == "vg":
-        fn(xs, xs, np.empty(BLOCK), np.empty(2 * BLOCK), np.empty(slots * BLOCK))
+        fn(xs, xs, np.empty(BLOCK), np.empty(2 * BLOCK), 0, BLOCK, np.empty(slots * BLOCK), 0)
     else:
-        fn(xs, xs, np.empty(BLOCK), np.empty(slots * BLOCK))
+        fn(xs, xs, np.empty(BLOCK), 0, BLOCK, np.empty(slots * BLOCK), 0)
     return "\n".join(fn.inspect_asm().values())
 
 
