@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="animation frames (default 60)")
     demo.add_argument("--no-animation", action="store_true", help="write only the last frame")
     demo.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
+    demo.add_argument("--workers", type=_positive_int, default=None,
+                      help="run the particles on a local Dask cluster of this many worker "
+                           "processes (needs the 'distributed' extra)")
     return parser
 
 
@@ -49,9 +52,12 @@ def main(argv=None) -> int:
         if args.grid < 2:
             parser.error(f"--grid must be at least 2, got {args.grid}")
         from .demo import run_demo, summary
+        if args.workers:
+            from .distributed import run_demo
         res = run_demo(particles=args.particles, steps=args.steps, grid=args.grid,
                        exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
-                       animate=not args.no_animation)
+                       animate=not args.no_animation,
+                       **({"workers": args.workers} if args.workers else {}))
         print(summary(res))
         return 0
     return 2  # pragma: no cover - argparse rejects unknown commands

@@ -45,6 +45,7 @@ bits as running those simulations one after another in one process.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import numbers
@@ -57,7 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
-           "local_cluster", "SimulationStats"]
+           "local_cluster", "SimulationStats", "run_demo"]
 
 #: How long (seconds) to wait on a shard before checking that its worker is still alive.
 POLL_SECONDS = 0.5
@@ -620,3 +621,142 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
                    processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
     options.update(kwargs)
     return LocalCluster(**options)
+
+
+# ---------------------------------------------------------------------------------------------
+# The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
+
+def _draw_density(ax, image, bounds, vmax=None):
+    """Show a density image (counts per pixel) as :func:`fastsdf.render.draw_particles` does:
+    the same colour map, logarithmic from 1 count, empty pixels transparent."""
+    from matplotlib.colors import LinearSegmentedColormap, LogNorm
+
+    from .render import PARTICLE_CMAP_COLORS
+    cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
+    cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
+    (x0, x1), (y0, y1) = bounds
+    vmax = max(float(image.max()), 1.0) if vmax is None else vmax
+    return ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
+                     extent=(x0, x1, y0, y1), cmap=cmap, norm=LogNorm(1.0, max(vmax, 1.0 + 1e-9)),
+                     interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+
+
+def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, grid: int = 400,
+             exact: bool = False, seed: int = 0, out: str = "demo-out", frames: int = 60,
+             fps: int = 20, animate: bool = True, stream=None, client=None):
+    """:func:`fastsdf.demo.run_demo` on a :func:`local_cluster` of ``workers`` processes
+    (closed at the end), or on the cluster of ``client`` if given (then ``workers`` is ignored).
+
+    The particles live on the workers (``workers`` shards); every animation frame and the last
+    frame are drawn from :meth:`DistributedSimulation.density` images, so only images travel
+    to this process. Returns a :class:`fastsdf.demo.DemoResult`; the share of particles inside
+    the simulated SDF is measured on a random sample of up to 100,000 particles.
+    """
+    import sys
+
+    import matplotlib
+    matplotlib.use("Agg")
+    from distributed import Client
+    from matplotlib import animation
+    from matplotlib.figure import Figure
+
+    from ._progress import Progress
+    from .demo import BOUNDS, DemoResult, _writer
+    from .grid import GridSDF, measure_error
+    from .particles import Gravity
+    from .plotting import plot_sdf
+    from .scenes import box_world
+
+    for name, value, low in (("workers", workers, 1), ("particles", particles, 1),
+                             ("steps", steps, 1), ("grid", grid, 2), ("frames", frames, 1),
+                             ("fps", fps, 1)):
+        if int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+    if particles < workers:
+        raise ValueError(f"particles must be >= workers, got particles={particles!r}, "
+                         f"workers={workers!r}")
+    err = stream or sys.stderr
+    os.makedirs(out, exist_ok=True)
+    frames = min(int(frames), int(steps))
+    world = box_world(20, seed=seed)
+    band_max = band_angle = None
+    if exact:
+        sdf, sdf_name = world, "exact compiled SDF"
+    else:
+        t0 = time.perf_counter()
+        sdf = GridSDF(world, bounds=BOUNDS, samples=[grid * 1j, grid * 1j])
+        error = measure_error(sdf, seed=seed)
+        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
+        sdf_name = f"GridSDF {grid}x{grid} (built in {time.perf_counter() - t0:.2f} s)"
+    shape = (480, 480)
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            cluster = stack.enter_context(local_cluster(int(workers)))
+            client = stack.enter_context(Client(cluster))
+        workers = len(_workers(client))
+        sim = stack.enter_context(DistributedSimulation(
+            sdf, int(particles), client=client, seed=seed,
+            force_generators=[Gravity(acceleration=(0.0, -1.0))]))
+        sim.run(1)  # compile (or load from the cache) on the workers outside the timed steps
+        done, sim_time = 1, 0.0
+
+        def advance(k):
+            nonlocal done, sim_time
+            k = min(k, int(steps) - done)
+            if k > 0:
+                t0 = time.perf_counter()
+                sim.run(k)
+                sim_time += time.perf_counter() - t0
+                done += k
+
+        def figure():
+            fig = Figure(figsize=(6, 6), dpi=80)
+            ax = fig.add_subplot()
+            plot_sdf(fig, ax, world, bounds=BOUNDS, show_quiver=False, show_isolines="zero",
+                     filled=True)
+            return fig, ax
+
+        animation_path = None
+        per_frame = max(1, (int(steps) - 1) // frames)
+        if animate:
+            fig, ax = figure()
+            artist = _draw_density(ax, sim.density(BOUNDS, shape), BOUNDS)
+            title = ax.set_title("")
+
+            def update(i):
+                advance(per_frame if i else 0)
+                image = sim.density(BOUNDS, shape)
+                artist.set_data(np.ma.masked_less_equal(image, 0.0))
+                artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
+                title.set_text(f"{int(particles):,} particles on {int(workers)} workers, "
+                               f"step {done}")
+                return (artist,)
+
+            anim = animation.FuncAnimation(fig, update, frames=frames, blit=False)
+            writer, ext = _writer(fps)
+            animation_path = os.path.abspath(os.path.join(out, "particles" + ext))
+            with Progress(frames, "simulate + render", stream=err) as bar:
+                anim.save(animation_path, writer=writer, dpi=80,
+                          progress_callback=lambda i, n: bar.step(f"step {done}"))
+        with Progress(1, "simulate", stream=err) as bar:
+            advance(int(steps) - done)
+            bar.step(f"step {done}")
+        last = os.path.abspath(os.path.join(out, "last_frame.png"))
+        fig = Figure(figsize=(6.0, 6.0), dpi=100)
+        ax = fig.add_subplot()
+        plot_sdf(fig, ax, world, bounds=BOUNDS, samples=400, show_quiver=False,
+                 show_isolines="zero", filled=True)
+        _draw_density(ax, sim.density(BOUNDS, (600, 600)), BOUNDS)
+        ax.set_title(f"{int(particles):,} particles after {done} steps ({int(workers)} workers)")
+        fig.savefig(last, dpi=100)
+        sample = sim.sample(min(int(particles), 100_000), seed=seed)
+    sdf_name += f", {workers} Dask worker processes"
+    x, r = sample["x"], sample["r"]
+    d = sdf(x[:, 0], x[:, 1]) - r
+    simulated = (done - 1) * int(particles)
+    rate = simulated / sim_time if sim_time > 0 else float("nan")
+    return DemoResult(particles=int(particles), steps=done, sdf=sdf_name, sim_seconds=sim_time,
+                      particle_steps_per_second=rate, grid_band_value_max=band_max,
+                      grid_band_angle_rms_deg=band_angle,
+                      inside_fraction=float(np.mean(d < -0.01 * r)),
+                      animation=animation_path, last_frame=last)

@@ -204,6 +204,20 @@ def test_bad_parameters_are_named_at_construction(client, grid):
 
 
 @pytest.mark.slow
+def test_demo_on_the_cluster(client, tmp_path):
+    from fastsdf.__main__ import build_parser
+    from fastsdf.distributed import run_demo
+    assert build_parser().parse_args(["demo", "--workers", "2"]).workers == 2
+    # The single-process demo test's scenario and bound (particles spawned inside boxes
+    # have been pushed out by step 45).
+    res = run_demo(particles=3000, steps=45, grid=120, seed=3, frames=3, animate=False,
+                   out=str(tmp_path), client=client)
+    assert res.steps == 45 and res.particles == 3000 and "2 Dask worker" in res.sdf
+    assert os.path.getsize(res.last_frame) > 10_000
+    assert res.inside_fraction < 0.01
+
+
+@pytest.mark.slow
 def test_a_dead_worker_raises_naming_its_shards(client, grid):
     # Last in the module: it kills a worker (the nanny starts a fresh one).
     sim = DistributedSimulation(grid, 4000, client=client, shards=4, seed=1,
