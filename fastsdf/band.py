@@ -47,10 +47,11 @@ import time
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
-from ._particle_kernels import borrowed
-from .codegen import PARALLEL_MIN_POINTS, as_points
+from .function import PARALLEL_MIN_POINTS, as_points
 from .graph import Function
 from .grid import (GridError, _check_bounds, _check_dtype, _check_samples, _fetch_add,
                    _n_chunks, _stats)
@@ -154,12 +155,31 @@ def _sample_band_value(data, x, y):
                   np.float64(q[c + u3]))
 
 
+@intrinsic
+def _borrowed(typingctx, arr):
+    """A view of ``arr`` without a reference count (null meminfo); the caller keeps ``arr``
+    alive."""
+    if not isinstance(arr, types.Array):
+        return None
+
+    def codegen(context, builder, signature, args):
+        src = context.make_array(signature.args[0])(context, builder, args[0])
+        out = context.make_array(signature.return_type)(context, builder)
+        for field in ("nitems", "itemsize", "data", "shape", "strides"):
+            setattr(out, field, getattr(src, field))
+        out.meminfo = cgutils.get_null_value(out.meminfo.type)
+        out.parent = cgutils.get_null_value(out.parent.type)
+        return out._getvalue()
+
+    return arr(arr), codegen
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _borrow(data):
     """The sampler data with its arrays as views without reference counts: binding an array
     to a variable inside the inlined sampler otherwise costs an atomic increment and decrement
     per point (the caller keeps the arrays alive)."""
-    return (borrowed(data[0]), borrowed(data[1]), borrowed(data[2])) + data[3:]
+    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2])) + data[3:]
 
 
 # Batch kernels. They return the number of points that need the exact SDF (NaN answers).
