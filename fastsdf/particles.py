@@ -197,7 +197,8 @@ class FieldForce:
     (NumPy, like any generator).
     """
 
-    def __init__(self, fx=None, fy=None, *, potential=None, per_mass=False):
+    def __init__(self, fx: Any = None, fy: Any = None, *, potential: Any = None,
+                 per_mass: bool = False):
         if potential is None:
             if fx is None or fy is None:
                 raise TypeError("FieldForce needs fx and fy, or potential=")
@@ -211,7 +212,7 @@ class FieldForce:
         self._dispatcher = None
 
     @property
-    def dispatcher(self):
+    def dispatcher(self) -> Any:
         """The compiled ``@njit`` force ``(x, y, vx, vy, m, t) -> (fx, fy)`` (built on first
         use, from a content-hashed module in the kernel cache)."""
         if self._dispatcher is None:
