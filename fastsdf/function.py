@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from typing import Any, Sequence
+from types import ModuleType
+from numpy.typing import ArrayLike
 
 from ._cache import load_module
 from .codegen import generate_module_source
@@ -22,7 +25,7 @@ __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN
 PARALLEL_MIN_POINTS = 4096
 
 
-def as_points(x, y):
+def as_points(x: ArrayLike, y: ArrayLike) -> tuple:
     """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
 
     Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
@@ -53,7 +56,7 @@ class CompiledSDF:
     compiles (or loads from the disk cache) the first time it is needed.
     """
 
-    def __init__(self, expr: Expr, symbol_names):
+    def __init__(self, expr: Expr, symbol_names: Sequence[str]):
         self.expr = expr
         self.symbol_names = tuple(symbol_names)
         self._source = None
@@ -73,20 +76,21 @@ class CompiledSDF:
         return self._functions[_check_kind(kind)]
 
     @property
-    def module(self):
+    def module(self) -> ModuleType:
+        """The imported generated module (compiled lazily; loaded from the disk cache)."""
         if self._module is None:
             self._module = load_module(self.module_source, prefix="fastsdf_scene")
         return self._module
 
-    def point_fn(self, kind: str = "vg"):
+    def point_fn(self, kind: str = "vg") -> Any:
         """The numba dispatcher of the per-point function (``point_v`` or ``point_vg``)."""
         return getattr(self.module, "point_" + _check_kind(kind))
 
-    def kernel(self, kind: str = "vg", parallel: bool = True):
+    def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
         """Batch kernel ``(xs, ys, out[, grad])`` over 1-d float64 arrays."""
         return getattr(self.module, f"batch_{_check_kind(kind)}_{'par' if parallel else 'ser'}")
 
-    def evaluate(self, x, y, compute_gradient: bool = False):
+    def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False) -> Any:
         """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
@@ -109,7 +113,7 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
-def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
+def compile_expr(expr: Expr, symbol_names: Sequence[str]) -> CompiledSDF:
     """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
     return CompiledSDF(expr, symbol_names)
 
@@ -130,7 +134,7 @@ class Function:
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
     """
 
-    def __init__(self, f, symbols):
+    def __init__(self, f: Expr, symbols: Sequence[Expr | str]):
         f = as_expr(f, "f")
         try:
             symbols = list(symbols)
@@ -150,19 +154,19 @@ class Function:
 
     # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
     @property
-    def compiled(self):
+    def compiled(self) -> CompiledSDF:
         """The :class:`CompiledSDF` for this function (created on first use)."""
         if self._compiled is None:
             self._compiled = compile_expr(self.f, [s.attr for s in self.symbols])
         return self._compiled
 
     @property
-    def point_fn(self):
+    def point_fn(self) -> Any:
         """Compiled ``@njit`` function ``(x, y) -> (d, ddx, ddy)`` for one point (float64)."""
         return self.compiled.point_fn("vg")
 
     @property
-    def point_value_fn(self):
+    def point_value_fn(self) -> Any:
         """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64)."""
         return self.compiled.point_fn("v")
 
