@@ -165,3 +165,13 @@ def polygon_vg(u, v, verts):
 def polygon_v(u, v, verts):
     """Signed distance to the simple polygon with counter-clockwise vertices ``verts``."""
     return polygon_vg(u, v, verts)[0]
+
+
+def _guard():
+    import sys
+
+    from ._cache import guard_module
+    guard_module(sys.modules[__name__])
+
+
+_guard()
