@@ -103,7 +103,9 @@ class Expr:
         raise AttributeError("Expr nodes are immutable")
 
     def __reduce__(self):
-        return (Expr, (self.op, self.args, self.attr))
+        # Flat, children-first node list: pickling a deep graph node by node would recurse
+        # once per level and hit the recursion limit. Unpickling re-interns the nodes.
+        return (_from_flat, (_to_flat(self),))
 
     # Arithmetic operators build (and fold) new nodes.
     def __add__(self, other):
@@ -617,6 +619,23 @@ def topological_order(root: Expr) -> list:
     return order
 
 
+def _to_flat(root: Expr) -> tuple:
+    """``root``'s DAG as a tuple of ``(op, arg_indices, attr)``, children first, root last."""
+    index, flat = {}, []
+    for node in topological_order(root):
+        index[id(node)] = len(flat)
+        flat.append((node.op, tuple(index[id(a)] for a in node.args), node.attr))
+    return tuple(flat)
+
+
+def _from_flat(flat) -> Expr:
+    """Inverse of :func:`_to_flat` (the nodes are interned: same graph, same node objects)."""
+    nodes = []
+    for op, args, attr in flat:
+        nodes.append(Expr(op, tuple(nodes[i] for i in args), attr))
+    return nodes[-1]
+
+
 _INFIX = {"add": "+", "sub": "-", "mul": "*", "div": "/", "pow": "**"}
 
 
@@ -828,6 +847,13 @@ class Function:
 
     def __call__(self, x, y, compute_gradient=False):
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient))
+
+    def __getstate__(self):
+        # Pickles carry the graph, never compiled code: the receiving process rebuilds the
+        # kernels on first use from its own disk cache (compiling once per machine).
+        state = self.__dict__.copy()
+        state["_compiled"] = None
+        return state
 
     def __repr__(self):
         return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
