@@ -33,48 +33,47 @@ import numba
 import numpy as np
 
 from . import __version__
-from ._cache import load_module
 from .graph import Expr, topological_order
+from .ops import OPS, lit
 
-__all__ = ["CompiledSDF", "compile_expr", "generate_module_source", "MIN_LOOP", "PARALLEL_MIN_POINTS"]
+__all__ = ["generate_module_source", "MIN_LOOP"]
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
 #: Per-point functions longer than this (in generated lines) are not interleaved.
 LONG_BODY_LINES = 400
-#: Inputs with fewer points run serially: thread start-up costs more than it saves.
-PARALLEL_MIN_POINTS = 4096
 
 _CHAIN_OPS = ("min", "max", "smin", "smax")
 _HUGE = "1.7976931348623157e+308"
 
 
-def _lit(v: float) -> str:
-    """A float as Python source that numba types as float64."""
-    if math.isnan(v):
-        return "math.nan"
-    if math.isinf(v):
-        return "math.inf" if v > 0 else "(-math.inf)"
-    s = repr(float(v))
-    return f"({s})" if v < 0 or s.startswith("-") else s
+_lit = lit
 
 
 class _Val:
-    """An emitted value: Python expressions (usually variable names) for value and gradient.
-
-    A gradient component of ``None`` is known to be zero; ``"1.0"`` is a literal one.
+    """An emitted value: Python expressions (usually variable names) for the value ``v`` and
+    the gradient components ``g`` (one per coordinate: x, y). A component of ``None`` is known
+    to be zero; ``"1.0"`` is a literal one.
     """
 
-    __slots__ = ("v", "gx", "gy")
+    __slots__ = ("v", "g")
 
-    def __init__(self, v, gx=None, gy=None):
-        self.v, self.gx, self.gy = v, gx, gy
+    def __init__(self, v, g=None):
+        self.v, self.g = v, g
+
+    def grads(self, n: int) -> tuple:
+        """The ``n`` gradient components (all None for a constant)."""
+        return self.g if self.g is not None else (None,) * n
 
 
 def _prod(g, c):
-    """Source for ``g * c`` where g may be None (zero) or '1.0'."""
-    if g is None:
+    """Source for ``g * c`` where g may be None (zero) or '1.0', and c '1.0' or '-1.0'."""
+    if g is None or c is None:
         return None
+    if c == "1.0":
+        return g
+    if c == "-1.0":
+        return _neg(g)
     if g == "1.0":
         return c
     return f"{g} * {c}"
@@ -97,6 +96,16 @@ def _neg(g):
     if g == "1.0":
         return "(-1.0)"
     return f"-({g})" if not g.startswith("-") else g[1:]
+
+
+def _chain_rule(rule, args, ncomp):
+    """Gradient component sources of a node from its op's gradient rule (see fastsdf.ops)."""
+    if rule is None:
+        return [None] * ncomp
+    if callable(rule):
+        return [rule([a.grads(ncomp)[c] for a in args]) for c in range(ncomp)]
+    return [_sum(*(_prod(a.grads(ncomp)[c], p) for a, p in zip(args, rule)))
+            for c in range(ncomp)]
 
 
 def _zero(g):
@@ -176,11 +185,22 @@ def _flatten_chain(node: Expr) -> list:
 # Emission.
 
 class _Emitter:
-    """Emits the body of one per-point function (value only, or value and gradient)."""
+    """Emits the body of one per-point function (value only, or value and gradient).
+
+    Operations come from the table of :mod:`fastsdf.ops`; the emitter applies their gradient
+    rules to every coordinate component alike (``COMPONENTS``: variable suffixes, one per
+    coordinate) and emits the n-ary chains (min, max, smin, smax) itself.
+    """
+
+    #: The coordinates: argument names of the generated functions, also the suffixes of
+    #: gradient variables (``v3x`` is dv3/dx).
+    COMPONENTS = ("x", "y")
 
     def __init__(self, symbol_names, grad: bool, tables: dict):
         self.grad = grad
-        self.syms = {symbol_names[0]: _Val("x", "1.0", None), symbol_names[1]: _Val("y", None, "1.0")}
+        n = len(self.COMPONENTS)
+        self.syms = {name: _Val(var, tuple("1.0" if j == i else None for j in range(n)))
+                     for i, (name, var) in enumerate(zip(symbol_names, self.COMPONENTS))}
         self.tables = tables  # shared across functions of one module: bytes -> name
         self.lines: list[str] = []
         self.n = 0
@@ -189,150 +209,34 @@ class _Emitter:
         self.n += 1
         return f"{prefix}{self.n}"
 
-    def _assign(self, out: list, name: str, expr: str) -> str:
+    def assign(self, out: list, name: str, expr: str) -> str:
+        """Append ``name = expr`` to ``out``; returns ``name``."""
         out.append(f"{name} = {expr}")
         return name
 
-    def _grad(self, out, name, gx, gy):
+    _assign = assign
+
+    def _grad(self, out, name, comps):
         """Assign gradient expressions to variables named after ``name`` (if nonzero)."""
         if not self.grad:
-            return None, None
+            return None
         def keep(expr):  # nothing to compute: no new variable needed
             return expr is None or expr == "1.0" or expr.isidentifier()
-        rx = gx if keep(gx) else self._assign(out, f"{name}x", gx)
-        ry = gy if keep(gy) else self._assign(out, f"{name}y", gy)
-        return rx, ry
+        return tuple(e if keep(e) else self.assign(out, f"{name}{suffix}", e)
+                     for e, suffix in zip(comps, self.COMPONENTS))
 
     # -- one operation ------------------------------------------------------------------------
     def op(self, out: list, node: Expr, a: list) -> _Val:
         """Emit ``node`` given its argument values ``a``; returns the result."""
-        op, g = node.op, self.grad
-        r = self._name()
-        A = a[0]
-        B = a[1] if len(a) > 1 else None
-
-        def lin(ca, cb=None):
-            """Gradient of the result as ca * grad(A) + cb * grad(B)."""
-            if not g:
-                return None, None
-            gx = _sum(_prod(A.gx, ca), _prod(B.gx, cb) if B is not None and cb is not None else None)
-            gy = _sum(_prod(A.gy, ca), _prod(B.gy, cb) if B is not None and cb is not None else None)
-            return gx, gy
-
-        if op == "add":
-            self._assign(out, r, f"{A.v} + {B.v}")
-            gx, gy = (_sum(A.gx, B.gx), _sum(A.gy, B.gy)) if g else (None, None)
-        elif op == "sub":
-            self._assign(out, r, f"{A.v} - {B.v}")
-            gx, gy = (_sum(A.gx, _neg(B.gx)), _sum(A.gy, _neg(B.gy))) if g else (None, None)
-        elif op == "mul":
-            self._assign(out, r, f"{A.v} * {B.v}")
-            gx, gy = lin(B.v, A.v)
-        elif op == "div":
-            self._assign(out, r, f"{A.v} / {B.v}")
-            if g:
-                ib = self._assign(out, f"{r}i", f"1.0 / {B.v}")
-                gx, gy = lin(ib, f"(-{r} * {ib})")
-            else:
-                gx = gy = None
-        elif op == "neg":
-            self._assign(out, r, f"-{A.v}")
-            gx, gy = (_neg(A.gx), _neg(A.gy)) if g else (None, None)
-        elif op == "powc":
-            p = node.attr
-            if p == 2.0:
-                self._assign(out, r, f"{A.v} * {A.v}")
-                gx, gy = lin(f"(2.0 * {A.v})")
-            elif p == -1.0:
-                self._assign(out, r, f"1.0 / {A.v}")
-                gx, gy = lin(f"(-{r} * {r})")
-            else:
-                self._assign(out, r, f"{A.v} ** {_lit(p)}")
-                gx, gy = lin(f"({_lit(p)} * {A.v} ** {_lit(p - 1.0)})")
-        elif op == "pow":
-            self._assign(out, r, f"{A.v} ** {B.v}")
-            gx, gy = lin(f"({B.v} * {A.v} ** ({B.v} - 1.0))", f"({r} * math.log({A.v}))")
-        elif op == "sqrt":
-            self._assign(out, r, f"math.sqrt({A.v})")
-            gx, gy = lin(f"_sel({r} > 0.0, 0.5 / {r}, 0.0)")
-        elif op == "exp":
-            self._assign(out, r, f"math.exp({A.v})")
-            gx, gy = lin(r)
-        elif op == "log":
-            self._assign(out, r, f"math.log({A.v})")
-            gx, gy = lin(f"(1.0 / {A.v})")
-        elif op == "sin":
-            self._assign(out, r, f"math.sin({A.v})")
-            gx, gy = lin(f"math.cos({A.v})")
-        elif op == "cos":
-            self._assign(out, r, f"math.cos({A.v})")
-            gx, gy = lin(f"(-math.sin({A.v}))")
-        elif op == "abs":
-            self._assign(out, r, f"abs({A.v})")
-            gx, gy = lin(f"_sel({A.v} >= 0.0, 1.0, -1.0)")
-        elif op == "length":
-            # sqrt(a*a + b*b) unless that over- or underflows; hypot is exact but slower.
-            self._assign(out, r, f"math.sqrt({A.v} * {A.v} + {B.v} * {B.v})")
-            out.append(f"if not (1e-150 < {r} < 1e150):")
-            out.append(f"    {r} = math.hypot({A.v}, {B.v})")
-            if g:
-                self._assign(out, f"{r}i", f"_sel({r} > 0.0, 1.0 / {r}, 0.0)")
-                gx, gy = lin(f"_sel({r} > 0.0, {A.v} * {r}i, 1.0)", f"({B.v} * {r}i)")
-            else:
-                gx = gy = None
-        elif op in _CHAIN_OPS:
-            return self.chain(out, node.op, node.attr, [("val", A), ("val", B)])
-        # -- issue 7 additions: floor, select, polynomial smooth minima, compiled primitives --
-        elif op == "floor":
-            self._assign(out, r, f"np.floor({A.v})")
-            gx = gy = None  # piecewise constant
-        elif op == "select":
-            cond, T, F = f"{A.v} > 0.0", a[1], a[2]
-            self._assign(out, r, f"_sel({cond}, {T.v}, {F.v})")
-            gx = gy = None
-            if g:
-                gx = None if T.gx is None and F.gx is None else \
-                    f"_sel({cond}, {_zero(T.gx)}, {_zero(F.gx)})"
-                gy = None if T.gy is None and F.gy is None else \
-                    f"_sel({cond}, {_zero(T.gy)}, {_zero(F.gy)})"
-        elif op in ("qmin", "cmin"):
-            # min(a, b) - k h^2/4 (quadratic) or - k h^3/6 (cubic), h = max(k - |a - b|, 0)/k;
-            # the gradient is a convex combination: weight 1 - h/2 (1 - h^2/2) on the smaller.
-            k = node.attr
-            w = self._assign(out, f"{r}w", f"{A.v} <= {B.v}")
-            t = self._assign(out, f"{r}t", f"{_lit(k)} - abs({A.v} - {B.v})")
-            h = self._assign(out, f"{r}h", f"_sel({t} > 0.0, {t}, 0.0) * {_lit(1.0 / k)}")
-            m = f"_sel({w}, {A.v}, {B.v})"
-            if op == "qmin":
-                self._assign(out, r, f"{m} - {h} * {h} * {_lit(k / 4.0)}")
-                other = f"{h} * 0.5"
-            else:
-                self._assign(out, r, f"{m} - {h} * {h} * {h} * {_lit(k / 6.0)}")
-                other = f"{h} * {h} * 0.5"
-            if g:
-                o = self._assign(out, f"{r}o", other)
-                wa = self._assign(out, f"{r}a", f"_sel({w}, 1.0 - {o}, {o})")
-                gx, gy = lin(wa, self._assign(out, f"{r}b", f"1.0 - {wa}"))
-            else:
-                gx = gy = None
-        elif op == "prim":
-            # A fixed compiled function of fastsdf._prims returns (d, dd/du, dd/dv) at the local
-            # coordinates (u, v) = (A, B); structural data (polygon vertices) becomes a table.
-            kind, data = node.attr
-            extra = [c.v for c in a[2:]]
-            if data is not None:
-                extra.insert(0, self.table(np.asarray(data, dtype=np.float64)))
-            call = f"_P.{kind}_{'vg' if g else 'v'}({', '.join([A.v, B.v] + extra)})"
-            if g:
-                out.append(f"{r}, {r}u, {r}v = {call}")
-                gx, gy = lin(f"{r}u", f"{r}v")
-            else:
-                self._assign(out, r, call)
-                gx = gy = None
-        else:  # pragma: no cover - graph.py creates no other ops
-            raise NotImplementedError(op)
-        gx, gy = self._grad(out, r, gx, gy)
-        return _Val(r, gx, gy)
+        spec = OPS[node.op]
+        r = self._name()  # taken for chains too: keeps generated names (and cache keys) stable
+        if spec.chain:
+            return self.chain(out, node.op, node.attr, [("val", v) for v in a])
+        rule = spec.emit(self, out, node, a, r)
+        if not self.grad:
+            return _Val(r)
+        comps = _chain_rule(rule, a, len(self.COMPONENTS))
+        return _Val(r, self._grad(out, r, comps))
 
     # -- n-ary chains -------------------------------------------------------------------------
     def chain(self, out: list, op: str, k, items: list) -> _Val:
@@ -343,7 +247,8 @@ class _Emitter:
         """
         g = self.grad
         c = self._name("c")
-        m, s, gx, gy = f"{c}m", f"{c}s", f"{c}x", f"{c}y"
+        m, s = f"{c}m", f"{c}s"
+        accs = [f"{c}{suffix}" for suffix in self.COMPONENTS]
         smooth = op in ("smin", "smax")
         less = "<" if op in ("min", "smin") else ">"
         first = items[0][1] if items[0][0] == "val" else None
@@ -353,16 +258,16 @@ class _Emitter:
             if smooth:
                 out.append(f"{s} = 1.0")
             if g:
-                out.append(f"{gx} = {_zero(first.gx)}")
-                out.append(f"{gy} = {_zero(first.gy)}")
+                for acc, comp in zip(accs, first.grads(len(accs))):
+                    out.append(f"{acc} = {_zero(comp)}")
         else:
             init = _HUGE if less == "<" else f"-{_HUGE}"
             out.append(f"{m} = {init}")
             if smooth:
                 out.append(f"{s} = 0.0")
             if g:
-                out.append(f"{gx} = 0.0")
-                out.append(f"{gy} = 0.0")
+                for acc in accs:
+                    out.append(f"{acc} = 0.0")
 
         def update(body: list, v: _Val):
             w = self._name("w")
@@ -372,12 +277,12 @@ class _Emitter:
                 body.append(f"{e} = math.exp(-{_lit(k)} * abs({v.v} - {m}))")
                 body.append(f"{s} = _sel({w}, {s} * {e} + 1.0, {s} + {e})")
                 if g:
-                    for acc, comp in ((gx, v.gx), (gy, v.gy)):
+                    for acc, comp in zip(accs, v.grads(len(accs))):
                         comp = _zero(comp)
                         body.append(f"{acc} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
             elif g:
-                body.append(f"{gx} = _sel({w}, {_zero(v.gx)}, {gx})")
-                body.append(f"{gy} = _sel({w}, {_zero(v.gy)}, {gy})")
+                for acc, comp in zip(accs, v.grads(len(accs))):
+                    body.append(f"{acc} = _sel({w}, {_zero(comp)}, {acc})")
             body.append(f"{m} = _sel({w}, {v.v}, {m})")
 
         for item in items:
@@ -392,7 +297,7 @@ class _Emitter:
                 out.append(f"for {loop} in range({count}):")
                 out.extend("    " + line for line in body)
         if not smooth:
-            return _Val(m, gx if g else None, gy if g else None)
+            return _Val(m, tuple(accs) if g else None)
         r = self._name()
         sign = "-" if op == "smin" else "+"
         # Multiplying by 1/k instead of dividing shortens the latency chain (the kernel is bound
@@ -400,9 +305,9 @@ class _Emitter:
         out.append(f"{r} = {m} {sign} math.log({s}) * {_lit(1.0 / k)}")
         if g:
             out.append(f"{r}i = 1.0 / {s}")
-            out.append(f"{r}x = {gx} * {r}i")
-            out.append(f"{r}y = {gy} * {r}i")
-            return _Val(r, f"{r}x", f"{r}y")
+            for acc, suffix in zip(accs, self.COMPONENTS):
+                out.append(f"{r}{suffix} = {acc} * {r}i")
+            return _Val(r, tuple(f"{r}{suffix}" for suffix in self.COMPONENTS))
         return _Val(r)
 
     def template(self, body: list, steps: list, consts: list) -> _Val:
@@ -666,7 +571,8 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
     em = _Emitter(symbol_names, grad, tables)
     res = em.emit(root)
     if grad:
-        results = [_as_float(res.v), _as_float(_zero(res.gx)), _as_float(_zero(res.gy))]
+        results = [_as_float(res.v)] + [_as_float(_zero(c))
+                                        for c in res.grads(len(em.COMPONENTS))]
         single = ("point_vg", "Value and gradient (d, dd/dx, dd/dy) at one point.",
                   "math.nan, math.nan, math.nan")
         multi = ("lanes_vg", "Value and gradient")
@@ -731,96 +637,11 @@ def _short(root: Expr) -> str:
     return _to_str(root, limit=300)
 
 
-# ---------------------------------------------------------------------------------------------
-# Input handling shared with grid and particle queries.
-
-def as_points(x, y):
-    """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
-
-    Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
-    """
-    xa, ya = np.asarray(x), np.asarray(y)
-    for name, arr in (("x", xa), ("y", ya)):
-        if arr.dtype.kind not in "iuf":
-            raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype} "
-                            f"(value {_preview(arr)})")
-    if xa.shape != ya.shape:
-        raise ValueError(f"x and y must have the same shape, got x.shape={xa.shape} and "
-                         f"y.shape={ya.shape}")
-    shape = xa.shape if xa.ndim else (1,)
-    xs = np.ascontiguousarray(xa, dtype=np.float64).reshape(-1)
-    ys = np.ascontiguousarray(ya, dtype=np.float64).reshape(-1)
-    return xs, ys, shape
 
 
-def _preview(arr) -> str:
-    text = repr(arr.reshape(-1)[:3].tolist()) if arr.size else "[]"
-    return text if len(text) < 80 else text[:77] + "..."
-
-
-class CompiledSDF:
-    """The compiled kernels of one expression of two coordinates.
-
-    Everything is lazy: the module source is generated on first use, and each numba function
-    compiles (or loads from the disk cache) the first time it is needed.
-    """
-
-    def __init__(self, expr: Expr, symbol_names):
-        self.expr = expr
-        self.symbol_names = tuple(symbol_names)
-        self._source = None
-        self._functions = None
-        self._module = None
-
-    @property
-    def module_source(self) -> str:
-        """The complete generated module (tables, per-point functions, kernels)."""
-        if self._source is None:
-            self._source, self._functions = generate_module_source(self.expr, self.symbol_names)
-        return self._source
-
-    def function_source(self, kind: str = "vg") -> str:
-        """Source of the per-point function: ``kind`` is ``'v'`` (value) or ``'vg'``."""
-        self.module_source  # noqa: B018 - generates on demand
-        return self._functions[_check_kind(kind)]
-
-    @property
-    def module(self):
-        if self._module is None:
-            self._module = load_module(self.module_source, prefix="fastsdf_scene")
-        return self._module
-
-    def point_fn(self, kind: str = "vg"):
-        """The numba dispatcher of the per-point function (``point_v`` or ``point_vg``)."""
-        return getattr(self.module, "point_" + _check_kind(kind))
-
-    def kernel(self, kind: str = "vg", parallel: bool = True):
-        """Batch kernel ``(xs, ys, out[, grad])`` over 1-d float64 arrays."""
-        return getattr(self.module, f"batch_{_check_kind(kind)}_{'par' if parallel else 'ser'}")
-
-    def evaluate(self, x, y, compute_gradient: bool = False):
-        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions."""
-        xs, ys, shape = as_points(x, y)
-        n = xs.shape[0]
-        out = np.empty(n)
-        parallel = n >= PARALLEL_MIN_POINTS
-        extra = (64 * numba.get_num_threads(),) if parallel else ()
-        if compute_gradient:
-            grad = np.empty((n, 2))
-            if n:
-                self.kernel("vg", parallel)(xs, ys, out, grad, *extra)
-            return out.reshape(shape), grad.reshape(shape + (2,))
-        if n:
-            self.kernel("v", parallel)(xs, ys, out, *extra)
-        return out.reshape(shape)
-
-
-def _check_kind(kind: str) -> str:
-    if kind not in ("v", "vg"):
-        raise ValueError(f"kind must be 'v' or 'vg', got kind={kind!r}")
-    return kind
-
-
-def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
-    """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
-    return CompiledSDF(expr, symbol_names)
+def __getattr__(name):
+    # The compiled-function layer moved to fastsdf.function (it imports this module).
+    if name in ("CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS"):
+        from . import function
+        return getattr(function, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -12,6 +12,7 @@ from .._validate import check_length as _check_length
 from .._validate import coord2 as _vec2
 from .._validate import length as _length
 from .._validate import real as _real
+from ..interval import note_lipschitz
 from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
                      sym_qmin, sym_smax, sym_smin)
 from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
@@ -64,6 +65,8 @@ class SDF(Function):
     def __init__(self, expr: Expr, info: _Info | None = None):
         super().__init__(expr, [_X, _Y])
         self._info = _NONE if info is None else info
+        if self._info.bound:  # interval bounds may use |f(p) - f(c)| <= |p - c|
+            note_lipschitz(self.f, 1.0)
 
     @property
     def sdf(self) -> Expr:
