@@ -307,3 +307,162 @@ def test_unit_normals_on_every_boundary_and_spine(s, tf):
             assert np.all(np.isfinite(d)), name
             unit = np.abs(np.hypot(g[:, 0], g[:, 1]) - 1.0)
             assert np.all(unit <= 1e-12), (name, unit.max(), spine[np.argmax(unit)])
+
+
+@pytest.mark.parametrize("s", [2.0 ** -494, 2.0 ** 493])
+def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s):
+    """The whole catalogue at a power-of-two scale near each end of the supported range: at
+    random points around every primitive, value / s and gradient equal the unit-scale ones to
+    rounding (no silent over- or underflow anywhere in between)."""
+    f1, samples = _world(1.0)
+    fs, _ = _world(s)
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([np.asarray(cell) + rng.uniform(-2.0, 2.0, (60, 2))
+                          for cell in _cells(len(samples))])
+    d1, g1 = f1(pts[:, 0], pts[:, 1], compute_gradient=True)
+    ds, gs = fs(pts[:, 0] * s, pts[:, 1] * s, compute_gradient=True)
+    np.testing.assert_allclose(ds / s, d1, rtol=1e-12, atol=1e-13)
+    same = np.abs(gs - g1).max(axis=1)
+    # a gradient may flip only where the point is on a kink (a medial axis) to rounding
+    near_kink = np.zeros(len(pts), bool)
+    for h in (1e-9, -1e-9):
+        _, gh = f1(pts[:, 0] + h, pts[:, 1] + h, compute_gradient=True)
+        near_kink |= np.abs(gh - g1).max(axis=1) > 1e-6
+    assert np.all(same[~near_kink] <= 1e-12), same[~near_kink].max()
+    assert near_kink.mean() < 0.02
+
+
+@pytest.mark.parametrize("make,words", [
+    (lambda: sdf.Circle([0, 0], 1e-151), "radius"),
+    (lambda: sdf.Circle([0, 0], 1e151), "radius"),
+    (lambda: sdf.Circle([2e150, 0], 1.0), "center"),
+    (lambda: sdf.Halfspace([0, 1], 1e151), "d"),
+    (lambda: sdf.Box([0, 0], [1e-151, 1]), "maxc - minc"),
+    (lambda: sdf.Box([-1e151, 0], [1, 1]), "minc"),
+    (lambda: sdf.Segment([0, 0], [1e-151, 0]), "segment length"),
+    (lambda: sdf.Capsule([0, 0], [1, 0], 1e-160), "radius"),
+    (lambda: sdf.OrientedBox([0, 0], [1, 0], 1e-151), "thickness"),
+    (lambda: sdf.RoundedBox([0, 0], [1, 1], 1e-200), "radii"),
+    (lambda: sdf.Triangle([0, 0], [1e-151, 0], [0, 1e-151]), "triangle"),
+    (lambda: sdf.Polygon(np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * 1e160), "vertices"),
+    (lambda: sdf.Polygon(np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * 1e-160), "polygon"),
+    (lambda: sdf.RegularPolygon([0, 0], 1e-160, 5), "radius"),
+    (lambda: sdf.Star([0, 0], 1.0, 5, 1e-160), "inner_radius"),
+    (lambda: sdf.Ellipse([0, 0], [1e-160, 1]), "axes"),
+    (lambda: sdf.Ellipse([0, 0], [1e-60, 1e60]), "axes"),
+    (lambda: sdf.Ring([0, 0], 1.0, 1e-160), "thickness"),
+    (lambda: sdf.Arc([0, 0], 1e151, 1.0, 1.0), "radius"),
+    (lambda: sdf.Circle().round(1e-160), "r"),
+    (lambda: sdf.Circle().shell(1e160), "thickness"),
+    (lambda: sdf.Circle().scale(1e-151), "s"),
+    (lambda: sdf.Circle().translate([0, 1e151]), "offset"),
+    (lambda: sdf.Circle().repeat(1e-151, 3), "spacing"),
+    (lambda: sdf.transform(offset=[1e151, 0]), "offset"),
+    (lambda: sdf.smoothness(1e-151), "smoothness k"),
+    (lambda: sdf.smoothness(1e151, kind="quadratic"), "smoothness k"),
+    (lambda: sdf.Circle().union(sdf.Box(), 1e-310, "quadratic"), "k"),
+    (lambda: sdf.Circle().intersection(sdf.Box(), 1e-310, "cubic"), "k"),
+    (lambda: sdf.Circle().union(sdf.Box(), 1e-310), "k"),
+])
+def test_outside_the_supported_range_is_a_clear_error(make, words):
+    with pytest.raises(ValueError, match="1e-150 to 1e150|too small|factor") as info:
+        make()
+    assert words in str(info.value)
+
+
+def test_graph_blends_reject_widths_whose_inverse_overflows():
+    from fastsdf.graph import Symbol, sym_cmin, sym_qmin, sym_smin
+    x = Symbol("x")
+    for op in (sym_qmin, sym_cmin, sym_smin):
+        with pytest.raises(ValueError, match="too small"):
+            op(x, -x, 1e-310)
+    f = sdf.Circle().union(sdf.Box([0.5, -1], [2, 1]), 1e-150, "quadratic")  # smallest width
+    d = f(np.array([0.75, 3.0]), np.array([0.0, 0.0]))
+    assert np.all(np.isfinite(d)) and d[1] == pytest.approx(1.0)
+
+
+def test_subnormal_and_zero_radius_gradients():
+    """1/r overflowed for subnormal r: unit gradients, compiled and in the NumPy reference,
+    at subnormal offsets from every centre (circle, ring, arc, ellipse, polygon vertex)."""
+    from fastsdf.graph import evaluate_numpy
+    tiny = np.array([[5e-324, 0.0], [0.0, -5e-324], [1e-323, 1.5e-323], [-4e-320, 2e-321],
+                     [1e-310, -1e-310], [0.0, 0.0], [3e-200, 4e-200]])
+    fs = [sdf.Circle([0, 0], 1.0), sdf.Ring([0, 0], 1.0, 0.2), sdf.Arc([0, 0], 1.0),
+          sdf.Ellipse([0, 0], [1.0, 1.0]), sdf.Capsule([0, 0], [0, 0], 0.5),
+          sdf.Polygon([[0, 0], [1, 0], [0, 1]])]
+    for f in fs:
+        d, g = f(tiny[:, 0], tiny[:, 1], compute_gradient=True)
+        assert np.all(np.isfinite(d)) and np.all(np.isfinite(g)), (f, g)
+        np.testing.assert_allclose(np.hypot(g[:, 0], g[:, 1]), 1.0, atol=1e-12)
+        if type(f).__name__ in ("Circle", "Ellipse", "Capsule"):
+            nz = np.any(tiny != 0, axis=1)  # away from the centre: the exact radial direction
+            want = tiny[nz] / np.hypot(tiny[nz, 0] * 2.0 ** 600, tiny[nz, 1] * 2.0 ** 600)[:, None] \
+                * 2.0 ** 600
+            np.testing.assert_allclose(g[nz], want, atol=1e-15)
+        if type(f).__name__ not in ("Polygon", "Ellipse"):  # graph-built: the NumPy reference
+            dr, gr = evaluate_numpy(f.f, {"x": tiny[:, 0], "y": tiny[:, 1]},
+                                    compute_gradient=True)
+            np.testing.assert_array_equal(dr, d)
+            np.testing.assert_array_equal(np.stack(gr, -1), g)
+
+
+def _ellipse_far_reference(p, a, b):
+    """Distance to the ellipse far away, in closed form to O((max(a,b)/|p|)**2): |p| minus the
+    support function in the direction of p."""
+    r = math.hypot(*p)
+    n = np.array(p) / r
+    return r - math.hypot(a * n[0], b * n[1])
+
+
+def test_ellipse_subnormal_near_axis_and_far_away():
+    e = sdf.Ellipse([0, 0], [1.0, 0.5])
+    pts = np.array([[0.1, 1e-320], [0.1, 0.0], [0.1, -1e-320], [1e-310, 1e-310], [0.0, 0.0],
+                    [2.0, 1e-300], [2.0, 0.0], [1e-320, 0.3], [0.0, 0.3]])
+    d, g = e(pts[:, 0], pts[:, 1], compute_gradient=True)
+    assert d[0] == d[1] == d[2]  # a subnormal y changes nothing (it is below rounding)
+    assert g[0, 1] == -g[2, 1] and np.all(g[[0, 1, 2], 0] == g[1, 0])
+    assert d[3] == pytest.approx(-0.5, abs=1e-15) and d[4] == -0.5
+    assert d[5] == d[6] == 1.0 and d[7] == d[8] == pytest.approx(-0.2, abs=1e-15)
+    np.testing.assert_allclose(np.hypot(g[:, 0], g[:, 1]), 1.0, atol=1e-12)
+    far = [((1.0, 1e-9), (1e290, 1.0)), ((1e9, 1.0), (1e300, 1e300)),
+           ((1.0, 0.5), (3e307, -3e307)), ((1.0, 0.5), (1e12, 3e11)),
+           ((1.0, 0.5), (-7e20, 2e21)), ((2.0, 3.0), (1e150, -1e150))]
+    for axes, p in far:
+        f = sdf.Ellipse([0, 0], axes)
+        d, g = f(np.array([p[0]]), np.array([p[1]]), compute_gradient=True)
+        want = _ellipse_far_reference(p, *axes)
+        assert d[0] == pytest.approx(want, rel=1e-14), (axes, p)
+        np.testing.assert_allclose(g[0], np.array(p) / math.hypot(*p), atol=1e-12)
+    # just inside the far-field switch and just outside it: the two formulas agree
+    f = sdf.Ellipse([0, 0], [1.0, 0.25])
+    r0 = 2.0 ** 30 * 4.0
+    t = np.linspace(0.1, 1.4, 7)
+    pts = np.concatenate([np.stack([r0 * 0.999 * np.cos(t), r0 * 0.999 * np.sin(t)], -1),
+                          np.stack([r0 * 1.001 * np.cos(t), r0 * 1.001 * np.sin(t)], -1)])
+    d, g = f(pts[:, 0], pts[:, 1], compute_gradient=True)
+    want = [_ellipse_far_reference(p, 1.0, 0.25) for p in pts]
+    np.testing.assert_allclose(d, want, rtol=1e-15)
+
+
+def test_particles_started_on_boundaries_and_spines_are_out_after_one_step():
+    """A particle at rest exactly on any primitive's boundary or spine (within rounding) is
+    pushed out of the solid by the first step (before, a box's face or a capsule's spine gave a
+    zero gradient and the particle stayed inside for good)."""
+    import fastsdf.particles as phys
+    f, samples = _world(1.0, (0.7, (0.3, -0.2)))
+    pts = np.concatenate([np.concatenate([p, s]) for _, p, _, s in samples])
+    names = np.concatenate([[name] * (len(p) + len(s)) for name, p, _, s in samples])
+    r = 0.01
+    d0 = f(pts[:, 0], pts[:, 1])
+    contact = d0 - r < 0  # all but the centre of the ring's hole
+    assert contact.sum() == len(pts) - 1
+    pts, names = pts[contact], names[contact]
+    sim = phys.ParticleSimulation(f, n=len(pts), timestep=1e-3, seed=0, cr=0.5, cf=0.0)
+    sim.p["x"] = pts
+    sim.p["v"] = 0.0
+    sim.p["r"] = r
+    sim.run(1)
+    x = np.asarray(sim.p["x"])
+    d = f(x[:, 0], x[:, 1])
+    bad = d - r < -1e-12
+    assert not np.any(bad), sorted(set(names[bad]))
