@@ -24,6 +24,8 @@ SECTIONS = [
     ("grid", "bench.bench_grid", "GridSDF: build, memory, query speed and error vs resolution"),
     ("particles", "bench.bench_particles",
      "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
+    ("band", "bench.bench_band",
+     "narrow-band grids: memory, error, query speed; particles' speed against error"),
     ("distributed", "bench.bench_distributed",
      "particles sharded over Dask workers: 1 vs 2 processes, per-call overhead, client memory"),
 ]

@@ -346,25 +346,12 @@ def run(quick: bool = False) -> str:
 
 def _scaling_plot(sizes, curve, quick) -> str:
     """Particle-steps/s against particle count, per thread count (PNG beside this file)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import particles_scaling
 
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    for threads, rates in sorted(curve.items(), reverse=True):
-        ax.loglog(sizes, rates, "o-", label=f"{threads} thread{'s' if threads > 1 else ''}")
-    ax.set_xlabel("particles")
-    ax.set_ylabel("particle-steps / s")
-    ax.set_title("fused step, 400x400 grid, run(100)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
     if quick:
-        plt.close(fig)
         return ""
-    fig.savefig(os.path.join(os.path.dirname(os.path.abspath(__file__)),
-                             "particles_scaling.png"), dpi=100)
-    plt.close(fig)
+    particles_scaling(sizes, curve, os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                                 "particles_scaling.png"))
     return "![particle scaling](particles_scaling.png)"
 
 
