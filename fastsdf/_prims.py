@@ -11,7 +11,8 @@ Kinds:
 * ``ellipse(u, v, a, b)``: exact signed distance to the ellipse ``(u/a)**2 + (v/b)**2 = 1``
   (semi-axes ``a, b > 0``, any ratio). The closest point is found by a safeguarded Newton
   iteration on a normalized secular equation (see :func:`ellipse_vg`), exact to rounding on the
-  axes, at the centre and for very eccentric ellipses.
+  axes, at the centre and for very eccentric ellipses; far away a closed form through the
+  support point (:func:`_ellipse_far`), where the iteration's variables would overflow.
 * ``polygon(u, v, verts)``: exact signed distance to a simple polygon whose vertices are the
   rows of ``verts`` (counter-clockwise); the sign comes from an even-odd crossing test.
 

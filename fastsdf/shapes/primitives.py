@@ -501,10 +501,13 @@ _MAX_ECCENTRICITY = 1e50
 
 class Ellipse(SDF):
     """Ellipse around ``center`` with semi-axes ``axes = (a, b)`` along the local x and y axes
-    (exact for any axis ratio; equal axes give a circle).
+    (exact for axis ratios up to 1e50; equal axes give a circle).
 
     Evaluated by a compiled closest-point solve (graph op ``prim``, kind ``'ellipse'``): a
-    safeguarded Newton iteration, typically 3 to 6 steps (about 10x the cost of a circle).
+    safeguarded Newton iteration, typically 3 to 6 steps (about 10x the cost of a circle);
+    far away (beyond ``2**30`` times the largest radius of curvature) a closed form through
+    the support point, exact to rounding there. At the centre the gradient points along the
+    minor axis (+y for ``a > b``).
     """
 
     def __init__(self, center=(0.0, 0.0), axes=(1.0, 0.5)):
