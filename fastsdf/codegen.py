@@ -40,6 +40,8 @@ __all__ = ["generate_module_source", "MIN_LOOP"]
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
+#: Chain operands with more nodes than this (as a tree) are never folded into loops.
+MAX_TEMPLATE_NODES = 128
 #: Per-point functions longer than this (in generated lines) are not interleaved.
 LONG_BODY_LINES = 400
 
@@ -207,6 +209,7 @@ class _Emitter:
         # Loops over tables ("groups"), in emission order: each iterates the rows listed in
         # _act[_off[g]:_off[g + 1]], so a caller can pass a pruned list without recompiling.
         self.groups: list[dict] = []
+        self.sizes: dict[int, int] = {}
 
     def _name(self, prefix="v"):
         self.n += 1
@@ -294,10 +297,10 @@ class _Emitter:
             else:
                 _, steps, consts, count, group = item
                 loop = self._name("i")
-                body: list[str] = [f"{loop} = _act[q{loop[1:]}]"]
+                body: list[str] = [f"{loop} = _act[{loop}q]"]
                 val = self.template(body, steps, [c.format(row=loop) for c in consts])
                 update(body, val)
-                out.append(f"for q{loop[1:]} in range(_off[{group}], _off[{group + 1}]):")
+                out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
                 out.extend("    " + line for line in body)
         if not smooth:
             return _Val(m, tuple(accs) if g else None)
@@ -357,6 +360,24 @@ class _Emitter:
             done[id(node)] = self._emit_planned(node, plan, done)
         return done[id(root)]
 
+    def _size(self, root: Expr) -> int:
+        """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
+        (memoized and never walking a node twice, so linear over the whole DAG)."""
+        sizes = self.sizes
+        stack = [root]
+        while stack:
+            n = stack[-1]
+            if id(n) in sizes:
+                stack.pop()
+                continue
+            todo = [a for a in n.args if id(a) not in sizes]
+            if todo:
+                stack.extend(todo)
+                continue
+            stack.pop()
+            sizes[id(n)] = min(MAX_TEMPLATE_NODES + 1, 1 + sum(sizes[id(a)] for a in n.args))
+        return sizes[id(root)]
+
     def _plan(self, node: Expr):
         if node.op not in _CHAIN_OPS:
             return list(node.args), None
@@ -364,7 +385,9 @@ class _Emitter:
         shapes: dict = {}
         order: list = []
         for operand in operands:
-            if operand.op == "const":
+            if operand.op == "const" or self._size(operand) > MAX_TEMPLATE_NODES:
+                # Large operands (typically the rest of the scene) are never folded: finding
+                # their shape would walk them again at every level, quadratic in the scene.
                 order.append(("node", operand))
                 continue
             sig, steps, consts = _template(operand)
@@ -626,7 +649,12 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
     one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
                                  ret=", ".join(results), nan_return=single[2])
     bind, rest = em.lines[:len(used)], em.lines[len(used):]
-    body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
+    if lanes == 1:  # nothing to interleave: rename the whole body at once
+        body_n = "\n".join("    " + line for line in bind) + "\n" + \
+            _lane("\n".join("    " + line for line in rest), 0) if rest else \
+            "\n".join("    " + line for line in bind) or "    pass"
+    else:
+        body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
     many = _LANES_TEMPLATE.format(
         name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
         args=", ".join([f"x{k}, y{k}" for k in range(lanes)] + (["_act, _off"] if em.groups else [])),
