@@ -31,6 +31,7 @@ import re
 
 import numba
 import numpy as np
+from typing import Sequence
 
 from . import __version__
 from .graph import Expr, topological_order
@@ -662,7 +663,7 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
     return one, many, lanes, em.groups
 
 
-def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
+def generate_module_source(root: Expr, symbol_names: Sequence[str]) -> tuple[str, dict]:
     """Full source of the kernel module for ``root``; also returns each function's source."""
     source, funcs, _ = generate_module(root, symbol_names)
     return source, funcs

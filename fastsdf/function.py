@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from typing import Any, Sequence
+from types import ModuleType
+from numpy.typing import ArrayLike
 
 from ._cache import load_module
 from .codegen import generate_module
@@ -30,7 +33,7 @@ PRUNE_MAX_FRACTION = 0.5
 PRUNE_TILES = 32
 
 
-def as_points(x, y):
+def as_points(x: ArrayLike, y: ArrayLike) -> tuple:
     """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
 
     Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
@@ -61,7 +64,7 @@ class CompiledSDF:
     compiles (or loads from the disk cache) the first time it is needed.
     """
 
-    def __init__(self, expr: Expr, symbol_names):
+    def __init__(self, expr: Expr, symbol_names: Sequence[str]):
         self.expr = expr
         self.symbol_names = tuple(symbol_names)
         self._source = None
@@ -90,16 +93,17 @@ class CompiledSDF:
         return self._functions[_check_kind(kind)]
 
     @property
-    def module(self):
+    def module(self) -> ModuleType:
+        """The imported generated module (compiled lazily; loaded from the disk cache)."""
         if self._module is None:
             self._module = load_module(self.module_source, prefix="fastsdf_scene")
         return self._module
 
-    def point_fn(self, kind: str = "vg"):
+    def point_fn(self, kind: str = "vg") -> Any:
         """The numba dispatcher of the per-point function (``point_v`` or ``point_vg``)."""
         return getattr(self.module, "point_" + _check_kind(kind))
 
-    def kernel(self, kind: str = "vg", parallel: bool = True):
+    def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
         """Batch kernel ``(xs, ys, out[, grad])`` over 1-d float64 arrays."""
         return getattr(self.module, f"batch_{_check_kind(kind)}_{'par' if parallel else 'ser'}")
 
@@ -151,7 +155,8 @@ class CompiledSDF:
         extra = (64 * numba.get_num_threads(),) if parallel else ()
         self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
 
-    def evaluate(self, x, y, compute_gradient: bool = False, prune=None, tol=None):
+    def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 prune: bool | None = None, tol: float | None = None) -> Any:
         """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
@@ -171,7 +176,7 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
-def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
+def compile_expr(expr: Expr, symbol_names: Sequence[str]) -> CompiledSDF:
     """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
     return CompiledSDF(expr, symbol_names)
 
@@ -190,9 +195,16 @@ class Function:
     Evaluation runs in a numba kernel generated for this expression (see :mod:`fastsdf.codegen`),
     compiled on first use and cached on disk; ``source()`` shows the generated Python code and
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
+
+    Pruning (:mod:`fastsdf.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
+    operands folded into loops, the points are sorted into tiles and each tile evaluates only
+    the operands that sound interval bounds say can matter there: hard ``min``/``max`` chains
+    give bit-identical results, exponential blends stay within :attr:`prune_tol`. It is used
+    where the plan drops most operands; ``f(x, y, prune=False)`` turns it off, ``prune=True``
+    forces it. :meth:`pruning_report` shows what survives per tile.
     """
 
-    def __init__(self, f, symbols):
+    def __init__(self, f: Expr, symbols: Sequence[Expr | str]):
         f = as_expr(f, "f")
         try:
             symbols = list(symbols)
@@ -212,19 +224,19 @@ class Function:
 
     # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
     @property
-    def compiled(self):
+    def compiled(self) -> CompiledSDF:
         """The :class:`CompiledSDF` for this function (created on first use)."""
         if self._compiled is None:
             self._compiled = compile_expr(self.f, [s.attr for s in self.symbols])
         return self._compiled
 
     @property
-    def point_fn(self):
+    def point_fn(self) -> Any:
         """Compiled ``@njit`` function ``(x, y) -> (d, ddx, ddy)`` for one point (float64)."""
         return self.compiled.point_fn("vg")
 
     @property
-    def point_value_fn(self):
+    def point_value_fn(self) -> Any:
         """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64)."""
         return self.compiled.point_fn("v")
 
@@ -232,7 +244,8 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    def __call__(self, x, y, compute_gradient=False, prune=None):
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 prune: bool | None = None) -> Any:
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
                                       tol=self.prune_tol)
 
@@ -240,7 +253,8 @@ class Function:
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.
     prune_tol = None
 
-    def pruning_report(self, bounds, tiles=None, tol=None) -> dict:
+    def pruning_report(self, bounds: Sequence, tiles: Sequence | None = None,
+                       tol: float | None = None) -> dict:
         """How pruning does over ``bounds = [(x0, x1), (y0, y1)]`` cut into ``tiles = (nx,
         ny)`` tiles: operands in loops over tables, survivors per tile (mean, max), the
         fraction evaluated and the time to build the plan (s). Empty plan if the generated
