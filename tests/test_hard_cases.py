@@ -21,7 +21,7 @@ _CACHE_SCRIPT = textwrap.dedent("""
     import sys, warnings
     import numpy as np
     warnings.simplefilter("always")
-
+    import fastsdf as sdf
     f = sdf.Circle([0.1, 0.0], 0.5) | sdf.Box([0.0, 0.0], [1.0, 1.0])
     d, g = f(np.array([0.3]), np.array([0.2]), compute_gradient=True)
     k = f.compiled.module.batch_vg_ser
@@ -136,7 +136,6 @@ def _ccw(v):
 def _catalogue(s):
     """(name, build, boundary(rng) -> (points, normals), spine(rng) -> points) for every
     primitive, with every length multiplied by ``s``."""
-
     out = []
 
     def add(name, build, boundary, spine=None):
@@ -262,7 +261,6 @@ def _world(s, tf=None):
     """The union of every primitive (each placed in its own cell, the half-plane far below),
     built at scale ``s`` under the transform ``tf`` = (angle, offset at unit scale), with the
     world samples: (f, [(name, boundary points, normals, spine points)], map to world)."""
-
     key = (s, tf)
     if key in _WORLDS:
         return _WORLDS[key]
