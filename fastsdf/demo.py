@@ -252,9 +252,9 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
     label = f"{particles:,} particles, "
     animation_path = None
     if animate:
-        fig, ax = _world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+        fig, ax, cax = _world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
         anim = _animate(sim, ax, frames, _frame_schedule(steps, frames), advance=advance,
-                        title=label, colorbar=True, bounds=BOUNDS)
+                        title=label, colorbar=cax, bounds=BOUNDS)
         animation_path = os.path.join(out, "particles" + _video_writer_ext(err))
         save_animation(anim, animation_path, fps=fps)
     advance(steps - timing["steps"])
