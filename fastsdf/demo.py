@@ -167,11 +167,11 @@ def _query_cost(grid: Any, n: int = 20_000, seed: int = 0) -> float:
 
 def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exact: bool = False,
              seed: int = 0, out: str = "demo-out", frames: int = DEFAULT_FRAMES,
-             fps: int = DEFAULT_FPS, animate: bool = True, world: str = "boxes",
+             fps: int = DEFAULT_FPS, animate: bool = True, world: str = "seed",
              mode: str = "exact", stream: IO[str] | None = None) -> DemoResult:
     """Simulate ``particles`` particles for ``steps`` steps (1/30 s each) in a notebook world.
 
-    ``world``: a key of :data:`WORLDS` (``'boxes'`` or ``'seed'``). ``grid``: the GridSDF's
+    ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the GridSDF's
     samples per axis over :data:`BOUNDS`; ``mode``: the grid's answer outside its bounds
     (``'exact'``: the exact SDF, ``'nearest'``: clamped to the edge); ``exact=True`` queries the
     exact compiled SDF everywhere instead of a grid. Particles start in the notebook's blob,
@@ -312,9 +312,15 @@ def summary(res: DemoResult) -> str:
                      "queries while provably clear, so the rate also depends on how many rest")
     else:
         lines.append("why this rate: every query evaluates the exact compiled SDF (no grid)")
-    lines.append("for comparison: the README's headline particle figure is the seed world on a "
-                 "400x400 grid with every particle inside it (python -m bench --only particles); "
-                 "the comparable demo is: fastsdf demo --world seed")
+    if res.world == "seed":
+        lines.append("for comparison: this is the scene of the README's headline particle "
+                     "figure (1e6 particles, 400x400 grid; python -m bench --only particles "
+                     "measures it beside its baselines, on a quiet machine); the notebook's final "
+                     "world is: fastsdf demo --world boxes")
+    else:
+        lines.append("for comparison: the README's headline particle figure is the seed world on "
+                     "a 400x400 grid, where particles stay inside the grid (python -m bench "
+                     "--only particles); run it here with: fastsdf demo --world seed")
     if res.grid_band_value_max is not None:
         lines.append(f"grid error in the collision band |d| < 0.1: value max "
                      f"{res.grid_band_value_max:.2e}, gradient angle RMS "
