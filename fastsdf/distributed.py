@@ -4,13 +4,14 @@ Particles never interact with each other, only with the SDF, so a simulation spl
 independent shards. This module runs them on a ``dask.distributed`` cluster (install the extra:
 ``pip install fastsdf[distributed]``)::
 
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
     import fastsdf as sdf
-    from fastsdf.distributed import DistributedSimulation, evaluate
+    from fastsdf.distributed import DistributedSimulation, local_cluster
     from fastsdf.particles import Gravity
+    from fastsdf.scenes import box_world
 
-    with LocalCluster(n_workers=2, threads_per_worker=1) as cluster, Client(cluster) as client:
-        world = sdf.GridSDF(scenes.box_world(20), samples=[400j, 400j])
+    with local_cluster(workers=2) as cluster, Client(cluster) as client:
+        world = sdf.GridSDF(box_world(20), samples=[400j, 400j])
         sim = DistributedSimulation(world, 10_000_000, client=client, seed=0,
                                     force_generators=[Gravity()])
         sim.run(100)                    # every shard steps on its worker, in parallel
@@ -38,16 +39,16 @@ Determinism: shard ``i`` of ``shards`` is exactly ::
     ParticleSimulation(world, n_i, seed=np.random.default_rng(
         np.random.SeedSequence(seed).spawn(shards)[i]), **parameters)
 
-(followed by ``init(sim, i)`` if given) with ``n_i = n // shards + (i < n % shards)``, stepped with the same force generators: the
-same seed and shard count give the same bits whichever workers run the shards, and the same
-bits as running those simulations one after another in one process.
+(followed by ``init(sim, i)`` if given) with ``n_i = n // shards + (i < n % shards)``, stepped
+with the same force generators: the same seed and shard count give the same bits whichever
+workers run the shards, and the same bits as running those simulations one after another in
+one process.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
-import math
 import numbers
 import os
 import pickle

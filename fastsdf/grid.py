@@ -534,24 +534,24 @@ class GridSDF:
         grid = np.empty((nx, ny, 3) if stored else (nx, ny), dtype=self.dtype)
         comp = self.exact.compiled
         rows = max(1, _BUILD_BLOCK // ny)
-        chunks = 64 * numba.get_num_threads()
+        # Pruning: one plan over the whole grid, used by every block (None where it does not pay).
+        plan = comp.pruned_plan(ax, ay, count=nx * ny,
+                                bounds=((float(ax[0]), float(ax[-1])), (float(ay[0]), float(ay[-1]))))
         for r0 in range(0, nx, rows):
             r1 = min(nx, r0 + rows)
             xs = np.repeat(ax[r0:r1], ny)
             ys = np.tile(ay, r1 - r0)
             n = xs.shape[0]
-            par = n >= PARALLEL_MIN_POINTS
-            extra = (chunks,) if par else ()
             out = np.empty(n)
             block = grid[r0:r1]
             if stored:
                 grad = np.empty((n, 2))
-                comp.kernel("vg", par)(xs, ys, out, grad, *extra)
+                comp.run(xs, ys, out, grad, plan)
                 with np.errstate(over="ignore"):  # float32 overflow is reported below
                     block[:, :, 0] = out.reshape(r1 - r0, ny)
                     block[:, :, 1:] = grad.reshape(r1 - r0, ny, 2)
             else:
-                comp.kernel("v", par)(xs, ys, out, *extra)
+                comp.run(xs, ys, out, None, plan)
                 with np.errstate(over="ignore"):
                     block[...] = out.reshape(r1 - r0, ny)
             if not np.all(np.isfinite(block)):
