@@ -187,13 +187,16 @@ def test_summary_counts_in_words_and_explains_the_rate():
                 mode="exact", sim_seconds=0.0, first_step_seconds=0.5,
                 particle_steps_per_second=float("nan"), outside_grid_fraction=0.25,
                 exact_query_cost=12.0, grid_band_value_max=1e-3, grid_band_angle_rms_deg=0.5,
-                respawned=1, inside_fraction=0.0, animation=None, last_frame="x.png")
+                respawned=1, inside_fraction=0.0, animation=None, last_frame="x.png",
+                load=(99.0, 98.0))
     text = summary(DemoResult(**base))
     assert "1 step of" in text and "1 steps" not in text and "1 particle in" in text
     assert "run more steps to measure a rate" in text
     assert "75.0% of particle positions were inside the grid" in text
     assert "25.0% were outside, answered by the exact SDF" in text
     assert "12x one grid query" in text
+    assert "load (1-minute average) 99.0 before and 98.0 after" in text
+    assert "competing for the cores" in text
     text = summary(DemoResult(**dict(base, steps=3, particles=2000, respawned=0, mode="nearest",
                                      particle_steps_per_second=4e6, sim_seconds=0.001)))
     assert "3 steps" in text and "2,000 particles" in text and "0 particles redrawn" in text
