@@ -1014,17 +1014,18 @@ class ParticleSimulation:
 
     def __getstate__(self):
         # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
-        # kernel module, scratch buffers and drawing stay behind and are rebuilt on unpickling.
+        # kernel module and scratch buffers stay behind and are rebuilt on unpickling (the
+        # simulation holds no drawing: that lives in fastsdf.render).
         # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
-        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_layer", "drawable",
-                    "_wall", "_exact_ptr", "_flags"):
+        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_exact_ptr",
+                    "_flags"):
             state.pop(key, None)
         return state
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        self._ext = self._layer = self.drawable = self._wall = self._flags = None
+        self._ext = self._wall = self._flags = None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
             self.sdf = state["_sdf"]
