@@ -709,7 +709,16 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     from . import demo as _demo
     from .grid import GridSDF, measure_error
     from .particles import Gravity
-    from .render import _world_figure, save_animation
+    from .plotting import plot_sdf
+    from .render import save_animation
+
+    def world_figure(figsize):
+        from matplotlib.figure import Figure
+        fig = Figure(figsize=figsize, dpi=100, layout="constrained")
+        ax = fig.add_subplot()
+        plot_sdf(fig, ax, f, bounds=bounds, samples=400, show_quiver=False,
+                 show_isolines="zero", filled=True, ticks=True)
+        return fig, ax
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
@@ -763,6 +772,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
                 t0 = time.perf_counter()
                 sim.run(1)
                 timing["first"] = time.perf_counter() - t0
+                timing["load0"] = os.getloadavg()[0]
                 timing["outside"] += outside_share()
                 timing["steps"] += 1
                 k -= 1
@@ -777,7 +787,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         shape = (480, 480)
         animation_path = None
         if animate:
-            fig, ax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+            fig, ax = world_figure((6.0, 6.0))
             artist = _draw_density(ax, sim.density(bounds, shape), bounds)
             title = ax.set_title(label + "t = 0.00 s (step 0)")
             schedule = _demo._frame_schedule(steps, frames)
@@ -795,7 +805,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             save_animation(anim, animation_path, fps=fps)
         advance(steps - timing["steps"])
         last = os.path.join(out, "last_frame.png")
-        fig, ax = _world_figure(f, bounds, 400, (6.0, 6.0), 100)
+        fig, ax = world_figure((6.0, 6.0))
         _draw_density(ax, sim.density(bounds, (600, 600)), bounds)
         ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
         fig.savefig(last, dpi=100)
@@ -812,4 +822,5 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
         exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
         respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * r)),
+        load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
         animation=animation_path, last_frame=last)
