@@ -54,6 +54,7 @@ import os
 import pickle
 import time
 import uuid
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -234,7 +235,10 @@ class _Group:
         for i, sim in self.sims.items():
             sim.force_generators = list(generators)
             x = np.asarray(sim.p["x"], dtype=np.float64)
-            bbox = np.array([x[:, 0].min(), x[:, 1].min(), x[:, 0].max(), x[:, 1].max()])
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: NaN box
+                bbox = np.array([np.nanmin(x[:, 0]), np.nanmin(x[:, 1]), np.nanmax(x[:, 0]),
+                                 np.nanmax(x[:, 1])])
             out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
         return dict(self.steps), out
 
@@ -265,7 +269,8 @@ class SimulationStats:
     ``counts``: particles per shard; ``kinetic``, ``potential``: totals (energy units, summed
     over shards in shard order; potential of the :class:`fastsdf.particles.Gravity` generators,
     zero at the origin); ``bboxes``: ``(shards, 4)`` per-shard ``(xmin, ymin, xmax, ymax)`` of
-    particle centres (length units); ``bbox``: their union.
+    particle centres (length units; particles with a non-finite position are left out);
+    ``bbox``: their union.
     """
 
     counts: tuple
@@ -531,7 +536,8 @@ class DistributedSimulation:
             per.update(payload)
         rows = [per[i] for i in range(self.shards)]
         bboxes = np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 4)
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
             bbox = (float(np.nanmin(bboxes[:, 0])), float(np.nanmin(bboxes[:, 1])),
                     float(np.nanmax(bboxes[:, 2])), float(np.nanmax(bboxes[:, 3])))
         return SimulationStats(counts=tuple(int(r[0]) for r in rows),
