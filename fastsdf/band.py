@@ -11,8 +11,9 @@ Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
 centre ``c`` and half-diagonal ``rt`` has ``|f(p)| >= |f(c)| - L rt``; a tile is *far* when that
 bound exceeds ``band``. A far tile stores one int32: a lower bound of ``|f|`` over the tile (with
-``f``'s sign there, quantized downwards) less half a fine cell diagonal, and answers it with a
-zero gradient. So every far answer is a correct lower bound of ``|d|`` with the right sign:
+``f``'s sign there, quantized downwards) less half a fine cell diagonal, and the direction of
+``f``'s gradient at the tile centre (in 4096 steps), which it answers as the gradient (so that a
+particle that starts deep inside matter is still pushed out). So every far answer is a correct lower bound of ``|d|`` with the right sign:
 collision tests and sphere tracing stay safe, they are only conservative far from surfaces.
 
 Inside fine tiles queries are bilinear in value and in each gradient component, exactly as a
@@ -64,14 +65,21 @@ _N1 = _TILE + 1              # nodes per tile side (edge nodes are shared with t
 _TRIAL_CELLS = 256           # cells along the longer side of a tolerance build's trial grid
 _EXACT_FRACTION = 0.01       # tolerance builds refine until about this share of cells is exact
 _SAFETY = 0.5                # cells whose estimated error exceeds safety * tolerance are exact
+_DIR_BITS = 12               # far tiles: gradient direction in 4096 steps (0.09 degrees)
+_NDIR = 1 << _DIR_BITS
+_M_MAX = 1 << (30 - _DIR_BITS)  # far tiles: lower bound in at most this many quanta
+_DIRS = np.stack([np.cos(2 * np.pi * np.arange(_NDIR) / _NDIR),
+                  np.sin(2 * np.pi * np.arange(_NDIR) / _NDIR)], axis=1).reshape(-1)
 
 
 # ---------------------------------------------------------------------------------------------
 # Per-point samplers (numba). ``data`` is ``NarrowBandGridSDF.sampler_data``:
-# ``(table, q, masks, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, shift, quantum)`` (shift = 3).
+# ``(table, q, masks, dirs, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, quantum)``.
 # ``table[ti * nty + tj]`` (int32) is ``2 k + x`` for fine tile k (x = 1 if any of its cells is
 # exact, so that the other tiles skip the mask load), or for a far tile
-# ``-(1 + 2 m + s)``: lower bound ``m * quantum`` of |d|, ``s = 1`` where d < 0. Fine tile k stores
+# ``-(1 + s + 2 (a + _NDIR m))``: lower bound ``m * quantum`` of |d|, ``s = 1`` where d < 0, and
+# the direction of the exact gradient at the tile's centre, ``dirs[a] = (cos, sin)`` of the angle
+# ``2 pi a / _NDIR`` (so a particle deep inside matter is still pushed out). Fine tile k stores
 # its (T+1) x (T+1) nodes from ``q[k * (T+1)**2 * 3]``, each ``[d, dd/dx, dd/dy]``, x-major.
 # ``masks[k]`` has bit ``a * T + b`` set where cell (a, b) of the tile answers with the exact SDF.
 # nx, ny count cells inside bounds; T = 8 cells per tile side.
@@ -79,8 +87,9 @@ _SAFETY = 0.5                # cells whose estimated error exceeds safety * tole
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _band_locate(data, x, y):
     """(k, a, b, tx, ty, far, status): status 0 = fine cell, 1 = far tile (far holds the
-    signed lower bound), 2 = exact fallback (outside bounds, exact cell, non-finite)."""
-    table, q, masks, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, shift, quantum = data
+    signed lower bound, k the direction index), 2 = exact fallback (outside bounds, exact cell,
+    non-finite)."""
+    table, q, masks, dirs, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, quantum = data
     if not ((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)):
         return 0, 0, 0, 0.0, 0.0, 0.0, 2
     u = (x - x0) * ihx
@@ -92,10 +101,10 @@ def _band_locate(data, x, y):
     e = np.int64(table[np.uint64(ti * nty + tj)])
     if e < 0:
         c = -1 - e
-        val = (c >> 1) * quantum
+        val = (c >> (1 + _DIR_BITS)) * quantum
         if c & 1:
             val = -val
-        return 0, 0, 0, 0.0, 0.0, val, 1
+        return ((c >> 1) & (_NDIR - 1)), 0, 0, 0.0, 0.0, val, 1
     a = i - (ti << _SHIFT)
     b = j - (tj << _SHIFT)
     k = e >> 1
@@ -117,13 +126,14 @@ def sample_band(data, x, y):
     """Value and gradient at one point of a :class:`NarrowBandGridSDF`.
 
     ``data`` is ``g.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` (float64 x3, bool):
-    bilinear in a fine cell; in a far tile the stored signed lower bound of the distance and a
-    zero gradient; ``inside = False`` with NaN values outside ``bounds``, in cells marked exact
+    bilinear in a fine cell; in a far tile the stored signed lower bound of the distance and the
+    unit direction of the exact gradient at the tile's centre; ``inside = False`` with NaN values outside ``bounds``, in cells marked exact
     and for non-finite coordinates (evaluate the exact SDF there).
     """
     k, a, b, tx, ty, far, status = _band_locate(data, x, y)
     if status == 1:
-        return far, 0.0, 0.0, True
+        dirs = data[3]
+        return far, dirs[np.uint64(2 * k)], dirs[np.uint64(2 * k + 1)], True
     if status == 2:
         return math.nan, math.nan, math.nan, False
     q = data[1]
@@ -179,7 +189,8 @@ def _borrow(data):
     """The sampler data with its arrays as views without reference counts: binding an array
     to a variable inside the inlined sampler otherwise costs an atomic increment and decrement
     per point (the caller keeps the arrays alive)."""
-    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2])) + data[3:]
+    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2]),
+            _borrowed(data[3])) + data[4:]
 
 
 # Batch kernels. They return the number of points that need the exact SDF (NaN answers).
@@ -352,7 +363,7 @@ class NarrowBandGridSDF:
         cx = (np.arange(ntx) * T + T / 2) * hx + x0
         cy = (np.arange(nty) * T + T / 2) * hy + y0
         CX, CY = np.meshgrid(cx, cy, indexing="ij")
-        dc = self.exact(CX.ravel(), CY.ravel())
+        dc, gc = self.exact(CX.ravel(), CY.ravel(), compute_gradient=True)
         rt = 0.5 * T * math.hypot(hx, hy)
         with np.errstate(invalid="ignore"):
             fine = ~(np.abs(dc) - lip * rt > self.band)   # NaN centres are fine (checked below)
@@ -360,15 +371,18 @@ class NarrowBandGridSDF:
         nf = fidx.size
         # Far tiles: a lower bound of |f| over the tile, less half a cell diagonal (so that the
         # interpolated values of neighbouring fine tiles stay above it, which the particle
-        # loop's free-flight budget relies on), quantized downwards.
+        # loop's free-flight budget relies on), quantized downwards (capped: still a bound),
+        # and the direction of the gradient at the centre.
         slack = 0.5 * math.hypot(hx, hy)
-        span = max(x1 - x0, y1 - y0) + T * max(hx, hy)
-        self._quantum = quantum = max(min(hx, hy) / 64.0, 4.0 * span / 2 ** 30)
+        span = math.hypot(x1 - x0, y1 - y0) + T * max(hx, hy)
+        self._quantum = quantum = max(min(hx, hy) / 64.0, span / _M_MAX)
         with np.errstate(invalid="ignore"):
             lb = np.maximum(np.abs(dc) - lip * rt - slack, 0.0)
-        m = np.maximum(np.floor(lb / quantum) - 1.0, 0.0)
-        m = np.minimum(m, 2 ** 29)
-        table = (-(1 + 2 * m.astype(np.int64) + (dc < 0))).astype(np.int32)
+            m = np.minimum(np.maximum(np.floor(lb / quantum) - 1.0, 0.0), _M_MAX - 1)
+            ang = np.arctan2(gc[:, 1], gc[:, 0])
+        ang = np.where(np.isfinite(ang), ang, 0.0)
+        a_idx = np.rint(ang * (_NDIR / (2 * math.pi))).astype(np.int64) % _NDIR
+        table = (-(1 + (dc < 0) + 2 * (a_idx + _NDIR * m.astype(np.int64)))).astype(np.int32)
         table[fidx] = 2 * np.arange(nf, dtype=np.int32)
         # Fine nodes: the node (I, J) of the whole grid sits at (I * hx + x0, J * hy + y0), as in
         # np.linspace, the last node of bounds exactly at x1, y1.
@@ -467,14 +481,14 @@ class NarrowBandGridSDF:
         self.memory = {"table": int(self._table.nbytes), "nodes": int(self._q.nbytes),
                        "masks": int(self._masks.nbytes)}
         self.nbytes = sum(self.memory.values())
-        self.sampler_data = (self._table, self._q.reshape(-1), self._masks, x0, x1, y0, y1,
-                             1.0 / hx, 1.0 / hy, self.shape[0] - 1, self.shape[1] - 1, nty,
-                             int(self.tile).bit_length() - 1, self._quantum)
+        self.sampler_data = (self._table, self._q.reshape(-1), self._masks, _DIRS, x0, x1, y0,
+                             y1, 1.0 / hx, 1.0 / hy, self.shape[0] - 1, self.shape[1] - 1, nty,
+                             self._quantum)
 
     # -- queries ------------------------------------------------------------------------------
     def __call__(self, x, y, compute_gradient=False):
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound (with
-        a zero gradient) in far tiles, the exact SDF outside ``bounds`` and in exact cells; NaN
+        the centre's gradient direction) in far tiles, the exact SDF outside ``bounds`` and in exact cells; NaN
         for non-finite points. Conventions as :class:`fastsdf.graph.Function`."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
