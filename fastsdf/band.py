@@ -10,7 +10,8 @@ as ``GridSDF(gradient='stored')``) only in the tiles that can reach the band ``|
 Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (1 for fastsdf
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
 centre ``c`` and half-diagonal ``rt`` has ``|f(p)| >= |f(c)| - L rt``; a tile is *far* when that
-bound exceeds ``band``. A far tile stores one int32: a lower bound of ``|f|`` over the tile (with
+bound exceeds ``band``. For a function with no known bound the interval bounds of
+:mod:`fastsdf.interval` over the tile take its place. A far tile stores one int32: a lower bound of ``|f|`` over the tile (with
 ``f``'s sign there, quantized downwards) less half a fine cell diagonal, and the direction of
 ``f``'s gradient at the tile centre (in 4096 steps), which it answers as the gradient (so that a
 particle that starts deep inside matter is still pushed out). So every far answer is a correct lower bound of ``|d|`` with the right sign:
@@ -272,9 +273,7 @@ def _lipschitz_of(f, lipschitz):
     exactness = getattr(f, "exactness", "unknown")
     if exactness in ("exact", "bound"):
         return 1.0
-    raise ValueError(
-        f"f is not known to be 1-Lipschitz (exactness {exactness!r}), so far tiles cannot be "
-        f"told apart soundly: pass lipschitz= (a bound on |grad f|), got lipschitz=None")
+    return None     # unknown: tiles are classified with interval bounds
 
 
 # ---------------------------------------------------------------------------------------------
@@ -310,7 +309,10 @@ class NarrowBandGridSDF:
         most ``2**-24 max|d|`` to values and ``2**-24`` to gradient components.
     lipschitz : float, optional
         A bound on ``|grad f|``; default 1 for shapes whose ``exactness`` is ``'exact'`` or
-        ``'bound'`` (a ValueError otherwise, since the tile test needs it).
+        ``'bound'``. For other functions (``exactness == 'none'``, a bare
+        :class:`fastsdf.graph.Function`) without ``lipschitz``, tiles are classified with the
+        interval bounds of :mod:`fastsdf.interval` over each tile (sound, but slower to build),
+        and ``lipschitz`` is None.
 
     Attributes
     ----------
@@ -366,7 +368,11 @@ class NarrowBandGridSDF:
         dc, gc = self.exact(CX.ravel(), CY.ravel(), compute_gradient=True)
         rt = 0.5 * T * math.hypot(hx, hy)
         with np.errstate(invalid="ignore"):
-            fine = ~(np.abs(dc) - lip * rt > self.band)   # NaN centres are fine (checked below)
+            if lip is not None:
+                low = np.abs(dc) - lip * rt           # |f| >= low over the tile
+            else:
+                low = self._interval_low(cx, cy, T * hx, T * hy)
+            fine = ~(low > self.band)                 # NaN centres are fine (checked below)
         fidx = np.flatnonzero(fine)
         nf = fidx.size
         # Far tiles: a lower bound of |f| over the tile, less half a cell diagonal (so that the
@@ -377,7 +383,7 @@ class NarrowBandGridSDF:
         span = math.hypot(x1 - x0, y1 - y0) + T * max(hx, hy)
         self._quantum = quantum = max(min(hx, hy) / 64.0, span / _M_MAX)
         with np.errstate(invalid="ignore"):
-            lb = np.maximum(np.abs(dc) - lip * rt - slack, 0.0)
+            lb = np.maximum(low - slack, 0.0)
             m = np.minimum(np.maximum(np.floor(lb / quantum) - 1.0, 0.0), _M_MAX - 1)
             ang = np.arctan2(gc[:, 1], gc[:, 0])
         ang = np.where(np.isfinite(ang), ang, 0.0)
@@ -415,6 +421,19 @@ class NarrowBandGridSDF:
             self._mark_exact_cells(X, Y, q)
         self._finish()
 
+    def _interval_low(self, cx, cy, wx, wy):
+        """Lower bounds of ``|f|`` over every tile (x-major), from interval evaluation."""
+        from .interval import bounds as interval_bounds
+
+        CX, CY = np.meshgrid(cx, cy, indexing="ij")
+        sx, sy = (s.attr for s in self.exact.symbols)
+        boxes = {sx: (CX.ravel() - 0.5 * wx, CX.ravel() + 0.5 * wx),
+                 sy: (CY.ravel() - 0.5 * wy, CY.ravel() + 0.5 * wy)}
+        lo, hi = interval_bounds(self.exact.f, boxes)
+        lo, hi = np.broadcast_to(lo, CX.size), np.broadcast_to(hi, CX.size)
+        with np.errstate(invalid="ignore"):
+            return np.where(lo > 0, lo, np.where(hi < 0, -hi, 0.0))
+
     def _cell_estimates(self, X, Y, q):
         """Estimated interpolation error of every cell of the fine tiles, shape (nf, T, T), and
         whether each cell can reach the band."""
@@ -436,7 +455,8 @@ class NarrowBandGridSDF:
         est = np.maximum(e_mid, (hx * jx + hy * jy) / 8.0)
         corner_min = np.minimum(np.minimum(np.abs(v[:, :-1, :-1]), np.abs(v[:, 1:, :-1])),
                                 np.minimum(np.abs(v[:, :-1, 1:]), np.abs(v[:, 1:, 1:])))
-        in_band = corner_min - self.lipschitz * 0.5 * math.hypot(hx, hy) <= self.band
+        lip = self.lipschitz if self.lipschitz is not None else math.inf
+        in_band = corner_min - lip * 0.5 * math.hypot(hx, hy) <= self.band
         return est, in_band
 
     def _mark_exact_cells(self, X, Y, q):

@@ -232,6 +232,7 @@ def test_float32_storage_error_and_memory(world):
     (dict(bounds=[(1, 0), (0, 1)]), ValueError, "bounds"),
     (dict(dtype=np.int32), ValueError, "dtype"),
     (dict(lipschitz=0), ValueError, "lipschitz"),
+    (dict(lipschitz=math.inf), ValueError, "lipschitz"),
 ])
 def test_bad_parameters_are_rejected(world, kwargs, exc, match):
     args = dict(bounds=BOUNDS, band=0.05, samples=[65j, 65j])
@@ -240,22 +241,24 @@ def test_bad_parameters_are_rejected(world, kwargs, exc, match):
         NarrowBandGridSDF(world, **args)
 
 
-def test_f_must_be_an_sdf_with_a_known_lipschitz_bound():
+def test_f_must_be_an_sdf_and_unknown_lipschitz_uses_interval_bounds():
     with pytest.raises(TypeError, match="f must be"):
         NarrowBandGridSDF(lambda x, y: x, band=0.1, samples=[10, 10])
     import fastsdf.graph as cg
     x, y = cg.Symbol("x"), cg.Symbol("y")
     bare = cg.Function(x * x + y - 1.0, [x, y])
-    with pytest.raises(ValueError, match="lipschitz="):
-        NarrowBandGridSDF(bare, band=0.1, samples=[10, 10])
-    g = NarrowBandGridSDF(bare, bounds=[(-1, 1), (-1, 1)], band=0.1, samples=[33, 33],
-                          lipschitz=3.0)
-    xs, ys = np.random.default_rng(8).uniform(-1, 1, (2, 5000))
-    d = g(xs, ys)
-    far = ~g.is_fine(xs, ys)
-    assert far.any()
-    exact = bare(xs[far], ys[far])
-    assert np.all(np.abs(d[far]) <= np.abs(exact)) and np.all(d[far] * exact >= 0)
+    # Without a known Lipschitz bound, tiles are classified by interval bounds.
+    for lip in (3.0, None):
+        g = NarrowBandGridSDF(bare, bounds=[(-1, 1), (-1, 1)], band=0.1, samples=[33, 33],
+                              lipschitz=lip)
+        assert g.lipschitz == lip
+        xs, ys = np.random.default_rng(8).uniform(-1, 1, (2, 5000))
+        d = g(xs, ys)
+        exact = bare(xs, ys)
+        assert g.is_fine(xs[np.abs(exact) <= 0.1], ys[np.abs(exact) <= 0.1]).all()
+        far = ~g.is_fine(xs, ys)
+        assert far.any()
+        assert np.all(np.abs(d[far]) <= np.abs(exact[far])) and np.all(d[far] * exact[far] > 0)
 
 
 @pytest.mark.slow
