@@ -536,6 +536,10 @@ class NarrowBandGridSDF:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
+    def measure_error(self, n: int = 200_000, seed=0) -> GridError:
+        """The achieved error in the band: :func:`measure_band_error` on ``n`` random points."""
+        return measure_band_error(self, n=n, seed=seed)
+
     def is_fine(self, x, y):
         """Boolean array: True where the point lies inside ``bounds`` in a fine tile."""
         xs, ys, shape = as_points(x, y)

@@ -143,7 +143,7 @@ def test_tolerance_builds_meet_their_tolerance(seed):
     f = _random_scene(seed)
     for tol in (1e-3, 1e-4):
         g = NarrowBandGridSDF(f, bounds=BOUNDS, band=0.05, tolerance=tol)
-        err = measure_band_error(g, n=100_000, seed=seed)
+        err = g.measure_error(n=100_000, seed=seed)
         assert err.band_n > 20_000
         assert err.band_value_max <= tol, (seed, tol, err, g)
     # A tighter tolerance chooses a finer spacing.
