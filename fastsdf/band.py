@@ -11,11 +11,12 @@ Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
 centre ``c`` and half-diagonal ``rt`` has ``|f(p)| >= |f(c)| - L rt``; a tile is *far* when that
 bound exceeds ``band``. For a function with no known bound the interval bounds of
-:mod:`fastsdf.interval` over the tile take its place. A far tile stores one int32: a lower bound of ``|f|`` over the tile (with
-``f``'s sign there, quantized downwards) less half a fine cell diagonal, and the direction of
-``f``'s gradient at the tile centre (in 4096 steps), which it answers as the gradient (so that a
-particle that starts deep inside matter is still pushed out). So every far answer is a correct lower bound of ``|d|`` with the right sign:
-collision tests and sphere tracing stay safe, they are only conservative far from surfaces.
+:mod:`fastsdf.interval` over the tile take its place. A far tile stores one int32: a lower bound
+of ``|f|`` over the tile (with ``f``'s sign there, quantized downwards) less half a fine cell
+diagonal, and the direction of ``f``'s gradient at the tile centre (in 4096 steps), which it
+answers as the gradient (so that a particle that starts deep inside matter is still pushed out).
+So every far answer is a correct lower bound of ``|d|`` with the right sign: collision tests and
+sphere tracing stay safe; they are only conservative far from surfaces.
 
 Inside fine tiles queries are bilinear in value and in each gradient component, exactly as a
 dense grid of the same spacing (the node coordinates are computed the same way, so the values
@@ -31,7 +32,8 @@ cells exceed ``t / 2``. The remaining cells over ``t / 2`` - those crossed by a 
 (a corner of the shape, the medial axis), where bilinear interpolation is only first order - are
 marked *exact*: queries there evaluate the exact SDF (the same fallback a dense grid uses outside
 its bounds; the particle loop's ``inside=False`` path). The achieved error is measured with
-:func:`measure_error` (random points in the band) and is reported with the memory.
+:meth:`NarrowBandGridSDF.measure_error` (random points in the band, see
+:func:`measure_band_error`); ``nbytes`` and ``memory`` report the storage.
 
 For numba code: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)`` as for the dense grid
 (:data:`fastsdf.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
