@@ -79,7 +79,8 @@ def _queries(world_name, world, quick, out):
         builds[f"dense {fine}x{fine}, float64"] = time.perf_counter() - t0
     w64, w32 = (0.004, 0.01)
     specs = [
-        (f"band {fine}x{fine} (8x finer), float64, band 0.004", dict(band=w64, samples=[fine, fine])),
+        (f"band {fine}x{fine} (8x finer), float64, band 0.004",
+         dict(band=w64, samples=[fine, fine])),
         (f"band {fine}x{fine}, float64, band 0.004, tolerance 2e-5",
          dict(band=w64, samples=[fine, fine], tolerance=2e-5)),
         (f"band {fine}x{fine}, float32, band 0.01, tolerance 2e-5",

@@ -51,6 +51,8 @@ import time
 
 import numba
 import numpy as np
+from typing import Any
+from numpy.typing import ArrayLike
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -130,8 +132,9 @@ def sample_band(data, x, y):
 
     ``data`` is ``g.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` (float64 x3, bool):
     bilinear in a fine cell; in a far tile the stored signed lower bound of the distance and the
-    unit direction of the exact gradient at the tile's centre; ``inside = False`` with NaN values outside ``bounds``, in cells marked exact
-    and for non-finite coordinates (evaluate the exact SDF there).
+    unit direction of the exact gradient at the tile's centre; ``inside = False`` with NaN
+    values outside ``bounds``, in cells marked exact and for non-finite coordinates (evaluate
+    the exact SDF there).
     """
     k, a, b, tx, ty, far, status = _band_locate(data, x, y)
     if status == 1:
@@ -320,7 +323,8 @@ class NarrowBandGridSDF:
     ----------
     exact, bounds, band, tolerance, tile, dtype, lipschitz, mode (always ``'exact'``)
     shape : fine node counts (nx, ny) over bounds; spacing : (hx, hy)
-    tile : fine cells per tile side (8); tiles : (ntx, nty) tile counts; n_fine : number of fine tiles; n_exact_cells
+    tile : fine cells per tile side (8); tiles : (ntx, nty) tile counts
+    n_fine : number of fine tiles; n_exact_cells : cells answered by the exact SDF
     nbytes : bytes stored (table, fine nodes, cell masks); memory : the same, itemised (dict)
     build_seconds : wall time of the build (including trial grids of a tolerance build)
     sampler, sampler_data : per-point query for numba code (see :func:`sample_band`).
@@ -328,8 +332,9 @@ class NarrowBandGridSDF:
 
     mode = "exact"
 
-    def __init__(self, f, bounds=((-2, 2), (-2, 2)), band=0.05, samples=None, tolerance=None,
-                 dtype=np.float64, lipschitz=None):
+    def __init__(self, f: Any, bounds: ArrayLike = ((-2, 2), (-2, 2)), band: float = 0.05,
+                 samples: Any = None, tolerance: float | None = None, dtype: Any = np.float64,
+                 lipschitz: float | None = None):
         t0 = time.perf_counter()
         if not isinstance(f, Function):
             raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
@@ -509,9 +514,10 @@ class NarrowBandGridSDF:
 
     # -- queries ------------------------------------------------------------------------------
     def __call__(self, x, y, compute_gradient=False):
-        """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound (with
-        the centre's gradient direction) in far tiles, the exact SDF outside ``bounds`` and in exact cells; NaN
-        for non-finite points. Conventions as :class:`fastsdf.graph.Function`."""
+        """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
+        (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
+        and in exact cells; NaN for non-finite points. Conventions as
+        :class:`fastsdf.graph.Function`."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
@@ -538,11 +544,11 @@ class NarrowBandGridSDF:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
-    def measure_error(self, n: int = 200_000, seed=0) -> GridError:
+    def measure_error(self, n: int = 200_000, seed: int = 0) -> GridError:
         """The achieved error in the band: :func:`measure_band_error` on ``n`` random points."""
         return measure_band_error(self, n=n, seed=seed)
 
-    def is_fine(self, x, y):
+    def is_fine(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Boolean array: True where the point lies inside ``bounds`` in a fine tile."""
         xs, ys, shape = as_points(x, y)
         (x0, x1), (y0, y1) = self.bounds
@@ -555,7 +561,7 @@ class NarrowBandGridSDF:
         return (ok & (e >= 0)).reshape(shape)
 
     @property
-    def sampler(self):
+    def sampler(self) -> Any:
         """The numba per-point query (:func:`sample_band`): ``d, gx, gy, inside =
         sampler(g.sampler_data, x, y)``; evaluate ``g.exact.point_fn`` where ``inside`` is
         False (finite points)."""
@@ -571,7 +577,8 @@ class NarrowBandGridSDF:
 
 # ---------------------------------------------------------------------------------------------
 
-def measure_band_error(g, n: int = 200_000, seed=0, band=None, points=None) -> GridError:
+def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
+                       band: float | None = None, points: tuple | None = None) -> GridError:
     """Errors of a grid against its exact SDF on ``n`` random points in the band.
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;

@@ -47,6 +47,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from typing import Any, Sequence
 
 __all__ = ["Op", "OPS", "chain_rule_numpy", "lit", "fmt_const"]
 
@@ -83,7 +84,7 @@ def lit(v: float) -> str:
     return f"({s})" if v < 0 or s.startswith("-") else s
 
 
-def chain_rule_numpy(rule, ag, like):
+def chain_rule_numpy(rule: Any, ag: Sequence, like: np.ndarray) -> list:
     """Gradient components of a node from its rule and its arguments' gradients ``ag``
     (``ag[i][c]``: component ``c`` of argument ``i``); ``like``: an array of the output shape."""
     ncomp = len(ag[0]) if ag else 0

@@ -14,6 +14,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
+from typing import Iterator
+from numpy.typing import ArrayLike
 
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
@@ -94,7 +96,7 @@ def _properties(**props):
         _context.reset(token)
 
 
-def smoothness(k, kind="exponential"):
+def smoothness(k: float, kind: str = "exponential") -> Iterator[None]:
     """Context manager: ``|`` and ``&`` created inside blend with parameter ``k``.
 
     ``kind='exponential'`` (the default, the notebook's blend): ``k`` is the sharpness in
@@ -119,7 +121,7 @@ def current_blend() -> tuple:
     return s.smoothness, s.blend
 
 
-def transform(angle=0.0, offset=(0.0, 0.0)):
+def transform(angle: float = 0.0, offset: ArrayLike = (0.0, 0.0)) -> Iterator[None]:
     """Context manager: primitives created inside are rotated by ``angle`` (radians,
     counter-clockwise) about their own origin, then translated by ``offset``.
 

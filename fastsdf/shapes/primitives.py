@@ -9,6 +9,7 @@ import numbers
 from dataclasses import replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
@@ -31,7 +32,7 @@ class Circle(SDF):
     At the centre, where every direction is steepest, the gradient is the local +x axis.
     """
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
         center = _vec2(center, "center")
         radius = _real(radius, "radius")
         if radius <= 0:
@@ -46,7 +47,7 @@ class Halfspace(SDF):
     """Half-plane ``{p : n . p <= d}`` with outward normal ``normal`` (normalized here) and
     signed offset ``d`` from the origin (Hessian normal form; exact distance)."""
 
-    def __init__(self, normal=(1.0, 0.0), d=0.0):
+    def __init__(self, normal: ArrayLike = (1.0, 0.0), d: float = 0.0):
         normal = _vec2(normal, "normal")
         d = _real(d, "d")
         length = float(np.hypot(normal[0], normal[1]))
@@ -66,7 +67,7 @@ class Box(SDF):
     L-infinity distance, with an axis-aligned gradient.)
     """
 
-    def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0)):
+    def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0)):
         minc, maxc = _vec2(minc, "minc"), _vec2(maxc, "maxc")
         if not np.all(minc < maxc):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
@@ -219,7 +220,7 @@ class Segment(SDF):
     ``Segment(a, b).round(r)`` is the same shape as ``Capsule(a, b, r)``.
     """
 
-    def __init__(self, a=(0.0, 0.0), b=(1.0, 0.0)):
+    def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0)):
         a, b = _vec2(a, "a"), _vec2(b, "b")
         self.a, self.b = a, b
         info = _primitive_info(_points_bbox([a, b]), _edges_symmetry([a, b], closed=False),
@@ -230,7 +231,7 @@ class Segment(SDF):
 class Capsule(SDF):
     """The segment ``a``-``b`` thickened by ``radius`` (a stadium; a disc if ``a == b``)."""
 
-    def __init__(self, a=(0.0, 0.0), b=(1.0, 0.0), radius=0.25):
+    def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0), radius: float = 0.25):
         a, b = _vec2(a, "a"), _vec2(b, "b")
         radius = _real(radius, "radius")
         if radius <= 0:
@@ -249,7 +250,8 @@ class RoundedBox(SDF):
     ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
     """
 
-    def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0), radii=0.25):
+    def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0),
+                 radii: ArrayLike = 0.25):
         minc, maxc = _vec2(minc, "minc"), _vec2(maxc, "maxc")
         if not np.all(minc < maxc):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
@@ -289,7 +291,8 @@ class OrientedBox(SDF):
     """Rectangle along the segment ``a``-``b``: length ``|b - a|``, total width ``thickness``
     (IQ's oriented box; the ends are flat, at ``a`` and ``b``)."""
 
-    def __init__(self, a=(-1.0, 0.0), b=(1.0, 0.0), thickness=0.5):
+    def __init__(self, a: ArrayLike = (-1.0, 0.0), b: ArrayLike = (1.0, 0.0),
+                 thickness: float = 0.5):
         a, b = _vec2(a, "a"), _vec2(b, "b")
         thickness = _real(thickness, "thickness")
         if thickness <= 0:
@@ -316,7 +319,8 @@ class OrientedBox(SDF):
 class Triangle(SDF):
     """The triangle with corners ``p0, p1, p2`` (either orientation; not collinear)."""
 
-    def __init__(self, p0=(-1.0, -0.5), p1=(1.0, -0.5), p2=(0.0, 1.0)):
+    def __init__(self, p0: ArrayLike = (-1.0, -0.5), p1: ArrayLike = (1.0, -0.5),
+                 p2: ArrayLike = (0.0, 1.0)):
         v = np.array([_vec2(p0, "p0"), _vec2(p1, "p1"), _vec2(p2, "p2")])
         e1, e2 = v[1] - v[0], v[2] - v[0]
         area2 = e1[0] * e2[1] - e1[1] * e2[0]
@@ -354,7 +358,7 @@ class RegularPolygon(SDF):
     ``center``, one vertex pointing up (+y). Built from graph operations: ``n`` segments (one
     loop over a table in the generated code for ``n >= 4``)."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, n=6):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 6):
         center = _vec2(center, "center")
         radius = _positive(radius, "radius")
         n = _check_n(n)
@@ -372,7 +376,7 @@ class EquilateralTriangle(RegularPolygon):
     """Equilateral triangle inscribed in the circle of ``radius`` around ``center``, one
     corner pointing up (+y)."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
         super().__init__(center=center, radius=radius, n=3)
 
 
@@ -385,7 +389,7 @@ class Polygon(SDF):
     ``'polygon'``): O(n) per point; the vertices are a table in the generated module.
     """
 
-    def __init__(self, vertices):
+    def __init__(self, vertices: ArrayLike):
         v = _vertices(vertices, "vertices")
         if len(v) > 1 and np.all(v[0] == v[-1]):
             v = v[:-1]  # closed by repeating the first vertex: accepted
@@ -406,7 +410,8 @@ class Star(Polygon):
     """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
     pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, n=5, inner_radius=None):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 5,
+                 inner_radius: float | None = None):
         center = _vec2(center, "center")
         radius = _positive(radius, "radius")
         n = _check_n(n, minimum=2)
@@ -434,7 +439,7 @@ class Ellipse(SDF):
     safeguarded Newton iteration, typically 3 to 6 steps (about 10x the cost of a circle).
     """
 
-    def __init__(self, center=(0.0, 0.0), axes=(1.0, 0.5)):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), axes: ArrayLike = (1.0, 0.5)):
         center = _vec2(center, "center")
         axes = _vec2(axes, "axes")
         if not np.all(axes > 0):
@@ -452,7 +457,7 @@ class Ring(SDF):
     """Annulus: the circle of ``radius`` around ``center`` thickened to total width
     ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, thickness=0.2):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, thickness: float = 0.2):
         center = _vec2(center, "center")
         radius = _positive(radius, "radius")
         thickness = _positive(thickness, "thickness")
@@ -478,7 +483,8 @@ class Arc(SDF):
     a bound inside (reported as ``'bound'``).
     """
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, aperture=math.pi, thickness=0.2):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0,
+                 aperture: float = math.pi, thickness: float = 0.2):
         center = _vec2(center, "center")
         radius = _positive(radius, "radius")
         aperture = _positive(aperture, "aperture")
