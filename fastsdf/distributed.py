@@ -658,19 +658,25 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
 # ---------------------------------------------------------------------------------------------
 # The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
 
-def _draw_density(ax, image, bounds):
+def _draw_density(ax, image, bounds, cax=None):
     """Show a density image (counts per pixel) as :func:`fastsdf.render.draw_particles` does:
-    the same colour map, logarithmic from 1 count, empty pixels transparent."""
+    the same colour map, logarithmic from 1 count, empty pixels transparent; with ``cax``, its
+    colour bar of particles per pixel there."""
     from matplotlib.colors import LinearSegmentedColormap, LogNorm
 
     from .render import PARTICLE_CMAP_COLORS
     cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
     cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
     (x0, x1), (y0, y1) = bounds
-    return ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
-                     extent=(x0, x1, y0, y1), cmap=cmap,
-                     norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
-                     interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+    shown = ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
+                      extent=(x0, x1, y0, y1), cmap=cmap,
+                      norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
+                      interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+    if cax is not None:
+        from .render import _plain_log_ticks
+        cax.set_visible(True)
+        _plain_log_ticks(ax.figure.colorbar(shown, cax=cax, label="particles per pixel"))
+    return shown
 
 
 @dataclass(frozen=True)
@@ -709,16 +715,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     from . import demo as _demo
     from .grid import GridSDF, measure_error
     from .particles import Gravity
-    from .plotting import plot_sdf
-    from .render import save_animation
-
-    def world_figure(figsize):
-        from matplotlib.figure import Figure
-        fig = Figure(figsize=figsize, dpi=100, layout="constrained")
-        ax = fig.add_subplot()
-        plot_sdf(fig, ax, f, bounds=bounds, samples=400, show_quiver=False,
-                 show_isolines="zero", filled=True, ticks=True)
-        return fig, ax
+    from .render import _world_figure, save_animation
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
@@ -787,8 +784,8 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         shape = (480, 480)
         animation_path = None
         if animate:
-            fig, ax = world_figure((6.0, 6.0))
-            artist = _draw_density(ax, sim.density(bounds, shape), bounds)
+            fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+            artist = _draw_density(ax, sim.density(bounds, shape), bounds, cax)
             title = ax.set_title(label + "t = 0.00 s (step 0)")
             schedule = _demo._frame_schedule(steps, frames)
 
@@ -805,8 +802,8 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             save_animation(anim, animation_path, fps=fps)
         advance(steps - timing["steps"])
         last = os.path.join(out, "last_frame.png")
-        fig, ax = world_figure((6.0, 6.0))
-        _draw_density(ax, sim.density(bounds, (600, 600)), bounds)
+        fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+        _draw_density(ax, sim.density(bounds, (600, 600)), bounds, cax)
         ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
         fig.savefig(last, dpi=100)
         sample = sim.sample(min(particles, 100_000), seed=seed)
