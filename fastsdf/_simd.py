@@ -42,9 +42,24 @@ _LENGTH_IF = re.compile(r"^if not \(1e-150 < (\w+) < 1e150\):$")
 _HYPOT = re.compile(r"^(\w+) = math\.hypot\((.*)\)$")
 
 
+def _split_args(text: str) -> list:
+    """Arguments of a call's argument text, split at top-level commas."""
+    out, depth, cur = [], 0, ""
+    for ch in text:
+        if ch == "," and depth == 0:
+            out.append(cur.strip())
+            cur = ""
+            continue
+        depth += ch == "("
+        depth -= ch == ")"
+        cur += ch
+    out.append(cur.strip())
+    return out
+
+
 def vectorizable(lines: list) -> list:
     """The statements with the C library's exp/log/log1p and the branchy overflow-safe length
-    replaced by the branch-free versions of :mod:`fastsdf._vmath`."""
+    (and its partials) replaced by the branch-free versions of :mod:`fastsdf._vmath`."""
     out, i = [], 0
     while i < len(lines):
         line = lines[i]
@@ -52,13 +67,23 @@ def vectorizable(lines: list) -> list:
         indent = line[:len(line) - len(stripped)]
         m = _LENGTH_IF.match(stripped)
         if m and i + 1 < len(lines):
+            r = m.group(1)
             h = _HYPOT.match(lines[i + 1].strip())
-            if h and h.group(1) == m.group(1) and out:
-                # the line before computed the plain sqrt(a*a + b*b): replace it
-                prev = out.pop()
-                assert prev.strip().startswith(f"{m.group(1)} = math.sqrt("), prev
-                out.append(f"{indent}{m.group(1)} = _vlength({h.group(2)})")
-                i += 2
+            j = i + 1
+            while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > len(indent):
+                j += 1
+            back = [k for k in range(len(out)) if out[k].strip().startswith(f"{r} = math.sqrt(")]
+            if h and h.group(1) == r and back:
+                a, b = _split_args(h.group(2))
+                tail = out[back[-1] + 1:]
+                del out[back[-1]:]
+                if any(t.strip().startswith(f"{r}i = ") for t in tail):
+                    out.append(f"{indent}{r}, {r}p, {r}q = _vlength_grad({a}, {b})")
+                else:
+                    out.append(f"{indent}{r} = _vlength({a}, {b})")
+                out += [t for t in tail if not t.strip().startswith((f"{r}i = ", f"{r}p = ",
+                                                                     f"{r}q = "))]
+                i = j
                 continue
         line = (line.replace("math.exp(", "_vexp(").replace("math.log1p(", "_vlog1p(")
                 .replace("math.log(", "_vlog("))
@@ -178,6 +203,8 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     outs = ["out"] + (["grad"] if grad else [])
     args = ["xs", "ys"] + outs + list(extra_args)
     body = [f"    {t} = {t}G" for t in tables]
+    if "_act[" in "\n".join(lines):
+        body += ["    _act = _ACTG", "    _off = _OFFG"]
     body.append("    n = xs.shape[0]")
 
     info = []
@@ -233,7 +260,7 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
             loop_var = header.split()[1]
             hoisted: dict = {}
 
-            def hoist(mt, loop_var=loop_var, hoisted=hoisted):
+            def hoist(mt, loop_var, hoisted=hoisted):
                 if mt.group(2) != loop_var:
                     return mt.group(0)
                 key = (mt.group(1), mt.group(3))
@@ -241,9 +268,16 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
                     hoisted[key] = f"h{mt.group(1)[2:]}_{mt.group(3)}"
                 return hoisted[key]
 
-            stmts = [_TABLE_READ.sub(hoist, st) for st in stmts]
+            row = re.match(r"^(i\d+) = _act\[(i\d+q)\]$", stmts[0]) if stmts else None
+            if row and row.group(2) == loop_var:
+                # a loop over a row list (pruning): the row index is the same for all points
+                loop_var = row.group(1)
+                stmts = stmts[1:]
+            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
             defs, uses, _ = _defs_uses(stmts)
             body.append(f"    {header}")
+            if row:
+                body.append(f"        {row.group(0)}")
             body += [f"        {name} = {t}[{loop_var}, {col}]"
                      for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
             pad = "            "
@@ -306,4 +340,4 @@ def vmath_import() -> str:
     with open(_vmath.__file__, "rb") as fh:
         digest = hashlib.sha256(fh.read()).hexdigest()[:16]
     return ("from fastsdf._vmath import vexp as _vexp, vlog as _vlog, vlog1p as _vlog1p, "
-            f"vlength as _vlength  # _vmath.py sha256 {digest}\n")
+            f"vlength as _vlength, vlength_grad as _vlength_grad  # _vmath.py sha256 {digest}\n")

@@ -191,3 +191,19 @@ def vlength(a, b):
     sa = a * s
     sb = b * s
     return math.sqrt(sa * sa + sb * sb) * inv
+
+
+@njit(nogil=True, error_model="numpy")
+def vlength_grad(a, b):
+    """``(r, a/r, b/r)`` with ``r = sqrt(a*a + b*b)``, branch-free, without overflow or
+    underflow (also for subnormal ``r``); ``(0, 1, 0)`` at ``a = b = 0``. Bit-identical to
+    ``r``, ``a * (1/r)``, ``b * (1/r)`` where ``max(|a|, |b|)`` is in ``[1e-150, 1e150]``."""
+    m = max(abs(a), abs(b))
+    s = select(m > _BIG, _DOWN, select(m < _SMALL, _UP, 1.0))
+    inv = select(m > _BIG, _UP, select(m < _SMALL, _DOWN, 1.0))
+    sa = a * s
+    sb = b * s
+    rs = math.sqrt(sa * sa + sb * sb)
+    ri = 1.0 / rs
+    pos = rs > 0.0
+    return rs * inv, select(pos, sa * ri, 1.0), select(pos, sb * ri, 0.0)

@@ -4,13 +4,14 @@ Particles never interact with each other, only with the SDF, so a simulation spl
 independent shards. This module runs them on a ``dask.distributed`` cluster (install the extra:
 ``pip install fastsdf[distributed]``)::
 
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
     import fastsdf as sdf
-    from fastsdf.distributed import DistributedSimulation, evaluate
+    from fastsdf.distributed import DistributedSimulation, local_cluster
     from fastsdf.particles import Gravity
+    from fastsdf.scenes import box_world
 
-    with LocalCluster(n_workers=2, threads_per_worker=1) as cluster, Client(cluster) as client:
-        world = sdf.GridSDF(scenes.box_world(20), samples=[400j, 400j])
+    with local_cluster(workers=2) as cluster, Client(cluster) as client:
+        world = sdf.GridSDF(box_world(20), samples=[400j, 400j])
         sim = DistributedSimulation(world, 10_000_000, client=client, seed=0,
                                     force_generators=[Gravity()])
         sim.run(100)                    # every shard steps on its worker, in parallel
@@ -38,26 +39,30 @@ Determinism: shard ``i`` of ``shards`` is exactly ::
     ParticleSimulation(world, n_i, seed=np.random.default_rng(
         np.random.SeedSequence(seed).spawn(shards)[i]), **parameters)
 
-with ``n_i = n // shards + (i < n % shards)``, stepped with the same force generators: the
-same seed and shard count give the same bits whichever workers run the shards, and the same
-bits as running those simulations one after another in one process.
+(followed by ``init(sim, i)`` if given) with ``n_i = n // shards + (i < n % shards)``, stepped
+with the same force generators: the same seed and shard count give the same bits whichever
+workers run the shards, and the same bits as running those simulations one after another in
+one process.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
-import math
 import numbers
 import os
 import pickle
 import time
 import uuid
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from typing import Any, Sequence
+from numpy.typing import ArrayLike
 
 __all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
-           "local_cluster", "SimulationStats"]
+           "local_cluster", "SimulationStats", "run_demo"]
 
 #: How long (seconds) to wait on a shard before checking that its worker is still alive.
 POLL_SECONDS = 0.5
@@ -98,7 +103,7 @@ def _evaluate_block(xb, yb, f, gradient):
     return f(xb, yb)
 
 
-def evaluate(f, x, y, compute_gradient: bool = False):
+def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False) -> Any:
     """``f(x, y[, compute_gradient])`` on ``dask.array`` inputs, lazily, block by block.
 
     ``f``: a fastsdf SDF or GridSDF. ``x``, ``y``: dask arrays (or array-likes, wrapped with
@@ -146,7 +151,7 @@ class ShardLostError(RuntimeError):
     shards are intact, but the simulation can no longer advance consistently.
     """
 
-    def __init__(self, shards, workers, detail=""):
+    def __init__(self, shards: Sequence[int], workers: Sequence[str], detail: str = ""):
         self.shards = tuple(int(s) for s in shards)
         self.workers = tuple(workers)
         where = ", ".join(f"shard {s} on {w}" for s, w in zip(self.shards, self.workers))
@@ -160,7 +165,7 @@ def shard_sizes(n: int, shards: int) -> list:
     return [n // shards + (1 if i < n % shards else 0) for i in range(shards)]
 
 
-def shard_seed(seed, shards: int, i: int) -> np.random.Generator:
+def shard_seed(seed: Any, shards: int, i: int) -> np.random.Generator:
     """The random generator of shard ``i``: ``default_rng(SeedSequence(seed).spawn(shards)[i])``."""
     return np.random.default_rng(np.random.SeedSequence(seed).spawn(shards)[i])
 
@@ -178,13 +183,15 @@ class _Config:
     shards: int
     seed: object
     parameters: tuple
+    init: object = None
 
     def build(self, i: int):
+        """Shard ``i`` and what ``init(sim, i)`` returned (None without ``init``)."""
         from .particles import ParticleSimulation
         sizes = shard_sizes(self.n, self.shards)
-        return ParticleSimulation(self.world, n=sizes[i],
-                                  seed=shard_seed(self.seed, self.shards, i),
-                                  **dict(self.parameters))
+        sim = ParticleSimulation(self.world, n=sizes[i], seed=shard_seed(self.seed, self.shards, i),
+                                 **dict(self.parameters))
+        return sim, (self.init(sim, i) if self.init is not None else None)
 
 
 def _workers(client) -> dict:
@@ -207,8 +214,13 @@ class _Group:
     def __init__(self, config: _Config, indices: list, threads: int):
         self.threads = threads
         _set_threads(threads)
-        self.sims = {i: config.build(i) for i in indices}
+        built = {i: config.build(i) for i in indices}
+        self.sims = {i: b[0] for i, b in built.items()}
+        self.init_results = {i: b[1] for i, b in built.items()}
         self.steps = {i: 0 for i in indices}
+
+    def initialized(self):
+        return dict(self.steps), self.init_results
 
     def run(self, steps: int, generators: list):
         _set_threads(self.threads)
@@ -223,7 +235,10 @@ class _Group:
         for i, sim in self.sims.items():
             sim.force_generators = list(generators)
             x = np.asarray(sim.p["x"], dtype=np.float64)
-            bbox = np.array([x[:, 0].min(), x[:, 1].min(), x[:, 0].max(), x[:, 1].max()])
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: NaN box
+                bbox = np.array([np.nanmin(x[:, 0]), np.nanmin(x[:, 1]), np.nanmax(x[:, 0]),
+                                 np.nanmax(x[:, 1])])
             out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
         return dict(self.steps), out
 
@@ -254,7 +269,8 @@ class SimulationStats:
     ``counts``: particles per shard; ``kinetic``, ``potential``: totals (energy units, summed
     over shards in shard order; potential of the :class:`fastsdf.particles.Gravity` generators,
     zero at the origin); ``bboxes``: ``(shards, 4)`` per-shard ``(xmin, ymin, xmax, ymax)`` of
-    particle centres (length units); ``bbox``: their union.
+    particle centres (length units; particles with a non-finite position are left out);
+    ``bbox``: their union.
     """
 
     counts: tuple
@@ -303,15 +319,22 @@ class DistributedSimulation:
     threads : int or None
         numba threads per shard call; default the worker's Dask thread count, so that worker
         processes sharing a machine do not oversubscribe its cores.
+    init : callable or None
+        ``init(sim, i)``, picklable, run once on each shard's worker right after the shard is
+        built (e.g. to place its particles); the shard is ``sim``, a ``ParticleSimulation``.
+        Its return values are kept in :attr:`init_results` (small values only). For
+        reproducible results it must depend only on ``sim`` and ``i``.
 
     Each worker holds its shards' state (64 bytes per particle in float64); the client holds
     only small results. Use as a context manager or call :meth:`close` to free the workers.
     """
 
-    def __init__(self, world, n, *, client, shards=None, seed=None, force_generators=(),
-                 timestep=1 / 30, integrator="symplectic", collision="approaching",
-                 prevent_tunnelling=True, dtype=np.float64, cr=0.6, cf=0.3, lipschitz=None,
-                 block=None, threads=None):
+    def __init__(self, world: Any, n: int, *, client: Any, shards: int | None = None,
+                 seed: Any = None, force_generators: Sequence = (), timestep: float = 1 / 30,
+                 integrator: str = "symplectic", collision: str = "approaching",
+                 prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
+                 cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
+                 threads: int | None = None, init: Any = None):
         _require_dask()
         from distributed import Client
 
@@ -361,7 +384,9 @@ class DistributedSimulation:
         self.steps = 0
         self.sizes = shard_sizes(self.n, self.shards)
         self._lost = None
-        config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()))
+        if init is not None and not callable(init):
+            raise TypeError(f"init must be a callable (sim, shard) or None, got init={init!r}")
+        config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()), init)
         self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
         self._config_future = client.scatter(config, broadcast=True, hash=False)
         tag = uuid.uuid4().hex[:12]
@@ -376,6 +401,12 @@ class DistributedSimulation:
         actors = self._gather([(indices[0], f) for indices, f
                                in zip(self._groups.values(), self._futures)], check_steps=False)
         self._actors = dict(zip(self._groups, actors))
+        #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
+        self.init_results = [None] * self.shards
+        if init is not None:
+            for _, payload in self._call("initialized"):
+                for i, value in payload.items():
+                    self.init_results[i] = value
 
     # -- calls and loss detection -----------------------------------------------------------
     def _lost_error(self, shards, detail=""):
@@ -479,7 +510,7 @@ class DistributedSimulation:
         return self._gather(pending)
 
     # -- stepping -----------------------------------------------------------------------------
-    def run(self, steps=1) -> None:
+    def run(self, steps: int = 1) -> None:
         """Advance every shard ``steps`` steps of ``timestep`` seconds, in parallel.
 
         Returns when all shards are done. Raises :class:`ShardLostError` if a shard's worker
@@ -505,7 +536,8 @@ class DistributedSimulation:
             per.update(payload)
         rows = [per[i] for i in range(self.shards)]
         bboxes = np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 4)
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
             bbox = (float(np.nanmin(bboxes[:, 0])), float(np.nanmin(bboxes[:, 1])),
                     float(np.nanmax(bboxes[:, 2])), float(np.nanmax(bboxes[:, 3])))
         return SimulationStats(counts=tuple(int(r[0]) for r in rows),
@@ -521,7 +553,8 @@ class DistributedSimulation:
         """``(xmin, ymin, xmax, ymax)`` of all particle centres (length units)."""
         return self.stats().bbox
 
-    def density(self, bounds=((-2.0, 2.0), (-2.0, 2.0)), shape=(400, 400)) -> np.ndarray:
+    def density(self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)),
+                shape: tuple = (400, 400)) -> np.ndarray:
         """Particle counts per pixel: the sum of the shards' :func:`fastsdf.render.density_image`
         (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
         counts, so the order of summation does not matter). Each worker sends one summed image:
@@ -535,7 +568,7 @@ class DistributedSimulation:
             total += image
         return total
 
-    def sample(self, k: int, seed=None) -> dict:
+    def sample(self, k: int, seed: Any = None) -> dict:
         """``k`` particles drawn uniformly without replacement from all shards.
 
         Returns a dict of the fields ``x, v, m, r, cr, cf`` (float arrays of ``k`` rows) and
@@ -565,7 +598,7 @@ class DistributedSimulation:
                 np.zeros((0, 2) if name in ("x", "v") else (0,), self.dtype)
         return out
 
-    def gather(self):
+    def gather(self) -> Any:
         """All particles on the client as one :class:`fastsdf.particles.Particles`, shards in
         order: O(n) memory, for tests and small runs only."""
         from .particles import Particles
@@ -605,7 +638,7 @@ class DistributedSimulation:
                 f"workers={len(set(self.workers))}, t={self.t:.4g}, steps={self.steps})")
 
 
-def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs):
+def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs) -> Any:
     """A ``dask.distributed.LocalCluster`` of ``workers`` processes on the loopback interface
     (127.0.0.1, no dashboard), ``threads_per_worker`` threads each (default: the machine's
     cores divided among the workers, at least 1). Close it (``with`` or ``.close()``)."""
@@ -620,3 +653,171 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
                    processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
     options.update(kwargs)
     return LocalCluster(**options)
+
+
+# ---------------------------------------------------------------------------------------------
+# The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
+
+def _draw_density(ax, image, bounds, cax=None):
+    """Show a density image (counts per pixel) as :func:`fastsdf.render.draw_particles` does:
+    the same colour map, logarithmic from 1 count, empty pixels transparent; with ``cax``, its
+    colour bar of particles per pixel there."""
+    from matplotlib.colors import LinearSegmentedColormap, LogNorm
+
+    from .render import PARTICLE_CMAP_COLORS
+    cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
+    cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
+    (x0, x1), (y0, y1) = bounds
+    shown = ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
+                      extent=(x0, x1, y0, y1), cmap=cmap,
+                      norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
+                      interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+    if cax is not None:
+        from .render import _plain_log_ticks
+        cax.set_visible(True)
+        _plain_log_ticks(ax.figure.colorbar(shown, cax=cax, label="particles per pixel"))
+    return shown
+
+
+@dataclass(frozen=True)
+class _Spawn:
+    """The demo's ``init``: redraw the particles of shard ``i`` that start inside matter."""
+
+    world: object
+    seed: int
+
+    def __call__(self, sim, i):
+        from .demo import spawn_in_free_space
+        return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
+
+
+def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, grid: int = 400,
+             exact: bool = False, seed: int = 0, out: str = "demo-out", frames: int | None = None,
+             fps: int | None = None, animate: bool = True, world: str = "boxes",
+             mode: str = "exact", stream: Any = None, client: Any = None) -> Any:
+    """:func:`fastsdf.demo.run_demo` with the particles on a :func:`local_cluster` of
+    ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
+
+    Same parameters and result (a :class:`fastsdf.demo.DemoResult`). The particles live on the
+    workers, one shard per worker; each shard spawns its particles in free space there
+    (:func:`fastsdf.demo.spawn_in_free_space`); video frames and the last frame are drawn from
+    :meth:`DistributedSimulation.density` images, so only images travel to this process, and
+    the share of particles inside matter at the end is measured on a random sample of up to
+    100,000 particles (:meth:`DistributedSimulation.sample`).
+    """
+    import sys
+
+    import matplotlib
+    matplotlib.use("Agg")
+    from distributed import Client
+    from matplotlib.animation import FuncAnimation
+
+    from . import demo as _demo
+    from .grid import GridSDF, measure_error
+    from .particles import Gravity
+    from .render import _world_figure, save_animation
+
+    frames = _demo.DEFAULT_FRAMES if frames is None else frames
+    fps = _demo.DEFAULT_FPS if fps is None else fps
+    for name, value, low in (("workers", workers, 1), ("particles", particles, 1),
+                             ("steps", steps, 1), ("grid", grid, 2), ("frames", frames, 1),
+                             ("fps", fps, 1)):
+        if isinstance(value, bool) or int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+    if world not in _demo.WORLDS:
+        raise ValueError(f"world must be one of {sorted(_demo.WORLDS)}, got world={world!r}")
+    if mode not in ("exact", "nearest"):
+        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
+    particles, steps, frames = int(particles), int(steps), int(frames)
+    if animate and frames > steps:
+        raise ValueError(f"frames must be at most steps (every frame advances at least one "
+                         f"step), got frames={frames}, steps={steps}")
+    err = stream if stream is not None else sys.stderr
+    out = _demo.check_output_dir(out)
+    bounds = _demo.BOUNDS
+    f = _demo.WORLDS[world][0]()
+    band_max = band_angle = cost = None
+    if exact:
+        sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
+    else:
+        t0 = time.perf_counter()
+        sdf = GridSDF(f, bounds=bounds, samples=[grid * 1j, grid * 1j], mode=mode)
+        built = time.perf_counter() - t0
+        error = measure_error(sdf, seed=seed)
+        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
+        cost = _demo._query_cost(sdf, seed=seed)
+        sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            cluster = stack.enter_context(local_cluster(int(workers)))
+            client = stack.enter_context(Client(cluster))
+        workers = len(_workers(client))
+        sim = stack.enter_context(DistributedSimulation(
+            sdf, particles, client=client, seed=seed, timestep=1 / 30,
+            force_generators=[Gravity(acceleration=(0.0, -1.0))], init=_Spawn(f, seed)))
+        sdf_name += f", particles on {workers} Dask worker processes"
+        timing = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+
+        def outside_share() -> float:
+            # Particles inside the bounds, edges included: a 1x1 density image counts them.
+            return 1.0 - float(sim.density(bounds, (1, 1)).sum()) / particles
+
+        def advance(k: int) -> None:
+            if k <= 0:
+                return
+            if timing["first"] is None:
+                t0 = time.perf_counter()
+                sim.run(1)
+                timing["first"] = time.perf_counter() - t0
+                timing["load0"] = os.getloadavg()[0]
+                timing["outside"] += outside_share()
+                timing["steps"] += 1
+                k -= 1
+            if k > 0:
+                t0 = time.perf_counter()
+                sim.run(k)
+                timing["rest"] += time.perf_counter() - t0
+                timing["outside"] += k * outside_share()
+                timing["steps"] += k
+
+        label = f"{particles:,} particles on {workers} workers, "
+        shape = (480, 480)
+        animation_path = None
+        if animate:
+            fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+            artist = _draw_density(ax, sim.density(bounds, shape), bounds, cax)
+            title = ax.set_title(label + "t = 0.00 s (step 0)")
+            schedule = _demo._frame_schedule(steps, frames)
+
+            def update(i):
+                advance(schedule[i])
+                image = sim.density(bounds, shape)
+                artist.set_data(np.ma.masked_less_equal(image, 0.0))
+                artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
+                title.set_text(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+                return (artist,)
+
+            anim = FuncAnimation(fig, update, frames=frames, blit=False, repeat=False)
+            animation_path = os.path.join(out, "particles" + _demo._video_writer_ext(err))
+            save_animation(anim, animation_path, fps=fps)
+        advance(steps - timing["steps"])
+        last = os.path.join(out, "last_frame.png")
+        fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+        _draw_density(ax, sim.density(bounds, (600, 600)), bounds, cax)
+        ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+        fig.savefig(last, dpi=100)
+        sample = sim.sample(min(particles, 100_000), seed=seed)
+        respawned = int(sum(sim.init_results))
+        dt = sim.dt
+    x, r = sample["x"], sample["r"]
+    d = sdf(x[:, 0], x[:, 1]) - r
+    rate = (steps - 1) * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
+    return _demo.DemoResult(
+        world=world, particles=particles, steps=timing["steps"], timestep=dt, sdf=sdf_name,
+        mode=grid_mode, sim_seconds=timing["rest"], first_step_seconds=timing["first"] or 0.0,
+        particle_steps_per_second=rate,
+        outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
+        exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
+        respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * r)),
+        load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
+        animation=animation_path, last_frame=last)

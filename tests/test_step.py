@@ -292,3 +292,69 @@ def test_timestep_is_validated_on_assignment(dt):
         sim.dt = dt
     with pytest.raises(ValueError, match="timestep"):
         phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=2, timestep=dt)
+
+
+def test_field_forces_from_expressions_equal_their_numpy_forms():
+    from fastsdf.graph import Symbol, sym_sqrt
+    x, y = Symbol("x"), Symbol("y")
+    rr = sym_sqrt(x * x + y * y + 0.01)
+    attractor = phys.FieldForce(potential=-0.5 / rr, per_mass=True)     # -grad U = -0.5 p / rr^3
+    swirl = phys.FieldForce(-y * 0.3, x * 0.3)
+    w = sdf.Halfspace([0, 1], -1.8)
+    fused = phys.ParticleSimulation(w, n=300, seed=8)
+    slow = phys.ParticleSimulation(w, n=300, seed=8)
+    fused.force_generators += [attractor, swirl]
+
+    def attractor_py(p, t):
+        q = p["x"]
+        r3 = (q[:, 0] ** 2 + q[:, 1] ** 2 + 0.01) ** 1.5
+        return -0.5 * p["m"][:, None] * q / r3[:, None]
+
+    def swirl_py(p, t):
+        return np.c_[-0.3 * p["x"][:, 1], 0.3 * p["x"][:, 0]]
+
+    slow.force_generators += [attractor_py, swirl_py]
+    np.testing.assert_allclose(attractor(fused.p, 0.0), attractor_py(fused.p, 0.0), rtol=1e-12)
+    for _ in range(4):
+        fused.run(5)
+        slow.run(5)
+    np.testing.assert_allclose(fused.p["x"], slow.p["x"], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(fused.p["v"], slow.p["v"], rtol=1e-9, atol=1e-11)
+
+
+def test_field_force_arguments_are_checked():
+    with pytest.raises(TypeError, match="fx and fy, or potential"):
+        phys.FieldForce(1.0)
+    with pytest.raises(TypeError, match="not both"):
+        phys.FieldForce(1.0, 2.0, potential=3.0)
+    with pytest.raises(TypeError, match="fx must be"):
+        phys.FieldForce("wind", 2.0)
+
+
+@pytest.mark.parametrize("n", [300, 5000])
+def test_lazy_exact_fallback_gives_the_same_trajectories(n):
+    # Particles start near and beyond the edge of a small grid: the exact fallback is compiled
+    # only when the first one gets near the edge, and those particles resume from there.
+    w = sdf.Halfspace([0, 1], -0.5) | sdf.Circle([0.4, 0.0], 0.3)
+    grid = GridSDF(w, bounds=[(-1, 1), (-1, 1)], samples=[60j, 60j])
+    lazy = phys.ParticleSimulation(grid, n=n, seed=9)
+    eager = phys.ParticleSimulation(grid, n=n, seed=9)
+    eager._bind_fallback()
+    assert lazy._exact_ptr is None and eager._exact_ptr
+    x = np.c_[np.random.default_rng(9).uniform(-0.5, 0.5, n), np.linspace(0.4, 0.9, n)]
+    for s in (lazy, eager):
+        s.force_generators.append(phys.Gravity())
+        s.p["x"] = x
+        s.p["v"] = 0.0
+    lazy.run(3)                    # nobody comes near the edge yet: nothing compiled
+    eager.run(3)
+    assert lazy._exact_ptr is None
+    for s in (lazy, eager):
+        s.p["v"] = np.c_[np.linspace(-3, 3, n), np.zeros(n)]
+    lazy.run(40)
+    eager.run(40)
+    assert lazy._exact_ptr is not None
+    assert np.any(np.abs(eager.p["x"]) > 1.0)            # some did leave the grid
+    np.testing.assert_array_equal(lazy.p["x"], eager.p["x"])
+    np.testing.assert_array_equal(lazy.p["v"], eager.p["v"])
+    assert lazy.t == eager.t
