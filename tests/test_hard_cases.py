@@ -76,7 +76,7 @@ def test_damaged_cache_files_are_repaired_once(tmp_path):
     assert (hits, misses, reports) == (0, 1, 0)
     files = _cache_files(cache)
     module = [p for p in files if p.suffix == ".py"]
-    point = [p for p in files if ".point_vg-" in p.name]
+    point = [p for p in files if "._block_vg-" in p.name]
     batch = [p for p in files if ".batch_vg_ser-" in p.name]
     assert len(module) == 1 and len(point) == 2 and len(batch) == 2
     _truncate(module[0])
@@ -87,7 +87,7 @@ def test_damaged_cache_files_are_repaired_once(tmp_path):
         p.write_bytes(b"" if p.suffix == ".nbi" else b"\x80\x05garbage" * 5)
     repaired = _parse(_run_cache_script(cache))
     assert repaired[0] == value  # the same answer, computed afresh
-    assert repaired[2:] == (1, 3)  # recompiled; module, point_vg, batch_vg_ser reported once
+    assert repaired[2:] == (1, 3)  # recompiled; module, _block_vg, batch_vg_ser reported once
     again = _parse(_run_cache_script(cache))
     assert again == (value, 1, 0, 0)  # loaded from the repaired cache, nothing to report
 

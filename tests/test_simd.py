@@ -82,13 +82,16 @@ def test_table_loop_becomes_the_outer_loop():
     """A folded loop over a table of operands runs all points of the block against one row,
     then the next: the row's constants are read outside the point loop."""
     src = box_world(20).compiled.function_source("vg")  # per-point: loop over rows inside
-    assert re.search(r"^    for i\d+ in range\(20\):$", src, re.M)
+    loop = r"for (i\d+)q in range\(_off\[0\], _off\[1\]\):"
+    assert re.search(r"^    " + loop + "$", src, re.M)
     block = box_world(20).compiled.module_source
     block = block[block.index("def _block_vg"):block.index("def batch_vg_par")]
-    outer = re.search(r"^    for (i\d+) in range\(20\):\n((?:        .*\n)+)", block, re.M)
+    outer = re.search(r"^    " + loop + r"\n((?:        .*\n)+)", block, re.M)
     assert outer, block
     body = outer.group(2)
-    assert re.search(r"^        h\w+ = _T0\[" + outer.group(1) + r", \d+\]$", body, re.M)
+    row = outer.group(1)
+    assert body.startswith(f"        {row} = _act[{row}q]\n")  # the row list (pruning)
+    assert re.search(r"^        h\w+ = _T0\[" + row + r", \d+\]$", body, re.M)
     inner = re.search(r"^        for i in range\((\d+)\):$", body, re.M)
     assert inner and int(inner.group(1)) == BLOCK  # one lane: a constant trip count per block
     assert "_T0[" not in body[inner.start():]
