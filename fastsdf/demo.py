@@ -80,9 +80,9 @@ class DemoResult:
     grid_band_angle_rms_deg: float | None
     respawned: int
     inside_fraction: float
-    load: tuple[float, float] | None
     animation: str | None
     last_frame: str
+    load: tuple[float, float] | None = None
     notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
