@@ -135,6 +135,8 @@ class CompiledSDF:
         if not operands or (not prune and (operands < PRUNE_MIN_OPERANDS
                                            or operands * count < PRUNE_MIN_WORK)):
             return None
+        if not prune and tol is None and all(g["op"] in ("smin", "smax") for g in self.groups):
+            return None  # exponential chains at half an ulp: next to nothing to drop
         bounds = snap_bounds(xs, ys) if bounds is None else bounds
         if bounds is None:
             return None
