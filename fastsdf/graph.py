@@ -422,6 +422,9 @@ def _check_k(k, name="k") -> float:
     k = float(k)
     if not math.isfinite(k) or k <= 0.0:
         raise ValueError(f"{name} must be finite and > 0 for a smooth blend, got {name}={k!r}")
+    if not math.isfinite(1.0 / k):  # the blend divides by k: a subnormal k gives inf and NaN
+        raise ValueError(f"{name} is too small for a smooth blend (1/k overflows), got "
+                         f"{name}={k!r}")
     return k
 
 
@@ -484,6 +487,9 @@ def _check_width(k, name="k") -> float:
     k = float(k)
     if not math.isfinite(k) or k <= 0.0:
         raise ValueError(f"{name} (the blend width) must be finite and > 0, got {name}={k!r}")
+    if not math.isfinite(1.0 / k):  # the blend divides by k: a subnormal k gives inf and NaN
+        raise ValueError(f"{name} (the blend width) is too small (1/k overflows), got "
+                         f"{name}={k!r}")
     return k
 
 

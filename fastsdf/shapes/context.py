@@ -17,8 +17,9 @@ import numpy as np
 from typing import Iterator
 from numpy.typing import ArrayLike
 
+from .._validate import check_length as _check_length
+from .._validate import coord2 as _vec2
 from .._validate import real as _real
-from .._validate import vec2 as _vec2
 from ..graph import Expr, Symbol
 
 __all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
@@ -73,6 +74,9 @@ def _smoothness_value(k) -> float:
     k = float(k)
     if not math.isfinite(k) or k < 0:
         raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={k!r}")
+    if k > 0:
+        # a blend width (or, for the exponential blend, its inverse) is a length
+        _check_length(k, "smoothness k")
     return k
 
 

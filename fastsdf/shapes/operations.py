@@ -9,8 +9,10 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .._validate import check_length as _check_length
+from .._validate import coord2 as _vec2
+from .._validate import length as _length
 from .._validate import real as _real
-from .._validate import vec2 as _vec2
 from ..interval import note_lipschitz
 from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
                      sym_qmin, sym_smax, sym_smin)
@@ -138,7 +140,7 @@ class SDF(Function):
         shape the inside value is only a bound (filled concavities are deeper than ``r - f``).
         For ``r < 0``: exact inside if ``f`` is, a bound outside. Always a bound if ``f`` is.
         """
-        r = _real(r, "r")
+        r = _length(r, "r", zero=True)
         i = self._info
         if r == 0:
             return SDF(self.f, i)
@@ -159,6 +161,7 @@ class SDF(Function):
         t = _real(thickness, "thickness")
         if t <= 0:
             raise ValueError(f"thickness must be > 0, got thickness={t!r}")
+        _check_length(t, "thickness")
         i = self._info
         info = _Info(outside=i.outside and i.inside, inside=False, bound=i.bound,
                      bbox=_grow(i.bbox, t / 2), sym=i.sym)
@@ -170,6 +173,7 @@ class SDF(Function):
         s = _real(s, "s")
         if s <= 0:
             raise ValueError(f"s must be > 0, got s={s!r}")
+        _check_length(s, "s")
         inv = 1.0 / s
         i = self._info
         bbox = None if i.bbox is None else tuple(v * s for v in i.bbox)
@@ -247,6 +251,8 @@ class SDF(Function):
         ct = _pair(count, "count", _count)
         if not all(v > 0 for v in sp):
             raise ValueError(f"spacing must be > 0, got spacing={spacing!r}")
+        for v in sp:
+            _check_length(v, "spacing", spacing)
         i = self._info
         sub, symmetric, contained = {}, True, i.bbox is not None
         lo = list(i.bbox[:2]) if i.bbox is not None else None
