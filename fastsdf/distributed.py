@@ -769,6 +769,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
                 t0 = time.perf_counter()
                 sim.run(1)
                 timing["first"] = time.perf_counter() - t0
+                timing["load0"] = os.getloadavg()[0]
                 timing["outside"] += outside_share()
                 timing["steps"] += 1
                 k -= 1
@@ -818,4 +819,5 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
         exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
         respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * r)),
+        load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
         animation=animation_path, last_frame=last)

@@ -335,6 +335,8 @@ class ParticleLayer:
             self.artist.set_data(shown)
             if self._fixed_norm is None:
                 self.artist.norm.vmax = vmax
+                if self.colorbar is not None:  # a new range resets the bar's tick labels
+                    _plain_log_ticks(self.colorbar)
         else:
             self._drop()
             norm = self._fixed_norm if self._fixed_norm is not None else LogNorm(1.0, vmax)
