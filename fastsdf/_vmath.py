@@ -206,4 +206,8 @@ def vlength_grad(a, b):
     rs = math.sqrt(sa * sa + sb * sb)
     ri = 1.0 / rs
     pos = rs > 0.0
-    return rs * inv, select(pos, sa * ri, 1.0), select(pos, sb * ri, 0.0)
+    # scaled: divide, as the reference does there (one rounding); else the reciprocal's product
+    scaled = s != 1.0
+    p = select(scaled, sa / rs, sa * ri)
+    q = select(scaled, sb / rs, sb * ri)
+    return rs * inv, select(pos, p, 1.0), select(pos, q, 0.0)
