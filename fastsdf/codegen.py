@@ -34,7 +34,7 @@ import numpy as np
 
 from . import __version__
 from ._cache import load_module
-from .graph import Expr, topological_order
+from .graph import Expr, parameters, topological_order
 
 __all__ = ["CompiledSDF", "compile_expr", "generate_module_source", "MIN_LOOP", "PARALLEL_MIN_POINTS"]
 
@@ -62,13 +62,14 @@ def _lit(v: float) -> str:
 class _Val:
     """An emitted value: Python expressions (usually variable names) for value and gradient.
 
-    A gradient component of ``None`` is known to be zero; ``"1.0"`` is a literal one.
+    A gradient component of ``None`` is known to be zero; ``"1.0"`` is a literal one. ``gt``
+    is the derivative in time (the parameter ``t``), carried only by the ``vgt`` functions.
     """
 
-    __slots__ = ("v", "gx", "gy")
+    __slots__ = ("v", "gx", "gy", "gt")
 
-    def __init__(self, v, gx=None, gy=None):
-        self.v, self.gx, self.gy = v, gx, gy
+    def __init__(self, v, gx=None, gy=None, gt=None):
+        self.v, self.gx, self.gy, self.gt = v, gx, gy, gt
 
 
 def _prod(g, c):
@@ -178,9 +179,15 @@ def _flatten_chain(node: Expr) -> list:
 class _Emitter:
     """Emits the body of one per-point function (value only, or value and gradient)."""
 
-    def __init__(self, symbol_names, grad: bool, tables: dict):
+    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False):
         self.grad = grad
+        self.time = time  # also carry d/dt (third forward-mode component)
+        self.comps = ("gx", "gy", "gt") if time else ("gx", "gy")
         self.syms = {symbol_names[0]: _Val("x", "1.0", None), symbol_names[1]: _Val("y", None, "1.0")}
+        # Parameters are read from the argument tuple P once per call (bound to _p<i>); time is
+        # the argument t, seeded with dt/dt = 1 when the time derivative is carried.
+        self.params = {name: _Val(f"_p{i}") for i, name in enumerate(param_names)}
+        self.params["t"] = _Val("t", None, None, "1.0" if time else None)
         self.tables = tables  # shared across functions of one module: bytes -> name
         self.lines: list[str] = []
         self.n = 0
@@ -193,15 +200,16 @@ class _Emitter:
         out.append(f"{name} = {expr}")
         return name
 
-    def _grad(self, out, name, gx, gy):
+    def _grad(self, out, name, gx, gy, gt=None):
         """Assign gradient expressions to variables named after ``name`` (if nonzero)."""
         if not self.grad:
-            return None, None
+            return None, None, None
         def keep(expr):  # nothing to compute: no new variable needed
             return expr is None or expr == "1.0" or expr.isidentifier()
         rx = gx if keep(gx) else self._assign(out, f"{name}x", gx)
         ry = gy if keep(gy) else self._assign(out, f"{name}y", gy)
-        return rx, ry
+        rt = gt if keep(gt) else self._assign(out, f"{name}t", gt)
+        return rx, ry, rt
 
     # -- one operation ------------------------------------------------------------------------
     def op(self, out: list, node: Expr, a: list) -> _Val:
@@ -212,64 +220,70 @@ class _Emitter:
         B = a[1] if len(a) > 1 else None
 
         def lin(ca, cb=None):
-            """Gradient of the result as ca * grad(A) + cb * grad(B)."""
+            """Gradient of the result as ca * grad(A) + cb * grad(B) (each component)."""
             if not g:
-                return None, None
-            gx = _sum(_prod(A.gx, ca), _prod(B.gx, cb) if B is not None and cb is not None else None)
-            gy = _sum(_prod(A.gy, ca), _prod(B.gy, cb) if B is not None and cb is not None else None)
-            return gx, gy
+                return None, None, None
+            two = B is not None and cb is not None
+            return tuple(_sum(_prod(getattr(A, c), ca), _prod(getattr(B, c), cb) if two else None)
+                         for c in ("gx", "gy", "gt"))
+
+        def comp(fn, *vals):
+            """Each gradient component as fn(components of vals)."""
+            if not g:
+                return None, None, None
+            return tuple(fn(*[getattr(v, c) for v in vals]) for c in ("gx", "gy", "gt"))
 
         if op == "add":
             self._assign(out, r, f"{A.v} + {B.v}")
-            gx, gy = (_sum(A.gx, B.gx), _sum(A.gy, B.gy)) if g else (None, None)
+            gx, gy, gt = comp(_sum, A, B)
         elif op == "sub":
             self._assign(out, r, f"{A.v} - {B.v}")
-            gx, gy = (_sum(A.gx, _neg(B.gx)), _sum(A.gy, _neg(B.gy))) if g else (None, None)
+            gx, gy, gt = comp(lambda a, b: _sum(a, _neg(b)), A, B)
         elif op == "mul":
             self._assign(out, r, f"{A.v} * {B.v}")
-            gx, gy = lin(B.v, A.v)
+            gx, gy, gt = lin(B.v, A.v)
         elif op == "div":
             self._assign(out, r, f"{A.v} / {B.v}")
             if g:
                 ib = self._assign(out, f"{r}i", f"1.0 / {B.v}")
-                gx, gy = lin(ib, f"(-{r} * {ib})")
+                gx, gy, gt = lin(ib, f"(-{r} * {ib})")
             else:
-                gx = gy = None
+                gx = gy = gt = None
         elif op == "neg":
             self._assign(out, r, f"-{A.v}")
-            gx, gy = (_neg(A.gx), _neg(A.gy)) if g else (None, None)
+            gx, gy, gt = comp(_neg, A)
         elif op == "powc":
             p = node.attr
             if p == 2.0:
                 self._assign(out, r, f"{A.v} * {A.v}")
-                gx, gy = lin(f"(2.0 * {A.v})")
+                gx, gy, gt = lin(f"(2.0 * {A.v})")
             elif p == -1.0:
                 self._assign(out, r, f"1.0 / {A.v}")
-                gx, gy = lin(f"(-{r} * {r})")
+                gx, gy, gt = lin(f"(-{r} * {r})")
             else:
                 self._assign(out, r, f"{A.v} ** {_lit(p)}")
-                gx, gy = lin(f"({_lit(p)} * {A.v} ** {_lit(p - 1.0)})")
+                gx, gy, gt = lin(f"({_lit(p)} * {A.v} ** {_lit(p - 1.0)})")
         elif op == "pow":
             self._assign(out, r, f"{A.v} ** {B.v}")
-            gx, gy = lin(f"({B.v} * {A.v} ** ({B.v} - 1.0))", f"({r} * math.log({A.v}))")
+            gx, gy, gt = lin(f"({B.v} * {A.v} ** ({B.v} - 1.0))", f"({r} * math.log({A.v}))")
         elif op == "sqrt":
             self._assign(out, r, f"math.sqrt({A.v})")
-            gx, gy = lin(f"_sel({r} > 0.0, 0.5 / {r}, 0.0)")
+            gx, gy, gt = lin(f"_sel({r} > 0.0, 0.5 / {r}, 0.0)")
         elif op == "exp":
             self._assign(out, r, f"math.exp({A.v})")
-            gx, gy = lin(r)
+            gx, gy, gt = lin(r)
         elif op == "log":
             self._assign(out, r, f"math.log({A.v})")
-            gx, gy = lin(f"(1.0 / {A.v})")
+            gx, gy, gt = lin(f"(1.0 / {A.v})")
         elif op == "sin":
             self._assign(out, r, f"math.sin({A.v})")
-            gx, gy = lin(f"math.cos({A.v})")
+            gx, gy, gt = lin(f"math.cos({A.v})")
         elif op == "cos":
             self._assign(out, r, f"math.cos({A.v})")
-            gx, gy = lin(f"(-math.sin({A.v}))")
+            gx, gy, gt = lin(f"(-math.sin({A.v}))")
         elif op == "abs":
             self._assign(out, r, f"abs({A.v})")
-            gx, gy = lin(f"_sel({A.v} >= 0.0, 1.0, -1.0)")
+            gx, gy, gt = lin(f"_sel({A.v} >= 0.0, 1.0, -1.0)")
         elif op == "length":
             # sqrt(a*a + b*b) unless that over- or underflows; hypot is exact but slower.
             self._assign(out, r, f"math.sqrt({A.v} * {A.v} + {B.v} * {B.v})")
@@ -277,24 +291,20 @@ class _Emitter:
             out.append(f"    {r} = math.hypot({A.v}, {B.v})")
             if g:
                 self._assign(out, f"{r}i", f"_sel({r} > 0.0, 1.0 / {r}, 0.0)")
-                gx, gy = lin(f"_sel({r} > 0.0, {A.v} * {r}i, 1.0)", f"({B.v} * {r}i)")
+                gx, gy, gt = lin(f"_sel({r} > 0.0, {A.v} * {r}i, 1.0)", f"({B.v} * {r}i)")
             else:
-                gx = gy = None
+                gx = gy = gt = None
         elif op in _CHAIN_OPS:
             return self.chain(out, node.op, node.attr, [("val", A), ("val", B)])
         # -- issue 7 additions: floor, select, polynomial smooth minima, compiled primitives --
         elif op == "floor":
             self._assign(out, r, f"np.floor({A.v})")
-            gx = gy = None  # piecewise constant
+            gx = gy = gt = None  # piecewise constant
         elif op == "select":
             cond, T, F = f"{A.v} > 0.0", a[1], a[2]
             self._assign(out, r, f"_sel({cond}, {T.v}, {F.v})")
-            gx = gy = None
-            if g:
-                gx = None if T.gx is None and F.gx is None else \
-                    f"_sel({cond}, {_zero(T.gx)}, {_zero(F.gx)})"
-                gy = None if T.gy is None and F.gy is None else \
-                    f"_sel({cond}, {_zero(T.gy)}, {_zero(F.gy)})"
+            gx, gy, gt = comp(lambda a, b: None if a is None and b is None else
+                              f"_sel({cond}, {_zero(a)}, {_zero(b)})", T, F)
         elif op in ("qmin", "cmin"):
             # min(a, b) - k h^2/4 (quadratic) or - k h^3/6 (cubic), h = max(k - |a - b|, 0)/k;
             # the gradient is a convex combination: weight 1 - h/2 (1 - h^2/2) on the smaller.
@@ -312,9 +322,9 @@ class _Emitter:
             if g:
                 o = self._assign(out, f"{r}o", other)
                 wa = self._assign(out, f"{r}a", f"_sel({w}, 1.0 - {o}, {o})")
-                gx, gy = lin(wa, self._assign(out, f"{r}b", f"1.0 - {wa}"))
+                gx, gy, gt = lin(wa, self._assign(out, f"{r}b", f"1.0 - {wa}"))
             else:
-                gx = gy = None
+                gx = gy = gt = None
         elif op == "prim":
             # A fixed compiled function of fastsdf._prims returns (d, dd/du, dd/dv) at the local
             # coordinates (u, v) = (A, B); structural data (polygon vertices) becomes a table.
@@ -325,14 +335,14 @@ class _Emitter:
             call = f"_P.{kind}_{'vg' if g else 'v'}({', '.join([A.v, B.v] + extra)})"
             if g:
                 out.append(f"{r}, {r}u, {r}v = {call}")
-                gx, gy = lin(f"{r}u", f"{r}v")
+                gx, gy, gt = lin(f"{r}u", f"{r}v")
             else:
                 self._assign(out, r, call)
-                gx = gy = None
+                gx = gy = gt = None
         else:  # pragma: no cover - graph.py creates no other ops
             raise NotImplementedError(op)
-        gx, gy = self._grad(out, r, gx, gy)
-        return _Val(r, gx, gy)
+        gx, gy, gt = self._grad(out, r, gx, gy, gt)
+        return _Val(r, gx, gy, gt)
 
     # -- n-ary chains -------------------------------------------------------------------------
     def chain(self, out: list, op: str, k, items: list) -> _Val:
@@ -343,7 +353,8 @@ class _Emitter:
         """
         g = self.grad
         c = self._name("c")
-        m, s, gx, gy = f"{c}m", f"{c}s", f"{c}x", f"{c}y"
+        m, s = f"{c}m", f"{c}s"
+        accs = [(f"{c}{comp[1]}", comp) for comp in self.comps]
         smooth = op in ("smin", "smax")
         less = "<" if op in ("min", "smin") else ">"
         first = items[0][1] if items[0][0] == "val" else None
@@ -353,16 +364,14 @@ class _Emitter:
             if smooth:
                 out.append(f"{s} = 1.0")
             if g:
-                out.append(f"{gx} = {_zero(first.gx)}")
-                out.append(f"{gy} = {_zero(first.gy)}")
+                out.extend(f"{acc} = {_zero(getattr(first, comp))}" for acc, comp in accs)
         else:
             init = _HUGE if less == "<" else f"-{_HUGE}"
             out.append(f"{m} = {init}")
             if smooth:
                 out.append(f"{s} = 0.0")
             if g:
-                out.append(f"{gx} = 0.0")
-                out.append(f"{gy} = 0.0")
+                out.extend(f"{acc} = 0.0" for acc, _ in accs)
 
         def update(body: list, v: _Val):
             w = self._name("w")
@@ -372,12 +381,12 @@ class _Emitter:
                 body.append(f"{e} = math.exp(-{_lit(k)} * abs({v.v} - {m}))")
                 body.append(f"{s} = _sel({w}, {s} * {e} + 1.0, {s} + {e})")
                 if g:
-                    for acc, comp in ((gx, v.gx), (gy, v.gy)):
-                        comp = _zero(comp)
+                    for acc, name in accs:
+                        comp = _zero(getattr(v, name))
                         body.append(f"{acc} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
             elif g:
-                body.append(f"{gx} = _sel({w}, {_zero(v.gx)}, {gx})")
-                body.append(f"{gy} = _sel({w}, {_zero(v.gy)}, {gy})")
+                for acc, name in accs:
+                    body.append(f"{acc} = _sel({w}, {_zero(getattr(v, name))}, {acc})")
             body.append(f"{m} = _sel({w}, {v.v}, {m})")
 
         for item in items:
@@ -391,8 +400,9 @@ class _Emitter:
                 update(body, val)
                 out.append(f"for {loop} in range({count}):")
                 out.extend("    " + line for line in body)
+        names = {comp: acc for acc, comp in accs}
         if not smooth:
-            return _Val(m, gx if g else None, gy if g else None)
+            return _Val(m, *(names.get(cm) if g else None for cm in ("gx", "gy", "gt")))
         r = self._name()
         sign = "-" if op == "smin" else "+"
         # Multiplying by 1/k instead of dividing shortens the latency chain (the kernel is bound
@@ -400,9 +410,9 @@ class _Emitter:
         out.append(f"{r} = {m} {sign} math.log({s}) * {_lit(1.0 / k)}")
         if g:
             out.append(f"{r}i = 1.0 / {s}")
-            out.append(f"{r}x = {gx} * {r}i")
-            out.append(f"{r}y = {gy} * {r}i")
-            return _Val(r, f"{r}x", f"{r}y")
+            for acc, comp in accs:
+                out.append(f"{r}{comp[1]} = {acc} * {r}i")
+            return _Val(r, f"{r}x", f"{r}y", f"{r}t" if self.time else None)
         return _Val(r)
 
     def template(self, body: list, steps: list, consts: list) -> _Val:
@@ -410,12 +420,18 @@ class _Emitter:
         (a literal, or a table element indexed by the loop variable)."""
         vals: list[_Val] = []
         for node, refs in steps:
-            if node.op == "sym":
-                vals.append(self.syms[node.attr])
+            if node.op in ("sym", "param"):
+                vals.append(self.leaf(node))
                 continue
             args = [_Val(consts[j]) if kind == "c" else vals[j] for kind, j in refs]
             vals.append(self.op(body, node, args))
         return vals[-1]
+
+    def leaf(self, node: Expr) -> _Val:
+        """A coordinate symbol or a parameter."""
+        if node.op == "sym":
+            return self.syms[node.attr]
+        return self.params[node.attr[0]]
 
     def table(self, rows: list) -> str:
         arr = np.asarray(rows, dtype=np.float64)
@@ -487,8 +503,8 @@ class _Emitter:
         deps, items = plan
         if node.op == "const":
             return _Val(_lit(node.attr))
-        if node.op == "sym":
-            return self.syms[node.attr]
+        if node.op in ("sym", "param"):
+            return self.leaf(node)
         if items is None:
             return self.op(self.lines, node, [done[id(a)] for a in node.args])
         chain_items = []
@@ -520,7 +536,7 @@ from fastsdf._intrinsics import select as _sel
 
 _POINT_TEMPLATE = '''
 @njit(cache=True, nogil=True, error_model="numpy")
-def {name}(x, y):
+def {name}(x, y{pargs}):
     """{doc}"""
     if not (math.isfinite(x) and math.isfinite(y)):
         return {nan_return}
@@ -544,7 +560,7 @@ def {name}({args}):
 _BATCH_TEMPLATE = '''
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _batch_{kind}(xs, ys, out, {grad}start, stop, n):
+def _batch_{kind}(xs, ys, out, {grad}{pa}start, stop, n):
     for p in range(start, stop):
         i = {lanes} * p
 {gather}
@@ -553,28 +569,35 @@ def _batch_{kind}(xs, ys, out, {grad}start, stop, n):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def batch_{kind}_par(xs, ys, out, {grad}chunks):
+def batch_{kind}_par(xs, ys, out, {grad}{pa}chunks):
     n = xs.shape[0]
     groups = (n + {lanes_minus_1}) // {lanes}
     chunks = max(1, min(groups, chunks))
     for c in prange(chunks):
-        _batch_{kind}(xs, ys, out, {grad}c * groups // chunks, (c + 1) * groups // chunks, n)
+        _batch_{kind}(xs, ys, out, {grad}{pa}c * groups // chunks, (c + 1) * groups // chunks, n)
 
 
 @njit(cache=True, error_model="numpy")
-def batch_{kind}_ser(xs, ys, out, {grad}):
+def batch_{kind}_ser(xs, ys, out, {grad}{pa}):
     for i in range(xs.shape[0]):
-        {single} = point_{kind}(xs[i], ys[i])
+        {single} = point_{kind}(xs[i], ys[i]{pargs})
 {single_store}
 '''
 
 
-def _kernels_source(lanes_of: dict) -> str:
+#: The outputs of each kind of function: value; value and gradient; value, gradient and dd/dt.
+_RESULTS = {"v": ("d",), "vg": ("d", "gx", "gy"), "vgt": ("d", "gx", "gy", "gt")}
+
+
+def _kernels_source(lanes_of: dict, parametric: bool = False) -> str:
     """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
-    shorter than the gradient body, so the two may differ)."""
+    shorter than the gradient body, so the two may differ). Kernels of a scene with parameters
+    take time ``t`` and the parameter tuple ``prm`` after the output arrays."""
     parts = []
-    for kind in ("v", "vg"):
-        lanes = lanes_of[kind]
+    pa, pargs = ("t, prm, ", ", t, prm") if parametric else ("", "")
+    outputs = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
+    for kind, lanes in lanes_of.items():
+        names = _RESULTS[kind]
         gather, args, scatter, results = [], [], [], []
         for k in range(lanes):
             gather += [f"        j{k} = min(i + {k}, n - 1)",
@@ -585,28 +608,29 @@ def _kernels_source(lanes_of: dict) -> str:
                        f"            x{k} = 0.0",
                        f"            y{k} = 0.0"]
             args.append(f"x{k}, y{k}")
-            if kind == "v":
-                results.append(f"d{k}")
-            else:
-                results += [f"d{k}", f"gx{k}", f"gy{k}"]
+            results += [f"{r}{k}" for r in names]
         for k in reversed(range(lanes)):  # lane 0 last: a repeated final point stays correct
             if kind == "v":
                 scatter.append(f"        out[j{k}] = d{k} if ok{k} else math.nan")
             else:
                 scatter += [f"        if not ok{k}:",
-                            f"            d{k} = gx{k} = gy{k} = math.nan",
+                            f"            {' = '.join(r + str(k) for r in names)} = math.nan",
                             f"        out[j{k}] = d{k}",
                             f"        grad[j{k}, 0] = gx{k}",
                             f"        grad[j{k}, 1] = gy{k}"]
-        single = "d" if kind == "v" else "d, gx, gy"
-        single_store = "        out[i] = d" if kind == "v" else \
-            "        out[i] = d\n        grad[i, 0] = gx\n        grad[i, 1] = gy"
-        parts.append(_BATCH_TEMPLATE.format(
-            kind=kind, grad="grad, " if kind == "vg" else "", lanes=lanes,
-            lanes_minus_1=lanes - 1, gather="\n".join(gather), args=", ".join(args),
+                if kind == "vgt":
+                    scatter.append(f"        dt[j{k}] = gt{k}")
+        single = ", ".join(names)
+        stores = {"d": "out[i] = d", "gx": "grad[i, 0] = gx", "gy": "grad[i, 1] = gy",
+                  "gt": "dt[i] = gt"}
+        single_store = "\n".join("        " + stores[r] for r in names)
+        src = _BATCH_TEMPLATE.format(
+            kind=kind, grad=outputs[kind], pa=pa, pargs=pargs, lanes=lanes,
+            lanes_minus_1=lanes - 1, gather="\n".join(gather),
+            args=", ".join(args) + pargs,
             results=", ".join(results), scatter="\n".join(scatter), single=single,
-            single_store=single_store).replace("out, grad, )", "out, grad)").replace(
-            "out, )", "out)"))
+            single_store=single_store)
+        parts.append(src.replace(", )", ")"))
     return "".join(parts)
 
 
@@ -660,12 +684,21 @@ def _as_float(expr: str) -> str:
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
 
 
-def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
+def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_names=None,
+                     time: bool = False):
     """Sources of the one-point function and of the multi-lane function for the batch kernels;
-    also returns the number of lanes."""
-    em = _Emitter(symbol_names, grad, tables)
+    also returns the number of lanes. ``param_names`` (None for a scene without parameters):
+    the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
+    ``time``: also return dd/dt."""
+    em = _Emitter(symbol_names, grad, tables, param_names or (), time)
     res = em.emit(root)
-    if grad:
+    if time:
+        results = [_as_float(res.v), _as_float(_zero(res.gx)), _as_float(_zero(res.gy)),
+                   _as_float(_zero(res.gt))]
+        single = ("point_vgt", "Value, gradient and time derivative (d, dd/dx, dd/dy, dd/dt) "
+                  "at one point.", "math.nan, math.nan, math.nan, math.nan")
+        multi = ("lanes_vgt", "Value, gradient and time derivative")
+    elif grad:
         results = [_as_float(res.v), _as_float(_zero(res.gx)), _as_float(_zero(res.gy))]
         single = ("point_vg", "Value and gradient (d, dd/dx, dd/dy) at one point.",
                   "math.nan, math.nan, math.nan")
@@ -678,25 +711,48 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict):
     # numba lowers every reference to a global array as its own constant: bind each table to
     # a local once, so a table is embedded once per function however often the loop reads it.
     used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
-    em.lines[:0] = [f"{name} = {name}G" for name in used]
+    binds = [f"{name} = {name}G" for name in used]
+    # Parameters: read once per call from the tuple (passed by value: no reference counting).
+    binds += [f"_p{i} = prm[{i}]" for i in range(len(param_names or ()))]
+    em.lines[:0] = binds
     body = "\n".join("    " + line for line in em.lines) or "    pass"
-    one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
+    pargs = ", t, prm" if param_names is not None else ""
+    one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
                                  ret=", ".join(results), nan_return=single[2])
-    bind, rest = em.lines[:len(used)], em.lines[len(used):]
+    bind, rest = em.lines[:len(binds)], em.lines[len(binds):]
     body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
     many = _LANES_TEMPLATE.format(
         name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
-        args=", ".join(f"x{k}, y{k}" for k in range(lanes)),
+        args=", ".join(f"x{k}, y{k}" for k in range(lanes)) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
     return one, many, lanes
 
 
+def scene_parameters(root: Expr):
+    """``None`` for a scene without parameters, else the sorted names of its parameters other
+    than time (the order of the ``prm`` tuple the kernels take)."""
+    names = parameters(root)
+    if not names:
+        return None
+    return tuple(sorted(n for n in names if n != "t"))
+
+
 def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
-    """Full source of the kernel module for ``root``; also returns each function's source."""
+    """Full source of the kernel module for ``root``; also returns each function's source.
+
+    A scene with parameters gets functions ``(x, y, t, prm)`` and a third kind, ``vgt``, that
+    also returns dd/dt. Parameter values never appear in the source: two scenes that differ
+    only in them generate the same module (one kernel)."""
     tables: dict = {}
-    v_one, v_many, lanes_v = _function_source(root, symbol_names, False, tables)
-    vg_one, vg_many, lanes_vg = _function_source(root, symbol_names, True, tables)
+    pn = scene_parameters(root)
+    v_one, v_many, lanes_v = _function_source(root, symbol_names, False, tables, pn)
+    vg_one, vg_many, lanes_vg = _function_source(root, symbol_names, True, tables, pn)
     funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many}
+    lanes_of = {"v": lanes_v, "vg": lanes_vg}
+    if pn is not None:
+        vgt_one, vgt_many, lanes_of["vgt"] = _function_source(root, symbol_names, True, tables,
+                                                              pn, time=True)
+        funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
                             expr=_short(root).replace('"""', "\'\'\'").replace("\\", "\\\\"))]
@@ -706,7 +762,9 @@ def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
         arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
         rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
         parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
-    parts.extend([v_one, vg_one, v_many, vg_many, _kernels_source({"v": lanes_v, "vg": lanes_vg})])
+    parts.extend(funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt")
+                 if k in funcs)
+    parts.append(_kernels_source(lanes_of, pn is not None))
     return "\n".join(parts), funcs
 
 
@@ -771,6 +829,9 @@ class CompiledSDF:
         self._source = None
         self._functions = None
         self._module = None
+        #: None for a scene without parameters; else the names of the parameters other than
+        #: time, in the order of the ``prm`` tuple the kernels take after ``t``.
+        self.param_names = scene_parameters(expr)
 
     @property
     def module_source(self) -> str:
@@ -779,10 +840,23 @@ class CompiledSDF:
             self._source, self._functions = generate_module_source(self.expr, self.symbol_names)
         return self._source
 
+    @property
+    def parametric(self) -> bool:
+        """Whether the kernels take ``(t, prm)`` (the scene has parameters or time)."""
+        return self.param_names is not None
+
     def function_source(self, kind: str = "vg") -> str:
-        """Source of the per-point function: ``kind`` is ``'v'`` (value) or ``'vg'``."""
+        """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
+        scene with parameters, ``'vgt'`` (with dd/dt)."""
         self.module_source  # noqa: B018 - generates on demand
-        return self._functions[_check_kind(kind)]
+        return self._functions[self._kind(kind)]
+
+    def _kind(self, kind: str) -> str:
+        kind = _check_kind(kind)
+        if kind == "vgt" and not self.parametric:
+            raise ValueError("kind='vgt' (with dd/dt) exists only for scenes with parameters "
+                             "or time; a static scene's dd/dt is 0")
+        return kind
 
     @property
     def module(self):
@@ -791,20 +865,37 @@ class CompiledSDF:
         return self._module
 
     def point_fn(self, kind: str = "vg"):
-        """The numba dispatcher of the per-point function (``point_v`` or ``point_vg``)."""
-        return getattr(self.module, "point_" + _check_kind(kind))
+        """The numba dispatcher of the per-point function (``point_v``, ``point_vg`` or
+        ``point_vgt``); a scene with parameters takes ``(x, y, t, prm)``."""
+        return getattr(self.module, "point_" + self._kind(kind))
 
     def kernel(self, kind: str = "vg", parallel: bool = True):
-        """Batch kernel ``(xs, ys, out[, grad])`` over 1-d float64 arrays."""
-        return getattr(self.module, f"batch_{_check_kind(kind)}_{'par' if parallel else 'ser'}")
+        """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
+        return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
 
-    def evaluate(self, x, y, compute_gradient: bool = False):
-        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions."""
+    def evaluate(self, x, y, compute_gradient: bool = False, t: float = 0.0, params=None,
+                 time_derivative: bool = False):
+        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions.
+
+        For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other
+        parameters' values (``param_names`` order); ``time_derivative`` also returns dd/dt."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
         parallel = n >= PARALLEL_MIN_POINTS
         extra = (64 * numba.get_num_threads(),) if parallel else ()
+        if self.parametric:
+            prm = tuple(float(v) for v in (params or ()))
+            if len(prm) != len(self.param_names):
+                raise ValueError(f"params must hold {len(self.param_names)} values (for "
+                                 f"{list(self.param_names)}), got {params!r}")
+            extra = (float(t), prm) + extra
+        if time_derivative:
+            grad = np.empty((n, 2))
+            dt = np.empty(n)
+            if n:
+                self.kernel("vgt", parallel)(xs, ys, out, grad, dt, *extra)
+            return out.reshape(shape), grad.reshape(shape + (2,)), dt.reshape(shape)
         if compute_gradient:
             grad = np.empty((n, 2))
             if n:
@@ -816,8 +907,8 @@ class CompiledSDF:
 
 
 def _check_kind(kind: str) -> str:
-    if kind not in ("v", "vg"):
-        raise ValueError(f"kind must be 'v' or 'vg', got kind={kind!r}")
+    if kind not in ("v", "vg", "vgt"):
+        raise ValueError(f"kind must be 'v', 'vg' or 'vgt', got kind={kind!r}")
     return kind
 
 

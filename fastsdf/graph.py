@@ -24,6 +24,7 @@ the symbols are given to :class:`Function`.
 
 from __future__ import annotations
 
+import copy
 import math
 import numbers
 import struct
@@ -37,6 +38,7 @@ __all__ = [
     "sym_min", "sym_max", "sym_smin", "sym_smax", "sym_length",
     "sym_floor", "sym_select", "sym_qmin", "sym_cmin", "sym_prim", "substitute",
     "evaluate_numpy", "topological_order",
+    "Param", "t", "parameters", "substitute_params",
 ]
 
 # Operations grouped by arity; attributes (symbol name, constant exponent, smoothness k) are part
@@ -44,7 +46,7 @@ __all__ = [
 UNARY_OPS = ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "powc", "floor")
 BINARY_OPS = ("add", "sub", "mul", "div", "pow", "min", "max", "length", "smin", "smax",
               "qmin", "cmin")
-LEAF_OPS = ("const", "sym")
+LEAF_OPS = ("const", "sym", "param")
 #: ``select(cond, a, b)``; ``prim(u, v, *constants)`` with attr ``(kind, data)``.
 OTHER_OPS = ("select", "prim")
 
@@ -178,6 +180,66 @@ def Symbol(name: str) -> Expr:
 def Constant(value) -> Expr:
     """A constant node holding a float64 value."""
     return as_expr(value, "value")
+
+
+def Param(name: str, default=0.0) -> Expr:
+    """A named runtime parameter with a default value: an expression usable wherever a number
+    is (``transform(angle=Param('angle', 0.0))``, ``Circle(center=[Param('px', 0.0), 0])``).
+
+    Compiled kernels read parameters as data: changing a value (``f(x, y, angle=0.3)``,
+    ``f.with_params(angle=0.3)``, ``sim.params['angle'] = 0.3``) never recompiles, and two
+    scenes that differ only in parameter values share one kernel. The default is used where no
+    value is given; one scene must not give one name two defaults. The parameter named ``'t'``
+    is time (:data:`t`): kernels can differentiate in it (``dd/dt``) and a particle simulation
+    sets it to its own clock.
+    """
+    if not isinstance(name, str) or not name.isidentifier() or name.startswith("_"):
+        raise ValueError(f"Param name must be a Python identifier not starting with '_', got "
+                         f"name={name!r}")
+    if name in ("x", "y"):
+        raise ValueError(f"Param name must not be a coordinate ('x' or 'y'), got name={name!r}")
+    if isinstance(default, (bool, np.bool_)) or not isinstance(default, numbers.Real):
+        raise TypeError(f"Param default must be a real number, got default={default!r}")
+    default = float(default)
+    if not math.isfinite(default):
+        raise ValueError(f"Param default must be finite, got default={default!r}")
+    return Expr("param", (), (name, default))
+
+
+#: Time in seconds, a parameter (default 0). Scenes built with it move: ``f(x, y, t=1.5)``,
+#: ``f(x, y, t=..., time_derivative=True)`` also returns ``dd/dt``, and a particle simulation
+#: evaluates it at its own time (its walls push particles).
+t = Param("t", 0.0)
+
+
+def parameters(root: Expr) -> dict:
+    """``{name: default}`` of the parameters in ``root`` (``ValueError`` if one name has two
+    different defaults)."""
+    out: dict = {}
+    for node in topological_order(root):
+        if node.op == "param":
+            name, default = node.attr
+            if name in out and _float_key(out[name]) != _float_key(default):
+                raise ValueError(f"parameter {name!r} is given two defaults in one scene: "
+                                 f"{out[name]!r} and {default!r}")
+            out[name] = default
+    return out
+
+
+def substitute_params(root: Expr, values: dict) -> Expr:
+    """``root`` with the parameters named in ``values`` replaced by constants (folded)."""
+    new = {}
+    for node in topological_order(root):
+        if node.op == "param":
+            name = node.attr[0]
+            new[id(node)] = Expr("const", (), float(values[name])) if name in values else node
+        elif not node.args:
+            new[id(node)] = node
+        else:
+            args = tuple(new[id(a)] for a in node.args)
+            new[id(node)] = node if all(x is y for x, y in zip(args, node.args)) \
+                else _rebuild(node, args)
+    return new[id(root)]
 
 
 def as_expr(value, name: str = "value") -> Expr:
@@ -631,6 +693,8 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
                 s = f"({s})"
         elif op == "sym":
             s = node.attr
+        elif op == "param":
+            s = node.attr[0]
         elif op == "add" and node.args[1].op == "const" and node.args[1].attr < 0:
             s = f"({args[0]} - {_to_str(Expr('const', (), -node.args[1].attr))})"
         elif op in _INFIX:
@@ -664,11 +728,15 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
 # ---------------------------------------------------------------------------------------------
 # Reference evaluation with NumPy (the seed's approach: one array operation per node).
 
-def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False):
+def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
+                   params: dict | None = None):
     """Evaluate ``root`` with NumPy, one whole-array operation per node.
 
     ``symbols`` maps symbol names to arrays of equal shape. With ``compute_gradient`` the result
-    is ``(value, [d/d s for s in symbol order])`` by forward-mode differentiation. This is the
+    is ``(value, [d/d s for s in symbol order])`` by forward-mode differentiation. A parameter
+    (:func:`Param`) named in ``symbols`` is treated as a symbol (so ``{'x': .., 'y': .., 't': ..}``
+    also differentiates in time); the others take their value from ``params`` or their default.
+    This is the
     independent reference the compiled kernels are tested against, and the baseline the
     benchmarks time them against; it follows the same tie rules as the kernels.
     """
@@ -689,6 +757,13 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False):
                     raise ValueError(f"no value given for symbol {node.attr!r}")
                 v = np.broadcast_to(np.asarray(symbols[node.attr], dtype=np.float64), shape)
                 g = [np.ones(shape) if n == node.attr else zero for n in names]
+            elif op == "param":
+                name = node.attr[0]
+                if name in symbols:
+                    v = np.broadcast_to(np.asarray(symbols[name], dtype=np.float64), shape)
+                else:
+                    v = np.full(shape, float((params or {}).get(name, node.attr[1])))
+                g = [np.ones(shape) if n == name else zero for n in names]
             else:
                 v, g = _np_op(node, av, ag, compute_gradient)
             val[i] = v
@@ -780,6 +855,13 @@ class Function:
     done in float64. A point with a NaN or infinite coordinate gets NaN value and gradient; the
     other points are unaffected.
 
+    Parameters (:func:`Param`, time :data:`t`): ``f.params`` holds their current values;
+    ``f(x, y, angle=0.3, t=1.5)`` evaluates with other values for one call and
+    ``f.with_params(angle=0.3)`` returns a copy that keeps them; neither recompiles.
+    ``f(x, y, time_derivative=True)`` returns ``(d, grad, dd/dt)`` (analytic, forward mode; 0
+    for a scene without ``t``): for a moving boundary ``-dd/dt / |grad d|`` is the normal speed
+    of the surface. ``f.frozen()`` folds the current values into constants (its own kernel).
+
     Evaluation runs in a numba kernel generated for this expression (see :mod:`fastsdf.codegen`),
     compiled on first use and cached on disk; ``source()`` shows the generated Python code and
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
@@ -802,6 +884,61 @@ class Function:
         self.f = f
         self.symbols = symbols
         self._compiled = None
+        self._params = parameters(f)
+
+    # -- parameters ----------------------------------------------------------------------------
+    @property
+    def params(self) -> dict:
+        """``{name: value}`` of the scene's parameters (time ``'t'`` included), a copy."""
+        return dict(self._params)
+
+    @property
+    def param_names(self) -> tuple:
+        """Names of the parameters other than time, in the order kernels take them (sorted)."""
+        return tuple(sorted(n for n in self._params if n != "t"))
+
+    @property
+    def time_dependent(self) -> bool:
+        """Whether the scene depends on time (the parameter ``'t'``)."""
+        return "t" in self._params
+
+    def _values(self, overrides: dict) -> dict:
+        """Current values updated by ``overrides``, checked (errors name the parameter)."""
+        values = dict(self._params)
+        for name, value in overrides.items():
+            if name not in values and name != "t":
+                raise TypeError(f"unknown parameter {name!r}; this scene's parameters are "
+                                f"{sorted(values) or 'none'}")
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise TypeError(f"parameter {name} must be a real number, got {name}={value!r}")
+            value = float(value)
+            if not math.isfinite(value):
+                raise ValueError(f"parameter {name} must be finite, got {name}={value!r}")
+            if name in values:
+                values[name] = value
+        return values
+
+    def with_params(self, **values) -> "Function":
+        """A copy with other parameter values (sharing the compiled kernels: no recompile)."""
+        out = copy.copy(self)
+        out._params = self._values(values)
+        return out
+
+    def frozen(self, **values) -> "Function":
+        """A static copy: the parameters (at their current values, updated by ``values``)
+        folded into constants. It compiles its own kernel; worth it only for a scene whose
+        parameters never change again (or for a :class:`fastsdf.GridSDF` of it)."""
+        vals = self._values(values)
+        out = copy.copy(self)
+        out.f = substitute_params(self.f, vals)
+        out._params = {}
+        out._compiled = None
+        return out
+
+    def param_tuple(self, **values) -> tuple:
+        """The non-time parameter values as the kernels take them (``param_names`` order)."""
+        vals = self._values(values)
+        return tuple(vals[n] for n in self.param_names)
 
     # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
     @property
@@ -814,20 +951,38 @@ class Function:
 
     @property
     def point_fn(self):
-        """Compiled ``@njit`` function ``(x, y) -> (d, ddx, ddy)`` for one point (float64)."""
+        """Compiled ``@njit`` function for one point (float64): ``(x, y) -> (d, ddx, ddy)``;
+        for a scene with parameters ``(x, y, t, P) -> (d, ddx, ddy)`` with ``P`` the tuple
+        :meth:`param_tuple` (``()`` when time is the only parameter)."""
         return self.compiled.point_fn("vg")
 
     @property
     def point_value_fn(self):
-        """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64)."""
+        """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64); for a scene
+        with parameters ``(x, y, t, P) -> d`` (see :attr:`point_fn`)."""
         return self.compiled.point_fn("v")
+
+    @property
+    def point_time_fn(self):
+        """For a scene with parameters: compiled ``(x, y, t, P) -> (d, ddx, ddy, dd/dt)``."""
+        return self.compiled.point_fn("vgt")
 
     def source(self, gradient: bool = True) -> str:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    def __call__(self, x, y, compute_gradient=False):
-        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient))
+    def __call__(self, x, y, compute_gradient=False, time_derivative=False, **params):
+        kw = {}
+        if self._params or params:
+            vals = self._values(params)
+            if self._params:
+                kw = {"t": vals.get("t", 0.0), "params": tuple(vals[n] for n in self.param_names)}
+        if time_derivative:
+            if not kw:  # no parameters: nothing moves
+                d, g = self.compiled.evaluate(x, y, compute_gradient=True)
+                return d, g, np.zeros_like(d)
+            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True, **kw)
+        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), **kw)
 
     def __repr__(self):
         return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
