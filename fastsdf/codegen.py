@@ -33,49 +33,47 @@ import numba
 import numpy as np
 
 from . import __version__
-from ._cache import load_module
 from .graph import Expr, parameters, topological_order
+from .ops import OPS, lit
 
-__all__ = ["CompiledSDF", "compile_expr", "generate_module_source", "MIN_LOOP", "PARALLEL_MIN_POINTS"]
+__all__ = ["generate_module_source", "MIN_LOOP"]
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
 #: Per-point functions longer than this (in generated lines) are not interleaved.
 LONG_BODY_LINES = 400
-#: Inputs with fewer points run serially: thread start-up costs more than it saves.
-PARALLEL_MIN_POINTS = 4096
 
 _CHAIN_OPS = ("min", "max", "smin", "smax")
 _HUGE = "1.7976931348623157e+308"
 
 
-def _lit(v: float) -> str:
-    """A float as Python source that numba types as float64."""
-    if math.isnan(v):
-        return "math.nan"
-    if math.isinf(v):
-        return "math.inf" if v > 0 else "(-math.inf)"
-    s = repr(float(v))
-    return f"({s})" if v < 0 or s.startswith("-") else s
+_lit = lit
 
 
 class _Val:
-    """An emitted value: Python expressions (usually variable names) for value and gradient.
-
-    A gradient component of ``None`` is known to be zero; ``"1.0"`` is a literal one. ``gt``
-    is the derivative in time (the parameter ``t``), carried only by the ``vgt`` functions.
+    """An emitted value: Python expressions (usually variable names) for the value ``v`` and
+    the gradient components ``g`` (one per coordinate: x, y). A component of ``None`` is known
+    to be zero; ``"1.0"`` is a literal one.
     """
 
-    __slots__ = ("v", "gx", "gy", "gt")
+    __slots__ = ("v", "g")
 
-    def __init__(self, v, gx=None, gy=None, gt=None):
-        self.v, self.gx, self.gy, self.gt = v, gx, gy, gt
+    def __init__(self, v, g=None):
+        self.v, self.g = v, g
+
+    def grads(self, n: int) -> tuple:
+        """The ``n`` gradient components (all None for a constant)."""
+        return self.g if self.g is not None else (None,) * n
 
 
 def _prod(g, c):
-    """Source for ``g * c`` where g may be None (zero) or '1.0'."""
-    if g is None:
+    """Source for ``g * c`` where g may be None (zero) or '1.0', and c '1.0' or '-1.0'."""
+    if g is None or c is None:
         return None
+    if c == "1.0":
+        return g
+    if c == "-1.0":
+        return _neg(g)
     if g == "1.0":
         return c
     return f"{g} * {c}"
@@ -98,6 +96,16 @@ def _neg(g):
     if g == "1.0":
         return "(-1.0)"
     return f"-({g})" if not g.startswith("-") else g[1:]
+
+
+def _chain_rule(rule, args, ncomp):
+    """Gradient component sources of a node from its op's gradient rule (see fastsdf.ops)."""
+    if rule is None:
+        return [None] * ncomp
+    if callable(rule):
+        return [rule([a.grads(ncomp)[c] for a in args]) for c in range(ncomp)]
+    return [_sum(*(_prod(a.grads(ncomp)[c], p) for a, p in zip(args, rule)))
+            for c in range(ncomp)]
 
 
 def _zero(g):
@@ -177,17 +185,28 @@ def _flatten_chain(node: Expr) -> list:
 # Emission.
 
 class _Emitter:
-    """Emits the body of one per-point function (value only, or value and gradient)."""
+    """Emits the body of one per-point function (value only, or value and gradient).
+
+    Operations come from the table of :mod:`fastsdf.ops`; the emitter applies their gradient
+    rules to every coordinate component alike (``COMPONENTS``: variable suffixes, one per
+    coordinate) and emits the n-ary chains (min, max, smin, smax) itself.
+    """
+
+    #: The coordinates: argument names of the generated functions, also the suffixes of
+    #: gradient variables (``v3x`` is dv3/dx).
+    COMPONENTS = ("x", "y")
 
     def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False):
         self.grad = grad
-        self.time = time  # also carry d/dt (third forward-mode component)
-        self.comps = ("gx", "gy", "gt") if time else ("gx", "gy")
-        self.syms = {symbol_names[0]: _Val("x", "1.0", None), symbol_names[1]: _Val("y", None, "1.0")}
-        # Parameters are read from the argument tuple P once per call (bound to _p<i>); time is
-        # the argument t, seeded with dt/dt = 1 when the time derivative is carried.
+        if time:  # also carry d/dt: a third forward-mode component, seeded by the time t
+            self.COMPONENTS = self.COMPONENTS + ("t",)
+        n = len(self.COMPONENTS)
+        self.syms = {name: _Val(var, tuple("1.0" if j == i else None for j in range(n)))
+                     for i, (name, var) in enumerate(zip(symbol_names, self.COMPONENTS))}
+        # Parameters are read from the argument tuple prm once per call (bound to _p<i>); the
+        # time is the argument t.
         self.params = {name: _Val(f"_p{i}") for i, name in enumerate(param_names)}
-        self.params["t"] = _Val("t", None, None, "1.0" if time else None)
+        self.params["t"] = _Val("t", (None, None, "1.0") if time else None)
         self.tables = tables  # shared across functions of one module: bytes -> name
         self.lines: list[str] = []
         self.n = 0
@@ -196,153 +215,34 @@ class _Emitter:
         self.n += 1
         return f"{prefix}{self.n}"
 
-    def _assign(self, out: list, name: str, expr: str) -> str:
+    def assign(self, out: list, name: str, expr: str) -> str:
+        """Append ``name = expr`` to ``out``; returns ``name``."""
         out.append(f"{name} = {expr}")
         return name
 
-    def _grad(self, out, name, gx, gy, gt=None):
+    _assign = assign
+
+    def _grad(self, out, name, comps):
         """Assign gradient expressions to variables named after ``name`` (if nonzero)."""
         if not self.grad:
-            return None, None, None
+            return None
         def keep(expr):  # nothing to compute: no new variable needed
             return expr is None or expr == "1.0" or expr.isidentifier()
-        rx = gx if keep(gx) else self._assign(out, f"{name}x", gx)
-        ry = gy if keep(gy) else self._assign(out, f"{name}y", gy)
-        rt = gt if keep(gt) else self._assign(out, f"{name}t", gt)
-        return rx, ry, rt
+        return tuple(e if keep(e) else self.assign(out, f"{name}{suffix}", e)
+                     for e, suffix in zip(comps, self.COMPONENTS))
 
     # -- one operation ------------------------------------------------------------------------
     def op(self, out: list, node: Expr, a: list) -> _Val:
         """Emit ``node`` given its argument values ``a``; returns the result."""
-        op, g = node.op, self.grad
-        r = self._name()
-        A = a[0]
-        B = a[1] if len(a) > 1 else None
-
-        def lin(ca, cb=None):
-            """Gradient of the result as ca * grad(A) + cb * grad(B) (each component)."""
-            if not g:
-                return None, None, None
-            two = B is not None and cb is not None
-            return tuple(_sum(_prod(getattr(A, c), ca), _prod(getattr(B, c), cb) if two else None)
-                         for c in ("gx", "gy", "gt"))
-
-        def comp(fn, *vals):
-            """Each gradient component as fn(components of vals)."""
-            if not g:
-                return None, None, None
-            return tuple(fn(*[getattr(v, c) for v in vals]) for c in ("gx", "gy", "gt"))
-
-        if op == "add":
-            self._assign(out, r, f"{A.v} + {B.v}")
-            gx, gy, gt = comp(_sum, A, B)
-        elif op == "sub":
-            self._assign(out, r, f"{A.v} - {B.v}")
-            gx, gy, gt = comp(lambda a, b: _sum(a, _neg(b)), A, B)
-        elif op == "mul":
-            self._assign(out, r, f"{A.v} * {B.v}")
-            gx, gy, gt = lin(B.v, A.v)
-        elif op == "div":
-            self._assign(out, r, f"{A.v} / {B.v}")
-            if g:
-                ib = self._assign(out, f"{r}i", f"1.0 / {B.v}")
-                gx, gy, gt = lin(ib, f"(-{r} * {ib})")
-            else:
-                gx = gy = gt = None
-        elif op == "neg":
-            self._assign(out, r, f"-{A.v}")
-            gx, gy, gt = comp(_neg, A)
-        elif op == "powc":
-            p = node.attr
-            if p == 2.0:
-                self._assign(out, r, f"{A.v} * {A.v}")
-                gx, gy, gt = lin(f"(2.0 * {A.v})")
-            elif p == -1.0:
-                self._assign(out, r, f"1.0 / {A.v}")
-                gx, gy, gt = lin(f"(-{r} * {r})")
-            else:
-                self._assign(out, r, f"{A.v} ** {_lit(p)}")
-                gx, gy, gt = lin(f"({_lit(p)} * {A.v} ** {_lit(p - 1.0)})")
-        elif op == "pow":
-            self._assign(out, r, f"{A.v} ** {B.v}")
-            gx, gy, gt = lin(f"({B.v} * {A.v} ** ({B.v} - 1.0))", f"({r} * math.log({A.v}))")
-        elif op == "sqrt":
-            self._assign(out, r, f"math.sqrt({A.v})")
-            gx, gy, gt = lin(f"_sel({r} > 0.0, 0.5 / {r}, 0.0)")
-        elif op == "exp":
-            self._assign(out, r, f"math.exp({A.v})")
-            gx, gy, gt = lin(r)
-        elif op == "log":
-            self._assign(out, r, f"math.log({A.v})")
-            gx, gy, gt = lin(f"(1.0 / {A.v})")
-        elif op == "sin":
-            self._assign(out, r, f"math.sin({A.v})")
-            gx, gy, gt = lin(f"math.cos({A.v})")
-        elif op == "cos":
-            self._assign(out, r, f"math.cos({A.v})")
-            gx, gy, gt = lin(f"(-math.sin({A.v}))")
-        elif op == "abs":
-            self._assign(out, r, f"abs({A.v})")
-            gx, gy, gt = lin(f"_sel({A.v} >= 0.0, 1.0, -1.0)")
-        elif op == "length":
-            # sqrt(a*a + b*b) unless that over- or underflows; hypot is exact but slower.
-            self._assign(out, r, f"math.sqrt({A.v} * {A.v} + {B.v} * {B.v})")
-            out.append(f"if not (1e-150 < {r} < 1e150):")
-            out.append(f"    {r} = math.hypot({A.v}, {B.v})")
-            if g:
-                self._assign(out, f"{r}i", f"_sel({r} > 0.0, 1.0 / {r}, 0.0)")
-                gx, gy, gt = lin(f"_sel({r} > 0.0, {A.v} * {r}i, 1.0)", f"({B.v} * {r}i)")
-            else:
-                gx = gy = gt = None
-        elif op in _CHAIN_OPS:
-            return self.chain(out, node.op, node.attr, [("val", A), ("val", B)])
-        # -- issue 7 additions: floor, select, polynomial smooth minima, compiled primitives --
-        elif op == "floor":
-            self._assign(out, r, f"np.floor({A.v})")
-            gx = gy = gt = None  # piecewise constant
-        elif op == "select":
-            cond, T, F = f"{A.v} > 0.0", a[1], a[2]
-            self._assign(out, r, f"_sel({cond}, {T.v}, {F.v})")
-            gx, gy, gt = comp(lambda a, b: None if a is None and b is None else
-                              f"_sel({cond}, {_zero(a)}, {_zero(b)})", T, F)
-        elif op in ("qmin", "cmin"):
-            # min(a, b) - k h^2/4 (quadratic) or - k h^3/6 (cubic), h = max(k - |a - b|, 0)/k;
-            # the gradient is a convex combination: weight 1 - h/2 (1 - h^2/2) on the smaller.
-            k = node.attr
-            w = self._assign(out, f"{r}w", f"{A.v} <= {B.v}")
-            t = self._assign(out, f"{r}t", f"{_lit(k)} - abs({A.v} - {B.v})")
-            h = self._assign(out, f"{r}h", f"_sel({t} > 0.0, {t}, 0.0) * {_lit(1.0 / k)}")
-            m = f"_sel({w}, {A.v}, {B.v})"
-            if op == "qmin":
-                self._assign(out, r, f"{m} - {h} * {h} * {_lit(k / 4.0)}")
-                other = f"{h} * 0.5"
-            else:
-                self._assign(out, r, f"{m} - {h} * {h} * {h} * {_lit(k / 6.0)}")
-                other = f"{h} * {h} * 0.5"
-            if g:
-                o = self._assign(out, f"{r}o", other)
-                wa = self._assign(out, f"{r}a", f"_sel({w}, 1.0 - {o}, {o})")
-                gx, gy, gt = lin(wa, self._assign(out, f"{r}b", f"1.0 - {wa}"))
-            else:
-                gx = gy = gt = None
-        elif op == "prim":
-            # A fixed compiled function of fastsdf._prims returns (d, dd/du, dd/dv) at the local
-            # coordinates (u, v) = (A, B); structural data (polygon vertices) becomes a table.
-            kind, data = node.attr
-            extra = [c.v for c in a[2:]]
-            if data is not None:
-                extra.insert(0, self.table(np.asarray(data, dtype=np.float64)))
-            call = f"_P.{kind}_{'vg' if g else 'v'}({', '.join([A.v, B.v] + extra)})"
-            if g:
-                out.append(f"{r}, {r}u, {r}v = {call}")
-                gx, gy, gt = lin(f"{r}u", f"{r}v")
-            else:
-                self._assign(out, r, call)
-                gx = gy = gt = None
-        else:  # pragma: no cover - graph.py creates no other ops
-            raise NotImplementedError(op)
-        gx, gy, gt = self._grad(out, r, gx, gy, gt)
-        return _Val(r, gx, gy, gt)
+        spec = OPS[node.op]
+        r = self._name()  # taken for chains too: keeps generated names (and cache keys) stable
+        if spec.chain:
+            return self.chain(out, node.op, node.attr, [("val", v) for v in a])
+        rule = spec.emit(self, out, node, a, r)
+        if not self.grad:
+            return _Val(r)
+        comps = _chain_rule(rule, a, len(self.COMPONENTS))
+        return _Val(r, self._grad(out, r, comps))
 
     # -- n-ary chains -------------------------------------------------------------------------
     def chain(self, out: list, op: str, k, items: list) -> _Val:
@@ -354,7 +254,7 @@ class _Emitter:
         g = self.grad
         c = self._name("c")
         m, s = f"{c}m", f"{c}s"
-        accs = [(f"{c}{comp[1]}", comp) for comp in self.comps]
+        accs = [f"{c}{suffix}" for suffix in self.COMPONENTS]
         smooth = op in ("smin", "smax")
         less = "<" if op in ("min", "smin") else ">"
         first = items[0][1] if items[0][0] == "val" else None
@@ -364,14 +264,16 @@ class _Emitter:
             if smooth:
                 out.append(f"{s} = 1.0")
             if g:
-                out.extend(f"{acc} = {_zero(getattr(first, comp))}" for acc, comp in accs)
+                for acc, comp in zip(accs, first.grads(len(accs))):
+                    out.append(f"{acc} = {_zero(comp)}")
         else:
             init = _HUGE if less == "<" else f"-{_HUGE}"
             out.append(f"{m} = {init}")
             if smooth:
                 out.append(f"{s} = 0.0")
             if g:
-                out.extend(f"{acc} = 0.0" for acc, _ in accs)
+                for acc in accs:
+                    out.append(f"{acc} = 0.0")
 
         def update(body: list, v: _Val):
             w = self._name("w")
@@ -381,12 +283,12 @@ class _Emitter:
                 body.append(f"{e} = math.exp(-{_lit(k)} * abs({v.v} - {m}))")
                 body.append(f"{s} = _sel({w}, {s} * {e} + 1.0, {s} + {e})")
                 if g:
-                    for acc, name in accs:
-                        comp = _zero(getattr(v, name))
+                    for acc, comp in zip(accs, v.grads(len(accs))):
+                        comp = _zero(comp)
                         body.append(f"{acc} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
             elif g:
-                for acc, name in accs:
-                    body.append(f"{acc} = _sel({w}, {_zero(getattr(v, name))}, {acc})")
+                for acc, comp in zip(accs, v.grads(len(accs))):
+                    body.append(f"{acc} = _sel({w}, {_zero(comp)}, {acc})")
             body.append(f"{m} = _sel({w}, {v.v}, {m})")
 
         for item in items:
@@ -400,9 +302,8 @@ class _Emitter:
                 update(body, val)
                 out.append(f"for {loop} in range({count}):")
                 out.extend("    " + line for line in body)
-        names = {comp: acc for acc, comp in accs}
         if not smooth:
-            return _Val(m, *(names.get(cm) if g else None for cm in ("gx", "gy", "gt")))
+            return _Val(m, tuple(accs) if g else None)
         r = self._name()
         sign = "-" if op == "smin" else "+"
         # Multiplying by 1/k instead of dividing shortens the latency chain (the kernel is bound
@@ -410,9 +311,9 @@ class _Emitter:
         out.append(f"{r} = {m} {sign} math.log({s}) * {_lit(1.0 / k)}")
         if g:
             out.append(f"{r}i = 1.0 / {s}")
-            for acc, comp in accs:
-                out.append(f"{r}{comp[1]} = {acc} * {r}i")
-            return _Val(r, f"{r}x", f"{r}y", f"{r}t" if self.time else None)
+            for acc, suffix in zip(accs, self.COMPONENTS):
+                out.append(f"{r}{suffix} = {acc} * {r}i")
+            return _Val(r, tuple(f"{r}{suffix}" for suffix in self.COMPONENTS))
         return _Val(r)
 
     def template(self, body: list, steps: list, consts: list) -> _Val:
@@ -689,17 +590,17 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
     """Sources of the one-point function and of the multi-lane function for the batch kernels;
     also returns the number of lanes. ``param_names`` (None for a scene without parameters):
     the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
-    ``time``: also return dd/dt."""
-    em = _Emitter(symbol_names, grad, tables, param_names or (), time)
+    ``time``: also return dd/dt (the ``vgt`` functions)."""
+    em = _Emitter(symbol_names, grad or time, tables, param_names or (), time)
     res = em.emit(root)
+    if grad or time:
+        results = [_as_float(res.v)] + [_as_float(_zero(c))
+                                        for c in res.grads(len(em.COMPONENTS))]
     if time:
-        results = [_as_float(res.v), _as_float(_zero(res.gx)), _as_float(_zero(res.gy)),
-                   _as_float(_zero(res.gt))]
         single = ("point_vgt", "Value, gradient and time derivative (d, dd/dx, dd/dy, dd/dt) "
                   "at one point.", "math.nan, math.nan, math.nan, math.nan")
         multi = ("lanes_vgt", "Value, gradient and time derivative")
     elif grad:
-        results = [_as_float(res.v), _as_float(_zero(res.gx)), _as_float(_zero(res.gy))]
         single = ("point_vg", "Value and gradient (d, dd/dx, dd/dy) at one point.",
                   "math.nan, math.nan, math.nan")
         multi = ("lanes_vg", "Value and gradient")
@@ -789,129 +690,11 @@ def _short(root: Expr) -> str:
     return _to_str(root, limit=300)
 
 
-# ---------------------------------------------------------------------------------------------
-# Input handling shared with grid and particle queries.
-
-def as_points(x, y):
-    """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
-
-    Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
-    """
-    xa, ya = np.asarray(x), np.asarray(y)
-    for name, arr in (("x", xa), ("y", ya)):
-        if arr.dtype.kind not in "iuf":
-            raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype} "
-                            f"(value {_preview(arr)})")
-    if xa.shape != ya.shape:
-        raise ValueError(f"x and y must have the same shape, got x.shape={xa.shape} and "
-                         f"y.shape={ya.shape}")
-    shape = xa.shape if xa.ndim else (1,)
-    xs = np.ascontiguousarray(xa, dtype=np.float64).reshape(-1)
-    ys = np.ascontiguousarray(ya, dtype=np.float64).reshape(-1)
-    return xs, ys, shape
 
 
-def _preview(arr) -> str:
-    text = repr(arr.reshape(-1)[:3].tolist()) if arr.size else "[]"
-    return text if len(text) < 80 else text[:77] + "..."
-
-
-class CompiledSDF:
-    """The compiled kernels of one expression of two coordinates.
-
-    Everything is lazy: the module source is generated on first use, and each numba function
-    compiles (or loads from the disk cache) the first time it is needed.
-    """
-
-    def __init__(self, expr: Expr, symbol_names):
-        self.expr = expr
-        self.symbol_names = tuple(symbol_names)
-        self._source = None
-        self._functions = None
-        self._module = None
-        #: None for a scene without parameters; else the names of the parameters other than
-        #: time, in the order of the ``prm`` tuple the kernels take after ``t``.
-        self.param_names = scene_parameters(expr)
-
-    @property
-    def module_source(self) -> str:
-        """The complete generated module (tables, per-point functions, kernels)."""
-        if self._source is None:
-            self._source, self._functions = generate_module_source(self.expr, self.symbol_names)
-        return self._source
-
-    @property
-    def parametric(self) -> bool:
-        """Whether the kernels take ``(t, prm)`` (the scene has parameters or time)."""
-        return self.param_names is not None
-
-    def function_source(self, kind: str = "vg") -> str:
-        """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
-        scene with parameters, ``'vgt'`` (with dd/dt)."""
-        self.module_source  # noqa: B018 - generates on demand
-        return self._functions[self._kind(kind)]
-
-    def _kind(self, kind: str) -> str:
-        kind = _check_kind(kind)
-        if kind == "vgt" and not self.parametric:
-            raise ValueError("kind='vgt' (with dd/dt) exists only for scenes with parameters "
-                             "or time; a static scene's dd/dt is 0")
-        return kind
-
-    @property
-    def module(self):
-        if self._module is None:
-            self._module = load_module(self.module_source, prefix="fastsdf_scene")
-        return self._module
-
-    def point_fn(self, kind: str = "vg"):
-        """The numba dispatcher of the per-point function (``point_v``, ``point_vg`` or
-        ``point_vgt``); a scene with parameters takes ``(x, y, t, prm)``."""
-        return getattr(self.module, "point_" + self._kind(kind))
-
-    def kernel(self, kind: str = "vg", parallel: bool = True):
-        """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
-        return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
-
-    def evaluate(self, x, y, compute_gradient: bool = False, t: float = 0.0, params=None,
-                 time_derivative: bool = False):
-        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions.
-
-        For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other
-        parameters' values (``param_names`` order); ``time_derivative`` also returns dd/dt."""
-        xs, ys, shape = as_points(x, y)
-        n = xs.shape[0]
-        out = np.empty(n)
-        parallel = n >= PARALLEL_MIN_POINTS
-        extra = (64 * numba.get_num_threads(),) if parallel else ()
-        if self.parametric:
-            prm = tuple(float(v) for v in (params or ()))
-            if len(prm) != len(self.param_names):
-                raise ValueError(f"params must hold {len(self.param_names)} values (for "
-                                 f"{list(self.param_names)}), got {params!r}")
-            extra = (float(t), prm) + extra
-        if time_derivative:
-            grad = np.empty((n, 2))
-            dt = np.empty(n)
-            if n:
-                self.kernel("vgt", parallel)(xs, ys, out, grad, dt, *extra)
-            return out.reshape(shape), grad.reshape(shape + (2,)), dt.reshape(shape)
-        if compute_gradient:
-            grad = np.empty((n, 2))
-            if n:
-                self.kernel("vg", parallel)(xs, ys, out, grad, *extra)
-            return out.reshape(shape), grad.reshape(shape + (2,))
-        if n:
-            self.kernel("v", parallel)(xs, ys, out, *extra)
-        return out.reshape(shape)
-
-
-def _check_kind(kind: str) -> str:
-    if kind not in ("v", "vg", "vgt"):
-        raise ValueError(f"kind must be 'v', 'vg' or 'vgt', got kind={kind!r}")
-    return kind
-
-
-def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
-    """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
-    return CompiledSDF(expr, symbol_names)
+def __getattr__(name):
+    # The compiled-function layer moved to fastsdf.function (it imports this module).
+    if name in ("CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS"):
+        from . import function
+        return getattr(function, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -14,8 +14,10 @@ The node operations are
     cmin (quadratic / cubic polynomial smooth minimum with blend width ``k``) and prim (a
     primitive evaluated by a fixed compiled function of :mod:`fastsdf._prims`).
 
-:class:`Function` binds an expression to two coordinate symbols and evaluates it (value, and the
-analytic gradient) through the compiled kernels of :mod:`fastsdf.codegen`.
+Each operation is defined once, in the table of :mod:`fastsdf.ops` (printing, NumPy reference,
+partial derivatives, interval rule, code template); this module holds the constructors, which
+fold constants and simplify. :class:`Function` (an expression bound to two coordinate symbols,
+evaluated by compiled kernels) lives in :mod:`fastsdf.function` and is importable from here.
 
 Conventions shared by the whole library: distances are in the units of the coordinates, negative
 inside a shape, positive outside; gradients are with respect to the two coordinates, in the order
@@ -24,13 +26,14 @@ the symbols are given to :class:`Function`.
 
 from __future__ import annotations
 
-import copy
 import math
 import numbers
 import struct
 import weakref
 
 import numpy as np
+
+from .ops import OPS, chain_rule_numpy, fmt_const
 
 __all__ = [
     "Expr", "Symbol", "Constant", "Function", "as_expr",
@@ -43,12 +46,11 @@ __all__ = [
 
 # Operations grouped by arity; attributes (symbol name, constant exponent, smoothness k) are part
 # of a node's identity.
-UNARY_OPS = ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "powc", "floor")
-BINARY_OPS = ("add", "sub", "mul", "div", "pow", "min", "max", "length", "smin", "smax",
-              "qmin", "cmin")
+UNARY_OPS = tuple(name for name, op in OPS.items() if op.arity == 1)
+BINARY_OPS = tuple(name for name, op in OPS.items() if op.arity == 2)
 LEAF_OPS = ("const", "sym", "param")
 #: ``select(cond, a, b)``; ``prim(u, v, *constants)`` with attr ``(kind, data)``.
-OTHER_OPS = ("select", "prim")
+OTHER_OPS = tuple(name for name, op in OPS.items() if op.arity not in (1, 2))
 
 _INTERN: "weakref.WeakValueDictionary[tuple, Expr]" = weakref.WeakValueDictionary()
 
@@ -624,38 +626,6 @@ def substitute(root: Expr, mapping: dict) -> Expr:
     return new[id(root)]
 
 
-def _np_op_ext(node, av, ag, with_grad):
-    """NumPy reference of the issue-7 operations (see ``_np_op``)."""
-    op = node.op
-    if op == "floor":
-        zero = np.zeros_like(av[0])
-        return np.floor(av[0]), ([zero] * len(ag[0]) if with_grad else None)
-    if op == "select":
-        pick = av[0] > 0
-        g = [np.where(pick, g1, g2) for g1, g2 in zip(ag[1], ag[2])] if with_grad else None
-        return np.where(pick, av[1], av[2]), g
-    if op in ("qmin", "cmin"):
-        a, b, k = av[0], av[1], node.attr
-        h = np.maximum(k - np.abs(a - b), 0.0) / k
-        m = np.where(a <= b, a, b)
-        if op == "qmin":
-            v, w_other = m - h * h * k / 4.0, h / 2.0
-        else:
-            v, w_other = m - h * h * h * k / 6.0, h * h / 2.0
-        w_a = np.where(a <= b, 1.0 - w_other, w_other)
-        g = [w_a * g1 + (1.0 - w_a) * g2 for g1, g2 in zip(ag[0], ag[1])] if with_grad else None
-        return v, g
-    if op == "prim":
-        from ._prims_ref import evaluate as _prim_reference
-        d, du, dv = _prim_reference(node.attr[0], node.attr[1], av[0], av[1],
-                                    [float(c.attr) for c in node.args[2:]])
-        g = [du * g1 + dv * g2 for g1, g2 in zip(ag[0], ag[1])] if with_grad else None
-        return d, g
-    raise NotImplementedError(op)
-
-
-_EXT_OPS = ("floor", "select", "qmin", "cmin", "prim")
-
 
 # ---------------------------------------------------------------------------------------------
 # Traversal and printing (iterative: no recursion-depth limit).
@@ -679,45 +649,17 @@ def topological_order(root: Expr) -> list:
     return order
 
 
-_INFIX = {"add": "+", "sub": "-", "mul": "*", "div": "/", "pow": "**"}
-
-
 def _to_str(root: Expr, limit: int | None = None) -> str:
     text = {}
     for node in topological_order(root):
-        op, args = node.op, [text[id(a)] for a in node.args]
-        if op == "const":
-            s = repr(node.attr) if not node.attr.is_integer() or abs(node.attr) >= 1e16 \
-                else str(int(node.attr))
-            if node.attr < 0 or (node.attr == 0 and math.copysign(1, node.attr) < 0):
-                s = f"({s})"
-        elif op == "sym":
+        if node.op == "const":
+            s = fmt_const(node.attr)
+        elif node.op == "sym":
             s = node.attr
-        elif op == "param":
+        elif node.op == "param":
             s = node.attr[0]
-        elif op == "add" and node.args[1].op == "const" and node.args[1].attr < 0:
-            s = f"({args[0]} - {_to_str(Expr('const', (), -node.args[1].attr))})"
-        elif op in _INFIX:
-            s = f"({args[0]} {_INFIX[op]} {args[1]})"
-        elif op == "neg":
-            s = f"(-{args[0]})"
-        elif op == "powc":
-            p = node.attr
-            ps = str(int(p)) if p.is_integer() else repr(p)
-            base = args[0]
-            if not (node.args[0].op in ("sym", "const") or base.startswith("(")):
-                base = f"({base})"
-            s = f"{base}**{ps}"
-        elif op in ("smin", "smax", "qmin", "cmin"):
-            s = f"{op}({args[0]}, {args[1]}; k={node.attr:g})"
-        elif op == "select":
-            s = f"select({args[0]} > 0, {args[1]}, {args[2]})"
-        elif op == "prim":
-            kind, data = node.attr
-            tag = f"{kind}[{len(data)}]" if isinstance(data, tuple) else kind
-            s = f"{tag}({', '.join(args)})"
         else:
-            s = f"{op}({', '.join(args)})"
+            s = OPS[node.op].fmt(node, [text[id(a)] for a in node.args])
         text[id(node)] = s
     out = text[id(root)]
     if limit is not None and len(out) > limit:
@@ -765,7 +707,8 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
                     v = np.full(shape, float((params or {}).get(name, node.attr[1])))
                 g = [np.ones(shape) if n == name else zero for n in names]
             else:
-                v, g = _np_op(node, av, ag, compute_gradient)
+                v, rule = OPS[op].np(node, av, compute_gradient)
+                g = chain_rule_numpy(rule, ag, v) if compute_gradient else None
             val[i] = v
             if compute_gradient:
                 grad[i] = g
@@ -774,215 +717,11 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
     return val[id(root)]
 
 
-def _np_op(node, av, ag, with_grad):
-    op = node.op
-    if op in _EXT_OPS:
-        return _np_op_ext(node, av, ag, with_grad)
-    x = av[0]
-    y = av[1] if len(av) > 1 else None
-    gx = ag[0] if with_grad else None
-    gy = ag[1] if with_grad and len(ag) > 1 else None
-
-    def lin(ca, cb=None):
-        if not with_grad:
-            return None
-        if cb is None:
-            return [ca * g for g in gx]
-        return [ca * g1 + cb * g2 for g1, g2 in zip(gx, gy)]
-
-    if op == "add":
-        return x + y, lin(1.0, 1.0)
-    if op == "sub":
-        return x - y, lin(1.0, -1.0)
-    if op == "mul":
-        return x * y, lin(y, x)
-    if op == "div":
-        return x / y, lin(1.0 / y, -x / (y * y))
-    if op == "neg":
-        return -x, lin(-1.0)
-    if op == "powc":
-        p = node.attr
-        return x ** p, lin(p * x ** (p - 1.0))
-    if op == "pow":
-        v = x ** y
-        return v, lin(y * x ** (y - 1.0), v * np.log(x))
-    if op == "sqrt":
-        v = np.sqrt(x)
-        return v, lin(np.where(v > 0, 0.5 / np.where(v > 0, v, 1.0), 0.0))
-    if op == "exp":
-        v = np.exp(x)
-        return v, lin(v)
-    if op == "log":
-        return np.log(x), lin(1.0 / x)
-    if op == "sin":
-        return np.sin(x), lin(np.cos(x))
-    if op == "cos":
-        return np.cos(x), lin(-np.sin(x))
-    if op == "abs":
-        return np.abs(x), lin(np.where(x >= 0, 1.0, -1.0))
-    if op in ("min", "max"):
-        pick_a = (x <= y) if op == "min" else (x >= y)
-        v = np.where(pick_a, x, y)
-        return v, lin(pick_a * 1.0, 1.0 - pick_a)
-    if op == "length":
-        v = np.hypot(x, y)
-        safe = np.where(v > 0, v, 1.0)
-        zero = v == 0
-        return v, lin(np.where(zero, 1.0, x / safe), np.where(zero, 0.0, y / safe))
-    if op in ("smin", "smax"):
-        k = node.attr
-        s = 1.0 if op == "smin" else -1.0
-        xa, ya = s * x, s * y  # smax(a, b) = -smin(-a, -b)
-        m = np.minimum(xa, ya)
-        e = np.exp(-k * np.abs(xa - ya))
-        v = s * (m - np.log1p(e) / k)
-        w_a = np.where(xa <= ya, 1.0 / (1.0 + e), e / (1.0 + e))
-        return v, lin(w_a, 1.0 - w_a)
-    raise NotImplementedError(op)
-
-
-# ---------------------------------------------------------------------------------------------
-# Functions: an expression bound to two coordinate symbols, evaluated by compiled kernels.
-
-class Function:
-    """An expression of two coordinates, callable on points.
-
-    ``Function(expr, [x, y])`` binds ``expr`` to the symbols ``x`` and ``y`` (any two distinct
-    symbols, in this order). ``f(x, y)`` returns the value at every point as float64 array of
-    shape ``(n,)`` (a scalar input gives shape ``(1,)``; an N-d input keeps its shape);
-    ``f(x, y, compute_gradient=True)`` returns ``(d, grad)`` with ``grad[..., 0] = df/dx`` and
-    ``grad[..., 1] = df/dy``. Inputs may be any real dtype (float32 included); all arithmetic is
-    done in float64. A point with a NaN or infinite coordinate gets NaN value and gradient; the
-    other points are unaffected.
-
-    Parameters (:func:`Param`, time :data:`t`): ``f.params`` holds their current values;
-    ``f(x, y, angle=0.3, t=1.5)`` evaluates with other values for one call and
-    ``f.with_params(angle=0.3)`` returns a copy that keeps them; neither recompiles.
-    ``f(x, y, time_derivative=True)`` returns ``(d, grad, dd/dt)`` (analytic, forward mode; 0
-    for a scene without ``t``): for a moving boundary ``-dd/dt / |grad d|`` is the normal speed
-    of the surface. ``f.frozen()`` folds the current values into constants (its own kernel).
-
-    Evaluation runs in a numba kernel generated for this expression (see :mod:`fastsdf.codegen`),
-    compiled on first use and cached on disk; ``source()`` shows the generated Python code and
-    ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
-    """
-
-    def __init__(self, f, symbols):
-        f = as_expr(f, "f")
-        try:
-            symbols = list(symbols)
-        except TypeError:
-            raise TypeError(f"symbols must be a list of two Symbols, got {symbols!r}") from None
-        if len(symbols) != 2 or not all(isinstance(s, Expr) and s.op == "sym" for s in symbols):
-            raise ValueError(f"symbols must be a list of two Symbols, got symbols={symbols!r}")
-        if symbols[0] is symbols[1]:
-            raise ValueError(f"symbols must be two distinct Symbols, got {symbols[0]} twice")
-        unknown = f.symbols() - {s.attr for s in symbols}
-        if unknown:
-            raise ValueError(f"expression depends on symbols {sorted(unknown)} that are not "
-                             f"among symbols={[s.attr for s in symbols]}")
-        self.f = f
-        self.symbols = symbols
-        self._compiled = None
-        self._params = parameters(f)
-
-    # -- parameters ----------------------------------------------------------------------------
-    @property
-    def params(self) -> dict:
-        """``{name: value}`` of the scene's parameters (time ``'t'`` included), a copy."""
-        return dict(self._params)
-
-    @property
-    def param_names(self) -> tuple:
-        """Names of the parameters other than time, in the order kernels take them (sorted)."""
-        return tuple(sorted(n for n in self._params if n != "t"))
-
-    @property
-    def time_dependent(self) -> bool:
-        """Whether the scene depends on time (the parameter ``'t'``)."""
-        return "t" in self._params
-
-    def _values(self, overrides: dict) -> dict:
-        """Current values updated by ``overrides``, checked (errors name the parameter)."""
-        values = dict(self._params)
-        for name, value in overrides.items():
-            if name not in values and name != "t":
-                raise TypeError(f"unknown parameter {name!r}; this scene's parameters are "
-                                f"{sorted(values) or 'none'}")
-            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-                raise TypeError(f"parameter {name} must be a real number, got {name}={value!r}")
-            value = float(value)
-            if not math.isfinite(value):
-                raise ValueError(f"parameter {name} must be finite, got {name}={value!r}")
-            if name in values:
-                values[name] = value
-        return values
-
-    def with_params(self, **values) -> "Function":
-        """A copy with other parameter values (sharing the compiled kernels: no recompile)."""
-        out = copy.copy(self)
-        out._params = self._values(values)
-        return out
-
-    def frozen(self, **values) -> "Function":
-        """A static copy: the parameters (at their current values, updated by ``values``)
-        folded into constants. It compiles its own kernel; worth it only for a scene whose
-        parameters never change again (or for a :class:`fastsdf.GridSDF` of it)."""
-        vals = self._values(values)
-        out = copy.copy(self)
-        out.f = substitute_params(self.f, vals)
-        out._params = {}
-        out._compiled = None
-        return out
-
-    def param_tuple(self, **values) -> tuple:
-        """The non-time parameter values as the kernels take them (``param_names`` order)."""
-        vals = self._values(values)
-        return tuple(vals[n] for n in self.param_names)
-
-    # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
-    @property
-    def compiled(self):
-        """The :class:`fastsdf.codegen.CompiledSDF` for this function (created on first use)."""
-        if self._compiled is None:
-            from .codegen import compile_expr
-            self._compiled = compile_expr(self.f, [s.attr for s in self.symbols])
-        return self._compiled
-
-    @property
-    def point_fn(self):
-        """Compiled ``@njit`` function for one point (float64): ``(x, y) -> (d, ddx, ddy)``;
-        for a scene with parameters ``(x, y, t, P) -> (d, ddx, ddy)`` with ``P`` the tuple
-        :meth:`param_tuple` (``()`` when time is the only parameter)."""
-        return self.compiled.point_fn("vg")
-
-    @property
-    def point_value_fn(self):
-        """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64); for a scene
-        with parameters ``(x, y, t, P) -> d`` (see :attr:`point_fn`)."""
-        return self.compiled.point_fn("v")
-
-    @property
-    def point_time_fn(self):
-        """For a scene with parameters: compiled ``(x, y, t, P) -> (d, ddx, ddy, dd/dt)``."""
-        return self.compiled.point_fn("vgt")
-
-    def source(self, gradient: bool = True) -> str:
-        """The generated Python source of the per-point function (with gradient by default)."""
-        return self.compiled.function_source("vg" if gradient else "v")
-
-    def __call__(self, x, y, compute_gradient=False, time_derivative=False, **params):
-        kw = {}
-        if self._params or params:
-            vals = self._values(params)
-            if self._params:
-                kw = {"t": vals.get("t", 0.0), "params": tuple(vals[n] for n in self.param_names)}
-        if time_derivative:
-            if not kw:  # no parameters: nothing moves
-                d, g = self.compiled.evaluate(x, y, compute_gradient=True)
-                return d, g, np.zeros_like(d)
-            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True, **kw)
-        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), **kw)
-
-    def __repr__(self):
-        return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
+def __getattr__(name):
+    # Function lives in the compiled-function layer (fastsdf.function), which imports this
+    # module; it stays importable from here (the notebook's ``cg.Function``) without this module
+    # importing that layer at load time.
+    if name == "Function":
+        from .function import Function
+        return Function
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

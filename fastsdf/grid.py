@@ -41,7 +41,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .codegen import PARALLEL_MIN_POINTS, as_points
+from .function import PARALLEL_MIN_POINTS, as_points
 from .graph import Function
 
 __all__ = ["GridSDF", "GridError", "measure_error", "sample_stored", "sample_fd",
