@@ -2,6 +2,7 @@
 notebook's operations and blends, transforms, numerical hard cases and bad input."""
 
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -247,6 +248,51 @@ def test_context_restored_after_exception():
             raise RuntimeError("boom")
     assert sdf.shapes.current_smoothness() == 0
     assert sdf.Halfspace([1, 0], 0)(np.array([2.0]), np.array([0.0]))[0] == 2.0
+
+
+def _scene(i, barrier):
+    """A scene whose value depends on the smoothness and transform it was built under."""
+    f = sdf.Halfspace([0, 1], -1.0)
+    with sdf.smoothness(1.0 + i), sdf.transform(angle=0.1 * i, offset=[0.05 * i, 0.0]):
+        barrier.wait()  # every thread is inside its own contexts before any primitive is built
+        f |= sdf.Circle([0.2, 0.0], 0.5) & sdf.Box([-0.4, -0.3], [0.4, 0.1])
+        with sdf.transform(angle=-0.2 * i):
+            barrier.wait()
+            f |= sdf.Capsule([0, 0], [0.5, 0.1], 0.1)
+    return f, sdf.shapes.current_blend()
+
+
+def test_contexts_are_per_thread():
+    """Scenes built concurrently in threads see only their own smoothness and transform."""
+    n = 6
+    x = np.linspace(-2, 2, 41)
+    X, Y = np.meshgrid(x, x)
+    alone = threading.Barrier(1)
+    expected = [evaluate_numpy(_scene(i, alone)[0].f, {"x": X, "y": Y}) for i in range(n)]
+    together = threading.Barrier(n, timeout=30)
+    results = [None] * n
+
+    def work(i):
+        results[i] = _scene(i, together)
+
+    with sdf.smoothness(99.0), sdf.transform(offset=[7.0, 7.0]):  # the main thread's contexts
+        threads = [threading.Thread(target=work, args=(i,)) for i in range(n)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert sdf.shapes.current_blend() == (99.0, "exponential")
+    assert sdf.shapes.current_blend() == (0.0, "exponential")
+    for i, (f, after) in enumerate(results):
+        assert after == (0.0, "exponential")  # each thread restored its own state
+        np.testing.assert_array_equal(evaluate_numpy(f.f, {"x": X, "y": Y}), expected[i])
+
+
+def test_transform_composes_where_it_is_entered():
+    t = sdf.transform(offset=[1.0, 0.0])  # created outside, entered inside another transform
+    with sdf.transform(offset=[0.0, 2.0]), t:
+        c = sdf.Circle([0, 0], 0.5)
+    assert evaluate_numpy(c.f, {"x": np.array([1.0]), "y": np.array([2.0])})[0] == -0.5
 
 
 @pytest.mark.parametrize("make,match", [

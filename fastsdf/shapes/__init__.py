@@ -1,0 +1,43 @@
+"""The modelling DSL: primitives, set operations and the modelling context.
+
+Usage mirrors the notebook's ``cgraph.sdf``::
+
+    import fastsdf as sdf
+    f = sdf.Halfspace(normal=[0, 1], d=-1.8) | sdf.Halfspace(normal=[1, 1], d=-1.8)
+    with sdf.smoothness(10), sdf.transform(angle=-0.3, offset=[0.5, 0]):
+        f |= sdf.Circle(center=[0, 0], radius=0.5) & sdf.Box(minc=[-1, -0.2], maxc=[1, 0.2])
+    d, grad = f(x, y, compute_gradient=True)
+
+Every shape is an :class:`SDF`: a :class:`fastsdf.graph.Function` of the symbols ``x`` and
+``y``, callable on points, negative inside and positive outside, in the units of the
+coordinates. ``a | b`` is the union, ``a & b`` the intersection, ``a - b`` the difference. Under
+``smoothness(k)`` with ``k > 0``, union and intersection become the notebook's exponential
+blends (``-log(exp(-k a) + exp(-k b)) / k`` and its mirror), evaluated in a form that cannot
+overflow; the difference is always hard, as in the notebook. ``transform(angle, offset)`` places
+newly created primitives rotated by ``angle`` (radians, counter-clockwise) and then moved by
+``offset``. Both context managers nest: transforms compose (the outer one applied last).
+
+Beyond the notebook: more primitives with exact distances (:class:`Segment`, :class:`Capsule`,
+:class:`RoundedBox`, :class:`OrientedBox`, :class:`Triangle`, :class:`EquilateralTriangle`,
+:class:`RegularPolygon`, :class:`Polygon`, :class:`Star`, :class:`Ellipse`, :class:`Arc`,
+:class:`Ring`), modifiers (``f.round(r)``, ``f.shell(t)``, ``f.scale(s)``, ``f.translate(o)``,
+``f.rotate(a)``, ``f.mirror(axis)``, ``f.repeat(spacing, count)``), polynomial blends
+(``a.union(b, k=0.1, kind='quadratic')``, ``smoothness(0.1, kind='cubic')``) and
+``f.exactness`` (``'exact'``, ``'bound'`` or ``'none'``), tracked through all of them.
+"""
+
+from .context import (BLEND_KINDS, current_blend, current_smoothness, smoothness,  # noqa: F401
+                      transform)
+from .exactness import EXACTNESS  # noqa: F401
+from .operations import (SDF, Difference, Intersection, Union, mirror, offset,  # noqa: F401
+                         repeat, rotate, scale, shell, translate)
+from .primitives import (Arc, Box, Capsule, Circle, Ellipse, EquilateralTriangle,  # noqa: F401
+                         Halfspace, OrientedBox, Polygon, RegularPolygon, Ring, RoundedBox,
+                         Segment, Star, Triangle)
+
+__all__ = ["SDF", "Circle", "Halfspace", "Box", "Union", "Intersection", "Difference",
+           "smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS",
+           "EXACTNESS",
+           "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
+           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring",
+           "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]

@@ -1,0 +1,146 @@
+"""The modelling context: the coordinates, frame and blend that new shapes are built with.
+
+The state lives in a :class:`contextvars.ContextVar`, so each thread (and each asyncio task)
+has its own: scenes built concurrently never see each other's :func:`smoothness` or
+:func:`transform`. A new thread starts from the defaults (identity transform, hard blends).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import math
+import numbers
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .._validate import real as _real
+from .._validate import vec2 as _vec2
+from ..graph import Expr, Symbol
+
+__all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
+
+_X, _Y = Symbol("x"), Symbol("y")
+
+#: The blends of ``|``, ``&`` and the set-operation methods: ``k`` is the sharpness
+#: (1/distance) for ``'exponential'`` and the blend width (distance) for the polynomial ones.
+BLEND_KINDS = ("exponential", "quadratic", "cubic")
+
+# The frame of new primitives: local -> world is ``world = M local + t`` with
+# ``frame = (m00, m01, m10, m11, tx, ty)``; used only for the exactness bookkeeping (bounding
+# boxes and symmetries), the coordinates themselves live in ``x`` and ``y``.
+_IDENTITY = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class _State:
+    """The modelling state: the coordinate expressions new primitives are built in, their
+    frame, and the smoothness (and blend kind) of ``|`` and ``&``."""
+    x: Expr = _X
+    y: Expr = _Y
+    smoothness: float = 0.0
+    blend: str = "exponential"
+    frame: tuple = _IDENTITY
+
+
+# Immutable states in a context variable: context managers set a new one and reset on exit.
+_context: contextvars.ContextVar[_State] = contextvars.ContextVar("fastsdf_modelling_state",
+                                                                  default=_State())
+
+
+def _coords() -> tuple:
+    """``(x, y)``: the expressions of the local coordinates new primitives are built in."""
+    s = _context.get()
+    return s.x, s.y
+
+
+def _frame() -> tuple:
+    """The local -> world frame of new primitives."""
+    return _context.get().frame
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter validation: errors name the parameter and the value.
+
+def _smoothness_value(k) -> float:
+    if k is None:
+        return 0.0
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
+        raise TypeError(f"smoothness k must be a real number, got k={k!r}")
+    k = float(k)
+    if not math.isfinite(k) or k < 0:
+        raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={k!r}")
+    return k
+
+
+def _blend_kind(kind) -> str:
+    if kind == "exp":
+        kind = "exponential"
+    if not isinstance(kind, str) or kind not in BLEND_KINDS:
+        raise ValueError(f"kind must be one of {BLEND_KINDS}, got kind={kind!r}")
+    return kind
+
+
+# ---------------------------------------------------------------------------------------------
+# The modelling context.
+
+@contextmanager
+def _properties(**props):
+    token = _context.set(replace(_context.get(), **props))
+    try:
+        yield
+    finally:
+        _context.reset(token)
+
+
+def smoothness(k, kind="exponential"):
+    """Context manager: ``|`` and ``&`` created inside blend with parameter ``k``.
+
+    ``kind='exponential'`` (the default, the notebook's blend): ``k`` is the sharpness in
+    1/distance; ``k = 0`` (or None) gives the hard ``min``/``max``; larger ``k`` gives a sharper
+    blend that rounds the result by at most ``log(2) / k``. ``kind='quadratic'`` or ``'cubic'``:
+    the local polynomial blends, ``k`` is the blend width in distance units (exactly
+    ``min``/``max`` where the operands differ by ``k`` or more; ``k = 0`` is hard). ``k`` must be
+    finite and ``>= 0``. The difference ``-`` stays hard, as in the notebook; use
+    :meth:`SDF.difference` for a smooth one.
+    """
+    return _properties(smoothness=_smoothness_value(k), blend=_blend_kind(kind))
+
+
+def current_smoothness() -> float:
+    """The smoothness that ``|`` and ``&`` use right now."""
+    return _context.get().smoothness
+
+
+def current_blend() -> tuple:
+    """``(k, kind)``: the blend that ``|`` and ``&`` use right now."""
+    s = _context.get()
+    return s.smoothness, s.blend
+
+
+def transform(angle=0.0, offset=(0.0, 0.0)):
+    """Context manager: primitives created inside are rotated by ``angle`` (radians,
+    counter-clockwise) about their own origin, then translated by ``offset``.
+
+    Nested transforms compose, the outer one applied last. Rotations and translations keep
+    distances exact.
+    """
+    angle = _real(angle, "angle")
+    offset = _vec2(offset, "offset")
+    return _transformed(math.cos(angle), math.sin(angle), offset)
+
+
+@contextmanager
+def _transformed(c: float, s: float, offset):
+    # Composed on entry, not on the call to transform(), so that the outer context is the one
+    # in force where the block runs.
+    x, y = _coords()
+    # Primitives are built in local coordinates: the inverse transform of the current ones.
+    local_x = x * c + y * s - (offset[0] * c + offset[1] * s)
+    local_y = -x * s + y * c - (-offset[0] * s + offset[1] * c)
+    m00, m01, m10, m11, tx, ty = _frame()  # compose: outer frame o (R, offset)
+    frame = (m00 * c + m01 * s, -m00 * s + m01 * c, m10 * c + m11 * s, -m10 * s + m11 * c,
+             m00 * offset[0] + m01 * offset[1] + tx, m10 * offset[0] + m11 * offset[1] + ty)
+    with _properties(x=local_x, y=local_y, frame=frame):
+        yield

@@ -1,0 +1,388 @@
+"""The :class:`SDF` base class, set operations (hard and blended) and modifiers."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import replace
+
+import numpy as np
+
+from .._validate import real as _real
+from .._validate import vec2 as _vec2
+from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
+                     sym_qmin, sym_smax, sym_smin)
+from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
+from .exactness import (_NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow,
+                        _Info)
+
+__all__ = ["SDF", "Union", "Intersection", "Difference",
+           "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Blends: the hard operations, the notebook's exponential blends, the polynomial ones.
+
+def _blend_min(a: Expr, b: Expr, k: float, kind: str) -> Expr:
+    if k == 0.0:
+        return sym_min(a, b)
+    if kind == "exponential":
+        return sym_smin(a, b, k)
+    return (sym_qmin if kind == "quadratic" else sym_cmin)(a, b, k)
+
+
+def _blend_max(a: Expr, b: Expr, k: float, kind: str) -> Expr:
+    if k == 0.0:
+        return sym_max(a, b)
+    if kind == "exponential":
+        return sym_smax(a, b, k)
+    return -(sym_qmin if kind == "quadratic" else sym_cmin)(-a, -b, k)
+
+
+def _check_sdf(value, name):
+    if not isinstance(value, SDF):
+        raise TypeError(f"{name} must be a fastsdf SDF, got {name}={value!r} of type "
+                        f"{type(value).__name__}")
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Shapes.
+
+class SDF(Function):
+    """A signed distance function of the plane: negative inside, positive outside.
+
+    Callable as ``f(x, y, compute_gradient=False)`` (see :class:`fastsdf.graph.Function`);
+    ``f.f`` is its expression. Combine with ``|`` (union), ``&`` (intersection), ``-``
+    (difference); ``|=`` and friends work too. The operators blend as the :func:`smoothness`
+    context says; the methods :meth:`union`, :meth:`intersection`, :meth:`difference` take the
+    blend explicitly. :attr:`exactness` says how far the value can be trusted as a distance.
+    """
+
+    def __init__(self, expr: Expr, info: _Info | None = None):
+        super().__init__(expr, [_X, _Y])
+        self._info = _NONE if info is None else info
+
+    @property
+    def sdf(self) -> Expr:
+        """The expression (the name cgraph's SDF nodes used)."""
+        return self.f
+
+    # -- exactness -----------------------------------------------------------------------------
+    @property
+    def exactness(self) -> str:
+        """``'exact'``: the value is the Euclidean distance to the boundary of the shape
+        ``{f < 0}`` (negative inside) everywhere. ``'bound'``: ``|f|`` never exceeds that
+        distance and the sign is right (``f`` is 1-Lipschitz), so sphere tracing and collision
+        tests stay safe, but distances can be underestimated. ``'none'``: no guarantee. The
+        flags follow the rules in the README ("Primitives, modifiers, blends") and are
+        conservative: a result reported ``'bound'`` may happen to be exact."""
+        i = self._info
+        if i.outside and i.inside:
+            return "exact"
+        return "bound" if i.bound else "none"
+
+    @property
+    def exact_outside(self) -> bool:
+        """True where known: the value is the exact distance at every point outside."""
+        return self._info.outside
+
+    @property
+    def exact_inside(self) -> bool:
+        """True where known: the value is the exact (negated) distance at every point inside."""
+        return self._info.inside
+
+    # -- set operations ------------------------------------------------------------------------
+    def _other(self, other, op: str):
+        if not isinstance(other, SDF):
+            raise TypeError(f"cannot {op} an SDF with {other!r} of type {type(other).__name__}; "
+                            "both operands must be fastsdf SDF objects")
+        return other
+
+    def __or__(self, other):
+        k, kind = current_blend()
+        return Union(self, self._other(other, "unite"), k=k, kind=kind)
+
+    def __and__(self, other):
+        k, kind = current_blend()
+        return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
+
+    def __sub__(self, other):
+        return Difference(self, self._other(other, "subtract"))
+
+    def union(self, other, k=0.0, kind="exponential"):
+        """``self | other`` with an explicit blend (the :func:`smoothness` context is ignored):
+        ``k = 0`` hard; ``kind='exponential'`` (``k`` = sharpness, 1/distance), ``'quadratic'``
+        or ``'cubic'`` (``k`` = blend width, distance). See :class:`Union`."""
+        return Union(self, self._other(other, "unite"), k=k, kind=kind)
+
+    def intersection(self, other, k=0.0, kind="exponential"):
+        """``self & other`` with an explicit blend (see :meth:`union`, :class:`Intersection`)."""
+        return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
+
+    def difference(self, other, k=0.0, kind="exponential"):
+        """``self - other``, smooth for ``k > 0`` (see :meth:`union`, :class:`Difference`)."""
+        return Difference(self, self._other(other, "subtract"), k=k, kind=kind)
+
+    # -- modifiers -----------------------------------------------------------------------------
+    def round(self, r):
+        """Offset: ``f - r`` (``r > 0`` grows the shape and rounds its convex corners by
+        ``r``; ``r < 0`` erodes it).
+
+        Exactness, for ``r > 0``: exact outside if ``f`` is; exact inside too if ``f`` is exact
+        and its shape is convex (a rounded box, a capsule from a segment). For a non-convex
+        shape the inside value is only a bound (filled concavities are deeper than ``r - f``).
+        For ``r < 0``: exact inside if ``f`` is, a bound outside. Always a bound if ``f`` is.
+        """
+        r = _real(r, "r")
+        i = self._info
+        if r == 0:
+            return SDF(self.f, i)
+        if r > 0:
+            info = replace(i, inside=i.inside and i.outside and i.convex, bbox=_grow(i.bbox, r))
+        else:
+            info = replace(i, outside=False)
+        return SDF(self.f - r, info)
+
+    def shell(self, thickness):
+        """Annulus of the boundary: ``|f| - thickness / 2``, a band of total width
+        ``thickness`` centred on the surface (IQ's onion).
+
+        Exact outside the band if ``f`` is exact (inside and outside); inside the band a
+        bound (exact inside the band only where the surface is a circle, see :class:`Ring`:
+        near a corner the band's inner edge is farther than the formula says).
+        """
+        t = _real(thickness, "thickness")
+        if t <= 0:
+            raise ValueError(f"thickness must be > 0, got thickness={t!r}")
+        i = self._info
+        info = _Info(outside=i.outside and i.inside, inside=False, bound=i.bound,
+                     bbox=_grow(i.bbox, t / 2), sym=i.sym)
+        return SDF(sym_abs(self.f) - t / 2, info)
+
+    def scale(self, s):
+        """Uniform scale about the origin: ``s * f(p / s)`` with ``s > 0``; keeps the value a
+        distance, so exactness is kept."""
+        s = _real(s, "s")
+        if s <= 0:
+            raise ValueError(f"s must be > 0, got s={s!r}")
+        inv = 1.0 / s
+        i = self._info
+        bbox = None if i.bbox is None else tuple(v * s for v in i.bbox)
+        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s, replace(i, bbox=bbox))
+
+    def translate(self, offset):
+        """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
+        active :func:`transform` context plays no part). Same as building it under
+        ``transform(offset=offset)``; keeps exactness."""
+        o = _vec2(offset, "offset")
+        i = self._info
+        bbox = None if i.bbox is None else (i.bbox[0] + o[0], i.bbox[1] + o[1],
+                                             i.bbox[2] + o[0], i.bbox[3] + o[1])
+        sym = frozenset(a for a, ov in zip("xy", o) if a in i.sym and ov == 0.0)
+        expr = substitute(self.f, {"x": _X - float(o[0]), "y": _Y - float(o[1])})
+        return SDF(expr, replace(i, bbox=bbox, sym=sym))
+
+    def rotate(self, angle):
+        """The shape rotated counter-clockwise by ``angle`` (radians) about the origin:
+        ``f(R(-angle) p)``. Same as building it under ``transform(angle=angle)``; keeps
+        exactness."""
+        angle = _real(angle, "angle")
+        c, s = math.cos(angle), math.sin(angle)
+        i = self._info
+        bbox = _frame_bbox(i.bbox, (c, -s, s, c, 0.0, 0.0))
+        sym = i.sym if angle == 0.0 else frozenset()
+        expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
+        return SDF(expr, replace(i, bbox=bbox, sym=sym))
+
+    def mirror(self, axis="x"):
+        """Mirror symmetry: ``axis='x'`` evaluates ``f(|x|, y)``, the part of the shape with
+        ``x >= 0`` plus its mirror image in the line ``x = 0``; ``'y'`` likewise
+        ``f(x, |y|)``; ``'xy'`` both.
+
+        A bound if ``f`` is one. Exact if ``f`` is exact and either already symmetric about
+        that axis or known (from its bounding box) to lie strictly on the positive side;
+        otherwise the part of the shape on the negative side, now cut away, can make the
+        value smaller than the distance.
+        """
+        if axis not in ("x", "y", "xy"):
+            raise ValueError(f"axis must be 'x', 'y' or 'xy', got axis={axis!r}")
+        f = self
+        for ax in axis:
+            i = f._info
+            if ax in i.sym:
+                continue
+            j = 0 if ax == "x" else 1
+            sub = {"x": sym_abs(_X)} if ax == "x" else {"y": sym_abs(_Y)}
+            disjoint = i.bbox is not None and i.bbox[j] > 0.0
+            bbox = None
+            if i.bbox is not None:
+                lo, hi = list(i.bbox[:2]), list(i.bbox[2:])
+                top = max(hi[j], 0.0)
+                lo[j], hi[j] = -top, top
+                bbox = (lo[0], lo[1], hi[0], hi[1])
+            info = _Info(outside=i.outside and disjoint, inside=i.inside and disjoint,
+                         bound=i.bound, bbox=bbox, sym=i.sym | {ax})
+            f = SDF(substitute(f.f, sub), info)
+        return f
+
+    def repeat(self, spacing, count):
+        """Finite repetition (IQ's opRepLim): copies of the shape at
+        ``(i * spacing_x, j * spacing_y)`` for ``0 <= i < count_x``, ``0 <= j < count_y``.
+        ``spacing`` and ``count`` are numbers or pairs; a count of 1 leaves that axis alone.
+
+        Each point evaluates only the copy whose centre (the origin, shifted) is nearest. That
+        is exact when ``f`` is exact and mirror-symmetric about each repeated axis (then the
+        nearest centre is the nearest copy) and the shape lies within its cell
+        ``|x| < spacing_x / 2`` (copies do not overlap); symmetric but overlapping: exact
+        outside, a bound inside. For a shape that is not symmetric the nearest copy can be
+        another one, and the value jumps at cell borders: exactness ``'none'``. Known symmetry
+        comes from the construction (primitives centred at the origin, :meth:`mirror`).
+        """
+        sp = _pair(spacing, "spacing", _real)
+        ct = _pair(count, "count", _count)
+        if not all(v > 0 for v in sp):
+            raise ValueError(f"spacing must be > 0, got spacing={spacing!r}")
+        i = self._info
+        sub, symmetric, contained = {}, True, i.bbox is not None
+        lo = list(i.bbox[:2]) if i.bbox is not None else None
+        hi = list(i.bbox[2:]) if i.bbox is not None else None
+        for j, (ax, s, n) in enumerate(zip("xy", sp, ct)):
+            if n == 1:
+                continue
+            coord = _X if ax == "x" else _Y
+            cell = sym_min(sym_max(sym_floor(coord * (1.0 / s) + 0.5), 0.0), float(n - 1))
+            sub[ax] = coord - cell * s
+            symmetric = symmetric and ax in i.sym
+            if i.bbox is not None:
+                contained = contained and max(-i.bbox[j], i.bbox[2 + j]) < s / 2
+                hi[j] += (n - 1) * s
+        if not sub:
+            return self
+        info = _Info(outside=symmetric and i.outside,
+                     inside=symmetric and contained and i.inside,
+                     bound=symmetric and i.bound,
+                     bbox=None if lo is None else (lo[0], lo[1], hi[0], hi[1]))
+        return SDF(substitute(self.f, sub), info)
+
+    def __repr__(self):
+        return f"{type(self).__name__}({str(self.f)[:200]})"
+
+
+def _pair(value, name, check):
+    if isinstance(value, (tuple, list, np.ndarray)):
+        if len(value) != 2:
+            raise ValueError(f"{name} must be a number or a pair, got {name}={value!r}")
+        return tuple(check(v, name) for v in value)
+    v = check(value, name)
+    return (v, v)
+
+
+def _count(value, name) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an integer, got {name}={value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1, got {name}={value!r}")
+    return int(value)
+
+
+# Modifiers as functions (the methods of SDF).
+
+def offset(f, r):
+    """``f.round(r)``: the shape offset by ``r`` (see :meth:`SDF.round`)."""
+    return _check_sdf(f, "f").round(r)
+
+
+def shell(f, thickness):
+    """``f.shell(thickness)`` (see :meth:`SDF.shell`)."""
+    return _check_sdf(f, "f").shell(thickness)
+
+
+def scale(f, s):
+    """``f.scale(s)`` (see :meth:`SDF.scale`)."""
+    return _check_sdf(f, "f").scale(s)
+
+
+def translate(f, offset):  # noqa: F811 - the parameter shadows offset() here only
+    """``f.translate(offset)`` (see :meth:`SDF.translate`)."""
+    return _check_sdf(f, "f").translate(offset)
+
+
+def rotate(f, angle):
+    """``f.rotate(angle)`` (see :meth:`SDF.rotate`)."""
+    return _check_sdf(f, "f").rotate(angle)
+
+
+def mirror(f, axis="x"):
+    """``f.mirror(axis)`` (see :meth:`SDF.mirror`)."""
+    return _check_sdf(f, "f").mirror(axis)
+
+
+def repeat(f, spacing, count):
+    """``f.repeat(spacing, count)`` (see :meth:`SDF.repeat`)."""
+    return _check_sdf(f, "f").repeat(spacing, count)
+
+
+# ---------------------------------------------------------------------------------------------
+# Set operations.
+
+def _k_and_kind(k, kind):
+    return _smoothness_value(k), _blend_kind(kind)
+
+
+class Union(SDF):
+    """Union of two SDFs: ``min(a, b)``, or a smooth minimum for ``k > 0``: the notebook's
+    exponential one (``kind='exponential'``, ``k`` = sharpness in 1/distance, deepens by at
+    most ``log(2)/k``), or the polynomial ones (``'quadratic'``, ``'cubic'``, ``k`` = blend width
+    in distance units: exactly ``min`` where ``|a - b| >= k``, deepened by ``k/4`` resp. ``k/6``
+    where ``a = b``; C1 resp. C2).
+
+    Exactness: the hard union of exact SDFs is exact outside and a bound inside (where the
+    shapes overlap, the boundary of the union is farther than the nearer shape's). Every blend
+    of bounds is a bound: its gradient is a convex combination of the operands' gradients, so
+    it is 1-Lipschitz.
+    """
+
+    def __init__(self, a: SDF, b: SDF, k=0.0, kind="exponential"):
+        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
+        k, kind = _k_and_kind(k, kind)
+        ia, ib = a._info, b._info
+        info = _Info(outside=k == 0 and ia.outside and ib.outside, bound=ia.bound and ib.bound,
+                     bbox=_bbox_union(ia.bbox, ib.bbox, _blend_depth(k, kind)),
+                     sym=ia.sym & ib.sym)
+        super().__init__(_blend_min(a.f, b.f, k, kind), info)
+
+
+class Intersection(SDF):
+    """Intersection of two SDFs: ``max(a, b)``, or a smooth maximum for ``k > 0`` (the blends
+    of :class:`Union`, mirrored: ``smax(a, b) = -smin(-a, -b)``).
+
+    Exactness: the hard intersection of exact SDFs is exact inside and a bound outside (near a
+    corner the distance to the intersection is larger than either operand). Blends: a bound.
+    """
+
+    def __init__(self, a: SDF, b: SDF, k=0.0, kind="exponential"):
+        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
+        k, kind = _k_and_kind(k, kind)
+        ia, ib = a._info, b._info
+        info = _Info(inside=k == 0 and ia.inside and ib.inside, bound=ia.bound and ib.bound,
+                     convex=k == 0 and ia.convex and ib.convex, bbox=_bbox_meet(ia.bbox, ib.bbox),
+                     sym=ia.sym & ib.sym)
+        super().__init__(_blend_max(a.f, b.f, k, kind), info)
+
+
+class Difference(SDF):
+    """``a`` with ``b`` cut away: ``max(a, -b)``. Hard by default, as in the notebook (and ``-``
+    is always hard); ``k > 0`` blends like :class:`Intersection` with ``-b``.
+
+    Exactness: exact inside where ``a`` is exact inside and ``b`` exact outside; a bound
+    outside. Blends: a bound.
+    """
+
+    def __init__(self, a: SDF, b: SDF, k=0.0, kind="exponential"):
+        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
+        k, kind = _k_and_kind(k, kind)
+        ia, ib = a._info, b._info
+        info = _Info(inside=k == 0 and ia.inside and ib.outside, bound=ia.bound and ib.bound,
+                     bbox=ia.bbox, sym=ia.sym & ib.sym)
+        super().__init__(_blend_max(a.f, -b.f, k, kind), info)

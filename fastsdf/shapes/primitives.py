@@ -1,0 +1,509 @@
+"""Primitives: the notebook's (Circle, Halfspace, Box) and the others, each built in the local
+coordinates of the :func:`~fastsdf.shapes.transform` context. All are exact signed distances
+unless their docstring says otherwise."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import replace
+
+import numpy as np
+
+from .._validate import real as _real
+from .._validate import vec2 as _vec2
+from ..graph import Expr, sym_abs, sym_length, sym_max, sym_min, sym_prim, sym_select
+from .context import _IDENTITY, _coords, _frame
+from .exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
+from .operations import SDF
+
+__all__ = ["Circle", "Halfspace", "Box",
+           "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
+           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring"]
+
+
+# ---------------------------------------------------------------------------------------------
+# The notebook's primitives.
+
+class Circle(SDF):
+    """Disc of ``radius`` around ``center`` (exact distance).
+
+    At the centre, where every direction is steepest, the gradient is the local +x axis.
+    """
+
+    def __init__(self, center=(0.0, 0.0), radius=1.0):
+        center = _vec2(center, "center")
+        radius = _real(radius, "radius")
+        if radius <= 0:
+            raise ValueError(f"radius must be > 0, got radius={radius!r}")
+        self.center, self.radius = center, radius
+        x, y = _coords()
+        info = _primitive_info(_points_bbox([center], radius), _center_sym(center), convex=True)
+        super().__init__(sym_length(x - center[0], y - center[1]) - radius, info)
+
+
+class Halfspace(SDF):
+    """Half-plane ``{p : n . p <= d}`` with outward normal ``normal`` (normalized here) and
+    signed offset ``d`` from the origin (Hessian normal form; exact distance)."""
+
+    def __init__(self, normal=(1.0, 0.0), d=0.0):
+        normal = _vec2(normal, "normal")
+        d = _real(d, "d")
+        length = float(np.hypot(normal[0], normal[1]))
+        if not length > 0:
+            raise ValueError(f"normal must have non-zero length, got normal={normal.tolist()!r}")
+        n = normal / length
+        self.normal, self.d = n, d
+        x, y = _coords()
+        super().__init__(x * n[0] + y * n[1] - d, _primitive_info(None, convex=True))
+
+
+class Box(SDF):
+    """Axis-aligned rectangle from corner ``minc`` to corner ``maxc`` (in local coordinates).
+
+    The distance is exact everywhere. (The notebook's box, an intersection of four half-spaces,
+    agrees inside and along the faces but outside the corners gives only a lower bound, the
+    L-infinity distance, with an axis-aligned gradient.)
+    """
+
+    def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0)):
+        minc, maxc = _vec2(minc, "minc"), _vec2(maxc, "maxc")
+        if not np.all(minc < maxc):
+            raise ValueError(f"minc must be below maxc in both coordinates, got "
+                             f"minc={minc.tolist()!r}, maxc={maxc.tolist()!r}")
+        self.minc, self.maxc = minc, maxc
+        center, half = (minc + maxc) / 2, (maxc - minc) / 2
+        x, y = _coords()
+        qx = sym_abs(x - center[0]) - half[0]
+        qy = sym_abs(y - center[1]) - half[1]
+        outside = sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0))
+        # min(0, .) puts the constant first so that on the boundary (a tie) the constant's zero
+        # gradient is taken and the gradient stays of unit length.
+        inside = sym_min(0.0, sym_max(qx, qy))
+        sym = {ax for ax, lo, hi in zip("xy", minc, maxc) if lo == -hi}
+        info = _primitive_info(_points_bbox([minc, maxc]), sym, convex=True)
+        super().__init__(outside + inside, info)
+
+
+# ---------------------------------------------------------------------------------------------
+# Segments, boxes, polygons, ellipses, rings and arcs, and the geometry helpers they share.
+
+
+def _segment_expr(x: Expr, y: Expr, a, b) -> Expr:
+    """Unsigned distance from (x, y) to the segment a-b (a point if a == b)."""
+    px, py = x - float(a[0]), y - float(a[1])
+    ex, ey = float(b[0] - a[0]), float(b[1] - a[1])
+    ee = ex * ex + ey * ey
+    if ee == 0.0:
+        return sym_length(px, py)
+    t = (px * ex + py * ey) * (1.0 / ee)
+    h = sym_min(sym_max(t, 0.0), 1.0)
+    return sym_length(px - h * ex, py - h * ey)
+
+
+def _ccw(vertices: np.ndarray) -> np.ndarray:
+    """The vertices in counter-clockwise order (by the sign of the shoelace area)."""
+    v = vertices
+    area2 = float(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
+    return v if area2 > 0 else v[::-1].copy()
+
+
+def _convex_polygon_expr(x: Expr, y: Expr, vertices: np.ndarray) -> Expr:
+    """Exact SDF of a convex polygon (counter-clockwise vertices) from graph operations:
+    outside the distance to the nearest edge, inside the largest signed edge-line distance
+    (which for a convex polygon is minus the distance to the nearest edge)."""
+    n = len(vertices)
+    dist = line = None
+    for i in range(n):
+        a, b = vertices[i], vertices[(i + 1) % n]
+        e = b - a
+        nx, ny = e[1] / math.hypot(*e), -e[0] / math.hypot(*e)  # outward normal
+        seg = _segment_expr(x, y, a, b)
+        h = x * nx + y * ny - float(nx * a[0] + ny * a[1])
+        dist = seg if dist is None else sym_min(dist, seg)
+        line = h if line is None else sym_max(line, h)
+    return sym_select(line, dist, line)
+
+
+def _vertices(value, name, minimum=3) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+    except Exception:  # noqa: BLE001
+        raise TypeError(f"{name} must be a sequence of (x, y) pairs, got {name}={value!r}") \
+            from None
+    if arr.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be a sequence of (x, y) pairs of real numbers, got "
+                        f"{name}={value!r}")
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (n, 2), got shape {arr.shape} for "
+                         f"{name}={value!r}")
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+    if len(arr) < minimum:
+        raise ValueError(f"{name} needs at least {minimum} vertices, got {len(arr)}")
+    return arr
+
+
+def _is_convex(v: np.ndarray) -> bool:
+    """Counter-clockwise vertices: every turn is left (or straight)."""
+    e = np.roll(v, -1, axis=0) - v
+    cross = e[:, 0] * np.roll(e[:, 1], -1) - e[:, 1] * np.roll(e[:, 0], -1)
+    scale = np.hypot(e[:, 0], e[:, 1]) * np.roll(np.hypot(e[:, 0], e[:, 1]), -1)
+    return bool(np.all(cross >= -1e-12 * scale))
+
+
+def _check_simple(v: np.ndarray, name: str) -> None:
+    """Raise ValueError unless the closed polygon ``v`` is simple: no two non-adjacent edges
+    touch, no adjacent edges fold back onto each other, non-zero area."""
+    n = len(v)
+    a, b = v, np.roll(v, -1, axis=0)
+    scale = float(np.abs(v).max()) or 1.0
+    w = v - v[0]
+    far = w[np.argmax(np.hypot(w[:, 0], w[:, 1]))]
+    if np.all(np.abs(w[:, 0] * far[1] - w[:, 1] * far[0]) <= 1e-12 * scale * scale):
+        raise ValueError(f"{name} must enclose a non-zero area (got collinear or coincident "
+                         f"vertices: {v.tolist()!r})")
+
+    def orient(p, q, r):
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - \
+            (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+
+    tol = 1e-12 * scale * scale
+    for i in range(n):
+        # adjacent edge i -> i+1: folds back if collinear and pointing backwards
+        e1, e2 = b[i] - a[i], b[(i + 1) % n] - a[(i + 1) % n]
+        if abs(e1[0] * e2[1] - e1[1] * e2[0]) <= tol and e1 @ e2 < 0:
+            raise ValueError(f"{name} is not simple: edges {i} and {(i + 1) % n} overlap "
+                             f"(the polygon folds back at vertex {(i + 1) % n})")
+        j = np.arange(i + 2, n)
+        if i == 0:
+            j = j[j != n - 1]
+        if not len(j):
+            continue
+        p1, p2, q1, q2 = a[i], b[i], a[j], b[j]
+        o1, o2 = orient(p1, p2, q1), orient(p1, p2, q2)
+        o3, o4 = orient(q1, q2, p1), orient(q1, q2, p2)
+        proper = (o1 * o2 < 0) & (o3 * o4 < 0)
+
+        def on_seg(p, q, r, o):  # r on segment p-q, given their orientation o ~ 0
+            eps = 1e-12 * scale
+            ok = np.abs(o) <= tol
+            for c in (0, 1):
+                lo_c = np.minimum(p[..., c], q[..., c])
+                hi_c = np.maximum(p[..., c], q[..., c])
+                ok = ok & (lo_c <= r[..., c] + eps) & (r[..., c] <= hi_c + eps)
+            return ok
+
+        touch = on_seg(p1, p2, q1, o1) | on_seg(p1, p2, q2, o2) | \
+            on_seg(q1, q2, np.broadcast_to(p1, q1.shape), o3) | \
+            on_seg(q1, q2, np.broadcast_to(p2, q1.shape), o4)
+        bad = proper | touch
+        if np.any(bad):
+            k = int(j[np.argmax(bad)])
+            raise ValueError(f"{name} is not simple: edge {i} ({a[i].tolist()} -> "
+                             f"{b[i].tolist()}) meets edge {k} ({a[k].tolist()} -> "
+                             f"{b[k].tolist()})")
+    area2 = float(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]))
+    if abs(area2) <= 1e-12 * scale * scale:
+        raise ValueError(f"{name} must enclose a non-zero area (got collinear or coincident "
+                         f"vertices: {v.tolist()!r})")
+
+
+class Segment(SDF):
+    """The line segment from ``a`` to ``b`` (``a == b`` gives a point).
+
+    A shape of zero thickness: the value is the exact *unsigned* distance, ``>= 0``
+    everywhere and 0 only on the segment (there is no inside). On the segment itself the
+    gradient is the local +x axis (a one-sided choice, as at a circle's centre).
+    ``Segment(a, b).round(r)`` is the same shape as ``Capsule(a, b, r)``.
+    """
+
+    def __init__(self, a=(0.0, 0.0), b=(1.0, 0.0)):
+        a, b = _vec2(a, "a"), _vec2(b, "b")
+        self.a, self.b = a, b
+        info = _primitive_info(_points_bbox([a, b]), _edges_symmetry([a, b], closed=False),
+                               convex=True)
+        super().__init__(_segment_expr(*_coords(), a, b), info)
+
+
+class Capsule(SDF):
+    """The segment ``a``-``b`` thickened by ``radius`` (a stadium; a disc if ``a == b``)."""
+
+    def __init__(self, a=(0.0, 0.0), b=(1.0, 0.0), radius=0.25):
+        a, b = _vec2(a, "a"), _vec2(b, "b")
+        radius = _real(radius, "radius")
+        if radius <= 0:
+            raise ValueError(f"radius must be > 0, got radius={radius!r}")
+        self.a, self.b, self.radius = a, b, radius
+        info = _primitive_info(_points_bbox([a, b], radius),
+                               _edges_symmetry([a, b], closed=False), convex=True)
+        super().__init__(_segment_expr(*_coords(), a, b) - radius, info)
+
+
+class RoundedBox(SDF):
+    """Axis-aligned rectangle ``minc``-``maxc`` with rounded corners.
+
+    ``radii``: one radius, or four in the order of the quadrants (counter-clockwise from the
+    upper right): ``(upper-right, upper-left, lower-left, lower-right)``; each in
+    ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
+    """
+
+    def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0), radii=0.25):
+        minc, maxc = _vec2(minc, "minc"), _vec2(maxc, "maxc")
+        if not np.all(minc < maxc):
+            raise ValueError(f"minc must be below maxc in both coordinates, got "
+                             f"minc={minc.tolist()!r}, maxc={maxc.tolist()!r}")
+        if isinstance(radii, (tuple, list, np.ndarray)):
+            if len(radii) != 4:
+                raise ValueError(f"radii must be one number or four (upper-right, upper-left, "
+                                 f"lower-left, lower-right), got radii={radii!r}")
+            r = [_real(v, "radii") for v in radii]
+        else:
+            r = [_real(radii, "radii")] * 4
+        center, half = (minc + maxc) / 2, (maxc - minc) / 2
+        limit = float(min(half))
+        if not all(0.0 <= v <= limit for v in r):
+            raise ValueError(f"radii must be in [0, {limit!r}] (half the smaller side), got "
+                             f"radii={radii!r}")
+        self.minc, self.maxc, self.radii = minc, maxc, tuple(r)
+        x, y = _coords()
+        px, py = x - float(center[0]), y - float(center[1])
+        if len(set(r)) == 1:
+            rad = r[0]
+        else:  # the radius of the quadrant the point is in
+            rad = sym_select(px, sym_select(py, r[0], r[3]), sym_select(py, r[1], r[2]))
+        qx = sym_abs(px) - float(half[0]) + rad
+        qy = sym_abs(py) - float(half[1]) + rad
+        expr = sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0)) + sym_min(0.0, sym_max(qx, qy)) - rad
+        sym = set()
+        if center[0] == 0 and r[0] == r[1] and r[2] == r[3]:
+            sym.add("x")
+        if center[1] == 0 and r[0] == r[3] and r[1] == r[2]:
+            sym.add("y")
+        info = _primitive_info(_points_bbox([minc, maxc]), sym, convex=True)
+        super().__init__(expr, info)
+
+
+class OrientedBox(SDF):
+    """Rectangle along the segment ``a``-``b``: length ``|b - a|``, total width ``thickness``
+    (IQ's oriented box; the ends are flat, at ``a`` and ``b``)."""
+
+    def __init__(self, a=(-1.0, 0.0), b=(1.0, 0.0), thickness=0.5):
+        a, b = _vec2(a, "a"), _vec2(b, "b")
+        thickness = _real(thickness, "thickness")
+        if thickness <= 0:
+            raise ValueError(f"thickness must be > 0, got thickness={thickness!r}")
+        length = float(np.hypot(*(b - a)))
+        if not length > 0:
+            raise ValueError(f"a and b must differ, got a={a.tolist()!r}, b={b.tolist()!r}")
+        self.a, self.b, self.thickness = a, b, thickness
+        d = (b - a) / length
+        m = (a + b) / 2
+        x, y = _coords()
+        px, py = x - float(m[0]), y - float(m[1])
+        u = px * float(d[0]) + py * float(d[1])
+        v = py * float(d[0]) - px * float(d[1])
+        qx = sym_abs(u) - length / 2
+        qy = sym_abs(v) - thickness / 2
+        expr = sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0)) + sym_min(0.0, sym_max(qx, qy))
+        n = np.array([-d[1], d[0]]) * thickness / 2
+        corners = [a - n, b - n, b + n, a + n]
+        info = _primitive_info(_points_bbox(corners), _edges_symmetry(corners), convex=True)
+        super().__init__(expr, info)
+
+
+class Triangle(SDF):
+    """The triangle with corners ``p0, p1, p2`` (either orientation; not collinear)."""
+
+    def __init__(self, p0=(-1.0, -0.5), p1=(1.0, -0.5), p2=(0.0, 1.0)):
+        v = np.array([_vec2(p0, "p0"), _vec2(p1, "p1"), _vec2(p2, "p2")])
+        e1, e2 = v[1] - v[0], v[2] - v[0]
+        area2 = e1[0] * e2[1] - e1[1] * e2[0]
+        scale = float(max(np.hypot(*e1), np.hypot(*e2), np.hypot(*(v[2] - v[1]))))
+        if not abs(area2) > 1e-12 * scale * scale:
+            raise ValueError(f"p0, p1, p2 must not be collinear, got p0={v[0].tolist()!r}, "
+                             f"p1={v[1].tolist()!r}, p2={v[2].tolist()!r}")
+        self.vertices = _ccw(v)
+        info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=True)
+        super().__init__(_convex_polygon_expr(*_coords(), self.vertices), info)
+
+
+def _regular_vertices(center, radius, n, phase=math.pi / 2):
+    t = phase + 2 * math.pi * np.arange(n) / n
+    return np.stack([center[0] + radius * np.cos(t), center[1] + radius * np.sin(t)], -1)
+
+
+def _check_n(n, name="n", minimum=3) -> int:
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
+        raise TypeError(f"{name} must be an integer, got {name}={n!r}")
+    if n < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {name}={n!r}")
+    return int(n)
+
+
+def _positive(value, name) -> float:
+    value = _real(value, name)
+    if value <= 0:
+        raise ValueError(f"{name} must be > 0, got {name}={value!r}")
+    return value
+
+
+class RegularPolygon(SDF):
+    """Regular ``n``-gon inscribed in the circle of ``radius`` (circumradius) around
+    ``center``, one vertex pointing up (+y). Built from graph operations: ``n`` segments (one
+    loop over a table in the generated code for ``n >= 4``)."""
+
+    def __init__(self, center=(0.0, 0.0), radius=1.0, n=6):
+        center = _vec2(center, "center")
+        radius = _positive(radius, "radius")
+        n = _check_n(n)
+        self.center, self.radius, self.n = center, radius, n
+        v = _regular_vertices(center, radius, n)
+        self.vertices = v
+        sym = {"x"} if center[0] == 0 else set()
+        if center[1] == 0 and n % 2 == 0:
+            sym.add("y")
+        info = _primitive_info(_points_bbox(v), sym, convex=True)
+        super().__init__(_convex_polygon_expr(*_coords(), v), info)
+
+
+class EquilateralTriangle(RegularPolygon):
+    """Equilateral triangle inscribed in the circle of ``radius`` around ``center``, one
+    corner pointing up (+y)."""
+
+    def __init__(self, center=(0.0, 0.0), radius=1.0):
+        super().__init__(center=center, radius=radius, n=3)
+
+
+class Polygon(SDF):
+    """Any simple polygon, given by its vertices (either orientation, not repeated at the end).
+
+    Collinear vertices (extra points on an edge) and consecutive duplicates are fine; the
+    polygon must not intersect or touch itself and must enclose a non-zero area (checked, in
+    O(n^2)). Evaluated by a compiled loop over the edges (graph op ``prim``, kind
+    ``'polygon'``): O(n) per point; the vertices are a table in the generated module.
+    """
+
+    def __init__(self, vertices):
+        v = _vertices(vertices, "vertices")
+        if len(v) > 1 and np.all(v[0] == v[-1]):
+            v = v[:-1]  # closed by repeating the first vertex: accepted
+        keep = np.any(v != np.roll(v, 1, axis=0), axis=1)  # drop consecutive duplicates
+        v = v[keep] if np.any(keep) else v[:1]
+        if len(v) < 3:
+            raise ValueError(f"vertices needs at least 3 distinct vertices, got "
+                             f"{np.asarray(vertices).tolist()!r}")
+        _check_simple(v, "vertices")
+        v = _ccw(v)
+        self.vertices = v
+        data = tuple((float(p[0]), float(p[1])) for p in v)
+        info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=_is_convex(v))
+        super().__init__(sym_prim("polygon", *_coords(), data=data), info)
+
+
+class Star(Polygon):
+    """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
+    pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``."""
+
+    def __init__(self, center=(0.0, 0.0), radius=1.0, n=5, inner_radius=None):
+        center = _vec2(center, "center")
+        radius = _positive(radius, "radius")
+        n = _check_n(n, minimum=2)
+        inner = radius / 2 if inner_radius is None else _positive(inner_radius, "inner_radius")
+        if not inner < radius:
+            raise ValueError(f"inner_radius must be < radius, got inner_radius={inner!r}, "
+                             f"radius={radius!r}")
+        t = math.pi / 2 + math.pi * np.arange(2 * n) / n
+        rr = np.where(np.arange(2 * n) % 2 == 0, radius, inner)
+        v = np.stack([center[0] + rr * np.cos(t), center[1] + rr * np.sin(t)], -1)
+        super().__init__(v)
+        self.center, self.radius, self.n, self.inner_radius = center, radius, n, inner
+        sym = {"x"} if center[0] == 0 else set()
+        if center[1] == 0 and n % 2 == 0:
+            sym.add("y")
+        self._info = replace(self._info, sym=frozenset(sym) if _frame() == _IDENTITY
+                             else frozenset())
+
+
+class Ellipse(SDF):
+    """Ellipse around ``center`` with semi-axes ``axes = (a, b)`` along the local x and y axes
+    (exact for any axis ratio; equal axes give a circle).
+
+    Evaluated by a compiled closest-point solve (graph op ``prim``, kind ``'ellipse'``): a
+    safeguarded Newton iteration, typically 3 to 6 steps (about 10x the cost of a circle).
+    """
+
+    def __init__(self, center=(0.0, 0.0), axes=(1.0, 0.5)):
+        center = _vec2(center, "center")
+        axes = _vec2(axes, "axes")
+        if not np.all(axes > 0):
+            raise ValueError(f"axes must be > 0, got axes={axes.tolist()!r}")
+        self.center, self.axes = center, axes
+        x, y = _coords()
+        expr = sym_prim("ellipse", x - float(center[0]), y - float(center[1]),
+                        float(axes[0]), float(axes[1]))
+        info = _primitive_info(_points_bbox([center - axes, center + axes]), _center_sym(center),
+                               convex=True)
+        super().__init__(expr, info)
+
+
+class Ring(SDF):
+    """Annulus: the circle of ``radius`` around ``center`` thickened to total width
+    ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
+
+    def __init__(self, center=(0.0, 0.0), radius=1.0, thickness=0.2):
+        center = _vec2(center, "center")
+        radius = _positive(radius, "radius")
+        thickness = _positive(thickness, "thickness")
+        if not thickness < 2 * radius:
+            raise ValueError(f"thickness must be < 2 * radius (the hole would close), got "
+                             f"thickness={thickness!r}, radius={radius!r}")
+        self.center, self.radius, self.thickness = center, radius, thickness
+        x, y = _coords()
+        expr = sym_abs(sym_length(x - float(center[0]), y - float(center[1])) - radius) \
+            - thickness / 2
+        info = _primitive_info(_points_bbox([center], radius + thickness / 2),
+                               _center_sym(center))
+        super().__init__(expr, info)
+
+
+class Arc(SDF):
+    """Circular arc of ``radius`` around ``center``, spanning the angle ``aperture`` (radians,
+    ``0 < aperture <= 2 pi``) symmetrically about the local +y axis, thickened to total width
+    ``thickness`` with round ends (IQ's sdArc; rotate it with ``transform``).
+
+    Exact when ``thickness < 2 radius`` and the two round ends do not overlap (their centres
+    are at least ``thickness`` apart, or the arc is a full circle); otherwise exact outside and
+    a bound inside (reported as ``'bound'``).
+    """
+
+    def __init__(self, center=(0.0, 0.0), radius=1.0, aperture=math.pi, thickness=0.2):
+        center = _vec2(center, "center")
+        radius = _positive(radius, "radius")
+        aperture = _positive(aperture, "aperture")
+        if aperture > 2 * math.pi:
+            raise ValueError(f"aperture must be <= 2 pi, got aperture={aperture!r}")
+        thickness = _positive(thickness, "thickness")
+        if not thickness < 2 * radius:
+            raise ValueError(f"thickness must be < 2 * radius, got thickness={thickness!r}, "
+                             f"radius={radius!r}")
+        self.center, self.radius = center, radius
+        self.aperture, self.thickness = aperture, thickness
+        x, y = _coords()
+        px, py = x - float(center[0]), y - float(center[1])
+        ring = sym_abs(sym_length(px, py) - radius)
+        if aperture == 2 * math.pi:
+            dist = ring
+        else:
+            s, c = math.sin(aperture / 2), math.cos(aperture / 2)
+            ax = sym_abs(px)
+            # beyond the end's ray the end point is nearest, else the circle
+            dist = sym_select(ax * c - py * s, sym_length(ax - s * radius, py - c * radius), ring)
+        gap = 2 * radius * math.sin(math.pi - aperture / 2)  # distance between the ends
+        exact = aperture == 2 * math.pi or gap >= thickness
+        info = _primitive_info(_points_bbox([center], radius + thickness / 2),
+                               _center_sym(center) & {"x"})
+        if not exact:
+            info = replace(info, inside=False)
+        super().__init__(dist - thickness / 2, info)
