@@ -139,3 +139,40 @@ def test_parameter_errors_name_the_parameter():
     g = f.with_params(px=0.5)
     assert g.params == {"px": 0.5} and f.params == {"px": 0.1}
     np.testing.assert_allclose(g(SX, SY), np.hypot(SX - 0.5, SY) - 1.0, atol=1e-12)
+
+
+def test_shapes_take_parameters_wherever_a_number_is():
+    a, px, r, k = Param("angle", 0.3), Param("px", 0.5), Param("r", 0.3), Param("k", 0.2)
+
+    def scene(angle, cx, radius, blend, lift):
+        with sdf.transform(angle=angle, offset=[0.1, 0.2]):
+            bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
+        ball = sdf.Circle(center=[cx, 0.4], radius=radius).translate([0.0, lift])
+        return bar.union(ball, k=blend, kind="quadratic").round(0.05) | \
+            sdf.Halfspace(normal=[0, 1], d=-1.5).union(bar.rotate(angle), k=10 * blend)
+
+    f = scene(a, px, r, k, 0.5 * sdf.t)
+    assert f.params == {"angle": 0.3, "px": 0.5, "r": 0.3, "k": 0.2, "t": 0.0}
+    assert f.exactness == "bound"
+    assert sdf.Circle(center=[px, 0], radius=r).exactness == "exact"
+    f(SX, SY, compute_gradient=True)
+    before = _kernel_count(f)
+    for vals in [dict(angle=-0.4, px=0.1, r=0.5, k=0.05, t=0.3), dict(angle=1.2, px=-0.3, r=0.2,
+                                                                       k=0.3, t=-1.0)]:
+        baked = scene(vals["angle"], vals["px"], vals["r"], vals["k"], 0.5 * vals["t"])
+        d0, g0 = baked(SX, SY, compute_gradient=True)
+        d1, g1 = f(SX, SY, compute_gradient=True, **vals)
+        np.testing.assert_allclose(d1, d0, atol=1e-12)
+        np.testing.assert_allclose(g1, g0, atol=1e-9)
+    assert _kernel_count(f) == before
+
+
+def test_shape_parameter_errors():
+    with pytest.raises(ValueError, match="radius must be > 0"):
+        sdf.Circle(radius=Param("r", -1.0))
+    with pytest.raises(ValueError, match="coordinates"):
+        sdf.Circle(center=[X, 0])
+    with pytest.raises(ValueError, match="minc must be below maxc"):
+        sdf.Box(minc=[Param("lo", 2.0), 0], maxc=[1, 1])
+    with pytest.raises(ValueError, match="must be > 0"):
+        sdf.Circle().union(sdf.Circle(center=[1, 0]), k=Param("k", 0.0))

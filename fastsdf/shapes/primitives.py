@@ -13,6 +13,7 @@ import numpy as np
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from ..graph import Expr, sym_abs, sym_length, sym_max, sym_min, sym_prim, sym_select
+from .._validate import is_param, real_or_param, vec2_or_param
 from .context import _IDENTITY, _coords, _frame
 from .exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
 from .operations import SDF
@@ -32,13 +33,15 @@ class Circle(SDF):
     """
 
     def __init__(self, center=(0.0, 0.0), radius=1.0):
-        center = _vec2(center, "center")
-        radius = _real(radius, "radius")
-        if radius <= 0:
+        center, c0 = vec2_or_param(center, "center")
+        radius, r0 = real_or_param(radius, "radius")
+        if r0 <= 0:
             raise ValueError(f"radius must be > 0, got radius={radius!r}")
         self.center, self.radius = center, radius
         x, y = _coords()
-        info = _primitive_info(_points_bbox([center], radius), _center_sym(center), convex=True)
+        moving = is_param(radius) or any(is_param(v) for v in center)
+        info = _primitive_info(None if moving else _points_bbox([center], radius),
+                               () if moving else _center_sym(center), convex=True)
         super().__init__(sym_length(x - center[0], y - center[1]) - radius, info)
 
 
@@ -48,7 +51,7 @@ class Halfspace(SDF):
 
     def __init__(self, normal=(1.0, 0.0), d=0.0):
         normal = _vec2(normal, "normal")
-        d = _real(d, "d")
+        d, _ = real_or_param(d, "d")
         length = float(np.hypot(normal[0], normal[1]))
         if not length > 0:
             raise ValueError(f"normal must have non-zero length, got normal={normal.tolist()!r}")
@@ -67,12 +70,14 @@ class Box(SDF):
     """
 
     def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0)):
-        minc, maxc = _vec2(minc, "minc"), _vec2(maxc, "maxc")
-        if not np.all(minc < maxc):
+        (minc, lo), (maxc, hi) = vec2_or_param(minc, "minc"), vec2_or_param(maxc, "maxc")
+        if not np.all(lo < hi):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
-                             f"minc={minc.tolist()!r}, maxc={maxc.tolist()!r}")
+                             f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
         self.minc, self.maxc = minc, maxc
-        center, half = (minc + maxc) / 2, (maxc - minc) / 2
+        moving = any(is_param(v) for v in (*minc, *maxc))
+        center = [(minc[j] + maxc[j]) * 0.5 for j in (0, 1)]
+        half = [(maxc[j] - minc[j]) * 0.5 for j in (0, 1)]
         x, y = _coords()
         qx = sym_abs(x - center[0]) - half[0]
         qy = sym_abs(y - center[1]) - half[1]
@@ -80,8 +85,8 @@ class Box(SDF):
         # min(0, .) puts the constant first so that on the boundary (a tie) the constant's zero
         # gradient is taken and the gradient stays of unit length.
         inside = sym_min(0.0, sym_max(qx, qy))
-        sym = {ax for ax, lo, hi in zip("xy", minc, maxc) if lo == -hi}
-        info = _primitive_info(_points_bbox([minc, maxc]), sym, convex=True)
+        sym = set() if moving else {ax for ax, a, b in zip("xy", lo, hi) if a == -b}
+        info = _primitive_info(None if moving else _points_bbox([lo, hi]), sym, convex=True)
         super().__init__(outside + inside, info)
 
 
