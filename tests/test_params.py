@@ -176,3 +176,12 @@ def test_shape_parameter_errors():
         sdf.Box(minc=[Param("lo", 2.0), 0], maxc=[1, 1])
     with pytest.raises(ValueError, match="must be > 0"):
         sdf.Circle().union(sdf.Circle(center=[1, 0]), k=Param("k", 0.0))
+
+
+def test_grid_of_a_parametric_scene_is_a_snapshot():
+    f = sdf.Circle(center=[Param("px", 0.25), 0.0], radius=0.5)
+    g = sdf.GridSDF(f.with_params(px=-0.25), bounds=[(-1, 1), (-1, 1)], samples=[41, 41])
+    np.testing.assert_allclose(g(SX / 2, SY / 2), np.hypot(SX / 2 + 0.25, SY / 2) - 0.5,
+                               atol=0.02)
+    with pytest.raises(ValueError, match="depends on time"):
+        sdf.GridSDF(sdf.Circle(center=[0.0, sdf.t], radius=0.5))
