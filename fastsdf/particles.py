@@ -15,9 +15,11 @@ with each other and do not rotate.
 
 One step (``timestep`` seconds), for every particle, in one fused compiled loop:
 
-1. forces: fused :class:`Gravity` (``m * acceleration``) and :class:`Drag` (``-c v``), plus the
-   sum of any Python force generators ``(p, t) -> (n, 2)`` (evaluated with NumPy before the
-   compiled step: the slow path);
+1. forces: fused :class:`Gravity` (``m * acceleration``), :class:`Drag` (``-c v``) and user
+   forces written as numba functions ``@njit def f(x, y, vx, vy, m, t) -> (fx, fy)`` (in
+   mass * length / s**2, at the particle's state before the step and the step's start time
+   ``t``), compiled into the step; plus the sum of any Python force generators
+   ``(p, t) -> (n, 2)`` (evaluated with NumPy before each compiled step: the slow path);
 2. integration: semi-implicit (symplectic) Euler ``v += f/m dt; x += v dt`` (the default), or
    the notebook's explicit Euler ``x += v dt; v += f/m dt`` (``integrator='euler'``);
 3. tunnelling check (``prevent_tunnelling=True``, the default): a particle moving farther than
@@ -55,9 +57,15 @@ Memory: the state is structure-of-arrays (``x``, ``v``: (n, 2); ``m``, ``r``, ``
 (n,)), 64 bytes per particle in float64 and 32 in float32 (``dtype=np.float32``; the arithmetic
 is float64 either way). A step must read ``x``, ``v``, ``r`` and write ``x``, ``v``: 72 bytes
 per particle in float64 (80 with drag, which reads ``m``), 36 in float32; ``cr`` and ``cf`` are
-read only for particles in contact. Each call also validates ``m``, ``r``, ``cr``, ``cf`` once
-(24 more bytes read per particle and call) and keeps the 8-byte free-flight budget in a scratch
-array of one block.
+read only for particles in contact. The state is checked on the values a step loads anyway
+(see :meth:`ParticleSimulation.run`); ``m``, ``cr``, ``cf`` are re-read in full only at the
+first call after they were handed out through ``p`` (24 bytes per particle, once). The 8-byte
+free-flight budget lives in a scratch array of one block.
+
+The step kernel is the module :mod:`fastsdf._step` (readable, tested directly); each world gets a
+copy with its query and fused forces in place, cached on disk by content hash. A grid world's
+kernel does not depend on the scene (its exact fallback is bound at run time), so it compiles
+once per installation.
 """
 
 from __future__ import annotations
@@ -73,30 +81,29 @@ import warnings
 
 import numba
 import numpy as np
+from numba.core.dispatcher import Dispatcher
 
 from ._validate import real
 from ._validate import vec2 as _vec2
 from . import __version__
 from ._cache import load_module
-from ._particle_kernels import QUERY_EXACT, QUERY_GRID_EXACT, QUERY_GRID_NEAREST, TEMPLATE
+from . import _step
+from ._step import CONTACT_TOL, MAX_BOUNCES, MAX_MARCH, MIN_STEP, TRACE_FRACTION
 from .graph import Function
 
 __all__ = ["ParticleSimulation", "Particles", "Gravity", "Drag", "create_animation",
            "reference_step", "TRACE_FRACTION", "PARALLEL_MIN_PARTICLES", "DEFAULT_BLOCK"]
 
-#: The tunnelling check sweeps a particle whose step is longer than this fraction of its radius
-#: (and whose end point is not provably clear); it is also the march's shortest step.
-TRACE_FRACTION = 0.5
-#: Shortest march step, as a fraction of the step's length, when touching a surface the particle
-#: leaves or slides along (matters for particles of radius 0).
-MIN_STEP = 0.02
-#: A march stops at a contact when ``d - r`` is below this fraction of the step's length.
-CONTACT_TOL = 1e-3
-#: At most this many SDF queries per swept segment; a particle that runs out stops where it is
-#: (a point the march has shown to be free), losing the rest of that step's displacement.
-MAX_MARCH = 64
-#: At most this many contacts per step; at the last one the particle stops at the contact.
-MAX_BOUNCES = 3
+# The step's constants live in fastsdf._step (the kernel's source); documented here:
+#: TRACE_FRACTION: the tunnelling check sweeps a particle whose step is longer than this fraction
+#: of its radius (and whose end point is not provably clear); it is also the march's shortest
+#: step. MIN_STEP: shortest march step, as a fraction of the step's length, when touching a
+#: surface the particle leaves or slides along (matters for particles of radius 0).
+#: CONTACT_TOL: a march stops at a contact when ``d - r`` is below this fraction of the step's
+#: length. MAX_MARCH: at most this many SDF queries per swept segment; a particle that runs out
+#: stops where it is (a point the march has shown to be free), losing the rest of that step's
+#: displacement. MAX_BOUNCES: at most this many contacts per step; at the last one the particle
+#: stops at the contact.
 #: Fewer particles than this run on one thread (thread start-up costs more than it saves).
 PARALLEL_MIN_PARTICLES = 4096
 #: Particles per block in :meth:`ParticleSimulation.run` (block state fits in the L1/L2 cache).
@@ -193,7 +200,10 @@ class Particles:
 
     ``p['x'] = value`` copies ``value`` into the existing array (broadcasting, e.g.
     ``p['cr'] = 0.9``), so the simulation keeps seeing it. All fields share one float dtype
-    (float64 or float32). Values are checked when the simulation steps.
+    (float64 or float32). Values are checked when the simulation steps: ``x``, ``v``, ``r`` at
+    every call (the step reads them anyway), ``m``, ``cr``, ``cf`` where a step uses them and,
+    in full, at the first call after they were handed out (``p['m']``, ``p.cr``: the array
+    may have been written in place), so unchanged state is not re-read every call.
     """
 
     FIELDS = ("x", "v", "m", "r", "cr", "cf")
@@ -202,15 +212,24 @@ class Particles:
         self._n = int(n)
         self._dtype = np.dtype(dtype)
         self._arrays = {}
+        #: Whether m, cr or cf may have changed since the step last checked them all.
+        self._dirty = True
         for name in self.FIELDS:
             shape = (self._n, 2) if name in ("x", "v") else (self._n,)
             self._arrays[name] = np.zeros(shape, dtype=self._dtype)
 
+    #: Fields the step does not read on every step: handing one out (it may be written in
+    #: place) marks the state for a full check at the next step.
+    _CHECKED_ON_ACCESS = ("m", "cr", "cf")
+
     def __getitem__(self, name):
         try:
-            return self._arrays[name]
+            arr = self._arrays[name]
         except (KeyError, TypeError):
             raise KeyError(f"no particle field {name!r}; fields are {self.FIELDS}") from None
+        if name in self._CHECKED_ON_ACCESS:
+            self._dirty = True
+        return arr
 
     def __setitem__(self, name, value):
         arr = self[name]
@@ -230,6 +249,8 @@ class Particles:
     def __getattr__(self, name):
         arrays = self.__dict__.get("_arrays")
         if arrays is not None and name in arrays:
+            if name in self._CHECKED_ON_ACCESS:
+                self._dirty = True
             return arrays[name]
         raise AttributeError(name)
 
@@ -302,18 +323,6 @@ def _module_hash(mod_name: str) -> str:
     return hashlib.sha256(src.encode()).hexdigest()[:16]
 
 
-def _borrow_expr(value, expr: str = "data") -> str:
-    """Source rebuilding ``value`` (the query data) with every array wrapped in ``borrowed``."""
-    if isinstance(value, np.ndarray):
-        return f"borrowed({expr})"
-    if type(value) is tuple:
-        parts = [_borrow_expr(v, f"{expr}[{i}]") for i, v in enumerate(value)]
-        if all(p == f"{expr}[{i}]" for i, p in enumerate(parts)):
-            return expr
-        return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
-    return expr
-
-
 def _exactness(f) -> str:
     """``'exact'``, ``'bound'`` or ``'none'`` (see :attr:`fastsdf.SDF.exactness`) of the world
     (of a grid's exact SDF); ``'unknown'`` for a bare :class:`fastsdf.graph.Function`."""
@@ -344,11 +353,87 @@ def _grid_margin(f) -> float:
 
 
 _KERNELS: dict = {}
+_EXACT_OUT: dict = {}
+
+_SCENE_BEGIN = "# >>> SCENE BLOCK"
+_SCENE_END = "# <<< SCENE BLOCK <<<"
+_DECORATOR = '@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")'
 
 
-def _kernel_module(f):
-    """The generated kernel module for the SDF or grid ``f`` and its data argument."""
-    kernel_dep = f"fastsdf._particle_kernels (source {_module_hash('fastsdf._particle_kernels')})"
+def _step_source() -> tuple:
+    """The source of :mod:`fastsdf._step`, split around its scene block."""
+    src = inspect.getsource(_step)
+    a = src.index(_SCENE_BEGIN)
+    b = src.index(_SCENE_END) + len(_SCENE_END)
+    return src[:a], src[b:]
+
+
+def _exact_address(exact) -> tuple:
+    """A C function ``void(double x, double y, double *out)`` evaluating the exact SDF: the
+    grid kernel's fallback outside the grid, bound at run time through its address so that
+    the kernel does not depend on the scene. Returns ``(address, keepalive)``."""
+    scene = exact.compiled.module.__name__
+    entry = _EXACT_OUT.get(scene)
+    if entry is None:
+        source = (f'''"""Generated by fastsdf {__version__} (numba {numba.__version__}): the exact
+fallback of a grid world as a C function. Dependencies: {scene}."""
+from numba import cfunc, types
+
+from {scene} import point_vg as _exact
+
+
+@cfunc(types.void(types.float64, types.float64, types.CPointer(types.float64)), cache=True,
+       error_model="numpy")
+def exact_out(x, y, out):
+    d, gx, gy = _exact(x, y)
+    out[0] = d
+    out[1] = gx
+    out[2] = gy
+''')
+        mod = load_module(source, prefix="fastsdf_exactptr")
+        entry = _EXACT_OUT[scene] = (int(mod.exact_out.address), mod)
+    return entry
+
+
+def _force_parts(forces) -> tuple:
+    """Scene-block lines binding the fused user forces and the ``_force`` function; names of
+    forces that must be bound after import (not importable: no disk cache)."""
+    lines, deps, late = [], [], []
+    for k, fn in enumerate(forces):
+        where = _importable(fn)
+        # A function of __main__ (a script, a notebook) or without source may be redefined
+        # under the same name: never cache a kernel that names it.
+        if where is not None and (where[0] == "__main__" or _module_hash(where[0]) == "unknown"):
+            where = None
+        if where is None:
+            lines.append(f"_uf{k} = None  # bound by fastsdf.particles")
+            late.append((f"_uf{k}", fn))
+        else:
+            lines.append(f"from {where[0]} import {where[1]} as _uf{k}")
+            deps.append(f"{where[0]} (source {_module_hash(where[0])})")
+    body = [_DECORATOR, "def _force(x, y, vx, vy, m, t):"]
+    if not forces:
+        body.append("    return 0.0, 0.0")
+    else:
+        body += ["    fx = 0.0", "    fy = 0.0"]
+        for k in range(len(forces)):
+            body += [f"    ax, ay = _uf{k}(x, y, vx, vy, m, t)", "    fx += ax", "    fy += ay"]
+        body.append("    return fx, fy")
+    lines += ["", ""] + body
+    lines.append(f"USE_FORCE = {bool(forces)}")
+    return lines, deps, late
+
+
+def _kernel_module(f, forces=()):
+    """The generated kernel module for the world ``f`` (an SDF or a grid, see the sampler
+    protocol in :mod:`fastsdf._step`) and the fused user forces, and its query data.
+
+    Returns ``(module, data, keepalive)``. The kernel's source is :mod:`fastsdf._step` with
+    its scene block replaced; a grid world's block names only the sampler, so its kernel is
+    shared by every scene.
+    """
+    late = []
+    keep = None
     if _is_grid(f):
         exact = f.exact
         if not isinstance(exact, Function):
@@ -357,51 +442,59 @@ def _kernel_module(f):
         if mode not in ("exact", "nearest"):
             raise ValueError(f"grid mode must be 'exact' or 'nearest', got mode={mode!r}")
         sampler = f.sampler
-        data = f.sampler_data
-        scene = exact.compiled.module.__name__
         where = _importable(sampler)
-        imports = [f"from {scene} import point_vg as _exact"]
-        deps = [scene, kernel_dep]
-        cache = "True"
         if where is None:
-            cache = "False"  # a sampler we cannot import: bind it after import, no disk cache
-            imports.append("_sampler = None  # bound by fastsdf.particles")
+            lines = ["_sampler = None  # bound by fastsdf.particles"]
+            late.append(("_sampler", sampler))
+            deps = []
         else:
-            imports.append(f"from {where[0]} import {where[1]} as _sampler")
-            deps.append(f"{where[0]} (source {_module_hash(where[0])})")
-        query = QUERY_GRID_EXACT if mode == "exact" else QUERY_GRID_NEAREST
-        desc = f"grid ({mode}) of {exact!r}"[:300]
-        key = (id(exact), id(sampler), mode)
+            lines = [f"from {where[0]} import {where[1]} as _sampler"]
+            deps = [f"{where[0]} (source {_module_hash(where[0])})"]
+        lines += ["", "", _DECORATOR, "def _query(data, x, y):",
+                  "    d, gx, gy, inside = _sampler(data[1:], x, y)"]
+        if mode == "exact":
+            lines += ["    if not inside:", "        return call_vg(data[0], x, y)"]
+            address, keep = _exact_address(exact)
+        else:
+            address = 0
+        lines.append("    return d, gx, gy")
+        data = (address,) + tuple(f.sampler_data)
+        desc = f"a grid world (mode {mode!r}); the scene is bound at run time"
+        key = ("grid", id(sampler), mode)
     elif isinstance(f, Function):
         scene = f.compiled.module.__name__
-        imports = [f"from {scene} import point_vg as _exact"]
-        deps = [scene, kernel_dep]
-        cache = "True"
-        query = QUERY_EXACT
+        lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
+                 "def _query(data, x, y):", "    return _exact(x, y)"]
+        deps = [scene]
         data = (0.0,)
-        sampler = None
         desc = repr(f)[:300]
-        key = (id(f.compiled.module),)
+        key = ("sdf", id(f.compiled.module))
     else:
         raise TypeError(f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type "
                         f"{type(f).__name__}")
-    source = TEMPLATE.format(
-        VERSION=__version__, NUMBA=numba.__version__,
-        DESCRIPTION=desc.replace('"""', "'''").replace("\\", "\\\\"), DEPS="; ".join(deps),
-        IMPORTS="\n".join(imports), QUERY=query, BORROW=_borrow_expr(data), CACHE=cache,
-        TRACE_FRACTION=TRACE_FRACTION,
-        MIN_STEP=MIN_STEP, CONTACT_TOL=CONTACT_TOL, MAX_MARCH=MAX_MARCH, MAX_BOUNCES=MAX_BOUNCES)
-    if cache == "False":
-        # One module per sampler object; the entry keeps the sampler alive, so its id is not
+    force_lines, force_deps, force_late = _force_parts(forces)
+    late += force_late
+    deps += force_deps
+    head, tail = _step_source()
+    desc = desc.replace("\n", " ")
+    block = [f"# Generated by fastsdf {__version__} (numba {numba.__version__}) from "
+             f"fastsdf/_step.py; do not edit: the file name is the hash of this content.",
+             f"# World: {desc}", f"# Dependencies: {'; '.join(deps) or 'none'}",
+             f"_CACHE = {not late}", ""] + lines + [""] + force_lines
+    source = head + "\n".join(block) + "\n" + tail
+    if late:
+        # One module per set of objects; the entry keeps them alive, so their ids are not
         # reused while the entry exists.
+        key = key + tuple(id(obj) for _, obj in late)
         entry = _KERNELS.get(key)
         if entry is None:
             mod = load_module(source + f"\n# uncached instance {len(_KERNELS)}\n",
                               prefix="fastsdf_particles")
-            mod._sampler = sampler
-            entry = _KERNELS[key] = (mod, sampler, exact)
-        return entry[0], data
-    return load_module(source, prefix="fastsdf_particles"), data
+            for name, obj in late:
+                setattr(mod, name, obj)
+            entry = _KERNELS[key] = (mod, [obj for _, obj in late])
+        return entry[0], data, (keep, entry[1])
+    return load_module(source, prefix="fastsdf_particles"), data, keep
 
 
 # ---------------------------------------------------------------------------------------------
@@ -500,6 +593,7 @@ class ParticleSimulation:
         self._layer = None
         self.t = 0.0
         self._ext = None
+        self._flags = None
         self._wall = None
         self.reset()
 
@@ -510,9 +604,10 @@ class ParticleSimulation:
 
     @sdf.setter
     def sdf(self, f):
-        module, data = _kernel_module(f)   # raises TypeError for anything else
+        module, data, keep = _kernel_module(f)   # raises TypeError for anything else
         self._sdf = f
-        self._module, self._data = module, data
+        self._module, self._data, self._keep = module, data, keep
+        self._kernels = {(): (module, data, keep, ())}
         self._margin = _grid_margin(f)
         #: The Lipschitz bound the tunnelling check and the free-flight budget use.
         self.lipschitz = float(self._lipschitz_arg) if self._lipschitz_arg is not None \
@@ -579,19 +674,31 @@ class ParticleSimulation:
     # -- the compiled loop -------------------------------------------------------------------
     def _fused_params(self):
         ax = ay = drag = 0.0
-        python = []
+        python, user = [], []
         for gen in self.force_generators:
             if isinstance(gen, Gravity):
                 ax += float(gen.acceleration[0])
                 ay += float(gen.acceleration[1])
             elif isinstance(gen, Drag):
                 drag += gen.coefficient
+            elif isinstance(gen, Dispatcher):
+                user.append(gen)
             elif callable(gen):
                 python.append(gen)
             else:
-                raise TypeError(f"force_generators must hold Gravity, Drag or callables "
+                raise TypeError(f"force_generators must hold Gravity, Drag, numba @njit forces "
+                                f"(x, y, vx, vy, m, t) -> (fx, fy) or callables "
                                 f"(p, t) -> (n, 2) forces, got {gen!r}")
-        return ax, ay, drag, python
+        return ax, ay, drag, python, tuple(user)
+
+    def _kernel(self, user):
+        """The compiled step for these fused user forces (generated on first use)."""
+        key = tuple(id(u) for u in user)
+        entry = self._kernels.get(key)
+        if entry is None or entry[3] != user:
+            module, data, keep = _kernel_module(self._sdf, user)
+            entry = self._kernels[key] = (module, data, keep, user)
+        return entry[0], entry[1]
 
     def _python_forces(self, gens) -> np.ndarray:
         n = self.n
@@ -623,11 +730,17 @@ class ParticleSimulation:
     def run(self, steps=1):
         """Advance ``steps`` steps (``steps * timestep`` seconds) in compiled code.
 
-        With only fused forces (:class:`Gravity`, :class:`Drag`) this is one compiled call for
-        all steps; with Python force generators, one generator evaluation and one compiled step
-        per step. Raises ``ValueError`` naming the first invalid particle if the state holds a
-        non-finite position or velocity, a mass that is not > 0, a negative radius, or ``cr`` /
-        ``cf`` outside [0, 1]: such particles are left untouched; the valid ones are advanced.
+        With only fused forces (:class:`Gravity`, :class:`Drag`, numba ``@njit`` forces) this
+        is one compiled call for all steps; with Python force generators, one generator
+        evaluation and one compiled step per step.
+
+        Errors. A particle whose state cannot be stepped (a non-finite position or velocity, a
+        mass that is not > 0 where the mass is used, a negative or non-finite radius, ``cr`` or
+        ``cf`` outside [0, 1] at a contact), or whose step would produce a non-finite state
+        (e.g. a timestep so large that the motion overflows), is frozen at its last valid state
+        and never carries a non-finite value. The other particles complete every step, ``t``
+        advances by ``steps * timestep`` (clock and state agree), and then a ``ValueError``
+        names the first such particle and what was wrong.
         """
         if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
             raise TypeError(f"steps must be an integer, got steps={steps!r}")
@@ -636,15 +749,31 @@ class ParticleSimulation:
         if steps == 0:
             return
         self._check_state_shape()
-        ax, ay, drag, python = self._fused_params()
+        ax, ay, drag, python, user = self._fused_params()
+        module, data = self._kernel(user)
         if not python:
-            self._launch(int(steps), ax, ay, drag, None)
+            bad = self._launch(module, data, int(steps), ax, ay, drag, None)
             self.t += steps * self.dt
-            return
-        for _ in range(int(steps)):
-            ext = self._python_forces(python)
-            self._launch(1, ax, ay, drag, ext)
-            self.t += self.dt
+        else:
+            bad = 0
+            for _ in range(int(steps)):
+                ext = self._python_forces(python)
+                bad += self._launch(module, data, 1, ax, ay, drag, ext)
+                self.t += self.dt
+        if bad:
+            raise self._frozen_error(bad, int(steps))
+
+    @property
+    def dt(self) -> float:
+        """The timestep in seconds (finite, > 0); assigning checks the value."""
+        return self._dt
+
+    @dt.setter
+    def dt(self, value):
+        dt = _real(value, "timestep")
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"timestep must be finite and > 0, got timestep={value!r}")
+        self._dt = dt
 
     def _check_state_shape(self):
         p = self.p
@@ -654,24 +783,51 @@ class ParticleSimulation:
             raise ValueError(f"sim.p holds {len(p)} particles of {p.dtype}; this simulation "
                              f"has n={self.n} of {self.dtype}")
 
-    def _launch(self, steps, ax, ay, drag, ext):
+    def _launch(self, module, data, steps, ax, ay, drag, ext):
         p = self.p
         n = self.n
         use_ext = ext is not None
         if ext is None:
             ext = _NO_EXT
         use_m = use_ext or drag != 0.0
+        if self._flags is None or self._flags.shape[0] != n:
+            self._flags = np.zeros(n, dtype=np.uint8)
         threads = numba.get_num_threads()
         parallel = n >= PARALLEL_MIN_PARTICLES and threads > 1
         block = self.block or DEFAULT_BLOCK
-        kernel = self._module.run_par if parallel else self._module.run_ser
-        bad = kernel(self._data, steps, block, p["x"], p["v"], p["m"], p["r"], p["cr"], p["cf"],
-                     ext, self.dt, ax, ay, drag, use_m, use_ext,
+        kernel = module.run_par if parallel else module.run_ser
+        a = p._arrays
+        check_all = p._dirty
+        bad = kernel(data, steps, block, a["x"], a["v"], a["m"], a["r"], a["cr"], a["cf"],
+                     ext, self._flags, self.dt, self.t, ax, ay, drag, use_m, use_ext,
                      self.integrator == "euler", self.collision == "notebook",
                      self.prevent_tunnelling, self.lipschitz, self._margin,
-                     float(np.finfo(self.dtype).eps), self._skip)
-        if bad:
-            raise _invalid_state_error(p, bad)
+                     float(np.finfo(self.dtype).eps), self._skip, check_all)
+        if check_all and not bad:
+            p._dirty = False
+        return bad
+
+    def _frozen_error(self, count: int, steps: int) -> ValueError:
+        """The error after a call that froze ``count`` particles (clears the flags)."""
+        flags = self._flags
+        idx = np.flatnonzero(flags)
+        first, why = int(idx[0]), int(flags[idx[0]])
+        flags[idx] = 0
+        p = self.p
+        if why == _step.FLAG_NONFINITE:
+            x = np.asarray(p["x"][first], np.float64).tolist()
+            v = np.asarray(p["v"][first], np.float64).tolist()
+            what = (f"a step of particle {first} produced a non-finite state (timestep="
+                    f"{self.dt!r}; last finite state x={x}, v={v}); it was frozen there")
+        elif why == _step.FLAG_COEFF:
+            what = (f"invalid particle state: p['cr'][{first}] = {float(p['cr'][first])!r} or "
+                    f"p['cf'][{first}] = {float(p['cf'][first])!r} is not in [0, 1] (found at "
+                    f"a contact); the particle was frozen there")
+        else:
+            err = _invalid_state_error(p, count)
+            what = str(err).split(" (", 1)[0] + "; the particle was left unchanged"
+        return ValueError(f"{what}. {len(idx)} particle(s) frozen in all; the others completed "
+                          f"the {steps} step(s) and sim.t = {self.t!r} includes them")
 
     # -- diagnostics -------------------------------------------------------------------------
     def kinetic_energy(self) -> float:

@@ -1,0 +1,513 @@
+"""The fused particle step: integrate, query the world, sweep, respond (numba).
+
+This is a real module: its functions are importable and tested directly (``tests/test_step.py``)
+against the small analytic world defined in the marked *scene block* below. A simulation does
+not call them from here: :func:`fastsdf.particles._kernel_module` copies this file's source,
+replaces the scene block with the simulation's own query and forces, writes the result to a
+content-hashed file in the kernel cache (:mod:`fastsdf._cache`) and imports that. Because the
+whole of this source is in the generated file, editing this module changes the hash, so a
+stale compiled kernel is never loaded (numba's ``cache=True`` does not notice changes in other
+modules a cached function calls into).
+
+The scene block
+---------------
+Everything between the ``SCENE BLOCK`` marker comments is replaced. It must define:
+
+``_CACHE``
+    whether numba may cache the kernel on disk (False when a part cannot be imported by name);
+``_query(data, x, y) -> (d, dd/dx, dd/dy)``
+    the world's signed distance (negative inside) and gradient at one point, float64, given
+    the simulation's query data ``data`` (an argument, so new data never recompiles);
+``_force(x, y, vx, vy, m, t) -> (fx, fy)`` and ``USE_FORCE``
+    the sum of the fused user forces (mass * length / s**2) at one particle and time ``t``;
+    ``USE_FORCE = False`` when there are none (then ``m`` is not read for it).
+
+Sampler protocol (what a grid type provides so a grid world plugs in)
+--------------------------------------------------------------------
+A grid object ``g`` used as a world has:
+
+``g.sampler``
+    a module-level numba ``@njit`` function (importable as ``module.name``, compiled with
+    ``cache=True``, preferably ``inline='always'``) with
+    ``d, gx, gy, inside = sampler(data, x, y)``: float64 value and gradient at one point and a
+    bool, False outside the grid's bounds (the values there are the grid's own clamped answer)
+    or for a non-finite point (values NaN). It must not allocate or raise.
+``g.sampler_data``
+    a tuple of arrays and scalars (the grid's storage and geometry); arrays inside it are
+    passed without reference counting (see :func:`borrow_all`), so ``g`` must keep them alive.
+``g.exact``
+    the exact SDF (a :class:`fastsdf.graph.Function`), evaluated where ``inside`` is False
+    when ``g.mode == 'exact'``; ``g.mode == 'nearest'`` keeps the sampler's clamped answer.
+``g.spacing``
+    node spacing ``(hx, hy)``: how far an 'exact'-mode grid may jump at its bounds.
+
+The kernel of a grid world depends only on the sampler (its module, name and source), the mode
+and the fused forces, not on the scene: the exact fallback is called through a C function
+pointer carried in the query data (``data = (exact_address,) + sampler_data``; the
+parallel kernel cannot take nested tuples holding arrays), so the kernel is
+compiled once per installation and every later scene loads it from the cache.
+
+One step, per particle (the physics is described in :mod:`fastsdf.particles`)
+-------------------------------------------------------------------------------
+1. acceleration ``a = g + (F_user + ext - drag v) / m``;
+2. integrate (semi-implicit or explicit Euler); the displacement is ``D``;
+3. free-flight skipping: while the budget from an earlier query exceeds ``|D|``, no query;
+4. query the end point, ``s = d - r``;
+5. tunnelling sweep (:func:`_sweep`) when ``|D| > TRACE_FRACTION r`` and the end is not
+   clear by ``lip |D|``;
+6. respond where ``s <= 0`` (:func:`_respond`); else refill the skipping budget.
+
+Checks (no separate pass over memory): before a call's first step every particle of a block
+is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
+finite and > 0 when read); ``cr``, ``cf`` are checked where a contact uses them; every step's
+result is checked finite. With ``check_all`` (the caller's dirty flag: the state's ``m``,
+``cr``, ``cf`` may have been written since the last call) the first pass also checks ``m``,
+``cr`` and ``cf`` of every particle. A particle that fails is frozen at its last valid state for the rest
+of the call and flagged in ``FLAGS`` (1: invalid input, 2: a step produced a non-finite state,
+3: invalid ``cr``/``cf`` at a contact); the kernels return how many were frozen.
+"""
+
+import math
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+# Tuning constants (documented in fastsdf.particles, which re-exports them).
+TRACE_FRACTION = 0.5
+MIN_STEP = 0.02
+CONTACT_TOL = 1e-3
+MAX_MARCH = 64
+MAX_BOUNCES = 3
+
+FLAG_INPUT = 1
+FLAG_NONFINITE = 2
+FLAG_COEFF = 3
+
+
+# ---------------------------------------------------------------------------------------------
+# Intrinsics.
+
+def _borrowed_codegen(context, builder, ty, val):
+    """``val`` of type ``ty`` with every array in it (recursively in tuples) made a view
+    without a reference count."""
+    if isinstance(ty, types.Array):
+        src = context.make_array(ty)(context, builder, val)
+        out = context.make_array(ty)(context, builder)
+        for field in ("nitems", "itemsize", "data", "shape", "strides"):
+            setattr(out, field, getattr(src, field))
+        out.meminfo = cgutils.get_null_value(out.meminfo.type)
+        out.parent = cgutils.get_null_value(out.parent.type)
+        return out._getvalue()
+    if isinstance(ty, types.BaseTuple):
+        vals = [_borrowed_codegen(context, builder, t, builder.extract_value(val, k))
+                for k, t in enumerate(ty.types)]
+        return context.make_tuple(builder, ty, vals)
+    return val
+
+
+def _borrowable(ty) -> bool:
+    if isinstance(ty, types.BaseTuple):
+        return all(_borrowable(t) for t in ty.types)
+    return isinstance(ty, (types.Array, types.Number, types.Boolean))
+
+
+@intrinsic
+def borrow_all(typingctx, data):
+    """``data`` (an array, a number, or tuples of them, nested) with every array replaced by a
+    view without a reference count (null meminfo).
+
+    Passing an array to a function numba does not inline costs an atomic increment and
+    decrement of its reference count around every call; with several threads querying one
+    grid, those atomics on one shared cache line serialise the threads. The kernel makes such
+    views once per block; the caller keeps the real arrays alive.
+    """
+    if not _borrowable(data):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return _borrowed_codegen(context, builder, signature.args[0], args[0])
+
+    return data(data), codegen
+
+
+@intrinsic
+def call_vg(typingctx, address, x, y):
+    """``(d, dd/dx, dd/dy)`` from the C function ``void f(double x, double y, double *out)`` at
+    ``address`` (a numba ``cfunc``): the exact fallback of grid worlds, bound at run time so
+    that the kernel does not depend on the scene."""
+    if not isinstance(address, types.Integer):
+        return None
+    sig = types.UniTuple(types.float64, 3)(address, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        a, xv, yv = args
+        dbl = ir.DoubleType()
+        fnty = ir.FunctionType(ir.VoidType(), [dbl, dbl, dbl.as_pointer()])
+        fp = builder.inttoptr(a, fnty.as_pointer())
+        out = cgutils.alloca_once(builder, dbl, size=3)
+        builder.call(fp, [xv, yv, out])
+        vals = [builder.load(builder.gep(out, [ir.Constant(ir.IntType(32), k)]))
+                for k in range(3)]
+        return context.make_tuple(builder, signature.return_type, vals)
+
+    return sig, codegen
+
+
+# >>> SCENE BLOCK (replaced in generated kernels; see the module docstring) >>>
+# The test world: a union of solid half-planes and discs.
+# data = (planes, discs): planes (k, 3) rows (nx, ny, c), unit normal n, solid where n.p <= c;
+# discs (j, 3) rows (cx, cy, R). d = min over all of (n.p - c) and (|p - c| - R).
+_CACHE = True
+USE_FORCE = False
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _query(data, x, y):
+    """(d, dd/dx, dd/dy) of the test world at one point."""
+    planes, discs = data
+    d = math.inf
+    gx = 0.0
+    gy = 0.0
+    for k in range(planes.shape[0]):
+        e = planes[k, 0] * x + planes[k, 1] * y - planes[k, 2]
+        if e < d:
+            d = e
+            gx = planes[k, 0]
+            gy = planes[k, 1]
+    for k in range(discs.shape[0]):
+        ux = x - discs[k, 0]
+        uy = y - discs[k, 1]
+        ln = math.sqrt(ux * ux + uy * uy)
+        e = ln - discs[k, 2]
+        if e < d:
+            d = e
+            gx = ux / ln if ln > 0.0 else 1.0
+            gy = uy / ln if ln > 0.0 else 0.0
+    return d, gx, gy
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _force(x, y, vx, vy, m, t):
+    """Sum of the fused user forces (none in the test world)."""
+    return 0.0, 0.0
+# <<< SCENE BLOCK <<<
+
+
+# ---------------------------------------------------------------------------------------------
+# The step's parts.
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always):
+    """Collision response of a disc whose surface distance is ``s = d - r <= 0`` (House and
+    Keyser): ``x -= (1 + cr) s n`` and, when approaching (``v . n < 0``) or ``always``,
+    ``v = -cr v_n + (1 - cf) v_t``, with ``n = grad / |grad|``. A zero or non-finite gradient
+    (a ridge of a grid) gives no direction: the state is returned unchanged.
+
+    Written with selects rather than branches, so that a block of particles can share one
+    instruction stream.
+    """
+    gl2 = gx * gx + gy * gy
+    ok = gl2 > 0.0 and gl2 < math.inf
+    inv = 1.0 / math.sqrt(gl2) if ok else 0.0
+    nx = gx * inv if ok else 0.0
+    ny = gy * inv if ok else 0.0
+    k = (1.0 + cr) * s
+    x -= k * nx
+    y -= k * ny
+    vn = vx * nx + vy * ny
+    resp = ok and (vn < 0.0 or always)
+    w = 1.0 - cf if resp else 1.0     # tangential factor
+    c = cr if resp else -1.0          # normal component becomes -c vn (unchanged for c = -1)
+    vx = w * (vx - vn * nx) - c * vn * nx
+    vy = w * (vy - vn * ny) - c * vn * ny
+    return x, y, vx, vy
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _march(data, x0, y0, dx, dy, r, lip, t, t_free):
+    """Conservative advancement of a disc of radius r from (x0, y0) along (dx, dy).
+
+    The parts of the segment with parameter below ``t`` and above ``t_free`` are already known
+    to be free. Returns (t, hit, s, nx, ny): hit = 1 for an approaching contact at parameter t
+    (surface distance s <= tolerance, unit normal n), 0 for a free path to t = 1, 2 when the
+    iteration limit stopped it at t (a safe point, short of any contact).
+    """
+    length = math.sqrt(dx * dx + dy * dy)
+    inv_len = 1.0 / length
+    tol = CONTACT_TOL * length
+    # A step no longer than TRACE_FRACTION * r cannot carry the disc across a wall unseen (the
+    # same reason short steps skip this check), so the march never needs smaller steps.
+    short = TRACE_FRACTION * r * inv_len          # in units of t
+    far = inv_len / lip                           # t per unit of surface distance
+    leave = max(short, MIN_STEP)
+    if t >= t_free:
+        return 1.0, 0, 0.0, 0.0, 0.0
+    for _ in range(MAX_MARCH):
+        d, gx, gy = _query(data, x0 + t * dx, y0 + t * dy)
+        s = d - r
+        if s > tol:
+            t += max(s * far, short)              # sphere tracing: free within s / L
+        elif gx * dx + gy * dy < 0.0:             # in contact and approaching
+            gl = math.sqrt(gx * gx + gy * gy)
+            if gl < math.inf:
+                return t, 1, s, gx / gl, gy / gl
+            t += leave
+        elif s == s:
+            # touching but leaving (or sliding along) the surface: move on by a short step
+            t += leave
+        else:
+            return 1.0, 0, 0.0, 0.0, 0.0          # non-finite SDF: nothing to trace against
+        if t >= t_free:
+            return 1.0, 0, 0.0, 0.0, 0.0
+    return t, 2, 0.0, 0.0, 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1):
+    """Tunnelling check of one step: sweep the disc from (x, y) along (dx, dy).
+
+    ``t0``, ``t1``: the step's parameters below and above which it is already known to be
+    free (from the start's and the end's distance budgets).
+
+    Returns the new start point and remaining displacement, the velocity, and whether a
+    contact was met (then the displacement and velocity have been reflected) or the end point
+    moved for another reason.
+    """
+    bounced = False
+    for b in range(MAX_BOUNCES):
+        t, hit, s, nx, ny = _march(data, x, y, dx, dy, r, lip, t0, t1)
+        t0 = 0.0
+        t1 = 1.0
+        if hit == 0:
+            break
+        x += t * dx
+        y += t * dy
+        if hit == 2:                  # iteration limit: stay at the last safe point
+            return x, y, 0.0, 0.0, vx, vy, True
+        rx = (1.0 - t) * dx
+        ry = (1.0 - t) * dy
+        pen = s + rx * nx + ry * ny   # end point's depth below the tangent line at contact
+        if pen < 0.0:
+            rx -= (1.0 + cr) * pen * nx
+            ry -= (1.0 + cr) * pen * ny
+        vn = vx * nx + vy * ny
+        if vn < 0.0 or (always and not bounced):
+            f = 1.0 - cf
+            vx = f * (vx - vn * nx) - cr * vn * nx
+            vy = f * (vy - vn * ny) - cr * vn * ny
+        bounced = True
+        if b == MAX_BOUNCES - 1:      # out of bounces: stop at this contact
+            return x, y, 0.0, 0.0, vx, vy, bounced
+        dx = rx
+        dy = ry
+        rr = dx * dx + dy * dy
+        short = TRACE_FRACTION * r
+        if rr <= short * short:       # a short rest needs no sweep (see the step's test)
+            break
+        # The rest leaves the contact (or slides along it): the march's first step from the
+        # contact point is a short one, so take it without querying the contact again.
+        length = math.sqrt(rr)
+        if rx * nx + ry * ny >= 0.0:
+            t0 = max(short, MIN_STEP * length) / length
+    return x, y, dx, dy, vx, vy, bounced
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _valid_input(x, y, vx, vy, r, m, use_m):
+    """Whether a particle's loaded state may be stepped (cr, cf are checked at contacts)."""
+    ok = (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
+          and abs(vy) < math.inf and r >= 0.0 and r < math.inf)
+    if use_m:
+        ok = ok and m > 0.0 and m < math.inf
+    return ok
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+           use_ext, explicit, always, trace, lip, margin, eps, skip, check_all):
+    """All steps for particles lo..hi-1; returns the number of particles frozen (flagged).
+
+    The only function that touches the arrays: helpers take scalars, so no reference counting
+    happens per particle.
+
+    Free-flight skipping (``skip``): after a query that finds a particle clear of every surface
+    by ``s = d - r > 0``, it can move ``(s - margin) / lip`` before it could touch anything, so
+    its next steps skip the SDF query until that budget is spent. This changes no result: a
+    skipped query is one that would have found no contact. ``margin`` covers a grid's jump to
+    the exact SDF at its bounds; ``eps`` is the relative rounding of stored coordinates.
+    ``clear[k] < 0`` marks a frozen particle.
+    """
+    data = borrow_all(data)
+    clear = np.zeros(hi - lo)
+    use_m = use_m or USE_FORCE
+    bad = 0
+    for i in range(lo, hi):
+        m = float(M[i]) if use_m or check_all else 1.0
+        ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
+                          float(R[i]), m, use_m or check_all)
+        if check_all:
+            cr = float(CR[i])
+            cf = float(CF[i])
+            ok = ok and cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0
+        if not ok:
+            clear[i - lo] = -1.0
+            FLAGS[i] = FLAG_INPUT
+            bad += 1
+    for step in range(steps):
+        t = t0 + step * dt
+        for i in range(lo, hi):
+            k = i - lo
+            c = clear[k]
+            if c < 0.0:
+                continue
+            x = float(X[i, 0])
+            y = float(X[i, 1])
+            vx = float(V[i, 0])
+            vy = float(V[i, 1])
+            r = float(R[i])
+            bx = ax
+            by = ay
+            if use_m:
+                inv_m = 1.0 / float(M[i])
+                fx = -drag * vx
+                fy = -drag * vy
+                if use_ext:
+                    fx += EXT[i, 0]
+                    fy += EXT[i, 1]
+                if USE_FORCE:
+                    ux, uy = _force(x, y, vx, vy, float(M[i]), t)
+                    fx += ux
+                    fy += uy
+                bx += fx * inv_m
+                by += fy * inv_m
+            if explicit:
+                dx = vx * dt
+                dy = vy * dt
+                vx += bx * dt
+                vy += by * dt
+            else:
+                vx += bx * dt
+                vy += by * dt
+                dx = vx * dt
+                dy = vy * dt
+            if c > 0.0:
+                # (1 + CONTACT_TOL / lip): a skipped step must also be one whose sweep would
+                # not have stopped at a near-contact (s <= CONTACT_TOL |step|).
+                c -= (math.sqrt(dx * dx + dy * dy) * (1.0 + CONTACT_TOL / lip)
+                      + eps * (abs(x) + abs(y) + 1.0))
+                if c > 0.0:
+                    x += dx
+                    y += dy
+                    if not (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
+                            and abs(vy) < math.inf):
+                        clear[k] = -1.0
+                        FLAGS[i] = FLAG_NONFINITE
+                        bad += 1
+                        continue
+                    clear[k] = c
+                    X[i, 0] = x
+                    X[i, 1] = y
+                    V[i, 0] = vx
+                    V[i, 1] = vy
+                    continue
+                clear[k] = 0.0
+            d, gx, gy = _query(data, x + dx, y + dy)
+            s = d - r
+            bounced = False
+            if trace:
+                dd = dx * dx + dy * dy
+                # Sweep only a step longer than TRACE_FRACTION * r whose end is not clear of
+                # everything by the step's length (then no wall can lie across the step).
+                if dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
+                        s * s >= lip * lip * dd and s > 0.0):
+                    cr = float(CR[i])
+                    cf = float(CF[i])
+                    if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
+                        clear[k] = -1.0
+                        FLAGS[i] = FLAG_COEFF
+                        bad += 1
+                        continue
+                    # The part within s / L of the end is known to be free. (The start's
+                    # budget is not used: results must not depend on how steps are grouped
+                    # into calls.)
+                    t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
+                    x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, vx, vy, r, cr,
+                                                           cf, lip, always, 0.0, t1)
+                    if bounced:
+                        d, gx, gy = _query(data, x + dx, y + dy)
+                        s = d - r
+            x += dx
+            y += dy
+            if s <= 0.0:
+                cr = float(CR[i])
+                cf = float(CF[i])
+                if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
+                    clear[k] = -1.0
+                    FLAGS[i] = FLAG_COEFF
+                    bad += 1
+                    continue
+                x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always and not bounced)
+            elif skip and s > margin:
+                clear[k] = (s - margin) / lip * (1.0 - 1e-9)
+            if not (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
+                    and abs(vy) < math.inf):
+                clear[k] = -1.0
+                FLAGS[i] = FLAG_NONFINITE
+                bad += 1
+                continue
+            X[i, 0] = x
+            X[i, 1] = y
+            V[i, 0] = vx
+            V[i, 1] = vy
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def run_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+            use_ext, explicit, always, trace, lip, margin, eps, skip, check_all):
+    """Parallel kernel: blocks of particles over threads. Returns the frozen count."""
+    n = X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay,
+                      drag, use_m, use_ext, explicit, always, trace, lip, margin, eps, skip,
+                      check_all)
+    return bad
+
+
+@njit(cache=_CACHE, error_model="numpy")
+def run_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+            use_ext, explicit, always, trace, lip, margin, eps, skip, check_all):
+    """Serial kernel (small n). Returns the frozen count."""
+    n = X.shape[0]
+    bad = 0
+    for lo in range(0, n, block):
+        bad += _block(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT, FLAGS, dt,
+                      t0, ax, ay, drag, use_m, use_ext, explicit, always, trace, lip, margin,
+                      eps, skip, check_all)
+    return bad
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def query_many(data, xs, ys, out):
+    """Value and gradient at many points through the kernel's own query (for tests)."""
+    for i in range(xs.shape[0]):
+        d, gx, gy = _query(data, xs[i], ys[i])
+        out[i, 0] = d
+        out[i, 1] = gx
+        out[i, 2] = gy
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def force_many(xs, ys, vxs, vys, ms, t, out):
+    """The fused user forces at many particles (for tests)."""
+    for i in range(xs.shape[0]):
+        fx, fy = _force(xs[i], ys[i], vxs[i], vys[i], ms[i], t)
+        out[i, 0] = fx
+        out[i, 1] = fy

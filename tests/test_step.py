@@ -1,0 +1,294 @@
+"""Direct tests of the step kernel module ``fastsdf._step`` (its own test world: half-planes and
+discs), of the kernels generated from it, of fused user forces and of the clock/state rules.
+
+Every test checks a property against an independent computation (analytic geometry, a NumPy
+step, the slow Python-force path).
+"""
+
+import math
+
+import numpy as np
+import pytest
+from numba import njit
+
+import fastsdf as sdf
+import fastsdf.particles as phys
+from fastsdf import GridSDF, _step
+from fastsdf.scenes import seed_world
+
+
+def world(planes=(), discs=()):
+    """Query data of _step's test world."""
+    return (np.array(planes, dtype=np.float64).reshape(-1, 3),
+            np.array(discs, dtype=np.float64).reshape(-1, 3))
+
+
+FLOOR = world(planes=[(0.0, 1.0, 0.0)])               # solid where y <= 0
+
+
+# ---------------------------------------------------------------------------------------------
+# The parts, called directly.
+
+def test_query_of_the_test_world_is_the_analytic_distance():
+    data = world(planes=[(0.0, 1.0, -1.0)], discs=[(0.0, 0.0, 0.5)])
+    rng = np.random.default_rng(0)
+    xs, ys = rng.uniform(-2, 2, (2, 500))
+    out = np.empty((500, 3))
+    _step.query_many(data, xs, ys, out)
+    r = np.hypot(xs, ys)
+    expect = np.minimum(ys + 1.0, r - 0.5)
+    np.testing.assert_allclose(out[:, 0], expect, atol=1e-14)
+    disc = r - 0.5 < ys + 1.0
+    np.testing.assert_allclose(out[disc, 1], (xs / r)[disc], atol=1e-14)
+    np.testing.assert_allclose(out[~disc, 2], 1.0)
+
+
+@pytest.mark.parametrize("always", [False, True])
+def test_respond_matches_house_keyser(always):
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        x, y, vx, vy = rng.normal(size=4)
+        s = -abs(rng.normal()) * 0.1
+        gx, gy = rng.normal(size=2) * rng.uniform(0.2, 3.0)
+        cr, cf = rng.uniform(0, 1, 2)
+        got = _step._respond(x, y, vx, vy, s, gx, gy, cr, cf, always)
+        n = np.array([gx, gy]) / math.hypot(gx, gy)
+        v = np.array([vx, vy])
+        vn = v @ n
+        xe = np.array([x, y]) - (1 + cr) * s * n
+        ve = -cr * vn * n + (1 - cf) * (v - vn * n) if (vn < 0 or always) else v
+        np.testing.assert_allclose(got[:2], xe, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(got[2:], ve, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("g", [(0.0, 0.0), (math.nan, 1.0), (math.inf, 0.0)])
+def test_respond_without_a_direction_leaves_the_state(g):
+    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, g[0], g[1], 0.5, 0.5, True) == \
+        (0.1, 0.2, -0.3, 0.4)
+
+
+def test_march_stops_at_the_first_contact_along_the_segment():
+    # A disc of radius 0.1 moving right towards a wall at x = 1 (solid x >= 1).
+    data = world(planes=[(-1.0, 0.0, -1.0)])
+    t, hit, s, nx, ny = _step._march(data, 0.0, 0.0, 2.0, 0.0, 0.1, 1.0, 0.0, 1.0)
+    assert hit == 1
+    contact = 0.9 / 2.0                                     # x + r = 1
+    assert contact - 1e-3 <= t <= contact + 1e-9
+    assert abs(s) <= _step.CONTACT_TOL * 2.0
+    assert (nx, ny) == (-1.0, 0.0)
+
+
+def test_march_free_path_and_known_free_part():
+    data = world(planes=[(-1.0, 0.0, -5.0)])
+    assert _step._march(data, 0.0, 0.0, 2.0, 0.0, 0.1, 1.0, 0.0, 1.0)[:2] == (1.0, 0)
+    # Everything from t_free on is known free: nothing is queried beyond it.
+    data = world(planes=[(-1.0, 0.0, -1.0)])
+    assert _step._march(data, 0.0, 0.0, 2.0, 0.0, 0.1, 1.0, 0.0, 0.2)[:2] == (1.0, 0)
+
+
+def test_sweep_reflects_off_a_thin_disc():
+    # A point-sized particle flying through a small disc would cross it in one step.
+    data = world(discs=[(1.0, 0.0, 0.05)])
+    x, y, dx, dy, vx, vy, bounced = _step._sweep(data, 0.0, 0.0, 2.0, 0.0, 60.0, 0.0, 0.01,
+                                                 1.0, 0.0, 1.0, False, 0.0, 1.0)
+    assert bounced
+    assert vx < 0.0                               # reflected (cr = 1: elastic)
+    assert x + dx < 1.0 - 0.05                    # the end point is back in front of the disc
+
+
+def test_borrow_all_keeps_values():
+    @njit
+    def total(data):
+        b = _step.borrow_all(data)
+        return b[0].sum() + b[1] + b[2][1]
+
+    a = np.arange(5.0)
+    assert total((a, 2.0, (np.ones(3), 7))) == 10.0 + 2.0 + 7
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole kernel on the test world.
+
+def kernel_args(n, x, v, r=0.05, m=1.0, cr=0.5, cf=0.2):
+    X = np.array(x, dtype=np.float64).reshape(n, 2).copy()
+    V = np.array(v, dtype=np.float64).reshape(n, 2).copy()
+    full = lambda val: np.full(n, val, dtype=np.float64)   # noqa: E731
+    return X, V, full(m), full(r), full(cr), full(cf)
+
+
+def run_kernel(data, steps, X, V, M, R, CR, CF, dt=0.01, g=(0.0, -1.0), trace=True, skip=True,
+               block=7, explicit=False, always=False):
+    flags = np.zeros(X.shape[0], np.uint8)
+    bad = _step.run_ser(data, steps, block, X, V, M, R, CR, CF, np.zeros((0, 2)), flags, dt, 0.0,
+                        g[0], g[1], 0.0, False, False, explicit, always, trace, 1.0, 0.0,
+                        2.2e-16, skip, True)
+    return bad, flags
+
+
+def test_free_fall_is_semi_implicit_euler():
+    n = 5
+    X, V, M, R, CR, CF = kernel_args(n, np.c_[np.arange(n), np.full(n, 10.0)], np.ones((n, 2)))
+    x0, v0 = X.copy(), V.copy()
+    steps, dt = 50, 0.01
+    bad, _ = run_kernel(FLOOR, steps, X, V, M, R, CR, CF, dt=dt)
+    assert bad == 0
+    k = np.arange(1, steps + 1)
+    np.testing.assert_allclose(V[:, 1], v0[:, 1] - steps * dt)
+    np.testing.assert_allclose(X[:, 1], x0[:, 1] + dt * np.sum(v0[0, 1] - k * dt), rtol=1e-12)
+    np.testing.assert_allclose(X[:, 0], x0[:, 0] + steps * dt * v0[:, 0], rtol=1e-12)
+
+
+def test_particles_come_to_rest_on_the_floor_of_the_test_world():
+    n = 40
+    rng = np.random.default_rng(3)
+    X, V, M, R, CR, CF = kernel_args(n, np.c_[rng.uniform(-1, 1, n), rng.uniform(0.2, 1, n)],
+                                     rng.normal(size=(n, 2)), cr=0.3, cf=0.5)
+    run_kernel(FLOOR, 3000, X, V, M, R, CR, CF)
+    assert np.all(X[:, 1] - R >= -1e-4)                     # out of the floor
+    assert np.all(X[:, 1] - R <= 2e-3)                      # and resting on it
+    assert np.all(np.abs(V[:, 1]) < 0.02)
+
+
+def test_grouping_of_steps_and_blocks_does_not_change_results():
+    n = 30
+    rng = np.random.default_rng(4)
+    data = world(planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
+                 discs=[(0.3, 0.4, 0.2)])
+    args = kernel_args(n, np.c_[rng.uniform(-1, 1, n), rng.uniform(0.5, 1.5, n)],
+                       rng.normal(size=(n, 2)))
+    a = [arr.copy() for arr in args]
+    b = [arr.copy() for arr in args]
+    run_kernel(data, 60, *a, block=3)
+    for _ in range(6):
+        run_kernel(data, 10, *b, block=64)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_kernel_flags_invalid_particles_and_non_finite_steps():
+    n = 4
+    X, V, M, R, CR, CF = kernel_args(n, [[0, 1]] * n, [[0, 0]] * n)
+    X[1, 0] = math.nan
+    CR[2] = 2.0
+    bad, flags = run_kernel(FLOOR, 3, X, V, M, R, CR, CF)
+    assert bad == 2 and flags.tolist() == [0, _step.FLAG_INPUT, _step.FLAG_INPUT, 0]
+    # A step that overflows is not stored: the particle keeps its last finite state.
+    X, V, M, R, CR, CF = kernel_args(1, [[0, 1]], [[1e300, 0]])
+    bad, flags = run_kernel(FLOOR, 2, X, V, M, R, CR, CF, dt=1e10, g=(0.0, 0.0))
+    assert bad == 1 and flags[0] == _step.FLAG_NONFINITE
+    assert X.tolist() == [[0.0, 1.0]] and V.tolist() == [[1e300, 0.0]]
+
+
+# ---------------------------------------------------------------------------------------------
+# Generated kernels.
+
+def test_generated_kernel_is_the_step_module_with_one_scene_block():
+    head, tail = phys._step_source()
+    sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
+    src = open(sim._module.__file__).read()
+    assert src.startswith(head) and src.endswith(tail)
+    assert "# >>> SCENE BLOCK" not in src and "_CACHE = True" in src
+
+
+def test_grid_kernel_does_not_depend_on_the_scene():
+    a = GridSDF(sdf.Circle([0, 0], 1.0), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+    b = GridSDF(sdf.Box([-1, -1], [1, 0.5]), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+    sa = phys.ParticleSimulation(a, n=3, seed=0)
+    sb = phys.ParticleSimulation(b, n=3, seed=0)
+    assert sa._module is sb._module
+    # ...and each still answers with its own scene, inside and outside the grid.
+    pts = np.array([[0.0, 0.0], [1.5, 0.3], [3.0, -4.0], [-7.0, 0.2]])
+    for sim, grid in ((sa, a), (sb, b)):
+        d, g = sim.query(pts[:, 0], pts[:, 1])
+        de, ge = grid.exact(pts[2:, 0], pts[2:, 1], compute_gradient=True)
+        np.testing.assert_allclose(d[2:], de, rtol=1e-14)      # outside: the exact SDF
+        np.testing.assert_allclose(g[2:], ge, rtol=1e-14)
+        dg, gg = grid(pts[:, 0], pts[:, 1], compute_gradient=True)   # the grid's own query
+        np.testing.assert_allclose(d, dg, rtol=1e-14)
+        np.testing.assert_allclose(g, gg, rtol=1e-14)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fused user forces.
+
+@njit
+def _wind(x, y, vx, vy, m, t):
+    return 0.3 * m + 0.1 * t, -0.2 * vy * m
+
+
+@njit
+def _spring(x, y, vx, vy, m, t):
+    return -2.0 * x, -2.0 * (y - 0.5)
+
+
+@pytest.mark.parametrize("n", [50, 5000])
+def test_fused_njit_forces_equal_the_python_path(n):
+    w = seed_world()
+    fused = phys.ParticleSimulation(w, n=n, seed=5)
+    slow = phys.ParticleSimulation(w, n=n, seed=5)
+    fused.force_generators += [phys.Gravity(), _wind, _spring]
+
+    def wind_py(p, t):
+        return np.c_[0.3 * p["m"] + 0.1 * t, -0.2 * p["v"][:, 1] * p["m"]]
+
+    def spring_py(p, t):
+        return np.c_[-2.0 * p["x"][:, 0], -2.0 * (p["x"][:, 1] - 0.5)]
+
+    slow.force_generators += [phys.Gravity(), wind_py, spring_py]
+    for _ in range(3):
+        fused.run(7)
+        slow.run(7)
+    np.testing.assert_allclose(fused.p["x"], slow.p["x"], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fused.p["v"], slow.p["v"], rtol=1e-12, atol=1e-12)
+    assert fused.t == slow.t
+
+
+def test_force_many_sums_the_fused_forces():
+    sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
+    sim.force_generators += [_wind, _spring]
+    module, _ = sim._kernel(tuple(sim.force_generators))
+    xs, ys, vx, vy, m = np.random.default_rng(6).normal(size=(5, 10))
+    out = np.empty((10, 2))
+    module.force_many(xs, ys, vx, vy, m, 0.7, out)
+    np.testing.assert_allclose(out[:, 0], 0.3 * m + 0.07 - 2.0 * xs, rtol=1e-14)
+    np.testing.assert_allclose(out[:, 1], -0.2 * vy * m - 2.0 * (ys - 0.5), rtol=1e-14)
+
+
+# ---------------------------------------------------------------------------------------------
+# Clock and state.
+
+def test_clock_and_state_agree_after_an_invalid_particle():
+    w = seed_world()
+    good = phys.ParticleSimulation(w, n=20, seed=7)
+    bad = phys.ParticleSimulation(w, n=20, seed=7)
+    for s in (good, bad):
+        s.force_generators.append(phys.Gravity())
+    bad.p["x"][3] = [math.nan, 0.0]
+    with pytest.raises(ValueError, match=r"p\['x'\]\[3\].*sim.t = 0.1666"):
+        bad.run(5)
+    good.run(5)
+    assert bad.t == good.t == 5 * good.dt
+    keep = np.arange(20) != 3
+    np.testing.assert_array_equal(bad.p["x"][keep], good.p["x"][keep])
+
+
+def test_a_step_that_overflows_is_reported_and_not_carried():
+    sim = phys.ParticleSimulation(sdf.Halfspace([0, 1], -1.0), n=10, seed=0,
+                                  prevent_tunnelling=False)
+    sim.force_generators.append(phys.Gravity())
+    x0 = sim.p["x"].copy()
+    sim.dt = 1e300
+    with pytest.raises(ValueError, match="non-finite state"):
+        sim.run(1)
+    assert np.all(np.isfinite(sim.p["x"])) and np.all(np.isfinite(sim.p["v"]))
+    assert sim.t == 1e300
+    np.testing.assert_array_equal(sim.p["x"], x0)
+
+
+@pytest.mark.parametrize("dt", [0.0, -1.0, math.inf, math.nan])
+def test_timestep_is_validated_on_assignment(dt):
+    sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=2, seed=0)
+    with pytest.raises(ValueError, match="timestep must be finite and > 0"):
+        sim.dt = dt
+    with pytest.raises(ValueError, match="timestep"):
+        phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=2, timestep=dt)
