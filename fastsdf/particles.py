@@ -91,7 +91,7 @@ from . import _step
 from ._step import CONTACT_TOL, MAX_BOUNCES, MAX_MARCH, MIN_STEP, TRACE_FRACTION
 from .graph import Function
 
-__all__ = ["ParticleSimulation", "Particles", "Gravity", "Drag", "create_animation",
+__all__ = ["SimulationParams", "ParticleSimulation", "Particles", "Gravity", "Drag", "create_animation",
            "reference_step", "TRACE_FRACTION", "PARALLEL_MIN_PARTICLES", "DEFAULT_BLOCK"]
 
 # The step's constants live in fastsdf._step (the kernel's source); documented here:
@@ -424,6 +424,37 @@ def _force_parts(forces) -> tuple:
     return lines, deps, late
 
 
+# A world that does not move: no time derivative, no wall speed.
+_STATIC_TIME_LINES = ["", "", "MOVING = False", "", "", _DECORATOR,
+                      "def _query_t(data, x, y, t):", "    d, gx, gy = _query(data, x, y)",
+                      "    return d, gx, gy, 0.0", "", "", _DECORATOR, "def _wall_speed(data):",
+                      "    return 0.0"]
+
+
+class SimulationParams(dict):
+    """``sim.params``: the values of the world's runtime parameters (not time: the simulation
+    sets ``t`` to its own clock). Assign ``sim.params['angle'] = 0.3`` between steps; the next
+    step uses it without recompiling. Unknown names and non-finite values are refused."""
+
+    def __init__(self, f):
+        super().__init__({k: v for k, v in f.params.items() if k != "t"})
+        self._names = tuple(f.param_names)
+
+    def __setitem__(self, name, value):
+        if name not in self:
+            raise KeyError(f"unknown parameter {name!r}; the world's parameters are "
+                           f"{sorted(self) or 'none'} (time is sim.t)")
+        v = real(value, f"params[{name!r}]")
+        super().__setitem__(name, v)
+
+    def update(self, *args, **kwargs):
+        for k, v in dict(*args, **kwargs).items():
+            self[k] = v
+
+    def as_tuple(self) -> tuple:
+        return tuple(dict.__getitem__(self, n) for n in self._names)
+
+
 def _kernel_module(f, forces=()):
     """The generated kernel module for the world ``f`` (an SDF or a grid, see the sampler
     protocol in :mod:`fastsdf._step`) and the fused user forces, and its query data.
@@ -461,6 +492,20 @@ def _kernel_module(f, forces=()):
         data = (address,) + tuple(f.sampler_data)
         desc = f"a grid world (mode {mode!r}); the scene is bound at run time"
         key = ("grid", id(sampler), mode)
+    elif isinstance(f, Function) and f.compiled.parametric:
+        # Parameters and time are data: (t, wall speed bound, parameter tuple), set per call.
+        scene = f.compiled.module.__name__
+        lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
+                 "def _query(data, x, y):", "    return _exact(x, y, data[0], data[2])"]
+        if f.time_dependent:
+            lines += [f"from {scene} import point_vgt as _exact_t", "", "", _DECORATOR,
+                      "def _query_t(data, x, y, t):", "    return _exact_t(x, y, t, data[2])",
+                      "", "", _DECORATOR, "def _wall_speed(data):", "    return data[1]", "",
+                      "", "MOVING = True"]
+        deps = [scene]
+        data = (0.0, 0.0, f.param_tuple())
+        desc = repr(f)[:300]
+        key = ("sdf", id(f.compiled.module))
     elif isinstance(f, Function):
         scene = f.compiled.module.__name__
         lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
@@ -472,6 +517,8 @@ def _kernel_module(f, forces=()):
     else:
         raise TypeError(f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type "
                         f"{type(f).__name__}")
+    if "MOVING = True" not in lines:
+        lines += _STATIC_TIME_LINES
     force_lines, force_deps, force_late = _force_parts(forces)
     late += force_late
     deps += force_deps
@@ -538,6 +585,21 @@ class ParticleSimulation:
         skipped, and you should pass the bound.
     block : int or None
         Particles per block in :meth:`run` (tuning; ``None``: :data:`DEFAULT_BLOCK`).
+    wall_speed : float or None
+        For a moving world (built with :data:`fastsdf.t`): a bound on ``|dd/dt|`` (length/s,
+        how fast any surface moves toward a particle), used by the tunnelling sweep and the
+        free-flight budgets. ``None`` estimates it at every :meth:`run` call as 1.5 times the
+        largest ``|dd/dt|`` at up to 4096 of the particles at the call's first and last
+        times; pass it when walls accelerate or move fast where the particles are not yet.
+
+    Moving worlds and parameters: a world built with runtime parameters
+    (:func:`fastsdf.Param`) is stepped with the values in ``sim.params`` (change them between
+    steps: no recompile), and one built with time :data:`fastsdf.t` is evaluated at the
+    simulation's own time, so its walls move; the response uses the velocity relative to the
+    wall (``v . n`` against the surface's normal speed ``-dd/dt / |grad d|``), so a piston
+    pushes particles and a rising floor lifts them. The wall's tangential velocity is not
+    known from an SDF (friction acts as if the wall did not slide along itself). A GridSDF
+    samples a scene that does not move: give a moving scene as it is.
 
     Attributes
     ----------
@@ -552,7 +614,13 @@ class ParticleSimulation:
 
     def __init__(self, f, n=100, timestep=1 / 30, *, seed=None, integrator="symplectic",
                  collision="approaching", prevent_tunnelling=True, dtype=np.float64, cr=0.6,
-                 cf=0.3, lipschitz=None, block=None):
+                 cf=0.3, lipschitz=None, block=None, wall_speed=None):
+        if wall_speed is not None:
+            w = _real(wall_speed, "wall_speed")
+            if not (math.isfinite(w) and w >= 0.0):
+                raise ValueError(f"wall_speed must be finite and >= 0, got "
+                                 f"wall_speed={wall_speed!r}")
+        self._wall_speed_arg = wall_speed
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
             raise TypeError(f"n must be an integer, got n={n!r}")
         if n <= 0:
@@ -608,6 +676,11 @@ class ParticleSimulation:
         self._sdf = f
         self._module, self._data, self._keep = module, data, keep
         self._kernels = {(): (module, data, keep, ())}
+        self._parametric = isinstance(f, Function) and not _is_grid(f) and \
+            f.compiled.parametric
+        self._moving = self._parametric and f.time_dependent
+        #: Values of the world's runtime parameters (see :class:`SimulationParams`).
+        self.params = SimulationParams(f) if self._parametric else SimulationParams(_NO_PARAMS)
         self._margin = _grid_margin(f)
         #: The Lipschitz bound the tunnelling check and the free-flight budget use.
         self.lipschitz = float(self._lipschitz_arg) if self._lipschitz_arg is not None \
@@ -796,6 +869,8 @@ class ParticleSimulation:
         parallel = n >= PARALLEL_MIN_PARTICLES and threads > 1
         block = self.block or DEFAULT_BLOCK
         kernel = module.run_par if parallel else module.run_ser
+        if self._parametric:
+            data = self._scene_data(steps)
         a = p._arrays
         check_all = p._dirty
         bad = kernel(data, steps, block, a["x"], a["v"], a["m"], a["r"], a["cr"], a["cf"],
@@ -829,6 +904,30 @@ class ParticleSimulation:
         return ValueError(f"{what}. {len(idx)} particle(s) frozen in all; the others completed "
                           f"the {steps} step(s) and sim.t = {self.t!r} includes them")
 
+    def _scene_data(self, steps: int) -> tuple:
+        """Query data of a parametric world: (t, wall speed bound, parameter tuple)."""
+        prm = self.params.as_tuple()
+        wall = 0.0
+        if self._moving and steps:
+            wall = self._wall_speed_arg
+            if wall is None:
+                wall = self._estimate_wall_speed(steps, prm)
+        return (float(self.t), float(wall), prm)
+
+    def _estimate_wall_speed(self, steps: int, prm: tuple) -> float:
+        """1.5 times the largest |dd/dt| at up to 4096 particles at the call's first and last
+        times (see ``wall_speed``)."""
+        x = np.asarray(self.p["x"], dtype=np.float64)
+        x = x[::max(1, x.shape[0] // 4096)]
+        comp = self._sdf.compiled
+        top = 0.0
+        for t in (self.t + self.dt, self.t + steps * self.dt):
+            _, _, gt = comp.evaluate(x[:, 0], x[:, 1], t=t, params=prm, time_derivative=True)
+            gt = np.abs(gt[np.isfinite(gt)])
+            if gt.size:
+                top = max(top, float(gt.max()))
+        return 1.5 * top
+
     # -- diagnostics -------------------------------------------------------------------------
     def kinetic_energy(self) -> float:
         """Total kinetic energy ``sum(m |v|**2 / 2)``."""
@@ -851,7 +950,8 @@ class ParticleSimulation:
         xs = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
         ys = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
         out = np.empty((xs.shape[0], 3))
-        self._module.query_many(self._data, xs, ys, out)
+        self._module.query_many(self._scene_data(0) if self._parametric else self._data, xs, ys,
+                                out)
         return out[:, 0], out[:, 1:]
 
     # -- drawing -----------------------------------------------------------------------------
@@ -876,6 +976,14 @@ class ParticleSimulation:
 
 
 _NO_EXT = np.zeros((0, 2))
+
+
+class _NoParams:
+    params: dict = {}
+    param_names: tuple = ()
+
+
+_NO_PARAMS = _NoParams()
 
 
 def _invalid_state_error(p: Particles, count: int) -> ValueError:
