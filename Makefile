@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 export FASTSDF_CACHE_DIR ?= $(CURDIR)/.cache/kernels
 export MPLBACKEND ?= Agg
 
-.PHONY: venv demo test bench bench-quick clean
+.PHONY: venv demo docs test bench bench-quick clean
 
 $(VENV)/.base: setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,14 +19,26 @@ $(VENV)/.test: $(VENV)/.base
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 
+$(VENV)/.video: $(VENV)/.base
+	$(PY) -m pip install --quiet -e '.[video]'
+	touch $@
+
+$(VENV)/.docs: $(VENV)/.base
+	$(PY) -m pip install --quiet -e '.[docs]'
+	touch $@
+
 $(VENV)/.bench: $(VENV)/.base
 	$(PY) -m pip install --quiet -e '.[bench]'
 	touch $@
 
 venv: $(VENV)/.base
 
-demo: $(VENV)/.base
-	$(PY) -m fastsdf demo
+demo: $(VENV)/.video
+	$(VENV)/bin/fastsdf demo
+
+# The API reference, generated from the docstrings.
+docs: $(VENV)/.docs
+	$(PY) -m pdoc --docformat restructuredtext -o docs/api fastsdf
 
 test: $(VENV)/.test
 	$(PY) -m pytest -q

@@ -1,36 +1,51 @@
-"""A minimal progress bar on stderr, shared by the demo and the benchmarks (no dependency)."""
+"""Progress bars (tqdm) for the demo, the examples and the benchmarks.
+
+tqdm handles terminals, notebooks and redirection; a bar is drawn only when its stream is a
+terminal, so ``make demo > log`` gets the results and no redraws.
+"""
 
 from __future__ import annotations
 
 import sys
-import time
+from typing import IO, Any
+
+from tqdm.auto import tqdm
+
+__all__ = ["Progress", "progress"]
+
+
+def _is_terminal(stream: IO[str]) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # closed or not a real stream
+        return False
+
+
+def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwargs: Any) -> tqdm:
+    """A tqdm bar of ``total`` steps on ``stream`` (default stderr), off unless it is a terminal.
+
+    Pass ``disable=False`` to force it on (e.g. in a notebook, where tqdm draws a widget).
+    """
+    stream = stream if stream is not None else sys.stderr
+    kwargs.setdefault("disable", not _is_terminal(stream))
+    return tqdm(total=max(1, int(total)), desc=label, file=stream, dynamic_ncols=True,
+                leave=True, **kwargs)
 
 
 class Progress:
-    """``with Progress(total, 'label') as bar: ... bar.step(note)`` draws ``[###---] k/total``."""
+    """``with Progress(total, 'label') as bar: ... bar.step(note)``: a tqdm bar (see
+    :func:`progress`); ``note`` is shown after the counts."""
 
-    def __init__(self, total: int, label: str = "", stream=None):
-        self.total, self.label, self.done = max(1, int(total)), label, 0
-        self.stream = stream or sys.stderr
-        self.t0 = time.perf_counter()
+    def __init__(self, total: int, label: str = "", stream: IO[str] | None = None):
+        self._bar = progress(total, label, stream)
 
-    def __enter__(self):
-        self._draw()
+    def __enter__(self) -> "Progress":
         return self
 
-    def step(self, note: str = "", count: int = 1):
-        self.done = min(self.total, self.done + count)
-        self._draw(note)
+    def step(self, note: str = "", count: int = 1) -> None:
+        if note:
+            self._bar.set_postfix_str(note[:40], refresh=False)
+        self._bar.update(count)
 
-    def _draw(self, note: str = ""):
-        width = 30
-        filled = int(width * self.done / self.total)
-        bar = "#" * filled + "-" * (width - filled)
-        elapsed = time.perf_counter() - self.t0
-        self.stream.write(f"\r{self.label:<24} [{bar}] {self.done}/{self.total} "
-                          f"{elapsed:6.1f}s {note[:40]:<40}")
-        self.stream.flush()
-
-    def __exit__(self, *exc):
-        self.stream.write("\n")
-        self.stream.flush()
+    def __exit__(self, *exc: object) -> None:
+        self._bar.close()

@@ -107,7 +107,9 @@ class Expr:
         raise AttributeError("Expr nodes are immutable")
 
     def __reduce__(self):
-        return (Expr, (self.op, self.args, self.attr))
+        # Flat, children-first node list: pickling a deep graph node by node would recurse
+        # once per level and hit the recursion limit. Unpickling re-interns the nodes.
+        return (_from_flat, (_to_flat(self),))
 
     # Arithmetic operators build (and fold) new nodes.
     def __add__(self, other):
@@ -647,6 +649,23 @@ def topological_order(root: Expr) -> list:
             if id(arg) not in seen:
                 stack.append((arg, False))
     return order
+
+
+def _to_flat(root: Expr) -> tuple:
+    """``root``'s DAG as a tuple of ``(op, arg_indices, attr)``, children first, root last."""
+    index, flat = {}, []
+    for node in topological_order(root):
+        index[id(node)] = len(flat)
+        flat.append((node.op, tuple(index[id(a)] for a in node.args), node.attr))
+    return tuple(flat)
+
+
+def _from_flat(flat) -> Expr:
+    """Inverse of :func:`_to_flat` (the nodes are interned: same graph, same node objects)."""
+    nodes = []
+    for op, args, attr in flat:
+        nodes.append(Expr(op, tuple(nodes[i] for i in args), attr))
+    return nodes[-1]
 
 
 def _to_str(root: Expr, limit: int | None = None) -> str:

@@ -655,6 +655,21 @@ class GridSDF:
         """
         return sample_stored if self.gradient == "stored" else sample_fd
 
+    def __getstate__(self):
+        # A pickle holds the exact SDF's graph (no compiled code: the receiver rebuilds its
+        # kernels from its own cache) and the node array once; ``sampler_data`` is a view of
+        # that array and is rebuilt, so the samples arrive bit for bit.
+        state = self.__dict__.copy()
+        state.pop("sampler_data", None)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        (x0, x1), (y0, y1) = self.bounds
+        nx, ny = self.shape
+        self.sampler_data = (self.data.reshape(-1), x0, x1, y0, y1,
+                             1.0 / self.spacing[0], 1.0 / self.spacing[1], nx, ny)
+
     def __repr__(self):
         return (f"GridSDF(bounds={[list(b) for b in self.bounds]}, samples={list(self.shape)}, "
                 f"mode={self.mode!r}, dtype={self.dtype.name}, gradient={self.gradient!r}, "

@@ -657,8 +657,6 @@ class ParticleSimulation:
         self.sdf = f
         self.block = None if block is None else int(block)
         self.force_generators = []
-        self.drawable = None
-        self._layer = None
         self.t = 0.0
         self._ext = None
         self._flags = None
@@ -701,10 +699,11 @@ class ParticleSimulation:
         """Draw a fresh random state (the notebook's distribution) and set ``t = 0``.
 
         ``x ~ N([0, 1.5], 0.05 I)``, ``v ~ N(0, 0.1 I)``, ``m ~ U(1, 10)``, ``r = 0.01 m``,
-        ``cr``, ``cf`` from the constructor. With an ``ax``, (re)creates the drawing with
-        :func:`fastsdf.render.draw_particles`: discs of the particles' radii in data units for
-        up to 5000 particles, a density image above. Returns the drawables (for matplotlib's
-        blitting); ``sim.drawable`` is the current artist.
+        ``cr``, ``cf`` from the constructor. With an ``ax`` (the notebook's interface), also
+        (re)draws the particles there with :func:`fastsdf.render.draw_particles`: discs of the
+        particles' radii in data units for up to 5000 particles, a density image above; returns
+        the drawn artists (for matplotlib's blitting). To animate a simulation without resetting
+        it, use :func:`fastsdf.render.animate`.
         """
         rng = self.seed if isinstance(self.seed, np.random.Generator) \
             else np.random.default_rng(self.seed)
@@ -718,9 +717,7 @@ class ParticleSimulation:
         self.p = p
         self.t = 0.0
         self._wall = None
-        if ax is not None:
-            self._draw_init(ax)
-        return (self.drawable,) if self.drawable is not None else ()
+        return self._draw(ax, new=True)
 
     def update(self, ax=None, use_wall_time=False):
         """Advance one frame and refresh the drawing; returns the drawables.
@@ -736,9 +733,7 @@ class ParticleSimulation:
                 steps = int(min(10, max(1, round((now - self._wall) / self.dt))))
             self._wall = now
         self.run(steps)
-        if self._layer is not None:
-            self._draw_update()
-        return (self.drawable,) if self.drawable is not None else ()
+        return self._draw(ax, new=False)
 
     def advance(self):
         """Advance the simulation by one step of ``timestep`` seconds."""
@@ -954,20 +949,29 @@ class ParticleSimulation:
                                 out)
         return out[:, 0], out[:, 1:]
 
-    # -- drawing -----------------------------------------------------------------------------
-    def _draw_init(self, ax):
-        from .render import draw_particles
+    def _draw(self, ax, new):
+        # The notebook's reset(ax)/update(ax) draw; the drawing and its state live in render.
+        if ax is None:
+            return ()
+        from .render import notebook_draw
+        return notebook_draw(self, ax, new)
 
-        if self._layer is not None:
-            self._layer.remove()
-        x = np.asarray(self.p["x"], dtype=np.float64)
-        self._layer = draw_particles(ax, x[:, 0], x[:, 1], r=np.asarray(self.p["r"], np.float64))
-        self.drawable = self._layer.artist
+    def __getstate__(self):
+        # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
+        # kernel module, scratch buffers and drawing stay behind and are rebuilt on unpickling.
+        # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
+        state = self.__dict__.copy()
+        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_layer", "drawable",
+                    "_wall"):
+            state.pop(key, None)
+        return state
 
-    def _draw_update(self):
-        x = np.asarray(self.p["x"], dtype=np.float64)
-        (self.drawable,) = self._layer.update(x[:, 0], x[:, 1],
-                                              np.asarray(self.p["r"], dtype=np.float64))
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._ext = self._layer = self.drawable = self._wall = None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
+            self.sdf = state["_sdf"]
 
     def __repr__(self):
         return (f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
@@ -1078,6 +1082,9 @@ def create_animation(fig, ax, sim, frames=300, repeat=True, use_wall_time=False,
 
         def to_html5_video(self, embed_limit=None):
             from matplotlib import animation, rcParams
+
+            from ._video import ffmpeg_available
+            ffmpeg_available()  # points matplotlib at imageio-ffmpeg's binary when installed
             if animation.writers.is_available(rcParams["animation.writer"]):
                 return super().to_html5_video(embed_limit=embed_limit)
             return self.to_jshtml(default_mode="loop" if repeat else "once")

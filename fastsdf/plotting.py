@@ -2,26 +2,33 @@
 
 :func:`plot_sdf` draws an SDF on an axes: contour lines of the distance (all levels, or only the
 zero level, the surface), optional labels on them, an optional quiver of the gradient coloured by
-the distance, and an optional filled inside/outside view. :func:`render_frame` puts an SDF and a
-set of particles into one figure and saves it as a PNG (the last frame of a demo).
+the distance, an optional filled inside/outside view and an optional colour bar of the distance.
+Particles and animations are drawn by :mod:`fastsdf.render`, which builds on this module (this
+module never imports it).
 
-The SDF can be anything callable as ``f(x, y, compute_gradient=...)`` that returns the distance
-(negative inside, positive outside) for arrays of coordinates and, with ``compute_gradient=True``,
-``(d, grad)`` with ``grad[..., 0] = dd/dx`` and ``grad[..., 1] = dd/dy``: a
-:class:`fastsdf.graph.Function` (every shape of :mod:`fastsdf.shapes`), a grid-sampled SDF, or a
-plain Python function.
+The SDF can be anything callable that returns the distance (negative inside, positive outside)
+for arrays of coordinates:
 
-matplotlib (and numba, for the particles) is imported on first use, so ``import fastsdf`` stays
-light.
+- ``f(x, y, compute_gradient=...)``, returning ``d`` or, with ``compute_gradient=True``,
+  ``(d, grad)`` with ``grad[..., 0] = dd/dx`` and ``grad[..., 1] = dd/dy``: a
+  :class:`fastsdf.graph.Function` (every shape of :mod:`fastsdf.shapes`) or a GridSDF;
+- a plain ``f(x, y)`` returning ``d``;
+- a plain ``f(p)`` taking an ``(n, 2)`` array of points and returning ``(n,)`` distances.
+
+For the plain forms the gradient (for the quiver) is taken by central differences.
+
+matplotlib is imported on first use, so ``import fastsdf`` stays light.
 """
 
 from __future__ import annotations
 
+import inspect
 import numbers
+from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["plot_sdf", "render_frame", "sdf_grid", "check_bounds",
+__all__ = ["plot_sdf", "sdf_grid", "check_bounds",
            "SOLID_COLOR", "BACKGROUND_COLOR", "ISOLINE_OPTIONS", "QUIVER_ARROWS"]
 
 #: Colour of the solid region (``d < 0``) in the filled view (``plot_sdf(..., filled=True)``).
@@ -34,7 +41,7 @@ ISOLINE_OPTIONS = ("all", "zero", False, None)
 QUIVER_ARROWS = 20
 
 
-def check_bounds(bounds, name: str = "bounds") -> tuple:
+def check_bounds(bounds: Any, name: str = "bounds") -> tuple:
     """``bounds`` as ``((x0, x1), (y0, y1))`` floats.
 
     Raises ``ValueError`` naming ``name`` unless ``bounds`` is a finite ``[(x0, x1), (y0, y1)]``
@@ -54,7 +61,7 @@ def check_bounds(bounds, name: str = "bounds") -> tuple:
     return ((float(arr[0, 0]), float(arr[0, 1])), (float(arr[1, 0]), float(arr[1, 1])))
 
 
-def _check_samples(samples) -> tuple:
+def _check_samples(samples: Any) -> tuple:
     """``samples`` (an int, or a pair for x and y) as ``(nx, ny)``, each an integer >= 2."""
     pair = samples if isinstance(samples, (tuple, list, np.ndarray)) else (samples, samples)
     if len(pair) != 2 or not all(
@@ -65,45 +72,95 @@ def _check_samples(samples) -> tuple:
     return int(pair[0]), int(pair[1])
 
 
-def sdf_grid(f, bounds=((-2.0, 2.0), (-2.0, 2.0)), samples=200, compute_gradient=False):
+def _calling_convention(f: Callable) -> str:
+    """``'gradient'`` (``f(x, y, compute_gradient=...)``), ``'xy'`` (``f(x, y)``) or ``'points'``
+    (``f(p)``, ``p`` of shape ``(n, 2)``)."""
+    if not callable(f):
+        raise TypeError(f"f must be a callable SDF (f(x, y) or f(p)), got f of type "
+                        f"{type(f).__name__}")
+    try:
+        params = list(inspect.signature(f).parameters.values())
+    except (TypeError, ValueError):  # builtins and some extension callables have no signature
+        return "xy"
+    kinds = {p.kind for p in params}
+    if any(p.name == "compute_gradient" for p in params) or inspect.Parameter.VAR_KEYWORD in kinds:
+        return "gradient"
+    positional = [p for p in params if p.kind in (inspect.Parameter.POSITIONAL_ONLY,
+                                                  inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    if inspect.Parameter.VAR_POSITIONAL in kinds or len(positional) >= 2:
+        return "xy"
+    return "points"
+
+
+def _values(f: Callable, kind: str, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    if kind == "gradient":
+        d = f(X, Y, compute_gradient=False)
+    elif kind == "xy":
+        d = f(X, Y)
+    else:
+        d = f(np.column_stack([X.reshape(-1), Y.reshape(-1)]))
+    # Reshape: a callable may hand back flat arrays; the values are in point order.
+    return np.reshape(np.asarray(d, dtype=np.float64), X.shape)
+
+
+def sdf_grid(f: Callable, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)), samples: Any = 200,
+             compute_gradient: bool = False) -> tuple:
     """Evaluate the SDF ``f`` on a regular grid over ``bounds``.
 
-    ``samples`` points along each axis (an int, or ``(nx, ny)``), including the bounds
-    themselves. Returns ``(xs, ys, d)`` or, with ``compute_gradient``, ``(xs, ys, d, grad)``:
-    ``xs`` (nx,) and ``ys`` (ny,) are the sample coordinates, ``d`` is ``(ny, nx)`` with
-    ``d[i, j] = f(xs[j], ys[i])`` (image layout, rows along y) and ``grad`` is ``(ny, nx, 2)``.
+    ``f``: any of the callables of the module docstring. ``samples`` points along each axis (an
+    int, or ``(nx, ny)``), including the bounds themselves. Returns ``(xs, ys, d)`` or, with
+    ``compute_gradient``, ``(xs, ys, d, grad)``: ``xs`` (nx,) and ``ys`` (ny,) are the sample
+    coordinates, ``d`` is ``(ny, nx)`` with ``d[i, j] = f(xs[j], ys[i])`` (image layout, rows
+    along y) and ``grad`` is ``(ny, nx, 2)`` (``f``'s own gradient when it computes one, else
+    central differences with a step of 1e-6 of the bounds' size).
     """
     (x0, x1), (y0, y1) = check_bounds(bounds)
     nx, ny = _check_samples(samples)
+    kind = _calling_convention(f)
     xs, ys = np.linspace(x0, x1, nx), np.linspace(y0, y1, ny)
     X, Y = np.meshgrid(xs, ys)
-    if compute_gradient:
+    if not compute_gradient:
+        return xs, ys, _values(f, kind, X, Y)
+    if kind == "gradient":
         d, grad = f(X, Y, compute_gradient=True)
-        # Reshape: a callable may hand back flat arrays; the values are in point order.
         return xs, ys, np.reshape(np.asarray(d, dtype=np.float64), X.shape), \
             np.reshape(np.asarray(grad, dtype=np.float64), X.shape + (2,))
-    d = f(X, Y, compute_gradient=False)
-    return xs, ys, np.reshape(np.asarray(d, dtype=np.float64), X.shape)
+    h = 1e-6 * max(x1 - x0, y1 - y0)
+    grad = np.stack([(_values(f, kind, X + h, Y) - _values(f, kind, X - h, Y)) / (2 * h),
+                     (_values(f, kind, X, Y + h) - _values(f, kind, X, Y - h)) / (2 * h)], -1)
+    return xs, ys, _values(f, kind, X, Y), grad
 
 
-def _setup_axes(ax, bounds):
-    """The notebook's axes: limits = bounds, equal aspect, no ticks and no tick labels."""
+def _setup_axes(ax: Any, bounds: tuple, ticks: bool = False) -> None:
+    """Limits = bounds and equal aspect; no ticks (the notebook's look) unless ``ticks``, which
+    labels both axes in data units."""
     (x0, x1), (y0, y1) = bounds
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
-    ax.tick_params(axis="both", which="both", bottom=False, top=False, left=False, right=False,
-                   labelbottom=False, labeltop=False, labelleft=False, labelright=False)
+    if ticks:
+        ax.tick_params(axis="both", which="both", bottom=True, left=True, labelbottom=True,
+                       labelleft=True)
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+    else:
+        ax.tick_params(axis="both", which="both", bottom=False, top=False, left=False,
+                       right=False, labelbottom=False, labeltop=False, labelleft=False,
+                       labelright=False)
 
 
-def plot_sdf(fig, ax, f, bounds=[(-2, 2), (-2, 2)], samples=200, show_quiver=True,
-             show_isolines='all', show_isolabels=False, filled=False):
-    """Plot the signed distance function ``f`` on the matplotlib axes ``ax``.
+def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
+             bounds: Any = [(-2, 2), (-2, 2)], samples: Any = 200, show_quiver: bool = True,
+             show_isolines: str | bool | None = 'all', show_isolabels: bool = False,
+             filled: bool = False, colorbar: bool = False, ticks: bool = False) -> dict:
+    """Plot the signed distance function ``f`` on a matplotlib axes.
 
-    ``f``: any callable ``f(x, y, compute_gradient=...)`` (see the module docstring); it is
-    evaluated on a ``samples`` x ``samples`` grid (an int >= 2, or a pair ``(nx, ny)``) spanning
-    ``bounds = [(xmin, xmax), (ymin, ymax)]`` (data units). ``fig`` is accepted for the notebook's
-    signature and not used.
+    Call it as ``plot_sdf(f)`` (a new pyplot figure), ``plot_sdf(f, ax=ax)``, or with the
+    notebook's positional signature ``plot_sdf(fig, ax, f, ...)`` (``fig`` is not used and may be
+    ``None``). ``f``: any callable of the module docstring (``f(x, y, compute_gradient=...)``,
+    ``f(x, y)`` or ``f(p)`` with ``p`` of shape ``(n, 2)``); it is evaluated on a ``samples`` x
+    ``samples`` grid (an int >= 2, or a pair ``(nx, ny)``) spanning
+    ``bounds = [(xmin, xmax), (ymin, ymax)]`` (data units).
 
     ``show_isolines``: ``'all'`` draws contour lines at matplotlib's automatic distance levels,
     ``'zero'`` only the zero level (the surface), ``False``/``None`` none. ``show_isolabels``
@@ -111,13 +168,22 @@ def plot_sdf(fig, ax, f, bounds=[(-2, 2), (-2, 2)], samples=200, show_quiver=Tru
     distance ascent, pointing out of solids) at about ``QUIVER_ARROWS`` points per axis,
     coloured by the distance. ``filled`` paints the solid region ``d < 0`` in
     :data:`SOLID_COLOR` and the rest in :data:`BACKGROUND_COLOR`, beneath the lines and arrows.
+    ``colorbar`` adds a colour bar of the distance for the coloured lines and arrows (it needs
+    ``show_isolines='all'`` or ``show_quiver``). ``ticks`` labels the axes in data units; by
+    default they have the notebook's look: limits = ``bounds``, equal aspect, no ticks.
 
-    The axes get the notebook's look: limits = ``bounds``, equal aspect, no ticks. Returns a dict
-    of the artists created, with the keys that apply: ``'fill'`` (the filled ``QuadContourSet``),
-    ``'contour'`` (the line ``QuadContourSet``), ``'labels'`` (the label ``Text`` list),
-    ``'quiver'`` (the ``Quiver``). Raises ``ValueError`` naming the parameter for an unknown
-    ``show_isolines``, malformed or empty ``bounds``, or ``samples < 2``.
+    Returns a dict with ``'ax'`` (the axes drawn on) and the artists created, with the keys that
+    apply: ``'fill'`` (the filled ``QuadContourSet``), ``'contour'`` (the line
+    ``QuadContourSet``), ``'labels'`` (the label ``Text`` list), ``'quiver'`` (the ``Quiver``),
+    ``'colorbar'``. Raises ``ValueError`` naming the parameter for an unknown ``show_isolines``,
+    malformed or empty ``bounds``, ``samples < 2``, or a colour bar with nothing coloured;
+    ``TypeError`` if ``f`` is missing or not callable.
     """
+    if f is None:
+        f = f_or_fig
+    if f is None or not callable(f):
+        raise TypeError(f"f must be a callable SDF, got f={f!r}: call plot_sdf(f), "
+                        f"plot_sdf(f, ax=ax) or plot_sdf(fig, ax, f)")
     if isinstance(show_isolines, str) or show_isolines is None or show_isolines is False:
         ok = show_isolines in ISOLINE_OPTIONS
     else:
@@ -125,11 +191,18 @@ def plot_sdf(fig, ax, f, bounds=[(-2, 2), (-2, 2)], samples=200, show_quiver=Tru
     if not ok:
         raise ValueError(f"show_isolines must be 'all', 'zero', False or None, got "
                          f"show_isolines={show_isolines!r}")
+    if colorbar and not (show_isolines == 'all' or show_quiver):
+        raise ValueError(f"colorbar=True needs something coloured by the distance "
+                         f"(show_isolines='all' or show_quiver=True), got "
+                         f"show_isolines={show_isolines!r}, show_quiver={show_quiver!r}")
     bounds = check_bounds(bounds)
     samples = _check_samples(samples)
+    if ax is None:
+        import matplotlib.pyplot as plt
+        _, ax = plt.subplots()
 
-    _setup_axes(ax, bounds)
-    ret = {}
+    _setup_axes(ax, bounds, ticks)
+    ret = {'ax': ax}
     if not (show_quiver or show_isolines or filled):
         return ret
 
@@ -139,13 +212,18 @@ def plot_sdf(fig, ax, f, bounds=[(-2, 2), (-2, 2)], samples=200, show_quiver=Tru
         xs, ys, d = sdf_grid(f, bounds, samples)
     # NaN (e.g. where a grid-sampled SDF has no data) is left blank instead of breaking contour.
     dm = np.ma.masked_invalid(d)
+    norm = None
+    if colorbar:
+        from matplotlib.colors import Normalize
+        # One scale for lines and arrows, so the bar reads both.
+        norm = Normalize(float(dm.min()), float(dm.max())) if dm.count() else None
 
     if filled:
         ret['fill'] = ax.contourf(xs, ys, dm, levels=[-np.inf, 0.0, np.inf],
                                   colors=[SOLID_COLOR, BACKGROUND_COLOR], zorder=0.5)
     if show_isolines:
         levels = [0.0] if show_isolines == 'zero' else None
-        ret['contour'] = ax.contour(xs, ys, dm, levels=levels, zorder=2)
+        ret['contour'] = ax.contour(xs, ys, dm, levels=levels, zorder=2, norm=norm)
         if show_isolabels:
             ret['labels'] = ax.clabel(ret['contour'], inline=True, fontsize=8, fmt="%g")
     if show_quiver:
@@ -153,40 +231,10 @@ def plot_sdf(fig, ax, f, bounds=[(-2, 2), (-2, 2)], samples=200, show_quiver=Tru
         sy = max(1, round(samples[1] / QUIVER_ARROWS))
         X, Y = np.meshgrid(xs[::sx], ys[::sy])
         ret['quiver'] = ax.quiver(X, Y, grad[::sy, ::sx, 0], grad[::sy, ::sx, 1],
-                                  d[::sy, ::sx], zorder=3)
+                                  d[::sy, ::sx], zorder=3, norm=norm)
+    if colorbar:
+        mappable = ret['contour'] if show_isolines == 'all' else ret['quiver']
+        # fraction/pad: a bar as tall as a square axes beside it.
+        ret['colorbar'] = ax.figure.colorbar(mappable, ax=ax, fraction=0.046, pad=0.04,
+                                             label="distance d (negative inside)")
     return ret
-
-
-def render_frame(f, x, y, r=None, bounds=[(-2, 2), (-2, 2)], out_png=None, title=None,
-                 samples=400, max_circles=None, figsize=(6.0, 6.0), dpi=100):
-    """Draw the SDF ``f`` and particles at ``(x, y)`` in one figure and save it as a PNG.
-
-    The figure shows ``f``'s filled view (solid in :data:`SOLID_COLOR`, free space in
-    :data:`BACKGROUND_COLOR`) with its zero contour, over ``bounds`` (data units, sampled
-    ``samples`` times per axis), and the particles on top via
-    :func:`fastsdf.render.draw_particles`: circles of radius ``r`` (data units; scalar or per
-    particle) up to ``max_circles`` particles (default
-    :data:`fastsdf.render.DEFAULT_MAX_CIRCLES`), a density image above that. ``title`` is the
-    axes title. The figure is ``figsize`` inches at ``dpi``; if ``out_png`` is given it is saved
-    there at that dpi (no cropping, so the axes' ``transData`` maps data coordinates to the
-    PNG's pixels, with y counted from the bottom).
-
-    Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
-    closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
-    """
-    from matplotlib.figure import Figure
-
-    from .render import DEFAULT_MAX_CIRCLES, draw_particles
-
-    fig = Figure(figsize=figsize, dpi=dpi)
-    ax = fig.add_subplot()
-    plot_sdf(fig, ax, f, bounds=bounds, samples=samples, show_quiver=False,
-             show_isolines='zero', filled=True)
-    layer = draw_particles(ax, x, y, r=r, bounds=bounds,
-                           max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles)
-    fig.particle_layer = layer
-    if title is not None:
-        ax.set_title(title)
-    if out_png is not None:
-        fig.savefig(out_png, dpi=dpi)
-    return fig

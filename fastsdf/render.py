@@ -4,7 +4,12 @@ Matplotlib draws one path per circle, which is fine for thousands of particles a
 millions. :func:`density_image` bins points into a pixel grid in a numba kernel (about 5-10 ms
 for 1e6 points), and :func:`draw_particles` shows either circles (few particles) or that image
 (many particles), returning a :class:`ParticleLayer` whose ``update(x, y)`` redraws it for each
-frame of an animation.
+frame of an animation. :func:`render_frame` draws a world and particles into one labelled figure,
+:func:`animate` turns a running :class:`fastsdf.particles.ParticleSimulation` into a matplotlib
+animation (without resetting it) and :func:`save_animation` writes one to MP4, GIF or HTML.
+
+Drawing lives here, apart from the physics: a simulation holds no artists. This module imports
+:mod:`fastsdf.plotting` (the SDF's picture), never the other way round.
 
 Image convention (shared by every function here): an image of ``shape=(H, W)`` covers
 ``bounds=[(x0, x1), (y0, y1)]`` in data units; pixel ``[i, j]`` holds the points with
@@ -19,6 +24,9 @@ from __future__ import annotations
 
 import math
 import numbers
+import time
+import weakref
+from typing import Any
 
 import numba
 import numpy as np
@@ -26,8 +34,9 @@ from numba import njit, prange
 
 from .plotting import check_bounds
 
-__all__ = ["density_image", "draw_particles", "ParticleLayer",
-           "PARTICLE_COLOR", "PARTICLE_CMAP_COLORS", "DEFAULT_MAX_CIRCLES"]
+__all__ = ["density_image", "draw_particles", "ParticleLayer", "render_frame", "animate",
+           "save_animation", "PARTICLE_COLOR", "PARTICLE_CMAP_COLORS", "DEFAULT_MAX_CIRCLES",
+           "VIDEO_FORMATS", "sim_title", "notebook_draw"]
 
 #: Face colour of particles drawn as circles.
 PARTICLE_COLOR = "#e6550d"
@@ -220,6 +229,25 @@ def _axes_image_shape(ax, bounds) -> tuple:
     return _clip_side(h), _clip_side(w)
 
 
+def _plain_log_ticks(colorbar) -> None:
+    """Tick labels ``1, 2, 5, 10, 100`` on a logarithmic colour bar instead of ``2x10^0``."""
+    from matplotlib.ticker import FuncFormatter
+
+    norm = colorbar.norm
+
+    def major(v, _pos):
+        return f"{v:g}"
+
+    def minor(v, _pos):
+        # Label 2 and 5 between decades only while the bar spans few decades (else crowded).
+        span = math.log10(max(norm.vmax, 1.0) / max(norm.vmin, 1e-300))
+        lead = int(round(v / 10 ** math.floor(math.log10(v)))) if v > 0 else 0
+        return f"{v:g}" if span <= 2.0 and lead in (2, 5) else ""
+
+    colorbar.ax.yaxis.set_major_formatter(FuncFormatter(major))
+    colorbar.ax.yaxis.set_minor_formatter(FuncFormatter(minor))
+
+
 def _clip_side(v: float) -> int:
     return int(min(MAX_IMAGE_SIDE, max(1, round(v)))) if math.isfinite(v) else 256
 
@@ -229,13 +257,16 @@ class ParticleLayer:
 
     Attributes: ``ax``; ``mode``, ``'circles'`` or ``'density'``; ``artist``, the current
     matplotlib artist (an ``EllipseCollection`` or an ``AxesImage``); ``image``, the last density
-    image (``None`` in circle mode); ``bounds``, ``shape``, ``max_circles``. The mode is chosen
-    from the particle count at every update, so a layer switches representation if the count
-    crosses ``max_circles``.
+    image (``None`` in circle mode); ``colorbar``, the density image's colour bar (particles per
+    pixel) when one was asked for and the layer is in density mode, else ``None``; ``bounds``,
+    ``shape``, ``max_circles``. The mode is chosen from the particle count at every update, so a
+    layer switches representation if the count crosses ``max_circles``.
     """
 
     def __init__(self, ax, bounds, shape, max_circles, color, cmap, norm, alpha, zorder,
-                 marker_points):
+                 marker_points, colorbar=False):
+        self.want_colorbar = bool(colorbar)
+        self.colorbar = None
         self.ax = ax
         self.bounds = bounds
         self.shape = shape
@@ -309,9 +340,17 @@ class ParticleLayer:
                                          alpha=self.alpha, zorder=self.zorder,
                                          aspect=self.ax.get_aspect())
             self.mode = "density"
+            if self.want_colorbar:
+                self.colorbar = self.ax.figure.colorbar(self.artist, ax=self.ax,
+                                                        label="particles per pixel",
+                                                        fraction=0.046, pad=0.03)
+                _plain_log_ticks(self.colorbar)
         self.image = img
 
     def _drop(self):
+        if self.colorbar is not None:
+            self.colorbar.remove()
+            self.colorbar = None
         if self.artist is not None:
             self.artist.remove()
         self.artist, self.image, self.mode = None, None, None
@@ -342,7 +381,7 @@ class ParticleLayer:
 
 def draw_particles(ax, x, y, r=None, bounds=None, max_circles=DEFAULT_MAX_CIRCLES, shape=None,
                    color=PARTICLE_COLOR, cmap=None, norm=None, alpha=0.8, zorder=4,
-                   marker_points=4.0):
+                   marker_points=4.0, colorbar=False) -> ParticleLayer:
     """Draw particles on ``ax``: circles for up to ``max_circles`` particles, else a density image.
 
     ``x``, ``y``: particle centres (data units), arrays of equal size. ``r``: radii (data units,
@@ -354,7 +393,8 @@ def draw_particles(ax, x, y, r=None, bounds=None, max_circles=DEFAULT_MAX_CIRCLE
     and opacity. ``cmap``, ``norm``: colour map and normalisation of the density image (default:
     an orange-to-brown map, logarithmic from 1 to the busiest pixel's count, rescaled each
     frame; empty pixels are transparent). ``zorder``: the image's z-order (circles get one
-    more), above the SDF's fill and lines.
+    more), above the SDF's fill and lines. ``colorbar``: add a colour bar of particles per pixel
+    beside the axes while the density image is shown.
 
     The density image counts particle centres per pixel (see :func:`density_image`); radii do
     not enlarge it. Returns a :class:`ParticleLayer`; call ``layer.update(x, y)`` for each
@@ -369,6 +409,211 @@ def draw_particles(ax, x, y, r=None, bounds=None, max_circles=DEFAULT_MAX_CIRCLE
         shape = _check_shape(shape)
     layer = ParticleLayer(ax, bounds, shape, max_circles, color,
                           cmap if cmap is not None else _particle_cmap(), norm, alpha, zorder,
-                          marker_points)
+                          marker_points, colorbar)
     layer.update(x, y, r)
     return layer
+
+
+# ---------------------------------------------------------------------------------------------
+# A world with particles in one figure; animations of a running simulation; saving them.
+
+def _world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
+                  ticks: bool = True) -> tuple:
+    """A figure (constrained layout, so no wasted margin) with ``f``'s filled view on its axes."""
+    from matplotlib.figure import Figure
+
+    from .plotting import plot_sdf
+
+    fig = Figure(figsize=figsize, dpi=dpi, layout="constrained")
+    ax = fig.add_subplot()
+    plot_sdf(fig, ax, f, bounds=bounds, samples=samples, show_quiver=False,
+             show_isolines='zero', filled=True, ticks=ticks)
+    return fig, ax
+
+
+def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), (-2, 2)],
+                 out_png: str | None = None, title: str | None = None, samples: int = 400,
+                 max_circles: int | None = None, figsize: tuple = (6.4, 5.6),
+                 dpi: float = 100, colorbar: bool = True, ticks: bool = True) -> Any:
+    """Draw the SDF ``f`` and particles at ``(x, y)`` in one figure, and save it as a PNG.
+
+    The figure shows ``f``'s filled view (solid in :data:`fastsdf.plotting.SOLID_COLOR`, free
+    space in :data:`fastsdf.plotting.BACKGROUND_COLOR`) with its zero contour, over ``bounds``
+    (data units, sampled ``samples`` times per axis, axes labelled in data units unless
+    ``ticks=False``), and the particles on top via :func:`draw_particles`: circles of radius
+    ``r`` (data units; scalar or per particle) up to ``max_circles`` particles (default
+    :data:`DEFAULT_MAX_CIRCLES`), a density image above that, with a colour bar of particles per
+    pixel when ``colorbar``. ``title`` is the axes title (say what is shown: the simulated time,
+    the step). The figure is ``figsize`` inches at ``dpi``, laid out without wasted margin; if
+    ``out_png`` is given it is saved there at that dpi, uncropped, so the axes' ``transData``
+    maps data coordinates to the PNG's pixels (y counted from the bottom).
+
+    Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
+    closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
+    """
+    fig, ax = _world_figure(f, bounds, samples, figsize, dpi, ticks)
+    layer = draw_particles(ax, x, y, r=r, bounds=bounds, colorbar=colorbar,
+                           max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles)
+    fig.particle_layer = layer
+    if title is not None:
+        ax.set_title(title)
+    if out_png is not None:
+        fig.savefig(out_png, dpi=dpi)
+    return fig
+
+
+def _state(sim: Any) -> tuple:
+    x = np.asarray(sim.p["x"], dtype=np.float64)
+    return x[:, 0], x[:, 1], np.asarray(sim.p["r"], dtype=np.float64)
+
+
+def sim_title(sim: Any, prefix: str = "") -> str:
+    """``'<prefix>t = 1.23 s (step 37)'``: the simulated time of ``sim`` (``sim.t``, seconds
+    since its last reset) and the steps of ``sim.dt`` it took."""
+    t = float(getattr(sim, "t", float("nan")))
+    dt = float(getattr(sim, "dt", float("nan")))
+    if not math.isfinite(t):
+        return prefix.rstrip(", ")
+    steps = f" (step {round(t / dt)})" if math.isfinite(dt) and dt > 0 else ""
+    return f"{prefix}t = {t:.2f} s{steps}"
+
+
+def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
+            use_wall_time: bool = False, interval: float | None = None, repeat: bool = False,
+            title: str | None = "", colorbar: bool = False, advance: Any = None,
+            blit: bool = False, **draw_kwargs: Any) -> Any:
+    """A matplotlib animation of the running simulation ``sim`` on ``ax``, from its current state.
+
+    Unlike the notebook's ``create_animation`` this never resets ``sim``: frame 0 shows the state
+    as it is (after any ``sim.run(...)`` you did), and each later frame advances it by
+    ``steps_per_frame`` steps (an int, or one count per frame) with ``sim.run`` (or with
+    ``advance(k)`` if given, e.g. to time the steps), then redraws. With ``use_wall_time`` a frame
+    advances by as many steps as fit in the wall-clock time since the previous frame (1 to 10),
+    as the notebook's ``update(ax, use_wall_time=True)``. Drawing any existing world first
+    (``fastsdf.plot_sdf(f, ax=ax, filled=True, show_quiver=False, show_isolines='zero')``) gives
+    the usual picture; the particles are drawn by :func:`draw_particles` (``draw_kwargs`` go to
+    it; ``colorbar`` adds a colour bar of particles per pixel to the density image).
+    ``title``: when not ``None``, the axes title is ``title`` followed by each frame's simulated
+    time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay between frames in ms (default the
+    simulation's timestep times ``steps_per_frame``).
+
+    Each frame advances the simulation once more every time the animation is drawn or saved:
+    saving it twice continues the simulation. Returns a ``FuncAnimation`` (keep a reference;
+    :func:`save_animation` writes it to a file). The simulation object holds no artists.
+    """
+    from matplotlib.animation import FuncAnimation
+
+    frames = _check_count(frames, "frames", 1)
+    if isinstance(steps_per_frame, numbers.Integral) and not isinstance(steps_per_frame, bool):
+        schedule = [_check_count(steps_per_frame, "steps_per_frame", 0)] * frames
+    else:
+        try:
+            schedule = [_check_count(k, "steps_per_frame", 0) for k in steps_per_frame]
+        except TypeError:
+            raise ValueError(f"steps_per_frame must be an integer >= 0 or one per frame, got "
+                             f"steps_per_frame={steps_per_frame!r}") from None
+        if len(schedule) != frames:
+            raise ValueError(f"steps_per_frame must have one count per frame ({frames}), got "
+                             f"{len(schedule)}")
+    run = advance if advance is not None else sim.run
+    dt = float(getattr(sim, "dt", 1 / 30))
+    if interval is None:
+        interval = 1000.0 * dt * max(1, schedule[-1])
+    x, y, r = _state(sim)
+    layer = draw_particles(ax, x, y, r=r, colorbar=colorbar, **draw_kwargs)
+    state = {"wall": None}
+    text = ax.set_title(sim_title(sim, title)) if title is not None else None
+
+    def frame(i: int) -> tuple:
+        if i > 0:
+            k = schedule[i]
+            if use_wall_time:
+                now = time.perf_counter()
+                if state["wall"] is not None:
+                    k = int(min(10, max(1, round((now - state["wall"]) / dt))))
+                state["wall"] = now
+            if k:
+                run(k)
+        xs, ys, rs = _state(sim)
+        artists = layer.update(xs, ys, rs)
+        if text is not None:
+            text.set_text(sim_title(sim, title))
+            artists = artists + (text,)
+        return artists
+
+    anim = FuncAnimation(ax.figure, frame, frames=frames, init_func=lambda: layer.update(*_state(sim)),
+                         interval=interval, blit=blit, repeat=repeat)
+    anim.particle_layer = layer
+    return anim
+
+
+#: Extensions :func:`save_animation` writes, and the matplotlib writer for each.
+VIDEO_FORMATS = {".mp4": "ffmpeg", ".m4v": "ffmpeg", ".mov": "ffmpeg", ".mkv": "ffmpeg",
+                 ".webm": "ffmpeg", ".gif": "pillow", ".html": "html"}
+
+
+def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | None = None,
+                   progress: bool = True) -> str:
+    """Write the matplotlib animation ``anim`` to ``path``; the writer follows the extension.
+
+    ``.mp4`` (also ``.m4v``, ``.mov``, ``.mkv``, ``.webm``) uses ffmpeg: the system's, or the
+    binary of the ``imageio-ffmpeg`` package (``pip install 'fastsdf[video]'``), so no system
+    ffmpeg is needed; ``.gif`` uses Pillow (ships with matplotlib); ``.html`` matplotlib's
+    JavaScript player. ``fps``: frames per second (default: from the animation's interval).
+    ``dpi``: resolution (default the figure's). ``progress``: a progress bar on stderr while
+    writing, shown only on a terminal. Returns the absolute path written.
+
+    Raises ``ValueError`` for an extension it cannot write (naming the ones it can), and
+    ``RuntimeError`` for a video extension when no ffmpeg can be found, saying what to install.
+    """
+    import os
+
+    from matplotlib import animation
+
+    from ._progress import progress as _bar
+    from ._video import ffmpeg_available
+
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext not in VIDEO_FORMATS:
+        raise ValueError(f"path must end in one of {', '.join(VIDEO_FORMATS)}, got "
+                         f"path={path!r}")
+    if fps is None:
+        fps = 1000.0 / float(getattr(anim, "_interval", 50) or 50)
+    kind = VIDEO_FORMATS[ext]
+    if kind == "ffmpeg":
+        if not ffmpeg_available():
+            raise RuntimeError(f"writing {ext} needs ffmpeg: pip install 'fastsdf[video]' (it "
+                               f"installs imageio-ffmpeg, which ships one), or install ffmpeg, "
+                               f"or save a .gif")
+        writer = animation.FFMpegWriter(fps=fps, bitrate=2400 if ext != ".webm" else -1)
+    elif kind == "pillow":
+        writer = animation.PillowWriter(fps=fps)
+    else:
+        writer = animation.HTMLWriter(fps=fps, embed_frames=True)
+    total = getattr(anim, "_save_count", None) or 0
+    with _bar(total, f"writing {os.path.basename(str(path))}",
+              **({} if progress else {"disable": True})) as bar:
+        anim.save(str(path), writer=writer, dpi=dpi,
+                  progress_callback=lambda i, n: bar.update(1))
+    return os.path.abspath(str(path))
+
+
+# ---------------------------------------------------------------------------------------------
+# The notebook's reset(ax) / update(ax): a simulation drawn on an axes, state kept here.
+
+_VIEWS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def notebook_draw(sim: Any, ax: Any, new: bool) -> tuple:
+    """Draw ``sim``'s particles on ``ax`` (``new``: replacing its previous drawing); returns the
+    artists. ``ParticleSimulation.reset(ax)`` / ``update(ax)`` call this; the drawing is kept
+    here, keyed by the simulation, not inside it."""
+    x, y, r = _state(sim)
+    layer = _VIEWS.get(sim)
+    if new or layer is None or layer.ax is not ax:
+        if layer is not None:
+            layer.remove()
+        layer = draw_particles(ax, x, y, r=r)
+        _VIEWS[sim] = layer
+        return (layer.artist,)
+    return layer.update(x, y, r)

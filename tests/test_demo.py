@@ -17,26 +17,82 @@ def _cli(*args, cwd=None, env_extra=None):
 
 
 @pytest.mark.parametrize("args,needle", [
-    ([], "COMMAND"),
-    (["demo", "--particles", "0"], "--particles"),
-    (["demo", "--particles", "abc"], "--particles"),
-    (["demo", "--steps", "-3"], "--steps"),
-    (["demo", "--grid", "1"], "--grid"),
-    (["demo", "--frames", "2.5"], "--frames"),
+    ([], "fastsdf: error: the following arguments are required: COMMAND"),
+    (["demo", "--particles", "0"], "fastsdf demo: error: argument --particles"),
+    (["demo", "--particles", "abc"], "fastsdf demo: error: argument --particles"),
+    (["demo", "--steps", "-3"], "fastsdf demo: error: argument --steps"),
+    (["demo", "--grid", "1"], "fastsdf demo: error: argument --grid"),
+    (["demo", "--frames", "2.5"], "fastsdf demo: error: argument --frames"),
+    (["demo", "--fps", "0"], "fastsdf demo: error: argument --fps"),
+    (["demo", "--world", "moon"], "fastsdf demo: error: argument --world"),
+    (["demo", "--mode", "linear"], "fastsdf demo: error: argument --mode"),
+    (["demo", "--frames", "5", "--steps", "2"], "fastsdf demo: error: --frames 5 is more than"),
+    (["demo", "--out", "/proc/nope", "--particles", "10"], "fastsdf demo: error: --out"),
     (["demo", "--bogus"], "unrecognized"),
-    (["nonsense"], "invalid choice"),
+    (["nonsense"], "fastsdf: error: argument COMMAND: invalid choice"),
 ])
-def test_cli_rejects_bad_arguments_with_exit_code_2(args, needle):
+def test_cli_errors_are_one_line_with_exit_code_2(args, needle):
     res = _cli(*args)
     assert res.returncode == 2
     assert needle in res.stderr
+    assert res.stderr.count("\n") == 1 and res.stdout == "", res.stderr
+    assert "Traceback" not in res.stderr
 
 
-def test_cli_help():
+def test_cli_help_and_version():
+    from fastsdf import __version__
+
     res = _cli("demo", "--help")
     assert res.returncode == 0
-    for flag in ("--particles", "--steps", "--grid", "--exact", "--seed", "--out"):
+    for flag in ("--particles", "--steps", "--grid", "--exact", "--seed", "--out", "--world",
+                 "--mode", "--fps", "--frames"):
         assert flag in res.stdout
+    res = _cli("--version")
+    assert res.returncode == 0 and res.stdout.strip() == f"fastsdf {__version__}"
+
+
+def test_console_script_is_declared():
+    import configparser
+
+    cfg = configparser.ConfigParser()
+    cfg.read(os.path.join(REPO, "setup.cfg"))
+    scripts = cfg["options.entry_points"]["console_scripts"]
+    assert "fastsdf = fastsdf.__main__:main" in scripts
+
+
+
+def test_main_returns_through_systemexit_for_version(capsys):
+    from fastsdf.__main__ import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.startswith("fastsdf ")
+
+
+def test_spawn_in_free_space_leaves_no_particle_in_matter():
+    import fastsdf.particles as phys
+    from fastsdf.demo import spawn_in_free_space
+    from fastsdf.scenes import box_world
+
+    world = box_world(20, seed=0)
+    sim = phys.ParticleSimulation(world, n=2000, seed=1)
+    x0 = sim.p["x"].copy()
+    before = world(x0[:, 0], x0[:, 1]) - sim.p["r"] < 0
+    assert before.sum() > 100  # the notebook's blob overlaps this world's boxes
+    moved = spawn_in_free_space(sim, world, np.random.default_rng(0))
+    x = sim.p["x"]
+    assert moved == before.sum()
+    assert np.all(world(x[:, 0], x[:, 1]) - sim.p["r"] >= 0)
+    np.testing.assert_array_equal(x[~before], x0[~before])  # free particles stay put
+
+
+def test_frame_schedule_ends_at_the_last_step():
+    from fastsdf.demo import _frame_schedule
+
+    for steps, frames in [(300, 120), (7, 7), (10, 3), (5, 1), (1, 1), (299, 60)]:
+        sched = _frame_schedule(steps, frames)
+        assert len(sched) == frames and sum(sched) == steps
+        assert sched[0] == (steps if frames == 1 else 0) and min(sched[1:] or [1]) >= 1
 
 
 def _hex(color):
@@ -49,23 +105,32 @@ def _hex(color):
 def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     from matplotlib.image import imread
 
-    from fastsdf.demo import run_demo
-    from fastsdf.plotting import SOLID_COLOR, render_frame
-    from fastsdf.render import PARTICLE_COLOR
+    from fastsdf.demo import run_demo, summary
+    from fastsdf.plotting import SOLID_COLOR
+    from fastsdf.render import PARTICLE_COLOR, render_frame
     from fastsdf.scenes import box_world
 
     res = run_demo(particles=3000, steps=45, grid=120, exact=exact, seed=3, out=str(tmp_path),
                    frames=3)
     assert res.particle_steps_per_second > 0 and res.steps == 45
-    assert os.path.exists(res.last_frame) and os.path.exists(res.animation)
+    assert os.path.exists(res.last_frame) and res.animation.endswith(".mp4")
+    assert os.path.getsize(res.animation) > 1000
     assert (res.grid_band_value_max is None) == exact
+    assert (res.outside_grid_fraction is None) == exact
     assert res.inside_fraction < 0.01
+    assert res.respawned > 0  # the notebook's blob overlaps this world's boxes
+    text = summary(res)
+    for needle in ("world: boxes", "45 steps", "1.50 s of simulated time", "M particle-steps/s",
+                   "for comparison", "--world seed"):
+        assert needle in text, needle
+    assert ("inside the grid" in text) != exact
     img = imread(res.last_frame)[..., :3]
-    world = box_world(20, seed=3)
+    world = box_world(20, seed=0)
     probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
     assert np.all(world(*np.array(probes).T) < -0.05)
     # Map data coordinates to PNG pixels with the same figure layout render_frame uses.
     fig = render_frame(world, np.zeros(0), np.zeros(0))
+    fig.canvas.draw()
     to_px = fig.axes[0].transData
     height = img.shape[0]
 
@@ -94,3 +159,19 @@ def test_notebook_example_runs_every_cell(tmp_path):
     for name in ("cell_04.png", "cell_09.png", "cell_13.png", "cell_18.html", "cell_21.html",
                  "cell_22.html"):
         assert (tmp_path / name).stat().st_size > 1000, name
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,outputs", [
+    ("custom_scene", ["custom_scene.png"]),
+    ("raymarch", ["raymarch.png"]),
+    ("custom_force", ["custom_force.png"]),
+    ("save_video", ["particles.mp4"]),
+])
+def test_examples_run_at_small_size(tmp_path, name, outputs):
+    env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")
+    res = subprocess.run([sys.executable, os.path.join(REPO, "examples", f"{name}.py"),
+                          str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    for out in outputs:
+        assert (tmp_path / out).stat().st_size > 1000, out

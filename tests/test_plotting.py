@@ -19,8 +19,8 @@ from matplotlib.image import AxesImage  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
 from fastsdf import plotting, render  # noqa: E402
-from fastsdf.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf, render_frame  # noqa: E402
-from fastsdf.render import ParticleLayer, density_image, draw_particles  # noqa: E402
+from fastsdf.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf  # noqa: E402
+from fastsdf.render import ParticleLayer, density_image, draw_particles, render_frame  # noqa: E402
 
 BOUNDS = [(-2, 2), (-2, 2)]
 
@@ -64,7 +64,8 @@ def test_plot_sdf_every_option_creates_expected_artists(circle, isolines, quiver
     fig, ax = new_axes()
     out = plot_sdf(fig, ax, circle, bounds=BOUNDS, samples=40, show_quiver=quiver,
                    show_isolines=isolines, show_isolabels=labels, filled=filled)
-    expected = set()
+    expected = {"ax"}
+    assert out["ax"] is ax
     if isolines:
         expected.add("contour")
         if labels:
@@ -146,7 +147,7 @@ def test_plot_sdf_with_nan_values_does_not_fail():
         return (d, np.stack([np.ones_like(d), np.zeros_like(d)], -1)) if compute_gradient else d
     fig, ax = new_axes()
     out = plot_sdf(fig, ax, holey, samples=30, filled=True)
-    assert set(out) == {"contour", "quiver", "fill"}
+    assert set(out) == {"ax", "contour", "quiver", "fill"}
     fig.canvas.draw()
 
 
@@ -154,7 +155,7 @@ def test_plot_sdf_nothing_to_show_does_not_evaluate():
     def boom(x, y, compute_gradient=False):
         raise AssertionError("evaluated")
     fig, ax = new_axes()
-    assert plot_sdf(fig, ax, boom, show_quiver=False, show_isolines=None) == {}
+    assert plot_sdf(fig, ax, boom, show_quiver=False, show_isolines=None) == {"ax": ax}
     assert ax.get_xlim() == (-2, 2)
 
 
@@ -179,6 +180,67 @@ def test_plot_sdf_rejects_bad_arguments(kwargs, name):
     with pytest.raises(ValueError, match=name) as info:
         plot_sdf(fig, ax, NumpyCircle(), **kwargs)
     assert repr(next(iter(kwargs.values())))[:3] in str(info.value)
+
+
+def test_plot_sdf_call_forms_agree(circle):
+    """plot_sdf(f), plot_sdf(f, ax=ax), plot_sdf(fig, ax, f) and plot_sdf(None, ax, f) draw the
+    same contour; f(x, y) and f(p) plain callables match the Function (gradient by differences)."""
+    import matplotlib.pyplot as plt
+
+    def levels_and_quiver(out):
+        return np.asarray(out["contour"].levels), np.column_stack([out["quiver"].U,
+                                                                   out["quiver"].V])
+
+    fig, ax = new_axes()
+    ref = levels_and_quiver(plot_sdf(fig, ax, circle, samples=40))
+    try:
+        out = plot_sdf(circle, samples=40)  # a new pyplot figure
+        assert out["ax"] is plt.gca()
+        got = levels_and_quiver(out)
+    finally:
+        plt.close("all")
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_allclose(got[1], ref[1])
+    for call in (lambda a: plot_sdf(circle, ax=a, samples=40),
+                 lambda a: plot_sdf(None, a, circle, samples=40),
+                 lambda a: plot_sdf(lambda x, y: circle(x, y), ax=a, samples=40),
+                 lambda a: plot_sdf(lambda p: circle(p[:, 0], p[:, 1]), ax=a, samples=40)):
+        fig, ax = new_axes()
+        got = levels_and_quiver(call(ax))
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_allclose(got[1], ref[1], atol=1e-6)
+
+
+def test_plot_sdf_colorbar_and_ticks(circle):
+    fig, ax = new_axes()
+    out = plot_sdf(circle, ax=ax, samples=40, colorbar=True, ticks=True, show_quiver=False)
+    cb = out["colorbar"]
+    d = circle(*np.meshgrid(np.linspace(-2, 2, 40), np.linspace(-2, 2, 40)))
+    assert cb.mappable is out["contour"]
+    assert np.isclose(cb.norm.vmin, d.min()) and np.isclose(cb.norm.vmax, d.max())
+    assert "distance" in cb.ax.get_ylabel()
+    fig.canvas.draw()
+    assert ax.get_xlabel() == "x" and any(t.get_text() for t in ax.get_xticklabels())
+    # Lines and arrows share the colour bar's scale.
+    fig, ax = new_axes()
+    out = plot_sdf(circle, ax=ax, samples=40, colorbar=True)
+    assert out["quiver"].norm is out["contour"].norm
+    with pytest.raises(ValueError, match="colorbar"):
+        plot_sdf(circle, ax=ax, colorbar=True, show_quiver=False, show_isolines="zero")
+    with pytest.raises(TypeError, match="f must be a callable"):
+        plot_sdf(fig, ax, None)
+    with pytest.raises(TypeError, match="f must be a callable"):
+        plot_sdf(42, ax=ax)
+
+
+def test_plotting_does_not_import_render():
+    import ast
+    import inspect as _inspect
+
+    tree = ast.parse(_inspect.getsource(plotting))
+    names = {getattr(n, "module", None) for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    names |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert not any(m and "render" in m for m in names), names
 
 
 def test_plot_sdf_is_exported():

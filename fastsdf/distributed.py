@@ -1,0 +1,622 @@
+"""Beyond one machine: point sets and particle simulations sharded over Dask.
+
+Particles never interact with each other, only with the SDF, so a simulation splits into
+independent shards. This module runs them on a ``dask.distributed`` cluster (install the extra:
+``pip install fastsdf[distributed]``)::
+
+    from dask.distributed import Client, LocalCluster
+    import fastsdf as sdf
+    from fastsdf.distributed import DistributedSimulation, evaluate
+    from fastsdf.particles import Gravity
+
+    with LocalCluster(n_workers=2, threads_per_worker=1) as cluster, Client(cluster) as client:
+        world = sdf.GridSDF(scenes.box_world(20), samples=[400j, 400j])
+        sim = DistributedSimulation(world, 10_000_000, client=client, seed=0,
+                                    force_generators=[Gravity()])
+        sim.run(100)                    # every shard steps on its worker, in parallel
+        image = sim.density()           # (400, 400) counts: the sum of per-shard histograms
+        sim.close()
+
+What travels. An SDF pickles as its expression graph (a flat node list), never as compiled
+code; a GridSDF as that graph plus its node array. A worker rebuilds the kernels on first use
+from its own disk cache (``$FASTSDF_CACHE_DIR``): it compiles once per machine, and every later
+process loads. The world and the simulation's configuration are sent to each worker once
+(``client.scatter(..., broadcast=True)``); the particles are created on the workers from the
+seed and never travel to the client unless you ask for them (:meth:`DistributedSimulation.gather`).
+
+Shards are Dask *actors*: a stateful object living on one worker, whose method calls go from
+the client to that worker (no task graph, no scheduler decision per call). The state (64 bytes
+per particle) is mutated in place every step, which is what actors are for; a plain task
+result is meant to be immutable, and the scheduler may copy it or silently recompute it from
+its creation task after a worker dies, which here would mean a shard restarting from ``t = 0``
+unnoticed. Every call returns the shard's step count and the client checks it, so a shard that
+was lost (or re-created) raises :class:`ShardLostError` naming it; nothing is re-created in
+secret. There are no checkpoints: after the error, build a new simulation.
+
+Determinism: shard ``i`` of ``shards`` is exactly ::
+
+    ParticleSimulation(world, n_i, seed=np.random.default_rng(
+        np.random.SeedSequence(seed).spawn(shards)[i]), **parameters)
+
+with ``n_i = n // shards + (i < n % shards)``, stepped with the same force generators: the
+same seed and shard count give the same bits whichever workers run the shards, and the same
+bits as running those simulations one after another in one process.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import numbers
+import os
+import pickle
+import time
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
+           "local_cluster", "SimulationStats"]
+
+#: How long (seconds) to wait on a shard before checking that its worker is still alive.
+POLL_SECONDS = 0.5
+
+
+def _require_dask():
+    try:
+        import dask  # noqa: F401
+        import distributed  # noqa: F401
+    except ImportError as exc:  # pragma: no cover - the extra is installed in CI
+        raise ImportError("fastsdf.distributed needs dask.distributed: pip install "
+                          "'fastsdf[distributed]'") from exc
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)).hexdigest()[:32]
+
+
+def _check_world(f, name: str = "f"):
+    from .graph import Function
+    from .grid import GridSDF
+    if not isinstance(f, (Function, GridSDF)):
+        raise TypeError(f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
+                        f"of type {type(f).__name__}")
+    return f
+
+
+# ---------------------------------------------------------------------------------------------
+# Point sets.
+
+def _evaluate_block(xb, yb, f, gradient):
+    if gradient:
+        d, g = f(xb, yb, compute_gradient=True)
+        out = np.empty(d.shape + (3,))
+        out[..., 0] = d
+        out[..., 1:] = g
+        return out
+    return f(xb, yb)
+
+
+def evaluate(f, x, y, compute_gradient: bool = False):
+    """``f(x, y[, compute_gradient])`` on ``dask.array`` inputs, lazily, block by block.
+
+    ``f``: a fastsdf SDF or GridSDF. ``x``, ``y``: dask arrays (or array-likes, wrapped with
+    ``dask.array.asarray``) of the same shape; ``y`` is rechunked like ``x``. Returns a float64
+    dask array ``d`` of that shape, or ``(d, grad)`` with ``grad`` of shape ``shape + (2,)``,
+    ``grad[..., 0] = dd/dx`` (negative inside, as everywhere in fastsdf). Each block is computed
+    by the single-process call on that block, so its values are the same bits. ``f`` enters the
+    task graph once, as one piece of data: a worker unpickles it once (the graph, not compiled
+    code) and compiles or loads its kernels once per process.
+    """
+    _require_dask()
+    import dask
+    import dask.array as da
+
+    _check_world(f)
+    x = x if isinstance(x, da.Array) else da.asarray(x)
+    y = y if isinstance(y, da.Array) else da.asarray(y)
+    for name, a in (("x", x), ("y", y)):
+        if a.dtype.kind not in "iuf":
+            raise TypeError(f"{name} must hold real numbers, got dtype {a.dtype}")
+    if x.shape != y.shape:
+        raise ValueError(f"x and y must have the same shape, got {x.shape} and {y.shape}")
+    y = y.rechunk(x.chunks)
+    world = dask.delayed(f, name="fastsdf-world-" + _digest(f), pure=True)
+    gradient = bool(compute_gradient)
+    if not gradient:
+        return da.map_blocks(_evaluate_block, x, y, world, gradient, dtype=np.float64,
+                             meta=np.empty((0,) * x.ndim), name="fastsdf-evaluate-"
+                             + dask.base.tokenize(world.key, x.name, y.name, False))
+    out = da.map_blocks(_evaluate_block, x, y, world, gradient, dtype=np.float64,
+                        new_axis=x.ndim, chunks=x.chunks + ((3,),),
+                        meta=np.empty((0,) * (x.ndim + 1)),
+                        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, x.name,
+                                                                          y.name, True))
+    return out[..., 0], out[..., 1:]
+
+
+# ---------------------------------------------------------------------------------------------
+# Sharded simulation.
+
+class ShardLostError(RuntimeError):
+    """A shard of a :class:`DistributedSimulation` is gone (its worker died or was restarted).
+
+    ``shards``: the lost shard indices; ``workers``: the addresses they lived on. The other
+    shards are intact, but the simulation can no longer advance consistently.
+    """
+
+    def __init__(self, shards, workers, detail=""):
+        self.shards = tuple(int(s) for s in shards)
+        self.workers = tuple(workers)
+        where = ", ".join(f"shard {s} on {w}" for s, w in zip(self.shards, self.workers))
+        super().__init__(f"lost {len(self.shards)} shard(s): {where}; their particles are gone "
+                         f"(no checkpoints): build a new DistributedSimulation"
+                         + (f" ({detail})" if detail else ""))
+
+
+def shard_sizes(n: int, shards: int) -> list:
+    """Particles per shard: ``n // shards``, plus one for the first ``n % shards`` shards."""
+    return [n // shards + (1 if i < n % shards else 0) for i in range(shards)]
+
+
+def shard_seed(seed, shards: int, i: int) -> np.random.Generator:
+    """The random generator of shard ``i``: ``default_rng(SeedSequence(seed).spawn(shards)[i])``."""
+    return np.random.default_rng(np.random.SeedSequence(seed).spawn(shards)[i])
+
+
+_PARAMETERS = ("timestep", "integrator", "collision", "prevent_tunnelling", "dtype", "cr", "cf",
+               "lipschitz", "block")
+
+
+@dataclass(frozen=True)
+class _Config:
+    """What a worker needs to build and step its shards (pickles as a graph, a few bytes more)."""
+
+    world: object
+    n: int
+    shards: int
+    seed: object
+    parameters: tuple
+
+    def build(self, i: int):
+        from .particles import ParticleSimulation
+        sizes = shard_sizes(self.n, self.shards)
+        return ParticleSimulation(self.world, n=sizes[i],
+                                  seed=shard_seed(self.seed, self.shards, i),
+                                  **dict(self.parameters))
+
+
+def _workers(client) -> dict:
+    """The scheduler's live workers, ``{address: info}``, asked now. (Not
+    ``client.scheduler_info()``: the client refreshes that cache in the background without the
+    worker list, so reading it right after a refresh can show an empty cluster.)"""
+    return dict(client.sync(client.scheduler.identity, n_workers=-1)["workers"])
+
+
+def _set_threads(threads: int):
+    import numba
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+
+
+class _Group:
+    """The shards on one worker (a Dask actor: one per worker, so a call costs one round trip
+    per worker whatever the shard count). Every method returns ``(steps, payload)``, ``steps``
+    being ``{shard: steps done}``; payloads are small except :meth:`particles`."""
+
+    def __init__(self, config: _Config, indices: list, threads: int):
+        self.threads = threads
+        _set_threads(threads)
+        self.sims = {i: config.build(i) for i in indices}
+        self.steps = {i: 0 for i in indices}
+
+    def run(self, steps: int, generators: list):
+        _set_threads(self.threads)
+        for i, sim in self.sims.items():
+            sim.force_generators = list(generators)
+            sim.run(steps)
+            self.steps[i] += steps
+        return dict(self.steps), {i: sim.t for i, sim in self.sims.items()}
+
+    def summary(self, generators: list):
+        out = {}
+        for i, sim in self.sims.items():
+            sim.force_generators = list(generators)
+            x = np.asarray(sim.p["x"], dtype=np.float64)
+            bbox = np.array([x[:, 0].min(), x[:, 1].min(), x[:, 0].max(), x[:, 1].max()])
+            out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
+        return dict(self.steps), out
+
+    def density(self, bounds, shape):
+        from .render import density_image
+        _set_threads(self.threads)
+        total = np.zeros(shape)
+        for sim in self.sims.values():
+            x = sim.p["x"]
+            total += density_image(x[:, 0], x[:, 1], bounds, shape)
+        return dict(self.steps), total
+
+    def take(self, local: dict):
+        out = {}
+        for i, rows in local.items():
+            p = self.sims[i].p
+            out[i] = {k: np.array(p[k][rows]) for k in p.keys()}
+        return dict(self.steps), out
+
+    def particles(self):
+        return dict(self.steps), {i: sim.p.copy() for i, sim in self.sims.items()}
+
+
+@dataclass(frozen=True)
+class SimulationStats:
+    """Small reductions over all shards (see :meth:`DistributedSimulation.stats`).
+
+    ``counts``: particles per shard; ``kinetic``, ``potential``: totals (energy units, summed
+    over shards in shard order; potential of the :class:`fastsdf.particles.Gravity` generators,
+    zero at the origin); ``bboxes``: ``(shards, 4)`` per-shard ``(xmin, ymin, xmax, ymax)`` of
+    particle centres (length units); ``bbox``: their union.
+    """
+
+    counts: tuple
+    kinetic: float
+    potential: float
+    bboxes: np.ndarray
+    bbox: tuple
+
+    @property
+    def n(self) -> int:
+        """Total number of particles."""
+        return int(sum(self.counts))
+
+    @property
+    def energy(self) -> float:
+        """Kinetic plus potential energy."""
+        return self.kinetic + self.potential
+
+
+class DistributedSimulation:
+    """A :class:`fastsdf.particles.ParticleSimulation` of ``n`` particles split into shards that
+    live on Dask workers.
+
+    Parameters
+    ----------
+    world : SDF or GridSDF
+        As for ``ParticleSimulation``; it travels to each worker once, as a graph (and a grid's
+        node array), and each worker compiles or loads its kernels from its own disk cache.
+    n : int
+        Total number of particles (>= ``shards``).
+    client : dask.distributed.Client
+        The cluster to run on (required: fastsdf never starts one behind your back; see
+        :func:`local_cluster`).
+    shards : int or None
+        Number of shards; default one per worker. Shard ``i`` goes to worker ``i mod workers``
+        (workers sorted by address); the shard count, not the worker count, fixes the result.
+    seed : int, SeedSequence entropy or None
+        Shard ``i`` draws its initial state from :func:`shard_seed` ``(seed, shards, i)``;
+        ``None`` draws fresh entropy once (kept as :attr:`seed`).
+    force_generators : list
+        :class:`fastsdf.particles.Gravity`, :class:`fastsdf.particles.Drag` (fused) and
+        picklable Python callables ``(p, t) -> (n_i, 2)``; a Python generator sees one shard's
+        particles at a time. The list :attr:`force_generators` may be changed between runs.
+    timestep, integrator, collision, prevent_tunnelling, dtype, cr, cf, lipschitz, block
+        The ``ParticleSimulation`` parameters, same meaning and defaults.
+    threads : int or None
+        numba threads per shard call; default the worker's Dask thread count, so that worker
+        processes sharing a machine do not oversubscribe its cores.
+
+    Each worker holds its shards' state (64 bytes per particle in float64); the client holds
+    only small results. Use as a context manager or call :meth:`close` to free the workers.
+    """
+
+    def __init__(self, world, n, *, client, shards=None, seed=None, force_generators=(),
+                 timestep=1 / 30, integrator="symplectic", collision="approaching",
+                 prevent_tunnelling=True, dtype=np.float64, cr=0.6, cf=0.3, lipschitz=None,
+                 block=None, threads=None):
+        _require_dask()
+        from distributed import Client
+
+        from .particles import ParticleSimulation
+
+        if not isinstance(client, Client):
+            raise TypeError(f"client must be a dask.distributed.Client, got client={client!r}")
+        _check_world(world, "world")
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n <= 0:
+            raise ValueError(f"n must be a positive integer, got n={n!r}")
+        info = _workers(client)
+        if not info:
+            raise ValueError("the client's cluster has no workers")
+        addresses = sorted(info)
+        if shards is None:
+            shards = len(addresses)
+        if isinstance(shards, (bool, np.bool_)) or not isinstance(shards, numbers.Integral) \
+                or shards <= 0:
+            raise ValueError(f"shards must be a positive integer or None, got shards={shards!r}")
+        if n < shards:
+            raise ValueError(f"n must be >= shards (every shard holds a particle), got n={n!r}, "
+                             f"shards={shards!r}")
+        if threads is not None and (isinstance(threads, (bool, np.bool_))
+                                    or not isinstance(threads, numbers.Integral) or threads <= 0):
+            raise ValueError(f"threads must be a positive integer or None, got threads={threads!r}")
+        if seed is None:
+            seed = np.random.SeedSequence().entropy
+        parameters = dict(timestep=timestep, integrator=integrator, collision=collision,
+                          prevent_tunnelling=prevent_tunnelling, dtype=np.dtype(dtype), cr=cr,
+                          cf=cf, lipschitz=lipschitz, block=block)
+        # Validate every parameter here, on one particle, so that errors name the parameter
+        # at construction instead of arriving as a remote traceback.
+        probe = ParticleSimulation(world, n=1, seed=0, **parameters)
+        for gen in force_generators:
+            if not callable(gen):
+                raise TypeError(f"force_generators must hold Gravity, Drag or callables "
+                                f"(p, t) -> (n, 2) forces, got {gen!r}")
+        self.client = client
+        self.world = world
+        self.n = int(n)
+        self.shards = int(shards)
+        self.seed = seed
+        self.dt = probe.dt
+        self.dtype = probe.dtype
+        self.force_generators = list(force_generators)
+        self.t = 0.0
+        self.steps = 0
+        self.sizes = shard_sizes(self.n, self.shards)
+        self._lost = None
+        config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()))
+        self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
+        self._config_future = client.scatter(config, broadcast=True, hash=False)
+        tag = uuid.uuid4().hex[:12]
+        self._groups = {}
+        for i, w in enumerate(self.workers):
+            self._groups.setdefault(w, []).append(i)
+        self._futures = [
+            client.submit(_Group, self._config_future, indices,
+                          threads or info[w].get("nthreads", 1), actor=True, workers=[w],
+                          allow_other_workers=False, pure=False, key=f"fastsdf-shards-{tag}-{k}")
+            for k, (w, indices) in enumerate(self._groups.items())]
+        actors = self._gather([(indices[0], f) for indices, f
+                               in zip(self._groups.values(), self._futures)], check_steps=False)
+        self._actors = dict(zip(self._groups, actors))
+
+    # -- calls and loss detection -----------------------------------------------------------
+    def _lost_error(self, shards, detail=""):
+        # Shards share their worker's fate: name every shard that lived on a lost worker.
+        gone = {self.workers[i] for i in shards}
+        shards = sorted(i for i, w in enumerate(self.workers) if w in gone)
+        self._lost = ShardLostError(shards, [self.workers[i] for i in shards], detail)
+        return self._lost
+
+    def _dead_shards(self) -> list:
+        alive = set(_workers(self.client))
+        return [i for i, w in enumerate(self.workers) if w not in alive]
+
+    def _gather(self, pending, check_steps=True) -> list:
+        """Results of ``(shard, future)`` pairs (Dask futures or actor futures), in shard order.
+
+        Waits in slices of :data:`POLL_SECONDS`; between slices it asks the scheduler which
+        workers are alive, so a dead worker raises :class:`ShardLostError` instead of a hang.
+        """
+        from distributed import Future
+
+        if pending and not isinstance(pending[0][1], Future):
+            # Actor calls: one wait on the client's event loop for all of them (a blocking
+            # wait per future costs a loop round trip each).
+            results = self.client.sync(self._gather_async, list(pending))
+        else:
+            results = {}
+            for i, fut in pending:
+                while True:
+                    try:
+                        results[i] = fut.result(timeout=POLL_SECONDS)
+                        break
+                    except TimeoutError:
+                        dead = self._dead_shards()
+                        if dead:
+                            raise self._lost_error(dead, "worker no longer in the cluster") \
+                                from None
+                    except Exception as exc:  # noqa: BLE001
+                        self._raise_if_lost(i, exc)
+                        raise
+        out = [results[i] for i in sorted(results)]
+        if check_steps:
+            # A shard re-created behind our back would report fewer steps: never accept it.
+            wrong = [i for steps, _ in out for i, k in steps.items() if k != self.steps]
+            if wrong:
+                raise self._lost_error(wrong, "a shard reported a step count other than the "
+                                              f"simulation's {self.steps}")
+        return out
+
+    async def _gather_async(self, pending):
+        import asyncio
+
+        async def one(fut):
+            return await fut
+
+        tasks = {asyncio.ensure_future(one(fut)): i for i, fut in pending}
+        results = {}
+        try:
+            while tasks:
+                done, _ = await asyncio.wait(list(tasks), timeout=POLL_SECONDS,
+                                             return_when=asyncio.FIRST_EXCEPTION)
+                for task in done:
+                    i = tasks.pop(task)
+                    exc = task.exception()
+                    if exc is not None:
+                        self._raise_if_lost(i, exc)
+                        raise exc
+                    results[i] = task.result()
+                if tasks and not done:
+                    info = await self.client.scheduler.identity(n_workers=-1)
+                    alive = set(info["workers"])
+                    dead = [i for i, w in enumerate(self.workers) if w not in alive]
+                    if dead:
+                        raise self._lost_error(dead, "worker no longer in the cluster")
+        finally:
+            for task in tasks:
+                task.cancel()
+        return results
+
+    def _raise_if_lost(self, i, exc):
+        """Raise :class:`ShardLostError` if ``exc`` says that shard ``i``'s worker is gone."""
+        from distributed.comm.core import CommClosedError
+        name = type(exc).__name__
+        text = str(exc).lower()
+        if isinstance(exc, (OSError, CommClosedError)) or name in (
+                "CancelledError", "FutureCancelledError", "KilledWorker") or (
+                isinstance(exc, RuntimeError) and ("lost" in text or "released" in text)):
+            raise self._lost_error([i], f"{name}: {exc}") from None
+
+    def _call(self, method: str, *args, workers=None) -> list:
+        """Call ``method(*args)`` on the actor of every worker (or of the given ones, a dict
+        ``{worker: args}``) concurrently; ``[(steps, payload)]`` in worker order."""
+        if self._lost is not None:
+            raise self._lost
+        if self._actors is None:
+            raise RuntimeError("this DistributedSimulation is closed")
+        if workers is None:
+            workers = {w: args for w in self._actors}
+        pending = [(self._groups[w][0], getattr(self._actors[w], method)(*a))
+                   for w, a in workers.items()]
+        return self._gather(pending)
+
+    # -- stepping -----------------------------------------------------------------------------
+    def run(self, steps=1) -> None:
+        """Advance every shard ``steps`` steps of ``timestep`` seconds, in parallel.
+
+        Returns when all shards are done. Raises :class:`ShardLostError` if a shard's worker
+        died, and the shard's own ``ValueError`` for an invalid particle state.
+        """
+        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
+            raise TypeError(f"steps must be an integer, got steps={steps!r}")
+        if steps < 0:
+            raise ValueError(f"steps must be >= 0, got steps={steps!r}")
+        if steps == 0:
+            return
+        if self._lost is not None:
+            raise self._lost
+        self.steps += int(steps)
+        out = self._call("run", int(steps), list(self.force_generators))
+        self.t = out[0][1][0]
+
+    # -- reductions (small) ------------------------------------------------------------------
+    def stats(self) -> SimulationStats:
+        """Counts, energies and bounding boxes over all shards (a few numbers per shard)."""
+        per = {}
+        for _, payload in self._call("summary", list(self.force_generators)):
+            per.update(payload)
+        rows = [per[i] for i in range(self.shards)]
+        bboxes = np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 4)
+        with np.errstate(invalid="ignore"):
+            bbox = (float(np.nanmin(bboxes[:, 0])), float(np.nanmin(bboxes[:, 1])),
+                    float(np.nanmax(bboxes[:, 2])), float(np.nanmax(bboxes[:, 3])))
+        return SimulationStats(counts=tuple(int(r[0]) for r in rows),
+                               kinetic=float(sum(r[1] for r in rows)),
+                               potential=float(sum(r[2] for r in rows)), bboxes=bboxes,
+                               bbox=bbox)
+
+    def energy(self) -> float:
+        """Total kinetic plus gravitational potential energy (sum over shards, shard order)."""
+        return self.stats().energy
+
+    def bounding_box(self) -> tuple:
+        """``(xmin, ymin, xmax, ymax)`` of all particle centres (length units)."""
+        return self.stats().bbox
+
+    def density(self, bounds=((-2.0, 2.0), (-2.0, 2.0)), shape=(400, 400)) -> np.ndarray:
+        """Particle counts per pixel: the sum of the shards' :func:`fastsdf.render.density_image`
+        (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
+        counts, so the order of summation does not matter). Each worker sends one summed image:
+        the client holds O(workers * H * W), not O(n)."""
+        from .plotting import check_bounds
+        from .render import _check_shape
+        bounds = check_bounds(bounds)
+        shape = _check_shape(shape)
+        total = np.zeros(shape)
+        for _, image in self._call("density", bounds, shape):
+            total += image
+        return total
+
+    def sample(self, k: int, seed=None) -> dict:
+        """``k`` particles drawn uniformly without replacement from all shards.
+
+        Returns a dict of the fields ``x, v, m, r, cr, cf`` (float arrays of ``k`` rows) and
+        ``index`` (their global indices, sorted; shard ``i`` holds the indices from
+        ``sum(sizes[:i])``). Only the ``k`` rows travel.
+        """
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Integral) \
+                or not 0 <= k <= self.n:
+            raise ValueError(f"k must be an integer in [0, n={self.n}], got k={k!r}")
+        from .particles import Particles
+        rng = np.random.default_rng(seed)
+        index = np.sort(rng.choice(self.n, size=int(k), replace=False))
+        starts = np.concatenate([[0], np.cumsum(self.sizes)])
+        shard_of = np.searchsorted(starts, index, side="right") - 1
+        asks = {}
+        for i in np.unique(shard_of):
+            i = int(i)
+            asks.setdefault(self.workers[i], {})[i] = index[shard_of == i] - starts[i]
+        parts = {}
+        if asks:
+            for _, payload in self._call("take", workers={w: (a,) for w, a in asks.items()}):
+                parts.update(payload)
+        out = {"index": index}
+        for name in Particles.FIELDS:
+            arrays = [parts[i][name] for i in sorted(parts)]
+            out[name] = np.concatenate(arrays) if arrays else \
+                np.zeros((0, 2) if name in ("x", "v") else (0,), self.dtype)
+        return out
+
+    def gather(self):
+        """All particles on the client as one :class:`fastsdf.particles.Particles`, shards in
+        order: O(n) memory, for tests and small runs only."""
+        from .particles import Particles
+        parts = {}
+        for _, payload in self._call("particles"):
+            parts.update(payload)
+        p = Particles(self.n, self.dtype)
+        start = 0
+        for i in range(self.shards):
+            part = parts[i]
+            for name in Particles.FIELDS:
+                p[name][start:start + len(part)] = part[name]
+            start += len(part)
+        return p
+
+    # -- lifetime -----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Free the shards on the workers (idempotent)."""
+        if self._actors is None:
+            return
+        futures = self._futures + [self._config_future]
+        self._actors = None
+        self._futures = []
+        try:
+            self.client.cancel(futures)
+        except Exception:  # noqa: BLE001 - a closed client has nothing left to free
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __repr__(self):
+        return (f"DistributedSimulation(n={self.n}, shards={self.shards}, "
+                f"workers={len(set(self.workers))}, t={self.t:.4g}, steps={self.steps})")
+
+
+def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs):
+    """A ``dask.distributed.LocalCluster`` of ``workers`` processes on the loopback interface
+    (127.0.0.1, no dashboard), ``threads_per_worker`` threads each (default: the machine's
+    cores divided among the workers, at least 1). Close it (``with`` or ``.close()``)."""
+    _require_dask()
+    from distributed import LocalCluster
+    if isinstance(workers, (bool, np.bool_)) or not isinstance(workers, numbers.Integral) \
+            or workers <= 0:
+        raise ValueError(f"workers must be a positive integer, got workers={workers!r}")
+    if threads_per_worker is None:
+        threads_per_worker = max(1, (os.cpu_count() or 1) // int(workers))
+    options = dict(n_workers=int(workers), threads_per_worker=int(threads_per_worker),
+                   processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
+    options.update(kwargs)
+    return LocalCluster(**options)
