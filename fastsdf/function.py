@@ -297,5 +297,12 @@ class Function:
         state["_compiled"] = None
         return state
 
+    def __getstate__(self):
+        # Pickles carry the graph, never compiled code: the receiving process rebuilds the
+        # kernels on first use from its own disk cache (compiling once per machine).
+        state = self.__dict__.copy()
+        state["_compiled"] = None
+        return state
+
     def __repr__(self):
         return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"

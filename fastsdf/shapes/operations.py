@@ -12,6 +12,7 @@ from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from .._validate import is_param, real_or_param, vec2_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
+from ..interval import note_lipschitz
 from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
                      sym_qmin, sym_smax, sym_smin)
 from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
@@ -79,6 +80,8 @@ class SDF(Function):
     def __init__(self, expr: Expr, info: _Info | None = None):
         super().__init__(expr, [_X, _Y])
         self._info = _NONE if info is None else info
+        if self._info.bound:  # interval bounds may use |f(p) - f(c)| <= |p - c|
+            note_lipschitz(self.f, 1.0)
 
     @property
     def sdf(self) -> Expr:
