@@ -63,6 +63,18 @@ def _float_key(value: float) -> bytes:
 _NO_SYMBOLS = frozenset()
 
 
+def _param_set(op, args, attr) -> frozenset:
+    """``(name, default)`` of the runtime parameters a new node depends on (O(1) per node, as
+    :func:`_symbol_set`)."""
+    if op == "param":
+        return frozenset((attr,))
+    out = _NO_SYMBOLS
+    for a in args:
+        if a.prms is not out and not a.prms <= out:
+            out = a.prms if out <= a.prms else out | a.prms
+    return out
+
+
 def _symbol_set(op, args, attr) -> frozenset:
     """Symbols a new node depends on, computed once at construction (O(1) per node: the sets
     of the arguments are reused when they are equal, which they almost always are)."""
@@ -82,7 +94,7 @@ class Expr:
     so ``==``/``hash`` are identity-based and cheap. ``str(expr)`` gives a readable formula.
     """
 
-    __slots__ = ("op", "args", "attr", "syms", "__weakref__")
+    __slots__ = ("op", "args", "attr", "syms", "prms", "__weakref__")
     # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
     __array_ufunc__ = None
 
@@ -100,6 +112,7 @@ class Expr:
             object.__setattr__(node, "args", args)
             object.__setattr__(node, "attr", attr)
             object.__setattr__(node, "syms", _symbol_set(op, args, attr))
+            object.__setattr__(node, "prms", _param_set(op, args, attr))
             _INTERN[key] = node
         return node
 
@@ -220,13 +233,11 @@ def parameters(root: Expr) -> dict:
     """``{name: default}`` of the parameters in ``root`` (``ValueError`` if one name has two
     different defaults)."""
     out: dict = {}
-    for node in topological_order(root):
-        if node.op == "param":
-            name, default = node.attr
-            if name in out and _float_key(out[name]) != _float_key(default):
-                raise ValueError(f"parameter {name!r} is given two defaults in one scene: "
-                                 f"{out[name]!r} and {default!r}")
-            out[name] = default
+    for name, default in sorted(root.prms, key=lambda p: (p[0], _float_key(p[1]))):
+        if name in out and _float_key(out[name]) != _float_key(default):
+            raise ValueError(f"parameter {name!r} is given two defaults in one scene: "
+                             f"{out[name]!r} and {default!r}")
+        out[name] = default
     return out
 
 

@@ -493,17 +493,18 @@ def _kernel_module(f, forces=()):
         desc = f"a grid world (mode {mode!r}); the scene is bound at run time"
         key = ("grid", id(sampler), mode)
     elif isinstance(f, Function) and f.compiled.parametric:
-        # Parameters and time are data: (t, wall speed bound, parameter tuple), set per call.
+        # Parameters and time are data, set per call: (t, wall speed bound, *parameters), one
+        # flat tuple of floats (the parallel kernel cannot take nested tuples).
         scene = f.compiled.module.__name__
         lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
-                 "def _query(data, x, y):", "    return _exact(x, y, data[0], data[2])"]
+                 "def _query(data, x, y):", "    return _exact(x, y, data[0], data[2:])"]
         if f.time_dependent:
             lines += [f"from {scene} import point_vgt as _exact_t", "", "", _DECORATOR,
-                      "def _query_t(data, x, y, t):", "    return _exact_t(x, y, t, data[2])",
+                      "def _query_t(data, x, y, t):", "    return _exact_t(x, y, t, data[2:])",
                       "", "", _DECORATOR, "def _wall_speed(data):", "    return data[1]", "",
                       "", "MOVING = True"]
         deps = [scene]
-        data = (0.0, 0.0, f.param_tuple())
+        data = (0.0, 0.0) + f.param_tuple()
         desc = repr(f)[:300]
         key = ("sdf", id(f.compiled.module))
     elif isinstance(f, Function):
@@ -900,14 +901,14 @@ class ParticleSimulation:
                           f"the {steps} step(s) and sim.t = {self.t!r} includes them")
 
     def _scene_data(self, steps: int) -> tuple:
-        """Query data of a parametric world: (t, wall speed bound, parameter tuple)."""
+        """Query data of a parametric world: (t, wall speed bound, *parameters)."""
         prm = self.params.as_tuple()
         wall = 0.0
         if self._moving and steps:
             wall = self._wall_speed_arg
             if wall is None:
                 wall = self._estimate_wall_speed(steps, prm)
-        return (float(self.t), float(wall), prm)
+        return (float(self.t), float(wall)) + prm
 
     def _estimate_wall_speed(self, steps: int, prm: tuple) -> float:
         """1.5 times the largest |dd/dt| at up to 4096 particles at the call's first and last

@@ -80,7 +80,9 @@ class SDF(Function):
     def __init__(self, expr: Expr, info: _Info | None = None):
         super().__init__(expr, [_X, _Y])
         self._info = _NONE if info is None else info
-        if self._info.bound:  # interval bounds may use |f(p) - f(c)| <= |p - c|
+        # Interval bounds may use |f(p) - f(c)| <= |p - c|: in x and y only, not in runtime
+        # parameters (a moving circle's distance changes with its centre too).
+        if self._info.bound and not self.f.prms:
             note_lipschitz(self.f, 1.0)
 
     @property
