@@ -8,9 +8,10 @@ import fastsdf as sdf
 import fastsdf.particles as phys
 
 
-def _sim(world, x, v, r, cr, cf=0.0, dt=1 / 60, **kw):
+def _sim(world, x, v, r, cr, cf=0.0, dt=1 / 60, params=None, **kw):
     n = len(x)
     sim = phys.ParticleSimulation(world, n=n, timestep=dt, seed=0, **kw)
+    sim.params.update(params or {})
     sim.p["x"] = x
     sim.p["v"] = v
     sim.p["r"] = r
@@ -20,9 +21,9 @@ def _sim(world, x, v, r, cr, cf=0.0, dt=1 / 60, **kw):
     return sim
 
 
-def _piston(u, x0=-1.0):
-    """Solid where x <= x0 + u t: a wall moving along +x at speed u."""
-    return sdf.Halfspace(normal=[1, 0], d=x0 + u * sdf.t)
+# The walls' positions and speeds are parameters: every test shares one kernel per world.
+PISTON = sdf.Halfspace(normal=[1, 0], d=sdf.Param("x0", -1.0) + sdf.Param("u", 0.5) * sdf.t)
+FLOOR = sdf.Halfspace(normal=[0, 1], d=sdf.Param("y0", -1.0) + sdf.Param("u", 0.5) * sdf.t)
 
 
 @pytest.mark.parametrize("cr, factor", [(0.0, 1.0), (1.0, 2.0)])
@@ -31,8 +32,8 @@ def test_piston_pushes_a_resting_particle_at_its_speed(cr, factor):
     # (the reflection of the relative velocity off an infinitely heavy wall).
     u, r = 0.6, 0.05
     x = np.array([[-1.0 + r + 0.1, 0.0], [-1.0 + r + 0.3, 0.5]])
-    sim = _sim(_piston(u), x, np.zeros((2, 2)), r, cr)
-    assert sim._moving and sim.params == {}
+    sim = _sim(PISTON, x, np.zeros((2, 2)), r, cr, params={"u": u, "x0": -1.0})
+    assert sim._moving and sim.params == {"u": u, "x0": -1.0}
     sim.run(120)          # 2 s: the piston has moved 1.2, past both starting points
     v = np.asarray(sim.p["v"])
     np.testing.assert_allclose(v[:, 0], factor * u, rtol=1e-9)
@@ -43,14 +44,14 @@ def test_piston_pushes_a_resting_particle_at_its_speed(cr, factor):
         np.testing.assert_allclose(sim.p["x"][:, 0], -1.0 + u * sim.t + r, atol=1e-9)
 
 
-@pytest.mark.parametrize("u, n", [(0.3, 4096), (3.0, 64)])
+@pytest.mark.parametrize("u, n", [pytest.param(0.3, 4096, marks=pytest.mark.slow), (3.0, 64)])
 def test_rising_floor_lifts_a_resting_particle_without_penetrating(u, n):
     # u = 3: the floor moves 5 radii per step, the sweep must see it coming. n = 4096: the
     # parallel kernel.
     r, dt = 0.01, 1 / 60
     x = np.stack([np.linspace(-1, 1, n), np.full(n, -1.0 + r)], axis=1)
-    sim = _sim(sdf.Halfspace(normal=[0, 1], d=-1.0 + u * sdf.t), x, np.zeros((n, 2)), r,
-               cr=np.linspace(0, 1, n), cf=0.3, dt=dt)
+    sim = _sim(FLOOR, x, np.zeros((n, 2)), r, cr=np.linspace(0, 1, n), cf=0.3, dt=dt,
+               params={"u": u, "y0": -1.0})
     sim.force_generators.append(phys.Gravity((0.0, -9.81)))
     worst = 0.0
     for _ in range(90):
@@ -77,7 +78,7 @@ def test_energy_bookkeeping_against_a_wall_moving_into_particles():
     x = np.stack([-1.0 + r + gap, rng.uniform(-1, 1, n)], axis=1)
     v = np.stack([-w, np.zeros(n)], axis=1)
     m = rng.uniform(1, 5, n)
-    sim = _sim(_piston(u, x0=-1.0), x, v, r, cr, dt=dt)
+    sim = _sim(PISTON, x, v, r, cr, dt=dt, params={"u": u, "x0": -1.0})
     sim.p["m"] = m
     sim.run(3)     # everyone has hit the wall once and left it faster than it moves
     v1 = np.asarray(sim.p["v"])[:, 0]
