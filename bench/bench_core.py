@@ -194,10 +194,6 @@ def _scene_of_size(count: int):
 
 def _scaling(quick: bool):
     """Throughput against the number of points and against the number of primitives (PNG)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     sizes = [10 ** 3, 10 ** 5] if quick else [10 ** 3, 10 ** 4, 10 ** 5, 10 ** 6, 10 ** 7]
     counts = [1, 20] if quick else [1, 5, 20, 50, 200, 1000]
     rng = np.random.default_rng(3)
@@ -223,24 +219,11 @@ def _scaling(quick: bool):
             t, _ = timeit(f, xs_all[:n], ys_all[:n], True, repeats=3)
             by_prims.append(n / t)
             bar.step(f"{count} primitives")
-    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 4))
-    for name, rates in by_points.items():
-        a0.loglog(sizes, rates, "o-", label=name)
-    a0.set_xlabel("points per call")
-    a0.set_ylabel("points / s (value + gradient)")
-    a0.set_title("throughput vs call size")
-    a0.legend()
-    a0.grid(True, which="both", alpha=0.3)
-    a1.loglog(counts, by_prims, "o-")
-    a1.set_xlabel("primitives in the scene")
-    a1.set_ylabel("points / s (value + gradient)")
-    a1.set_title(f"throughput vs scene size ({n:,} points)")
-    a1.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    path = os.path.join(os.path.dirname(__file__), "core_scaling.png")
     if not quick:
-        fig.savefig(path, dpi=100)
-    plt.close(fig)
+        from .plots import core_scaling
+        core_scaling(sizes, by_points, counts, by_prims, n,
+                     os.path.join(os.path.dirname(__file__), "core_scaling.png"),
+                     numba.get_num_threads())
     rows = [(f"{n:,}", *(f"{fmt_rate(by_points[k][i])} pts/s" for k in by_points))
             for i, n in enumerate(sizes)]
     text = table(["points per call", *by_points], rows)

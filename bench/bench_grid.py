@@ -289,64 +289,13 @@ def _access_pattern(xs, ys, quick: bool) -> str:
 
 
 def _plot(results, quick: bool):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        from matplotlib.ticker import NullFormatter
-    except ImportError:  # pragma: no cover - matplotlib is a dependency
-        return None
-    fig, axes = plt.subplots(1, 2, figsize=(14, 6))
-    colors = {"seed world": "tab:blue", "20-box world": "tab:red"}
-    markers = {("stored", "float64"): "o", ("stored", "float32"): "s", ("fd", "float64"): "^",
-               ("fd", "float32"): "v"}
-    for ax, key, label in ((axes[0], "band_value_max", "value error, max in band |d| < 0.1"),
-                           (axes[1], "band_angle_rms", "gradient angle error (deg), RMS in band")):
-        # The exact SDF has no error: draw it left of the smallest measured error, labelled.
-        errs = [r[key] for r in results if r["kind"] != "exact" and r[key] > 0
-                and math.isfinite(r[key])]
-        floor = min(errs) / 4 if errs else 1e-16
-        for world, color in colors.items():
-            for (gradient, dname), mk in markers.items():
-                pts = [r for r in results if r["world"] == world and r["kind"] == "grid"
-                       and r["gradient"] == gradient and r["dtype"] == dname]
-                if not pts:
-                    continue
-                ax.plot([max(p[key], floor) for p in pts], [p["best"] / 1e6 for p in pts],
-                        marker=mk, color=color, alpha=0.8, linestyle="-", linewidth=0.8,
-                        label=f"{world}: GridSDF {gradient} {dname}")
-                if gradient == "stored" and dname == "float64":
-                    for p in pts:
-                        ax.annotate(str(p["res"]), (max(p[key], floor), p["best"] / 1e6),
-                                    fontsize=6, xytext=(3, 3), textcoords="offset points")
-            seed = [r for r in results if r["world"] == world and r["kind"] == "seed"]
-            if seed:
-                ax.plot([p[key] for p in seed], [p["best"] / 1e6 for p in seed], marker="x",
-                        color=color, linestyle=":", label=f"{world}: seed map_coordinates")
-            ex = [r for r in results if r["world"] == world and r["kind"] == "exact"]
-            if ex:
-                ax.plot([floor], [ex[0]["best"] / 1e6], marker="*", markersize=14, color=color,
-                        linestyle="none", label=f"{world}: exact compiled SDF")
-                ax.annotate("exact\n(error 0)", (floor, ex[0]["best"] / 1e6), fontsize=7,
-                            xytext=(6, -4), textcoords="offset points")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set_xlabel(label)
-        ax.set_ylabel("value + gradient, M points/s (best of repeats)")
-        ax.grid(True, which="both", alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=4, frameon=False)
-    fig.suptitle(f"GridSDF speed versus error ({N_POINTS:,} random points, "
-                 f"{numba.get_num_threads()} threads; labels: nodes per axis)"
-                 + (" [quick]" if quick else ""))
-    fig.tight_layout(rect=(0, 0.13, 1, 1))
+    from .plots import grid_speed_vs_error
+
     # A quick run must not overwrite the committed figure: it goes to the temp directory.
     path = (os.path.join(tempfile.gettempdir(), "grid_speed_vs_error_quick.png") if quick
             else os.path.join(HERE, "grid_speed_vs_error.png"))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return grid_speed_vs_error(results, path, N_POINTS, numba.get_num_threads(),
+                               " [quick]" if quick else "")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -19,6 +19,7 @@ machine falls on all of them alike. Cells show the median rate and, in parenthes
 
 from __future__ import annotations
 
+import math
 import os
 import time
 
@@ -65,8 +66,10 @@ class Fused:
     """``steps`` steps of the fused kernel from ``state``: one ``run(steps)`` call, or
     ``steps`` ``advance()`` calls (``per_step``)."""
 
-    def __init__(self, f, state, steps, per_step=False, **kw):
+    def __init__(self, f, state, steps, per_step=False, skip=True, forces=(), **kw):
         self.sim = _sim(f, len(state), **kw)
+        self.sim._skip = self.sim._skip and skip   # skip=False: every step queries (peers' work)
+        self.sim.force_generators += list(forces)
         self.state, self.steps, self.per_step = state, steps, per_step
         self.work = len(state) * steps
         self.sim.p = state.copy()
@@ -341,30 +344,186 @@ def run(quick: bool = False) -> str:
             table(["particles", f"particle-steps/s, {threads} threads", "1 thread",
                    "parallel speed-up", "state (float64)", "state (float32)"], rows),
             "", plot, ""]
+        out += peers_section(grid, states, reps=reps)
     return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# Peers, fused user forces, first call.
+
+class Peer:
+    """``steps`` steps of a peer's fused kernel (see ``bench/peers.py``) from ``state``."""
+
+    def __init__(self, fn, state, steps):
+        self.fn, self.state, self.steps = fn, state, steps
+        self.work = len(state) * steps
+        fn(state.copy(), 1, 1 / 30, -1.0)   # compile
+
+    def prepare(self):
+        self.p = self.state.copy()
+
+    def __call__(self):
+        self.fn(self.p, self.steps, 1 / 30, -1.0)
+
+
+@njit(cache=True)
+def wind(x, y, vx, vy, m, t):
+    """A fused user force (bench): drag towards a wind whose speed grows with height."""
+    return 0.3 * (0.5 + 0.2 * y - vx), -0.3 * vy
+
+
+def _attractor():
+    from fastsdf.graph import Symbol, sym_sqrt
+    x, y = Symbol("x"), Symbol("y")
+    return phys.FieldForce(potential=-0.05 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1),
+                           per_mass=True)
+
+
+def _numpy_wind(p, t):
+    return np.c_[0.3 * (0.5 + 0.2 * p["x"][:, 1] - p["v"][:, 0]), -0.3 * p["v"][:, 1]]
+
+
+def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
+    """Markdown lines: fastsdf against Taichi and Warp particle kernels, fused user forces,
+    first-call times."""
+    from . import peers
+    threads = numba.get_num_threads()
+    if grid is None:
+        grid = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
+    if states is None:
+        states = _states(grid, n)
+    n = len(states["fall"])
+    load = os.getloadavg()[0]
+    out = [f"### Peers: Taichi and Warp fused particle kernels ({n:,} particles, {threads} "
+           f"threads; load average {load:.1f} at the start)", ""]
+    ti_fn, ti_err = peers.taichi_particles(grid, threads)
+    wp_fn, wp_err = peers.warp_particles(grid)
+    rows = []
+    for name in ("settled", "fall"):
+        st = states[name]
+        variants = [Fused(grid, st, 20), Fused(grid, st, 3, per_step=True),
+                    Fused(grid, st, 20, skip=False, prevent_tunnelling=False)]
+        if ti_fn is not None:
+            variants.append(Peer(ti_fn, st, 20))
+        if wp_fn is not None:
+            variants.append(Peer(wp_fn, st, 3))
+        rates = compare(variants, reps)
+        ti = rates[3][0] if ti_fn is not None else None
+        row = [name] + [cell(r) for r in rates[:3]]
+        row += [cell(rates[3]) if ti_fn is not None else "not installed"]
+        row += [cell(rates[-1]) if wp_fn is not None else "not installed"]
+        row += [" / ".join(f"{r[0] / ti:.2f}" for r in rates[:3]) if ti else ""]
+        rows.append(row)
+    out += [
+        "Each peer is one fused kernel per step written as an expert user of it would (see "
+        "`bench/peers.py`): semi-implicit Euler under gravity, the bilinear value-and-gradient "
+        "lookup in the same grid storage, the same response; no tunnelling check and no query "
+        "skipping (points outside the grid clamped onto it). Taichi runs on the same thread "
+        "count; Warp's CPU kernels run on one thread. fastsdf: defaults (`run(20)` and one "
+        "`advance()` per step), and with skipping and the tunnelling check off (the peers' "
+        "work). The last column divides the three fastsdf medians by Taichi's."
+        + ("" if ti_fn else f" Taichi skipped: {ti_err}.") + ("" if wp_fn else
+                                                             f" Warp skipped: {wp_err}."), "",
+        table(["phase", "fastsdf run(20)", "fastsdf advance()", "fastsdf, skip and sweep off",
+               "Taichi", "Warp (1 thread)", "fastsdf / Taichi (the three)"], rows), ""]
+
+    rows = []
+    for name in ("settled", "fall"):
+        st = states[name]
+        rates = compare([Fused(grid, st, 20), Fused(grid, st, 20, forces=[wind]),
+                         Fused(grid, st, 20, forces=[_attractor()]),
+                         Fused(grid, st, 3, forces=[_numpy_wind])], reps)
+        g = rates[0][0]
+        rows.append([name] + [cell(r) for r in rates] +
+                     [" / ".join(f"{g / r[0] - 1:+.0%}" for r in rates[1:])])
+    out += [
+        "### Fused user forces (`run(20)`, gravity plus one force)", "",
+        "A numba `@njit` force `wind(x, y, vx, vy, m, t)` (drag towards a wind that grows "
+        "with height) and a "
+        "`FieldForce(potential=...)` attractor (an expression compiled like an SDF, its analytic "
+        "gradient as the force) are inlined into the step; the NumPy generator computing the "
+        "same wind runs between single compiled steps (the slow path). Extra time is relative "
+        "to gravity alone (medians); the target is at most +15%.", "",
+        table(["phase", "gravity", "+ @njit wind", "+ FieldForce attractor",
+               "+ NumPy wind (run(3))", "extra time (njit / field / NumPy)"], rows), ""]
+    out += _first_call_rows()
+    return out
+
+
+_FIRST_CALL = r"""
+import time, os, sys
+t0 = time.perf_counter()
+import numpy as np, fastsdf as sdf, fastsdf.particles as phys
+t1 = time.perf_counter()
+rng = np.random.default_rng(int(sys.argv[1]) if len(sys.argv) > 1 else {seed})
+w = sdf.Halfspace([0, 1], -1.8) | sdf.Circle(list(rng.uniform(-1, 1, 2)), 0.3 + 0.2 * rng.random())
+g = sdf.GridSDF(w, bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
+t2 = time.perf_counter()
+sim = phys.ParticleSimulation(g, n=100_000, seed=0)
+sim.force_generators.append(phys.Gravity())
+sim.run(1)
+t3 = time.perf_counter()
+print(f"{{t1 - t0}} {{t2 - t1}} {{t3 - t2}}")
+"""
+
+_TAICHI_FIRST = r"""
+import time
+t0 = time.perf_counter()
+import numpy as np, numba, taichi as ti
+import fastsdf as sdf, fastsdf.particles as phys
+from bench import peers
+g = sdf.GridSDF(sdf.Halfspace([0, 1], -1.8), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+p = phys.ParticleSimulation(g, n=100_000, seed=0).p
+t1 = time.perf_counter()
+fn, err = peers.taichi_particles(g, 2, offline_cache={cache})
+fn(p, 1, 1 / 30, -1.0)
+print(time.perf_counter() - t1)
+"""
+
+
+def _first_call_rows() -> list:
+    """First ``run(1)`` of a grid world in fresh processes: empty kernel cache, then a new scene
+    with the installation's kernels cached."""
+    import tempfile
+    from .common import run_fresh_process
+    cache = tempfile.mkdtemp(prefix="fastsdf_first_")
+    env = {"FASTSDF_CACHE_DIR": cache}
+    seed = int(time.time())
+    cold = [float(v) for v in run_fresh_process(_FIRST_CALL.format(seed=seed), env).split()]
+    warm = [float(v) for v in run_fresh_process(_FIRST_CALL.format(seed=seed + 1), env).split()]
+    again = [float(v) for v in run_fresh_process(_FIRST_CALL.format(seed=seed + 1), env).split()]
+    rows = [["empty kernel cache (a fresh installation)", f"{cold[0]:.2f} s", f"{cold[1]:.2f} s",
+             f"{cold[2]:.2f} s"],
+            ["new scene, kernels of the installation cached", f"{warm[0]:.2f} s",
+             f"{warm[1]:.2f} s", f"{warm[2]:.2f} s"],
+            ["same scene again (everything cached)", f"{again[0]:.2f} s", f"{again[1]:.2f} s",
+             f"{again[2]:.2f} s"]]
+    peers_rows = []
+    for label, flag in (("cold (offline cache off)", False), ("warm (offline cache)", True)):
+        try:
+            t = float(run_fresh_process(_TAICHI_FIRST.format(cache=flag)).split()[-1])
+            peers_rows.append([f"Taichi, {label}", "", "", f"{t:.2f} s"])
+        except Exception as exc:  # noqa: BLE001 - optional peer
+            peers_rows.append([f"Taichi, {label}", "", "", f"skipped ({str(exc)[-80:]})"])
+    return [
+        "### First call of a grid-world simulation (fresh processes)", "",
+        "A new scene each time (a floor and a random circle), a 400x400 GridSDF, 100,000 "
+        "particles: the time to import, to build the grid (it compiles the scene), and from "
+        "constructing the simulation to the end of its first `run(1)`. The grid kernel does "
+        "not depend on the scene (the exact fallback outside the grid is bound at run time), "
+        "so with the installation's kernels cached a new scene only compiles its small "
+        "fallback function. Taichi: its fused kernel's first call (`ti.init` included).", "",
+        table(["case", "import", "grid build", "first run(1)"], rows + peers_rows), ""]
 
 
 def _scaling_plot(sizes, curve, quick) -> str:
     """Particle-steps/s against particle count, per thread count (PNG beside this file)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import particles_scaling
 
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    for threads, rates in sorted(curve.items(), reverse=True):
-        ax.loglog(sizes, rates, "o-", label=f"{threads} thread{'s' if threads > 1 else ''}")
-    ax.set_xlabel("particles")
-    ax.set_ylabel("particle-steps / s")
-    ax.set_title("fused step, 400x400 grid, run(100)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
     if quick:
-        plt.close(fig)
         return ""
-    fig.savefig(os.path.join(os.path.dirname(os.path.abspath(__file__)),
-                             "particles_scaling.png"), dpi=100)
-    plt.close(fig)
+    particles_scaling(sizes, curve, os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                                 "particles_scaling.png"))
     return "![particle scaling](particles_scaling.png)"
 
 
@@ -390,5 +549,24 @@ def _float32_error(f, n):
     return rows
 
 
+def _splice_peers(n: int, reps: int) -> str:
+    """Re-run only the peers, forces and first-call tables and put them into
+    bench/results/particles.md in place of the ones there (or at its end)."""
+    text = "\n".join(peers_section(n=n, reps=reps))
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "particles.md")
+    old = open(path, encoding="utf-8").read() if os.path.exists(path) else ""
+    head = old.split("### Peers: Taichi and Warp", 1)[0].rstrip()
+    stamp_line = stamp("python -m bench.bench_particles --peers")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(head + "\n\n" + text.replace("\n\n", "\n\n" + stamp_line + "\n\n", 1)
+                 + "\n")
+    return text
+
+
 if __name__ == "__main__":  # pragma: no cover
-    print(run(quick=True))
+    import sys
+    if "--peers" in sys.argv:
+        print(_splice_peers(int(os.environ.get("BENCH_N", 1_000_000)),
+                            int(os.environ.get("BENCH_REPS", 5))))
+    else:
+        print(run(quick=True))

@@ -2,9 +2,11 @@
 
     python examples/gallery.py [output.png]
 
-Each panel is ``fastsdf.plot_sdf(..., filled=True, show_quiver=False, show_isolines='zero')``
-(the segment, which has no inside, shows distance isolines instead); its title names the
-shape and its ``exactness``.
+Each panel is ``fastsdf.plot_sdf(..., filled=True, show_quiver=False)`` with the surface drawn
+thick and distance isolines every 0.25 (light and dashed inside, where ``d < 0``): where a shape is
+``'exact'`` the isolines are evenly spaced offsets of its outline (rounded around corners); where
+it is only a ``'bound'`` they bunch up or stay sharp (e.g. outside the corners of an
+intersection). Its title names the shape and its ``exactness``.
 """
 
 import math
@@ -16,7 +18,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+import numpy as np  # noqa: E402
+
 import fastsdf as sdf  # noqa: E402
+from fastsdf._progress import progress  # noqa: E402
+from fastsdf.plotting import sdf_grid  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "..", "docs", "gallery.png")
@@ -28,6 +34,9 @@ def panels():
     with sdf.transform(angle=0.3):
         tri = sdf.EquilateralTriangle([0, 0], 1.0)
     return [
+        ("Circle", sdf.Circle([0.1, -0.1], 0.9)),
+        ("Box", sdf.Box([-1.0, -0.6], [0.9, 0.7])),
+        ("Halfspace", sdf.Halfspace([0.3, 1.0], -0.2)),
         ("Segment", sdf.Segment([-1, -0.6], [1, 0.7])),
         ("Capsule", sdf.Capsule([-0.9, -0.5], [0.8, 0.6], 0.35)),
         ("RoundedBox", sdf.RoundedBox([-1.1, -0.7], [1.1, 0.7], [0.1, 0.6, 0.0, 0.3])),
@@ -61,17 +70,27 @@ def panels():
 
 def main(out=OUT):
     items = panels()
-    cols = 5
+    cols = 6
     rows = math.ceil(len(items) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.3 * cols, 2.45 * rows))
-    for ax, (name, f) in zip(axes.flat, items):
-        isolines = "all" if name == "Segment" else "zero"
-        sdf.plot_sdf(fig, ax, f, bounds=[(-1.5, 1.5), (-1.5, 1.5)], samples=160, filled=True,
-                     show_quiver=False, show_isolines=isolines)
-        ax.set_title(f"{name}\n{f.exactness}", fontsize=8)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.3 * cols, 2.45 * rows + 0.4))
+    bounds = [(-1.5, 1.5), (-1.5, 1.5)]
+    levels = np.arange(-1.5, 2.26, 0.25)
+    with progress(len(items), "gallery") as bar:
+        for ax, (name, f) in zip(axes.flat, items):
+            sdf.plot_sdf(fig, ax, f, bounds=bounds, samples=160, filled=True, show_quiver=False,
+                         show_isolines=None)
+            xs, ys, d = sdf_grid(f, bounds, 160)
+            ax.contour(xs, ys, d, levels=levels[levels > 0], colors="#8a6f3a", linewidths=0.6)
+            ax.contour(xs, ys, d, levels=levels[levels < 0], colors="#c9d6e3", linewidths=0.6,
+                       linestyles="--")
+            ax.contour(xs, ys, d, levels=[0.0], colors="#1b1b1b", linewidths=1.4)
+            ax.set_title(f"{name}\n{f.exactness}", fontsize=8)
+            bar.update(1)
     for ax in list(axes.flat)[len(items):]:
         ax.axis("off")
-    fig.tight_layout()
+    fig.suptitle("fastsdf primitives, modifiers and blends: solid (d < 0) dark, isolines of d "
+                 "every 0.25 (dashed inside), surface in black; title: exactness", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.975))
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=80)
     print(f"wrote {os.path.abspath(out)}")

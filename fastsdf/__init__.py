@@ -19,6 +19,7 @@ from .shapes import (Arc, Capsule, Ellipse, EquilateralTriangle, OrientedBox,  #
                      Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle,
                      mirror, offset, repeat, rotate, scale, shell, translate)
 from .grid import GridSDF  # noqa: E402
+from .band import NarrowBandGridSDF  # noqa: E402
 from .plotting import plot_sdf  # noqa: E402
 
 __all__ = [
@@ -31,5 +32,5 @@ __all__ = [
     "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
     "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring",
     "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat",
-    "GridSDF", "plot_sdf",
+    "GridSDF", "NarrowBandGridSDF", "plot_sdf",
 ]

@@ -78,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help=f"video frames per second (default {DEFAULT_FPS})")
     demo.add_argument("--no-animation", action="store_true", help="write only the last frame")
     demo.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
+    demo.add_argument("--workers", type=_positive_int, default=None,
+                      help="run the particles on a local Dask cluster of this many worker "
+                           "processes (needs the 'distributed' extra)")
     parser._demo = demo  # for errors found after parsing (they name the demo's usage)
     return parser
 
@@ -92,6 +95,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             demo.error(f"--frames {args.frames} is more than --steps {args.steps} (every frame "
                        f"advances at least one step)")
         from .demo import check_output_dir, run_demo, summary
+        extra = {}
+        if args.workers:
+            from .distributed import run_demo
+            extra["workers"] = args.workers
         try:
             check_output_dir(args.out)
         except OSError as exc:
@@ -101,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             res = run_demo(particles=args.particles, steps=args.steps, grid=args.grid,
                            exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
                            fps=args.fps, world=args.world, mode=args.mode,
-                           animate=not args.no_animation)
+                           animate=not args.no_animation, **extra)
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))

@@ -464,9 +464,13 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     # A moving world: its surfaces move by at most wd per step (0 for a static world).
     wd = _wall_speed(data) * dt if MOVING else 0.0
     use_m = use_m or USE_FORCE
+    # 1 / m of the block, computed once per call rather than divided every step
+    inv_mass = np.empty(hi - lo if use_m else 0)
     bad = 0
     for i in range(lo, hi):
         m = float(M[i]) if use_m or check_all else 1.0
+        if use_m:
+            inv_mass[i - lo] = 1.0 / m
         ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
                           float(R[i]), m, use_m or check_all)
         if check_all:
@@ -492,7 +496,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             bx = ax
             by = ay
             if use_m:
-                inv_m = 1.0 / float(M[i])
+                inv_m = inv_mass[k]
                 fx = -drag * vx
                 fy = -drag * vy
                 if use_ext:

@@ -38,13 +38,14 @@ Determinism: shard ``i`` of ``shards`` is exactly ::
     ParticleSimulation(world, n_i, seed=np.random.default_rng(
         np.random.SeedSequence(seed).spawn(shards)[i]), **parameters)
 
-with ``n_i = n // shards + (i < n % shards)``, stepped with the same force generators: the
+(followed by ``init(sim, i)`` if given) with ``n_i = n // shards + (i < n % shards)``, stepped with the same force generators: the
 same seed and shard count give the same bits whichever workers run the shards, and the same
 bits as running those simulations one after another in one process.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import numbers
@@ -57,7 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
-           "local_cluster", "SimulationStats"]
+           "local_cluster", "SimulationStats", "run_demo"]
 
 #: How long (seconds) to wait on a shard before checking that its worker is still alive.
 POLL_SECONDS = 0.5
@@ -178,13 +179,15 @@ class _Config:
     shards: int
     seed: object
     parameters: tuple
+    init: object = None
 
     def build(self, i: int):
+        """Shard ``i`` and what ``init(sim, i)`` returned (None without ``init``)."""
         from .particles import ParticleSimulation
         sizes = shard_sizes(self.n, self.shards)
-        return ParticleSimulation(self.world, n=sizes[i],
-                                  seed=shard_seed(self.seed, self.shards, i),
-                                  **dict(self.parameters))
+        sim = ParticleSimulation(self.world, n=sizes[i], seed=shard_seed(self.seed, self.shards, i),
+                                 **dict(self.parameters))
+        return sim, (self.init(sim, i) if self.init is not None else None)
 
 
 def _workers(client) -> dict:
@@ -207,8 +210,13 @@ class _Group:
     def __init__(self, config: _Config, indices: list, threads: int):
         self.threads = threads
         _set_threads(threads)
-        self.sims = {i: config.build(i) for i in indices}
+        built = {i: config.build(i) for i in indices}
+        self.sims = {i: b[0] for i, b in built.items()}
+        self.init_results = {i: b[1] for i, b in built.items()}
         self.steps = {i: 0 for i in indices}
+
+    def initialized(self):
+        return dict(self.steps), self.init_results
 
     def run(self, steps: int, generators: list):
         _set_threads(self.threads)
@@ -303,6 +311,11 @@ class DistributedSimulation:
     threads : int or None
         numba threads per shard call; default the worker's Dask thread count, so that worker
         processes sharing a machine do not oversubscribe its cores.
+    init : callable or None
+        ``init(sim, i)``, picklable, run once on each shard's worker right after the shard is
+        built (e.g. to place its particles); the shard is ``sim``, a ``ParticleSimulation``.
+        Its return values are kept in :attr:`init_results` (small values only). For
+        reproducible results it must depend only on ``sim`` and ``i``.
 
     Each worker holds its shards' state (64 bytes per particle in float64); the client holds
     only small results. Use as a context manager or call :meth:`close` to free the workers.
@@ -311,7 +324,7 @@ class DistributedSimulation:
     def __init__(self, world, n, *, client, shards=None, seed=None, force_generators=(),
                  timestep=1 / 30, integrator="symplectic", collision="approaching",
                  prevent_tunnelling=True, dtype=np.float64, cr=0.6, cf=0.3, lipschitz=None,
-                 block=None, threads=None):
+                 block=None, threads=None, init=None):
         _require_dask()
         from distributed import Client
 
@@ -361,7 +374,9 @@ class DistributedSimulation:
         self.steps = 0
         self.sizes = shard_sizes(self.n, self.shards)
         self._lost = None
-        config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()))
+        if init is not None and not callable(init):
+            raise TypeError(f"init must be a callable (sim, shard) or None, got init={init!r}")
+        config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()), init)
         self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
         self._config_future = client.scatter(config, broadcast=True, hash=False)
         tag = uuid.uuid4().hex[:12]
@@ -376,6 +391,12 @@ class DistributedSimulation:
         actors = self._gather([(indices[0], f) for indices, f
                                in zip(self._groups.values(), self._futures)], check_steps=False)
         self._actors = dict(zip(self._groups, actors))
+        #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
+        self.init_results = [None] * self.shards
+        if init is not None:
+            for _, payload in self._call("initialized"):
+                for i, value in payload.items():
+                    self.init_results[i] = value
 
     # -- calls and loss detection -----------------------------------------------------------
     def _lost_error(self, shards, detail=""):
@@ -620,3 +641,163 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
                    processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
     options.update(kwargs)
     return LocalCluster(**options)
+
+
+# ---------------------------------------------------------------------------------------------
+# The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
+
+def _draw_density(ax, image, bounds):
+    """Show a density image (counts per pixel) as :func:`fastsdf.render.draw_particles` does:
+    the same colour map, logarithmic from 1 count, empty pixels transparent."""
+    from matplotlib.colors import LinearSegmentedColormap, LogNorm
+
+    from .render import PARTICLE_CMAP_COLORS
+    cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
+    cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
+    (x0, x1), (y0, y1) = bounds
+    return ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
+                     extent=(x0, x1, y0, y1), cmap=cmap,
+                     norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
+                     interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+
+
+@dataclass(frozen=True)
+class _Spawn:
+    """The demo's ``init``: redraw the particles of shard ``i`` that start inside matter."""
+
+    world: object
+    seed: int
+
+    def __call__(self, sim, i):
+        from .demo import spawn_in_free_space
+        return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
+
+
+def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, grid: int = 400,
+             exact: bool = False, seed: int = 0, out: str = "demo-out", frames: int | None = None,
+             fps: int | None = None, animate: bool = True, world: str = "boxes",
+             mode: str = "exact", stream=None, client=None):
+    """:func:`fastsdf.demo.run_demo` with the particles on a :func:`local_cluster` of
+    ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
+
+    Same parameters and result (a :class:`fastsdf.demo.DemoResult`). The particles live on the
+    workers, one shard per worker; each shard spawns its particles in free space there
+    (:func:`fastsdf.demo.spawn_in_free_space`); video frames and the last frame are drawn from
+    :meth:`DistributedSimulation.density` images, so only images travel to this process, and
+    the share of particles inside matter at the end is measured on a random sample of up to
+    100,000 particles (:meth:`DistributedSimulation.sample`).
+    """
+    import sys
+
+    import matplotlib
+    matplotlib.use("Agg")
+    from distributed import Client
+    from matplotlib.animation import FuncAnimation
+
+    from . import demo as _demo
+    from .grid import GridSDF, measure_error
+    from .particles import Gravity
+    from .render import _world_figure, save_animation
+
+    frames = _demo.DEFAULT_FRAMES if frames is None else frames
+    fps = _demo.DEFAULT_FPS if fps is None else fps
+    for name, value, low in (("workers", workers, 1), ("particles", particles, 1),
+                             ("steps", steps, 1), ("grid", grid, 2), ("frames", frames, 1),
+                             ("fps", fps, 1)):
+        if isinstance(value, bool) or int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+    if world not in _demo.WORLDS:
+        raise ValueError(f"world must be one of {sorted(_demo.WORLDS)}, got world={world!r}")
+    if mode not in ("exact", "nearest"):
+        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
+    particles, steps, frames = int(particles), int(steps), int(frames)
+    if animate and frames > steps:
+        raise ValueError(f"frames must be at most steps (every frame advances at least one "
+                         f"step), got frames={frames}, steps={steps}")
+    err = stream if stream is not None else sys.stderr
+    out = _demo.check_output_dir(out)
+    bounds = _demo.BOUNDS
+    f = _demo.WORLDS[world][0]()
+    band_max = band_angle = cost = None
+    if exact:
+        sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
+    else:
+        t0 = time.perf_counter()
+        sdf = GridSDF(f, bounds=bounds, samples=[grid * 1j, grid * 1j], mode=mode)
+        built = time.perf_counter() - t0
+        error = measure_error(sdf, seed=seed)
+        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
+        cost = _demo._query_cost(sdf, seed=seed)
+        sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            cluster = stack.enter_context(local_cluster(int(workers)))
+            client = stack.enter_context(Client(cluster))
+        workers = len(_workers(client))
+        sim = stack.enter_context(DistributedSimulation(
+            sdf, particles, client=client, seed=seed, timestep=1 / 30,
+            force_generators=[Gravity(acceleration=(0.0, -1.0))], init=_Spawn(f, seed)))
+        sdf_name += f", particles on {workers} Dask worker processes"
+        timing = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+
+        def outside_share() -> float:
+            # Particles inside the bounds, edges included: a 1x1 density image counts them.
+            return 1.0 - float(sim.density(bounds, (1, 1)).sum()) / particles
+
+        def advance(k: int) -> None:
+            if k <= 0:
+                return
+            if timing["first"] is None:
+                t0 = time.perf_counter()
+                sim.run(1)
+                timing["first"] = time.perf_counter() - t0
+                timing["outside"] += outside_share()
+                timing["steps"] += 1
+                k -= 1
+            if k > 0:
+                t0 = time.perf_counter()
+                sim.run(k)
+                timing["rest"] += time.perf_counter() - t0
+                timing["outside"] += k * outside_share()
+                timing["steps"] += k
+
+        label = f"{particles:,} particles on {workers} workers, "
+        shape = (480, 480)
+        animation_path = None
+        if animate:
+            fig, ax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+            artist = _draw_density(ax, sim.density(bounds, shape), bounds)
+            title = ax.set_title(label + "t = 0.00 s (step 0)")
+            schedule = _demo._frame_schedule(steps, frames)
+
+            def update(i):
+                advance(schedule[i])
+                image = sim.density(bounds, shape)
+                artist.set_data(np.ma.masked_less_equal(image, 0.0))
+                artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
+                title.set_text(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+                return (artist,)
+
+            anim = FuncAnimation(fig, update, frames=frames, blit=False, repeat=False)
+            animation_path = os.path.join(out, "particles" + _demo._video_writer_ext(err))
+            save_animation(anim, animation_path, fps=fps)
+        advance(steps - timing["steps"])
+        last = os.path.join(out, "last_frame.png")
+        fig, ax = _world_figure(f, bounds, 400, (6.0, 6.0), 100)
+        _draw_density(ax, sim.density(bounds, (600, 600)), bounds)
+        ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+        fig.savefig(last, dpi=100)
+        sample = sim.sample(min(particles, 100_000), seed=seed)
+        respawned = int(sum(sim.init_results))
+        dt = sim.dt
+    x, r = sample["x"], sample["r"]
+    d = sdf(x[:, 0], x[:, 1]) - r
+    rate = (steps - 1) * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
+    return _demo.DemoResult(
+        world=world, particles=particles, steps=timing["steps"], timestep=dt, sdf=sdf_name,
+        mode=grid_mode, sim_seconds=timing["rest"], first_step_seconds=timing["first"] or 0.0,
+        particle_steps_per_second=rate,
+        outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
+        exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
+        respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * r)),
+        animation=animation_path, last_frame=last)

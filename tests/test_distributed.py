@@ -127,11 +127,19 @@ def _wind(p, t):
     return np.column_stack([0.3 * np.sin(3 * p["x"][:, 1]), np.zeros(len(p["x"]))]) * p["m"][:, None]
 
 
-def _reference(world, n, shards, seed, gens, runs, **kw):
+def _lift(sim, i):
+    """An ``init`` hook: move shard i's particles up by 0.1 i; returns 10 i."""
+    sim.p["x"][:, 1] += 0.1 * i
+    return 10 * i
+
+
+def _reference(world, n, shards, seed, gens, runs, init=None, **kw):
     """The shards run one after another in this process (the documented construction)."""
     sims = []
     for i, size in enumerate(shard_sizes(n, shards)):
         s = ParticleSimulation(world, size, seed=shard_seed(seed, shards, i), **kw)
+        if init is not None:
+            init(s, i)
         s.force_generators = list(gens)
         for k in runs:
             s.run(k)
@@ -171,12 +179,13 @@ def test_sharded_simulation_equals_shards_run_in_one_process(client, grid):
 
 
 @pytest.mark.slow
-def test_python_force_generators_and_changes_between_runs(client):
+def test_python_force_generators_init_hook_and_changes_between_runs(client):
     world = seed_world()
     n, shards, seed = 3000, 2, 5
-    ref = _reference(world, n, shards, seed, [Gravity(), _wind], (4,))
+    ref = _reference(world, n, shards, seed, [Gravity(), _wind], (4,), init=_lift)
     with DistributedSimulation(world, n, client=client, shards=shards, seed=seed,
-                               force_generators=[Gravity(), _wind]) as sim:
+                               force_generators=[Gravity(), _wind], init=_lift) as sim:
+        assert sim.init_results == [0, 10]
         sim.run(4)
         sim.force_generators[:] = [Gravity(acceleration=(0.5, -2.0))]
         sim.run(3)
@@ -201,6 +210,20 @@ def test_bad_parameters_are_named_at_construction(client, grid):
         DistributedSimulation(grid, 10, client=client, force_generators=[3])
     with pytest.raises(TypeError, match="world"):
         DistributedSimulation("circle", 10, client=client)
+
+
+@pytest.mark.slow
+def test_demo_on_the_cluster(client, tmp_path):
+    from fastsdf.__main__ import build_parser
+    from fastsdf.distributed import run_demo
+    assert build_parser().parse_args(["demo", "--workers", "2"]).workers == 2
+    # The single-process demo test's scenario and bound (particles spawned inside boxes
+    # have been pushed out by step 45).
+    res = run_demo(particles=3000, steps=45, grid=120, seed=3, frames=3, animate=False,
+                   out=str(tmp_path), client=client)
+    assert res.steps == 45 and res.particles == 3000 and "2 Dask worker" in res.sdf
+    assert os.path.getsize(res.last_frame) > 10_000
+    assert res.inside_fraction < 0.01
 
 
 @pytest.mark.slow

@@ -292,3 +292,40 @@ def test_timestep_is_validated_on_assignment(dt):
         sim.dt = dt
     with pytest.raises(ValueError, match="timestep"):
         phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=2, timestep=dt)
+
+
+def test_field_forces_from_expressions_equal_their_numpy_forms():
+    from fastsdf.graph import Symbol, sym_sqrt
+    x, y = Symbol("x"), Symbol("y")
+    rr = sym_sqrt(x * x + y * y + 0.01)
+    attractor = phys.FieldForce(potential=-0.5 / rr, per_mass=True)     # -grad U = -0.5 p / rr^3
+    swirl = phys.FieldForce(-y * 0.3, x * 0.3)
+    w = sdf.Halfspace([0, 1], -1.8)
+    fused = phys.ParticleSimulation(w, n=300, seed=8)
+    slow = phys.ParticleSimulation(w, n=300, seed=8)
+    fused.force_generators += [attractor, swirl]
+
+    def attractor_py(p, t):
+        q = p["x"]
+        r3 = (q[:, 0] ** 2 + q[:, 1] ** 2 + 0.01) ** 1.5
+        return -0.5 * p["m"][:, None] * q / r3[:, None]
+
+    def swirl_py(p, t):
+        return np.c_[-0.3 * p["x"][:, 1], 0.3 * p["x"][:, 0]]
+
+    slow.force_generators += [attractor_py, swirl_py]
+    np.testing.assert_allclose(attractor(fused.p, 0.0), attractor_py(fused.p, 0.0), rtol=1e-12)
+    for _ in range(4):
+        fused.run(5)
+        slow.run(5)
+    np.testing.assert_allclose(fused.p["x"], slow.p["x"], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(fused.p["v"], slow.p["v"], rtol=1e-9, atol=1e-11)
+
+
+def test_field_force_arguments_are_checked():
+    with pytest.raises(TypeError, match="fx and fy, or potential"):
+        phys.FieldForce(1.0)
+    with pytest.raises(TypeError, match="not both"):
+        phys.FieldForce(1.0, 2.0, potential=3.0)
+    with pytest.raises(TypeError, match="fx must be"):
+        phys.FieldForce("wind", 2.0)

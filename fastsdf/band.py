@@ -1,0 +1,582 @@
+"""NarrowBandGridSDF: fine samples only near the surface, a lower bound everywhere else.
+
+A particle (or any collision test) only needs an accurate distance where it may touch a
+surface. A dense :class:`fastsdf.grid.GridSDF` spends almost all its memory far from any
+surface; its memory grows with the area while its accuracy is set by the spacing. A
+:class:`NarrowBandGridSDF` keeps a coarse level of *tiles* over ``bounds`` (8 x 8 fine
+cells each, like the leaves of OpenVDB; Museth 2013) and stores fine nodes (value and gradient,
+as ``GridSDF(gradient='stored')``) only in the tiles that can reach the band ``|d| <= band``.
+
+Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (1 for fastsdf
+shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
+centre ``c`` and half-diagonal ``rt`` has ``|f(p)| >= |f(c)| - L rt``; a tile is *far* when that
+bound exceeds ``band``. A far tile stores one int32: a lower bound of ``|f|`` over the tile (with
+``f``'s sign there, quantized downwards) less half a fine cell diagonal, and answers it with a
+zero gradient. So every far answer is a correct lower bound of ``|d|`` with the right sign:
+collision tests and sphere tracing stay safe, they are only conservative far from surfaces.
+
+Inside fine tiles queries are bilinear in value and in each gradient component, exactly as a
+dense grid of the same spacing (the node coordinates are computed the same way, so the values
+agree to the last bit). Neighbouring fine tiles share their edge nodes (each tile stores its
+9 x 9 nodes), so the interpolant is continuous across tile edges. Between a fine and
+a far tile it jumps from the interpolated value to the lower bound (only where ``|d| > band``).
+
+**Tolerance builds.** ``tolerance=t`` makes the build choose the spacing: it builds a trial grid,
+estimates every band cell's interpolation error (the error at the cell's midpoint against the
+exact SDF, and ``h |grad jump| / 8`` along the cell's edges, which equals the maximum error of a
+parabola and catches kinks), and refines assuming second order until at most about 1% of the band
+cells exceed ``t / 2``. The remaining cells over ``t / 2`` - those crossed by a kink of the SDF
+(a corner of the shape, the medial axis), where bilinear interpolation is only first order - are
+marked *exact*: queries there evaluate the exact SDF (the same fallback a dense grid uses outside
+its bounds; the particle loop's ``inside=False`` path). The achieved error is measured with
+:func:`measure_error` (random points in the band) and is reported with the memory.
+
+For numba code: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)`` as for the dense grid
+(:data:`fastsdf.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
+and for non-finite points (then the values are NaN), and the caller evaluates
+``g.exact.point_fn(x, y)`` there (finite points). :class:`fastsdf.particles.ParticleSimulation`
+accepts a NarrowBandGridSDF as its world. For particles choose ``band`` at least the largest
+particle radius plus a few spacings: a particle then only ever touches fine tiles.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import time
+
+import numba
+import numpy as np
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from .function import PARALLEL_MIN_POINTS, as_points
+from .graph import Function
+from .grid import (GridError, _check_bounds, _check_dtype, _check_samples, _fetch_add,
+                   _n_chunks, _stats)
+
+__all__ = ["NarrowBandGridSDF", "sample_band", "measure_band_error"]
+
+_TILE = 8                    # cells per tile side: 64 cells, one 64-bit mask of exact cells
+_SHIFT = 3                   # log2(_TILE); the samplers use these as compile-time constants
+_N1 = _TILE + 1              # nodes per tile side (edge nodes are shared with the neighbours)
+_TRIAL_CELLS = 256           # cells along the longer side of a tolerance build's trial grid
+_EXACT_FRACTION = 0.01       # tolerance builds refine until about this share of cells is exact
+_SAFETY = 0.5                # cells whose estimated error exceeds safety * tolerance are exact
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-point samplers (numba). ``data`` is ``NarrowBandGridSDF.sampler_data``:
+# ``(table, q, masks, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, shift, quantum)`` (shift = 3).
+# ``table[ti * nty + tj]`` (int32) is ``2 k + x`` for fine tile k (x = 1 if any of its cells is
+# exact, so that the other tiles skip the mask load), or for a far tile
+# ``-(1 + 2 m + s)``: lower bound ``m * quantum`` of |d|, ``s = 1`` where d < 0. Fine tile k stores
+# its (T+1) x (T+1) nodes from ``q[k * (T+1)**2 * 3]``, each ``[d, dd/dx, dd/dy]``, x-major.
+# ``masks[k]`` has bit ``a * T + b`` set where cell (a, b) of the tile answers with the exact SDF.
+# nx, ny count cells inside bounds; T = 8 cells per tile side.
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _band_locate(data, x, y):
+    """(k, a, b, tx, ty, far, status): status 0 = fine cell, 1 = far tile (far holds the
+    signed lower bound), 2 = exact fallback (outside bounds, exact cell, non-finite)."""
+    table, q, masks, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, shift, quantum = data
+    if not ((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)):
+        return 0, 0, 0, 0.0, 0.0, 0.0, 2
+    u = (x - x0) * ihx
+    v = (y - y0) * ihy
+    i = min(int(u), nx - 1)     # u >= 0: int() is floor; the last node belongs to the last cell
+    j = min(int(v), ny - 1)
+    ti = i >> _SHIFT
+    tj = j >> _SHIFT
+    e = np.int64(table[np.uint64(ti * nty + tj)])
+    if e < 0:
+        c = -1 - e
+        val = (c >> 1) * quantum
+        if c & 1:
+            val = -val
+        return 0, 0, 0, 0.0, 0.0, val, 1
+    a = i - (ti << _SHIFT)
+    b = j - (tj << _SHIFT)
+    k = e >> 1
+    if e & 1:                   # the tile has exact cells: look at its mask
+        if (masks[np.uint64(k)] >> np.uint64((a << _SHIFT) + b)) & np.uint64(1):
+            return 0, 0, 0, 0.0, 0.0, 0.0, 2
+    return k, a, b, u - i, v - j, 0.0, 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _lerp2(tx, ty, a, b, c, e):
+    lo = a + ty * (b - a)
+    hi = c + ty * (e - c)
+    return lo + tx * (hi - lo)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def sample_band(data, x, y):
+    """Value and gradient at one point of a :class:`NarrowBandGridSDF`.
+
+    ``data`` is ``g.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` (float64 x3, bool):
+    bilinear in a fine cell; in a far tile the stored signed lower bound of the distance and a
+    zero gradient; ``inside = False`` with NaN values outside ``bounds``, in cells marked exact
+    and for non-finite coordinates (evaluate the exact SDF there).
+    """
+    k, a, b, tx, ty, far, status = _band_locate(data, x, y)
+    if status == 1:
+        return far, 0.0, 0.0, True
+    if status == 2:
+        return math.nan, math.nan, math.nan, False
+    q = data[1]
+    base = np.uint64(3 * ((k * _N1 + a) * _N1 + b))
+    c = base + np.uint64(3 * _N1)
+    u1, u3 = np.uint64(1), np.uint64(3)
+    u2, u4, u5 = np.uint64(2), np.uint64(4), np.uint64(5)
+    d = _lerp2(tx, ty, np.float64(q[base]), np.float64(q[base + u3]), np.float64(q[c]),
+               np.float64(q[c + u3]))
+    gx = _lerp2(tx, ty, np.float64(q[base + u1]), np.float64(q[base + u4]),
+                np.float64(q[c + u1]), np.float64(q[c + u4]))
+    gy = _lerp2(tx, ty, np.float64(q[base + u2]), np.float64(q[base + u5]),
+                np.float64(q[c + u2]), np.float64(q[c + u5]))
+    return d, gx, gy, True
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sample_band_value(data, x, y):
+    k, a, b, tx, ty, far, status = _band_locate(data, x, y)
+    if status == 1:
+        return far
+    if status == 2:
+        return math.nan
+    q = data[1]
+    base = np.uint64(3 * ((k * _N1 + a) * _N1 + b))
+    c = base + np.uint64(3 * _N1)
+    u3 = np.uint64(3)
+    return _lerp2(tx, ty, np.float64(q[base]), np.float64(q[base + u3]), np.float64(q[c]),
+                  np.float64(q[c + u3]))
+
+
+@intrinsic
+def _borrowed(typingctx, arr):
+    """A view of ``arr`` without a reference count (null meminfo); the caller keeps ``arr``
+    alive."""
+    if not isinstance(arr, types.Array):
+        return None
+
+    def codegen(context, builder, signature, args):
+        src = context.make_array(signature.args[0])(context, builder, args[0])
+        out = context.make_array(signature.return_type)(context, builder)
+        for field in ("nitems", "itemsize", "data", "shape", "strides"):
+            setattr(out, field, getattr(src, field))
+        out.meminfo = cgutils.get_null_value(out.meminfo.type)
+        out.parent = cgutils.get_null_value(out.parent.type)
+        return out._getvalue()
+
+    return arr(arr), codegen
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _borrow(data):
+    """The sampler data with its arrays as views without reference counts: binding an array
+    to a variable inside the inlined sampler otherwise costs an atomic increment and decrement
+    per point (the caller keeps the arrays alive)."""
+    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2])) + data[3:]
+
+
+# Batch kernels. They return the number of points that need the exact SDF (NaN answers).
+# Software prefetching, which the dense grid's random queries need, measured no gain here: the
+# fine storage is small enough to stay in cache.
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _vg_range(data, xs, ys, out, grad, start, stop):
+    data = _borrow(data)
+    miss = 0
+    for p in range(start, stop):
+        d, gx, gy, inside = sample_band(data, xs[p], ys[p])
+        out[p] = d
+        grad[p, 0] = gx
+        grad[p, 1] = gy
+        miss += not inside
+    return miss
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _v_range(data, xs, ys, out, start, stop):
+    data = _borrow(data)
+    miss = 0
+    for p in range(start, stop):
+        d = _sample_band_value(data, xs[p], ys[p])
+        out[p] = d
+        miss += d != d
+    return miss
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _vg_par(data, xs, ys, out, grad, chunks, workers):
+    n = xs.shape[0]
+    chunks = _n_chunks(n, chunks)
+    counter = np.zeros(1, dtype=np.int64)
+    counts = np.zeros(workers, dtype=np.int64)
+    for w in prange(workers):
+        total = 0
+        c = _fetch_add(counter, 0, 1)
+        while c < chunks:
+            total += _vg_range(data, xs, ys, out, grad, c * n // chunks, (c + 1) * n // chunks)
+            c = _fetch_add(counter, 0, 1)
+        counts[w] = total
+    return counts.sum()
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _v_par(data, xs, ys, out, chunks, workers):
+    n = xs.shape[0]
+    chunks = _n_chunks(n, chunks)
+    counter = np.zeros(1, dtype=np.int64)
+    counts = np.zeros(workers, dtype=np.int64)
+    for w in prange(workers):
+        total = 0
+        c = _fetch_add(counter, 0, 1)
+        while c < chunks:
+            total += _v_range(data, xs, ys, out, c * n // chunks, (c + 1) * n // chunks)
+            c = _fetch_add(counter, 0, 1)
+        counts[w] = total
+    return counts.sum()
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter checks.
+
+def _positive(value, name):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a positive real number, got {name}={value!r}")
+    v = float(value)
+    if not (v > 0 and math.isfinite(v)):
+        raise ValueError(f"{name} must be a positive finite number, got {name}={value!r}")
+    return v
+
+
+def _lipschitz_of(f, lipschitz):
+    if lipschitz is not None:
+        return _positive(lipschitz, "lipschitz")
+    exactness = getattr(f, "exactness", "unknown")
+    if exactness in ("exact", "bound"):
+        return 1.0
+    raise ValueError(
+        f"f is not known to be 1-Lipschitz (exactness {exactness!r}), so far tiles cannot be "
+        f"told apart soundly: pass lipschitz= (a bound on |grad f|), got lipschitz=None")
+
+
+# ---------------------------------------------------------------------------------------------
+
+class NarrowBandGridSDF:
+    """An SDF sampled finely only in the band ``|d| <= band``, bilinear there, a lower bound
+    elsewhere. See the module docstring for the layout and the guarantees.
+
+    ``NarrowBandGridSDF(f, bounds=[(-2, 2), (-2, 2)], band=0.05, samples=[3193j, 3193j])`` or
+    ``NarrowBandGridSDF(f, bounds, band=0.05, tolerance=1e-5)``
+
+    Parameters
+    ----------
+    f : fastsdf.graph.Function
+        The exact SDF (negative inside). Evaluated only at the tile centres, at the nodes of the
+        fine tiles and (tolerance builds) at the midpoints of their cells.
+    bounds : [(x0, x1), (y0, y1)]
+        The gridded rectangle; finite, ``x0 < x1``, ``y0 < y1``. Outside it the exact SDF answers.
+    band : float
+        Half-width of the band (coordinate units): every point with ``|f| <= band`` lies in a fine
+        tile. For particles: at least the largest radius plus a few spacings.
+    samples : [nx, ny], optional
+        Fine node counts over ``bounds`` as for :class:`fastsdf.grid.GridSDF` (``400j`` or 400):
+        spacing ``h = (x1 - x0) / (nx - 1)``; the fine nodes are exactly those of the dense grid
+        with these samples. Give ``samples`` or ``tolerance`` (or both).
+    tolerance : float, optional
+        Target for the band's value error (coordinate units). Without ``samples`` the spacing is
+        chosen from a measured error estimate (see the module docstring); cells whose estimated
+        error exceeds ``tolerance / 2`` answer with the exact SDF. Check the result with
+        :func:`measure_band_error`.
+    dtype : np.float64 or np.float32
+        Storage of the fine nodes (arithmetic is float64). float32 adds a rounding error of at
+        most ``2**-24 max|d|`` to values and ``2**-24`` to gradient components.
+    lipschitz : float, optional
+        A bound on ``|grad f|``; default 1 for shapes whose ``exactness`` is ``'exact'`` or
+        ``'bound'`` (a ValueError otherwise, since the tile test needs it).
+
+    Attributes
+    ----------
+    exact, bounds, band, tolerance, tile, dtype, lipschitz, mode (always ``'exact'``)
+    shape : fine node counts (nx, ny) over bounds; spacing : (hx, hy)
+    tile : fine cells per tile side (8); tiles : (ntx, nty) tile counts; n_fine : number of fine tiles; n_exact_cells
+    nbytes : bytes stored (table, fine nodes, cell masks); memory : the same, itemised (dict)
+    build_seconds : wall time of the build (including trial grids of a tolerance build)
+    sampler, sampler_data : per-point query for numba code (see :func:`sample_band`).
+    """
+
+    mode = "exact"
+
+    def __init__(self, f, bounds=((-2, 2), (-2, 2)), band=0.05, samples=None, tolerance=None,
+                 dtype=np.float64, lipschitz=None):
+        t0 = time.perf_counter()
+        if not isinstance(f, Function):
+            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
+                            f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
+        self.exact = f
+        self.bounds = _check_bounds(bounds)
+        self.band = _positive(band, "band")
+        self.tile = _TILE
+        self.dtype = _check_dtype(dtype)
+        self.lipschitz = _lipschitz_of(f, lipschitz)
+        self.tolerance = None if tolerance is None else _positive(tolerance, "tolerance")
+        if samples is None and tolerance is None:
+            raise ValueError("give samples= (the fine node counts) or tolerance= (a target "
+                             "error), got neither")
+        if samples is not None:
+            self._build(_check_samples(samples))
+        else:
+            self._build_to_tolerance()
+        self.build_seconds = time.perf_counter() - t0
+
+    # -- construction -------------------------------------------------------------------------
+    def _build(self, shape):
+        (x0, x1), (y0, y1) = self.bounds
+        nx, ny = shape[0] - 1, shape[1] - 1          # cells inside bounds
+        T = self.tile
+        ntx, nty = -(-nx // T), -(-ny // T)
+        if ntx * nty >= 2 ** 31 - 1:
+            raise ValueError(f"samples={list(shape)!r} gives too many tiles ({ntx} x {nty})")
+        hx, hy = (x1 - x0) / nx, (y1 - y0) / ny
+        self.shape = tuple(shape)
+        self.spacing = (hx, hy)
+        self.tiles = (ntx, nty)
+        lip = self.lipschitz
+        # Tile centres: one value per tile decides fine or far.
+        cx = (np.arange(ntx) * T + T / 2) * hx + x0
+        cy = (np.arange(nty) * T + T / 2) * hy + y0
+        CX, CY = np.meshgrid(cx, cy, indexing="ij")
+        dc = self.exact(CX.ravel(), CY.ravel())
+        rt = 0.5 * T * math.hypot(hx, hy)
+        with np.errstate(invalid="ignore"):
+            fine = ~(np.abs(dc) - lip * rt > self.band)   # NaN centres are fine (checked below)
+        fidx = np.flatnonzero(fine)
+        nf = fidx.size
+        # Far tiles: a lower bound of |f| over the tile, less half a cell diagonal (so that the
+        # interpolated values of neighbouring fine tiles stay above it, which the particle
+        # loop's free-flight budget relies on), quantized downwards.
+        slack = 0.5 * math.hypot(hx, hy)
+        span = max(x1 - x0, y1 - y0) + T * max(hx, hy)
+        self._quantum = quantum = max(min(hx, hy) / 64.0, 4.0 * span / 2 ** 30)
+        with np.errstate(invalid="ignore"):
+            lb = np.maximum(np.abs(dc) - lip * rt - slack, 0.0)
+        m = np.maximum(np.floor(lb / quantum) - 1.0, 0.0)
+        m = np.minimum(m, 2 ** 29)
+        table = (-(1 + 2 * m.astype(np.int64) + (dc < 0))).astype(np.int32)
+        table[fidx] = 2 * np.arange(nf, dtype=np.int32)
+        # Fine nodes: the node (I, J) of the whole grid sits at (I * hx + x0, J * hy + y0), as in
+        # np.linspace, the last node of bounds exactly at x1, y1.
+        n1 = T + 1
+        ti, tj = fidx // nty, fidx % nty
+        a = np.arange(n1)
+        I = (ti[:, None] * T + a[None, :])            # (nf, n1)
+        J = (tj[:, None] * T + a[None, :])
+        xs_t = np.where(I == nx, x1, I * hx + x0)
+        ys_t = np.where(J == ny, y1, J * hy + y0)
+        X = np.broadcast_to(xs_t[:, :, None], (nf, n1, n1)).ravel()
+        Y = np.broadcast_to(ys_t[:, None, :], (nf, n1, n1)).ravel()
+        q = np.empty((nf, n1, n1, 3), dtype=self.dtype)
+        if nf:
+            d, g = self.exact(X, Y, compute_gradient=True)
+            if not (np.all(np.isfinite(d)) and np.all(np.isfinite(g))):
+                k = int(np.flatnonzero(~(np.isfinite(d) & np.all(np.isfinite(g), axis=1)))[0])
+                raise ValueError(f"f returned a non-finite value or gradient at the fine node "
+                                 f"({float(X[k])!r}, {float(Y[k])!r}): choose bounds where f "
+                                 f"is defined, got bounds={[list(b) for b in self.bounds]!r}")
+            with np.errstate(over="ignore"):
+                q[..., 0] = d.reshape(nf, n1, n1)
+                q[..., 1:] = g.reshape(nf, n1, n1, 2)
+            if not np.all(np.isfinite(q)):
+                raise ValueError(f"node values overflow {self.dtype.name}")
+        self._table, self._q = table, q
+        self._masks = np.zeros(nf, dtype=np.uint64)
+        self._cell_error = None
+        if self.tolerance is not None and nf:
+            self._mark_exact_cells(X, Y, q)
+        self._finish()
+
+    def _cell_estimates(self, X, Y, q):
+        """Estimated interpolation error of every cell of the fine tiles, shape (nf, T, T), and
+        whether each cell can reach the band."""
+        nf, n1 = q.shape[0], q.shape[1]
+        hx, hy = self.spacing
+        v = q[..., 0].astype(np.float64)
+        g = q[..., 1:].astype(np.float64)
+        X = X.reshape(nf, n1, n1)
+        Y = Y.reshape(nf, n1, n1)
+        mx = 0.5 * (X[:, :-1, :-1] + X[:, 1:, :-1])
+        my = 0.5 * (Y[:, :-1, :-1] + Y[:, :-1, 1:])
+        dm = self.exact(mx.ravel(), my.ravel()).reshape(mx.shape)
+        bil = 0.25 * (v[:, :-1, :-1] + v[:, 1:, :-1] + v[:, :-1, 1:] + v[:, 1:, 1:])
+        e_mid = np.abs(bil - dm)
+        jx = np.maximum(np.linalg.norm(g[:, 1:, :-1] - g[:, :-1, :-1], axis=-1),
+                        np.linalg.norm(g[:, 1:, 1:] - g[:, :-1, 1:], axis=-1))
+        jy = np.maximum(np.linalg.norm(g[:, :-1, 1:] - g[:, :-1, :-1], axis=-1),
+                        np.linalg.norm(g[:, 1:, 1:] - g[:, 1:, :-1], axis=-1))
+        est = np.maximum(e_mid, (hx * jx + hy * jy) / 8.0)
+        corner_min = np.minimum(np.minimum(np.abs(v[:, :-1, :-1]), np.abs(v[:, 1:, :-1])),
+                                np.minimum(np.abs(v[:, :-1, 1:]), np.abs(v[:, 1:, 1:])))
+        in_band = corner_min - self.lipschitz * 0.5 * math.hypot(hx, hy) <= self.band
+        return est, in_band
+
+    def _mark_exact_cells(self, X, Y, q):
+        est, in_band = self._cell_estimates(X, Y, q)
+        T = self.tile
+        over = (est > _SAFETY * self.tolerance) & in_band
+        bits = np.left_shift(np.uint64(1), (np.arange(T)[:, None] * T
+                                            + np.arange(T)[None, :]).astype(np.uint64))
+        self._masks = np.bitwise_or.reduce(np.where(over, bits[None], np.uint64(0))
+                                           .reshape(over.shape[0], -1), axis=1).astype(np.uint64)
+        self._cell_error = (est, in_band)
+        fine = self._table >= 0
+        self._table[fine] |= (self._masks != 0).astype(np.int32)
+
+    def _build_to_tolerance(self):
+        (x0, x1), (y0, y1) = self.bounds
+        W, H = x1 - x0, y1 - y0
+        h = max(W, H) / _TRIAL_CELLS
+        target = _SAFETY * self.tolerance
+        self.trials = []
+        for _ in range(6):
+            shape = (max(2, int(math.ceil(W / h)) + 1), max(2, int(math.ceil(H / h)) + 1))
+            self._build(shape)
+            est, in_band = self._cell_error if self._cell_error is not None else (None, None)
+            if est is None or not in_band.any():
+                break
+            e = est[in_band]
+            frac = float(np.mean(e > target))
+            self.trials.append((shape, frac))
+            if frac <= 2 * _EXACT_FRACTION:
+                break
+            eq = float(np.quantile(e, 1.0 - _EXACT_FRACTION))
+            # Second order where smooth: the error scales as h**2.
+            h *= min(0.9, max(0.2, 0.95 * math.sqrt(target / eq)))
+
+    def _finish(self):
+        (x0, x1), (y0, y1) = self.bounds
+        hx, hy = self.spacing
+        ntx, nty = self.tiles
+        self.n_fine = int(self._q.shape[0])
+        self.n_exact_cells = int(sum(bin(int(m)).count("1") for m in self._masks))
+        self.memory = {"table": int(self._table.nbytes), "nodes": int(self._q.nbytes),
+                       "masks": int(self._masks.nbytes)}
+        self.nbytes = sum(self.memory.values())
+        self.sampler_data = (self._table, self._q.reshape(-1), self._masks, x0, x1, y0, y1,
+                             1.0 / hx, 1.0 / hy, self.shape[0] - 1, self.shape[1] - 1, nty,
+                             int(self.tile).bit_length() - 1, self._quantum)
+
+    # -- queries ------------------------------------------------------------------------------
+    def __call__(self, x, y, compute_gradient=False):
+        """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound (with
+        a zero gradient) in far tiles, the exact SDF outside ``bounds`` and in exact cells; NaN
+        for non-finite points. Conventions as :class:`fastsdf.graph.Function`."""
+        xs, ys, shape = as_points(x, y)
+        n = xs.shape[0]
+        out = np.empty(n)
+        grad = np.empty((n, 2)) if compute_gradient else None
+        if n:
+            workers = numba.get_num_threads()
+            if n >= PARALLEL_MIN_POINTS:
+                if compute_gradient:
+                    miss = _vg_par(self.sampler_data, xs, ys, out, grad, 64 * workers, workers)
+                else:
+                    miss = _v_par(self.sampler_data, xs, ys, out, 64 * workers, workers)
+            elif compute_gradient:
+                miss = _vg_range(self.sampler_data, xs, ys, out, grad, 0, n)
+            else:
+                miss = _v_range(self.sampler_data, xs, ys, out, 0, n)
+            if miss:
+                idx = np.flatnonzero(np.isnan(out) & np.isfinite(xs) & np.isfinite(ys))
+                if idx.size:
+                    if compute_gradient:
+                        out[idx], grad[idx] = self.exact(xs[idx], ys[idx], compute_gradient=True)
+                    else:
+                        out[idx] = self.exact(xs[idx], ys[idx])
+        if compute_gradient:
+            return out.reshape(shape), grad.reshape(shape + (2,))
+        return out.reshape(shape)
+
+    def is_fine(self, x, y):
+        """Boolean array: True where the point lies inside ``bounds`` in a fine tile."""
+        xs, ys, shape = as_points(x, y)
+        (x0, x1), (y0, y1) = self.bounds
+        hx, hy = self.spacing
+        with np.errstate(invalid="ignore"):
+            ok = (xs >= x0) & (xs <= x1) & (ys >= y0) & (ys <= y1)
+        i = np.minimum(((np.where(ok, xs, x0) - x0) / hx).astype(np.int64), self.shape[0] - 2)
+        j = np.minimum(((np.where(ok, ys, y0) - y0) / hy).astype(np.int64), self.shape[1] - 2)
+        e = self._table[(i // self.tile) * self.tiles[1] + j // self.tile]
+        return (ok & (e >= 0)).reshape(shape)
+
+    @property
+    def sampler(self):
+        """The numba per-point query (:func:`sample_band`): ``d, gx, gy, inside =
+        sampler(g.sampler_data, x, y)``; evaluate ``g.exact.point_fn`` where ``inside`` is
+        False (finite points)."""
+        return sample_band
+
+    def __repr__(self):
+        tol = "" if self.tolerance is None else f", tolerance={self.tolerance:g}"
+        return (f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band:g}, "
+                f"samples={list(self.shape)}{tol}, tile={self.tile}, dtype={self.dtype.name}, "
+                f"fine tiles={self.n_fine}/{self.tiles[0] * self.tiles[1]}, "
+                f"exact cells={self.n_exact_cells}, nbytes={self.nbytes})")
+
+
+# ---------------------------------------------------------------------------------------------
+
+def measure_band_error(g, n: int = 200_000, seed=0, band=None, points=None) -> GridError:
+    """Errors of a grid against its exact SDF on ``n`` random points in the band.
+
+    Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;
+    they cover the band) and the band statistics keep those with ``|d_exact| < band`` (default
+    ``g.band``). ``g`` may also be a dense :class:`fastsdf.grid.GridSDF`; then ``points`` (an
+    ``(x, y)`` pair, e.g. drawn for a band grid) should be given. Returns a
+    :class:`fastsdf.grid.GridError` (value errors in coordinate units, gradient angles in
+    degrees; far-tile answers are not in the band, where they would not be errors but bounds).
+    """
+    if points is None:
+        if not isinstance(g, NarrowBandGridSDF):
+            raise TypeError(f"g must be a NarrowBandGridSDF when points is not given, got {g!r}")
+        xs, ys = band_points(g, n, seed)
+    else:
+        xs, ys, _ = as_points(*points)
+    band = (g.band if band is None else _positive(band, "band"))
+    dg, gg = g(xs, ys, compute_gradient=True)
+    de, ge = g.exact(xs, ys, compute_gradient=True)
+    inb = np.abs(de) < band
+    dg, gg, de, ge = dg[inb], gg[inb], de[inb], ge[inb]
+    verr = np.abs(dg - de)
+    cross = gg[:, 0] * ge[:, 1] - gg[:, 1] * ge[:, 0]
+    dot = gg[:, 0] * ge[:, 0] + gg[:, 1] * ge[:, 1]
+    aerr = np.degrees(np.arctan2(np.abs(cross), dot))
+    vmax, vrms = _stats(verr)
+    amax, arms = _stats(aerr)
+    return GridError(n=int(xs.size), band=float(band), band_n=int(inb.sum()),
+                     spacing=tuple(g.spacing), value_max=vmax, value_rms=vrms,
+                     angle_max_deg=amax, angle_rms_deg=arms, band_value_max=vmax,
+                     band_value_rms=vrms, band_angle_max_deg=amax, band_angle_rms_deg=arms)
+
+
+def band_points(g: NarrowBandGridSDF, n: int = 200_000, seed=0):
+    """``n`` points drawn uniformly from the fine tiles of ``g`` inside its bounds: (x, y)."""
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ValueError(f"n must be a positive integer, got n={n!r}")
+    rng = np.random.default_rng(seed)
+    (x0, x1), (y0, y1) = g.bounds
+    fine = np.flatnonzero(g._table >= 0)
+    if fine.size == 0:
+        return rng.uniform(x0, x1, n), rng.uniform(y0, y1, n)
+    T = g.tile
+    hx, hy = g.spacing
+    k = fine[rng.integers(0, fine.size, n)]
+    xs = ((k // g.tiles[1]) * T + rng.uniform(0, T, n)) * hx + x0
+    ys = ((k % g.tiles[1]) * T + rng.uniform(0, T, n)) * hy + y0
+    keep = (xs <= x1) & (ys <= y1)
+    return xs[keep], ys[keep]
