@@ -27,19 +27,20 @@ import fastsdf.particles as phys  # noqa: E402
 from fastsdf._video import ffmpeg_available  # noqa: E402
 from fastsdf.render import draw_particles, save_animation  # noqa: E402
 
-#: Angular speed of the stirrer, rad/s (blade tips at 1.1 move at about 0.9 length/s).
+#: Angular speed of the stirrer, rad/s (blade tips at 1.2 move at about 1 length/s).
 OMEGA = 0.8
 BOUNDS = [(-2.0, 2.0), (-2.0, 2.0)]
 
 
 def stirrer_world(omega=OMEGA):
     """A box (inside [-1.9, 1.9]^2) with a four-bladed stirrer turning at ``omega`` rad/s
-    around (0, -0.6): negative inside the walls and the blades."""
+    around (0, -0.75), its blades sweeping just into the floor: negative inside the walls and
+    the blades."""
     box = (sdf.Halfspace(normal=[0, 1], d=-1.9) | sdf.Halfspace(normal=[0, -1], d=-1.9)
            | sdf.Halfspace(normal=[1, 0], d=-1.9) | sdf.Halfspace(normal=[-1, 0], d=-1.9))
-    with sdf.transform(angle=omega * sdf.t, offset=[0.0, -0.6]):
-        blades = sdf.Box(minc=[-1.1, -0.06], maxc=[1.1, 0.06]) | \
-            sdf.Box(minc=[-0.06, -1.1], maxc=[0.06, 1.1])
+    with sdf.transform(angle=omega * sdf.t, offset=[0.0, -0.75]):
+        blades = sdf.Box(minc=[-1.2, -0.06], maxc=[1.2, 0.06]) | \
+            sdf.Box(minc=[-0.06, -1.2], maxc=[0.06, 1.2])
         hub = sdf.Circle(center=[0.0, 0.0], radius=0.2)
     return box | blades | hub
 
