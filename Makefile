@@ -36,9 +36,13 @@ venv: $(VENV)/.base
 demo: $(VENV)/.video
 	$(VENV)/bin/fastsdf demo
 
-# The API reference, generated from the docstrings.
+# The API reference, generated from the docstrings of every public module (pdoc follows
+# fastsdf.__all__, which names no modules, so they are listed).
+PUBLIC_MODULES = $(PY) -c "import pkgutil, fastsdf; print(' '.join(['fastsdf'] + [m.name for m in \
+	pkgutil.walk_packages(fastsdf.__path__, 'fastsdf.') if '._' not in m.name]))"
 docs: $(VENV)/.docs
-	$(PY) -m pdoc --docformat restructuredtext -o docs/api fastsdf
+	$(PY) -m pdoc --docformat restructuredtext -o docs/api $$($(PUBLIC_MODULES))
+	@echo "API reference: docs/api/index.html"
 
 test: $(VENV)/.test
 	$(PY) -m pytest -q

@@ -26,6 +26,8 @@ SECTIONS = [
      "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
     ("params", "bench.bench_params",
      "runtime parameters: cost against constants; a 300-frame moving scene, compiles and speed"),
+    ("prune", "bench.bench_prune",
+     "pruning per tile: hard unions of many shapes, exponential box worlds (tol), seed world"),
     ("band", "bench.bench_band",
      "narrow-band grids: memory, error, query speed; particles' speed against error"),
     ("distributed", "bench.bench_distributed",

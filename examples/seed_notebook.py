@@ -10,7 +10,11 @@ and the IPython magic ``%matplotlib inline`` (not Python) turned into a comment.
 notebook's own hand-written simulation (cell 16) no longer run on today's libraries and are
 edited, marked ``[was ...]``: NumPy 2 reads the field spec ``('m', float, 1)`` as a shape-(1,)
 field, and Matplotlib 3.5 removed ``PatchCollection(offset_position='data')``. Each figure is
-saved as ``OUT/cell_NN.png`` and each animation page as ``OUT/cell_NN.html``.
+saved as ``OUT/cell_NN.png``. Each animation is written as a video file, ``OUT/cell_NN.mp4``
+(``.gif`` without ffmpeg; ``pip install 'fastsdf[video]'`` provides one), with a small page
+``OUT/cell_NN.html`` that plays it: the notebook's ``anim.to_html5_video()`` embeds the whole
+video in the page, which for the 500-frame cell 22 would pass matplotlib's 20 MB embedding limit
+(it then drops frames).
 
     python examples/seed_notebook.py [OUT]          # default OUT: ./notebook-out
     FASTSDF_EXAMPLE_SMALL=1 python examples/...     # tiny sizes (the test suite runs this)
@@ -31,12 +35,15 @@ OUT = sys.argv[1] if len(sys.argv) > 1 else "notebook-out"
 os.makedirs(OUT, exist_ok=True)
 SMALL = os.environ.get("FASTSDF_EXAMPLE_SMALL") == "1"
 _cell_no = [0]
+from fastsdf._progress import progress as _progress  # noqa: E402
+_cells_bar = _progress(22, "notebook cells")
 
 
 def _cell(n):
     """End of notebook cell n: save and close its figures."""
     import matplotlib.pyplot as _plt
     _cell_no[0] = n
+    _cells_bar.update(1)
     for k, num in enumerate(_plt.get_fignums()):
         suffix = "" if k == 0 else f"_{k}"
         _plt.figure(num).savefig(os.path.join(OUT, f"cell_{n:02d}{suffix}.png"), dpi=80)
@@ -51,8 +58,31 @@ def HTML(page):
     return path
 
 
+import fastsdf.particles as _phys  # noqa: E402
+_create_animation = _phys.create_animation
+
+
+def _video_animation(fig, ax, sim, frames=300, **kwargs):
+    """The notebook's create_animation, whose to_html5_video() writes OUT/cell_NN.mp4 and
+    returns a page that plays the file instead of embedding it."""
+    anim = _create_animation(fig, ax, sim, frames=frames, **kwargs)
+
+    def to_html5_video(embed_limit=None):
+        from fastsdf._video import ffmpeg_available
+        from fastsdf.render import save_animation
+        name = f"cell_{_cell_no[0] + 1:02d}" + (".mp4" if ffmpeg_available() else ".gif")
+        save_animation(anim, os.path.join(OUT, name), fps=30)
+        if name.endswith(".gif"):
+            return f'<img src="{name}">'
+        return f'<video src="{name}" controls autoplay loop></video>'
+
+    anim.to_html5_video = to_html5_video
+    return anim
+
+
+_phys.create_animation = _video_animation
+
 if SMALL:
-    import fastsdf.particles as _phys
     _Sim, _anim = _phys.ParticleSimulation, _phys.create_animation
 
     class _SmallSimulation(_Sim):
@@ -355,4 +385,5 @@ ps.force_generators += [gravity]
 HTML(run_animation(g, ps, frames=500))
 _cell(22)
 
-print(f"notebook cells ran; figures and animation pages are in {OUT}/")
+_cells_bar.close()
+print(f"notebook cells ran; figures, videos and their pages are in {OUT}/")

@@ -1,11 +1,23 @@
-"""On-disk cache of generated kernel modules.
+"""On-disk cache of generated kernel modules, and the integrity of numba's cache files.
 
 numba cannot cache functions created with ``exec`` (numba issue #3501), so each generated module
-is written to a real ``.py`` file whose name is the SHA-256 of its content, and imported from
-there; numba's own ``cache=True`` then stores the machine code beside it. A file is created once,
-atomically, and never rewritten (its timestamp is part of numba's cache key), so concurrent
-processes either create it or find it complete. The content is checked on every load, so a
-kernel is never taken from a file that holds another scene.
+is written to a real ``.py`` file whose name is the SHA-256 of its content, and run from there;
+numba's own ``cache=True`` then stores the machine code beside it (``__pycache__/*.nbi`` index
+and ``*.nbc`` data files).
+
+Every file in the cache can be damaged (a full disk, a killed process, a user's ``cp``), and none
+may ever crash a user's process or silently load the wrong code:
+
+* The generated ``.py`` is compared with the expected source on every load. A damaged one is
+  replaced atomically (write a temporary file, ``os.replace``) and reported once; the module is
+  always executed from the verified in-memory source (no ``.pyc`` is written or read).
+* numba's index and data files for fastsdf's functions are written sealed: a magic line and the
+  SHA-256 of the content precede numba's pickle. A file that is truncated, altered, unreadable or
+  from another format fails the check; it is then removed, the function is compiled afresh and
+  stored again (numba writes through a temporary file and ``os.replace``, so concurrent
+  processes see either the old or the new complete file), and the repair is reported once with a
+  ``RuntimeWarning`` naming the file. Any other failure while loading or saving a cache entry
+  falls back to compiling, with a warning; it never propagates.
 
 The directory is ``$FASTSDF_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/fastsdf``, else
 ``~/.cache/fastsdf``.
@@ -14,14 +26,26 @@ The directory is ``$FASTSDF_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/fastsdf``
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import os
+import pickle
 import sys
 import tempfile
+import threading
+import types
 import warnings
 from pathlib import Path
 
 _MODULES: dict = {}
+_LOCK = threading.Lock()
+_REPORTED: set = set()
+
+# Sealed numba cache files: this line, then the SHA-256 of the payload, then the payload.
+_MAGIC = b"fastsdf sealed numba cache v1\n"
+_DIGEST = 32
+
+
+class _Corrupt(Exception):
+    """A cache file failed its integrity check."""
 
 
 def cache_dir() -> Path:
@@ -38,12 +62,28 @@ def source_key(source: str) -> str:
     return hashlib.sha256(source.encode("utf-8")).hexdigest()[:40]
 
 
-def _write_once(path: Path, source: str) -> None:
-    """Create ``path`` with ``source`` unless it exists; never rewrite an existing file."""
-    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=".py", dir=path.parent)
+def _report(path, what: str) -> None:
+    """Warn once per process and file."""
+    key = (str(path), what)
+    with _LOCK:
+        if key in _REPORTED:
+            return
+        _REPORTED.add(key)
+    warnings.warn(f"fastsdf: kernel cache: {what} ({path})", RuntimeWarning, stacklevel=3)
+
+
+def _write_atomic(path: Path, data: bytes, replace: bool) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same directory. With
+    ``replace`` an existing file is replaced atomically; without, an existing file is kept
+    (create-if-absent, so concurrent writers of the same content never clobber a reader)."""
+    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=path.suffix, dir=path.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(source)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        if replace:
+            os.replace(tmp, path)
+            tmp = None
+            return
         try:
             os.link(tmp, path)  # atomic create-if-absent
         except FileExistsError:
@@ -57,10 +97,19 @@ def _write_once(path: Path, source: str) -> None:
             os.unlink(tmp)
 
 
+def _read(path: Path):
+    try:
+        with open(path, "rb") as fh:
+            return fh.read()
+    except FileNotFoundError:
+        return None
+
+
 def load_module(source: str, prefix: str = "fastsdf_kernel"):
     """Import the module with this source, writing it to the cache directory if needed.
 
-    Returns the module; repeated calls in one process return the same module object.
+    Returns the module; repeated calls in one process return the same module object. A cached
+    file that does not hold exactly ``source`` is replaced (atomically) and reported once.
     """
     key = source_key(source)
     mod = _MODULES.get(key)
@@ -69,12 +118,18 @@ def load_module(source: str, prefix: str = "fastsdf_kernel"):
     name = f"{prefix}_{key}"
     directory = cache_dir()
     path = directory / f"{name}.py"
+    data = source.encode("utf-8")
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        if not path.exists():
-            _write_once(path, source)
-        if path.read_text(encoding="utf-8") != source:
-            raise OSError(f"cached file {path} does not hold the expected source")
+        found = _read(path)
+        if found is None:
+            _write_atomic(path, data, replace=False)
+            found = _read(path)
+        if found != data:
+            _write_atomic(path, data, replace=True)
+            _report(path, "generated module did not hold its source; replaced")
+            if _read(path) != data:
+                raise OSError(f"cached file {path} does not hold the expected source")
     except OSError as exc:
         # No usable cache directory: compile from a private temporary file instead.
         warnings.warn(f"fastsdf: kernel cache unavailable ({exc}); compiling without the disk "
@@ -82,10 +137,134 @@ def load_module(source: str, prefix: str = "fastsdf_kernel"):
                       stacklevel=3)
         directory = Path(tempfile.mkdtemp(prefix="fastsdf_"))
         path = directory / f"{name}.py"
-        path.write_text(source, encoding="utf-8")
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
+        path.write_bytes(data)
+    mod = types.ModuleType(name)
+    mod.__file__ = str(path)
     sys.modules[name] = mod
-    spec.loader.exec_module(mod)
+    try:
+        # Run the verified source, not whatever the file holds now; no .pyc is involved.
+        exec(compile(source, str(path), "exec"), mod.__dict__)  # noqa: S102
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    guard_module(mod)
     _MODULES[key] = mod
     return mod
+
+
+# ---------------------------------------------------------------------------------------------
+# numba's cache files: sealed, checked, repaired.
+
+def guard_module(module) -> None:
+    """Seal and check the numba cache files of every cached dispatcher in ``module``."""
+    for value in list(vars(module).values()):
+        guard_dispatcher(value)
+
+
+def guard_dispatcher(dispatcher) -> None:
+    """Make the disk cache of one numba dispatcher (``@njit(cache=True)``) safe: sealed files,
+    and a damaged entry is removed, recompiled, stored again and reported once instead of
+    raising. Anything that is not a cached dispatcher is left alone."""
+    cache = getattr(dispatcher, "_cache", None)
+    files = getattr(cache, "_cache_file", None)
+    if files is None or getattr(cache, "_fastsdf_guarded", False):
+        return
+    try:
+        index_path = files._index_path
+        load, save = cache.load_overload, cache.save_overload
+    except AttributeError:  # a numba whose cache internals differ: leave it as it is
+        return
+    files._load_index = types.MethodType(_load_index, files)
+    files._save_index = types.MethodType(_save_index, files)
+    files._load_data = types.MethodType(_load_data, files)
+    files._save_data = types.MethodType(_save_data, files)
+
+    def load_overload(sig, target_context):
+        try:
+            return load(sig, target_context)
+        except Exception as exc:  # noqa: BLE001 - a cache must never break a computation
+            _discard(files, index_path, exc)
+            return None
+
+    def save_overload(sig, data):
+        try:
+            save(sig, data)
+        except Exception as exc:  # noqa: BLE001
+            _discard(files, index_path, exc)
+            try:
+                save(sig, data)  # the damaged entry is gone: store a fresh one
+            except Exception as again:  # noqa: BLE001
+                _report(index_path, f"could not store a compiled kernel ({again!r}); it will "
+                                    f"be compiled again in the next process")
+
+    cache.load_overload = load_overload
+    cache.save_overload = save_overload
+    cache._fastsdf_guarded = True
+
+
+def _discard(files, index_path, exc) -> None:
+    """Remove a function's damaged index and data files (they are rewritten on save)."""
+    directory = os.path.dirname(index_path)
+    base = os.path.basename(index_path)[:-len(".nbi")]
+    removed = []
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        names = []
+    for n in names:
+        if n == base + ".nbi" or (n.startswith(base + ".") and n.endswith(".nbc")):
+            try:
+                os.unlink(os.path.join(directory, n))
+                removed.append(n)
+            except FileNotFoundError:
+                pass
+            except OSError:
+                pass
+    reason = str(exc) if isinstance(exc, _Corrupt) else repr(exc)
+    _report(index_path, f"damaged entry ({reason}); removed {len(removed)} file(s), "
+                        f"compiling afresh and storing a new copy")
+
+
+def _seal(payload: bytes) -> bytes:
+    return _MAGIC + hashlib.sha256(payload).digest() + payload
+
+
+def _unseal(raw: bytes, path) -> bytes:
+    head = len(_MAGIC)
+    if not raw.startswith(_MAGIC) or len(raw) < head + _DIGEST:
+        raise _Corrupt(f"{os.path.basename(path)} is not a sealed fastsdf cache file")
+    payload = raw[head + _DIGEST:]
+    if hashlib.sha256(payload).digest() != raw[head:head + _DIGEST]:
+        raise _Corrupt(f"{os.path.basename(path)} fails its checksum (truncated or altered)")
+    return payload
+
+
+def _load_index(self):
+    # numba's format is pickle(version) + pickle((stamp, overloads)); sealed here as one pickle.
+    raw = _read(Path(self._index_path))
+    if raw is None:
+        return {}
+    if raw[:1] == b"\x80" and not raw.startswith(_MAGIC):
+        return {}  # numba's own unsealed format (written without this guard): stale, replaced
+    version, stamp, overloads = pickle.loads(_unseal(raw, self._index_path))
+    if version != self._version or stamp != self._source_stamp:
+        return {}  # another numba, or an older source: stale, overwritten on save
+    return overloads
+
+
+def _save_index(self, overloads):
+    payload = self._dump((self._version, self._source_stamp, overloads))
+    with self._open_for_write(self._index_path) as fh:
+        fh.write(_seal(payload))
+
+
+def _load_data(self, name):
+    path = self._data_path(name)
+    with open(path, "rb") as fh:  # a missing file is an OSError, which numba treats as a miss
+        raw = fh.read()
+    return pickle.loads(_unseal(raw, path))
+
+
+def _save_data(self, name, data):
+    with self._open_for_write(self._data_path(name)) as fh:
+        fh.write(_seal(self._dump(data)))

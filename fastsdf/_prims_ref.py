@@ -125,10 +125,9 @@ def polygon(u, v, verts, chunk=256):
         # gradient: away from the closest point (outside), towards it (inside)
         with np.errstate(invalid="ignore", divide="ignore"):
             vgx, vgy = rx[rows, iv] / dv_, ry[rows, iv] / dv_
-        egx = np.sign(perp[rows, ie]) * out_n[ie, 0]
-        egy = np.sign(perp[rows, ie]) * out_n[ie, 1]
-        gx = sign * np.where(use_edge, egx, vgx)
-        gy = sign * np.where(use_edge, egy, vgy)
+        # nearest point inside an edge: the edge's outward normal on both sides (and on it)
+        gx = np.where(use_edge, out_n[ie, 0], sign * vgx)
+        gy = np.where(use_edge, out_n[ie, 1], sign * vgy)
         zero = dist == 0
         gx = np.where(zero, out_n[ie, 0], gx)
         gy = np.where(zero, out_n[ie, 1], gy)

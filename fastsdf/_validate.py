@@ -38,6 +38,51 @@ def vec2(value, name: str) -> np.ndarray:
     return arr
 
 
+# The supported range of geometry: coordinates up to MAX_COORD in magnitude, lengths (sizes,
+# radii, thicknesses, blend widths, scale factors) between MIN_LENGTH and MAX_COORD. Inside it
+# every primitive, modifier and blend is evaluated to rounding (their formulas are
+# scale-invariant or rescale by powers of two); outside it construction raises.
+MAX_COORD = 1e150
+MIN_LENGTH = 1e-150
+_RANGE = "the supported range of fastsdf geometry is 1e-150 to 1e150"
+
+
+def coord(value, name: str) -> float:
+    """A real coordinate (or signed offset) with ``|value| <= MAX_COORD``."""
+    value = real(value, name)
+    if abs(value) > MAX_COORD:
+        raise ValueError(f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got "
+                         f"{name}={value!r}")
+    return value
+
+
+def coord2(value, name: str) -> np.ndarray:
+    """A finite point (shape (2,)) with both coordinates at most ``MAX_COORD`` in magnitude."""
+    arr = vec2(value, name)
+    if np.any(np.abs(arr) > MAX_COORD):
+        raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
+                         f"({_RANGE}), got {name}={arr.tolist()!r}")
+    return arr
+
+
+def length(value, name: str, zero: bool = False) -> float:
+    """A length: ``MIN_LENGTH <= |value| <= MAX_COORD`` (``0`` too if ``zero``); the sign is
+    not checked here."""
+    value = real(value, name)
+    if value == 0.0 and zero:
+        return value
+    check_length(abs(value), name, value)
+    return value
+
+
+def check_length(size: float, name: str, shown=None) -> None:
+    """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
+    if not (MIN_LENGTH <= size <= MAX_COORD):
+        shown = size if shown is None else shown
+        raise ValueError(f"{name} must be between {MIN_LENGTH:g} and {MAX_COORD:g} in "
+                         f"magnitude ({_RANGE}), got {name}={shown!r}")
+
+
 # Runtime parameters (fastsdf.graph.Param) are accepted wherever a scene takes a number: the
 # checks run on the value the expression has at the parameters' defaults (values set later are
 # the caller's responsibility), and the shape bookkeeping treats such a number as unknown.

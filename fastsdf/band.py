@@ -47,6 +47,8 @@ import time
 
 import numba
 import numpy as np
+from typing import Any
+from numpy.typing import ArrayLike
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -313,8 +315,9 @@ class NarrowBandGridSDF:
 
     mode = "exact"
 
-    def __init__(self, f, bounds=((-2, 2), (-2, 2)), band=0.05, samples=None, tolerance=None,
-                 dtype=np.float64, lipschitz=None):
+    def __init__(self, f: Any, bounds: ArrayLike = ((-2, 2), (-2, 2)), band: float = 0.05,
+                 samples: Any = None, tolerance: float | None = None, dtype: Any = np.float64,
+                 lipschitz: float | None = None):
         t0 = time.perf_counter()
         if not isinstance(f, Function):
             raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
@@ -508,7 +511,7 @@ class NarrowBandGridSDF:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
-    def is_fine(self, x, y):
+    def is_fine(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Boolean array: True where the point lies inside ``bounds`` in a fine tile."""
         xs, ys, shape = as_points(x, y)
         (x0, x1), (y0, y1) = self.bounds
@@ -521,7 +524,7 @@ class NarrowBandGridSDF:
         return (ok & (e >= 0)).reshape(shape)
 
     @property
-    def sampler(self):
+    def sampler(self) -> Any:
         """The numba per-point query (:func:`sample_band`): ``d, gx, gy, inside =
         sampler(g.sampler_data, x, y)``; evaluate ``g.exact.point_fn`` where ``inside`` is
         False (finite points)."""
@@ -537,7 +540,8 @@ class NarrowBandGridSDF:
 
 # ---------------------------------------------------------------------------------------------
 
-def measure_band_error(g, n: int = 200_000, seed=0, band=None, points=None) -> GridError:
+def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
+                       band: float | None = None, points: tuple | None = None) -> GridError:
     """Errors of a grid against its exact SDF on ``n`` random points in the band.
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;

@@ -31,6 +31,7 @@ import re
 
 import numba
 import numpy as np
+from typing import Sequence
 
 from . import __version__
 from .graph import Expr, parameters, topological_order
@@ -40,6 +41,8 @@ __all__ = ["generate_module_source", "MIN_LOOP"]
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
+#: Chain operands with more nodes than this (as a tree) are never folded into loops.
+MAX_TEMPLATE_NODES = 128
 #: Per-point functions longer than this (in generated lines) are not interleaved.
 LONG_BODY_LINES = 400
 
@@ -210,6 +213,10 @@ class _Emitter:
         self.tables = tables  # shared across functions of one module: bytes -> name
         self.lines: list[str] = []
         self.n = 0
+        # Loops over tables ("groups"), in emission order: each iterates the rows listed in
+        # _act[_off[g]:_off[g + 1]], so a caller can pass a pruned list without recompiling.
+        self.groups: list[dict] = []
+        self.sizes: dict[int, int] = {}
 
     def _name(self, prefix="v"):
         self.n += 1
@@ -295,12 +302,12 @@ class _Emitter:
             if item[0] == "val":
                 update(out, item[1])
             else:
-                _, steps, consts, count = item
+                _, steps, consts, count, group = item
                 loop = self._name("i")
-                body: list[str] = []
+                body: list[str] = [f"{loop} = _act[{loop}q]"]
                 val = self.template(body, steps, [c.format(row=loop) for c in consts])
                 update(body, val)
-                out.append(f"for {loop} in range({count}):")
+                out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
                 out.extend("    " + line for line in body)
         if not smooth:
             return _Val(m, tuple(accs) if g else None)
@@ -366,6 +373,24 @@ class _Emitter:
             done[id(node)] = self._emit_planned(node, plan, done)
         return done[id(root)]
 
+    def _size(self, root: Expr) -> int:
+        """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
+        (memoized and never walking a node twice, so linear over the whole DAG)."""
+        sizes = self.sizes
+        stack = [root]
+        while stack:
+            n = stack[-1]
+            if id(n) in sizes:
+                stack.pop()
+                continue
+            todo = [a for a in n.args if id(a) not in sizes]
+            if todo:
+                stack.extend(todo)
+                continue
+            stack.pop()
+            sizes[id(n)] = min(MAX_TEMPLATE_NODES + 1, 1 + sum(sizes[id(a)] for a in n.args))
+        return sizes[id(root)]
+
     def _plan(self, node: Expr):
         if node.op not in _CHAIN_OPS:
             return list(node.args), None
@@ -373,7 +398,9 @@ class _Emitter:
         shapes: dict = {}
         order: list = []
         for operand in operands:
-            if operand.op == "const":
+            if operand.op == "const" or self._size(operand) > MAX_TEMPLATE_NODES:
+                # Large operands (typically the rest of the scene) are never folded: finding
+                # their shape would walk them again at every level, quadratic in the scene.
                 order.append(("node", operand))
                 continue
             sig, steps, consts = _template(operand)
@@ -391,7 +418,7 @@ class _Emitter:
                 continue
             steps, members, rows = shapes[ref]
             if len(members) >= MIN_LOOP:
-                items.append(("loop", steps, _varying_columns(rows)))
+                items.append(("loop", steps, _varying_columns(rows), members, rows))
             else:
                 for member in members:
                     items.append(("node", member))
@@ -409,15 +436,19 @@ class _Emitter:
         if items is None:
             return self.op(self.lines, node, [done[id(a)] for a in node.args])
         chain_items = []
+        others = [item[1] for item in items if item[0] == "node"]
         for item in items:
             if item[0] == "node":
                 chain_items.append(("val", done[id(item[1])]))
             else:
-                _, steps, (table, refs) = item
+                _, steps, (table, refs), members, rows = item
                 name = self.table(table) if table.shape[1] else None
                 consts = [_lit(v) if kind == "l" else f"{name}[{{row}}, {j}]" for kind, v in refs
                           for j in [v if kind == "t" else None]]
-                chain_items.append(("loop", steps, consts, table.shape[0]))
+                self.groups.append(dict(op=node.op, k=node.attr, chain=node, members=members,
+                                        steps=steps, rows=np.asarray(rows, dtype=np.float64),
+                                        others=others))
+                chain_items.append(("loop", steps, consts, table.shape[0], len(self.groups) - 1))
         return self.chain(self.lines, node.op, node.attr, chain_items)
 
 
@@ -486,17 +517,37 @@ def batch_{kind}_ser(xs, ys, out, {grad}{pa}):
 '''
 
 
+_TILES_TEMPLATE = '''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _tile_{kind}(xs, ys, out, {grad}order, start, stop, act, off):
+    for p in range(start, stop, {lanes}):
+{gather}
+        {results} = lanes_{kind}({args}, act, off)
+{scatter}
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def tiles_{kind}_par(xs, ys, out, {grad}order, starts, act, offs):
+    for t in prange(starts.shape[0] - 1):
+        _tile_{kind}(xs, ys, out, {grad}order, starts[t], starts[t + 1], act, offs[t])
+'''
+
+
 #: The outputs of each kind of function: value; value and gradient; value, gradient and dd/dt.
 _RESULTS = {"v": ("d",), "vg": ("d", "gx", "gy"), "vgt": ("d", "gx", "gy", "gt")}
+_OUTPUTS = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
 
 
-def _kernels_source(lanes_of: dict, parametric: bool = False) -> str:
+def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = False) -> str:
     """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
-    shorter than the gradient body, so the two may differ). Kernels of a scene with parameters
-    take time ``t`` and the parameter tuple ``prm`` after the output arrays."""
+    shorter than the gradient body, so the two may differ). With loop groups, the lanes
+    functions take row lists: the batch kernels pass all rows, and the tile kernels (points
+    sorted by tile, ``order[starts[t]:starts[t + 1]]`` in tile ``t``) pass each tile's lists.
+    Kernels of a scene with parameters take time ``t`` and the parameter tuple ``prm`` after
+    the output arrays (such scenes are not pruned: no tile kernels)."""
     parts = []
     pa, pargs = ("t, prm, ", ", t, prm") if parametric else ("", "")
-    outputs = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
     for kind, lanes in lanes_of.items():
         names = _RESULTS[kind]
         gather, args, scatter, results = [], [], [], []
@@ -525,13 +576,21 @@ def _kernels_source(lanes_of: dict, parametric: bool = False) -> str:
         stores = {"d": "out[i] = d", "gx": "grad[i, 0] = gx", "gy": "grad[i, 1] = gy",
                   "gt": "dt[i] = gt"}
         single_store = "\n".join("        " + stores[r] for r in names)
+        all_args = ", ".join(args + (["_ACTG, _OFFG"] if groups else [])) + pargs
         src = _BATCH_TEMPLATE.format(
-            kind=kind, grad=outputs[kind], pa=pa, pargs=pargs, lanes=lanes,
-            lanes_minus_1=lanes - 1, gather="\n".join(gather),
-            args=", ".join(args) + pargs,
+            kind=kind, grad=_OUTPUTS[kind], pa=pa, pargs=pargs, lanes=lanes,
+            lanes_minus_1=lanes - 1, gather="\n".join(gather), args=all_args,
             results=", ".join(results), scatter="\n".join(scatter), single=single,
             single_store=single_store)
-        parts.append(src.replace(", )", ")"))
+        parts.append(src.replace("out, grad, )", "out, grad)").replace("out, )", "out)")
+                     .replace("dt, )", "dt)").replace("prm, )", "prm)"))
+        if groups and not parametric:
+            tile_gather = [re.sub(r"min\(i \+ (\d+), n - 1\)", r"order[min(p + \1, stop - 1)]",
+                                  line) for line in gather]
+            parts.append(_TILES_TEMPLATE.format(
+                kind=kind, grad=_OUTPUTS[kind], lanes=lanes,
+                gather="\n".join(tile_gather), args=", ".join(args),
+                results=", ".join(results), scatter="\n".join(scatter)))
     return "".join(parts)
 
 
@@ -616,17 +675,26 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
     # Parameters: read once per call from the tuple (passed by value: no reference counting).
     binds += [f"_p{i} = prm[{i}]" for i in range(len(param_names or ()))]
     em.lines[:0] = binds
-    body = "\n".join("    " + line for line in em.lines) or "    pass"
     pargs = ", t, prm" if param_names is not None else ""
+    # The one-point function iterates every row of every group; the multi-lane one takes the
+    # row lists as arguments (all rows, or a tile's pruned lists).
+    all_rows = ["_act = _ACTG", "_off = _OFFG"] if em.groups else []
+    body = "\n".join("    " + line for line in all_rows + em.lines) or "    pass"
     one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
                                  ret=", ".join(results), nan_return=single[2])
     bind, rest = em.lines[:len(binds)], em.lines[len(binds):]
-    body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
+    if lanes == 1:  # nothing to interleave: rename the whole body at once
+        body_n = "\n".join("    " + line for line in bind) + "\n" + \
+            _lane("\n".join("    " + line for line in rest), 0) if rest else \
+            "\n".join("    " + line for line in bind) or "    pass"
+    else:
+        body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
     many = _LANES_TEMPLATE.format(
         name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
-        args=", ".join(f"x{k}, y{k}" for k in range(lanes)) + pargs,
+        args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
+                       + (["_act, _off"] if em.groups else [])) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
-    return one, many, lanes
+    return one, many, lanes, em.groups
 
 
 def scene_parameters(root: Expr):
@@ -638,21 +706,30 @@ def scene_parameters(root: Expr):
     return tuple(sorted(n for n in names if n != "t"))
 
 
-def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
-    """Full source of the kernel module for ``root``; also returns each function's source.
+def generate_module_source(root: Expr, symbol_names: Sequence[str]) -> tuple[str, dict]:
+    """Full source of the kernel module for ``root``; also returns each function's source."""
+    source, funcs, _ = generate_module(root, symbol_names)
+    return source, funcs
 
-    A scene with parameters gets functions ``(x, y, t, prm)`` and a third kind, ``vgt``, that
-    also returns dd/dt. Parameter values never appear in the source: two scenes that differ
-    only in them generate the same module (one kernel)."""
+
+def generate_module(root: Expr, symbol_names):
+    """``(source, functions, groups)``: :func:`generate_module_source` plus the loop groups
+    (one dict per loop over a table, in the order of the kernels' row lists: ``op``, ``k``,
+    ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
+    ``rows`` (their shared template and constants), ``others`` (the chain's other operands))."""
     tables: dict = {}
     pn = scene_parameters(root)
-    v_one, v_many, lanes_v = _function_source(root, symbol_names, False, tables, pn)
-    vg_one, vg_many, lanes_vg = _function_source(root, symbol_names, True, tables, pn)
+    v_one, v_many, lanes_v, groups_v = _function_source(root, symbol_names, False, tables, pn)
+    vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn)
+    assert [len(g["members"]) for g in groups_v] == [len(g["members"]) for g in groups]
     funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many}
     lanes_of = {"v": lanes_v, "vg": lanes_vg}
     if pn is not None:
-        vgt_one, vgt_many, lanes_of["vgt"] = _function_source(root, symbol_names, True, tables,
-                                                              pn, time=True)
+        # A scene with parameters: functions (x, y, t, prm) and a third kind with dd/dt.
+        # Parameter values never appear in the source: scenes that differ only in them share
+        # one module.
+        vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(root, symbol_names, True,
+                                                                 tables, pn, time=True)
         funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
@@ -663,10 +740,15 @@ def generate_module_source(root: Expr, symbol_names) -> tuple[str, dict]:
         arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
         rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
         parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
+    if groups:
+        sizes = [len(g["members"]) for g in groups]
+        parts.append("_ACTG = np.concatenate((" + "".join(
+            f"np.arange({n}), " for n in sizes) + ")).astype(np.int64)\n"
+            f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n")
     parts.extend(funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt")
                  if k in funcs)
-    parts.append(_kernels_source(lanes_of, pn is not None))
-    return "\n".join(parts), funcs
+    parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
+    return "\n".join(parts), funcs, groups
 
 
 def _prims_import() -> str:

@@ -4,13 +4,14 @@ Particles never interact with each other, only with the SDF, so a simulation spl
 independent shards. This module runs them on a ``dask.distributed`` cluster (install the extra:
 ``pip install fastsdf[distributed]``)::
 
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
     import fastsdf as sdf
-    from fastsdf.distributed import DistributedSimulation, evaluate
+    from fastsdf.distributed import DistributedSimulation, local_cluster
     from fastsdf.particles import Gravity
+    from fastsdf.scenes import box_world
 
-    with LocalCluster(n_workers=2, threads_per_worker=1) as cluster, Client(cluster) as client:
-        world = sdf.GridSDF(scenes.box_world(20), samples=[400j, 400j])
+    with local_cluster(workers=2) as cluster, Client(cluster) as client:
+        world = sdf.GridSDF(box_world(20), samples=[400j, 400j])
         sim = DistributedSimulation(world, 10_000_000, client=client, seed=0,
                                     force_generators=[Gravity()])
         sim.run(100)                    # every shard steps on its worker, in parallel
@@ -38,16 +39,16 @@ Determinism: shard ``i`` of ``shards`` is exactly ::
     ParticleSimulation(world, n_i, seed=np.random.default_rng(
         np.random.SeedSequence(seed).spawn(shards)[i]), **parameters)
 
-(followed by ``init(sim, i)`` if given) with ``n_i = n // shards + (i < n % shards)``, stepped with the same force generators: the
-same seed and shard count give the same bits whichever workers run the shards, and the same
-bits as running those simulations one after another in one process.
+(followed by ``init(sim, i)`` if given) with ``n_i = n // shards + (i < n % shards)``, stepped
+with the same force generators: the same seed and shard count give the same bits whichever
+workers run the shards, and the same bits as running those simulations one after another in
+one process.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
-import math
 import numbers
 import os
 import pickle
@@ -56,6 +57,8 @@ import uuid
 from dataclasses import dataclass
 
 import numpy as np
+from typing import Any, Sequence
+from numpy.typing import ArrayLike
 
 __all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
            "local_cluster", "SimulationStats", "run_demo"]
@@ -99,7 +102,7 @@ def _evaluate_block(xb, yb, f, gradient):
     return f(xb, yb)
 
 
-def evaluate(f, x, y, compute_gradient: bool = False):
+def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False) -> Any:
     """``f(x, y[, compute_gradient])`` on ``dask.array`` inputs, lazily, block by block.
 
     ``f``: a fastsdf SDF or GridSDF. ``x``, ``y``: dask arrays (or array-likes, wrapped with
@@ -147,7 +150,7 @@ class ShardLostError(RuntimeError):
     shards are intact, but the simulation can no longer advance consistently.
     """
 
-    def __init__(self, shards, workers, detail=""):
+    def __init__(self, shards: Sequence[int], workers: Sequence[str], detail: str = ""):
         self.shards = tuple(int(s) for s in shards)
         self.workers = tuple(workers)
         where = ", ".join(f"shard {s} on {w}" for s, w in zip(self.shards, self.workers))
@@ -161,7 +164,7 @@ def shard_sizes(n: int, shards: int) -> list:
     return [n // shards + (1 if i < n % shards else 0) for i in range(shards)]
 
 
-def shard_seed(seed, shards: int, i: int) -> np.random.Generator:
+def shard_seed(seed: Any, shards: int, i: int) -> np.random.Generator:
     """The random generator of shard ``i``: ``default_rng(SeedSequence(seed).spawn(shards)[i])``."""
     return np.random.default_rng(np.random.SeedSequence(seed).spawn(shards)[i])
 
@@ -321,10 +324,12 @@ class DistributedSimulation:
     only small results. Use as a context manager or call :meth:`close` to free the workers.
     """
 
-    def __init__(self, world, n, *, client, shards=None, seed=None, force_generators=(),
-                 timestep=1 / 30, integrator="symplectic", collision="approaching",
-                 prevent_tunnelling=True, dtype=np.float64, cr=0.6, cf=0.3, lipschitz=None,
-                 block=None, threads=None, init=None):
+    def __init__(self, world: Any, n: int, *, client: Any, shards: int | None = None,
+                 seed: Any = None, force_generators: Sequence = (), timestep: float = 1 / 30,
+                 integrator: str = "symplectic", collision: str = "approaching",
+                 prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
+                 cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
+                 threads: int | None = None, init: Any = None):
         _require_dask()
         from distributed import Client
 
@@ -500,7 +505,7 @@ class DistributedSimulation:
         return self._gather(pending)
 
     # -- stepping -----------------------------------------------------------------------------
-    def run(self, steps=1) -> None:
+    def run(self, steps: int = 1) -> None:
         """Advance every shard ``steps`` steps of ``timestep`` seconds, in parallel.
 
         Returns when all shards are done. Raises :class:`ShardLostError` if a shard's worker
@@ -542,7 +547,8 @@ class DistributedSimulation:
         """``(xmin, ymin, xmax, ymax)`` of all particle centres (length units)."""
         return self.stats().bbox
 
-    def density(self, bounds=((-2.0, 2.0), (-2.0, 2.0)), shape=(400, 400)) -> np.ndarray:
+    def density(self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)),
+                shape: tuple = (400, 400)) -> np.ndarray:
         """Particle counts per pixel: the sum of the shards' :func:`fastsdf.render.density_image`
         (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
         counts, so the order of summation does not matter). Each worker sends one summed image:
@@ -556,7 +562,7 @@ class DistributedSimulation:
             total += image
         return total
 
-    def sample(self, k: int, seed=None) -> dict:
+    def sample(self, k: int, seed: Any = None) -> dict:
         """``k`` particles drawn uniformly without replacement from all shards.
 
         Returns a dict of the fields ``x, v, m, r, cr, cf`` (float arrays of ``k`` rows) and
@@ -586,7 +592,7 @@ class DistributedSimulation:
                 np.zeros((0, 2) if name in ("x", "v") else (0,), self.dtype)
         return out
 
-    def gather(self):
+    def gather(self) -> Any:
         """All particles on the client as one :class:`fastsdf.particles.Particles`, shards in
         order: O(n) memory, for tests and small runs only."""
         from .particles import Particles
@@ -626,7 +632,7 @@ class DistributedSimulation:
                 f"workers={len(set(self.workers))}, t={self.t:.4g}, steps={self.steps})")
 
 
-def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs):
+def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs) -> Any:
     """A ``dask.distributed.LocalCluster`` of ``workers`` processes on the loopback interface
     (127.0.0.1, no dashboard), ``threads_per_worker`` threads each (default: the machine's
     cores divided among the workers, at least 1). Close it (``with`` or ``.close()``)."""
@@ -676,7 +682,7 @@ class _Spawn:
 def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, grid: int = 400,
              exact: bool = False, seed: int = 0, out: str = "demo-out", frames: int | None = None,
              fps: int | None = None, animate: bool = True, world: str = "boxes",
-             mode: str = "exact", stream=None, client=None):
+             mode: str = "exact", stream: Any = None, client: Any = None) -> Any:
     """:func:`fastsdf.demo.run_demo` with the particles on a :func:`local_cluster` of
     ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
 

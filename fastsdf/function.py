@@ -15,18 +15,29 @@ import numbers
 
 import numba
 import numpy as np
+from typing import Any, Sequence
+from types import ModuleType
+from numpy.typing import ArrayLike
 
 from ._cache import load_module
-from .codegen import generate_module_source, scene_parameters
+from .codegen import generate_module, scene_parameters
+from .prune import PrunePlan, bin_points, make_plan, snap_bounds
 from .graph import Expr, _to_str, as_expr, parameters, substitute_params
 
 __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS"]
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 PARALLEL_MIN_POINTS = 4096
+#: Automatic pruning: inputs of at least this many points, scenes with at least this many
+#: operands in loops over tables, and only where the plan keeps at most this fraction of them.
+PRUNE_MIN_POINTS = 65536
+PRUNE_MIN_OPERANDS = 32
+PRUNE_MAX_FRACTION = 0.5
+#: Tiles per side of a pruning plan.
+PRUNE_TILES = 32
 
 
-def as_points(x, y):
+def as_points(x: ArrayLike, y: ArrayLike) -> tuple:
     """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
 
     Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
@@ -57,33 +68,22 @@ class CompiledSDF:
     compiles (or loads from the disk cache) the first time it is needed.
     """
 
-    def __init__(self, expr: Expr, symbol_names):
+    def __init__(self, expr: Expr, symbol_names: Sequence[str]):
         self.expr = expr
         self.symbol_names = tuple(symbol_names)
         self._source = None
         self._functions = None
+        self._groups = None
         self._module = None
+        self._plans: dict = {}
         #: None for a scene without parameters; else the names of the parameters other than
         #: time, in the order of the ``prm`` tuple the kernels take after ``t``.
         self.param_names = scene_parameters(expr)
 
     @property
-    def module_source(self) -> str:
-        """The complete generated module (tables, per-point functions, kernels)."""
-        if self._source is None:
-            self._source, self._functions = generate_module_source(self.expr, self.symbol_names)
-        return self._source
-
-    @property
     def parametric(self) -> bool:
         """Whether the kernels take ``(t, prm)`` (the scene has parameters or time)."""
         return self.param_names is not None
-
-    def function_source(self, kind: str = "vg") -> str:
-        """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
-        scene with parameters, ``'vgt'`` (with dd/dt)."""
-        self.module_source  # noqa: B018 - generates on demand
-        return self._functions[self._kind(kind)]
 
     def _kind(self, kind: str) -> str:
         kind = _check_kind(kind)
@@ -93,22 +93,94 @@ class CompiledSDF:
         return kind
 
     @property
-    def module(self):
+    def module_source(self) -> str:
+        """The complete generated module (tables, per-point functions, kernels)."""
+        if self._source is None:
+            self._source, self._functions, self._groups = generate_module(
+                self.expr, self.symbol_names)
+        return self._source
+
+    @property
+    def groups(self) -> list:
+        """The loop groups of the generated code (see :func:`fastsdf.codegen.generate_module`)."""
+        self.module_source  # noqa: B018 - generates on demand
+        return self._groups
+
+    def function_source(self, kind: str = "vg") -> str:
+        """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
+        scene with parameters, ``'vgt'`` (with dd/dt)."""
+        self.module_source  # noqa: B018 - generates on demand
+        return self._functions[self._kind(kind)]
+
+    @property
+    def module(self) -> ModuleType:
+        """The imported generated module (compiled lazily; loaded from the disk cache)."""
         if self._module is None:
             self._module = load_module(self.module_source, prefix="fastsdf_scene")
         return self._module
 
-    def point_fn(self, kind: str = "vg"):
+    def point_fn(self, kind: str = "vg") -> Any:
         """The numba dispatcher of the per-point function (``point_v``, ``point_vg`` or
         ``point_vgt``); a scene with parameters takes ``(x, y, t, prm)``."""
         return getattr(self.module, "point_" + self._kind(kind))
 
-    def kernel(self, kind: str = "vg", parallel: bool = True):
+    def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
         """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
         return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
 
-    def evaluate(self, x, y, compute_gradient: bool = False, t: float = 0.0, params=None,
-                 time_derivative: bool = False):
+    def plan(self, bounds, tiles=None, tol=None) -> PrunePlan:
+        """The pruning plan over ``bounds = ((x0, x1), (y0, y1))`` with ``tiles = (nx, ny)``
+        (default 32 x 32), cached per arguments."""
+        nx, ny = (PRUNE_TILES, PRUNE_TILES) if tiles is None else (int(tiles[0]), int(tiles[1]))
+        key = (tuple(map(tuple, bounds)), nx, ny, tol)
+        plan = self._plans.get(key)
+        if plan is None:
+            if len(self._plans) > 16:
+                self._plans.clear()
+            plan = self._plans[key] = make_plan(self.groups, key[0], nx, ny, tol)
+        return plan
+
+    def pruned_plan(self, xs, ys, prune=None, tol=None, bounds=None, count=None):
+        """The plan a call on points ``xs, ys`` should use (over ``bounds`` if given, which must
+        hold every finite point), or None for the unpruned kernels. ``prune``: None decides
+        (large inputs, enough operands, and only where most of them are dropped), True
+        forces, False never. ``count``: the number of points the plan will serve (default
+        ``len(xs)``)."""
+        count = len(xs) if count is None else count
+        if self.parametric:  # interval bounds would need ranges of the parameters: not pruned
+            return None
+        if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
+            return None
+        if not self.groups or (not prune and sum(len(g["members"]) for g in self.groups)
+                               < PRUNE_MIN_OPERANDS):
+            return None
+        bounds = snap_bounds(xs, ys) if bounds is None else bounds
+        if bounds is None:
+            return None
+        plan = self.plan(bounds, tol=tol)
+        # It pays when most rows are dropped; otherwise the sort by tile is wasted work.
+        return plan if prune or plan.fraction < PRUNE_MAX_FRACTION else None
+
+    def run(self, xs, ys, out, grad=None, plan=None):
+        """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2), if given),
+        with the tile kernels of ``plan`` if given (see :meth:`pruned_plan`)."""
+        n = xs.shape[0]
+        if not n:
+            return
+        kind = "v" if grad is None else "vg"
+        arrays = (out,) if grad is None else (out, grad)
+        if plan is not None:
+            order, starts = bin_points(xs, ys, plan)
+            getattr(self.module, f"tiles_{kind}_par")(xs, ys, *arrays, order, starts,
+                                                      plan.act, plan.offs)
+            return
+        parallel = n >= PARALLEL_MIN_POINTS
+        extra = (64 * numba.get_num_threads(),) if parallel else ()
+        self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
+
+    def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 prune: bool | None = None, tol: float | None = None, t: float = 0.0,
+                 params=None, time_derivative: bool = False) -> Any:
         """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions.
 
         For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other
@@ -116,27 +188,31 @@ class CompiledSDF:
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
-        parallel = n >= PARALLEL_MIN_POINTS
-        extra = (64 * numba.get_num_threads(),) if parallel else ()
         if self.parametric:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
                 raise ValueError(f"params must hold {len(self.param_names)} values (for "
                                  f"{list(self.param_names)}), got {params!r}")
-            extra = (float(t), prm) + extra
-        if time_derivative:
-            grad = np.empty((n, 2))
-            dt = np.empty(n)
+            parallel = n >= PARALLEL_MIN_POINTS
+            extra = (float(t), prm) + ((64 * numba.get_num_threads(),) if parallel else ())
+            kind = "vgt" if time_derivative else "vg" if compute_gradient else "v"
+            arrays = [out]
+            if kind != "v":
+                arrays.append(np.empty((n, 2)))
+            if kind == "vgt":
+                arrays.append(np.empty(n))
             if n:
-                self.kernel("vgt", parallel)(xs, ys, out, grad, dt, *extra)
-            return out.reshape(shape), grad.reshape(shape + (2,)), dt.reshape(shape)
+                self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
+            if kind == "v":
+                return out.reshape(shape)
+            res = (out.reshape(shape), arrays[1].reshape(shape + (2,)))
+            return res + ((arrays[2].reshape(shape),) if kind == "vgt" else ())
+        plan = self.pruned_plan(xs, ys, prune, tol)
         if compute_gradient:
             grad = np.empty((n, 2))
-            if n:
-                self.kernel("vg", parallel)(xs, ys, out, grad, *extra)
+            self.run(xs, ys, out, grad, plan)
             return out.reshape(shape), grad.reshape(shape + (2,))
-        if n:
-            self.kernel("v", parallel)(xs, ys, out, *extra)
+        self.run(xs, ys, out, None, plan)
         return out.reshape(shape)
 
 
@@ -146,7 +222,7 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
-def compile_expr(expr: Expr, symbol_names) -> CompiledSDF:
+def compile_expr(expr: Expr, symbol_names: Sequence[str]) -> CompiledSDF:
     """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet)."""
     return CompiledSDF(expr, symbol_names)
 
@@ -162,9 +238,9 @@ class Function:
     done in float64. A point with a NaN or infinite coordinate gets NaN value and gradient; the
     other points are unaffected.
 
-    Parameters (:func:`Param`, time :data:`t`): ``f.params`` holds their current values;
-    ``f(x, y, angle=0.3, t=1.5)`` evaluates with other values for one call and
-    ``f.with_params(angle=0.3)`` returns a copy that keeps them; neither recompiles.
+    Parameters (:func:`fastsdf.graph.Param`, time :data:`fastsdf.graph.t`): ``f.params`` holds
+    their current values; ``f(x, y, angle=0.3, t=1.5)`` evaluates with other values for one
+    call and ``f.with_params(angle=0.3)`` returns a copy that keeps them; neither recompiles.
     ``f(x, y, time_derivative=True)`` returns ``(d, grad, dd/dt)`` (analytic, forward mode; 0
     for a scene without ``t``): for a moving boundary ``-dd/dt / |grad d|`` is the normal speed
     of the surface. ``f.frozen()`` folds the current values into constants (its own kernel).
@@ -172,9 +248,16 @@ class Function:
     Evaluation runs in a numba kernel generated for this expression (see :mod:`fastsdf.codegen`),
     compiled on first use and cached on disk; ``source()`` shows the generated Python code and
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
+
+    Pruning (:mod:`fastsdf.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
+    operands folded into loops, the points are sorted into tiles and each tile evaluates only
+    the operands that sound interval bounds say can matter there: hard ``min``/``max`` chains
+    give bit-identical results, exponential blends stay within :attr:`prune_tol`. It is used
+    where the plan drops most operands; ``f(x, y, prune=False)`` turns it off, ``prune=True``
+    forces it. :meth:`pruning_report` shows what survives per tile.
     """
 
-    def __init__(self, f, symbols):
+    def __init__(self, f: Expr, symbols: Sequence[Expr | str]):
         f = as_expr(f, "f")
         try:
             symbols = list(symbols)
@@ -225,13 +308,13 @@ class Function:
                 values[name] = value
         return values
 
-    def with_params(self, **values) -> "Function":
+    def with_params(self, **values: float) -> "Function":
         """A copy with other parameter values (sharing the compiled kernels: no recompile)."""
         out = copy.copy(self)
         out._params = self._values(values)
         return out
 
-    def frozen(self, **values) -> "Function":
+    def frozen(self, **values: float) -> "Function":
         """A static copy: the parameters (at their current values, updated by ``values``)
         folded into constants. It compiles its own kernel; worth it only for a scene whose
         parameters never change again (or for a :class:`fastsdf.GridSDF` of it)."""
@@ -242,34 +325,34 @@ class Function:
         out._compiled = None
         return out
 
-    def param_tuple(self, **values) -> tuple:
+    def param_tuple(self, **values: float) -> tuple:
         """The non-time parameter values as the kernels take them (``param_names`` order)."""
         vals = self._values(values)
         return tuple(vals[n] for n in self.param_names)
 
     # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
     @property
-    def compiled(self):
+    def compiled(self) -> CompiledSDF:
         """The :class:`CompiledSDF` for this function (created on first use)."""
         if self._compiled is None:
             self._compiled = compile_expr(self.f, [s.attr for s in self.symbols])
         return self._compiled
 
     @property
-    def point_fn(self):
+    def point_fn(self) -> Any:
         """Compiled ``@njit`` function for one point (float64): ``(x, y) -> (d, ddx, ddy)``;
         for a scene with parameters ``(x, y, t, P) -> (d, ddx, ddy)`` with ``P`` the tuple
         :meth:`param_tuple` (``()`` when time is the only parameter)."""
         return self.compiled.point_fn("vg")
 
     @property
-    def point_value_fn(self):
+    def point_value_fn(self) -> Any:
         """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64); for a scene
         with parameters ``(x, y, t, P) -> d`` (see :attr:`point_fn`)."""
         return self.compiled.point_fn("v")
 
     @property
-    def point_time_fn(self):
+    def point_time_fn(self) -> Any:
         """For a scene with parameters: compiled ``(x, y, t, P) -> (d, ddx, ddy, dd/dt)``."""
         return self.compiled.point_fn("vgt")
 
@@ -277,25 +360,38 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    def __call__(self, x, y, compute_gradient=False, time_derivative=False, **params):
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 prune: bool | None = None, time_derivative: bool = False,
+                 **params: float) -> Any:
         kw = {}
         if self._params or params:
             vals = self._values(params)
             if self._params:
-                kw = {"t": vals.get("t", 0.0), "params": tuple(vals[n] for n in self.param_names)}
+                kw = {"t": vals.get("t", 0.0),
+                      "params": tuple(vals[n] for n in self.param_names)}
         if time_derivative:
             if not kw:  # no parameters: nothing moves
-                d, g = self.compiled.evaluate(x, y, compute_gradient=True)
+                d, g = self.compiled.evaluate(x, y, compute_gradient=True, prune=prune,
+                                              tol=self.prune_tol)
                 return d, g, np.zeros_like(d)
-            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True, **kw)
-        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), **kw)
+            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True,
+                                          **kw)
+        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
+                                      tol=self.prune_tol, **kw)
 
-    def __getstate__(self):
-        # Pickles carry the graph, never compiled code: the receiving process rebuilds the
-        # kernels on first use from its own disk cache (compiling once per machine).
-        state = self.__dict__.copy()
-        state["_compiled"] = None
-        return state
+    #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
+    #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.
+    prune_tol = None
+
+    def pruning_report(self, bounds: Sequence, tiles: Sequence | None = None,
+                       tol: float | None = None) -> dict:
+        """How pruning does over ``bounds = [(x0, x1), (y0, y1)]`` cut into ``tiles = (nx,
+        ny)`` tiles: operands in loops over tables, survivors per tile (mean, max), the
+        fraction evaluated and the time to build the plan (s). Empty plan if the generated
+        code has no such loops (then nothing is pruned)."""
+        plan = self.compiled.plan([tuple(map(float, b)) for b in bounds], tiles,
+                                  self.prune_tol if tol is None else tol)
+        return plan.report()
 
     def __getstate__(self):
         # Pickles carry the graph, never compiled code: the receiving process rebuilds the

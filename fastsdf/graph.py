@@ -32,6 +32,7 @@ import struct
 import weakref
 
 import numpy as np
+from typing import Any
 
 from .ops import OPS, chain_rule_numpy, fmt_const
 
@@ -174,6 +175,7 @@ class Expr:
 
     @property
     def is_const(self) -> bool:
+        """True for a constant node (its value is ``self.value``)."""
         return self.op == "const"
 
     def symbols(self) -> set:
@@ -194,7 +196,7 @@ def Symbol(name: str) -> Expr:
     return Expr("sym", (), name)
 
 
-def Constant(value) -> Expr:
+def Constant(value: float) -> Expr:
     """A constant node holding a float64 value."""
     return as_expr(value, "value")
 
@@ -257,7 +259,7 @@ def substitute_params(root: Expr, values: dict) -> Expr:
     return new[id(root)]
 
 
-def as_expr(value, name: str = "value") -> Expr:
+def as_expr(value: Expr | float, name: str = "value") -> Expr:
     """Return ``value`` as an expression: nodes pass through, real numbers become constants.
 
     Raises ``TypeError`` naming ``name`` for anything else (strings, complex numbers, arrays).
@@ -407,7 +409,7 @@ def _square_base(node: Expr):
     return None
 
 
-def sym_sqrt(a) -> Expr:
+def sym_sqrt(a: Expr | float) -> Expr:
     """Square root. ``sqrt(u**2 + v**2)`` is recognised and becomes ``length(u, v)``, which does
     not overflow for huge ``u, v`` and has a defined gradient at ``u = v = 0``."""
     a = as_expr(a, "a")
@@ -418,27 +420,27 @@ def sym_sqrt(a) -> Expr:
     return _unary("sqrt", np.sqrt, a, "a")
 
 
-def sym_exp(a) -> Expr:
+def sym_exp(a: Expr | float) -> Expr:
     """Exponential ``e**a``."""
     return _unary("exp", np.exp, a, "a")
 
 
-def sym_log(a) -> Expr:
+def sym_log(a: Expr | float) -> Expr:
     """Natural logarithm."""
     return _unary("log", np.log, a, "a")
 
 
-def sym_sin(a) -> Expr:
+def sym_sin(a: Expr | float) -> Expr:
     """Sine (radians)."""
     return _unary("sin", np.sin, a, "a")
 
 
-def sym_cos(a) -> Expr:
+def sym_cos(a: Expr | float) -> Expr:
     """Cosine (radians)."""
     return _unary("cos", np.cos, a, "a")
 
 
-def sym_abs(a) -> Expr:
+def sym_abs(a: Expr | float) -> Expr:
     """Absolute value. At ``a = 0`` the gradient is that of ``+a`` (the right-sided one)."""
     a = as_expr(a, "a")
     if a.op == "const":
@@ -450,7 +452,7 @@ def sym_abs(a) -> Expr:
     return Expr("abs", (a,))
 
 
-def sym_min(a, b) -> Expr:
+def sym_min(a: Expr | float, b: Expr | float) -> Expr:
     """Minimum. At a tie the gradient of ``a`` (the left operand) is returned."""
     a, b = as_expr(a, "a"), as_expr(b, "b")
     if _both_const(a, b):
@@ -460,7 +462,7 @@ def sym_min(a, b) -> Expr:
     return Expr("min", (a, b))
 
 
-def sym_max(a, b) -> Expr:
+def sym_max(a: Expr | float, b: Expr | float) -> Expr:
     """Maximum. At a tie the gradient of ``a`` (the left operand) is returned."""
     a, b = as_expr(a, "a"), as_expr(b, "b")
     if _both_const(a, b):
@@ -470,7 +472,7 @@ def sym_max(a, b) -> Expr:
     return Expr("max", (a, b))
 
 
-def sym_length(a, b) -> Expr:
+def sym_length(a: Expr | float, b: Expr | float) -> Expr:
     """Euclidean length ``sqrt(a**2 + b**2)`` computed without overflow.
 
     Where ``a = b = 0`` the gradient is that of ``a`` (for a circle's centre: the local x axis),
@@ -492,6 +494,9 @@ def _check_k(k, name="k") -> float:
     k = float(k)
     if not math.isfinite(k) or k <= 0.0:
         raise ValueError(f"{name} must be finite and > 0 for a smooth blend, got {name}={k!r}")
+    if not math.isfinite(1.0 / k):  # the blend divides by k: a subnormal k gives inf and NaN
+        raise ValueError(f"{name} is too small for a smooth blend (1/k overflows), got "
+                         f"{name}={k!r}")
     return k
 
 
@@ -500,7 +505,7 @@ def _smin_value(a: float, b: float, k: float) -> float:
     return m - math.log1p(math.exp(-k * abs(a - b))) / k
 
 
-def sym_smin(a, b, k) -> Expr:
+def sym_smin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     """Exponential smooth minimum ``-log(exp(-k a) + exp(-k b)) / k`` (the notebook's smooth
     union), evaluated as ``min(a, b) - log1p(exp(-k |a - b|)) / k`` so that it never overflows.
 
@@ -513,7 +518,7 @@ def sym_smin(a, b, k) -> Expr:
     return Expr("smin", (a, b), k)
 
 
-def sym_smax(a, b, k) -> Expr:
+def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
     """Exponential smooth maximum ``log(exp(k a) + exp(k b)) / k`` (the notebook's smooth
     intersection), evaluated as ``max(a, b) + log1p(exp(-k |a - b|)) / k``."""
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
@@ -531,12 +536,12 @@ def sym_smax(a, b, k) -> Expr:
 PRIM_KINDS = ("ellipse", "polygon")
 
 
-def sym_floor(a) -> Expr:
+def sym_floor(a: Expr | float) -> Expr:
     """Largest integer ``<= a`` (as a float). Piecewise constant: its gradient is 0."""
     return _unary("floor", np.floor, a, "a")
 
 
-def sym_select(cond, a, b) -> Expr:
+def sym_select(cond: Expr | float, a: Expr | float, b: Expr | float) -> Expr:
     """``a`` where ``cond > 0``, else ``b`` (value and gradient of the branch taken).
 
     Both branches are always evaluated (branch-free), so both must be safe to compute."""
@@ -554,6 +559,9 @@ def _check_width(k, name="k") -> float:
     k = float(k)
     if not math.isfinite(k) or k <= 0.0:
         raise ValueError(f"{name} (the blend width) must be finite and > 0, got {name}={k!r}")
+    if not math.isfinite(1.0 / k):  # the blend divides by k: a subnormal k gives inf and NaN
+        raise ValueError(f"{name} (the blend width) is too small (1/k overflows), got "
+                         f"{name}={k!r}")
     return k
 
 
@@ -562,7 +570,7 @@ def _poly_smin_value(a: float, b: float, k: float, cubic: bool) -> float:
     return min(a, b) - (h * h * h * k / 6.0 if cubic else h * h * k / 4.0)
 
 
-def sym_qmin(a, b, k) -> Expr:
+def sym_qmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     """Quadratic polynomial smooth minimum with blend width ``k`` (distance units):
     ``min(a, b) - k h**2 / 4`` with ``h = max(k - |a - b|, 0) / k``.
 
@@ -576,7 +584,7 @@ def sym_qmin(a, b, k) -> Expr:
     return Expr("qmin", (a, b), k)
 
 
-def sym_cmin(a, b, k) -> Expr:
+def sym_cmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     """Cubic polynomial smooth minimum with blend width ``k``: ``min(a, b) - k h**3 / 6`` with
     ``h = max(k - |a - b|, 0) / k``; exactly ``min(a, b)`` where ``|a - b| >= k``; C2; at
     ``a = b`` it is ``k / 6`` below the minimum; gradient ``(1 - h**2/2) grad(min operand) +
@@ -587,7 +595,7 @@ def sym_cmin(a, b, k) -> Expr:
     return Expr("cmin", (a, b), k)
 
 
-def sym_prim(kind: str, u, v, *constants, data=None) -> Expr:
+def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants, data: Any = None) -> Expr:
     """A primitive evaluated by a fixed compiled function: ``kind`` (one of ``PRIM_KINDS``) at
     local coordinates ``(u, v)`` (expressions), with numeric ``constants`` (become table columns
     when same-kind primitives are folded into a loop) and hashable structural ``data`` (e.g. a
@@ -701,7 +709,7 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
 # Reference evaluation with NumPy (the seed's approach: one array operation per node).
 
 def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
-                   params: dict | None = None):
+                   params: dict | None = None) -> Any:
     """Evaluate ``root`` with NumPy, one whole-array operation per node.
 
     ``symbols`` maps symbol names to arrays of equal shape. With ``compute_gradient`` the result

@@ -123,6 +123,6 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
     return out
 
 
-def bounds(root: Expr, boxes: dict, lipschitz: bool = True):
+def bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> tuple:
     """``(lo, hi)`` of ``root`` over boxes (see :func:`node_bounds`)."""
     return node_bounds(root, boxes, lipschitz)[id(root)]

@@ -47,6 +47,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from typing import Any, Sequence
 
 __all__ = ["Op", "OPS", "chain_rule_numpy", "lit", "fmt_const"]
 
@@ -83,7 +84,7 @@ def lit(v: float) -> str:
     return f"({s})" if v < 0 or s.startswith("-") else s
 
 
-def chain_rule_numpy(rule, ag, like):
+def chain_rule_numpy(rule: Any, ag: Sequence, like: np.ndarray) -> list:
     """Gradient components of a node from its rule and its arguments' gradients ``ag``
     (``ag[i][c]``: component ``c`` of argument ``i``); ``like``: an array of the output shape."""
     ncomp = len(ag[0]) if ag else 0
@@ -472,26 +473,47 @@ _register(Op(
     lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]), chain=True))
 
 
+_UP = 2.0 ** 600  # rescales tiny and subnormal lengths into the normal range, exactly
+
+
 def _np_length(node, av, g):
     x, y = av
     v = np.hypot(x, y)
     if not g:
         return v, None
-    safe = np.where(v > 0, v, 1.0)
-    zero = v == 0
-    return v, [np.where(zero, 1.0, x / safe), np.where(zero, 0.0, y / safe)]
+    # The partials are the unit vector (x, y) / v. Below 1e-150 it is taken from the components
+    # rescaled by a power of two: 1 / v overflows for subnormal v, and the quotients of
+    # subnormals lose bits. At v = 0 it is (1, 0), the gradient of x (the tie rule).
+    tiny = v < 1e-150
+    xs, ys = np.where(tiny, x * _UP, x), np.where(tiny, y * _UP, y)
+    vs = np.where(tiny, np.hypot(xs, ys), v)
+    zero = vs == 0
+    safe = np.where(zero, 1.0, vs)
+    return v, [np.where(zero, 1.0, xs / safe), np.where(zero, 0.0, ys / safe)]
 
 
 def _emit_length(em, out, node, a, r):
     A, B = a
     # sqrt(a*a + b*b) unless that over- or underflows; hypot is exact but slower.
     em.assign(out, r, f"math.sqrt({A.v} * {A.v} + {B.v} * {B.v})")
+    if not em.grad:
+        out.append(f"if not (1e-150 < {r} < 1e150):")
+        out.append(f"    {r} = math.hypot({A.v}, {B.v})")
+        return None
+    # The partials (a, b) / r, recomputed in the rare branch as in _np_length (1 / r overflows
+    # for subnormal r). An if block, not if/else: the lane interleaver copies it whole.
+    em.assign(out, f"{r}i", f"1.0 / {r}")
+    em.assign(out, f"{r}p", f"{A.v} * {r}i")
+    em.assign(out, f"{r}q", f"{B.v} * {r}i")
     out.append(f"if not (1e-150 < {r} < 1e150):")
     out.append(f"    {r} = math.hypot({A.v}, {B.v})")
-    if not em.grad:
-        return None
-    em.assign(out, f"{r}i", f"_sel({r} > 0.0, 1.0 / {r}, 0.0)")
-    return [f"_sel({r} > 0.0, {A.v} * {r}i, 1.0)", f"({B.v} * {r}i)"]
+    out.append(f"    {r}i = {lit(_UP)} if {r} < 1e-150 else 1.0")
+    out.append(f"    {r}p = {A.v} * {r}i")
+    out.append(f"    {r}q = {B.v} * {r}i")
+    out.append(f"    {r}i = math.hypot({r}p, {r}q)")
+    out.append(f"    {r}p = {r}p / {r}i if {r}i > 0.0 else 1.0")
+    out.append(f"    {r}q = {r}q / {r}i if {r}i > 0.0 else 0.0")
+    return [f"{r}p", f"{r}q"]
 
 
 def _iv_length(node, lo, hi):

@@ -81,6 +81,8 @@ import warnings
 
 import numba
 import numpy as np
+from typing import Any, Sequence
+from numpy.typing import ArrayLike
 from numba.core.dispatcher import Dispatcher
 
 from ._validate import real
@@ -146,13 +148,13 @@ class Gravity:
     array like any generator.
     """
 
-    def __init__(self, acceleration=(0.0, -1.0)):
+    def __init__(self, acceleration: ArrayLike = (0.0, -1.0)):
         self.acceleration = _vec2(acceleration, "acceleration")
 
     def __call__(self, p, t):
         return np.asarray(p["m"], dtype=np.float64)[:, None] * self.acceleration
 
-    def potential(self, p) -> np.ndarray:
+    def potential(self, p: Particles) -> np.ndarray:
         """Potential energy of each particle, ``-m (acceleration . x)`` (zero at the origin)."""
         x = np.asarray(p["x"], dtype=np.float64)
         return -np.asarray(p["m"], dtype=np.float64) * (x @ self.acceleration)
@@ -168,7 +170,7 @@ class Drag:
     the compiled step when in ``force_generators``; called as ``g(p, t)`` it returns the forces.
     """
 
-    def __init__(self, coefficient=0.1):
+    def __init__(self, coefficient: float = 0.1):
         c = _real(coefficient, "coefficient")
         if not (math.isfinite(c) and c >= 0.0):
             raise ValueError(f"coefficient must be finite and >= 0, got "
@@ -196,7 +198,8 @@ class FieldForce:
     (NumPy, like any generator).
     """
 
-    def __init__(self, fx=None, fy=None, *, potential=None, per_mass=False):
+    def __init__(self, fx: Any = None, fy: Any = None, *, potential: Any = None,
+                 per_mass: bool = False):
         if potential is None:
             if fx is None or fy is None:
                 raise TypeError("FieldForce needs fx and fy, or potential=")
@@ -210,7 +213,7 @@ class FieldForce:
         self._dispatcher = None
 
     @property
-    def dispatcher(self):
+    def dispatcher(self) -> Any:
         """The compiled ``@njit`` force ``(x, y, vx, vy, m, t) -> (fx, fy)`` (built on first
         use, from a content-hashed module in the kernel cache)."""
         if self._dispatcher is None:
@@ -297,7 +300,7 @@ class Particles:
 
     FIELDS = ("x", "v", "m", "r", "cr", "cf")
 
-    def __init__(self, n: int, dtype=np.float64):
+    def __init__(self, n: int, dtype: Any = np.float64):
         self._n = int(n)
         self._dtype = np.dtype(dtype)
         self._arrays = {}
@@ -349,7 +352,7 @@ class Particles:
     def __contains__(self, name):
         return name in self._arrays
 
-    def keys(self):
+    def keys(self) -> list:
         """The field names."""
         return self.FIELDS
 
@@ -702,9 +705,11 @@ class ParticleSimulation:
         ``(p, t) -> (n, 2)`` forces (evaluated with NumPy before each step: the slow path).
     """
 
-    def __init__(self, f, n=100, timestep=1 / 30, *, seed=None, integrator="symplectic",
-                 collision="approaching", prevent_tunnelling=True, dtype=np.float64, cr=0.6,
-                 cf=0.3, lipschitz=None, block=None, wall_speed=None):
+    def __init__(self, f: Any, n: int = 100, timestep: float = 1 / 30, *, seed: Any = None,
+                 integrator: str = "symplectic", collision: str = "approaching",
+                 prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
+                 cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
+                 wall_speed: float | None = None):
         if wall_speed is not None:
             w = _real(wall_speed, "wall_speed")
             if not (math.isfinite(w) and w >= 0.0):
@@ -754,7 +759,7 @@ class ParticleSimulation:
         self.reset()
 
     @property
-    def sdf(self):
+    def sdf(self) -> Any:
         """The world (SDF or GridSDF). Assigning another one rebinds the compiled step."""
         return self._sdf
 
@@ -785,7 +790,7 @@ class ParticleSimulation:
                 RuntimeWarning, stacklevel=3)
 
     # -- notebook interface ----------------------------------------------------------------
-    def reset(self, ax=None):
+    def reset(self, ax: Any = None) -> tuple:
         """Draw a fresh random state (the notebook's distribution) and set ``t = 0``.
 
         ``x ~ N([0, 1.5], 0.05 I)``, ``v ~ N(0, 0.1 I)``, ``m ~ U(1, 10)``, ``r = 0.01 m``,
@@ -809,7 +814,7 @@ class ParticleSimulation:
         self._wall = None
         return self._draw(ax, new=True)
 
-    def update(self, ax=None, use_wall_time=False):
+    def update(self, ax: Any = None, use_wall_time: bool = False) -> tuple:
         """Advance one frame and refresh the drawing; returns the drawables.
 
         One step of ``timestep`` seconds; with ``use_wall_time``, as many fixed steps as fit in
@@ -825,7 +830,7 @@ class ParticleSimulation:
         self.run(steps)
         return self._draw(ax, new=False)
 
-    def advance(self):
+    def advance(self) -> None:
         """Advance the simulation by one step of ``timestep`` seconds."""
         self.run(1)
 
@@ -887,7 +892,7 @@ class ParticleSimulation:
             ext += arr
         return ext
 
-    def run(self, steps=1):
+    def run(self, steps: int = 1) -> None:
         """Advance ``steps`` steps (``steps * timestep`` seconds) in compiled code.
 
         With only fused forces (:class:`Gravity`, :class:`Drag`, numba ``@njit`` forces) this
@@ -1031,7 +1036,7 @@ class ParticleSimulation:
         """Kinetic plus gravitational potential energy."""
         return self.kinetic_energy() + self.potential_energy()
 
-    def query(self, x, y):
+    def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
         """``(d, grad)`` of the world at points, exactly as the compiled step sees it (for a
         GridSDF: the bilinear samples, with its out-of-bounds rule)."""
         xs = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
@@ -1109,7 +1114,8 @@ def _invalid_state_error(p: Particles, count: int) -> ValueError:
 # ---------------------------------------------------------------------------------------------
 # The notebook's step in NumPy (reference for tests, baseline for benchmarks).
 
-def reference_step(p, f, dt, force_generators=(), t=0.0):
+def reference_step(p: Any, f: Any, dt: float, force_generators: Sequence = (),
+                   t: float = 0.0) -> None:
     """One step of the notebook's ``ParticleSimulation.advance()``, in NumPy, in place.
 
     ``p`` is a :class:`Particles` (or a structured array with the same fields), ``f`` any SDF
@@ -1145,7 +1151,8 @@ def reference_step(p, f, dt, force_generators=(), t=0.0):
 # ---------------------------------------------------------------------------------------------
 # Animation.
 
-def create_animation(fig, ax, sim, frames=300, repeat=True, use_wall_time=False, interval=None):
+def create_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: bool = True,
+                     use_wall_time: bool = False, interval: float | None = None) -> Any:
     """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's helper).
 
     Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)

@@ -153,8 +153,9 @@ def _coords(v, name: str) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Public API.
 
-def density_image(x, y, bounds=((-2.0, 2.0), (-2.0, 2.0)), shape=(400, 400), weights=None,
-                  parallel=None):
+def density_image(x: Any, y: Any, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
+                  shape: tuple = (400, 400), weights: Any = None,
+                  parallel: bool | None = None) -> np.ndarray:
     """Count points per pixel: a ``(H, W)`` float64 image of the points ``(x, y)``.
 
     ``x``, ``y``: coordinates (data units), arrays of equal size and any shape (flattened).
@@ -263,8 +264,9 @@ class ParticleLayer:
     layer switches representation if the count crosses ``max_circles``.
     """
 
-    def __init__(self, ax, bounds, shape, max_circles, color, cmap, norm, alpha, zorder,
-                 marker_points, colorbar=False):
+    def __init__(self, ax: Any, bounds: tuple, shape: tuple | None, max_circles: int,
+                 color: Any, cmap: Any, norm: Any, alpha: float, zorder: float,
+                 marker_points: float, colorbar: bool = False) -> None:
         self.want_colorbar = bool(colorbar)
         self.colorbar = None
         self.ax = ax
@@ -355,7 +357,7 @@ class ParticleLayer:
             self.artist.remove()
         self.artist, self.image, self.mode = None, None, None
 
-    def update(self, x, y, r=None):
+    def update(self, x: Any, y: Any, r: Any = None) -> tuple:
         """Redraw for new particle positions ``x``, ``y`` (data units).
 
         ``r``: new radii as in :func:`draw_particles`; ``None`` keeps the previous ones. Returns
@@ -374,14 +376,16 @@ class ParticleLayer:
             self._density(xs, ys)
         return (self.artist,)
 
-    def remove(self):
+    def remove(self) -> None:
         """Take the particles off the axes."""
         self._drop()
 
 
-def draw_particles(ax, x, y, r=None, bounds=None, max_circles=DEFAULT_MAX_CIRCLES, shape=None,
-                   color=PARTICLE_COLOR, cmap=None, norm=None, alpha=0.8, zorder=4,
-                   marker_points=4.0, colorbar=False) -> ParticleLayer:
+def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
+                   max_circles: int = DEFAULT_MAX_CIRCLES, shape: tuple | None = None,
+                   color: Any = PARTICLE_COLOR, cmap: Any = None, norm: Any = None,
+                   alpha: float = 0.8, zorder: float = 4, marker_points: float = 4.0,
+                   colorbar: bool = False) -> ParticleLayer:
     """Draw particles on ``ax``: circles for up to ``max_circles`` particles, else a density image.
 
     ``x``, ``y``: particle centres (data units), arrays of equal size. ``r``: radii (data units,

@@ -71,8 +71,9 @@ def _long_straight_line_scene():
 def test_parallel_and_serial_kernels_agree(scene, lanes):
     """The multi-lane parallel kernels (every tail length, NaN lanes) against the serial ones."""
     f = scene()
-    assert f"def lanes_vg({', '.join(f'x{k}, y{k}' for k in range(lanes))}):" in \
-        f.compiled.module_source
+    src = f.compiled.module_source
+    assert f"def lanes_vg({', '.join(f'x{k}, y{k}' for k in range(lanes))}):" in src or \
+        f"def lanes_vg({', '.join(f'x{k}, y{k}' for k in range(lanes))}, _act, _off):" in src
     for n in (4096, 4097, 4098, 4099, 9999):
         p = np.random.default_rng(n).uniform(-2, 2, (n, 2))
         p[np.random.default_rng(n + 1).random(n) < 0.01, n % 2] = np.nan

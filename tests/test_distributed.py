@@ -124,7 +124,8 @@ def test_evaluate_dask_arrays_equal_the_single_process_call(client, rng):
 
 def _wind(p, t):
     """A Python force generator (the slow path): a position-dependent push."""
-    return np.column_stack([0.3 * np.sin(3 * p["x"][:, 1]), np.zeros(len(p["x"]))]) * p["m"][:, None]
+    push = np.column_stack([0.3 * np.sin(3 * p["x"][:, 1]), np.zeros(len(p["x"]))])
+    return push * p["m"][:, None]
 
 
 def _lift(sim, i):

@@ -14,7 +14,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
+from typing import Iterator
+from numpy.typing import ArrayLike
 
+from .._validate import check_length as _check_length
+from .._validate import coord2 as _vec2
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from .._validate import is_param, real_or_param, vec2_or_param
@@ -78,6 +82,9 @@ def _smoothness_value(k) -> float:
     k = float(k)
     if not math.isfinite(k) or k < 0:
         raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={k!r}")
+    if k > 0:
+        # a blend width (or, for the exponential blend, its inverse) is a length
+        _check_length(k, "smoothness k")
     return k
 
 
@@ -101,7 +108,7 @@ def _properties(**props):
         _context.reset(token)
 
 
-def smoothness(k, kind="exponential"):
+def smoothness(k: float, kind: str = "exponential") -> Iterator[None]:
     """Context manager: ``|`` and ``&`` created inside blend with parameter ``k``.
 
     ``kind='exponential'`` (the default, the notebook's blend): ``k`` is the sharpness in
@@ -126,7 +133,7 @@ def current_blend() -> tuple:
     return s.smoothness, s.blend
 
 
-def transform(angle=0.0, offset=(0.0, 0.0)):
+def transform(angle: float = 0.0, offset: ArrayLike = (0.0, 0.0)) -> Iterator[None]:
     """Context manager: primitives created inside are rotated by ``angle`` (radians,
     counter-clockwise) about their own origin, then translated by ``offset``.
 

@@ -69,7 +69,7 @@ def _points_bbox(points, r=0.0):
 def _edges_symmetry(points, closed=True) -> frozenset:
     """Axes about which the polyline through ``points`` is mirror-symmetric (to 1e-12)."""
     p = np.asarray(points, dtype=np.float64)
-    tol = 1e-12 * max(1.0, float(np.abs(p).max()))
+    tol = 1e-12 * (float(np.abs(p).max()) or 1.0)  # relative: also for tiny shapes
     q = np.roll(p, -1, axis=0) if closed else p[1:]
     p = p if closed else p[:-1]
     edges = np.concatenate([p, q], axis=1)

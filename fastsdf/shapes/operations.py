@@ -7,7 +7,11 @@ import numbers
 from dataclasses import replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .._validate import check_length as _check_length
+from .._validate import coord2 as _vec2
+from .._validate import length as _length
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from .._validate import is_param, real_or_param, vec2_or_param
@@ -132,22 +136,22 @@ class SDF(Function):
     def __sub__(self, other):
         return Difference(self, self._other(other, "subtract"))
 
-    def union(self, other, k=0.0, kind="exponential"):
+    def union(self, other: SDF, k: float = 0.0, kind: str = "exponential") -> SDF:
         """``self | other`` with an explicit blend (the :func:`smoothness` context is ignored):
         ``k = 0`` hard; ``kind='exponential'`` (``k`` = sharpness, 1/distance), ``'quadratic'``
         or ``'cubic'`` (``k`` = blend width, distance). See :class:`Union`."""
         return Union(self, self._other(other, "unite"), k=k, kind=kind)
 
-    def intersection(self, other, k=0.0, kind="exponential"):
+    def intersection(self, other: SDF, k: float = 0.0, kind: str = "exponential") -> SDF:
         """``self & other`` with an explicit blend (see :meth:`union`, :class:`Intersection`)."""
         return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
 
-    def difference(self, other, k=0.0, kind="exponential"):
+    def difference(self, other: SDF, k: float = 0.0, kind: str = "exponential") -> SDF:
         """``self - other``, smooth for ``k > 0`` (see :meth:`union`, :class:`Difference`)."""
         return Difference(self, self._other(other, "subtract"), k=k, kind=kind)
 
     # -- modifiers -----------------------------------------------------------------------------
-    def round(self, r):
+    def round(self, r: float) -> SDF:
         """Offset: ``f - r`` (``r > 0`` grows the shape and rounds its convex corners by
         ``r``; ``r < 0`` erodes it).
 
@@ -156,7 +160,10 @@ class SDF(Function):
         shape the inside value is only a bound (filled concavities are deeper than ``r - f``).
         For ``r < 0``: exact inside if ``f`` is, a bound outside. Always a bound if ``f`` is.
         """
-        r, number = real_or_param(r, "r")
+        if is_param(r):
+            r, _ = real_or_param(r, "r")
+        else:
+            r = _length(r, "r", zero=True)
         i = self._info
         if is_param(r):  # its sign may change at run time: only a bound is kept
             return SDF(self.f - r, _Info(bound=i.bound))
@@ -168,7 +175,7 @@ class SDF(Function):
             info = replace(i, outside=False)
         return SDF(self.f - r, info)
 
-    def shell(self, thickness):
+    def shell(self, thickness: float) -> SDF:
         """Annulus of the boundary: ``|f| - thickness / 2``, a band of total width
         ``thickness`` centred on the surface (IQ's onion).
 
@@ -179,23 +186,25 @@ class SDF(Function):
         t = _real(thickness, "thickness")
         if t <= 0:
             raise ValueError(f"thickness must be > 0, got thickness={t!r}")
+        _check_length(t, "thickness")
         i = self._info
         info = _Info(outside=i.outside and i.inside, inside=False, bound=i.bound,
                      bbox=_grow(i.bbox, t / 2), sym=i.sym)
         return SDF(sym_abs(self.f) - t / 2, info)
 
-    def scale(self, s):
+    def scale(self, s: float) -> SDF:
         """Uniform scale about the origin: ``s * f(p / s)`` with ``s > 0``; keeps the value a
         distance, so exactness is kept."""
         s = _real(s, "s")
         if s <= 0:
             raise ValueError(f"s must be > 0, got s={s!r}")
+        _check_length(s, "s")
         inv = 1.0 / s
         i = self._info
         bbox = None if i.bbox is None else tuple(v * s for v in i.bbox)
         return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s, replace(i, bbox=bbox))
 
-    def translate(self, offset):
+    def translate(self, offset: ArrayLike) -> SDF:
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
         active :func:`transform` context plays no part). Same as building it under
         ``transform(offset=offset)``; keeps exactness."""
@@ -210,7 +219,7 @@ class SDF(Function):
         expr = substitute(self.f, {"x": _X - float(o[0]), "y": _Y - float(o[1])})
         return SDF(expr, replace(i, bbox=bbox, sym=sym))
 
-    def rotate(self, angle):
+    def rotate(self, angle: float) -> SDF:
         """The shape rotated counter-clockwise by ``angle`` (radians) about the origin:
         ``f(R(-angle) p)``. Same as building it under ``transform(angle=angle)``; keeps
         exactness."""
@@ -226,7 +235,7 @@ class SDF(Function):
         expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
         return SDF(expr, replace(i, bbox=bbox, sym=sym))
 
-    def mirror(self, axis="x"):
+    def mirror(self, axis: str = "x") -> SDF:
         """Mirror symmetry: ``axis='x'`` evaluates ``f(|x|, y)``, the part of the shape with
         ``x >= 0`` plus its mirror image in the line ``x = 0``; ``'y'`` likewise
         ``f(x, |y|)``; ``'xy'`` both.
@@ -257,7 +266,7 @@ class SDF(Function):
             f = SDF(substitute(f.f, sub), info)
         return f
 
-    def repeat(self, spacing, count):
+    def repeat(self, spacing: ArrayLike, count: ArrayLike) -> SDF:
         """Finite repetition (IQ's opRepLim): copies of the shape at
         ``(i * spacing_x, j * spacing_y)`` for ``0 <= i < count_x``, ``0 <= j < count_y``.
         ``spacing`` and ``count`` are numbers or pairs; a count of 1 leaves that axis alone.
@@ -274,6 +283,8 @@ class SDF(Function):
         ct = _pair(count, "count", _count)
         if not all(v > 0 for v in sp):
             raise ValueError(f"spacing must be > 0, got spacing={spacing!r}")
+        for v in sp:
+            _check_length(v, "spacing", spacing)
         i = self._info
         sub, symmetric, contained = {}, True, i.bbox is not None
         lo = list(i.bbox[:2]) if i.bbox is not None else None
@@ -319,37 +330,37 @@ def _count(value, name) -> int:
 
 # Modifiers as functions (the methods of SDF).
 
-def offset(f, r):
+def offset(f: SDF, r: float) -> SDF:
     """``f.round(r)``: the shape offset by ``r`` (see :meth:`SDF.round`)."""
     return _check_sdf(f, "f").round(r)
 
 
-def shell(f, thickness):
+def shell(f: SDF, thickness: float) -> SDF:
     """``f.shell(thickness)`` (see :meth:`SDF.shell`)."""
     return _check_sdf(f, "f").shell(thickness)
 
 
-def scale(f, s):
+def scale(f: SDF, s: float) -> SDF:
     """``f.scale(s)`` (see :meth:`SDF.scale`)."""
     return _check_sdf(f, "f").scale(s)
 
 
-def translate(f, offset):  # noqa: F811 - the parameter shadows offset() here only
+def translate(f: SDF, offset: ArrayLike) -> SDF:  # noqa: F811 - shadows offset() here only
     """``f.translate(offset)`` (see :meth:`SDF.translate`)."""
     return _check_sdf(f, "f").translate(offset)
 
 
-def rotate(f, angle):
+def rotate(f: SDF, angle: float) -> SDF:
     """``f.rotate(angle)`` (see :meth:`SDF.rotate`)."""
     return _check_sdf(f, "f").rotate(angle)
 
 
-def mirror(f, axis="x"):
+def mirror(f: SDF, axis: str = "x") -> SDF:
     """``f.mirror(axis)`` (see :meth:`SDF.mirror`)."""
     return _check_sdf(f, "f").mirror(axis)
 
 
-def repeat(f, spacing, count):
+def repeat(f: SDF, spacing: ArrayLike, count: ArrayLike) -> SDF:
     """``f.repeat(spacing, count)`` (see :meth:`SDF.repeat`)."""
     return _check_sdf(f, "f").repeat(spacing, count)
 
@@ -374,7 +385,7 @@ class Union(SDF):
     it is 1-Lipschitz.
     """
 
-    def __init__(self, a: SDF, b: SDF, k=0.0, kind="exponential"):
+    def __init__(self, a: SDF, b: SDF, k: float = 0.0, kind: str = "exponential"):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
@@ -392,7 +403,7 @@ class Intersection(SDF):
     corner the distance to the intersection is larger than either operand). Blends: a bound.
     """
 
-    def __init__(self, a: SDF, b: SDF, k=0.0, kind="exponential"):
+    def __init__(self, a: SDF, b: SDF, k: float = 0.0, kind: str = "exponential"):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
@@ -410,7 +421,7 @@ class Difference(SDF):
     outside. Blends: a bound.
     """
 
-    def __init__(self, a: SDF, b: SDF, k=0.0, kind="exponential"):
+    def __init__(self, a: SDF, b: SDF, k: float = 0.0, kind: str = "exponential"):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info

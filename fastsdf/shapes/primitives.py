@@ -9,11 +9,21 @@ import numbers
 from dataclasses import replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .._validate import MAX_COORD, check_length as _check_length
+from .._validate import coord as _coord
+from .._validate import coord2 as _point
+from .._validate import length as _length
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from ..graph import Expr, sym_abs, sym_length, sym_max, sym_min, sym_prim, sym_select
 from .._validate import is_param, real_or_param, vec2_or_param
+
+
+def _has_param(value) -> bool:
+    """Whether a pair holds an expression of runtime parameters."""
+    return isinstance(value, (tuple, list)) and any(is_param(v) for v in value)
 from .context import _IDENTITY, _coords, _frame
 from .exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
 from .operations import SDF
@@ -32,11 +42,15 @@ class Circle(SDF):
     At the centre, where every direction is steepest, the gradient is the local +x axis.
     """
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0):
-        center, c0 = vec2_or_param(center, "center")
-        radius, r0 = real_or_param(radius, "radius")
-        if r0 <= 0:
-            raise ValueError(f"radius must be > 0, got radius={radius!r}")
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
+        if is_param(radius) or _has_param(center):
+            center, _ = vec2_or_param(center, "center")
+            radius, r0 = real_or_param(radius, "radius")
+            if r0 <= 0:
+                raise ValueError(f"radius must be > 0, got radius={radius!r}")
+        else:
+            center = _point(center, "center")
+            radius = _positive(radius, "radius")
         self.center, self.radius = center, radius
         x, y = _coords()
         moving = is_param(radius) or any(is_param(v) for v in center)
@@ -49,16 +63,27 @@ class Halfspace(SDF):
     """Half-plane ``{p : n . p <= d}`` with outward normal ``normal`` (normalized here) and
     signed offset ``d`` from the origin (Hessian normal form; exact distance)."""
 
-    def __init__(self, normal=(1.0, 0.0), d=0.0):
+    def __init__(self, normal: ArrayLike = (1.0, 0.0), d: float = 0.0):
         normal = _vec2(normal, "normal")
-        d, _ = real_or_param(d, "d")
-        length = float(np.hypot(normal[0], normal[1]))
-        if not length > 0:
+        d = real_or_param(d, "d")[0] if is_param(d) else _coord(d, "d")
+        big = float(np.abs(normal).max())
+        if not big > 0:
             raise ValueError(f"normal must have non-zero length, got normal={normal.tolist()!r}")
-        n = normal / length
+        n = normal / big  # first to about 1: the direction is exact also for subnormal input
+        n = n / float(np.hypot(n[0], n[1]))
         self.normal, self.d = n, d
         x, y = _coords()
         super().__init__(x * n[0] + y * n[1] - d, _primitive_info(None, convex=True))
+
+
+def _box_expr(qx: Expr, qy: Expr) -> Expr:
+    """Exact SDF of a rectangle from the signed distances ``qx, qy`` to its two pairs of
+    sides (IQ's box): outside ``length(max(qx, 0), max(qy, 0))``, inside and on the boundary
+    ``max(qx, qy)``. On a face the inside branch is taken, whose gradient is the face's
+    normal; the sum ``outside + min(0, max(qx, qy))`` has the same value but no unit gradient
+    there (both parts tie at zero)."""
+    inner = sym_max(qx, qy)
+    return sym_select(inner, sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0)), inner)
 
 
 class Box(SDF):
@@ -69,11 +94,16 @@ class Box(SDF):
     L-infinity distance, with an axis-aligned gradient.)
     """
 
-    def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0)):
-        (minc, lo), (maxc, hi) = vec2_or_param(minc, "minc"), vec2_or_param(maxc, "maxc")
+    def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0)):
+        if _has_param(minc) or _has_param(maxc):
+            (minc, lo), (maxc, hi) = vec2_or_param(minc, "minc"), vec2_or_param(maxc, "maxc")
+        else:
+            minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
+            lo, hi = minc, maxc
         if not np.all(lo < hi):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
                              f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
+        _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
         self.minc, self.maxc = minc, maxc
         moving = any(is_param(v) for v in (*minc, *maxc))
         center = [(minc[j] + maxc[j]) * 0.5 for j in (0, 1)]
@@ -81,50 +111,68 @@ class Box(SDF):
         x, y = _coords()
         qx = sym_abs(x - center[0]) - half[0]
         qy = sym_abs(y - center[1]) - half[1]
-        outside = sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0))
-        # min(0, .) puts the constant first so that on the boundary (a tie) the constant's zero
-        # gradient is taken and the gradient stays of unit length.
-        inside = sym_min(0.0, sym_max(qx, qy))
         sym = set() if moving else {ax for ax, a, b in zip("xy", lo, hi) if a == -b}
         info = _primitive_info(None if moving else _points_bbox([lo, hi]), sym, convex=True)
-        super().__init__(outside + inside, info)
+        super().__init__(_box_expr(qx, qy), info)
 
 
 # ---------------------------------------------------------------------------------------------
 # Segments, boxes, polygons, ellipses, rings and arcs, and the geometry helpers they share.
 
 
-def _segment_expr(x: Expr, y: Expr, a, b) -> Expr:
-    """Unsigned distance from (x, y) to the segment a-b (a point if a == b)."""
+def _segment_expr(x: Expr, y: Expr, a, b, normal=None) -> Expr:
+    """Unsigned distance from (x, y) to the segment a-b (a point if a == b).
+
+    Beside the segment (its foot between ``a`` and ``b``) the distance is ``|h|``, the distance
+    from the line along the unit ``normal`` (default: the left normal of ``b - a``), not the
+    length of ``p - foot``: that difference cancels to rounding noise near the segment, and its
+    direction (the gradient) with it, while ``h`` has the exact normal as its gradient, also on
+    the segment itself (where ``|h|`` takes the side of ``+normal``). Beyond the ends it is the
+    distance to the nearer end. Only lengths and unit vectors are used (no squared lengths),
+    so the formula does not over- or underflow at any scale.
+    """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     px, py = x - float(a[0]), y - float(a[1])
     ex, ey = float(b[0] - a[0]), float(b[1] - a[1])
-    ee = ex * ex + ey * ey
-    if ee == 0.0:
+    length = math.hypot(ex, ey)
+    if length == 0.0:
         return sym_length(px, py)
-    t = (px * ex + py * ey) * (1.0 / ee)
-    h = sym_min(sym_max(t, 0.0), 1.0)
-    return sym_length(px - h * ex, py - h * ey)
+    dx, dy = ex / length, ey / length
+    nx, ny = (-dy, dx) if normal is None else normal
+    t = px * dx + py * dy  # distance along the segment from a
+    h = px * nx + py * ny
+    beyond_b = t - 0.5 * length
+    ux = sym_select(beyond_b, px - ex, px)  # from the nearer end
+    uy = sym_select(beyond_b, py - ey, py)
+    beside = sym_min(t, length - t)
+    return sym_select(beside, sym_abs(h), sym_length(ux, uy))
 
 
 def _ccw(vertices: np.ndarray) -> np.ndarray:
     """The vertices in counter-clockwise order (by the sign of the shoelace area)."""
     v = vertices
-    area2 = float(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
+    w = (v - v[0]) / (float(np.abs(v - v[0]).max()) or 1.0)  # scaled: no over- or underflow
+    area2 = float(np.sum(w[:, 0] * np.roll(w[:, 1], -1) - np.roll(w[:, 0], -1) * w[:, 1]))
     return v if area2 > 0 else v[::-1].copy()
 
 
 def _convex_polygon_expr(x: Expr, y: Expr, vertices: np.ndarray) -> Expr:
     """Exact SDF of a convex polygon (counter-clockwise vertices) from graph operations:
-    outside the distance to the nearest edge, inside the largest signed edge-line distance
-    (which for a convex polygon is minus the distance to the nearest edge)."""
+    outside the distance to the nearest edge, inside (and on the boundary) the largest signed
+    edge-line distance (which for a convex polygon is minus the distance to the nearest edge).
+
+    Each edge's line distance ``h`` is one node shared by both sides, so where rounding puts a
+    point just outside an edge, that edge's segment distance is ``|h| = h`` and the gradient is
+    the edge's outward normal on both sides and on the edge itself."""
     n = len(vertices)
     dist = line = None
     for i in range(n):
         a, b = vertices[i], vertices[(i + 1) % n]
         e = b - a
-        nx, ny = e[1] / math.hypot(*e), -e[0] / math.hypot(*e)  # outward normal
-        seg = _segment_expr(x, y, a, b)
-        h = x * nx + y * ny - float(nx * a[0] + ny * a[1])
+        length = math.hypot(*e)
+        normal = (e[1] / length, -e[0] / length)  # outward
+        seg = _segment_expr(x, y, a, b, normal)
+        h = (x - float(a[0])) * normal[0] + (y - float(a[1])) * normal[1]
         dist = seg if dist is None else sym_min(dist, seg)
         line = h if line is None else sym_max(line, h)
     return sym_select(line, dist, line)
@@ -145,6 +193,10 @@ def _vertices(value, name, minimum=3) -> np.ndarray:
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite, got {name}={value!r}")
+    if np.any(np.abs(arr) > MAX_COORD):
+        raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude (the "
+                         f"supported range of fastsdf geometry is 1e-150 to 1e150), got "
+                         f"{name}={value!r}")
     if len(arr) < minimum:
         raise ValueError(f"{name} needs at least {minimum} vertices, got {len(arr)}")
     return arr
@@ -219,13 +271,16 @@ class Segment(SDF):
     """The line segment from ``a`` to ``b`` (``a == b`` gives a point).
 
     A shape of zero thickness: the value is the exact *unsigned* distance, ``>= 0``
-    everywhere and 0 only on the segment (there is no inside). On the segment itself the
-    gradient is the local +x axis (a one-sided choice, as at a circle's centre).
+    everywhere and 0 only on the segment (there is no inside). On the segment itself (its
+    spine) the gradient is the unit normal to the left of ``b - a`` (local +y for a segment
+    along +x), a one-sided choice as at a circle's centre: a particle there is pushed off
+    sideways; at a point segment (``a == b``) it is the local +x axis.
     ``Segment(a, b).round(r)`` is the same shape as ``Capsule(a, b, r)``.
     """
 
-    def __init__(self, a=(0.0, 0.0), b=(1.0, 0.0)):
-        a, b = _vec2(a, "a"), _vec2(b, "b")
+    def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0)):
+        a, b = _point(a, "a"), _point(b, "b")
+        _segment_length(a, b)
         self.a, self.b = a, b
         info = _primitive_info(_points_bbox([a, b]), _edges_symmetry([a, b], closed=False),
                                convex=True)
@@ -233,13 +288,15 @@ class Segment(SDF):
 
 
 class Capsule(SDF):
-    """The segment ``a``-``b`` thickened by ``radius`` (a stadium; a disc if ``a == b``)."""
+    """The segment ``a``-``b`` thickened by ``radius`` (a stadium; a disc if ``a == b``).
 
-    def __init__(self, a=(0.0, 0.0), b=(1.0, 0.0), radius=0.25):
-        a, b = _vec2(a, "a"), _vec2(b, "b")
-        radius = _real(radius, "radius")
-        if radius <= 0:
-            raise ValueError(f"radius must be > 0, got radius={radius!r}")
+    On the spine (the segment ``a``-``b``) the gradient is the unit normal to the left of
+    ``b - a``, as for :class:`Segment`."""
+
+    def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0), radius: float = 0.25):
+        a, b = _point(a, "a"), _point(b, "b")
+        radius = _positive(radius, "radius")
+        _segment_length(a, b)
         self.a, self.b, self.radius = a, b, radius
         info = _primitive_info(_points_bbox([a, b], radius),
                                _edges_symmetry([a, b], closed=False), convex=True)
@@ -254,18 +311,20 @@ class RoundedBox(SDF):
     ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
     """
 
-    def __init__(self, minc=(-1.0, -1.0), maxc=(1.0, 1.0), radii=0.25):
-        minc, maxc = _vec2(minc, "minc"), _vec2(maxc, "maxc")
+    def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0),
+                 radii: ArrayLike = 0.25):
+        minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
         if not np.all(minc < maxc):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
                              f"minc={minc.tolist()!r}, maxc={maxc.tolist()!r}")
+        _check_length(float(np.min(maxc - minc)), "the smaller side maxc - minc")
         if isinstance(radii, (tuple, list, np.ndarray)):
             if len(radii) != 4:
                 raise ValueError(f"radii must be one number or four (upper-right, upper-left, "
                                  f"lower-left, lower-right), got radii={radii!r}")
-            r = [_real(v, "radii") for v in radii]
+            r = [_length(v, "radii", zero=True) for v in radii]
         else:
-            r = [_real(radii, "radii")] * 4
+            r = [_length(radii, "radii", zero=True)] * 4
         center, half = (minc + maxc) / 2, (maxc - minc) / 2
         limit = float(min(half))
         if not all(0.0 <= v <= limit for v in r):
@@ -280,7 +339,7 @@ class RoundedBox(SDF):
             rad = sym_select(px, sym_select(py, r[0], r[3]), sym_select(py, r[1], r[2]))
         qx = sym_abs(px) - float(half[0]) + rad
         qy = sym_abs(py) - float(half[1]) + rad
-        expr = sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0)) + sym_min(0.0, sym_max(qx, qy)) - rad
+        expr = _box_expr(qx, qy) - rad
         sym = set()
         if center[0] == 0 and r[0] == r[1] and r[2] == r[3]:
             sym.add("x")
@@ -294,12 +353,11 @@ class OrientedBox(SDF):
     """Rectangle along the segment ``a``-``b``: length ``|b - a|``, total width ``thickness``
     (IQ's oriented box; the ends are flat, at ``a`` and ``b``)."""
 
-    def __init__(self, a=(-1.0, 0.0), b=(1.0, 0.0), thickness=0.5):
-        a, b = _vec2(a, "a"), _vec2(b, "b")
-        thickness = _real(thickness, "thickness")
-        if thickness <= 0:
-            raise ValueError(f"thickness must be > 0, got thickness={thickness!r}")
-        length = float(np.hypot(*(b - a)))
+    def __init__(self, a: ArrayLike = (-1.0, 0.0), b: ArrayLike = (1.0, 0.0),
+                 thickness: float = 0.5):
+        a, b = _point(a, "a"), _point(b, "b")
+        thickness = _positive(thickness, "thickness")
+        length = _segment_length(a, b)
         if not length > 0:
             raise ValueError(f"a and b must differ, got a={a.tolist()!r}, b={b.tolist()!r}")
         self.a, self.b, self.thickness = a, b, thickness
@@ -311,7 +369,7 @@ class OrientedBox(SDF):
         v = py * float(d[0]) - px * float(d[1])
         qx = sym_abs(u) - length / 2
         qy = sym_abs(v) - thickness / 2
-        expr = sym_length(sym_max(qx, 0.0), sym_max(qy, 0.0)) + sym_min(0.0, sym_max(qx, qy))
+        expr = _box_expr(qx, qy)
         n = np.array([-d[1], d[0]]) * thickness / 2
         corners = [a - n, b - n, b + n, a + n]
         info = _primitive_info(_points_bbox(corners), _edges_symmetry(corners), convex=True)
@@ -321,11 +379,15 @@ class OrientedBox(SDF):
 class Triangle(SDF):
     """The triangle with corners ``p0, p1, p2`` (either orientation; not collinear)."""
 
-    def __init__(self, p0=(-1.0, -0.5), p1=(1.0, -0.5), p2=(0.0, 1.0)):
-        v = np.array([_vec2(p0, "p0"), _vec2(p1, "p1"), _vec2(p2, "p2")])
-        e1, e2 = v[1] - v[0], v[2] - v[0]
+    def __init__(self, p0: ArrayLike = (-1.0, -0.5), p1: ArrayLike = (1.0, -0.5),
+                 p2: ArrayLike = (0.0, 1.0)):
+        v = np.array([_point(p0, "p0"), _point(p1, "p1"), _point(p2, "p2")])
+        size = float(np.abs(v - v[0]).max())
+        _check_length(size, "the triangle's size max|p_i - p0|")
+        w = (v - v[0]) / size  # the checks in a frame of size 1: no over- or underflow
+        e1, e2 = w[1], w[2]
         area2 = e1[0] * e2[1] - e1[1] * e2[0]
-        scale = float(max(np.hypot(*e1), np.hypot(*e2), np.hypot(*(v[2] - v[1]))))
+        scale = float(max(np.hypot(*e1), np.hypot(*e2), np.hypot(*(w[2] - w[1]))))
         if not abs(area2) > 1e-12 * scale * scale:
             raise ValueError(f"p0, p1, p2 must not be collinear, got p0={v[0].tolist()!r}, "
                              f"p1={v[1].tolist()!r}, p2={v[2].tolist()!r}")
@@ -347,11 +409,24 @@ def _check_n(n, name="n", minimum=3) -> int:
     return int(n)
 
 
-def _positive(value, name) -> float:
+def _positive(value, name, size=True) -> float:
+    """A positive real; with ``size``, a length in the supported range."""
     value = _real(value, name)
     if value <= 0:
         raise ValueError(f"{name} must be > 0, got {name}={value!r}")
+    if size:
+        _check_length(value, name)
     return value
+
+
+def _segment_length(a, b) -> float:
+    """``|b - a|`` (overflow-free), which must be 0 or a length in the supported range."""
+    e = b - a
+    big = float(np.abs(e).max())
+    length = big * math.hypot(*(e / big)) if big > 0 else 0.0
+    if length > 0:
+        _check_length(length, "the segment length |b - a|")
+    return length
 
 
 class RegularPolygon(SDF):
@@ -359,8 +434,8 @@ class RegularPolygon(SDF):
     ``center``, one vertex pointing up (+y). Built from graph operations: ``n`` segments (one
     loop over a table in the generated code for ``n >= 4``)."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, n=6):
-        center = _vec2(center, "center")
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 6):
+        center = _point(center, "center")
         radius = _positive(radius, "radius")
         n = _check_n(n)
         self.center, self.radius, self.n = center, radius, n
@@ -377,7 +452,7 @@ class EquilateralTriangle(RegularPolygon):
     """Equilateral triangle inscribed in the circle of ``radius`` around ``center``, one
     corner pointing up (+y)."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0):
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
         super().__init__(center=center, radius=radius, n=3)
 
 
@@ -390,7 +465,7 @@ class Polygon(SDF):
     ``'polygon'``): O(n) per point; the vertices are a table in the generated module.
     """
 
-    def __init__(self, vertices):
+    def __init__(self, vertices: ArrayLike):
         v = _vertices(vertices, "vertices")
         if len(v) > 1 and np.all(v[0] == v[-1]):
             v = v[:-1]  # closed by repeating the first vertex: accepted
@@ -399,20 +474,33 @@ class Polygon(SDF):
         if len(v) < 3:
             raise ValueError(f"vertices needs at least 3 distinct vertices, got "
                              f"{np.asarray(vertices).tolist()!r}")
-        _check_simple(v, "vertices")
-        v = _ccw(v)
-        self.vertices = v
-        data = tuple((float(p[0]), float(p[1])) for p in v)
-        info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=_is_convex(v))
-        super().__init__(sym_prim("polygon", *_coords(), data=data), info)
+        _check_length(float(np.abs(v - v[0]).max()), "the polygon's size max|v_i - v_0|")
+        # Checks and the compiled loop (which compares squared lengths) work on the vertices
+        # divided by a power of two near their magnitude: exact, and free of over- and
+        # underflow at any scale. Polygons of moderate magnitude are left as they are.
+        k = math.frexp(float(np.abs(v).max()))[1]
+        unit = math.ldexp(1.0, -k) if abs(k) > 100 else 1.0
+        w = v * unit
+        _check_simple(w, "vertices")
+        w = _ccw(w)
+        self.vertices = w / unit
+        data = tuple((float(p[0]), float(p[1])) for p in w)
+        x, y = _coords()
+        if unit == 1.0:
+            expr = sym_prim("polygon", x, y, data=data)
+        else:
+            expr = sym_prim("polygon", x * unit, y * unit, data=data) * (1.0 / unit)
+        info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=_is_convex(w))
+        super().__init__(expr, info)
 
 
 class Star(Polygon):
     """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
     pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, n=5, inner_radius=None):
-        center = _vec2(center, "center")
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 5,
+                 inner_radius: float | None = None):
+        center = _point(center, "center")
         radius = _positive(radius, "radius")
         n = _check_n(n, minimum=2)
         inner = radius / 2 if inner_radius is None else _positive(inner_radius, "inner_radius")
@@ -431,19 +519,32 @@ class Star(Polygon):
                              else frozenset())
 
 
+# Beyond this axis ratio the closest-point solve's variables (which grow like the ratio
+# cubed) could overflow.
+_MAX_ECCENTRICITY = 1e50
+
+
 class Ellipse(SDF):
     """Ellipse around ``center`` with semi-axes ``axes = (a, b)`` along the local x and y axes
-    (exact for any axis ratio; equal axes give a circle).
+    (exact for axis ratios up to 1e50; equal axes give a circle).
 
     Evaluated by a compiled closest-point solve (graph op ``prim``, kind ``'ellipse'``): a
-    safeguarded Newton iteration, typically 3 to 6 steps (about 10x the cost of a circle).
+    safeguarded Newton iteration, typically 3 to 6 steps (about 10x the cost of a circle);
+    far away (beyond ``2**30`` times the largest radius of curvature) a closed form through
+    the support point, exact to rounding there. At the centre the gradient points along the
+    minor axis (+y for ``a > b``).
     """
 
-    def __init__(self, center=(0.0, 0.0), axes=(1.0, 0.5)):
-        center = _vec2(center, "center")
+    def __init__(self, center: ArrayLike = (0.0, 0.0), axes: ArrayLike = (1.0, 0.5)):
+        center = _point(center, "center")
         axes = _vec2(axes, "axes")
         if not np.all(axes > 0):
             raise ValueError(f"axes must be > 0, got axes={axes.tolist()!r}")
+        for v in axes:
+            _check_length(float(v), "axes", axes.tolist())
+        if axes.max() / axes.min() > _MAX_ECCENTRICITY:
+            raise ValueError(f"axes must not differ by more than a factor "
+                             f"{_MAX_ECCENTRICITY:g}, got axes={axes.tolist()!r}")
         self.center, self.axes = center, axes
         x, y = _coords()
         expr = sym_prim("ellipse", x - float(center[0]), y - float(center[1]),
@@ -457,8 +558,8 @@ class Ring(SDF):
     """Annulus: the circle of ``radius`` around ``center`` thickened to total width
     ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, thickness=0.2):
-        center = _vec2(center, "center")
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, thickness: float = 0.2):
+        center = _point(center, "center")
         radius = _positive(radius, "radius")
         thickness = _positive(thickness, "thickness")
         if not thickness < 2 * radius:
@@ -483,10 +584,11 @@ class Arc(SDF):
     a bound inside (reported as ``'bound'``).
     """
 
-    def __init__(self, center=(0.0, 0.0), radius=1.0, aperture=math.pi, thickness=0.2):
-        center = _vec2(center, "center")
+    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0,
+                 aperture: float = math.pi, thickness: float = 0.2):
+        center = _point(center, "center")
         radius = _positive(radius, "radius")
-        aperture = _positive(aperture, "aperture")
+        aperture = _positive(aperture, "aperture", size=False)
         if aperture > 2 * math.pi:
             raise ValueError(f"aperture must be <= 2 pi, got aperture={aperture!r}")
         thickness = _positive(thickness, "thickness")

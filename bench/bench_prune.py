@@ -1,0 +1,157 @@
+"""Pruning per tile: hard unions of many small shapes, the notebook's box worlds (exponential
+blends: speed versus error for ``tol``), and the seed world (pruning must switch itself off).
+
+Every pruned figure is measured beside the unpruned kernel (``prune=False``) in the same process,
+on the same points; "identical" compares the bits of value and gradient.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+import fastsdf as sdf
+from fastsdf.scenes import box_world, seed_world
+
+from .common import fmt_rate, run_fresh_process, stamp, table, timeit
+
+BOUNDS = ((-2.0, 2.0), (-2.0, 2.0))
+
+
+def hard_union(n: int, kind: str = "box", seed: int = 0):
+    """``n`` small boxes (or hexagons) at random places and angles, hard union."""
+    rng = np.random.default_rng(seed)
+    f = None
+    for _ in range(n):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-1.9, 1.9, 2)):
+            s = sdf.Box([-0.03, -0.02], [0.03, 0.04]) if kind == "box" else \
+                sdf.RegularPolygon([0, 0], 0.04, 6)
+        f = s if f is None else f | s
+    return f
+
+
+def _bits(a, b):
+    return np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).view(np.int64))
+
+
+def _cold(n: int, kind: str) -> float:
+    """Seconds from nothing to the first pruned answer of 1e6 points, in a fresh process with an
+    empty kernel cache (import excluded)."""
+    import tempfile
+    code = f"""
+import time, numpy as np
+import fastsdf
+from bench.bench_prune import hard_union
+t0 = time.perf_counter()
+f = hard_union({n}, {kind!r})
+x, y = np.random.default_rng(0).uniform(-2, 2, (2, 1_000_000))
+d, g = f(x, y, compute_gradient=True)
+print(time.perf_counter() - t0)
+"""
+    with tempfile.TemporaryDirectory() as tmp:
+        return float(run_fresh_process(code, env={"FASTSDF_CACHE_DIR": tmp}).split()[-1])
+
+
+def run(quick: bool = False) -> str:
+    load = os.getloadavg()
+    rng = np.random.default_rng(2026)
+    n_pts = 100_000 if quick else 1_000_000
+    x, y = rng.uniform(-2, 2, (2, n_pts))
+    sizes = [20, 200] if quick else [20, 200, 1000, 5000]
+    rows = []
+    for kind in ("box", "polygon"):
+        for n in sizes:
+            f = hard_union(n, kind)
+            t0 = time.perf_counter()
+            f(x[:8], y[:8], compute_gradient=True)
+            t_compile = time.perf_counter() - t0
+            plan = f.compiled.plan(BOUNDS)
+            rep = plan.report()
+            # The unpruned kernel on fewer points where it is slow (its rate does not depend
+            # on the count); the pruned one on all of them.
+            m = n_pts if n * n_pts <= 2e8 else max(10_000, int(2e8 // n))
+            t_off, _ = timeit(lambda: f(x[:m], y[:m], compute_gradient=True, prune=False),
+                              repeats=3, warmup=1)
+            t_on, _ = timeit(lambda: f(x, y, compute_gradient=True, prune=True), repeats=5)
+            d1, g1 = f(x[:m], y[:m], compute_gradient=True, prune=True)
+            d0, g0 = f(x[:m], y[:m], compute_gradient=True, prune=False)
+            r_off, r_on = m / t_off, n_pts / t_on
+            g_off = timeit(lambda: _grid(f, False), repeats=1, warmup=0)[0] \
+                if n <= 1000 else float("nan")
+            g_on = timeit(lambda: _grid(f, True), repeats=3, warmup=1)[0]
+            rows.append([f"{n} {kind}es" if kind == "box" else f"{n} hexagons",
+                         f"{t_compile:.2f} s", fmt_rate(r_off), fmt_rate(r_on),
+                         f"**{r_on / r_off:.0f}x**",
+                         "yes" if _bits(d0, d1) and _bits(g0, g1) else "**no**",
+                         f"{rep['survivors_mean']:.1f} / {rep['survivors_max']}",
+                         f"{rep['build_s']:.2f} s",
+                         "" if g_off != g_off else f"{g_off:.2f} s", f"{g_on:.3f} s",
+                         "" if g_off != g_off else f"**{g_off / g_on:.0f}x**"])
+    out = ["## Pruning per tile", "",
+           stamp("python -m bench --only prune" + (" --quick" if quick else "")), "",
+           f"Load average before the run: {load[0]:.1f}, {load[1]:.1f}, {load[2]:.1f} "
+           "(shared machine: trust the ratios, measured side by side, more than the rates).", "",
+           f"Hard unions of small shapes at random places in [-2, 2]^2, value + gradient at "
+           f"{n_pts:,} random points; plan: 32 x 32 tiles over the points' bounds (its build is "
+           "paid once per scene and bounds, then cached). Unpruned = the same compiled kernel "
+           "with every operand (`prune=False`); GridSDF 400 x 400 build with and without the "
+           "plan. Compile = build to first answer of 8 points, warm installation cache.", "",
+           table(["scene", "compile", "unpruned", "pruned", "speed-up", "identical bits",
+                  "survivors / tile (mean / max)", "plan build", "grid unpruned",
+                  "grid pruned", "grid speed-up"], rows), ""]
+    if not quick:
+        cold = [(n, _cold(n, "box")) for n in (1000, 5000)]
+        out += ["Cold start (fresh process, empty kernel cache, first answer of 1e6 points "
+                "with gradient included): " + "; ".join(f"{n} boxes {t:.1f} s" for n, t in cold)
+                + ".", ""]
+    # Exponential blends: the notebook's box worlds.
+    trows = []
+    for nb in ([20] if quick else [20, 200]):
+        f = box_world(nb)
+        f(x[:8], y[:8], compute_gradient=True)
+        t_off, _ = timeit(lambda: f(x, y, compute_gradient=True, prune=False), repeats=3)
+        d0, _ = f(x, y, compute_gradient=True, prune=False)
+        t_auto, _ = timeit(lambda: f(x, y, compute_gradient=True), repeats=3)
+        trows.append([f"box world {nb} (k=5)", "off", fmt_rate(n_pts / t_off), "1.0x", "0", ""])
+        trows.append([f"box world {nb} (k=5)", "automatic", fmt_rate(n_pts / t_auto),
+                      f"{t_off / t_auto:.2f}x", "", ""])
+        for tol in (None, 1e-9, 1e-6, 1e-3):
+            f.prune_tol = tol
+            plan = f.compiled.plan(BOUNDS, tol=tol)
+            t_on, _ = timeit(lambda: f(x, y, compute_gradient=True, prune=True), repeats=3)
+            d1, _ = f(x, y, compute_gradient=True, prune=True)
+            trows.append([f"box world {nb} (k=5)", "default (half an ulp)" if tol is None
+                          else f"tol = {tol:g}", fmt_rate(n_pts / t_on), f"{t_off / t_on:.2f}x",
+                          f"{np.max(np.abs(d1 - d0)):.2g}", f"{plan.fraction:.2f}"])
+        f.prune_tol = None
+    out += ["Exponential blends (the notebook's box worlds, smoothness 5): every operand "
+            "contributes, so pruning is approximate; operands whose total weight changes the "
+            "result by at most `tol` are dropped. Error = max |pruned - unpruned| over the "
+            "points; fraction = operands evaluated.", "",
+            table(["scene", "pruning", "value + gradient", "vs off", "max error",
+                   "fraction"], trows), ""]
+    # The seed world and the 20-box world must not pay for pruning.
+    srows = []
+    for name, f in (("seed world", seed_world()), ("20-box world", box_world(20))):
+        f(x[:8], y[:8], compute_gradient=True)
+        t_off, s_off = timeit(lambda: f(x, y, compute_gradient=True, prune=False), repeats=7)
+        t_auto, s_auto = timeit(lambda: f(x, y, compute_gradient=True), repeats=7)
+        srows.append([name, fmt_rate(n_pts / t_off), fmt_rate(n_pts / t_auto),
+                      f"{t_off / t_auto:.2f}"])
+    out += ["Pruning switches itself off where it does not pay (automatic call against "
+            "`prune=False`, same run):", "",
+            table(["scene", "prune=False", "automatic", "ratio"], srows), ""]
+    return "\n".join(out)
+
+
+def _grid(f, prune: bool):
+    import fastsdf.function as F
+    old = F.PRUNE_MIN_POINTS
+    if not prune:
+        F.PRUNE_MIN_POINTS = 10 ** 15
+    try:
+        return sdf.GridSDF(f, bounds=BOUNDS, samples=[400j, 400j])
+    finally:
+        F.PRUNE_MIN_POINTS = old

@@ -1,0 +1,231 @@
+"""Pruning per tile: evaluate only the operands of a chain that can matter near a point.
+
+The generated kernels evaluate every loop over a constant table ("group": the same-shape
+operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.codegen`) over a list of
+rows given as data. A :class:`PrunePlan` covers a rectangle with tiles and, from sound interval
+bounds of every operand over every tile (:mod:`fastsdf.interval`), keeps per tile only the rows
+that can matter:
+
+* hard ``min``: operand ``i`` is dropped where ``lo_i > min_j hi_j`` (``j`` over every operand of
+  the chain); it can never be the minimum (nor tie with it) in the tile, so value and gradient
+  are bit-identical. ``max`` mirrors this.
+* exponential ``smin`` with sharpness ``k``: every operand contributes, so pruning is
+  approximate. Operands with ``lo_i >= H + log(n / expm1(k tol)) / k`` (``H = min_j hi_j``, ``n``
+  operands) are dropped; their total weight changes the result by at most
+  ``log1p(sum exp(-k (lo_i - H))) / k <= tol``. ``smax`` mirrors this. ``tol=None`` (default)
+  is half an ulp of ``H``: identical in practice, and little is pruned unless ``k`` is large.
+
+The polynomial blends (quadratic, cubic) are nested binary operations, not folded into loops,
+so they are not pruned here: their operands are always evaluated (results trivially identical).
+
+Points are sorted by tile (a counting sort) and the tile kernels pass each tile's row lists to
+the generated multi-lane function: pruning never recompiles anything.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from numba import njit
+
+from .interval import _LIPSCHITZ, node_bounds
+from .ops import OPS
+
+__all__ = ["PrunePlan", "make_plan", "bin_points"]
+
+
+class PrunePlan:
+    """Row lists per tile for the loop groups of one compiled expression over one rectangle.
+
+    ``act`` (int64) holds the kept rows; ``offs[t, g]:offs[t, g + 1]`` is group ``g``'s slice for
+    tile ``t`` (row-major tiles: ``t = ty * nx + tx``). ``kept[g]`` is the number of rows kept per
+    tile, ``sizes[g]`` the group's size, ``build_s`` the time to build the plan.
+    """
+
+    def __init__(self, bounds, nx, ny, act, offs, kept, sizes, build_s, tol):
+        self.bounds, self.nx, self.ny = bounds, nx, ny
+        self.act, self.offs, self.kept, self.sizes = act, offs, kept, sizes
+        self.build_s, self.tol = build_s, tol
+
+    @property
+    def fraction(self) -> float:
+        """Evaluated rows over all rows, averaged over tiles (1 = nothing pruned)."""
+        total = sum(self.sizes)
+        return float(sum(k.sum() for k in self.kept) / (total * self.nx * self.ny)) if total else 1.0
+
+    def report(self) -> dict:
+        per_tile = np.sum(self.kept, axis=0) if self.kept else np.zeros(self.nx * self.ny)
+        return {"tiles": (self.nx, self.ny), "bounds": self.bounds,
+                "operands": int(sum(self.sizes)),
+                "survivors_mean": float(per_tile.mean()), "survivors_max": int(per_tile.max()),
+                "fraction": self.fraction, "build_s": self.build_s, "tol": self.tol}
+
+
+def _tile_ranges(bounds, nx, ny):
+    (x0, x1), (y0, y1) = bounds
+    wx, wy = (x1 - x0) / nx, (y1 - y0) / ny
+    ix, iy = np.meshgrid(np.arange(nx), np.arange(ny))  # row-major: t = iy * nx + ix
+    ix, iy = ix.ravel().astype(np.float64), iy.ravel().astype(np.float64)
+    # Tiles overlap by a sliver so that a point binned across a rounding edge is still inside.
+    ex, ey = 1e-9 * (wx + abs(x0) + abs(x1)), 1e-9 * (wy + abs(y0) + abs(y1))
+    return {"x": (x0 + ix * wx - ex, x0 + (ix + 1) * wx + ex),
+            "y": (y0 + iy * wy - ey, y0 + (iy + 1) * wy + ey)}
+
+
+def _steps_bounds(group, ranges):
+    """Bounds ``(lo, hi)`` of shape (members, tiles) of every member of a group: the shared
+    template is evaluated once on (members x tiles) arrays, the constants as columns."""
+    steps, rows, members = group["steps"], group["rows"], group["members"]
+    if any(node.op == "prim" for node, _ in steps):  # per-member constants in the reference
+        out = [node_bounds(m, ranges) for m in members]
+        return (np.stack([o[id(m)][0] for o, m in zip(out, members)]),
+                np.stack([o[id(m)][1] for o, m in zip(out, members)]))
+    T = len(next(iter(ranges.values()))[0])
+    centres = {k: 0.5 * (lo + hi)[None, :] for k, (lo, hi) in ranges.items()}
+    half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))[None, :]
+    scale = sum(np.abs(c) for c in centres.values()) + half
+    cols = [rows[:, j][:, None] for j in range(rows.shape[1])]
+    lo_s, hi_s, c_s, L_s = [], [], [], []
+    with np.errstate(all="ignore"):
+        for i, (node, refs) in enumerate(steps):
+            if node.op == "sym":
+                lo, hi = (r[None, :] for r in ranges[node.attr])
+                c, L = centres[node.attr], np.ones((1, T))
+            else:
+                alo, ahi, ac, aL = [], [], [], []
+                for kind, j in refs:
+                    if kind == "c":
+                        alo.append(cols[j]), ahi.append(cols[j]), ac.append(cols[j])
+                        aL.append(np.zeros_like(cols[j]))
+                    else:
+                        alo.append(lo_s[j]), ahi.append(hi_s[j]), ac.append(c_s[j])
+                        aL.append(L_s[j])
+                spec = OPS[node.op]
+                lo, hi = spec.interval(node, alo, ahi)
+                lo = np.where(np.isnan(lo), -np.inf, lo)
+                hi = np.where(np.isnan(hi), np.inf, hi)
+                c = spec.np(node, ac, False)[0]
+                L = spec.lipschitz(node, aL, alo, ahi) if spec.lipschitz is not None \
+                    else np.full(np.broadcast(lo, hi).shape, np.inf)
+                L = np.where(np.isnan(L), np.inf, L)
+                if i == len(steps) - 1:
+                    hints = [_LIPSCHITZ.get(m) for m in members]
+                    if all(h is not None for h in hints):
+                        L = np.minimum(L, max(hints))
+                r = L * half
+                m = 1e-10 * (np.abs(c) + r + scale) + 1e-290
+                ok = np.isfinite(c) & np.isfinite(r)
+                lo = np.where(ok, np.maximum(lo, c - r - m), lo)
+                hi = np.where(ok, np.minimum(hi, c + r + m), hi)
+            lo_s.append(lo), hi_s.append(hi), c_s.append(c), L_s.append(L)
+    M = len(members)
+    return (np.broadcast_to(lo_s[-1], (M, T)), np.broadcast_to(hi_s[-1], (M, T)))
+
+
+def make_plan(groups, bounds, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
+    """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.codegen.generate_module`)
+    over ``bounds = ((x0, x1), (y0, y1))`` cut into ``nx x ny`` tiles."""
+    t0 = time.perf_counter()
+    ranges = _tile_ranges(bounds, nx, ny)
+    T = nx * ny
+    member_bounds = [_steps_bounds(g, ranges) for g in groups]
+    # Bounds of each chain's operands that are not in a group.
+    chains: dict = {}
+    for gi, g in enumerate(groups):
+        chains.setdefault(id(g["chain"]), []).append(gi)
+    keep = [None] * len(groups)
+    for gis in chains.values():
+        g0 = groups[gis[0]]
+        op, k = g0["op"], g0["k"]
+        others = [node_bounds(o, ranges)[id(o)] if o.op != "const"
+                  else (np.full(T, o.attr), np.full(T, o.attr)) for o in g0["others"]]
+        n_ops = len(others) + sum(len(groups[gi]["members"]) for gi in gis)
+        lows = [member_bounds[gi][0] for gi in gis]
+        highs = [member_bounds[gi][1] for gi in gis]
+        lo_cands = [lo.min(axis=0) for lo in lows] + [o[0] for o in others]
+        hi_cands = [hi.min(axis=0) for hi in highs] + [o[1] for o in others]
+        if op in ("min", "smin"):
+            H = np.min(np.stack(hi_cands), axis=0)
+        else:
+            H = np.max(np.stack([lo.max(axis=0) for lo in lows] + [o[0] for o in others]), axis=0)
+        with np.errstate(all="ignore"):
+            if op == "min":
+                kp = [lo <= H[None, :] for lo in lows]
+            elif op == "max":
+                kp = [hi >= H[None, :] for hi in highs]
+            else:
+                t = (0.5 * np.spacing(np.abs(H))) if tol is None else np.full(T, float(tol))
+                budget = np.expm1(k * t)
+                margin = np.where(budget > 0, np.log(n_ops / budget) / k, np.inf)
+                if op == "smin":
+                    kp = [~(lo >= (H + margin)[None, :]) for lo in lows]
+                else:
+                    kp = [~(hi <= (H - margin)[None, :]) for hi in highs]
+        del lo_cands, hi_cands
+        for gi, kk in zip(gis, kp):
+            # Non-finite bounds (unknown) keep the operand.
+            keep[gi] = kk | ~np.isfinite(H)[None, :]
+    sizes = [len(g["members"]) for g in groups]
+    kept = [kk.sum(axis=0).astype(np.int64) for kk in keep]
+    G = len(groups)
+    offs = np.zeros((T, G + 1), dtype=np.int64)
+    counts = np.stack(kept, axis=1) if G else np.zeros((T, 0), dtype=np.int64)  # (T, G)
+    flat = np.cumsum(counts.ravel())
+    offs[:, 1:] = flat.reshape(T, G)
+    offs[1:, 0] = offs[:-1, G]
+    act = np.empty(int(flat[-1]) if len(flat) else 0, dtype=np.int64)
+    for gi, kk in enumerate(keep):
+        for t in range(T):
+            rows = np.flatnonzero(kk[:, t])
+            act[offs[t, gi]:offs[t, gi + 1]] = rows
+    return PrunePlan(bounds, nx, ny, act, offs, kept, sizes, time.perf_counter() - t0, tol)
+
+
+@njit(cache=True, nogil=True)
+def _bin(xs, ys, x0, y0, sx, sy, nx, ny):
+    n = xs.shape[0]
+    tile = np.empty(n, dtype=np.int64)
+    starts = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(n):
+        x, y = xs[i], ys[i]
+        t = 0
+        if math.isfinite(x) and math.isfinite(y):
+            tx = min(max(int((x - x0) * sx), 0), nx - 1)
+            ty = min(max(int((y - y0) * sy), 0), ny - 1)
+            t = ty * nx + tx
+        tile[i] = t
+        starts[t + 1] += 1
+    for t in range(nx * ny):
+        starts[t + 1] += starts[t]
+    fill = starts[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        t = tile[i]
+        order[fill[t]] = i
+        fill[t] += 1
+    return order, starts
+
+
+def bin_points(xs, ys, plan: PrunePlan):
+    """``(order, starts)``: the points of tile ``t`` are ``order[starts[t]:starts[t + 1]]``
+    (non-finite points go to tile 0, where the kernels give them NaN)."""
+    (x0, x1), (y0, y1) = plan.bounds
+    return _bin(xs, ys, x0, y0, plan.nx / (x1 - x0), plan.ny / (y1 - y0), plan.nx, plan.ny)
+
+
+def snap_bounds(xs, ys):
+    """A rectangle holding the finite points, snapped outward to a coarse grid so that calls on
+    similar point sets share one plan. None if there are no finite points."""
+    ok = np.isfinite(xs) & np.isfinite(ys)
+    if not ok.any():
+        return None
+    out = []
+    for v in (xs[ok], ys[ok]):
+        lo, hi = float(v.min()), float(v.max())
+        span = max(hi - lo, 1e-300, 1e-12 * max(abs(lo), abs(hi)))
+        step = 2.0 ** math.ceil(math.log2(span)) / 16
+        a, b = math.floor(lo / step) * step, (math.floor(hi / step) + 1) * step
+        out.append((a, b))
+    return tuple(out)

@@ -1,0 +1,107 @@
+"""Pruning per tile: pruned evaluation equals the unpruned kernel bit for bit for hard chains
+(random scenes, hypothesis), stays within ``tol`` for exponential chains, and is used by
+``f(x, y)`` and GridSDF construction."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+import fastsdf as sdf
+from fastsdf.graph import evaluate_numpy
+
+finite = dict(allow_nan=False, allow_infinity=False)
+_NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)
+
+
+def _bits(a, b):
+    return np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).view(np.int64))
+
+
+def _scene(seed, n, k=0.0, kinds=("box", "circle"), op="|", extra=True):
+    """A chain of small same-shape primitives (folded into loops over tables) at random places,
+    optionally with a few unfolded operands and a nested chain."""
+    rng = np.random.default_rng(seed)
+    f = sdf.Halfspace([0.2, 1], -1.7) if extra else None
+    for i in range(n):
+        kind = kinds[i % len(kinds)]
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
+            s = sdf.Box([-0.05, -0.03], [0.04, 0.06]) if kind == "box" else \
+                sdf.Circle([0.01, 0.0], 0.04)
+        if f is None:
+            f = s
+        elif op == "|":
+            f = f.union(s, k=k)
+        else:
+            f = f.intersection(s, k=k)
+    if extra:
+        f = f | sdf.Circle([0.5, -0.5], 0.2)
+    return f
+
+
+@pytest.mark.slow
+@settings(max_examples=3, deadline=None, derandomize=True, phases=_NO_SHRINK,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10 ** 6), n=st.integers(8, 40), op=st.sampled_from(["|", "&"]),
+       extra=st.booleans(), tiles=st.integers(1, 12))
+def test_pruned_hard_chains_are_bit_identical(seed, n, op, extra, tiles):
+    f = _scene(seed, n, op=op, extra=extra)
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-2.3, 2.3, (2, 3000))
+    p[:, :7] = [[-2.3, 2.3, -2.3, 2.3, 0.0, np.nan, 1.0], [-2.3, -2.3, 2.3, 2.3, 0.0, 1.0, np.inf]]
+    d0, g0 = f(*p, compute_gradient=True, prune=False)
+    comp = f.compiled
+    plan = comp.plan(((-2.3, 2.3), (-2.3, 2.3)), tiles=(tiles, tiles + 1))
+    out, grad = np.empty(p.shape[1]), np.empty((p.shape[1], 2))
+    comp.run(p[0].copy(), p[1].copy(), out, grad, plan)
+    assert _bits(out, d0) and _bits(grad, g0)
+    assert np.isnan(out[5]) and np.isnan(out[6]) and np.all(np.isnan(grad[5:7]))
+    if tiles >= 8 and op == "|":
+        assert plan.fraction < 0.6  # a union of small shapes: most operands drop out
+
+
+def test_pruned_call_is_automatic_for_large_inputs_and_matches():
+    f = _scene(7, 60, kinds=("box",), extra=True)
+    p = np.random.default_rng(0).uniform(-2, 2, (2, 70_000))
+    d_auto, g_auto = f(*p, compute_gradient=True)
+    assert f.compiled._plans, "the automatic path built a plan"
+    d0, g0 = f(*p, compute_gradient=True, prune=False)
+    assert _bits(d_auto, d0) and _bits(g_auto, g0)
+    assert _bits(f(*p), f(*p, prune=False))  # value only
+    rep = f.pruning_report([(-2, 2), (-2, 2)], tiles=(16, 16))
+    assert rep["operands"] == 60 and rep["survivors_max"] <= 60
+    assert 0 < rep["survivors_mean"] < 30 and rep["build_s"] >= 0
+    # The reference for the same points (independent implementation).
+    np.testing.assert_allclose(d_auto[:500], evaluate_numpy(f.f, {"x": p[0, :500],
+                                                                   "y": p[1, :500]}),
+                               rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [40.0])
+def test_pruned_exponential_chains_stay_within_tol(k):
+    f = _scene(3, 40, k=k, kinds=("box",), extra=False)
+    p = np.random.default_rng(1).uniform(-2, 2, (2, 5000))
+    d0, g0 = f(*p, compute_gradient=True, prune=False)
+    comp = f.compiled
+    for tol in (None, 1e-9, 1e-4, 1e-2):
+        plan = comp.plan(((-2.0, 2.0), (-2.0, 2.0)), tiles=(16, 16), tol=tol)
+        out, grad = np.empty(p.shape[1]), np.empty((p.shape[1], 2))
+        comp.run(p[0].copy(), p[1].copy(), out, grad, plan)
+        bound = (1e-15 if tol is None else tol) + 1e-14 * (1 + np.abs(d0))
+        assert np.all(np.abs(out - d0) <= bound)
+        if tol == 1e-2 and k == 40.0:
+            assert plan.fraction < 0.5
+
+
+def test_grid_construction_uses_pruning_and_matches():
+    import fastsdf.function as F
+    f = _scene(11, 80, kinds=("box",), extra=True)
+    g = sdf.GridSDF(f, bounds=[(-2, 2), (-2, 2)], samples=[300j, 300j])
+    assert f.compiled._plans
+    old = F.PRUNE_MIN_POINTS
+    try:
+        F.PRUNE_MIN_POINTS = 10 ** 15
+        g2 = sdf.GridSDF(f, bounds=[(-2, 2), (-2, 2)], samples=[300j, 300j])
+    finally:
+        F.PRUNE_MIN_POINTS = old
+    assert _bits(g.data, g2.data)
