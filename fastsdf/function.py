@@ -180,7 +180,7 @@ class CompiledSDF:
 
     def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
                  prune: bool | None = None, tol: float | None = None, t: float = 0.0,
-                 params=None, time_derivative: bool = False) -> Any:
+                 params: tuple | None = None, time_derivative: bool = False) -> Any:
         """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions.
 
         For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other

@@ -201,7 +201,7 @@ def Constant(value: float) -> Expr:
     return as_expr(value, "value")
 
 
-def Param(name: str, default=0.0) -> Expr:
+def Param(name: str, default: float = 0.0) -> Expr:
     """A named runtime parameter with a default value: an expression usable wherever a number
     is (``transform(angle=Param('angle', 0.0))``, ``Circle(center=[Param('px', 0.0), 0])``).
 

@@ -528,22 +528,23 @@ class SimulationParams(dict):
     sets ``t`` to its own clock). Assign ``sim.params['angle'] = 0.3`` between steps; the next
     step uses it without recompiling. Unknown names and non-finite values are refused."""
 
-    def __init__(self, f):
+    def __init__(self, f: Any) -> None:
         super().__init__({k: v for k, v in f.params.items() if k != "t"})
         self._names = tuple(f.param_names)
 
-    def __setitem__(self, name, value):
+    def __setitem__(self, name: str, value: float) -> None:
         if name not in self:
             raise KeyError(f"unknown parameter {name!r}; the world's parameters are "
                            f"{sorted(self) or 'none'} (time is sim.t)")
-        v = real(value, f"params[{name!r}]")
-        super().__setitem__(name, v)
+        super().__setitem__(name, real(value, f"params[{name!r}]"))
 
-    def update(self, *args, **kwargs):
+    def update(self, *args: Any, **kwargs: float) -> None:
+        """Set several values (each checked as by ``sim.params[name] = value``)."""
         for k, v in dict(*args, **kwargs).items():
             self[k] = v
 
     def as_tuple(self) -> tuple:
+        """The values in the order the compiled step takes them (sorted names)."""
         return tuple(dict.__getitem__(self, n) for n in self._names)
 
 
