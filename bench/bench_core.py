@@ -94,7 +94,7 @@ def _compile_times(quick: bool):
                "numba compilation of the parallel value+gradient kernel and a first call on 8192 "
                "points; 'warm cache' is a second fresh process on the same cache directory (the "
                "same steps, the kernel loaded from disk). Import time is listed separately. "
-               "Targets (issue 2): 20-box world cold <= 3 s, 200-primitive world cold <= 10 s, "
+               "Targets: 20-box world cold <= 3 s, 200-primitive world cold <= 10 s, "
                "warm <= 0.5 s. The 'mixed ops' scenes have no repeated structure to fold into "
                "loops (each primitive differs in kind, operation or smoothness from its "
                "neighbour), the worst case for compile time.")
@@ -145,7 +145,7 @@ def _throughput(quick: bool):
                   "NumPy graph evaluation (seed's approach), value+gradient", "speed-up vs NumPy",
                   f"value only, {threads} threads", "NumPy, value only", "speed-up vs NumPy"],
                  body)
-    return text + (f"\n\nTargets (issue 2, value+gradient at 1e6 points, 2 threads): seed world "
+    return text + (f"\n\nTargets (value+gradient at 1e6 points, 2 threads): seed world "
                    f">= 40 M points/s, 20-box world >= 5 M points/s. The NumPy baseline evaluates "
                    f"the same graph one whole-array operation per node, as the seed library did "
                    f"(timed on {min(n, 200_000):,} points in the same run).")
@@ -234,7 +234,7 @@ def _scaling(quick: bool):
 
 
 def run(quick: bool = False) -> str:
-    parts = ["## Exact compiled SDFs (issue 2)", stamp(COMMAND + (" --quick" if quick else "")), "",
+    parts = ["## Exact compiled SDFs", stamp(COMMAND + (" --quick" if quick else "")), "",
              "### Throughput", _throughput(quick), "", "### Compile time", _compile_times(quick),
              "", "### Scaling", _scaling(quick), "", "### Against JAX", _jax(quick)]
     return "\n".join(parts) + "\n"

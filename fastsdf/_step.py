@@ -18,6 +18,10 @@ Everything between the ``SCENE BLOCK`` marker comments is replaced. It must defi
 ``_query(data, x, y) -> (d, dd/dx, dd/dy)``
     the world's signed distance (negative inside) and gradient at one point, float64, given
     the simulation's query data ``data`` (an argument, so new data never recompiles);
+``_fallback_missing(data, x, y, dx, dy) -> bool``
+    whether a step from ``(x, y)`` by ``(dx, dy)`` (its sweep included) may query where the
+    world cannot answer yet (a grid whose exact fallback is not compiled: it is compiled only
+    when a particle first comes near the grid's edge, so a new scene starts at once);
 ``_force(x, y, vx, vy, m, t) -> (fx, fy)`` and ``USE_FORCE``
     the sum of the fused user forces (mass * length / s**2) at one particle and time ``t``;
     ``USE_FORCE = False`` when there are none (then ``m`` is not read for it).
@@ -54,13 +58,19 @@ A grid object ``g`` used as a world has:
 ``g.exact``
     the exact SDF (a :class:`fastsdf.graph.Function`), evaluated where ``inside`` is False
     when ``g.mode == 'exact'``; ``g.mode == 'nearest'`` keeps the sampler's clamped answer.
+``g.bounds`` (optional)
+    ``((x0, x1), (y0, y1))``, the rectangle where ``inside`` is True (without it the exact
+    fallback is compiled when the simulation is built, not when first needed);
 ``g.spacing``
     node spacing ``(hx, hy)``: how far an 'exact'-mode grid may jump at its bounds.
 
 The kernel of a grid world depends only on the sampler (its module, name and source), the mode
 and the fused forces, not on the scene: the exact fallback is called through a C function
-pointer carried in the query data (``data = (exact_address,) + sampler_data``; the
-parallel kernel cannot take nested tuples holding arrays), so the kernel is
+pointer carried in the query data (``data = (exact_address, x0, x1, y0, y1) +
+sampler_data``; the parallel kernel cannot take nested tuples holding arrays). The address is 0
+until a particle first comes near the grid's edge (``_fallback_missing``): a particle that
+would then query outside stops (``FLAG_RESUME``), and the caller compiles the fallback and
+resumes it, so a new scene's first steps need no compilation at all, so the kernel is
 compiled once per installation and every later scene loads it from the cache.
 
 One step, per particle (the physics is described in :mod:`fastsdf.particles`)
@@ -101,6 +111,9 @@ MAX_BOUNCES = 3
 FLAG_INPUT = 1
 FLAG_NONFINITE = 2
 FLAG_COEFF = 3
+#: FLAGS[i] = FLAG_RESUME + step: the particle stopped before ``step`` because it came near the
+#: edge of a grid whose exact fallback is not bound yet; the caller binds it and resumes.
+FLAG_RESUME = 16
 
 
 # ---------------------------------------------------------------------------------------------
@@ -209,6 +222,13 @@ def _query(data, x, y):
 def _force(x, y, vx, vy, m, t):
     """Sum of the fused user forces (none in the test world)."""
     return 0.0, 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _fallback_missing(data, x, y, dx, dy):
+    """Whether a step from (x, y) by (dx, dy) may query where the world is not available yet
+    (never in the test world)."""
+    return False
 
 
 MOVING = False
@@ -539,6 +559,11 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     V[i, 1] = vy
                     continue
                 clear[k] = 0.0
+            if _fallback_missing(data, x, y, dx, dy):
+                clear[k] = -1.0
+                FLAGS[i] = FLAG_RESUME + step
+                bad += 1
+                continue
             gt = 0.0
             if MOVING:
                 d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)

@@ -10,10 +10,13 @@ as ``GridSDF(gradient='stored')``) only in the tiles that can reach the band ``|
 Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (1 for fastsdf
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
 centre ``c`` and half-diagonal ``rt`` has ``|f(p)| >= |f(c)| - L rt``; a tile is *far* when that
-bound exceeds ``band``. A far tile stores one int32: a lower bound of ``|f|`` over the tile (with
-``f``'s sign there, quantized downwards) less half a fine cell diagonal, and answers it with a
-zero gradient. So every far answer is a correct lower bound of ``|d|`` with the right sign:
-collision tests and sphere tracing stay safe, they are only conservative far from surfaces.
+bound exceeds ``band``. For a function with no known bound the interval bounds of
+:mod:`fastsdf.interval` over the tile take its place. A far tile stores one int32: a lower bound
+of ``|f|`` over the tile (with ``f``'s sign there, quantized downwards) less half a fine cell
+diagonal, and the direction of ``f``'s gradient at the tile centre (in 4096 steps), which it
+answers as the gradient (so that a particle that starts deep inside matter is still pushed out).
+So every far answer is a correct lower bound of ``|d|`` with the right sign: collision tests and
+sphere tracing stay safe; they are only conservative far from surfaces.
 
 Inside fine tiles queries are bilinear in value and in each gradient component, exactly as a
 dense grid of the same spacing (the node coordinates are computed the same way, so the values
@@ -29,7 +32,8 @@ cells exceed ``t / 2``. The remaining cells over ``t / 2`` - those crossed by a 
 (a corner of the shape, the medial axis), where bilinear interpolation is only first order - are
 marked *exact*: queries there evaluate the exact SDF (the same fallback a dense grid uses outside
 its bounds; the particle loop's ``inside=False`` path). The achieved error is measured with
-:func:`measure_error` (random points in the band) and is reported with the memory.
+:meth:`NarrowBandGridSDF.measure_error` (random points in the band, see
+:func:`measure_band_error`); ``nbytes`` and ``memory`` report the storage.
 
 For numba code: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)`` as for the dense grid
 (:data:`fastsdf.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
@@ -66,14 +70,21 @@ _N1 = _TILE + 1              # nodes per tile side (edge nodes are shared with t
 _TRIAL_CELLS = 256           # cells along the longer side of a tolerance build's trial grid
 _EXACT_FRACTION = 0.01       # tolerance builds refine until about this share of cells is exact
 _SAFETY = 0.5                # cells whose estimated error exceeds safety * tolerance are exact
+_DIR_BITS = 12               # far tiles: gradient direction in 4096 steps (0.09 degrees)
+_NDIR = 1 << _DIR_BITS
+_M_MAX = 1 << (30 - _DIR_BITS)  # far tiles: lower bound in at most this many quanta
+_DIRS = np.stack([np.cos(2 * np.pi * np.arange(_NDIR) / _NDIR),
+                  np.sin(2 * np.pi * np.arange(_NDIR) / _NDIR)], axis=1).reshape(-1)
 
 
 # ---------------------------------------------------------------------------------------------
 # Per-point samplers (numba). ``data`` is ``NarrowBandGridSDF.sampler_data``:
-# ``(table, q, masks, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, shift, quantum)`` (shift = 3).
+# ``(table, q, masks, dirs, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, quantum)``.
 # ``table[ti * nty + tj]`` (int32) is ``2 k + x`` for fine tile k (x = 1 if any of its cells is
 # exact, so that the other tiles skip the mask load), or for a far tile
-# ``-(1 + 2 m + s)``: lower bound ``m * quantum`` of |d|, ``s = 1`` where d < 0. Fine tile k stores
+# ``-(1 + s + 2 (a + _NDIR m))``: lower bound ``m * quantum`` of |d|, ``s = 1`` where d < 0, and
+# the direction of the exact gradient at the tile's centre, ``dirs[a] = (cos, sin)`` of the angle
+# ``2 pi a / _NDIR`` (so a particle deep inside matter is still pushed out). Fine tile k stores
 # its (T+1) x (T+1) nodes from ``q[k * (T+1)**2 * 3]``, each ``[d, dd/dx, dd/dy]``, x-major.
 # ``masks[k]`` has bit ``a * T + b`` set where cell (a, b) of the tile answers with the exact SDF.
 # nx, ny count cells inside bounds; T = 8 cells per tile side.
@@ -81,8 +92,9 @@ _SAFETY = 0.5                # cells whose estimated error exceeds safety * tole
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _band_locate(data, x, y):
     """(k, a, b, tx, ty, far, status): status 0 = fine cell, 1 = far tile (far holds the
-    signed lower bound), 2 = exact fallback (outside bounds, exact cell, non-finite)."""
-    table, q, masks, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, shift, quantum = data
+    signed lower bound, k the direction index), 2 = exact fallback (outside bounds, exact cell,
+    non-finite)."""
+    table, q, masks, dirs, x0, x1, y0, y1, ihx, ihy, nx, ny, nty, quantum = data
     if not ((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)):
         return 0, 0, 0, 0.0, 0.0, 0.0, 2
     u = (x - x0) * ihx
@@ -94,10 +106,10 @@ def _band_locate(data, x, y):
     e = np.int64(table[np.uint64(ti * nty + tj)])
     if e < 0:
         c = -1 - e
-        val = (c >> 1) * quantum
+        val = (c >> (1 + _DIR_BITS)) * quantum
         if c & 1:
             val = -val
-        return 0, 0, 0, 0.0, 0.0, val, 1
+        return ((c >> 1) & (_NDIR - 1)), 0, 0, 0.0, 0.0, val, 1
     a = i - (ti << _SHIFT)
     b = j - (tj << _SHIFT)
     k = e >> 1
@@ -119,13 +131,15 @@ def sample_band(data, x, y):
     """Value and gradient at one point of a :class:`NarrowBandGridSDF`.
 
     ``data`` is ``g.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` (float64 x3, bool):
-    bilinear in a fine cell; in a far tile the stored signed lower bound of the distance and a
-    zero gradient; ``inside = False`` with NaN values outside ``bounds``, in cells marked exact
-    and for non-finite coordinates (evaluate the exact SDF there).
+    bilinear in a fine cell; in a far tile the stored signed lower bound of the distance and the
+    unit direction of the exact gradient at the tile's centre; ``inside = False`` with NaN
+    values outside ``bounds``, in cells marked exact and for non-finite coordinates (evaluate
+    the exact SDF there).
     """
     k, a, b, tx, ty, far, status = _band_locate(data, x, y)
     if status == 1:
-        return far, 0.0, 0.0, True
+        dirs = data[3]
+        return far, dirs[np.uint64(2 * k)], dirs[np.uint64(2 * k + 1)], True
     if status == 2:
         return math.nan, math.nan, math.nan, False
     q = data[1]
@@ -181,7 +195,8 @@ def _borrow(data):
     """The sampler data with its arrays as views without reference counts: binding an array
     to a variable inside the inlined sampler otherwise costs an atomic increment and decrement
     per point (the caller keeps the arrays alive)."""
-    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2])) + data[3:]
+    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2]),
+            _borrowed(data[3])) + data[4:]
 
 
 # Batch kernels. They return the number of points that need the exact SDF (NaN answers).
@@ -263,9 +278,7 @@ def _lipschitz_of(f, lipschitz):
     exactness = getattr(f, "exactness", "unknown")
     if exactness in ("exact", "bound"):
         return 1.0
-    raise ValueError(
-        f"f is not known to be 1-Lipschitz (exactness {exactness!r}), so far tiles cannot be "
-        f"told apart soundly: pass lipschitz= (a bound on |grad f|), got lipschitz=None")
+    return None     # unknown: tiles are classified with interval bounds
 
 
 # ---------------------------------------------------------------------------------------------
@@ -301,13 +314,17 @@ class NarrowBandGridSDF:
         most ``2**-24 max|d|`` to values and ``2**-24`` to gradient components.
     lipschitz : float, optional
         A bound on ``|grad f|``; default 1 for shapes whose ``exactness`` is ``'exact'`` or
-        ``'bound'`` (a ValueError otherwise, since the tile test needs it).
+        ``'bound'``. For other functions (``exactness == 'none'``, a bare
+        :class:`fastsdf.graph.Function`) without ``lipschitz``, tiles are classified with the
+        interval bounds of :mod:`fastsdf.interval` over each tile (sound, but slower to build),
+        and ``lipschitz`` is None.
 
     Attributes
     ----------
     exact, bounds, band, tolerance, tile, dtype, lipschitz, mode (always ``'exact'``)
     shape : fine node counts (nx, ny) over bounds; spacing : (hx, hy)
-    tile : fine cells per tile side (8); tiles : (ntx, nty) tile counts; n_fine : number of fine tiles; n_exact_cells
+    tile : fine cells per tile side (8); tiles : (ntx, nty) tile counts
+    n_fine : number of fine tiles; n_exact_cells : cells answered by the exact SDF
     nbytes : bytes stored (table, fine nodes, cell masks); memory : the same, itemised (dict)
     build_seconds : wall time of the build (including trial grids of a tolerance build)
     sampler, sampler_data : per-point query for numba code (see :func:`sample_band`).
@@ -361,23 +378,30 @@ class NarrowBandGridSDF:
         cx = (np.arange(ntx) * T + T / 2) * hx + x0
         cy = (np.arange(nty) * T + T / 2) * hy + y0
         CX, CY = np.meshgrid(cx, cy, indexing="ij")
-        dc = self.exact(CX.ravel(), CY.ravel())
+        dc, gc = self.exact(CX.ravel(), CY.ravel(), compute_gradient=True)
         rt = 0.5 * T * math.hypot(hx, hy)
         with np.errstate(invalid="ignore"):
-            fine = ~(np.abs(dc) - lip * rt > self.band)   # NaN centres are fine (checked below)
+            if lip is not None:
+                low = np.abs(dc) - lip * rt           # |f| >= low over the tile
+            else:
+                low = self._interval_low(cx, cy, T * hx, T * hy)
+            fine = ~(low > self.band)                 # NaN centres are fine (checked below)
         fidx = np.flatnonzero(fine)
         nf = fidx.size
         # Far tiles: a lower bound of |f| over the tile, less half a cell diagonal (so that the
         # interpolated values of neighbouring fine tiles stay above it, which the particle
-        # loop's free-flight budget relies on), quantized downwards.
+        # loop's free-flight budget relies on), quantized downwards (capped: still a bound),
+        # and the direction of the gradient at the centre.
         slack = 0.5 * math.hypot(hx, hy)
-        span = max(x1 - x0, y1 - y0) + T * max(hx, hy)
-        self._quantum = quantum = max(min(hx, hy) / 64.0, 4.0 * span / 2 ** 30)
+        span = math.hypot(x1 - x0, y1 - y0) + T * max(hx, hy)
+        self._quantum = quantum = max(min(hx, hy) / 64.0, span / _M_MAX)
         with np.errstate(invalid="ignore"):
-            lb = np.maximum(np.abs(dc) - lip * rt - slack, 0.0)
-        m = np.maximum(np.floor(lb / quantum) - 1.0, 0.0)
-        m = np.minimum(m, 2 ** 29)
-        table = (-(1 + 2 * m.astype(np.int64) + (dc < 0))).astype(np.int32)
+            lb = np.maximum(low - slack, 0.0)
+            m = np.minimum(np.maximum(np.floor(lb / quantum) - 1.0, 0.0), _M_MAX - 1)
+            ang = np.arctan2(gc[:, 1], gc[:, 0])
+        ang = np.where(np.isfinite(ang), ang, 0.0)
+        a_idx = np.rint(ang * (_NDIR / (2 * math.pi))).astype(np.int64) % _NDIR
+        table = (-(1 + (dc < 0) + 2 * (a_idx + _NDIR * m.astype(np.int64)))).astype(np.int32)
         table[fidx] = 2 * np.arange(nf, dtype=np.int32)
         # Fine nodes: the node (I, J) of the whole grid sits at (I * hx + x0, J * hy + y0), as in
         # np.linspace, the last node of bounds exactly at x1, y1.
@@ -410,6 +434,19 @@ class NarrowBandGridSDF:
             self._mark_exact_cells(X, Y, q)
         self._finish()
 
+    def _interval_low(self, cx, cy, wx, wy):
+        """Lower bounds of ``|f|`` over every tile (x-major), from interval evaluation."""
+        from .interval import bounds as interval_bounds
+
+        CX, CY = np.meshgrid(cx, cy, indexing="ij")
+        sx, sy = (s.attr for s in self.exact.symbols)
+        boxes = {sx: (CX.ravel() - 0.5 * wx, CX.ravel() + 0.5 * wx),
+                 sy: (CY.ravel() - 0.5 * wy, CY.ravel() + 0.5 * wy)}
+        lo, hi = interval_bounds(self.exact.f, boxes)
+        lo, hi = np.broadcast_to(lo, CX.size), np.broadcast_to(hi, CX.size)
+        with np.errstate(invalid="ignore"):
+            return np.where(lo > 0, lo, np.where(hi < 0, -hi, 0.0))
+
     def _cell_estimates(self, X, Y, q):
         """Estimated interpolation error of every cell of the fine tiles, shape (nf, T, T), and
         whether each cell can reach the band."""
@@ -431,7 +468,8 @@ class NarrowBandGridSDF:
         est = np.maximum(e_mid, (hx * jx + hy * jy) / 8.0)
         corner_min = np.minimum(np.minimum(np.abs(v[:, :-1, :-1]), np.abs(v[:, 1:, :-1])),
                                 np.minimum(np.abs(v[:, :-1, 1:]), np.abs(v[:, 1:, 1:])))
-        in_band = corner_min - self.lipschitz * 0.5 * math.hypot(hx, hy) <= self.band
+        lip = self.lipschitz if self.lipschitz is not None else math.inf
+        in_band = corner_min - lip * 0.5 * math.hypot(hx, hy) <= self.band
         return est, in_band
 
     def _mark_exact_cells(self, X, Y, q):
@@ -476,15 +514,16 @@ class NarrowBandGridSDF:
         self.memory = {"table": int(self._table.nbytes), "nodes": int(self._q.nbytes),
                        "masks": int(self._masks.nbytes)}
         self.nbytes = sum(self.memory.values())
-        self.sampler_data = (self._table, self._q.reshape(-1), self._masks, x0, x1, y0, y1,
-                             1.0 / hx, 1.0 / hy, self.shape[0] - 1, self.shape[1] - 1, nty,
-                             int(self.tile).bit_length() - 1, self._quantum)
+        self.sampler_data = (self._table, self._q.reshape(-1), self._masks, _DIRS, x0, x1, y0,
+                             y1, 1.0 / hx, 1.0 / hy, self.shape[0] - 1, self.shape[1] - 1, nty,
+                             self._quantum)
 
     # -- queries ------------------------------------------------------------------------------
     def __call__(self, x, y, compute_gradient=False):
-        """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound (with
-        a zero gradient) in far tiles, the exact SDF outside ``bounds`` and in exact cells; NaN
-        for non-finite points. Conventions as :class:`fastsdf.graph.Function`."""
+        """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
+        (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
+        and in exact cells; NaN for non-finite points. Conventions as
+        :class:`fastsdf.graph.Function`."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
@@ -510,6 +549,10 @@ class NarrowBandGridSDF:
         if compute_gradient:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
+
+    def measure_error(self, n: int = 200_000, seed: int = 0) -> GridError:
+        """The achieved error in the band: :func:`measure_band_error` on ``n`` random points."""
+        return measure_band_error(self, n=n, seed=seed)
 
     def is_fine(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Boolean array: True where the point lies inside ``bounds`` in a fine tile."""

@@ -61,7 +61,8 @@ class DemoResult:
     ``exact_query_cost`` is the time of one exact SDF query (value and gradient) in units of one
     grid query, measured on points in the bounds (``None`` without a grid); ``respawned`` the
     particles drawn again because they started inside matter; ``inside_fraction`` the share of
-    particles more than 1% of their radius inside the simulated SDF at the end.
+    particles more than 1% of their radius inside the simulated SDF at the end; ``load`` the
+    machine's 1-minute load average before and after the steps (``None`` where unknown).
     """
 
     world: str
@@ -81,6 +82,7 @@ class DemoResult:
     inside_fraction: float
     animation: str | None
     last_frame: str
+    load: tuple[float, float] | None = None
     notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -145,7 +147,14 @@ def _video_writer_ext(err: IO[str]) -> str:
     return ".gif"
 
 
-def _query_cost(grid: Any, n: int = 20_000, seed: int = 0) -> float:
+def _load() -> float | None:
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):  # not available on this platform
+        return None
+
+
+def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
     """Time of one exact query over one grid query (value and gradient, same points)."""
     rng = np.random.default_rng(seed)
     (x0, x1), (y0, y1) = BOUNDS
@@ -167,11 +176,11 @@ def _query_cost(grid: Any, n: int = 20_000, seed: int = 0) -> float:
 
 def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exact: bool = False,
              seed: int = 0, out: str = "demo-out", frames: int = DEFAULT_FRAMES,
-             fps: int = DEFAULT_FPS, animate: bool = True, world: str = "boxes",
+             fps: int = DEFAULT_FPS, animate: bool = True, world: str = "seed",
              mode: str = "exact", stream: IO[str] | None = None) -> DemoResult:
     """Simulate ``particles`` particles for ``steps`` steps (1/30 s each) in a notebook world.
 
-    ``world``: a key of :data:`WORLDS` (``'boxes'`` or ``'seed'``). ``grid``: the GridSDF's
+    ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the GridSDF's
     samples per axis over :data:`BOUNDS`; ``mode``: the grid's answer outside its bounds
     (``'exact'``: the exact SDF, ``'nearest'``: clamped to the edge); ``exact=True`` queries the
     exact compiled SDF everywhere instead of a grid. Particles start in the notebook's blob,
@@ -238,6 +247,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
             t0 = time.perf_counter()
             sim.run(1)
             timing["first"] = time.perf_counter() - t0
+            timing["load0"] = _load()
             timing["outside"] += outside_share()
             timing["steps"] += 1
             k -= 1
@@ -252,9 +262,9 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
     label = f"{particles:,} particles, "
     animation_path = None
     if animate:
-        fig, ax = _world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+        fig, ax, cax = _world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
         anim = _animate(sim, ax, frames, _frame_schedule(steps, frames), advance=advance,
-                        title=label, colorbar=True, bounds=BOUNDS)
+                        title=label, colorbar=cax, bounds=BOUNDS)
         animation_path = os.path.join(out, "particles" + _video_writer_ext(err))
         save_animation(anim, animation_path, fps=fps)
     advance(steps - timing["steps"])
@@ -274,6 +284,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
         exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
         respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
+        load=None if timing.get("load0") is None else (timing["load0"], _load()),
         animation=animation_path, last_frame=last)
 
 
@@ -306,15 +317,27 @@ def summary(res: DemoResult) -> str:
                      f"were inside the grid (bilinear queries); {res.outside_grid_fraction:.1%} "
                      f"were outside, {where}")
         if res.exact_query_cost is not None:
-            lines.append(f"  one exact query costs {res.exact_query_cost:.0f}x one grid query "
+            lines.append(f"  one exact query costs {res.exact_query_cost:.2g}x one grid query "
                          f"in this world (value + gradient, measured here)")
         lines.append("  particles resting on surfaces query every step; falling ones skip "
                      "queries while provably clear, so the rate also depends on how many rest")
     else:
         lines.append("why this rate: every query evaluates the exact compiled SDF (no grid)")
-    lines.append("for comparison: the README's headline particle figure is the seed world on a "
-                 "400x400 grid with every particle inside it (python -m bench --only particles); "
-                 "the comparable demo is: fastsdf demo --world seed")
+    if res.load is not None:
+        cores = os.cpu_count() or 1
+        busy = " (other processes were competing for the cores)" if max(res.load) > 0.5 * cores \
+            else ""
+        lines.append(f"machine load (1-minute average) {res.load[0]:.1f} before and "
+                     f"{res.load[1]:.1f} after the steps, on {cores} cores{busy}")
+    if res.world == "seed":
+        lines.append("for comparison: this is the scene of the README's headline particle "
+                     "figure (1e6 particles, 400x400 grid; python -m bench --only particles "
+                     "measures it beside its baselines, on a quiet machine); the notebook's final "
+                     "world is: fastsdf demo --world boxes")
+    else:
+        lines.append("for comparison: the README's headline particle figure is the seed world on "
+                     "a 400x400 grid, where particles stay inside the grid (python -m bench "
+                     "--only particles); run it here with: fastsdf demo --world seed")
     if res.grid_band_value_max is not None:
         lines.append(f"grid error in the collision band |d| < 0.1: value max "
                      f"{res.grid_band_value_max:.2e}, gradient angle RMS "

@@ -54,6 +54,7 @@ import os
 import pickle
 import time
 import uuid
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -234,7 +235,10 @@ class _Group:
         for i, sim in self.sims.items():
             sim.force_generators = list(generators)
             x = np.asarray(sim.p["x"], dtype=np.float64)
-            bbox = np.array([x[:, 0].min(), x[:, 1].min(), x[:, 0].max(), x[:, 1].max()])
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: NaN box
+                bbox = np.array([np.nanmin(x[:, 0]), np.nanmin(x[:, 1]), np.nanmax(x[:, 0]),
+                                 np.nanmax(x[:, 1])])
             out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
         return dict(self.steps), out
 
@@ -265,7 +269,8 @@ class SimulationStats:
     ``counts``: particles per shard; ``kinetic``, ``potential``: totals (energy units, summed
     over shards in shard order; potential of the :class:`fastsdf.particles.Gravity` generators,
     zero at the origin); ``bboxes``: ``(shards, 4)`` per-shard ``(xmin, ymin, xmax, ymax)`` of
-    particle centres (length units); ``bbox``: their union.
+    particle centres (length units; particles with a non-finite position are left out);
+    ``bbox``: their union.
     """
 
     counts: tuple
@@ -531,7 +536,8 @@ class DistributedSimulation:
             per.update(payload)
         rows = [per[i] for i in range(self.shards)]
         bboxes = np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 4)
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
             bbox = (float(np.nanmin(bboxes[:, 0])), float(np.nanmin(bboxes[:, 1])),
                     float(np.nanmax(bboxes[:, 2])), float(np.nanmax(bboxes[:, 3])))
         return SimulationStats(counts=tuple(int(r[0]) for r in rows),
@@ -652,19 +658,25 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
 # ---------------------------------------------------------------------------------------------
 # The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
 
-def _draw_density(ax, image, bounds):
+def _draw_density(ax, image, bounds, cax=None):
     """Show a density image (counts per pixel) as :func:`fastsdf.render.draw_particles` does:
-    the same colour map, logarithmic from 1 count, empty pixels transparent."""
+    the same colour map, logarithmic from 1 count, empty pixels transparent; with ``cax``, its
+    colour bar of particles per pixel there."""
     from matplotlib.colors import LinearSegmentedColormap, LogNorm
 
     from .render import PARTICLE_CMAP_COLORS
     cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
     cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
     (x0, x1), (y0, y1) = bounds
-    return ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
-                     extent=(x0, x1, y0, y1), cmap=cmap,
-                     norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
-                     interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+    shown = ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
+                      extent=(x0, x1, y0, y1), cmap=cmap,
+                      norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
+                      interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+    if cax is not None:
+        from .render import _plain_log_ticks
+        cax.set_visible(True)
+        _plain_log_ticks(ax.figure.colorbar(shown, cax=cax, label="particles per pixel"))
+    return shown
 
 
 @dataclass(frozen=True)
@@ -757,6 +769,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
                 t0 = time.perf_counter()
                 sim.run(1)
                 timing["first"] = time.perf_counter() - t0
+                timing["load0"] = os.getloadavg()[0]
                 timing["outside"] += outside_share()
                 timing["steps"] += 1
                 k -= 1
@@ -771,8 +784,8 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         shape = (480, 480)
         animation_path = None
         if animate:
-            fig, ax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
-            artist = _draw_density(ax, sim.density(bounds, shape), bounds)
+            fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+            artist = _draw_density(ax, sim.density(bounds, shape), bounds, cax)
             title = ax.set_title(label + "t = 0.00 s (step 0)")
             schedule = _demo._frame_schedule(steps, frames)
 
@@ -789,8 +802,8 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             save_animation(anim, animation_path, fps=fps)
         advance(steps - timing["steps"])
         last = os.path.join(out, "last_frame.png")
-        fig, ax = _world_figure(f, bounds, 400, (6.0, 6.0), 100)
-        _draw_density(ax, sim.density(bounds, (600, 600)), bounds)
+        fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+        _draw_density(ax, sim.density(bounds, (600, 600)), bounds, cax)
         ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
         fig.savefig(last, dpi=100)
         sample = sim.sample(min(particles, 100_000), seed=seed)
@@ -806,4 +819,5 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
         exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
         respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * r)),
+        load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
         animation=animation_path, last_frame=last)

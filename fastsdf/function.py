@@ -128,7 +128,8 @@ class CompiledSDF:
         """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
         return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
 
-    def plan(self, bounds, tiles=None, tol=None) -> PrunePlan:
+    def plan(self, bounds: ArrayLike, tiles: tuple | None = None,
+             tol: float | None = None) -> PrunePlan:
         """The pruning plan over ``bounds = ((x0, x1), (y0, y1))`` with ``tiles = (nx, ny)``
         (default 32 x 32), cached per arguments."""
         nx, ny = (PRUNE_TILES, PRUNE_TILES) if tiles is None else (int(tiles[0]), int(tiles[1]))
@@ -140,7 +141,9 @@ class CompiledSDF:
             plan = self._plans[key] = make_plan(self.groups, key[0], nx, ny, tol)
         return plan
 
-    def pruned_plan(self, xs, ys, prune=None, tol=None, bounds=None, count=None):
+    def pruned_plan(self, xs: np.ndarray, ys: np.ndarray, prune: bool | None = None,
+                    tol: float | None = None, bounds: Any = None,
+                    count: int | None = None) -> PrunePlan | None:
         """The plan a call on points ``xs, ys`` should use (over ``bounds`` if given, which must
         hold every finite point), or None for the unpruned kernels. ``prune``: None decides
         (large inputs, enough operands, and only where most of them are dropped), True
@@ -161,7 +164,8 @@ class CompiledSDF:
         # It pays when most rows are dropped; otherwise the sort by tile is wasted work.
         return plan if prune or plan.fraction < PRUNE_MAX_FRACTION else None
 
-    def run(self, xs, ys, out, grad=None, plan=None):
+    def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, grad: np.ndarray | None = None,
+            plan: PrunePlan | None = None) -> None:
         """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2), if given),
         with the tile kernels of ``plan`` if given (see :meth:`pruned_plan`)."""
         n = xs.shape[0]

@@ -452,9 +452,14 @@ _SCENE_END = "# <<< SCENE BLOCK <<<"
 _DECORATOR = '@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")'
 
 
+# Read once, when the module is imported: the kernel must match the _step module this process
+# runs with, even if the file changes on disk later (an upgrade, an edit).
+_STEP_SOURCE = inspect.getsource(_step)
+
+
 def _step_source() -> tuple:
     """The source of :mod:`fastsdf._step`, split around its scene block."""
-    src = inspect.getsource(_step)
+    src = _STEP_SOURCE
     a = src.index(_SCENE_BEGIN)
     b = src.index(_SCENE_END) + len(_SCENE_END)
     return src[:a], src[b:]
@@ -575,14 +580,27 @@ def _kernel_module(f, forces=()):
             lines = [f"from {where[0]} import {where[1]} as _sampler"]
             deps = [f"{where[0]} (source {_module_hash(where[0])})"]
         lines += ["", "", _DECORATOR, "def _query(data, x, y):",
-                  "    d, gx, gy, inside = _sampler(data[1:], x, y)"]
+                  "    d, gx, gy, inside = _sampler(data[5:], x, y)"]
         if mode == "exact":
-            lines += ["    if not inside:", "        return call_vg(data[0], x, y)"]
-            address, keep = _exact_address(exact)
-        else:
-            address = 0
+            lines += ["    if not inside:",
+                      "        if data[0] == 0:  # never reached: see _fallback_missing",
+                      "            return math.nan, math.nan, math.nan",
+                      "        return call_vg(data[0], x, y)"]
         lines.append("    return d, gx, gy")
-        data = (address,) + tuple(f.sampler_data)
+        lines += ["", "", _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):"]
+        if mode == "exact":
+            # Every query of a step (its sweep and bounces included) lies within
+            # 2 (MAX_BOUNCES + 1) |D| of its start.
+            lines += ["    if data[0] != 0:", "        return False",
+                      "    reach = 2.0 * (MAX_BOUNCES + 1) * math.sqrt(dx * dx + dy * dy) + 1e-9",
+                      "    return not (x - reach >= data[1] and x + reach <= data[2]",
+                      "                and y - reach >= data[3] and y + reach <= data[4])"]
+        else:
+            lines.append("    return False")
+        address = 0
+        # Without bounds (optional in the protocol) the fallback is bound at once.
+        (bx0, bx1), (by0, by1) = getattr(f, "bounds", None) or ((0.0, 0.0), (0.0, 0.0))
+        data = (address, float(bx0), float(bx1), float(by0), float(by1)) + tuple(f.sampler_data)
         desc = f"a grid world (mode {mode!r}); the scene is bound at run time"
         key = ("grid", id(sampler), mode)
     elif isinstance(f, Function) and f.compiled.parametric:
@@ -590,7 +608,8 @@ def _kernel_module(f, forces=()):
         # flat tuple of floats (the parallel kernel cannot take nested tuples).
         scene = f.compiled.module.__name__
         lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
-                 "def _query(data, x, y):", "    return _exact(x, y, data[0], data[2:])"]
+                 "def _query(data, x, y):", "    return _exact(x, y, data[0], data[2:])", "", "",
+                 _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
         if f.time_dependent:
             lines += [f"from {scene} import point_vgt as _exact_t", "", "", _DECORATOR,
                       "def _query_t(data, x, y, t):", "    return _exact_t(x, y, t, data[2:])",
@@ -603,7 +622,8 @@ def _kernel_module(f, forces=()):
     elif isinstance(f, Function):
         scene = f.compiled.module.__name__
         lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
-                 "def _query(data, x, y):", "    return _exact(x, y)"]
+                 "def _query(data, x, y):", "    return _exact(x, y)", "", "", _DECORATOR,
+                 "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
         deps = [scene]
         data = (0.0,)
         desc = repr(f)[:300]
@@ -770,6 +790,10 @@ class ParticleSimulation:
         self._sdf = f
         self._module, self._data, self._keep = module, data, keep
         self._kernels = {(): (module, data, keep, ())}
+        # A grid in mode 'exact' binds its exact fallback when a particle first needs it.
+        self._exact_ptr = None if (_is_grid(f) and f.mode == "exact") else 0
+        if self._exact_ptr is None and getattr(f, "bounds", None) is None:
+            self._bind_fallback()
         self._parametric = isinstance(f, Function) and not _is_grid(f) and \
             f.compiled.parametric
         self._moving = self._parametric and f.time_dependent
@@ -864,7 +888,18 @@ class ParticleSimulation:
         if entry is None or entry[3] != user:
             module, data, keep = _kernel_module(self._sdf, user)
             entry = self._kernels[key] = (module, data, keep, user)
-        return entry[0], entry[1]
+        return entry[0], self._bind(entry[1])
+
+    def _bind(self, data):
+        """The query data with the exact fallback's address, once compiled (0 before)."""
+        ptr = self._exact_ptr
+        return data if not ptr else (ptr[0],) + data[1:]
+
+    def _bind_fallback(self):
+        """Compile (or load) the grid's exact fallback and bind it from now on."""
+        if self._exact_ptr is None:
+            self._exact_ptr = _exact_address(self._sdf.exact)
+            self._data = self._bind(self._data)
 
     def _python_forces(self, gens) -> np.ndarray:
         n = self.n
@@ -957,22 +992,53 @@ class ParticleSimulation:
             ext = _NO_EXT
         use_m = use_ext or drag != 0.0
         if self._flags is None or self._flags.shape[0] != n:
-            self._flags = np.zeros(n, dtype=np.uint8)
-        threads = numba.get_num_threads()
-        parallel = n >= PARALLEL_MIN_PARTICLES and threads > 1
-        block = self.block or DEFAULT_BLOCK
-        kernel = module.run_par if parallel else module.run_ser
+            self._flags = np.zeros(n, dtype=np.int32)
         if self._parametric:
             data = self._scene_data(steps)
         a = p._arrays
         check_all = p._dirty
-        bad = kernel(data, steps, block, a["x"], a["v"], a["m"], a["r"], a["cr"], a["cf"],
-                     ext, self._flags, self.dt, self.t, ax, ay, drag, use_m, use_ext,
-                     self.integrator == "euler", self.collision == "notebook",
-                     self.prevent_tunnelling, self.lipschitz, self._margin,
-                     float(np.finfo(self.dtype).eps), self._skip, check_all)
+        args = (ext, self._flags, self.dt, self.t, ax, ay, drag, use_m, use_ext,
+                self.integrator == "euler", self.collision == "notebook",
+                self.prevent_tunnelling, self.lipschitz, self._margin,
+                float(np.finfo(self.dtype).eps), self._skip)
+        bad = self._call(module, data, steps, [a[k] for k in Particles.FIELDS], args, check_all)
+        if bad and self._exact_ptr is None:
+            bad = self._resume(module, steps, args, bad)
         if check_all and not bad:
             p._dirty = False
+        return bad
+
+    def _call(self, module, data, steps, arrays, args, check_all):
+        n = arrays[0].shape[0]
+        parallel = n >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
+        kernel = module.run_par if parallel else module.run_ser
+        return kernel(data, steps, self.block or DEFAULT_BLOCK, *arrays, *args, check_all)
+
+    def _resume(self, module, steps, args, bad):
+        """Particles that stopped near the grid's edge before its exact fallback was bound
+        (FLAG_RESUME + step): bind it, run each the rest of its steps from where it stopped
+        (particles are independent, so the result is that of an uninterrupted call)."""
+        flags = self._flags
+        idx = np.flatnonzero(flags >= _step.FLAG_RESUME)
+        if not idx.size:
+            return bad
+        self._bind_fallback()
+        data = next(self._bind(e[1]) for e in self._kernels.values() if e[0] is module)
+        at = flags[idx] - _step.FLAG_RESUME
+        flags[idx] = 0
+        bad -= idx.size
+        ext, fl, dt, t0 = args[:4]
+        arrays = self.p._arrays
+        for j in np.unique(at):
+            sel = idx[at == j]
+            sub = [np.ascontiguousarray(arrays[k][sel]) for k in Particles.FIELDS]
+            sub_flags = np.zeros(sel.size, dtype=np.int32)
+            sub_ext = ext[sel] if ext.shape[0] else ext
+            sub_args = (sub_ext, sub_flags, dt, t0 + int(j) * dt) + args[4:]
+            bad += self._call(module, data, steps - int(j), sub, sub_args, False)
+            arrays["x"][sel] = sub[0]
+            arrays["v"][sel] = sub[1]
+            flags[sel] = sub_flags
         return bad
 
     def _frozen_error(self, count: int, steps: int) -> ValueError:
@@ -1043,6 +1109,7 @@ class ParticleSimulation:
         xs = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
         ys = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
         out = np.empty((xs.shape[0], 3))
+        self._bind_fallback()
         self._module.query_many(self._scene_data(0) if self._parametric else self._data, xs, ys,
                                 out)
         return out[:, 0], out[:, 1:]
@@ -1056,17 +1123,18 @@ class ParticleSimulation:
 
     def __getstate__(self):
         # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
-        # kernel module, scratch buffers and drawing stay behind and are rebuilt on unpickling.
+        # kernel module and scratch buffers stay behind and are rebuilt on unpickling (the
+        # simulation holds no drawing: that lives in fastsdf.render).
         # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
-        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_layer", "drawable",
-                    "_wall"):
+        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_exact_ptr",
+                    "_flags"):
             state.pop(key, None)
         return state
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        self._ext = self._layer = self.drawable = self._wall = None
+        self._ext = self._wall = self._flags = None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
             self.sdf = state["_sdf"]

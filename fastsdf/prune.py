@@ -44,7 +44,8 @@ class PrunePlan:
     tile, ``sizes[g]`` the group's size, ``build_s`` the time to build the plan.
     """
 
-    def __init__(self, bounds, nx, ny, act, offs, kept, sizes, build_s, tol):
+    def __init__(self, bounds: tuple, nx: int, ny: int, act: np.ndarray, offs: np.ndarray,
+                 kept: list, sizes: list, build_s: float, tol: float | None):
         self.bounds, self.nx, self.ny = bounds, nx, ny
         self.act, self.offs, self.kept, self.sizes = act, offs, kept, sizes
         self.build_s, self.tol = build_s, tol
@@ -56,6 +57,8 @@ class PrunePlan:
         return float(sum(k.sum() for k in self.kept) / (total * self.nx * self.ny)) if total else 1.0
 
     def report(self) -> dict:
+        """A summary: tiles, bounds, operands, survivors per tile (mean, max), the fraction
+        kept, build time (s) and tolerance."""
         per_tile = np.sum(self.kept, axis=0) if self.kept else np.zeros(self.nx * self.ny)
         return {"tiles": (self.nx, self.ny), "bounds": self.bounds,
                 "operands": int(sum(self.sizes)),
@@ -124,7 +127,7 @@ def _steps_bounds(group, ranges):
     return (np.broadcast_to(lo_s[-1], (M, T)), np.broadcast_to(hi_s[-1], (M, T)))
 
 
-def make_plan(groups, bounds, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
+def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
     """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.codegen.generate_module`)
     over ``bounds = ((x0, x1), (y0, y1))`` cut into ``nx x ny`` tiles."""
     t0 = time.perf_counter()
@@ -208,7 +211,7 @@ def _bin(xs, ys, x0, y0, sx, sy, nx, ny):
     return order, starts
 
 
-def bin_points(xs, ys, plan: PrunePlan):
+def bin_points(xs: np.ndarray, ys: np.ndarray, plan: PrunePlan) -> tuple:
     """``(order, starts)``: the points of tile ``t`` are ``order[starts[t]:starts[t + 1]]``
     (non-finite points go to tile 0, where the kernels give them NaN)."""
     (x0, x1), (y0, y1) = plan.bounds

@@ -266,8 +266,10 @@ class ParticleLayer:
 
     def __init__(self, ax: Any, bounds: tuple, shape: tuple | None, max_circles: int,
                  color: Any, cmap: Any, norm: Any, alpha: float, zorder: float,
-                 marker_points: float, colorbar: bool = False) -> None:
-        self.want_colorbar = bool(colorbar)
+                 marker_points: float, colorbar: Any = False) -> None:
+        # True: a colour bar beside ax; an Axes: the colour bar drawn into it.
+        self.cax = colorbar if hasattr(colorbar, "figure") else None
+        self.want_colorbar = self.cax is not None or bool(colorbar)
         self.colorbar = None
         self.ax = ax
         self.bounds = bounds
@@ -333,6 +335,8 @@ class ParticleLayer:
             self.artist.set_data(shown)
             if self._fixed_norm is None:
                 self.artist.norm.vmax = vmax
+                if self.colorbar is not None:  # a new range resets the bar's tick labels
+                    _plain_log_ticks(self.colorbar)
         else:
             self._drop()
             norm = self._fixed_norm if self._fixed_norm is not None else LogNorm(1.0, vmax)
@@ -342,16 +346,26 @@ class ParticleLayer:
                                          alpha=self.alpha, zorder=self.zorder,
                                          aspect=self.ax.get_aspect())
             self.mode = "density"
-            if self.want_colorbar:
+            if self.cax is not None:
+                self.cax.set_visible(True)
+                self.colorbar = self.ax.figure.colorbar(self.artist, cax=self.cax,
+                                                        label="particles per pixel")
+            elif self.want_colorbar:
+                # fraction/pad: a bar as tall as a square axes beside it.
                 self.colorbar = self.ax.figure.colorbar(self.artist, ax=self.ax,
                                                         label="particles per pixel",
                                                         fraction=0.046, pad=0.03)
+            if self.colorbar is not None:
                 _plain_log_ticks(self.colorbar)
         self.image = img
 
     def _drop(self):
         if self.colorbar is not None:
-            self.colorbar.remove()
+            if self.cax is not None:  # keep the axes it was given, empty and hidden
+                self.cax.cla()
+                self.cax.set_visible(False)
+            else:
+                self.colorbar.remove()
             self.colorbar = None
         if self.artist is not None:
             self.artist.remove()
@@ -385,7 +399,7 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
                    max_circles: int = DEFAULT_MAX_CIRCLES, shape: tuple | None = None,
                    color: Any = PARTICLE_COLOR, cmap: Any = None, norm: Any = None,
                    alpha: float = 0.8, zorder: float = 4, marker_points: float = 4.0,
-                   colorbar: bool = False) -> ParticleLayer:
+                   colorbar: Any = False) -> ParticleLayer:
     """Draw particles on ``ax``: circles for up to ``max_circles`` particles, else a density image.
 
     ``x``, ``y``: particle centres (data units), arrays of equal size. ``r``: radii (data units,
@@ -397,8 +411,9 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
     and opacity. ``cmap``, ``norm``: colour map and normalisation of the density image (default:
     an orange-to-brown map, logarithmic from 1 to the busiest pixel's count, rescaled each
     frame; empty pixels are transparent). ``zorder``: the image's z-order (circles get one
-    more), above the SDF's fill and lines. ``colorbar``: add a colour bar of particles per pixel
-    beside the axes while the density image is shown.
+    more), above the SDF's fill and lines. ``colorbar``: ``True`` adds a colour bar of particles
+    per pixel beside the axes while the density image is shown; an axes draws it there instead
+    (hidden while particles are drawn as circles).
 
     The density image counts particle centres per pixel (see :func:`density_image`); radii do
     not enlarge it. Returns a :class:`ParticleLayer`; call ``layer.update(x, y)`` for each
@@ -423,16 +438,27 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
 
 def _world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
                   ticks: bool = True) -> tuple:
-    """A figure (constrained layout, so no wasted margin) with ``f``'s filled view on its axes."""
+    """``(fig, ax, cax)``: ``f``'s filled view on ``ax``, and a hidden axes ``cax`` for a colour
+    bar beside it, laid out by hand so that nothing is cut and no margin is wasted (matplotlib's
+    layout engines misplace a colour bar beside an equal-aspect axes)."""
     from matplotlib.figure import Figure
 
-    from .plotting import plot_sdf
+    from .plotting import check_bounds, plot_sdf
 
-    fig = Figure(figsize=figsize, dpi=dpi, layout="constrained")
-    ax = fig.add_subplot()
+    (x0, x1), (y0, y1) = check_bounds(bounds)
+    fig = Figure(figsize=figsize, dpi=dpi)
+    W, H = fig.get_size_inches()
+    left, bottom, top = (0.75, 0.6, 0.45) if ticks else (0.15, 0.15, 0.45)
+    gap, bar, right = 0.15, 0.2, 0.85  # colour bar: gap, width, room for its ticks and label
+    aspect = (y1 - y0) / (x1 - x0)
+    w = min(W - left - gap - bar - right, (H - bottom - top) / aspect)
+    h = w * aspect
+    ax = fig.add_axes((left / W, bottom / H, w / W, h / H))
+    cax = fig.add_axes(((left + w + gap) / W, bottom / H, bar / W, h / H))
+    cax.set_visible(False)
     plot_sdf(fig, ax, f, bounds=bounds, samples=samples, show_quiver=False,
              show_isolines='zero', filled=True, ticks=ticks)
-    return fig, ax
+    return fig, ax, cax
 
 
 def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), (-2, 2)],
@@ -448,15 +474,16 @@ def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), 
     ``r`` (data units; scalar or per particle) up to ``max_circles`` particles (default
     :data:`DEFAULT_MAX_CIRCLES`), a density image above that, with a colour bar of particles per
     pixel when ``colorbar``. ``title`` is the axes title (say what is shown: the simulated time,
-    the step). The figure is ``figsize`` inches at ``dpi``, laid out without wasted margin; if
+    the step). The figure is ``figsize`` inches at ``dpi``, laid out without wasted margin
+    (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
     ``out_png`` is given it is saved there at that dpi, uncropped, so the axes' ``transData``
     maps data coordinates to the PNG's pixels (y counted from the bottom).
 
     Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
     closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
     """
-    fig, ax = _world_figure(f, bounds, samples, figsize, dpi, ticks)
-    layer = draw_particles(ax, x, y, r=r, bounds=bounds, colorbar=colorbar,
+    fig, ax, cax = _world_figure(f, bounds, samples, figsize, dpi, ticks)
+    layer = draw_particles(ax, x, y, r=r, bounds=bounds, colorbar=cax if colorbar else False,
                            max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles)
     fig.particle_layer = layer
     if title is not None:
@@ -484,7 +511,7 @@ def sim_title(sim: Any, prefix: str = "") -> str:
 
 def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
             use_wall_time: bool = False, interval: float | None = None, repeat: bool = False,
-            title: str | None = "", colorbar: bool = False, advance: Any = None,
+            title: str | None = "", colorbar: Any = False, advance: Any = None,
             blit: bool = False, **draw_kwargs: Any) -> Any:
     """A matplotlib animation of the running simulation ``sim`` on ``ax``, from its current state.
 
@@ -496,7 +523,8 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
     as the notebook's ``update(ax, use_wall_time=True)``. Drawing any existing world first
     (``fastsdf.plot_sdf(f, ax=ax, filled=True, show_quiver=False, show_isolines='zero')``) gives
     the usual picture; the particles are drawn by :func:`draw_particles` (``draw_kwargs`` go to
-    it; ``colorbar`` adds a colour bar of particles per pixel to the density image).
+    it; ``colorbar``, ``True`` or an axes, adds a colour bar of particles per pixel to the
+    density image).
     ``title``: when not ``None``, the axes title is ``title`` followed by each frame's simulated
     time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay between frames in ms (default the
     simulation's timestep times ``steps_per_frame``).

@@ -114,7 +114,13 @@ def test_far_answers_are_lower_bounds_with_the_right_sign(dtype):
     assert np.all(np.abs(d) <= truth - 1.2e-4)
     assert np.all(np.abs(d) > 0.05 - g.spacing[0])   # far tiles lie beyond the band
     assert np.all((d < 0) == inside)
-    np.testing.assert_array_equal(grad, 0.0)           # far tiles carry no gradient
+    # Far tiles answer the direction of the exact gradient at their centre (4096 directions).
+    hx, hy = g.spacing
+    ti, tj = np.floor((pts[:, 0] + 2) / (8 * hx)), np.floor((pts[:, 1] + 2) / (8 * hy))
+    _, gc = f((ti * 8 + 4) * hx - 2, (tj * 8 + 4) * hy - 2, compute_gradient=True)
+    np.testing.assert_allclose(np.hypot(grad[:, 0], grad[:, 1]), 1.0, rtol=0, atol=1e-12)
+    cos = np.sum(grad * gc, axis=1) / np.hypot(gc[:, 0], gc[:, 1])
+    assert np.all(cos > math.cos(math.radians(0.05)))
 
 
 def test_continuous_across_tile_edges(world):
@@ -137,7 +143,7 @@ def test_tolerance_builds_meet_their_tolerance(seed):
     f = _random_scene(seed)
     for tol in (1e-3, 1e-4):
         g = NarrowBandGridSDF(f, bounds=BOUNDS, band=0.05, tolerance=tol)
-        err = measure_band_error(g, n=100_000, seed=seed)
+        err = g.measure_error(n=100_000, seed=seed)
         assert err.band_n > 20_000
         assert err.band_value_max <= tol, (seed, tol, err, g)
     # A tighter tolerance chooses a finer spacing.
@@ -226,6 +232,7 @@ def test_float32_storage_error_and_memory(world):
     (dict(bounds=[(1, 0), (0, 1)]), ValueError, "bounds"),
     (dict(dtype=np.int32), ValueError, "dtype"),
     (dict(lipschitz=0), ValueError, "lipschitz"),
+    (dict(lipschitz=math.inf), ValueError, "lipschitz"),
 ])
 def test_bad_parameters_are_rejected(world, kwargs, exc, match):
     args = dict(bounds=BOUNDS, band=0.05, samples=[65j, 65j])
@@ -234,22 +241,24 @@ def test_bad_parameters_are_rejected(world, kwargs, exc, match):
         NarrowBandGridSDF(world, **args)
 
 
-def test_f_must_be_an_sdf_with_a_known_lipschitz_bound():
+def test_f_must_be_an_sdf_and_unknown_lipschitz_uses_interval_bounds():
     with pytest.raises(TypeError, match="f must be"):
         NarrowBandGridSDF(lambda x, y: x, band=0.1, samples=[10, 10])
     import fastsdf.graph as cg
     x, y = cg.Symbol("x"), cg.Symbol("y")
     bare = cg.Function(x * x + y - 1.0, [x, y])
-    with pytest.raises(ValueError, match="lipschitz="):
-        NarrowBandGridSDF(bare, band=0.1, samples=[10, 10])
-    g = NarrowBandGridSDF(bare, bounds=[(-1, 1), (-1, 1)], band=0.1, samples=[33, 33],
-                          lipschitz=3.0)
-    xs, ys = np.random.default_rng(8).uniform(-1, 1, (2, 5000))
-    d = g(xs, ys)
-    far = ~g.is_fine(xs, ys)
-    assert far.any()
-    exact = bare(xs[far], ys[far])
-    assert np.all(np.abs(d[far]) <= np.abs(exact)) and np.all(d[far] * exact >= 0)
+    # Without a known Lipschitz bound, tiles are classified by interval bounds.
+    for lip in (3.0, None):
+        g = NarrowBandGridSDF(bare, bounds=[(-1, 1), (-1, 1)], band=0.1, samples=[33, 33],
+                              lipschitz=lip)
+        assert g.lipschitz == lip
+        xs, ys = np.random.default_rng(8).uniform(-1, 1, (2, 5000))
+        d = g(xs, ys)
+        exact = bare(xs, ys)
+        assert g.is_fine(xs[np.abs(exact) <= 0.1], ys[np.abs(exact) <= 0.1]).all()
+        far = ~g.is_fine(xs, ys)
+        assert far.any()
+        assert np.all(np.abs(d[far]) <= np.abs(exact[far])) and np.all(d[far] * exact[far] > 0)
 
 
 @pytest.mark.slow

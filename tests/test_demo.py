@@ -111,7 +111,7 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     from fastsdf.scenes import box_world
 
     res = run_demo(particles=3000, steps=45, grid=120, exact=exact, seed=3, out=str(tmp_path),
-                   frames=3)
+                   frames=3, world="boxes")
     assert res.particle_steps_per_second > 0 and res.steps == 45
     assert os.path.exists(res.last_frame) and res.animation.endswith(".mp4")
     assert os.path.getsize(res.animation) > 1000
@@ -179,3 +179,31 @@ def test_examples_run_at_small_size(tmp_path, name, outputs):
     assert res.returncode == 0, res.stderr[-3000:]
     for out in outputs:
         assert (tmp_path / out).stat().st_size > 1000, out
+
+
+def test_summary_counts_in_words_and_explains_the_rate():
+    from fastsdf.demo import DemoResult, summary
+
+    base = dict(world="seed", particles=1, steps=1, timestep=1 / 30, sdf="a 50x50 GridSDF",
+                mode="exact", sim_seconds=0.0, first_step_seconds=0.5,
+                particle_steps_per_second=float("nan"), outside_grid_fraction=0.25,
+                exact_query_cost=12.0, grid_band_value_max=1e-3, grid_band_angle_rms_deg=0.5,
+                respawned=1, inside_fraction=0.0, animation=None, last_frame="x.png",
+                load=(99.0, 98.0))
+    text = summary(DemoResult(**base))
+    assert "1 step of" in text and "1 steps" not in text and "1 particle in" in text
+    assert "run more steps to measure a rate" in text
+    assert "75.0% of particle positions were inside the grid" in text
+    assert "25.0% were outside, answered by the exact SDF" in text
+    assert "12x one grid query" in text
+    assert "load (1-minute average) 99.0 before and 98.0 after" in text
+    assert "competing for the cores" in text
+    text = summary(DemoResult(**dict(base, steps=3, particles=2000, respawned=0, mode="nearest",
+                                     particle_steps_per_second=4e6, sim_seconds=0.001)))
+    assert "3 steps" in text and "2,000 particles" in text and "0 particles redrawn" in text
+    assert "4.0 M particle-steps/s over 2 steps" in text
+    assert "clamped to the grid's edge" in text
+    boxes = summary(DemoResult(**dict(base, world="boxes", outside_grid_fraction=None,
+                                      mode=None, exact_query_cost=None)))
+    assert "every query evaluates the exact compiled SDF" in boxes
+    assert "fastsdf demo --world seed" in boxes

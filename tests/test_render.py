@@ -128,6 +128,11 @@ def test_density_colorbar_counts_particles_per_pixel():
     fig.canvas.draw()
     labels = [t.get_text() for t in layer.colorbar.ax.get_yticklabels()]
     assert "1" in labels and not any("times" in t or "^" in t for t in labels), labels
+    layer.update(x * 0.5, y * 0.5)  # a new range keeps plain labels
+    fig.canvas.draw()
+    labels = [t.get_text() for t in layer.colorbar.ax.get_yticklabels()]
+    assert layer.colorbar.norm.vmax == layer.image.max()
+    assert "10" in labels and not any("times" in t or "^" in t for t in labels), labels
     layer.update(x[:10], y[:10])  # circles: no colour bar
     assert layer.colorbar is None and len(fig.axes) == 1
 

@@ -329,3 +329,32 @@ def test_field_force_arguments_are_checked():
         phys.FieldForce(1.0, 2.0, potential=3.0)
     with pytest.raises(TypeError, match="fx must be"):
         phys.FieldForce("wind", 2.0)
+
+
+@pytest.mark.parametrize("n", [300, 5000])
+def test_lazy_exact_fallback_gives_the_same_trajectories(n):
+    # Particles start near and beyond the edge of a small grid: the exact fallback is compiled
+    # only when the first one gets near the edge, and those particles resume from there.
+    w = sdf.Halfspace([0, 1], -0.5) | sdf.Circle([0.4, 0.0], 0.3)
+    grid = GridSDF(w, bounds=[(-1, 1), (-1, 1)], samples=[60j, 60j])
+    lazy = phys.ParticleSimulation(grid, n=n, seed=9)
+    eager = phys.ParticleSimulation(grid, n=n, seed=9)
+    eager._bind_fallback()
+    assert lazy._exact_ptr is None and eager._exact_ptr
+    x = np.c_[np.random.default_rng(9).uniform(-0.5, 0.5, n), np.linspace(0.4, 0.9, n)]
+    for s in (lazy, eager):
+        s.force_generators.append(phys.Gravity())
+        s.p["x"] = x
+        s.p["v"] = 0.0
+    lazy.run(3)                    # nobody comes near the edge yet: nothing compiled
+    eager.run(3)
+    assert lazy._exact_ptr is None
+    for s in (lazy, eager):
+        s.p["v"] = np.c_[np.linspace(-3, 3, n), np.zeros(n)]
+    lazy.run(40)
+    eager.run(40)
+    assert lazy._exact_ptr is not None
+    assert np.any(np.abs(eager.p["x"]) > 1.0)            # some did leave the grid
+    np.testing.assert_array_equal(lazy.p["x"], eager.p["x"])
+    np.testing.assert_array_equal(lazy.p["v"], eager.p["v"])
+    assert lazy.t == eager.t
