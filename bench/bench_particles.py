@@ -446,8 +446,47 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
         "to gravity alone (medians); the target is at most +15%.", "",
         table(["phase", "gravity", "+ @njit wind", "+ FieldForce attractor",
                "+ NumPy wind (run(3))", "extra time (njit / field / NumPy)"], rows), ""]
+    out += LIMIT.splitlines() + [""]
     out += _first_call_rows()
     return out
+
+
+LIMIT = """### Where the settled step stops: the per-particle limit
+
+A settled particle touches the funnel nearly every step, so each step does the whole work: read
+`x, v, r` (40 bytes; `cr, cf` 16 more at a contact), write `x, v` (32 bytes), and read 12
+doubles of the grid (value and gradient at the cell's 4 nodes, two runs of 48 bytes, 2 to 4 cache
+lines). Counting the arithmetic of that path in `fastsdf/_step.py`: integration 8 flops, locating
+the cell about 8, three bilinear blends 27, the sweep test 6, the response about 30 with one
+square root and one division, the free-flight budget and the finiteness checks about 10: about
+90 scalar flops, 1 square root and 2 divisions. `python -m bench.step_asm` shows how it compiles:
+the step (`_block`) is 1,232 instructions with 111 branches, all scalar double arithmetic (153
+multiplies/adds, 5 divisions, 4 square roots on all paths; no ymm/zmm arithmetic and no gather
+instruction), with the sweep (`_march`, `_sweep`) out of line.
+
+- Throughput bound: about 90 flops at 3 to 4 scalar FP operations per cycle and about 25 loads at
+  3 per cycle give about 30-35 cycles per particle-step: 10-15 ns at 2.25-3.5 GHz, so 70-100 M
+  particle-steps/s per core, 140-200 M on this machine's two cores.
+- Latency bound: one step is a dependent chain of about 130 cycles when the grid lines are in L1/L2
+  (load 5, integrate 8, locate about 20, grid load 14, blends 18, response with its square root
+  and division about 55, store) and about 165 from L3. Out-of-order execution overlaps particles
+  only as far as its window reaches: about 200-250 instructions per contact step against a
+  window of about 320 leaves 1.3-1.5 particles in flight, about 100 cycles per particle-step: about
+  30 M particle-steps/s per core, 60-70 M on two cores. That is what the settled step measures on a
+  quiet machine (55-65 M, ANCHORS.md; Taichi's shorter loop 63-71 M), and the ratios in the table
+  above (fastsdf 0.8-0.95 of Taichi's rate on this loaded machine).
+- So 2x Taichi (about 140 M/s) needs the throughput bound, i.e. several particles' chains
+  interleaved in one instruction stream (SIMD lanes with gathers, or software pipelining). LLVM
+  does not do it for this loop: a branch-free version of the contact step (selects instead of
+  branches, no calls) still compiled with no gathers and no vector arithmetic. Levers measured
+  while developing this and not kept: a branch-free response (it must load `cr, cf` every step;
+  slower), prefetching the grid cell a few particles ahead (a small gain per call while settled,
+  a large loss in free flight). Kept: `_query`/`_respond` inlined; validation fused into the step
+  (no separate pass over `m, r, cr, cf`; those three are re-read only at the first call after
+  they were handed out through `p`); `1/m` once per call. Not done: re-sorting particles by grid
+  cell (it reorders the user's arrays and needs a permutation layer) and explicit SIMD (numba
+  intrinsics for masked gathers).
+"""
 
 
 _FIRST_CALL = r"""
@@ -457,7 +496,7 @@ import numpy as np, fastsdf as sdf, fastsdf.particles as phys
 t1 = time.perf_counter()
 rng = np.random.default_rng(int(sys.argv[1]) if len(sys.argv) > 1 else {seed})
 w = sdf.Halfspace([0, 1], -1.8) | sdf.Circle(list(rng.uniform(-1, 1, 2)), 0.3 + 0.2 * rng.random())
-g = sdf.GridSDF(w, bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
+g = sdf.GridSDF(w, bounds=[(-{half}, {half}), (-{half}, {half})], samples=[400j, 400j])
 t2 = time.perf_counter()
 sim = phys.ParticleSimulation(g, n=100_000, seed=0)
 sim.force_generators.append(phys.Gravity())
@@ -489,15 +528,16 @@ def _first_call_rows() -> list:
     cache = tempfile.mkdtemp(prefix="fastsdf_first_")
     env = {"FASTSDF_CACHE_DIR": cache}
     seed = int(time.time())
-    cold = [float(v) for v in run_fresh_process(_FIRST_CALL.format(seed=seed), env).split()]
-    warm = [float(v) for v in run_fresh_process(_FIRST_CALL.format(seed=seed + 1), env).split()]
-    again = [float(v) for v in run_fresh_process(_FIRST_CALL.format(seed=seed + 1), env).split()]
-    rows = [["empty kernel cache (a fresh installation)", f"{cold[0]:.2f} s", f"{cold[1]:.2f} s",
-             f"{cold[2]:.2f} s"],
-            ["new scene, kernels of the installation cached", f"{warm[0]:.2f} s",
-             f"{warm[1]:.2f} s", f"{warm[2]:.2f} s"],
-            ["same scene again (everything cached)", f"{again[0]:.2f} s", f"{again[1]:.2f} s",
-             f"{again[2]:.2f} s"]]
+    def fresh(seed, half=2):
+        code = _FIRST_CALL.format(seed=seed, half=half)
+        return [f"{float(v):.2f} s" for v in run_fresh_process(code, env).split()]
+
+    rows = [["empty kernel cache (a fresh installation)"] + fresh(seed),
+            ["new scene, kernels of the installation cached; particles reach the grid's edge"]
+            + fresh(seed + 1),
+            ["new scene, kernels cached; grid bounds +-3 (no particle near the edge)"]
+            + fresh(seed + 2, half=3),
+            ["same scene again (everything cached)"] + fresh(seed + 1)]
     peers_rows = []
     for label, flag in (("cold (offline cache off)", False), ("warm (offline cache)", True)):
         try:
@@ -511,8 +551,13 @@ def _first_call_rows() -> list:
         "particles: the time to import, to build the grid (it compiles the scene), and from "
         "constructing the simulation to the end of its first `run(1)`. The grid kernel does "
         "not depend on the scene (the exact fallback outside the grid is bound at run time), "
-        "so with the installation's kernels cached a new scene only compiles its small "
-        "fallback function. Taichi: its fused kernel's first call (`ti.init` included).", "",
+        "so with the installation's kernels cached a new scene compiles nothing until a "
+        "particle comes near the grid's edge; then the scene's exact fallback (its per-point "
+        "function wrapped as a C function) is compiled once. The notebook's initial state "
+        "(`x ~ N([0, 1.5], 0.05)`) puts some of 100,000 particles near the top edge of a "
+        "+-2 grid at once, so the second row pays that compilation in its first call; with "
+        "+-3 bounds it does not. Taichi: its fused kernel's first call (`ti.init` included).",
+        "",
         table(["case", "import", "grid build", "first run(1)"], rows + peers_rows), ""]
 
 
@@ -565,7 +610,18 @@ def _splice_peers(n: int, reps: int) -> str:
 
 if __name__ == "__main__":  # pragma: no cover
     import sys
-    if "--peers" in sys.argv:
+    if "--first-call" in sys.argv:
+        # Re-run only the first-call table and put it in place of the one in particles.md.
+        path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+                            "particles.md")
+        text = open(path, encoding="utf-8").read()
+        head = text.split("### First call of a grid-world simulation", 1)[0]
+        new_rows = "\n".join(_first_call_rows())
+        with open(path, "w", encoding="utf-8") as fh:
+            fh.write(head + new_rows.replace("\n\n", "\n\n" + stamp(
+                "python -m bench.bench_particles --first-call") + "\n\n", 1) + "\n")
+        print(new_rows)
+    elif "--peers" in sys.argv:
         print(_splice_peers(int(os.environ.get("BENCH_N", 1_000_000)),
                             int(os.environ.get("BENCH_REPS", 5))))
     else:

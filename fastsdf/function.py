@@ -33,6 +33,9 @@ PARALLEL_MIN_POINTS = 4096
 PRUNE_MIN_POINTS = 65536
 PRUNE_MIN_OPERANDS = 32
 PRUNE_MAX_FRACTION = 0.5
+#: ... and where points x operands reach this (below it, building the plan costs more than it
+#: saves in one call).
+PRUNE_MIN_WORK = 5_000_000
 #: Tiles per side of a pruning plan.
 PRUNE_TILES = 32
 
@@ -154,9 +157,12 @@ class CompiledSDF:
             return None
         if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
             return None
-        if not self.groups or (not prune and sum(len(g["members"]) for g in self.groups)
-                               < PRUNE_MIN_OPERANDS):
+        operands = sum(len(g["members"]) for g in self.groups or ())
+        if not operands or (not prune and (operands < PRUNE_MIN_OPERANDS
+                                           or operands * count < PRUNE_MIN_WORK)):
             return None
+        if not prune and tol is None and all(g["op"] in ("smin", "smax") for g in self.groups):
+            return None  # exponential chains at half an ulp: next to nothing to drop
         bounds = snap_bounds(xs, ys) if bounds is None else bounds
         if bounds is None:
             return None
