@@ -123,7 +123,7 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     for needle in ("world: boxes", "45 steps", "1.50 s of simulated time", "M particle-steps/s",
                    "for comparison", "--world seed"):
         assert needle in text, needle
-    assert ("inside the grid" in text) != exact
+    assert ("were inside the grid (bilinear queries)" in text) != exact
     img = imread(res.last_frame)[..., :3]
     world = box_world(20, seed=0)
     probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
@@ -170,6 +170,7 @@ def test_notebook_example_runs_every_cell(tmp_path):
     ("raymarch", ["raymarch.png"]),
     ("custom_force", ["custom_force.png"]),
     ("save_video", ["particles.mp4"]),
+    ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
 ])
 def test_examples_run_at_small_size(tmp_path, name, outputs):
     env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")
