@@ -24,6 +24,8 @@ SECTIONS = [
     ("grid", "bench.bench_grid", "GridSDF: build, memory, query speed and error vs resolution"),
     ("particles", "bench.bench_particles",
      "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
+    ("params", "bench.bench_params",
+     "runtime parameters: cost against constants; a 300-frame moving scene, compiles and speed"),
     ("prune", "bench.bench_prune",
      "pruning per tile: hard unions of many shapes, exponential box worlds (tol), seed world"),
     ("band", "bench.bench_band",

@@ -10,6 +10,7 @@ positive outside, in the units of the coordinates; all arithmetic is float64.
 
 __version__ = "0.1.0"
 
+from .graph import Param, t  # noqa: E402  (runtime parameters and time)
 from .graph import (Expr, Function, Symbol, sym_abs, sym_cos, sym_exp, sym_length,  # noqa: E402
                     sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt)
 from .shapes import (SDF, Box, Circle, Difference, Halfspace, Intersection, Union,  # noqa: E402
@@ -23,7 +24,7 @@ from .plotting import plot_sdf  # noqa: E402
 
 __all__ = [
     "__version__",
-    "Expr", "Function", "Symbol",
+    "Expr", "Function", "Symbol", "Param", "t",
     "sym_abs", "sym_cos", "sym_exp", "sym_length", "sym_log", "sym_max", "sym_min", "sym_sin",
     "sym_smax", "sym_smin", "sym_sqrt",
     "SDF", "Box", "Circle", "Difference", "Halfspace", "Intersection", "Union",

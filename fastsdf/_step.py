@@ -25,6 +25,22 @@ Everything between the ``SCENE BLOCK`` marker comments is replaced. It must defi
 ``_force(x, y, vx, vy, m, t) -> (fx, fy)`` and ``USE_FORCE``
     the sum of the fused user forces (mass * length / s**2) at one particle and time ``t``;
     ``USE_FORCE = False`` when there are none (then ``m`` is not read for it).
+``MOVING``, ``_query_t(data, x, y, t) -> (d, dd/dx, dd/dy, dd/dt)`` and ``_wall_speed(data)``
+    for a world that moves (uses time): its distance at time ``t`` with the time derivative,
+    and a bound on ``|dd/dt|`` (length/s; how fast any surface can approach a particle). A
+    static world sets ``MOVING = False``, ``dd/dt = 0`` and a wall speed of 0.
+
+Moving worlds
+-------------
+The step evaluates a moving world at the end of the step (``t + dt``). The response uses the
+velocity relative to the wall: the surface's normal speed is ``w = -dd/dt / |grad d|`` (along
+the outward normal), the relative normal velocity ``v_n - w`` reflects with ``cr`` and the
+tangential velocity keeps ``(1 - cf)`` of itself (an SDF does not say how a surface slides
+along itself, so the wall's tangential velocity is taken as zero). Distance budgets and the
+tunnelling sweep use the wall speed bound ``W``: in one step the distance to a surface can
+shrink by ``lip |D| + W dt``, so the sweep marches in space-time (:func:`_march_t`) with that
+rate, and a particle at rest is swept when the walls move more than ``TRACE_FRACTION r`` in a
+step.
 
 Sampler protocol (what a grid type provides so a grid world plugs in)
 --------------------------------------------------------------------
@@ -213,6 +229,22 @@ def _fallback_missing(data, x, y, dx, dy):
     """Whether a step from (x, y) by (dx, dy) may query where the world is not available yet
     (never in the test world)."""
     return False
+
+
+MOVING = False
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _query_t(data, x, y, t):
+    """(d, dd/dx, dd/dy, dd/dt) at time t: the test world does not move."""
+    d, gx, gy = _query(data, x, y)
+    return d, gx, gy, 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _wall_speed(data):
+    """A bound on |dd/dt| (the test world does not move)."""
+    return 0.0
 # <<< SCENE BLOCK <<<
 
 
@@ -220,7 +252,7 @@ def _fallback_missing(data, x, y, dx, dy):
 # The step's parts.
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always):
+def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
     """Collision response of a disc whose surface distance is ``s = d - r <= 0`` (House and
     Keyser): ``x -= (1 + cr) s n`` and, when approaching (``v . n < 0``) or ``always``,
     ``v = -cr v_n + (1 - cf) v_t``, with ``n = grad / |grad|``. A zero or non-finite gradient
@@ -228,6 +260,9 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always):
 
     Written with selects rather than branches, so that a block of particles can share one
     instruction stream.
+
+    A moving wall (``gt = dd/dt``) has normal speed ``w = -gt / |grad|``: the relative normal
+    velocity ``v_n - w`` is what approaches and reflects (``v_n -> w - cr (v_n - w)``).
     """
     gl2 = gx * gx + gy * gy
     ok = gl2 > 0.0 and gl2 < math.inf
@@ -238,11 +273,13 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always):
     x -= k * nx
     y -= k * ny
     vn = vx * nx + vy * ny
-    resp = ok and (vn < 0.0 or always)
+    wn = -gt * inv                    # the wall's normal speed (0 for a static world)
+    vr = vn - wn
+    resp = ok and (vr < 0.0 or always)
     w = 1.0 - cf if resp else 1.0     # tangential factor
-    c = cr if resp else -1.0          # normal component becomes -c vn (unchanged for c = -1)
-    vx = w * (vx - vn * nx) - c * vn * nx
-    vy = w * (vy - vn * ny) - c * vn * ny
+    c = cr if resp else -1.0          # relative normal velocity becomes -c vr (same for c = -1)
+    vx = w * (vx - vn * nx) + (wn - c * vr) * nx
+    vy = w * (vy - vn * ny) + (wn - c * vr) * ny
     return x, y, vx, vy
 
 
@@ -335,6 +372,88 @@ def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1):
     return x, y, dx, dy, vx, vy, bounced
 
 
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _march_t(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
+    """:func:`_march` in space-time, for a moving world: the disc moves from (x0, y0) along
+    (dx, dy) while time runs from ``ts`` over ``tdt``; ``wd = W tdt`` bounds how much the
+    surfaces move meanwhile. Along the path the distance changes at most at the rate
+    ``lip |D| + wd`` per unit of the parameter, which sets the sphere-tracing step; a contact
+    approaches when ``d`` decreases along the path (``grad . D + dd/dt tdt < 0``). Returns
+    (t, hit, s, nx, ny, wn), ``wn`` the wall's normal speed at the contact.
+    """
+    length = math.sqrt(dx * dx + dy * dy) + wd / lip   # distance-equivalent length of the step
+    inv_len = 1.0 / length
+    tol = CONTACT_TOL * length
+    short = TRACE_FRACTION * r * inv_len
+    far = inv_len / lip
+    leave = max(short, MIN_STEP)
+    if t >= t_free:
+        return 1.0, 0, 0.0, 0.0, 0.0, 0.0
+    for _ in range(MAX_MARCH):
+        d, gx, gy, gt = _query_t(data, x0 + t * dx, y0 + t * dy, ts + t * tdt)
+        s = d - r
+        if s > tol:
+            t += max(s * far, short)
+        elif gx * dx + gy * dy + gt * tdt < 0.0:      # in contact and approaching
+            gl = math.sqrt(gx * gx + gy * gy)
+            if gl > 0.0 and gl < math.inf:
+                return t, 1, s, gx / gl, gy / gl, -gt / gl
+            t += leave
+        elif s == s:
+            t += leave
+        else:
+            return 1.0, 0, 0.0, 0.0, 0.0, 0.0
+        if t >= t_free:
+            return 1.0, 0, 0.0, 0.0, 0.0, 0.0
+    return t, 2, 0.0, 0.0, 0.0, 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _sweep_t(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt, wd):
+    """:func:`_sweep` for a moving world (see :func:`_march_t`): at a contact the remaining
+    displacement reflects off the wall where it will be, and the velocity relative to the
+    wall reflects. Same returns as :func:`_sweep`."""
+    bounced = False
+    for b in range(MAX_BOUNCES):
+        t, hit, s, nx, ny, wn = _march_t(data, x, y, dx, dy, r, lip, t0, t1, ts, tdt, wd)
+        t0 = 0.0
+        t1 = 1.0
+        if hit == 0:
+            break
+        x += t * dx
+        y += t * dy
+        ts += t * tdt
+        tdt *= 1.0 - t
+        wd *= 1.0 - t
+        if hit == 2:
+            return x, y, 0.0, 0.0, vx, vy, True
+        rx = (1.0 - t) * dx
+        ry = (1.0 - t) * dy
+        # end point's depth below the contact's tangent line, moved with the wall until the end
+        pen = s + rx * nx + ry * ny - wn * tdt
+        if pen < 0.0:
+            rx -= (1.0 + cr) * pen * nx
+            ry -= (1.0 + cr) * pen * ny
+        vn = vx * nx + vy * ny
+        vr = vn - wn
+        if vr < 0.0 or (always and not bounced):
+            f = 1.0 - cf
+            vx = f * (vx - vn * nx) + (wn - cr * vr) * nx
+            vy = f * (vy - vn * ny) + (wn - cr * vr) * ny
+        bounced = True
+        if b == MAX_BOUNCES - 1:
+            return x, y, 0.0, 0.0, vx, vy, bounced
+        dx = rx
+        dy = ry
+        rr = math.sqrt(dx * dx + dy * dy) + wd / lip
+        short = TRACE_FRACTION * r
+        if rr <= short:
+            break
+        if rx * nx + ry * ny - wn * tdt >= 0.0:
+            t0 = max(short, MIN_STEP * rr) / rr
+    return x, y, dx, dy, vx, vy, bounced
+
+
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _valid_input(x, y, vx, vy, r, m, use_m):
     """Whether a particle's loaded state may be stepped (cr, cf are checked at contacts)."""
@@ -362,6 +481,8 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     """
     data = borrow_all(data)
     clear = np.zeros(hi - lo)
+    # A moving world: its surfaces move by at most wd per step (0 for a static world).
+    wd = _wall_speed(data) * dt if MOVING else 0.0
     use_m = use_m or USE_FORCE
     # 1 / m of the block, computed once per call rather than divided every step
     inv_mass = np.empty(hi - lo if use_m else 0)
@@ -421,7 +542,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 # (1 + CONTACT_TOL / lip): a skipped step must also be one whose sweep would
                 # not have stopped at a near-contact (s <= CONTACT_TOL |step|).
                 c -= (math.sqrt(dx * dx + dy * dy) * (1.0 + CONTACT_TOL / lip)
-                      + eps * (abs(x) + abs(y) + 1.0))
+                      + eps * (abs(x) + abs(y) + 1.0) + wd / lip)
                 if c > 0.0:
                     x += dx
                     y += dy
@@ -443,15 +564,26 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 FLAGS[i] = FLAG_RESUME + step
                 bad += 1
                 continue
-            d, gx, gy = _query(data, x + dx, y + dy)
+            gt = 0.0
+            if MOVING:
+                d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
+            else:
+                d, gx, gy = _query(data, x + dx, y + dy)
             s = d - r
             bounced = False
             if trace:
                 dd = dx * dx + dy * dy
+                ln = 0.0
                 # Sweep only a step longer than TRACE_FRACTION * r whose end is not clear of
-                # everything by the step's length (then no wall can lie across the step).
-                if dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
-                        s * s >= lip * lip * dd and s > 0.0):
+                # everything by the step's length (then no wall can lie across the step); for
+                # a moving world the length includes how far the walls move (wd / lip).
+                if MOVING:
+                    ln = math.sqrt(dd) + wd / lip
+                    sweep = ln > TRACE_FRACTION * r and not (s >= lip * ln and s > 0.0)
+                else:
+                    sweep = dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
+                        s * s >= lip * lip * dd and s > 0.0)
+                if sweep:
                     cr = float(CR[i])
                     cf = float(CF[i])
                     if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
@@ -462,12 +594,21 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     # The part within s / L of the end is known to be free. (The start's
                     # budget is not used: results must not depend on how steps are grouped
                     # into calls.)
-                    t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
-                    x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, vx, vy, r, cr,
-                                                           cf, lip, always, 0.0, t1)
-                    if bounced:
-                        d, gx, gy = _query(data, x + dx, y + dy)
-                        s = d - r
+                    if MOVING:
+                        t1 = 1.0 - s / (lip * ln) if s > 0.0 else 1.0
+                        x, y, dx, dy, vx, vy, bounced = _sweep_t(
+                            data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, 0.0, t1, t, dt,
+                            wd)
+                        if bounced:
+                            d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
+                            s = d - r
+                    else:
+                        t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
+                        x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, vx, vy, r,
+                                                               cr, cf, lip, always, 0.0, t1)
+                        if bounced:
+                            d, gx, gy = _query(data, x + dx, y + dy)
+                            s = d - r
             x += dx
             y += dy
             if s <= 0.0:
@@ -478,7 +619,8 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     FLAGS[i] = FLAG_COEFF
                     bad += 1
                     continue
-                x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always and not bounced)
+                x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always and not bounced,
+                                        gt)
             elif skip and s > margin:
                 clear[k] = (s - margin) / lip * (1.0 - 1e-9)
             if not (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf

@@ -81,3 +81,53 @@ def check_length(size: float, name: str, shown=None) -> None:
         shown = size if shown is None else shown
         raise ValueError(f"{name} must be between {MIN_LENGTH:g} and {MAX_COORD:g} in "
                          f"magnitude ({_RANGE}), got {name}={shown!r}")
+
+
+# Runtime parameters (fastsdf.graph.Param) are accepted wherever a scene takes a number: the
+# checks run on the value the expression has at the parameters' defaults (values set later are
+# the caller's responsibility), and the shape bookkeeping treats such a number as unknown.
+
+def _param_value(expr, name: str) -> float:
+    """The value of a parameter expression at its parameters' defaults (it must not depend on
+    the coordinates)."""
+    from .graph import evaluate_numpy
+    if expr.syms:
+        raise ValueError(f"{name} must be a number or an expression of parameters, got one of "
+                         f"the coordinates {sorted(expr.syms)}: {name}={expr}")
+    return float(evaluate_numpy(expr, {"_": np.zeros(1)})[0])
+
+
+def is_param(value) -> bool:
+    """Whether ``value`` is an expression (of parameters) rather than a number."""
+    from .graph import Expr
+    return isinstance(value, Expr) and value.op != "const"
+
+
+def real_or_param(value, name: str):
+    """``(value, number)``: ``value`` as a float (checked like :func:`real`) or an expression of
+    parameters, and the number to check ranges on (the expression at the defaults)."""
+    from .graph import Expr
+    if isinstance(value, Expr):
+        if value.op == "const":
+            v = real(value.attr, name)
+            return v, v
+        number = _param_value(value, name)
+        if not math.isfinite(number):
+            raise ValueError(f"{name} must be finite, got {name}={value} = {number!r} at the "
+                             f"parameters' defaults")
+        return value, number
+    v = real(value, name)
+    return v, v
+
+
+def vec2_or_param(value, name: str):
+    """``(pair, numbers)``: a pair whose components may be expressions of parameters (else the
+    float64 array of :func:`vec2`), and the float64 array of its values at the defaults."""
+    from .graph import Expr
+    if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
+        if len(value) != 2:
+            raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
+        parts = [real_or_param(v, name) for v in value]
+        return tuple(p[0] for p in parts), np.array([p[1] for p in parts])
+    arr = vec2(value, name)
+    return arr, arr

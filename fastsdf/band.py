@@ -339,6 +339,12 @@ class NarrowBandGridSDF:
         if not isinstance(f, Function):
             raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
                             f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
+        if f.time_dependent:   # as GridSDF: a sampled scene does not move
+            raise ValueError("f depends on time (sdf.t): a narrow band samples a scene that "
+                             "does not move; give a moving scene to the simulation as it is, "
+                             "or sample a snapshot f.frozen(t=...)")
+        if f.params:
+            f = f.frozen()  # a snapshot at the current parameter values
         self.exact = f
         self.bounds = _check_bounds(bounds)
         self.band = _positive(band, "band")

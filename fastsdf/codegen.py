@@ -35,7 +35,7 @@ from typing import Sequence
 
 from . import __version__
 from ._simd import block_source, vectorizable, vmath_import
-from .graph import Expr, topological_order
+from .graph import Expr, parameters, topological_order
 from .ops import OPS, lit
 
 __all__ = ["generate_module_source", "MIN_LOOP"]
@@ -200,11 +200,17 @@ class _Emitter:
     #: gradient variables (``v3x`` is dv3/dx).
     COMPONENTS = ("x", "y")
 
-    def __init__(self, symbol_names, grad: bool, tables: dict):
+    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False):
         self.grad = grad
+        if time:  # also carry d/dt: a third forward-mode component, seeded by the time t
+            self.COMPONENTS = self.COMPONENTS + ("t",)
         n = len(self.COMPONENTS)
         self.syms = {name: _Val(var, tuple("1.0" if j == i else None for j in range(n)))
                      for i, (name, var) in enumerate(zip(symbol_names, self.COMPONENTS))}
+        # Parameters are read from the argument tuple prm once per call (bound to _p<i>); the
+        # time is the argument t.
+        self.params = {name: _Val(f"_p{i}") for i, name in enumerate(param_names)}
+        self.params["t"] = _Val("t", (None, None, "1.0") if time else None)
         self.tables = tables  # shared across functions of one module: bytes -> name
         self.lines: list[str] = []
         self.n = 0
@@ -323,12 +329,18 @@ class _Emitter:
         (a literal, or a table element indexed by the loop variable)."""
         vals: list[_Val] = []
         for node, refs in steps:
-            if node.op == "sym":
-                vals.append(self.syms[node.attr])
+            if node.op in ("sym", "param"):
+                vals.append(self.leaf(node))
                 continue
             args = [_Val(consts[j]) if kind == "c" else vals[j] for kind, j in refs]
             vals.append(self.op(body, node, args))
         return vals[-1]
+
+    def leaf(self, node: Expr) -> _Val:
+        """A coordinate symbol or a parameter."""
+        if node.op == "sym":
+            return self.syms[node.attr]
+        return self.params[node.attr[0]]
 
     def table(self, rows: list) -> str:
         arr = np.asarray(rows, dtype=np.float64)
@@ -420,8 +432,8 @@ class _Emitter:
         deps, items = plan
         if node.op == "const":
             return _Val(_lit(node.attr))
-        if node.op == "sym":
-            return self.syms[node.attr]
+        if node.op in ("sym", "param"):
+            return self.leaf(node)
         if items is None:
             return self.op(self.lines, node, [done[id(a)] for a in node.args])
         chain_items = []
@@ -457,7 +469,7 @@ from fastsdf._intrinsics import select as _sel
 
 _POINT_TEMPLATE = '''
 @njit(cache=True, nogil=True, error_model="numpy")
-def {name}(x, y):
+def {name}(x, y{pargs}):
     """{doc}"""
     if not (math.isfinite(x) and math.isfinite(y)):
         return {nan_return}
@@ -472,6 +484,39 @@ def {name}({args}):
 {body}
     return {ret}
 '''
+
+# The parallel kernels walk the points in groups of LANES through the multi-lane function:
+# each point's work is one long dependency chain (exp -> log -> next blend), and interleaving
+# independent chains lets the CPU overlap them. Non-finite points are evaluated at the origin
+# and overwritten; the last group repeats the final point. The serial kernels (small inputs) use
+# the one-point function, which compiles in about half the time.
+_BATCH_TEMPLATE = '''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _batch_{kind}(xs, ys, out, {grad}{pa}start, stop, n):
+    for p in range(start, stop):
+        i = {lanes} * p
+{gather}
+        {results} = lanes_{kind}({args})
+{scatter}
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def batch_{kind}_par(xs, ys, out, {grad}{pa}chunks):
+    n = xs.shape[0]
+    groups = (n + {lanes_minus_1}) // {lanes}
+    chunks = max(1, min(groups, chunks))
+    for c in prange(chunks):
+        _batch_{kind}(xs, ys, out, {grad}{pa}c * groups // chunks, (c + 1) * groups // chunks, n)
+
+
+@njit(cache=True, error_model="numpy")
+def batch_{kind}_ser(xs, ys, out, {grad}{pa}):
+    for i in range(xs.shape[0]):
+        {single} = point_{kind}(xs[i], ys[i]{pargs})
+{single_store}
+'''
+
 
 _TILES_TEMPLATE = '''
 
@@ -490,14 +535,22 @@ def tiles_{kind}_par(xs, ys, out, {grad}order, starts, act, offs):
 '''
 
 
-def _kernels_source(lanes_of: dict, groups: bool = False) -> str:
-    """Tile kernels for each kind, with that kind's number of lanes: with loop groups, the
-    lanes functions take row lists, and the tile kernels (points sorted by tile,
-    ``order[starts[t]:starts[t + 1]]`` in tile ``t``) pass each tile's pruned lists. (The batch
-    kernels over all points are the block kernels of :mod:`fastsdf._simd`.)"""
+#: The outputs of each kind of function: value; value and gradient; value, gradient and dd/dt.
+_RESULTS = {"v": ("d",), "vg": ("d", "gx", "gy"), "vgt": ("d", "gx", "gy", "gt")}
+_OUTPUTS = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
+
+
+def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = False) -> str:
+    """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
+    shorter than the gradient body, so the two may differ). With loop groups, the lanes
+    functions take row lists: the batch kernels pass all rows, and the tile kernels (points
+    sorted by tile, ``order[starts[t]:starts[t + 1]]`` in tile ``t``) pass each tile's lists.
+    Kernels of a scene with parameters take time ``t`` and the parameter tuple ``prm`` after
+    the output arrays (such scenes are not pruned: no tile kernels)."""
     parts = []
-    for kind in ("v", "vg"):
-        lanes = lanes_of[kind]
+    pa, pargs = ("t, prm, ", ", t, prm") if parametric else ("", "")
+    for kind, lanes in lanes_of.items():
+        names = _RESULTS[kind]
         gather, args, scatter, results = [], [], [], []
         for k in range(lanes):
             gather += [f"        j{k} = min(i + {k}, n - 1)",
@@ -508,24 +561,35 @@ def _kernels_source(lanes_of: dict, groups: bool = False) -> str:
                        f"            x{k} = 0.0",
                        f"            y{k} = 0.0"]
             args.append(f"x{k}, y{k}")
-            if kind == "v":
-                results.append(f"d{k}")
-            else:
-                results += [f"d{k}", f"gx{k}", f"gy{k}"]
+            results += [f"{r}{k}" for r in names]
         for k in reversed(range(lanes)):  # lane 0 last: a repeated final point stays correct
             if kind == "v":
                 scatter.append(f"        out[j{k}] = d{k} if ok{k} else math.nan")
             else:
                 scatter += [f"        if not ok{k}:",
-                            f"            d{k} = gx{k} = gy{k} = math.nan",
+                            f"            {' = '.join(r + str(k) for r in names)} = math.nan",
                             f"        out[j{k}] = d{k}",
                             f"        grad[j{k}, 0] = gx{k}",
                             f"        grad[j{k}, 1] = gy{k}"]
-        if groups:
+                if kind == "vgt":
+                    scatter.append(f"        dt[j{k}] = gt{k}")
+        single = ", ".join(names)
+        stores = {"d": "out[i] = d", "gx": "grad[i, 0] = gx", "gy": "grad[i, 1] = gy",
+                  "gt": "dt[i] = gt"}
+        single_store = "\n".join("        " + stores[r] for r in names)
+        all_args = ", ".join(args + (["_ACTG, _OFFG"] if groups else [])) + pargs
+        src = _BATCH_TEMPLATE.format(
+            kind=kind, grad=_OUTPUTS[kind], pa=pa, pargs=pargs, lanes=lanes,
+            lanes_minus_1=lanes - 1, gather="\n".join(gather), args=all_args,
+            results=", ".join(results), scatter="\n".join(scatter), single=single,
+            single_store=single_store)
+        parts.append(src.replace("out, grad, )", "out, grad)").replace("out, )", "out)")
+                     .replace("dt, )", "dt)").replace("prm, )", "prm)"))
+        if groups and not parametric:
             tile_gather = [re.sub(r"min\(i \+ (\d+), n - 1\)", r"order[min(p + \1, stop - 1)]",
                                   line) for line in gather]
             parts.append(_TILES_TEMPLATE.format(
-                kind=kind, grad="grad, " if kind == "vg" else "", lanes=lanes,
+                kind=kind, grad=_OUTPUTS[kind], lanes=lanes,
                 gather="\n".join(tile_gather), args=", ".join(args),
                 results=", ".join(results), scatter="\n".join(scatter)))
     return "".join(parts)
@@ -581,14 +645,22 @@ def _as_float(expr: str) -> str:
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
 
 
-def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, vmath: bool = True):
+def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_names=None,
+                     time: bool = False, vmath: bool = True):
     """Sources of the one-point function and of the multi-lane function for the batch kernels;
-    also returns the number of lanes."""
-    em = _Emitter(symbol_names, grad, tables)
+    also returns the number of lanes. ``param_names`` (None for a scene without parameters):
+    the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
+    ``time``: also return dd/dt (the ``vgt`` functions)."""
+    em = _Emitter(symbol_names, grad or time, tables, param_names or (), time)
     res = em.emit(root)
-    if grad:
+    if grad or time:
         results = [_as_float(res.v)] + [_as_float(_zero(c))
                                         for c in res.grads(len(em.COMPONENTS))]
+    if time:
+        single = ("point_vgt", "Value, gradient and time derivative (d, dd/dx, dd/dy, dd/dt) "
+                  "at one point.", "math.nan, math.nan, math.nan, math.nan")
+        multi = ("lanes_vgt", "Value, gradient and time derivative")
+    elif grad:
         single = ("point_vg", "Value and gradient (d, dd/dx, dd/dy) at one point.",
                   "math.nan, math.nan, math.nan")
         multi = ("lanes_vg", "Value and gradient")
@@ -602,14 +674,18 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, vmath: 
     # numba lowers every reference to a global array as its own constant: bind each table to
     # a local once, so a table is embedded once per function however often the loop reads it.
     used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
-    em.lines[:0] = [f"{name} = {name}G" for name in used]
+    binds = [f"{name} = {name}G" for name in used]
+    # Parameters: read once per call from the tuple (passed by value: no reference counting).
+    binds += [f"_p{i} = prm[{i}]" for i in range(len(param_names or ()))]
+    em.lines[:0] = binds
+    pargs = ", t, prm" if param_names is not None else ""
     # The one-point function iterates every row of every group; the multi-lane one takes the
     # row lists as arguments (all rows, or a tile's pruned lists).
     all_rows = ["_act = _ACTG", "_off = _OFFG"] if em.groups else []
     body = "\n".join("    " + line for line in all_rows + em.lines) or "    pass"
-    one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body,
+    one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
                                  ret=", ".join(results), nan_return=single[2])
-    bind, rest = em.lines[:len(used)], em.lines[len(used):]
+    bind, rest = em.lines[:len(binds)], em.lines[len(binds):]
     if lanes == 1:  # nothing to interleave: rename the whole body at once
         body_n = "\n".join("    " + line for line in bind) + "\n" + \
             _lane("\n".join("    " + line for line in rest), 0) if rest else \
@@ -618,10 +694,21 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, vmath: 
         body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
     many = _LANES_TEMPLATE.format(
         name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
-        args=", ".join([f"x{k}, y{k}" for k in range(lanes)] + (["_act, _off"] if em.groups else [])),
+        args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
+                       + (["_act, _off"] if em.groups else [])) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
-    block = block_source(rest, results, "vg" if grad else "v")
-    return one, many, lanes, em.groups, block
+    if param_names is None and not time:
+        one = (one, block_source(rest, results, "vg" if grad else "v"))
+    return one, many, lanes, em.groups
+
+
+def scene_parameters(root: Expr):
+    """``None`` for a scene without parameters, else the sorted names of its parameters other
+    than time (the order of the ``prm`` tuple the kernels take)."""
+    names = parameters(root)
+    if not names:
+        return None
+    return tuple(sorted(n for n in names if n != "t"))
 
 
 def generate_module_source(root: Expr, symbol_names: Sequence[str],
@@ -637,13 +724,28 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
     ``rows`` (their shared template and constants), ``others`` (the chain's other operands))."""
     tables: dict = {}
-    v_one, v_many, lanes_v, groups_v, v_block = _function_source(root, symbol_names, False,
-                                                                 tables, vmath)
-    vg_one, vg_many, lanes_vg, groups, vg_block = _function_source(root, symbol_names, True,
-                                                                   tables, vmath)
+    pn = scene_parameters(root)
+    v_one, v_many, lanes_v, groups_v = _function_source(root, symbol_names, False, tables, pn,
+                                                        vmath=vmath)
+    vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
+                                                         vmath=vmath)
+    # Scenes without parameters: the batch kernels are the SIMD block kernels of
+    # fastsdf._simd (defined last, they replace the multi-lane batch kernels of the same name).
+    blocks = []
+    if isinstance(v_one, tuple):
+        (v_one, v_block), (vg_one, vg_block) = v_one, vg_one
+        blocks = [v_block, vg_block]
     assert [len(g["members"]) for g in groups_v] == [len(g["members"]) for g in groups]
-    funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many,
-             "block_v": v_block, "block_vg": vg_block}
+    funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many}
+    lanes_of = {"v": lanes_v, "vg": lanes_vg}
+    if pn is not None:
+        # A scene with parameters: functions (x, y, t, prm) and a third kind with dd/dt.
+        # Parameter values never appear in the source: scenes that differ only in them share
+        # one module.
+        vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(root, symbol_names, True,
+                                                                 tables, pn, time=True,
+                                                                 vmath=vmath)
+        funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
                             expr=_short(root).replace('"""', "\'\'\'").replace("\\", "\\\\"))]
@@ -658,11 +760,12 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
         parts.append("_ACTG = np.concatenate((" + "".join(
             f"np.arange({n}), " for n in sizes) + ")).astype(np.int64)\n"
             f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n")
+    parts.extend(funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt")
+                 if k in funcs)
+    parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
     if vmath:
         parts.append(vmath_import())
-    parts.extend([v_one, vg_one, v_many, vg_many,
-                  _kernels_source({"v": lanes_v, "vg": lanes_vg}, bool(groups)),
-                  v_block, vg_block])
+    parts.extend(blocks)
     return "\n".join(parts), funcs, groups
 
 

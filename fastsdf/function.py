@@ -9,6 +9,10 @@ which imports it (``fastsdf.graph.Function`` resolves here lazily).
 
 from __future__ import annotations
 
+import copy
+import math
+import numbers
+
 import numba
 import numpy as np
 from typing import Any, Sequence
@@ -16,9 +20,9 @@ from types import ModuleType
 from numpy.typing import ArrayLike
 
 from ._cache import load_module
-from .codegen import generate_module
+from .codegen import generate_module, scene_parameters
 from .prune import PrunePlan, bin_points, make_plan, snap_bounds
-from .graph import Expr, _to_str, as_expr
+from .graph import Expr, _to_str, as_expr, parameters, substitute_params
 
 __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS"]
 
@@ -76,6 +80,21 @@ class CompiledSDF:
         self._groups = None
         self._module = None
         self._plans: dict = {}
+        #: None for a scene without parameters; else the names of the parameters other than
+        #: time, in the order of the ``prm`` tuple the kernels take after ``t``.
+        self.param_names = scene_parameters(expr)
+
+    @property
+    def parametric(self) -> bool:
+        """Whether the kernels take ``(t, prm)`` (the scene has parameters or time)."""
+        return self.param_names is not None
+
+    def _kind(self, kind: str) -> str:
+        kind = _check_kind(kind)
+        if kind == "vgt" and not self.parametric:
+            raise ValueError("kind='vgt' (with dd/dt) exists only for scenes with parameters "
+                             "or time; a static scene's dd/dt is 0")
+        return kind
 
     @property
     def module_source(self) -> str:
@@ -92,9 +111,10 @@ class CompiledSDF:
         return self._groups
 
     def function_source(self, kind: str = "vg") -> str:
-        """Source of the per-point function: ``kind`` is ``'v'`` (value) or ``'vg'``."""
+        """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
+        scene with parameters, ``'vgt'`` (with dd/dt)."""
         self.module_source  # noqa: B018 - generates on demand
-        return self._functions[_check_kind(kind)]
+        return self._functions[self._kind(kind)]
 
     @property
     def module(self) -> ModuleType:
@@ -104,12 +124,13 @@ class CompiledSDF:
         return self._module
 
     def point_fn(self, kind: str = "vg") -> Any:
-        """The numba dispatcher of the per-point function (``point_v`` or ``point_vg``)."""
-        return getattr(self.module, "point_" + _check_kind(kind))
+        """The numba dispatcher of the per-point function (``point_v``, ``point_vg`` or
+        ``point_vgt``); a scene with parameters takes ``(x, y, t, prm)``."""
+        return getattr(self.module, "point_" + self._kind(kind))
 
     def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
-        """Batch kernel ``(xs, ys, out[, grad])`` over 1-d float64 arrays."""
-        return getattr(self.module, f"batch_{_check_kind(kind)}_{'par' if parallel else 'ser'}")
+        """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
+        return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
 
     def plan(self, bounds: ArrayLike, tiles: tuple | None = None,
              tol: float | None = None) -> PrunePlan:
@@ -133,6 +154,8 @@ class CompiledSDF:
         forces, False never. ``count``: the number of points the plan will serve (default
         ``len(xs)``)."""
         count = len(xs) if count is None else count
+        if self.parametric:  # interval bounds would need ranges of the parameters: not pruned
+            return None
         if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
             return None
         operands = sum(len(g["members"]) for g in self.groups or ())
@@ -167,11 +190,34 @@ class CompiledSDF:
         self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
 
     def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
-                 prune: bool | None = None, tol: float | None = None) -> Any:
-        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions."""
+                 prune: bool | None = None, tol: float | None = None, t: float = 0.0,
+                 params: tuple | None = None, time_derivative: bool = False) -> Any:
+        """Evaluate at points; see :class:`fastsdf.graph.Function` for the conventions.
+
+        For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other
+        parameters' values (``param_names`` order); ``time_derivative`` also returns dd/dt."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
+        if self.parametric:
+            prm = tuple(float(v) for v in (params or ()))
+            if len(prm) != len(self.param_names):
+                raise ValueError(f"params must hold {len(self.param_names)} values (for "
+                                 f"{list(self.param_names)}), got {params!r}")
+            parallel = n >= PARALLEL_MIN_POINTS
+            extra = (float(t), prm) + ((64 * numba.get_num_threads(),) if parallel else ())
+            kind = "vgt" if time_derivative else "vg" if compute_gradient else "v"
+            arrays = [out]
+            if kind != "v":
+                arrays.append(np.empty((n, 2)))
+            if kind == "vgt":
+                arrays.append(np.empty(n))
+            if n:
+                self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
+            if kind == "v":
+                return out.reshape(shape)
+            res = (out.reshape(shape), arrays[1].reshape(shape + (2,)))
+            return res + ((arrays[2].reshape(shape),) if kind == "vgt" else ())
         plan = self.pruned_plan(xs, ys, prune, tol)
         if compute_gradient:
             grad = np.empty((n, 2))
@@ -182,8 +228,8 @@ class CompiledSDF:
 
 
 def _check_kind(kind: str) -> str:
-    if kind not in ("v", "vg"):
-        raise ValueError(f"kind must be 'v' or 'vg', got kind={kind!r}")
+    if kind not in ("v", "vg", "vgt"):
+        raise ValueError(f"kind must be 'v', 'vg' or 'vgt', got kind={kind!r}")
     return kind
 
 
@@ -205,6 +251,13 @@ class Function:
     ``grad[..., 1] = df/dy``. Inputs may be any real dtype (float32 included); all arithmetic is
     done in float64. A point with a NaN or infinite coordinate gets NaN value and gradient; the
     other points are unaffected.
+
+    Parameters (:func:`fastsdf.graph.Param`, time :data:`fastsdf.graph.t`): ``f.params`` holds
+    their current values; ``f(x, y, angle=0.3, t=1.5)`` evaluates with other values for one
+    call and ``f.with_params(angle=0.3)`` returns a copy that keeps them; neither recompiles.
+    ``f(x, y, time_derivative=True)`` returns ``(d, grad, dd/dt)`` (analytic, forward mode; 0
+    for a scene without ``t``): for a moving boundary ``-dd/dt / |grad d|`` is the normal speed
+    of the surface. ``f.frozen()`` folds the current values into constants (its own kernel).
 
     Evaluation runs in a numba kernel generated for this expression (see :mod:`fastsdf.codegen`),
     compiled on first use and cached on disk; ``source()`` shows the generated Python code and
@@ -235,6 +288,61 @@ class Function:
         self.f = f
         self.symbols = symbols
         self._compiled = None
+        self._params = parameters(f)
+
+    # -- parameters ----------------------------------------------------------------------------
+    @property
+    def params(self) -> dict:
+        """``{name: value}`` of the scene's parameters (time ``'t'`` included), a copy."""
+        return dict(self._params)
+
+    @property
+    def param_names(self) -> tuple:
+        """Names of the parameters other than time, in the order kernels take them (sorted)."""
+        return tuple(sorted(n for n in self._params if n != "t"))
+
+    @property
+    def time_dependent(self) -> bool:
+        """Whether the scene depends on time (the parameter ``'t'``)."""
+        return "t" in self._params
+
+    def _values(self, overrides: dict) -> dict:
+        """Current values updated by ``overrides``, checked (errors name the parameter)."""
+        values = dict(self._params)
+        for name, value in overrides.items():
+            if name not in values and name != "t":
+                raise TypeError(f"unknown parameter {name!r}; this scene's parameters are "
+                                f"{sorted(values) or 'none'}")
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise TypeError(f"parameter {name} must be a real number, got {name}={value!r}")
+            value = float(value)
+            if not math.isfinite(value):
+                raise ValueError(f"parameter {name} must be finite, got {name}={value!r}")
+            if name in values:
+                values[name] = value
+        return values
+
+    def with_params(self, **values: float) -> "Function":
+        """A copy with other parameter values (sharing the compiled kernels: no recompile)."""
+        out = copy.copy(self)
+        out._params = self._values(values)
+        return out
+
+    def frozen(self, **values: float) -> "Function":
+        """A static copy: the parameters (at their current values, updated by ``values``)
+        folded into constants. It compiles its own kernel; worth it only for a scene whose
+        parameters never change again (or for a :class:`fastsdf.GridSDF` of it)."""
+        vals = self._values(values)
+        out = copy.copy(self)
+        out.f = substitute_params(self.f, vals)
+        out._params = {}
+        out._compiled = None
+        return out
+
+    def param_tuple(self, **values: float) -> tuple:
+        """The non-time parameter values as the kernels take them (``param_names`` order)."""
+        vals = self._values(values)
+        return tuple(vals[n] for n in self.param_names)
 
     # -- compiled kernels (built lazily, one per expression, shared through the disk cache)
     @property
@@ -246,22 +354,44 @@ class Function:
 
     @property
     def point_fn(self) -> Any:
-        """Compiled ``@njit`` function ``(x, y) -> (d, ddx, ddy)`` for one point (float64)."""
+        """Compiled ``@njit`` function for one point (float64): ``(x, y) -> (d, ddx, ddy)``;
+        for a scene with parameters ``(x, y, t, P) -> (d, ddx, ddy)`` with ``P`` the tuple
+        :meth:`param_tuple` (``()`` when time is the only parameter)."""
         return self.compiled.point_fn("vg")
 
     @property
     def point_value_fn(self) -> Any:
-        """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64)."""
+        """Compiled ``@njit`` function ``(x, y) -> d`` for one point (float64); for a scene
+        with parameters ``(x, y, t, P) -> d`` (see :attr:`point_fn`)."""
         return self.compiled.point_fn("v")
+
+    @property
+    def point_time_fn(self) -> Any:
+        """For a scene with parameters: compiled ``(x, y, t, P) -> (d, ddx, ddy, dd/dt)``."""
+        return self.compiled.point_fn("vgt")
 
     def source(self, gradient: bool = True) -> str:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
-                 prune: bool | None = None) -> Any:
+                 prune: bool | None = None, time_derivative: bool = False,
+                 **params: float) -> Any:
+        kw = {}
+        if self._params or params:
+            vals = self._values(params)
+            if self._params:
+                kw = {"t": vals.get("t", 0.0),
+                      "params": tuple(vals[n] for n in self.param_names)}
+        if time_derivative:
+            if not kw:  # no parameters: nothing moves
+                d, g = self.compiled.evaluate(x, y, compute_gradient=True, prune=prune,
+                                              tol=self.prune_tol)
+                return d, g, np.zeros_like(d)
+            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True,
+                                          **kw)
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
-                                      tol=self.prune_tol)
+                                      tol=self.prune_tol, **kw)
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.

@@ -42,13 +42,14 @@ __all__ = [
     "sym_min", "sym_max", "sym_smin", "sym_smax", "sym_length",
     "sym_floor", "sym_select", "sym_qmin", "sym_cmin", "sym_prim", "substitute",
     "evaluate_numpy", "topological_order",
+    "Param", "t", "parameters", "substitute_params",
 ]
 
 # Operations grouped by arity; attributes (symbol name, constant exponent, smoothness k) are part
 # of a node's identity.
 UNARY_OPS = tuple(name for name, op in OPS.items() if op.arity == 1)
 BINARY_OPS = tuple(name for name, op in OPS.items() if op.arity == 2)
-LEAF_OPS = ("const", "sym")
+LEAF_OPS = ("const", "sym", "param")
 #: ``select(cond, a, b)``; ``prim(u, v, *constants)`` with attr ``(kind, data)``.
 OTHER_OPS = tuple(name for name, op in OPS.items() if op.arity not in (1, 2))
 
@@ -61,6 +62,18 @@ def _float_key(value: float) -> bytes:
 
 
 _NO_SYMBOLS = frozenset()
+
+
+def _param_set(op, args, attr) -> frozenset:
+    """``(name, default)`` of the runtime parameters a new node depends on (O(1) per node, as
+    :func:`_symbol_set`)."""
+    if op == "param":
+        return frozenset((attr,))
+    out = _NO_SYMBOLS
+    for a in args:
+        if a.prms is not out and not a.prms <= out:
+            out = a.prms if out <= a.prms else out | a.prms
+    return out
 
 
 def _symbol_set(op, args, attr) -> frozenset:
@@ -82,7 +95,7 @@ class Expr:
     so ``==``/``hash`` are identity-based and cheap. ``str(expr)`` gives a readable formula.
     """
 
-    __slots__ = ("op", "args", "attr", "syms", "__weakref__")
+    __slots__ = ("op", "args", "attr", "syms", "prms", "__weakref__")
     # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
     __array_ufunc__ = None
 
@@ -100,6 +113,7 @@ class Expr:
             object.__setattr__(node, "args", args)
             object.__setattr__(node, "attr", attr)
             object.__setattr__(node, "syms", _symbol_set(op, args, attr))
+            object.__setattr__(node, "prms", _param_set(op, args, attr))
             _INTERN[key] = node
         return node
 
@@ -185,6 +199,64 @@ def Symbol(name: str) -> Expr:
 def Constant(value: float) -> Expr:
     """A constant node holding a float64 value."""
     return as_expr(value, "value")
+
+
+def Param(name: str, default: float = 0.0) -> Expr:
+    """A named runtime parameter with a default value: an expression usable wherever a number
+    is (``transform(angle=Param('angle', 0.0))``, ``Circle(center=[Param('px', 0.0), 0])``).
+
+    Compiled kernels read parameters as data: changing a value (``f(x, y, angle=0.3)``,
+    ``f.with_params(angle=0.3)``, ``sim.params['angle'] = 0.3``) never recompiles, and two
+    scenes that differ only in parameter values share one kernel. The default is used where no
+    value is given; one scene must not give one name two defaults. The parameter named ``'t'``
+    is time (:data:`t`): kernels can differentiate in it (``dd/dt``) and a particle simulation
+    sets it to its own clock.
+    """
+    if not isinstance(name, str) or not name.isidentifier() or name.startswith("_"):
+        raise ValueError(f"Param name must be a Python identifier not starting with '_', got "
+                         f"name={name!r}")
+    if name in ("x", "y"):
+        raise ValueError(f"Param name must not be a coordinate ('x' or 'y'), got name={name!r}")
+    if isinstance(default, (bool, np.bool_)) or not isinstance(default, numbers.Real):
+        raise TypeError(f"Param default must be a real number, got default={default!r}")
+    default = float(default)
+    if not math.isfinite(default):
+        raise ValueError(f"Param default must be finite, got default={default!r}")
+    return Expr("param", (), (name, default))
+
+
+#: Time in seconds, a parameter (default 0). Scenes built with it move: ``f(x, y, t=1.5)``,
+#: ``f(x, y, t=..., time_derivative=True)`` also returns ``dd/dt``, and a particle simulation
+#: evaluates it at its own time (its walls push particles).
+t = Param("t", 0.0)
+
+
+def parameters(root: Expr) -> dict:
+    """``{name: default}`` of the parameters in ``root`` (``ValueError`` if one name has two
+    different defaults)."""
+    out: dict = {}
+    for name, default in sorted(root.prms, key=lambda p: (p[0], _float_key(p[1]))):
+        if name in out and _float_key(out[name]) != _float_key(default):
+            raise ValueError(f"parameter {name!r} is given two defaults in one scene: "
+                             f"{out[name]!r} and {default!r}")
+        out[name] = default
+    return out
+
+
+def substitute_params(root: Expr, values: dict) -> Expr:
+    """``root`` with the parameters named in ``values`` replaced by constants (folded)."""
+    new = {}
+    for node in topological_order(root):
+        if node.op == "param":
+            name = node.attr[0]
+            new[id(node)] = Expr("const", (), float(values[name])) if name in values else node
+        elif not node.args:
+            new[id(node)] = node
+        else:
+            args = tuple(new[id(a)] for a in node.args)
+            new[id(node)] = node if all(x is y for x, y in zip(args, node.args)) \
+                else _rebuild(node, args)
+    return new[id(root)]
 
 
 def as_expr(value: Expr | float, name: str = "value") -> Expr:
@@ -622,9 +694,13 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
             s = fmt_const(node.attr)
         elif node.op == "sym":
             s = node.attr
+        elif node.op == "param":
+            s = node.attr[0]
         else:
             s = OPS[node.op].fmt(node, [text[id(a)] for a in node.args])
-        text[id(node)] = s
+        # With a limit only the first `limit` characters are kept: cutting every part keeps that
+        # prefix exact and makes printing a deep chain linear, not quadratic, in its depth.
+        text[id(node)] = s if limit is None else s[:limit + 1]
     out = text[id(root)]
     if limit is not None and len(out) > limit:
         out = out[:limit - 3] + "..."
@@ -634,11 +710,15 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
 # ---------------------------------------------------------------------------------------------
 # Reference evaluation with NumPy (the seed's approach: one array operation per node).
 
-def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False) -> Any:
+def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
+                   params: dict | None = None) -> Any:
     """Evaluate ``root`` with NumPy, one whole-array operation per node.
 
     ``symbols`` maps symbol names to arrays of equal shape. With ``compute_gradient`` the result
-    is ``(value, [d/d s for s in symbol order])`` by forward-mode differentiation. This is the
+    is ``(value, [d/d s for s in symbol order])`` by forward-mode differentiation. A parameter
+    (:func:`Param`) named in ``symbols`` is treated as a symbol (so ``{'x': .., 'y': .., 't': ..}``
+    also differentiates in time); the others take their value from ``params`` or their default.
+    This is the
     independent reference the compiled kernels are tested against, and the baseline the
     benchmarks time them against; it follows the same tie rules as the kernels.
     """
@@ -659,6 +739,13 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False) ->
                     raise ValueError(f"no value given for symbol {node.attr!r}")
                 v = np.broadcast_to(np.asarray(symbols[node.attr], dtype=np.float64), shape)
                 g = [np.ones(shape) if n == node.attr else zero for n in names]
+            elif op == "param":
+                name = node.attr[0]
+                if name in symbols:
+                    v = np.broadcast_to(np.asarray(symbols[name], dtype=np.float64), shape)
+                else:
+                    v = np.full(shape, float((params or {}).get(name, node.attr[1])))
+                g = [np.ones(shape) if n == name else zero for n in names]
             else:
                 v, rule = OPS[op].np(node, av, compute_gradient)
                 g = chain_rule_numpy(rule, ag, v) if compute_gradient else None

@@ -450,7 +450,9 @@ class GridSDF:
     Parameters
     ----------
     f : fastsdf.graph.Function
-        The exact SDF (any fastsdf shape or composition). It is evaluated once, at every node,
+        The exact SDF (any fastsdf shape or composition). A scene with runtime parameters is
+        sampled at their current values (``f.frozen()``); a scene that moves (uses ``sdf.t``)
+        is refused: simulations use moving scenes exactly. It is evaluated once, at every node,
         by its compiled parallel kernel (value and analytic gradient); every node must give a
         finite value (and, for stored gradients, a finite gradient).
     bounds : [(x0, x1), (y0, y1)]
@@ -503,6 +505,13 @@ class GridSDF:
         if not isinstance(f, Function):
             raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
                             f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
+        if f.time_dependent:
+            raise ValueError("f depends on time (sdf.t): a grid samples a scene that does not "
+                             "move. Give a moving scene to the simulation as it is (the exact "
+                             "SDF is evaluated at the simulation's time), or grid a snapshot "
+                             "f.frozen(t=...)")
+        if f.params:
+            f = f.frozen()  # a snapshot at the current parameter values (its own kernel)
         self.bounds = _check_bounds(bounds)
         self.shape = _check_samples(samples)
         self.mode = _check_choice(mode, "mode", _MODES)

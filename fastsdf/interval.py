@@ -45,8 +45,9 @@ def node_values(root: Expr, symbols: dict) -> dict:
         for node in topological_order(root):
             if node.op == "const":
                 v = np.full(shape, node.attr)
-            elif node.op == "sym":
-                v = np.broadcast_to(np.asarray(symbols[node.attr], dtype=np.float64), shape)
+            elif node.op in ("sym", "param"):  # a runtime parameter is given like a symbol
+                name = node.attr if node.op == "sym" else node.attr[0]
+                v = np.broadcast_to(np.asarray(symbols[name], dtype=np.float64), shape)
             else:
                 v = OPS[node.op].np(node, [val[id(a)] for a in node.args], False)[0]
             val[id(node)] = v
@@ -74,9 +75,11 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
     around each box's centre (see the module docstring).
     """
     ranges, shape = _as_ranges(boxes)
-    missing = {n.attr for n in topological_order(root) if n.op == "sym"} - set(ranges)
+    # Runtime parameters (and time) need ranges like symbols: their values are not constants.
+    missing = {n.attr if n.op == "sym" else n.attr[0] for n in topological_order(root)
+               if n.op in ("sym", "param")} - set(ranges)
     if missing:
-        raise ValueError(f"no range given for symbols {sorted(missing)}")
+        raise ValueError(f"no range given for symbols or parameters {sorted(missing)}")
     order = topological_order(root)
     if lipschitz:
         centre = node_values(root, {k: 0.5 * (lo + hi) for k, (lo, hi) in ranges.items()})
@@ -89,8 +92,8 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
             if op == "const":
                 lo = hi = np.full(shape, node.attr)
                 L = np.zeros(shape)
-            elif op == "sym":
-                lo, hi = ranges[node.attr]
+            elif op in ("sym", "param"):
+                lo, hi = ranges[node.attr if op == "sym" else node.attr[0]]
                 L = np.ones(shape)
             else:
                 spec = OPS[op]

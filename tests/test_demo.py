@@ -170,6 +170,7 @@ def test_notebook_example_runs_every_cell(tmp_path):
     ("raymarch", ["raymarch.png"]),
     ("custom_force", ["custom_force.png"]),
     ("save_video", ["particles.mp4"]),
+    ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
 ])
 def test_examples_run_at_small_size(tmp_path, name, outputs):
     env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")

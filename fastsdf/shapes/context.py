@@ -20,7 +20,9 @@ from numpy.typing import ArrayLike
 from .._validate import check_length as _check_length
 from .._validate import coord2 as _vec2
 from .._validate import real as _real
-from ..graph import Expr, Symbol
+from .._validate import vec2 as _vec2
+from .._validate import is_param, real_or_param, vec2_or_param
+from ..graph import Expr, Symbol, sym_cos, sym_sin
 
 __all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
 
@@ -69,6 +71,12 @@ def _frame() -> tuple:
 def _smoothness_value(k) -> float:
     if k is None:
         return 0.0
+    if is_param(k):  # a runtime parameter: checked > 0 at the parameters' defaults
+        _, number = real_or_param(k, "k")
+        if not number > 0:
+            raise ValueError(f"a blend k given by parameters must be > 0 (at their defaults), "
+                             f"got k={k} = {number!r}")
+        return k
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
         raise TypeError(f"smoothness k must be a real number, got k={k!r}")
     k = float(k)
@@ -132,8 +140,10 @@ def transform(angle: float = 0.0, offset: ArrayLike = (0.0, 0.0)) -> Iterator[No
     Nested transforms compose, the outer one applied last. Rotations and translations keep
     distances exact.
     """
-    angle = _real(angle, "angle")
-    offset = _vec2(offset, "offset")
+    angle, _ = real_or_param(angle, "angle")
+    offset, _ = vec2_or_param(offset, "offset")
+    if is_param(angle):  # a runtime parameter: the rotation is computed in the kernel
+        return _transformed(sym_cos(angle), sym_sin(angle), offset)
     return _transformed(math.cos(angle), math.sin(angle), offset)
 
 
@@ -145,8 +155,12 @@ def _transformed(c: float, s: float, offset):
     # Primitives are built in local coordinates: the inverse transform of the current ones.
     local_x = x * c + y * s - (offset[0] * c + offset[1] * s)
     local_y = -x * s + y * c - (-offset[0] * s + offset[1] * c)
-    m00, m01, m10, m11, tx, ty = _frame()  # compose: outer frame o (R, offset)
-    frame = (m00 * c + m01 * s, -m00 * s + m01 * c, m10 * c + m11 * s, -m10 * s + m11 * c,
-             m00 * offset[0] + m01 * offset[1] + tx, m10 * offset[0] + m11 * offset[1] + ty)
+    outer = _frame()
+    if outer is None or any(is_param(v) for v in (c, s, offset[0], offset[1])):
+        frame = None  # moved by runtime parameters: unknown to the exactness bookkeeping
+    else:
+        m00, m01, m10, m11, tx, ty = outer  # compose: outer frame o (R, offset)
+        frame = (m00 * c + m01 * s, -m00 * s + m01 * c, m10 * c + m11 * s, -m10 * s + m11 * c,
+                 m00 * offset[0] + m01 * offset[1] + tx, m10 * offset[0] + m11 * offset[1] + ty)
     with _properties(x=local_x, y=local_y, frame=frame):
         yield

@@ -37,9 +37,10 @@ _NONE = _Info()
 
 def _frame_bbox(bbox, frame=None):
     """World bounding box of a local bounding box under the current (or given) frame."""
-    if bbox is None:
+    frame = _frame() if frame is None else frame
+    if bbox is None or frame is None:   # no frame: the primitive moves with parameters
         return None
-    m00, m01, m10, m11, tx, ty = _frame() if frame is None else frame
+    m00, m01, m10, m11, tx, ty = frame
     xs, ys = (bbox[0], bbox[2]), (bbox[1], bbox[3])
     cx = [m00 * u + m01 * v + tx for u in xs for v in ys]
     cy = [m10 * u + m11 * v + ty for u in xs for v in ys]
@@ -92,13 +93,15 @@ def _center_sym(center) -> set:
 
 def _blend_depth(k: float, kind: str) -> float:
     """How far a smooth union can reach beyond the hard one (bounding boxes grow by this)."""
+    if not isinstance(k, float):
+        return None  # a blend width given by parameters: unknown
     if k == 0.0:
         return 0.0
     return {"exponential": math.log(2.0) / k, "quadratic": k / 4.0, "cubic": k / 6.0}[kind]
 
 
 def _bbox_union(a, b, grow=0.0):
-    if a is None or b is None:
+    if a is None or b is None or grow is None:
         return None
     return _grow((min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])), grow)
 

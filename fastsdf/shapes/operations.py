@@ -13,6 +13,9 @@ from .._validate import check_length as _check_length
 from .._validate import coord2 as _vec2
 from .._validate import length as _length
 from .._validate import real as _real
+from .._validate import vec2 as _vec2
+from .._validate import is_param, real_or_param, vec2_or_param
+from ..graph import sym_cos, sym_exp, sym_log, sym_sin
 from ..interval import note_lipschitz
 from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
                      sym_qmin, sym_smax, sym_smin)
@@ -27,7 +30,20 @@ __all__ = ["SDF", "Union", "Intersection", "Difference",
 # ---------------------------------------------------------------------------------------------
 # Blends: the hard operations, the notebook's exponential blends, the polynomial ones.
 
+def _param_blend_min(a: Expr, b: Expr, k: Expr, kind: str) -> Expr:
+    """A blend whose ``k`` is an expression of runtime parameters, from generic operations
+    (the ``smin``/``qmin``/``cmin`` nodes take a constant ``k``): the same formulas, so the same
+    values, and the gradient (in x, y and t) from the graph."""
+    m = sym_min(a, b)
+    if kind == "exponential":
+        return m - sym_log(1.0 + sym_exp(-k * sym_abs(a - b))) / k
+    h = sym_max(k - sym_abs(a - b), 0.0) / k
+    return m - (k * h * h * h / 6.0 if kind == "cubic" else k * h * h / 4.0)
+
+
 def _blend_min(a: Expr, b: Expr, k: float, kind: str) -> Expr:
+    if is_param(k):
+        return _param_blend_min(a, b, k, kind)
     if k == 0.0:
         return sym_min(a, b)
     if kind == "exponential":
@@ -36,6 +52,8 @@ def _blend_min(a: Expr, b: Expr, k: float, kind: str) -> Expr:
 
 
 def _blend_max(a: Expr, b: Expr, k: float, kind: str) -> Expr:
+    if is_param(k):
+        return -_param_blend_min(-a, -b, k, kind)
     if k == 0.0:
         return sym_max(a, b)
     if kind == "exponential":
@@ -66,7 +84,9 @@ class SDF(Function):
     def __init__(self, expr: Expr, info: _Info | None = None):
         super().__init__(expr, [_X, _Y])
         self._info = _NONE if info is None else info
-        if self._info.bound:  # interval bounds may use |f(p) - f(c)| <= |p - c|
+        # Interval bounds may use |f(p) - f(c)| <= |p - c|: in x and y only, not in runtime
+        # parameters (a moving circle's distance changes with its centre too).
+        if self._info.bound and not self.f.prms:
             note_lipschitz(self.f, 1.0)
 
     @property
@@ -140,8 +160,13 @@ class SDF(Function):
         shape the inside value is only a bound (filled concavities are deeper than ``r - f``).
         For ``r < 0``: exact inside if ``f`` is, a bound outside. Always a bound if ``f`` is.
         """
-        r = _length(r, "r", zero=True)
+        if is_param(r):
+            r, _ = real_or_param(r, "r")
+        else:
+            r = _length(r, "r", zero=True)
         i = self._info
+        if is_param(r):  # its sign may change at run time: only a bound is kept
+            return SDF(self.f - r, _Info(bound=i.bound))
         if r == 0:
             return SDF(self.f, i)
         if r > 0:
@@ -183,8 +208,11 @@ class SDF(Function):
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
         active :func:`transform` context plays no part). Same as building it under
         ``transform(offset=offset)``; keeps exactness."""
-        o = _vec2(offset, "offset")
+        o, numbers_ = vec2_or_param(offset, "offset")
         i = self._info
+        if any(is_param(v) for v in o):  # moved by runtime parameters
+            expr = substitute(self.f, {"x": _X - o[0], "y": _Y - o[1]})
+            return SDF(expr, replace(i, bbox=None, sym=frozenset()))
         bbox = None if i.bbox is None else (i.bbox[0] + o[0], i.bbox[1] + o[1],
                                              i.bbox[2] + o[0], i.bbox[3] + o[1])
         sym = frozenset(a for a, ov in zip("xy", o) if a in i.sym and ov == 0.0)
@@ -195,9 +223,13 @@ class SDF(Function):
         """The shape rotated counter-clockwise by ``angle`` (radians) about the origin:
         ``f(R(-angle) p)``. Same as building it under ``transform(angle=angle)``; keeps
         exactness."""
-        angle = _real(angle, "angle")
-        c, s = math.cos(angle), math.sin(angle)
+        angle, _ = real_or_param(angle, "angle")
         i = self._info
+        if is_param(angle):  # turned by runtime parameters
+            c, s = sym_cos(angle), sym_sin(angle)
+            expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
+            return SDF(expr, replace(i, bbox=None, sym=frozenset()))
+        c, s = math.cos(angle), math.sin(angle)
         bbox = _frame_bbox(i.bbox, (c, -s, s, c, 0.0, 0.0))
         sym = i.sym if angle == 0.0 else frozenset()
         expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})

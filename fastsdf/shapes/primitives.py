@@ -18,6 +18,12 @@ from .._validate import length as _length
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from ..graph import Expr, sym_abs, sym_length, sym_max, sym_min, sym_prim, sym_select
+from .._validate import is_param, real_or_param, vec2_or_param
+
+
+def _has_param(value) -> bool:
+    """Whether a pair holds an expression of runtime parameters."""
+    return isinstance(value, (tuple, list)) and any(is_param(v) for v in value)
 from .context import _IDENTITY, _coords, _frame
 from .exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
 from .operations import SDF
@@ -37,11 +43,19 @@ class Circle(SDF):
     """
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
-        center = _point(center, "center")
-        radius = _positive(radius, "radius")
+        if is_param(radius) or _has_param(center):
+            center, _ = vec2_or_param(center, "center")
+            radius, r0 = real_or_param(radius, "radius")
+            if r0 <= 0:
+                raise ValueError(f"radius must be > 0, got radius={radius!r}")
+        else:
+            center = _point(center, "center")
+            radius = _positive(radius, "radius")
         self.center, self.radius = center, radius
         x, y = _coords()
-        info = _primitive_info(_points_bbox([center], radius), _center_sym(center), convex=True)
+        moving = is_param(radius) or any(is_param(v) for v in center)
+        info = _primitive_info(None if moving else _points_bbox([center], radius),
+                               () if moving else _center_sym(center), convex=True)
         super().__init__(sym_length(x - center[0], y - center[1]) - radius, info)
 
 
@@ -51,7 +65,7 @@ class Halfspace(SDF):
 
     def __init__(self, normal: ArrayLike = (1.0, 0.0), d: float = 0.0):
         normal = _vec2(normal, "normal")
-        d = _coord(d, "d")
+        d = real_or_param(d, "d")[0] if is_param(d) else _coord(d, "d")
         big = float(np.abs(normal).max())
         if not big > 0:
             raise ValueError(f"normal must have non-zero length, got normal={normal.tolist()!r}")
@@ -81,18 +95,24 @@ class Box(SDF):
     """
 
     def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0)):
-        minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
-        if not np.all(minc < maxc):
+        if _has_param(minc) or _has_param(maxc):
+            (minc, lo), (maxc, hi) = vec2_or_param(minc, "minc"), vec2_or_param(maxc, "maxc")
+        else:
+            minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
+            lo, hi = minc, maxc
+        if not np.all(lo < hi):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
-                             f"minc={minc.tolist()!r}, maxc={maxc.tolist()!r}")
-        _check_length(float(np.min(maxc - minc)), "the smaller side maxc - minc")
+                             f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
+        _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
         self.minc, self.maxc = minc, maxc
-        center, half = (minc + maxc) / 2, (maxc - minc) / 2
+        moving = any(is_param(v) for v in (*minc, *maxc))
+        center = [(minc[j] + maxc[j]) * 0.5 for j in (0, 1)]
+        half = [(maxc[j] - minc[j]) * 0.5 for j in (0, 1)]
         x, y = _coords()
         qx = sym_abs(x - center[0]) - half[0]
         qy = sym_abs(y - center[1]) - half[1]
-        sym = {ax for ax, lo, hi in zip("xy", minc, maxc) if lo == -hi}
-        info = _primitive_info(_points_bbox([minc, maxc]), sym, convex=True)
+        sym = set() if moving else {ax for ax, a, b in zip("xy", lo, hi) if a == -b}
+        info = _primitive_info(None if moving else _points_bbox([lo, hi]), sym, convex=True)
         super().__init__(_box_expr(qx, qy), info)
 
 
