@@ -85,7 +85,7 @@ def test_table_loop_becomes_the_outer_loop():
     loop = r"for (i\d+)q in range\(_off\[0\], _off\[1\]\):"
     assert re.search(r"^    " + loop + "$", src, re.M)
     block = box_world(20).compiled.module_source
-    block = block[block.index("def _block_vg"):block.index("def batch_vg_par")]
+    block = block[block.index("def _block_vg"):block.index("def batch_vg_par", block.index("def _block_vg"))]
     outer = re.search(r"^    " + loop + r"\n((?:        .*\n)+)", block, re.M)
     assert outer, block
     body = outer.group(2)
@@ -102,7 +102,7 @@ def test_loop_free_bodies_interleave_two_lanes():
     chains), each lane reading and writing its own rows of the scratch array."""
     comp = seed_world().compiled
     src = comp.module_source
-    block = src[src.index("def _block_vg"):src.index("def batch_vg_par")]
+    block = src[src.index("def _block_vg"):src.index("def batch_vg_par", src.index("def _block_vg"))]
     lanes = choose_lanes(comp.function_source("vg").splitlines()[4:])
     assert lanes == 2
     assert f"    for i in range({BLOCK // 2}):" in block
