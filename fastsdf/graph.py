@@ -698,7 +698,9 @@ def _to_str(root: Expr, limit: int | None = None) -> str:
             s = node.attr[0]
         else:
             s = OPS[node.op].fmt(node, [text[id(a)] for a in node.args])
-        text[id(node)] = s
+        # With a limit only the first `limit` characters are kept: cutting every part keeps that
+        # prefix exact and makes printing a deep chain linear, not quadratic, in its depth.
+        text[id(node)] = s if limit is None else s[:limit + 1]
     out = text[id(root)]
     if limit is not None and len(out) > limit:
         out = out[:limit - 3] + "..."

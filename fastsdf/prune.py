@@ -77,7 +77,22 @@ def _tile_ranges(bounds, nx, ny):
             "y": (y0 + iy * wy - ey, y0 + (iy + 1) * wy + ey)}
 
 
+#: Members bounded together (memory: about 100 arrays of members x tiles floats at once).
+_MEMBER_CHUNK = 128
+
+
 def _steps_bounds(group, ranges):
+    """Bounds of every member of a group over every tile, in chunks of members."""
+    M = len(group["members"])
+    if M <= _MEMBER_CHUNK:
+        return _steps_bounds_chunk(group, ranges)
+    parts = [_steps_bounds_chunk(dict(group, members=group["members"][i:i + _MEMBER_CHUNK],
+                                      rows=group["rows"][i:i + _MEMBER_CHUNK]), ranges)
+             for i in range(0, M, _MEMBER_CHUNK)]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def _steps_bounds_chunk(group, ranges):
     """Bounds ``(lo, hi)`` of shape (members, tiles) of every member of a group: the shared
     template is evaluated once on (members x tiles) arrays, the constants as columns."""
     steps, rows, members = group["steps"], group["rows"], group["members"]
