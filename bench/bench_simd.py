@@ -317,7 +317,7 @@ def run(quick: bool = False) -> str:
     speed, errors = _kernels(quick)
     elem = _elementary(quick)
     comp = _compile(quick)
-    parts = ["## SIMD block kernels and vectorizable exp/log (issue 17)",
+    parts = ["## SIMD block kernels and vectorizable exp/log",
              stamp(COMMAND + (" --quick" if quick else "")),
              f"Load average (1/5/15 min) at start: {load0}; at end: {_load_avg()} "
              f"(2-core machine shared with other jobs: trust the ratios more than the rates).",

@@ -131,3 +131,13 @@ def vec2_or_param(value, name: str):
         return tuple(p[0] for p in parts), np.array([p[1] for p in parts])
     arr = vec2(value, name)
     return arr, arr
+
+
+def coord2_or_param(value, name: str):
+    """:func:`vec2_or_param` with the coordinate range of :func:`coord2` checked on the numbers
+    (for expressions of parameters: their values at the defaults)."""
+    pair, numbers_ = vec2_or_param(value, name)
+    if np.any(np.abs(numbers_) > MAX_COORD):
+        raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
+                         f"({_RANGE}), got {name}={numbers_.tolist()!r}")
+    return pair, numbers_

@@ -528,7 +528,7 @@ def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
 
 
 # ---------------------------------------------------------------------------------------------
-# Issue 7 additions: floor, select, the polynomial smooth minima and the generic "prim" node
+# Floor, select, the polynomial smooth minima and the generic "prim" node
 # (primitives evaluated by fixed numba functions in fastsdf._prims), and graph substitution.
 
 #: Kinds of "prim" nodes: the numba functions ``_prims.<kind>_v``/``<kind>_vg`` evaluate them

@@ -21,7 +21,7 @@ from .._validate import check_length as _check_length
 from .._validate import coord2 as _vec2
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
-from .._validate import is_param, real_or_param, vec2_or_param
+from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import Expr, Symbol, sym_cos, sym_sin
 
 __all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
@@ -81,7 +81,8 @@ def _smoothness_value(k) -> float:
         raise TypeError(f"smoothness k must be a real number, got k={k!r}")
     k = float(k)
     if not math.isfinite(k) or k < 0:
-        raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={k!r}")
+        raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), "
+                         f"got k={k!r}")
     if k > 0:
         # a blend width (or, for the exponential blend, its inverse) is a length
         _check_length(k, "smoothness k")
@@ -141,7 +142,7 @@ def transform(angle: float = 0.0, offset: ArrayLike = (0.0, 0.0)) -> Iterator[No
     distances exact.
     """
     angle, _ = real_or_param(angle, "angle")
-    offset, _ = vec2_or_param(offset, "offset")
+    offset, _ = coord2_or_param(offset, "offset")
     if is_param(angle):  # a runtime parameter: the rotation is computed in the kernel
         return _transformed(sym_cos(angle), sym_sin(angle), offset)
     return _transformed(math.cos(angle), math.sin(angle), offset)

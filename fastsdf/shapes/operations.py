@@ -14,7 +14,7 @@ from .._validate import coord2 as _vec2
 from .._validate import length as _length
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
-from .._validate import is_param, real_or_param, vec2_or_param
+from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
 from ..interval import note_lipschitz
 from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
@@ -208,7 +208,7 @@ class SDF(Function):
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
         active :func:`transform` context plays no part). Same as building it under
         ``transform(offset=offset)``; keeps exactness."""
-        o, numbers_ = vec2_or_param(offset, "offset")
+        o, numbers_ = coord2_or_param(offset, "offset")
         i = self._info
         if any(is_param(v) for v in o):  # moved by runtime parameters
             expr = substitute(self.f, {"x": _X - o[0], "y": _Y - o[1]})

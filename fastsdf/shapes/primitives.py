@@ -18,7 +18,7 @@ from .._validate import length as _length
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from ..graph import Expr, sym_abs, sym_length, sym_max, sym_min, sym_prim, sym_select
-from .._validate import is_param, real_or_param, vec2_or_param
+from .._validate import coord2_or_param, is_param, real_or_param
 
 
 def _has_param(value) -> bool:
@@ -44,7 +44,7 @@ class Circle(SDF):
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
         if is_param(radius) or _has_param(center):
-            center, _ = vec2_or_param(center, "center")
+            center, _ = coord2_or_param(center, "center")
             radius, r0 = real_or_param(radius, "radius")
             if r0 <= 0:
                 raise ValueError(f"radius must be > 0, got radius={radius!r}")
@@ -96,7 +96,7 @@ class Box(SDF):
 
     def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0)):
         if _has_param(minc) or _has_param(maxc):
-            (minc, lo), (maxc, hi) = vec2_or_param(minc, "minc"), vec2_or_param(maxc, "maxc")
+            (minc, lo), (maxc, hi) = coord2_or_param(minc, "minc"), coord2_or_param(maxc, "maxc")
         else:
             minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
             lo, hi = minc, maxc
