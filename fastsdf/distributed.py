@@ -763,22 +763,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             return 1.0 - float(sim.density(bounds, (1, 1)).sum()) / particles
 
         def advance(k: int) -> None:
-            if k <= 0:
-                return
-            if timing["first"] is None:
-                t0 = time.perf_counter()
-                sim.run(1)
-                timing["first"] = time.perf_counter() - t0
-                timing["load0"] = os.getloadavg()[0]
-                timing["outside"] += outside_share()
-                timing["steps"] += 1
-                k -= 1
-            if k > 0:
-                t0 = time.perf_counter()
-                sim.run(k)
-                timing["rest"] += time.perf_counter() - t0
-                timing["outside"] += k * outside_share()
-                timing["steps"] += k
+            _demo._timed_advance(sim, k, timing, outside_share)
 
         label = f"{particles:,} particles on {workers} workers, "
         shape = (480, 480)
