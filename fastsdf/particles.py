@@ -242,6 +242,9 @@ def force(x, y, vx, vy, m, t):
 {body}
 ''')
             self._dispatcher = load_module(source, prefix="fastsdf_force").force
+            # A compiled field is usually long-latency arithmetic (square roots, divisions):
+            # the step evaluates it for a batch of particles ahead (see fastsdf._step).
+            self._dispatcher._fastsdf_batched = True
         return self._dispatcher
 
     def __call__(self, p, t):
@@ -518,6 +521,8 @@ def _force_parts(forces) -> tuple:
         body.append("    return fx, fy")
     lines += ["", ""] + body
     lines.append(f"USE_FORCE = {bool(forces)}")
+    batched = any(getattr(fn, "_fastsdf_batched", False) for fn in forces)
+    lines.append(f"FORCE_AHEAD = {batched}")
     return lines, deps, late
 
 
