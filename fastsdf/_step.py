@@ -29,10 +29,13 @@ Everything between the ``SCENE BLOCK`` marker comments is replaced. It must defi
     steps (same results). That pays for long-latency forces (a compiled field's square roots
     and divisions overlap across particles instead of lengthening each particle's dependent
     chain) and costs a second read of the state for cheap ones.
-``MOVING``, ``_query_t(data, x, y, t) -> (d, dd/dx, dd/dy, dd/dt)`` and ``_wall_speed(data)``
+``MOVING``, ``_query_t(data, x, y, t) -> (d, dd/dx, dd/dy, dd/dt)``, ``_wall_speed(data)``
+and ``_wall_speed_at(data, x, y, dx, dy)``
     for a world that moves (uses time): its distance at time ``t`` with the time derivative,
-    and a bound on ``|dd/dt|`` (length/s; how fast any surface can approach a particle). A
-    static world sets ``MOVING = False``, ``dd/dt = 0`` and a wall speed of 0.
+    a bound on ``|dd/dt|`` (length/s; how fast any surface can approach a particle), and a
+    bound for a step by ``(dx, dy)`` ending at ``(x, y)`` (at most the first: far from every
+    moving wall it is 0, so particles there skip queries as in a static world). A static world
+    sets ``MOVING = False``, ``dd/dt = 0`` and wall speeds of 0.
 
 Moving worlds
 -------------
@@ -251,6 +254,12 @@ def _query_t(data, x, y, t):
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _wall_speed(data):
     """A bound on |dd/dt| (the test world does not move)."""
+    return 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _wall_speed_at(data, x, y, dx, dy):
+    """A bound on |dd/dt| for a step by (dx, dy) ending at (x, y)."""
     return 0.0
 # <<< SCENE BLOCK <<<
 
@@ -488,8 +497,9 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     """
     data = borrow_all(data)
     clear = np.zeros(hi - lo)
-    # A moving world: its surfaces move by at most wd per step (0 for a static world).
-    wd = _wall_speed(data) * dt if MOVING else 0.0
+    # A moving world: its surfaces move by at most wd per step near a particle (0 for a static
+    # world, and far from every moving wall).
+    wd = 0.0
     use_m = use_m or USE_FORCE
     # 1 / m of the block, computed once per call rather than divided every step
     inv_mass = np.empty(hi - lo if use_m else 0)
@@ -559,6 +569,8 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 vy += by * dt
                 dx = vx * dt
                 dy = vy * dt
+            if MOVING:
+                wd = _wall_speed_at(data, x + dx, y + dy, dx, dy) * dt
             if c > 0.0:
                 # (1 + CONTACT_TOL / lip): a skipped step must also be one whose sweep would
                 # not have stopped at a near-contact (s <= CONTACT_TOL |step|).
