@@ -179,30 +179,34 @@ def _lane(stmt: str, k: int) -> str:
 
 
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
-                 lanes: int | None = None) -> str:
+                 lanes: int | None = None, binds: tuple = ()) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
     ``lines`` are the per-point statements of :class:`fastsdf.codegen._Emitter` (reading ``x``,
     ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
     of the two gradient components for ``kind='vg'``). ``extra_args`` are names of further
-    arguments passed unchanged from the kernels to the block function (e.g. parameter arrays).
+    arguments passed unchanged from the kernels to the block function (e.g. parameter arrays),
+    ``binds`` statements run once at the top of the block function (e.g. ``_p0 = prm[0]``, the
+    runtime parameters read from their tuple). ``kind='vgt'`` also writes ``dt`` (a fourth
+    result, the time derivative).
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
     replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
     writing only rows of the scratch array at constant offsets with a constant trip count (no
     runtime alias checks, no scalar remainder loops), results copied out.
     """
-    grad = kind == "vg"
+    grad = kind in ("vg", "vgt")
+    timed = kind == "vgt"
     lanes = lanes or choose_lanes(lines)
     half = BLOCK // lanes
     lines = list(lines) + [f"r{k} = {expr}" for k, expr in enumerate(results)]
     result_names = [f"r{k}" for k in range(len(results))]
     segs = _split(lines)
     tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
-    outs = ["out"] + (["grad"] if grad else [])
+    outs = ["out"] + (["grad"] if grad else []) + (["dt"] if timed else [])
     args = ["xs", "ys"] + outs + list(extra_args)
-    body = [f"    {t} = {t}G" for t in tables]
+    body = [f"    {t} = {t}G" for t in tables] + [f"    {b}" for b in binds]
     if "_act[" in "\n".join(lines):
         body += ["    _act = _ACTG", "    _off = _OFFG"]
     body.append("    n = xs.shape[0]")
@@ -292,6 +296,8 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     if grad:
         res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
                 f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)"]
+    if timed:
+        res.append(f"        dt[i] = _sel(ok, {at(result_names[3], 0)}, math.nan)")
     body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
              "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)"] + res
     nslots = len(slots)
@@ -300,13 +306,15 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     views = ["    xs = xs[start:stop]", "    ys = ys[start:stop]", "    out = out[start:stop]"]
     if grad:
         views.append("    grad = grad[2 * start:2 * stop]")
+    if timed:
+        views.append("    dt = dt[start:stop]")
     views.append(f"    S = S[at:at + {size}]")
     flat = "\n    grad = grad.reshape(-1)" if grad else ""
     src = f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _block_{kind}({sig}, start, stop, S, at):
-    """{'Value and gradient' if grad else 'Value'} at points start..stop-1 (at most {BLOCK}){', ``grad`` flat (x, y pairs)' if grad else ''};
+    """{'Value, gradient and dd/dt' if timed else 'Value and gradient' if grad else 'Value'} at points start..stop-1 (at most {BLOCK}){', ``grad`` flat (x, y pairs)' if grad else ''};
     scratch ``S[at:at + {size}]``."""
 {chr(10).join(views)}
 {chr(10).join(body)}

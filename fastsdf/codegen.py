@@ -12,6 +12,10 @@ Design (see the README's design section for the measurements behind it):
   Generated code therefore grows with the number of distinct shapes, not with the number of
   primitives, which is what keeps numba's compile time flat (a straight-line function per scene
   compiles in time that grows much faster than the scene).
+* Straight-line code is in SSA form: every variable is assigned once (a chain's running
+  minimum and gradient get a new name per operand), except the accumulators of loops over
+  tables. numba repairs every reassigned variable with a pass over the whole function, which
+  made compile time quadratic in the length of a scene without repeated structure.
 * A smooth chain is evaluated as an online log-sum-exp (the streaming-softmax recurrence):
   one ``exp`` per operand and one ``log`` per chain, with values that never overflow for any
   ``k > 0``. This is mathematically the notebook's nested ``-log(exp(-k a) + exp(-k b)) / k``.
@@ -258,69 +262,76 @@ class _Emitter:
 
         Each item is ``("val", _Val)`` for an operand already computed, or
         ``("loop", steps_list, table_name, count)`` for a group of same-shape operands.
+
+        Straight-line code is emitted in SSA form: every update of the running minimum, sum and
+        gradient gets new variables (``w<n>m``, ``w<n>s``, ``w<n>x``, ...) instead of reassigning
+        one. numba repairs each reassigned variable with a pass over the whole function, so
+        reassignments make its compile time quadratic in the length of the function. Only the
+        accumulators carried through a loop over a table (``c<n>m``, ...) are reassigned.
         """
         g = self.grad
         c = self._name("c")
-        m, s = f"{c}m", f"{c}s"
-        accs = [f"{c}{suffix}" for suffix in self.COMPONENTS]
+        base = {"m": f"{c}m", "s": f"{c}s"}
+        base.update((suffix, f"{c}{suffix}") for suffix in self.COMPONENTS)
         smooth = op in ("smin", "smax")
         less = "<" if op in ("min", "smin") else ">"
+        keys = ["m"] + (["s"] if smooth else []) + (list(self.COMPONENTS) if g else [])
         first = items[0][1] if items[0][0] == "val" else None
+        # cur: the expression (variable or literal) holding each running quantity
         if first is not None:
             items = items[1:]
-            out.append(f"{m} = {first.v}")
-            if smooth:
-                out.append(f"{s} = 1.0")
-            if g:
-                for acc, comp in zip(accs, first.grads(len(accs))):
-                    out.append(f"{acc} = {_zero(comp)}")
+            cur = {"m": first.v, "s": "1.0"}
+            cur.update(zip(self.COMPONENTS, (_zero(comp) for comp in first.grads(len(self.COMPONENTS)))))
         else:
-            init = _HUGE if less == "<" else f"-{_HUGE}"
-            out.append(f"{m} = {init}")
-            if smooth:
-                out.append(f"{s} = 0.0")
-            if g:
-                for acc in accs:
-                    out.append(f"{acc} = 0.0")
+            cur = {"m": _HUGE if less == "<" else f"-{_HUGE}", "s": "0.0"}
+            cur.update((suffix, "0.0") for suffix in self.COMPONENTS)
 
-        def update(body: list, v: _Val):
+        def update(body: list, v: _Val, new: dict):
             w = self._name("w")
+            new = new or {key: f"{w}{key}" for key in keys}
+            m = cur["m"]
             body.append(f"{w} = {v.v} {less} {m}")
             if smooth:
                 e = f"{w}e"
+                s = cur["s"]
                 body.append(f"{e} = math.exp(-{_lit(k)} * abs({v.v} - {m}))")
-                body.append(f"{s} = _sel({w}, {s} * {e} + 1.0, {s} + {e})")
+                body.append(f"{new['s']} = _sel({w}, {s} * {e} + 1.0, {s} + {e})")
                 if g:
-                    for acc, comp in zip(accs, v.grads(len(accs))):
-                        comp = _zero(comp)
-                        body.append(f"{acc} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
+                    for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
+                        comp, acc = _zero(comp), cur[suffix]
+                        body.append(f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
             elif g:
-                for acc, comp in zip(accs, v.grads(len(accs))):
-                    body.append(f"{acc} = _sel({w}, {_zero(comp)}, {acc})")
-            body.append(f"{m} = _sel({w}, {v.v}, {m})")
+                for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
+                    body.append(f"{new[suffix]} = _sel({w}, {_zero(comp)}, {cur[suffix]})")
+            body.append(f"{new['m']} = _sel({w}, {v.v}, {m})")
+            cur.update(new)
 
         for item in items:
             if item[0] == "val":
-                update(out, item[1])
+                update(out, item[1], None)
             else:
                 _, steps, consts, count, group = item
+                # the loop-carried accumulators: one variable each, assigned before the loop
+                for key in keys:
+                    out.append(f"{base[key]} = {cur[key]}")
+                    cur[key] = base[key]
                 loop = self._name("i")
                 body: list[str] = [f"{loop} = _act[{loop}q]"]
                 val = self.template(body, steps, [c.format(row=loop) for c in consts])
-                update(body, val)
+                update(body, val, {key: base[key] for key in keys})
                 out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
                 out.extend("    " + line for line in body)
         if not smooth:
-            return _Val(m, tuple(accs) if g else None)
+            return _Val(cur["m"], tuple(cur[suffix] for suffix in self.COMPONENTS) if g else None)
         r = self._name()
         sign = "-" if op == "smin" else "+"
         # Multiplying by 1/k instead of dividing shortens the latency chain (the kernel is bound
         # by exp -> log -> next blend); it changes the result by at most one rounding.
-        out.append(f"{r} = {m} {sign} math.log({s}) * {_lit(1.0 / k)}")
+        out.append(f"{r} = {cur['m']} {sign} math.log({cur['s']}) * {_lit(1.0 / k)}")
         if g:
-            out.append(f"{r}i = 1.0 / {s}")
-            for acc, suffix in zip(accs, self.COMPONENTS):
-                out.append(f"{r}{suffix} = {acc} * {r}i")
+            out.append(f"{r}i = 1.0 / {cur['s']}")
+            for suffix in self.COMPONENTS:
+                out.append(f"{r}{suffix} = {cur[suffix]} * {r}i")
             return _Val(r, tuple(f"{r}{suffix}" for suffix in self.COMPONENTS))
         return _Val(r)
 
@@ -699,6 +710,10 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
     if param_names is None and not time:
         one = (one, block_source(rest, results, "vg" if grad else "v"))
+    elif param_names is not None:  # parameters are data: read once per block from prm
+        kind = "vgt" if time else "vg" if grad else "v"
+        one = (one, block_source(list(rest), results, kind, ("t", "prm"),
+                                 binds=tuple(ln for ln in bind if ln.startswith("_p"))))
     return one, many, lanes, em.groups
 
 
@@ -729,8 +744,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
                                                         vmath=vmath)
     vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
                                                          vmath=vmath)
-    # Scenes without parameters: the batch kernels are the SIMD block kernels of
-    # fastsdf._simd (defined last, they replace the multi-lane batch kernels of the same name).
+    # The batch kernels are the SIMD block kernels of fastsdf._simd (defined last, they
+    # replace the multi-lane batch kernels of the same name).
     blocks = []
     if isinstance(v_one, tuple):
         (v_one, v_block), (vg_one, vg_block) = v_one, vg_one
@@ -745,6 +760,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
         vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(root, symbol_names, True,
                                                                  tables, pn, time=True,
                                                                  vmath=vmath)
+        vgt_one, vgt_block = vgt_one
+        blocks.append(vgt_block)
         funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),
