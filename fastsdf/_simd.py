@@ -199,8 +199,8 @@ _FOLD_LOAD = re.compile(r"\b_F(\d+)\[(\d+)\]")
 _FOLD_STORE = re.compile(r"\b_F(\d+)\[(i\d+) \* (\d+)(?: \+ (\d+))?\]")
 
 
-def block_source(lines: list, results: list, kind: str, lanes: int | None = None,
-                 fold_sizes: tuple = ()) -> str:
+def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
+                 lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
@@ -216,7 +216,14 @@ def block_source(lines: list, results: list, kind: str, lanes: int | None = None
 
     ``fold_sizes``: entries of the arrays ``_F<g>`` of subexpressions evaluated in loops (see
     ``codegen._Emitter.fold``); each entry becomes a row of the scratch array.
+
+    Scenes with parameters (``extra_args`` passed from the kernels to the block function,
+    ``binds`` run at its top, ``kind='vgt'`` also writing dd/dt) use
+    :func:`_param_block_source`.
     """
+    if extra_args or binds or kind == "vgt":
+        assert not fold_sizes
+        return _param_block_source(lines, results, kind, extra_args, lanes, binds)
     grad = kind == "vg"
     lanes = lanes or choose_lanes(lines)
     assert lanes == 1 or not fold_sizes
@@ -414,6 +421,169 @@ def drive_import() -> str:
             "run_v_ser as _run_v_ser, run_vg_par as _run_vg_par, run_vg_ser as _run_vg_ser, "
             "max_threads as _max_threads, NOFOLD as _drive_nofold"
             f"  # _drive.py sha256 {digest}\n")
+
+
+def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
+                        lanes: int | None = None, binds: tuple = ()) -> str:
+    """:func:`block_source` for scenes with parameters: the block function takes arrays and the
+    parameters, and the kernels that call it are compiled with the scene.
+
+    ``lines`` are the per-point statements of :class:`fastsdf.codegen._Emitter` (reading ``x``,
+    ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
+    of the two gradient components for ``kind='vg'``). ``extra_args`` are names of further
+    arguments passed unchanged from the kernels to the block function (e.g. parameter arrays),
+    ``binds`` statements run once at the top of the block function (e.g. ``_p0 = prm[0]``, the
+    runtime parameters read from their tuple). ``kind='vgt'`` also writes ``dt`` (a fourth
+    result, the time derivative).
+
+    The block's points are staged in the scratch array: coordinates copied in (non-finite ones
+    replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
+    writing only rows of the scratch array at constant offsets with a constant trip count (no
+    runtime alias checks, no scalar remainder loops), results copied out.
+    """
+    grad = kind in ("vg", "vgt")
+    timed = kind == "vgt"
+    lanes = lanes or choose_lanes(lines)
+    half = BLOCK // lanes
+    lines = list(lines) + [f"r{k} = {expr}" for k, expr in enumerate(results)]
+    result_names = [f"r{k}" for k in range(len(results))]
+    segs = _split(lines)
+    tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
+    outs = ["out"] + (["grad"] if grad else []) + (["dt"] if timed else [])
+    args = ["xs", "ys"] + outs + list(extra_args)
+    body = [f"    {t} = {t}G" for t in tables] + [f"    {b}" for b in binds]
+    if "_act[" in "\n".join(lines):
+        body += ["    _act = _ACTG", "    _off = _OFFG"]
+    body.append("    n = xs.shape[0]")
+
+    info = []
+    for seg in segs:
+        info.append(_defs_uses(seg[1] if seg[0] == "line" else seg[2]))
+    bools = set()
+    for _, _, b in info:
+        bools |= b
+    later_uses = [set() for _ in segs]
+    acc = set(result_names)
+    for k in range(len(segs) - 1, -1, -1):
+        later_uses[k] = set(acc)
+        acc |= set(info[k][1])
+    slots: dict = {"x": 0, "y": 1}
+
+    def at(name, k):
+        if name not in slots:
+            slots[name] = len(slots)
+        return f"S[{slots[name] * BLOCK + k * half} + i]"
+
+    def load(name, pad):
+        return [f"{pad}{name}_{k} = {at(name, k)} != 0.0" if name in bools else
+                f"{pad}{name}_{k} = {at(name, k)}" for k in range(lanes)]
+
+    def store(name, pad):
+        return [f"{pad}{at(name, k)} = _sel({name}_{k}, 1.0, 0.0)" if name in bools else
+                f"{pad}{at(name, k)} = {name}_{k}" for k in range(lanes)]
+
+    def compute(stmts, pad):
+        out = []
+        for unit in _units(stmts):
+            for k in range(lanes):
+                out += [pad + _lane(st, k) for st in unit]
+        return out
+
+    body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+             "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+             "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
+             f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+    for k, seg in enumerate(segs):
+        defs, uses, _ = info[k]
+        if seg[0] == "line":
+            pad = "        "
+            body.append(f"    for i in range({half}):")
+            for name in uses:
+                body += load(name, pad)
+            body += compute(seg[1], pad)
+            for name in defs:
+                if name in later_uses[k]:
+                    body += store(name, pad)
+        else:
+            header, stmts = seg[1], seg[2]
+            loop_var = header.split()[1]
+            hoisted: dict = {}
+
+            def hoist(mt, loop_var, hoisted=hoisted):
+                if mt.group(2) != loop_var:
+                    return mt.group(0)
+                key = (mt.group(1), mt.group(3))
+                if key not in hoisted:
+                    hoisted[key] = f"h{mt.group(1)[2:]}_{mt.group(3)}"
+                return hoisted[key]
+
+            row = re.match(r"^(i\d+) = _act\[(i\d+q)\]$", stmts[0]) if stmts else None
+            if row and row.group(2) == loop_var:
+                # a loop over a row list (pruning): the row index is the same for all points
+                loop_var = row.group(1)
+                stmts = stmts[1:]
+            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
+            defs, uses, _ = _defs_uses(stmts)
+            body.append(f"    {header}")
+            if row:
+                body.append(f"        {row.group(0)}")
+            body += [f"        {name} = {t}[{loop_var}, {col}]"
+                     for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
+            pad = "            "
+            body.append(f"        for i in range({half}):")
+            for name in uses:
+                body += load(name, pad)
+            body += compute(stmts, pad)
+            for name in defs:
+                if name in uses or name in later_uses[k]:
+                    body += store(name, pad)
+    res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
+    if grad:
+        res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
+                f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)"]
+    if timed:
+        res.append(f"        dt[i] = _sel(ok, {at(result_names[3], 0)}, math.nan)")
+    body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+             "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)"] + res
+    nslots = len(slots)
+    sig = ", ".join(args)
+    size = max(nslots, 1) * BLOCK
+    views = ["    xs = xs[start:stop]", "    ys = ys[start:stop]", "    out = out[start:stop]"]
+    if grad:
+        views.append("    grad = grad[2 * start:2 * stop]")
+    if timed:
+        views.append("    dt = dt[start:stop]")
+    views.append(f"    S = S[at:at + {size}]")
+    flat = "\n    grad = grad.reshape(-1)" if grad else ""
+    src = f'''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _block_{kind}({sig}, start, stop, S, at):
+    """{'Value, gradient and dd/dt' if timed else 'Value and gradient' if grad else 'Value'} at points start..stop-1 (at most {BLOCK}){', ``grad`` flat (x, y pairs)' if grad else ''};
+    scratch ``S[at:at + {size}]``."""
+{chr(10).join(views)}
+{chr(10).join(body)}
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def batch_{kind}_par({sig}, chunks):
+    n = xs.shape[0]{flat}
+    blocks = (n + {BLOCK - 1}) // {BLOCK}
+    chunks = max(1, min(blocks, chunks))
+    S = np.empty(chunks * {size})
+    for c in prange(chunks):
+        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
+            _block_{kind}({sig}, b * {BLOCK}, min((b + 1) * {BLOCK}, n), S, c * {size})
+
+
+@njit(cache=True, error_model="numpy")
+def batch_{kind}_ser({sig}):
+    n = xs.shape[0]{flat}
+    S = np.empty({size})
+    for s in range(0, n, {BLOCK}):
+        _block_{kind}({sig}, s, min(s + {BLOCK}, n), S, 0)
+'''
+    return src
 
 
 def vmath_import() -> str:

@@ -22,13 +22,20 @@ Everything between the ``SCENE BLOCK`` marker comments is replaced. It must defi
     whether a step from ``(x, y)`` by ``(dx, dy)`` (its sweep included) may query where the
     world cannot answer yet (a grid whose exact fallback is not compiled: it is compiled only
     when a particle first comes near the grid's edge, so a new scene starts at once);
-``_force(x, y, vx, vy, m, t) -> (fx, fy)`` and ``USE_FORCE``
+``_force(x, y, vx, vy, m, t) -> (fx, fy)``, ``USE_FORCE`` and ``FORCE_AHEAD``
     the sum of the fused user forces (mass * length / s**2) at one particle and time ``t``;
     ``USE_FORCE = False`` when there are none (then ``m`` is not read for it).
-``MOVING``, ``_query_t(data, x, y, t) -> (d, dd/dx, dd/dy, dd/dt)`` and ``_wall_speed(data)``
+    ``FORCE_AHEAD``: evaluate them for ``FORCE_BATCH`` particles at a time, ahead of their
+    steps (same results). That pays for long-latency forces (a compiled field's square roots
+    and divisions overlap across particles instead of lengthening each particle's dependent
+    chain) and costs a second read of the state for cheap ones.
+``MOVING``, ``_query_t(data, x, y, t) -> (d, dd/dx, dd/dy, dd/dt)``, ``_wall_speed(data)``
+and ``_wall_speed_at(data, x, y, dx, dy)``
     for a world that moves (uses time): its distance at time ``t`` with the time derivative,
-    and a bound on ``|dd/dt|`` (length/s; how fast any surface can approach a particle). A
-    static world sets ``MOVING = False``, ``dd/dt = 0`` and a wall speed of 0.
+    a bound on ``|dd/dt|`` (length/s; how fast any surface can approach a particle), and a
+    bound for a step by ``(dx, dy)`` ending at ``(x, y)`` (at most the first: far from every
+    moving wall it is 0, so particles there skip queries as in a static world). A static world
+    sets ``MOVING = False``, ``dd/dt = 0`` and wall speeds of 0.
 
 Moving worlds
 -------------
@@ -107,6 +114,8 @@ MIN_STEP = 0.02
 CONTACT_TOL = 1e-3
 MAX_MARCH = 64
 MAX_BOUNCES = 3
+#: Particles whose user forces are evaluated together ahead of their steps.
+FORCE_BATCH = 32
 
 FLAG_INPUT = 1
 FLAG_NONFINITE = 2
@@ -191,6 +200,7 @@ def call_vg(typingctx, address, x, y):
 # discs (j, 3) rows (cx, cy, R). d = min over all of (n.p - c) and (|p - c| - R).
 _CACHE = True
 USE_FORCE = False
+FORCE_AHEAD = False
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -245,6 +255,12 @@ def _query_t(data, x, y, t):
 def _wall_speed(data):
     """A bound on |dd/dt| (the test world does not move)."""
     return 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _wall_speed_at(data, x, y, dx, dy):
+    """A bound on |dd/dt| for a step by (dx, dy) ending at (x, y)."""
+    return 0.0
 # <<< SCENE BLOCK <<<
 
 
@@ -283,7 +299,7 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
     return x, y, vx, vy
 
 
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _march(data, x0, y0, dx, dy, r, lip, t, t_free):
     """Conservative advancement of a disc of radius r from (x0, y0) along (dx, dy).
 
@@ -322,7 +338,7 @@ def _march(data, x0, y0, dx, dy, r, lip, t, t_free):
     return t, 2, 0.0, 0.0, 0.0
 
 
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1):
     """Tunnelling check of one step: sweep the disc from (x, y) along (dx, dy).
 
@@ -481,11 +497,13 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     """
     data = borrow_all(data)
     clear = np.zeros(hi - lo)
-    # A moving world: its surfaces move by at most wd per step (0 for a static world).
-    wd = _wall_speed(data) * dt if MOVING else 0.0
+    # A moving world: its surfaces move by at most wd per step near a particle (0 for a static
+    # world, and far from every moving wall).
+    wd = 0.0
     use_m = use_m or USE_FORCE
     # 1 / m of the block, computed once per call rather than divided every step
     inv_mass = np.empty(hi - lo if use_m else 0)
+    fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
     bad = 0
     for i in range(lo, hi):
         m = float(M[i]) if use_m or check_all else 1.0
@@ -505,6 +523,16 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
         t = t0 + step * dt
         for i in range(lo, hi):
             k = i - lo
+            if USE_FORCE and FORCE_AHEAD and k % FORCE_BATCH == 0:
+                # The user forces of the next FORCE_BATCH particles in a loop of their own:
+                # its iterations are independent, so the CPU overlaps their arithmetic instead
+                # of adding its latency to each particle's dependent chain (same results).
+                for j in range(i, min(hi, i + FORCE_BATCH)):
+                    if clear[j - lo] >= 0.0:
+                        ux, uy = _force(float(X[j, 0]), float(X[j, 1]), float(V[j, 0]),
+                                        float(V[j, 1]), float(M[j]), t)
+                        fbuf[j - i, 0] = ux
+                        fbuf[j - i, 1] = uy
             c = clear[k]
             if c < 0.0:
                 continue
@@ -522,7 +550,10 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 if use_ext:
                     fx += EXT[i, 0]
                     fy += EXT[i, 1]
-                if USE_FORCE:
+                if USE_FORCE and FORCE_AHEAD:
+                    fx += fbuf[k % FORCE_BATCH, 0]
+                    fy += fbuf[k % FORCE_BATCH, 1]
+                elif USE_FORCE:
                     ux, uy = _force(x, y, vx, vy, float(M[i]), t)
                     fx += ux
                     fy += uy
@@ -538,6 +569,8 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 vy += by * dt
                 dx = vx * dt
                 dy = vy * dt
+            if MOVING:
+                wd = _wall_speed_at(data, x + dx, y + dy, dx, dy) * dt
             if c > 0.0:
                 # (1 + CONTACT_TOL / lip): a skipped step must also be one whose sweep would
                 # not have stopped at a near-contact (s <= CONTACT_TOL |step|).

@@ -823,6 +823,10 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
                                                   fres.grads(len(fe.COMPONENTS))] if grad else [])
                 fold_sizes = fe.fold_sizes
         one = (one, block_source(rest, results, kind, fold_sizes=fold_sizes))
+    elif param_names is not None:  # parameters are data: read once per block from prm
+        kind = "vgt" if time else "vg" if grad else "v"
+        one = (one, block_source(list(rest), results, kind, ("t", "prm"),
+                                 binds=tuple(ln for ln in bind if ln.startswith("_p"))))
     return one, many, lanes, em.groups
 
 
@@ -853,8 +857,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
                                                         vmath=vmath)
     vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
                                                          vmath=vmath)
-    # Scenes without parameters: the batch kernels are the SIMD block kernels of
-    # fastsdf._simd (defined last, they replace the multi-lane batch kernels of the same name).
+    # The batch kernels are the SIMD block kernels of fastsdf._simd (defined last, they
+    # replace the multi-lane batch kernels of the same name).
     blocks = []
     if isinstance(v_one, tuple):
         (v_one, v_block), (vg_one, vg_block) = v_one, vg_one
@@ -869,6 +873,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
         vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(root, symbol_names, True,
                                                                  tables, pn, time=True,
                                                                  vmath=vmath)
+        vgt_one, vgt_block = vgt_one
+        blocks.append(vgt_block)
         funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
     parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
                             python=platform.python_version(),

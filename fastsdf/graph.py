@@ -488,6 +488,29 @@ def sym_length(a: Expr | float, b: Expr | float) -> Expr:
     return Expr("length", (a, b))
 
 
+def _param_blend(a, b, k: Expr, kind: str, sign: float) -> Expr:
+    """A smooth minimum (``sign = 1``) or maximum (``-1``) whose ``k`` is an expression of
+    runtime parameters, from generic operations (the blend nodes take a constant ``k``): the
+    same formulas, so the same values, with gradients in x, y and t from the graph. ``k`` is
+    checked > 0 at the parameters' defaults."""
+    number = float(evaluate_numpy(k, {"_": np.zeros(1)})[0]) if not k.syms else math.nan
+    if not number > 0 or not math.isfinite(1.0 / number):
+        raise ValueError(f"k given by parameters must be finite and > 0 (at their defaults, "
+                         f"and not depend on x or y), got k={k} = {number!r}")
+    a, b = as_expr(a, "a") * sign, as_expr(b, "b") * sign
+    m, gap = sym_min(a, b), sym_abs(a - b)
+    if kind == "exponential":
+        r = m - sym_log(1.0 + sym_exp(-k * gap)) / k
+    else:
+        h = sym_max(k - gap, 0.0) / k
+        r = m - (k * h * h * h / 6.0 if kind == "cubic" else k * h * h / 4.0)
+    return r * sign
+
+
+def _is_param_k(k) -> bool:
+    return isinstance(k, Expr) and k.op != "const"
+
+
 def _check_k(k, name="k") -> float:
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {k!r} of type {type(k).__name__}")
@@ -512,6 +535,8 @@ def sym_smin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     ``k > 0`` is the sharpness in 1/distance units; the blend deepens the result by at most
     ``log(2) / k``.
     """
+    if _is_param_k(k):
+        return _param_blend(a, b, k, "exponential", 1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
     if _both_const(a, b):
         return Expr("const", (), _smin_value(a.attr, b.attr, k))
@@ -521,6 +546,8 @@ def sym_smin(a: Expr | float, b: Expr | float, k: float) -> Expr:
 def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
     """Exponential smooth maximum ``log(exp(k a) + exp(k b)) / k`` (the notebook's smooth
     intersection), evaluated as ``max(a, b) + log1p(exp(-k |a - b|)) / k``."""
+    if _is_param_k(k):
+        return _param_blend(a, b, k, "exponential", -1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
     if _both_const(a, b):
         return Expr("const", (), -_smin_value(-a.attr, -b.attr, k))
@@ -578,6 +605,8 @@ def sym_qmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     below the minimum. Its gradient is the convex combination ``(1 - h/2) grad(min operand) +
     (h/2) grad(other)``. Not associative: chains of it are nested binary operations.
     """
+    if _is_param_k(k):
+        return _param_blend(a, b, k, "quadratic", 1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_width(k)
     if _both_const(a, b):
         return Expr("const", (), _poly_smin_value(a.attr, b.attr, k, False))
@@ -589,6 +618,8 @@ def sym_cmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     ``h = max(k - |a - b|, 0) / k``; exactly ``min(a, b)`` where ``|a - b| >= k``; C2; at
     ``a = b`` it is ``k / 6`` below the minimum; gradient ``(1 - h**2/2) grad(min operand) +
     (h**2/2) grad(other)``."""
+    if _is_param_k(k):
+        return _param_blend(a, b, k, "cubic", 1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_width(k)
     if _both_const(a, b):
         return Expr("const", (), _poly_smin_value(a.attr, b.attr, k, True))
@@ -603,7 +634,9 @@ def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants, data: Any 
     from ``(d, dd/du, dd/dv)`` to the coordinates."""
     if kind not in PRIM_KINDS:
         raise ValueError(f"kind must be one of {PRIM_KINDS}, got kind={kind!r}")
-    consts = tuple(as_expr(float(c), "constant") for c in constants)
+    # A constant may also be an expression of runtime parameters (an ellipse's axes).
+    consts = tuple(c if isinstance(c, Expr) and c.op != "const" and not c.syms
+                   else as_expr(float(c), "constant") for c in constants)
     return Expr("prim", (as_expr(u, "u"), as_expr(v, "v")) + consts, (kind, data))
 
 

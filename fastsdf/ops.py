@@ -669,11 +669,42 @@ def _fmt_prim(node, s):
     return f"{tag}({', '.join(s)})"
 
 
+def _prim_constants(node, av):
+    """The constants of a prim node from its argument values: runtime parameters are one
+    number per evaluation, but ``t`` given as a symbol may vary over the points."""
+    return [np.array([c.attr]) if c.op == "const" else np.unique(v)
+            for c, v in zip(node.args[2:], av[2:])]
+
+
 def _np_prim(node, av, g):
     from ._prims_ref import evaluate as _prim_reference
-    d, du, dv = _prim_reference(node.attr[0], node.attr[1], av[0], av[1],
-                                [float(c.attr) for c in node.args[2:]])
-    return d, ([du, dv] + [None] * (len(av) - 2) if g else None)
+    consts = _prim_constants(node, av)
+    if all(len(c) <= 1 for c in consts):
+        d, du, dv = _prim_reference(node.attr[0], node.attr[1], av[0], av[1],
+                                    [float(c[0]) if len(c) else 0.0 for c in consts])
+    else:  # constants that vary over the points: one evaluation per distinct row
+        rows = np.stack(av[2:], -1)
+        d, du, dv = (np.empty(np.shape(av[0])) for _ in range(3))
+        for row in np.unique(rows.reshape(-1, rows.shape[-1]), axis=0):
+            sel = np.all(rows == row, axis=-1)
+            d[sel], du[sel], dv[sel] = _prim_reference(node.attr[0], node.attr[1], av[0][sel],
+                                                       av[1][sel], list(row))
+    if not g:
+        return d, None
+    return d, [du, dv] + _prim_constant_partials(node, av, d, du, dv, np)
+
+
+def _prim_constant_partials(node, a, d, du, dv, lib):
+    """Partial derivatives in a prim node's constants (``None`` where not available), as arrays
+    (``lib = np``) or as source (``lib = None``, names in ``a``). Ellipse: by the envelope
+    theorem, with the closest point ``q = p - d n`` (``n`` the gradient),
+    ``dd/da = -n_u q_u / a`` and ``dd/db = -n_v q_v / b``."""
+    if node.attr[0] != "ellipse":
+        return [None] * (len(a) - 2)
+    if lib is None:
+        return [f"(-{du} * ({a[0]} - {d} * {du}) / {a[2]})",
+                f"(-{dv} * ({a[1]} - {d} * {dv}) / {a[3]})"]
+    return [-du * (a[0] - d * du) / a[2], -dv * (a[1] - d * dv) / a[3]]
 
 
 def _emit_prim(em, out, node, a, r):
@@ -688,19 +719,35 @@ def _emit_prim(em, out, node, a, r):
         em.assign(out, r, call)
         return None
     out.append(f"{r}, {r}u, {r}v = {call}")
-    return [f"{r}u", f"{r}v"] + [None] * (len(a) - 2)
+    if all(c.grads(len(em.COMPONENTS)) == (None,) * len(em.COMPONENTS) for c in a[2:]):
+        return [f"{r}u", f"{r}v"] + [None] * (len(a) - 2)
+    # constants that depend on time (an ellipse's axes given by sdf.t)
+    return [f"{r}u", f"{r}v"] + _prim_constant_partials(
+        node, [c.v for c in a], r, f"{r}u", f"{r}v", None)
 
 
 def _iv_prim(node, lo, hi):
     # Primitives are exact distances of (u, v), hence 1-Lipschitz there: the value over a box of
     # (u, v) is within its half-diagonal of the value at the box's centre.
     from ._prims_ref import evaluate as _prim_reference
+    # Constants given by parameters (an ellipse's axes) have ranges: the distance changes by at
+    # most the change of each axis (|dd/da| = |n_u q_u / a| <= 1), so their half-widths add.
     cu, cv = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])
     rad = np.hypot(0.5 * (hi[0] - lo[0]), 0.5 * (hi[1] - lo[1]))
-    ok = np.isfinite(cu) & np.isfinite(cv) & np.isfinite(rad)
+    consts = []
+    for c, clo, chi in zip(node.args[2:], lo[2:], hi[2:]):
+        if c.op == "const":
+            consts.append(float(c.attr))
+            continue
+        mid = 0.5 * (np.min(clo) + np.max(chi))
+        rad = rad + np.max(chi - clo) * 0.5 + np.abs(mid - 0.5 * (clo + chi))
+        consts.append(float(mid))
+    good = bool(np.all(np.isfinite(consts)) and all(c > 0 for c in consts))
+    ok = np.isfinite(cu) & np.isfinite(cv) & np.isfinite(rad) & good
     with np.errstate(all="ignore"):
         d = _prim_reference(node.attr[0], node.attr[1], np.where(ok, cu, 0.0),
-                            np.where(ok, cv, 0.0), [float(c.attr) for c in node.args[2:]])[0]
+                            np.where(ok, cv, 0.0), consts if good
+                            else [1.0] * len(consts))[0]
     # The NumPy reference and the compiled primitive agree to far better than this margin.
     m = 1e-9 * (np.abs(d) + rad + np.abs(np.where(ok, cu, 0.0)) + np.abs(np.where(ok, cv, 0.0))) \
         + _TINY

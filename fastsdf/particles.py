@@ -242,6 +242,9 @@ def force(x, y, vx, vy, m, t):
 {body}
 ''')
             self._dispatcher = load_module(source, prefix="fastsdf_force").force
+            # A compiled field is usually long-latency arithmetic (square roots, divisions):
+            # the step evaluates it for a batch of particles ahead (see fastsdf._step).
+            self._dispatcher._fastsdf_batched = True
         return self._dispatcher
 
     def __call__(self, p, t):
@@ -518,6 +521,8 @@ def _force_parts(forces) -> tuple:
         body.append("    return fx, fy")
     lines += ["", ""] + body
     lines.append(f"USE_FORCE = {bool(forces)}")
+    batched = any(getattr(fn, "_fastsdf_batched", False) for fn in forces)
+    lines.append(f"FORCE_AHEAD = {batched}")
     return lines, deps, late
 
 
@@ -525,7 +530,26 @@ def _force_parts(forces) -> tuple:
 _STATIC_TIME_LINES = ["", "", "MOVING = False", "", "", _DECORATOR,
                       "def _query_t(data, x, y, t):", "    d, gx, gy = _query(data, x, y)",
                       "    return d, gx, gy, 0.0", "", "", _DECORATOR, "def _wall_speed(data):",
-                      "    return 0.0"]
+                      "    return 0.0", "", "", _DECORATOR,
+                      "def _wall_speed_at(data, x, y, dx, dy):", "    return 0.0"]
+
+# Query data of a parametric world: (t, W, x0, y0, 1/h, table, *parameters). ``W`` bounds the
+# walls' speed |dd/dt| everywhere; ``table[i, j]`` bounds it over the cell of side h at
+# (x0 + i h, y0 + j h) and its neighbours during the call (see _wall_speed_table). A step
+# longer than a cell, or one ending outside the table, uses W.
+_PARAMS_AT = 6
+_WALL_SPEED_AT_LINES = [
+    "def _wall_speed_at(data, x, y, dx, dy):",
+    "    tab = data[5]",
+    "    u = (x - data[2]) * data[4]",
+    "    v = (y - data[3]) * data[4]",
+    "    if (u >= 0.0 and v >= 0.0 and u < tab.shape[0] and v < tab.shape[1]",
+    "            and (dx * dx + dy * dy) * (data[4] * data[4]) <= 1.0):",
+    "        return tab[int(u), int(v)]",
+    "    return data[1]"]
+_NO_TABLE = np.zeros((0, 0))
+# The table's resolution: at most this many cells a side over the particles' bounding box.
+WALL_TABLE_CELLS = 64
 
 
 class SimulationParams(dict):
@@ -607,16 +631,17 @@ def _kernel_module(f, forces=()):
         # Parameters and time are data, set per call: (t, wall speed bound, *parameters), one
         # flat tuple of floats (the parallel kernel cannot take nested tuples).
         scene = f.compiled.module.__name__
+        k = _PARAMS_AT
         lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
-                 "def _query(data, x, y):", "    return _exact(x, y, data[0], data[2:])", "", "",
-                 _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
+                 "def _query(data, x, y):", f"    return _exact(x, y, data[0], data[{k}:])", "",
+                 "", _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
         if f.time_dependent:
             lines += [f"from {scene} import point_vgt as _exact_t", "", "", _DECORATOR,
-                      "def _query_t(data, x, y, t):", "    return _exact_t(x, y, t, data[2:])",
+                      "def _query_t(data, x, y, t):", f"    return _exact_t(x, y, t, data[{k}:])",
                       "", "", _DECORATOR, "def _wall_speed(data):", "    return data[1]", "",
-                      "", "MOVING = True"]
+                      "", _DECORATOR] + _WALL_SPEED_AT_LINES + ["", "", "MOVING = True"]
         deps = [scene]
-        data = (0.0, 0.0) + f.param_tuple()
+        data = (0.0, 0.0, 0.0, 0.0, 1.0, _NO_TABLE) + f.param_tuple()
         desc = repr(f)[:300]
         key = ("sdf", id(f.compiled.module))
     elif isinstance(f, Function):
@@ -1064,14 +1089,66 @@ class ParticleSimulation:
                           f"the {steps} step(s) and sim.t = {self.t!r} includes them")
 
     def _scene_data(self, steps: int) -> tuple:
-        """Query data of a parametric world: (t, wall speed bound, *parameters)."""
+        """Query data of a parametric world: (t, wall speed bound, table geometry and the
+        per-region table, *parameters); see ``_PARAMS_AT``."""
         prm = self.params.as_tuple()
-        wall = 0.0
+        wall, table = 0.0, (0.0, 0.0, 1.0, _NO_TABLE)
         if self._moving and steps:
             wall = self._wall_speed_arg
             if wall is None:
-                wall = self._estimate_wall_speed(steps, prm)
-        return (float(self.t), float(wall)) + prm
+                wall, table = self._wall_speed_table(steps, prm)
+        self._wall_table = table  # kept alive: the kernel borrows the array
+        return (float(self.t), float(wall)) + table + prm
+
+    def _wall_speed_table(self, steps: int, prm: tuple) -> tuple:
+        """The global bound W and the per-region table of wall speeds for one call.
+
+        ``|dd/dt|`` is sampled on the nodes of a grid over the particles' bounding box (at most
+        ``WALL_TABLE_CELLS`` cells a side) at the call's first and last step times (and up to
+        6 times between), each cell gets 1.5 times the largest sample at its corners, and the
+        table is widened by one cell plus the distance a wall moving at W travels during the
+        call: a particle whose surroundings do not move (far from every moving wall) gets 0
+        and skips its queries as in a static scene. W is the largest value of the table and of
+        the samples at the particles (the estimate used where the table does not reach:
+        steps longer than a cell, particles outside the box).
+        """
+        x = np.asarray(self.p["x"], dtype=np.float64)
+        top = self._estimate_wall_speed(steps, prm)
+        finite = x[np.isfinite(x).all(axis=1)]
+        if not finite.size:
+            return top, (0.0, 0.0, 1.0, _NO_TABLE)
+        lo, hi = finite.min(axis=0), finite.max(axis=0)
+        size = float(max(hi - lo))
+        if not size > 0:
+            size = float(np.max(self.p["r"])) * 4 or 1.0
+        n = WALL_TABLE_CELLS
+        h = size / (n - 4)
+        x0, y0 = lo - 2 * h          # two cells of room on each side
+        gx = x0 + h * np.arange(n + 1)
+        gy = y0 + h * np.arange(n + 1)
+        X, Y = (a.ravel() for a in np.meshgrid(gx, gy, indexing="ij"))
+        comp = self._sdf.compiled
+        count = min(steps, 8)
+        times = self.t + self.dt * np.unique(np.round(np.linspace(1, steps, count)))
+        node = np.zeros((n + 1) * (n + 1))
+        for t in times:
+            _, _, gt = comp.evaluate(X, Y, t=float(t), params=prm, time_derivative=True)
+            node = np.maximum(node, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
+        node = node.reshape(n + 1, n + 1)
+        cell = 1.5 * np.maximum(np.maximum(node[:-1, :-1], node[1:, :-1]),
+                                np.maximum(node[:-1, 1:], node[1:, 1:]))
+        wall = max(top, float(cell[np.isfinite(cell)].max(initial=0.0)))
+        cell = np.where(np.isfinite(cell), cell, wall)  # unknown there (a non-finite dd/dt)
+        # walls at the sample times move up to W (t_gap) between them and W dt in a step
+        gap = max(float(np.max(np.diff(times))) if len(times) > 1 else 0.0, self.dt)
+        reach = 1 + int(math.ceil(wall * gap / h))
+        wide = cell
+        for _ in range(min(reach, n)):
+            pad = np.pad(wide, 1, mode="edge")
+            wide = np.maximum.reduce([pad[1:-1, 1:-1], pad[:-2, 1:-1], pad[2:, 1:-1],
+                                      pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, :-2], pad[2:, 2:],
+                                      pad[:-2, 2:], pad[2:, :-2]])
+        return wall, (float(x0), float(y0), 1.0 / h, np.ascontiguousarray(wide))
 
     def _estimate_wall_speed(self, steps: int, prm: tuple) -> float:
         """1.5 times the largest |dd/dt| at up to 4096 particles at the call's first and last
@@ -1127,7 +1204,7 @@ class ParticleSimulation:
         # simulation holds no drawing: that lives in fastsdf.render).
         # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
-        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_exact_ptr",
+        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_wall_table", "_exact_ptr",
                     "_flags"):
             state.pop(key, None)
         return state

@@ -118,3 +118,29 @@ def test_parameters_in_the_simulation_never_recompile():
         sim.params["speed"] = float("nan")
     with pytest.raises(ValueError, match="wall_speed"):
         phys.ParticleSimulation(world, n=4, wall_speed=-1.0)
+
+
+@pytest.mark.parametrize("calls", [20, 1])
+def test_fast_wall_never_tunnels_through_particles(calls):
+    # A thin bar (2 radii thick) rising at 10 radii per step through a box of particles at
+    # rest: most start nearer a static wall than the bar (their region's wall speed is 0 until
+    # the bar comes near), yet every one ends above the bar. calls = 20: one step per call (a
+    # new wall-speed table each step); 1: all 20 steps in one call (the table covers them).
+    u, r, dt = 6.0, 0.01, 1 / 60
+    box = (sdf.Halfspace(normal=[0, 1], d=-1.2) | sdf.Halfspace(normal=[0, -1], d=-1.2)
+           | sdf.Halfspace(normal=[1, 0], d=-1.2) | sdf.Halfspace(normal=[-1, 0], d=-1.2))
+    lift = sdf.Param("y0", -1.1) + sdf.Param("u", 1.0) * sdf.t
+    with sdf.transform(offset=[0.0, lift]):
+        bar = sdf.Box(minc=[-1.15, -r], maxc=[1.15, r])
+    gx, gy = np.meshgrid(np.linspace(-1.1, 1.1, 45), np.linspace(-0.9, 0.8, 24))
+    x = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    n = len(x)
+    sim = _sim(box | bar, x, np.zeros((n, 2)), r, cr=np.linspace(0, 1, n) ** 2, dt=dt,
+               params={"u": u, "y0": -1.1})
+    for _ in range(calls):
+        sim.run(20 // calls)
+    top = -1.1 + u * sim.t + r                # the bar's upper face, now at y = 0.91
+    y = np.asarray(sim.p["x"])[:, 1]
+    assert np.all(y - r >= top - 0.01 * r), np.min(y - r - top)
+    d, _ = sim.query(sim.p["x"][:, 0], sim.p["x"][:, 1])
+    assert np.all(d - r >= -0.01 * r)

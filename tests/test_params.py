@@ -185,3 +185,26 @@ def test_grid_of_a_parametric_scene_is_a_snapshot():
                                atol=0.02)
     with pytest.raises(ValueError, match="depends on time"):
         sdf.GridSDF(sdf.Circle(center=[0.0, sdf.t], radius=0.5))
+
+
+@pytest.mark.parametrize("n", [1, 511, 513, 3 * 512 + 5, 4096 + 7])
+def test_parametric_block_kernels_at_block_edges(n):
+    # The batch kernels of a parametric scene are the SIMD block kernels (parameters and time
+    # read once per block): every kind, any length, non-finite points NaN, the same numbers as
+    # the one-point function.
+    from fastsdf._simd import BLOCK
+    assert BLOCK == 512
+    f = Function(_moving_scene(Param("px", 0.3), Param("w", 2.0), sdf.t), [X, Y])
+    assert "def _block_vgt(" in f.compiled.module_source
+    r = np.random.default_rng(n)
+    x, y = r.uniform(-2, 2, (2, n))
+    x[::7] = np.nan
+    d, g, gt = f(x, y, t=0.4, px=-0.3, time_derivative=True)
+    point = f.compiled.point_fn("vgt")
+    prm = f.with_params(px=-0.3).param_tuple()
+    ref = np.array([point(a, b, 0.4, prm) for a, b in zip(x, y)])
+    np.testing.assert_allclose(np.stack([d, g[:, 0], g[:, 1], gt], -1), ref, rtol=0, atol=1e-12)
+    assert np.array_equal(f(x, y, t=0.4, px=-0.3), d, equal_nan=True)
+    d2, g2 = f(x, y, t=0.4, px=-0.3, compute_gradient=True)
+    assert np.array_equal(d2, d, equal_nan=True) and np.array_equal(g2, g, equal_nan=True)
+    assert np.all(np.isnan(d[::7])) and np.all(np.isfinite(np.delete(d, np.s_[::7])))

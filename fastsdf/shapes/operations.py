@@ -183,25 +183,25 @@ class SDF(Function):
         bound (exact inside the band only where the surface is a circle, see :class:`Ring`:
         near a corner the band's inner edge is farther than the formula says).
         """
-        t = _real(thickness, "thickness")
-        if t <= 0:
-            raise ValueError(f"thickness must be > 0, got thickness={t!r}")
-        _check_length(t, "thickness")
+        t, tv = real_or_param(thickness, "thickness")
+        if tv <= 0:
+            raise ValueError(f"thickness must be > 0, got thickness={thickness!r}")
+        _check_length(tv, "thickness")
         i = self._info
         info = _Info(outside=i.outside and i.inside, inside=False, bound=i.bound,
-                     bbox=_grow(i.bbox, t / 2), sym=i.sym)
+                     bbox=None if is_param(t) else _grow(i.bbox, t / 2), sym=i.sym)
         return SDF(sym_abs(self.f) - t / 2, info)
 
     def scale(self, s: float) -> SDF:
         """Uniform scale about the origin: ``s * f(p / s)`` with ``s > 0``; keeps the value a
         distance, so exactness is kept."""
-        s = _real(s, "s")
-        if s <= 0:
+        s, sv = real_or_param(s, "s")
+        if sv <= 0:
             raise ValueError(f"s must be > 0, got s={s!r}")
-        _check_length(s, "s")
+        _check_length(sv, "s")
         inv = 1.0 / s
         i = self._info
-        bbox = None if i.bbox is None else tuple(v * s for v in i.bbox)
+        bbox = None if i.bbox is None or is_param(s) else tuple(v * s for v in i.bbox)
         return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s, replace(i, bbox=bbox))
 
     def translate(self, offset: ArrayLike) -> SDF:
@@ -279,13 +279,17 @@ class SDF(Function):
         another one, and the value jumps at cell borders: exactness ``'none'``. Known symmetry
         comes from the construction (primitives centred at the origin, :meth:`mirror`).
         """
-        sp = _pair(spacing, "spacing", _real)
+        sp = _pair(spacing, "spacing", lambda v, name: real_or_param(v, name))
         ct = _pair(count, "count", _count)
-        if not all(v > 0 for v in sp):
+        spv = [v[1] for v in sp]
+        sp = [v[0] for v in sp]
+        if not all(v > 0 for v in spv):
             raise ValueError(f"spacing must be > 0, got spacing={spacing!r}")
-        for v in sp:
+        for v in spv:
             _check_length(v, "spacing", spacing)
         i = self._info
+        if any(is_param(v) for v in (*sp, *ct)):  # given by parameters: the copies move
+            i = replace(i, bbox=None)
         sub, symmetric, contained = {}, True, i.bbox is not None
         lo = list(i.bbox[:2]) if i.bbox is not None else None
         hi = list(i.bbox[2:]) if i.bbox is not None else None
@@ -293,11 +297,11 @@ class SDF(Function):
             if n == 1:
                 continue
             coord = _X if ax == "x" else _Y
-            cell = sym_min(sym_max(sym_floor(coord * (1.0 / s) + 0.5), 0.0), float(n - 1))
+            cell = sym_min(sym_max(sym_floor(coord * (1.0 / s) + 0.5), 0.0), n - 1)
             sub[ax] = coord - cell * s
             symmetric = symmetric and ax in i.sym
             if i.bbox is not None:
-                contained = contained and max(-i.bbox[j], i.bbox[2 + j]) < s / 2
+                contained = contained and max(-i.bbox[j], i.bbox[2 + j]) < spv[j] / 2
                 hi[j] += (n - 1) * s
         if not sub:
             return self
@@ -320,7 +324,15 @@ def _pair(value, name, check):
     return (v, v)
 
 
-def _count(value, name) -> int:
+def _count(value, name):
+    """A count: an integer >= 1, or an expression of parameters (rounded down at run time,
+    checked at the defaults)."""
+    if is_param(value):
+        value, number = real_or_param(value, name)
+        if number < 1 or number != int(number):
+            raise ValueError(f"{name} must be an integer >= 1, got {name}={value} = {number!r} "
+                             f"at the parameters' defaults")
+        return sym_floor(value)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise TypeError(f"{name} must be an integer, got {name}={value!r}")
     if value < 1:

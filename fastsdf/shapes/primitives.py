@@ -17,13 +17,110 @@ from .._validate import coord2 as _point
 from .._validate import length as _length
 from .._validate import real as _real
 from .._validate import vec2 as _vec2
-from ..graph import Expr, sym_abs, sym_length, sym_max, sym_min, sym_prim, sym_select
-from .._validate import coord2_or_param, is_param, real_or_param
+from ..graph import (Expr, as_expr, sym_abs, sym_cos, sym_length, sym_max, sym_min, sym_prim,
+                     sym_select, sym_sin)
+from .._validate import coord2_or_param, is_param, real_or_param, vec2_or_param
 
 
 def _has_param(value) -> bool:
     """Whether a pair holds an expression of runtime parameters."""
     return isinstance(value, (tuple, list)) and any(is_param(v) for v in value)
+
+
+def _any_param(*values) -> bool:
+    """Whether any of the numbers or pairs is (or holds) an expression of parameters."""
+    return any(is_param(v) or _has_param(v) for v in values)
+
+
+def _point_p(value, name):
+    """``(pair, numbers)``: a point whose coordinates may be expressions of parameters (checked
+    at the parameters' defaults) and its value there as a float64 array."""
+    if _has_param(value):
+        return coord2_or_param(value, name)
+    p = _point(value, name)
+    return p, p
+
+
+def _positive_p(value, name, size=True):
+    """``(value, number)``: :func:`_positive` for a number or an expression of parameters
+    (checked at the defaults)."""
+    if is_param(value):
+        value, number = real_or_param(value, name)
+        if not number > 0:
+            raise ValueError(f"{name} must be > 0, got {name}={value} = {number!r} at the "
+                             f"parameters' defaults")
+        if size:
+            _check_length(number, name)
+        return value, number
+    v = _positive(value, name, size)
+    return v, v
+
+
+def _not_param(value, name, why):
+    """``TypeError`` for a number that cannot be a runtime parameter, saying why."""
+    if is_param(value) or _has_param(value):
+        raise TypeError(f"{name} cannot be a runtime parameter ({why}), got {name}={value!r}")
+
+
+# A segment whose ends meet at run time divides by its length: it is kept above this (the
+# smallest supported length is 1e-150), and then the distance is the distance to the point.
+_TINY = 1e-300
+
+
+def _segment_expr_p(x: Expr, y: Expr, a, b, normal=None) -> Expr:
+    """:func:`_segment_expr` with ends (and normal) that may be expressions of parameters: the
+    same formula, with the length and direction computed in the kernel."""
+    px, py = x - a[0], y - a[1]
+    ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
+    length = sym_length(ex, ey)
+    safe = sym_max(length, _TINY)
+    dx, dy = ex / safe, ey / safe
+    nx, ny = (-dy, dx) if normal is None else normal
+    t = px * dx + py * dy
+    h = px * nx + py * ny
+    beyond_b = t - 0.5 * length
+    ux = sym_select(beyond_b, px - ex, px)
+    uy = sym_select(beyond_b, py - ey, py)
+    beside = sym_min(t, length - t)
+    return sym_select(beside, sym_abs(h), sym_length(ux, uy))
+
+
+def _convex_polygon_expr_p(x: Expr, y: Expr, vertices, orientation=1.0) -> Expr:
+    """:func:`_convex_polygon_expr` for vertices that may be expressions of parameters, in
+    counter-clockwise order when ``orientation`` is 1 and clockwise when it is -1 (a number,
+    or an expression that is +-1 at run time)."""
+    n = len(vertices)
+    dist = line = None
+    for i in range(n):
+        a, b = vertices[i], vertices[(i + 1) % n]
+        ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
+        inv = orientation / sym_max(sym_length(ex, ey), _TINY)
+        normal = (ey * inv, -ex * inv)  # outward
+        seg = _segment_expr_p(x, y, a, b, normal)
+        h = (x - a[0]) * normal[0] + (y - a[1]) * normal[1]
+        dist = seg if dist is None else sym_min(dist, seg)
+        line = h if line is None else sym_max(line, h)
+    return sym_select(line, dist, line)
+
+
+def _polygon_expr_p(x: Expr, y: Expr, vertices) -> Expr:
+    """Exact SDF of a simple polygon whose vertices may be expressions of parameters, from
+    graph operations: the distance to the nearest edge, negated inside by an even-odd crossing
+    count (IQ's sdPolygon: each edge that a ray from the point crosses flips the sign)."""
+    n = len(vertices)
+    dist = sign = None
+    for i in range(n):
+        a, b = vertices[i], vertices[i - 1]
+        seg = _segment_expr_p(x, y, a, b)
+        dist = seg if dist is None else sym_min(dist, seg)
+        ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
+        wx, wy = x - a[0], y - a[1]
+        c1 = sym_select(a[1] - y, -1.0, 1.0)          # y >= a.y
+        c2 = sym_select(b[1] - y, 1.0, -1.0)          # y < b.y
+        c3 = sym_select(ex * wy - ey * wx, 1.0, -1.0)  # the point left of the edge
+        flip = sym_select(sym_abs(c1 + c2 + c3) - 2.0, -1.0, 1.0)  # all three or none
+        sign = flip if sign is None else sign * flip
+    return sign * dist
 from .context import _IDENTITY, _coords, _frame
 from .exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
 from .operations import SDF
@@ -64,8 +161,19 @@ class Halfspace(SDF):
     signed offset ``d`` from the origin (Hessian normal form; exact distance)."""
 
     def __init__(self, normal: ArrayLike = (1.0, 0.0), d: float = 0.0):
-        normal = _vec2(normal, "normal")
         d = real_or_param(d, "d")[0] if is_param(d) else _coord(d, "d")
+        if _has_param(normal):  # turned by parameters: normalized in the kernel
+            normal, nv = vec2_or_param(normal, "normal")
+            if not float(np.hypot(*nv)) > 0:
+                raise ValueError(f"normal must have non-zero length, got normal={nv.tolist()!r} "
+                                 f"at the parameters' defaults")
+            length = sym_length(*normal)
+            self.normal, self.d = (normal[0] / length, normal[1] / length), d
+            x, y = _coords()
+            super().__init__(x * self.normal[0] + y * self.normal[1] - d,
+                             _primitive_info(None, convex=True))
+            return
+        normal = _vec2(normal, "normal")
         big = float(np.abs(normal).max())
         if not big > 0:
             raise ValueError(f"normal must have non-zero length, got normal={normal.tolist()!r}")
@@ -279,6 +387,12 @@ class Segment(SDF):
     """
 
     def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0)):
+        if _any_param(a, b):
+            (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
+            _segment_length(av, bv)
+            self.a, self.b = a, b
+            super().__init__(_segment_expr_p(*_coords(), a, b), _primitive_info(None, convex=True))
+            return
         a, b = _point(a, "a"), _point(b, "b")
         _segment_length(a, b)
         self.a, self.b = a, b
@@ -294,6 +408,14 @@ class Capsule(SDF):
     ``b - a``, as for :class:`Segment`."""
 
     def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0), radius: float = 0.25):
+        if _any_param(a, b, radius):
+            (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
+            radius, _ = _positive_p(radius, "radius")
+            _segment_length(av, bv)
+            self.a, self.b, self.radius = a, b, radius
+            super().__init__(_segment_expr_p(*_coords(), a, b) - radius,
+                             _primitive_info(None, convex=True))
+            return
         a, b = _point(a, "a"), _point(b, "b")
         radius = _positive(radius, "radius")
         _segment_length(a, b)
@@ -313,39 +435,51 @@ class RoundedBox(SDF):
 
     def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0),
                  radii: ArrayLike = 0.25):
-        minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
-        if not np.all(minc < maxc):
+        # Any of the numbers may be an expression of parameters: the checks run at the
+        # parameters' defaults, the formulas are the same.
+        (minc, lo), (maxc, hi) = _point_p(minc, "minc"), _point_p(maxc, "maxc")
+        if not np.all(lo < hi):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
-                             f"minc={minc.tolist()!r}, maxc={maxc.tolist()!r}")
-        _check_length(float(np.min(maxc - minc)), "the smaller side maxc - minc")
+                             f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
+        _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
+
+        def radius(v):
+            if is_param(v):
+                v, number = real_or_param(v, "radii")
+                _length(number, "radii", zero=True)
+                return v, number
+            v = _length(v, "radii", zero=True)
+            return v, v
         if isinstance(radii, (tuple, list, np.ndarray)):
             if len(radii) != 4:
                 raise ValueError(f"radii must be one number or four (upper-right, upper-left, "
                                  f"lower-left, lower-right), got radii={radii!r}")
-            r = [_length(v, "radii", zero=True) for v in radii]
+            r, rv = zip(*[radius(v) for v in radii])
         else:
-            r = [_length(radii, "radii", zero=True)] * 4
-        center, half = (minc + maxc) / 2, (maxc - minc) / 2
-        limit = float(min(half))
-        if not all(0.0 <= v <= limit for v in r):
+            r, rv = zip(*[radius(radii)] * 4)
+        limit = float(min((hi - lo) / 2))
+        if not all(0.0 <= v <= limit for v in rv):
             raise ValueError(f"radii must be in [0, {limit!r}] (half the smaller side), got "
                              f"radii={radii!r}")
+        moving = _any_param(minc, maxc, *r)
         self.minc, self.maxc, self.radii = minc, maxc, tuple(r)
+        center = [(minc[j] + maxc[j]) / 2 for j in (0, 1)]
+        half = [(maxc[j] - minc[j]) / 2 for j in (0, 1)]
         x, y = _coords()
-        px, py = x - float(center[0]), y - float(center[1])
-        if len(set(r)) == 1:
+        px, py = x - center[0], y - center[1]
+        if all(v is r[0] for v in r) or (not moving and len(set(r)) == 1):
             rad = r[0]
         else:  # the radius of the quadrant the point is in
             rad = sym_select(px, sym_select(py, r[0], r[3]), sym_select(py, r[1], r[2]))
-        qx = sym_abs(px) - float(half[0]) + rad
-        qy = sym_abs(py) - float(half[1]) + rad
+        qx = sym_abs(px) - half[0] + rad
+        qy = sym_abs(py) - half[1] + rad
         expr = _box_expr(qx, qy) - rad
         sym = set()
-        if center[0] == 0 and r[0] == r[1] and r[2] == r[3]:
+        if not moving and center[0] == 0 and r[0] == r[1] and r[2] == r[3]:
             sym.add("x")
-        if center[1] == 0 and r[0] == r[3] and r[1] == r[2]:
+        if not moving and center[1] == 0 and r[0] == r[3] and r[1] == r[2]:
             sym.add("y")
-        info = _primitive_info(_points_bbox([minc, maxc]), sym, convex=True)
+        info = _primitive_info(None if moving else _points_bbox([lo, hi]), sym, convex=True)
         super().__init__(expr, info)
 
 
@@ -355,6 +489,22 @@ class OrientedBox(SDF):
 
     def __init__(self, a: ArrayLike = (-1.0, 0.0), b: ArrayLike = (1.0, 0.0),
                  thickness: float = 0.5):
+        if _any_param(a, b, thickness):
+            (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
+            thickness, _ = _positive_p(thickness, "thickness")
+            if not _segment_length(av, bv) > 0:
+                raise ValueError(f"a and b must differ, got a={av.tolist()!r}, "
+                                 f"b={bv.tolist()!r} at the parameters' defaults")
+            self.a, self.b, self.thickness = a, b, thickness
+            ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
+            length = sym_length(ex, ey)
+            dx, dy = ex / sym_max(length, _TINY), ey / sym_max(length, _TINY)
+            x, y = _coords()
+            px, py = x - (a[0] + b[0]) / 2, y - (a[1] + b[1]) / 2
+            qx = sym_abs(px * dx + py * dy) - length / 2
+            qy = sym_abs(py * dx - px * dy) - thickness / 2
+            super().__init__(_box_expr(qx, qy), _primitive_info(None, convex=True))
+            return
         a, b = _point(a, "a"), _point(b, "b")
         thickness = _positive(thickness, "thickness")
         length = _segment_length(a, b)
@@ -381,7 +531,8 @@ class Triangle(SDF):
 
     def __init__(self, p0: ArrayLike = (-1.0, -0.5), p1: ArrayLike = (1.0, -0.5),
                  p2: ArrayLike = (0.0, 1.0)):
-        v = np.array([_point(p0, "p0"), _point(p1, "p1"), _point(p2, "p2")])
+        pts = [_point_p(p, name) for p, name in ((p0, "p0"), (p1, "p1"), (p2, "p2"))]
+        v = np.array([p[1] for p in pts])
         size = float(np.abs(v - v[0]).max())
         _check_length(size, "the triangle's size max|p_i - p0|")
         w = (v - v[0]) / size  # the checks in a frame of size 1: no over- or underflow
@@ -391,6 +542,15 @@ class Triangle(SDF):
         if not abs(area2) > 1e-12 * scale * scale:
             raise ValueError(f"p0, p1, p2 must not be collinear, got p0={v[0].tolist()!r}, "
                              f"p1={v[1].tolist()!r}, p2={v[2].tolist()!r}")
+        if _any_param(p0, p1, p2):
+            # Either orientation at run time: the sign of the (doubled) area picks the normals.
+            (a, b, c) = [p[0] for p in pts]
+            area2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+            self.vertices = (a, b, c)
+            expr = _convex_polygon_expr_p(*_coords(), self.vertices,
+                                          sym_select(area2, 1.0, -1.0))
+            super().__init__(expr, _primitive_info(None, convex=True))
+            return
         self.vertices = _ccw(v)
         info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=True)
         super().__init__(_convex_polygon_expr(*_coords(), self.vertices), info)
@@ -435,9 +595,20 @@ class RegularPolygon(SDF):
     loop over a table in the generated code for ``n >= 4``)."""
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 6):
+        _not_param(n, "n", "the number of vertices sets the structure of the generated code")
+        n = _check_n(n)
+        if _any_param(center, radius):
+            center, _ = _point_p(center, "center")
+            radius, _ = _positive_p(radius, "radius")
+            self.center, self.radius, self.n = center, radius, n
+            ang = math.pi / 2 + 2 * math.pi * np.arange(n) / n
+            self.vertices = [(center[0] + radius * float(math.cos(a)),
+                              center[1] + radius * float(math.sin(a))) for a in ang]
+            super().__init__(_convex_polygon_expr_p(*_coords(), self.vertices),
+                             _primitive_info(None, convex=True))
+            return
         center = _point(center, "center")
         radius = _positive(radius, "radius")
-        n = _check_n(n)
         self.center, self.radius, self.n = center, radius, n
         v = _regular_vertices(center, radius, n)
         self.vertices = v
@@ -466,6 +637,9 @@ class Polygon(SDF):
     """
 
     def __init__(self, vertices: ArrayLike):
+        if isinstance(vertices, (tuple, list)) and any(_any_param(p) for p in vertices):
+            self._init_param(vertices)
+            return
         v = _vertices(vertices, "vertices")
         if len(v) > 1 and np.all(v[0] == v[-1]):
             v = v[:-1]  # closed by repeating the first vertex: accepted
@@ -493,6 +667,24 @@ class Polygon(SDF):
         info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=_is_convex(w))
         super().__init__(expr, info)
 
+    def _init_param(self, vertices) -> None:
+        """Vertices given by parameters: checked at the parameters' defaults (simple, non-zero
+        area, in range) and evaluated by graph operations (an unrolled loop over the edges)
+        instead of the compiled loop, whose vertex table is part of the generated code."""
+        pts = [_point_p(p, "vertices") for p in vertices]
+        v = _vertices([p[1] for p in pts], "vertices")
+        if len(v) > 1 and np.all(v[0] == v[-1]):
+            pts, v = pts[:-1], v[:-1]
+        keep = np.any(v != np.roll(v, 1, axis=0), axis=1)
+        if np.any(keep):
+            pts, v = [p for p, k in zip(pts, keep) if k], v[keep]
+        if len(v) < 3:
+            raise ValueError(f"vertices needs at least 3 distinct vertices, got {vertices!r}")
+        _check_length(float(np.abs(v - v[0]).max()), "the polygon's size max|v_i - v_0|")
+        _check_simple(v, "vertices")
+        self.vertices = [p[0] for p in pts]
+        SDF.__init__(self, _polygon_expr_p(*_coords(), self.vertices), _primitive_info(None))
+
 
 class Star(Polygon):
     """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
@@ -500,6 +692,22 @@ class Star(Polygon):
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 5,
                  inner_radius: float | None = None):
+        _not_param(n, "n", "the number of points sets the structure of the generated code")
+        if _any_param(center, radius, inner_radius):
+            (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
+            inner, iv = (radius / 2, rv / 2) if inner_radius is None else \
+                _positive_p(inner_radius, "inner_radius")
+            n = _check_n(n, minimum=2)
+            if not iv < rv:
+                raise ValueError(f"inner_radius must be < radius, got inner_radius={inner!r}, "
+                                 f"radius={radius!r} (at the parameters' defaults)")
+            ang = math.pi / 2 + math.pi * np.arange(2 * n) / n
+            v = [(center[0] + (radius if k % 2 == 0 else inner) * float(math.cos(a)),
+                  center[1] + (radius if k % 2 == 0 else inner) * float(math.sin(a)))
+                 for k, a in enumerate(ang)]
+            super().__init__(v)
+            self.center, self.radius, self.n, self.inner_radius = center, radius, n, inner
+            return
         center = _point(center, "center")
         radius = _positive(radius, "radius")
         n = _check_n(n, minimum=2)
@@ -536,15 +744,19 @@ class Ellipse(SDF):
     """
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), axes: ArrayLike = (1.0, 0.5)):
+        if _any_param(center, axes):
+            (center, cv), (axes_p, av) = _point_p(center, "center"), vec2_or_param(axes, "axes")
+            self._check_axes(av)
+            self.center, self.axes = center, axes_p
+            x, y = _coords()
+            # The axes are arguments of the compiled solve; its derivative in them (for dd/dt)
+            # comes from the closest point (see fastsdf.ops).
+            expr = sym_prim("ellipse", x - center[0], y - center[1], axes_p[0], axes_p[1])
+            super().__init__(expr, _primitive_info(None, convex=True))
+            return
         center = _point(center, "center")
         axes = _vec2(axes, "axes")
-        if not np.all(axes > 0):
-            raise ValueError(f"axes must be > 0, got axes={axes.tolist()!r}")
-        for v in axes:
-            _check_length(float(v), "axes", axes.tolist())
-        if axes.max() / axes.min() > _MAX_ECCENTRICITY:
-            raise ValueError(f"axes must not differ by more than a factor "
-                             f"{_MAX_ECCENTRICITY:g}, got axes={axes.tolist()!r}")
+        self._check_axes(axes)
         self.center, self.axes = center, axes
         x, y = _coords()
         expr = sym_prim("ellipse", x - float(center[0]), y - float(center[1]),
@@ -553,24 +765,33 @@ class Ellipse(SDF):
                                convex=True)
         super().__init__(expr, info)
 
+    @staticmethod
+    def _check_axes(axes) -> None:
+        if not np.all(axes > 0):
+            raise ValueError(f"axes must be > 0, got axes={axes.tolist()!r}")
+        for v in axes:
+            _check_length(float(v), "axes", axes.tolist())
+        if axes.max() / axes.min() > _MAX_ECCENTRICITY:
+            raise ValueError(f"axes must not differ by more than a factor "
+                             f"{_MAX_ECCENTRICITY:g}, got axes={axes.tolist()!r}")
+
 
 class Ring(SDF):
     """Annulus: the circle of ``radius`` around ``center`` thickened to total width
     ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, thickness: float = 0.2):
-        center = _point(center, "center")
-        radius = _positive(radius, "radius")
-        thickness = _positive(thickness, "thickness")
-        if not thickness < 2 * radius:
+        (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
+        thickness, tv = _positive_p(thickness, "thickness")
+        if not tv < 2 * rv:
             raise ValueError(f"thickness must be < 2 * radius (the hole would close), got "
                              f"thickness={thickness!r}, radius={radius!r}")
         self.center, self.radius, self.thickness = center, radius, thickness
         x, y = _coords()
-        expr = sym_abs(sym_length(x - float(center[0]), y - float(center[1])) - radius) \
-            - thickness / 2
-        info = _primitive_info(_points_bbox([center], radius + thickness / 2),
-                               _center_sym(center))
+        expr = sym_abs(sym_length(x - center[0], y - center[1]) - radius) - thickness / 2
+        moving = _any_param(center, radius, thickness)
+        info = _primitive_info(None if moving else _points_bbox([cv], rv + tv / 2),
+                               () if moving else _center_sym(cv))
         super().__init__(expr, info)
 
 
@@ -586,31 +807,34 @@ class Arc(SDF):
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0,
                  aperture: float = math.pi, thickness: float = 0.2):
-        center = _point(center, "center")
-        radius = _positive(radius, "radius")
-        aperture = _positive(aperture, "aperture", size=False)
-        if aperture > 2 * math.pi:
+        (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
+        aperture, apv = _positive_p(aperture, "aperture", size=False)
+        if apv > 2 * math.pi:
             raise ValueError(f"aperture must be <= 2 pi, got aperture={aperture!r}")
-        thickness = _positive(thickness, "thickness")
-        if not thickness < 2 * radius:
+        thickness, tv = _positive_p(thickness, "thickness")
+        if not tv < 2 * rv:
             raise ValueError(f"thickness must be < 2 * radius, got thickness={thickness!r}, "
                              f"radius={radius!r}")
+        moving = _any_param(center, radius, aperture, thickness)
         self.center, self.radius = center, radius
         self.aperture, self.thickness = aperture, thickness
         x, y = _coords()
-        px, py = x - float(center[0]), y - float(center[1])
+        px, py = x - center[0], y - center[1]
         ring = sym_abs(sym_length(px, py) - radius)
-        if aperture == 2 * math.pi:
+        if not is_param(aperture) and aperture == 2 * math.pi:
             dist = ring
         else:
-            s, c = math.sin(aperture / 2), math.cos(aperture / 2)
+            # (at a full circle given by parameters, the end point's branch is the circle's
+            # own value: the formula is continuous there)
+            s, c = (sym_sin(aperture / 2), sym_cos(aperture / 2)) if is_param(aperture) else \
+                (math.sin(aperture / 2), math.cos(aperture / 2))
             ax = sym_abs(px)
             # beyond the end's ray the end point is nearest, else the circle
             dist = sym_select(ax * c - py * s, sym_length(ax - s * radius, py - c * radius), ring)
-        gap = 2 * radius * math.sin(math.pi - aperture / 2)  # distance between the ends
-        exact = aperture == 2 * math.pi or gap >= thickness
-        info = _primitive_info(_points_bbox([center], radius + thickness / 2),
-                               _center_sym(center) & {"x"})
+        gap = 2 * rv * math.sin(math.pi - apv / 2)  # distance between the ends
+        exact = not _any_param(radius, aperture, thickness) and (apv == 2 * math.pi or gap >= tv)
+        info = _primitive_info(None if moving else _points_bbox([cv], rv + tv / 2),
+                               set() if moving else _center_sym(cv) & {"x"})
         if not exact:
             info = replace(info, inside=False)
         super().__init__(dist - thickness / 2, info)
