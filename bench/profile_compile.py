@@ -22,7 +22,19 @@ SCENES = {
     "box20": ("20-box world (cell 13)", lambda sdf, sc: sc.box_world(20)),
     "box200": ("200-primitive world", lambda sdf, sc: sc.box_world(197)),
     "box1000": ("1000-primitive world", lambda sdf, sc: sc.box_world(997)),
+    "mixed50": ("mixed ops, 50 primitives", lambda sdf, sc: _mixed(sdf, 50)),
+    "mixed200": ("mixed ops, 200 primitives", lambda sdf, sc: _mixed(sdf, 200)),
 }
+
+
+def _mixed(sdf, n):
+    """bench_core's scene without repeated structure next to each other (the same draws)."""
+    import numpy as np
+    from .bench_core import _PROBE
+    code = _PROBE[_PROBE.index("def mixed_scene"):_PROBE.index("t0 = time.perf_counter()\nf = SCENE")]
+    ns = {"np": np, "sdf": sdf}
+    exec(code, ns)  # noqa: S102 - our own source
+    return ns["mixed_scene"](n)
 
 
 def _timers(dispatcher):
