@@ -485,7 +485,10 @@ arithmetic and no gather instruction).
   measured and not kept: a branch-free response (it must load `cr, cf` every step; slower),
   prefetching the grid cell a few particles ahead (a small gain per call while settled, a large
   loss in free flight), and splitting each batch of 32 particles into a pass of forces,
-  integration, budgets and queries and a pass of sweeps and responses (no gain while settled).
+  integration, budgets and queries and a pass of sweeps and responses (no gain while settled),
+  and carrying the free-flight budgets from one call to the next (kept where `x` and `r` are
+  unchanged) so that one `advance()` per frame skips queries as `run(k)` does (faster while
+  falling, slower while settled: the extra state streamed per call costs more than it saves).
   Kept: `_query`/`_respond` inlined; the tunnelling sweep (`_sweep`, `_march`) inlined too
   (`python -m bench.step_ab --rev de271cd --phase settled fall`, against the kernel before
   this change, at load 6: 1.05x settled, 1.00x falling, bit-identical results); validation fused into the step (no separate pass over `m, r, cr, cf`; those
