@@ -460,9 +460,10 @@ lines). Counting the arithmetic of that path in `fastsdf/_step.py`: integration 
 the cell about 8, three bilinear blends 27, the sweep test 6, the response about 30 with one
 square root and one division, the free-flight budget and the finiteness checks about 10: about
 90 scalar flops, 1 square root and 2 divisions. `python -m bench.step_asm` shows how it compiles:
-the step (`_block`) is 1,232 instructions with 111 branches, all scalar double arithmetic (153
-multiplies/adds, 5 divisions, 4 square roots on all paths; no ymm/zmm arithmetic and no gather
-instruction), with the sweep (`_march`, `_sweep`) out of line.
+the step (`_block`, the sweep `_sweep`/`_march` now inlined into it) is 1,370 instructions with
+140 branches, all scalar double arithmetic (243 multiplies/adds, 12 divisions, 6 square roots
+over all its paths, of which a contact step without a sweep runs an estimated 200-250; no ymm/zmm
+arithmetic and no gather instruction).
 
 - Throughput bound: about 90 flops at 3 to 4 scalar FP operations per cycle and about 25 loads at
   3 per cycle give about 30-35 cycles per particle-step: 10-15 ns at 2.25-3.5 GHz, so 70-100 M
@@ -478,14 +479,43 @@ instruction), with the sweep (`_march`, `_sweep`) out of line.
 - So 2x Taichi (about 140 M/s) needs the throughput bound, i.e. several particles' chains
   interleaved in one instruction stream (SIMD lanes with gathers, or software pipelining). LLVM
   does not do it for this loop: a branch-free version of the contact step (selects instead of
-  branches, no calls) still compiled with no gathers and no vector arithmetic. Levers measured
-  while developing this and not kept: a branch-free response (it must load `cr, cf` every step;
-  slower), prefetching the grid cell a few particles ahead (a small gain per call while settled,
-  a large loss in free flight). Kept: `_query`/`_respond` inlined; validation fused into the step
-  (no separate pass over `m, r, cr, cf`; those three are re-read only at the first call after
-  they were handed out through `p`); `1/m` once per call. Not done: re-sorting particles by grid
-  cell (it reorders the user's arrays and needs a permutation layer) and explicit SIMD (numba
-  intrinsics for masked gathers).
+  branches, no calls) still compiled with no gathers and no vector arithmetic, and a stand-alone
+  three-pass version of the peers' step (integrate and locate a batch of 64, then its grid reads,
+  then its responses) ran at 1.0-1.1x Taichi, with no vector instructions either. Levers
+  measured and not kept: a branch-free response (it must load `cr, cf` every step; slower),
+  prefetching the grid cell a few particles ahead (a small gain per call while settled, a large
+  loss in free flight), and splitting each batch of 32 particles into a pass of forces,
+  integration, budgets and queries and a pass of sweeps and responses (no gain while settled),
+  and carrying the free-flight budgets from one call to the next (kept where `x` and `r` are
+  unchanged) so that one `advance()` per frame skips queries as `run(k)` does (faster while
+  falling, slower while settled: the extra state streamed per call costs more than it saves).
+  Kept: `_query`/`_respond` inlined; the tunnelling sweep (`_sweep`, `_march`) inlined too
+  (`python -m bench.step_ab --rev de271cd --phase settled fall`, against the kernel before
+  this change, at load 6: 1.05x settled, 1.00x falling, bit-identical results); validation fused into the step (no separate pass over `m, r, cr, cf`; those
+  three are re-read only at the first call after they were handed out through `p`); `1/m` once
+  per call; a compiled force field evaluated for 32 particles ahead of their steps
+  (the same with `--force field`: 1.26x settled, 1.16x falling, bit-identical; a cheap
+  `@njit` force such as the bench's `wind` is still evaluated inline: 1.04x settled, 0.95x falling). Not done: re-sorting particles by grid cell (it reorders the user's arrays
+  and needs a permutation layer) and explicit SIMD (numba intrinsics for masked gathers).
+- What the sweep costs while settled: a particle sliding along the funnel faster than
+  `TRACE_FRACTION r` per step is swept every step (its end point is in contact), and its march
+  queries the start, the contact and the end again: three to four queries instead of one. The
+  sweep's result differs from the end-point test's there (it finds the contact along the step),
+  so it cannot be skipped without changing the trajectories.
+- Exact fixed points ("sleeping" particles whose step leaves `x, v` bit-identical, which could
+  be skipped without changing any result) do not occur with this contact model:
+  `python -m bench.fixed_points` (100,000 particles, steps 200-260) finds none: no particle's state repeats after 1, 2 or 4 steps (0 of 100,000). A
+  particle resting on a surface keeps bouncing: each step gravity takes `g dt` of normal speed
+  and the response returns `cr` of it, so the speed after the response settles at
+  `cr g dt / (1 + cr)` = 0.0125 (20% of the particles), and the friction, which scales the
+  tangential velocity by `1 - cf` at each contact instead of holding it (no static friction),
+  balances the tangential part of gravity at a speed `(1 - cf) g_t dt / cf`: on the grid's floor,
+  tilted by about 5e-6, these particles creep by a median 4e-9 per step. Half the particles are still
+  sliding down the funnel's walls (median speed 0.11). A resting-contact model (restitution
+  zeroed below a small normal speed and Coulomb static friction, applied to the velocity before
+  the move so that gravity does not push the particle into the surface and out along the normal)
+  would make rest exact; it changes the physics, and in this phase it would put at most the
+  resting fifth of the particles to sleep. Not done in this session.
 """
 
 

@@ -156,9 +156,14 @@ def load_module(source: str, prefix: str = "fastsdf_kernel"):
 # numba's cache files: sealed, checked, repaired.
 
 def guard_module(module) -> None:
-    """Seal and check the numba cache files of every cached dispatcher in ``module``."""
+    """Seal and check the numba cache files of every cached dispatcher of fastsdf's in
+    ``module`` (its own and those it imports from fastsdf). A user's function it imports (a
+    fused force) is left alone: sealing its cache files would make numba fail to read them
+    wherever the user's code runs it without fastsdf's guard."""
     for value in list(vars(module).values()):
-        guard_dispatcher(value)
+        owner = getattr(getattr(value, "py_func", None), "__module__", None) or ""
+        if owner == module.__name__ or owner.split(".")[0].startswith("fastsdf"):
+            guard_dispatcher(value)
 
 
 def guard_dispatcher(dispatcher) -> None:

@@ -389,3 +389,26 @@ def test_fields_evaluated_ahead_give_the_results_of_inline_forces():
     assert (np.hypot(*ahead.p["v"].T) < 1.0).sum() > n // 4
     np.testing.assert_array_equal(ahead.p["x"], plain.p["x"])
     np.testing.assert_array_equal(ahead.p["v"], plain.p["v"])
+
+
+def test_a_users_force_keeps_numbas_own_cache_format(tmp_path, monkeypatch):
+    # Generated kernel modules seal the cache files of fastsdf's dispatchers; a user's cached
+    # @njit force imported into a kernel must keep numba's format, or running it outside
+    # fastsdf (or before a kernel imports it) would fail to read its own cache.
+    import sys
+    import types
+
+    from fastsdf import _cache
+    (tmp_path / "user_force_mod.py").write_text(
+        "from numba import njit\n\n\n@njit(cache=True)\n"
+        "def push(x, y, vx, vy, m, t):\n    return 0.1 * m, 0.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import user_force_mod
+    own = sdf.GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[10j, 10j]).sampler
+    fake = types.ModuleType("fastsdf_particles_fake")
+    fake._uf0 = user_force_mod.push
+    fake._sampler = own
+    _cache.guard_module(fake)
+    assert not getattr(user_force_mod.push._cache, "_fastsdf_guarded", False)
+    assert getattr(own._cache, "_fastsdf_guarded", False)
+    sys.modules.pop("user_force_mod", None)
