@@ -62,6 +62,9 @@ LONG_BODY_LINES = 400
 #: Scenes whose per-point code is longer than this (lines) get block kernels that evaluate
 #: same-shape subexpressions anywhere in the scene in loops first (see ``_Emitter._prefold``).
 FOLD_MIN_LINES = 400
+#: At most this many values per point (scratch rows of BLOCK floats, per thread) are stored by
+#: those loops; groups beyond it stay straight-line code.
+MAX_FOLD_ROWS = 1536
 
 _CHAIN_OPS = ("min", "max", "smin", "smax")
 _HUGE = "1.7976931348623157e+308"
@@ -461,9 +464,11 @@ class _Emitter:
             shapes[sig][1].append(node)
             shapes[sig][2].append(consts)
         ncomp = len(self.COMPONENTS)
+        rows_left = MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
-            if len(members) < 2:
+            if len(members) < 2 or len(members) * (1 + ncomp * self.grad) > rows_left:
                 continue
+            rows_left -= len(members) * (1 + ncomp * self.grad)
             table, refs = _varying_columns(rows)
             name = self.table(table) if table.shape[1] else None
             loop = self._name("i")
