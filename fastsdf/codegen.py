@@ -38,7 +38,7 @@ import numpy as np
 from typing import Sequence
 
 from . import __version__
-from ._simd import block_source, vectorizable, vmath_import
+from ._simd import block_source, drive_import, vectorizable, vmath_import
 from .graph import Expr, parameters, topological_order
 from .ops import OPS, lit
 
@@ -48,8 +48,10 @@ __all__ = ["generate_module_source", "MIN_LOOP"]
 MIN_LOOP = 4
 #: Chain operands with more nodes than this (as a tree) are never folded into loops.
 MAX_TEMPLATE_NODES = 128
-#: Per-point functions longer than this (in generated lines) are not interleaved.
+#: Per-point functions longer than this (in generated lines) are not interleaved; the block
+#: kernels of such a scene evaluate repeated subexpressions in loops (see ``_Emitter.fold``).
 LONG_BODY_LINES = 400
+FOLD_MIN_LINES = 400
 
 _CHAIN_OPS = ("min", "max", "smin", "smax")
 _HUGE = "1.7976931348623157e+308"
@@ -177,6 +179,24 @@ def _varying_columns(rows: list):
     return table, refs
 
 
+def _foldable(root: Expr) -> bool:
+    """Whether every chain in the small subexpression ``root`` is emitted as it stands (no
+    operand of the same operation to flatten, too few operands to fold into a loop), so that its
+    template's code is exactly its straight-line code."""
+    stack, seen = [root], set()
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if node.op in _CHAIN_OPS:
+            if len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
+                                                 for a in node.args):
+                return False
+        stack.extend(node.args)
+    return True
+
+
 def _flatten_chain(node: Expr) -> list:
     """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
     out, stack = [], [node]
@@ -204,8 +224,14 @@ class _Emitter:
     #: gradient variables (``v3x`` is dv3/dx).
     COMPONENTS = ("x", "y")
 
-    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False):
+    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False,
+                 fold: bool = False):
         self.grad = grad
+        # fold: evaluate same-shape subexpressions anywhere in the scene in loops first (into
+        # the per-point arrays _F<g>); the straight-line code then only reads their entries.
+        self.fold = fold
+        self.fold_of: dict[int, tuple] = {}
+        self.fold_sizes: list[int] = []
         if time:  # also carry d/dt: a third forward-mode component, seeded by the time t
             self.COMPONENTS = self.COMPONENTS + ("t",)
         n = len(self.COMPONENTS)
@@ -367,6 +393,8 @@ class _Emitter:
         """Emit code for ``root`` (iteratively, flattening chains); returns its value."""
         done: dict[int, _Val] = {}
         plans: dict[int, tuple] = {}
+        if self.fold:
+            self._prefold(root, plans)
         stack = [root]
         while stack:
             node = stack[-1]
@@ -384,6 +412,67 @@ class _Emitter:
             stack.pop()
             done[id(node)] = self._emit_planned(node, plan, done)
         return done[id(root)]
+
+    def _prefold(self, root: Expr, plans: dict) -> None:
+        """Find the subexpressions to evaluate in loops and emit those loops.
+
+        Candidates are the maximal small subexpressions (at most MAX_TEMPLATE_NODES nodes as a
+        tree, under a larger one) that the straight-line code would emit, typically each
+        primitive of a scene with no repeated structure (a transformed box, a circle, a cut).
+        Those with the same shape (see :func:`_template`) become one loop over a table of their
+        constants that stores value and gradient in the array ``_F<g>`` (row ``j``: member j),
+        so the straight-line code grows with the combining operations, not with the primitives.
+        A subexpression whose straight-line code would differ from its template's (a chain that
+        would be flattened or folded) is left alone: the results are the same bits either way.
+        """
+        seen, order, under_big = set(), [], set()
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            if id(node) in seen:
+                continue
+            seen.add(id(node))
+            order.append(node)
+            plan = plans.get(id(node))
+            if plan is None:
+                plan = plans[id(node)] = self._plan(node)
+            big = self._size(node) > MAX_TEMPLATE_NODES
+            for dep in plan[0]:
+                if big:
+                    under_big.add(id(dep))
+                stack.append(dep)
+        shapes: dict = {}
+        for node in order:
+            if (id(node) not in under_big or node.op in ("const", "sym", "param")
+                    or self._size(node) > MAX_TEMPLATE_NODES or not _foldable(node)):
+                continue
+            sig, steps, consts = _template(node)
+            shapes.setdefault(sig, (steps, [], []))
+            shapes[sig][1].append(node)
+            shapes[sig][2].append(consts)
+        ncomp = len(self.COMPONENTS)
+        for steps, members, rows in shapes.values():
+            if len(members) < 2:
+                continue
+            table, refs = _varying_columns(rows)
+            name = self.table(table) if table.shape[1] else None
+            loop = self._name("i")
+            consts = [_lit(v) if kind == "l" else f"{name}[{loop}, {v}]" for kind, v in refs]
+            body: list[str] = []
+            val = self.template(body, steps, consts)
+            comps = val.grads(ncomp) if self.grad else (None,) * ncomp
+            stored = (None,) + tuple(c for c in range(ncomp) if comps[c] is not None)
+            g = len(self.fold_sizes)
+            size = len(stored)
+            body.append(f"_F{g}[{loop} * {size}] = {val.v}")
+            for slot, c in enumerate(stored[1:], 1):
+                body.append(f"_F{g}[{loop} * {size} + {slot}] = {comps[c]}")
+            self.lines.append(f"for {loop} in range({len(members)}):")
+            self.lines.extend("    " + line for line in body)
+            self.fold_sizes.append(len(members) * size)
+            for j, member in enumerate(members):
+                self.fold_of[id(member)] = (g, j, stored)
+                plans[id(member)] = ([], None)
 
     def _size(self, root: Expr) -> int:
         """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
@@ -441,6 +530,16 @@ class _Emitter:
 
     def _emit_planned(self, node: Expr, plan, done) -> _Val:
         deps, items = plan
+        folded = self.fold_of.get(id(node))
+        if folded is not None:  # evaluated in a loop already: read its entries
+            g, j, stored = folded
+            r = self._name()
+            self.lines.append(f"{r} = _F{g}[{j * len(stored)}]")
+            comps = [None] * len(self.COMPONENTS)
+            for slot, c in enumerate(stored[1:], 1):
+                comps[c] = self.assign(self.lines, f"{r}{self.COMPONENTS[c]}",
+                                       f"_F{g}[{j * len(stored) + slot}]")
+            return _Val(r, tuple(comps) if self.grad else None)
         if node.op == "const":
             return _Val(_lit(node.attr))
         if node.op in ("sym", "param"):
@@ -709,7 +808,21 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
                        + (["_act, _off"] if em.groups else [])) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
     if param_names is None and not time:
-        one = (one, block_source(rest, results, "vg" if grad else "v"))
+        kind = "vg" if grad else "v"
+        fold_sizes = ()
+        if len(rest) > FOLD_MIN_LINES:
+            # A long body: the block kernels evaluate repeated subexpressions in loops (the
+            # per-point functions keep the straight-line code; the tests compare the two).
+            fe = _Emitter(symbol_names, grad, tables, fold=True)
+            fres = fe.emit(root)
+            if fe.fold_sizes:
+                assert [len(g["members"]) for g in fe.groups] == \
+                    [len(g["members"]) for g in em.groups]
+                rest = vectorizable(fe.lines) if vmath else fe.lines
+                results = [_as_float(fres.v)] + ([_as_float(_zero(c)) for c in
+                                                  fres.grads(len(fe.COMPONENTS))] if grad else [])
+                fold_sizes = fe.fold_sizes
+        one = (one, block_source(rest, results, kind, fold_sizes=fold_sizes))
     elif param_names is not None:  # parameters are data: read once per block from prm
         kind = "vgt" if time else "vg" if grad else "v"
         one = (one, block_source(list(rest), results, kind, ("t", "prm"),
@@ -782,6 +895,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
     if vmath:
         parts.append(vmath_import())
+    if blocks:
+        parts.append(drive_import())
     parts.extend(blocks)
     return "\n".join(parts), funcs, groups
 
