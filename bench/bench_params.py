@@ -149,6 +149,11 @@ def _animation(quick: bool) -> str:
 
 
 def run(quick: bool = False) -> str:
+    before = os.getloadavg()
     parts = ["## Runtime parameters and moving scenes", "", _evaluation(quick), "",
              _animation(quick), ""]
+    after = os.getloadavg()
+    parts += [f"Machine load (1, 5, 15 min load averages, other work included) at the start: "
+              f"{before[0]:.1f} {before[1]:.1f} {before[2]:.1f}; at the end: {after[0]:.1f} "
+              f"{after[1]:.1f} {after[2]:.1f}.", ""]
     return "\n".join(parts)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import hashlib
 import re
 
-__all__ = ["BLOCK", "block_source", "choose_lanes", "vectorizable", "vmath_import"]
+__all__ = ["BLOCK", "block_source", "choose_lanes", "drive_import", "vectorizable", "vmath_import"]
 
 #: Points per block: a multiple of every vector width, small enough that a block's scratch rows
 #: stay in the L1/L2 cache.
@@ -40,6 +40,7 @@ _TABLE_READ = re.compile(r"\b(_T\d+)\[(i\d+), (\d+)\]")
 _COMPARE = re.compile(r"(?<![<>=!])(?:<=|>=|==|!=|<|>)(?![<>=])")
 _LENGTH_IF = re.compile(r"^if not \(1e-150 < (\w+) < 1e150\):$")
 _HYPOT = re.compile(r"^(\w+) = math\.hypot\((.*)\)$")
+_SQRT = re.compile(r"^\s*(\w+) = math\.sqrt\(")
 
 
 def _split_args(text: str) -> list:
@@ -61,6 +62,14 @@ def vectorizable(lines: list) -> list:
     """The statements with the C library's exp/log/log1p and the branchy overflow-safe length
     (and its partials) replaced by the branch-free versions of :mod:`fastsdf._vmath`."""
     out, i = [], 0
+    sqrt_at: dict = {}  # variable -> index in out of its latest "v = math.sqrt(...)" (linear time)
+
+    def push(line):
+        m = _SQRT.match(line)
+        if m:
+            sqrt_at[m.group(1)] = len(out)
+        out.append(line)
+
     while i < len(lines):
         line = lines[i]
         stripped = line.lstrip()
@@ -72,22 +81,25 @@ def vectorizable(lines: list) -> list:
             j = i + 1
             while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > len(indent):
                 j += 1
-            back = [k for k in range(len(out)) if out[k].strip().startswith(f"{r} = math.sqrt(")]
-            if h and h.group(1) == r and back:
+            back = sqrt_at.get(r)
+            if h and h.group(1) == r and back is not None:
                 a, b = _split_args(h.group(2))
-                tail = out[back[-1] + 1:]
-                del out[back[-1]:]
+                tail = out[back + 1:]
+                del out[back:]
+                for name in [k for k, at in sqrt_at.items() if at >= back]:
+                    del sqrt_at[name]
                 if any(t.strip().startswith(f"{r}i = ") for t in tail):
                     out.append(f"{indent}{r}, {r}p, {r}q = _vlength_grad({a}, {b})")
                 else:
                     out.append(f"{indent}{r} = _vlength({a}, {b})")
-                out += [t for t in tail if not t.strip().startswith((f"{r}i = ", f"{r}p = ",
-                                                                     f"{r}q = "))]
+                for t in tail:
+                    if not t.strip().startswith((f"{r}i = ", f"{r}p = ", f"{r}q = ")):
+                        push(t)
                 i = j
                 continue
         line = (line.replace("math.exp(", "_vexp(").replace("math.log1p(", "_vlog1p(")
                 .replace("math.log(", "_vlog("))
-        out.append(line)
+        push(line)
         i += 1
     return out
 
@@ -116,20 +128,25 @@ def _defs_uses(stmts: list):
     """Names assigned, and names read before being assigned, in a list of statements (in
     order); also which assigned names hold booleans (a comparison at the top level)."""
     defs, uses, bools = [], [], set()
+    seen, defined = set(), set()  # names in defs or uses, in defs (linear time)
     for st in stmts:
         s = st.strip()
         if s.startswith(("if ", "for ")):
             for n in _VAR.findall(s):
-                if n not in defs and n not in uses:
+                if n not in seen:
                     uses.append(n)
+                    seen.add(n)
             continue
         lhs, _, rhs = s.partition(" = ")
         for n in _VAR.findall(rhs):
-            if n not in defs and n not in uses:
+            if n not in seen:
                 uses.append(n)
+                seen.add(n)
         for n in (t.strip() for t in lhs.split(",")):
-            if n not in defs:
+            if n not in defined:
                 defs.append(n)
+                defined.add(n)
+                seen.add(n)
             if _COMPARE.search(_top_level(rhs)):
                 bools.add(n)
     return defs, uses, bools
@@ -178,10 +195,238 @@ def _lane(stmt: str, k: int) -> str:
                     stmt)
 
 
+_FOLD_LOAD = re.compile(r"\b_F(\d+)\[(\d+)\]")
+_FOLD_STORE = re.compile(r"\b_F(\d+)\[(i\d+) \* (\d+)(?: \+ (\d+))?\]")
+
+
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
-                 lanes: int | None = None, binds: tuple = ()) -> str:
+                 lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
+
+    ``lines`` are the per-point statements of :class:`fastsdf.codegen._Emitter` (reading ``x``,
+    ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
+    of the two gradient components for ``kind='vg'``). The kernels are plain Python functions
+    that hand the block function to the scene-independent kernels of :mod:`fastsdf._drive`.
+
+    The block's points are staged in the scratch array: coordinates copied in (non-finite ones
+    replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
+    writing only rows of the scratch array at constant offsets with a constant trip count (no
+    runtime alias checks, no scalar remainder loops), results copied out.
+
+    ``fold_sizes``: entries of the arrays ``_F<g>`` of subexpressions evaluated in loops (see
+    ``codegen._Emitter.fold``); each entry becomes a row of the scratch array.
+
+    Scenes with parameters (``extra_args`` passed from the kernels to the block function,
+    ``binds`` run at its top, ``kind='vgt'`` also writing dd/dt) use
+    :func:`_param_block_source`.
+    """
+    if extra_args or binds or kind == "vgt":
+        assert not fold_sizes
+        return _param_block_source(lines, results, kind, extra_args, lanes, binds)
+    grad = kind == "vg"
+    lanes = lanes or choose_lanes(lines)
+    assert lanes == 1 or not fold_sizes
+    half = BLOCK // lanes
+    lines = list(lines) + [f"r{k} = {expr}" for k, expr in enumerate(results)]
+    result_names = [f"r{k}" for k in range(len(results))]
+    segs = _split(lines)
+    tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
+    outs = ["out"] + (["grad"] if grad else [])
+    sig = ", ".join(["xs", "ys"] + outs)
+    gflat = "grad.reshape(-1), " if grad else ""
+    body = []
+
+    slots: dict = {"x": 0, "y": 1}
+    fbase, fold_loop = [], {}
+    for g, count in enumerate(fold_sizes):
+        fbase.append(len(slots))
+        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
+
+    def fold_store(mt):
+        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
+        fold_loop[g] = (loop_var, size)
+        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+
+    if fold_sizes:
+        def fold_load(mt):
+            return f"S[{(fbase[int(mt.group(1))] + int(mt.group(2))) * BLOCK} + i]"
+        segs = [("line", [_FOLD_LOAD.sub(fold_load, st) for st in seg[1]]) if seg[0] == "line" else
+                ("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]])
+                for seg in segs]
+
+    info = []
+    for seg in segs:
+        info.append(_defs_uses(seg[1] if seg[0] == "line" else seg[2]))
+    bools = set()
+    for _, _, b in info:
+        bools |= b
+    later_uses = [set() for _ in segs]
+    acc = set(result_names)
+    for k in range(len(segs) - 1, -1, -1):
+        later_uses[k] = set(acc)
+        acc |= set(info[k][1])
+
+    def at(name, k):
+        if name not in slots:
+            slots[name] = len(slots)
+        return f"S[{slots[name] * BLOCK + k * half} + i]"
+
+    def load(name, pad):
+        return [f"{pad}{name}_{k} = {at(name, k)} != 0.0" if name in bools else
+                f"{pad}{name}_{k} = {at(name, k)}" for k in range(lanes)]
+
+    def store(name, pad):
+        return [f"{pad}{at(name, k)} = _sel({name}_{k}, 1.0, 0.0)" if name in bools else
+                f"{pad}{at(name, k)} = {name}_{k}" for k in range(lanes)]
+
+    def compute(stmts, pad):
+        out = []
+        for unit in _units(stmts):
+            for k in range(lanes):
+                out += [pad + _lane(st, k) for st in unit]
+        return out
+
+    prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+               "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+               "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
+               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+    # The loops that fill the _F arrays open the body; they go to a function of their own
+    # (_fold_<kind>), called before the block function: in one function with the rest, LLVM
+    # stops inlining the exp/log calls of the long straight-line loop, which then stays scalar.
+    fold_segs = 0
+    while fold_sizes and fold_segs < len(segs) and segs[fold_segs][0] == "loop" and \
+            "S[fo_" in "\n".join(segs[fold_segs][2]):
+        fold_segs += 1
+    fold_body = None
+    for k, seg in enumerate(segs):
+        if k == fold_segs and fold_sizes:
+            fold_body, body = body, []
+        defs, uses, _ = info[k]
+        if seg[0] == "line":
+            pad = "        "
+            body.append(f"    for i in range({half}):")
+            for name in uses:
+                body += load(name, pad)
+            body += compute(seg[1], pad)
+            for name in defs:
+                if name in later_uses[k]:
+                    body += store(name, pad)
+        else:
+            header, stmts = seg[1], seg[2]
+            loop_var = header.split()[1]
+            hoisted: dict = {}
+
+            def hoist(mt, loop_var, hoisted=hoisted):
+                if mt.group(2) != loop_var:
+                    return mt.group(0)
+                key = (mt.group(1), mt.group(3))
+                if key not in hoisted:
+                    hoisted[key] = f"h{mt.group(1)[2:]}_{mt.group(3)}"
+                return hoisted[key]
+
+            row = re.match(r"^(i\d+) = _act\[(i\d+q)\]$", stmts[0]) if stmts else None
+            if row and row.group(2) == loop_var:
+                # a loop over a row list (pruning): the row index is the same for all points
+                loop_var = row.group(1)
+                stmts = stmts[1:]
+            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
+            defs, uses, _ = _defs_uses(stmts)
+            body.append(f"    {header}")
+            if row:
+                body.append(f"        {row.group(0)}")
+            body += [f"        {name} = {t}[{loop_var}, {col}]"
+                     for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
+            for g in sorted({int(n) for n in re.findall(r"\bfo_(\d+)\b", "\n".join(stmts))}):
+                lv, size = fold_loop[g]
+                body.append(f"        fo_{g} = ({fbase[g]} + {lv} * {size}) * {BLOCK}")
+            pad = "            "
+            body.append(f"        for i in range({half}):")
+            for name in uses:
+                body += load(name, pad)
+            body += compute(stmts, pad)
+            for name in defs:
+                if name in uses or name in later_uses[k]:
+                    body += store(name, pad)
+    res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
+    if grad:
+        res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
+                f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)"]
+    body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+             "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)"] + res
+    nslots = len(slots)
+    size = max(nslots, 1) * BLOCK
+    views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))", "    out = carray(op, (n,))"]
+    if grad:
+        views.append("    grad = carray(gp, (2 * n,))")
+    views.append(f"    S = carray(sp, ({size},))")
+
+    def head(part):
+        text = "\n".join(part)
+        used = [f"    {t} = {t}G" for t in tables if re.search(rf"\b{t}\b", text)]
+        if "_act[" in text:
+            used += ["    _act = _ACTG", "    _off = _OFFG"]
+        return "\n".join(views + used + prelude)
+
+    fold = "_drive_nofold"
+    fold_src = ""
+    if fold_body is not None:
+        fold = f"_fold_{kind}_fn"
+        fold_src = f'''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fold_{kind}(xp, yp, op, gp, n, sp):
+    """The loops over same-shape subexpressions of the block function: their values and
+    gradients into the scratch rows (called before ``_block_{kind}``, same arguments)."""
+{head(fold_body)}
+{chr(10).join(fold_body)}
+
+
+_fold_{kind}_fn = _BlockFn(_fold_{kind})
+'''
+    src = fold_src + f'''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _block_{kind}(xp, yp, op, gp, n, sp):
+    """{'Value and gradient' if grad else 'Value'} at ``n`` (at most {BLOCK}) points from pointers
+    (:data:`fastsdf._drive.BLOCK_SIG`){', ``grad`` flat (x, y pairs)' if grad else ' (``gp`` unused)'};
+    scratch ``sp[:{size}]``."""
+{head(body)}
+{chr(10).join(body)}
+
+
+_block_{kind}_fn = _BlockFn(_block_{kind})
+
+
+def batch_{kind}_par({sig}, chunks):
+    """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block."""
+    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, chunks, _max_threads())
+
+
+def batch_{kind}_ser({sig}):
+    """All points, in this thread."""
+    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size})
+'''
+    return src
+
+
+def drive_import() -> str:
+    """Import of the scene-independent kernels of :mod:`fastsdf._drive`, with a hash of their
+    source (numba's cache does not notice changes in a callee's module)."""
+    from . import _drive
+    with open(_drive.__file__, "rb") as fh:
+        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
+    return ("from numba import carray\n"
+            "from fastsdf._drive import BlockFn as _BlockFn, run_v_par as _run_v_par, "
+            "run_v_ser as _run_v_ser, run_vg_par as _run_vg_par, run_vg_ser as _run_vg_ser, "
+            "max_threads as _max_threads, NOFOLD as _drive_nofold"
+            f"  # _drive.py sha256 {digest}\n")
+
+
+def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
+                        lanes: int | None = None, binds: tuple = ()) -> str:
+    """:func:`block_source` for scenes with parameters: the block function takes arrays and the
+    parameters, and the kernels that call it are compiled with the scene.
 
     ``lines`` are the per-point statements of :class:`fastsdf.codegen._Emitter` (reading ``x``,
     ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and

@@ -16,12 +16,21 @@ Design (see the README's design section for the measurements behind it):
   minimum and gradient get a new name per operand), except the accumulators of loops over
   tables. numba repairs every reassigned variable with a pass over the whole function, which
   made compile time quadratic in the length of a scene without repeated structure.
+* A long body (a scene without repeated structure next to each other, over FOLD_MIN_LINES
+  lines) gets block kernels that first evaluate, in loops over tables, every group of
+  same-shape subexpressions wherever they stand in the scene (the primitives: each transformed
+  box, each circle), storing value and gradient per point; the straight-line code that remains
+  only combines them. numba's compile time then follows the combining operations and the
+  number of distinct shapes. The per-point functions keep the plain straight-line code (the
+  tests compare the two, bit for bit).
 * A smooth chain is evaluated as an online log-sum-exp (the streaming-softmax recurrence):
   one ``exp`` per operand and one ``log`` per chain, with values that never overflow for any
   ``k > 0``. This is mathematically the notebook's nested ``-log(exp(-k a) + exp(-k b)) / k``.
 * Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
   tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
-  makes numba's compile time explode.
+  makes numba's compile time explode. For scenes without parameters the ``prange`` kernels are
+  scene-independent (:mod:`fastsdf._drive`, compiled once per installation) and call the
+  scene's block functions by address.
 * Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf._cache`)
   and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
   compiles gradient code.
@@ -38,7 +47,7 @@ import numpy as np
 from typing import Sequence
 
 from . import __version__
-from ._simd import block_source, vectorizable, vmath_import
+from ._simd import block_source, drive_import, vectorizable, vmath_import
 from .graph import Expr, parameters, topological_order
 from .ops import OPS, lit
 
@@ -50,6 +59,12 @@ MIN_LOOP = 4
 MAX_TEMPLATE_NODES = 128
 #: Per-point functions longer than this (in generated lines) are not interleaved.
 LONG_BODY_LINES = 400
+#: Scenes whose per-point code is longer than this (lines) get block kernels that evaluate
+#: same-shape subexpressions anywhere in the scene in loops first (see ``_Emitter._prefold``).
+FOLD_MIN_LINES = 400
+#: At most this many values per point (scratch rows of BLOCK floats, per thread) are stored by
+#: those loops; groups beyond it stay straight-line code.
+MAX_FOLD_ROWS = 1536
 
 _CHAIN_OPS = ("min", "max", "smin", "smax")
 _HUGE = "1.7976931348623157e+308"
@@ -177,6 +192,24 @@ def _varying_columns(rows: list):
     return table, refs
 
 
+def _foldable(root: Expr) -> bool:
+    """Whether every chain in the small subexpression ``root`` is emitted as it stands (no
+    operand of the same operation to flatten, too few operands to fold into a loop), so that its
+    template's code is exactly its straight-line code."""
+    stack, seen = [root], set()
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if node.op in _CHAIN_OPS:
+            if len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
+                                                 for a in node.args):
+                return False
+        stack.extend(node.args)
+    return True
+
+
 def _flatten_chain(node: Expr) -> list:
     """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
     out, stack = [], [node]
@@ -204,8 +237,14 @@ class _Emitter:
     #: gradient variables (``v3x`` is dv3/dx).
     COMPONENTS = ("x", "y")
 
-    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False):
+    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False,
+                 fold: bool = False):
         self.grad = grad
+        # fold: evaluate same-shape subexpressions anywhere in the scene in loops first (into
+        # the per-point arrays _F<g>); the straight-line code then only reads their entries.
+        self.fold = fold
+        self.fold_of: dict[int, tuple] = {}
+        self.fold_sizes: list[int] = []
         if time:  # also carry d/dt: a third forward-mode component, seeded by the time t
             self.COMPONENTS = self.COMPONENTS + ("t",)
         n = len(self.COMPONENTS)
@@ -367,6 +406,8 @@ class _Emitter:
         """Emit code for ``root`` (iteratively, flattening chains); returns its value."""
         done: dict[int, _Val] = {}
         plans: dict[int, tuple] = {}
+        if self.fold:
+            self._prefold(root, plans)
         stack = [root]
         while stack:
             node = stack[-1]
@@ -384,6 +425,69 @@ class _Emitter:
             stack.pop()
             done[id(node)] = self._emit_planned(node, plan, done)
         return done[id(root)]
+
+    def _prefold(self, root: Expr, plans: dict) -> None:
+        """Find the subexpressions to evaluate in loops and emit those loops.
+
+        Candidates are the maximal small subexpressions (at most MAX_TEMPLATE_NODES nodes as a
+        tree, under a larger one) that the straight-line code would emit, typically each
+        primitive of a scene with no repeated structure (a transformed box, a circle, a cut).
+        Those with the same shape (see :func:`_template`) become one loop over a table of their
+        constants that stores value and gradient in the array ``_F<g>`` (row ``j``: member j),
+        so the straight-line code grows with the combining operations, not with the primitives.
+        A subexpression whose straight-line code would differ from its template's (a chain that
+        would be flattened or folded) is left alone: the results are the same bits either way.
+        """
+        seen, order, under_big = set(), [], set()
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            if id(node) in seen:
+                continue
+            seen.add(id(node))
+            order.append(node)
+            plan = plans.get(id(node))
+            if plan is None:
+                plan = plans[id(node)] = self._plan(node)
+            big = self._size(node) > MAX_TEMPLATE_NODES
+            for dep in plan[0]:
+                if big:
+                    under_big.add(id(dep))
+                stack.append(dep)
+        shapes: dict = {}
+        for node in order:
+            if (id(node) not in under_big or node.op in ("const", "sym", "param")
+                    or self._size(node) > MAX_TEMPLATE_NODES or not _foldable(node)):
+                continue
+            sig, steps, consts = _template(node)
+            shapes.setdefault(sig, (steps, [], []))
+            shapes[sig][1].append(node)
+            shapes[sig][2].append(consts)
+        ncomp = len(self.COMPONENTS)
+        rows_left = MAX_FOLD_ROWS
+        for steps, members, rows in shapes.values():
+            if len(members) < 2 or len(members) * (1 + ncomp * self.grad) > rows_left:
+                continue
+            rows_left -= len(members) * (1 + ncomp * self.grad)
+            table, refs = _varying_columns(rows)
+            name = self.table(table) if table.shape[1] else None
+            loop = self._name("i")
+            consts = [_lit(v) if kind == "l" else f"{name}[{loop}, {v}]" for kind, v in refs]
+            body: list[str] = []
+            val = self.template(body, steps, consts)
+            comps = val.grads(ncomp) if self.grad else (None,) * ncomp
+            stored = (None,) + tuple(c for c in range(ncomp) if comps[c] is not None)
+            g = len(self.fold_sizes)
+            size = len(stored)
+            body.append(f"_F{g}[{loop} * {size}] = {val.v}")
+            for slot, c in enumerate(stored[1:], 1):
+                body.append(f"_F{g}[{loop} * {size} + {slot}] = {comps[c]}")
+            self.lines.append(f"for {loop} in range({len(members)}):")
+            self.lines.extend("    " + line for line in body)
+            self.fold_sizes.append(len(members) * size)
+            for j, member in enumerate(members):
+                self.fold_of[id(member)] = (g, j, stored)
+                plans[id(member)] = ([], None)
 
     def _size(self, root: Expr) -> int:
         """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
@@ -441,6 +545,16 @@ class _Emitter:
 
     def _emit_planned(self, node: Expr, plan, done) -> _Val:
         deps, items = plan
+        folded = self.fold_of.get(id(node))
+        if folded is not None:  # evaluated in a loop already: read its entries
+            g, j, stored = folded
+            r = self._name()
+            self.lines.append(f"{r} = _F{g}[{j * len(stored)}]")
+            comps = [None] * len(self.COMPONENTS)
+            for slot, c in enumerate(stored[1:], 1):
+                comps[c] = self.assign(self.lines, f"{r}{self.COMPONENTS[c]}",
+                                       f"_F{g}[{j * len(stored) + slot}]")
+            return _Val(r, tuple(comps) if self.grad else None)
         if node.op == "const":
             return _Val(_lit(node.attr))
         if node.op in ("sym", "param"):
@@ -709,7 +823,21 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
                        + (["_act, _off"] if em.groups else [])) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
     if param_names is None and not time:
-        one = (one, block_source(rest, results, "vg" if grad else "v"))
+        kind = "vg" if grad else "v"
+        fold_sizes = ()
+        if len(rest) > FOLD_MIN_LINES:
+            # A long body: the block kernels evaluate repeated subexpressions in loops (the
+            # per-point functions keep the straight-line code; the tests compare the two).
+            fe = _Emitter(symbol_names, grad, tables, fold=True)
+            fres = fe.emit(root)
+            if fe.fold_sizes:
+                assert [len(g["members"]) for g in fe.groups] == \
+                    [len(g["members"]) for g in em.groups]
+                rest = vectorizable(fe.lines) if vmath else fe.lines
+                results = [_as_float(fres.v)] + ([_as_float(_zero(c)) for c in
+                                                  fres.grads(len(fe.COMPONENTS))] if grad else [])
+                fold_sizes = fe.fold_sizes
+        one = (one, block_source(rest, results, kind, fold_sizes=fold_sizes))
     elif param_names is not None:  # parameters are data: read once per block from prm
         kind = "vgt" if time else "vg" if grad else "v"
         one = (one, block_source(list(rest), results, kind, ("t", "prm"),
@@ -782,6 +910,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
     if vmath:
         parts.append(vmath_import())
+    if blocks:
+        parts.append(drive_import())
     parts.extend(blocks)
     return "\n".join(parts), funcs, groups
 

@@ -711,6 +711,18 @@ class ParticleSimulation:
         end-point test only, and a fast particle can pass through a wall thinner than its step.
     dtype : numpy float dtype, default float64
         Storage of the state (float64 or float32); arithmetic is float64 either way.
+    rest_speed : float, default 0 (off)
+        Resting contact: a particle that meets a surface (without a sweep) while moving slower
+        than this (length/s), pushed into it by its acceleration, with a tangential
+        acceleration at most ``cf`` times the normal one (static friction: a surface tilted
+        less than ``atan(cf)`` under gravity), stays where it is with zero velocity instead of
+        bouncing (the default contact keeps a micro-bounce of normal speed
+        ``cr g dt / (1 + cr)`` and creeps down any tilt, so it never rests exactly). A resting
+        particle's state is then a fixed point of the step: within one :meth:`run` call it
+        sleeps (its steps are skipped, exactly) in a static world with no user force. It
+        changes the physics (rest starts below ``rest_speed`` and a particle rests within
+        about ``rest_speed dt + |g| dt**2`` of the surface), so it is off by default; try
+        ``rest_speed`` of one to a few ``|g| dt``.
     cr, cf : float in [0, 1], default 0.6 and 0.3
         Restitution and friction given to every particle by :meth:`reset` (the original
         library's defaults); per-particle values can be written to ``p['cr']``, ``p['cf']``.
@@ -727,9 +739,11 @@ class ParticleSimulation:
     wall_speed : float or None
         For a moving world (built with :data:`fastsdf.t`): a bound on ``|dd/dt|`` (length/s,
         how fast any surface moves toward a particle), used by the tunnelling sweep and the
-        free-flight budgets. ``None`` estimates it at every :meth:`run` call as 1.5 times the
-        largest ``|dd/dt|`` at up to 4096 of the particles at the call's first and last
-        times; pass it when walls accelerate or move fast where the particles are not yet.
+        free-flight budgets, everywhere. ``None`` estimates it at every :meth:`run` call, per
+        region: 1.5 times the largest ``|dd/dt|`` sampled on a 64x64 grid over the particles
+        (and at up to 4096 of them) at the call's step times, widened by the walls' travel,
+        so particles far from every moving wall skip queries as in a static world; pass it
+        when walls accelerate or move faster than those samples show.
 
     Moving worlds and parameters: a world built with runtime parameters
     (:func:`fastsdf.Param`) is stepped with the values in ``sim.params`` (change them between
@@ -755,7 +769,12 @@ class ParticleSimulation:
                  integrator: str = "symplectic", collision: str = "approaching",
                  prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
                  cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
-                 wall_speed: float | None = None):
+                 wall_speed: float | None = None, rest_speed: float = 0.0):
+        rest = _real(rest_speed, "rest_speed")
+        if not (math.isfinite(rest) and rest >= 0.0):
+            raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
+        #: Resting contact below this speed (length/s); 0: off (see the class docs).
+        self.rest_speed = rest
         if wall_speed is not None:
             w = _real(wall_speed, "wall_speed")
             if not (math.isfinite(w) and w >= 0.0):
@@ -1025,7 +1044,7 @@ class ParticleSimulation:
         args = (ext, self._flags, self.dt, self.t, ax, ay, drag, use_m, use_ext,
                 self.integrator == "euler", self.collision == "notebook",
                 self.prevent_tunnelling, self.lipschitz, self._margin,
-                float(np.finfo(self.dtype).eps), self._skip)
+                float(np.finfo(self.dtype).eps), self._skip, float(self.rest_speed))
         bad = self._call(module, data, steps, [a[k] for k in Particles.FIELDS], args, check_all)
         if bad and self._exact_ptr is None:
             bad = self._resume(module, steps, args, bad)
@@ -1103,7 +1122,8 @@ class ParticleSimulation:
     def _wall_speed_table(self, steps: int, prm: tuple) -> tuple:
         """The global bound W and the per-region table of wall speeds for one call.
 
-        ``|dd/dt|`` is sampled on the nodes of a grid over the particles' bounding box (at most
+        ``|dd/dt|`` is sampled on the nodes of a grid over the bounding box of a sample of the
+        particles (at most
         ``WALL_TABLE_CELLS`` cells a side) at the call's first and last step times (and up to
         6 times between), each cell gets 1.5 times the largest sample at its corners, and the
         table is widened by one cell plus the distance a wall moving at W travels during the
@@ -1113,11 +1133,15 @@ class ParticleSimulation:
         steps longer than a cell, particles outside the box).
         """
         x = np.asarray(self.p["x"], dtype=np.float64)
-        top = self._estimate_wall_speed(steps, prm)
-        finite = x[np.isfinite(x).all(axis=1)]
-        if not finite.size:
-            return top, (0.0, 0.0, 1.0, _NO_TABLE)
-        lo, hi = finite.min(axis=0), finite.max(axis=0)
+        # The table's box from a sample of the particles (one outside it uses W) and the
+        # samples for W: both cheap next to a step of every particle.
+        box = x[::max(1, x.shape[0] // 16384)]
+        box = box[np.isfinite(box).all(axis=1)]
+        sample = x[::max(1, x.shape[0] // 4096)]
+        sample = sample[np.isfinite(sample).all(axis=1)]
+        if not box.size:
+            box = np.zeros((1, 2))
+        lo, hi = box.min(axis=0), box.max(axis=0)
         size = float(max(hi - lo))
         if not size > 0:
             size = float(np.max(self.p["r"])) * 4 or 1.0
@@ -1127,13 +1151,21 @@ class ParticleSimulation:
         gx = x0 + h * np.arange(n + 1)
         gy = y0 + h * np.arange(n + 1)
         X, Y = (a.ravel() for a in np.meshgrid(gx, gy, indexing="ij"))
-        comp = self._sdf.compiled
+        X = np.ascontiguousarray(np.concatenate([X, sample[:, 0]]))
+        Y = np.ascontiguousarray(np.concatenate([Y, sample[:, 1]]))
+        m, nodes = X.shape[0], (n + 1) * (n + 1)
+        # the serial kernel: a few thousand points are not worth waking the threads
+        kernel = self._sdf.compiled.kernel("vgt", parallel=False)
+        out, grad, gt = np.empty(m), np.empty((m, 2)), np.empty(m)
         count = min(steps, 8)
         times = self.t + self.dt * np.unique(np.round(np.linspace(1, steps, count)))
-        node = np.zeros((n + 1) * (n + 1))
+        top = np.zeros(m)
         for t in times:
-            _, _, gt = comp.evaluate(X, Y, t=float(t), params=prm, time_derivative=True)
-            node = np.maximum(node, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
+            kernel(X, Y, out, grad, gt, float(t), prm)
+            top = np.maximum(top, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
+        node = top[:nodes]
+        at_particles = top[nodes:]
+        top = 1.5 * float(at_particles[np.isfinite(at_particles)].max(initial=0.0))
         node = node.reshape(n + 1, n + 1)
         cell = 1.5 * np.maximum(np.maximum(node[:-1, :-1], node[1:, :-1]),
                                 np.maximum(node[:-1, 1:], node[1:, 1:]))
@@ -1149,20 +1181,6 @@ class ParticleSimulation:
                                       pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, :-2], pad[2:, 2:],
                                       pad[:-2, 2:], pad[2:, :-2]])
         return wall, (float(x0), float(y0), 1.0 / h, np.ascontiguousarray(wide))
-
-    def _estimate_wall_speed(self, steps: int, prm: tuple) -> float:
-        """1.5 times the largest |dd/dt| at up to 4096 particles at the call's first and last
-        times (see ``wall_speed``)."""
-        x = np.asarray(self.p["x"], dtype=np.float64)
-        x = x[::max(1, x.shape[0] // 4096)]
-        comp = self._sdf.compiled
-        top = 0.0
-        for t in (self.t + self.dt, self.t + steps * self.dt):
-            _, _, gt = comp.evaluate(x[:, 0], x[:, 1], t=t, params=prm, time_derivative=True)
-            gt = np.abs(gt[np.isfinite(gt)])
-            if gt.size:
-                top = max(top, float(gt.max()))
-        return 1.5 * top
 
     # -- diagnostics -------------------------------------------------------------------------
     def kinetic_energy(self) -> float:

@@ -6,6 +6,7 @@ import numba
 import numpy as np
 import pytest
 
+from fastsdf._drive import BLOCK_SIG
 from fastsdf._simd import BLOCK, choose_lanes
 from fastsdf.codegen import compile_expr
 from fastsdf.graph import Function, Symbol, evaluate_numpy, sym_exp, sym_log, sym_max
@@ -113,12 +114,7 @@ def test_loop_free_bodies_interleave_two_lanes():
 def _fresh_block(comp, kind="vg"):
     """The block function compiled afresh (numba shows no assembly for cached code)."""
     fn = numba.njit(error_model="numpy", nogil=True)(getattr(comp.module, f"_block_{kind}").py_func)
-    xs = np.linspace(-2, 2, BLOCK)
-    slots = 64
-    if kind == "vg":
-        fn(xs, xs, np.empty(BLOCK), np.empty(2 * BLOCK), 0, BLOCK, np.empty(slots * BLOCK), 0)
-    else:
-        fn(xs, xs, np.empty(BLOCK), 0, BLOCK, np.empty(slots * BLOCK), 0)
+    fn.compile(BLOCK_SIG.args)
     return "\n".join(fn.inspect_asm().values())
 
 
@@ -133,3 +129,20 @@ def test_block_loops_compile_to_packed_vector_code(scene):
     packed = PACKED.findall(asm)
     assert len(packed) >= 100, f"{len(packed)} packed float64 instructions"
     assert "vdivpd" in asm or "divpd" in asm  # the blends' divisions are vectorized too
+
+
+def test_batch_kernels_are_compiled_once_for_all_scenes():
+    """The parallel and serial kernels take a scene's block function as a first-class function
+    value: two scenes (different block functions and scratch sizes) share one compiled kernel,
+    and each gives exactly what its per-point function gives."""
+    from fastsdf import _drive
+    for f in (box_world(3), seed_world()):
+        for n in (4099, 37):  # parallel, serial
+            p = np.random.default_rng(n).uniform(-2, 2, (n, 2))
+            d, g = f(*p.T, compute_gradient=True)
+            ref = np.array([f.point_fn(x, y) for x, y in p[:40]])
+            np.testing.assert_array_equal(d[:40], ref[:, 0])
+            np.testing.assert_array_equal(g[:40], ref[:, 1:])
+            np.testing.assert_array_equal(f(*p.T), d)
+    for kernel in (_drive.run_vg_par, _drive.run_vg_ser, _drive.run_v_par, _drive.run_v_ser):
+        assert len(kernel.signatures) == 1, kernel.signatures
