@@ -44,8 +44,11 @@ docs: $(VENV)/.docs
 	$(PY) -m pdoc --docformat restructuredtext -o docs/api $$($(PUBLIC_MODULES))
 	@echo "API reference: docs/api/index.html"
 
+# One pytest worker per core (pytest-xdist): most of the suite's time is numba compiling the
+# scenes of the tests, one core per compile. Tests are grouped by file, so a file's scenes are
+# compiled by one worker; workers share the kernel cache (safe under concurrent processes).
 test: $(VENV)/.test
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 bench: $(VENV)/.bench
 	$(PY) -m bench

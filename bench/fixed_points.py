@@ -2,6 +2,7 @@
 
     python -m bench.fixed_points                 # 100,000 particles, steps 200-260
     python -m bench.fixed_points --particles 1000000
+    python -m bench.fixed_points --rest-speed 0.1     # and with resting contact (rest_speed)
 
 The notebook scenario of ``bench/bench_particles.py`` (seed world, 400x400 GridSDF, gravity
 (0, -1), dt = 1/30, the defaults cr = 0.6, cf = 0.3) is advanced to step 200 (the benchmark's
@@ -29,6 +30,9 @@ def main(argv=None) -> int:
     parser.add_argument("--particles", type=int, default=100_000)
     parser.add_argument("--start", type=int, default=200)
     parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--rest-speed", type=float, default=0.0,
+                        help="also measure resting contact with this rest_speed")
+    parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
 
     import fastsdf.particles as phys
@@ -67,7 +71,60 @@ def main(argv=None) -> int:
           f"max {creep.max():.2g}, min {creep.min():.2g}")
     q = np.percentile(speed, [10, 25, 50, 75, 90])
     print("  speed percentiles 10/25/50/75/90: " + " / ".join(f"{v:.3g}" for v in q))
+    if args.rest_speed > 0:
+        _resting(grid, args.particles, args.rest_speed, args.repeats)
     return 0
+
+
+def _resting(grid, n, rest_speed, repeats):
+    """The same scenario with resting contact (``rest_speed``): the share of particles at an
+    exact rest and the speed of ``run(20)`` from steps 200, 300 and 450, side by side with the
+    default contact from its own state at the same step and with Taichi's fused kernel
+    (``bench/peers.py``, the default contact) on that state."""
+    import time
+
+    import numba
+
+    import fastsdf.particles as phys
+
+    from . import peers
+    sims = {rs: phys.ParticleSimulation(grid, n=n, seed=0, rest_speed=rs)
+            for rs in (0.0, rest_speed)}
+    for s in sims.values():
+        s.force_generators.append(phys.Gravity())
+    ti, ti_err = peers.taichi_particles(grid, numba.get_num_threads())
+    print(f"\nresting contact, rest_speed={rest_speed} (run(20), medians of {repeats}; "
+          f"load average {os.getloadavg()[0]:.1f})" + ("" if ti else f"; Taichi: {ti_err}"))
+    done = 0
+    for upto in (200, 300, 450):
+        for s in sims.values():
+            s.run(upto - done)
+        done = upto
+        states = {rs: s.p.copy() for rs, s in sims.items()}
+        times = {k: [] for k in list(sims) + ["taichi"]}
+        for _ in range(repeats):
+            for rs, s in sims.items():
+                s.p = states[rs].copy()
+                t0 = time.perf_counter()
+                s.run(20)
+                times[rs].append(time.perf_counter() - t0)
+            if ti:
+                p = states[0.0].copy()
+                t0 = time.perf_counter()
+                ti(p, 20, 1 / 30, -1.0)
+                times["taichi"].append(time.perf_counter() - t0)
+        for rs, s in sims.items():
+            s.p = states[rs]
+        rate = {k: n * 20 / float(np.median(v)) / 1e6 for k, v in times.items() if v}
+        at_rest = np.mean(np.all(states[rest_speed]["v"] == 0.0, axis=1))
+        line = (f"  from step {upto}: {at_rest:.1%} at rest; default {rate[0.0]:.1f} M/s, "
+                f"resting contact {rate[rest_speed]:.1f} M/s "
+                f"({rate[rest_speed] / rate[0.0]:.2f}x)")
+        if "taichi" in rate:
+            line += (f", Taichi {rate['taichi']:.1f} M/s (resting contact / Taichi "
+                     f"{rate[rest_speed] / rate['taichi']:.2f}x, default / Taichi "
+                     f"{rate[0.0] / rate['taichi']:.2f}x)")
+        print(line)
 
 
 if __name__ == "__main__":

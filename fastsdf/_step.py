@@ -88,7 +88,11 @@ One step, per particle (the physics is described in :mod:`fastsdf.particles`)
 4. query the end point, ``s = d - r``;
 5. tunnelling sweep (:func:`_sweep`) when ``|D| > TRACE_FRACTION r`` and the end is not
    clear by ``lip |D|``;
-6. respond where ``s <= 0`` (:func:`_respond`); else refill the skipping budget.
+6. respond where ``s <= 0`` (:func:`_respond`), or, with ``rest > 0`` (``rest_speed``),
+   hold a slow particle that :func:`_rests` where it was with zero velocity; else refill the
+   skipping budget;
+7. a particle whose step left its state bit-identical sleeps for the rest of the call
+   (``SLEEP``: a static world and no user force, so every later step would repeat it).
 
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
@@ -116,6 +120,9 @@ MAX_MARCH = 64
 MAX_BOUNCES = 3
 #: Particles whose user forces are evaluated together ahead of their steps.
 FORCE_BATCH = 32
+
+#: ``clear[k]`` of a particle asleep for the rest of a call (its state is a fixed point).
+ASLEEP = -0.5
 
 FLAG_INPUT = 1
 FLAG_NONFINITE = 2
@@ -266,6 +273,10 @@ def _wall_speed_at(data, x, y, dx, dy):
 
 # ---------------------------------------------------------------------------------------------
 # The step's parts.
+
+#: Whether a particle whose step repeats its state may sleep for the rest of a call: the step
+#: must not depend on time (no moving world, no user force, which may use ``t``).
+SLEEP = not MOVING and not USE_FORCE
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
@@ -471,6 +482,22 @@ def _sweep_t(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _rests(vx, vy, ax, ay, gx, gy, cf, rest):
+    """Whether a particle in contact rests (``rest_speed``): its velocity at the start of
+    the step is below ``rest`` (length/s), its acceleration ``a`` pushes it into the surface
+    (``a . n < 0``, ``n = grad / |grad|``) and static friction can hold it: the tangential
+    part of ``a`` is at most ``cf`` times the normal part (surfaces tilted less than
+    ``atan(cf)`` under gravity)."""
+    gl2 = gx * gx + gy * gy
+    if not (gl2 > 0.0 and gl2 < math.inf) or vx * vx + vy * vy > rest * rest:
+        return False
+    inv = 1.0 / math.sqrt(gl2)
+    an = (ax * gx + ay * gy) * inv
+    at2 = ax * ax + ay * ay - an * an
+    return an < 0.0 and at2 <= cf * cf * an * an
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _valid_input(x, y, vx, vy, r, m, use_m):
     """Whether a particle's loaded state may be stepped (cr, cf are checked at contacts)."""
     ok = (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
@@ -482,7 +509,7 @@ def _valid_input(x, y, vx, vy, r, m, use_m):
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-           use_ext, explicit, always, trace, lip, margin, eps, skip, check_all):
+           use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
     """All steps for particles lo..hi-1; returns the number of particles frozen (flagged).
 
     The only function that touches the arrays: helpers take scalars, so no reference counting
@@ -541,6 +568,10 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             vx = float(V[i, 0])
             vy = float(V[i, 1])
             r = float(R[i])
+            x0 = x
+            y0 = y
+            vx0 = vx
+            vy0 = vy
             bx = ax
             by = ay
             if use_m:
@@ -652,8 +683,15 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     FLAGS[i] = FLAG_COEFF
                     bad += 1
                     continue
-                x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always and not bounced,
-                                        gt)
+                if rest > 0.0 and not bounced and _rests(vx0, vy0, bx, by, gx, gy, cf, rest):
+                    # resting contact: the surface holds the particle where it is
+                    x = x0
+                    y = y0
+                    vx = 0.0
+                    vy = 0.0
+                else:
+                    x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf,
+                                            always and not bounced, gt)
             elif skip and s > margin:
                 clear[k] = (s - margin) / lip * (1.0 - 1e-9)
             if not (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
@@ -661,6 +699,12 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 clear[k] = -1.0
                 FLAGS[i] = FLAG_NONFINITE
                 bad += 1
+                continue
+            if SLEEP and x == x0 and y == y0 and vx == vx0 and vy == vy0 and steps > 1:
+                # The step left the state bit-identical, and nothing else it depends on changes
+                # within this call (static world, forces independent of time): every later
+                # step of the call would repeat it, so the particle sleeps until the next call.
+                clear[k] = ASLEEP
                 continue
             X[i, 0] = x
             X[i, 1] = y
@@ -671,7 +715,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
 
 @njit(cache=_CACHE, parallel=True, error_model="numpy")
 def run_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-            use_ext, explicit, always, trace, lip, margin, eps, skip, check_all):
+            use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
     """Parallel kernel: blocks of particles over threads. Returns the frozen count."""
     n = X.shape[0]
     nblocks = (n + block - 1) // block
@@ -681,20 +725,20 @@ def run_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
         hi = min(n, lo + block)
         bad += _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay,
                       drag, use_m, use_ext, explicit, always, trace, lip, margin, eps, skip,
-                      check_all)
+                      rest, check_all)
     return bad
 
 
 @njit(cache=_CACHE, error_model="numpy")
 def run_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-            use_ext, explicit, always, trace, lip, margin, eps, skip, check_all):
+            use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
     """Serial kernel (small n). Returns the frozen count."""
     n = X.shape[0]
     bad = 0
     for lo in range(0, n, block):
         bad += _block(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT, FLAGS, dt,
                       t0, ax, ay, drag, use_m, use_ext, explicit, always, trace, lip, margin,
-                      eps, skip, check_all)
+                      eps, skip, rest, check_all)
     return bad
 
 

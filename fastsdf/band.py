@@ -5,12 +5,14 @@ surface. A dense :class:`fastsdf.grid.GridSDF` spends almost all its memory far 
 surface; its memory grows with the area while its accuracy is set by the spacing. A
 :class:`NarrowBandGridSDF` keeps a coarse level of *tiles* over ``bounds`` (8 x 8 fine
 cells each, like the leaves of OpenVDB; Museth 2013) and stores fine nodes (value and gradient,
-as ``GridSDF(gradient='stored')``) only in the tiles that can reach the band ``|d| <= band``.
+as ``GridSDF(gradient='stored')``) only in the tiles that can reach the band ``|d| <= band``
+(or ``lo <= d <= hi`` for ``band=(lo, hi)``: particles, which only touch surfaces from outside,
+need a band that reaches their largest radius on the outside and only a few spacings inside).
 
 Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (1 for fastsdf
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
-centre ``c`` and half-diagonal ``rt`` has ``|f(p)| >= |f(c)| - L rt``; a tile is *far* when that
-bound exceeds ``band``. For a function with no known bound the interval bounds of
+centre ``c`` and half-diagonal ``rt`` has ``f(c) - L rt <= f(p) <= f(c) + L rt``; a tile is
+*far* when that range misses the band. For a function with no known bound the interval bounds of
 :mod:`fastsdf.interval` over the tile take its place. A far tile stores one int32: a lower bound
 of ``|f|`` over the tile (with ``f``'s sign there, quantized downwards) less half a fine cell
 diagonal, and the direction of ``f``'s gradient at the tile centre (in 4096 steps), which it
@@ -39,8 +41,11 @@ For numba code: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)`` as for t
 (:data:`fastsdf.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
 and for non-finite points (then the values are NaN), and the caller evaluates
 ``g.exact.point_fn(x, y)`` there (finite points). :class:`fastsdf.particles.ParticleSimulation`
-accepts a NarrowBandGridSDF as its world. For particles choose ``band`` at least the largest
-particle radius plus a few spacings: a particle then only ever touches fine tiles.
+accepts a NarrowBandGridSDF as its world. For particles choose ``band=(-w, r_max + w)`` with
+``r_max`` the largest particle radius and ``w`` a few spacings (or a symmetric ``band`` of at
+least ``r_max + w``, twice the memory): a particle in contact then only touches fine tiles, and
+one pushed deeper than ``w`` into matter gets a far tile's answer, a lower bound of its depth
+with the direction out of matter.
 """
 
 from __future__ import annotations
@@ -272,6 +277,26 @@ def _positive(value, name):
     return v
 
 
+def _band_range(band):
+    """``(lo, hi)`` from ``band=w`` (the band ``|d| <= w``) or ``band=(lo, hi)``."""
+    if isinstance(band, numbers.Real) and not isinstance(band, (bool, np.bool_)):
+        w = _positive(band, "band")
+        return (-w, w)
+    try:
+        lo, hi = band
+    except (TypeError, ValueError):
+        raise TypeError(f"band must be a positive number or a pair (lo, hi) of signed "
+                        f"distances, got band={band!r}") from None
+    for v in (lo, hi):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+            raise TypeError(f"band=(lo, hi) must hold two real numbers, got band={band!r}")
+    lo, hi = float(lo), float(hi)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= 0.0 <= hi and lo < hi):
+        raise ValueError(f"band=(lo, hi) needs finite lo <= 0 <= hi with lo < hi (the band "
+                         f"must contain the surface), got band={band!r}")
+    return (lo, hi)
+
+
 def _lipschitz_of(f, lipschitz):
     if lipschitz is not None:
         return _positive(lipschitz, "lipschitz")
@@ -297,9 +322,10 @@ class NarrowBandGridSDF:
         fine tiles and (tolerance builds) at the midpoints of their cells.
     bounds : [(x0, x1), (y0, y1)]
         The gridded rectangle; finite, ``x0 < x1``, ``y0 < y1``. Outside it the exact SDF answers.
-    band : float
-        Half-width of the band (coordinate units): every point with ``|f| <= band`` lies in a fine
-        tile. For particles: at least the largest radius plus a few spacings.
+    band : float or (lo, hi)
+        The band (coordinate units): every point with ``|f| <= band`` (a number) or with
+        ``lo <= f <= hi`` (a pair, ``lo <= 0 <= hi``, ``lo < hi``) lies in a fine tile. For
+        particles: ``(-w, r_max + w)``, see the module docstring.
     samples : [nx, ny], optional
         Fine node counts over ``bounds`` as for :class:`fastsdf.grid.GridSDF` (``400j`` or 400):
         spacing ``h = (x1 - x0) / (nx - 1)``; the fine nodes are exactly those of the dense grid
@@ -321,7 +347,8 @@ class NarrowBandGridSDF:
 
     Attributes
     ----------
-    exact, bounds, band, tolerance, tile, dtype, lipschitz, mode (always ``'exact'``)
+    exact, bounds, band (as given), tolerance, tile, dtype, lipschitz, mode (always ``'exact'``)
+    band_range : (lo, hi), the band as a range of signed distances
     shape : fine node counts (nx, ny) over bounds; spacing : (hx, hy)
     tile : fine cells per tile side (8); tiles : (ntx, nty) tile counts
     n_fine : number of fine tiles; n_exact_cells : cells answered by the exact SDF
@@ -347,7 +374,8 @@ class NarrowBandGridSDF:
             f = f.frozen()  # a snapshot at the current parameter values
         self.exact = f
         self.bounds = _check_bounds(bounds)
-        self.band = _positive(band, "band")
+        self.band_range = _band_range(band)
+        self.band = band if isinstance(band, numbers.Real) else self.band_range
         self.tile = _TILE
         self.dtype = _check_dtype(dtype)
         self.lipschitz = _lipschitz_of(f, lipschitz)
@@ -381,11 +409,13 @@ class NarrowBandGridSDF:
         dc, gc = self.exact(CX.ravel(), CY.ravel(), compute_gradient=True)
         rt = 0.5 * T * math.hypot(hx, hy)
         with np.errstate(invalid="ignore"):
-            if lip is not None:
-                low = np.abs(dc) - lip * rt           # |f| >= low over the tile
+            if lip is not None:                       # dlo <= f <= dhi over the tile
+                dlo, dhi = dc - lip * rt, dc + lip * rt
             else:
-                low = self._interval_low(cx, cy, T * hx, T * hy)
-            fine = ~(low > self.band)                 # NaN centres are fine (checked below)
+                dlo, dhi = self._interval_range(cx, cy, T * hx, T * hy)
+            low = np.where(dlo > 0, dlo, np.where(dhi < 0, -dhi, 0.0))   # |f| >= low
+            blo, bhi = self.band_range
+            fine = ~((dlo > bhi) | (dhi < blo))       # NaN centres are fine (checked below)
         fidx = np.flatnonzero(fine)
         nf = fidx.size
         # Far tiles: a lower bound of |f| over the tile, less half a cell diagonal (so that the
@@ -434,8 +464,8 @@ class NarrowBandGridSDF:
             self._mark_exact_cells(X, Y, q)
         self._finish()
 
-    def _interval_low(self, cx, cy, wx, wy):
-        """Lower bounds of ``|f|`` over every tile (x-major), from interval evaluation."""
+    def _interval_range(self, cx, cy, wx, wy):
+        """Bounds ``(lo, hi)`` of ``f`` over every tile (x-major), from interval evaluation."""
         from .interval import bounds as interval_bounds
 
         CX, CY = np.meshgrid(cx, cy, indexing="ij")
@@ -443,9 +473,7 @@ class NarrowBandGridSDF:
         boxes = {sx: (CX.ravel() - 0.5 * wx, CX.ravel() + 0.5 * wx),
                  sy: (CY.ravel() - 0.5 * wy, CY.ravel() + 0.5 * wy)}
         lo, hi = interval_bounds(self.exact.f, boxes)
-        lo, hi = np.broadcast_to(lo, CX.size), np.broadcast_to(hi, CX.size)
-        with np.errstate(invalid="ignore"):
-            return np.where(lo > 0, lo, np.where(hi < 0, -hi, 0.0))
+        return np.broadcast_to(lo, CX.size), np.broadcast_to(hi, CX.size)
 
     def _cell_estimates(self, X, Y, q):
         """Estimated interpolation error of every cell of the fine tiles, shape (nf, T, T), and
@@ -466,10 +494,15 @@ class NarrowBandGridSDF:
         jy = np.maximum(np.linalg.norm(g[:, :-1, 1:] - g[:, :-1, :-1], axis=-1),
                         np.linalg.norm(g[:, 1:, 1:] - g[:, 1:, :-1], axis=-1))
         est = np.maximum(e_mid, (hx * jx + hy * jy) / 8.0)
-        corner_min = np.minimum(np.minimum(np.abs(v[:, :-1, :-1]), np.abs(v[:, 1:, :-1])),
-                                np.minimum(np.abs(v[:, :-1, 1:]), np.abs(v[:, 1:, 1:])))
+        corner_min = np.minimum(np.minimum(v[:, :-1, :-1], v[:, 1:, :-1]),
+                                np.minimum(v[:, :-1, 1:], v[:, 1:, 1:]))
+        corner_max = np.maximum(np.maximum(v[:, :-1, :-1], v[:, 1:, :-1]),
+                                np.maximum(v[:, :-1, 1:], v[:, 1:, 1:]))
         lip = self.lipschitz if self.lipschitz is not None else math.inf
-        in_band = corner_min - lip * 0.5 * math.hypot(hx, hy) <= self.band
+        reach = lip * 0.5 * math.hypot(hx, hy)
+        blo, bhi = self.band_range
+        with np.errstate(invalid="ignore"):
+            in_band = (corner_max + reach >= blo) & (corner_min - reach <= bhi)
         return est, in_band
 
     def _mark_exact_cells(self, X, Y, q):
@@ -575,7 +608,7 @@ class NarrowBandGridSDF:
 
     def __repr__(self):
         tol = "" if self.tolerance is None else f", tolerance={self.tolerance:g}"
-        return (f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band:g}, "
+        return (f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band!r}, "
                 f"samples={list(self.shape)}{tol}, tile={self.tile}, dtype={self.dtype.name}, "
                 f"fine tiles={self.n_fine}/{self.tiles[0] * self.tiles[1]}, "
                 f"exact cells={self.n_exact_cells}, nbytes={self.nbytes})")
@@ -588,8 +621,8 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
     """Errors of a grid against its exact SDF on ``n`` random points in the band.
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;
-    they cover the band) and the band statistics keep those with ``|d_exact| < band`` (default
-    ``g.band``). ``g`` may also be a dense :class:`fastsdf.grid.GridSDF`; then ``points`` (an
+    they cover the band) and the band statistics keep those with ``|d_exact| < band`` (or
+    ``lo < d_exact < hi`` for ``band=(lo, hi)``; default ``g.band``). ``g`` may also be a dense :class:`fastsdf.grid.GridSDF`; then ``points`` (an
     ``(x, y)`` pair, e.g. drawn for a band grid) should be given. Returns a
     :class:`fastsdf.grid.GridError` (value errors in coordinate units, gradient angles in
     degrees; far-tile answers are not in the band, where they would not be errors but bounds).
@@ -600,10 +633,10 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
         xs, ys = band_points(g, n, seed)
     else:
         xs, ys, _ = as_points(*points)
-    band = (g.band if band is None else _positive(band, "band"))
+    blo, bhi = _band_range(g.band if band is None else band)
     dg, gg = g(xs, ys, compute_gradient=True)
     de, ge = g.exact(xs, ys, compute_gradient=True)
-    inb = np.abs(de) < band
+    inb = (de > blo) & (de < bhi)
     dg, gg, de, ge = dg[inb], gg[inb], de[inb], ge[inb]
     verr = np.abs(dg - de)
     cross = gg[:, 0] * ge[:, 1] - gg[:, 1] * ge[:, 0]
@@ -611,7 +644,7 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
     aerr = np.degrees(np.arctan2(np.abs(cross), dot))
     vmax, vrms = _stats(verr)
     amax, arms = _stats(aerr)
-    return GridError(n=int(xs.size), band=float(band), band_n=int(inb.sum()),
+    return GridError(n=int(xs.size), band=float(max(-blo, bhi)), band_n=int(inb.sum()),
                      spacing=tuple(g.spacing), value_max=vmax, value_rms=vrms,
                      angle_max_deg=amax, angle_rms_deg=arms, band_value_max=vmax,
                      band_value_rms=vrms, band_angle_max_deg=amax, band_angle_rms_deg=arms)

@@ -16,12 +16,21 @@ Design (see the README's design section for the measurements behind it):
   minimum and gradient get a new name per operand), except the accumulators of loops over
   tables. numba repairs every reassigned variable with a pass over the whole function, which
   made compile time quadratic in the length of a scene without repeated structure.
+* A long body (a scene without repeated structure next to each other, over FOLD_MIN_LINES
+  lines) gets block kernels that first evaluate, in loops over tables, every group of
+  same-shape subexpressions wherever they stand in the scene (the primitives: each transformed
+  box, each circle), storing value and gradient per point; the straight-line code that remains
+  only combines them. numba's compile time then follows the combining operations and the
+  number of distinct shapes. The per-point functions keep the plain straight-line code (the
+  tests compare the two, bit for bit).
 * A smooth chain is evaluated as an online log-sum-exp (the streaming-softmax recurrence):
   one ``exp`` per operand and one ``log`` per chain, with values that never overflow for any
   ``k > 0``. This is mathematically the notebook's nested ``-log(exp(-k a) + exp(-k b)) / k``.
 * Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
   tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
-  makes numba's compile time explode.
+  makes numba's compile time explode. For scenes without parameters the ``prange`` kernels are
+  scene-independent (:mod:`fastsdf._drive`, compiled once per installation) and call the
+  scene's block functions by address.
 * Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf._cache`)
   and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
   compiles gradient code.
@@ -48,10 +57,14 @@ __all__ = ["generate_module_source", "MIN_LOOP"]
 MIN_LOOP = 4
 #: Chain operands with more nodes than this (as a tree) are never folded into loops.
 MAX_TEMPLATE_NODES = 128
-#: Per-point functions longer than this (in generated lines) are not interleaved; the block
-#: kernels of such a scene evaluate repeated subexpressions in loops (see ``_Emitter.fold``).
+#: Per-point functions longer than this (in generated lines) are not interleaved.
 LONG_BODY_LINES = 400
+#: Scenes whose per-point code is longer than this (lines) get block kernels that evaluate
+#: same-shape subexpressions anywhere in the scene in loops first (see ``_Emitter._prefold``).
 FOLD_MIN_LINES = 400
+#: At most this many values per point (scratch rows of BLOCK floats, per thread) are stored by
+#: those loops; groups beyond it stay straight-line code.
+MAX_FOLD_ROWS = 1536
 
 _CHAIN_OPS = ("min", "max", "smin", "smax")
 _HUGE = "1.7976931348623157e+308"
@@ -451,9 +464,11 @@ class _Emitter:
             shapes[sig][1].append(node)
             shapes[sig][2].append(consts)
         ncomp = len(self.COMPONENTS)
+        rows_left = MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
-            if len(members) < 2:
+            if len(members) < 2 or len(members) * (1 + ncomp * self.grad) > rows_left:
                 continue
+            rows_left -= len(members) * (1 + ncomp * self.grad)
             table, refs = _varying_columns(rows)
             name = self.table(table) if table.shape[1] else None
             loop = self._name("i")

@@ -37,7 +37,7 @@ from typing import Any
 from .ops import OPS, chain_rule_numpy, fmt_const
 
 __all__ = [
-    "Expr", "Symbol", "Constant", "Function", "as_expr",
+    "Expr", "Symbol", "Constant", "as_expr",
     "sym_sqrt", "sym_exp", "sym_log", "sym_sin", "sym_cos", "sym_abs",
     "sym_min", "sym_max", "sym_smin", "sym_smax", "sym_length",
     "sym_floor", "sym_select", "sym_qmin", "sym_cmin", "sym_prim", "substitute",
@@ -793,7 +793,8 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
 def __getattr__(name):
     # Function lives in the compiled-function layer (fastsdf.function), which imports this
     # module; it stays importable from here (the notebook's ``cg.Function``) without this module
-    # importing that layer at load time.
+    # importing that layer at load time. It is not in ``__all__``: documentation tools would
+    # look for it in this module's namespace (it is documented in fastsdf.function).
     if name == "Function":
         from .function import Function
         return Function

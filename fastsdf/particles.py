@@ -711,6 +711,18 @@ class ParticleSimulation:
         end-point test only, and a fast particle can pass through a wall thinner than its step.
     dtype : numpy float dtype, default float64
         Storage of the state (float64 or float32); arithmetic is float64 either way.
+    rest_speed : float, default 0 (off)
+        Resting contact: a particle that meets a surface (without a sweep) while moving slower
+        than this (length/s), pushed into it by its acceleration, with a tangential
+        acceleration at most ``cf`` times the normal one (static friction: a surface tilted
+        less than ``atan(cf)`` under gravity), stays where it is with zero velocity instead of
+        bouncing (the default contact keeps a micro-bounce of normal speed
+        ``cr g dt / (1 + cr)`` and creeps down any tilt, so it never rests exactly). A resting
+        particle's state is then a fixed point of the step: within one :meth:`run` call it
+        sleeps (its steps are skipped, exactly) in a static world with no user force. It
+        changes the physics (rest starts below ``rest_speed`` and a particle rests within
+        about ``rest_speed dt + |g| dt**2`` of the surface), so it is off by default; try
+        ``rest_speed`` of one to a few ``|g| dt``.
     cr, cf : float in [0, 1], default 0.6 and 0.3
         Restitution and friction given to every particle by :meth:`reset` (the original
         library's defaults); per-particle values can be written to ``p['cr']``, ``p['cf']``.
@@ -757,7 +769,12 @@ class ParticleSimulation:
                  integrator: str = "symplectic", collision: str = "approaching",
                  prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
                  cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
-                 wall_speed: float | None = None):
+                 wall_speed: float | None = None, rest_speed: float = 0.0):
+        rest = _real(rest_speed, "rest_speed")
+        if not (math.isfinite(rest) and rest >= 0.0):
+            raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
+        #: Resting contact below this speed (length/s); 0: off (see the class docs).
+        self.rest_speed = rest
         if wall_speed is not None:
             w = _real(wall_speed, "wall_speed")
             if not (math.isfinite(w) and w >= 0.0):
@@ -1027,7 +1044,7 @@ class ParticleSimulation:
         args = (ext, self._flags, self.dt, self.t, ax, ay, drag, use_m, use_ext,
                 self.integrator == "euler", self.collision == "notebook",
                 self.prevent_tunnelling, self.lipschitz, self._margin,
-                float(np.finfo(self.dtype).eps), self._skip)
+                float(np.finfo(self.dtype).eps), self._skip, float(self.rest_speed))
         bad = self._call(module, data, steps, [a[k] for k in Particles.FIELDS], args, check_all)
         if bad and self._exact_ptr is None:
             bad = self._resume(module, steps, args, bad)

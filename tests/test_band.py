@@ -86,13 +86,41 @@ def test_band_values_equal_a_dense_grid_of_the_same_spacing(world, samples):
     np.testing.assert_allclose(gr, dg, rtol=0, atol=1e-12)
 
 
-def test_every_band_point_lies_in_a_fine_tile(world):
-    g = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.03, samples=[257j, 257j])
+@pytest.mark.parametrize("band, lo, hi", [(0.03, -0.03, 0.03), ((-0.01, 0.06), -0.01, 0.06),
+                                          ((0.0, 0.04), 0.0, 0.04)])
+def test_every_band_point_lies_in_a_fine_tile(world, band, lo, hi):
+    g = NarrowBandGridSDF(world, bounds=BOUNDS, band=band, samples=[257j, 257j])
+    assert g.band_range == (lo, hi)
     rng = np.random.default_rng(2)
     xs, ys = rng.uniform(-2, 2, (2, 400_000))
-    inb = np.abs(world(xs, ys)) <= 0.03
+    d = world(xs, ys)
+    inb = (d >= lo) & (d <= hi)
     assert inb.sum() > 1000
     assert g.is_fine(xs[inb], ys[inb]).all()
+    # Far answers keep their guarantee on both sides of an asymmetric band: a lower bound of
+    # |d| with d's sign, and never inside the band.
+    far = ~g.is_fine(xs, ys)
+    gf = g(xs[far], ys[far])
+    assert np.all(np.abs(gf) <= np.abs(d[far])) and np.all(np.sign(gf) * np.sign(d[far]) >= 0)
+    assert not np.any((d[far] >= lo) & (d[far] <= hi))
+
+
+def test_an_asymmetric_band_stores_less_and_agrees_with_the_symmetric_one_inside_it(world):
+    """A band reaching 0.12 outside and 0.01 inside (for particles of radius up to 0.1) stores
+    fewer fine tiles than the symmetric band of 0.12 and answers the same values in its range."""
+    sym = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.12, samples=[257j, 257j])
+    asym = NarrowBandGridSDF(world, bounds=BOUNDS, band=(-0.01, 0.12), samples=[257j, 257j])
+    assert asym.n_fine < 0.8 * sym.n_fine and asym.nbytes < sym.nbytes
+    xs, ys = band_points(asym, 50_000, seed=5)
+    d = world(xs, ys)
+    inb = (d > -0.01) & (d < 0.12)
+    assert inb.sum() > 10_000
+    va, ga = asym(xs[inb], ys[inb], compute_gradient=True)
+    vs, gs = sym(xs[inb], ys[inb], compute_gradient=True)
+    np.testing.assert_array_equal(va, vs)
+    np.testing.assert_array_equal(ga, gs)
+    err = measure_band_error(asym, n=50_000)
+    assert err.band_n > 10_000 and err.band_value_max < 0.01
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -226,6 +254,12 @@ def test_float32_storage_error_and_memory(world):
     (dict(band=0), ValueError, "band"),
     (dict(band=-1), ValueError, "band"),
     (dict(band="x"), TypeError, "band"),
+    (dict(band=(0.01, 0.2)), ValueError, "band=.*lo <= 0 <= hi"),
+    (dict(band=(-0.1, -0.01)), ValueError, "band=.*lo <= 0 <= hi"),
+    (dict(band=(0.0, 0.0)), ValueError, "band=.*lo < hi"),
+    (dict(band=(-0.1, math.inf)), ValueError, "band"),
+    (dict(band=(0.1,)), TypeError, "band must be"),
+    (dict(band=(-0.1, "a")), TypeError, "band=.*two real numbers"),
     (dict(samples=None), ValueError, "samples= .* or tolerance="),
     (dict(tolerance=0), ValueError, "tolerance"),
     (dict(samples=[1, 5]), ValueError, "samples"),
@@ -262,9 +296,11 @@ def test_f_must_be_an_sdf_and_unknown_lipschitz_uses_interval_bounds():
 
 
 @pytest.mark.slow
-def test_particles_on_a_band_grid_do_not_tunnel_and_rest_as_on_the_dense_grid(world):
-    # The band covers the largest radius (0.1) with room: every contact is in a fine tile.
-    band = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.15, samples=[200j, 200j])
+@pytest.mark.parametrize("width", [0.15, (-0.05, 0.15)])
+def test_particles_on_a_band_grid_do_not_tunnel_and_rest_as_on_the_dense_grid(world, width):
+    # The band covers the largest radius (0.1) with room on the outside: every contact is in a
+    # fine tile.
+    band = NarrowBandGridSDF(world, bounds=BOUNDS, band=width, samples=[200j, 200j])
     dense = GridSDF(world, bounds=BOUNDS, samples=[200j, 200j])
     finals = []
     for g in (band, dense):

@@ -121,7 +121,7 @@ def run_kernel(data, steps, X, V, M, R, CR, CF, dt=0.01, g=(0.0, -1.0), trace=Tr
     flags = np.zeros(X.shape[0], np.uint8)
     bad = _step.run_ser(data, steps, block, X, V, M, R, CR, CF, np.zeros((0, 2)), flags, dt, 0.0,
                         g[0], g[1], 0.0, False, False, explicit, always, trace, 1.0, 0.0,
-                        2.2e-16, skip, True)
+                        2.2e-16, skip, 0.0, True)
     return bad, flags
 
 
@@ -412,3 +412,61 @@ def test_a_users_force_keeps_numbas_own_cache_format(tmp_path, monkeypatch):
     assert not getattr(user_force_mod.push._cache, "_fastsdf_guarded", False)
     assert getattr(own._cache, "_fastsdf_guarded", False)
     sys.modules.pop("user_force_mod", None)
+
+
+# ---------------------------------------------------------------------------------------------
+# Resting contact and sleeping.
+
+def _tilted_floor(angle):
+    """Solid below a plane through the origin tilted by ``angle`` (radians)."""
+    return sdf.Halfspace([-math.sin(angle), math.cos(angle)], 0.0)
+
+
+@pytest.mark.parametrize("angle, rests", [(0.0, True), (0.2, True), (0.4, False)])
+def test_resting_contact_holds_below_the_friction_angle(angle, rests):
+    # cf = 0.3: static friction holds on a plane tilted less than atan(0.3) = 0.29 rad.
+    sim = phys.ParticleSimulation(_tilted_floor(angle), n=200, seed=1, rest_speed=0.1, cf=0.3)
+    sim.force_generators.append(phys.Gravity())
+    rng = np.random.default_rng(2)
+    sim.p["x"][:] = np.c_[rng.uniform(-1, 1, 200), rng.uniform(0.3, 0.6, 200)]
+    sim.p["v"][:] = 0.0
+    sim.run(240)
+    before = sim.p.copy()
+    sim.run(1)
+    speed = np.hypot(*sim.p["v"].T)
+    if rests:
+        assert np.all(speed == 0.0)
+        np.testing.assert_array_equal(sim.p["x"], before["x"])   # an exact fixed point
+        # resting on the plane, within rest_speed dt + g dt**2 of touching it
+        n = np.array([-math.sin(angle), math.cos(angle)])
+        gap = sim.p["x"] @ n - sim.p["r"]
+        assert np.all(gap > -1e-9) and np.all(gap <= 0.1 * sim.dt + sim.dt ** 2 + 1e-9)
+    else:
+        # sliding down at the contact model's terminal speed ((1 - cf) g_t dt / cf, 0.03)
+        assert np.all(speed > 0.02)
+        assert np.all(sim.p["x"][:, 0] < before["x"][:, 0])   # down the slope, towards -x
+
+
+def test_sleeping_particles_give_the_results_of_single_steps():
+    # Within one run(k) call a particle whose step repeats its state is skipped for the rest
+    # of the call; one advance() per step never skips. Both must give the same bits.
+    w = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
+    sim = phys.ParticleSimulation(w, n=phys.PARALLEL_MIN_PARTICLES + 55, seed=6, rest_speed=0.1)
+    sim.force_generators.append(phys.Gravity())
+    sim.run(300)
+    other = phys.ParticleSimulation(w, n=sim.n, seed=0, rest_speed=0.1)
+    other.force_generators.append(phys.Gravity())
+    other.p = sim.p.copy()
+    other.t = sim.t
+    sim.run(20)
+    for _ in range(20):
+        other.advance()
+    np.testing.assert_array_equal(sim.p["x"], other.p["x"])
+    np.testing.assert_array_equal(sim.p["v"], other.p["v"])
+    assert np.mean(np.all(sim.p["v"] == 0.0, axis=1)) > 0.3     # many did sleep
+
+
+@pytest.mark.parametrize("bad", [-0.1, math.nan, math.inf])
+def test_rest_speed_is_validated(bad):
+    with pytest.raises(ValueError, match="rest_speed must be finite and >= 0"):
+        phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=2, rest_speed=bad)
