@@ -199,6 +199,103 @@ _FOLD_LOAD = re.compile(r"\b_F(\d+)\[(\d+)\]")
 _FOLD_STORE = re.compile(r"\b_F(\d+)\[(i\d+) \* (\d+)(?: \+ (\d+))?\]")
 
 
+class _Staging:
+    """The per-point statements of a block, segment by segment, staged through the scratch
+    array ``S``: a variable live across segments has one row per lane,
+    ``S[slot * BLOCK + lane * half + i]`` (booleans stored as 0.0 / 1.0); every segment is a
+    loop over the block's points that loads the rows it uses and stores the ones used later.
+
+    ``slots`` (name -> row) is filled as rows are first used; ``fbase``/``fold_loop`` place the
+    rows of folded subexpressions (see :func:`block_source`).
+    """
+
+    def __init__(self, segs: list, result_names: list, lanes: int, slots: dict,
+                 fbase: list = (), fold_loop: dict | None = None):
+        self.lanes, self.half = lanes, BLOCK // lanes
+        self.slots, self.fbase = slots, fbase
+        self.fold_loop = {} if fold_loop is None else fold_loop
+        self.info = [_defs_uses(seg[1] if seg[0] == "line" else seg[2]) for seg in segs]
+        self.bools = set()
+        for _, _, b in self.info:
+            self.bools |= b
+        self.later_uses = [set() for _ in segs]
+        acc = set(result_names)
+        for k in range(len(segs) - 1, -1, -1):
+            self.later_uses[k] = set(acc)
+            acc |= set(self.info[k][1])
+
+    def at(self, name, k):
+        if name not in self.slots:
+            self.slots[name] = len(self.slots)
+        return f"S[{self.slots[name] * BLOCK + k * self.half} + i]"
+
+    def load(self, name, pad):
+        return [f"{pad}{name}_{k} = {self.at(name, k)} != 0.0" if name in self.bools else
+                f"{pad}{name}_{k} = {self.at(name, k)}" for k in range(self.lanes)]
+
+    def store(self, name, pad):
+        return [f"{pad}{self.at(name, k)} = _sel({name}_{k}, 1.0, 0.0)" if name in self.bools
+                else f"{pad}{self.at(name, k)} = {name}_{k}" for k in range(self.lanes)]
+
+    def compute(self, stmts, pad):
+        out = []
+        for unit in _units(stmts):
+            for k in range(self.lanes):
+                out += [pad + _lane(st, k) for st in unit]
+        return out
+
+    def segment(self, k: int, seg) -> list:
+        """The code of segment ``k`` (``('line', stmts)`` or ``('loop', header, stmts)``)."""
+        code = []
+        defs, uses, _ = self.info[k]
+        if seg[0] == "line":
+            pad = "        "
+            code.append(f"    for i in range({self.half}):")
+            for name in uses:
+                code += self.load(name, pad)
+            code += self.compute(seg[1], pad)
+            for name in defs:
+                if name in self.later_uses[k]:
+                    code += self.store(name, pad)
+        else:
+            header, stmts = seg[1], seg[2]
+            loop_var = header.split()[1]
+            hoisted: dict = {}
+
+            def hoist(mt, loop_var, hoisted=hoisted):
+                if mt.group(2) != loop_var:
+                    return mt.group(0)
+                key = (mt.group(1), mt.group(3))
+                if key not in hoisted:
+                    hoisted[key] = f"h{mt.group(1)[2:]}_{mt.group(3)}"
+                return hoisted[key]
+
+            row = re.match(r"^(i\d+) = _act\[(i\d+q)\]$", stmts[0]) if stmts else None
+            if row and row.group(2) == loop_var:
+                # a loop over a row list (pruning): the row index is the same for all points
+                loop_var = row.group(1)
+                stmts = stmts[1:]
+            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
+            defs, uses, _ = _defs_uses(stmts)
+            code.append(f"    {header}")
+            if row:
+                code.append(f"        {row.group(0)}")
+            code += [f"        {name} = {t}[{loop_var}, {col}]"
+                     for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
+            for g in sorted({int(n) for n in re.findall(r"\bfo_(\d+)\b", "\n".join(stmts))}):
+                lv, size = self.fold_loop[g]
+                code.append(f"        fo_{g} = ({self.fbase[g]} + {lv} * {size}) * {BLOCK}")
+            pad = "            "
+            code.append(f"        for i in range({self.half}):")
+            for name in uses:
+                code += self.load(name, pad)
+            code += self.compute(stmts, pad)
+            for name in defs:
+                if name in uses or name in self.later_uses[k]:
+                    code += self.store(name, pad)
+        return code
+
+
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
                  lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
@@ -227,7 +324,6 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     grad = kind == "vg"
     lanes = lanes or choose_lanes(lines)
     assert lanes == 1 or not fold_sizes
-    half = BLOCK // lanes
     lines = list(lines) + [f"r{k} = {expr}" for k, expr in enumerate(results)]
     result_names = [f"r{k}" for k in range(len(results))]
     segs = _split(lines)
@@ -255,37 +351,8 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
                 ("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]])
                 for seg in segs]
 
-    info = []
-    for seg in segs:
-        info.append(_defs_uses(seg[1] if seg[0] == "line" else seg[2]))
-    bools = set()
-    for _, _, b in info:
-        bools |= b
-    later_uses = [set() for _ in segs]
-    acc = set(result_names)
-    for k in range(len(segs) - 1, -1, -1):
-        later_uses[k] = set(acc)
-        acc |= set(info[k][1])
-
-    def at(name, k):
-        if name not in slots:
-            slots[name] = len(slots)
-        return f"S[{slots[name] * BLOCK + k * half} + i]"
-
-    def load(name, pad):
-        return [f"{pad}{name}_{k} = {at(name, k)} != 0.0" if name in bools else
-                f"{pad}{name}_{k} = {at(name, k)}" for k in range(lanes)]
-
-    def store(name, pad):
-        return [f"{pad}{at(name, k)} = _sel({name}_{k}, 1.0, 0.0)" if name in bools else
-                f"{pad}{at(name, k)} = {name}_{k}" for k in range(lanes)]
-
-    def compute(stmts, pad):
-        out = []
-        for unit in _units(stmts):
-            for k in range(lanes):
-                out += [pad + _lane(st, k) for st in unit]
-        return out
+    st = _Staging(segs, result_names, lanes, slots, fbase, fold_loop)
+    at = st.at
 
     prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
                "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
@@ -302,52 +369,7 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     for k, seg in enumerate(segs):
         if k == fold_segs and fold_sizes:
             fold_body, body = body, []
-        defs, uses, _ = info[k]
-        if seg[0] == "line":
-            pad = "        "
-            body.append(f"    for i in range({half}):")
-            for name in uses:
-                body += load(name, pad)
-            body += compute(seg[1], pad)
-            for name in defs:
-                if name in later_uses[k]:
-                    body += store(name, pad)
-        else:
-            header, stmts = seg[1], seg[2]
-            loop_var = header.split()[1]
-            hoisted: dict = {}
-
-            def hoist(mt, loop_var, hoisted=hoisted):
-                if mt.group(2) != loop_var:
-                    return mt.group(0)
-                key = (mt.group(1), mt.group(3))
-                if key not in hoisted:
-                    hoisted[key] = f"h{mt.group(1)[2:]}_{mt.group(3)}"
-                return hoisted[key]
-
-            row = re.match(r"^(i\d+) = _act\[(i\d+q)\]$", stmts[0]) if stmts else None
-            if row and row.group(2) == loop_var:
-                # a loop over a row list (pruning): the row index is the same for all points
-                loop_var = row.group(1)
-                stmts = stmts[1:]
-            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
-            defs, uses, _ = _defs_uses(stmts)
-            body.append(f"    {header}")
-            if row:
-                body.append(f"        {row.group(0)}")
-            body += [f"        {name} = {t}[{loop_var}, {col}]"
-                     for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
-            for g in sorted({int(n) for n in re.findall(r"\bfo_(\d+)\b", "\n".join(stmts))}):
-                lv, size = fold_loop[g]
-                body.append(f"        fo_{g} = ({fbase[g]} + {lv} * {size}) * {BLOCK}")
-            pad = "            "
-            body.append(f"        for i in range({half}):")
-            for name in uses:
-                body += load(name, pad)
-            body += compute(stmts, pad)
-            for name in defs:
-                if name in uses or name in later_uses[k]:
-                    body += store(name, pad)
+        body += st.segment(k, seg)
     res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
     if grad:
         res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
@@ -444,7 +466,6 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     grad = kind in ("vg", "vgt")
     timed = kind == "vgt"
     lanes = lanes or choose_lanes(lines)
-    half = BLOCK // lanes
     lines = list(lines) + [f"r{k} = {expr}" for k, expr in enumerate(results)]
     result_names = [f"r{k}" for k in range(len(results))]
     segs = _split(lines)
@@ -456,87 +477,16 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
         body += ["    _act = _ACTG", "    _off = _OFFG"]
     body.append("    n = xs.shape[0]")
 
-    info = []
-    for seg in segs:
-        info.append(_defs_uses(seg[1] if seg[0] == "line" else seg[2]))
-    bools = set()
-    for _, _, b in info:
-        bools |= b
-    later_uses = [set() for _ in segs]
-    acc = set(result_names)
-    for k in range(len(segs) - 1, -1, -1):
-        later_uses[k] = set(acc)
-        acc |= set(info[k][1])
     slots: dict = {"x": 0, "y": 1}
-
-    def at(name, k):
-        if name not in slots:
-            slots[name] = len(slots)
-        return f"S[{slots[name] * BLOCK + k * half} + i]"
-
-    def load(name, pad):
-        return [f"{pad}{name}_{k} = {at(name, k)} != 0.0" if name in bools else
-                f"{pad}{name}_{k} = {at(name, k)}" for k in range(lanes)]
-
-    def store(name, pad):
-        return [f"{pad}{at(name, k)} = _sel({name}_{k}, 1.0, 0.0)" if name in bools else
-                f"{pad}{at(name, k)} = {name}_{k}" for k in range(lanes)]
-
-    def compute(stmts, pad):
-        out = []
-        for unit in _units(stmts):
-            for k in range(lanes):
-                out += [pad + _lane(st, k) for st in unit]
-        return out
+    st = _Staging(segs, result_names, lanes, slots)
+    at = st.at
 
     body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
              "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
              "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
              f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
     for k, seg in enumerate(segs):
-        defs, uses, _ = info[k]
-        if seg[0] == "line":
-            pad = "        "
-            body.append(f"    for i in range({half}):")
-            for name in uses:
-                body += load(name, pad)
-            body += compute(seg[1], pad)
-            for name in defs:
-                if name in later_uses[k]:
-                    body += store(name, pad)
-        else:
-            header, stmts = seg[1], seg[2]
-            loop_var = header.split()[1]
-            hoisted: dict = {}
-
-            def hoist(mt, loop_var, hoisted=hoisted):
-                if mt.group(2) != loop_var:
-                    return mt.group(0)
-                key = (mt.group(1), mt.group(3))
-                if key not in hoisted:
-                    hoisted[key] = f"h{mt.group(1)[2:]}_{mt.group(3)}"
-                return hoisted[key]
-
-            row = re.match(r"^(i\d+) = _act\[(i\d+q)\]$", stmts[0]) if stmts else None
-            if row and row.group(2) == loop_var:
-                # a loop over a row list (pruning): the row index is the same for all points
-                loop_var = row.group(1)
-                stmts = stmts[1:]
-            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
-            defs, uses, _ = _defs_uses(stmts)
-            body.append(f"    {header}")
-            if row:
-                body.append(f"        {row.group(0)}")
-            body += [f"        {name} = {t}[{loop_var}, {col}]"
-                     for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
-            pad = "            "
-            body.append(f"        for i in range({half}):")
-            for name in uses:
-                body += load(name, pad)
-            body += compute(stmts, pad)
-            for name in defs:
-                if name in uses or name in later_uses[k]:
-                    body += store(name, pad)
+        body += st.segment(k, seg)
     res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
     if grad:
         res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",

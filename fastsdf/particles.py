@@ -1222,8 +1222,8 @@ class ParticleSimulation:
         # simulation holds no drawing: that lives in fastsdf.render).
         # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
-        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_wall_table", "_exact_ptr",
-                    "_flags"):
+        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_wall_table",
+                    "_exact_ptr", "_flags"):
             state.pop(key, None)
         return state
 

@@ -12,7 +12,6 @@ from numpy.typing import ArrayLike
 from .._validate import check_length as _check_length
 from .._validate import coord2 as _vec2
 from .._validate import length as _length
-from .._validate import real as _real
 from .._validate import vec2 as _vec2
 from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
