@@ -81,7 +81,8 @@ class Tape:
     order of the parameter array), ``nodes`` (expression nodes evaluated).
     """
 
-    def __init__(self, code, consts, table, nreg, root, param_names, defaults, nodes):
+    def __init__(self, code: np.ndarray, consts: np.ndarray, table: np.ndarray, nreg: int,
+                 root: int, param_names: Sequence[str], defaults: dict, nodes: int):
         self.code = code
         self.consts = consts
         self.table = table
