@@ -48,7 +48,7 @@ __all__ = ["Tape", "compile_tape", "BLOCK"]
 
 #: Points per block: the register file (``BLOCK`` floats per live value, three rows with the
 #: gradient) stays in the L1/L2 cache.
-BLOCK = 64
+BLOCK = 256
 
 # Opcodes. Columns of ``code``: op, dst, a, b, c, d, mask (see _Builder.emit). A chain is
 # streamed as the generated code does: _CINIT (the first operand, or +-huge), one step per
@@ -56,7 +56,10 @@ BLOCK = 64
 # register of its own made by _SINIT), and _SEND (smooth chains: m -+ log(s) / k).
 (_CONST, _SYMX, _SYMY, _PARAM, _ADD, _SUB, _MUL, _DIV, _NEG, _POWC, _POW, _SQRT, _EXP, _LOG,
  _SIN, _COS, _ABS, _FLOOR, _LENGTH, _QMIN, _CMIN, _SELECT, _ELLIPSE, _POLYGON,
- _CINIT, _SINIT, _SEND, _MINSTEP, _MAXSTEP, _SMINSTEP, _SMAXSTEP) = range(31)
+ _CINIT, _SINIT, _SEND, _MINSTEP, _MAXSTEP, _SMINSTEP, _SMAXSTEP,
+ _ADDK, _SUBK, _KSUB, _MULK, _DIVK) = range(36)
+# The last five take their constant as an immediate (a + k, a - k, k - a, a * k, a / k): most
+# constants of a scene (transforms, sizes) then cost no instruction and no register.
 
 _UNARY = {"neg": _NEG, "powc": _POWC, "sqrt": _SQRT, "exp": _EXP, "log": _LOG, "sin": _SIN,
           "cos": _COS, "abs": _ABS, "floor": _FLOOR}
@@ -193,7 +196,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
                 operands, huge = _plan(planner, node)
                 st = chains[id(node)] = [operands, 0, None, None, huge]
             operands, j = st[0], st[1]
-            if j < len(operands) and id(operands[j]) not in reg:
+            if j < len(operands) and id(operands[j]) not in reg and operands[j].op != "const":
                 stack.append(operands[j])
                 continue
             stack_done = _chain_step(b, node, st, reg)
@@ -201,7 +204,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
                 stack.pop()
                 nodes += 1
             continue
-        missing = [a for a in node.args if id(a) not in reg]
+        missing = [a for a in node.args if id(a) not in reg and a.op != "const"]
         if missing:
             stack.extend(reversed(missing))
             continue
@@ -239,7 +242,7 @@ def _chain_step(b: _Builder, node: Expr, st: list, reg: dict) -> bool:
         if huge:
             acc = b.emit(_CINIT, (), _HUGE if less else -_HUGE, d=1, deps=0)
         else:
-            first = reg[id(operands[0])]
+            first = _arg(b, operands[0], reg)
             acc = b.emit(_CINIT, (first,), d=0)
             j = 1
         if smooth:
@@ -247,7 +250,7 @@ def _chain_step(b: _Builder, node: Expr, st: list, reg: dict) -> bool:
         st[1:4] = j, acc, s
         return False
     if j < len(operands):
-        v = reg[id(operands[j])]
+        v = _arg(b, operands[j], reg)
         used = [acc, v] + ([s] if smooth else [])
         st[2] = b.emit(_CHAINS[op], (), node.attr if smooth else 0.0, used=used)
         b.rows[-1][2:5] = [acc, v, s if smooth else 0]
@@ -260,8 +263,25 @@ def _chain_step(b: _Builder, node: Expr, st: list, reg: dict) -> bool:
     return True
 
 
+def _arg(b: _Builder, node: Expr, reg: dict) -> int:
+    """The register of an evaluated node; a constant is loaded where it is used (no register
+    lives from one use to the next)."""
+    if node.op == "const":
+        return b.emit(_CONST, (), node.attr, deps=0)
+    return reg[id(node)]
+
+
+_IMMEDIATE = {("add", 1): _ADDK, ("add", 0): _ADDK, ("sub", 1): _SUBK, ("sub", 0): _KSUB,
+              ("mul", 1): _MULK, ("mul", 0): _MULK, ("div", 1): _DIVK}
+
+
 def _emit_node(b: _Builder, node: Expr, reg) -> int:
     op = node.op
+    if op in ("add", "sub", "mul", "div"):
+        for j in (1, 0):  # one constant argument (two are folded when the graph is built)
+            kop = _IMMEDIATE.get((op, j))
+            if kop is not None and node.args[j].op == "const":
+                return b.emit(kop, [reg[id(node.args[1 - j])]], node.args[j].attr)
     if op == "const":
         return b.emit(_CONST, (), node.attr, deps=0)
     if op == "sym":
@@ -276,7 +296,7 @@ def _emit_node(b: _Builder, node: Expr, reg) -> int:
             b.params[name] = len(b.params)
             b.defaults[name] = node.attr[1]
         return b.emit(_PARAM, (), float(b.params[name]), deps=0)
-    args = [reg[id(a)] for a in node.args]
+    args = [_arg(b, a, reg) for a in node.args]
     if op in _UNARY:
         return b.emit(_UNARY[op], args, node.attr if op == "powc" else 0.0,
                       deps=0 if op == "floor" else None)
@@ -316,7 +336,7 @@ def _reg_columns(op):
         return (2, 3, 4, 5)
     if op == _POLYGON:
         return (2, 3)
-    if op in _UNARY.values():
+    if op in _UNARY.values() or op >= _ADDK:
         return (2,)
     return (2, 3)
 
@@ -415,6 +435,32 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                 PA[i] = ib
                 PB[i] = -r * ib
             lin = 2
+        elif op == _ADDK:
+            for i in range(n):
+                V[d, i] = V[a, i] + k
+                PA[i] = 1.0
+            lin = 1
+        elif op == _SUBK:
+            for i in range(n):
+                V[d, i] = V[a, i] - k
+                PA[i] = 1.0
+            lin = 1
+        elif op == _KSUB:
+            for i in range(n):
+                V[d, i] = k - V[a, i]
+                PA[i] = -1.0
+            lin = 1
+        elif op == _MULK:
+            for i in range(n):
+                V[d, i] = V[a, i] * k
+                PA[i] = k
+            lin = 1
+        elif op == _DIVK:
+            ik = 1.0 / k
+            for i in range(n):
+                V[d, i] = V[a, i] / k
+                PA[i] = ik
+            lin = 1
         elif op == _NEG:
             for i in range(n):
                 V[d, i] = -V[a, i]
@@ -609,25 +655,41 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                 GX[d, i] = 0.0
                 GY[d, i] = 1.0
         elif lin == 1:
-            for i in range(n):
-                GX[d, i] = GX[a, i] * PA[i] if mask & 1 else 0.0
-                GY[d, i] = GY[a, i] * PA[i] if mask & 2 else 0.0
+            _lin1(GX, d, a, PA, mask & 1, n)
+            _lin1(GY, d, a, PA, mask & 2, n)
         elif lin == 2:
             # the generated code's sum: terms of known-zero components are left out
-            for i in range(n):
-                GX[d, i] = _lin2(GX[a, i], PA[i], mask & 1, GX[b, i], PB[i], mask & 4)
-                GY[d, i] = _lin2(GY[a, i], PA[i], mask & 2, GY[b, i], PB[i], mask & 8)
+            _lin2(GX, d, a, PA, mask & 1, b, PB, mask & 4, n)
+            _lin2(GY, d, a, PA, mask & 2, b, PB, mask & 8, n)
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
-def _lin2(ga, pa, ua, gb, pb, ub):
-    if ua and ub:
-        return ga * pa + gb * pb
+def _lin1(G, d, a, pa, ua, n):
+    """``G[d] = G[a] * pa`` (zero where the argument's component is known to be zero); the
+    tests are outside the loops so that they vectorize."""
     if ua:
-        return ga * pa
-    if ub:
-        return gb * pb
-    return 0.0
+        for i in range(n):
+            G[d, i] = G[a, i] * pa[i]
+    else:
+        for i in range(n):
+            G[d, i] = 0.0
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _lin2(G, d, a, pa, ua, b, pb, ub, n):
+    """``G[d] = G[a] * pa + G[b] * pb``, leaving out the terms of known-zero components."""
+    if ua and ub:
+        for i in range(n):
+            G[d, i] = G[a, i] * pa[i] + G[b, i] * pb[i]
+    elif ua:
+        for i in range(n):
+            G[d, i] = G[a, i] * pa[i]
+    elif ub:
+        for i in range(n):
+            G[d, i] = G[b, i] * pb[i]
+    else:
+        for i in range(n):
+            G[d, i] = 0.0
 
 
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
