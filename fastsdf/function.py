@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 import numbers
+import threading
 
 import numba
 import numpy as np
@@ -24,7 +25,12 @@ from .codegen import generate_module, scene_parameters
 from .prune import PrunePlan, bin_points, make_plan, snap_bounds
 from .graph import Expr, _to_str, as_expr, parameters, substitute_params
 
-__all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS"]
+__all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS",
+           "BACKENDS"]
+
+#: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
+#: of :mod:`fastsdf.tape`, or the tape while the kernel compiles in a background thread.
+BACKENDS = ("kernel", "tape", "auto")
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 PARALLEL_MIN_POINTS = 4096
@@ -80,6 +86,11 @@ class CompiledSDF:
         self._groups = None
         self._module = None
         self._plans: dict = {}
+        self._tape = None
+        self._warm: threading.Event | None = None
+        self._warm_lock = threading.Lock()
+        #: the exception that stopped the background compilation (``backend='auto'``), if any
+        self.warm_error: BaseException | None = None
         #: None for a scene without parameters; else the names of the parameters other than
         #: time, in the order of the ``prm`` tuple the kernels take after ``t``.
         self.param_names = scene_parameters(expr)
@@ -131,6 +142,48 @@ class CompiledSDF:
     def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
         """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
         return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
+
+    @property
+    def tape(self) -> Any:
+        """The :class:`fastsdf.tape.Tape` of the expression (built on first use; raises
+        ``ValueError`` for an expression the tape does not evaluate)."""
+        if self._tape is None:
+            from .tape import compile_tape
+            self._tape = compile_tape(self.expr, self.symbol_names)
+        return self._tape
+
+    @property
+    def kernel_ready(self) -> bool:
+        """Whether the background compilation started by :meth:`compile_in_background` is
+        done (False if it never started)."""
+        return self._warm is not None and self._warm.is_set()
+
+    def compile_in_background(self) -> threading.Event:
+        """Compile (or load from the disk cache) the kernels a call needs, in a daemon thread;
+        returns an event set when done (also on failure: see :attr:`warm_error`). Started once.
+
+        The thread runs only serial kernels on a few points: for scenes without parameters that
+        compiles the scene's block functions, which the parallel kernels call (those are
+        scene-independent and cached once per installation)."""
+        with self._warm_lock:
+            if self._warm is None:
+                self._warm = threading.Event()
+                threading.Thread(target=self._compile_now, name="fastsdf-compile",
+                                 daemon=True).start()
+        return self._warm
+
+    def _compile_now(self) -> None:
+        try:
+            xs = np.zeros(4)
+            kw = {}
+            if self.parametric:
+                kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
+            for g in (True, False):
+                self.evaluate(xs, xs, compute_gradient=g, prune=False, **kw)
+        except BaseException as exc:  # reported through warm_error; the kernel path re-raises
+            self.warm_error = exc
+        finally:
+            self._warm.set()
 
     def plan(self, bounds: ArrayLike, tiles: tuple | None = None,
              tol: float | None = None) -> PrunePlan:
@@ -263,6 +316,16 @@ class Function:
     compiled on first use and cached on disk; ``source()`` shows the generated Python code and
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
 
+    Backends: ``f(x, y, backend='kernel')`` (the default, :attr:`backend`) runs the compiled
+    kernel; ``backend='tape'`` runs the scene-independent tape interpreter of
+    :mod:`fastsdf.tape` (compiled once per installation: no wait for a new scene, several times
+    slower per point, the same results to rounding); ``backend='auto'`` answers through the
+    tape while the scene's kernel compiles in a background thread and through the kernel once it
+    is ready (``f.compiled.kernel_ready``). The tape has no time derivative: such calls always
+    use the kernel. Set ``Function.backend = 'auto'`` (or on one function) to make it the
+    default; it is opt-in because the background thread shares the GIL and the cores with the
+    caller while it compiles.
+
     Pruning (:mod:`fastsdf.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
     operands folded into loops, the points are sorted into tiles and each tile evaluates only
     the operands that sound interval bounds say can matter there: hard ``min``/``max`` chains
@@ -374,15 +437,27 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
+    #: The default backend of calls: ``'kernel'``, ``'tape'`` or ``'auto'`` (see the class
+    #: docstring).
+    backend = "kernel"
+
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
                  prune: bool | None = None, time_derivative: bool = False,
-                 **params: float) -> Any:
+                 backend: str | None = None, **params: float) -> Any:
+        backend = self.backend if backend is None else backend
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {list(BACKENDS)}, got backend={backend!r}")
         kw = {}
+        vals = None
         if self._params or params:
             vals = self._values(params)
             if self._params:
                 kw = {"t": vals.get("t", 0.0),
                       "params": tuple(vals[n] for n in self.param_names)}
+        if backend != "kernel" and not time_derivative:
+            tape = self._tape_for(backend)
+            if tape is not None:
+                return tape(x, y, compute_gradient=bool(compute_gradient), params=vals)
         if time_derivative:
             if not kw:  # no parameters: nothing moves
                 d, g = self.compiled.evaluate(x, y, compute_gradient=True, prune=prune,
@@ -392,6 +467,24 @@ class Function:
                                           **kw)
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
                                       tol=self.prune_tol, **kw)
+
+    def _tape_for(self, backend: str):
+        """The tape to answer a call with, or None for the kernel."""
+        c = self.compiled
+        if backend == "auto" and c.kernel_ready:
+            return None
+        try:
+            tape = c.tape
+        except ValueError:
+            if backend == "tape":
+                raise
+            return None
+        if backend == "auto" and c._warm is None:
+            # Load the interpreter first: numba's compiler lock, held by the compiling thread,
+            # would otherwise make the first tape call wait for the whole compilation.
+            tape(np.zeros(1), np.zeros(1), compute_gradient=True)
+            c.compile_in_background()
+        return tape
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.

@@ -1,0 +1,199 @@
+"""The tape interpreter (fastsdf.tape) against the compiled kernels: two independent evaluators
+of one scene must agree to rounding (values 1e-12 relative, gradients 1e-9) on random scenes,
+every primitive kind, smooth blends, transforms, parameters and non-finite points; and the
+``backend`` switch of Function (``'auto'`` answers through the tape, then the kernel)."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import fastsdf as sdf
+from fastsdf.graph import Param, Symbol, evaluate_numpy
+from fastsdf.scenes import box_world, seed_world
+from fastsdf.tape import BLOCK, compile_tape
+
+from test_codegen import (_long_straight_line_scene, _unstructured_scene, build_scene, operation,
+                          placed)
+
+X, Y = Symbol("x"), Symbol("y")
+
+
+def _points(n, seed, bad=True):
+    p = np.random.default_rng(seed).uniform(-2.5, 2.5, (n, 2))
+    if bad:  # non-finite coordinates: NaN for those points only
+        p[::37, 0] = np.nan
+        p[5::41, 1] = np.inf
+        p[9::43, 0] = -np.inf
+    return p
+
+
+def assert_agree(f, p, **params):
+    """Tape and kernel agree, value (also value-only calls) and gradient."""
+    dk, gk = f(*p.T, compute_gradient=True, **params)
+    dt, gt = f(*p.T, compute_gradient=True, backend="tape", **params)
+    ok = np.isfinite(p).all(axis=1)
+    assert np.all(np.isnan(dt[~ok])) and np.all(np.isnan(gt[~ok]))
+    assert np.array_equal(np.isnan(dt), np.isnan(dk))
+    scale = max(1.0, float(np.nanmax(np.abs(dk[ok])))) if ok.any() else 1.0
+    np.testing.assert_allclose(dt[ok], dk[ok], rtol=1e-12, atol=1e-12 * scale)
+    np.testing.assert_allclose(gt[ok], gk[ok], rtol=1e-9, atol=1e-9)
+    vt = f(*p.T, backend="tape", **params)
+    np.testing.assert_array_equal(vt, dt)  # the value does not depend on the gradient's mode
+    return dt, gt
+
+
+def _every_primitive():
+    with sdf.transform(angle=0.4, offset=[0.3, -0.2]):
+        shapes = [sdf.Circle([0.1, 0.2], 0.5), sdf.Halfspace([0.3, 1], -1.5),
+                  sdf.Box([-0.4, -0.2], [0.3, 0.5]), sdf.Segment([0, 0], [1, 0.5]),
+                  sdf.Capsule([0, 0], [1, 0.3], 0.2), sdf.RoundedBox([-1, -0.5], [0.5, 0.2], 0.1),
+                  sdf.OrientedBox([-1, 0], [1, 0.4], 0.3), sdf.Triangle(),
+                  sdf.RegularPolygon([0.2, 0], 0.8, 7), sdf.EquilateralTriangle([0, 0.1], 0.6),
+                  sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]]),
+                  sdf.Star([0.1, 0], 1.0, 5), sdf.Ellipse([0.1, 0.2], [0.9, 0.3]),
+                  sdf.Ring([0.3, 0], 0.5, 0.1), sdf.Arc()]
+    return shapes
+
+
+@pytest.mark.parametrize("i", range(15))
+def test_every_primitive_kind(i):
+    s = _every_primitive()[i]
+    p = _points(700, i)
+    assert_agree(s, p)
+    # modifiers and an exact blend around it
+    with sdf.smoothness(6):
+        assert_agree((s.round(0.05) | sdf.Circle([1, 1], 0.3)) - s.shell(0.02).rotate(0.3), p)
+
+
+@pytest.mark.parametrize("scene", [seed_world, lambda: box_world(20), lambda: box_world(6, 3),
+                                   _long_straight_line_scene,
+                                   lambda: _unstructured_scene(3)])
+def test_worlds(scene):
+    """Folded loops over tables (box worlds), long straight-line scenes, block kernels with
+    folded primitives: several blocks and a ragged last one."""
+    f = scene()
+    for n in (1, BLOCK + 3, 5000):
+        assert_agree(f, _points(n, n))
+
+
+@settings(max_examples=20, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(prims=st.lists(placed, min_size=1, max_size=30),
+       ops=st.lists(operation, min_size=0, max_size=30))
+def test_random_scenes(prims, ops):
+    """Random circles, half-spaces and boxes, transformed, combined by hard and exponential
+    unions, intersections and differences (the scene builder of test_codegen)."""
+    f = build_scene(prims, ops)
+    assert_agree(f, _points(400, len(prims)))
+
+
+@settings(max_examples=6, deadline=None, derandomize=True)
+@given(n=st.integers(8, 30), kind=st.sampled_from(["exponential", "quadratic", "cubic", "hard"]),
+       union=st.booleans(), seed=st.integers(0, 1000))
+def test_chains_and_polynomial_blends(n, kind, union, seed):
+    """Long chains (folded into loops in the kernel: the tape follows its operand order and
+    start), polynomial blends between random primitive kinds."""
+    rng = np.random.default_rng(seed)
+    f = sdf.Halfspace([0, 1], -1.8) if union else sdf.Circle([0, 0], 2.4)
+    for _ in range(n):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
+            shape = sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2)) \
+                if rng.random() < 0.5 else sdf.Circle(rng.uniform(-0.2, 0.2, 2),
+                                                      rng.uniform(0.05, 0.3))
+        if kind == "hard":
+            f = f | shape if union else f & sdf.Circle([0, 0], 2.5) - shape
+        elif kind == "exponential":
+            with sdf.smoothness(float(rng.uniform(2, 30))):
+                f = f | shape if union else f - shape
+        else:
+            f = f.union(shape, k=0.1, kind=kind) if union else \
+                f.intersection(shape.rotate(0.2), k=0.05, kind=kind)
+    assert_agree(f, _points(600, seed))
+
+
+def test_elementary_operations_against_numpy():
+    """Operations the shapes rarely produce (pow, exp, log, sin, floor, select, division), by
+    the NumPy reference of the op table."""
+    e = (sdf.sym_exp(-X * X) * sdf.sym_sin(3 * Y) + sdf.sym_log(1.5 + sdf.sym_cos(X * Y))
+         + (X * X + 2.0) ** (0.5 + 0.1 * Y) / (3.0 + sdf.sym_abs(Y)) + X ** 3
+         + 1.0 / (2.0 + X * X) + sdf.graph.sym_floor(X) * 0.1
+         + sdf.graph.sym_select(X - Y, X * Y, sdf.sym_sqrt(X * X + 1.0)))
+    f = sdf.Function(e, [X, Y])
+    p = _points(900, 1)
+    d, g = assert_agree(f, p)
+    ok = np.isfinite(p).all(axis=1)
+    ref, (gx, gy) = evaluate_numpy(e, {"x": p[ok, 0], "y": p[ok, 1]}, compute_gradient=True)
+    np.testing.assert_allclose(d[ok], ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(g[ok], np.stack([gx, gy], -1), rtol=1e-9, atol=1e-9)
+
+
+def test_runtime_parameters_are_inputs():
+    """Parameters and time are read per call: no rebuild, the kernel's answers."""
+    a, px, r, k = Param("angle", 0.3), Param("px", 0.5), Param("r", 0.3), Param("k", 0.2)
+    with sdf.transform(angle=a, offset=[0.1, 0.2]):
+        bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
+    ball = sdf.Circle(center=[px, 0.4], radius=r).translate([0.0, 0.5 * sdf.t])
+    f = bar.union(ball, k=k, kind="quadratic").round(0.05) | \
+        sdf.Halfspace(normal=[0, 1], d=-1.5).union(bar.rotate(a), k=10 * k) | \
+        sdf.Ellipse([0, 0], [r + 0.5, 0.2])
+    p = _points(500, 7)
+    assert_agree(f, p)
+    tape = f.compiled.tape
+    for vals in (dict(angle=-0.4, px=0.1, r=0.5, k=0.05, t=0.3), dict(angle=1.2, t=-1.0)):
+        assert_agree(f, p, **vals)
+    assert f.compiled.tape is tape
+    # time derivative: the kernel answers (the tape has none)
+    d, g, dt = f(*p[:50].T, time_derivative=True, backend="tape")
+    assert np.isfinite(dt[np.isfinite(p[:50]).all(axis=1)]).all()
+
+
+def test_instructions_are_deduplicated_and_registers_reused():
+    """A shared subexpression is one instruction; the register file follows the scene's width
+    (a union of 200 circles needs a handful of registers, not one per node)."""
+    c = sdf.sym_length(X, Y)
+    tape = compile_tape(c - 1.0 + sdf.sym_exp(c), ["x", "y"])
+    assert sum(1 for row in tape.code if row[0] == 18) == 1  # one length
+    f = sdf.Circle([0, 0], 0.1)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        f = f | sdf.Circle(rng.uniform(-2, 2, 2), rng.uniform(0.05, 0.2))
+    tape = f.compiled.tape
+    assert len(tape) > 1000 and tape.nreg < 16
+    assert_agree(f, _points(300, 2))
+
+
+def test_backend_switch_and_errors():
+    f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
+    p = _points(300, 3)
+    with pytest.raises(ValueError, match="backend"):
+        f(*p.T, backend="jit")
+    with pytest.raises(ValueError, match="got symbol .z."):
+        compile_tape(X + Symbol("z"), ["x", "y"])
+    assert sdf.Function.backend == "kernel"  # nothing changes for users who don't opt in
+    d = f(*p.T)
+    assert f.compiled._tape is None  # the default path never builds a tape
+
+
+def test_auto_backend_answers_then_switches_to_the_kernel():
+    """``backend='auto'``: the first call answers through the tape and starts the compilation
+    in a background thread; once it is done, calls run the kernel (same answers)."""
+    rng = np.random.default_rng(11)
+    f = sdf.Halfspace([0, 1], -1.8)
+    for _ in range(7):  # a scene of its own (not in the kernel cache of an earlier test)
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness(float(rng.uniform(1, 9))):
+            f = f | sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
+    p = _points(5000, 4)
+    d0, g0 = f(*p.T, compute_gradient=True, backend="auto")
+    c = f.compiled
+    assert c._tape is not None and c._warm is not None
+    assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
+    d1, g1 = f(*p.T, compute_gradient=True, backend="auto")
+    ok = np.isfinite(p).all(axis=1)
+    np.testing.assert_allclose(d1[ok], d0[ok], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(g1[ok], g0[ok], rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
+    assert math.isnan(d1[0]) and math.isnan(d0[0])
