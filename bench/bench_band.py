@@ -270,7 +270,7 @@ def _plot(all_results, path):
         ax.set_ylabel("particle-steps / s (whole run)")
         ax.set_title(f"{world_name}: {n:,} particles x {steps} steps")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        ax.legend(fontsize=8, loc="best")   # the corner with the fewest points
     fig.suptitle("Particles: speed against error (up and left is better)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
