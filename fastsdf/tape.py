@@ -222,6 +222,10 @@ def _plan(planner, node):
     """A chain's operands in the generated code's order (loops over tables placed where their
     first member stood) and whether it starts from +-huge (as the generated code does when its
     first item is a loop)."""
+    from .codegen import _flatten_chain
+    operands = _flatten_chain(node)
+    if len(operands) <= 2:  # the generated code's order is the written one
+        return operands, False
     _, items = planner._plan(node)
     operands = []
     for item in items:
