@@ -457,7 +457,13 @@ class Function:
         if backend != "kernel" and not time_derivative:
             tape = self._tape_for(backend)
             if tape is not None:
-                return tape(x, y, compute_gradient=bool(compute_gradient), params=vals)
+                res = tape(x, y, compute_gradient=bool(compute_gradient), params=vals)
+                if backend == "auto":
+                    # Started after the answer: the compiling thread would take a core from it,
+                    # and numba's compiler lock, which it holds, would make a first tape call
+                    # (loading the interpreter) wait for the whole compilation.
+                    self.compiled.compile_in_background()
+                return res
         if time_derivative:
             if not kw:  # no parameters: nothing moves
                 d, g = self.compiled.evaluate(x, y, compute_gradient=True, prune=prune,
@@ -479,11 +485,6 @@ class Function:
             if backend == "tape":
                 raise
             return None
-        if backend == "auto" and c._warm is None:
-            # Load the interpreter first: numba's compiler lock, held by the compiling thread,
-            # would otherwise make the first tape call wait for the whole compilation.
-            tape(np.zeros(1), np.zeros(1), compute_gradient=True)
-            c.compile_in_background()
         return tape
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
