@@ -18,8 +18,11 @@ that can matter:
 The polynomial blends (quadratic, cubic) are nested binary operations, not folded into loops,
 so they are not pruned here: their operands are always evaluated (results trivially identical).
 
-Points are sorted by tile (a counting sort) and the tile kernels pass each tile's row lists to
-the generated multi-lane function: pruning never recompiles anything.
+Points are sorted by tile (a counting sort) and run through the scene's SIMD block functions
+(:mod:`fastsdf._simd`, driven by :func:`fastsdf._drive.tiles_par`) with each tile's row lists as
+data: pruning never recompiles anything. A tile's points fill whole blocks of 512; the last few
+points of consecutive tiles share blocks, which run the union of those tiles' lists (a superset
+of the rows that can matter visits them in the same order: the same bits).
 """
 
 from __future__ import annotations

@@ -105,3 +105,41 @@ def test_grid_construction_uses_pruning_and_matches():
     finally:
         F.PRUNE_MIN_POINTS = old
     assert _bits(g.data, g2.data)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(counts=st.lists(st.integers(0, 1300), min_size=1, max_size=12), seed=st.integers(0, 99))
+def test_tile_blocks_cover_every_point_once_with_the_union_of_their_tiles_rows(counts, seed):
+    from fastsdf._drive import _merge_rows, _tile_work
+    from fastsdf._simd import BLOCK
+    rng = np.random.default_rng(seed)
+    T, sizes = len(counts), [7, 3]
+    starts = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    order = rng.permutation(int(starts[-1])).astype(np.int64)
+    tile_of = np.repeat(np.arange(T), counts)[np.argsort(order)]  # tile of each point
+    lists = [[np.flatnonzero(rng.random(n) < 0.4) for n in sizes] for _ in range(T)]
+    act = np.concatenate([r for tl in lists for r in tl] + [np.zeros(0)]).astype(np.int64)
+    offs = np.zeros((T, len(sizes) + 1), dtype=np.int64)
+    at = 0
+    for t in range(T):
+        for g, r in enumerate(lists[t]):
+            offs[t, g] = at
+            at += len(r)
+        offs[t, -1] = at
+    seq, work = _tile_work(order, starts)
+    assert np.array_equal(np.sort(seq), np.arange(starts[-1]))
+    assert work[:, 1].sum() == starts[-1] and np.all((work[:, 1] > 0) & (work[:, 1] <= BLOCK))
+    padded = sum(1 for w in work if w[1] < BLOCK)
+    assert padded <= 1  # only the last shared block is partly empty
+    actb, offb = np.empty(sum(sizes), np.int64), np.empty(len(sizes) + 1, np.int64)
+    cur = np.empty(T, np.int64)
+    for s, m, t0, t1 in work:
+        tiles = tile_of[seq[s:s + m]]
+        assert t0 <= tiles.min() and tiles.max() <= t1
+        if t0 == t1:
+            continue
+        _merge_rows(act, offs, t0, t1, starts, actb, offb, cur)
+        for g in range(len(sizes)):
+            want = sorted(set().union(*[set(lists[t][g].tolist()) for t in range(t0, t1 + 1)
+                                        if counts[t]]))
+            assert actb[offb[g]:offb[g + 1]].tolist() == want
