@@ -798,6 +798,13 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
                        + (["_act, _off"] if em.groups else [])) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
+    if em.groups and grad and param_names is None and not time:
+        # The one-point function over given row lists (pointers to int64: a tile's pruned
+        # lists), for per-point callers such as the particle step (see fastsdf.prune).
+        many += _POINT_TEMPLATE.format(
+            name="rows_vg", doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
+            "pointers, see fastsdf.prune).", body="\n".join("    " + line for line in em.lines),
+            pargs=", _act, _off", ret=", ".join(results), nan_return=single[2])
     if param_names is None and not time:
         kind = "vg" if grad else "v"
         fold_sizes = ()

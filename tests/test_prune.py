@@ -143,3 +143,56 @@ def test_tile_blocks_cover_every_point_once_with_the_union_of_their_tiles_rows(c
             want = sorted(set().union(*[set(lists[t][g].tolist()) for t in range(t0, t1 + 1)
                                         if counts[t]]))
             assert actb[offb[g]:offb[g + 1]].tolist() == want
+
+
+def _initial_velocities(n):
+    return np.random.default_rng(5).normal(0, 1, (n, 2))
+
+
+def _particle_run(world, prune, n=3000, steps=30):
+    """Positions and velocities after ``steps`` steps of ``n`` falling particles; ``prune=False``
+    builds the simulation as for a small scene (the scene's own per-point function, every
+    row) and never builds a plan."""
+    import fastsdf.function as F
+    import fastsdf.particles as phys
+    old = F.PRUNE_MIN_OPERANDS, F.PRUNE_MIN_POINTS
+    if not prune:
+        F.PRUNE_MIN_OPERANDS = F.PRUNE_MIN_POINTS = 10 ** 15
+    try:
+        sim = phys.ParticleSimulation(world, n=n, timestep=1 / 30, seed=3)
+        sim.force_generators += [phys.Gravity()]
+        sim.p.x[:] = np.random.default_rng(4).uniform(-2.4, 2.4, (n, 2))
+        sim.p.v[:] = _initial_velocities(n)
+        sim.run(steps)
+    finally:
+        F.PRUNE_MIN_OPERANDS, F.PRUNE_MIN_POINTS = old
+    return sim
+
+
+@pytest.mark.slow
+def test_particle_step_on_an_exact_sdf_pruned_gives_identical_trajectories():
+    f = _scene(5, 60, kinds=("box",), extra=True)
+    on, off = _particle_run(f, True), _particle_run(f, False)
+    assert on._hdr_plan is not None and on._hdr_plan.fraction < 0.5  # the plan was used
+    assert off._hdr_plan is None and len(off._data) == 1  # the scene's inline function
+    assert _bits(on.p.x, off.p.x) and _bits(on.p.v, off.p.v)
+    assert np.abs(on.p.x - off.p.x).max() == 0 and on.t == off.t
+    # some particles hit boxes: their velocity is not that of free fall (gravity 1 for 1 s)
+    free = _initial_velocities(3000) + [0.0, -1.0]
+    assert np.sum(np.abs(on.p.v - free).max(axis=1) > 1e-6) > 30
+
+
+@pytest.mark.slow
+def test_grid_exact_fallback_pruned_gives_identical_trajectories():
+    f = _scene(6, 60, kinds=("box",), extra=True)
+    g = sdf.GridSDF(f, bounds=[(-1, 1), (-1, 1)], samples=[81j, 81j], mode="exact")
+    on, off = _particle_run(g, True, steps=40), _particle_run(g, False, steps=40)
+    assert on._hdr_plan is not None  # particles outside the grid used a plan
+    assert off._hdr_plan is None
+    assert _bits(on.p.x, off.p.x) and _bits(on.p.v, off.p.v)
+    # the pruned C function equals the scene's kernel at points outside the grid
+    p = np.random.default_rng(2).uniform(-2.4, 2.4, (2, 2000))
+    d, grad = on.query(*p)
+    d0, g0 = f(*p, compute_gradient=True, prune=False)
+    out = (np.abs(p[0]) > 1) | (np.abs(p[1]) > 1)
+    assert _bits(d[out], d0[out]) and _bits(grad[out], g0[out])
