@@ -69,11 +69,24 @@ MAX_FOLD_ROWS = 1536
 #: ``_Emitter.program``); False keeps straight-line block code (kept to compare the two).
 COMBINE_PROGRAMS = True
 
-_CHAIN_OPS = ("min", "max", "smin", "smax")
+_CHAIN_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
+#: Chains of the polynomial blends are left folds (the blends are not associative): flattened
+#: along the left operand only, never reordered; consecutive same-shape operands become loops.
+_ORDERED_OPS = ("qmin", "cmin")
 _HUGE = "1.7976931348623157e+308"
 
 
 _lit = lit
+
+
+class _OpNode:
+    """What the emitters of :mod:`fastsdf.ops` read of a node (its op and attribute), for the
+    steps of a chain that has no node of its own."""
+
+    __slots__ = ("op", "attr")
+
+    def __init__(self, op, attr):
+        self.op, self.attr = op, attr
 
 
 class _Val:
@@ -225,7 +238,15 @@ def _dag_size(root: Expr, limit: int) -> int:
 
 
 def _flatten_chain(node: Expr) -> list:
-    """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
+    """Operands of the maximal chain of ``node``'s operation (same op and k), left to right
+    (for the left folds of ``_ORDERED_OPS``: along the left operands only)."""
+    if node.op in _ORDERED_OPS:
+        out, n = [], node
+        while n.op == node.op and n.attr == node.attr:
+            out.append(n.args[1])
+            n = n.args[0]
+        out.append(n)
+        return out[::-1]
     out, stack = [], [node]
     while stack:
         n = stack.pop()
@@ -657,6 +678,8 @@ class _Emitter:
         if node.op not in _CHAIN_OPS:
             return list(node.args), None
         operands = _flatten_chain(node)
+        if node.op in _ORDERED_OPS:
+            return self._plan_ordered(operands)
         shapes: dict = {}
         order: list = []
         for operand in operands:
@@ -689,6 +712,74 @@ class _Emitter:
         # placed where their first member stood. (Ties go to the operand evaluated first.)
         return deps, items
 
+    def _plan_ordered(self, operands: list):
+        """:meth:`_plan` of a left fold: runs of consecutive same-shape operands become loops,
+        in place (the order of the operands is the written one)."""
+        items, deps, run = [], [], None
+
+        def flush():
+            if run is None:
+                return
+            if len(run[2]) >= MIN_LOOP:
+                items.append(("loop", run[1], _varying_columns(run[3]), run[2], run[3]))
+            else:
+                items.extend(("node", m) for m in run[2])
+                deps.extend(run[2])
+
+        for operand in operands:
+            if operand.op == "const" or self._size(operand) > MAX_TEMPLATE_NODES:
+                flush()
+                run = None
+                items.append(("node", operand))
+                deps.append(operand)
+                continue
+            sig, steps, consts = _template(operand)
+            if run is None or run[0] != sig:
+                flush()
+                run = [sig, steps, [], []]
+            run[2].append(operand)
+            run[3].append(consts)
+        flush()
+        return deps, items
+
+    def ordered_chain(self, out: list, op: str, k, items: list) -> _Val:
+        """Emit the left fold of the blend ``op`` (qmin, cmin) over ``items`` (as
+        :meth:`chain`): each step is the binary operation's own code, so the results are those
+        of the nested binary operations. A loop carries the running value and gradient in
+        variables reassigned per row; a chain that opens with a loop starts from +huge (the
+        blend of +huge and ``a`` is ``a``: ``|a - huge| > k``)."""
+        node = _OpNode(op, k)
+        n = len(self.COMPONENTS)
+        c = self._name("c")
+        base = {"m": f"{c}m"}
+        base.update((suffix, f"{c}{suffix}") for suffix in self.COMPONENTS)
+        cur = None
+        for item in items:
+            if item[0] == "val":
+                cur = item[1] if cur is None else self.op(out, node, [cur, item[1]])
+                continue
+            _, steps, consts, count, group = item
+            if cur is None:
+                cur = _Val(_HUGE, (None,) * n if self.grad else None)
+            out.append(f"{base['m']} = {cur.v}")
+            if self.grad:
+                out.extend(f"{base[sfx]} = {_zero(comp)}"
+                           for sfx, comp in zip(self.COMPONENTS, cur.grads(n)))
+            loop = self._name("i")
+            body: list[str] = [f"{loop} = _act[{loop}q]"]
+            val = self.template(body, steps, [cc.format(row=loop) for cc in consts])
+            carried = _Val(base["m"], tuple(base[sfx] for sfx in self.COMPONENTS)
+                           if self.grad else None)
+            new = self.op(body, node, [carried, val])
+            body.append(f"{base['m']} = {new.v}")
+            if self.grad:
+                body.extend(f"{base[sfx]} = {_zero(comp)}"
+                            for sfx, comp in zip(self.COMPONENTS, new.grads(n)))
+            out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
+            out.extend("    " + line for line in body)
+            cur = carried
+        return cur
+
     def _emit_planned(self, node: Expr, plan, done) -> _Val:
         deps, items = plan
         folded = self.fold_of.get(id(node))
@@ -709,9 +800,11 @@ class _Emitter:
             return self.op(self.lines, node, [done[id(a)] for a in node.args])
         chain_items = []
         others = [item[1] for item in items if item[0] == "node"]
+        before: list = []  # the chain's items so far: ("node", operand) or ("group", index)
         for item in items:
             if item[0] == "node":
                 chain_items.append(("val", done[id(item[1])]))
+                before.append(item)
             else:
                 _, steps, (table, refs), members, rows = item
                 name = self.table(table) if table.shape[1] else None
@@ -719,8 +812,11 @@ class _Emitter:
                           for j in [v if kind == "t" else None]]
                 self.groups.append(dict(op=node.op, k=node.attr, chain=node, members=members,
                                         steps=steps, rows=np.asarray(rows, dtype=np.float64),
-                                        others=others))
+                                        others=others, before=list(before)))
                 chain_items.append(("loop", steps, consts, table.shape[0], len(self.groups) - 1))
+                before.append(("group", len(self.groups) - 1))
+        if node.op in _ORDERED_OPS:
+            return self.ordered_chain(self.lines, node.op, node.attr, chain_items)
         return self.chain(self.lines, node.op, node.attr, chain_items)
 
 
