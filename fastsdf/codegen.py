@@ -74,6 +74,8 @@ _CHAIN_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
 #: along the left operand only, never reordered; consecutive same-shape operands become loops.
 _ORDERED_OPS = ("qmin", "cmin")
 _HUGE = "1.7976931348623157e+308"
+#: The chains a combine program runs (see ``_Emitter.program``).
+_PROGRAM_OPS = ("min", "max", "smin", "smax")
 
 
 _lit = lit
@@ -578,7 +580,7 @@ class _Emitter:
             if node.op == "neg":  # e.g. a - b = max(a, -b) with b a large subexpression
                 if deps[0].op == "const":
                     return None
-            elif node.op not in _CHAIN_OPS or items is None or len(items) < 2 or \
+            elif node.op not in _PROGRAM_OPS or items is None or len(items) < 2 or \
                     any(item[0] != "node" or item[1].op == "const" for item in items):
                 return None
             stack.append((node, True))
