@@ -25,19 +25,22 @@ from numba.extending import intrinsic
 from ._simd import BLOCK
 
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "max_threads", "run_v_par", "run_v_ser", "run_vg_par",
-           "run_vg_ser"]
+           "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par"]
 
 _P = types.CPointer(types.float64)
-#: ``(xs, ys, out, grad, n, scratch)``: pointers to the block's first point in each array,
-#: ``grad`` flat (x, y pairs; ignored by value-only blocks), and the block's scratch space.
-BLOCK_SIG = types.void(_P, _P, _P, _P, types.intp, _P)
+_I = types.CPointer(types.int64)
+#: ``(xs, ys, out, grad, n, scratch, act, off)``: pointers to the block's first point in each
+#: array, ``grad`` flat (x, y pairs; ignored by value-only blocks), the block's scratch space,
+#: and the row lists of the scene's loops over tables (rows ``act[off[g]:off[g + 1]]`` for loop
+#: ``g``: all rows, or a tile's pruned lists; ignored by scenes without such loops).
+BLOCK_SIG = types.void(_P, _P, _P, _P, types.intp, _P, _I, _I)
 
 
 @intrinsic
-def _call(typingctx, address, xp, yp, op, gp, n, sp):
+def _call(typingctx, address, xp, yp, op, gp, n, sp, ap, fp):
     """Call the compiled function at ``address`` (an integer: the C-callable wrapper of a
     function with the signature :data:`BLOCK_SIG`) with the other arguments."""
-    sig = types.void(types.intp, _P, _P, _P, _P, types.intp, _P)
+    sig = types.void(types.intp, _P, _P, _P, _P, types.intp, _P, _I, _I)
 
     def codegen(context, builder, signature, args):
         fnty = ir.FunctionType(context.get_value_type(types.none),
@@ -51,7 +54,7 @@ def _call(typingctx, address, xp, yp, op, gp, n, sp):
 
 @intrinsic
 def _at(typingctx, arr, index):
-    """Pointer to ``arr[index]`` (1-d contiguous float64 array); no bounds check."""
+    """Pointer to ``arr[index]`` (1-d contiguous array); no bounds check."""
     sig = types.CPointer(arr.dtype)(arr, index)
 
     def codegen(context, builder, signature, args):
@@ -88,20 +91,25 @@ def max_threads() -> int:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _nofold(xp, yp, op, gp, n, sp):
+def _nofold(xp, yp, op, gp, n, sp, ap, fp):
     """The ``pre`` function of a scene without loops of its own to run first: nothing."""
     return
 
 
 #: ``pre`` for scenes whose block function needs nothing before it.
 NOFOLD = BlockFn(_nofold)
+#: The row lists of scenes without loops over tables (never read).
+NOROWS = np.zeros(1, dtype=np.int64)
+#: The ``grad`` of :func:`tiles_par` for the value alone.
+NOGRAD = np.empty((0, 2))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads):
+def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads, act, off):
     """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
     block, blocks in parallel chunks, each thread with ``size`` floats of scratch space
-    (``threads``: :func:`max_threads`)."""
+    (``threads``: :func:`max_threads`); ``act``, ``off``: the row lists of every block (all
+    rows: the scene's ``_ACTG``, ``_OFFG``)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
@@ -111,23 +119,23 @@ def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(act, 0), _at(off, 0))
+            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(act, 0), _at(off, 0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(pre, fn, xs, ys, out, grad, size):
+def run_vg_ser(pre, fn, xs, ys, out, grad, size, act, off):
     """:func:`run_vg_par` in this thread."""
     n = xs.shape[0]
     S = np.empty(size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(pre, fn, xs, ys, out, size, chunks, threads):
+def run_v_par(pre, fn, xs, ys, out, size, chunks, threads, act, off):
     """Value at all points (the block functions' ``grad`` pointer is not used)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -138,19 +146,146 @@ def run_v_par(pre, fn, xs, ys, out, size, chunks, threads):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0), _at(off, 0))
+            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0), _at(off, 0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(pre, fn, xs, ys, out, size):
+def run_v_ser(pre, fn, xs, ys, out, size, act, off):
     """:func:`run_v_par` in this thread."""
     n = xs.shape[0]
     S = np.empty(size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+
+
+@njit(cache=True, nogil=True)
+def _tile_work(order, starts):
+    """Blocks of at most ``BLOCK`` points sorted by tile (``starts``: tile ``t`` holds
+    ``order[starts[t]:starts[t + 1]]``): ``(seq, work)``. Each tile's points fill whole blocks
+    first; the rest of every tile (fewer than ``BLOCK`` points) are packed together, in tile
+    order, into shared blocks, so that no block is padded while points remain. Block ``b``
+    holds the points ``seq[work[b, 0]:work[b, 0] + work[b, 1]]`` of tiles ``work[b, 2]`` to
+    ``work[b, 3]``."""
+    T = starts.shape[0] - 1
+    n = order.shape[0]
+    full = 0
+    for t in range(T):
+        full += (starts[t + 1] - starts[t]) // BLOCK
+    rest = n - full * BLOCK
+    work = np.empty((full + (rest + BLOCK - 1) // BLOCK, 4), dtype=np.int64)
+    seq = np.empty(n, dtype=np.int64)
+    k, b = 0, 0
+    for t in range(T):
+        s0 = starts[t]
+        for s in range(s0, s0 + (starts[t + 1] - s0) // BLOCK * BLOCK, BLOCK):
+            seq[k:k + BLOCK] = order[s:s + BLOCK]
+            work[b, 0], work[b, 1], work[b, 2], work[b, 3] = k, BLOCK, t, t
+            k += BLOCK
+            b += 1
+    first = -1
+    m = 0
+    for t in range(T):
+        s = starts[t] + (starts[t + 1] - starts[t]) // BLOCK * BLOCK
+        while s < starts[t + 1]:
+            if m == 0:
+                first = t
+            take = min(starts[t + 1] - s, BLOCK - m)
+            seq[k + m:k + m + take] = order[s:s + take]
+            s += take
+            m += take
+            if m == BLOCK:
+                work[b, 0], work[b, 1], work[b, 2], work[b, 3] = k, m, first, t
+                k += m
+                b += 1
+                m = 0
+    if m:
+        work[b, 0], work[b, 1], work[b, 2], work[b, 3] = k, m, first, T - 1
+    return seq, work
+
+
+@njit(cache=True, nogil=True)
+def _merge_rows(act, offs, t0, t1, starts, actb, offb, cur):
+    """The union of the row lists of tiles ``t0..t1`` (those holding points), per loop, in
+    increasing order, into ``actb``/``offb`` (``cur``: room for a cursor per tile). A superset
+    of each tile's rows evaluates the same bits: rows are visited in the same order and every
+    row that can matter at a point is kept."""
+    G = offs.shape[1] - 1
+    k = 0
+    offb[0] = 0
+    for g in range(G):
+        for t in range(t0, t1 + 1):
+            cur[t - t0] = offs[t, g] if starts[t + 1] > starts[t] else offs[t, g + 1]
+        while True:
+            best = -1
+            for t in range(t0, t1 + 1):
+                q = cur[t - t0]
+                if q < offs[t, g + 1] and (best < 0 or act[q] < best):
+                    best = act[q]
+            if best < 0:
+                break
+            actb[k] = best
+            k += 1
+            for t in range(t0, t1 + 1):
+                q = cur[t - t0]
+                if q < offs[t, g + 1] and act[q] == best:
+                    cur[t - t0] = q + 1
+        offb[g + 1] = k
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def tiles_par(pre, fn, xs, ys, out, grad, size, chunks, threads, order, starts, act, offs, rows):
+    """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
+    points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
+    each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
+    ``rows``: the total number of rows of all loops). The points of a block are gathered into
+    contiguous buffers and the results scattered back; a block shared by the last points of
+    several tiles runs the union of their lists."""
+    seq, work = _tile_work(order, starts)
+    blocks = work.shape[0]
+    chunks = max(1, min(blocks, chunks))
+    vg = grad.shape[0] > 0
+    G = offs.shape[1]
+    S = np.empty(threads * size)
+    W = 5 * BLOCK
+    B = np.empty(threads * W)
+    A = np.empty(threads * max(rows, 1), dtype=np.int64)
+    F = np.empty(threads * G, dtype=np.int64)
+    T = starts.shape[0] - 1
+    C = np.empty(threads * T, dtype=np.int64)
+    for c in prange(chunks):
+        tid = get_thread_id()
+        at = tid * size
+        xb = B[tid * W:tid * W + BLOCK]
+        yb = B[tid * W + BLOCK:tid * W + 2 * BLOCK]
+        ob = B[tid * W + 2 * BLOCK:tid * W + 3 * BLOCK]
+        gb = B[tid * W + 3 * BLOCK:tid * W + 5 * BLOCK]
+        actb = A[tid * max(rows, 1):(tid + 1) * max(rows, 1)]
+        offb = F[tid * G:(tid + 1) * G]
+        cur = C[tid * T:(tid + 1) * T]
+        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
+            s, m, t0, t1 = work[b, 0], work[b, 1], work[b, 2], work[b, 3]
+            for i in range(m):
+                p = seq[s + i]
+                xb[i] = xs[p]
+                yb[i] = ys[p]
+            if t0 == t1:
+                ap, fp = _at(act, 0), _at(offs[t0], 0)
+            else:
+                _merge_rows(act, offs, t0, t1, starts, actb, offb, cur)
+                ap, fp = _at(actb, 0), _at(offb, 0)
+            gp = _at(gb, 0) if vg else _at(ob, 0)
+            _call(pre, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp)
+            _call(fn, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp)
+            for i in range(m):
+                out[seq[s + i]] = ob[i]
+            if vg:
+                for i in range(m):
+                    p = seq[s + i]
+                    grad[p, 0] = gb[2 * i]
+                    grad[p, 1] = gb[2 * i + 1]
 
 
 def _guard():

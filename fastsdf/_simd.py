@@ -386,18 +386,20 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     def head(part):
         text = "\n".join(part)
         used = [f"    {t} = {t}G" for t in tables if re.search(rf"\b{t}\b", text)]
-        if "_act[" in text:
-            used += ["    _act = _ACTG", "    _off = _OFFG"]
+        if "_act[" in text:  # the row lists: all rows, or a tile's (pruning)
+            used += ["    _act = ap", "    _off = fp"]
         return "\n".join(views + used + prelude)
 
     fold = "_drive_nofold"
     fold_src = ""
+    # every block gets the rows of the loops over tables as pointers (all rows here)
+    rows = "_ACTG, _OFFG" if "_act[" in "\n".join(body + (fold_body or [])) else "_NOROWS, _NOROWS"
     if fold_body is not None:
         fold = f"_fold_{kind}_fn"
         fold_src = f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fold_{kind}(xp, yp, op, gp, n, sp):
+def _fold_{kind}(xp, yp, op, gp, n, sp, ap, fp):
     """The loops over same-shape subexpressions of the block function: their values and
     gradients into the scratch rows (called before ``_block_{kind}``, same arguments)."""
 {head(fold_body)}
@@ -409,7 +411,7 @@ _fold_{kind}_fn = _BlockFn(_fold_{kind})
     src = fold_src + f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _block_{kind}(xp, yp, op, gp, n, sp):
+def _block_{kind}(xp, yp, op, gp, n, sp, ap, fp):
     """{'Value and gradient' if grad else 'Value'} at ``n`` (at most {BLOCK}) points from pointers
     (:data:`fastsdf._drive.BLOCK_SIG`){', ``grad`` flat (x, y pairs)' if grad else ' (``gp`` unused)'};
     scratch ``sp[:{size}]``."""
@@ -422,12 +424,20 @@ _block_{kind}_fn = _BlockFn(_block_{kind})
 
 def batch_{kind}_par({sig}, chunks):
     """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block."""
-    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, chunks, _max_threads())
+    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, chunks, _max_threads(), {rows})
 
 
 def batch_{kind}_ser({sig}):
     """All points, in this thread."""
-    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size})
+    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, {rows})
+'''
+    if rows != "_NOROWS, _NOROWS":
+        src += f'''
+
+def tiles_{kind}_par({sig}, order, starts, act, offs, chunks):
+    """Points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``) in parallel
+    blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.prune`)."""
+    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
 '''
     return src
 
@@ -441,7 +451,8 @@ def drive_import() -> str:
     return ("from numba import carray\n"
             "from fastsdf._drive import BlockFn as _BlockFn, run_v_par as _run_v_par, "
             "run_v_ser as _run_v_ser, run_vg_par as _run_vg_par, run_vg_ser as _run_vg_ser, "
-            "max_threads as _max_threads, NOFOLD as _drive_nofold"
+            "max_threads as _max_threads, NOFOLD as _drive_nofold, tiles_par as _tiles_par, "
+            "NOROWS as _NOROWS, NOGRAD as _NOGRAD"
             f"  # _drive.py sha256 {digest}\n")
 
 

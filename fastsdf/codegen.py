@@ -643,23 +643,6 @@ def batch_{kind}_ser(xs, ys, out, {grad}{pa}):
 '''
 
 
-_TILES_TEMPLATE = '''
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _tile_{kind}(xs, ys, out, {grad}order, start, stop, act, off):
-    for p in range(start, stop, {lanes}):
-{gather}
-        {results} = lanes_{kind}({args}, act, off)
-{scatter}
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def tiles_{kind}_par(xs, ys, out, {grad}order, starts, act, offs):
-    for t in prange(starts.shape[0] - 1):
-        _tile_{kind}(xs, ys, out, {grad}order, starts[t], starts[t + 1], act, offs[t])
-'''
-
-
 #: The outputs of each kind of function: value; value and gradient; value, gradient and dd/dt.
 _RESULTS = {"v": ("d",), "vg": ("d", "gx", "gy"), "vgt": ("d", "gx", "gy", "gt")}
 _OUTPUTS = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
@@ -668,10 +651,10 @@ _OUTPUTS = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
 def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = False) -> str:
     """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
     shorter than the gradient body, so the two may differ). With loop groups, the lanes
-    functions take row lists: the batch kernels pass all rows, and the tile kernels (points
-    sorted by tile, ``order[starts[t]:starts[t + 1]]`` in tile ``t``) pass each tile's lists.
+    functions take row lists (the batch kernels pass all rows; the tile kernels of pruning are
+    the block kernels of :mod:`fastsdf._simd`, which take them as data too).
     Kernels of a scene with parameters take time ``t`` and the parameter tuple ``prm`` after
-    the output arrays (such scenes are not pruned: no tile kernels)."""
+    the output arrays."""
     parts = []
     pa, pargs = ("t, prm, ", ", t, prm") if parametric else ("", "")
     for kind, lanes in lanes_of.items():
@@ -710,13 +693,6 @@ def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = Fal
             single_store=single_store)
         parts.append(src.replace("out, grad, )", "out, grad)").replace("out, )", "out)")
                      .replace("dt, )", "dt)").replace("prm, )", "prm)"))
-        if groups and not parametric:
-            tile_gather = [re.sub(r"min\(i \+ (\d+), n - 1\)", r"order[min(p + \1, stop - 1)]",
-                                  line) for line in gather]
-            parts.append(_TILES_TEMPLATE.format(
-                kind=kind, grad=_OUTPUTS[kind], lanes=lanes,
-                gather="\n".join(tile_gather), args=", ".join(args),
-                results=", ".join(results), scatter="\n".join(scatter)))
     return "".join(parts)
 
 
@@ -822,6 +798,13 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
                        + (["_act, _off"] if em.groups else [])) + pargs,
         ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
+    if em.groups and grad and param_names is None and not time:
+        # The one-point function over given row lists (pointers to int64: a tile's pruned
+        # lists), for per-point callers such as the particle step (see fastsdf.prune).
+        many += _POINT_TEMPLATE.format(
+            name="rows_vg", doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
+            "pointers, see fastsdf.prune).", body="\n".join("    " + line for line in em.lines),
+            pargs=", _act, _off", ret=", ".join(results), nan_return=single[2])
     if param_names is None and not time:
         kind = "vg" if grad else "v"
         fold_sizes = ()

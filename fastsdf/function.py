@@ -236,7 +236,8 @@ class CompiledSDF:
         if plan is not None:
             order, starts = bin_points(xs, ys, plan)
             getattr(self.module, f"tiles_{kind}_par")(xs, ys, *arrays, order, starts,
-                                                      plan.act, plan.offs)
+                                                      plan.act, plan.offs,
+                                                      64 * numba.get_num_threads())
             return
         parallel = n >= PARALLEL_MIN_POINTS
         extra = (64 * numba.get_num_threads(),) if parallel else ()

@@ -18,8 +18,11 @@ that can matter:
 The polynomial blends (quadratic, cubic) are nested binary operations, not folded into loops,
 so they are not pruned here: their operands are always evaluated (results trivially identical).
 
-Points are sorted by tile (a counting sort) and the tile kernels pass each tile's row lists to
-the generated multi-lane function: pruning never recompiles anything.
+Points are sorted by tile (a counting sort) and run through the scene's SIMD block functions
+(:mod:`fastsdf._simd`, driven by :func:`fastsdf._drive.tiles_par`) with each tile's row lists as
+data: pruning never recompiles anything. A tile's points fill whole blocks of 512; the last few
+points of consecutive tiles share blocks, which run the union of those tiles' lists (a superset
+of the rows that can matter visits them in the same order: the same bits).
 """
 
 from __future__ import annotations
@@ -28,12 +31,15 @@ import math
 import time
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from .interval import _LIPSCHITZ, node_bounds
 from .ops import OPS
 
-__all__ = ["PrunePlan", "make_plan", "bin_points"]
+__all__ = ["PrunePlan", "make_plan", "bin_points", "plan_header", "HEADER_SIZE"]
 
 
 class PrunePlan:
@@ -247,3 +253,101 @@ def snap_bounds(xs, ys):
         a, b = math.floor(lo / step) * step, (math.floor(hi / step) + 1) * step
         out.append((a, b))
     return tuple(out)
+
+
+# -- per-point queries (the particle step) -----------------------------------------------------
+# A caller that evaluates one point at a time (the particle step, the exact fallback of a grid)
+# calls a scene's C function ``void f(double x, double y, double *out, double *h)`` (see
+# ``fastsdf.particles._exact_address``): ``h`` is a plan header, :func:`plan_header`, written in
+# place so that its address stays valid while the plan changes. The function finds the point's
+# tile and evaluates the scene's ``rows_vg`` over that tile's lists; points outside the plan's
+# rectangle (or with no plan: ``h[7] == 0``) get the full lists.
+
+#: Floats in a plan header: x0, x1, y0, y1, nx, ny, loops + 1, address of ``act``, of ``offs``.
+HEADER_SIZE = 9
+
+
+def plan_header(plan: PrunePlan | None, h: np.ndarray) -> None:
+    """Write ``plan`` (None: no pruning) into the header ``h`` (float64, :data:`HEADER_SIZE`);
+    the caller keeps ``plan`` alive while ``h`` refers to it."""
+    h[:] = 0.0
+    if plan is None:
+        return
+    (x0, x1), (y0, y1) = plan.bounds
+    h[:7] = (x0, x1, y0, y1, plan.nx, plan.ny, plan.offs.shape[1])
+    # h[7] != 0 marks a plan; with nothing kept anywhere no row is read: any address will do
+    h[7] = float((plan.act if plan.act.size else plan.offs).ctypes.data)
+    h[8] = float(plan.offs.ctypes.data)
+
+
+@intrinsic
+def _iptr(typingctx, address):
+    """The int64 pointer at integer ``address``."""
+    if not isinstance(address, types.Integer):
+        return None
+    sig = types.CPointer(types.int64)(address)
+
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], ir.IntType(64).as_pointer())
+
+    return sig, codegen
+
+
+@intrinsic
+def _call_vg_plan(typingctx, address, x, y, header):
+    """``(d, dd/dx, dd/dy)`` from the C function ``void f(double x, double y, double *out,
+    double *h)`` at ``address`` with the plan header at integer address ``header``."""
+    if not (isinstance(address, types.Integer) and isinstance(header, types.Integer)):
+        return None
+    sig = types.UniTuple(types.float64, 3)(address, types.float64, types.float64, header)
+
+    def codegen(context, builder, signature, args):
+        a, xv, yv, hv = args
+        dbl = ir.DoubleType()
+        fnty = ir.FunctionType(ir.VoidType(), [dbl, dbl, dbl.as_pointer(), dbl.as_pointer()])
+        fp = builder.inttoptr(a, fnty.as_pointer())
+        out = cgutils.alloca_once(builder, dbl, size=3)
+        builder.call(fp, [xv, yv, out, builder.inttoptr(hv, dbl.as_pointer())])
+        vals = [builder.load(builder.gep(out, [ir.Constant(ir.IntType(32), k)]))
+                for k in range(3)]
+        return context.make_tuple(builder, signature.return_type, vals)
+
+    return sig, codegen
+
+
+def exact_source(scene: str, rows: bool, version: str) -> str:
+    """Source of the module defining ``exact_out``, the C function of the scene module
+    ``scene`` for per-point callers (see above); ``rows``: the scene has loops over tables (its
+    ``rows_vg`` is used inside the plan)."""
+    with open(__file__, "rb") as fh:
+        import hashlib
+        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
+    body = ["    d, gx, gy = _exact(x, y)"]
+    imports = [f"from {scene} import point_vg as _exact"]
+    if rows:
+        imports += [f"from {scene} import rows_vg as _rows",
+                    f"from fastsdf.prune import _iptr  # prune.py sha256 {digest}"]
+        body = ["    if h[7] != 0.0 and h[0] <= x <= h[1] and h[2] <= y <= h[3]:",
+                "        nx, ny = int(h[4]), int(h[5])",
+                "        tx = min(int((x - h[0]) * (nx / (h[1] - h[0]))), nx - 1)",
+                "        ty = min(int((y - h[2]) * (ny / (h[3] - h[2]))), ny - 1)",
+                "        t = ty * nx + tx",
+                "        d, gx, gy = _rows(x, y, _iptr(int(h[7])), "
+                "_iptr(int(h[8]) + 8 * t * int(h[6])))",
+                "    else:",
+                "        d, gx, gy = _exact(x, y)"]
+    return f'''"""Generated by fastsdf {version}: the exact SDF of a scene as a C function for
+per-point callers (a grid's exact fallback, the particle step). Dependencies: {scene}."""
+from numba import cfunc, types
+
+{chr(10).join(imports)}
+
+
+@cfunc(types.void(types.float64, types.float64, types.CPointer(types.float64),
+                  types.CPointer(types.float64)), cache=True, error_model="numpy")
+def exact_out(x, y, out, h):
+{chr(10).join(body)}
+    out[0] = d
+    out[1] = gx
+    out[2] = gy
+'''

@@ -105,3 +105,94 @@ def test_grid_construction_uses_pruning_and_matches():
     finally:
         F.PRUNE_MIN_POINTS = old
     assert _bits(g.data, g2.data)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(counts=st.lists(st.integers(0, 1300), min_size=1, max_size=12), seed=st.integers(0, 99))
+def test_tile_blocks_cover_every_point_once_with_the_union_of_their_tiles_rows(counts, seed):
+    from fastsdf._drive import _merge_rows, _tile_work
+    from fastsdf._simd import BLOCK
+    rng = np.random.default_rng(seed)
+    T, sizes = len(counts), [7, 3]
+    starts = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    order = rng.permutation(int(starts[-1])).astype(np.int64)
+    tile_of = np.repeat(np.arange(T), counts)[np.argsort(order)]  # tile of each point
+    lists = [[np.flatnonzero(rng.random(n) < 0.4) for n in sizes] for _ in range(T)]
+    act = np.concatenate([r for tl in lists for r in tl] + [np.zeros(0)]).astype(np.int64)
+    offs = np.zeros((T, len(sizes) + 1), dtype=np.int64)
+    at = 0
+    for t in range(T):
+        for g, r in enumerate(lists[t]):
+            offs[t, g] = at
+            at += len(r)
+        offs[t, -1] = at
+    seq, work = _tile_work(order, starts)
+    assert np.array_equal(np.sort(seq), np.arange(starts[-1]))
+    assert work[:, 1].sum() == starts[-1] and np.all((work[:, 1] > 0) & (work[:, 1] <= BLOCK))
+    padded = sum(1 for w in work if w[1] < BLOCK)
+    assert padded <= 1  # only the last shared block is partly empty
+    actb, offb = np.empty(sum(sizes), np.int64), np.empty(len(sizes) + 1, np.int64)
+    cur = np.empty(T, np.int64)
+    for s, m, t0, t1 in work:
+        tiles = tile_of[seq[s:s + m]]
+        assert t0 <= tiles.min() and tiles.max() <= t1
+        if t0 == t1:
+            continue
+        _merge_rows(act, offs, t0, t1, starts, actb, offb, cur)
+        for g in range(len(sizes)):
+            want = sorted(set().union(*[set(lists[t][g].tolist()) for t in range(t0, t1 + 1)
+                                        if counts[t]]))
+            assert actb[offb[g]:offb[g + 1]].tolist() == want
+
+
+def _initial_velocities(n):
+    return np.random.default_rng(5).normal(0, 1, (n, 2))
+
+
+def _particle_run(world, prune, n=3000, steps=30):
+    """Positions and velocities after ``steps`` steps of ``n`` falling particles; ``prune=False``
+    builds the simulation as for a small scene (the scene's own per-point function, every
+    row) and never builds a plan."""
+    import fastsdf.function as F
+    import fastsdf.particles as phys
+    old = F.PRUNE_MIN_OPERANDS, F.PRUNE_MIN_POINTS
+    if not prune:
+        F.PRUNE_MIN_OPERANDS = F.PRUNE_MIN_POINTS = 10 ** 15
+    try:
+        sim = phys.ParticleSimulation(world, n=n, timestep=1 / 30, seed=3)
+        sim.force_generators += [phys.Gravity()]
+        sim.p.x[:] = np.random.default_rng(4).uniform(-2.4, 2.4, (n, 2))
+        sim.p.v[:] = _initial_velocities(n)
+        sim.run(steps)
+    finally:
+        F.PRUNE_MIN_OPERANDS, F.PRUNE_MIN_POINTS = old
+    return sim
+
+
+@pytest.mark.slow
+def test_particle_step_on_an_exact_sdf_pruned_gives_identical_trajectories():
+    f = _scene(5, 60, kinds=("box",), extra=True)
+    on, off = _particle_run(f, True), _particle_run(f, False)
+    assert on._hdr_plan is not None and on._hdr_plan.fraction < 0.5  # the plan was used
+    assert off._hdr_plan is None and len(off._data) == 1  # the scene's inline function
+    assert _bits(on.p.x, off.p.x) and _bits(on.p.v, off.p.v)
+    assert np.abs(on.p.x - off.p.x).max() == 0 and on.t == off.t
+    # some particles hit boxes: their velocity is not that of free fall (gravity 1 for 1 s)
+    free = _initial_velocities(3000) + [0.0, -1.0]
+    assert np.sum(np.abs(on.p.v - free).max(axis=1) > 1e-6) > 30
+
+
+@pytest.mark.slow
+def test_grid_exact_fallback_pruned_gives_identical_trajectories():
+    f = _scene(6, 60, kinds=("box",), extra=True)
+    g = sdf.GridSDF(f, bounds=[(-1, 1), (-1, 1)], samples=[81j, 81j], mode="exact")
+    on, off = _particle_run(g, True, steps=40), _particle_run(g, False, steps=40)
+    assert on._hdr_plan is not None  # particles outside the grid used a plan
+    assert off._hdr_plan is None
+    assert _bits(on.p.x, off.p.x) and _bits(on.p.v, off.p.v)
+    # the pruned C function equals the scene's kernel at points outside the grid
+    p = np.random.default_rng(2).uniform(-2.4, 2.4, (2, 2000))
+    d, grad = on.query(*p)
+    d0, g0 = f(*p, compute_gradient=True, prune=False)
+    out = (np.abs(p[0]) > 1) | (np.abs(p[1]) > 1)
+    assert _bits(d[out], d0[out]) and _bits(grad[out], g0[out])
