@@ -94,6 +94,14 @@ One step, per particle (the physics is described in :mod:`fastsdf.particles`)
 7. a particle whose step left its state bit-identical sleeps for the rest of the call
    (``SLEEP``: a static world and no user force, so every later step would repeat it).
 
+Calls without query skipping, tunnelling check, moving world or resting contact (the peers'
+work: ``skip`` and ``trace`` off, ``rest`` 0) go to :func:`plain_par`/:func:`plain_ser`, a
+separate entry point compiled only when first used: the same results from a shorter loop (no
+budgets, no sweep), which runs a step particle after particle while few particles of a block
+touch a surface and in two passes over batches of ``PLAIN_BATCH`` (integrate and query all,
+then respond) after a step where many did, so that mispredicted contact branches do not
+discard the next particles' queries.
+
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
 finite and > 0 when read); ``cr``, ``cf`` are checked where a contact uses them; every step's
