@@ -70,10 +70,13 @@ def profile(key: str):
     # The scene's compiled code is its block function (the parallel kernels that call it are
     # compiled once per installation); numba's timers split its compile into the whole
     # (under the compiler lock) and the LLVM part.
-    tm = _timers(mod._block_vg)
-    if hasattr(mod, "_fold_vg"):  # long scenes: the loops over same-shape subexpressions
-        for key, value in _timers(mod._fold_vg).items():
-            tm[key] += value
+    tm = {"compiler_lock": 0.0, "llvm_lock": 0.0}
+    # long scenes: _fold_vg, the loops over same-shape subexpressions (and for trees of blends
+    # no _block_vg: the installation's interpreter runs them)
+    for fn in ("_block_vg", "_fold_vg"):
+        if hasattr(mod, fn):
+            for key, value in _timers(getattr(mod, fn)).items():
+                tm[key] += value
     return dict(name=name, lines=len(f.source().splitlines()), module_bytes=len(src),
                 build=t_build, codegen=t_codegen, import_=t_import, first=t_first,
                 numba=tm["compiler_lock"] - tm["llvm_lock"], llvm=tm["llvm_lock"])

@@ -14,6 +14,7 @@ function itself. Two indirect calls per block of 512 points cost nothing measura
 
 from __future__ import annotations
 
+import math
 import sys
 
 import numba
@@ -22,10 +23,13 @@ from llvmlite import ir
 from numba import get_thread_id, njit, prange, types
 from numba.extending import intrinsic
 
+from ._intrinsics import select as _sel
 from ._simd import BLOCK
+from ._vmath import vexp as _vexp, vlog as _vlog
 
-__all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "max_threads", "run_v_par", "run_v_ser", "run_vg_par",
-           "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par"]
+__all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
+           "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
+           "run_prog_v_ser", "run_prog_vg_par", "run_prog_vg_ser"]
 
 _P = types.CPointer(types.float64)
 _I = types.CPointer(types.int64)
@@ -286,6 +290,248 @@ def tiles_par(pre, fn, xs, ys, out, grad, size, chunks, threads, order, starts, 
                     p = seq[s + i]
                     grad[p, 0] = gb[2 * i]
                     grad[p, 1] = gb[2 * i + 1]
+
+
+# ---------------------------------------------------------------------------------------------
+# Combine programs: the blends of a scene without repeated structure, as data.
+#
+# A long scene's primitives are evaluated in loops over tables (the scene's ``_fold_<kind>``
+# function) into scratch rows; what remains is a tree of min/max/smin/smax chains over those
+# rows. Instead of straight-line code per scene (numba's and LLVM's time grows faster than its
+# length), the chains run as a program: one row of ``prog`` per step, each step a loop over the
+# block's points with the opcode branch outside it (so each step vectorizes). The formulas, the
+# operand order and the tie rule are those of ``codegen._Emitter.chain``: the same bits.
+
+#: Columns of a program row: opcode; the operand's first row (its value; then the x and y
+#: gradient components in the next rows); the accumulator's first row (m; then the gradient
+#: components, then s, the smooth sum); -k; 1/k; whether the operand's x and y gradient
+#: components are known to be zero (as in the straight-line code: no product). Rows are offsets
+#: in the block's scratch space, in floats. Each step works on two slices of it (operand,
+#: accumulator): LLVM then checks their overlap once and vectorizes the step.
+PROG_COLS = 7
+#: Opcodes: copy the first operand into the accumulator (s = 1); one hard or smooth step of a
+#: min (``<``) or max (``>``) chain; finish a smooth chain (m -/+ log(s) / k, gradient / s);
+#: the last row: the result's rows, copied to the outputs; a smooth blend of two operands, the
+#: first already in the accumulator (blend and finish in one pass, s never stored); the
+#: negated operand (a gradient component known to be zero stays +0, as in the straight-line
+#: code, where it is no variable at all).
+(OP_INIT, OP_MIN, OP_MAX, OP_SMIN, OP_SMAX, OP_FIN_SMIN, OP_FIN_SMAX, OP_OUT, OP_SMIN2,
+ OP_SMAX2, OP_NEG) = range(11)
+
+
+@njit(nogil=True, error_model="numpy")
+def _step_vg(op, A, M, nk, ik, zx, zy):
+    """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s)."""
+    B = BLOCK
+    if op == OP_INIT:
+        for i in range(B):
+            M[i] = A[i]
+            M[B + i] = A[B + i]
+            M[2 * B + i] = A[2 * B + i]
+            M[3 * B + i] = 1.0
+    elif op == OP_NEG:
+        for i in range(B):
+            M[i] = -A[i]
+            M[B + i] = _sel(zx, 0.0, -A[B + i])
+            M[2 * B + i] = _sel(zy, 0.0, -A[2 * B + i])
+    elif op == OP_MIN:
+        for i in range(B):
+            w = A[i] < M[i]
+            M[B + i] = _sel(w, A[B + i], M[B + i])
+            M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
+            M[i] = _sel(w, A[i], M[i])
+    elif op == OP_MAX:
+        for i in range(B):
+            w = A[i] > M[i]
+            M[B + i] = _sel(w, A[B + i], M[B + i])
+            M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
+            M[i] = _sel(w, A[i], M[i])
+    elif op == OP_SMIN or op == OP_SMAX:
+        lt = op == OP_SMIN
+        gt = not lt
+        for i in range(B):
+            v = A[i]
+            c = M[i]
+            w = ((v < c) & lt) | ((v > c) & gt)
+            e = _vexp(nk * abs(v - c))
+            acc = M[3 * B + i]
+            M[3 * B + i] = _sel(w, acc * e + 1.0, acc + e)
+            vx = A[B + i]
+            vy = A[2 * B + i]
+            cx = M[B + i]
+            cy = M[2 * B + i]
+            M[B + i] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e))
+            M[2 * B + i] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e))
+            M[i] = _sel(w, v, c)
+    elif op == OP_SMIN2 or op == OP_SMAX2:
+        lt = op == OP_SMIN2
+        gt = not lt
+        sign = -1.0 if lt else 1.0
+        for i in range(B):
+            v = A[i]
+            c = M[i]
+            w = ((v < c) & lt) | ((v > c) & gt)
+            e = _vexp(nk * abs(v - c))
+            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
+            vx = A[B + i]
+            vy = A[2 * B + i]
+            cx = M[B + i]
+            cy = M[2 * B + i]
+            r = 1.0 / acc
+            M[B + i] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e)) * r
+            M[2 * B + i] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e)) * r
+            M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
+    elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
+        sign = -1.0 if op == OP_FIN_SMIN else 1.0
+        for i in range(B):
+            acc = M[3 * B + i]
+            M[i] = M[i] + sign * (_vlog(acc) * ik)  # m - t is m + (-t), bit for bit
+            r = 1.0 / acc
+            M[B + i] = M[B + i] * r
+            M[2 * B + i] = M[2 * B + i] * r
+
+
+@njit(nogil=True, error_model="numpy")
+def _step_v(op, A, M, nk, ik):
+    """One value-only step: operand row ``A`` (v), accumulator ``M`` (m, s)."""
+    B = BLOCK
+    if op == OP_INIT:
+        for i in range(B):
+            M[i] = A[i]
+            M[B + i] = 1.0
+    elif op == OP_NEG:
+        for i in range(B):
+            M[i] = -A[i]
+    elif op == OP_MIN:
+        for i in range(B):
+            M[i] = _sel(A[i] < M[i], A[i], M[i])
+    elif op == OP_MAX:
+        for i in range(B):
+            M[i] = _sel(A[i] > M[i], A[i], M[i])
+    elif op == OP_SMIN or op == OP_SMAX:
+        lt = op == OP_SMIN
+        gt = not lt
+        for i in range(B):
+            v = A[i]
+            c = M[i]
+            w = ((v < c) & lt) | ((v > c) & gt)
+            e = _vexp(nk * abs(v - c))
+            acc = M[B + i]
+            M[B + i] = _sel(w, acc * e + 1.0, acc + e)
+            M[i] = _sel(w, v, c)
+    elif op == OP_SMIN2 or op == OP_SMAX2:
+        lt = op == OP_SMIN2
+        gt = not lt
+        sign = -1.0 if lt else 1.0
+        for i in range(B):
+            v = A[i]
+            c = M[i]
+            w = ((v < c) & lt) | ((v > c) & gt)
+            e = _vexp(nk * abs(v - c))
+            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
+            M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
+    elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
+        sign = -1.0 if op == OP_FIN_SMIN else 1.0
+        for i in range(B):
+            M[i] = M[i] + sign * (_vlog(M[B + i]) * ik)
+
+
+@njit(nogil=True, error_model="numpy")
+def _combine(S, at, prog, grad):
+    """Run the program ``prog`` on one block's scratch space ``S[at:]``."""
+    rows = 3 if grad else 1
+    acc_rows = 4 if grad else 2
+    for p in range(prog.shape[0] - 1):
+        op = int(prog[p, 0])
+        a = at + int(prog[p, 1])
+        m = at + int(prog[p, 2])
+        A = S[a:a + rows * BLOCK]
+        M = S[m:m + acc_rows * BLOCK]
+        if grad:
+            _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0)
+        else:
+            _step_v(op, A, M, prog[p, 3], prog[p, 4])
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
+    """The last program row (``OP_OUT``) names the result rows: copy them out, NaN where the
+    point is not finite."""
+    last = prog.shape[0] - 1
+    a = at + int(prog[last, 1])
+    ax = a + BLOCK
+    ay = a + 2 * BLOCK
+    for i in range(m):
+        x = xs[start + i]
+        y = ys[start + i]
+        ok = (abs(x) < math.inf) & (abs(y) < math.inf)
+        out[start + i] = _sel(ok, S[a + i], math.nan)
+        if with_grad:
+            grad[2 * (start + i)] = _sel(ok, S[ax + i], math.nan)
+            grad[2 * (start + i) + 1] = _sel(ok, S[ay + i], math.nan)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def run_prog_vg_par(pre, prog, xs, ys, out, grad, size, chunks, threads):
+    """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
+    filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
+    n = xs.shape[0]
+    blocks = (n + BLOCK - 1) // BLOCK
+    chunks = max(1, min(blocks, chunks))
+    S = np.empty(threads * size)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
+    for c in prange(chunks):
+        at = get_thread_id() * size
+        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
+            s = b * BLOCK
+            m = min(s + BLOCK, n) - s
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z, 0), _at(z, 0))
+            _combine(S, at, prog, True)
+            _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_prog_vg_ser(pre, prog, xs, ys, out, grad, size):
+    """:func:`run_prog_vg_par` in this thread."""
+    n = xs.shape[0]
+    S = np.empty(size)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
+    for s in range(0, n, BLOCK):
+        m = min(s + BLOCK, n) - s
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0), _at(z, 0))
+        _combine(S, 0, prog, True)
+        _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def run_prog_v_par(pre, prog, xs, ys, out, size, chunks, threads):
+    """Value at all points (see :func:`run_prog_vg_par`)."""
+    n = xs.shape[0]
+    blocks = (n + BLOCK - 1) // BLOCK
+    chunks = max(1, min(blocks, chunks))
+    S = np.empty(threads * size)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
+    for c in prange(chunks):
+        at = get_thread_id() * size
+        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
+            s = b * BLOCK
+            m = min(s + BLOCK, n) - s
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0), _at(z, 0))
+            _combine(S, at, prog, False)
+            _outputs(S, at, prog, xs, ys, out, out, s, m, False)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_prog_v_ser(pre, prog, xs, ys, out, size):
+    """:func:`run_prog_v_par` in this thread."""
+    n = xs.shape[0]
+    S = np.empty(size)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
+    for s in range(0, n, BLOCK):
+        m = min(s + BLOCK, n) - s
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0), _at(z, 0))
+        _combine(S, 0, prog, False)
+        _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 
 
 def _guard():

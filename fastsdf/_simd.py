@@ -27,7 +27,7 @@ from __future__ import annotations
 import hashlib
 import re
 
-__all__ = ["BLOCK", "block_source", "choose_lanes", "drive_import", "vectorizable", "vmath_import"]
+__all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import", "vectorizable", "vmath_import"]
 
 #: Points per block: a multiple of every vector width, small enough that a block's scratch rows
 #: stay in the L1/L2 cache.
@@ -442,6 +442,99 @@ def tiles_{kind}_par({sig}, order, starts, act, offs, chunks):
     return src
 
 
+_PROG_OPS = {"init": 0, "min": 1, "max": 2, "smin": 3, "smax": 4, "fin_smin": 5, "fin_smax": 6,
+             "out": 7, "smin2": 8, "smax2": 9, "neg": 10}
+
+
+def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_rows: int) -> str:
+    """Source of ``_fold_<kind>`` (the loops over same-shape subexpressions, as in
+    :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
+    (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
+    ``batch_<kind>_ser``, which run both through the installation's kernels
+    (:func:`fastsdf._drive.run_prog_vg_par`). The scene's compiled code is the fold function
+    alone: it grows with the number of distinct shapes, not with the primitives."""
+    grad = kind == "vg"
+    segs = _split(lines)
+    assert segs and all(seg[0] == "loop" for seg in segs)
+    slots: dict = {"x": 0, "y": 1}
+    fbase, fold_loop = [], {}
+    for g, count in enumerate(fold_sizes):
+        fbase.append(len(slots))
+        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
+
+    def fold_store(mt):
+        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
+        fold_loop[g] = (loop_var, size)
+        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+
+    segs = [("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]]) for seg in segs]
+    st = _Staging(segs, [], 1, slots, fbase, fold_loop)
+    body = []
+    for k, seg in enumerate(segs):
+        body += st.segment(k, seg)
+    first = len(slots)
+    size = (first + acc_rows) * BLOCK
+
+    def row(ref):
+        if ref[0] == "F":
+            return (fbase[ref[1]] + ref[2]) * BLOCK
+        return (first + ref[1]) * BLOCK
+
+    table = []
+    for op, operand, acc, k, zeros in steps:
+        r = [0.0] * 7
+        r[0] = _PROG_OPS[op]
+        if operand is not None:
+            r[1] = row(operand)
+        if acc is not None:
+            r[2] = row(acc)
+        if op in ("smin", "smax", "fin_smin", "fin_smax", "smin2", "smax2"):
+            r[3], r[4] = -float(k), 1.0 / float(k)
+        if zeros and grad:
+            r[5], r[6] = float(zeros[0]), float(zeros[1])
+        table.append(r)
+    prog = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in table)
+    tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
+    views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))",
+             f"    S = carray(sp, ({size},))"]
+    used = [f"    {t} = {t}G" for t in tables]
+    prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+               "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+               "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
+               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+    outs = ["out"] + (["grad"] if grad else [])
+    sig = ", ".join(["xs", "ys"] + outs)
+    gflat = "grad.reshape(-1), " if grad else ""
+    nl = "\n"
+    return f'''
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fold_{kind}(xp, yp, op, gp, n, sp, ap, fp):
+    """The scene's subexpressions, each in a loop over a table of its shape: {'values and gradients' if grad else 'values'}
+    into the scratch rows that the combine program reads."""
+{nl.join(views + used + prelude)}
+{nl.join(body)}
+
+
+_fold_{kind}_fn = _BlockFn(_fold_{kind})
+
+#: The combine program (see fastsdf._drive.PROG_COLS).
+_PROG_{kind.upper()} = np.array([
+    {prog},
+], dtype=np.float64)
+
+
+def batch_{kind}_par({sig}, chunks):
+    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program."""
+    _run_prog_{kind}_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}{size}, chunks, _max_threads())
+
+
+def batch_{kind}_ser({sig}):
+    """All points, in this thread."""
+    _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}{size})
+'''
+
+
 def drive_import() -> str:
     """Import of the scene-independent kernels of :mod:`fastsdf._drive`, with a hash of their
     source (numba's cache does not notice changes in a callee's module)."""
@@ -452,7 +545,9 @@ def drive_import() -> str:
             "from fastsdf._drive import BlockFn as _BlockFn, run_v_par as _run_v_par, "
             "run_v_ser as _run_v_ser, run_vg_par as _run_vg_par, run_vg_ser as _run_vg_ser, "
             "max_threads as _max_threads, NOFOLD as _drive_nofold, tiles_par as _tiles_par, "
-            "NOROWS as _NOROWS, NOGRAD as _NOGRAD"
+            "NOROWS as _NOROWS, NOGRAD as _NOGRAD, run_prog_v_par as _run_prog_v_par, "
+            "run_prog_v_ser as _run_prog_v_ser, run_prog_vg_par as _run_prog_vg_par, "
+            "run_prog_vg_ser as _run_prog_vg_ser"
             f"  # _drive.py sha256 {digest}\n")
 
 

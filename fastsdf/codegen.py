@@ -47,7 +47,7 @@ import numpy as np
 from typing import Sequence
 
 from . import __version__
-from ._simd import block_source, drive_import, vectorizable, vmath_import
+from ._simd import block_source, drive_import, program_source, vectorizable, vmath_import
 from .graph import Expr, parameters, topological_order
 from .ops import OPS, lit
 
@@ -65,12 +65,30 @@ FOLD_MIN_LINES = 400
 #: At most this many values per point (scratch rows of BLOCK floats, per thread) are stored by
 #: those loops; groups beyond it stay straight-line code.
 MAX_FOLD_ROWS = 1536
+#: Long bodies that are trees of blends run their blends as a combine program (see
+#: ``_Emitter.program``); False keeps straight-line block code (kept to compare the two).
+COMBINE_PROGRAMS = True
 
-_CHAIN_OPS = ("min", "max", "smin", "smax")
+_CHAIN_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
+#: Chains of the polynomial blends are left folds (the blends are not associative): flattened
+#: along the left operand only, never reordered; consecutive same-shape operands become loops.
+_ORDERED_OPS = ("qmin", "cmin")
 _HUGE = "1.7976931348623157e+308"
+#: The chains a combine program runs (see ``_Emitter.program``).
+_PROGRAM_OPS = ("min", "max", "smin", "smax")
 
 
 _lit = lit
+
+
+class _OpNode:
+    """What the emitters of :mod:`fastsdf.ops` read of a node (its op and attribute), for the
+    steps of a chain that has no node of its own."""
+
+    __slots__ = ("op", "attr")
+
+    def __init__(self, op, attr):
+        self.op, self.attr = op, attr
 
 
 class _Val:
@@ -210,8 +228,27 @@ def _foldable(root: Expr) -> bool:
     return True
 
 
+def _dag_size(root: Expr, limit: int) -> int:
+    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
+    seen, stack = set(), [root]
+    while stack and len(seen) <= limit:
+        node = stack.pop()
+        if id(node) not in seen:
+            seen.add(id(node))
+            stack.extend(node.args)
+    return len(seen)
+
+
 def _flatten_chain(node: Expr) -> list:
-    """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
+    """Operands of the maximal chain of ``node``'s operation (same op and k), left to right
+    (for the left folds of ``_ORDERED_OPS``: along the left operands only)."""
+    if node.op in _ORDERED_OPS:
+        out, n = [], node
+        while n.op == node.op and n.attr == node.attr:
+            out.append(n.args[1])
+            n = n.args[0]
+        out.append(n)
+        return out[::-1]
     out, stack = [], [node]
     while stack:
         n = stack.pop()
@@ -245,6 +282,7 @@ class _Emitter:
         self.fold = fold
         self.fold_of: dict[int, tuple] = {}
         self.fold_sizes: list[int] = []
+        self.fold_zero: dict[int, tuple] = {}
         if time:  # also carry d/dt: a third forward-mode component, seeded by the time t
             self.COMPONENTS = self.COMPONENTS + ("t",)
         n = len(self.COMPONENTS)
@@ -426,7 +464,7 @@ class _Emitter:
             done[id(node)] = self._emit_planned(node, plan, done)
         return done[id(root)]
 
-    def _prefold(self, root: Expr, plans: dict) -> None:
+    def _prefold(self, root: Expr, plans: dict, singles: bool = False) -> None:
         """Find the subexpressions to evaluate in loops and emit those loops.
 
         Candidates are the maximal small subexpressions (at most MAX_TEMPLATE_NODES nodes as a
@@ -437,9 +475,19 @@ class _Emitter:
         so the straight-line code grows with the combining operations, not with the primitives.
         A subexpression whose straight-line code would differ from its template's (a chain that
         would be flattened or folded) is left alone: the results are the same bits either way.
+        ``singles``: also shapes with one member (a loop of one row), for combine programs.
         """
         seen, order, under_big = set(), [], set()
         stack = [root]
+
+        def too_big(node):
+            if self._size(node) <= MAX_TEMPLATE_NODES:
+                return False
+            # For a program: a primitive larger as a tree than as a DAG (a transformed capsule
+            # shares its subexpressions) is still one subexpression; blends never are.
+            return not singles or node.op in _CHAIN_OPS or node.op == "neg" or \
+                _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
+
         while stack:
             node = stack.pop()
             if id(node) in seen:
@@ -449,7 +497,11 @@ class _Emitter:
             plan = plans.get(id(node))
             if plan is None:
                 plan = plans[id(node)] = self._plan(node)
-            big = self._size(node) > MAX_TEMPLATE_NODES
+            # For a program: larger subexpressions (a transformed capsule counts more than
+            # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
+            # expression that is not a candidate, are candidates (also in a small scene).
+            big = too_big(node) or (singles and (
+                node is root or node.op in _CHAIN_OPS and not _foldable(node)))
             for dep in plan[0]:
                 if big:
                     under_big.add(id(dep))
@@ -457,7 +509,7 @@ class _Emitter:
         shapes: dict = {}
         for node in order:
             if (id(node) not in under_big or node.op in ("const", "sym", "param")
-                    or self._size(node) > MAX_TEMPLATE_NODES or not _foldable(node)):
+                    or too_big(node) or not _foldable(node)):
                 continue
             sig, steps, consts = _template(node)
             shapes.setdefault(sig, (steps, [], []))
@@ -466,7 +518,8 @@ class _Emitter:
         ncomp = len(self.COMPONENTS)
         rows_left = MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
-            if len(members) < 2 or len(members) * (1 + ncomp * self.grad) > rows_left:
+            if len(members) < (1 if singles else 2) or \
+                    len(members) * (1 + ncomp * self.grad) > rows_left:
                 continue
             rows_left -= len(members) * (1 + ncomp * self.grad)
             table, refs = _varying_columns(rows)
@@ -476,6 +529,9 @@ class _Emitter:
             body: list[str] = []
             val = self.template(body, steps, consts)
             comps = val.grads(ncomp) if self.grad else (None,) * ncomp
+            zero = tuple(comp is None or comp == "0.0" for comp in comps)
+            if singles and self.grad:  # combine programs read value, x, y in consecutive rows
+                comps = tuple(_zero(comp) for comp in comps)
             stored = (None,) + tuple(c for c in range(ncomp) if comps[c] is not None)
             g = len(self.fold_sizes)
             size = len(stored)
@@ -487,7 +543,120 @@ class _Emitter:
             self.fold_sizes.append(len(members) * size)
             for j, member in enumerate(members):
                 self.fold_of[id(member)] = (g, j, stored)
+                self.fold_zero[id(member)] = zero
                 plans[id(member)] = ([], None)
+
+    def program(self, root: Expr):
+        """The combine program of ``root`` for the block kernels, or None.
+
+        Every maximal small subexpression is evaluated in a loop over a table first (see
+        :meth:`_prefold`, one-member shapes included); if what remains is a tree of chains
+        (min, max, smin, smax; no loops over tables) over those results, it becomes a list of
+        steps for the installation's interpreter (:func:`fastsdf._drive._combine`) instead of
+        straight-line code. Steps are tuples ``(op, operand, acc, k, zero)``: ``operand`` the
+        first of the operand's rows (value, then one per gradient component), ``acc`` the first
+        of the accumulator's rows (m, the gradient components, s), ``zero`` which of the
+        operand's gradient components are known to be zero. A row is ``('F', group, entry)``
+        (a folded subexpression's entry) or ``('A', n)`` (accumulator rows). The last step is
+        ``('out', operand)``. Returns ``(steps, accumulator_rows)``.
+        """
+        plans: dict = {}
+        self._prefold(root, plans, singles=True)
+        if not self.fold_sizes or id(root) in self.fold_of:
+            return None
+        ncomp = len(self.COMPONENTS)
+        # post-order over the chains above the folded subexpressions; uses of each chain
+        order, uses, seen, stack = [], {}, set(), [(root, False)]
+        while stack:
+            node, expanded = stack.pop()
+            if expanded:
+                order.append(node)
+                continue
+            if id(node) in seen:
+                continue
+            seen.add(id(node))
+            plan = plans.get(id(node)) or self._plan(node)
+            deps, items = plan
+            if node.op == "neg":  # e.g. a - b = max(a, -b) with b a large subexpression
+                if deps[0].op == "const":
+                    return None
+            elif node.op not in _PROGRAM_OPS or items is None or len(items) < 2 or \
+                    any(item[0] != "node" or item[1].op == "const" for item in items):
+                return None
+            stack.append((node, True))
+            for dep in reversed(list({id(d): d for d in deps}.values())):
+                if id(dep) in self.fold_of:
+                    continue
+                uses[id(dep)] = uses.get(id(dep), 0) + 1
+                stack.append((dep, False))
+        free: list = []
+        count = [0]
+        result: dict = {}
+        width = 2 + ncomp * self.grad  # rows of an accumulator: m, gradient components, s
+
+        def alloc():
+            if free:
+                return free.pop()
+            count[0] += 1
+            return ("A", (count[0] - 1) * width)
+
+        zeros: dict = {}  # gradient components known to be zero, of a program node's result
+
+        def operand(node):
+            folded = self.fold_of.get(id(node))
+            if folded is None:
+                return result[id(node)], zeros.get(id(node), (False,) * ncomp)
+            g, j, stored = folded
+            return ("F", g, j * len(stored)), self.fold_zero[id(node)]
+
+        steps = []
+        for node in order:
+            deps, items = plans.get(id(node)) or self._plan(node)
+            if node.op == "neg":
+                arg = deps[0]
+                row, zero = operand(arg)
+                if id(arg) not in self.fold_of and uses[id(arg)] == 1:
+                    acc = row  # in place
+                else:
+                    acc = alloc()
+                steps.append(("neg", row, acc, None, zero))
+                result[id(node)] = acc
+                zeros[id(node)] = zero
+                if id(arg) in result:
+                    uses[id(arg)] -= 1
+                    if uses[id(arg)] == 0 and result[id(arg)] is not acc:
+                        free.append(result[id(arg)])
+                continue
+            operands = [item[1] for item in items]
+            first = operands[0]
+            acc = None
+            if id(first) not in self.fold_of and uses[id(first)] == 1 and \
+                    sum(o is first for o in operands) == 1:
+                acc = result[id(first)]  # its last use: accumulate in place
+            smooth = node.op in ("smin", "smax")
+            pair = smooth and len(operands) == 2  # one fused step: blend and finish
+            if acc is None:
+                acc = alloc()
+                steps.append(("init", operand(first)[0], acc, None, None))
+            elif smooth and not pair:  # in place: only s = 1
+                steps.append(("init", acc, acc, None, None))
+            if pair:
+                row, zero = operand(operands[1])
+                steps.append((node.op + "2", row, acc, node.attr, zero))
+            else:
+                for other in operands[1:]:
+                    row, zero = operand(other)
+                    steps.append((node.op, row, acc, node.attr, zero))
+                if smooth:
+                    steps.append(("fin_" + node.op, None, acc, node.attr, None))
+            result[id(node)] = acc
+            for dep in set(map(id, operands)):
+                if dep in result and dep != id(node):
+                    uses[dep] -= 1
+                    if uses[dep] == 0 and result[dep] is not acc:
+                        free.append(result[dep])
+        steps.append(("out", operand(root)[0], None, None, None))
+        return steps, count[0] * width
 
     def _size(self, root: Expr) -> int:
         """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
@@ -511,6 +680,8 @@ class _Emitter:
         if node.op not in _CHAIN_OPS:
             return list(node.args), None
         operands = _flatten_chain(node)
+        if node.op in _ORDERED_OPS:
+            return self._plan_ordered(operands)
         shapes: dict = {}
         order: list = []
         for operand in operands:
@@ -543,6 +714,74 @@ class _Emitter:
         # placed where their first member stood. (Ties go to the operand evaluated first.)
         return deps, items
 
+    def _plan_ordered(self, operands: list):
+        """:meth:`_plan` of a left fold: runs of consecutive same-shape operands become loops,
+        in place (the order of the operands is the written one)."""
+        items, deps, run = [], [], None
+
+        def flush():
+            if run is None:
+                return
+            if len(run[2]) >= MIN_LOOP:
+                items.append(("loop", run[1], _varying_columns(run[3]), run[2], run[3]))
+            else:
+                items.extend(("node", m) for m in run[2])
+                deps.extend(run[2])
+
+        for operand in operands:
+            if operand.op == "const" or self._size(operand) > MAX_TEMPLATE_NODES:
+                flush()
+                run = None
+                items.append(("node", operand))
+                deps.append(operand)
+                continue
+            sig, steps, consts = _template(operand)
+            if run is None or run[0] != sig:
+                flush()
+                run = [sig, steps, [], []]
+            run[2].append(operand)
+            run[3].append(consts)
+        flush()
+        return deps, items
+
+    def ordered_chain(self, out: list, op: str, k, items: list) -> _Val:
+        """Emit the left fold of the blend ``op`` (qmin, cmin) over ``items`` (as
+        :meth:`chain`): each step is the binary operation's own code, so the results are those
+        of the nested binary operations. A loop carries the running value and gradient in
+        variables reassigned per row; a chain that opens with a loop starts from +huge (the
+        blend of +huge and ``a`` is ``a``: ``|a - huge| > k``)."""
+        node = _OpNode(op, k)
+        n = len(self.COMPONENTS)
+        c = self._name("c")
+        base = {"m": f"{c}m"}
+        base.update((suffix, f"{c}{suffix}") for suffix in self.COMPONENTS)
+        cur = None
+        for item in items:
+            if item[0] == "val":
+                cur = item[1] if cur is None else self.op(out, node, [cur, item[1]])
+                continue
+            _, steps, consts, count, group = item
+            if cur is None:
+                cur = _Val(_HUGE, (None,) * n if self.grad else None)
+            out.append(f"{base['m']} = {cur.v}")
+            if self.grad:
+                out.extend(f"{base[sfx]} = {_zero(comp)}"
+                           for sfx, comp in zip(self.COMPONENTS, cur.grads(n)))
+            loop = self._name("i")
+            body: list[str] = [f"{loop} = _act[{loop}q]"]
+            val = self.template(body, steps, [cc.format(row=loop) for cc in consts])
+            carried = _Val(base["m"], tuple(base[sfx] for sfx in self.COMPONENTS)
+                           if self.grad else None)
+            new = self.op(body, node, [carried, val])
+            body.append(f"{base['m']} = {new.v}")
+            if self.grad:
+                body.extend(f"{base[sfx]} = {_zero(comp)}"
+                            for sfx, comp in zip(self.COMPONENTS, new.grads(n)))
+            out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
+            out.extend("    " + line for line in body)
+            cur = carried
+        return cur
+
     def _emit_planned(self, node: Expr, plan, done) -> _Val:
         deps, items = plan
         folded = self.fold_of.get(id(node))
@@ -563,9 +802,11 @@ class _Emitter:
             return self.op(self.lines, node, [done[id(a)] for a in node.args])
         chain_items = []
         others = [item[1] for item in items if item[0] == "node"]
+        before: list = []  # the chain's items so far: ("node", operand) or ("group", index)
         for item in items:
             if item[0] == "node":
                 chain_items.append(("val", done[id(item[1])]))
+                before.append(item)
             else:
                 _, steps, (table, refs), members, rows = item
                 name = self.table(table) if table.shape[1] else None
@@ -573,8 +814,11 @@ class _Emitter:
                           for j in [v if kind == "t" else None]]
                 self.groups.append(dict(op=node.op, k=node.attr, chain=node, members=members,
                                         steps=steps, rows=np.asarray(rows, dtype=np.float64),
-                                        others=others))
+                                        others=others, before=list(before)))
                 chain_items.append(("loop", steps, consts, table.shape[0], len(self.groups) - 1))
+                before.append(("group", len(self.groups) - 1))
+        if node.op in _ORDERED_OPS:
+            return self.ordered_chain(self.lines, node.op, node.attr, chain_items)
         return self.chain(self.lines, node.op, node.attr, chain_items)
 
 
@@ -808,7 +1052,17 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
     if param_names is None and not time:
         kind = "vg" if grad else "v"
         fold_sizes = ()
-        if len(rest) > FOLD_MIN_LINES:
+        prog = None
+        if len(rest) > FOLD_MIN_LINES and vmath and not em.groups and COMBINE_PROGRAMS:
+            # A long body that is a tree of blends over small subexpressions: those in loops
+            # over tables, the blends as a program for the installation's interpreter.
+            ptables = dict(tables)  # kept only if the program is used
+            pe = _Emitter(symbol_names, grad, ptables, fold=True)
+            prog = pe.program(root)
+            if prog is not None:
+                tables.update(ptables)
+                one = (one, program_source(vectorizable(pe.lines), kind, pe.fold_sizes, *prog))
+        if prog is None and len(rest) > FOLD_MIN_LINES:
             # A long body: the block kernels evaluate repeated subexpressions in loops (the
             # per-point functions keep the straight-line code; the tests compare the two).
             fe = _Emitter(symbol_names, grad, tables, fold=True)
@@ -820,7 +1074,8 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
                 results = [_as_float(fres.v)] + ([_as_float(_zero(c)) for c in
                                                   fres.grads(len(fe.COMPONENTS))] if grad else [])
                 fold_sizes = fe.fold_sizes
-        one = (one, block_source(rest, results, kind, fold_sizes=fold_sizes))
+        if prog is None:
+            one = (one, block_source(rest, results, kind, fold_sizes=fold_sizes))
     elif param_names is not None:  # parameters are data: read once per block from prm
         kind = "vgt" if time else "vg" if grad else "v"
         one = (one, block_source(list(rest), results, kind, ("t", "prm"),

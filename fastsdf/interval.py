@@ -83,8 +83,9 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
     order = topological_order(root)
     if lipschitz:
         centre = node_values(root, {k: 0.5 * (lo + hi) for k, (lo, hi) in ranges.items()})
-        half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))
-        scale = sum(np.abs(0.5 * (lo + hi)) for lo, hi in ranges.values()) + half
+        with np.errstate(all="ignore"):  # huge ranges: an infinite half-diagonal is sound
+            half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))
+            scale = sum(np.abs(0.5 * (lo + hi)) for lo, hi in ranges.values()) + half
     out, lip = {}, {}
     with np.errstate(all="ignore"):
         for node in order:

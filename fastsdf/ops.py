@@ -605,7 +605,20 @@ def _emit_poly(em, out, node, a, r):
         return None
     o = em.assign(out, f"{r}o", other)
     wa = em.assign(out, f"{r}a", f"_sel({w}, 1.0 - {o}, {o})")
-    return [wa, em.assign(out, f"{r}b", f"1.0 - {wa}")]
+    wb = em.assign(out, f"{r}b", f"1.0 - {wa}")
+
+    def rule(gs):
+        # Outside the blend (h = 0) exactly the smaller operand's gradient, as min gives it
+        # (not g_a + 0 * g_b, which turns -0.0 into 0.0): pruning a chain of blends drops
+        # operands only there and keeps the same bits.
+        ga, gb = gs
+        terms = [t for t in ((None if g is None else wt if g == "1.0" else f"{g} * {wt}")
+                             for g, wt in ((ga, wa), (gb, wb))) if t is not None]
+        if not terms:
+            return None
+        return (f"_sel({h} > 0.0, {' + '.join(terms)}, "
+                f"_sel({w}, {ga or '0.0'}, {gb or '0.0'}))")
+    return rule
 
 
 def _poly_np(a, b, k, cubic):

@@ -15,8 +15,10 @@ that can matter:
   ``log1p(sum exp(-k (lo_i - H))) / k <= tol``. ``smax`` mirrors this. ``tol=None`` (default)
   is half an ulp of ``H``: identical in practice, and little is pruned unless ``k`` is large.
 
-The polynomial blends (quadratic, cubic) are nested binary operations, not folded into loops,
-so they are not pruned here: their operands are always evaluated (results trivially identical).
+* polynomial blends of width ``k`` (quadratic, cubic; chains of the same ``k`` are left folds,
+  never reordered): member ``i`` is dropped where ``lo_i > k + min_{j<i} hi_j`` (``j`` over
+  the operands before it in the chain). The running value is then below ``a_i - k``, where the
+  blend is exactly the running value, value and gradient: bit-identical.
 
 Points are sorted by tile (a counting sort) and run through the scene's SIMD block functions
 (:mod:`fastsdf._simd`, driven by :func:`fastsdf._drive.tiles_par`) with each tile's row lists as
@@ -108,8 +110,9 @@ def _steps_bounds_chunk(group, ranges):
                 np.stack([o[id(m)][1] for o, m in zip(out, members)]))
     T = len(next(iter(ranges.values()))[0])
     centres = {k: 0.5 * (lo + hi)[None, :] for k, (lo, hi) in ranges.items()}
-    half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))[None, :]
-    scale = sum(np.abs(c) for c in centres.values()) + half
+    with np.errstate(all="ignore"):  # huge tiles: an infinite half-diagonal is sound
+        half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))[None, :]
+        scale = sum(np.abs(c) for c in centres.values()) + half
     cols = [rows[:, j][:, None] for j in range(rows.shape[1])]
     lo_s, hi_s, c_s, L_s = [], [], [], []
     with np.errstate(all="ignore"):
@@ -163,6 +166,10 @@ def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None =
     for gis in chains.values():
         g0 = groups[gis[0]]
         op, k = g0["op"], g0["k"]
+        if op in ("qmin", "cmin"):
+            for gi in gis:
+                keep[gi] = _keep_ordered(groups, gi, member_bounds, ranges, T)
+            continue
         others = [node_bounds(o, ranges)[id(o)] if o.op != "const"
                   else (np.full(T, o.attr), np.full(T, o.attr)) for o in g0["others"]]
         n_ops = len(others) + sum(len(groups[gi]["members"]) for gi in gis)
@@ -205,6 +212,36 @@ def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None =
             rows = np.flatnonzero(kk[:, t])
             act[offs[t, gi]:offs[t, gi + 1]] = rows
     return PrunePlan(bounds, nx, ny, act, offs, kept, sizes, time.perf_counter() - t0, tol)
+
+
+def _keep_ordered(groups, gi, member_bounds, ranges, T):
+    """Rows kept per tile, shape (members, tiles), for a loop of a left fold of polynomial
+    blends of width ``k``: the running value after any operands is at most the smallest of
+    them, and the blend of ``r`` and ``a`` is exactly ``r`` (value and gradient) where
+    ``a - r >= k``. So member ``i`` is dropped where its lower bound exceeds ``k`` plus the
+    smallest upper bound of the operands before it in the chain (an outward margin covers the
+    rounding of that sum): dropping it leaves every later running value unchanged."""
+    g = groups[gi]
+    k = float(g["k"])
+    prefix = np.full(T, np.inf)
+    for kind, ref in g["before"]:
+        if kind == "node":
+            if ref.op == "const":
+                hi = np.full(T, float(ref.attr))
+            else:
+                hi = node_bounds(ref, ranges)[id(ref)][1]
+        else:
+            hi = member_bounds[ref][1].min(axis=0)
+        prefix = np.minimum(prefix, np.where(np.isnan(hi), np.inf, hi))
+    lo, hi = member_bounds[gi]
+    hi = np.where(np.isnan(hi), np.inf, hi)
+    # the smallest upper bound before each member: the chain's before, then earlier members
+    before = np.minimum(prefix[None, :], np.vstack([np.full((1, T), np.inf),
+                                                    np.minimum.accumulate(hi, axis=0)[:-1]]))
+    with np.errstate(all="ignore"):
+        limit = before + k
+        limit = limit + 1e-12 * (np.abs(limit) + k) + 1e-300
+        return ~(lo > limit) | ~np.isfinite(limit)
 
 
 @njit(cache=True, nogil=True)

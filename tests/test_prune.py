@@ -196,3 +196,33 @@ def test_grid_exact_fallback_pruned_gives_identical_trajectories():
     d0, g0 = f(*p, compute_gradient=True, prune=False)
     out = (np.abs(p[0]) > 1) | (np.abs(p[1]) > 1)
     assert _bits(d[out], d0[out]) and _bits(grad[out], g0[out])
+
+
+@pytest.mark.slow
+@settings(max_examples=3, deadline=None, derandomize=True, phases=_NO_SHRINK,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10 ** 6), n=st.integers(10, 40), kind=st.sampled_from(
+    ["quadratic", "cubic"]), k=st.sampled_from([0.02, 0.1, 0.4]), tiles=st.integers(1, 12))
+def test_pruned_polynomial_chains_are_bit_identical(seed, n, kind, k, tiles):
+    # runs of boxes (folded into loops) between circles, blended left to right with one k
+    rng = np.random.default_rng(seed)
+    f = sdf.Halfspace([0.2, 1], -1.7)
+    for i in range(n):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
+            s = sdf.Circle([0.01, 0.0], 0.04) if i % 9 == 4 else \
+                sdf.Box([-0.05, -0.03], [0.04, 0.06])
+        f = f.union(s, k=k, kind=kind)
+    comp = f.compiled
+    assert comp.groups and all(g["op"] in ("qmin", "cmin") for g in comp.groups)
+    p = rng.uniform(-2.3, 2.3, (2, 3000))
+    p[:, :3] = [[0.0, np.nan, 1.0], [0.0, 1.0, np.inf]]
+    d0, g0 = f(*p, compute_gradient=True, prune=False)
+    # the folded chain is the nested binary blends, in the written order
+    ref = evaluate_numpy(f.f, {"x": p[0, 3:], "y": p[1, 3:]})
+    np.testing.assert_allclose(d0[3:], ref, rtol=1e-12, atol=1e-12)
+    plan = comp.plan(((-2.3, 2.3), (-2.3, 2.3)), tiles=(tiles, tiles + 1))
+    out, grad = np.empty(p.shape[1]), np.empty((p.shape[1], 2))
+    comp.run(p[0].copy(), p[1].copy(), out, grad, plan)
+    assert _bits(out, d0) and _bits(grad, g0)
+    if tiles >= 8 and k < 0.4:
+        assert plan.fraction < 0.6
