@@ -428,14 +428,17 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
                "Taichi", "Warp (1 thread)", "fastsdf / Taichi (the three)"], rows), ""]
 
     rows = []
+    alone = [_force_alone_ns(grid, states["fall"], f) for f in (wind, _attractor())]
     for name in ("settled", "fall"):
         st = states[name]
         rates = compare([Fused(grid, st, 20), Fused(grid, st, 20, forces=[wind]),
                          Fused(grid, st, 20, forces=[_attractor()]),
                          Fused(grid, st, 3, forces=[_numpy_wind])], reps)
         g = rates[0][0]
+        step_ns = threads / g * 1e9         # one gravity step, per thread
         rows.append([name] + [cell(r) for r in rates] +
-                     [" / ".join(f"{g / r[0] - 1:+.0%}" for r in rates[1:])])
+                     [" / ".join(f"{g / r[0] - 1:+.0%}" for r in rates[1:])] +
+                     [f"{step_ns:.1f} ns; " + " / ".join(f"{a / step_ns:+.0%}" for a in alone)])
     out += [
         "### Fused user forces (`run(20)`, gravity plus one force)", "",
         "A numba `@njit` force `wind(x, y, vx, vy, m, t)` (drag towards a wind that grows "
@@ -443,12 +446,37 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
         "`FieldForce(potential=...)` attractor (an expression compiled like an SDF, its analytic "
         "gradient as the force) are inlined into the step; the NumPy generator computing the "
         "same wind runs between single compiled steps (the slow path). Extra time is relative "
-        "to gravity alone (medians); the target is at most +15%.", "",
+        "to gravity alone (medians); the target is at most +15%. The last column sets the "
+        "forces' arithmetic alone (the kernel's `force_many` over 8,192 particles in cache, one "
+        f"thread: wind {alone[0]:.2f} ns, attractor {alone[1]:.2f} ns per evaluation) against "
+        "the time of one gravity step per thread: what the force would add if its evaluation "
+        "overlapped nothing.", "",
         table(["phase", "gravity", "+ @njit wind", "+ FieldForce attractor",
-               "+ NumPy wind (run(3))", "extra time (njit / field / NumPy)"], rows), ""]
+               "+ NumPy wind (run(3))", "extra time (njit / field / NumPy)",
+               "gravity step per thread; arithmetic alone (wind / field)"], rows), ""]
     out += LIMIT.splitlines() + [""]
     out += _first_call_rows()
     return out
+
+
+def _force_alone_ns(grid, state, force, m=8192, reps=5, calls=200) -> float:
+    """Nanoseconds per evaluation of a fused force's arithmetic alone: the step kernel's own
+    ``force_many`` over ``m`` particles of ``state`` (in cache), one thread, best of ``reps``."""
+    sim = _sim(grid, m)
+    sim.force_generators.append(force)
+    module = sim._kernel(sim._fused_params()[4])[0]
+    x = np.array(state["x"][:m], dtype=np.float64)
+    v = np.array(state["v"][:m], dtype=np.float64)
+    args = (x[:, 0].copy(), x[:, 1].copy(), v[:, 0].copy(), v[:, 1].copy(),
+            np.array(state["m"][:m], dtype=np.float64), 0.0, np.empty((m, 2)))
+    module.force_many(*args)
+    best = math.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            module.force_many(*args)
+        best = min(best, (time.perf_counter() - t0) / (calls * m))
+    return best * 1e9
 
 
 LIMIT = """### Where the settled step stops: the per-particle limit
@@ -497,6 +525,33 @@ arithmetic and no gather instruction).
   (the same with `--force field`: 1.26x settled, 1.16x falling, bit-identical; a cheap
   `@njit` force such as the bench's `wind` is still evaluated inline: 1.04x settled, 0.95x falling). Not done: re-sorting particles by grid cell (it reorders the user's arrays
   and needs a permutation layer) and explicit SIMD (numba intrinsics for masked gathers).
+- The peers' work (skipping and the tunnelling check off) runs a kernel of its own,
+  `plain_par` in `fastsdf/_step.py` (compiled only when first used; same results bit for bit,
+  tested against the general kernel): no budgets and no sweep; flat unsigned indexing of the
+  state (numba emitted a negative-index wrap and a stride multiply for every `X[i, 0]`, which
+  the general kernel now avoids too); one finiteness test instead of four; the common flags
+  (no mass, semi-implicit, response while approaching) constant. After a step where at least
+  a quarter of a block touched a surface it runs the next step in two passes over batches of
+  16 particles (integrate and query all, then respond): alone that measured +7% settled and
+  -7% falling against the straight loop, hence the switch by contact count.
+  `python -m bench.step_ab --rev c0c3e8b --phase settled fall --peer-work` (the kernel before,
+  load 3): 1.36x settled, 1.39x falling, bit-identical; 1.09x and 0.96x Taichi's rate. The
+  default path gained +2% settled (noise) and +13% falling from the indexing alone (the same
+  command without `--peer-work`). Measured and not kept: selects instead of the contact branch
+  in the plain loop (0.87x settled: every particle pays the response and loads `cr, cf`);
+  leaving out the drag term when the drag is 0 (no change with the `wind` force).
+- The limit of the peers' settled step is the one above without the sweep: a dependent chain
+  of about 100 cycles (load, integrate, locate, grid, blends, response) per particle, of which
+  out-of-order execution overlaps about two. The two-pass batches take the response's
+  mispredicted branch off the queries' chain, which is what the +7% is; 2x Taichi needs the
+  queries of 4 particles in SIMD lanes (AVX2 has gathers, which Zen 2 runs as about one load
+  per element, so the gain would come from the arithmetic only) and is not reached.
+- What fused forces cost: the forces table gives each force's arithmetic alone next to one
+  gravity step. In free flight a skipped step is only integration and the budget (a few ns),
+  so even the wind's ten flops are a sizable part of it; the attractor's value and gradient
+  take a square root and three divisions, more than a whole skipped step, so +15% cannot hold
+  for it in free flight whatever the call costs. While settled (a query and a response per
+  step) the wind costs nothing measurable.
 - What the sweep costs while settled: a particle sliding along the funnel faster than
   `TRACE_FRACTION r` per step is swept every step (its end point is in contact), and its march
   queries the start, the contact and the end again: three to four queries instead of one. The

@@ -94,6 +94,14 @@ One step, per particle (the physics is described in :mod:`fastsdf.particles`)
 7. a particle whose step left its state bit-identical sleeps for the rest of the call
    (``SLEEP``: a static world and no user force, so every later step would repeat it).
 
+Calls without query skipping, tunnelling check, moving world or resting contact (the peers'
+work: ``skip`` and ``trace`` off, ``rest`` 0) go to :func:`plain_par`/:func:`plain_ser`, a
+separate entry point compiled only when first used: the same results from a shorter loop (no
+budgets, no sweep), which runs a step particle after particle while few particles of a block
+touch a surface and in two passes over batches of ``PLAIN_BATCH`` (integrate and query all,
+then respond) after a step where many did, so that mispredicted contact branches do not
+discard the next particles' queries.
+
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
 finite and > 0 when read); ``cr``, ``cf`` are checked where a contact uses them; every step's
@@ -498,6 +506,13 @@ def _rests(vx, vy, ax, ay, gx, gy, cf, rest):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _finite4(x, y, vx, vy):
+    """Whether all four are finite, in one test (``a - a`` is 0 for a finite ``a`` and NaN
+    for an infinite or NaN one): fewer instructions and branches per step than four tests."""
+    return (x - x) + (y - y) + (vx - vx) + (vy - vy) == 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _valid_input(x, y, vx, vy, r, m, use_m):
     """Whether a particle's loaded state may be stepped (cr, cf are checked at contacts)."""
     ok = (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
@@ -546,6 +561,10 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             clear[i - lo] = -1.0
             FLAGS[i] = FLAG_INPUT
             bad += 1
+    Xf = X.reshape(X.size)
+    Vf = V.reshape(V.size)
+    one = np.uint64(1)
+    two = np.uint64(2)
     for step in range(steps):
         t = t0 + step * dt
         for i in range(lo, hi):
@@ -563,11 +582,14 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             c = clear[k]
             if c < 0.0:
                 continue
-            x = float(X[i, 0])
-            y = float(X[i, 1])
-            vx = float(V[i, 0])
-            vy = float(V[i, 1])
-            r = float(R[i])
+            u = np.uint64(i)
+            ix = two * u
+            iy = ix + one
+            x = float(Xf[ix])
+            y = float(Xf[iy])
+            vx = float(Vf[ix])
+            vy = float(Vf[iy])
+            r = float(R[u])
             x0 = x
             y0 = y
             vx0 = vx
@@ -585,7 +607,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     fx += fbuf[k % FORCE_BATCH, 0]
                     fy += fbuf[k % FORCE_BATCH, 1]
                 elif USE_FORCE:
-                    ux, uy = _force(x, y, vx, vy, float(M[i]), t)
+                    ux, uy = _force(x, y, vx, vy, float(M[u]), t)
                     fx += ux
                     fy += uy
                 bx += fx * inv_m
@@ -610,22 +632,21 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 if c > 0.0:
                     x += dx
                     y += dy
-                    if not (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
-                            and abs(vy) < math.inf):
+                    if not _finite4(x, y, vx, vy):
                         clear[k] = -1.0
-                        FLAGS[i] = FLAG_NONFINITE
+                        FLAGS[u] = FLAG_NONFINITE
                         bad += 1
                         continue
                     clear[k] = c
-                    X[i, 0] = x
-                    X[i, 1] = y
-                    V[i, 0] = vx
-                    V[i, 1] = vy
+                    Xf[ix] = x
+                    Xf[iy] = y
+                    Vf[ix] = vx
+                    Vf[iy] = vy
                     continue
                 clear[k] = 0.0
             if _fallback_missing(data, x, y, dx, dy):
                 clear[k] = -1.0
-                FLAGS[i] = FLAG_RESUME + step
+                FLAGS[u] = FLAG_RESUME + step
                 bad += 1
                 continue
             gt = 0.0
@@ -648,11 +669,11 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     sweep = dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
                         s * s >= lip * lip * dd and s > 0.0)
                 if sweep:
-                    cr = float(CR[i])
-                    cf = float(CF[i])
+                    cr = float(CR[u])
+                    cf = float(CF[u])
                     if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
                         clear[k] = -1.0
-                        FLAGS[i] = FLAG_COEFF
+                        FLAGS[u] = FLAG_COEFF
                         bad += 1
                         continue
                     # The part within s / L of the end is known to be free. (The start's
@@ -676,11 +697,11 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             x += dx
             y += dy
             if s <= 0.0:
-                cr = float(CR[i])
-                cf = float(CF[i])
+                cr = float(CR[u])
+                cf = float(CF[u])
                 if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
                     clear[k] = -1.0
-                    FLAGS[i] = FLAG_COEFF
+                    FLAGS[u] = FLAG_COEFF
                     bad += 1
                     continue
                 if rest > 0.0 and not bounced and _rests(vx0, vy0, bx, by, gx, gy, cf, rest):
@@ -694,10 +715,9 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                                             always and not bounced, gt)
             elif skip and s > margin:
                 clear[k] = (s - margin) / lip * (1.0 - 1e-9)
-            if not (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
-                    and abs(vy) < math.inf):
+            if not _finite4(x, y, vx, vy):
                 clear[k] = -1.0
-                FLAGS[i] = FLAG_NONFINITE
+                FLAGS[u] = FLAG_NONFINITE
                 bad += 1
                 continue
             if SLEEP and x == x0 and y == y0 and vx == vx0 and vy == vy0 and steps > 1:
@@ -706,10 +726,279 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 # step of the call would repeat it, so the particle sleeps until the next call.
                 clear[k] = ASLEEP
                 continue
-            X[i, 0] = x
-            X[i, 1] = y
-            V[i, 0] = vx
-            V[i, 1] = vy
+            Xf[ix] = x
+            Xf[iy] = y
+            Vf[ix] = vx
+            Vf[iy] = vy
+    return bad
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _plain_straight(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear, inv_mass,
+                    fbuf, dt, ax, ay, drag, use_m, use_ext, explicit, always):
+    """One step of a block for :func:`_block_plain`, particle after particle."""
+    bad = 0
+    touching = 0
+    one = np.uint64(1)
+    two = np.uint64(2)
+    for i in range(lo, hi):
+        k = i - lo
+        if USE_FORCE and FORCE_AHEAD and k % FORCE_BATCH == 0:
+            for j in range(i, min(hi, i + FORCE_BATCH)):
+                if clear[j - lo] >= 0.0:
+                    uj = np.uint64(j)
+                    ux, uy = _force(float(Xf[two * uj]), float(Xf[two * uj + one]),
+                                    float(Vf[two * uj]), float(Vf[two * uj + one]),
+                                    float(M[uj]), t)
+                    fbuf[j - i, 0] = ux
+                    fbuf[j - i, 1] = uy
+        if clear[k] < 0.0:
+            continue
+        u = np.uint64(i)
+        ix = two * u
+        iy = ix + one
+        x = float(Xf[ix])
+        y = float(Xf[iy])
+        vx = float(Vf[ix])
+        vy = float(Vf[iy])
+        r = float(R[u])
+        bx = ax
+        by = ay
+        if use_m:
+            inv_m = inv_mass[k]
+            fx = -drag * vx
+            fy = -drag * vy
+            if use_ext:
+                fx += EXT[i, 0]
+                fy += EXT[i, 1]
+            if USE_FORCE and FORCE_AHEAD:
+                fx += fbuf[k % FORCE_BATCH, 0]
+                fy += fbuf[k % FORCE_BATCH, 1]
+            elif USE_FORCE:
+                ux, uy = _force(x, y, vx, vy, float(M[u]), t)
+                fx += ux
+                fy += uy
+            bx += fx * inv_m
+            by += fy * inv_m
+        if explicit:
+            dx = vx * dt
+            dy = vy * dt
+            vx += bx * dt
+            vy += by * dt
+        else:
+            vx += bx * dt
+            vy += by * dt
+            dx = vx * dt
+            dy = vy * dt
+        if _fallback_missing(data, x, y, dx, dy):
+            clear[k] = -1.0
+            FLAGS[u] = FLAG_RESUME + step
+            bad += 1
+            continue
+        d, gx, gy = _query(data, x + dx, y + dy)
+        s = d - r
+        x += dx
+        y += dy
+        if s <= 0.0:
+            touching += 1
+            cr = float(CR[u])
+            cf = float(CF[u])
+            if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
+                clear[k] = -1.0
+                FLAGS[u] = FLAG_COEFF
+                bad += 1
+                continue
+            x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, 0.0)
+        if not _finite4(x, y, vx, vy):
+            clear[k] = -1.0
+            FLAGS[u] = FLAG_NONFINITE
+            bad += 1
+            continue
+        Xf[ix] = x
+        Xf[iy] = y
+        Vf[ix] = vx
+        Vf[iy] = vy
+    return bad, touching
+
+
+#: Particles a batched plain step handles per pass (see :func:`_plain_staged`; at most
+#: ``FORCE_BATCH``, the size of the buffer of forces evaluated ahead).
+PLAIN_BATCH = 16
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear, inv_mass,
+                  fbuf, sb, dt, ax, ay, drag, use_m, use_ext, explicit, always):
+    """One step of a block for :func:`_block_plain`, ``PLAIN_BATCH`` particles at a time in
+    two passes: integrate and query all of them (independent iterations without
+    data-dependent branches, so their dependent chains overlap), then respond (the contact
+    branch mispredicts often while particles rest; there a mispredict no longer discards the
+    next particles' queries). ``sb``: scratch of shape (7, PLAIN_BATCH)."""
+    bad = 0
+    touching = 0
+    one = np.uint64(1)
+    two = np.uint64(2)
+    for b0 in range(lo, hi, PLAIN_BATCH):
+        b1 = min(hi, b0 + PLAIN_BATCH)
+        if USE_FORCE and FORCE_AHEAD:
+            for j in range(b0, b1):
+                if clear[j - lo] >= 0.0:
+                    uj = np.uint64(j)
+                    ux, uy = _force(float(Xf[two * uj]), float(Xf[two * uj + one]),
+                                    float(Vf[two * uj]), float(Vf[two * uj + one]),
+                                    float(M[uj]), t)
+                    fbuf[j - b0, 0] = ux
+                    fbuf[j - b0, 1] = uy
+        for i in range(b0, b1):
+            k = i - lo
+            q = i - b0
+            if clear[k] < 0.0:
+                continue
+            u = np.uint64(i)
+            ix = two * u
+            iy = ix + one
+            x = float(Xf[ix])
+            y = float(Xf[iy])
+            vx = float(Vf[ix])
+            vy = float(Vf[iy])
+            bx = ax
+            by = ay
+            if use_m:
+                inv_m = inv_mass[k]
+                fx = -drag * vx
+                fy = -drag * vy
+                if use_ext:
+                    fx += EXT[i, 0]
+                    fy += EXT[i, 1]
+                if USE_FORCE and FORCE_AHEAD:
+                    fx += fbuf[q, 0]
+                    fy += fbuf[q, 1]
+                elif USE_FORCE:
+                    ux, uy = _force(x, y, vx, vy, float(M[u]), t)
+                    fx += ux
+                    fy += uy
+                bx += fx * inv_m
+                by += fy * inv_m
+            if explicit:
+                dx = vx * dt
+                dy = vy * dt
+                vx += bx * dt
+                vy += by * dt
+            else:
+                vx += bx * dt
+                vy += by * dt
+                dx = vx * dt
+                dy = vy * dt
+            if _fallback_missing(data, x, y, dx, dy):
+                clear[k] = -1.0
+                FLAGS[u] = FLAG_RESUME + step
+                bad += 1
+                continue
+            d, gx, gy = _query(data, x + dx, y + dy)
+            sb[0, q] = x + dx
+            sb[1, q] = y + dy
+            sb[2, q] = vx
+            sb[3, q] = vy
+            sb[4, q] = d - float(R[u])
+            sb[5, q] = gx
+            sb[6, q] = gy
+        for i in range(b0, b1):
+            k = i - lo
+            q = i - b0
+            if clear[k] < 0.0:
+                continue
+            u = np.uint64(i)
+            s = sb[4, q]
+            x = sb[0, q]
+            y = sb[1, q]
+            vx = sb[2, q]
+            vy = sb[3, q]
+            if s <= 0.0:
+                touching += 1
+                cr = float(CR[u])
+                cf = float(CF[u])
+                if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
+                    clear[k] = -1.0
+                    FLAGS[u] = FLAG_COEFF
+                    bad += 1
+                    continue
+                x, y, vx, vy = _respond(x, y, vx, vy, s, sb[5, q], sb[6, q], cr, cf,
+                                        always, 0.0)
+            if not _finite4(x, y, vx, vy):
+                clear[k] = -1.0
+                FLAGS[u] = FLAG_NONFINITE
+                bad += 1
+                continue
+            ix = two * u
+            Xf[ix] = x
+            Xf[ix + one] = y
+            Vf[ix] = vx
+            Vf[ix + one] = vy
+    return bad, touching
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _plain_steps(data, lo, hi, steps, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear, inv_mass, fbuf,
+                 sb, dt, t0, ax, ay, drag, use_m, use_ext, explicit, always):
+    """The steps of :func:`_block_plain`: a step in batches (:func:`_plain_staged`) after a
+    step where at least a quarter of the block touched a surface, else particle after
+    particle (:func:`_plain_straight`); the two give the same results."""
+    bad = 0
+    touching = 0
+    for step in range(steps):
+        t = t0 + step * dt
+        if 4 * touching >= hi - lo:
+            b, touching = _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS,
+                                        clear, inv_mass, fbuf, sb, dt, ax, ay, drag, use_m,
+                                        use_ext, explicit, always)
+        else:
+            b, touching = _plain_straight(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT,
+                                          FLAGS, clear, inv_mass, fbuf, dt, ax, ay, drag, use_m,
+                                          use_ext, explicit, always)
+        bad += b
+    return bad
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _block_plain(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag,
+                 use_m, use_ext, explicit, always, check_all):
+    """:func:`_block` without query skipping, tunnelling check, moving world or resting
+    contact: every step is integrate, query, respond, as in the peers' kernels. Same results
+    as :func:`_block` with those off, in fewer instructions per particle-step (flat unsigned
+    indexing, the common flags constant), so that out-of-order execution overlaps more
+    particles' dependent chains.
+    """
+    data = borrow_all(data)
+    clear = np.zeros(hi - lo)
+    use_m = use_m or USE_FORCE
+    inv_mass = np.empty(hi - lo if use_m else 0)
+    fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
+    bad = 0
+    for i in range(lo, hi):
+        m = float(M[i]) if use_m or check_all else 1.0
+        if use_m:
+            inv_mass[i - lo] = 1.0 / m
+        ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
+                          float(R[i]), m, use_m or check_all)
+        if check_all:
+            cr = float(CR[i])
+            cf = float(CF[i])
+            ok = ok and cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0
+        if not ok:
+            clear[i - lo] = -1.0
+            FLAGS[i] = FLAG_INPUT
+            bad += 1
+    Xf = X.reshape(X.size)
+    Vf = V.reshape(V.size)
+    sb = np.empty((7, PLAIN_BATCH))
+    if not use_m and not explicit and not always:
+        bad += _plain_steps(data, lo, hi, steps, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear,
+                            inv_mass, fbuf, sb, dt, t0, ax, ay, drag, False, False, False,
+                            False)
+    else:
+        bad += _plain_steps(data, lo, hi, steps, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear,
+                            inv_mass, fbuf, sb, dt, t0, ax, ay, drag, use_m, use_ext, explicit,
+                            always)
     return bad
 
 
@@ -739,6 +1028,37 @@ def run_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
         bad += _block(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT, FLAGS, dt,
                       t0, ax, ay, drag, use_m, use_ext, explicit, always, trace, lip, margin,
                       eps, skip, rest, check_all)
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def plain_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+              use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+    """:func:`run_par` for calls without query skipping, tunnelling check, moving world or
+    resting contact (``skip``, ``trace`` False, ``rest`` 0; the others are unused): the same
+    results through :func:`_block_plain`. A separate entry point, compiled only when first
+    used."""
+    n = X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_plain(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax,
+                            ay, drag, use_m, use_ext, explicit, always, check_all)
+    return bad
+
+
+@njit(cache=_CACHE, error_model="numpy")
+def plain_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+              use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+    """Serial :func:`plain_par`."""
+    n = X.shape[0]
+    bad = 0
+    for lo in range(0, n, block):
+        bad += _block_plain(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT,
+                            FLAGS, dt, t0, ax, ay, drag, use_m, use_ext, explicit, always,
+                            check_all)
     return bad
 
 

@@ -1115,7 +1115,13 @@ class ParticleSimulation:
     def _call(self, module, data, steps, arrays, args, check_all):
         n = arrays[0].shape[0]
         parallel = n >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
-        kernel = module.run_par if parallel else module.run_ser
+        # args: (..., trace, lip, margin, eps, skip, rest)
+        plain = not (args[11] or args[15] or args[16] > 0.0 or module.MOVING) and \
+            hasattr(module, "plain_par")      # (bench/step_ab.py builds older step sources)
+        if plain:
+            kernel = module.plain_par if parallel else module.plain_ser
+        else:
+            kernel = module.run_par if parallel else module.run_ser
         return kernel(data, steps, self.block or DEFAULT_BLOCK, *arrays, *args, check_all)
 
     def _resume(self, module, steps, args, bad):

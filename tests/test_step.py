@@ -179,6 +179,82 @@ def test_kernel_flags_invalid_particles_and_non_finite_steps():
     assert X.tolist() == [[0.0, 1.0]] and V.tolist() == [[1e300, 0.0]]
 
 
+def _mixed_state(seed, n=96):
+    """Particles resting on the floor (the first third), falling from high up (the second)
+    and bouncing among the test world's walls (the rest), with some invalid ones."""
+    rng = np.random.default_rng(seed)
+    k = n // 3
+    x = np.c_[rng.uniform(-1, 1, n), np.r_[rng.uniform(0.049, 0.051, k), rng.uniform(5, 6, k),
+                                           rng.uniform(0.1, 1.5, n - 2 * k)]]
+    v = np.r_[rng.normal(scale=0.01, size=(k, 2)), rng.normal(size=(n - k, 2))]
+    X, V, M, R, CR, CF = kernel_args(n, x, v)
+    M[:] = rng.uniform(0.5, 2.0, n)
+    R[:] = rng.uniform(0.02, 0.08, n)
+    CR[:] = rng.uniform(0.0, 1.0, n)
+    CF[:] = rng.uniform(0.0, 1.0, n)
+    X[5, 1] = math.nan                  # invalid input
+    CR[7] = 1.5                         # invalid cr, found at its first contact
+    CF[n - 3] = -0.1
+    return X, V, M, R, CR, CF
+
+
+@pytest.mark.parametrize("explicit, always, drag, ext", [
+    (False, False, 0.0, False), (True, True, 0.3, False), (False, False, 0.0, True)])
+@pytest.mark.parametrize("block", [5, 64])
+def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, ext, block):
+    # Without skipping and the tunnelling check, calls go to plain_ser/plain_par (a straight
+    # and a batched step chosen by the contact count): bit-identical states, flags and counts.
+    data = world(planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
+                 discs=[(0.3, 0.4, 0.2)])
+    base = _mixed_state(11)
+    n = base[0].shape[0]
+    E = np.random.default_rng(2).normal(size=(n, 2)) if ext else np.zeros((0, 2))
+    out = []
+    for kernel in (_step.run_ser, _step.plain_ser, _step.run_par, _step.plain_par):
+        X, V, M, R, CR, CF = [a.copy() for a in base]
+        flags = np.zeros(n, np.int32)
+        bad = kernel(data, 40, block, X, V, M, R, CR, CF, E, flags, 0.01, 0.0, 0.0, -1.0, drag,
+                     drag != 0.0 or ext, ext, explicit, always, False, 1.0, 0.0, 2.2e-16, False,
+                     0.0, False)       # check_all off: cr, cf are checked at contacts
+        out.append((X, V, flags, bad))
+    ref = out[0]
+    assert ref[2][5] == _step.FLAG_INPUT and ref[2][7] == _step.FLAG_COEFF
+    assert ref[3] == np.count_nonzero(ref[2])
+    assert np.all(ref[1][: n // 3 - 1, 1] ** 2 < 1.0)      # the resting third stays in contact
+    for X, V, flags, bad in out[1:]:
+        np.testing.assert_array_equal(X, ref[0])
+        np.testing.assert_array_equal(V, ref[1])
+        np.testing.assert_array_equal(flags, ref[2])
+        assert bad == ref[3]
+
+
+def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
+    g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[60j, 60j])
+    sims = []
+    for tunnelling in (False, True):
+        sim = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=tunnelling)
+        sim.force_generators.append(phys.Gravity())
+        sim._skip = False
+        sims.append(sim)
+    sims[0].run(60)
+    assert sims[0]._module.plain_ser.signatures          # compiled and called
+    assert not sims[1]._module.plain_ser.signatures or sims[1]._module is sims[0]._module
+    # the general kernel with the same switches gives the same state
+    ref = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=False)
+    ref.force_generators.append(phys.Gravity())
+    a = ref.p._arrays
+    flags = np.zeros(300, np.int32)
+    ax, ay, drag, _, _ = ref._fused_params()
+    ref._bind_fallback()                                   # no particle stops to bind it
+    ref._module.run_ser(ref._bind(ref._data), 60, 512, *[a[k] for k in phys.Particles.FIELDS],
+                        np.zeros((0, 2)), flags, ref.dt, 0.0, ax, ay, drag, False, False,
+                        ref.integrator == "euler", ref.collision == "notebook", False,
+                        ref.lipschitz, ref._margin, 2.2e-16, False, 0.0, True)
+    assert not flags.any()
+    np.testing.assert_array_equal(sims[0].p["x"], ref.p["x"])
+    np.testing.assert_array_equal(sims[0].p["v"], ref.p["v"])
+
+
 # ---------------------------------------------------------------------------------------------
 # Generated kernels.
 
