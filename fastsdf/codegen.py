@@ -1085,8 +1085,10 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
             pe = _Emitter(symbol_names, grad, ptables, fold=True, memo=memo)
             prog = pe.program(root)
             if prog is not None:
+                # the one-point function runs the program too (numba's time for the
+                # straight-line one grows faster than the scene: 38 s at 200 primitives)
                 tables.update(ptables)
-                one = (one, program_source(vectorizable(pe.lines), kind, pe.fold_sizes, *prog))
+                one = program_source(vectorizable(pe.lines), kind, pe.fold_sizes, *prog)
         if prog is None and len(rest) > FOLD_MIN_LINES:
             # A long body: the block kernels evaluate repeated subexpressions in loops (the
             # per-point functions keep the straight-line code; the tests compare the two).
