@@ -65,6 +65,9 @@ FOLD_MIN_LINES = 400
 #: At most this many values per point (scratch rows of BLOCK floats, per thread) are stored by
 #: those loops; groups beyond it stay straight-line code.
 MAX_FOLD_ROWS = 1536
+#: The same for the subexpressions under a combine program (all of the scene's primitives;
+#: 8192 rows are 32 MiB of scratch space per thread).
+MAX_PROGRAM_ROWS = 8192
 #: Long bodies that are trees of blends run their blends as a combine program (see
 #: ``_Emitter.program``); False keeps straight-line block code (kept to compare the two).
 COMBINE_PROGRAMS = True
@@ -275,7 +278,7 @@ class _Emitter:
     COMPONENTS = ("x", "y")
 
     def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False,
-                 fold: bool = False):
+                 fold: bool = False, memo: dict | None = None):
         self.grad = grad
         # fold: evaluate same-shape subexpressions anywhere in the scene in loops first (into
         # the per-point arrays _F<g>); the straight-line code then only reads their entries.
@@ -298,7 +301,12 @@ class _Emitter:
         # Loops over tables ("groups"), in emission order: each iterates the rows listed in
         # _act[_off[g]:_off[g + 1]], so a caller can pass a pruned list without recompiling.
         self.groups: list[dict] = []
-        self.sizes: dict[int, int] = {}
+        # Shapes, sizes and chain plans depend on the expression alone: the emitters of one
+        # module share them (``memo``), so the four functions of a scene find each once.
+        self.memo = {} if memo is None else memo
+        self.sizes: dict[int, int] = self.memo.setdefault("sizes", {})
+        self._templates: dict = self.memo.setdefault("templates", {})
+        self._plans: dict = self.memo.setdefault("plans", {})
 
     def _name(self, prefix="v"):
         self.n += 1
@@ -511,12 +519,12 @@ class _Emitter:
             if (id(node) not in under_big or node.op in ("const", "sym", "param")
                     or too_big(node) or not _foldable(node)):
                 continue
-            sig, steps, consts = _template(node)
+            sig, steps, consts = self._template(node)
             shapes.setdefault(sig, (steps, [], []))
             shapes[sig][1].append(node)
             shapes[sig][2].append(consts)
         ncomp = len(self.COMPONENTS)
-        rows_left = MAX_FOLD_ROWS
+        rows_left = MAX_PROGRAM_ROWS if singles else MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
             if len(members) < (1 if singles else 2) or \
                     len(members) * (1 + ncomp * self.grad) > rows_left:
@@ -676,7 +684,20 @@ class _Emitter:
             sizes[id(n)] = min(MAX_TEMPLATE_NODES + 1, 1 + sum(sizes[id(a)] for a in n.args))
         return sizes[id(root)]
 
+    def _template(self, node: Expr):
+        """:func:`_template`, memoized."""
+        t = self._templates.get(id(node))
+        if t is None:
+            t = self._templates[id(node)] = _template(node)
+        return t
+
     def _plan(self, node: Expr):
+        plan = self._plans.get(id(node))
+        if plan is None:
+            plan = self._plans[id(node)] = self._plan_of(node)
+        return plan
+
+    def _plan_of(self, node: Expr):
         if node.op not in _CHAIN_OPS:
             return list(node.args), None
         operands = _flatten_chain(node)
@@ -690,7 +711,7 @@ class _Emitter:
                 # their shape would walk them again at every level, quadratic in the scene.
                 order.append(("node", operand))
                 continue
-            sig, steps, consts = _template(operand)
+            sig, steps, consts = self._template(operand)
             group = shapes.get(sig)
             if group is None:
                 group = shapes[sig] = [steps, [], []]
@@ -735,7 +756,7 @@ class _Emitter:
                 items.append(("node", operand))
                 deps.append(operand)
                 continue
-            sig, steps, consts = _template(operand)
+            sig, steps, consts = self._template(operand)
             if run is None or run[0] != sig:
                 flush()
                 run = [sig, steps, [], []]
@@ -991,12 +1012,12 @@ def _as_float(expr: str) -> str:
 
 
 def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_names=None,
-                     time: bool = False, vmath: bool = True):
+                     time: bool = False, vmath: bool = True, memo: dict | None = None):
     """Sources of the one-point function and of the multi-lane function for the batch kernels;
     also returns the number of lanes. ``param_names`` (None for a scene without parameters):
     the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
     ``time``: also return dd/dt (the ``vgt`` functions)."""
-    em = _Emitter(symbol_names, grad or time, tables, param_names or (), time)
+    em = _Emitter(symbol_names, grad or time, tables, param_names or (), time, memo=memo)
     res = em.emit(root)
     if grad or time:
         results = [_as_float(res.v)] + [_as_float(_zero(c))
@@ -1031,17 +1052,21 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
     one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
                                  ret=", ".join(results), nan_return=single[2])
     bind, rest = em.lines[:len(binds)], em.lines[len(binds):]
-    if lanes == 1:  # nothing to interleave: rename the whole body at once
+    if param_names is None and not time:
+        # A static scene's batch kernels are its block kernels: no multi-lane function.
+        many = ""
+    elif lanes == 1:  # nothing to interleave: rename the whole body at once
         body_n = "\n".join("    " + line for line in bind) + "\n" + \
             _lane("\n".join("    " + line for line in rest), 0) if rest else \
             "\n".join("    " + line for line in bind) or "    pass"
     else:
         body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
-    many = _LANES_TEMPLATE.format(
-        name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
-        args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
-                       + (["_act, _off"] if em.groups else [])) + pargs,
-        ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
+    if param_names is not None or time:
+        many = _LANES_TEMPLATE.format(
+            name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
+            args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
+                           + (["_act, _off"] if em.groups else [])) + pargs,
+            ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
     if em.groups and grad and param_names is None and not time:
         # The one-point function over given row lists (pointers to int64: a tile's pruned
         # lists), for per-point callers such as the particle step (see fastsdf.prune).
@@ -1057,7 +1082,7 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
             # A long body that is a tree of blends over small subexpressions: those in loops
             # over tables, the blends as a program for the installation's interpreter.
             ptables = dict(tables)  # kept only if the program is used
-            pe = _Emitter(symbol_names, grad, ptables, fold=True)
+            pe = _Emitter(symbol_names, grad, ptables, fold=True, memo=memo)
             prog = pe.program(root)
             if prog is not None:
                 tables.update(ptables)
@@ -1065,7 +1090,7 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         if prog is None and len(rest) > FOLD_MIN_LINES:
             # A long body: the block kernels evaluate repeated subexpressions in loops (the
             # per-point functions keep the straight-line code; the tests compare the two).
-            fe = _Emitter(symbol_names, grad, tables, fold=True)
+            fe = _Emitter(symbol_names, grad, tables, fold=True, memo=memo)
             fres = fe.emit(root)
             if fe.fold_sizes:
                 assert [len(g["members"]) for g in fe.groups] == \
@@ -1106,10 +1131,11 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     ``rows`` (their shared template and constants), ``others`` (the chain's other operands))."""
     tables: dict = {}
     pn = scene_parameters(root)
+    memo: dict = {}
     v_one, v_many, lanes_v, groups_v = _function_source(root, symbol_names, False, tables, pn,
-                                                        vmath=vmath)
+                                                        vmath=vmath, memo=memo)
     vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
-                                                         vmath=vmath)
+                                                         vmath=vmath, memo=memo)
     # The batch kernels are the SIMD block kernels of fastsdf._simd (defined last, they
     # replace the multi-lane batch kernels of the same name).
     blocks = []
@@ -1125,7 +1151,7 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
         # one module.
         vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(root, symbol_names, True,
                                                                  tables, pn, time=True,
-                                                                 vmath=vmath)
+                                                                 vmath=vmath, memo=memo)
         vgt_one, vgt_block = vgt_one
         blocks.append(vgt_block)
         funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
@@ -1145,7 +1171,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
             f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n")
     parts.extend(funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt")
                  if k in funcs)
-    parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
+    if pn is not None:  # a static scene's batch kernels are its block kernels (below)
+        parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
     if vmath:
         parts.append(vmath_import())
     if blocks:
