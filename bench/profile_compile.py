@@ -24,6 +24,7 @@ SCENES = {
     "box1000": ("1000-primitive world", lambda sdf, sc: sc.box_world(997)),
     "mixed50": ("mixed ops, 50 primitives", lambda sdf, sc: _mixed(sdf, 50)),
     "mixed200": ("mixed ops, 200 primitives", lambda sdf, sc: _mixed(sdf, 200)),
+    "mixed2000": ("mixed ops, 2000 primitives", lambda sdf, sc: _mixed(sdf, 2000)),
 }
 
 
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.profile_compile", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", choices=sorted(SCENES), action="append",
-                        help="scene(s) to profile (default: all but box1000)")
+                        help="scene(s) to profile (default: all but box1000 and mixed2000)")
     parser.add_argument("--source", choices=sorted(SCENES), help="print a scene's generated code")
     parser.add_argument("--module", action="store_true",
                         help="with --source: print the whole module (tables, kernels)")
@@ -102,7 +103,7 @@ def main(argv=None) -> int:
     import numba  # noqa: F401 - import cost shown separately
     import fastsdf.codegen  # noqa: F401
     print(f"import numba + fastsdf: {time.perf_counter() - t0:.2f} s (once per process)")
-    keys = args.scene or ["circle", "seed", "box20", "box200"]
+    keys = args.scene or ["circle", "seed", "box20", "box200", "mixed50", "mixed200"]
     header = ("scene", "lines", "build graph", "codegen", "import module", "first call",
               "of which numba", "of which LLVM")
     print(" | ".join(header))

@@ -29,7 +29,8 @@ from ._vmath import vexp as _vexp, vlog as _vlog
 
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
            "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
-           "run_prog_v_ser", "run_prog_vg_par", "run_prog_vg_ser"]
+           "run_prog_v_ser", "run_prog_vg_par", "run_prog_vg_ser", "combine_point_v",
+           "combine_point_vg"]
 
 _P = types.CPointer(types.float64)
 _I = types.CPointer(types.int64)
@@ -451,6 +452,115 @@ def _combine(S, at, prog, grad):
             _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0)
         else:
             _step_v(op, A, M, prog[p, 3], prog[p, 4])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def combine_point_vg(F, prog):
+    """The program ``prog`` at one point: rows are single floats ``F[row]`` (the program's
+    offsets divided by ``BLOCK``); the same formulas as :func:`_step_vg`, so the same bits.
+    Returns the value and gradient."""
+    for p in range(prog.shape[0] - 1):
+        op = int(prog[p, 0])
+        a = int(prog[p, 1]) // BLOCK
+        m = int(prog[p, 2]) // BLOCK
+        nk = prog[p, 3]
+        ik = prog[p, 4]
+        zx = prog[p, 5] != 0.0
+        zy = prog[p, 6] != 0.0
+        if op == OP_INIT:
+            F[m] = F[a]
+            F[m + 1] = F[a + 1]
+            F[m + 2] = F[a + 2]
+            F[m + 3] = 1.0
+        elif op == OP_NEG:
+            F[m] = -F[a]
+            F[m + 1] = _sel(zx, 0.0, -F[a + 1])
+            F[m + 2] = _sel(zy, 0.0, -F[a + 2])
+        elif op == OP_MIN or op == OP_MAX:
+            w = F[a] < F[m] if op == OP_MIN else F[a] > F[m]
+            F[m + 1] = _sel(w, F[a + 1], F[m + 1])
+            F[m + 2] = _sel(w, F[a + 2], F[m + 2])
+            F[m] = _sel(w, F[a], F[m])
+        elif op == OP_SMIN or op == OP_SMAX:
+            v = F[a]
+            c = F[m]
+            w = v < c if op == OP_SMIN else v > c
+            e = _vexp(nk * abs(v - c))
+            acc = F[m + 3]
+            F[m + 3] = _sel(w, acc * e + 1.0, acc + e)
+            vx = F[a + 1]
+            vy = F[a + 2]
+            cx = F[m + 1]
+            cy = F[m + 2]
+            F[m + 1] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e))
+            F[m + 2] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e))
+            F[m] = _sel(w, v, c)
+        elif op == OP_SMIN2 or op == OP_SMAX2:
+            lt = op == OP_SMIN2
+            sign = -1.0 if lt else 1.0
+            v = F[a]
+            c = F[m]
+            w = v < c if lt else v > c
+            e = _vexp(nk * abs(v - c))
+            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
+            vx = F[a + 1]
+            vy = F[a + 2]
+            cx = F[m + 1]
+            cy = F[m + 2]
+            r = 1.0 / acc
+            F[m + 1] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e)) * r
+            F[m + 2] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e)) * r
+            F[m] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
+        elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
+            sign = -1.0 if op == OP_FIN_SMIN else 1.0
+            acc = F[m + 3]
+            F[m] = F[m] + sign * (_vlog(acc) * ik)
+            r = 1.0 / acc
+            F[m + 1] = F[m + 1] * r
+            F[m + 2] = F[m + 2] * r
+    a = int(prog[prog.shape[0] - 1, 1]) // BLOCK
+    return F[a], F[a + 1], F[a + 2]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def combine_point_v(F, prog):
+    """:func:`combine_point_vg` for the value alone (the rows of :func:`_step_v`)."""
+    for p in range(prog.shape[0] - 1):
+        op = int(prog[p, 0])
+        a = int(prog[p, 1]) // BLOCK
+        m = int(prog[p, 2]) // BLOCK
+        nk = prog[p, 3]
+        ik = prog[p, 4]
+        if op == OP_INIT:
+            F[m] = F[a]
+            F[m + 1] = 1.0
+        elif op == OP_NEG:
+            F[m] = -F[a]
+        elif op == OP_MIN:
+            F[m] = _sel(F[a] < F[m], F[a], F[m])
+        elif op == OP_MAX:
+            F[m] = _sel(F[a] > F[m], F[a], F[m])
+        elif op == OP_SMIN or op == OP_SMAX:
+            v = F[a]
+            c = F[m]
+            w = v < c if op == OP_SMIN else v > c
+            e = _vexp(nk * abs(v - c))
+            acc = F[m + 1]
+            F[m + 1] = _sel(w, acc * e + 1.0, acc + e)
+            F[m] = _sel(w, v, c)
+        elif op == OP_SMIN2 or op == OP_SMAX2:
+            lt = op == OP_SMIN2
+            sign = -1.0 if lt else 1.0
+            v = F[a]
+            c = F[m]
+            w = v < c if lt else v > c
+            e = _vexp(nk * abs(v - c))
+            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
+            F[m] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
+        elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
+            sign = -1.0 if op == OP_FIN_SMIN else 1.0
+            F[m] = F[m] + sign * (_vlog(F[m + 1]) * ik)
+    return F[int(prog[prog.shape[0] - 1, 1]) // BLOCK]
 
 
 @njit(nogil=True, error_model="numpy", inline="always")

@@ -506,7 +506,24 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     sig = ", ".join(["xs", "ys"] + outs)
     gflat = "grad.reshape(-1), " if grad else ""
     nl = "\n"
-    return f'''
+    # The one-point function: the same loops storing into a small array (one float per row,
+    # the program's offsets divided by BLOCK), then the program at one point.
+    rows_at = {g: base for g, base in enumerate(fbase)}
+    plines = ["    " + re.sub(r"\b_F(\d+)\[", lambda mt: f"F[{rows_at[int(mt.group(1))]} + ", ln)
+              for ln in lines]
+    point = f'''
+@njit(cache=True, nogil=True, error_model="numpy")
+def point_{kind}(x, y):
+    """{'Value and gradient (d, dd/dx, dd/dy)' if grad else 'Value'} at one point: the scene's subexpressions in loops over
+    tables, then its combine program (fastsdf._drive.combine_point_{kind})."""
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return {'math.nan, math.nan, math.nan' if grad else 'math.nan'}
+{nl.join(used)}
+    F = np.empty({first + acc_rows})
+{nl.join(plines)}
+    return _combine_point_{kind}(F, _PROG_{kind.upper()})
+'''
+    return point, f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _fold_{kind}(xp, yp, op, gp, n, sp, ap, fp):
@@ -547,7 +564,8 @@ def drive_import() -> str:
             "max_threads as _max_threads, NOFOLD as _drive_nofold, tiles_par as _tiles_par, "
             "NOROWS as _NOROWS, NOGRAD as _NOGRAD, run_prog_v_par as _run_prog_v_par, "
             "run_prog_v_ser as _run_prog_v_ser, run_prog_vg_par as _run_prog_vg_par, "
-            "run_prog_vg_ser as _run_prog_vg_ser"
+            "run_prog_vg_ser as _run_prog_vg_ser, combine_point_v as _combine_point_v, "
+            "combine_point_vg as _combine_point_vg"
             f"  # _drive.py sha256 {digest}\n")
 
 

@@ -1017,6 +1017,13 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
     also returns the number of lanes. ``param_names`` (None for a scene without parameters):
     the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
     ``time``: also return dd/dt (the ``vgt`` functions)."""
+    if param_names is None and not time and vmath and COMBINE_PROGRAMS and \
+            _dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2:
+        # A large static scene: try the combine program first; it needs no straight-line code
+        # (which is most of the code generation time of a large scene).
+        prog = _program_source(root, symbol_names, grad, tables, memo)
+        if prog is not None:
+            return prog, "", 1, []
     em = _Emitter(symbol_names, grad or time, tables, param_names or (), time, memo=memo)
     res = em.emit(root)
     if grad or time:
@@ -1081,12 +1088,9 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         if len(rest) > FOLD_MIN_LINES and vmath and not em.groups and COMBINE_PROGRAMS:
             # A long body that is a tree of blends over small subexpressions: those in loops
             # over tables, the blends as a program for the installation's interpreter.
-            ptables = dict(tables)  # kept only if the program is used
-            pe = _Emitter(symbol_names, grad, ptables, fold=True, memo=memo)
-            prog = pe.program(root)
+            prog = _program_source(root, symbol_names, grad, tables, memo)
             if prog is not None:
-                tables.update(ptables)
-                one = (one, program_source(vectorizable(pe.lines), kind, pe.fold_sizes, *prog))
+                one = prog
         if prog is None and len(rest) > FOLD_MIN_LINES:
             # A long body: the block kernels evaluate repeated subexpressions in loops (the
             # per-point functions keep the straight-line code; the tests compare the two).
@@ -1106,6 +1110,19 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         one = (one, block_source(list(rest), results, kind, ("t", "prm"),
                                  binds=tuple(ln for ln in bind if ln.startswith("_p"))))
     return one, many, lanes, em.groups
+
+
+def _program_source(root: Expr, symbol_names, grad: bool, tables: dict, memo: dict):
+    """``(point function, block kernels)`` of a combine program for ``root``, or None (see
+    ``_Emitter.program``). The one-point function runs the program too: numba's time for the
+    straight-line one grows faster than the scene (38 s at 200 mixed primitives)."""
+    ptables = dict(tables)  # kept only if the program is used
+    pe = _Emitter(symbol_names, grad, ptables, fold=True, memo=memo)
+    prog = pe.program(root)
+    if prog is None:
+        return None
+    tables.update(ptables)
+    return program_source(vectorizable(pe.lines), "vg" if grad else "v", pe.fold_sizes, *prog)
 
 
 def scene_parameters(root: Expr):

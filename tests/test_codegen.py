@@ -95,6 +95,7 @@ def test_folded_block_kernels_match_the_straight_line_code(seed, cap, monkeypatc
     NumPy reference and with central differences. ``cap``: a small budget of stored values per
     point, so that only some groups are folded."""
     from fastsdf import codegen
+    monkeypatch.setattr(codegen, "COMBINE_PROGRAMS", False)  # see test_combine.py for those
     if cap is not None:
         monkeypatch.setattr(codegen, "MAX_FOLD_ROWS", cap)
     f = _unstructured_scene(seed)

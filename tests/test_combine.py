@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 import fastsdf as sdf
 from fastsdf import codegen
+from fastsdf.function import compile_expr
 from fastsdf.graph import evaluate_numpy
 
 # One step of a random scene: (primitive kind, operation, smoothness, operand order).
@@ -68,15 +69,26 @@ def _check(f, p):
     d, g = f(*p.T, compute_gradient=True, prune=False)
     ds, gs = f.compiled.evaluate(p[:200, 0], p[:200, 1], compute_gradient=True, prune=False)
     dv = f(*p.T, prune=False)
-    pv = f.compiled.point_fn("vg")
+    # the reference: the straight-line per-point functions (a module without programs)
+    line = compile_expr(f.f, ["x", "y"])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(codegen, "COMBINE_PROGRAMS", False)
+        assert "_PROG_V" not in line.module_source
+    pv = line.point_fn("vg")
     ref = np.array([pv(x, y) for x, y in p])
     same = lambda a, b: np.array_equal(a.view(np.int64), b.view(np.int64)) or \
         (np.array_equal(np.isnan(a), np.isnan(b))
          and np.array_equal(a[~np.isnan(a)].view(np.int64), b[~np.isnan(b)].view(np.int64)))
     assert same(d, ref[:, 0]) and same(g[:, 0], ref[:, 1]) and same(g[:, 1], ref[:, 2])
     assert same(ds, d[:200]) and same(gs.ravel(), g[:200].ravel())
-    p1 = f.compiled.point_fn("v")
+    p1 = line.point_fn("v")
     assert same(dv, np.array([p1(x, y) for x, y in p]))
+    # the one-point functions of the program module (the particle step's exact query)
+    own = f.compiled.point_fn("vg")
+    mine = np.array([own(x, y) for x, y in p])
+    assert same(mine[:, 0], ref[:, 0]) and same(mine[:, 1], ref[:, 1]) and same(mine[:, 2], ref[:, 2])
+    own_v = f.compiled.point_fn("v")
+    assert same(np.array([own_v(x, y) for x, y in p[:300]]), dv[:300])
     bad = ~np.isfinite(p).all(axis=1)
     assert np.isnan(d[bad]).all() and np.isnan(g[bad]).all() and np.isfinite(d[~bad]).all()
     ok = ~bad
@@ -84,7 +96,7 @@ def _check(f, p):
                                rtol=1e-12, atol=1e-12)
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(_STEP, min_size=3, max_size=7), st.integers(0, 2 ** 16))
 def test_combine_program_matches_the_straight_line_code(steps, seed):
     with pytest.MonkeyPatch.context() as mp:  # short scenes take the long-scene path
@@ -123,6 +135,6 @@ def test_mixed_scene_uses_the_program_without_monkeypatching():
             s = sdf.Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \
                 sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
             f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
-    assert len(f.source().splitlines()) > codegen.FOLD_MIN_LINES
+    assert "_combine_point_vg(F, _PROG_VG)" in f.source()  # the one-point function too
     p = _points(11, 700)
     _check(f, p)
