@@ -522,13 +522,123 @@ def _valid_input(x, y, vx, vy, r, m, use_m):
     return ok
 
 
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _freeze(clear, FLAGS, k, i, flag):
+    """Freeze particle ``i`` (``k`` in its block) with ``flag``; returns 1 (one more frozen)."""
+    clear[k] = -1.0
+    FLAGS[i] = flag
+    return 1
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _coeffs(CR, CF, i):
+    """``cr, cf`` of particle ``i`` and whether both lie in [0, 1]."""
+    cr = float(CR[i])
+    cf = float(CF[i])
+    return cr, cf, (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all):
+    """A block's first pass: ``1 / m`` into ``inv_mass`` (when ``use_m``) and the checks of
+    the module docstring; freezes a failing particle and returns how many failed."""
+    bad = 0
+    for i in range(lo, hi):
+        m = float(M[i]) if use_m or check_all else 1.0
+        if use_m:
+            inv_mass[i - lo] = 1.0 / m
+        ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
+                          float(R[i]), m, use_m or check_all)
+        if check_all:
+            ok = ok and _coeffs(CR, CF, i)[2]
+        if not ok:
+            bad += _freeze(clear, FLAGS, i - lo, i, FLAG_INPUT)
+    return bad
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _load(Xf, Vf, i):
+    """Particle ``i``'s unsigned index and flat indices ``ix, iy`` into the flattened state
+    (no negative-index wrap, no stride multiply), and its ``x, y, vx, vy``."""
+    u = np.uint64(i)
+    ix = np.uint64(2) * u
+    iy = ix + np.uint64(1)
+    return u, ix, iy, float(Xf[ix]), float(Xf[iy]), float(Vf[ix]), float(Vf[iy])
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _store(Xf, Vf, ix, iy, x, y, vx, vy):
+    """Write a particle's state back (indices from :func:`_load`)."""
+    Xf[ix] = x
+    Xf[iy] = y
+    Vf[ix] = vx
+    Vf[iy] = vy
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _forces_ahead(Xf, Vf, M, clear, lo, j0, j1, fbuf, t):
+    """The user forces of particles ``j0..j1-1`` into rows ``0..`` of ``fbuf`` (``FORCE_AHEAD``):
+    a loop of independent iterations, so the CPU overlaps their arithmetic instead of adding
+    its latency to each particle's dependent chain."""
+    for j in range(j0, j1):
+        if clear[j - lo] >= 0.0:
+            u, ix, iy, x, y, vx, vy = _load(Xf, Vf, j)
+            ux, uy = _force(x, y, vx, vy, float(M[u]), t)
+            fbuf[j - j0, 0] = ux
+            fbuf[j - j0, 1] = uy
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _accel(i, k, x, y, vx, vy, t, M, EXT, inv_mass, fbuf, q, ax, ay, drag, use_m, use_ext):
+    """Acceleration ``g + (F_user + ext - drag v) / m`` of particle ``i`` (``k`` in its
+    block); ``q``: its row of ``fbuf`` when the user forces were evaluated ahead. Callers pass
+    ``M``, ``EXT`` and ``inv_mass`` through :func:`borrow_all`: arrays read only in these
+    branches would keep numba's reference counting (atomics) in the particle loop."""
+    bx = ax
+    by = ay
+    if use_m:
+        inv_m = inv_mass[k]
+        fx = -drag * vx
+        fy = -drag * vy
+        if use_ext:
+            fx += EXT[i, 0]
+            fy += EXT[i, 1]
+        if USE_FORCE and FORCE_AHEAD:
+            fx += fbuf[q, 0]
+            fy += fbuf[q, 1]
+        elif USE_FORCE:
+            ux, uy = _force(x, y, vx, vy, float(M[np.uint64(i)]), t)
+            fx += ux
+            fy += uy
+        bx += fx * inv_m
+        by += fy * inv_m
+    return bx, by
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _integrate(vx, vy, bx, by, dt, explicit):
+    """One Euler step of the velocity by acceleration ``b``: the displacement and the new
+    velocity (explicit: displacement from the old velocity; else semi-implicit)."""
+    if explicit:
+        dx = vx * dt
+        dy = vy * dt
+        vx += bx * dt
+        vy += by * dt
+    else:
+        vx += bx * dt
+        vy += by * dt
+        dx = vx * dt
+        dy = vy * dt
+    return dx, dy, vx, vy
+
+
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
            use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
     """All steps for particles lo..hi-1; returns the number of particles frozen (flagged).
 
-    The only function that touches the arrays: helpers take scalars, so no reference counting
-    happens per particle.
+    The only compiled call that touches the arrays: helpers that take arrays are inlined and the
+    others take scalars, so no reference counting happens per particle.
 
     Free-flight skipping (``skip``): after a query that finds a particle clear of every surface
     by ``s = d - r > 0``, it can move ``(s - margin) / lip`` before it could touch anything, so
@@ -538,6 +648,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     ``clear[k] < 0`` marks a frozen particle.
     """
     data = borrow_all(data)
+    M, EXT = borrow_all((M, EXT))       # see _accel
     clear = np.zeros(hi - lo)
     # A moving world: its surfaces move by at most wd per step near a particle (0 for a static
     # world, and far from every moving wall).
@@ -546,82 +657,27 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     # 1 / m of the block, computed once per call rather than divided every step
     inv_mass = np.empty(hi - lo if use_m else 0)
     fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
-    bad = 0
-    for i in range(lo, hi):
-        m = float(M[i]) if use_m or check_all else 1.0
-        if use_m:
-            inv_mass[i - lo] = 1.0 / m
-        ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
-                          float(R[i]), m, use_m or check_all)
-        if check_all:
-            cr = float(CR[i])
-            cf = float(CF[i])
-            ok = ok and cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0
-        if not ok:
-            clear[i - lo] = -1.0
-            FLAGS[i] = FLAG_INPUT
-            bad += 1
+    bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
-    one = np.uint64(1)
-    two = np.uint64(2)
     for step in range(steps):
         t = t0 + step * dt
         for i in range(lo, hi):
             k = i - lo
             if USE_FORCE and FORCE_AHEAD and k % FORCE_BATCH == 0:
-                # The user forces of the next FORCE_BATCH particles in a loop of their own:
-                # its iterations are independent, so the CPU overlaps their arithmetic instead
-                # of adding its latency to each particle's dependent chain (same results).
-                for j in range(i, min(hi, i + FORCE_BATCH)):
-                    if clear[j - lo] >= 0.0:
-                        ux, uy = _force(float(X[j, 0]), float(X[j, 1]), float(V[j, 0]),
-                                        float(V[j, 1]), float(M[j]), t)
-                        fbuf[j - i, 0] = ux
-                        fbuf[j - i, 1] = uy
+                _forces_ahead(Xf, Vf, M, clear, lo, i, min(hi, i + FORCE_BATCH), fbuf, t)
             c = clear[k]
             if c < 0.0:
                 continue
-            u = np.uint64(i)
-            ix = two * u
-            iy = ix + one
-            x = float(Xf[ix])
-            y = float(Xf[iy])
-            vx = float(Vf[ix])
-            vy = float(Vf[iy])
+            u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
             r = float(R[u])
             x0 = x
             y0 = y
             vx0 = vx
             vy0 = vy
-            bx = ax
-            by = ay
-            if use_m:
-                inv_m = inv_mass[k]
-                fx = -drag * vx
-                fy = -drag * vy
-                if use_ext:
-                    fx += EXT[i, 0]
-                    fy += EXT[i, 1]
-                if USE_FORCE and FORCE_AHEAD:
-                    fx += fbuf[k % FORCE_BATCH, 0]
-                    fy += fbuf[k % FORCE_BATCH, 1]
-                elif USE_FORCE:
-                    ux, uy = _force(x, y, vx, vy, float(M[u]), t)
-                    fx += ux
-                    fy += uy
-                bx += fx * inv_m
-                by += fy * inv_m
-            if explicit:
-                dx = vx * dt
-                dy = vy * dt
-                vx += bx * dt
-                vy += by * dt
-            else:
-                vx += bx * dt
-                vy += by * dt
-                dx = vx * dt
-                dy = vy * dt
+            bx, by = _accel(i, k, x, y, vx, vy, t, M, EXT, borrow_all(inv_mass), fbuf,
+                            k % FORCE_BATCH, ax, ay, drag, use_m, use_ext)
+            dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
             if MOVING:
                 wd = _wall_speed_at(data, x + dx, y + dy, dx, dy) * dt
             if c > 0.0:
@@ -633,21 +689,14 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     x += dx
                     y += dy
                     if not _finite4(x, y, vx, vy):
-                        clear[k] = -1.0
-                        FLAGS[u] = FLAG_NONFINITE
-                        bad += 1
+                        bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
                         continue
                     clear[k] = c
-                    Xf[ix] = x
-                    Xf[iy] = y
-                    Vf[ix] = vx
-                    Vf[iy] = vy
+                    _store(Xf, Vf, ix, iy, x, y, vx, vy)
                     continue
                 clear[k] = 0.0
             if _fallback_missing(data, x, y, dx, dy):
-                clear[k] = -1.0
-                FLAGS[u] = FLAG_RESUME + step
-                bad += 1
+                bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
                 continue
             gt = 0.0
             if MOVING:
@@ -669,12 +718,9 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                     sweep = dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
                         s * s >= lip * lip * dd and s > 0.0)
                 if sweep:
-                    cr = float(CR[u])
-                    cf = float(CF[u])
-                    if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
-                        clear[k] = -1.0
-                        FLAGS[u] = FLAG_COEFF
-                        bad += 1
+                    cr, cf, ok = _coeffs(CR, CF, u)
+                    if not ok:
+                        bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                         continue
                     # The part within s / L of the end is known to be free. (The start's
                     # budget is not used: results must not depend on how steps are grouped
@@ -697,12 +743,9 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             x += dx
             y += dy
             if s <= 0.0:
-                cr = float(CR[u])
-                cf = float(CF[u])
-                if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
-                    clear[k] = -1.0
-                    FLAGS[u] = FLAG_COEFF
-                    bad += 1
+                cr, cf, ok = _coeffs(CR, CF, u)
+                if not ok:
+                    bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                     continue
                 if rest > 0.0 and not bounced and _rests(vx0, vy0, bx, by, gx, gy, cf, rest):
                     # resting contact: the surface holds the particle where it is
@@ -716,9 +759,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
             elif skip and s > margin:
                 clear[k] = (s - margin) / lip * (1.0 - 1e-9)
             if not _finite4(x, y, vx, vy):
-                clear[k] = -1.0
-                FLAGS[u] = FLAG_NONFINITE
-                bad += 1
+                bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
                 continue
             if SLEEP and x == x0 and y == y0 and vx == vx0 and vy == vy0 and steps > 1:
                 # The step left the state bit-identical, and nothing else it depends on changes
@@ -726,10 +767,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
                 # step of the call would repeat it, so the particle sleeps until the next call.
                 clear[k] = ASLEEP
                 continue
-            Xf[ix] = x
-            Xf[iy] = y
-            Vf[ix] = vx
-            Vf[iy] = vy
+            _store(Xf, Vf, ix, iy, x, y, vx, vy)
     return bad
 
 
@@ -739,61 +777,19 @@ def _plain_straight(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, cle
     """One step of a block for :func:`_block_plain`, particle after particle."""
     bad = 0
     touching = 0
-    one = np.uint64(1)
-    two = np.uint64(2)
     for i in range(lo, hi):
         k = i - lo
         if USE_FORCE and FORCE_AHEAD and k % FORCE_BATCH == 0:
-            for j in range(i, min(hi, i + FORCE_BATCH)):
-                if clear[j - lo] >= 0.0:
-                    uj = np.uint64(j)
-                    ux, uy = _force(float(Xf[two * uj]), float(Xf[two * uj + one]),
-                                    float(Vf[two * uj]), float(Vf[two * uj + one]),
-                                    float(M[uj]), t)
-                    fbuf[j - i, 0] = ux
-                    fbuf[j - i, 1] = uy
+            _forces_ahead(Xf, Vf, M, clear, lo, i, min(hi, i + FORCE_BATCH), fbuf, t)
         if clear[k] < 0.0:
             continue
-        u = np.uint64(i)
-        ix = two * u
-        iy = ix + one
-        x = float(Xf[ix])
-        y = float(Xf[iy])
-        vx = float(Vf[ix])
-        vy = float(Vf[iy])
+        u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
         r = float(R[u])
-        bx = ax
-        by = ay
-        if use_m:
-            inv_m = inv_mass[k]
-            fx = -drag * vx
-            fy = -drag * vy
-            if use_ext:
-                fx += EXT[i, 0]
-                fy += EXT[i, 1]
-            if USE_FORCE and FORCE_AHEAD:
-                fx += fbuf[k % FORCE_BATCH, 0]
-                fy += fbuf[k % FORCE_BATCH, 1]
-            elif USE_FORCE:
-                ux, uy = _force(x, y, vx, vy, float(M[u]), t)
-                fx += ux
-                fy += uy
-            bx += fx * inv_m
-            by += fy * inv_m
-        if explicit:
-            dx = vx * dt
-            dy = vy * dt
-            vx += bx * dt
-            vy += by * dt
-        else:
-            vx += bx * dt
-            vy += by * dt
-            dx = vx * dt
-            dy = vy * dt
+        bx, by = _accel(i, k, x, y, vx, vy, t, M, EXT, borrow_all(inv_mass), fbuf,
+                        k % FORCE_BATCH, ax, ay, drag, use_m, use_ext)
+        dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
         if _fallback_missing(data, x, y, dx, dy):
-            clear[k] = -1.0
-            FLAGS[u] = FLAG_RESUME + step
-            bad += 1
+            bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
             continue
         d, gx, gy = _query(data, x + dx, y + dy)
         s = d - r
@@ -801,23 +797,15 @@ def _plain_straight(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, cle
         y += dy
         if s <= 0.0:
             touching += 1
-            cr = float(CR[u])
-            cf = float(CF[u])
-            if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
-                clear[k] = -1.0
-                FLAGS[u] = FLAG_COEFF
-                bad += 1
+            cr, cf, ok = _coeffs(CR, CF, u)
+            if not ok:
+                bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                 continue
             x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, 0.0)
         if not _finite4(x, y, vx, vy):
-            clear[k] = -1.0
-            FLAGS[u] = FLAG_NONFINITE
-            bad += 1
+            bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
             continue
-        Xf[ix] = x
-        Xf[iy] = y
-        Vf[ix] = vx
-        Vf[iy] = vy
+        _store(Xf, Vf, ix, iy, x, y, vx, vy)
     return bad, touching
 
 
@@ -836,63 +824,21 @@ def _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear
     next particles' queries). ``sb``: scratch of shape (7, PLAIN_BATCH)."""
     bad = 0
     touching = 0
-    one = np.uint64(1)
-    two = np.uint64(2)
     for b0 in range(lo, hi, PLAIN_BATCH):
         b1 = min(hi, b0 + PLAIN_BATCH)
         if USE_FORCE and FORCE_AHEAD:
-            for j in range(b0, b1):
-                if clear[j - lo] >= 0.0:
-                    uj = np.uint64(j)
-                    ux, uy = _force(float(Xf[two * uj]), float(Xf[two * uj + one]),
-                                    float(Vf[two * uj]), float(Vf[two * uj + one]),
-                                    float(M[uj]), t)
-                    fbuf[j - b0, 0] = ux
-                    fbuf[j - b0, 1] = uy
+            _forces_ahead(Xf, Vf, M, clear, lo, b0, b1, fbuf, t)
         for i in range(b0, b1):
             k = i - lo
             q = i - b0
             if clear[k] < 0.0:
                 continue
-            u = np.uint64(i)
-            ix = two * u
-            iy = ix + one
-            x = float(Xf[ix])
-            y = float(Xf[iy])
-            vx = float(Vf[ix])
-            vy = float(Vf[iy])
-            bx = ax
-            by = ay
-            if use_m:
-                inv_m = inv_mass[k]
-                fx = -drag * vx
-                fy = -drag * vy
-                if use_ext:
-                    fx += EXT[i, 0]
-                    fy += EXT[i, 1]
-                if USE_FORCE and FORCE_AHEAD:
-                    fx += fbuf[q, 0]
-                    fy += fbuf[q, 1]
-                elif USE_FORCE:
-                    ux, uy = _force(x, y, vx, vy, float(M[u]), t)
-                    fx += ux
-                    fy += uy
-                bx += fx * inv_m
-                by += fy * inv_m
-            if explicit:
-                dx = vx * dt
-                dy = vy * dt
-                vx += bx * dt
-                vy += by * dt
-            else:
-                vx += bx * dt
-                vy += by * dt
-                dx = vx * dt
-                dy = vy * dt
+            u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
+            bx, by = _accel(i, k, x, y, vx, vy, t, M, EXT, borrow_all(inv_mass), fbuf, q,
+                            ax, ay, drag, use_m, use_ext)
+            dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
             if _fallback_missing(data, x, y, dx, dy):
-                clear[k] = -1.0
-                FLAGS[u] = FLAG_RESUME + step
-                bad += 1
+                bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
                 continue
             d, gx, gy = _query(data, x + dx, y + dy)
             sb[0, q] = x + dx
@@ -915,25 +861,17 @@ def _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear
             vy = sb[3, q]
             if s <= 0.0:
                 touching += 1
-                cr = float(CR[u])
-                cf = float(CF[u])
-                if not (cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0):
-                    clear[k] = -1.0
-                    FLAGS[u] = FLAG_COEFF
-                    bad += 1
+                cr, cf, ok = _coeffs(CR, CF, u)
+                if not ok:
+                    bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                     continue
                 x, y, vx, vy = _respond(x, y, vx, vy, s, sb[5, q], sb[6, q], cr, cf,
                                         always, 0.0)
             if not _finite4(x, y, vx, vy):
-                clear[k] = -1.0
-                FLAGS[u] = FLAG_NONFINITE
-                bad += 1
+                bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
                 continue
-            ix = two * u
-            Xf[ix] = x
-            Xf[ix + one] = y
-            Vf[ix] = vx
-            Vf[ix + one] = vy
+            ix = np.uint64(2) * u
+            _store(Xf, Vf, ix, ix + np.uint64(1), x, y, vx, vy)
     return bad, touching
 
 
@@ -969,25 +907,12 @@ def _block_plain(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax
     particles' dependent chains.
     """
     data = borrow_all(data)
+    M, EXT = borrow_all((M, EXT))       # see _accel
     clear = np.zeros(hi - lo)
     use_m = use_m or USE_FORCE
     inv_mass = np.empty(hi - lo if use_m else 0)
     fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
-    bad = 0
-    for i in range(lo, hi):
-        m = float(M[i]) if use_m or check_all else 1.0
-        if use_m:
-            inv_mass[i - lo] = 1.0 / m
-        ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
-                          float(R[i]), m, use_m or check_all)
-        if check_all:
-            cr = float(CR[i])
-            cf = float(CF[i])
-            ok = ok and cr >= 0.0 and cr <= 1.0 and cf >= 0.0 and cf <= 1.0
-        if not ok:
-            clear[i - lo] = -1.0
-            FLAGS[i] = FLAG_INPUT
-            bad += 1
+    bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
     sb = np.empty((7, PLAIN_BATCH))
