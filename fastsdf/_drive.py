@@ -305,11 +305,12 @@ def tiles_par(pre, fn, xs, ys, out, grad, size, chunks, threads, order, starts, 
 
 #: Columns of a program row: opcode; the operand's first row (its value; then the x and y
 #: gradient components in the next rows); the accumulator's first row (m; then the gradient
-#: components, then s, the smooth sum); -k; 1/k; whether the operand's x and y gradient
-#: components are known to be zero (as in the straight-line code: no product). Rows are offsets
-#: in the block's scratch space, in floats. Each step works on two slices of it (operand,
-#: accumulator): LLVM then checks their overlap once and vectorizes the step.
-PROG_COLS = 7
+#: components, then s, the smooth sum); -k (polynomial blends: k); 1/k; whether the operand's
+#: x and y gradient components are known to be zero (as in the straight-line code: no
+#: product); the same for the accumulator (polynomial blends). Rows are offsets in the block's
+#: scratch space, in floats. Each step works on two slices of it (operand, accumulator): LLVM
+#: then checks their overlap once and vectorizes the step.
+PROG_COLS = 9
 #: Opcodes: copy the first operand into the accumulator (s = 1); one hard or smooth step of a
 #: min (``<``) or max (``>``) chain; finish a smooth chain (m -/+ log(s) / k, gradient / s);
 #: the last row: the result's rows, copied to the outputs; a smooth blend of two operands, the
@@ -317,11 +318,33 @@ PROG_COLS = 7
 #: negated operand (a gradient component known to be zero stays +0, as in the straight-line
 #: code, where it is no variable at all).
 (OP_INIT, OP_MIN, OP_MAX, OP_SMIN, OP_SMAX, OP_FIN_SMIN, OP_FIN_SMAX, OP_OUT, OP_SMIN2,
- OP_SMAX2, OP_NEG) = range(11)
+ OP_SMAX2, OP_NEG, OP_QMIN, OP_CMIN) = range(13)
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _poly(a, b, k, ik, cubic):
+    """The quadratic (cubic) polynomial blend of ``a`` (the running value) and ``b`` as
+    ``ops._emit_poly`` writes it: value and the weight of ``a`` in the gradient."""
+    w = a <= b
+    t = k - abs(a - b)
+    h = _sel(t > 0.0, t, 0.0) * ik
+    m = _sel(w, a, b)
+    hh = h * h
+    r = _sel(cubic, m - hh * h * (k / 6.0), m - hh * (k / 4.0))
+    o = _sel(cubic, hh * 0.5, h * 0.5)
+    return r, _sel(w, 1.0 - o, o)
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _poly_grad(ga, gb, wa, wb, za, zb):
+    """``ga * wa + gb * wb`` without the terms of components known to be zero."""
+    ta = ga * wa
+    tb = gb * wb
+    return _sel(za, _sel(zb, 0.0, tb), _sel(zb, ta, ta + tb))
 
 
 @njit(nogil=True, error_model="numpy")
-def _step_vg(op, A, M, nk, ik, zx, zy):
+def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay):
     """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s)."""
     B = BLOCK
     if op == OP_INIT:
@@ -335,6 +358,14 @@ def _step_vg(op, A, M, nk, ik, zx, zy):
             M[i] = -A[i]
             M[B + i] = _sel(zx, 0.0, -A[B + i])
             M[2 * B + i] = _sel(zy, 0.0, -A[2 * B + i])
+    elif op == OP_QMIN or op == OP_CMIN:
+        cubic = op == OP_CMIN
+        for i in range(B):
+            r, wa = _poly(M[i], A[i], nk, ik, cubic)
+            wb = 1.0 - wa
+            M[B + i] = _poly_grad(M[B + i], A[B + i], wa, wb, zax, zx)
+            M[2 * B + i] = _poly_grad(M[2 * B + i], A[2 * B + i], wa, wb, zay, zy)
+            M[i] = r
     elif op == OP_MIN:
         for i in range(B):
             w = A[i] < M[i]
@@ -403,6 +434,10 @@ def _step_v(op, A, M, nk, ik):
     elif op == OP_NEG:
         for i in range(B):
             M[i] = -A[i]
+    elif op == OP_QMIN or op == OP_CMIN:
+        cubic = op == OP_CMIN
+        for i in range(B):
+            M[i] = _poly(M[i], A[i], nk, ik, cubic)[0]
     elif op == OP_MIN:
         for i in range(B):
             M[i] = _sel(A[i] < M[i], A[i], M[i])
@@ -449,7 +484,8 @@ def _combine(S, at, prog, grad):
         A = S[a:a + rows * BLOCK]
         M = S[m:m + acc_rows * BLOCK]
         if grad:
-            _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0)
+            _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0,
+                     prog[p, 7] != 0.0, prog[p, 8] != 0.0)
         else:
             _step_v(op, A, M, prog[p, 3], prog[p, 4])
 
@@ -476,6 +512,12 @@ def combine_point_vg(F, prog):
             F[m] = -F[a]
             F[m + 1] = _sel(zx, 0.0, -F[a + 1])
             F[m + 2] = _sel(zy, 0.0, -F[a + 2])
+        elif op == OP_QMIN or op == OP_CMIN:
+            r, wa = _poly(F[m], F[a], nk, ik, op == OP_CMIN)
+            wb = 1.0 - wa
+            F[m + 1] = _poly_grad(F[m + 1], F[a + 1], wa, wb, prog[p, 7] != 0.0, zx)
+            F[m + 2] = _poly_grad(F[m + 2], F[a + 2], wa, wb, prog[p, 8] != 0.0, zy)
+            F[m] = r
         elif op == OP_MIN or op == OP_MAX:
             w = F[a] < F[m] if op == OP_MIN else F[a] > F[m]
             F[m + 1] = _sel(w, F[a + 1], F[m + 1])
@@ -536,6 +578,8 @@ def combine_point_v(F, prog):
             F[m + 1] = 1.0
         elif op == OP_NEG:
             F[m] = -F[a]
+        elif op == OP_QMIN or op == OP_CMIN:
+            F[m] = _poly(F[m], F[a], nk, ik, op == OP_CMIN)[0]
         elif op == OP_MIN:
             F[m] = _sel(F[a] < F[m], F[a], F[m])
         elif op == OP_MAX:

@@ -443,7 +443,7 @@ def tiles_{kind}_par({sig}, order, starts, act, offs, chunks):
 
 
 _PROG_OPS = {"init": 0, "min": 1, "max": 2, "smin": 3, "smax": 4, "fin_smin": 5, "fin_smax": 6,
-             "out": 7, "smin2": 8, "smax2": 9, "neg": 10}
+             "out": 7, "smin2": 8, "smax2": 9, "neg": 10, "qmin": 11, "cmin": 12}
 
 
 def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_rows: int) -> str:
@@ -482,7 +482,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
 
     table = []
     for op, operand, acc, k, zeros in steps:
-        r = [0.0] * 7
+        r = [0.0] * 9
         r[0] = _PROG_OPS[op]
         if operand is not None:
             r[1] = row(operand)
@@ -490,8 +490,10 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
             r[2] = row(acc)
         if op in ("smin", "smax", "fin_smin", "fin_smax", "smin2", "smax2"):
             r[3], r[4] = -float(k), 1.0 / float(k)
+        elif op in ("qmin", "cmin"):
+            r[3], r[4] = float(k), 1.0 / float(k)
         if zeros and grad:
-            r[5], r[6] = float(zeros[0]), float(zeros[1])
+            r[5:5 + len(zeros)] = [float(z) for z in zeros]
         table.append(r)
     prog = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in table)
     tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
