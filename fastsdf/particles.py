@@ -487,12 +487,15 @@ def _exact_address(exact) -> tuple:
 
 def _prunes(f) -> bool:
     """Whether the particle step on the SDF ``f`` evaluates per-tile row lists (a scene with
-    at least ``PRUNE_MIN_OPERANDS`` operands in loops over tables, without parameters)."""
+    at least ``PRUNE_MIN_OPERANDS`` operands in loops over tables, without parameters, and not
+    only exponential blends with ``f.prune_tol`` unset), decided when the step is built."""
     from . import function as _function
     comp = f.compiled
     if comp.parametric:
         return False
     groups = comp.groups or ()
+    if getattr(f, "prune_tol", None) is None and all(g["op"] in ("smin", "smax") for g in groups):
+        return False  # exponential blends at half an ulp: next to nothing to drop
     return sum(len(g["members"]) for g in groups) >= _function.PRUNE_MIN_OPERANDS
 
 
