@@ -30,7 +30,7 @@ from ._vmath import vexp as _vexp, vlog as _vlog
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
            "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
            "run_prog_v_ser", "run_prog_vg_par", "run_prog_vg_ser", "combine_point_v",
-           "combine_point_vg"]
+           "combine_point_vg", "scratch"]
 
 _P = types.CPointer(types.float64)
 _I = types.CPointer(types.int64)
@@ -95,6 +95,23 @@ def max_threads() -> int:
     return numba.config.NUMBA_NUM_THREADS
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _check_scratch(S, need):
+    # The block functions write through raw pointers: a short buffer would corrupt memory.
+    if S.shape[0] < need:
+        raise ValueError("scratch buffer too small for this scene's kernels")
+
+
+def scratch(floats: int) -> np.ndarray:
+    """A scratch buffer of ``floats`` float64 for the kernels here (``size`` per thread that
+    runs them: ``max_threads() * size`` for the parallel ones). The kernels take it from the
+    caller rather than allocating it: a long scene's scratch space is hundreds of rows of
+    ``BLOCK`` floats, one 4 KiB page each, and a fresh allocation page-faults every row it
+    uses on every call (about 1 ms for a single point of a 200-primitive scene). Its contents
+    between calls do not matter: every row is written before it is read."""
+    return np.empty(max(int(floats), 1))
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _nofold(xp, yp, op, gp, n, sp, ap, fp):
     """The ``pre`` function of a scene without loops of its own to run first: nothing."""
@@ -110,15 +127,16 @@ NOGRAD = np.empty((0, 2))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads, act, off):
+def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
     """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
-    block, blocks in parallel chunks, each thread with ``size`` floats of scratch space
-    (``threads``: :func:`max_threads`); ``act``, ``off``: the row lists of every block (all
-    rows: the scene's ``_ACTG``, ``_OFFG``)."""
+    block, blocks in parallel chunks, each thread with ``size`` floats of the scratch space
+    ``S`` (at least ``threads * size`` floats, ``threads``: :func:`max_threads`; see
+    :func:`scratch`); ``act``, ``off``: the row lists of every block (all rows: the scene's
+    ``_ACTG``, ``_OFFG``)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
@@ -129,10 +147,10 @@ def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads, act, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(pre, fn, xs, ys, out, grad, size, act, off):
-    """:func:`run_vg_par` in this thread."""
+def run_vg_ser(pre, fn, xs, ys, out, grad, S, size, act, off):
+    """:func:`run_vg_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
@@ -140,12 +158,12 @@ def run_vg_ser(pre, fn, xs, ys, out, grad, size, act, off):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(pre, fn, xs, ys, out, size, chunks, threads, act, off):
+def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
     """Value at all points (the block functions' ``grad`` pointer is not used)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
@@ -156,10 +174,10 @@ def run_v_par(pre, fn, xs, ys, out, size, chunks, threads, act, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(pre, fn, xs, ys, out, size, act, off):
+def run_v_ser(pre, fn, xs, ys, out, S, size, act, off):
     """:func:`run_v_par` in this thread."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
@@ -241,19 +259,21 @@ def _merge_rows(act, offs, t0, t1, starts, actb, offb, cur):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def tiles_par(pre, fn, xs, ys, out, grad, size, chunks, threads, order, starts, act, offs, rows):
+def tiles_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, order, starts, act, offs,
+              rows):
     """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
     ``rows``: the total number of rows of all loops). The points of a block are gathered into
     contiguous buffers and the results scattered back; a block shared by the last points of
-    several tiles runs the union of their lists."""
+    several tiles runs the union of their lists. Only ``S`` comes from the caller: the other
+    buffers here are a few KiB per thread, and the tile path serves large inputs only."""
     seq, work = _tile_work(order, starts)
     blocks = work.shape[0]
     chunks = max(1, min(blocks, chunks))
     vg = grad.shape[0] > 0
     G = offs.shape[1]
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     W = 5 * BLOCK
     B = np.empty(threads * W)
     A = np.empty(threads * max(rows, 1), dtype=np.int64)
@@ -626,13 +646,13 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_vg_par(pre, prog, xs, ys, out, grad, size, chunks, threads):
+def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
     """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
     filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for c in prange(chunks):
         at = get_thread_id() * size
@@ -645,10 +665,10 @@ def run_prog_vg_par(pre, prog, xs, ys, out, grad, size, chunks, threads):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_vg_ser(pre, prog, xs, ys, out, grad, size):
+def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
     """:func:`run_prog_vg_par` in this thread."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
@@ -658,12 +678,12 @@ def run_prog_vg_ser(pre, prog, xs, ys, out, grad, size):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_v_par(pre, prog, xs, ys, out, size, chunks, threads):
+def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
     """Value at all points (see :func:`run_prog_vg_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for c in prange(chunks):
         at = get_thread_id() * size
@@ -676,10 +696,10 @@ def run_prog_v_par(pre, prog, xs, ys, out, size, chunks, threads):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_v_ser(pre, prog, xs, ys, out, size):
+def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
     """:func:`run_prog_v_par` in this thread."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s

@@ -422,22 +422,30 @@ def _block_{kind}(xp, yp, op, gp, n, sp, ap, fp):
 _block_{kind}_fn = _BlockFn(_block_{kind})
 
 
-def batch_{kind}_par({sig}, chunks):
-    """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block."""
-    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, chunks, _max_threads(), {rows})
+#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf._drive.scratch`).
+scratch_{kind} = {size}
 
 
-def batch_{kind}_ser({sig}):
-    """All points, in this thread."""
-    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, {rows})
+def batch_{kind}_par({sig}, chunks, S=None):
+    """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block
+    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
+    S = _drive_scratch(_max_threads() * {size}) if S is None else S
+    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows})
+
+
+def batch_{kind}_ser({sig}, S=None):
+    """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
+    S = _drive_scratch({size}) if S is None else S
+    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
 '''
     if rows != "_NOROWS, _NOROWS":
         src += f'''
 
-def tiles_{kind}_par({sig}, order, starts, act, offs, chunks):
+def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
     """Points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``) in parallel
     blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.prune`)."""
-    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
+    S = _drive_scratch(_max_threads() * {size}) if S is None else S
+    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
 '''
     return src
 
@@ -543,14 +551,21 @@ _PROG_{kind.upper()} = np.array([
 ], dtype=np.float64)
 
 
-def batch_{kind}_par({sig}, chunks):
-    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program."""
-    _run_prog_{kind}_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}{size}, chunks, _max_threads())
+#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf._drive.scratch`).
+scratch_{kind} = {size}
 
 
-def batch_{kind}_ser({sig}):
-    """All points, in this thread."""
-    _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}{size})
+def batch_{kind}_par({sig}, chunks, S=None):
+    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program
+    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
+    S = _drive_scratch(_max_threads() * {size}) if S is None else S
+    _run_prog_{kind}_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
+
+
+def batch_{kind}_ser({sig}, S=None):
+    """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
+    S = _drive_scratch({size}) if S is None else S
+    _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
 '''
 
 
@@ -567,7 +582,7 @@ def drive_import() -> str:
             "NOROWS as _NOROWS, NOGRAD as _NOGRAD, run_prog_v_par as _run_prog_v_par, "
             "run_prog_v_ser as _run_prog_v_ser, run_prog_vg_par as _run_prog_vg_par, "
             "run_prog_vg_ser as _run_prog_vg_ser, combine_point_v as _combine_point_v, "
-            "combine_point_vg as _combine_point_vg"
+            "combine_point_vg as _combine_point_vg, scratch as _drive_scratch"
             f"  # _drive.py sha256 {digest}\n")
 
 
