@@ -364,36 +364,37 @@ def _poly_grad(ga, gb, wa, wb, za, zb):
 
 
 @njit(nogil=True, error_model="numpy")
-def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay):
-    """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s)."""
+def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay, nv):
+    """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s);
+    the first ``nv`` points of each row."""
     B = BLOCK
     if op == OP_INIT:
-        for i in range(B):
+        for i in range(nv):
             M[i] = A[i]
             M[B + i] = A[B + i]
             M[2 * B + i] = A[2 * B + i]
             M[3 * B + i] = 1.0
     elif op == OP_NEG:
-        for i in range(B):
+        for i in range(nv):
             M[i] = -A[i]
             M[B + i] = _sel(zx, 0.0, -A[B + i])
             M[2 * B + i] = _sel(zy, 0.0, -A[2 * B + i])
     elif op == OP_QMIN or op == OP_CMIN:
         cubic = op == OP_CMIN
-        for i in range(B):
+        for i in range(nv):
             r, wa = _poly(M[i], A[i], nk, ik, cubic)
             wb = 1.0 - wa
             M[B + i] = _poly_grad(M[B + i], A[B + i], wa, wb, zax, zx)
             M[2 * B + i] = _poly_grad(M[2 * B + i], A[2 * B + i], wa, wb, zay, zy)
             M[i] = r
     elif op == OP_MIN:
-        for i in range(B):
+        for i in range(nv):
             w = A[i] < M[i]
             M[B + i] = _sel(w, A[B + i], M[B + i])
             M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
             M[i] = _sel(w, A[i], M[i])
     elif op == OP_MAX:
-        for i in range(B):
+        for i in range(nv):
             w = A[i] > M[i]
             M[B + i] = _sel(w, A[B + i], M[B + i])
             M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
@@ -401,7 +402,7 @@ def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay):
     elif op == OP_SMIN or op == OP_SMAX:
         lt = op == OP_SMIN
         gt = not lt
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -419,7 +420,7 @@ def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay):
         lt = op == OP_SMIN2
         gt = not lt
         sign = -1.0 if lt else 1.0
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -435,7 +436,7 @@ def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay):
             M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
     elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
         sign = -1.0 if op == OP_FIN_SMIN else 1.0
-        for i in range(B):
+        for i in range(nv):
             acc = M[3 * B + i]
             M[i] = M[i] + sign * (_vlog(acc) * ik)  # m - t is m + (-t), bit for bit
             r = 1.0 / acc
@@ -444,30 +445,31 @@ def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay):
 
 
 @njit(nogil=True, error_model="numpy")
-def _step_v(op, A, M, nk, ik):
-    """One value-only step: operand row ``A`` (v), accumulator ``M`` (m, s)."""
+def _step_v(op, A, M, nk, ik, nv):
+    """One value-only step: operand row ``A`` (v), accumulator ``M`` (m, s); the first ``nv``
+    points of each row."""
     B = BLOCK
     if op == OP_INIT:
-        for i in range(B):
+        for i in range(nv):
             M[i] = A[i]
             M[B + i] = 1.0
     elif op == OP_NEG:
-        for i in range(B):
+        for i in range(nv):
             M[i] = -A[i]
     elif op == OP_QMIN or op == OP_CMIN:
         cubic = op == OP_CMIN
-        for i in range(B):
+        for i in range(nv):
             M[i] = _poly(M[i], A[i], nk, ik, cubic)[0]
     elif op == OP_MIN:
-        for i in range(B):
+        for i in range(nv):
             M[i] = _sel(A[i] < M[i], A[i], M[i])
     elif op == OP_MAX:
-        for i in range(B):
+        for i in range(nv):
             M[i] = _sel(A[i] > M[i], A[i], M[i])
     elif op == OP_SMIN or op == OP_SMAX:
         lt = op == OP_SMIN
         gt = not lt
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -479,7 +481,7 @@ def _step_v(op, A, M, nk, ik):
         lt = op == OP_SMIN2
         gt = not lt
         sign = -1.0 if lt else 1.0
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -488,13 +490,22 @@ def _step_v(op, A, M, nk, ik):
             M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
     elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
         sign = -1.0 if op == OP_FIN_SMIN else 1.0
-        for i in range(B):
+        for i in range(nv):
             M[i] = M[i] + sign * (_vlog(M[B + i]) * ik)
 
 
+@njit(nogil=True, inline="always")
+def _lanes(m):
+    """The points of a block of ``m`` that the fold loops and the program compute: ``m``
+    rounded up to a multiple of 8 (whole vectors), so that a call on a few points does not pay
+    for a whole block. Rows past them hold stale values that nothing reads."""
+    return min(BLOCK, (m + 7) // 8 * 8)
+
+
 @njit(nogil=True, error_model="numpy")
-def _combine(S, at, prog, grad):
-    """Run the program ``prog`` on one block's scratch space ``S[at:]``."""
+def _combine(S, at, prog, grad, nv):
+    """Run the program ``prog`` on one block's scratch space ``S[at:]`` (its first ``nv``
+    points: :func:`_lanes`)."""
     rows = 3 if grad else 1
     acc_rows = 4 if grad else 2
     for p in range(prog.shape[0] - 1):
@@ -505,9 +516,9 @@ def _combine(S, at, prog, grad):
         M = S[m:m + acc_rows * BLOCK]
         if grad:
             _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0,
-                     prog[p, 7] != 0.0, prog[p, 8] != 0.0)
+                     prog[p, 7] != 0.0, prog[p, 8] != 0.0, nv)
         else:
-            _step_v(op, A, M, prog[p, 3], prog[p, 4])
+            _step_v(op, A, M, prog[p, 3], prog[p, 4], nv)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -660,7 +671,7 @@ def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
             _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z, 0), _at(z, 0))
-            _combine(S, at, prog, True)
+            _combine(S, at, prog, True, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
 
 
@@ -673,7 +684,7 @@ def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0), _at(z, 0))
-        _combine(S, 0, prog, True)
+        _combine(S, 0, prog, True, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
 
 
@@ -691,7 +702,7 @@ def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
             _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0), _at(z, 0))
-            _combine(S, at, prog, False)
+            _combine(S, at, prog, False, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, out, s, m, False)
 
 
@@ -704,7 +715,7 @@ def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0), _at(z, 0))
-        _combine(S, 0, prog, False)
+        _combine(S, 0, prog, False, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 
 

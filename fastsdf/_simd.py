@@ -480,6 +480,14 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     body = []
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
+    # With gradients, only the block's first nv points (its n rounded up to whole vectors, as
+    # the program in fastsdf._drive._lanes): a call on a few points does not pay for a whole
+    # block. Not for the value alone: there LLVM vectorizes the loops worse without their
+    # constant trip count (a whole block measured 1.6x slower), so they keep it.
+    whole = f"        for i in range({BLOCK}):"
+    assert whole in body
+    if grad:
+        body = ["        for i in range(nv):" if ln == whole else ln for ln in body]
     first = len(slots)
     size = (first + acc_rows) * BLOCK
 
@@ -508,10 +516,12 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))",
              f"    S = carray(sp, ({size},))"]
     used = [f"    {t} = {t}G" for t in tables]
-    prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+    prelude = [f"    nv = min({BLOCK}, (n + 7) // 8 * 8)" if grad else "    nv = n",
+               "    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
                "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
                "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+               f"    for i in range(n, {'nv' if grad else BLOCK}):", "        S[i] = 0.0",
+               f"        S[{BLOCK} + i] = 0.0"]
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
     gflat = "grad.reshape(-1), " if grad else ""
