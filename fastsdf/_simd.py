@@ -296,6 +296,27 @@ class _Staging:
         return code
 
 
+def _fold_layout(fold_sizes):
+    """Scratch rows of a block: ``x``, ``y``, then each loop group's stored values.
+
+    Returns ``(slots, fbase, fold_loop, fold_store)``: the row of every name, each group's first
+    row, a dict the substitution fills with each group's loop variable and row count, and the
+    ``re.sub`` callback that turns a group's store into a store into its scratch row.
+    """
+    slots: dict = {"x": 0, "y": 1}
+    fbase, fold_loop = [], {}
+    for g, count in enumerate(fold_sizes):
+        fbase.append(len(slots))
+        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
+
+    def fold_store(mt):
+        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
+        fold_loop[g] = (loop_var, size)
+        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+
+    return slots, fbase, fold_loop, fold_store
+
+
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
                  lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
@@ -333,16 +354,7 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     gflat = "grad.reshape(-1), " if grad else ""
     body = []
 
-    slots: dict = {"x": 0, "y": 1}
-    fbase, fold_loop = [], {}
-    for g, count in enumerate(fold_sizes):
-        fbase.append(len(slots))
-        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
-
-    def fold_store(mt):
-        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
-        fold_loop[g] = (loop_var, size)
-        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+    slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
     if fold_sizes:
         def fold_load(mt):
@@ -464,16 +476,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     grad = kind == "vg"
     segs = _split(lines)
     assert segs and all(seg[0] == "loop" for seg in segs)
-    slots: dict = {"x": 0, "y": 1}
-    fbase, fold_loop = [], {}
-    for g, count in enumerate(fold_sizes):
-        fbase.append(len(slots))
-        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
-
-    def fold_store(mt):
-        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
-        fold_loop[g] = (loop_var, size)
-        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+    slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
     segs = [("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]]) for seg in segs]
     st = _Staging(segs, [], 1, slots, fbase, fold_loop)
