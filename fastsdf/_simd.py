@@ -519,7 +519,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))",
              f"    S = carray(sp, ({size},))"]
     used = [f"    {t} = {t}G" for t in tables]
-    prelude = [f"    nv = min({BLOCK}, (n + 7) // 8 * 8)" if grad else "    nv = n",
+    prelude = ([f"    nv = min({BLOCK}, (n + 7) // 8 * 8)"] if grad else []) + [
                "    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
                "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
                "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
