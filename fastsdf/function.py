@@ -237,9 +237,9 @@ class CompiledSDF:
         page faults of a fresh buffer on every row it uses. One per Python thread that has
         evaluated this scene (freed with the thread or with this object), grown to the largest
         need seen: ``scratch_<kind>`` floats per numba thread (:func:`fastsdf._drive.max_threads`
-        of them once a call ran in parallel), 8 bytes each; at most 8192 rows of 512 floats
-        (32 MiB) per numba thread for the longest scenes. Only the rows a call touched are
-        resident."""
+        of them once a call ran in parallel), 8 bytes each: 603 rows of 512 floats (2.4 MiB)
+        per numba thread for 200 mixed primitives, about ``codegen.MAX_PROGRAM_ROWS`` = 8192
+        rows (32 MiB) for the longest scenes. Only the rows a call touched are resident."""
         size = getattr(self.module, "scratch_" + self._kind(kind), None)
         if size is None:
             return {}
