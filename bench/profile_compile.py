@@ -114,7 +114,8 @@ def main(argv=None) -> int:
     print("\n'first call' compiles the scene's value+gradient block functions and their callees "
           "(the parallel kernel that calls them is compiled once per installation); the first "
           "scene also pays numba's one-time initialisation (~0.4 s). 'lines': the per-point "
-          "function (long scenes' block kernels fold its same-shape parts into loops).")
+          "function (long scenes' block kernels fold its same-shape parts into loops; scenes "
+          "run as combine programs: their loops over tables, the blends being data).")
     return 0
 
 

@@ -30,7 +30,7 @@ from ._vmath import vexp as _vexp, vlog as _vlog
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
            "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
            "run_prog_v_ser", "run_prog_vg_par", "run_prog_vg_ser", "combine_point_v",
-           "combine_point_vg"]
+           "combine_point_vg", "scratch"]
 
 _P = types.CPointer(types.float64)
 _I = types.CPointer(types.int64)
@@ -95,6 +95,23 @@ def max_threads() -> int:
     return numba.config.NUMBA_NUM_THREADS
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _check_scratch(S, need):
+    # The block functions write through raw pointers: a short buffer would corrupt memory.
+    if S.shape[0] < need:
+        raise ValueError("scratch buffer too small for this scene's kernels")
+
+
+def scratch(floats: int) -> np.ndarray:
+    """A scratch buffer of ``floats`` float64 for the kernels here (``size`` per thread that
+    runs them: ``max_threads() * size`` for the parallel ones). The kernels take it from the
+    caller rather than allocating it: a long scene's scratch space is hundreds of rows of
+    ``BLOCK`` floats, one 4 KiB page each, and a fresh allocation page-faults every row it
+    uses on every call (about 1 ms for a single point of a 200-primitive scene). Its contents
+    between calls do not matter: every row is written before it is read."""
+    return np.empty(max(int(floats), 1))
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _nofold(xp, yp, op, gp, n, sp, ap, fp):
     """The ``pre`` function of a scene without loops of its own to run first: nothing."""
@@ -110,15 +127,16 @@ NOGRAD = np.empty((0, 2))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads, act, off):
+def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
     """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
-    block, blocks in parallel chunks, each thread with ``size`` floats of scratch space
-    (``threads``: :func:`max_threads`); ``act``, ``off``: the row lists of every block (all
-    rows: the scene's ``_ACTG``, ``_OFFG``)."""
+    block, blocks in parallel chunks, each thread with ``size`` floats of the scratch space
+    ``S`` (at least ``threads * size`` floats, ``threads``: :func:`max_threads`; see
+    :func:`scratch`); ``act``, ``off``: the row lists of every block (all rows: the scene's
+    ``_ACTG``, ``_OFFG``)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
@@ -129,10 +147,10 @@ def run_vg_par(pre, fn, xs, ys, out, grad, size, chunks, threads, act, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(pre, fn, xs, ys, out, grad, size, act, off):
-    """:func:`run_vg_par` in this thread."""
+def run_vg_ser(pre, fn, xs, ys, out, grad, S, size, act, off):
+    """:func:`run_vg_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
@@ -140,12 +158,12 @@ def run_vg_ser(pre, fn, xs, ys, out, grad, size, act, off):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(pre, fn, xs, ys, out, size, chunks, threads, act, off):
+def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
     """Value at all points (the block functions' ``grad`` pointer is not used)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
@@ -156,10 +174,10 @@ def run_v_par(pre, fn, xs, ys, out, size, chunks, threads, act, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(pre, fn, xs, ys, out, size, act, off):
+def run_v_ser(pre, fn, xs, ys, out, S, size, act, off):
     """:func:`run_v_par` in this thread."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
@@ -241,19 +259,21 @@ def _merge_rows(act, offs, t0, t1, starts, actb, offb, cur):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def tiles_par(pre, fn, xs, ys, out, grad, size, chunks, threads, order, starts, act, offs, rows):
+def tiles_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, order, starts, act, offs,
+              rows):
     """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
     ``rows``: the total number of rows of all loops). The points of a block are gathered into
     contiguous buffers and the results scattered back; a block shared by the last points of
-    several tiles runs the union of their lists."""
+    several tiles runs the union of their lists. Only ``S`` comes from the caller: the other
+    buffers here are a few KiB per thread, and the tile path serves large inputs only."""
     seq, work = _tile_work(order, starts)
     blocks = work.shape[0]
     chunks = max(1, min(blocks, chunks))
     vg = grad.shape[0] > 0
     G = offs.shape[1]
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     W = 5 * BLOCK
     B = np.empty(threads * W)
     A = np.empty(threads * max(rows, 1), dtype=np.int64)
@@ -305,11 +325,12 @@ def tiles_par(pre, fn, xs, ys, out, grad, size, chunks, threads, order, starts, 
 
 #: Columns of a program row: opcode; the operand's first row (its value; then the x and y
 #: gradient components in the next rows); the accumulator's first row (m; then the gradient
-#: components, then s, the smooth sum); -k; 1/k; whether the operand's x and y gradient
-#: components are known to be zero (as in the straight-line code: no product). Rows are offsets
-#: in the block's scratch space, in floats. Each step works on two slices of it (operand,
-#: accumulator): LLVM then checks their overlap once and vectorizes the step.
-PROG_COLS = 7
+#: components, then s, the smooth sum); -k (polynomial blends: k); 1/k; whether the operand's
+#: x and y gradient components are known to be zero (as in the straight-line code: no
+#: product); the same for the accumulator (polynomial blends). Rows are offsets in the block's
+#: scratch space, in floats. Each step works on two slices of it (operand, accumulator): LLVM
+#: then checks their overlap once and vectorizes the step.
+PROG_COLS = 9
 #: Opcodes: copy the first operand into the accumulator (s = 1); one hard or smooth step of a
 #: min (``<``) or max (``>``) chain; finish a smooth chain (m -/+ log(s) / k, gradient / s);
 #: the last row: the result's rows, copied to the outputs; a smooth blend of two operands, the
@@ -317,32 +338,63 @@ PROG_COLS = 7
 #: negated operand (a gradient component known to be zero stays +0, as in the straight-line
 #: code, where it is no variable at all).
 (OP_INIT, OP_MIN, OP_MAX, OP_SMIN, OP_SMAX, OP_FIN_SMIN, OP_FIN_SMAX, OP_OUT, OP_SMIN2,
- OP_SMAX2, OP_NEG) = range(11)
+ OP_SMAX2, OP_NEG, OP_QMIN, OP_CMIN) = range(13)
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _poly(a, b, k, ik, cubic):
+    """The quadratic (cubic) polynomial blend of ``a`` (the running value) and ``b`` as
+    ``ops._emit_poly`` writes it: value and the weight of ``a`` in the gradient."""
+    w = a <= b
+    t = k - abs(a - b)
+    h = _sel(t > 0.0, t, 0.0) * ik
+    m = _sel(w, a, b)
+    hh = h * h
+    r = _sel(cubic, m - hh * h * (k / 6.0), m - hh * (k / 4.0))
+    o = _sel(cubic, hh * 0.5, h * 0.5)
+    return r, _sel(w, 1.0 - o, o)
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _poly_grad(ga, gb, wa, wb, za, zb):
+    """``ga * wa + gb * wb`` without the terms of components known to be zero."""
+    ta = ga * wa
+    tb = gb * wb
+    return _sel(za, _sel(zb, 0.0, tb), _sel(zb, ta, ta + tb))
 
 
 @njit(nogil=True, error_model="numpy")
-def _step_vg(op, A, M, nk, ik, zx, zy):
-    """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s)."""
+def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay, nv):
+    """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s);
+    the first ``nv`` points of each row."""
     B = BLOCK
     if op == OP_INIT:
-        for i in range(B):
+        for i in range(nv):
             M[i] = A[i]
             M[B + i] = A[B + i]
             M[2 * B + i] = A[2 * B + i]
             M[3 * B + i] = 1.0
     elif op == OP_NEG:
-        for i in range(B):
+        for i in range(nv):
             M[i] = -A[i]
             M[B + i] = _sel(zx, 0.0, -A[B + i])
             M[2 * B + i] = _sel(zy, 0.0, -A[2 * B + i])
+    elif op == OP_QMIN or op == OP_CMIN:
+        cubic = op == OP_CMIN
+        for i in range(nv):
+            r, wa = _poly(M[i], A[i], nk, ik, cubic)
+            wb = 1.0 - wa
+            M[B + i] = _poly_grad(M[B + i], A[B + i], wa, wb, zax, zx)
+            M[2 * B + i] = _poly_grad(M[2 * B + i], A[2 * B + i], wa, wb, zay, zy)
+            M[i] = r
     elif op == OP_MIN:
-        for i in range(B):
+        for i in range(nv):
             w = A[i] < M[i]
             M[B + i] = _sel(w, A[B + i], M[B + i])
             M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
             M[i] = _sel(w, A[i], M[i])
     elif op == OP_MAX:
-        for i in range(B):
+        for i in range(nv):
             w = A[i] > M[i]
             M[B + i] = _sel(w, A[B + i], M[B + i])
             M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
@@ -350,7 +402,7 @@ def _step_vg(op, A, M, nk, ik, zx, zy):
     elif op == OP_SMIN or op == OP_SMAX:
         lt = op == OP_SMIN
         gt = not lt
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -368,7 +420,7 @@ def _step_vg(op, A, M, nk, ik, zx, zy):
         lt = op == OP_SMIN2
         gt = not lt
         sign = -1.0 if lt else 1.0
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -384,7 +436,7 @@ def _step_vg(op, A, M, nk, ik, zx, zy):
             M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
     elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
         sign = -1.0 if op == OP_FIN_SMIN else 1.0
-        for i in range(B):
+        for i in range(nv):
             acc = M[3 * B + i]
             M[i] = M[i] + sign * (_vlog(acc) * ik)  # m - t is m + (-t), bit for bit
             r = 1.0 / acc
@@ -393,26 +445,31 @@ def _step_vg(op, A, M, nk, ik, zx, zy):
 
 
 @njit(nogil=True, error_model="numpy")
-def _step_v(op, A, M, nk, ik):
-    """One value-only step: operand row ``A`` (v), accumulator ``M`` (m, s)."""
+def _step_v(op, A, M, nk, ik, nv):
+    """One value-only step: operand row ``A`` (v), accumulator ``M`` (m, s); the first ``nv``
+    points of each row."""
     B = BLOCK
     if op == OP_INIT:
-        for i in range(B):
+        for i in range(nv):
             M[i] = A[i]
             M[B + i] = 1.0
     elif op == OP_NEG:
-        for i in range(B):
+        for i in range(nv):
             M[i] = -A[i]
+    elif op == OP_QMIN or op == OP_CMIN:
+        cubic = op == OP_CMIN
+        for i in range(nv):
+            M[i] = _poly(M[i], A[i], nk, ik, cubic)[0]
     elif op == OP_MIN:
-        for i in range(B):
+        for i in range(nv):
             M[i] = _sel(A[i] < M[i], A[i], M[i])
     elif op == OP_MAX:
-        for i in range(B):
+        for i in range(nv):
             M[i] = _sel(A[i] > M[i], A[i], M[i])
     elif op == OP_SMIN or op == OP_SMAX:
         lt = op == OP_SMIN
         gt = not lt
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -424,7 +481,7 @@ def _step_v(op, A, M, nk, ik):
         lt = op == OP_SMIN2
         gt = not lt
         sign = -1.0 if lt else 1.0
-        for i in range(B):
+        for i in range(nv):
             v = A[i]
             c = M[i]
             w = ((v < c) & lt) | ((v > c) & gt)
@@ -433,13 +490,22 @@ def _step_v(op, A, M, nk, ik):
             M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
     elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
         sign = -1.0 if op == OP_FIN_SMIN else 1.0
-        for i in range(B):
+        for i in range(nv):
             M[i] = M[i] + sign * (_vlog(M[B + i]) * ik)
 
 
+@njit(nogil=True, inline="always")
+def _lanes(m):
+    """The points of a block of ``m`` that the fold loops and the program compute: ``m``
+    rounded up to a multiple of 8 (whole vectors), so that a call on a few points does not pay
+    for a whole block. Rows past them hold stale values that nothing reads."""
+    return min(BLOCK, (m + 7) // 8 * 8)
+
+
 @njit(nogil=True, error_model="numpy")
-def _combine(S, at, prog, grad):
-    """Run the program ``prog`` on one block's scratch space ``S[at:]``."""
+def _combine(S, at, prog, grad, nv):
+    """Run the program ``prog`` on one block's scratch space ``S[at:]`` (its first ``nv``
+    points: :func:`_lanes`)."""
     rows = 3 if grad else 1
     acc_rows = 4 if grad else 2
     for p in range(prog.shape[0] - 1):
@@ -449,9 +515,10 @@ def _combine(S, at, prog, grad):
         A = S[a:a + rows * BLOCK]
         M = S[m:m + acc_rows * BLOCK]
         if grad:
-            _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0)
+            _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0,
+                     prog[p, 7] != 0.0, prog[p, 8] != 0.0, nv)
         else:
-            _step_v(op, A, M, prog[p, 3], prog[p, 4])
+            _step_v(op, A, M, prog[p, 3], prog[p, 4], nv)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -476,6 +543,12 @@ def combine_point_vg(F, prog):
             F[m] = -F[a]
             F[m + 1] = _sel(zx, 0.0, -F[a + 1])
             F[m + 2] = _sel(zy, 0.0, -F[a + 2])
+        elif op == OP_QMIN or op == OP_CMIN:
+            r, wa = _poly(F[m], F[a], nk, ik, op == OP_CMIN)
+            wb = 1.0 - wa
+            F[m + 1] = _poly_grad(F[m + 1], F[a + 1], wa, wb, prog[p, 7] != 0.0, zx)
+            F[m + 2] = _poly_grad(F[m + 2], F[a + 2], wa, wb, prog[p, 8] != 0.0, zy)
+            F[m] = r
         elif op == OP_MIN or op == OP_MAX:
             w = F[a] < F[m] if op == OP_MIN else F[a] > F[m]
             F[m + 1] = _sel(w, F[a + 1], F[m + 1])
@@ -536,6 +609,8 @@ def combine_point_v(F, prog):
             F[m + 1] = 1.0
         elif op == OP_NEG:
             F[m] = -F[a]
+        elif op == OP_QMIN or op == OP_CMIN:
+            F[m] = _poly(F[m], F[a], nk, ik, op == OP_CMIN)[0]
         elif op == OP_MIN:
             F[m] = _sel(F[a] < F[m], F[a], F[m])
         elif op == OP_MAX:
@@ -582,13 +657,13 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_vg_par(pre, prog, xs, ys, out, grad, size, chunks, threads):
+def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
     """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
     filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for c in prange(chunks):
         at = get_thread_id() * size
@@ -596,30 +671,30 @@ def run_prog_vg_par(pre, prog, xs, ys, out, grad, size, chunks, threads):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
             _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z, 0), _at(z, 0))
-            _combine(S, at, prog, True)
+            _combine(S, at, prog, True, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_vg_ser(pre, prog, xs, ys, out, grad, size):
+def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
     """:func:`run_prog_vg_par` in this thread."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0), _at(z, 0))
-        _combine(S, 0, prog, True)
+        _combine(S, 0, prog, True, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_v_par(pre, prog, xs, ys, out, size, chunks, threads):
+def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
     """Value at all points (see :func:`run_prog_vg_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
-    S = np.empty(threads * size)
+    _check_scratch(S, threads * size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for c in prange(chunks):
         at = get_thread_id() * size
@@ -627,20 +702,20 @@ def run_prog_v_par(pre, prog, xs, ys, out, size, chunks, threads):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
             _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0), _at(z, 0))
-            _combine(S, at, prog, False)
+            _combine(S, at, prog, False, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, out, s, m, False)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_v_ser(pre, prog, xs, ys, out, size):
+def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
     """:func:`run_prog_v_par` in this thread."""
     n = xs.shape[0]
-    S = np.empty(size)
+    _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
         _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0), _at(z, 0))
-        _combine(S, 0, prog, False)
+        _combine(S, 0, prog, False, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 
 

@@ -296,6 +296,27 @@ class _Staging:
         return code
 
 
+def _fold_layout(fold_sizes):
+    """Scratch rows of a block: ``x``, ``y``, then each loop group's stored values.
+
+    Returns ``(slots, fbase, fold_loop, fold_store)``: the row of every name, each group's first
+    row, a dict the substitution fills with each group's loop variable and row count, and the
+    ``re.sub`` callback that turns a group's store into a store into its scratch row.
+    """
+    slots: dict = {"x": 0, "y": 1}
+    fbase, fold_loop = [], {}
+    for g, count in enumerate(fold_sizes):
+        fbase.append(len(slots))
+        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
+
+    def fold_store(mt):
+        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
+        fold_loop[g] = (loop_var, size)
+        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+
+    return slots, fbase, fold_loop, fold_store
+
+
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
                  lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
@@ -333,16 +354,7 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     gflat = "grad.reshape(-1), " if grad else ""
     body = []
 
-    slots: dict = {"x": 0, "y": 1}
-    fbase, fold_loop = [], {}
-    for g, count in enumerate(fold_sizes):
-        fbase.append(len(slots))
-        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
-
-    def fold_store(mt):
-        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
-        fold_loop[g] = (loop_var, size)
-        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+    slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
     if fold_sizes:
         def fold_load(mt):
@@ -422,28 +434,36 @@ def _block_{kind}(xp, yp, op, gp, n, sp, ap, fp):
 _block_{kind}_fn = _BlockFn(_block_{kind})
 
 
-def batch_{kind}_par({sig}, chunks):
-    """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block."""
-    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, chunks, _max_threads(), {rows})
+#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf._drive.scratch`).
+scratch_{kind} = {size}
 
 
-def batch_{kind}_ser({sig}):
-    """All points, in this thread."""
-    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}{size}, {rows})
+def batch_{kind}_par({sig}, chunks, S=None):
+    """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block
+    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
+    S = _drive_scratch(_max_threads() * {size}) if S is None else S
+    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows})
+
+
+def batch_{kind}_ser({sig}, S=None):
+    """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
+    S = _drive_scratch({size}) if S is None else S
+    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
 '''
     if rows != "_NOROWS, _NOROWS":
         src += f'''
 
-def tiles_{kind}_par({sig}, order, starts, act, offs, chunks):
+def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
     """Points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``) in parallel
     blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.prune`)."""
-    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
+    S = _drive_scratch(_max_threads() * {size}) if S is None else S
+    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
 '''
     return src
 
 
 _PROG_OPS = {"init": 0, "min": 1, "max": 2, "smin": 3, "smax": 4, "fin_smin": 5, "fin_smax": 6,
-             "out": 7, "smin2": 8, "smax2": 9, "neg": 10}
+             "out": 7, "smin2": 8, "smax2": 9, "neg": 10, "qmin": 11, "cmin": 12}
 
 
 def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_rows: int) -> str:
@@ -456,22 +476,21 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     grad = kind == "vg"
     segs = _split(lines)
     assert segs and all(seg[0] == "loop" for seg in segs)
-    slots: dict = {"x": 0, "y": 1}
-    fbase, fold_loop = [], {}
-    for g, count in enumerate(fold_sizes):
-        fbase.append(len(slots))
-        slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
-
-    def fold_store(mt):
-        g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
-        fold_loop[g] = (loop_var, size)
-        return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
+    slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
     segs = [("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]]) for seg in segs]
     st = _Staging(segs, [], 1, slots, fbase, fold_loop)
     body = []
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
+    # With gradients, only the block's first nv points (its n rounded up to whole vectors, as
+    # the program in fastsdf._drive._lanes): a call on a few points does not pay for a whole
+    # block. Not for the value alone: there LLVM vectorizes the loops worse without their
+    # constant trip count (a whole block measured 1.6x slower), so they keep it.
+    whole = f"        for i in range({BLOCK}):"
+    assert whole in body
+    if grad:
+        body = ["        for i in range(nv):" if ln == whole else ln for ln in body]
     first = len(slots)
     size = (first + acc_rows) * BLOCK
 
@@ -482,7 +501,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
 
     table = []
     for op, operand, acc, k, zeros in steps:
-        r = [0.0] * 7
+        r = [0.0] * 9
         r[0] = _PROG_OPS[op]
         if operand is not None:
             r[1] = row(operand)
@@ -490,18 +509,22 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
             r[2] = row(acc)
         if op in ("smin", "smax", "fin_smin", "fin_smax", "smin2", "smax2"):
             r[3], r[4] = -float(k), 1.0 / float(k)
+        elif op in ("qmin", "cmin"):
+            r[3], r[4] = float(k), 1.0 / float(k)
         if zeros and grad:
-            r[5], r[6] = float(zeros[0]), float(zeros[1])
+            r[5:5 + len(zeros)] = [float(z) for z in zeros]
         table.append(r)
     prog = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in table)
     tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
     views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))",
              f"    S = carray(sp, ({size},))"]
     used = [f"    {t} = {t}G" for t in tables]
-    prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
+    prelude = ([f"    nv = min({BLOCK}, (n + 7) // 8 * 8)"] if grad else []) + [
+               "    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
                "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
                "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+               f"    for i in range(n, {'nv' if grad else BLOCK}):", "        S[i] = 0.0",
+               f"        S[{BLOCK} + i] = 0.0"]
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
     gflat = "grad.reshape(-1), " if grad else ""
@@ -541,14 +564,21 @@ _PROG_{kind.upper()} = np.array([
 ], dtype=np.float64)
 
 
-def batch_{kind}_par({sig}, chunks):
-    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program."""
-    _run_prog_{kind}_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}{size}, chunks, _max_threads())
+#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf._drive.scratch`).
+scratch_{kind} = {size}
 
 
-def batch_{kind}_ser({sig}):
-    """All points, in this thread."""
-    _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}{size})
+def batch_{kind}_par({sig}, chunks, S=None):
+    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program
+    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
+    S = _drive_scratch(_max_threads() * {size}) if S is None else S
+    _run_prog_{kind}_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
+
+
+def batch_{kind}_ser({sig}, S=None):
+    """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
+    S = _drive_scratch({size}) if S is None else S
+    _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
 '''
 
 
@@ -565,7 +595,7 @@ def drive_import() -> str:
             "NOROWS as _NOROWS, NOGRAD as _NOGRAD, run_prog_v_par as _run_prog_v_par, "
             "run_prog_v_ser as _run_prog_v_ser, run_prog_vg_par as _run_prog_vg_par, "
             "run_prog_vg_ser as _run_prog_vg_ser, combine_point_v as _combine_point_v, "
-            "combine_point_vg as _combine_point_vg"
+            "combine_point_vg as _combine_point_vg, scratch as _drive_scratch"
             f"  # _drive.py sha256 {digest}\n")
 
 

@@ -78,7 +78,7 @@ _CHAIN_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
 _ORDERED_OPS = ("qmin", "cmin")
 _HUGE = "1.7976931348623157e+308"
 #: The chains a combine program runs (see ``_Emitter.program``).
-_PROGRAM_OPS = ("min", "max", "smin", "smax")
+_PROGRAM_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
 
 
 _lit = lit
@@ -648,7 +648,16 @@ class _Emitter:
                 steps.append(("init", operand(first)[0], acc, None, None))
             elif smooth and not pair:  # in place: only s = 1
                 steps.append(("init", acc, acc, None, None))
-            if pair:
+            if node.op in _ORDERED_OPS:
+                # a left fold of polynomial blends: the running value's gradient components
+                # known to be zero are tracked too (the straight-line code drops their terms)
+                za = operand(first)[1]
+                for other in operands[1:]:
+                    row, zb = operand(other)
+                    steps.append((node.op, row, acc, node.attr, zb + za))
+                    za = tuple(a and b for a, b in zip(za, zb))
+                zeros[id(node)] = za
+            elif pair:
                 row, zero = operand(operands[1])
                 steps.append((node.op + "2", row, acc, node.attr, zero))
             else:

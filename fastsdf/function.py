@@ -21,6 +21,7 @@ from types import ModuleType
 from numpy.typing import ArrayLike
 
 from ._cache import load_module
+from ._drive import max_threads, scratch
 from .codegen import generate_module, scene_parameters
 from .prune import PrunePlan, bin_points, make_plan, snap_bounds
 from .graph import Expr, _to_str, as_expr, parameters, substitute_params
@@ -89,6 +90,10 @@ class CompiledSDF:
         self._tape = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
+        # Per Python thread: the scratch buffer handed to the scene-independent kernels (calls
+        # may come from several threads at once, and each parallel region indexes the buffer
+        # by its own thread ids, so two calls must never share one).
+        self._scratch = threading.local()
         #: the exception that stopped the background compilation (``backend='auto'``), if any
         self.warm_error: BaseException | None = None
         #: None for a scene without parameters; else the names of the parameters other than
@@ -224,6 +229,26 @@ class CompiledSDF:
         # It pays when most rows are dropped; otherwise the sort by tile is wasted work.
         return plan if prune or plan.fraction < PRUNE_MAX_FRACTION else None
 
+    def scratch(self, kind: str, parallel: bool) -> dict:
+        """Keyword arguments giving the kernels of ``kind`` this Python thread's scratch buffer
+        (``{}`` for kernels that allocate their own: short scenes, parameters).
+
+        The buffer is kept between calls, so a small call costs microseconds instead of the
+        page faults of a fresh buffer on every row it uses. One per Python thread that has
+        evaluated this scene (freed with the thread or with this object), grown to the largest
+        need seen: ``scratch_<kind>`` floats per numba thread (:func:`fastsdf._drive.max_threads`
+        of them once a call ran in parallel), 8 bytes each: 603 rows of 512 floats (2.4 MiB)
+        per numba thread for 200 mixed primitives, about ``codegen.MAX_PROGRAM_ROWS`` = 8192
+        rows (32 MiB) for the longest scenes. Only the rows a call touched are resident."""
+        size = getattr(self.module, "scratch_" + self._kind(kind), None)
+        if size is None:
+            return {}
+        need = size * (max_threads() if parallel else 1)
+        buf = getattr(self._scratch, "buf", None)
+        if buf is None or buf.shape[0] < need:
+            buf = self._scratch.buf = scratch(need)
+        return {"S": buf}
+
     def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, grad: np.ndarray | None = None,
             plan: PrunePlan | None = None) -> None:
         """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2), if given),
@@ -237,11 +262,12 @@ class CompiledSDF:
             order, starts = bin_points(xs, ys, plan)
             getattr(self.module, f"tiles_{kind}_par")(xs, ys, *arrays, order, starts,
                                                       plan.act, plan.offs,
-                                                      64 * numba.get_num_threads())
+                                                      64 * numba.get_num_threads(),
+                                                      **self.scratch(kind, True))
             return
         parallel = n >= PARALLEL_MIN_POINTS
         extra = (64 * numba.get_num_threads(),) if parallel else ()
-        self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
+        self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
 
     def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
                  prune: bool | None = None, tol: float | None = None, t: float = 0.0,

@@ -15,7 +15,7 @@ from fastsdf.function import compile_expr
 from fastsdf.graph import evaluate_numpy
 
 # One step of a random scene: (primitive kind, operation, smoothness, operand order).
-_STEP = st.tuples(st.integers(0, 3), st.sampled_from(["|", "&", "-", "cut"]),
+_STEP = st.tuples(st.integers(0, 3), st.sampled_from(["|", "&", "-", "cut", "q|", "c&", "q-"]),
                   st.sampled_from([0.0, 0.0, 5.0, 10.0, 1e-3]), st.booleans())
 
 
@@ -37,7 +37,11 @@ def _scene(steps, seed):
                 s = sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
         with sdf.smoothness(k):
             a, b = (s, f) if swap else (f, s)
-            if op == "|":
+            if op in ("q|", "c&", "q-"):  # polynomial blends: width k (or 0.3 where k is 0)
+                kind = "quadratic" if op[0] == "q" else "cubic"
+                w = k if k >= 1e-2 else 0.3
+                f = {"|": a.union, "&": a.intersection, "-": a.difference}[op[1]](b, w, kind)
+            elif op == "|":
                 f = a | b
             elif op == "&":
                 f = a & b
@@ -106,14 +110,16 @@ def test_combine_program_matches_the_straight_line_code(steps, seed):
 
 def test_combine_program_every_blend_kind_and_order(monkeypatch):
     """Every step kind of the interpreter: hard min and max, a smooth pair (fused step), an
-    n-ary smooth chain (same k three times: init in place, steps, finish), both operand
+    n-ary smooth chain (same k three times: init in place, steps, finish), negation, the
+    polynomial blends (a left fold of two quadratic ones, a cubic intersection), both operand
     orders, an operand equal to the accumulator (ties), and a shared subexpression used by two
     blends."""
     monkeypatch.setattr(codegen, "FOLD_MIN_LINES", 10)
     steps = [(0, "|", 0.0, False), (1, "&", 0.0, True), (3, "|", 5.0, False),
              (2, "-", 5.0, True), (0, "|", 4.0, False), (1, "|", 4.0, False),
              (2, "|", 4.0, False), (3, "cut", 10.0, True), (1, "&", 7.0, False),
-             (0, "|", 0.0, True)]
+             (0, "|", 0.0, True), (1, "q|", 0.3, False), (2, "q|", 0.3, False),
+             (3, "c&", 0.2, True), (0, "q-", 0.25, False)]
     f = _scene(steps, 7)
     shared = f | sdf.Circle([0.3, 0.1], 0.5)
     g = (shared - sdf.Box([-0.1, -0.1], [0.2, 0.2])).union(shared & sdf.Circle([0, 0], 1.5), 3.0)
@@ -121,7 +127,8 @@ def test_combine_program_every_blend_kind_and_order(monkeypatch):
         prog = h.compiled.module._PROG_VG
         ops = set(prog[:, 0].astype(int))
         _check(h, _points(3))
-    assert {0, 1, 2, 3, 5, 7, 8, 9} <= ops | set(f.compiled.module._PROG_VG[:, 0].astype(int))
+    assert {0, 1, 2, 3, 5, 7, 8, 9, 10, 11, 12} <= \
+        ops | set(f.compiled.module._PROG_VG[:, 0].astype(int))
 
 
 def test_mixed_scene_uses_the_program_without_monkeypatching():
