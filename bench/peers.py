@@ -49,11 +49,18 @@ def jax_value_and_grad(expr, symbol_names=("x", "y")):
             elif op == "max":
                 v = jnp.maximum(a[0], a[1])
             elif op == "length":
-                v = jnp.sqrt(a[0] * a[0] + a[1] * a[1])
+                # the double-where idiom: sqrt's gradient at 0 is inf, and a NaN gradient
+                # passes through a where that discards its branch
+                s2 = a[0] * a[0] + a[1] * a[1]
+                v = jnp.where(s2 > 0, jnp.sqrt(jnp.where(s2 > 0, s2, 1.0)), 0.0)
             elif op == "smin":
                 v = -jnp.logaddexp(-node.attr * a[0], -node.attr * a[1]) / node.attr
             elif op == "smax":
                 v = jnp.logaddexp(node.attr * a[0], node.attr * a[1]) / node.attr
+            elif op == "select":  # the graph's select: a[1] where a[0] > 0, else a[2]
+                v = jnp.where(a[0] > 0, a[1], a[2])
+            elif op == "floor":
+                v = jnp.floor(a[0])
             else:
                 raise NotImplementedError(op)
             val[id(node)] = v
