@@ -101,7 +101,11 @@ def _compile_times(quick: bool):
                "The 'mixed ops' scenes have no repeated structure next to each other (each "
                "primitive differs in kind, operation or smoothness from its neighbour), the "
                "worst case for compile time: their block kernels evaluate the primitives of one "
-               "shape in loops wherever they stand, the combining code stays straight-line.")
+               "shape in loops wherever they stand (one loop per distinct shape), and the blends above "
+               "them run as a combine program, data for an interpreter compiled once per "
+               "installation. The installation's kernels (the parallel drivers and that "
+               "interpreter, cached by numba next to fastsdf's own modules) are compiled before "
+               "this table; a fresh installation compiles them once, at its first scene.")
     return "\n".join(out)
 
 
