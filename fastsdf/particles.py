@@ -616,14 +616,17 @@ def _kernel_module(f, forces=()):
         else:
             lines = [f"from {where[0]} import {where[1]} as _sampler"]
             deps = [f"{where[0]} (source {_module_hash(where[0])})"]
+        # data: (fallback address, bounds x4, *sampler_data, plan header address); the
+        # sampler's data length is fixed by its kind (dense grid, band grid), as is the kernel.
+        hdr = 5 + len(f.sampler_data)
         lines += ["", "", _DECORATOR, "def _query(data, x, y):",
-                  "    d, gx, gy, inside = _sampler(data[5:14], x, y)"]
+                  f"    d, gx, gy, inside = _sampler(data[5:{hdr}], x, y)"]
         if mode == "exact":
             lines = [_PLAN_IMPORT] + lines
             lines += ["    if not inside:",
                       "        if data[0] == 0:  # never reached: see _fallback_missing",
                       "            return math.nan, math.nan, math.nan",
-                      "        return _call_vg_plan(data[0], x, y, data[14])"]
+                      f"        return _call_vg_plan(data[0], x, y, data[{hdr}])"]
         lines.append("    return d, gx, gy")
         lines += ["", "", _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):"]
         if mode == "exact":
