@@ -38,7 +38,6 @@ Design (see the README's design section for the measurements behind it):
 
 from __future__ import annotations
 
-import math
 import platform
 import re
 
@@ -48,7 +47,7 @@ from typing import Sequence
 
 from . import __version__
 from ._simd import block_source, drive_import, program_source, vectorizable, vmath_import
-from .graph import Expr, parameters, topological_order
+from .graph import Expr, parameters
 from .ops import OPS, lit
 
 __all__ = ["generate_module_source", "MIN_LOOP"]

@@ -10,9 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .._validate import check_length as _check_length
-from .._validate import coord2 as _vec2
 from .._validate import length as _length
-from .._validate import vec2 as _vec2
 from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
 from ..interval import note_lipschitz
