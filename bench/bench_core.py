@@ -37,20 +37,8 @@ import time, json
 t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.scenes import box_world, mixed_scene, seed_world
 t_import = time.perf_counter() - t0
-
-def mixed_scene(n, seed=1):
-    # No repeated structure: alternating kinds, operations and smoothness (worst case for loops).
-    rng = np.random.default_rng(seed)
-    f = sdf.Halfspace([0, 1], -1.8)
-    for i in range(n - 1):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness([0, 5, 10][i % 3]):
-            s = sdf.Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \
-                sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
-            f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
-    return f
 
 t0 = time.perf_counter()
 f = SCENE

@@ -23,40 +23,18 @@ import tempfile
 
 import numpy as np
 
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.scenes import box_world, mixed_scene, seed_world
 
 from .common import HERE, fmt_rate, run_fresh_process, stamp, table, timeit
 
 COMMAND = "python -m bench.bench_tape"
 
 
-# The worst case for compile time of bench_core (no repeated structure next to each other).
-_MIXED = """
-def mixed_scene(n, seed=1):
-    rng = np.random.default_rng(seed)
-    f = sdf.Halfspace([0, 1], -1.8)
-    for i in range(n - 1):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \\
-                sdf.smoothness([0, 5, 10][i % 3]):
-            s = sdf.Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \\
-                sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
-            f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
-    return f
-"""
-
-
-def _mixed_scene(n):
-    import fastsdf as sdf
-    ns = {"np": np, "sdf": sdf}
-    exec(_MIXED, ns)
-    return ns["mixed_scene"](n)
-
-
 def _scenes(quick: bool = False):
     scenes = [("seed world", seed_world()), ("20-box world", box_world(20))]
     if not quick:  # the 200-primitive scenes compile for a minute and more
         scenes += [("200-primitive world (box_world(197))", box_world(197)),
-                   ("mixed ops, 200 primitives", _mixed_scene(200))]
+                   ("mixed ops, 200 primitives", mixed_scene(200))]
     return scenes
 
 
@@ -92,7 +70,7 @@ t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
 t_import = time.perf_counter() - t0
-MIXED
+from fastsdf.scenes import mixed_scene
 SEED = int(sys.argv[1]) if len(sys.argv) > 1 else 0
 def scene(kind, seed):
     rng = np.random.default_rng(seed)
@@ -140,7 +118,7 @@ print(json.dumps(out))
 
 
 def _first_answer(quick: bool) -> str:
-    code = _FIRST.replace("MIXED", _MIXED)
+    code = _FIRST
     cache = tempfile.mkdtemp(prefix="fastsdf-tape-bench-")
     rows = []
     try:

@@ -30,12 +30,8 @@ SCENES = {
 
 def _mixed(sdf, n):
     """bench_core's scene without repeated structure next to each other (the same draws)."""
-    import numpy as np
-    from .bench_core import _PROBE
-    code = _PROBE[_PROBE.index("def mixed_scene"):_PROBE.index("t0 = time.perf_counter()\nf = SCENE")]
-    ns = {"np": np, "sdf": sdf}
-    exec(code, ns)  # noqa: S102 - our own source
-    return ns["mixed_scene"](n)
+    from fastsdf.scenes import mixed_scene
+    return mixed_scene(n)
 
 
 def _timers(dispatcher):

@@ -6,7 +6,7 @@ import numpy as np
 
 from .shapes import SDF, Box, Circle, Halfspace, smoothness, transform
 
-__all__ = ["funnel", "seed_world", "box_world"]
+__all__ = ["funnel", "seed_world", "box_world", "mixed_scene"]
 
 
 def funnel() -> SDF:
@@ -36,4 +36,23 @@ def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
         with transform(angle=rng.uniform(-0.8, 0.8), offset=rng.uniform(-2, 2, size=2)), \
                 smoothness(5):
             f |= Box(minc=rng.uniform(-0.3, -0.1, size=2), maxc=rng.uniform(0.1, 0.3, size=2))
+    return f
+
+
+def mixed_scene(n: int, seed: int = 1) -> SDF:
+    """A scene of ``n`` primitives without repeated structure next to each other: a floor and
+    ``n - 1`` randomly placed and rotated circles and boxes, alternating kind, operation (union,
+    intersection with a cut, union) and smoothness (0, 5, 10), from
+    ``numpy.random.default_rng(seed)``. The worst case for code generation and compile time
+    (used by the benchmarks and tests)."""
+    if int(n) != n or n < 1:
+        raise ValueError(f"n must be a positive integer, got n={n!r}")
+    rng = np.random.default_rng(seed)
+    f = Halfspace([0, 1], -1.8)
+    for i in range(int(n) - 1):
+        with transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                smoothness([0, 5, 10][i % 3]):
+            s = Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \
+                Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
+            f = [f | s, f & (Circle([0, 0], 3.0) - s), f | s][i % 3]
     return f

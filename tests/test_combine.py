@@ -13,6 +13,7 @@ import fastsdf as sdf
 from fastsdf import codegen
 from fastsdf.function import compile_expr
 from fastsdf.graph import evaluate_numpy
+from fastsdf.scenes import mixed_scene
 
 # One step of a random scene: (primitive kind, operation, smoothness, operand order).
 _STEP = st.tuples(st.integers(0, 3), st.sampled_from(["|", "&", "-", "cut", "q|", "c&", "q-"]),
@@ -134,14 +135,7 @@ def test_combine_program_every_blend_kind_and_order(monkeypatch):
 def test_mixed_scene_uses_the_program_without_monkeypatching():
     """A 30-primitive scene without repeated structure is long enough for the program on its
     own; the other long scenes keep the straight-line block kernels."""
-    rng = np.random.default_rng(5)
-    f = sdf.Halfspace([0, 1], -1.8)
-    for i in range(29):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness([0, 5, 10][i % 3]):
-            s = sdf.Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \
-                sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
-            f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
+    f = mixed_scene(30, seed=5)
     assert "_combine_point_vg(F, _PROG_VG)" in f.source()  # the one-point function too
     p = _points(11, 700)
     _check(f, p)

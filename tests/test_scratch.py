@@ -9,21 +9,14 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
+from fastsdf.scenes import mixed_scene
 
 SIZES = (0, 1, 7, 8, 9, 511, 512, 513, 1100)
 
 
-def _mixed(n=30, seed=5):
+def _mixed():
     """A scene without repeated structure (the combine-program path)."""
-    rng = np.random.default_rng(seed)
-    f = sdf.Halfspace([0, 1], -1.8)
-    for i in range(n - 1):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness([0, 5, 10][i % 3]):
-            s = sdf.Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \
-                sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
-            f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
-    return f
+    return mixed_scene(30, seed=5)
 
 
 def _looped(n=60, seed=2):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
+from fastsdf.scenes import box_world, mixed_scene
 from fastsdf.graph import evaluate_numpy
 
 from conftest import brute_distance, central_gradient, rotate
@@ -189,7 +190,6 @@ def test_exact_sdf_gradients_have_unit_length(name, rng):
 
 
 def test_non_finite_points_give_nan_for_those_points_only():
-    from fastsdf.scenes import box_world
     f = box_world(8)
     X = np.array([0.1, np.nan, 0.3, np.inf, -np.inf, 0.5, 0.2])
     Y = np.array([0.2, 0.0, np.nan, 0.0, 1.0, 0.1, np.inf])
@@ -313,7 +313,20 @@ def test_transform_composes_where_it_is_entered():
     (lambda: sdf.transform(offset=[0, np.nan]), "offset"),
     (lambda: sdf.transform(offset=[0, 1, 2]), "offset"),
     (lambda: sdf.Circle() | 3, "SDF"),
+    (lambda: box_world(-1), "n_boxes"),
+    (lambda: mixed_scene(0), "n"),
+    (lambda: mixed_scene(2.5), "n"),
 ])
 def test_bad_input_names_the_parameter(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
         make()
+
+
+def test_mixed_scene_is_its_floor_cut_by_seeded_shapes():
+    """One primitive is the floor y = -1.8; more add shapes drawn from the seed only."""
+    x, y = np.random.default_rng(3).uniform(-2, 2, (2, 500))
+    np.testing.assert_array_equal(evaluate_numpy(mixed_scene(1).f, {"x": x, "y": y}), y + 1.8)
+    a, b = (evaluate_numpy(mixed_scene(12, seed=s).f, {"x": x, "y": y}) for s in (4, 4))
+    np.testing.assert_array_equal(a, b)
+    c = evaluate_numpy(mixed_scene(12, seed=5).f, {"x": x, "y": y})
+    assert np.any(a != c) and np.any(a != y + 1.8)
