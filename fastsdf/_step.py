@@ -216,6 +216,9 @@ def call_vg(typingctx, address, x, y):
 _CACHE = True
 USE_FORCE = False
 FORCE_AHEAD = False
+# Not a grid world: the block kernel (simd_par/simd_ser) does not apply.
+GRID_SIMD = False
+GRID_EXACT = False
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -984,6 +987,417 @@ def plain_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay
         bad += _block_plain(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT,
                             FLAGS, dt, t0, ax, ay, drag, use_m, use_ext, explicit, always,
                             check_all)
+    return bad
+
+
+# ---------------------------------------------------------------------------------------------
+# The block step of grid worlds: a block of particles held in scratch rows through all steps,
+# each step in passes over the block that LLVM vectorizes (several particles per instruction).
+
+@intrinsic
+def _sel(typingctx, cond, a, b):
+    """``a if cond else b`` for float64 values, compiled to a ``select`` (no branch), so that
+    a loop using it can run several particles in the lanes of one vector instruction."""
+    if not isinstance(cond, types.Boolean):
+        return None
+    sig = types.float64(cond, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        c, x, y = args
+        x = context.cast(builder, x, signature.args[1], types.float64)
+        y = context.cast(builder, y, signature.args[2], types.float64)
+        return builder.select(c, x, y)
+
+    return sig, codegen
+
+
+#: Particles per block of the vector step (a multiple of every vector width; a block's scratch
+#: rows stay in the L1/L2 cache through all steps of a call).
+LANES = 128
+# Rows of the block step's scratch array, one row of LANES values each (row k at k * LANES):
+# the constant distance between rows lets LLVM prove loads and stores of different rows
+# independent without runtime checks. Flags are stored as 1.0 / 0.0.
+_X, _Y, _VX, _VY, _R, _CR, _CF, _IM, _M, _LIVE, _CLR = range(11)
+_XS, _YS, _DX, _DY, _NVX, _NVY = range(11, 17)
+_TX, _TY, _IDX, _INS, _OK, _NEED, _CODE = range(17, 24)
+_N0 = 24                      # 12 rows: the cell's two runs of 6 grid values
+_D, _GX, _GY, _FIX, _BNC = range(36, 41)
+_ROWS = 41
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _lerp(tx, ty, a, b, c, e):
+    """The bilinear blend of ``fastsdf.grid`` (same operations, same order)."""
+    lo = a + ty * (b - a)
+    hi = c + ty * (e - c)
+    return lo + tx * (hi - lo)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
+    """:func:`_respond` of a static world with selects for every condition (the same
+    operations in the same order, so the same bits), for the vector passes."""
+    gt = 0.0
+    gl2 = gx * gx + gy * gy
+    ok = (gl2 > 0.0) & (gl2 < math.inf)
+    inv = _sel(ok, 1.0 / math.sqrt(gl2), 0.0)
+    nx = _sel(ok, gx * inv, 0.0)
+    ny = _sel(ok, gy * inv, 0.0)
+    k = (1.0 + cr) * s
+    x -= k * nx
+    y -= k * ny
+    vn = vx * nx + vy * ny
+    wn = -gt * inv
+    vr = vn - wn
+    resp = ok & ((vr < 0.0) | always)
+    w = _sel(resp, 1.0 - cf, 1.0)
+    c = _sel(resp, cr, -1.0)
+    vx = w * (vx - vn * nx) + (wn - c * vr) * nx
+    vy = w * (vy - vn * ny) + (wn - c * vr) * ny
+    return x, y, vx, vy
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, off, b0, nb, use_m):
+    """A block's state into the scratch rows (lanes past ``nb`` idle)."""
+    L = LANES
+    for k in range(L):
+        if k < nb:
+            i = np.uint64(b0 + k)
+            ix = np.uint64(2) * i
+            S[_X * L + k] = Xf[ix]
+            S[_Y * L + k] = Xf[ix + np.uint64(1)]
+            S[_VX * L + k] = Vf[ix]
+            S[_VY * L + k] = Vf[ix + np.uint64(1)]
+            S[_R * L + k] = R[i]
+            S[_CR * L + k] = CR[i]
+            S[_CF * L + k] = CF[i]
+            S[_IM * L + k] = inv_mass[off + k] if use_m else 1.0
+            S[_M * L + k] = M[i] if USE_FORCE else 1.0
+            S[_LIVE * L + k] = 1.0 if clear[off + k] >= 0.0 else 0.0
+        else:
+            for row in (_X, _Y, _VX, _VY, _R, _CR, _CF, _IM, _M, _LIVE):
+                S[row * L + k] = 0.0
+        S[_CLR * L + k] = 0.0
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_store(S, Xf, Vf, b0, nb):
+    """The block's state back from the scratch rows."""
+    L = LANES
+    for k in range(nb):
+        ix = np.uint64(2) * np.uint64(b0 + k)
+        Xf[ix] = S[_X * L + k]
+        Xf[ix + np.uint64(1)] = S[_Y * L + k]
+        Vf[ix] = S[_VX * L + k]
+        Vf[ix + np.uint64(1)] = S[_VY * L + k]
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+    """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
+    whose budget covers the step moves here and needs no query), the check for a grid
+    fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
+    operations of ``fastsdf.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
+    ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
+    Returns how many particles need a query, and how many were frozen."""
+    L = LANES
+    bx0, bx1, by0, by1 = b
+    x0, x1, y0, y1, ihx, ihy, nxm2, nym2, nyf = g
+    tol = 1.0 + CONTACT_TOL / lip
+    resume = float(FLAG_RESUME + step)
+    nonfinite = float(FLAG_NONFINITE)
+    nneed = 0
+    nfrz = 0
+    for q in range(L):
+        live = S[_LIVE * L + q] != 0.0
+        x = S[_X * L + q]
+        y = S[_Y * L + q]
+        vx = S[_VX * L + q]
+        vy = S[_VY * L + q]
+        fx = -drag * vx
+        fy = -drag * vy
+        if USE_FORCE:
+            ux, uy = _force(x, y, vx, vy, S[_M * L + q], t)
+            fx += ux
+            fy += uy
+        im = S[_IM * L + q]
+        bx = _sel(use_m, ax + fx * im, ax)
+        by = _sel(use_m, ay + fy * im, ay)
+        nvx = vx + bx * dt
+        nvy = vy + by * dt
+        dx = _sel(explicit, vx, nvx) * dt
+        dy = _sel(explicit, vy, nvy) * dt
+        ln = math.sqrt(dx * dx + dy * dy)
+        c = S[_CLR * L + q]
+        c2 = c - (ln * tol + eps * (abs(x) + abs(y) + 1.0))
+        skip = (c > 0.0) & (c2 > 0.0)
+        xe = x + dx
+        ye = y + dy
+        fin = _finite4(xe, ye, nvx, nvy)
+        moved = live & skip
+        keep = moved & fin
+        S[_X * L + q] = _sel(keep, xe, x)
+        S[_Y * L + q] = _sel(keep, ye, y)
+        S[_VX * L + q] = _sel(keep, nvx, vx)
+        S[_VY * L + q] = _sel(keep, nvy, vy)
+        S[_CLR * L + q] = _sel(skip, c2, 0.0)
+        reach = 2.0 * (MAX_BOUNCES + 1) * ln + 1e-9
+        away = (x - reach >= bx0) & (x + reach <= bx1) & (y - reach >= by0) & (y + reach <= by1)
+        need = live & (not skip)
+        miss = need & fbchk & (not away)
+        need = need & (not miss)
+        code = _sel(miss, resume, _sel(moved & (not fin), nonfinite, 0.0))
+        # the sampler's _locate, branch-free
+        inside = (xe >= x0) & (xe <= x1) & (ye >= y0) & (ye <= y1)
+        ok = inside | ((abs(xe) < math.inf) & (abs(ye) < math.inf))
+        xq = _sel(inside, xe, min(max(_sel(ok, xe, x0), x0), x1))
+        yq = _sel(inside, ye, min(max(_sel(ok, ye, y0), y0), y1))
+        u = (xq - x0) * ihx
+        v = (yq - y0) * ihy
+        fi = min(np.floor(u), nxm2)
+        fj = min(np.floor(v), nym2)
+        S[_TX * L + q] = u - fi
+        S[_TY * L + q] = v - fj
+        S[_IDX * L + q] = 3.0 * (fi * nyf + fj)
+        S[_INS * L + q] = _sel(inside, 1.0, 0.0)
+        S[_OK * L + q] = _sel(ok, 1.0, 0.0)
+        S[_XS * L + q] = x
+        S[_YS * L + q] = y
+        S[_DX * L + q] = dx
+        S[_DY * L + q] = dy
+        S[_NVX * L + q] = nvx
+        S[_NVY * L + q] = nvy
+        S[_NEED * L + q] = _sel(need, 1.0, 0.0)
+        S[_CODE * L + q] = code
+        nneed += need
+        nfrz += code != 0.0
+    return nneed, nfrz
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_gather(S, grid, row):
+    """Pass 2 (scalar): the grid values of the cells of the particles that need a query
+    (``row``: the flat distance between nodes (i, j) and (i + 1, j))."""
+    L = LANES
+    for q in range(L):
+        if S[_NEED * L + q] != 0.0:
+            a = np.uint64(S[_IDX * L + q])
+            c = a + row
+            for k in range(6):
+                S[(_N0 + k) * L + q] = np.float64(grid[a + np.uint64(k)])
+                S[(_N0 + 6 + k) * L + q] = np.float64(grid[c + np.uint64(k)])
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_blend(S, trace, lip):
+    """Pass 3 (vector): bilinear value and gradient, and which particles need the scalar
+    fix-up (a tunnelling sweep, or a query outside an 'exact' grid). Returns their count."""
+    L = LANES
+    nfix = 0
+    for q in range(L):
+        need = S[_NEED * L + q] != 0.0
+        tx = S[_TX * L + q]
+        ty = S[_TY * L + q]
+        d = _lerp(tx, ty, S[_N0 * L + q], S[(_N0 + 3) * L + q], S[(_N0 + 6) * L + q],
+                  S[(_N0 + 9) * L + q])
+        gx = _lerp(tx, ty, S[(_N0 + 1) * L + q], S[(_N0 + 4) * L + q], S[(_N0 + 7) * L + q],
+                   S[(_N0 + 10) * L + q])
+        gy = _lerp(tx, ty, S[(_N0 + 2) * L + q], S[(_N0 + 5) * L + q], S[(_N0 + 8) * L + q],
+                   S[(_N0 + 11) * L + q])
+        ok = S[_OK * L + q] != 0.0
+        d = _sel(ok, d, math.nan)
+        S[_D * L + q] = d
+        S[_GX * L + q] = _sel(ok, gx, math.nan)
+        S[_GY * L + q] = _sel(ok, gy, math.nan)
+        r = S[_R * L + q]
+        s = d - r
+        dx = S[_DX * L + q]
+        dy = S[_DY * L + q]
+        dd = dx * dx + dy * dy
+        sweep = trace & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
+            not ((s * s >= lip * lip * dd) & (s > 0.0)))
+        fix = need & (sweep | (GRID_EXACT & (S[_INS * L + q] == 0.0)))
+        S[_FIX * L + q] = _sel(fix, 1.0, 0.0)
+        S[_BNC * L + q] = 0.0
+        nfix += fix
+    return nfix
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_fix(data, S, lip, always, trace):
+    """The scalar fix-up of the marked particles: the exact query outside the grid, and the
+    tunnelling sweep (:func:`_sweep`) with the end point's query after a bounce, as in
+    :func:`_block`. Returns how many were frozen (invalid ``cr``/``cf`` at a sweep)."""
+    L = LANES
+    nfrz = 0
+    for q in range(L):
+        if S[_FIX * L + q] == 0.0:
+            continue
+        x = S[_XS * L + q]
+        y = S[_YS * L + q]
+        dx = S[_DX * L + q]
+        dy = S[_DY * L + q]
+        r = S[_R * L + q]
+        dd = dx * dx + dy * dy
+        if GRID_EXACT and S[_INS * L + q] == 0.0:
+            d, gx, gy = _query(data, x + dx, y + dy)
+            S[_D * L + q] = d
+            S[_GX * L + q] = gx
+            S[_GY * L + q] = gy
+        s = S[_D * L + q] - r
+        if not (trace and dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
+                s * s >= lip * lip * dd and s > 0.0)):
+            continue
+        cr = S[_CR * L + q]
+        cf = S[_CF * L + q]
+        if not ((cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)):
+            S[_CODE * L + q] = float(FLAG_COEFF)
+            nfrz += 1
+            continue
+        t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
+        x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, S[_NVX * L + q],
+                                               S[_NVY * L + q], r, cr, cf, lip, always, 0.0, t1)
+        if bounced:
+            d, gx, gy = _query(data, x + dx, y + dy)
+            S[_D * L + q] = d
+            S[_GX * L + q] = gx
+            S[_GY * L + q] = gy
+            S[_BNC * L + q] = 1.0
+        S[_XS * L + q] = x
+        S[_YS * L + q] = y
+        S[_DX * L + q] = dx
+        S[_DY * L + q] = dy
+        S[_NVX * L + q] = vx
+        S[_NVY * L + q] = vy
+    return nfrz
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_respond(S, always, skip, lip, margin):
+    """Pass 4 (vector): the end point, the collision response where ``s <= 0``
+    (:func:`_respond_sel`), the checks, the free-flight budget, and the new state of every
+    particle that queried and was not frozen. Returns how many were frozen."""
+    L = LANES
+    coeff = float(FLAG_COEFF)
+    nonfinite = float(FLAG_NONFINITE)
+    nfrz = 0
+    for q in range(L):
+        need = S[_NEED * L + q] != 0.0
+        x = S[_XS * L + q] + S[_DX * L + q]
+        y = S[_YS * L + q] + S[_DY * L + q]
+        vx = S[_NVX * L + q]
+        vy = S[_NVY * L + q]
+        s = S[_D * L + q] - S[_R * L + q]
+        cr = S[_CR * L + q]
+        cf = S[_CF * L + q]
+        cok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
+        contact = s <= 0.0
+        rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, S[_GX * L + q], S[_GY * L + q], cr,
+                                        cf, always & (S[_BNC * L + q] == 0.0))
+        x = _sel(contact, rx, x)
+        y = _sel(contact, ry, y)
+        vx = _sel(contact, rvx, vx)
+        vy = _sel(contact, rvy, vy)
+        code0 = S[_CODE * L + q]
+        code = _sel(code0 != 0.0, code0, _sel(contact & (not cok), coeff,
+                                              _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)))
+        commit = need & (code == 0.0)
+        S[_X * L + q] = _sel(commit, x, S[_X * L + q])
+        S[_Y * L + q] = _sel(commit, y, S[_Y * L + q])
+        S[_VX * L + q] = _sel(commit, vx, S[_VX * L + q])
+        S[_VY * L + q] = _sel(commit, vy, S[_VY * L + q])
+        refill = skip & (not contact) & (s > margin)
+        S[_CLR * L + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
+                               S[_CLR * L + q])
+        S[_CODE * L + q] = _sel(need, code, code0)
+        nfrz += need & (code != 0.0)
+    return nfrz
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_flags(S, FLAGS, b0, nb):
+    """Freeze the particles whose step set a code (see the module docstring's checks)."""
+    L = LANES
+    bad = 0
+    for q in range(nb):
+        code = S[_CODE * L + q]
+        if code != 0.0 and S[_LIVE * L + q] != 0.0:
+            FLAGS[b0 + q] = int(code)
+            S[_LIVE * L + q] = 0.0
+            bad += 1
+    return bad
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, drag, use_m,
+                explicit, always, trace, lip, margin, eps, skip, check_all):
+    """:func:`_block` for a static grid world (``GRID_SIMD``) without resting contact or
+    Python forces, the same results: ``LANES`` particles at a time through all steps, each
+    step in passes over the block (:func:`_simd_move`, :func:`_simd_gather`,
+    :func:`_simd_blend`, :func:`_simd_fix`, :func:`_simd_respond`); a step in which no
+    particle of the block needs a query is the first pass alone."""
+    data = borrow_all(data)
+    M = borrow_all(M)
+    grid, x0, x1, y0, y1, ihx, ihy, nx, ny = data[5:14]
+    b = (float(data[1]), float(data[2]), float(data[3]), float(data[4]))
+    g = (float(x0), float(x1), float(y0), float(y1), float(ihx), float(ihy), float(nx - 2),
+         float(ny - 2), float(ny))
+    row = np.uint64(3 * ny)
+    fbchk = GRID_EXACT and data[0] == 0
+    use_m = use_m or USE_FORCE
+    clear = np.zeros(hi - lo)
+    inv_mass = np.empty(hi - lo if use_m else 0)
+    bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
+    Xf = X.reshape(X.size)
+    Vf = V.reshape(V.size)
+    S = np.zeros(_ROWS * LANES)
+    for b0 in range(lo, hi, LANES):
+        nb = min(hi, b0 + LANES) - b0
+        _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, b0 - lo, b0, nb, use_m)
+        for step in range(steps):
+            t = t0 + step * dt
+            nneed, nfrz = _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps,
+                                     fbchk, b, g)
+            if nneed > 0:
+                _simd_gather(S, grid, row)
+                if _simd_blend(S, trace, lip) > 0:
+                    nfrz += _simd_fix(data, S, lip, always, trace)
+                nfrz += _simd_respond(S, always, skip, lip, margin)
+            if nfrz > 0:
+                bad += _simd_flags(S, FLAGS, b0, nb)
+        _simd_store(S, Xf, Vf, b0, nb)
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def simd_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+             use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+    """:func:`run_par` for a static grid world (``GRID_SIMD``), float64 state, without
+    resting contact (``rest`` 0) or Python forces (``use_ext`` False): the same results
+    through :func:`_block_simd`. A separate entry point, compiled only when first used."""
+    n = X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay,
+                           drag, use_m, explicit, always, trace, lip, margin, eps, skip,
+                           check_all)
+    return bad
+
+
+@njit(cache=_CACHE, error_model="numpy")
+def simd_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
+             use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+    """Serial :func:`simd_par`."""
+    n = X.shape[0]
+    bad = 0
+    for lo in range(0, n, block):
+        bad += _block_simd(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, FLAGS, dt,
+                           t0, ax, ay, drag, use_m, explicit, always, trace, lip, margin, eps,
+                           skip, check_all)
     return bad
 
 
