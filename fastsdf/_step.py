@@ -1011,18 +1011,100 @@ def _sel(typingctx, cond, a, b):
     return sig, codegen
 
 
+@intrinsic
+def _i64_as_f64(typingctx, i):
+    """The float64 with the bit pattern of the int64 ``i`` (a bit cast), so that an integer
+    can live in a row of the float scratch array."""
+    if not isinstance(i, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        v = context.cast(builder, args[0], signature.args[0], types.int64)
+        return builder.bitcast(v, ir.DoubleType())
+
+    return types.float64(i), codegen
+
+
+@intrinsic
+def _f64_as_i64(typingctx, x):
+    """The inverse of :func:`_i64_as_f64`."""
+    if not isinstance(x, types.Float):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.int64(x), codegen
+
+
+@intrinsic
+def _cell_vg(typingctx, grid, a, c, tx, ty):
+    """``(d, dd/dx, dd/dy)``: the bilinear blends of a stored-gradient grid's cell, from its two
+    runs ``grid[a:a + 6]`` (nodes (i, j), (i, j + 1)) and ``grid[c:c + 6]`` (nodes (i + 1, j),
+    (i + 1, j + 1)), each ``[d, dd/dx, dd/dy]`` per node: the three channels in the lanes of
+    one vector (two loads per run, the same operations per channel as the scalar blend, so the
+    same bits). Reads only inside the runs."""
+    if not (isinstance(grid, types.Array) and grid.dtype in (types.float64, types.float32)
+            and isinstance(a, types.Integer) and isinstance(c, types.Integer)):
+        return None
+    sig = types.UniTuple(types.float64, 3)(grid, a, c, tx, ty)
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        el = context.get_data_type(signature.args[0].dtype)
+        dbl = ir.DoubleType()
+        vd = ir.VectorType(dbl, 4)
+        i32 = ir.IntType(32)
+        intp = context.get_value_type(types.intp)
+
+        def load4(idx):
+            ptr = builder.bitcast(builder.gep(ary.data, [idx]), ir.VectorType(el, 4).as_pointer())
+            v = builder.load(ptr, align=signature.args[0].dtype.bitwidth // 8)
+            return v if el == dbl else builder.fpext(v, vd)
+
+        def runs(start):
+            start = context.cast(builder, start, signature.args[1], types.intp)
+            lo = load4(start)                                      # n0.d, n0.gx, n0.gy, n1.d
+            hi = load4(builder.add(start, ir.Constant(intp, 2)))   # n0.gy, n1.d, n1.gx, n1.gy
+            mask = ir.Constant(ir.VectorType(i32, 4), [1, 2, 3, 3])
+            return lo, builder.shuffle_vector(hi, hi, mask)        # n1.d, n1.gx, n1.gy, -
+
+        def splat(x, ty):
+            x = context.cast(builder, x, ty, types.float64)
+            v = builder.insert_element(ir.Constant(vd, ir.Undefined), x, ir.Constant(i32, 0))
+            return builder.shuffle_vector(v, v, ir.Constant(ir.VectorType(i32, 4), [0] * 4))
+
+        a0, a1 = runs(args[1])
+        c0, c1 = runs(args[2])
+        vtx = splat(args[3], signature.args[3])
+        vty = splat(args[4], signature.args[4])
+        lo = builder.fadd(a0, builder.fmul(vty, builder.fsub(a1, a0)))
+        hi = builder.fadd(c0, builder.fmul(vty, builder.fsub(c1, c0)))
+        r = builder.fadd(lo, builder.fmul(vtx, builder.fsub(hi, lo)))
+        vals = [builder.extract_element(r, ir.Constant(i32, k)) for k in range(3)]
+        return context.make_tuple(builder, signature.return_type, vals)
+
+    return sig, codegen
+
+
 #: Particles per block of the vector step (a multiple of every vector width; a block's scratch
 #: rows stay in the L1/L2 cache through all steps of a call).
 LANES = 128
-# Rows of the block step's scratch array, one row of LANES values each (row k at k * LANES):
+# Rows of the block step's scratch array, one row of LANES values each (row k at k * _STRIDE):
 # the constant distance between rows lets LLVM prove loads and stores of different rows
 # independent without runtime checks. Flags are stored as 1.0 / 0.0.
 _X, _Y, _VX, _VY, _R, _CR, _CF, _IM, _M, _LIVE, _CLR = range(11)
 _XS, _YS, _DX, _DY, _NVX, _NVY = range(11, 17)
 _TX, _TY, _IDX, _INS, _OK, _NEED, _CODE = range(17, 24)
-_N0 = 24                      # 12 rows: the cell's two runs of 6 grid values
-_D, _GX, _GY, _FIX, _BNC = range(36, 41)
-_ROWS = 41
+_D, _GX, _GY, _FIX, _BNC = range(24, 29)
+# The first pass's results (state, budget, freeze code), which the last pass turns into the
+# step's: writing a row from a load of the same row under a condition makes LLVM emit masked
+# stores (vmaskmovpd), which are microcoded and slow on this kind of CPU.
+_X1, _Y1, _VX1, _VY1, _CLR1, _CODE1 = range(29, 35)
+_ROWS = 35
+#: Distance between rows: not a multiple of 4096 bytes for rows close together (loads of one
+#: row and stores to another would falsely wait on each other: 4K aliasing).
+_STRIDE = LANES + 8
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -1061,47 +1143,52 @@ def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
 def _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, off, b0, nb, use_m):
     """A block's state into the scratch rows (lanes past ``nb`` idle)."""
     L = LANES
+    W = _STRIDE
     for k in range(L):
         if k < nb:
             i = np.uint64(b0 + k)
             ix = np.uint64(2) * i
-            S[_X * L + k] = Xf[ix]
-            S[_Y * L + k] = Xf[ix + np.uint64(1)]
-            S[_VX * L + k] = Vf[ix]
-            S[_VY * L + k] = Vf[ix + np.uint64(1)]
-            S[_R * L + k] = R[i]
-            S[_CR * L + k] = CR[i]
-            S[_CF * L + k] = CF[i]
-            S[_IM * L + k] = inv_mass[off + k] if use_m else 1.0
-            S[_M * L + k] = M[i] if USE_FORCE else 1.0
-            S[_LIVE * L + k] = 1.0 if clear[off + k] >= 0.0 else 0.0
+            S[_X * W + k] = Xf[ix]
+            S[_Y * W + k] = Xf[ix + np.uint64(1)]
+            S[_VX * W + k] = Vf[ix]
+            S[_VY * W + k] = Vf[ix + np.uint64(1)]
+            S[_R * W + k] = R[i]
+            S[_CR * W + k] = CR[i]
+            S[_CF * W + k] = CF[i]
+            S[_IM * W + k] = inv_mass[off + k] if use_m else 1.0
+            S[_M * W + k] = M[i] if USE_FORCE else 1.0
+            S[_LIVE * W + k] = 1.0 if clear[off + k] >= 0.0 else 0.0
         else:
             for row in (_X, _Y, _VX, _VY, _R, _CR, _CF, _IM, _M, _LIVE):
-                S[row * L + k] = 0.0
-        S[_CLR * L + k] = 0.0
+                S[row * W + k] = 0.0
+        S[_CLR * W + k] = 0.0
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_store(S, Xf, Vf, b0, nb):
     """The block's state back from the scratch rows."""
     L = LANES
+    W = _STRIDE
     for k in range(nb):
         ix = np.uint64(2) * np.uint64(b0 + k)
-        Xf[ix] = S[_X * L + k]
-        Xf[ix + np.uint64(1)] = S[_Y * L + k]
-        Vf[ix] = S[_VX * L + k]
-        Vf[ix + np.uint64(1)] = S[_VY * L + k]
+        Xf[ix] = S[_X * W + k]
+        Xf[ix + np.uint64(1)] = S[_Y * W + k]
+        Vf[ix] = S[_VX * W + k]
+        Vf[ix + np.uint64(1)] = S[_VY * W + k]
 
 
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, budget):
     """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
     whose budget covers the step moves here and needs no query), the check for a grid
     fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
     operations of ``fastsdf.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
     ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
-    Returns how many particles need a query, and how many were frozen."""
+    Returns how many particles need a query, how many were frozen, and how many of those
+    that query end outside the grid. ``budget``: a constant in the two compiled versions,
+    False when neither budgets (``skip``) nor the fallback check (``fbchk``) are used."""
     L = LANES
+    W = _STRIDE
     bx0, bx1, by0, by1 = b
     x0, x1, y0, y1, ihx, ihy, nxm2, nym2, nyf = g
     tol = 1.0 + CONTACT_TOL / lip
@@ -1109,27 +1196,29 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
     nonfinite = float(FLAG_NONFINITE)
     nneed = 0
     nfrz = 0
+    nout = 0
     for q in range(L):
-        live = S[_LIVE * L + q] != 0.0
-        x = S[_X * L + q]
-        y = S[_Y * L + q]
-        vx = S[_VX * L + q]
-        vy = S[_VY * L + q]
+        live = S[_LIVE * W + q] != 0.0
+        x = S[_X * W + q]
+        y = S[_Y * W + q]
+        vx = S[_VX * W + q]
+        vy = S[_VY * W + q]
         fx = -drag * vx
         fy = -drag * vy
         if USE_FORCE:
-            ux, uy = _force(x, y, vx, vy, S[_M * L + q], t)
+            ux, uy = _force(x, y, vx, vy, S[_M * W + q], t)
             fx += ux
             fy += uy
-        im = S[_IM * L + q]
+        im = S[_IM * W + q]
         bx = _sel(use_m, ax + fx * im, ax)
         by = _sel(use_m, ay + fy * im, ay)
         nvx = vx + bx * dt
         nvy = vy + by * dt
         dx = _sel(explicit, vx, nvx) * dt
         dy = _sel(explicit, vy, nvy) * dt
-        ln = math.sqrt(dx * dx + dy * dy)
-        c = S[_CLR * L + q]
+        # the step's length (a square root: only for budgets and the fallback check)
+        ln = math.sqrt(dx * dx + dy * dy) if budget else 0.0
+        c = S[_CLR * W + q]
         c2 = c - (ln * tol + eps * (abs(x) + abs(y) + 1.0))
         skip = (c > 0.0) & (c2 > 0.0)
         xe = x + dx
@@ -1137,11 +1226,11 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
         fin = _finite4(xe, ye, nvx, nvy)
         moved = live & skip
         keep = moved & fin
-        S[_X * L + q] = _sel(keep, xe, x)
-        S[_Y * L + q] = _sel(keep, ye, y)
-        S[_VX * L + q] = _sel(keep, nvx, vx)
-        S[_VY * L + q] = _sel(keep, nvy, vy)
-        S[_CLR * L + q] = _sel(skip, c2, 0.0)
+        S[_X1 * W + q] = _sel(keep, xe, x)
+        S[_Y1 * W + q] = _sel(keep, ye, y)
+        S[_VX1 * W + q] = _sel(keep, nvx, vx)
+        S[_VY1 * W + q] = _sel(keep, nvy, vy)
+        S[_CLR1 * W + q] = _sel(skip, c2, 0.0)
         reach = 2.0 * (MAX_BOUNCES + 1) * ln + 1e-9
         away = (x - reach >= bx0) & (x + reach <= bx1) & (y - reach >= by0) & (y + reach <= by1)
         need = live & (not skip)
@@ -1157,69 +1246,82 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
         v = (yq - y0) * ihy
         fi = min(np.floor(u), nxm2)
         fj = min(np.floor(v), nym2)
-        S[_TX * L + q] = u - fi
-        S[_TY * L + q] = v - fj
-        S[_IDX * L + q] = 3.0 * (fi * nyf + fj)
-        S[_INS * L + q] = _sel(inside, 1.0, 0.0)
-        S[_OK * L + q] = _sel(ok, 1.0, 0.0)
-        S[_XS * L + q] = x
-        S[_YS * L + q] = y
-        S[_DX * L + q] = dx
-        S[_DY * L + q] = dy
-        S[_NVX * L + q] = nvx
-        S[_NVY * L + q] = nvy
-        S[_NEED * L + q] = _sel(need, 1.0, 0.0)
-        S[_CODE * L + q] = code
+        S[_TX * W + q] = u - fi
+        S[_TY * W + q] = v - fj
+        # the flat index as an integer (converted here, in vector registers: a scalar
+        # conversion in the gather would lengthen each particle's dependent chain)
+        S[_IDX * W + q] = _i64_as_f64(np.int64(np.int32(3.0 * (fi * nyf + fj))))
+        S[_INS * W + q] = _sel(inside, 1.0, 0.0)
+        S[_OK * W + q] = _sel(ok, 1.0, 0.0)
+        S[_XS * W + q] = x
+        S[_YS * W + q] = y
+        S[_DX * W + q] = dx
+        S[_DY * W + q] = dy
+        S[_NVX * W + q] = nvx
+        S[_NVY * W + q] = nvy
+        S[_NEED * W + q] = _sel(need, 1.0, 0.0)
+        S[_CODE1 * W + q] = code
         nneed += need
         nfrz += code != 0.0
-    return nneed, nfrz
+        nout += need & (not inside)
+    return nneed, nfrz, nout
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+    """:func:`_simd_move` with budgets or the fallback check."""
+    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+    """:func:`_simd_move` without budgets or the fallback check (``skip``, ``fbchk`` False)."""
+    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, False, b, g,
+                      False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_gather(S, grid, row):
-    """Pass 2 (scalar): the grid values of the cells of the particles that need a query
-    (``row``: the flat distance between nodes (i, j) and (i + 1, j))."""
+    """Pass 2 (scalar: loads from computed places): the bilinear value and gradient at the
+    end point of each particle that needs a query, from its cell's two runs of 6 grid values
+    (``row``: the flat distance between nodes (i, j) and (i + 1, j)); the operations of
+    ``fastsdf.grid.sample_stored`` (its NaN for a non-finite point is applied where the
+    values are used, from the ``_OK`` row). Returns how many may touch a surface (a hint:
+    ``d <= r`` before that NaN)."""
     L = LANES
+    W = _STRIDE
+    ncon = 0
     for q in range(L):
-        if S[_NEED * L + q] != 0.0:
-            a = np.uint64(S[_IDX * L + q])
-            c = a + row
-            for k in range(6):
-                S[(_N0 + k) * L + q] = np.float64(grid[a + np.uint64(k)])
-                S[(_N0 + 6 + k) * L + q] = np.float64(grid[c + np.uint64(k)])
+        if S[_NEED * W + q] != 0.0:
+            a = np.uint64(_f64_as_i64(S[_IDX * W + q]))
+            d, gx, gy = _cell_vg(grid, a, a + row, S[_TX * W + q], S[_TY * W + q])
+            S[_D * W + q] = d
+            S[_GX * W + q] = gx
+            S[_GY * W + q] = gy
+            ncon += d <= S[_R * W + q]
+    return ncon
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_blend(S, trace, lip):
-    """Pass 3 (vector): bilinear value and gradient, and which particles need the scalar
-    fix-up (a tunnelling sweep, or a query outside an 'exact' grid). Returns their count."""
+    """Pass 3 (vector): which particles need the scalar fix-up (a tunnelling sweep, or a
+    query outside an 'exact' grid). Returns their count. (No row is rewritten here from its
+    own value under a condition: LLVM makes that a masked store, microcoded and slow.)"""
     L = LANES
+    W = _STRIDE
     nfix = 0
     for q in range(L):
-        need = S[_NEED * L + q] != 0.0
-        tx = S[_TX * L + q]
-        ty = S[_TY * L + q]
-        d = _lerp(tx, ty, S[_N0 * L + q], S[(_N0 + 3) * L + q], S[(_N0 + 6) * L + q],
-                  S[(_N0 + 9) * L + q])
-        gx = _lerp(tx, ty, S[(_N0 + 1) * L + q], S[(_N0 + 4) * L + q], S[(_N0 + 7) * L + q],
-                   S[(_N0 + 10) * L + q])
-        gy = _lerp(tx, ty, S[(_N0 + 2) * L + q], S[(_N0 + 5) * L + q], S[(_N0 + 8) * L + q],
-                   S[(_N0 + 11) * L + q])
-        ok = S[_OK * L + q] != 0.0
-        d = _sel(ok, d, math.nan)
-        S[_D * L + q] = d
-        S[_GX * L + q] = _sel(ok, gx, math.nan)
-        S[_GY * L + q] = _sel(ok, gy, math.nan)
-        r = S[_R * L + q]
-        s = d - r
-        dx = S[_DX * L + q]
-        dy = S[_DY * L + q]
+        need = S[_NEED * W + q] != 0.0
+        r = S[_R * W + q]
+        s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
+        dx = S[_DX * W + q]
+        dy = S[_DY * W + q]
         dd = dx * dx + dy * dy
         sweep = trace & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
             not ((s * s >= lip * lip * dd) & (s > 0.0)))
-        fix = need & (sweep | (GRID_EXACT & (S[_INS * L + q] == 0.0)))
-        S[_FIX * L + q] = _sel(fix, 1.0, 0.0)
-        S[_BNC * L + q] = 0.0
+        fix = need & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
+        S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
+        S[_BNC * W + q] = 0.0
         nfix += fix
     return nfix
 
@@ -1230,101 +1332,136 @@ def _simd_fix(data, S, lip, always, trace):
     tunnelling sweep (:func:`_sweep`) with the end point's query after a bounce, as in
     :func:`_block`. Returns how many were frozen (invalid ``cr``/``cf`` at a sweep)."""
     L = LANES
+    W = _STRIDE
     nfrz = 0
     for q in range(L):
-        if S[_FIX * L + q] == 0.0:
+        if S[_FIX * W + q] == 0.0:
             continue
-        x = S[_XS * L + q]
-        y = S[_YS * L + q]
-        dx = S[_DX * L + q]
-        dy = S[_DY * L + q]
-        r = S[_R * L + q]
+        x = S[_XS * W + q]
+        y = S[_YS * W + q]
+        dx = S[_DX * W + q]
+        dy = S[_DY * W + q]
+        r = S[_R * W + q]
         dd = dx * dx + dy * dy
-        if GRID_EXACT and S[_INS * L + q] == 0.0:
+        if GRID_EXACT and S[_INS * W + q] == 0.0:
             d, gx, gy = _query(data, x + dx, y + dy)
-            S[_D * L + q] = d
-            S[_GX * L + q] = gx
-            S[_GY * L + q] = gy
-        s = S[_D * L + q] - r
+            S[_D * W + q] = d
+            S[_GX * W + q] = gx
+            S[_GY * W + q] = gy
+            S[_OK * W + q] = 1.0          # these values stand as they are
+        s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
         if not (trace and dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
                 s * s >= lip * lip * dd and s > 0.0)):
             continue
-        cr = S[_CR * L + q]
-        cf = S[_CF * L + q]
+        cr = S[_CR * W + q]
+        cf = S[_CF * W + q]
         if not ((cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)):
-            S[_CODE * L + q] = float(FLAG_COEFF)
+            S[_CODE1 * W + q] = float(FLAG_COEFF)
             nfrz += 1
             continue
         t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
-        x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, S[_NVX * L + q],
-                                               S[_NVY * L + q], r, cr, cf, lip, always, 0.0, t1)
+        x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, S[_NVX * W + q],
+                                               S[_NVY * W + q], r, cr, cf, lip, always, 0.0, t1)
         if bounced:
             d, gx, gy = _query(data, x + dx, y + dy)
-            S[_D * L + q] = d
-            S[_GX * L + q] = gx
-            S[_GY * L + q] = gy
-            S[_BNC * L + q] = 1.0
-        S[_XS * L + q] = x
-        S[_YS * L + q] = y
-        S[_DX * L + q] = dx
-        S[_DY * L + q] = dy
-        S[_NVX * L + q] = vx
-        S[_NVY * L + q] = vy
+            S[_D * W + q] = d
+            S[_GX * W + q] = gx
+            S[_GY * W + q] = gy
+            S[_OK * W + q] = 1.0
+            S[_BNC * W + q] = 1.0
+        S[_XS * W + q] = x
+        S[_YS * W + q] = y
+        S[_DX * W + q] = dx
+        S[_DY * W + q] = dy
+        S[_NVX * W + q] = vx
+        S[_NVY * W + q] = vy
     return nfrz
 
 
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_respond(S, always, skip, lip, margin):
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _simd_respond(S, always, skip, lip, margin, contacts):
     """Pass 4 (vector): the end point, the collision response where ``s <= 0``
     (:func:`_respond_sel`), the checks, the free-flight budget, and the new state of every
-    particle that queried and was not frozen. Returns how many were frozen."""
+    particle that queried and was not frozen. Returns how many were frozen. ``contacts``: a
+    constant in the two compiled versions; False when no particle of the block touches a
+    surface (then the response's square root and division are left out)."""
     L = LANES
+    W = _STRIDE
     coeff = float(FLAG_COEFF)
     nonfinite = float(FLAG_NONFINITE)
     nfrz = 0
     for q in range(L):
-        need = S[_NEED * L + q] != 0.0
-        x = S[_XS * L + q] + S[_DX * L + q]
-        y = S[_YS * L + q] + S[_DY * L + q]
-        vx = S[_NVX * L + q]
-        vy = S[_NVY * L + q]
-        s = S[_D * L + q] - S[_R * L + q]
-        cr = S[_CR * L + q]
-        cf = S[_CF * L + q]
+        need = S[_NEED * W + q] != 0.0
+        x = S[_XS * W + q] + S[_DX * W + q]
+        y = S[_YS * W + q] + S[_DY * W + q]
+        vx = S[_NVX * W + q]
+        vy = S[_NVY * W + q]
+        ok = S[_OK * W + q] != 0.0     # False: a non-finite end point (the sampler's NaN)
+        s = _sel(ok, S[_D * W + q], math.nan) - S[_R * W + q]
+        cr = S[_CR * W + q]
+        cf = S[_CF * W + q]
         cok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
-        contact = s <= 0.0
-        rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, S[_GX * L + q], S[_GY * L + q], cr,
-                                        cf, always & (S[_BNC * L + q] == 0.0))
+        contact = (s <= 0.0) & contacts
+        rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, _sel(ok, S[_GX * W + q], math.nan),
+                                        _sel(ok, S[_GY * W + q], math.nan), cr, cf,
+                                        always & (S[_BNC * W + q] == 0.0))
         x = _sel(contact, rx, x)
         y = _sel(contact, ry, y)
         vx = _sel(contact, rvx, vx)
         vy = _sel(contact, rvy, vy)
-        code0 = S[_CODE * L + q]
+        code0 = S[_CODE1 * W + q]
         code = _sel(code0 != 0.0, code0, _sel(contact & (not cok), coeff,
                                               _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)))
         commit = need & (code == 0.0)
-        S[_X * L + q] = _sel(commit, x, S[_X * L + q])
-        S[_Y * L + q] = _sel(commit, y, S[_Y * L + q])
-        S[_VX * L + q] = _sel(commit, vx, S[_VX * L + q])
-        S[_VY * L + q] = _sel(commit, vy, S[_VY * L + q])
+        S[_X * W + q] = _sel(commit, x, S[_X1 * W + q])
+        S[_Y * W + q] = _sel(commit, y, S[_Y1 * W + q])
+        S[_VX * W + q] = _sel(commit, vx, S[_VX1 * W + q])
+        S[_VY * W + q] = _sel(commit, vy, S[_VY1 * W + q])
         refill = skip & (not contact) & (s > margin)
-        S[_CLR * L + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
-                               S[_CLR * L + q])
-        S[_CODE * L + q] = _sel(need, code, code0)
+        S[_CLR * W + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
+                               S[_CLR1 * W + q])
+        S[_CODE * W + q] = _sel(need, code, code0)
         nfrz += need & (code != 0.0)
     return nfrz
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_respond_all(S, always, skip, lip, margin):
+    """:func:`_simd_respond` of a block where some particle may touch a surface."""
+    return _simd_respond(S, always, skip, lip, margin, True)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_respond_none(S, always, skip, lip, margin):
+    """:func:`_simd_respond` of a block where no particle touches a surface."""
+    return _simd_respond(S, always, skip, lip, margin, False)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_commit(S):
+    """The first pass's results as the step's (a step where no particle queried)."""
+    L = LANES
+    W = _STRIDE
+    for q in range(L):
+        S[_X * W + q] = S[_X1 * W + q]
+        S[_Y * W + q] = S[_Y1 * W + q]
+        S[_VX * W + q] = S[_VX1 * W + q]
+        S[_VY * W + q] = S[_VY1 * W + q]
+        S[_CLR * W + q] = S[_CLR1 * W + q]
+        S[_CODE * W + q] = S[_CODE1 * W + q]
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_flags(S, FLAGS, b0, nb):
     """Freeze the particles whose step set a code (see the module docstring's checks)."""
     L = LANES
+    W = _STRIDE
     bad = 0
     for q in range(nb):
-        code = S[_CODE * L + q]
-        if code != 0.0 and S[_LIVE * L + q] != 0.0:
+        code = S[_CODE * W + q]
+        if code != 0.0 and S[_LIVE * W + q] != 0.0:
             FLAGS[b0 + q] = int(code)
-            S[_LIVE * L + q] = 0.0
+            S[_LIVE * W + q] = 0.0
             bad += 1
     return bad
 
@@ -1351,19 +1488,30 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
     bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
-    S = np.zeros(_ROWS * LANES)
+    S = np.zeros(_ROWS * _STRIDE)
     for b0 in range(lo, hi, LANES):
         nb = min(hi, b0 + LANES) - b0
         _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, b0 - lo, b0, nb, use_m)
         for step in range(steps):
             t = t0 + step * dt
-            nneed, nfrz = _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps,
-                                     fbchk, b, g)
+            if skip or fbchk:
+                nneed, nfrz, nout = _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m,
+                                                      explicit, lip, eps, fbchk, b, g)
+            else:
+                nneed, nfrz, nout = _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m,
+                                                     explicit, lip, eps, fbchk, b, g)
             if nneed > 0:
-                _simd_gather(S, grid, row)
-                if _simd_blend(S, trace, lip) > 0:
+                ncon = _simd_gather(S, grid, row)
+                # (the sweep needs the distance, a query outside an 'exact' grid the exact one)
+                if (trace or (GRID_EXACT and nout > 0)) and _simd_blend(S, trace, lip) > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
-                nfrz += _simd_respond(S, always, skip, lip, margin)
+                    ncon = 1
+                if ncon > 0:
+                    nfrz += _simd_respond_all(S, always, skip, lip, margin)
+                else:
+                    nfrz += _simd_respond_none(S, always, skip, lip, margin)
+            else:
+                _simd_commit(S)
             if nfrz > 0:
                 bad += _simd_flags(S, FLAGS, b0, nb)
         _simd_store(S, Xf, Vf, b0, nb)
