@@ -1417,9 +1417,12 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         S[_Y * W + q] = _sel(commit, y, S[_Y1 * W + q])
         S[_VX * W + q] = _sel(commit, vx, S[_VX1 * W + q])
         S[_VY * W + q] = _sel(commit, vy, S[_VY1 * W + q])
-        refill = skip & (not contact) & (s > margin)
-        S[_CLR * W + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
-                               S[_CLR1 * W + q])
+        if skip:
+            refill = (not contact) & (s > margin)
+            S[_CLR * W + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
+                                   S[_CLR1 * W + q])
+        else:
+            S[_CLR * W + q] = 0.0
         S[_CODE * W + q] = _sel(need, code, code0)
         nfrz += need & (code != 0.0)
     return nfrz
@@ -1435,6 +1438,18 @@ def _simd_respond_all(S, always, skip, lip, margin):
 def _simd_respond_none(S, always, skip, lip, margin):
     """:func:`_simd_respond` of a block where no particle touches a surface."""
     return _simd_respond(S, always, skip, lip, margin, False)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_respond_all_plain(S, always, skip, lip, margin):
+    """:func:`_simd_respond_all` without budgets (``skip`` False: no division per particle)."""
+    return _simd_respond(S, always, False, lip, margin, True)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_respond_none_plain(S, always, skip, lip, margin):
+    """:func:`_simd_respond_none` without budgets."""
+    return _simd_respond(S, always, False, lip, margin, False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -1506,10 +1521,14 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
                 if (trace or (GRID_EXACT and nout > 0)) and _simd_blend(S, trace, lip) > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
                     ncon = 1
-                if ncon > 0:
+                if ncon > 0 and skip:
                     nfrz += _simd_respond_all(S, always, skip, lip, margin)
-                else:
+                elif skip:
                     nfrz += _simd_respond_none(S, always, skip, lip, margin)
+                elif ncon > 0:
+                    nfrz += _simd_respond_all_plain(S, always, skip, lip, margin)
+                else:
+                    nfrz += _simd_respond_none_plain(S, always, skip, lip, margin)
             else:
                 _simd_commit(S)
             if nfrz > 0:
