@@ -1253,8 +1253,6 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
         S[_IDX * W + q] = _i64_as_f64(np.int64(np.int32(3.0 * (fi * nyf + fj))))
         S[_INS * W + q] = _sel(inside, 1.0, 0.0)
         S[_OK * W + q] = _sel(ok, 1.0, 0.0)
-        S[_XS * W + q] = x
-        S[_YS * W + q] = y
         S[_DX * W + q] = dx
         S[_DY * W + q] = dy
         S[_NVX * W + q] = nvx
@@ -1280,19 +1278,20 @@ def _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fb
                       False)
 
 
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_gather(S, grid, row):
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _simd_gather(S, grid, row, every):
     """Pass 2 (scalar: loads from computed places): the bilinear value and gradient at the
     end point of each particle that needs a query, from its cell's two runs of 6 grid values
     (``row``: the flat distance between nodes (i, j) and (i + 1, j)); the operations of
     ``fastsdf.grid.sample_stored`` (its NaN for a non-finite point is applied where the
     values are used, from the ``_OK`` row). Returns how many may touch a surface (a hint:
-    ``d <= r`` before that NaN)."""
+    ``d <= r`` before that NaN). ``every``: a constant in the two compiled versions, True
+    when every particle queries (no test per particle; the others' cells are valid ones)."""
     L = LANES
     W = _STRIDE
     ncon = 0
     for q in range(L):
-        if S[_NEED * W + q] != 0.0:
+        if every or S[_NEED * W + q] != 0.0:
             a = np.uint64(_f64_as_i64(S[_IDX * W + q]))
             d, gx, gy = _cell_vg(grid, a, a + row, S[_TX * W + q], S[_TY * W + q])
             S[_D * W + q] = d
@@ -1300,6 +1299,18 @@ def _simd_gather(S, grid, row):
             S[_GY * W + q] = gy
             ncon += d <= S[_R * W + q]
     return ncon
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_gather_some(S, grid, row):
+    """:func:`_simd_gather` of the particles that need a query."""
+    return _simd_gather(S, grid, row, False)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_gather_all(S, grid, row):
+    """:func:`_simd_gather` of every particle of the block."""
+    return _simd_gather(S, grid, row, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -1337,8 +1348,8 @@ def _simd_fix(data, S, lip, always, trace):
     for q in range(L):
         if S[_FIX * W + q] == 0.0:
             continue
-        x = S[_XS * W + q]
-        y = S[_YS * W + q]
+        x = S[_X * W + q]
+        y = S[_Y * W + q]
         dx = S[_DX * W + q]
         dy = S[_DY * W + q]
         r = S[_R * W + q]
@@ -1392,8 +1403,10 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
     nfrz = 0
     for q in range(L):
         need = S[_NEED * W + q] != 0.0
-        x = S[_XS * W + q] + S[_DX * W + q]
-        y = S[_YS * W + q] + S[_DY * W + q]
+        # the step's start: moved by a sweep that bounced (XS, YS), else the state (X, Y)
+        bounced = S[_BNC * W + q] != 0.0
+        x = _sel(bounced, S[_XS * W + q], S[_X * W + q]) + S[_DX * W + q]
+        y = _sel(bounced, S[_YS * W + q], S[_Y * W + q]) + S[_DY * W + q]
         vx = S[_NVX * W + q]
         vy = S[_NVY * W + q]
         ok = S[_OK * W + q] != 0.0     # False: a non-finite end point (the sampler's NaN)
@@ -1404,7 +1417,7 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         contact = (s <= 0.0) & contacts
         rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, _sel(ok, S[_GX * W + q], math.nan),
                                         _sel(ok, S[_GY * W + q], math.nan), cr, cf,
-                                        always & (S[_BNC * W + q] == 0.0))
+                                        always & (not bounced))
         x = _sel(contact, rx, x)
         y = _sel(contact, ry, y)
         vx = _sel(contact, rvx, vx)
@@ -1516,7 +1529,10 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
                 nneed, nfrz, nout = _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m,
                                                      explicit, lip, eps, fbchk, b, g)
             if nneed > 0:
-                ncon = _simd_gather(S, grid, row)
+                if skip:
+                    ncon = _simd_gather_some(S, grid, row)
+                else:
+                    ncon = _simd_gather_all(S, grid, row)
                 # (the sweep needs the distance, a query outside an 'exact' grid the exact one)
                 if (trace or (GRID_EXACT and nout > 0)) and _simd_blend(S, trace, lip) > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
