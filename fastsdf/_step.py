@@ -1279,17 +1279,21 @@ def _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fb
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _simd_gather(S, grid, row, every):
+def _simd_gather(S, grid, row, lip, every, marks):
     """Pass 2 (scalar: loads from computed places): the bilinear value and gradient at the
     end point of each particle that needs a query, from its cell's two runs of 6 grid values
     (``row``: the flat distance between nodes (i, j) and (i + 1, j)); the operations of
     ``fastsdf.grid.sample_stored`` (its NaN for a non-finite point is applied where the
     values are used, from the ``_OK`` row). Returns how many may touch a surface (a hint:
     ``d <= r`` before that NaN). ``every``: a constant in the two compiled versions, True
-    when every particle queries (no test per particle; the others' cells are valid ones)."""
+    when every particle queries (no test per particle; the others' cells are valid ones).
+    ``marks`` (constant too): also mark the particles that need the scalar fix-up, as
+    :func:`_simd_blend` does (here, for a tunnelling check: one pass less). Returns the
+    count of those as well."""
     L = LANES
     W = _STRIDE
     ncon = 0
+    nfix = 0
     for q in range(L):
         if every or S[_NEED * W + q] != 0.0:
             a = np.uint64(_f64_as_i64(S[_IDX * W + q]))
@@ -1297,20 +1301,44 @@ def _simd_gather(S, grid, row, every):
             S[_D * W + q] = d
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
-            ncon += d <= S[_R * W + q]
-    return ncon
+            r = S[_R * W + q]
+            ncon += d <= r
+            if marks:
+                s = _sel(S[_OK * W + q] != 0.0, d, math.nan) - r
+                dx = S[_DX * W + q]
+                dy = S[_DY * W + q]
+                dd = dx * dx + dy * dy
+                sweep = (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
+                    not ((s * s >= lip * lip * dd) & (s > 0.0)))
+                fix = (S[_NEED * W + q] != 0.0) & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
+                S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
+                S[_BNC * W + q] = 0.0
+                nfix += fix
+    return ncon, nfix
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_gather_some(S, grid, row):
+def _simd_gather_some(S, grid, row, lip):
     """:func:`_simd_gather` of the particles that need a query."""
-    return _simd_gather(S, grid, row, False)
+    return _simd_gather(S, grid, row, lip, False, False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_gather_all(S, grid, row):
+def _simd_gather_all(S, grid, row, lip):
     """:func:`_simd_gather` of every particle of the block."""
-    return _simd_gather(S, grid, row, True)
+    return _simd_gather(S, grid, row, lip, True, False)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_gather_some_marks(S, grid, row, lip):
+    """:func:`_simd_gather_some` with the tunnelling check's marks."""
+    return _simd_gather(S, grid, row, lip, False, True)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_gather_all_marks(S, grid, row, lip):
+    """:func:`_simd_gather_all` with the tunnelling check's marks."""
+    return _simd_gather(S, grid, row, lip, True, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -1346,7 +1374,7 @@ def _simd_fix(data, S, lip, always, trace):
     W = _STRIDE
     nfrz = 0
     for q in range(L):
-        if S[_FIX * W + q] == 0.0:
+        if S[_FIX * W + q] == 0.0 or S[_NEED * W + q] == 0.0:   # (FIX is set for these only)
             continue
         x = S[_X * W + q]
         y = S[_Y * W + q]
@@ -1529,12 +1557,18 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
                 nneed, nfrz, nout = _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m,
                                                      explicit, lip, eps, fbchk, b, g)
             if nneed > 0:
-                if skip:
-                    ncon = _simd_gather_some(S, grid, row)
+                if skip and trace:
+                    ncon, nfix = _simd_gather_some_marks(S, grid, row, lip)
+                elif skip:
+                    ncon, nfix = _simd_gather_some(S, grid, row, lip)
+                elif trace:
+                    ncon, nfix = _simd_gather_all_marks(S, grid, row, lip)
                 else:
-                    ncon = _simd_gather_all(S, grid, row)
+                    ncon, nfix = _simd_gather_all(S, grid, row, lip)
                 # (the sweep needs the distance, a query outside an 'exact' grid the exact one)
-                if (trace or (GRID_EXACT and nout > 0)) and _simd_blend(S, trace, lip) > 0:
+                if not trace and GRID_EXACT and nout > 0:
+                    nfix = _simd_blend(S, trace, lip)
+                if nfix > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
                     ncon = 1
                 if ncon > 0 and skip:
