@@ -1178,15 +1178,17 @@ def _simd_store(S, Xf, Vf, b0, nb):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, budget):
+def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, budget,
+               skipping):
     """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
     whose budget covers the step moves here and needs no query), the check for a grid
     fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
     operations of ``fastsdf.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
     ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
     Returns how many particles need a query, how many were frozen, and how many of those
-    that query end outside the grid. ``budget``: a constant in the two compiled versions,
-    False when neither budgets (``skip``) nor the fallback check (``fbchk``) are used."""
+    that query end outside the grid. ``budget``, ``skipping``: constants in the compiled
+    versions; ``budget`` False when neither budgets nor the fallback check (``fbchk``) are
+    used, ``skipping`` False without budgets (``skip``)."""
     L = LANES
     W = _STRIDE
     bx0, bx1, by0, by1 = b
@@ -1218,7 +1220,7 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
         dy = _sel(explicit, vy, nvy) * dt
         # the step's length (a square root: only for budgets and the fallback check)
         ln = math.sqrt(dx * dx + dy * dy) if budget else 0.0
-        c = S[_CLR * W + q]
+        c = S[_CLR * W + q] if skipping else 0.0
         c2 = c - (ln * tol + eps * (abs(x) + abs(y) + 1.0))
         skip = (c > 0.0) & (c2 > 0.0)
         xe = x + dx
@@ -1230,7 +1232,8 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
         S[_Y1 * W + q] = _sel(keep, ye, y)
         S[_VX1 * W + q] = _sel(keep, nvx, vx)
         S[_VY1 * W + q] = _sel(keep, nvy, vy)
-        S[_CLR1 * W + q] = _sel(skip, c2, 0.0)
+        if skipping:
+            S[_CLR1 * W + q] = _sel(skip, c2, 0.0)
         reach = 2.0 * (MAX_BOUNCES + 1) * ln + 1e-9
         away = (x - reach >= bx0) & (x + reach <= bx1) & (y - reach >= by0) & (y + reach <= by1)
         need = live & (not skip)
@@ -1267,15 +1270,23 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
-    """:func:`_simd_move` with budgets or the fallback check."""
-    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True)
+    """:func:`_simd_move` with budgets (``skip``)."""
+    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True,
+                      True)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_move_check(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+    """:func:`_simd_move` with the fallback check and without budgets."""
+    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True,
+                      False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
     """:func:`_simd_move` without budgets or the fallback check (``skip``, ``fbchk`` False)."""
     return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, False, b, g,
-                      False)
+                      False, False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -1431,10 +1442,13 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
     nfrz = 0
     for q in range(L):
         need = S[_NEED * W + q] != 0.0
-        # the step's start: moved by a sweep that bounced (XS, YS), else the state (X, Y)
+        # the step's start: moved by a sweep that bounced (XS, YS), else the state (X1 = X
+        # for a particle that queries)
         bounced = S[_BNC * W + q] != 0.0
-        x = _sel(bounced, S[_XS * W + q], S[_X * W + q]) + S[_DX * W + q]
-        y = _sel(bounced, S[_YS * W + q], S[_Y * W + q]) + S[_DY * W + q]
+        x1 = S[_X1 * W + q]
+        y1 = S[_Y1 * W + q]
+        x = _sel(bounced, S[_XS * W + q], x1) + S[_DX * W + q]
+        y = _sel(bounced, S[_YS * W + q], y1) + S[_DY * W + q]
         vx = S[_NVX * W + q]
         vy = S[_NVY * W + q]
         ok = S[_OK * W + q] != 0.0     # False: a non-finite end point (the sampler's NaN)
@@ -1454,16 +1468,14 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         code = _sel(code0 != 0.0, code0, _sel(contact & (not cok), coeff,
                                               _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)))
         commit = need & (code == 0.0)
-        S[_X * W + q] = _sel(commit, x, S[_X1 * W + q])
-        S[_Y * W + q] = _sel(commit, y, S[_Y1 * W + q])
+        S[_X * W + q] = _sel(commit, x, x1)
+        S[_Y * W + q] = _sel(commit, y, y1)
         S[_VX * W + q] = _sel(commit, vx, S[_VX1 * W + q])
         S[_VY * W + q] = _sel(commit, vy, S[_VY1 * W + q])
         if skip:
             refill = (not contact) & (s > margin)
             S[_CLR * W + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
                                    S[_CLR1 * W + q])
-        else:
-            S[_CLR * W + q] = 0.0
         S[_CODE * W + q] = _sel(need, code, code0)
         nfrz += need & (code != 0.0)
     return nfrz
@@ -1550,9 +1562,12 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
         _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, b0 - lo, b0, nb, use_m)
         for step in range(steps):
             t = t0 + step * dt
-            if skip or fbchk:
+            if skip:
                 nneed, nfrz, nout = _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m,
                                                       explicit, lip, eps, fbchk, b, g)
+            elif fbchk:
+                nneed, nfrz, nout = _simd_move_check(S, step, t, dt, ax, ay, drag, use_m,
+                                                     explicit, lip, eps, fbchk, b, g)
             else:
                 nneed, nfrz, nout = _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m,
                                                      explicit, lip, eps, fbchk, b, g)
