@@ -1087,6 +1087,86 @@ def _cell_vg(typingctx, grid, a, c, tx, ty):
     return sig, codegen
 
 
+@intrinsic
+def _gather4(typingctx, grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_at, r_at):
+    """:func:`_cell_vg` for the four particles ``q .. q + 3`` of a block: their flat indices
+    (int64 bits in ``S[idx_at + q:]``), fractions (``tx_at``, ``ty_at``) in, the values and
+    gradients out as three vector stores into ``S[d_at + q:]``, ``gx_at``, ``gy_at`` (the
+    four results transposed in registers; a scalar store per value would make the store
+    port the bottleneck). Returns how many of the four have ``d <= S[r_at + q]``."""
+    if not (isinstance(grid, types.Array) and grid.dtype in (types.float64, types.float32)
+            and isinstance(S, types.Array) and S.dtype == types.float64):
+        return None
+    sig = types.int64(grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_at, r_at)
+
+    def codegen(context, builder, signature, args):
+        gty = signature.args[0]
+        g = context.make_array(gty)(context, builder, args[0])
+        sa = context.make_array(signature.args[1])(context, builder, args[1])
+        el = context.get_data_type(gty.dtype)
+        dbl = ir.DoubleType()
+        i32 = ir.IntType(32)
+        i64 = ir.IntType(64)
+        vd = ir.VectorType(dbl, 4)
+        intp = context.get_value_type(types.intp)
+
+        def idx(k):
+            return context.cast(builder, args[k], signature.args[k], types.intp)
+
+        qi = idx(2)
+        rowi = idx(3)
+
+        def sptr(k):
+            ptr = builder.gep(sa.data, [builder.add(idx(k), qi)])
+            return builder.bitcast(ptr, vd.as_pointer())
+
+        def mask(vals):
+            return ir.Constant(ir.VectorType(i32, len(vals)), vals)
+
+        def load4(start):
+            ptr = builder.bitcast(builder.gep(g.data, [start]), ir.VectorType(el, 4).as_pointer())
+            v = builder.load(ptr, align=gty.dtype.bitwidth // 8)
+            return v if el == dbl else builder.fpext(v, vd)
+
+        def runs(start):
+            lo = load4(start)
+            hi = load4(builder.add(start, ir.Constant(intp, 2)))
+            return lo, builder.shuffle_vector(hi, hi, mask([1, 2, 3, 3]))
+
+        def splat(vec, k):
+            return builder.shuffle_vector(vec, vec, mask([k] * 4))
+
+        ivec = builder.bitcast(builder.load(sptr(4), align=8), ir.VectorType(i64, 4))
+        txv = builder.load(sptr(5), align=8)
+        tyv = builder.load(sptr(6), align=8)
+        res = []
+        for k in range(4):
+            a = builder.extract_element(ivec, ir.Constant(i32, k))
+            a0, a1 = runs(a)
+            c0, c1 = runs(builder.add(a, rowi))
+            tx = splat(txv, k)
+            ty = splat(tyv, k)
+            lo = builder.fadd(a0, builder.fmul(ty, builder.fsub(a1, a0)))
+            hi = builder.fadd(c0, builder.fmul(ty, builder.fsub(c1, c0)))
+            res.append(builder.fadd(lo, builder.fmul(tx, builder.fsub(hi, lo))))
+        t0 = builder.shuffle_vector(res[0], res[1], mask([0, 4, 2, 6]))
+        t1 = builder.shuffle_vector(res[2], res[3], mask([0, 4, 2, 6]))
+        t2 = builder.shuffle_vector(res[0], res[1], mask([1, 5, 3, 7]))
+        t3 = builder.shuffle_vector(res[2], res[3], mask([1, 5, 3, 7]))
+        dv = builder.shuffle_vector(t0, t1, mask([0, 1, 4, 5]))
+        builder.store(dv, sptr(7), align=8)
+        builder.store(builder.shuffle_vector(t2, t3, mask([0, 1, 4, 5])), sptr(8), align=8)
+        builder.store(builder.shuffle_vector(t0, t1, mask([2, 3, 6, 7])), sptr(9), align=8)
+        le = builder.zext(builder.fcmp_ordered("<=", dv, builder.load(sptr(10), align=8)),
+                          ir.VectorType(i64, 4))
+        n = builder.extract_element(le, ir.Constant(i32, 0))
+        for k in range(1, 4):
+            n = builder.add(n, builder.extract_element(le, ir.Constant(i32, k)))
+        return n
+
+    return sig, codegen
+
+
 #: Particles per block of the vector step (a multiple of every vector width; a block's scratch
 #: rows stay in the L1/L2 cache through all steps of a call).
 LANES = 128
@@ -1336,8 +1416,14 @@ def _simd_gather_some(S, grid, row, lip):
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_gather_all(S, grid, row, lip):
-    """:func:`_simd_gather` of every particle of the block."""
-    return _simd_gather(S, grid, row, lip, True, False)
+    """:func:`_simd_gather` of every particle of the block, four at a time
+    (:func:`_gather4`)."""
+    W = _STRIDE
+    ncon = 0
+    for q in range(0, LANES, 4):
+        ncon += _gather4(grid, S, q, row, _IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W,
+                         _R * W)
+    return ncon, 0
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
