@@ -1350,16 +1350,10 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
-    """:func:`_simd_move` with budgets (``skip``)."""
+    """:func:`_simd_move` with budgets (``skip``) or the fallback check (without budgets
+    their row stays 0)."""
     return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True,
                       True)
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_move_check(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
-    """:func:`_simd_move` with the fallback check and without budgets."""
-    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True,
-                      False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -1370,7 +1364,7 @@ def _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fb
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _simd_gather(S, grid, row, lip, every, marks):
+def _simd_gather(S, grid, row, lip, trace, every, marks):
     """Pass 2 (scalar: loads from computed places): the bilinear value and gradient at the
     end point of each particle that needs a query, from its cell's two runs of 6 grid values
     (``row``: the flat distance between nodes (i, j) and (i + 1, j)); the operations of
@@ -1399,7 +1393,7 @@ def _simd_gather(S, grid, row, lip, every, marks):
                 dx = S[_DX * W + q]
                 dy = S[_DY * W + q]
                 dd = dx * dx + dy * dy
-                sweep = (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
+                sweep = trace & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
                     not ((s * s >= lip * lip * dd) & (s > 0.0)))
                 fix = (S[_NEED * W + q] != 0.0) & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
                 S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
@@ -1409,33 +1403,22 @@ def _simd_gather(S, grid, row, lip, every, marks):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_gather_some(S, grid, row, lip):
-    """:func:`_simd_gather` of the particles that need a query."""
-    return _simd_gather(S, grid, row, lip, False, False)
+def _simd_gather_some(S, grid, row, lip, trace):
+    """:func:`_simd_gather` of the particles that need a query, with the marks for the
+    fix-up (a sweep where ``trace``, a query outside an 'exact' grid)."""
+    return _simd_gather(S, grid, row, lip, trace, False, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_gather_all(S, grid, row, lip):
     """:func:`_simd_gather` of every particle of the block, four at a time
-    (:func:`_gather4`)."""
+    (:func:`_gather4`), without marks."""
     W = _STRIDE
     ncon = 0
     for q in range(0, LANES, 4):
         ncon += _gather4(grid, S, q, row, _IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W,
                          _R * W)
     return ncon, 0
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_gather_some_marks(S, grid, row, lip):
-    """:func:`_simd_gather_some` with the tunnelling check's marks."""
-    return _simd_gather(S, grid, row, lip, False, True)
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_gather_all_marks(S, grid, row, lip):
-    """:func:`_simd_gather_all` with the tunnelling check's marks."""
-    return _simd_gather(S, grid, row, lip, True, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -1463,6 +1446,12 @@ def _simd_blend(S, trace, lip):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_query(data, x, y):
+    """:func:`_query`, compiled once for the fix-up's two call sites (compile time)."""
+    return _query(data, x, y)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_fix(data, S, lip, always, trace):
     """The scalar fix-up of the marked particles: the exact query outside the grid, and the
     tunnelling sweep (:func:`_sweep`) with the end point's query after a bounce, as in
@@ -1480,7 +1469,7 @@ def _simd_fix(data, S, lip, always, trace):
         r = S[_R * W + q]
         dd = dx * dx + dy * dy
         if GRID_EXACT and S[_INS * W + q] == 0.0:
-            d, gx, gy = _query(data, x + dx, y + dy)
+            d, gx, gy = _simd_query(data, x + dx, y + dy)
             S[_D * W + q] = d
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
@@ -1499,7 +1488,7 @@ def _simd_fix(data, S, lip, always, trace):
         x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, S[_NVX * W + q],
                                                S[_NVY * W + q], r, cr, cf, lip, always, 0.0, t1)
         if bounced:
-            d, gx, gy = _query(data, x + dx, y + dy)
+            d, gx, gy = _simd_query(data, x + dx, y + dy)
             S[_D * W + q] = d
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
@@ -1648,27 +1637,20 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
         _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, b0 - lo, b0, nb, use_m)
         for step in range(steps):
             t = t0 + step * dt
-            if skip:
+            if skip or fbchk:
                 nneed, nfrz, nout = _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m,
                                                       explicit, lip, eps, fbchk, b, g)
-            elif fbchk:
-                nneed, nfrz, nout = _simd_move_check(S, step, t, dt, ax, ay, drag, use_m,
-                                                     explicit, lip, eps, fbchk, b, g)
             else:
                 nneed, nfrz, nout = _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m,
                                                      explicit, lip, eps, fbchk, b, g)
             if nneed > 0:
-                if skip and trace:
-                    ncon, nfix = _simd_gather_some_marks(S, grid, row, lip)
-                elif skip:
-                    ncon, nfix = _simd_gather_some(S, grid, row, lip)
-                elif trace:
-                    ncon, nfix = _simd_gather_all_marks(S, grid, row, lip)
+                if skip or trace:
+                    ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
                 else:
                     ncon, nfix = _simd_gather_all(S, grid, row, lip)
-                # (the sweep needs the distance, a query outside an 'exact' grid the exact one)
-                if not trace and GRID_EXACT and nout > 0:
-                    nfix = _simd_blend(S, trace, lip)
+                    # (a query outside an 'exact' grid needs the exact value)
+                    if GRID_EXACT and nout > 0:
+                        nfix = _simd_blend(S, trace, lip)
                 if nfix > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
                     ncon = 1

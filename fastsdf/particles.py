@@ -1128,21 +1128,26 @@ class ParticleSimulation:
     def _call(self, module, data, steps, arrays, args, check_all):
         n = arrays[0].shape[0]
         parallel = n >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
-        # args: (..., trace, lip, margin, eps, skip, rest)
-        plain = not (args[11] or args[15] or args[16] > 0.0 or module.MOVING) and \
-            hasattr(module, "plain_par")      # (bench/step_ab.py builds older step sources)
-        # args: (ext, flags, dt, t, ax, ay, drag, use_m, use_ext, ...)
-        simd = getattr(self, "_simd", True) and getattr(module, "GRID_SIMD", False) and \
-            hasattr(module, "simd_par") and \
-            not module.MOVING and \
-            args[16] == 0.0 and not args[8] and arrays[0].dtype == np.float64
-        if simd:
-            kernel = module.simd_par if parallel else module.simd_ser
-        elif plain:
-            kernel = module.plain_par if parallel else module.plain_ser
-        else:
-            kernel = module.run_par if parallel else module.run_ser
+        kernel = self._pick_kernel(module, arrays, args, parallel)
         return kernel(data, steps, self.block or DEFAULT_BLOCK, *arrays, *args, check_all)
+
+    def _pick_kernel(self, module, arrays, args, parallel):
+        """The kernel of ``module`` for a call: the block kernel of a static grid world
+        (``simd_*``: float64 state, no resting contact, no Python forces), else the
+        particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
+        the general one (``run_*``). All give the same results."""
+        # args: (ext, flags, dt, t, ax, ay, drag, use_m, use_ext, explicit, always, trace,
+        #        lip, margin, eps, skip, rest); bench/step_ab.py builds older step sources
+        simd = getattr(self, "_simd", True) and getattr(module, "GRID_SIMD", False) and \
+            hasattr(module, "simd_par") and not module.MOVING and args[16] == 0.0 and \
+            not args[8] and arrays[0].dtype == np.float64
+        plain = not (args[11] or args[15] or args[16] > 0.0 or module.MOVING) and \
+            hasattr(module, "plain_par")
+        if simd:
+            return module.simd_par if parallel else module.simd_ser
+        if plain:
+            return module.plain_par if parallel else module.plain_ser
+        return module.run_par if parallel else module.run_ser
 
     def _resume(self, module, steps, args, bad):
         """Particles that stopped near the grid's edge before its exact fallback was bound
