@@ -102,6 +102,17 @@ touch a surface and in two passes over batches of ``PLAIN_BATCH`` (integrate and
 then respond) after a step where many did, so that mispredicted contact branches do not
 discard the next particles' queries.
 
+A static grid world with stored gradients (``GRID_SIMD``, set in the scene block; float64
+state, ``rest`` 0, no Python forces) goes to :func:`simd_par`/:func:`simd_ser` instead: the
+same results from :func:`_block_simd`, which keeps ``LANES`` particles in the rows of one
+scratch array through all steps of a call and runs each step as passes over them: a vector
+pass of forces, integration, free-flight budgets and the grid cell (:func:`_simd_move`), a
+scalar pass loading the cells (:func:`_simd_gather`, each cell's three channels blended in one
+vector), a scalar fix-up of only the particles that need a tunnelling sweep or a query outside
+the grid (:func:`_simd_fix`), and a vector pass of the response with selects instead of
+branches (:func:`_simd_respond`). A step in which no particle of the block needs a query is
+the first pass alone. Sleeping is not needed there (it changes no result).
+
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
 finite and > 0 when read); ``cr``, ``cf`` are checked where a contact uses them; every step's

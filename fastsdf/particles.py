@@ -63,7 +63,9 @@ first call after they were handed out through ``p`` (24 bytes per particle, once
 free-flight budget lives in a scratch array of one block.
 
 The step kernel is the module :mod:`fastsdf._step` (readable, tested directly); each world gets a
-copy with its query and fused forces in place, cached on disk by content hash. A grid world's
+copy with its query and fused forces in place, cached on disk by content hash. A grid world
+with stored gradients and float64 state steps blocks of particles in vector passes (see
+"Kernels" in :class:`ParticleSimulation`). A grid world's
 kernel does not depend on the scene (its exact fallback is bound at run time), so it compiles
 once per installation.
 """
@@ -793,6 +795,19 @@ class ParticleSimulation:
     pushes particles and a rising floor lifts them. The wall's tangential velocity is not
     known from an SDF (friction acts as if the wall did not slide along itself). A GridSDF
     samples a scene that does not move: give a moving scene as it is.
+
+    Kernels (all give the same results, bit for bit; the choice is automatic, per call): a
+    GridSDF world with stored gradients (the default ``gradient='stored'``, any grid dtype,
+    either ``mode``) and float64 state, without ``rest_speed`` and Python force generators,
+    runs the block kernel (``simd_par`` in :mod:`fastsdf._step`): 128 particles at a time held
+    in scratch rows through all steps of a :meth:`run` call, each step in passes that the
+    compiler turns into 4-wide vector code (forces, fused ``@njit`` forces and
+    :class:`FieldForce` included; integration; the grid cell; the response), a short scalar
+    pass loading the cells' grid values, and a scalar fix-up only for particles that need a
+    tunnelling sweep or a query outside the grid. Everything else runs particle by particle:
+    exact-SDF and moving worlds, ``gradient='fd'`` and band grids, float32 state, resting
+    contact, Python forces (the ``plain`` kernel without skipping and tunnelling check, the
+    general one otherwise).
 
     Attributes
     ----------
