@@ -166,12 +166,14 @@ def _template(root: Expr):
     counted separately, so equal constants do not change the shape) or ``('n', i)`` for the
     value of step i. Two roots with equal signatures evaluate by the same code.
     """
+    # (nodes hash by identity: dicts keyed by node, not by id(), save a call per lookup)
     local, steps, sig, consts = {}, [], [], []
     stack = [(root, False)]
+    pop, push = stack.pop, stack.append
     while stack:
-        node, expanded = stack.pop()
+        node, expanded = pop()
         if expanded:
-            if id(node) in local:
+            if node in local:
                 continue
             refs = []
             for a in node.args:
@@ -179,17 +181,18 @@ def _template(root: Expr):
                     refs.append(("c", len(consts)))
                     consts.append(a.attr)
                 else:
-                    refs.append(("n", local[id(a)]))
-            local[id(node)] = len(steps)
-            steps.append((node, tuple(refs)))
-            sig.append((node.op, node.attr if node.op != "const" else None, tuple(refs)))
+                    refs.append(("n", local[a]))
+            refs = tuple(refs)
+            local[node] = len(steps)
+            steps.append((node, refs))
+            sig.append((node.op, node.attr if node.op != "const" else None, refs))
             continue
-        if id(node) in local:
+        if node in local:
             continue
-        stack.append((node, True))
+        push((node, True))
         for a in reversed(node.args):
-            if a.op != "const" and id(a) not in local:
-                stack.append((a, False))
+            if a.op != "const" and a not in local:
+                push((a, False))
     return tuple(sig), steps, consts
 
 
@@ -212,22 +215,29 @@ def _varying_columns(rows: list):
     return table, refs
 
 
-def _foldable(root: Expr) -> bool:
+def _foldable(root: Expr, memo: dict | None = None) -> bool:
     """Whether every chain in the small subexpression ``root`` is emitted as it stands (no
     operand of the same operation to flatten, too few operands to fold into a loop), so that its
-    template's code is exactly its straight-line code."""
-    stack, seen = [root], set()
+    template's code is exactly its straight-line code. ``memo`` (node -> bool) is shared between
+    calls: each node is examined once however many candidates contain it."""
+    memo = {} if memo is None else memo
+    stack = [root]
     while stack:
-        node = stack.pop()
-        if id(node) in seen:
+        node = stack[-1]
+        if node in memo:
+            stack.pop()
             continue
-        seen.add(id(node))
-        if node.op in _CHAIN_OPS:
-            if len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
-                                                 for a in node.args):
-                return False
-        stack.extend(node.args)
-    return True
+        todo = [a for a in node.args if a not in memo]
+        if todo:
+            stack.extend(todo)
+            continue
+        stack.pop()
+        ok = all(memo[a] for a in node.args)
+        if ok and node.op in _CHAIN_OPS:
+            ok = not (len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
+                                                        for a in node.args))
+        memo[node] = ok
+    return memo[root]
 
 
 def _dag_size(root: Expr, limit: int) -> int:
@@ -303,7 +313,8 @@ class _Emitter:
         # Shapes, sizes and chain plans depend on the expression alone: the emitters of one
         # module share them (``memo``), so the four functions of a scene find each once.
         self.memo = {} if memo is None else memo
-        self.sizes: dict[int, int] = self.memo.setdefault("sizes", {})
+        self.sizes: dict = self.memo.setdefault("sizes", {})  # node -> _size
+        self._foldables: dict = self.memo.setdefault("foldable", {})  # node -> _foldable
         self._templates: dict = self.memo.setdefault("templates", {})
         self._plans: dict = self.memo.setdefault("plans", {})
 
@@ -508,7 +519,8 @@ class _Emitter:
             # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
             # expression that is not a candidate, are candidates (also in a small scene).
             big = too_big(node) or (singles and (
-                node is root or node.op in _CHAIN_OPS and not _foldable(node)))
+                node is root or node.op in _CHAIN_OPS
+                and not _foldable(node, self._foldables)))
             for dep in plan[0]:
                 if big:
                     under_big.add(id(dep))
@@ -516,7 +528,7 @@ class _Emitter:
         shapes: dict = {}
         for node in order:
             if (id(node) not in under_big or node.op in ("const", "sym", "param")
-                    or too_big(node) or not _foldable(node)):
+                    or too_big(node) or not _foldable(node, self._foldables)):
                 continue
             sig, steps, consts = self._template(node)
             shapes.setdefault(sig, (steps, [], []))
@@ -678,19 +690,27 @@ class _Emitter:
         """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
         (memoized and never walking a node twice, so linear over the whole DAG)."""
         sizes = self.sizes
+        size = sizes.get(root)
+        if size is not None:
+            return size
+        cap = MAX_TEMPLATE_NODES + 1
         stack = [root]
         while stack:
             n = stack[-1]
-            if id(n) in sizes:
+            if n in sizes:
                 stack.pop()
                 continue
-            todo = [a for a in n.args if id(a) not in sizes]
+            args = n.args
+            todo = [a for a in args if a not in sizes]
             if todo:
                 stack.extend(todo)
                 continue
             stack.pop()
-            sizes[id(n)] = min(MAX_TEMPLATE_NODES + 1, 1 + sum(sizes[id(a)] for a in n.args))
-        return sizes[id(root)]
+            total = 1
+            for a in args:
+                total += sizes[a]
+            sizes[n] = total if total < cap else cap
+        return sizes[root]
 
     def _template(self, node: Expr):
         """:func:`_template`, memoized."""

@@ -26,10 +26,12 @@ the symbols are given to :class:`Function`.
 
 from __future__ import annotations
 
+import collections
 import math
 import numbers
 import struct
 import weakref
+from _weakref import _remove_dead_weakref
 
 import numpy as np
 from typing import Any
@@ -53,12 +55,30 @@ LEAF_OPS = ("const", "sym", "param")
 #: ``select(cond, a, b)``; ``prim(u, v, *constants)`` with attr ``(kind, data)``.
 OTHER_OPS = tuple(name for name, op in OPS.items() if op.arity not in (1, 2))
 
-_INTERN: "weakref.WeakValueDictionary[tuple, Expr]" = weakref.WeakValueDictionary()
+# The intern table: key -> weak reference to the node. A plain dict of weak references with one
+# shared callback instead of a WeakValueDictionary, whose Python-level get/set cost several
+# microseconds per node (most of a primitive's construction).
+_INTERN: dict = {}
+
+
+class _Ref(weakref.ref):
+    """A weak reference to an interned node that remembers its key (to forget it when the node
+    is collected)."""
+
+    __slots__ = ("key",)
+
+
+def _forget(ref, _remove=_remove_dead_weakref, _intern=_INTERN):
+    # Atomic: removes the entry only if it still is this (dead) reference.
+    _remove(_intern, ref.key)
+
+
+_pack_double = struct.Struct("<d").pack
 
 
 def _float_key(value: float) -> bytes:
     """Bit pattern of a float: distinguishes 0.0 from -0.0 and keeps NaN hashable."""
-    return struct.pack("<d", value)
+    return _pack_double(value)
 
 
 _NO_SYMBOLS = frozenset()
@@ -104,17 +124,32 @@ class Expr:
     attr: object
 
     def __new__(cls, op: str, args: tuple = (), attr=None):
-        key_attr = _float_key(attr) if op == "const" else attr
-        key = (op, args, key_attr)
-        node = _INTERN.get(key)
-        if node is None:
-            node = object.__new__(cls)
-            object.__setattr__(node, "op", op)
-            object.__setattr__(node, "args", args)
-            object.__setattr__(node, "attr", attr)
-            object.__setattr__(node, "syms", _symbol_set(op, args, attr))
-            object.__setattr__(node, "prms", _param_set(op, args, attr))
-            _INTERN[key] = node
+        key = (op, args, _pack_double(attr) if op == "const" else attr)
+        ref = _INTERN.get(key)
+        if ref is not None:
+            node = ref()
+            if node is not None:
+                return node
+        node = _object_new(cls)
+        # The slots' own descriptors: __setattr__ refuses (nodes are immutable once built).
+        _set_op(node, op)
+        _set_args(node, args)
+        _set_attr(node, attr)
+        if args:
+            # The symbol and parameter sets of the arguments, shared when equal (almost always:
+            # O(1) per node); the same sets as _symbol_set and _param_set give.
+            if len(args) == 1:
+                _set_syms(node, args[0].syms)
+                _set_prms(node, args[0].prms)
+            else:
+                _set_syms(node, _symbol_set(op, args, attr))
+                _set_prms(node, _param_set(op, args, attr))
+        else:
+            _set_syms(node, frozenset((attr,)) if op == "sym" else _NO_SYMBOLS)
+            _set_prms(node, frozenset((attr,)) if op == "param" else _NO_SYMBOLS)
+        ref = _Ref(node, _forget)
+        ref.key = key
+        _INTERN[key] = ref
         return node
 
     def __setattr__(self, name, value):
@@ -187,6 +222,11 @@ class Expr:
 
     def __repr__(self):
         return f"Expr({_to_str(self, limit=200)})"
+
+
+_object_new = object.__new__
+_set_op, _set_args, _set_attr = Expr.op.__set__, Expr.args.__set__, Expr.attr.__set__
+_set_syms, _set_prms = Expr.syms.__set__, Expr.prms.__set__
 
 
 def Symbol(name: str) -> Expr:
@@ -264,6 +304,11 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
 
     Raises ``TypeError`` naming ``name`` for anything else (strings, complex numbers, arrays).
     """
+    t = type(value)
+    if t is Expr:
+        return value
+    if t is float:
+        return Expr("const", (), value)
     if isinstance(value, Expr):
         return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
@@ -686,20 +731,25 @@ def substitute(root: Expr, mapping: dict) -> Expr:
 
 def topological_order(root: Expr) -> list:
     """All nodes reachable from ``root``, each once, children before parents."""
+    # Nodes hash by identity: sets of nodes, not of id()s (no call per lookup).
     order, seen = [], set()
+    append, add = order.append, seen.add
     stack = [(root, False)]
+    pop, push = stack.pop, stack.append
     while stack:
-        node, expanded = stack.pop()
+        node, expanded = pop()
         if expanded:
-            order.append(node)
+            append(node)
             continue
-        if id(node) in seen:
+        if node in seen:
             continue
-        seen.add(id(node))
-        stack.append((node, True))
-        for arg in reversed(node.args):
-            if id(arg) not in seen:
-                stack.append((arg, False))
+        add(node)
+        push((node, True))
+        args = node.args
+        if args:
+            for arg in reversed(args):
+                if arg not in seen:
+                    push((arg, False))
     return order
 
 
@@ -721,23 +771,70 @@ def _from_flat(flat) -> Expr:
 
 
 def _to_str(root: Expr, limit: int | None = None) -> str:
+    if limit is None:
+        nodes = topological_order(root)
+    else:
+        nodes = _near_root(root, limit + 1)
     text = {}
-    for node in topological_order(root):
-        if node.op == "const":
+    for node in nodes:
+        op = node.op
+        if op == "const":
             s = fmt_const(node.attr)
-        elif node.op == "sym":
+        elif op == "sym":
             s = node.attr
-        elif node.op == "param":
+        elif op == "param":
             s = node.attr[0]
         else:
-            s = OPS[node.op].fmt(node, [text[id(a)] for a in node.args])
+            s = OPS[op].fmt(node, [text.get(a, "") for a in node.args])
         # With a limit only the first `limit` characters are kept: cutting every part keeps that
         # prefix exact and makes printing a deep chain linear, not quadratic, in its depth.
-        text[id(node)] = s if limit is None else s[:limit + 1]
-    out = text[id(root)]
+        text[node] = s if limit is None else s[:limit + 1]
+    out = text[root]
     if limit is not None and len(out) > limit:
         out = out[:limit - 3] + "..."
     return out
+
+
+def _near_root(root: Expr, depth: int) -> list:
+    """The nodes whose printed text can reach into the first ``depth`` characters of ``root``'s,
+    children first. Every operation prints at least one character before each argument
+    (``min(``, ``(``), except ``powc`` (``u**2``): a node at ``d`` such levels below the root
+    starts at character ``d`` or later, and deeper nodes (printed as empty strings by
+    :func:`_to_str`) cannot change the first ``depth`` characters. A 0-1 breadth-first search
+    finds each node's smallest such depth; printing a long scene then costs O(depth), not
+    O(nodes)."""
+    dist = {root: 0}
+    queue = collections.deque([root])
+    while queue:
+        node = queue.popleft()
+        d = dist[node]
+        w = 0 if node.op == "powc" else 1
+        if d + w > depth:
+            continue
+        for a in node.args:
+            old = dist.get(a)
+            if old is None or d + w < old:
+                dist[a] = d + w
+                if w:
+                    queue.append(a)
+                else:
+                    queue.appendleft(a)
+    # children first, among the kept nodes
+    order, seen = [], set()
+    stack = [(root, False)]
+    while stack:
+        node, expanded = stack.pop()
+        if expanded:
+            order.append(node)
+            continue
+        if node in seen:
+            continue
+        seen.add(node)
+        stack.append((node, True))
+        for a in reversed(node.args):
+            if a not in seen and a in dist and dist[a] <= depth:
+                stack.append((a, False))
+    return order
 
 
 # ---------------------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
 from .exactness import (_NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow,
                         _Info)
 
-__all__ = ["SDF", "Union", "Intersection", "Difference",
+__all__ = ["SDF", "Union", "Intersection", "Difference", "union", "intersection",
            "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
 
 
@@ -437,3 +437,72 @@ class Difference(SDF):
         info = _Info(inside=k == 0 and ia.inside and ib.outside, bound=ia.bound and ib.bound,
                      bbox=ia.bbox, sym=ia.sym & ib.sym)
         super().__init__(_blend_max(a.f, -b.f, k, kind), info)
+
+
+# ---------------------------------------------------------------------------------------------
+# Many shapes at once.
+
+def _shapes_list(shapes, name) -> list:
+    if isinstance(shapes, SDF):
+        raise TypeError(f"{name} takes an iterable of SDFs (a list, a generator), got one SDF; "
+                        f"write {name}([a, b, ...])")
+    try:
+        out = list(shapes)
+    except TypeError:
+        raise TypeError(f"shapes must be an iterable of fastsdf SDF objects, got "
+                        f"{shapes!r} of type {type(shapes).__name__}") from None
+    if not out:
+        raise ValueError(f"{name} needs at least one shape, got an empty iterable")
+    for i, f in enumerate(out):
+        _check_sdf(f, f"shapes[{i}]")
+    return out
+
+
+def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+    """The union of many shapes: ``shapes[0] | shapes[1] | ...`` with one blend (``k`` and
+    ``kind`` as for :class:`Union`; the :func:`smoothness` context is not used).
+
+    The same expression as the left fold of :class:`Union` (so the same kernels and exactness
+    flags), built in one step instead of one intermediate :class:`SDF` per shape: write a large
+    scene as ``union(Box(lo, hi) for lo, hi in corners)``. One shape is returned as it is.
+    """
+    out = _shapes_list(shapes, "union")
+    k, kind = _k_and_kind(k, kind)
+    if len(out) == 1:
+        return out[0]
+    e, info = out[0].f, out[0]._info
+    outside, bound, bbox, sym = info.outside, info.bound, info.bbox, info.sym
+    depth = _blend_depth(k, kind)
+    for f in out[1:]:
+        i = f._info
+        e = _blend_min(e, f.f, k, kind)
+        # the rules of Union, step by step (the bounding box grows at every blend)
+        outside = k == 0 and outside and i.outside
+        bound = bound and i.bound
+        bbox = _bbox_union(bbox, i.bbox, depth)
+        sym = sym & i.sym
+        if bound and not e.prms:  # as the intermediate Union would note (see SDF)
+            note_lipschitz(e, 1.0)
+    return SDF(e, _Info(outside=outside, bound=bound, bbox=bbox, sym=sym))
+
+
+def intersection(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+    """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
+    :func:`union` and :class:`Intersection`), built in one step."""
+    out = _shapes_list(shapes, "intersection")
+    k, kind = _k_and_kind(k, kind)
+    if len(out) == 1:
+        return out[0]
+    e, info = out[0].f, out[0]._info
+    inside, bound, convex, bbox, sym = info.inside, info.bound, info.convex, info.bbox, info.sym
+    for f in out[1:]:
+        i = f._info
+        e = _blend_max(e, f.f, k, kind)
+        inside = k == 0 and inside and i.inside
+        bound = bound and i.bound
+        convex = k == 0 and convex and i.convex
+        bbox = _bbox_meet(bbox, i.bbox)
+        sym = sym & i.sym
+        if bound and not e.prms:
+            note_lipschitz(e, 1.0)
+    return SDF(e, _Info(inside=inside, bound=bound, convex=convex, bbox=bbox, sym=sym))

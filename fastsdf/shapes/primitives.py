@@ -206,8 +206,8 @@ class Box(SDF):
         if _has_param(minc) or _has_param(maxc):
             (minc, lo), (maxc, hi) = coord2_or_param(minc, "minc"), coord2_or_param(maxc, "maxc")
         else:
-            minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
-            lo, hi = minc, maxc
+            self._init_numbers(_point(minc, "minc"), _point(maxc, "maxc"))
+            return
         if not np.all(lo < hi):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
                              f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
@@ -222,6 +222,24 @@ class Box(SDF):
         sym = set() if moving else {ax for ax, a, b in zip("xy", lo, hi) if a == -b}
         info = _primitive_info(None if moving else _points_bbox([lo, hi]), sym, convex=True)
         super().__init__(_box_expr(qx, qy), info)
+
+    def _init_numbers(self, minc: np.ndarray, maxc: np.ndarray) -> None:
+        """The corners are numbers (the common case): the same expression and checks as the
+        general path, in Python floats (building many boxes is dominated by NumPy's per-call
+        cost on two-element arrays otherwise)."""
+        (l0, l1), (h0, h1) = minc.tolist(), maxc.tolist()
+        if not (l0 < h0 and l1 < h1):
+            raise ValueError(f"minc must be below maxc in both coordinates, got "
+                             f"minc={[l0, l1]!r}, maxc={[h0, h1]!r}")
+        _check_length(min(h0 - l0, h1 - l1), "the smaller side maxc - minc")
+        self.minc, self.maxc = minc, maxc
+        x, y = _coords()
+        qx = sym_abs(x - (l0 + h0) * 0.5) - (h0 - l0) * 0.5
+        qy = sym_abs(y - (l1 + h1) * 0.5) - (h1 - l1) * 0.5
+        sym = {ax for ax, a, b in (("x", l0, h0), ("y", l1, h1)) if a == -b}
+        # (the bounding box of the corners: l < h in both coordinates)
+        info = _primitive_info((l0, l1, h0, h1), sym, convex=True)
+        SDF.__init__(self, _box_expr(qx, qy), info)
 
 
 # ---------------------------------------------------------------------------------------------
