@@ -16,6 +16,10 @@ from .graph import Expr
 def real(value, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
+    if isinstance(value, float):  # float and np.float64: the common case
+        value = float(value)
+        if not finite or math.isfinite(value):
+            return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {name}={value!r}")
     value = float(value)
@@ -137,6 +141,8 @@ def is_param(value) -> bool:
 def real_or_param(value, name: str):
     """``(value, number)``: ``value`` as a float (checked like :func:`real`) or an expression of
     parameters, and the number to check ranges on (the expression at the defaults)."""
+    if type(value) is float and math.isfinite(value):  # the common case, checked at once
+        return value, value
     if isinstance(value, Expr):
         if value.op == "const":
             v = real(value.attr, name)
@@ -153,6 +159,10 @@ def real_or_param(value, name: str):
 def vec2_or_param(value, name: str):
     """``(pair, numbers)``: a pair whose components may be expressions of parameters (else the
     float64 array of :func:`vec2`), and the float64 array of its values at the defaults."""
+    fast = _pair_fast(value)
+    if fast is not None and math.isfinite(fast[0]) and math.isfinite(fast[1]):
+        arr = np.array(fast)
+        return arr, arr
     if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
         if len(value) != 2:
             raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
@@ -165,6 +175,10 @@ def vec2_or_param(value, name: str):
 def coord2_or_param(value, name: str):
     """:func:`vec2_or_param` with the coordinate range of :func:`coord2` checked on the numbers
     (for expressions of parameters: their values at the defaults)."""
+    fast = _pair_fast(value)
+    if fast is not None and abs(fast[0]) <= MAX_COORD and abs(fast[1]) <= MAX_COORD:
+        arr = np.array(fast)
+        return arr, arr
     pair, numbers_ = vec2_or_param(value, name)
     if np.any(np.abs(numbers_) > MAX_COORD):
         raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "

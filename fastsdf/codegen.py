@@ -166,6 +166,35 @@ def _template(root: Expr):
     counted separately, so equal constants do not change the shape) or ``('n', i)`` for the
     value of step i. Two roots with equal signatures evaluate by the same code.
     """
+    # Templates are of small subexpressions (a primitive): a recursive walk is the fastest;
+    # a deep one falls back to the iterative walk (the same order).
+    local, steps, sig, consts = {}, [], [], []
+
+    def visit(node):
+        for a in node.args:
+            if a.op != "const" and a not in local:
+                visit(a)
+        refs = []
+        for a in node.args:
+            if a.op == "const":
+                refs.append(("c", len(consts)))
+                consts.append(a.attr)
+            else:
+                refs.append(("n", local[a]))
+        refs = tuple(refs)
+        local[node] = len(steps)
+        steps.append((node, refs))
+        sig.append((node.op, node.attr if node.op != "const" else None, refs))
+
+    try:
+        visit(root)
+    except RecursionError:
+        return _template_iterative(root)
+    return tuple(sig), steps, consts
+
+
+def _template_iterative(root: Expr):
+    """:func:`_template` without recursion (for deep subexpressions)."""
     # (nodes hash by identity: dicts keyed by node, not by id(), save a call per lookup)
     local, steps, sig, consts = {}, [], [], []
     stack = [(root, False)]

@@ -148,6 +148,14 @@ class Circle(SDF):
         else:
             center = _point(center, "center")
             radius = _positive(radius, "radius")
+            self.center, self.radius = center, radius
+            c0, c1 = center.tolist()
+            x, y = _coords()
+            # (numbers: the general path's bounding box and symmetries, in Python floats)
+            info = _primitive_info((c0 - radius, c1 - radius, c0 + radius, c1 + radius),
+                                   _center_sym((c0, c1)), convex=True)
+            SDF.__init__(self, sym_length(x - c0, y - c1) - radius, info)
+            return
         self.center, self.radius = center, radius
         x, y = _coords()
         moving = is_param(radius) or any(is_param(v) for v in center)
