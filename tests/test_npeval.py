@@ -9,7 +9,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -55,6 +54,7 @@ def _clouds(seed):
     rng = np.random.default_rng(seed)
     yield _points(3000, seed)                                    # uniform, non-finite ones
     yield rng.normal([0.3, -0.2], 0.05, (2000, 2))               # clustered
+    yield np.stack([rng.uniform(-2, 2, 3000), rng.uniform(0.1, 0.12, 3000)], 1)  # a strip
     yield np.array([[0.1, 0.2]])                                 # a single point
     yield np.concatenate([rng.uniform(-50, 50, (500, 2)), [[1e200, 0.0], [0.0, -1e200]]])
 
@@ -76,8 +76,8 @@ def test_pruned_chains_agree_with_the_kernel():
        seed=st.integers(0, 10_000), intersect=st.booleans(), raw=st.booleans())
 def test_pruning_changes_no_bit(kinds, seed, intersect, raw):
     """Pruned, unpruned and the general path (every operand streamed in chain order) give the
-    same bits, value and gradient, for random hard chains and point clouds (uniform, clustered,
-    one point, far away and huge coordinates, non-finite ones)."""
+    same bits, value and gradient, for random hard chains and point clouds (uniform, clustered, a
+    thin strip, one point, far away and huge coordinates, non-finite ones)."""
     f = _union(kinds, seed, intersect, raw)
     scene = compile_numpy(f.f, ["x", "y"])
     general = compile_numpy(f.f, ["x", "y"])
