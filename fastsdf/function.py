@@ -30,8 +30,18 @@ __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN
            "BACKENDS"]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.tape`, or the tape while the kernel compiles in a background thread.
-BACKENDS = ("kernel", "tape", "auto")
+#: of :mod:`fastsdf.tape`, NumPy (:mod:`fastsdf.npeval`: no numba at all), or ``'auto'``: the
+#: cheaper of NumPy and the tape while the kernel compiles in a background thread, then the
+#: kernel.
+BACKENDS = ("kernel", "tape", "numpy", "auto")
+
+#: The cost model of ``backend='auto'`` before the kernel is ready (seconds; measured by
+#: ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's one-time setup in a process
+#: (the first call of any compiled function, the tape interpreter included), building a tape per
+#: node, and running it per instruction and point (2 threads).
+NUMBA_SETUP_S = 0.35
+TAPE_BUILD_PER_NODE_S = 8e-6
+TAPE_PER_NODE_POINT_S = 1.0e-9
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 PARALLEL_MIN_POINTS = 4096
@@ -88,6 +98,7 @@ class CompiledSDF:
         self._module = None
         self._plans: dict = {}
         self._tape = None
+        self._numpy = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
         # Per Python thread: the scratch buffer handed to the scene-independent kernels (calls
@@ -156,6 +167,30 @@ class CompiledSDF:
             from .tape import compile_tape
             self._tape = compile_tape(self.expr, self.symbol_names)
         return self._tape
+
+    @property
+    def numpy_scene(self) -> Any:
+        """The :class:`fastsdf.npeval.NumpyScene` of the expression (built on first use)."""
+        if self._numpy is None:
+            from .npeval import compile_numpy
+            self._numpy = compile_numpy(self.expr, self.symbol_names)
+        return self._numpy
+
+    def first_path(self, n: int) -> str:
+        """``'numpy'`` or ``'tape'``: the cheaper way to answer ``n`` points before the kernel
+        is ready, by the cost model (:data:`NUMBA_SETUP_S` and the figures beside it, and
+        :meth:`fastsdf.npeval.NumpyScene.cost`). The tape is never chosen while numba's setup
+        is still to be paid and a background compilation holds numba's compiler lock (loading
+        the interpreter would wait for the whole compilation)."""
+        scene = self.numpy_scene
+        t_numpy = scene.cost(n)
+        warm = _numba_warm()
+        if not warm and self._warm is not None and not self._warm.is_set():
+            return "numpy"
+        size = scene.size
+        t_tape = (0.0 if warm else NUMBA_SETUP_S) + TAPE_PER_NODE_POINT_S * size * n \
+            + (0.0 if self._tape is not None else TAPE_BUILD_PER_NODE_S * size)
+        return "numpy" if t_numpy <= t_tape else "tape"
 
     @property
     def kernel_ready(self) -> bool:
@@ -279,6 +314,7 @@ class CompiledSDF:
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
+        _KERNEL_RAN[0] = True
         if self.parametric:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
@@ -482,14 +518,16 @@ class Function:
                 kw = {"t": vals.get("t", 0.0),
                       "params": tuple(vals[n] for n in self.param_names)}
         if backend != "kernel" and not time_derivative:
-            tape = self._tape_for(backend)
-            if tape is not None:
-                res = tape(x, y, compute_gradient=bool(compute_gradient), params=vals)
+            path = self._path_for(backend, x)
+            if path is not None:
+                c = self.compiled
+                ev = c.tape if path == "tape" else c.numpy_scene
+                res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
                 if backend == "auto":
                     # Started after the answer: the compiling thread would take a core from it,
                     # and numba's compiler lock, which it holds, would make a first tape call
                     # (loading the interpreter) wait for the whole compilation.
-                    self.compiled.compile_in_background()
+                    c.compile_in_background()
                 return res
         if time_derivative:
             if not kw:  # no parameters: nothing moves
@@ -501,18 +539,24 @@ class Function:
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
                                       tol=self.prune_tol, **kw)
 
-    def _tape_for(self, backend: str):
-        """The tape to answer a call with, or None for the kernel."""
+    def _path_for(self, backend: str, x: Any):
+        """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
         c = self.compiled
-        if backend == "auto" and c.kernel_ready:
-            return None
+        if backend == "numpy":
+            return "numpy"
+        if backend == "auto":
+            if c.kernel_ready:
+                return None
+            path = c.first_path(int(np.size(x)))
+            if path == "numpy":
+                return path
         try:
-            tape = c.tape
+            c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
         except ValueError:
             if backend == "tape":
                 raise
-            return None
-        return tape
+            return "numpy"
+        return "tape"
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.
@@ -537,3 +581,14 @@ class Function:
 
     def __repr__(self):
         return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
+
+
+def _numba_warm() -> bool:
+    """Whether this process has paid numba's one-time setup already (the tape interpreter is
+    loaded, or a scene's kernel ran)."""
+    from .tape import _eval_par
+    return bool(_eval_par.overloads) or _KERNEL_RAN[0]
+
+
+#: Set once any compiled kernel has run in this process.
+_KERNEL_RAN = [False]

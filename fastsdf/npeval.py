@@ -1,0 +1,831 @@
+"""A NumPy evaluator of scenes: the first answer of a new scene without waiting for numba.
+
+The first call of any cached numba function in a process pays numba's one-time setup (about
+0.3 s: it loads every registry of its type system, and imports SciPy's linear algebra when SciPy
+is installed), and a new scene's kernel compiles for seconds. This module answers such calls
+with NumPy alone: one whole-array operation per node of the expression, the points taken in
+blocks that stay in the cache. It is the path of ``backend='numpy'`` and of the first calls of
+``backend='auto'`` (see :class:`fastsdf.function.Function`).
+
+The formulas are those of the compiled kernels (:mod:`fastsdf.codegen`): chains of ``min``/
+``max``/``smin``/``smax`` are flattened and streamed operand by operand (the earlier operand wins
+a tie; smooth chains as the kernels' online log-sum-exp), ``length`` as ``sqrt(a*a + b*b)`` with
+the ``hypot`` fallback, the other operations by the NumPy reference of :mod:`fastsdf.ops`.
+Results agree with the kernels to rounding (tested: values 1e-12 relative, gradients 1e-9);
+ties between different operands of a chain may pick another (equal-valued) operand's gradient
+where the kernels reorder a chain. Non-finite points give NaN for those points only.
+
+**Hard unions of many shapes** (a ``min`` or ``max`` chain at the root with many operands of one
+shape, e.g. 1000 boxes at different places) are evaluated with pruning: the operands of the same
+shape are evaluated together with their constants as columns (one array operation per node of
+the shape, over all operands at once), and a quadtree of tiles over the points' bounding box
+keeps, per tile, only the operands that can be the minimum there (sound bounds from each
+operand's value at the tile's centre and its Lipschitz constant, or interval arithmetic where
+none is known; an operand whose lower bound exceeds the smallest upper bound cannot win, so the
+result is bit-identical to evaluating every operand). Each point then evaluates the few
+survivors of its tile (values only), and the gradient only of the winner.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from typing import Any, Sequence
+
+from .graph import Expr
+from .ops import OPS
+
+__all__ = ["NumpyScene", "compile_numpy", "BLOCK"]
+
+#: Points per block of the general path: a few arrays of this size stay in the L2 cache.
+BLOCK = 16384
+
+_CHAINS = ("min", "max", "smin", "smax")
+#: Cost model (seconds) of :meth:`NumpyScene.cost`.
+PER_NODE_POINT = 4e-9
+PER_NODE_CALL = 5e-6
+PER_PRUNED_NODE_POINT = 60e-9
+#: A root chain with at least this many operands of one shape is evaluated with pruning.
+GROUP_MIN = 24
+
+
+# ---------------------------------------------------------------------------------------------
+# Linear programs: the nodes of an expression in evaluation order, chains flattened.
+
+def _flatten(node: Expr) -> list:
+    """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
+    out, stack = [], [node]
+    op, attr = node.op, node.attr
+    while stack:
+        n = stack.pop()
+        if n.op == op and n.attr == attr:
+            stack.extend(reversed(n.args))
+        else:
+            out.append(n)
+    return out
+
+
+def _kids(node: Expr):
+    return _flatten(node) if node.op in _CHAINS else node.args
+
+
+def _linearize(root: Expr, slots: bool = False):
+    """``(steps, consts)``: ``steps[i] = (node, refs)`` in evaluation order, each ref
+    ``('n', i)`` (the value of step i) or ``('c', j)`` (constant j: ``consts[j]``, one per
+    occurrence when ``slots``, else one per distinct constant node)."""
+    index: dict = {}
+    cindex: dict = {}
+    steps, consts = [], []
+    stack = [(root, None)]
+    while stack:
+        node, kids = stack.pop()
+        if id(node) in index:
+            continue
+        if kids is None:
+            kids = _kids(node)
+            stack.append((node, kids))
+            for a in reversed(kids):
+                if a.op != "const" and id(a) not in index:
+                    stack.append((a, None))
+            continue
+        refs = []
+        for a in kids:
+            if a.op == "const":
+                if slots:
+                    refs.append(("c", len(consts)))
+                    consts.append(a.attr)
+                else:
+                    j = cindex.get(id(a))
+                    if j is None:
+                        j = cindex[id(a)] = len(consts)
+                        consts.append(a.attr)
+                    refs.append(("c", j))
+            else:
+                refs.append(("n", index[id(a)]))
+        index[id(node)] = len(steps)
+        steps.append((node, tuple(refs)))
+    return steps, consts
+
+
+class _Program:
+    """A linearized expression: per step the operation, attribute, operand references and the
+    step after which its value is dead (values are freed as soon as possible)."""
+
+    def __init__(self, root: Expr, xname: str, slots: bool = False):
+        self.xname = xname
+        steps, consts = _linearize(root, slots)
+        self.steps = steps
+        self.consts = consts
+        self.nodes = [s[0] for s in steps]
+        last = list(range(len(steps)))
+        for i, (_, refs) in enumerate(steps):
+            for kind, j in refs:
+                if kind == "n":
+                    last[j] = i
+        last[-1] = len(steps)
+        self.free = [[] for _ in steps]
+        for j, i in enumerate(last):
+            if i < len(steps):
+                self.free[i].append(j)
+        self.has_prim = any(n.op == "prim" for n in self.nodes)
+        self.ellipse = any(n.op == "prim" and n.attr[0] != "polygon" for n in self.nodes)
+
+    def signature(self):
+        return tuple((n.op, n.attr if n.op != "prim" else (n.attr[0], _data_key(n.attr[1])),
+                      refs) for n, refs in self.steps)
+
+    def run(self, x, y, consts, grad: bool, params: dict | None = None):
+        """Value (and gradient ``[gx, gy]``, each an array, a float or None for zero) at the
+        points ``x, y`` (arrays of equal shape, or anything that broadcasts); ``consts[j]`` is
+        constant j (a float, or an array over the points)."""
+        ctx = (self.xname, params)
+        vals: list = [None] * len(self.steps)
+        grads: list = [None] * len(self.steps)
+        for i, (node, refs) in enumerate(self.steps):
+            av = [vals[j] if k == "n" else consts[j] for k, j in refs]
+            ag = [grads[j] if k == "n" else _ZERO for k, j in refs] if grad else None
+            vals[i], grads[i] = _OPS.get(node.op, _generic)(node, av, ag, x, y, ctx)
+            for j in self.free[i]:
+                vals[j] = grads[j] = None
+        return vals[-1], grads[-1]
+
+
+def _data_key(data):
+    return data if isinstance(data, (tuple, str, int, float, type(None))) else id(data)
+
+
+# ---------------------------------------------------------------------------------------------
+# Operations: ``fn(node, av, ag, x, y, ctx) -> (value, gradient)``. A gradient is a pair of
+# components, each an array, a float, or None (known zero); ``ag`` is None for value only;
+# ``ctx`` is ``(name of the x symbol, parameter values or None)``.
+
+_ZERO = (None, None)
+
+
+def _sc(g, f):
+    """Component ``g`` times ``f`` (None stays None)."""
+    return None if g is None else g * f
+
+
+def _add_c(a, b):
+    if a is None:
+        return b
+    if b is None:
+        return a
+    return a + b
+
+
+def _sub_c(a, b):
+    if b is None:
+        return a
+    if a is None:
+        return -b
+    return a - b
+
+
+def _op_sym(node, av, ag, x, y, ctx):
+    isx = node.attr == ctx[0]
+    return (x if isx else y), (((1.0, None) if isx else (None, 1.0)) if ag is not None else None)
+
+
+def _op_add(node, av, ag, x, y, ctx):
+    v = av[0] + av[1]
+    if ag is None:
+        return v, None
+    return v, (_add_c(ag[0][0], ag[1][0]), _add_c(ag[0][1], ag[1][1]))
+
+
+def _op_sub(node, av, ag, x, y, ctx):
+    v = av[0] - av[1]
+    if ag is None:
+        return v, None
+    return v, (_sub_c(ag[0][0], ag[1][0]), _sub_c(ag[0][1], ag[1][1]))
+
+
+def _op_mul(node, av, ag, x, y, ctx):
+    a, b = av
+    v = a * b
+    if ag is None:
+        return v, None
+    (ax, ay), (bx, by) = ag
+    return v, (_add_c(_sc(ax, b), _sc(bx, a)), _add_c(_sc(ay, b), _sc(by, a)))
+
+
+def _op_div(node, av, ag, x, y, ctx):
+    a, b = av
+    v = a / b
+    if ag is None:
+        return v, None
+    ib = 1.0 / b
+    pb = -v * ib
+    (ax, ay), (bx, by) = ag
+    return v, (_add_c(_sc(ax, ib), _sc(bx, pb)), _add_c(_sc(ay, ib), _sc(by, pb)))
+
+
+def _op_neg(node, av, ag, x, y, ctx):
+    v = -av[0]
+    if ag is None:
+        return v, None
+    return v, (_sc(ag[0][0], -1.0), _sc(ag[0][1], -1.0))
+
+
+def _op_abs(node, av, ag, x, y, ctx):
+    a = av[0]
+    v = np.abs(a)
+    if ag is None:
+        return v, None
+    s = np.where(a >= 0.0, 1.0, -1.0)
+    return v, (_sc(ag[0][0], s), _sc(ag[0][1], s))
+
+
+def _pick(w, gb, ga):
+    """Component: ``gb`` where ``w``, else ``ga`` (None: zero)."""
+    if gb is None and ga is None:
+        return None
+    return np.where(w, 0.0 if gb is None else gb, 0.0 if ga is None else ga)
+
+
+def _op_hard(node, av, ag, x, y, ctx):
+    """A min/max chain streamed in order: strict comparison, the earlier operand wins ties."""
+    less = node.op == "min"
+    m = av[0]
+    g = ag[0] if ag is not None else None
+    for j in range(1, len(av)):
+        v = av[j]
+        w = (v < m) if less else (v > m)
+        if g is not None:
+            g = (_pick(w, ag[j][0], g[0]), _pick(w, ag[j][1], g[1]))
+        m = np.where(w, v, m)
+    return m, g
+
+
+def _op_smooth(node, av, ag, x, y, ctx):
+    """An exponential smooth chain as the kernels' online log-sum-exp: the running extremum
+    ``m``, the sum of weights ``s`` relative to it, the weighted gradient."""
+    less = node.op == "smin"
+    nk = -node.attr
+    m = av[0]
+    s = 1.0
+    g = ag[0] if ag is not None else None
+    for j in range(1, len(av)):
+        v = av[j]
+        w = (v < m) if less else (v > m)
+        e = np.exp(nk * np.abs(v - m))
+        s = np.where(w, s * e + 1.0, s + e)
+        if g is not None:
+            gv = ag[j]
+            g = tuple(_blend_c(w, g[c], gv[c], e) for c in (0, 1))
+        m = np.where(w, v, m)
+    ls = np.log(s) * (1.0 / node.attr)
+    v = m - ls if less else m + ls
+    if g is None:
+        return v, None
+    si = 1.0 / s
+    return v, (_sc(g[0], si), _sc(g[1], si))
+
+
+def _blend_c(w, gm, gv, e):
+    """``gm * e + gv`` where ``w`` (the new operand leads), else ``gm + gv * e``."""
+    if gm is None and gv is None:
+        return None
+    if gm is None:
+        return np.where(w, gv, gv * e)
+    if gv is None:
+        return np.where(w, gm * e, gm)
+    return np.where(w, gm * e + gv, gm + gv * e)
+
+
+_UP = 2.0 ** 600
+
+
+def _op_length(node, av, ag, x, y, ctx):
+    a, b = av
+    v = np.sqrt(a * a + b * b)
+    # The kernels' rare branch (see fastsdf.ops._emit_length), on the points that take it.
+    bad = np.flatnonzero(~((v > 1e-150) & (v < 1e150)))
+    if ag is None:
+        if len(bad):
+            a, b = np.broadcast_arrays(a, b)
+            v[bad] = np.hypot(a[bad], b[bad])
+        return v, None
+    ri = 1.0 / v
+    p, q = a * ri, b * ri
+    if len(bad):
+        a, b, p, q = np.broadcast_arrays(a, b, p, q)
+        p, q = p.copy(), q.copy()
+        ab, bb = a[bad], b[bad]
+        hv = np.hypot(ab, bb)
+        v[bad] = hv
+        sc = np.where(hv < 1e-150, _UP, 1.0)
+        pp, qq = ab * sc, bb * sc
+        h = np.hypot(pp, qq)
+        pos = h > 0.0
+        hs = np.where(pos, h, 1.0)
+        p[bad] = np.where(pos, pp / hs, 1.0)
+        q[bad] = np.where(pos, qq / hs, 0.0)
+    (ax, ay), (bx, by) = ag
+    return v, (_add_c(_sc(ax, p), _sc(bx, q)), _add_c(_sc(ay, p), _sc(by, q)))
+
+
+def _op_select(node, av, ag, x, y, ctx):
+    pick = av[0] > 0.0
+    v = np.where(pick, av[1], av[2])
+    if ag is None:
+        return v, None
+    return v, (_pick(pick, ag[1][0], ag[2][0]), _pick(pick, ag[1][1], ag[2][1]))
+
+
+def _op_param(node, av, ag, x, y, ctx):
+    name, default = node.attr
+    v = float((ctx[1] or {}).get(name, default))
+    return v, (_ZERO if ag is not None else None)
+
+
+def _generic(node, av, ag, x, y, ctx):
+    """Any other operation by its NumPy reference (:mod:`fastsdf.ops`)."""
+    shape = np.broadcast(x, y).shape
+    args = [np.broadcast_to(np.asarray(a, dtype=np.float64), shape) for a in av]
+    v, rule = OPS[node.op].np(node, args, ag is not None)
+    if ag is None:
+        return v, None
+    comps = []
+    for c in (0, 1):
+        gs = [a[c] for a in ag]
+        if callable(rule):
+            if all(gi is None for gi in gs):
+                comps.append(None)
+                continue
+            comps.append(rule([np.zeros(shape) if gi is None else
+                               np.broadcast_to(np.asarray(gi, dtype=np.float64), shape)
+                               for gi in gs]))
+            continue
+        acc = None
+        for p, gi in zip(rule, gs):
+            if p is not None and gi is not None:
+                acc = _add_c(acc, p * gi)
+        comps.append(acc)
+    return v, tuple(comps)
+
+
+_OPS = {"sym": _op_sym, "add": _op_add, "sub": _op_sub, "mul": _op_mul, "div": _op_div,
+        "neg": _op_neg, "abs": _op_abs, "min": _op_hard, "max": _op_hard, "smin": _op_smooth,
+        "smax": _op_smooth, "length": _op_length, "select": _op_select, "param": _op_param}
+
+
+def _full(v, n):
+    return np.broadcast_to(np.asarray(v if v is not None else 0.0, dtype=np.float64),
+                           (n,))
+
+
+# ---------------------------------------------------------------------------------------------
+# Pruned evaluation of a root chain with many operands of one shape.
+
+class _Group:
+    """Operands of one shape: the shape's program (constants as slots) and their constants as
+    a table, one row per member (chain positions ``pos``)."""
+
+    def __init__(self, prog: _Program, pos: list, rows: list, lip: float | None):
+        self.prog = prog
+        self.pos = np.asarray(pos, dtype=np.int64)
+        table = np.asarray(rows, dtype=np.float64).reshape(len(rows), -1)
+        # Columns equal in every member are passed as numbers (bitwise equal: keeps -0.0);
+        # the others as contiguous columns, gathered per pair.
+        self.cols: list = []
+        bits = table.view(np.int64)
+        for j in range(table.shape[1]):
+            if np.all(bits[:, j] == bits[0, j]):
+                self.cols.append(float(table[0, j]))
+            else:
+                self.cols.append(np.ascontiguousarray(table[:, j]))
+        self.lip = lip
+
+    def consts(self, members: np.ndarray | None):
+        """Constant slots for the rows ``members`` (arrays) or, if None, for every member."""
+        if members is None:
+            return self.cols
+        return [c if isinstance(c, float) else c.take(members) for c in self.cols]
+
+
+def _matcher(prog: _Program):
+    """A function ``operand -> constants or None``: the operand's constants if it has the
+    shape of ``prog`` (a program with constant slots), else None. It follows the program's
+    references from the root instead of linearizing each operand anew."""
+    steps = prog.steps
+    nsteps = len(steps)
+    checks = []  # per step, root first: (i, op, attr, chain, refs)
+    for i in range(nsteps - 1, -1, -1):
+        node, refs = steps[i]
+        checks.append((i, node.op, node.attr, node.op in _CHAINS, refs,
+                       node if node.op in ("sym", "param") else None))
+    nslots = len(prog.consts)
+
+    def match(operand):
+        nodes = [None] * nsteps
+        nodes[nsteps - 1] = operand
+        consts = [0.0] * nslots
+        for i, op, attr, chain, refs, leaf in checks:
+            node = nodes[i]
+            if node.op != op or node.attr != attr:
+                return None
+            if leaf is not None:
+                if node is not leaf:
+                    return None
+                continue
+            kids = node.args
+            if chain:
+                for a in kids:
+                    if a.op == op and a.attr == attr:
+                        kids = _flatten(node)
+                        break
+            if len(kids) != len(refs):
+                return None
+            for (kind, j), kid in zip(refs, kids):
+                if kind == "c":
+                    if kid.op != "const":
+                        return None
+                    consts[j] = kid.attr
+                else:
+                    old = nodes[j]
+                    if old is None:
+                        if kid.op == "const":
+                            return None
+                        nodes[j] = kid
+                    elif old is not kid:
+                        return None
+        return consts
+    return match
+
+
+class _Chain:
+    """The root chain: groups of same-shape operands (pruned) and the other operands."""
+
+    def __init__(self, root: Expr, operands: list, xname: str):
+        from .interval import _LIPSCHITZ
+        self.op = root.op
+        self.n = len(operands)
+        groups: list = []  # [prog, match, pos, rows, lips]
+        others = []
+        for p, operand in enumerate(operands):
+            if operand.op == "const":
+                others.append((p, operand))
+                continue
+            hit = None
+            for g in groups:
+                c = g[1](operand)
+                if c is not None:
+                    hit = (g, c)
+                    break
+            if hit is None:
+                prog = _Program(operand, xname, slots=True)
+                if len(prog.steps) > 400 or prog.has_prim:
+                    others.append((p, operand))
+                    continue
+                g = [prog, _matcher(prog), [], [], []]
+                groups.append(g)
+                hit = (g, list(prog.consts))
+            g, c = hit
+            g[2].append(p)
+            g[3].append(c)
+            # A Lipschitz constant noted by the modelling layer (a negated SDF keeps it).
+            g[4].append(_LIPSCHITZ.get(operand.args[0] if operand.op == "neg" else operand))
+        self.groups = []
+        for prog, _, pos, rows, lips in groups:
+            if len(pos) >= GROUP_MIN:
+                lip = None if any(L is None for L in lips) else max(lips)
+                self.groups.append(_Group(prog, pos, rows, lip))
+            else:
+                others.extend((p, operands[p]) for p in pos)
+        others.sort(key=lambda t: t[0])
+        self.others = [(p, _Program(o, xname)) if o.op != "const" else (p, float(o.attr))
+                       for p, o in others]
+
+    @property
+    def useful(self) -> bool:
+        return bool(self.groups)
+
+
+def _group_bounds(group: _Group, members, cx, cy, hx, hy, scale):
+    """Sound bounds ``(lo, hi)`` of the members ``members`` over the tiles of centres ``cx,
+    cy`` (arrays over the pairs) and half-sizes ``hx, hy``."""
+    half = math.hypot(hx, hy)
+    v, _ = group.prog.run(cx, cy, group.consts(members), False)
+    v = np.broadcast_to(v, cx.shape)
+    if group.lip is not None:
+        r = group.lip * half
+        m = 1e-10 * (np.abs(v) + r + scale) + 1e-290
+        lo, hi = v - r - m, v + r + m
+        bad = ~np.isfinite(v)
+        if bad.any():
+            lo = np.where(bad, -np.inf, lo)
+            hi = np.where(bad, np.inf, hi)
+        return lo, hi
+    return _interval_bounds(group, members, cx, cy, hx, hy)
+
+
+def _interval_bounds(group: _Group, members, cx, cy, hx, hy):
+    """Interval arithmetic over the shape's program (the rules of :mod:`fastsdf.ops`) for the
+    tiles ``[cx - hx, cx + hx] x [cy - hy, cy + hy]`` (``hx, hy`` include a sliver)."""
+    consts = group.consts(members)
+    lo_s, hi_s = [], []
+    with np.errstate(all="ignore"):
+        for node, refs in group.prog.steps:
+            if node.op == "sym":
+                isx = node.attr == group.prog.xname
+                c, h = (cx, hx) if isx else (cy, hy)
+                lo, hi = c - h, c + h
+            else:
+                alo = [lo_s[j] if k == "n" else np.asarray(consts[j]) for k, j in refs]
+                ahi = [hi_s[j] if k == "n" else np.asarray(consts[j]) for k, j in refs]
+                rule = OPS[node.op].interval
+                lo, hi = rule(node, alo[:2], ahi[:2])
+                for j in range(2, len(refs)):  # a flattened chain, pairwise
+                    lo, hi = rule(node, [lo, alo[j]], [hi, ahi[j]])
+                lo = np.where(np.isnan(lo), -np.inf, lo)
+                hi = np.where(np.isnan(hi), np.inf, hi)
+            lo_s.append(lo)
+            hi_s.append(hi)
+    return np.broadcast_to(lo_s[-1], cx.shape), np.broadcast_to(hi_s[-1], cx.shape)
+
+
+def _seg_first_min(v, starts, counts):
+    """Per segment (``starts``, ``counts`` > 0) of ``v``: the index of its first minimum
+    (NaN values never win unless the segment has nothing else)."""
+    key = np.where(np.isnan(v), np.inf, v)
+    mins = np.minimum.reduceat(key, starts)
+    idx = np.arange(len(v))
+    hit = np.where(key == np.repeat(mins, counts), idx, len(v))
+    return np.minimum.reduceat(hit, starts)
+
+
+def _prune(group: _Group, sign: float, xs, ys, bounds, splits: Sequence[int]):
+    """Leaf tiles of the points and the surviving members per leaf: ``(leaf of each point,
+    offsets, act)``: leaf ``t``'s members are ``act[offs[t]:offs[t + 1]]``, in chain order.
+
+    The tiles are refined level by level (``splits``: children per side at each level) and
+    only where there are points; each level bounds the members its parent kept."""
+    (x0, x1), (y0, y1) = bounds
+    M = len(group.pos)
+    scale = abs(x0) + abs(x1) + abs(y0) + abs(y1)
+    nx = int(np.prod(splits))
+    wx, wy = (x1 - x0) / nx, (y1 - y0) / nx
+    tx = np.clip(((xs - x0) / wx).astype(np.int64), 0, nx - 1)
+    ty = np.clip(((ys - y0) / wy).astype(np.int64), 0, nx - 1)
+    # Level 0: one tile, every member.
+    tiles_x = np.zeros(1, dtype=np.int64)
+    tiles_y = np.zeros(1, dtype=np.int64)
+    offs = np.array([0, M], dtype=np.int64)
+    act = np.arange(M, dtype=np.int64)
+    n = 1
+    for f in splits:
+        n *= f
+        shift = nx // n
+        occ = np.unique((ty // shift) * n + (tx // shift))
+        cxi, cyi = occ % n, occ // n
+        parent = (cyi // f) * (n // f) + (cxi // f)
+        # the parent tiles' positions in the previous level's list
+        ppos = np.searchsorted(tiles_y * (n // f) + tiles_x, parent)
+        counts = offs[ppos + 1] - offs[ppos]
+        P = int(counts.sum())
+        pair_tile = np.repeat(np.arange(len(occ)), counts)
+        starts = np.zeros(len(occ), dtype=np.int64)
+        np.cumsum(counts[:-1], out=starts[1:])
+        within = np.arange(P) - np.repeat(starts, counts)
+        members = act[np.repeat(offs[ppos], counts) + within]
+        w, h = (x1 - x0) / n, (y1 - y0) / n
+        cx = x0 + (cxi + 0.5) * w
+        cy = y0 + (cyi + 0.5) * h
+        # half-sizes with a sliver: a point binned across a rounding edge is still inside
+        hx, hy = 0.5 * w * (1.0 + 1e-9), 0.5 * h * (1.0 + 1e-9)
+        lo, hi = _group_bounds(group, members, cx[pair_tile], cy[pair_tile], hx, hy, scale)
+        if sign < 0:
+            lo, hi = -hi, -lo
+        H = np.minimum.reduceat(hi, starts)
+        # Strictly above the smallest upper bound: never the extremum (nor tied with it).
+        keep = ~(lo > np.repeat(H, counts))
+        kc = np.add.reduceat(keep.astype(np.int64), starts)
+        act = members[keep]
+        offs = np.zeros(len(occ) + 1, dtype=np.int64)
+        np.cumsum(kc, out=offs[1:])
+        tiles_x, tiles_y = cxi, cyi
+    return np.searchsorted(tiles_y * nx + tiles_x, ty * nx + tx), offs, act
+
+
+def _splits(npts: int) -> list:
+    """Refinement per level: 4 x 4 first, then halving the tiles down to leaves of about
+    ``LEAF_POINTS`` points (at most 256 x 256)."""
+    out, n = [4], 4
+    while n < 256 and npts / (4 * n * n) >= LEAF_POINTS:
+        out.append(2)
+        n *= 2
+    return out
+
+
+#: Points per leaf tile that the refinement aims at.
+LEAF_POINTS = 4
+
+
+def _snap(xs, ys):
+    """A rectangle holding the points (widened by a sliver), or None where its size is not
+    finite (coordinates near the float range: such calls are not pruned)."""
+    out = []
+    for v in (xs, ys):
+        lo, hi = float(v.min()), float(v.max())
+        span = max(hi - lo, 1e-300, 1e-12 * max(abs(lo), abs(hi)))
+        a, b = lo - 1e-9 * span, hi + 1e-9 * span
+        if not (math.isfinite(b - a) and abs(a) < 1e300 and abs(b) < 1e300):
+            return None
+        out.append((a, b))
+    return tuple(out)
+
+
+def _eval_group(group: _Group, sign: float, xs, ys, grad: bool, prune: bool):
+    """The extremum over the group's members at finite points: value, gradient and the chain
+    position of the winner per point."""
+    n = len(xs)
+    M = len(group.pos)
+    bounds = _snap(xs, ys) if prune and n else None
+    if bounds is not None:
+        tile, offs, act = _prune(group, sign, xs, ys, bounds, _splits(n))
+        counts = (offs[1:] - offs[:-1])[tile]
+        starts_t = offs[:-1][tile]
+    else:
+        counts = np.full(n, M, dtype=np.int64)
+        starts_t = np.zeros(n, dtype=np.int64)
+        act = np.arange(M, dtype=np.int64)
+    best = np.empty(n, dtype=np.int64)
+    # pairs in chunks of points (memory: pairs x a few arrays)
+    chunk = max(1, int(4_000_000 // max(1, int(counts.mean()) if n else 1)))
+    for a in range(0, n, chunk):
+        b = min(n, a + chunk)
+        c = counts[a:b]
+        P = int(c.sum())
+        seg = np.zeros(b - a, dtype=np.int64)
+        np.cumsum(c[:-1], out=seg[1:])
+        pt = np.repeat(np.arange(a, b), c)
+        within = np.arange(P) - np.repeat(seg, c)
+        mem = act[np.repeat(starts_t[a:b], c) + within]
+        v, _ = group.prog.run(xs[pt], ys[pt], group.consts(mem), False)
+        v = np.broadcast_to(v, (P,))
+        first = _seg_first_min(sign * v if sign < 0 else v, seg, c)
+        best[a:b] = mem[np.minimum(first, P - 1)]
+    v, g = group.prog.run(xs, ys, group.consts(best), grad)
+    return np.broadcast_to(v, (n,)), g, group.pos[best]
+
+
+# ---------------------------------------------------------------------------------------------
+
+class NumpyScene:
+    """The NumPy evaluator of one expression of two coordinates (see the module docstring).
+
+    ``scene(x, y)`` returns the value (distance, negative inside) as float64 with ``x``'s shape
+    (a scalar gives shape ``(1,)``); ``scene(x, y, compute_gradient=True)`` returns ``(d,
+    grad)`` with ``grad[..., 0] = dd/dx``. ``params`` gives runtime parameter values by name
+    (the others take their defaults). ``prune=False`` evaluates every operand of a pruned
+    chain (the same bits, slower).
+
+    :meth:`cost` estimates the seconds of a call; ``'auto'`` compares it with the tape's.
+    """
+
+    def __init__(self, expr: Expr, symbol_names: Sequence[str]):
+        names = tuple(symbol_names)
+        if len(names) != 2:
+            raise ValueError(f"symbol_names must name two symbols, got {symbol_names!r}")
+        self.expr = expr
+        self.xname = names[0]
+        self.chain = None
+        if expr.op in ("min", "max"):
+            operands = _flatten(expr)
+            if len(operands) >= GROUP_MIN:
+                chain = _Chain(expr, operands, self.xname)
+                if chain.useful:
+                    self.chain = chain
+        self._prog = None if self.chain is not None else _Program(expr, self.xname)
+
+    @property
+    def pruned(self) -> bool:
+        """Whether the root is a chain evaluated with pruning."""
+        return self.chain is not None
+
+    @property
+    def nodes(self) -> int:
+        """Nodes of the programs evaluated per point (a pruned chain's shapes counted once)."""
+        if self._prog is not None:
+            return len(self._prog.steps)
+        return sum(len(g.prog.steps) for g in self.chain.groups) + len(self.chain.others)
+
+    @property
+    def size(self) -> int:
+        """Nodes evaluated per point without pruning (the scene's size)."""
+        if self._prog is not None:
+            return len(self._prog.steps)
+        return sum(len(g.prog.steps) * len(g.pos) for g in self.chain.groups) \
+            + sum(1 if isinstance(p, float) else len(p.steps) for _, p in self.chain.others)
+
+    @property
+    def has_ellipse(self) -> bool:
+        """Whether an ellipse primitive is evaluated (its NumPy reference is slow)."""
+        if self._prog is not None:
+            return self._prog.ellipse
+        return any(not isinstance(p, float) and p.ellipse for _, p in self.chain.others)
+
+    def cost(self, n: int) -> float:
+        """An estimate of the seconds a call on ``n`` points takes, value + gradient (from
+        ``python -m bench.bench_tape`` on a 2-core AMD EPYC: about 4 ns per node and point, an
+        ellipse primitive far more; a pruned chain about 60 ns per node of its shape and
+        point, with a few survivors per point)."""
+        def general(prog):
+            per = PER_NODE_POINT + (5e-6 if prog.ellipse else 0.0)
+            return len(prog.steps) * (PER_NODE_CALL * (n // BLOCK + 1) + per * n)
+        if self._prog is not None:
+            return general(self._prog)
+        return sum(len(g.prog.steps) * (PER_PRUNED_NODE_POINT * n + 2e-6 * len(g.pos))
+                   for g in self.chain.groups) \
+            + sum(general(p) for _, p in self.chain.others if not isinstance(p, float))
+
+    def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+            grad: np.ndarray | None = None, params: dict | None = None,
+            prune: bool = True) -> None:
+        """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2))."""
+        ok = np.isfinite(xs) & np.isfinite(ys)
+        allok = bool(ok.all())
+        if not allok:
+            xs, ys = xs[ok], ys[ok]
+        m = xs.shape[0]
+        d = np.empty(m)
+        g = np.empty((m, 2)) if grad is not None else None
+        with np.errstate(all="ignore"):
+            if self._prog is not None:
+                for a in range(0, m, BLOCK):
+                    b = min(m, a + BLOCK)
+                    v, gg = self._prog.run(xs[a:b], ys[a:b], self._prog.consts,
+                                           g is not None, params)
+                    d[a:b] = v
+                    if g is not None:
+                        g[a:b, 0] = 0.0 if gg[0] is None else gg[0]
+                        g[a:b, 1] = 0.0 if gg[1] is None else gg[1]
+            else:
+                self._run_chain(xs, ys, d, g, params, prune)
+        if allok:
+            out[:] = d
+            if grad is not None:
+                grad[:] = g
+            return
+        out[:] = np.nan
+        out[ok] = d
+        if grad is not None:
+            grad[:] = np.nan
+            grad[ok] = g
+
+    def _run_chain(self, xs, ys, d, g, params, prune):
+        """The root chain: each group's extremum (pruned), then every operand in chain
+        order, streamed with the kernels' tie rule (the earlier operand wins)."""
+        ch = self.chain
+        sign = 1.0 if ch.op == "min" else -1.0
+        wantg = g is not None
+        parts = []  # (chain position, value, gradient)
+        for grp in ch.groups:
+            v, gg, pos = _eval_group(grp, sign, xs, ys, wantg, prune)
+            parts.append((pos, v, gg))
+        for p, prog in ch.others:
+            if isinstance(prog, float):
+                parts.append((np.full(len(xs), p), prog, _ZERO))
+                continue
+            v, gg = prog.run(xs, ys, prog.consts, wantg, params)
+            parts.append((np.full(len(xs), p), v, gg))
+        # Stream in chain order per point: sort parts by position where they tie in value.
+        m = None
+        for pos, v, gg in parts:
+            v = np.broadcast_to(v, xs.shape)
+            if m is None:
+                m, mp = v, pos
+                mg = gg
+                continue
+            key_v, key_m = (v, m) if sign > 0 else (-v, -m)
+            w = (key_v < key_m) | ((key_v == key_m) & (pos < mp))
+            if wantg:
+                mg = (_pick(w, gg[0], mg[0]), _pick(w, gg[1], mg[1]))
+            m = np.where(w, v, m)
+            mp = np.where(w, pos, mp)
+        d[:] = m
+        if wantg:
+            g[:, 0] = 0.0 if mg[0] is None else mg[0]
+            g[:, 1] = 0.0 if mg[1] is None else mg[1]
+
+    def __call__(self, x, y, compute_gradient: bool = False, params: dict | None = None,
+                 prune: bool = True) -> Any:
+        from .function import as_points
+        xs, ys, shape = as_points(x, y)
+        n = xs.shape[0]
+        out = np.empty(n)
+        if compute_gradient:
+            grad = np.empty((n, 2))
+            self.run(xs, ys, out, grad, params, prune)
+            return out.reshape(shape), grad.reshape(shape + (2,))
+        self.run(xs, ys, out, None, params, prune)
+        return out.reshape(shape)
+
+
+def compile_numpy(expr: Expr, symbol_names: Sequence[str]) -> NumpyScene:
+    """The :class:`NumpyScene` of ``expr`` over the two named coordinate symbols (x, y)."""
+    return NumpyScene(expr, symbol_names)
