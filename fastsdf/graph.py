@@ -115,7 +115,9 @@ class Expr:
     so ``==``/``hash`` are identity-based and cheap. ``str(expr)`` gives a readable formula.
     """
 
-    __slots__ = ("op", "args", "attr", "syms", "prms", "__weakref__")
+    # ``lip``: a Lipschitz constant noted for the node by the modelling layer (see
+    # fastsdf.interval.note_lipschitz), or None; the one slot set after construction.
+    __slots__ = ("op", "args", "attr", "syms", "prms", "lip", "__weakref__")
     # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
     __array_ufunc__ = None
 
@@ -200,7 +202,7 @@ class Expr:
 
 _object_new = object.__new__
 _set_op, _set_args, _set_attr = Expr.op.__set__, Expr.args.__set__, Expr.attr.__set__
-_set_syms, _set_prms = Expr.syms.__set__, Expr.prms.__set__
+_set_syms, _set_prms, _set_lip = Expr.syms.__set__, Expr.prms.__set__, Expr.lip.__set__
 
 
 def _intern(op: str, args: tuple = (), attr=None) -> Expr:
@@ -217,6 +219,7 @@ def _intern(op: str, args: tuple = (), attr=None) -> Expr:
     _set_op(node, op)
     _set_args(node, args)
     _set_attr(node, attr)
+    _set_lip(node, None)
     # The symbol and parameter sets of the arguments, shared when equal (almost always: O(1)
     # per node); the same sets as _symbol_set and _param_set give.
     n = len(args)

@@ -70,6 +70,8 @@ def _frame() -> tuple:
 def _smoothness_value(k) -> float:
     if k is None:
         return 0.0
+    if type(k) is float and k == 0.0:  # hard: the common case
+        return k
     if is_param(k):  # a runtime parameter: checked > 0 at the parameters' defaults
         _, number = real_or_param(k, "k")
         if not number > 0:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -167,9 +166,9 @@ class SDF(Function):
         if r == 0:
             return SDF(self.f, i)
         if r > 0:
-            info = replace(i, inside=i.inside and i.outside and i.convex, bbox=_grow(i.bbox, r))
+            info = i._replace(inside=i.inside and i.outside and i.convex, bbox=_grow(i.bbox, r))
         else:
-            info = replace(i, outside=False)
+            info = i._replace(outside=False)
         return SDF(self.f - r, info)
 
     def shell(self, thickness: float) -> SDF:
@@ -199,7 +198,8 @@ class SDF(Function):
         inv = 1.0 / s
         i = self._info
         bbox = None if i.bbox is None or is_param(s) else tuple(v * s for v in i.bbox)
-        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s, replace(i, bbox=bbox))
+        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s,
+                   i._replace(bbox=bbox))
 
     def translate(self, offset: ArrayLike) -> SDF:
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
@@ -209,12 +209,12 @@ class SDF(Function):
         i = self._info
         if any(is_param(v) for v in o):  # moved by runtime parameters
             expr = substitute(self.f, {"x": _X - o[0], "y": _Y - o[1]})
-            return SDF(expr, replace(i, bbox=None, sym=frozenset()))
+            return SDF(expr, i._replace(bbox=None, sym=frozenset()))
         bbox = None if i.bbox is None else (i.bbox[0] + o[0], i.bbox[1] + o[1],
                                              i.bbox[2] + o[0], i.bbox[3] + o[1])
         sym = frozenset(a for a, ov in zip("xy", o) if a in i.sym and ov == 0.0)
         expr = substitute(self.f, {"x": _X - float(o[0]), "y": _Y - float(o[1])})
-        return SDF(expr, replace(i, bbox=bbox, sym=sym))
+        return SDF(expr, i._replace(bbox=bbox, sym=sym))
 
     def rotate(self, angle: float) -> SDF:
         """The shape rotated counter-clockwise by ``angle`` (radians) about the origin:
@@ -225,12 +225,12 @@ class SDF(Function):
         if is_param(angle):  # turned by runtime parameters
             c, s = sym_cos(angle), sym_sin(angle)
             expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
-            return SDF(expr, replace(i, bbox=None, sym=frozenset()))
+            return SDF(expr, i._replace(bbox=None, sym=frozenset()))
         c, s = math.cos(angle), math.sin(angle)
         bbox = _frame_bbox(i.bbox, (c, -s, s, c, 0.0, 0.0))
         sym = i.sym if angle == 0.0 else frozenset()
         expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
-        return SDF(expr, replace(i, bbox=bbox, sym=sym))
+        return SDF(expr, i._replace(bbox=bbox, sym=sym))
 
     def mirror(self, axis: str = "x") -> SDF:
         """Mirror symmetry: ``axis='x'`` evaluates ``f(|x|, y)``, the part of the shape with
@@ -286,7 +286,7 @@ class SDF(Function):
             _check_length(v, "spacing", spacing)
         i = self._info
         if any(is_param(v) for v in (*sp, *ct)):  # given by parameters: the copies move
-            i = replace(i, bbox=None)
+            i = i._replace(bbox=None)
         sub, symmetric, contained = {}, True, i.bbox is not None
         lo = list(i.bbox[:2]) if i.bbox is not None else None
         hi = list(i.bbox[2:]) if i.bbox is not None else None

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -749,7 +748,7 @@ class Star(Polygon):
         sym = {"x"} if center[0] == 0 else set()
         if center[1] == 0 and n % 2 == 0:
             sym.add("y")
-        self._info = replace(self._info, sym=frozenset(sym) if _frame() == _IDENTITY
+        self._info = self._info._replace(sym=frozenset(sym) if _frame() == _IDENTITY
                              else frozenset())
 
 
@@ -862,5 +861,5 @@ class Arc(SDF):
         info = _primitive_info(None if moving else _points_bbox([cv], rv + tv / 2),
                                set() if moving else _center_sym(cv) & {"x"})
         if not exact:
-            info = replace(info, inside=False)
+            info = info._replace(inside=False)
         super().__init__(dist - thickness / 2, info)
