@@ -524,9 +524,6 @@ class _Emitter:
         would be flattened or folded) is left alone: the results are the same bits either way.
         ``singles``: also shapes with one member (a loop of one row), for combine programs.
         """
-        seen, order, under_big = set(), [], set()
-        stack = [root]
-
         def too_big(node):
             if self._size(node) <= MAX_TEMPLATE_NODES:
                 return False
@@ -535,34 +532,12 @@ class _Emitter:
             return not singles or node.op in _CHAIN_OPS or node.op == "neg" or \
                 _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
 
-        while stack:
-            node = stack.pop()
-            if id(node) in seen:
-                continue
-            seen.add(id(node))
-            order.append(node)
-            plan = plans.get(id(node))
-            if plan is None:
-                plan = plans[id(node)] = self._plan(node)
-            # For a program: larger subexpressions (a transformed capsule counts more than
-            # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
-            # expression that is not a candidate, are candidates (also in a small scene).
-            big = too_big(node) or (singles and (
-                node is root or node.op in _CHAIN_OPS
-                and not _foldable(node, self._foldables)))
-            for dep in plan[0]:
-                if big:
-                    under_big.add(id(dep))
-                stack.append(dep)
-        shapes: dict = {}
-        for node in order:
-            if (id(node) not in under_big or node.op in ("const", "sym", "param")
-                    or too_big(node) or not _foldable(node, self._foldables)):
-                continue
-            sig, steps, consts = self._template(node)
-            shapes.setdefault(sig, (steps, [], []))
-            shapes[sig][1].append(node)
-            shapes[sig][2].append(consts)
+        # The candidates depend on the expression alone: found once per module (the value and
+        # the gradient functions share them through the memo).
+        key = ("prefold", id(root), singles)
+        shapes = self.memo.get(key)
+        if shapes is None:
+            shapes = self.memo[key] = self._candidates(root, plans, singles, too_big)
         ncomp = len(self.COMPONENTS)
         rows_left = MAX_PROGRAM_ROWS if singles else MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
@@ -593,6 +568,40 @@ class _Emitter:
                 self.fold_of[id(member)] = (g, j, stored)
                 self.fold_zero[id(member)] = zero
                 plans[id(member)] = ([], None)
+
+    def _candidates(self, root: Expr, plans: dict, singles: bool, too_big) -> dict:
+        """:meth:`_prefold`'s candidates: ``{signature: (steps, members, rows)}`` in the order
+        of their first member."""
+        seen, order, under_big = set(), [], set()
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            if node in seen:
+                continue
+            seen.add(node)
+            order.append(node)
+            plan = plans.get(id(node))
+            if plan is None:
+                plan = plans[id(node)] = self._plan(node)
+            # For a program: larger subexpressions (a transformed capsule counts more than
+            # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
+            # expression that is not a candidate, are candidates (also in a small scene).
+            big = too_big(node) or (singles and (
+                node is root or node.op in _CHAIN_OPS
+                and not _foldable(node, self._foldables)))
+            if big:
+                under_big.update(plan[0])
+            stack.extend(plan[0])
+        shapes: dict = {}
+        for node in order:
+            if (node not in under_big or node.op in ("const", "sym", "param")
+                    or too_big(node) or not _foldable(node, self._foldables)):
+                continue
+            sig, steps, consts = self._template(node)
+            shapes.setdefault(sig, (steps, [], []))
+            shapes[sig][1].append(node)
+            shapes[sig][2].append(consts)
+        return shapes
 
     def program(self, root: Expr):
         """The combine program of ``root`` for the block kernels, or None.
