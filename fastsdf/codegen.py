@@ -171,11 +171,12 @@ def _template(root: Expr):
     local, steps, sig, consts = {}, [], [], []
 
     def visit(node):
-        for a in node.args:
+        args = node.args
+        for a in args:
             if a.op != "const" and a not in local:
                 visit(a)
         refs = []
-        for a in node.args:
+        for a in args:
             if a.op == "const":
                 refs.append(("c", len(consts)))
                 consts.append(a.attr)
@@ -342,7 +343,6 @@ class _Emitter:
         # Shapes, sizes and chain plans depend on the expression alone: the emitters of one
         # module share them (``memo``), so the four functions of a scene find each once.
         self.memo = {} if memo is None else memo
-        self.sizes: dict = self.memo.setdefault("sizes", {})  # node -> _size
         self._foldables: dict = self.memo.setdefault("foldable", {})  # node -> _foldable
         self._templates: dict = self.memo.setdefault("templates", {})
         self._plans: dict = self.memo.setdefault("plans", {})
@@ -725,30 +725,10 @@ class _Emitter:
         return steps, count[0] * width
 
     def _size(self, root: Expr) -> int:
-        """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
-        (memoized and never walking a node twice, so linear over the whole DAG)."""
-        sizes = self.sizes
-        size = sizes.get(root)
-        if size is not None:
-            return size
-        cap = MAX_TEMPLATE_NODES + 1
-        stack = [root]
-        while stack:
-            n = stack[-1]
-            if n in sizes:
-                stack.pop()
-                continue
-            args = n.args
-            todo = [a for a in args if a not in sizes]
-            if todo:
-                stack.extend(todo)
-                continue
-            stack.pop()
-            total = 1
-            for a in args:
-                total += sizes[a]
-            sizes[n] = total if total < cap else cap
-        return sizes[root]
+        """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES (kept
+        on every node at its construction: O(1))."""
+        size = root.tree
+        return size if size <= MAX_TEMPLATE_NODES else MAX_TEMPLATE_NODES + 1
 
     def _template(self, node: Expr):
         """:func:`_template`, memoized."""

@@ -117,7 +117,9 @@ class Expr:
 
     # ``lip``: a Lipschitz constant noted for the node by the modelling layer (see
     # fastsdf.interval.note_lipschitz), or None; the one slot set after construction.
-    __slots__ = ("op", "args", "attr", "syms", "prms", "lip", "__weakref__")
+    # ``tree``: the number of nodes under this one counted as a tree (shared subexpressions
+    # once per use), capped at TREE_CAP: the code generator's size of a subexpression.
+    __slots__ = ("op", "args", "attr", "syms", "prms", "lip", "tree", "__weakref__")
     # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
     __array_ufunc__ = None
 
@@ -203,6 +205,9 @@ class Expr:
 _object_new = object.__new__
 _set_op, _set_args, _set_attr = Expr.op.__set__, Expr.args.__set__, Expr.attr.__set__
 _set_syms, _set_prms, _set_lip = Expr.syms.__set__, Expr.prms.__set__, Expr.lip.__set__
+_set_tree = Expr.tree.__set__
+#: Cap of the ``tree`` size of nodes (far above any size the code generator asks about).
+TREE_CAP = 1 << 40
 
 
 def _intern(op: str, args: tuple = (), attr=None) -> Expr:
@@ -225,17 +230,23 @@ def _intern(op: str, args: tuple = (), attr=None) -> Expr:
     n = len(args)
     if n == 2:
         a, b = args
+        size = 1 + a.tree + b.tree
+        _set_tree(node, size if size < TREE_CAP else TREE_CAP)
         sa, sb = a.syms, b.syms
         _set_syms(node, sa if sb <= sa else sb if sa <= sb else sa | sb)
         sa, sb = a.prms, b.prms
         _set_prms(node, sa if sb <= sa else sb if sa <= sb else sa | sb)
     elif n == 1:
+        size = 1 + args[0].tree
+        _set_tree(node, size if size < TREE_CAP else TREE_CAP)
         _set_syms(node, args[0].syms)
         _set_prms(node, args[0].prms)
     elif n:
+        _set_tree(node, min(TREE_CAP, 1 + sum(a.tree for a in args)))
         _set_syms(node, _symbol_set(op, args, attr))
         _set_prms(node, _param_set(op, args, attr))
     else:
+        _set_tree(node, 1)
         _set_syms(node, frozenset((attr,)) if op == "sym" else _NO_SYMBOLS)
         _set_prms(node, frozenset((attr,)) if op == "param" else _NO_SYMBOLS)
     ref = _Ref(node, _forget)
