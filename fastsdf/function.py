@@ -198,21 +198,27 @@ class CompiledSDF:
         done (False if it never started)."""
         return self._warm is not None and self._warm.is_set()
 
-    def compile_in_background(self) -> threading.Event:
+    def compile_in_background(self, xs: np.ndarray | None = None, ys: np.ndarray | None = None,
+                              tol: float | None = None) -> threading.Event:
         """Compile (or load from the disk cache) the kernels a call needs, in a daemon thread;
         returns an event set when done (also on failure: see :attr:`warm_error`). Started once.
 
         The thread runs only serial kernels on a few points: for scenes without parameters that
         compiles the scene's block functions, which the parallel kernels call (those are
-        scene-independent and cached once per installation)."""
+        scene-independent and cached once per installation). Given the points of a call
+        (``xs, ys``, and the pruning tolerance ``tol``), it then also builds the pruning plan
+        such a call would use, so that the first kernel call after the switch does not."""
         with self._warm_lock:
             if self._warm is None:
                 self._warm = threading.Event()
-                threading.Thread(target=self._compile_now, name="fastsdf-compile",
+                job = None
+                if xs is not None and not self.parametric and len(xs) >= PRUNE_MIN_POINTS:
+                    job = (snap_bounds(xs, ys), len(xs), tol)
+                threading.Thread(target=self._compile_now, args=(job,), name="fastsdf-compile",
                                  daemon=True).start()
         return self._warm
 
-    def _compile_now(self) -> None:
+    def _compile_now(self, job=None) -> None:
         try:
             xs = np.zeros(4)
             kw = {}
@@ -220,6 +226,9 @@ class CompiledSDF:
                 kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
             for g in (True, False):
                 self.evaluate(xs, xs, compute_gradient=g, prune=False, **kw)
+            if job is not None and job[0] is not None:
+                bounds, count, tol = job
+                self.pruned_plan(xs, xs, None, tol, bounds=bounds, count=count)
         except BaseException as exc:  # reported through warm_error; the kernel path re-raises
             self.warm_error = exc
         finally:
@@ -523,11 +532,12 @@ class Function:
                 c = self.compiled
                 ev = c.tape if path == "tape" else c.numpy_scene
                 res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
-                if backend == "auto":
+                if backend == "auto" and c._warm is None:
                     # Started after the answer: the compiling thread would take a core from it,
                     # and numba's compiler lock, which it holds, would make a first tape call
                     # (loading the interpreter) wait for the whole compilation.
-                    c.compile_in_background()
+                    xs, ys, _ = as_points(x, y)
+                    c.compile_in_background(xs, ys, self.prune_tol)
                 return res
         if time_derivative:
             if not kw:  # no parameters: nothing moves
