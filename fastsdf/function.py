@@ -389,14 +389,23 @@ class Function:
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
 
     Backends: ``f(x, y, backend='kernel')`` (the default, :attr:`backend`) runs the compiled
-    kernel; ``backend='tape'`` runs the scene-independent tape interpreter of
-    :mod:`fastsdf.tape` (compiled once per installation: no wait for a new scene, several times
-    slower per point, the same results to rounding); ``backend='auto'`` answers through the
-    tape while the scene's kernel compiles in a background thread and through the kernel once it
-    is ready (``f.compiled.kernel_ready``). The tape has no time derivative: such calls always
-    use the kernel. Set ``Function.backend = 'auto'`` (or on one function) to make it the
-    default; it is opt-in because the background thread shares the GIL and the cores with the
-    caller while it compiles.
+    kernel; ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.npeval`: no numba, no
+    wait for a new scene; hard unions of many shapes pruned per tile); ``backend='tape'`` runs
+    the scene-independent tape interpreter of :mod:`fastsdf.tape` (compiled once per
+    installation; the first numba call of a process pays numba's one-time setup, about 0.4 s);
+    ``backend='auto'`` answers with the cheaper of NumPy and the tape (a cost model:
+    :meth:`CompiledSDF.first_path`) while the scene's kernel compiles in a background thread
+    started after the first answer, and through the kernel once it is ready
+    (``f.compiled.kernel_ready``). All agree with the kernel to rounding (values 1e-12
+    relative, gradients 1e-9), not bit for bit. The tape and NumPy have no time derivative:
+    such calls always use the kernel.
+
+    The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
+    in the last bits depending on whether the background compilation has finished (a program's
+    output would depend on timing), and calls made while it compiles share the GIL and the
+    cores with it (measured by ``python -m bench.bench_tape``: up to 2.7x slower meanwhile).
+    For interactive work, where the first answer matters most, set ``Function.backend =
+    'auto'`` (or on one function).
 
     Pruning (:mod:`fastsdf.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
     operands folded into loops, the points are sorted into tiles and each tile evaluates only
@@ -509,8 +518,8 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    #: The default backend of calls: ``'kernel'``, ``'tape'`` or ``'auto'`` (see the class
-    #: docstring).
+    #: The default backend of calls: ``'kernel'``, ``'numpy'``, ``'tape'`` or ``'auto'`` (see
+    #: the class docstring for why it is ``'kernel'``).
     backend = "kernel"
 
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
