@@ -198,21 +198,27 @@ class CompiledSDF:
         done (False if it never started)."""
         return self._warm is not None and self._warm.is_set()
 
-    def compile_in_background(self) -> threading.Event:
+    def compile_in_background(self, xs: np.ndarray | None = None, ys: np.ndarray | None = None,
+                              tol: float | None = None) -> threading.Event:
         """Compile (or load from the disk cache) the kernels a call needs, in a daemon thread;
         returns an event set when done (also on failure: see :attr:`warm_error`). Started once.
 
         The thread runs only serial kernels on a few points: for scenes without parameters that
         compiles the scene's block functions, which the parallel kernels call (those are
-        scene-independent and cached once per installation)."""
+        scene-independent and cached once per installation). Given the points of a call
+        (``xs, ys``, and the pruning tolerance ``tol``), it then also builds the pruning plan
+        such a call would use, so that the first kernel call after the switch does not."""
         with self._warm_lock:
             if self._warm is None:
                 self._warm = threading.Event()
-                threading.Thread(target=self._compile_now, name="fastsdf-compile",
+                job = None
+                if xs is not None and not self.parametric and len(xs) >= PRUNE_MIN_POINTS:
+                    job = (snap_bounds(xs, ys), len(xs), tol)
+                threading.Thread(target=self._compile_now, args=(job,), name="fastsdf-compile",
                                  daemon=True).start()
         return self._warm
 
-    def _compile_now(self) -> None:
+    def _compile_now(self, job=None) -> None:
         try:
             xs = np.zeros(4)
             kw = {}
@@ -220,6 +226,9 @@ class CompiledSDF:
                 kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
             for g in (True, False):
                 self.evaluate(xs, xs, compute_gradient=g, prune=False, **kw)
+            if job is not None and job[0] is not None:
+                bounds, count, tol = job
+                self.pruned_plan(xs, xs, None, tol, bounds=bounds, count=count)
         except BaseException as exc:  # reported through warm_error; the kernel path re-raises
             self.warm_error = exc
         finally:
@@ -380,14 +389,23 @@ class Function:
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
 
     Backends: ``f(x, y, backend='kernel')`` (the default, :attr:`backend`) runs the compiled
-    kernel; ``backend='tape'`` runs the scene-independent tape interpreter of
-    :mod:`fastsdf.tape` (compiled once per installation: no wait for a new scene, several times
-    slower per point, the same results to rounding); ``backend='auto'`` answers through the
-    tape while the scene's kernel compiles in a background thread and through the kernel once it
-    is ready (``f.compiled.kernel_ready``). The tape has no time derivative: such calls always
-    use the kernel. Set ``Function.backend = 'auto'`` (or on one function) to make it the
-    default; it is opt-in because the background thread shares the GIL and the cores with the
-    caller while it compiles.
+    kernel; ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.npeval`: no numba, no
+    wait for a new scene; hard unions of many shapes pruned per tile); ``backend='tape'`` runs
+    the scene-independent tape interpreter of :mod:`fastsdf.tape` (compiled once per
+    installation; the first numba call of a process pays numba's one-time setup, about 0.4 s);
+    ``backend='auto'`` answers with the cheaper of NumPy and the tape (a cost model:
+    :meth:`CompiledSDF.first_path`) while the scene's kernel compiles in a background thread
+    started after the first answer, and through the kernel once it is ready
+    (``f.compiled.kernel_ready``). All agree with the kernel to rounding (values 1e-12
+    relative, gradients 1e-9), not bit for bit. The tape and NumPy have no time derivative:
+    such calls always use the kernel.
+
+    The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
+    in the last bits depending on whether the background compilation has finished (a program's
+    output would depend on timing), and calls made while it compiles share the GIL and the
+    cores with it (measured by ``python -m bench.bench_tape``: up to 2.7x slower meanwhile).
+    For interactive work, where the first answer matters most, set ``Function.backend =
+    'auto'`` (or on one function).
 
     Pruning (:mod:`fastsdf.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
     operands folded into loops, the points are sorted into tiles and each tile evaluates only
@@ -500,8 +518,8 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    #: The default backend of calls: ``'kernel'``, ``'tape'`` or ``'auto'`` (see the class
-    #: docstring).
+    #: The default backend of calls: ``'kernel'``, ``'numpy'``, ``'tape'`` or ``'auto'`` (see
+    #: the class docstring for why it is ``'kernel'``).
     backend = "kernel"
 
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
@@ -523,11 +541,12 @@ class Function:
                 c = self.compiled
                 ev = c.tape if path == "tape" else c.numpy_scene
                 res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
-                if backend == "auto":
+                if backend == "auto" and c._warm is None:
                     # Started after the answer: the compiling thread would take a core from it,
                     # and numba's compiler lock, which it holds, would make a first tape call
                     # (loading the interpreter) wait for the whole compilation.
-                    c.compile_in_background()
+                    xs, ys, _ = as_points(x, y)
+                    c.compile_in_background(xs, ys, self.prune_tol)
                 return res
         if time_derivative:
             if not kw:  # no parameters: nothing moves

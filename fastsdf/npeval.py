@@ -413,25 +413,25 @@ def _matcher(prog: _Program):
     references from the root instead of linearizing each operand anew."""
     steps = prog.steps
     nsteps = len(steps)
-    checks = []  # per step, root first: (i, op, attr, chain, refs)
-    for i in range(nsteps - 1, -1, -1):
-        node, refs = steps[i]
-        checks.append((i, node.op, node.attr, node.op in _CHAINS, refs,
-                       node if node.op in ("sym", "param") else None))
+    # A reference is a step index (>= 0) or a constant slot s as -s - 1; steps that are
+    # symbols or parameters are checked by identity where they are referenced.
+    leaves = [node if node.op in ("sym", "param") else None for node, _ in steps]
+    checks = [(i, node.op, node.attr, node.op in _CHAINS,
+               tuple(j if k == "n" else -j - 1 for k, j in refs))
+              for i, (node, refs) in reversed(list(enumerate(steps))) if leaves[i] is None]
     nslots = len(prog.consts)
+    last = nsteps - 1
 
     def match(operand):
+        if leaves[last] is not None:
+            return [] if operand is leaves[last] else None
         nodes = [None] * nsteps
-        nodes[nsteps - 1] = operand
+        nodes[last] = operand
         consts = [0.0] * nslots
-        for i, op, attr, chain, refs, leaf in checks:
+        for i, op, attr, chain, refs in checks:
             node = nodes[i]
             if node.op != op or node.attr != attr:
                 return None
-            if leaf is not None:
-                if node is not leaf:
-                    return None
-                continue
             kids = node.args
             if chain:
                 for a in kids:
@@ -440,19 +440,22 @@ def _matcher(prog: _Program):
                         break
             if len(kids) != len(refs):
                 return None
-            for (kind, j), kid in zip(refs, kids):
-                if kind == "c":
+            for r, kid in zip(refs, kids):
+                if r < 0:
                     if kid.op != "const":
                         return None
-                    consts[j] = kid.attr
-                else:
-                    old = nodes[j]
-                    if old is None:
-                        if kid.op == "const":
-                            return None
-                        nodes[j] = kid
-                    elif old is not kid:
+                    consts[-r - 1] = kid.attr
+                    continue
+                leaf = leaves[r]
+                if leaf is not None:
+                    if kid is not leaf:
                         return None
+                    continue
+                old = nodes[r]
+                if old is None:
+                    nodes[r] = kid  # its operation is checked when its step is visited
+                elif old is not kid:
+                    return None
         return consts
     return match
 
@@ -558,43 +561,71 @@ def _seg_first_min(v, starts, counts):
     return np.minimum.reduceat(hit, starts)
 
 
+def _spread(v):
+    """The bits of ``v`` (< 256) spread to the even bit positions (Morton order)."""
+    v = (v | (v << 4)) & 0x0F0F
+    v = (v | (v << 2)) & 0x3333
+    return (v | (v << 1)) & 0x5555
+
+
+def _runs(codes):
+    """For sorted ``codes``: the index of the first element of each run of equal codes."""
+    if not len(codes):
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.concatenate(([True], codes[1:] != codes[:-1])))
+
+
 def _prune(group: _Group, sign: float, xs, ys, bounds, splits: Sequence[int]):
     """Leaf tiles of the points and the surviving members per leaf: ``(leaf of each point,
     offsets, act)``: leaf ``t``'s members are ``act[offs[t]:offs[t + 1]]``, in chain order.
 
-    The tiles are refined level by level (``splits``: children per side at each level) and
-    only where there are points; each level bounds the members its parent kept."""
+    The tiles are refined level by level (``splits``: children per side at each level, powers
+    of two) and only where there are points; each level bounds the members its parent kept.
+    Tiles are numbered in Morton order, so that each level's tiles, sorted, list their
+    children next to each other and their parents in the previous level's order."""
     (x0, x1), (y0, y1) = bounds
     M = len(group.pos)
     scale = abs(x0) + abs(x1) + abs(y0) + abs(y1)
     nx = int(np.prod(splits))
-    wx, wy = (x1 - x0) / nx, (y1 - y0) / nx
-    tx = np.clip(((xs - x0) / wx).astype(np.int64), 0, nx - 1)
-    ty = np.clip(((ys - y0) / wy).astype(np.int64), 0, nx - 1)
+    tx = np.clip(((xs - x0) * (nx / (x1 - x0))).astype(np.int64), 0, nx - 1)
+    ty = np.clip(((ys - y0) * (nx / (y1 - y0))).astype(np.int64), 0, nx - 1)
+    code = _spread(tx) | (_spread(ty) << 1)
+    # 16-bit codes (nx <= 256) sort by radix
+    order = np.argsort(code.astype(np.uint16) if nx <= 256 else code, kind="stable")
+    sc = code[order]
+    first = _runs(sc)                       # the occupied leaves, in Morton order
+    leaf_of_sorted = np.cumsum(np.concatenate(([0], sc[1:] != sc[:-1])))
+    leaf = np.empty(len(xs), dtype=np.int64)
+    leaf[order] = leaf_of_sorted
+    leaves = sc[first]
+    ltx, lty = tx[order[first]], ty[order[first]]
     # Level 0: one tile, every member.
-    tiles_x = np.zeros(1, dtype=np.int64)
-    tiles_y = np.zeros(1, dtype=np.int64)
     offs = np.array([0, M], dtype=np.int64)
     act = np.arange(M, dtype=np.int64)
     n = 1
+    prev_codes = np.zeros(1, dtype=np.int64)
     for f in splits:
         n *= f
-        shift = nx // n
-        occ = np.unique((ty // shift) * n + (tx // shift))
-        cxi, cyi = occ % n, occ // n
-        parent = (cyi // f) * (n // f) + (cxi // f)
-        # the parent tiles' positions in the previous level's list
-        ppos = np.searchsorted(tiles_y * (n // f) + tiles_x, parent)
+        shift = nx // n                     # leaves per tile side at this level
+        bits = 2 * (shift.bit_length() - 1)
+        lc = leaves >> bits
+        heads = _runs(lc)                   # this level's occupied tiles
+        codes = lc[heads]
+        pbits = 2 * (f.bit_length() - 1)
+        parent_codes = codes >> pbits
+        # parents are the previous level's tiles, in the same (sorted) order
+        ppos = np.searchsorted(prev_codes, parent_codes)
         counts = offs[ppos + 1] - offs[ppos]
         P = int(counts.sum())
-        pair_tile = np.repeat(np.arange(len(occ)), counts)
-        starts = np.zeros(len(occ), dtype=np.int64)
+        T = len(codes)
+        pair_tile = np.repeat(np.arange(T), counts)
+        starts = np.zeros(T, dtype=np.int64)
         np.cumsum(counts[:-1], out=starts[1:])
         within = np.arange(P) - np.repeat(starts, counts)
         members = act[np.repeat(offs[ppos], counts) + within]
         w, h = (x1 - x0) / n, (y1 - y0) / n
-        cx = x0 + (cxi + 0.5) * w
-        cy = y0 + (cyi + 0.5) * h
+        cx = x0 + ((ltx[heads] // shift) + 0.5) * w
+        cy = y0 + ((lty[heads] // shift) + 0.5) * h
         # half-sizes with a sliver: a point binned across a rounding edge is still inside
         hx, hy = 0.5 * w * (1.0 + 1e-9), 0.5 * h * (1.0 + 1e-9)
         lo, hi = _group_bounds(group, members, cx[pair_tile], cy[pair_tile], hx, hy, scale)
@@ -605,10 +636,10 @@ def _prune(group: _Group, sign: float, xs, ys, bounds, splits: Sequence[int]):
         keep = ~(lo > np.repeat(H, counts))
         kc = np.add.reduceat(keep.astype(np.int64), starts)
         act = members[keep]
-        offs = np.zeros(len(occ) + 1, dtype=np.int64)
+        offs = np.zeros(T + 1, dtype=np.int64)
         np.cumsum(kc, out=offs[1:])
-        tiles_x, tiles_y = cxi, cyi
-    return np.searchsorted(tiles_y * nx + tiles_x, ty * nx + tx), offs, act
+        prev_codes = codes
+    return leaf, offs, act
 
 
 def _splits(npts: int) -> list:
@@ -631,8 +662,8 @@ def _snap(xs, ys):
     out = []
     for v in (xs, ys):
         lo, hi = float(v.min()), float(v.max())
-        span = max(hi - lo, 1e-300, 1e-12 * max(abs(lo), abs(hi)))
-        a, b = lo - 1e-9 * span, hi + 1e-9 * span
+        span = max(hi - lo, 1e-9 * max(abs(lo), abs(hi)), 1e-200)
+        a, b = lo - 1e-3 * span, hi + 1e-3 * span  # strictly around the points
         if not (math.isfinite(b - a) and abs(a) < 1e300 and abs(b) < 1e300):
             return None
         out.append((a, b))
