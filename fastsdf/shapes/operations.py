@@ -13,8 +13,8 @@ from .._validate import length as _length
 from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
 from ..interval import note_lipschitz
-from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
-                     sym_qmin, sym_smax, sym_smin)
+from ..graph import (Expr, Function, _gc_paused, substitute, sym_abs, sym_cmin, sym_floor,
+                     sym_max, sym_min, sym_qmin, sym_smax, sym_smin)
 from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
 from .exactness import (_NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow,
                         _Info)
@@ -470,6 +470,11 @@ def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:
         return out[0]
+    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+        return _union(out, k, kind)
+
+
+def _union(out: list, k, kind: str) -> SDF:
     e, info = out[0].f, out[0]._info
     outside, bound, bbox, sym = info.outside, info.bound, info.bbox, info.sym
     depth = _blend_depth(k, kind)
@@ -493,6 +498,11 @@ def intersection(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:
         return out[0]
+    with _gc_paused():
+        return _intersection(out, k, kind)
+
+
+def _intersection(out: list, k, kind: str) -> SDF:
     e, info = out[0].f, out[0]._info
     inside, bound, convex, bbox, sym = info.inside, info.bound, info.convex, info.bbox, info.sym
     for f in out[1:]:
