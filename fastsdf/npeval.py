@@ -409,54 +409,55 @@ class _Group:
 
 def _matcher(prog: _Program):
     """A function ``operand -> constants or None``: the operand's constants if it has the
-    shape of ``prog`` (a program with constant slots), else None. It follows the program's
-    references from the root instead of linearizing each operand anew."""
+    shape of ``prog`` (a program with constant slots), else None.
+
+    It follows the program's references from the root, and is generated as straight-line
+    Python for the shape (one test per node and argument: matching thousands of operands is
+    on the path of the first answer)."""
     steps = prog.steps
-    nsteps = len(steps)
-    # A reference is a step index (>= 0) or a constant slot s as -s - 1; steps that are
-    # symbols or parameters are checked by identity where they are referenced.
+    last = len(steps) - 1
     leaves = [node if node.op in ("sym", "param") else None for node, _ in steps]
-    checks = [(i, node.op, node.attr, node.op in _CHAINS,
-               tuple(j if k == "n" else -j - 1 for k, j in refs))
-              for i, (node, refs) in reversed(list(enumerate(steps))) if leaves[i] is None]
-    nslots = len(prog.consts)
-    last = nsteps - 1
+    attrs = [node.attr for node, _ in steps]
+    if leaves[last] is not None:
+        return lambda operand: [] if operand is leaves[last] else None
+    body, known, slots = [], {last}, {}
+    for i in range(last, -1, -1):
+        node, refs = steps[i]
+        if leaves[i] is not None:
+            continue
+        same = "is not None" if node.attr is None else f"!= A[{i}]"
+        body.append(f"if n{i}.op != {node.op!r} or n{i}.attr {same}: return None")
+        body.append(f"k = n{i}.args")
+        if node.op in _CHAINS:  # a chain nested in its own kind flattens as the program did
+            body += ["for a in k:",
+                     f"    if a.op == {node.op!r} and a.attr == A[{i}]:",
+                     f"        k = F(n{i})",
+                     "        break"]
+        body.append(f"if len(k) != {len(refs)}: return None")
+        for pos, (kind, j) in enumerate(refs):
+            if kind == "c":
+                slots[j] = f"c{j}"
+                body.append(f"c{j} = k[{pos}]")
+                body.append(f"if c{j}.op != 'const': return None")
+            elif leaves[j] is not None:
+                body.append(f"if k[{pos}] is not L[{j}]: return None")
+            elif j in known:
+                body.append(f"if k[{pos}] is not n{j}: return None")
+            else:
+                known.add(j)
+                body.append(f"n{j} = k[{pos}]")  # its operation is tested at its own step
+    consts = ", ".join(f"{slots[j]}.attr" for j in range(len(prog.consts)))
+    body.append(f"return [{consts}]")
+    src = f"def match(n{last}):\n" + "\n".join("    " + line for line in body) + "\n"
+    env = {"A": attrs, "L": leaves, "F": _flatten}
+    exec(compile(src, "<fastsdf.npeval matcher>", "exec"), env)
+    fn = env["match"]
 
     def match(operand):
-        if leaves[last] is not None:
-            return [] if operand is leaves[last] else None
-        nodes = [None] * nsteps
-        nodes[last] = operand
-        consts = [0.0] * nslots
-        for i, op, attr, chain, refs in checks:
-            node = nodes[i]
-            if node.op != op or node.attr != attr:
-                return None
-            kids = node.args
-            if chain:
-                for a in kids:
-                    if a.op == op and a.attr == attr:
-                        kids = _flatten(node)
-                        break
-            if len(kids) != len(refs):
-                return None
-            for r, kid in zip(refs, kids):
-                if r < 0:
-                    if kid.op != "const":
-                        return None
-                    consts[-r - 1] = kid.attr
-                    continue
-                leaf = leaves[r]
-                if leaf is not None:
-                    if kid is not leaf:
-                        return None
-                    continue
-                old = nodes[r]
-                if old is None:
-                    nodes[r] = kid  # its operation is checked when its step is visited
-                elif old is not kid:
-                    return None
-        return consts
+        try:
+            return fn(operand)
+        except (ValueError, TypeError):  # attributes that do not compare (array data)
+            return None
     return match
 
 

@@ -154,3 +154,28 @@ def test_first_answer_needs_no_numba(tmp_path):
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out == {"path": "numpy", "auto_numpy": True, "numba_setup": False}
+
+
+def test_operands_that_differ_in_sharing_or_attributes():
+    """An operand is taken for a shape only with the shape's sharing (``w + w`` with ``w``
+    shared; ``u * u + v * v`` reads the same constants from two nodes, so it may take the
+    other's) and attributes (smooth unions of different ``k``): the pruned chain gives the
+    bits of every operand streamed in order."""
+    rng = np.random.default_rng(4)
+    e = None
+    for i in range(120):
+        c = rng.uniform(-2, 2, 4)
+        u = (X - float(c[0])) * 0.7 + (Y - float(c[1]))
+        v = (X - float(c[2])) * 0.7 + (Y - float(c[3]))
+        s = [u * u + u * u - 0.01, u * u + v * v - 0.01,
+             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 2.0) - 0.05,
+             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 3.0) - 0.05][i % 4]
+        e = s if e is None else sdf.sym_min(e, s)
+    scene = compile_numpy(e, ["x", "y"])
+    assert scene.pruned and sorted(len(g.pos) for g in scene.chain.groups) == [30] * 4
+    general = compile_numpy(e, ["x", "y"])
+    general.chain, general._prog = None, _Program(e, "x")
+    p = _points(2000, 8)
+    d, g = scene(*p.T, compute_gradient=True)
+    dg, gg = general(*p.T, compute_gradient=True)
+    assert _bits(d, dg) and _bits(g, gg)
