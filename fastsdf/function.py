@@ -425,14 +425,14 @@ class Function:
             raise ValueError(f"symbols must be a list of two Symbols, got symbols={symbols!r}")
         if symbols[0] is symbols[1]:
             raise ValueError(f"symbols must be two distinct Symbols, got {symbols[0]} twice")
-        unknown = f.symbols() - {s.attr for s in symbols}
+        unknown = f.syms - {s.attr for s in symbols}
         if unknown:
             raise ValueError(f"expression depends on symbols {sorted(unknown)} that are not "
                              f"among symbols={[s.attr for s in symbols]}")
         self.f = f
         self.symbols = symbols
         self._compiled = None
-        self._params = parameters(f)
+        self._params = parameters(f) if f.prms else {}
 
     # -- parameters ----------------------------------------------------------------------------
     @property
