@@ -39,7 +39,7 @@ BACKENDS = ("kernel", "tape", "numpy", "auto")
 #: ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's one-time setup in a process
 #: (the first call of any compiled function, the tape interpreter included), building a tape per
 #: node, and running it per instruction and point (2 threads).
-NUMBA_SETUP_S = 0.35
+NUMBA_SETUP_S = 0.4
 TAPE_BUILD_PER_NODE_S = 8e-6
 TAPE_PER_NODE_POINT_S = 1.0e-9
 

@@ -15,15 +15,16 @@ Results agree with the kernels to rounding (tested: values 1e-12 relative, gradi
 ties between different operands of a chain may pick another (equal-valued) operand's gradient
 where the kernels reorder a chain. Non-finite points give NaN for those points only.
 
-**Hard unions of many shapes** (a ``min`` or ``max`` chain at the root with many operands of one
-shape, e.g. 1000 boxes at different places) are evaluated with pruning: the operands of the same
-shape are evaluated together with their constants as columns (one array operation per node of
-the shape, over all operands at once), and a quadtree of tiles over the points' bounding box
-keeps, per tile, only the operands that can be the minimum there (sound bounds from each
-operand's value at the tile's centre and its Lipschitz constant, or interval arithmetic where
-none is known; an operand whose lower bound exceeds the smallest upper bound cannot win, so the
-result is bit-identical to evaluating every operand). Each point then evaluates the few
-survivors of its tile (values only), and the gradient only of the winner.
+**Hard unions of many shapes** (a ``min`` or ``max`` chain with many operands of one shape,
+e.g. 1000 boxes at different places, at the root or anywhere below it) are evaluated with
+pruning: the operands of the same shape are evaluated together with their constants as
+columns (one array operation per node of the shape, over all operands at once), and a
+quadtree of tiles over the points' bounding box keeps, per tile, only the operands that can be
+the minimum there (sound bounds from each operand's value at the tile's centre and its
+Lipschitz constant, or interval arithmetic where none is known; an operand whose lower bound
+exceeds the smallest upper bound cannot win, so the result is bit-identical to evaluating
+every operand). Each point then evaluates the few survivors of its tile (values only), and
+the gradient only of the winner.
 """
 
 from __future__ import annotations
@@ -46,8 +47,10 @@ _CHAINS = ("min", "max", "smin", "smax")
 PER_NODE_POINT = 4e-9
 PER_NODE_CALL = 5e-6
 PER_PRUNED_NODE_POINT = 60e-9
-#: A root chain with at least this many operands of one shape is evaluated with pruning.
+#: A hard chain with at least this many operands of one shape is evaluated with pruning.
 GROUP_MIN = 24
+#: Operands of more nodes are never taken for a shape (they are evaluated as they are).
+MAX_SHAPE_NODES = 400
 
 
 # ---------------------------------------------------------------------------------------------
@@ -70,10 +73,12 @@ def _kids(node: Expr):
     return _flatten(node) if node.op in _CHAINS else node.args
 
 
-def _linearize(root: Expr, slots: bool = False):
+def _linearize(root: Expr, slots: bool = False, leaf=None):
     """``(steps, consts)``: ``steps[i] = (node, refs)`` in evaluation order, each ref
     ``('n', i)`` (the value of step i) or ``('c', j)`` (constant j: ``consts[j]``, one per
-    occurrence when ``slots``, else one per distinct constant node)."""
+    occurrence when ``slots``, else one per distinct constant node). ``leaf(node, kids)``, if
+    given, may claim a node: it becomes a step without references (evaluated by the claimer)
+    and nothing below it is visited."""
     index: dict = {}
     cindex: dict = {}
     steps, consts = [], []
@@ -84,6 +89,10 @@ def _linearize(root: Expr, slots: bool = False):
             continue
         if kids is None:
             kids = _kids(node)
+            if leaf is not None and leaf(node, kids):
+                index[id(node)] = len(steps)
+                steps.append((node, ()))
+                continue
             stack.append((node, kids))
             for a in reversed(kids):
                 if a.op != "const" and id(a) not in index:
@@ -110,14 +119,29 @@ def _linearize(root: Expr, slots: bool = False):
 
 class _Program:
     """A linearized expression: per step the operation, attribute, operand references and the
-    step after which its value is dead (values are freed as soon as possible)."""
+    step after which its value is dead (values are freed as soon as possible).
 
-    def __init__(self, root: Expr, xname: str, slots: bool = False):
+    With ``prune``, every hard ``min``/``max`` chain with many operands of one shape (anywhere
+    in the expression, see :class:`_Chain`) is one step, evaluated with pruning."""
+
+    def __init__(self, root: Expr, xname: str, slots: bool = False, prune: bool = False):
         self.xname = xname
-        steps, consts = _linearize(root, slots)
+        found: dict = {}
+
+        def claim(node, kids):
+            if node.op not in ("min", "max") or len(kids) < GROUP_MIN:
+                return False
+            chain = _Chain(node, kids, xname)
+            if chain.useful:
+                found[id(node)] = chain
+            return chain.useful
+
+        steps, consts = _linearize(root, slots, claim if prune else None)
         self.steps = steps
         self.consts = consts
         self.nodes = [s[0] for s in steps]
+        #: step index -> the pruned chain it evaluates
+        self.chains = {i: found[id(n)] for i, n in enumerate(self.nodes) if id(n) in found}
         last = list(range(len(steps)))
         for i, (_, refs) in enumerate(steps):
             for kind, j in refs:
@@ -129,23 +153,29 @@ class _Program:
             if i < len(steps):
                 self.free[i].append(j)
         self.has_prim = any(n.op == "prim" for n in self.nodes)
-        self.ellipse = any(n.op == "prim" and n.attr[0] != "polygon" for n in self.nodes)
+        self.ellipse = any(n.op == "prim" and n.attr[0] != "polygon" for n in self.nodes) or \
+            any(c.ellipse for c in self.chains.values())
 
-    def signature(self):
-        return tuple((n.op, n.attr if n.op != "prim" else (n.attr[0], _data_key(n.attr[1])),
-                      refs) for n, refs in self.steps)
+    @property
+    def size(self) -> int:
+        """Nodes evaluated per point without pruning."""
+        return len(self.steps) - len(self.chains) + sum(c.size for c in self.chains.values())
 
-    def run(self, x, y, consts, grad: bool, params: dict | None = None):
+    def run(self, x, y, consts, grad: bool, params: dict | None = None, prune: bool = True):
         """Value (and gradient ``[gx, gy]``, each an array, a float or None for zero) at the
         points ``x, y`` (arrays of equal shape, or anything that broadcasts); ``consts[j]`` is
         constant j (a float, or an array over the points)."""
         ctx = (self.xname, params)
         vals: list = [None] * len(self.steps)
         grads: list = [None] * len(self.steps)
+        chains = self.chains
         for i, (node, refs) in enumerate(self.steps):
-            av = [vals[j] if k == "n" else consts[j] for k, j in refs]
-            ag = [grads[j] if k == "n" else _ZERO for k, j in refs] if grad else None
-            vals[i], grads[i] = _OPS.get(node.op, _generic)(node, av, ag, x, y, ctx)
+            if i in chains:
+                vals[i], grads[i] = chains[i].evaluate(x, y, grad, params, prune)
+            else:
+                av = [vals[j] if k == "n" else consts[j] for k, j in refs]
+                ag = [grads[j] if k == "n" else _ZERO for k, j in refs] if grad else None
+                vals[i], grads[i] = _OPS.get(node.op, _generic)(node, av, ag, x, y, ctx)
             for j in self.free[i]:
                 vals[j] = grads[j] = None
         return vals[-1], grads[-1]
@@ -409,83 +439,89 @@ class _Group:
 
 def _matcher(prog: _Program):
     """A function ``operand -> constants or None``: the operand's constants if it has the
-    shape of ``prog`` (a program with constant slots), else None. It follows the program's
-    references from the root instead of linearizing each operand anew."""
+    shape of ``prog`` (a program with constant slots), else None.
+
+    It follows the program's references from the root, and is generated as straight-line
+    Python for the shape (one test per node and argument: matching thousands of operands is
+    on the path of the first answer)."""
     steps = prog.steps
-    nsteps = len(steps)
-    # A reference is a step index (>= 0) or a constant slot s as -s - 1; steps that are
-    # symbols or parameters are checked by identity where they are referenced.
+    last = len(steps) - 1
     leaves = [node if node.op in ("sym", "param") else None for node, _ in steps]
-    checks = [(i, node.op, node.attr, node.op in _CHAINS,
-               tuple(j if k == "n" else -j - 1 for k, j in refs))
-              for i, (node, refs) in reversed(list(enumerate(steps))) if leaves[i] is None]
-    nslots = len(prog.consts)
-    last = nsteps - 1
+    attrs = [node.attr for node, _ in steps]
+    if leaves[last] is not None:
+        return lambda operand: [] if operand is leaves[last] else None
+    body, known, slots = [], {last}, {}
+    for i in range(last, -1, -1):
+        node, refs = steps[i]
+        if leaves[i] is not None:
+            continue
+        same = "is not None" if node.attr is None else f"!= A[{i}]"
+        body.append(f"if n{i}.op != {node.op!r} or n{i}.attr {same}: return None")
+        body.append(f"k = n{i}.args")
+        if node.op in _CHAINS:  # a chain nested in its own kind flattens as the program did
+            body += ["for a in k:",
+                     f"    if a.op == {node.op!r} and a.attr == A[{i}]:",
+                     f"        k = F(n{i})",
+                     "        break"]
+        body.append(f"if len(k) != {len(refs)}: return None")
+        for pos, (kind, j) in enumerate(refs):
+            if kind == "c":
+                slots[j] = f"c{j}"
+                body.append(f"c{j} = k[{pos}]")
+                body.append(f"if c{j}.op != 'const': return None")
+            elif leaves[j] is not None:
+                body.append(f"if k[{pos}] is not L[{j}]: return None")
+            elif j in known:
+                body.append(f"if k[{pos}] is not n{j}: return None")
+            else:
+                known.add(j)
+                body.append(f"n{j} = k[{pos}]")  # its operation is tested at its own step
+    consts = ", ".join(f"{slots[j]}.attr" for j in range(len(prog.consts)))
+    body.append(f"return [{consts}]")
+    src = f"def match(n{last}):\n" + "\n".join("    " + line for line in body) + "\n"
+    env = {"A": attrs, "L": leaves, "F": _flatten}
+    exec(compile(src, "<fastsdf.npeval matcher>", "exec"), env)
+    fn = env["match"]
 
     def match(operand):
-        if leaves[last] is not None:
-            return [] if operand is leaves[last] else None
-        nodes = [None] * nsteps
-        nodes[last] = operand
-        consts = [0.0] * nslots
-        for i, op, attr, chain, refs in checks:
-            node = nodes[i]
-            if node.op != op or node.attr != attr:
-                return None
-            kids = node.args
-            if chain:
-                for a in kids:
-                    if a.op == op and a.attr == attr:
-                        kids = _flatten(node)
-                        break
-            if len(kids) != len(refs):
-                return None
-            for r, kid in zip(refs, kids):
-                if r < 0:
-                    if kid.op != "const":
-                        return None
-                    consts[-r - 1] = kid.attr
-                    continue
-                leaf = leaves[r]
-                if leaf is not None:
-                    if kid is not leaf:
-                        return None
-                    continue
-                old = nodes[r]
-                if old is None:
-                    nodes[r] = kid  # its operation is checked when its step is visited
-                elif old is not kid:
-                    return None
-        return consts
+        try:
+            return fn(operand)
+        except (ValueError, TypeError):  # attributes that do not compare (array data)
+            return None
     return match
 
 
 class _Chain:
-    """The root chain: groups of same-shape operands (pruned) and the other operands."""
+    """A hard ``min``/``max`` chain: groups of same-shape operands (pruned, each of at least
+    :data:`GROUP_MIN`) and the other operands; ``useful`` says whether any group exists."""
 
     def __init__(self, root: Expr, operands: list, xname: str):
         from .interval import _LIPSCHITZ
         self.op = root.op
         self.n = len(operands)
         groups: list = []  # [prog, match, pos, rows, lips]
+        by_key: dict = {}  # candidates by the operations of the root and its arguments
         others = []
         for p, operand in enumerate(operands):
-            if operand.op == "const":
-                others.append((p, operand))
+            if operand.op == "const" or getattr(operand, "tree", 0) > 4 * MAX_SHAPE_NODES:
+                others.append((p, operand))  # a constant, or a large rest of the scene
                 continue
+            key = (operand.op, tuple(a.op for a in operand.args))
+            cands = by_key.setdefault(key, [])
             hit = None
-            for g in groups:
+            for g in cands:
                 c = g[1](operand)
                 if c is not None:
                     hit = (g, c)
                     break
             if hit is None:
                 prog = _Program(operand, xname, slots=True)
-                if len(prog.steps) > 400 or prog.has_prim:
+                if len(prog.steps) > MAX_SHAPE_NODES or prog.has_prim:
                     others.append((p, operand))
                     continue
                 g = [prog, _matcher(prog), [], [], []]
                 groups.append(g)
+                cands.append(g)
                 hit = (g, list(prog.consts))
             g, c = hit
             g[2].append(p)
@@ -493,6 +529,9 @@ class _Chain:
             # A Lipschitz constant noted by the modelling layer (a negated SDF keeps it).
             g[4].append(_LIPSCHITZ.get(operand.args[0] if operand.op == "neg" else operand))
         self.groups = []
+        if not any(len(g[2]) >= GROUP_MIN for g in groups):
+            self.others = []  # nothing to prune: the caller evaluates the chain as it is
+            return
         for prog, _, pos, rows, lips in groups:
             if len(pos) >= GROUP_MIN:
                 lip = None if any(L is None for L in lips) else max(lips)
@@ -500,8 +539,52 @@ class _Chain:
             else:
                 others.extend((p, operands[p]) for p in pos)
         others.sort(key=lambda t: t[0])
-        self.others = [(p, _Program(o, xname)) if o.op != "const" else (p, float(o.attr))
-                       for p, o in others]
+        self.others = [(p, _Program(o, xname, prune=True)) if o.op != "const"
+                       else (p, float(o.attr)) for p, o in others]
+        self.ellipse = any(not isinstance(q, float) and q.ellipse for _, q in self.others)
+
+    @property
+    def size(self) -> int:
+        """Nodes evaluated per point without pruning."""
+        return sum(len(g.prog.steps) * len(g.pos) for g in self.groups) + \
+            sum(1 if isinstance(q, float) else q.size for _, q in self.others)
+
+    def cost(self, n: int) -> float:
+        """Estimated seconds for ``n`` points (see :meth:`NumpyScene.cost`)."""
+        return sum(len(g.prog.steps) * (PER_PRUNED_NODE_POINT * n + 2e-6 * len(g.pos))
+                   for g in self.groups) + \
+            sum(_general_cost(q, n) for _, q in self.others if not isinstance(q, float))
+
+    def evaluate(self, xs, ys, grad: bool, params, prune: bool = True):
+        """Value and gradient (components: arrays, floats or None) at the points: each group's
+        extremum (pruned), then every operand in chain order, streamed with the kernels' tie
+        rule (the earlier operand wins)."""
+        xs, ys = np.broadcast_arrays(np.asarray(xs, dtype=np.float64),
+                                     np.asarray(ys, dtype=np.float64))
+        sign = 1.0 if self.op == "min" else -1.0
+        parts = []  # (chain position, value, gradient)
+        for grp in self.groups:
+            v, gg, pos = _eval_group(grp, sign, xs, ys, grad, prune)
+            parts.append((pos, v, gg))
+        for p, prog in self.others:
+            if isinstance(prog, float):
+                parts.append((np.full(len(xs), p), prog, _ZERO))
+                continue
+            v, gg = prog.run(xs, ys, prog.consts, grad, params, prune)
+            parts.append((np.full(len(xs), p), v, gg))
+        m = mg = mp = None
+        for pos, v, gg in parts:
+            v = np.broadcast_to(v, xs.shape)
+            if m is None:
+                m, mp, mg = v, pos, gg
+                continue
+            key_v, key_m = (v, m) if sign > 0 else (-v, -m)
+            w = (key_v < key_m) | ((key_v == key_m) & (pos < mp))
+            if grad:
+                mg = (_pick(w, gg[0], mg[0]), _pick(w, gg[1], mg[1]))
+            m = np.where(w, v, m)
+            mp = np.where(w, pos, mp)
+        return m, (mg if grad else None)
 
     @property
     def useful(self) -> bool:
@@ -704,6 +787,14 @@ def _eval_group(group: _Group, sign: float, xs, ys, grad: bool, prune: bool):
     return np.broadcast_to(v, (n,)), g, group.pos[best]
 
 
+def _general_cost(prog: _Program, n: int) -> float:
+    """Estimated seconds of ``prog`` on ``n`` points (see :meth:`NumpyScene.cost`)."""
+    steps = len(prog.steps) - len(prog.chains)
+    per = PER_NODE_POINT + (5e-6 if prog.ellipse else 0.0)
+    return steps * (PER_NODE_CALL * (n // BLOCK + 1) + per * n) + \
+        sum(c.cost(n) for c in prog.chains.values())
+
+
 # ---------------------------------------------------------------------------------------------
 
 class NumpyScene:
@@ -724,55 +815,44 @@ class NumpyScene:
             raise ValueError(f"symbol_names must name two symbols, got {symbol_names!r}")
         self.expr = expr
         self.xname = names[0]
-        self.chain = None
-        if expr.op in ("min", "max"):
-            operands = _flatten(expr)
-            if len(operands) >= GROUP_MIN:
-                chain = _Chain(expr, operands, self.xname)
-                if chain.useful:
-                    self.chain = chain
-        self._prog = None if self.chain is not None else _Program(expr, self.xname)
+        self._prog = _Program(expr, self.xname, prune=True)
+
+    @property
+    def chain(self):
+        """The pruned chain at the root (None if the root is not one)."""
+        return self._prog.chains.get(len(self._prog.steps) - 1)
 
     @property
     def pruned(self) -> bool:
-        """Whether the root is a chain evaluated with pruning."""
-        return self.chain is not None
+        """Whether some chain is evaluated with pruning (at the root or below it)."""
+        return bool(self._prog.chains)
 
     @property
     def nodes(self) -> int:
         """Nodes of the programs evaluated per point (a pruned chain's shapes counted once)."""
-        if self._prog is not None:
-            return len(self._prog.steps)
-        return sum(len(g.prog.steps) for g in self.chain.groups) + len(self.chain.others)
+        def count(prog):
+            return len(prog.steps) - len(prog.chains) + sum(
+                sum(len(g.prog.steps) for g in c.groups)
+                + sum(1 if isinstance(q, float) else count(q) for _, q in c.others)
+                for c in prog.chains.values())
+        return count(self._prog)
 
     @property
     def size(self) -> int:
         """Nodes evaluated per point without pruning (the scene's size)."""
-        if self._prog is not None:
-            return len(self._prog.steps)
-        return sum(len(g.prog.steps) * len(g.pos) for g in self.chain.groups) \
-            + sum(1 if isinstance(p, float) else len(p.steps) for _, p in self.chain.others)
+        return self._prog.size
 
     @property
     def has_ellipse(self) -> bool:
         """Whether an ellipse primitive is evaluated (its NumPy reference is slow)."""
-        if self._prog is not None:
-            return self._prog.ellipse
-        return any(not isinstance(p, float) and p.ellipse for _, p in self.chain.others)
+        return self._prog.ellipse
 
     def cost(self, n: int) -> float:
         """An estimate of the seconds a call on ``n`` points takes, value + gradient (from
         ``python -m bench.bench_tape`` on a 2-core AMD EPYC: about 4 ns per node and point, an
         ellipse primitive far more; a pruned chain about 60 ns per node of its shape and
         point, with a few survivors per point)."""
-        def general(prog):
-            per = PER_NODE_POINT + (5e-6 if prog.ellipse else 0.0)
-            return len(prog.steps) * (PER_NODE_CALL * (n // BLOCK + 1) + per * n)
-        if self._prog is not None:
-            return general(self._prog)
-        return sum(len(g.prog.steps) * (PER_PRUNED_NODE_POINT * n + 2e-6 * len(g.pos))
-                   for g in self.chain.groups) \
-            + sum(general(p) for _, p in self.chain.others if not isinstance(p, float))
+        return _general_cost(self._prog, n)
 
     def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
             grad: np.ndarray | None = None, params: dict | None = None,
@@ -785,18 +865,18 @@ class NumpyScene:
         m = xs.shape[0]
         d = np.empty(m)
         g = np.empty((m, 2)) if grad is not None else None
+        prog = self._prog
+        # Blocks that stay in the cache; a program with pruned chains runs on all points at
+        # once (pruning sorts the points into tiles of the whole set).
+        block = max(m, 1) if prog.chains else BLOCK
         with np.errstate(all="ignore"):
-            if self._prog is not None:
-                for a in range(0, m, BLOCK):
-                    b = min(m, a + BLOCK)
-                    v, gg = self._prog.run(xs[a:b], ys[a:b], self._prog.consts,
-                                           g is not None, params)
-                    d[a:b] = v
-                    if g is not None:
-                        g[a:b, 0] = 0.0 if gg[0] is None else gg[0]
-                        g[a:b, 1] = 0.0 if gg[1] is None else gg[1]
-            else:
-                self._run_chain(xs, ys, d, g, params, prune)
+            for a in range(0, m, block):
+                b = min(m, a + block)
+                v, gg = prog.run(xs[a:b], ys[a:b], prog.consts, g is not None, params, prune)
+                d[a:b] = v
+                if g is not None:
+                    g[a:b, 0] = 0.0 if gg[0] is None else gg[0]
+                    g[a:b, 1] = 0.0 if gg[1] is None else gg[1]
         if allok:
             out[:] = d
             if grad is not None:
@@ -807,41 +887,6 @@ class NumpyScene:
         if grad is not None:
             grad[:] = np.nan
             grad[ok] = g
-
-    def _run_chain(self, xs, ys, d, g, params, prune):
-        """The root chain: each group's extremum (pruned), then every operand in chain
-        order, streamed with the kernels' tie rule (the earlier operand wins)."""
-        ch = self.chain
-        sign = 1.0 if ch.op == "min" else -1.0
-        wantg = g is not None
-        parts = []  # (chain position, value, gradient)
-        for grp in ch.groups:
-            v, gg, pos = _eval_group(grp, sign, xs, ys, wantg, prune)
-            parts.append((pos, v, gg))
-        for p, prog in ch.others:
-            if isinstance(prog, float):
-                parts.append((np.full(len(xs), p), prog, _ZERO))
-                continue
-            v, gg = prog.run(xs, ys, prog.consts, wantg, params)
-            parts.append((np.full(len(xs), p), v, gg))
-        # Stream in chain order per point: sort parts by position where they tie in value.
-        m = None
-        for pos, v, gg in parts:
-            v = np.broadcast_to(v, xs.shape)
-            if m is None:
-                m, mp = v, pos
-                mg = gg
-                continue
-            key_v, key_m = (v, m) if sign > 0 else (-v, -m)
-            w = (key_v < key_m) | ((key_v == key_m) & (pos < mp))
-            if wantg:
-                mg = (_pick(w, gg[0], mg[0]), _pick(w, gg[1], mg[1]))
-            m = np.where(w, v, m)
-            mp = np.where(w, pos, mp)
-        d[:] = m
-        if wantg:
-            g[:, 0] = 0.0 if mg[0] is None else mg[0]
-            g[:, 1] = 0.0 if mg[1] is None else mg[1]
 
     def __call__(self, x, y, compute_gradient: bool = False, params: dict | None = None,
                  prune: bool = True) -> Any:

@@ -81,7 +81,7 @@ def test_pruning_changes_no_bit(kinds, seed, intersect, raw):
     f = _union(kinds, seed, intersect, raw)
     scene = compile_numpy(f.f, ["x", "y"])
     general = compile_numpy(f.f, ["x", "y"])
-    general.chain, general._prog = None, _Program(f.f, "x")
+    general._prog = _Program(f.f, "x")
     for p in _clouds(seed):
         d, g = scene(*p.T, compute_gradient=True)
         du, gu = scene(*p.T, compute_gradient=True, prune=False)
@@ -154,3 +154,58 @@ def test_first_answer_needs_no_numba(tmp_path):
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out == {"path": "numpy", "auto_numpy": True, "numba_setup": False}
+
+
+def test_operands_that_differ_in_sharing_or_attributes():
+    """An operand is taken for a shape only with the shape's sharing (``w + w`` with ``w``
+    shared; ``u * u + v * v`` reads the same constants from two nodes, so it may take the
+    other's) and attributes (smooth unions of different ``k``): the pruned chain gives the
+    bits of every operand streamed in order."""
+    rng = np.random.default_rng(4)
+    e = None
+    for i in range(120):
+        c = rng.uniform(-2, 2, 4)
+        u = (X - float(c[0])) * 0.7 + (Y - float(c[1]))
+        v = (X - float(c[2])) * 0.7 + (Y - float(c[3]))
+        s = [u * u + u * u - 0.01, u * u + v * v - 0.01,
+             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 2.0) - 0.05,
+             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 3.0) - 0.05][i % 4]
+        e = s if e is None else sdf.sym_min(e, s)
+    scene = compile_numpy(e, ["x", "y"])
+    assert scene.pruned and sorted(len(g.pos) for g in scene.chain.groups) == [30] * 4
+    general = compile_numpy(e, ["x", "y"])
+    general._prog = _Program(e, "x")
+    p = _points(2000, 8)
+    d, g = scene(*p.T, compute_gradient=True)
+    dg, gg = general(*p.T, compute_gradient=True)
+    assert _bits(d, dg) and _bits(g, gg)
+
+
+def _nested(seed):
+    """Hard chains below the root: a floor smoothly united with a union of 40 boxes, minus a
+    union of 30 circles (a max whose operand is the negated min chain)."""
+    rng = np.random.default_rng(seed)
+    boxes = _shape("box", rng)
+    for _ in range(39):
+        boxes = boxes | _shape("box", rng)
+    holes = _shape("circle", rng)
+    for _ in range(29):
+        holes = holes | _shape("circle", rng)
+    with sdf.smoothness(8):
+        f = sdf.Halfspace([0, 1], -1.8) | boxes
+    return f - holes
+
+
+def test_chains_below_the_root():
+    """Pruned chains anywhere in the expression: the kernel's answers, and the bits of the
+    same expression evaluated without pruning."""
+    f = _nested(2)
+    scene = f.compiled.numpy_scene
+    assert scene.chain is None and len(scene._prog.chains) == 2
+    assert_agree(f, _points(3000, 9), backends=("numpy",))
+    general = compile_numpy(f.f, ["x", "y"])
+    general._prog = _Program(f.f, "x")
+    for p in _clouds(2):
+        d, g = scene(*p.T, compute_gradient=True)
+        dg, gg = general(*p.T, compute_gradient=True)
+        assert _bits(d, dg) and _bits(g, gg)
