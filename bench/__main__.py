@@ -32,6 +32,8 @@ SECTIONS = [
      "narrow-band grids: memory, error, query speed; particles' speed against error"),
     ("distributed", "bench.bench_distributed",
      "particles sharded over Dask workers: 1 vs 2 processes, per-call overhead, client memory"),
+    ("build", "bench.bench_build",
+     "building scenes: the modelling DSL, code generation, tape and pruning plan per size"),
     ("tape", "bench.bench_tape",
      "tape interpreter: cost per point against the kernels, first answer of a new scene"),
     ("simd", "bench.bench_simd",

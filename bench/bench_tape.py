@@ -1,17 +1,21 @@
-"""The tape interpreter against the compiled kernels: cost per point, and time to first answer.
+"""A new scene's first answer, and what each scene-independent path costs per point.
 
     python -m bench.bench_tape          (or: python -m bench --only tape)
 
-1. Points/s, value + gradient, 1e6 points (2 threads): the scene's compiled kernel
-   (``backend='kernel'``, pruning off) and the tape (``backend='tape'``), timed in alternating
-   rounds in one process, for the seed world, the 20-box world and two 200-primitive scenes.
-2. A new scene in a fresh process with an empty kernel cache and a warm installation cache (the
-   tape interpreter and the scene-independent kernels compiled once before): seconds from the end
-   of ``import fastsdf`` to the first answer of 1e5 points (value + gradient), through the tape,
-   through the compiled kernel (cold), and with ``backend='auto'`` (the tape answers while the
-   kernel compiles in a background thread): what a caller's 1e5-point call costs while that
-   thread compiles, against the same call with no compilation going on, and when the kernel is
-   ready. The scenes get fresh random constants per process (never in any cache).
+1. A new scene in a fresh process with an empty kernel cache and a warm installation cache (the
+   tape interpreter and the scene-independent kernels compiled once before): seconds for
+   ``import fastsdf``, for building the scene, and from the built scene to the first answer of
+   1e5 points (value + gradient) with ``backend='auto'`` (NumPy or the tape, whichever the cost
+   model picks, while the kernel compiles afterwards in a background thread), through the tape
+   alone, and through the compiled kernel (cold). Scenes: the seed world, the 20-box world, 200
+   mixed primitives, hard unions of 1000 and 5000 small boxes; each process draws fresh random
+   constants (never in any cache). For ``'auto'`` also: what a caller's 1e5-point call costs
+   while the kernel compiles, and when the kernel is ready.
+2. numba's one-time setup in a process (the first call of any compiled function), with SciPy
+   installed and with SciPy hidden by an import hook (numba imports scipy.linalg while setting
+   up when it can).
+3. Points/s, value + gradient: the scene's compiled kernel (1e6 points, pruning as it decides),
+   the tape and the NumPy path (1e5 points), in alternating rounds in one process.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 
 from fastsdf.scenes import box_world, mixed_scene, seed_world
 
+from .bench_prune import hard_union
 from .common import HERE, fmt_rate, run_fresh_process, stamp, table, timeit
 
 COMMAND = "python -m bench.bench_tape"
@@ -33,45 +38,56 @@ COMMAND = "python -m bench.bench_tape"
 def _scenes(quick: bool = False):
     scenes = [("seed world", seed_world()), ("20-box world", box_world(20))]
     if not quick:  # the 200-primitive scenes compile for a minute and more
-        scenes += [("200-primitive world (box_world(197))", box_world(197)),
-                   ("mixed ops, 200 primitives", mixed_scene(200))]
+        scenes += [("mixed ops, 200 primitives", mixed_scene(200)),
+                   ("hard union of 1000 boxes", hard_union(1000))]
     return scenes
 
 
 def _per_point(quick: bool) -> str:
     n = 200_000 if quick else 1_000_000
+    m = 20_000 if quick else 100_000
     p = np.random.default_rng(0).uniform(-2, 2, (2, n))
     rows = []
     for name, f in _scenes(quick):
-        f(p[0][:5000], p[1][:5000], compute_gradient=True, prune=False)  # compile
+        f(p[0][:5000], p[1][:5000], compute_gradient=True)  # compile
+        f(p[0], p[1], compute_gradient=True)  # a pruning plan, if the kernel prunes
         f(p[0][:10], p[1][:10], backend="tape")
+        f(p[0][:10], p[1][:10], backend="numpy")
         tape = f.compiled.tape
-        kt, tt, ks, ts = [], [], [], []
+        times = {"kernel": [], "tape": [], "numpy": []}
+        spread = {k: [] for k in times}
         for _ in range(3):  # alternating rounds
-            t, s = timeit(lambda: f(p[0], p[1], compute_gradient=True, prune=False), repeats=3)
-            kt.append(t)
-            ks.append(s)
-            t, s = timeit(lambda: f(p[0], p[1], compute_gradient=True, backend="tape"),
-                          repeats=3)
-            tt.append(t)
-            ts.append(s)
-        k, t = float(np.median(kt)), float(np.median(tt))
-        rows.append([name, f"{len(tape)} / {tape.nreg}", fmt_rate(n / k), fmt_rate(n / t),
-                     f"{t / k:.1f}x", f"{k / n * 1e9:.0f} / {t / n * 1e9:.0f}",
-                     f"{max(ks):.0%} / {max(ts):.0%}"])
-    return table(["scene", "tape: instructions / registers", "kernel points/s",
-                  "tape points/s", "tape slower by", "ns per point (kernel / tape)",
-                  "spread (kernel / tape)"], rows)
+            for backend in times:
+                q = p if backend == "kernel" else p[:, :m]
+                t, sp = timeit(lambda: f(q[0], q[1], compute_gradient=True, backend=backend),
+                               repeats=3 if backend == "kernel" else 1)
+                times[backend].append(t / q.shape[1])
+                spread[backend].append(sp)
+        k, t, u = (float(np.median(times[b])) for b in ("kernel", "tape", "numpy"))
+        rows.append([name, f"{len(tape)} / {f.compiled.numpy_scene.nodes}",
+                     fmt_rate(1 / k), fmt_rate(1 / t), fmt_rate(1 / u),
+                     f"{k * 1e9:.0f} / {t * 1e9:.0f} / {u * 1e9:.0f}",
+                     f"{max(spread['kernel']):.0%}"])
+    return table(["scene", "instructions: tape / NumPy program", "kernel points/s",
+                  "tape points/s", "NumPy points/s", "ns per point (kernel / tape / NumPy)",
+                  "kernel spread"], rows)
 
 
 _FIRST = r"""
 import json, sys, time
+if "HIDE_SCIPY_" == "1":  # numba's setup as it is without SciPy installed
+    class _Hide:
+        def find_spec(self, name, path=None, target=None):
+            if name == "scipy" or name.startswith("scipy."):
+                raise ImportError("scipy hidden")
+    sys.meta_path.insert(0, _Hide())
 t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
 t_import = time.perf_counter() - t0
-from fastsdf.scenes import mixed_scene
-SEED = int(sys.argv[1]) if len(sys.argv) > 1 else 0
+from fastsdf.scenes import box_world, mixed_scene
+from bench.bench_prune import hard_union
+KIND, BACKEND, SEED = "KIND_", "BACKEND_", SEED_
 def scene(kind, seed):
     rng = np.random.default_rng(seed)
     if kind == "seed":  # the seed world with fresh constants
@@ -80,101 +96,122 @@ def scene(kind, seed):
         with sdf.smoothness(10):
             f |= sdf.Circle([0, rng.uniform(-0.1, 0.1)], 0.5) & sdf.Halfspace([0.1, 1], 0.3)
         return f
-    return mixed_scene(200, seed)
-KIND, BACKEND, SEED = "KIND_", "BACKEND_", SEED_
+    if kind == "box20":
+        return box_world(20, seed)
+    if kind == "mixed":
+        return mixed_scene(200, seed)
+    return hard_union(int(kind[4:]), seed=seed)
 p = np.random.default_rng(1).uniform(-2, 2, (2, 100_000))
 t0 = time.perf_counter()
 f = scene(KIND, SEED)
-if BACKEND == "setup":  # the same, split: one point first (numba's one-time setup), then 1e5
+t_build = time.perf_counter() - t0
+t0 = time.perf_counter()
+out = dict(import_s=t_import, build_s=t_build)
+if BACKEND == "setup":  # one point through the tape: numba's one-time setup, and little else
     f(p[0][:1], p[1][:1], compute_gradient=True, backend="tape")
-    t_setup = time.perf_counter() - t0
-    BACKEND = "tape"
+    out["setup_s"] = time.perf_counter() - t0
+    print(json.dumps(out))
+    sys.exit(0)
+if BACKEND == "auto":
+    path = f.compiled.first_path(p.shape[1])
+    out["path"] = path
 d, g = f(p[0], p[1], compute_gradient=True, backend=BACKEND)
-t_first = time.perf_counter() - t0
-out = dict(import_s=t_import, first_s=t_first)
-if "t_setup" in globals():
-    out["setup_s"] = t_setup
-if BACKEND == "tape":
-    calls = []
-    for _ in range(8):
-        t1 = time.perf_counter()
-        f(p[0], p[1], compute_gradient=True, backend="tape")
-        calls.append(time.perf_counter() - t1)
-    out["call_s"] = float(np.median(calls))
+out["first_s"] = time.perf_counter() - t0
 if BACKEND == "auto":
     calls = []
-    while not f.compiled.kernel_ready:
-        t1 = time.perf_counter()
+    t1 = time.perf_counter()
+    while not f.compiled.kernel_ready and time.perf_counter() - t1 < 120:
+        t2 = time.perf_counter()
         f(p[0], p[1], compute_gradient=True, backend="auto")
-        calls.append(time.perf_counter() - t1)
-    out["ready_s"] = time.perf_counter() - t0
+        calls.append(time.perf_counter() - t2)
+    out["ready_s"] = time.perf_counter() - t0 if f.compiled.kernel_ready else float("nan")
     out["calls_during"] = len(calls)
     out["call_s"] = float(np.median(calls[:-1] or calls)) if calls else float("nan")
-    t1 = time.perf_counter()
-    f(p[0], p[1], compute_gradient=True, backend="auto")
-    out["after_s"] = time.perf_counter() - t1
+    if f.compiled.kernel_ready:
+        t1 = time.perf_counter()
+        f(p[0], p[1], compute_gradient=True, backend="auto")
+        out["after_s"] = time.perf_counter() - t1
+    calls = []
+    for _ in range(5):  # the same path again, nothing compiling (for comparison)
+        t1 = time.perf_counter()
+        f(p[0], p[1], compute_gradient=True, backend=path)
+        calls.append(time.perf_counter() - t1)
+    out["alone_s"] = float(np.median(calls))
 print(json.dumps(out))
 """
 
+_SCENES = [("seed", "seed world"), ("box20", "20-box world"),
+           ("mixed", "mixed ops, 200 primitives"), ("hard1000", "hard union of 1000 boxes"),
+           ("hard5000", "hard union of 5000 boxes")]
 
-def _first_answer(quick: bool) -> str:
-    code = _FIRST
+
+def _fresh(kind, backend, seed, cache, hide_scipy=False):
+    shutil.rmtree(cache, ignore_errors=True)  # an empty kernel cache
+    code = (_FIRST.replace("KIND_", kind).replace("BACKEND_", backend)
+            .replace("SEED_", str(seed)).replace("HIDE_SCIPY_", "1" if hide_scipy else "0"))
+    return json.loads(run_fresh_process(code, env={"FASTSDF_CACHE_DIR": cache}).split("\n")[-2])
+
+
+def _first_answer(quick: bool) -> tuple:
     cache = tempfile.mkdtemp(prefix="fastsdf-tape-bench-")
     rows = []
     try:
-        env = {"FASTSDF_CACHE_DIR": cache}
         # warm the installation cache: the tape interpreter and the scene-independent kernels
         for backend in ("tape", "kernel"):
-            run_fresh_process(code.replace("KIND_", "seed").replace("BACKEND_", backend)
-                              .replace("SEED_", "999"), env=env)
+            _fresh("seed", backend, 999, cache)
         seed = int.from_bytes(os.urandom(3), "little")
-        scenes = [("seed", "seed world (new constants)")]
-        if not quick:  # a cold 200-primitive kernel alone takes 20 s or more
-            scenes.append(("mixed", "mixed ops, 200 primitives (new constants)"))
+        setup = [_fresh("seed", "setup", seed + i, cache, hide)["setup_s"]
+                 for i, hide in enumerate((False, True, False, True))]
+        scenes = _SCENES[:2] if quick else _SCENES
         for kind, label in scenes:
             res = {}
-            for backend in ("tape", "setup", "kernel", "auto"):
+            for backend in ("auto", "tape", "kernel"):
                 seed += 1
-                shutil.rmtree(cache, ignore_errors=True)  # an empty kernel cache
-                res[backend] = json.loads(run_fresh_process(
-                    code.replace("KIND_", kind).replace("BACKEND_", backend)
-                    .replace("SEED_", str(seed)), env={"FASTSDF_CACHE_DIR": cache}))
+                res[backend] = _fresh(kind, backend, seed, cache)
             a = res["auto"]
-            rows.append([label, f"{res['tape']['import_s']:.2f}",
-                         f"{res['tape']['first_s']:.2f}",
-                         f"{res['setup']['setup_s']:.2f} + "
-                         f"{res['setup']['first_s'] - res['setup']['setup_s']:.2f}",
-                         f"{res['kernel']['first_s']:.2f}",
-                         f"{a['first_s']:.2f}",
-                         f"{res['tape']['call_s'] * 1e3:.0f} / {a['call_s'] * 1e3:.0f} "
+            rows.append([label, f"{a['import_s']:.2f}", f"{a['build_s']:.3f}",
+                         f"**{a['first_s']:.3f}** ({a['path']})",
+                         f"{a['import_s'] + a['build_s'] + a['first_s']:.2f}",
+                         f"{res['tape']['first_s']:.2f}", f"{res['kernel']['first_s']:.2f}",
+                         f"{a['alone_s'] * 1e3:.0f} / {a['call_s'] * 1e3:.0f} "
                          f"({a['calls_during']} calls)",
-                         f"{a['ready_s']:.2f}", f"{a['after_s'] * 1e3:.1f}"])
+                         f"{a['ready_s']:.1f}", f"{a.get('after_s', float('nan')) * 1e3:.1f}"])
     finally:
         shutil.rmtree(cache, ignore_errors=True)
-    return table(["new scene", "import fastsdf (s)", "first answer, tape (s)",
-                  "split: scene + numba's setup + 1e5-point tape call (s)",
-                  "first answer, kernel, cold (s)", "first answer, auto (s)",
-                  "1e5-point call, tape alone / auto while compiling (ms)",
-                  "auto: kernel ready after (s)", "auto: call after switch (ms)"], rows)
+    first = table(["new scene", "import fastsdf (s)", "scene construction (s)",
+                   "first answer, auto (s) (path)", "total (s)", "first answer, tape (s)",
+                   "first answer, kernel, cold (s)",
+                   "auto: 1e5-point call alone / while the kernel compiles (ms)",
+                   "auto: kernel ready after (s)", "auto: call after the switch (ms)"], rows)
+    return first, setup
 
 
 def run(quick: bool = False) -> str:
     load = os.getloadavg()
-    first = _first_answer(quick)
+    first, setup = _first_answer(quick)
     per = _per_point(quick)
     load2 = os.getloadavg()
+    with_scipy, without = min(setup[0::2]), min(setup[1::2])
     text = "\n".join([
-        "## Tape interpreter: no wait for a new scene", "",
+        "## A new scene's first answer: NumPy, the tape interpreter, the kernel", "",
         stamp(COMMAND) + f" Load average (1, 5, 15 min) before: {load[0]:.2f}, {load[1]:.2f}, "
         f"{load[2]:.2f}; after: {load2[0]:.2f}, {load2[1]:.2f}, {load2[2]:.2f}.", "",
-        "Time from the end of `import fastsdf` to the first answer of 1e5 points (value + "
-        "gradient) of a new scene, fresh process, empty kernel cache, warm installation cache "
-        "(the tape interpreter and the scene-independent kernels compiled once before). The "
-        "first numba call of a process also pays numba's one-time setup (it imports "
-        "scipy.linalg when SciPy is installed), whichever backend answers.", "",
+        "Fresh process per cell, empty kernel cache, warm installation cache (the tape "
+        "interpreter and the scene-independent kernels compiled once before), fresh random "
+        "constants. *First answer*: from the built scene to the answer of 1e5 random points in "
+        "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
+        "(`fastsdf.npeval`, no numba: hard unions of many shapes pruned per tile) and the tape "
+        "(which first pays numba's one-time setup in the process), then compiles the kernel in "
+        "a background thread; *total* = import + construction + first answer.", "",
         first, "",
-        "Cost per point, value + gradient, 1e6 points, 2 threads, kernel (pruning off) and tape "
-        "in alternating rounds:", "",
+        f"numba's one-time setup in a process (one point through the tape, best of two): "
+        f"{with_scipy:.2f} s with SciPy installed (as in this environment: SciPy is in the "
+        f"`test` and `bench` extras), {without:.2f} s with SciPy hidden by an import hook; "
+        f"numba imports scipy.linalg during its setup when it can. The NumPy path never pays "
+        f"it; the tape and the kernel always do, once per process.", "",
+        "Cost per point, value + gradient, 2 threads for the kernel and the tape (NumPy runs in "
+        "the calling thread): the kernel on 1e6 points (pruning as it decides), the tape and "
+        "NumPy on 1e5, in alternating rounds:", "",
         per, ""])
     path = os.path.join(HERE, "results", "tape.md")
     os.makedirs(os.path.dirname(path), exist_ok=True)

@@ -14,7 +14,7 @@ from .graph import Param, t  # noqa: E402  (runtime parameters and time)
 from .graph import (Expr, Function, Symbol, sym_abs, sym_cos, sym_exp, sym_length,  # noqa: E402
                     sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt)
 from .shapes import (SDF, Box, Circle, Difference, Halfspace, Intersection, Union,  # noqa: E402
-                     smoothness, transform)
+                     intersection, smoothness, transform, union)
 from .shapes import (Arc, Capsule, Ellipse, EquilateralTriangle, OrientedBox,  # noqa: E402
                      Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle,
                      mirror, offset, repeat, rotate, scale, shell, translate)
@@ -28,7 +28,7 @@ __all__ = [
     "sym_abs", "sym_cos", "sym_exp", "sym_length", "sym_log", "sym_max", "sym_min", "sym_sin",
     "sym_smax", "sym_smin", "sym_sqrt",
     "SDF", "Box", "Circle", "Difference", "Halfspace", "Intersection", "Union",
-    "smoothness", "transform",
+    "union", "intersection", "smoothness", "transform",
     "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
     "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring",
     "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat",

@@ -10,10 +10,16 @@ import numbers
 
 import numpy as np
 
+from .graph import Expr
+
 
 def real(value, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
+    if isinstance(value, float):  # float and np.float64: the common case
+        value = float(value)
+        if not finite or math.isfinite(value):
+            return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {name}={value!r}")
     value = float(value)
@@ -22,8 +28,35 @@ def real(value, name: str, finite: bool = True) -> float:
     return value
 
 
+def _pair_fast(value):
+    """``(a, b)`` as Python floats for the common input, a tuple, list or 1-d array of two real
+    numbers (not bools), else None (then the general checks run and name the problem)."""
+    t = type(value)
+    if t is np.ndarray:
+        if value.shape != (2,) or value.dtype.kind not in "iuf":
+            return None
+        a, b = value.tolist()
+    elif (t is tuple or t is list) and len(value) == 2:
+        a, b = value
+        if type(a) not in _SCALARS or type(b) not in _SCALARS:
+            return None
+    else:
+        return None
+    try:
+        return float(a), float(b)
+    except OverflowError:  # a huge integer: the general checks say so
+        return None
+
+
+# Scalar types taken as they are by the fast path (bool, a subclass of int, is not among them).
+_SCALARS = frozenset((float, int, np.float64, np.float32, np.int64, np.int32))
+
+
 def vec2(value, name: str) -> np.ndarray:
     """``value`` as a finite float64 array of shape (2,), with errors naming ``name``."""
+    fast = _pair_fast(value)
+    if fast is not None and math.isfinite(fast[0]) and math.isfinite(fast[1]):
+        return np.array(fast)
     try:
         arr = np.asarray(value)
     except Exception:  # noqa: BLE001 - any conversion failure is a type error for the user
@@ -58,6 +91,9 @@ def coord(value, name: str) -> float:
 
 def coord2(value, name: str) -> np.ndarray:
     """A finite point (shape (2,)) with both coordinates at most ``MAX_COORD`` in magnitude."""
+    fast = _pair_fast(value)
+    if fast is not None and abs(fast[0]) <= MAX_COORD and abs(fast[1]) <= MAX_COORD:
+        return np.array(fast)  # (NaN fails the comparisons: the general checks report it)
     arr = vec2(value, name)
     if np.any(np.abs(arr) > MAX_COORD):
         raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
@@ -99,14 +135,14 @@ def _param_value(expr, name: str) -> float:
 
 def is_param(value) -> bool:
     """Whether ``value`` is an expression (of parameters) rather than a number."""
-    from .graph import Expr
     return isinstance(value, Expr) and value.op != "const"
 
 
 def real_or_param(value, name: str):
     """``(value, number)``: ``value`` as a float (checked like :func:`real`) or an expression of
     parameters, and the number to check ranges on (the expression at the defaults)."""
-    from .graph import Expr
+    if type(value) is float and math.isfinite(value):  # the common case, checked at once
+        return value, value
     if isinstance(value, Expr):
         if value.op == "const":
             v = real(value.attr, name)
@@ -123,7 +159,10 @@ def real_or_param(value, name: str):
 def vec2_or_param(value, name: str):
     """``(pair, numbers)``: a pair whose components may be expressions of parameters (else the
     float64 array of :func:`vec2`), and the float64 array of its values at the defaults."""
-    from .graph import Expr
+    fast = _pair_fast(value)
+    if fast is not None and math.isfinite(fast[0]) and math.isfinite(fast[1]):
+        arr = np.array(fast)
+        return arr, arr
     if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
         if len(value) != 2:
             raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
@@ -136,6 +175,10 @@ def vec2_or_param(value, name: str):
 def coord2_or_param(value, name: str):
     """:func:`vec2_or_param` with the coordinate range of :func:`coord2` checked on the numbers
     (for expressions of parameters: their values at the defaults)."""
+    fast = _pair_fast(value)
+    if fast is not None and abs(fast[0]) <= MAX_COORD and abs(fast[1]) <= MAX_COORD:
+        arr = np.array(fast)
+        return arr, arr
     pair, numbers_ = vec2_or_param(value, name)
     if np.any(np.abs(numbers_) > MAX_COORD):
         raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "

@@ -47,7 +47,7 @@ from typing import Sequence
 
 from . import __version__
 from ._simd import block_source, drive_import, program_source, vectorizable, vmath_import
-from .graph import Expr, parameters
+from .graph import Expr, _gc_paused, parameters
 from .ops import OPS, lit
 
 __all__ = ["generate_module_source", "MIN_LOOP"]
@@ -166,12 +166,44 @@ def _template(root: Expr):
     counted separately, so equal constants do not change the shape) or ``('n', i)`` for the
     value of step i. Two roots with equal signatures evaluate by the same code.
     """
+    # Templates are of small subexpressions (a primitive): a recursive walk is the fastest;
+    # a deep one falls back to the iterative walk (the same order).
+    local, steps, sig, consts = {}, [], [], []
+
+    def visit(node):
+        args = node.args
+        for a in args:
+            if a.op != "const" and a not in local:
+                visit(a)
+        refs = []
+        for a in args:
+            if a.op == "const":
+                refs.append(("c", len(consts)))
+                consts.append(a.attr)
+            else:
+                refs.append(("n", local[a]))
+        refs = tuple(refs)
+        local[node] = len(steps)
+        steps.append((node, refs))
+        sig.append((node.op, node.attr if node.op != "const" else None, refs))
+
+    try:
+        visit(root)
+    except RecursionError:
+        return _template_iterative(root)
+    return tuple(sig), steps, consts
+
+
+def _template_iterative(root: Expr):
+    """:func:`_template` without recursion (for deep subexpressions)."""
+    # (nodes hash by identity: dicts keyed by node, not by id(), save a call per lookup)
     local, steps, sig, consts = {}, [], [], []
     stack = [(root, False)]
+    pop, push = stack.pop, stack.append
     while stack:
-        node, expanded = stack.pop()
+        node, expanded = pop()
         if expanded:
-            if id(node) in local:
+            if node in local:
                 continue
             refs = []
             for a in node.args:
@@ -179,17 +211,18 @@ def _template(root: Expr):
                     refs.append(("c", len(consts)))
                     consts.append(a.attr)
                 else:
-                    refs.append(("n", local[id(a)]))
-            local[id(node)] = len(steps)
-            steps.append((node, tuple(refs)))
-            sig.append((node.op, node.attr if node.op != "const" else None, tuple(refs)))
+                    refs.append(("n", local[a]))
+            refs = tuple(refs)
+            local[node] = len(steps)
+            steps.append((node, refs))
+            sig.append((node.op, node.attr if node.op != "const" else None, refs))
             continue
-        if id(node) in local:
+        if node in local:
             continue
-        stack.append((node, True))
+        push((node, True))
         for a in reversed(node.args):
-            if a.op != "const" and id(a) not in local:
-                stack.append((a, False))
+            if a.op != "const" and a not in local:
+                push((a, False))
     return tuple(sig), steps, consts
 
 
@@ -212,22 +245,29 @@ def _varying_columns(rows: list):
     return table, refs
 
 
-def _foldable(root: Expr) -> bool:
+def _foldable(root: Expr, memo: dict | None = None) -> bool:
     """Whether every chain in the small subexpression ``root`` is emitted as it stands (no
     operand of the same operation to flatten, too few operands to fold into a loop), so that its
-    template's code is exactly its straight-line code."""
-    stack, seen = [root], set()
+    template's code is exactly its straight-line code. ``memo`` (node -> bool) is shared between
+    calls: each node is examined once however many candidates contain it."""
+    memo = {} if memo is None else memo
+    stack = [root]
     while stack:
-        node = stack.pop()
-        if id(node) in seen:
+        node = stack[-1]
+        if node in memo:
+            stack.pop()
             continue
-        seen.add(id(node))
-        if node.op in _CHAIN_OPS:
-            if len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
-                                                 for a in node.args):
-                return False
-        stack.extend(node.args)
-    return True
+        todo = [a for a in node.args if a not in memo]
+        if todo:
+            stack.extend(todo)
+            continue
+        stack.pop()
+        ok = all(memo[a] for a in node.args)
+        if ok and node.op in _CHAIN_OPS:
+            ok = not (len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
+                                                        for a in node.args))
+        memo[node] = ok
+    return memo[root]
 
 
 def _dag_size(root: Expr, limit: int) -> int:
@@ -303,7 +343,7 @@ class _Emitter:
         # Shapes, sizes and chain plans depend on the expression alone: the emitters of one
         # module share them (``memo``), so the four functions of a scene find each once.
         self.memo = {} if memo is None else memo
-        self.sizes: dict[int, int] = self.memo.setdefault("sizes", {})
+        self._foldables: dict = self.memo.setdefault("foldable", {})  # node -> _foldable
         self._templates: dict = self.memo.setdefault("templates", {})
         self._plans: dict = self.memo.setdefault("plans", {})
 
@@ -484,9 +524,6 @@ class _Emitter:
         would be flattened or folded) is left alone: the results are the same bits either way.
         ``singles``: also shapes with one member (a loop of one row), for combine programs.
         """
-        seen, order, under_big = set(), [], set()
-        stack = [root]
-
         def too_big(node):
             if self._size(node) <= MAX_TEMPLATE_NODES:
                 return False
@@ -495,33 +532,12 @@ class _Emitter:
             return not singles or node.op in _CHAIN_OPS or node.op == "neg" or \
                 _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
 
-        while stack:
-            node = stack.pop()
-            if id(node) in seen:
-                continue
-            seen.add(id(node))
-            order.append(node)
-            plan = plans.get(id(node))
-            if plan is None:
-                plan = plans[id(node)] = self._plan(node)
-            # For a program: larger subexpressions (a transformed capsule counts more than
-            # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
-            # expression that is not a candidate, are candidates (also in a small scene).
-            big = too_big(node) or (singles and (
-                node is root or node.op in _CHAIN_OPS and not _foldable(node)))
-            for dep in plan[0]:
-                if big:
-                    under_big.add(id(dep))
-                stack.append(dep)
-        shapes: dict = {}
-        for node in order:
-            if (id(node) not in under_big or node.op in ("const", "sym", "param")
-                    or too_big(node) or not _foldable(node)):
-                continue
-            sig, steps, consts = self._template(node)
-            shapes.setdefault(sig, (steps, [], []))
-            shapes[sig][1].append(node)
-            shapes[sig][2].append(consts)
+        # The candidates depend on the expression alone: found once per module (the value and
+        # the gradient functions share them through the memo).
+        key = ("prefold", id(root), singles)
+        shapes = self.memo.get(key)
+        if shapes is None:
+            shapes = self.memo[key] = self._candidates(root, plans, singles, too_big)
         ncomp = len(self.COMPONENTS)
         rows_left = MAX_PROGRAM_ROWS if singles else MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
@@ -552,6 +568,40 @@ class _Emitter:
                 self.fold_of[id(member)] = (g, j, stored)
                 self.fold_zero[id(member)] = zero
                 plans[id(member)] = ([], None)
+
+    def _candidates(self, root: Expr, plans: dict, singles: bool, too_big) -> dict:
+        """:meth:`_prefold`'s candidates: ``{signature: (steps, members, rows)}`` in the order
+        of their first member."""
+        seen, order, under_big = set(), [], set()
+        stack = [root]
+        while stack:
+            node = stack.pop()
+            if node in seen:
+                continue
+            seen.add(node)
+            order.append(node)
+            plan = plans.get(id(node))
+            if plan is None:
+                plan = plans[id(node)] = self._plan(node)
+            # For a program: larger subexpressions (a transformed capsule counts more than
+            # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
+            # expression that is not a candidate, are candidates (also in a small scene).
+            big = too_big(node) or (singles and (
+                node is root or node.op in _CHAIN_OPS
+                and not _foldable(node, self._foldables)))
+            if big:
+                under_big.update(plan[0])
+            stack.extend(plan[0])
+        shapes: dict = {}
+        for node in order:
+            if (node not in under_big or node.op in ("const", "sym", "param")
+                    or too_big(node) or not _foldable(node, self._foldables)):
+                continue
+            sig, steps, consts = self._template(node)
+            shapes.setdefault(sig, (steps, [], []))
+            shapes[sig][1].append(node)
+            shapes[sig][2].append(consts)
+        return shapes
 
     def program(self, root: Expr):
         """The combine program of ``root`` for the block kernels, or None.
@@ -675,22 +725,10 @@ class _Emitter:
         return steps, count[0] * width
 
     def _size(self, root: Expr) -> int:
-        """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES
-        (memoized and never walking a node twice, so linear over the whole DAG)."""
-        sizes = self.sizes
-        stack = [root]
-        while stack:
-            n = stack[-1]
-            if id(n) in sizes:
-                stack.pop()
-                continue
-            todo = [a for a in n.args if id(a) not in sizes]
-            if todo:
-                stack.extend(todo)
-                continue
-            stack.pop()
-            sizes[id(n)] = min(MAX_TEMPLATE_NODES + 1, 1 + sum(sizes[id(a)] for a in n.args))
-        return sizes[id(root)]
+        """Nodes under ``root`` counted as a tree, capped just above MAX_TEMPLATE_NODES (kept
+        on every node at its construction: O(1))."""
+        size = root.tree
+        return size if size <= MAX_TEMPLATE_NODES else MAX_TEMPLATE_NODES + 1
 
     def _template(self, node: Expr):
         """:func:`_template`, memoized."""
@@ -1154,6 +1192,11 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     (one dict per loop over a table, in the order of the kernels' row lists: ``op``, ``k``,
     ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
     ``rows`` (their shared template and constants), ``others`` (the chain's other operands))."""
+    with _gc_paused():  # a bulk pass over the graph (see fastsdf.graph._GCPaused)
+        return _generate_module(root, symbol_names, vmath)
+
+
+def _generate_module(root: Expr, symbol_names, vmath: bool):
     tables: dict = {}
     pn = scene_parameters(root)
     memo: dict = {}

@@ -24,14 +24,24 @@ from ._cache import load_module
 from ._drive import max_threads, scratch
 from .codegen import generate_module, scene_parameters
 from .prune import PrunePlan, bin_points, make_plan, snap_bounds
-from .graph import Expr, _to_str, as_expr, parameters, substitute_params
+from .graph import Expr, _gc_paused, _to_str, as_expr, parameters, substitute_params
 
 __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS",
            "BACKENDS"]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.tape`, or the tape while the kernel compiles in a background thread.
-BACKENDS = ("kernel", "tape", "auto")
+#: of :mod:`fastsdf.tape`, NumPy (:mod:`fastsdf.npeval`: no numba at all), or ``'auto'``: the
+#: cheaper of NumPy and the tape while the kernel compiles in a background thread, then the
+#: kernel.
+BACKENDS = ("kernel", "tape", "numpy", "auto")
+
+#: The cost model of ``backend='auto'`` before the kernel is ready (seconds; measured by
+#: ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's one-time setup in a process
+#: (the first call of any compiled function, the tape interpreter included), building a tape per
+#: node, and running it per instruction and point (2 threads).
+NUMBA_SETUP_S = 0.4
+TAPE_BUILD_PER_NODE_S = 8e-6
+TAPE_PER_NODE_POINT_S = 1.0e-9
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 PARALLEL_MIN_POINTS = 4096
@@ -88,6 +98,7 @@ class CompiledSDF:
         self._module = None
         self._plans: dict = {}
         self._tape = None
+        self._numpy = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
         # Per Python thread: the scratch buffer handed to the scene-independent kernels (calls
@@ -154,8 +165,34 @@ class CompiledSDF:
         ``ValueError`` for an expression the tape does not evaluate)."""
         if self._tape is None:
             from .tape import compile_tape
-            self._tape = compile_tape(self.expr, self.symbol_names)
+            with _gc_paused():  # a bulk pass over the graph (see fastsdf.graph._GCPaused)
+                self._tape = compile_tape(self.expr, self.symbol_names)
         return self._tape
+
+    @property
+    def numpy_scene(self) -> Any:
+        """The :class:`fastsdf.npeval.NumpyScene` of the expression (built on first use)."""
+        if self._numpy is None:
+            from .npeval import compile_numpy
+            with _gc_paused():
+                self._numpy = compile_numpy(self.expr, self.symbol_names)
+        return self._numpy
+
+    def first_path(self, n: int) -> str:
+        """``'numpy'`` or ``'tape'``: the cheaper way to answer ``n`` points before the kernel
+        is ready, by the cost model (:data:`NUMBA_SETUP_S` and the figures beside it, and
+        :meth:`fastsdf.npeval.NumpyScene.cost`). The tape is never chosen while numba's setup
+        is still to be paid and a background compilation holds numba's compiler lock (loading
+        the interpreter would wait for the whole compilation)."""
+        scene = self.numpy_scene
+        t_numpy = scene.cost(n)
+        warm = _numba_warm()
+        if not warm and self._warm is not None and not self._warm.is_set():
+            return "numpy"
+        size = scene.size
+        t_tape = (0.0 if warm else NUMBA_SETUP_S) + TAPE_PER_NODE_POINT_S * size * n \
+            + (0.0 if self._tape is not None else TAPE_BUILD_PER_NODE_S * size)
+        return "numpy" if t_numpy <= t_tape else "tape"
 
     @property
     def kernel_ready(self) -> bool:
@@ -163,21 +200,27 @@ class CompiledSDF:
         done (False if it never started)."""
         return self._warm is not None and self._warm.is_set()
 
-    def compile_in_background(self) -> threading.Event:
+    def compile_in_background(self, xs: np.ndarray | None = None, ys: np.ndarray | None = None,
+                              tol: float | None = None) -> threading.Event:
         """Compile (or load from the disk cache) the kernels a call needs, in a daemon thread;
         returns an event set when done (also on failure: see :attr:`warm_error`). Started once.
 
         The thread runs only serial kernels on a few points: for scenes without parameters that
         compiles the scene's block functions, which the parallel kernels call (those are
-        scene-independent and cached once per installation)."""
+        scene-independent and cached once per installation). Given the points of a call
+        (``xs, ys``, and the pruning tolerance ``tol``), it then also builds the pruning plan
+        such a call would use, so that the first kernel call after the switch does not."""
         with self._warm_lock:
             if self._warm is None:
                 self._warm = threading.Event()
-                threading.Thread(target=self._compile_now, name="fastsdf-compile",
+                job = None
+                if xs is not None and not self.parametric and len(xs) >= PRUNE_MIN_POINTS:
+                    job = (snap_bounds(xs, ys), len(xs), tol)
+                threading.Thread(target=self._compile_now, args=(job,), name="fastsdf-compile",
                                  daemon=True).start()
         return self._warm
 
-    def _compile_now(self) -> None:
+    def _compile_now(self, job=None) -> None:
         try:
             xs = np.zeros(4)
             kw = {}
@@ -185,6 +228,9 @@ class CompiledSDF:
                 kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
             for g in (True, False):
                 self.evaluate(xs, xs, compute_gradient=g, prune=False, **kw)
+            if job is not None and job[0] is not None:
+                bounds, count, tol = job
+                self.pruned_plan(xs, xs, None, tol, bounds=bounds, count=count)
         except BaseException as exc:  # reported through warm_error; the kernel path re-raises
             self.warm_error = exc
         finally:
@@ -279,6 +325,7 @@ class CompiledSDF:
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
+        _KERNEL_RAN[0] = True
         if self.parametric:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
@@ -344,14 +391,23 @@ class Function:
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
 
     Backends: ``f(x, y, backend='kernel')`` (the default, :attr:`backend`) runs the compiled
-    kernel; ``backend='tape'`` runs the scene-independent tape interpreter of
-    :mod:`fastsdf.tape` (compiled once per installation: no wait for a new scene, several times
-    slower per point, the same results to rounding); ``backend='auto'`` answers through the
-    tape while the scene's kernel compiles in a background thread and through the kernel once it
-    is ready (``f.compiled.kernel_ready``). The tape has no time derivative: such calls always
-    use the kernel. Set ``Function.backend = 'auto'`` (or on one function) to make it the
-    default; it is opt-in because the background thread shares the GIL and the cores with the
-    caller while it compiles.
+    kernel; ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.npeval`: no numba, no
+    wait for a new scene; hard unions of many shapes pruned per tile); ``backend='tape'`` runs
+    the scene-independent tape interpreter of :mod:`fastsdf.tape` (compiled once per
+    installation; the first numba call of a process pays numba's one-time setup, about 0.4 s);
+    ``backend='auto'`` answers with the cheaper of NumPy and the tape (a cost model:
+    :meth:`CompiledSDF.first_path`) while the scene's kernel compiles in a background thread
+    started after the first answer, and through the kernel once it is ready
+    (``f.compiled.kernel_ready``). All agree with the kernel to rounding (values 1e-12
+    relative, gradients 1e-9), not bit for bit. The tape and NumPy have no time derivative:
+    such calls always use the kernel.
+
+    The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
+    in the last bits depending on whether the background compilation has finished (a program's
+    output would depend on timing), and calls made while it compiles share the GIL and the
+    cores with it (measured by ``python -m bench.bench_tape``: up to 2.7x slower meanwhile).
+    For interactive work, where the first answer matters most, set ``Function.backend =
+    'auto'`` (or on one function).
 
     Pruning (:mod:`fastsdf.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
     operands folded into loops, the points are sorted into tiles and each tile evaluates only
@@ -371,14 +427,14 @@ class Function:
             raise ValueError(f"symbols must be a list of two Symbols, got symbols={symbols!r}")
         if symbols[0] is symbols[1]:
             raise ValueError(f"symbols must be two distinct Symbols, got {symbols[0]} twice")
-        unknown = f.symbols() - {s.attr for s in symbols}
+        unknown = f.syms - {s.attr for s in symbols}
         if unknown:
             raise ValueError(f"expression depends on symbols {sorted(unknown)} that are not "
                              f"among symbols={[s.attr for s in symbols]}")
         self.f = f
         self.symbols = symbols
         self._compiled = None
-        self._params = parameters(f)
+        self._params = parameters(f) if f.prms else {}
 
     # -- parameters ----------------------------------------------------------------------------
     @property
@@ -464,8 +520,8 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    #: The default backend of calls: ``'kernel'``, ``'tape'`` or ``'auto'`` (see the class
-    #: docstring).
+    #: The default backend of calls: ``'kernel'``, ``'numpy'``, ``'tape'`` or ``'auto'`` (see
+    #: the class docstring for why it is ``'kernel'``).
     backend = "kernel"
 
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
@@ -482,14 +538,17 @@ class Function:
                 kw = {"t": vals.get("t", 0.0),
                       "params": tuple(vals[n] for n in self.param_names)}
         if backend != "kernel" and not time_derivative:
-            tape = self._tape_for(backend)
-            if tape is not None:
-                res = tape(x, y, compute_gradient=bool(compute_gradient), params=vals)
-                if backend == "auto":
+            path = self._path_for(backend, x)
+            if path is not None:
+                c = self.compiled
+                ev = c.tape if path == "tape" else c.numpy_scene
+                res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
+                if backend == "auto" and c._warm is None:
                     # Started after the answer: the compiling thread would take a core from it,
                     # and numba's compiler lock, which it holds, would make a first tape call
                     # (loading the interpreter) wait for the whole compilation.
-                    self.compiled.compile_in_background()
+                    xs, ys, _ = as_points(x, y)
+                    c.compile_in_background(xs, ys, self.prune_tol)
                 return res
         if time_derivative:
             if not kw:  # no parameters: nothing moves
@@ -501,18 +560,24 @@ class Function:
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
                                       tol=self.prune_tol, **kw)
 
-    def _tape_for(self, backend: str):
-        """The tape to answer a call with, or None for the kernel."""
+    def _path_for(self, backend: str, x: Any):
+        """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
         c = self.compiled
-        if backend == "auto" and c.kernel_ready:
-            return None
+        if backend == "numpy":
+            return "numpy"
+        if backend == "auto":
+            if c.kernel_ready:
+                return None
+            path = c.first_path(int(np.size(x)))
+            if path == "numpy":
+                return path
         try:
-            tape = c.tape
+            c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
         except ValueError:
             if backend == "tape":
                 raise
-            return None
-        return tape
+            return "numpy"
+        return "tape"
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.
@@ -537,3 +602,14 @@ class Function:
 
     def __repr__(self):
         return f"Function({_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
+
+
+def _numba_warm() -> bool:
+    """Whether this process has paid numba's one-time setup already (the tape interpreter is
+    loaded, or a scene's kernel ran)."""
+    from .tape import _eval_par
+    return bool(_eval_par.overloads) or _KERNEL_RAN[0]
+
+
+#: Set once any compiled kernel has run in this process.
+_KERNEL_RAN = [False]

@@ -26,10 +26,14 @@ the symbols are given to :class:`Function`.
 
 from __future__ import annotations
 
+import collections
+import gc
 import math
 import numbers
 import struct
+import threading
 import weakref
+from _weakref import _remove_dead_weakref
 
 import numpy as np
 from typing import Any
@@ -53,15 +57,68 @@ LEAF_OPS = ("const", "sym", "param")
 #: ``select(cond, a, b)``; ``prim(u, v, *constants)`` with attr ``(kind, data)``.
 OTHER_OPS = tuple(name for name, op in OPS.items() if op.arity not in (1, 2))
 
-_INTERN: "weakref.WeakValueDictionary[tuple, Expr]" = weakref.WeakValueDictionary()
+# The intern table: key -> weak reference to the node. A plain dict of weak references with one
+# shared callback instead of a WeakValueDictionary, whose Python-level get/set cost several
+# microseconds per node (most of a primitive's construction).
+_INTERN: dict = {}
+
+
+class _Ref(weakref.ref):
+    """A weak reference to an interned node that remembers its key (to forget it when the node
+    is collected)."""
+
+    __slots__ = ("key",)
+
+
+def _forget(ref, _remove=_remove_dead_weakref, _intern=_INTERN):
+    # Atomic: removes the entry only if it still is this (dead) reference.
+    _remove(_intern, ref.key)
+
+
+_pack_double = struct.Struct("<d").pack
 
 
 def _float_key(value: float) -> bytes:
     """Bit pattern of a float: distinguishes 0.0 from -0.0 and keeps NaN hashable."""
-    return struct.pack("<d", value)
+    return _pack_double(value)
 
 
 _NO_SYMBOLS = frozenset()
+
+
+class _GCPaused:
+    """Context manager: Python's cyclic garbage collector is paused while a bulk pass over a
+    graph runs (code generation, tapes, pruning plans, building many shapes at once).
+
+    Such a pass allocates hundreds of thousands of small objects that form no cycles; with the
+    collector on, every few hundred of them trigger a collection, and a full one (which walks
+    every object of the process, numba's included) comes again and again as the heap grows:
+    measured, that took a third to two thirds of the pass for scenes of 1000-5000 primitives.
+    Paused, the objects are examined once, at the next collection after the pass. Nested and
+    concurrent uses are counted; the collector is switched back on only if it was on at the
+    outermost entry."""
+
+    _lock = threading.Lock()
+    _depth = 0
+    _was_enabled = False
+
+    def __enter__(self):
+        with _GCPaused._lock:
+            if _GCPaused._depth == 0:
+                _GCPaused._was_enabled = gc.isenabled()
+                gc.disable()
+            _GCPaused._depth += 1
+        return self
+
+    def __exit__(self, *exc):
+        with _GCPaused._lock:
+            _GCPaused._depth -= 1
+            if _GCPaused._depth == 0 and _GCPaused._was_enabled:
+                gc.enable()
+        return False
+
+
+_gc_paused = _GCPaused
 
 
 def _param_set(op, args, attr) -> frozenset:
@@ -95,7 +152,11 @@ class Expr:
     so ``==``/``hash`` are identity-based and cheap. ``str(expr)`` gives a readable formula.
     """
 
-    __slots__ = ("op", "args", "attr", "syms", "prms", "__weakref__")
+    # ``lip``: a Lipschitz constant noted for the node by the modelling layer (see
+    # fastsdf.interval.note_lipschitz), or None; the one slot set after construction.
+    # ``tree``: the number of nodes under this one counted as a tree (shared subexpressions
+    # once per use), capped at TREE_CAP: the code generator's size of a subexpression.
+    __slots__ = ("op", "args", "attr", "syms", "prms", "lip", "tree", "__weakref__")
     # Make NumPy scalars and arrays defer to Expr's reflected operators (np.float64(2) * x).
     __array_ufunc__ = None
 
@@ -104,18 +165,7 @@ class Expr:
     attr: object
 
     def __new__(cls, op: str, args: tuple = (), attr=None):
-        key_attr = _float_key(attr) if op == "const" else attr
-        key = (op, args, key_attr)
-        node = _INTERN.get(key)
-        if node is None:
-            node = object.__new__(cls)
-            object.__setattr__(node, "op", op)
-            object.__setattr__(node, "args", args)
-            object.__setattr__(node, "attr", attr)
-            object.__setattr__(node, "syms", _symbol_set(op, args, attr))
-            object.__setattr__(node, "prms", _param_set(op, args, attr))
-            _INTERN[key] = node
-        return node
+        return _intern(op, args, attr)
 
     def __setattr__(self, name, value):
         raise AttributeError("Expr nodes are immutable")
@@ -189,11 +239,64 @@ class Expr:
         return f"Expr({_to_str(self, limit=200)})"
 
 
+_object_new = object.__new__
+_set_op, _set_args, _set_attr = Expr.op.__set__, Expr.args.__set__, Expr.attr.__set__
+_set_syms, _set_prms, _set_lip = Expr.syms.__set__, Expr.prms.__set__, Expr.lip.__set__
+_set_tree = Expr.tree.__set__
+#: Cap of the ``tree`` size of nodes (far above any size the code generator asks about).
+TREE_CAP = 1 << 40
+
+
+def _intern(op: str, args: tuple = (), attr=None) -> Expr:
+    """The unique node ``(op, args, attr)``: the existing one, or a new one interned (what
+    ``Expr(op, args, attr)`` does; called directly by the constructors below)."""
+    key = (op, args, _pack_double(attr) if op == "const" else attr)
+    ref = _INTERN.get(key)
+    if ref is not None:
+        node = ref()
+        if node is not None:
+            return node
+    node = _object_new(Expr)
+    # The slots' own descriptors: __setattr__ refuses (nodes are immutable once built).
+    _set_op(node, op)
+    _set_args(node, args)
+    _set_attr(node, attr)
+    _set_lip(node, None)
+    # The symbol and parameter sets of the arguments, shared when equal (almost always: O(1)
+    # per node); the same sets as _symbol_set and _param_set give.
+    n = len(args)
+    if n == 2:
+        a, b = args
+        size = 1 + a.tree + b.tree
+        _set_tree(node, size if size < TREE_CAP else TREE_CAP)
+        sa, sb = a.syms, b.syms
+        _set_syms(node, sa if sb <= sa else sb if sa <= sb else sa | sb)
+        sa, sb = a.prms, b.prms
+        _set_prms(node, sa if sb <= sa else sb if sa <= sb else sa | sb)
+    elif n == 1:
+        size = 1 + args[0].tree
+        _set_tree(node, size if size < TREE_CAP else TREE_CAP)
+        _set_syms(node, args[0].syms)
+        _set_prms(node, args[0].prms)
+    elif n:
+        _set_tree(node, min(TREE_CAP, 1 + sum(a.tree for a in args)))
+        _set_syms(node, _symbol_set(op, args, attr))
+        _set_prms(node, _param_set(op, args, attr))
+    else:
+        _set_tree(node, 1)
+        _set_syms(node, frozenset((attr,)) if op == "sym" else _NO_SYMBOLS)
+        _set_prms(node, frozenset((attr,)) if op == "param" else _NO_SYMBOLS)
+    ref = _Ref(node, _forget)
+    ref.key = key
+    _INTERN[key] = ref
+    return node
+
+
 def Symbol(name: str) -> Expr:
     """A named variable. Symbols are identified by name: ``Symbol('x') is Symbol('x')``."""
     if not isinstance(name, str) or not name.isidentifier():
         raise ValueError(f"Symbol name must be a Python identifier, got name={name!r}")
-    return Expr("sym", (), name)
+    return _intern("sym", (), name)
 
 
 def Constant(value: float) -> Expr:
@@ -222,7 +325,7 @@ def Param(name: str, default: float = 0.0) -> Expr:
     default = float(default)
     if not math.isfinite(default):
         raise ValueError(f"Param default must be finite, got default={default!r}")
-    return Expr("param", (), (name, default))
+    return _intern("param", (), (name, default))
 
 
 #: Time in seconds, a parameter (default 0). Scenes built with it move: ``f(x, y, t=1.5)``,
@@ -249,7 +352,7 @@ def substitute_params(root: Expr, values: dict) -> Expr:
     for node in topological_order(root):
         if node.op == "param":
             name = node.attr[0]
-            new[id(node)] = Expr("const", (), float(values[name])) if name in values else node
+            new[id(node)] = _intern("const", (), float(values[name])) if name in values else node
         elif not node.args:
             new[id(node)] = node
         else:
@@ -264,15 +367,22 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
 
     Raises ``TypeError`` naming ``name`` for anything else (strings, complex numbers, arrays).
     """
+    t = type(value)
+    if t is Expr:
+        return value
+    if t is float:
+        return _intern("const", (), value)
+    if isinstance(value, float):  # np.float64 (a subclass of float)
+        return _intern("const", (), float(value))
     if isinstance(value, Expr):
         return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         if isinstance(value, np.ndarray) and value.shape == () and np.issubdtype(value.dtype, np.number) \
                 and not np.issubdtype(value.dtype, np.complexfloating):
-            return Expr("const", (), float(value))
+            return _intern("const", (), float(value))
         raise TypeError(f"{name} must be a real number or an expression, got {value!r} "
                         f"of type {type(value).__name__}")
-    return Expr("const", (), float(value))
+    return _intern("const", (), float(value))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -284,7 +394,7 @@ def _both_const(a: Expr, b: Expr) -> bool:
 
 def _fold(fn, *values) -> Expr:
     with np.errstate(all="ignore"):
-        return Expr("const", (), float(fn(*[np.float64(v) for v in values])))
+        return _intern("const", (), float(fn(*[np.float64(v) for v in values])))
 
 
 def _is(node: Expr, value: float) -> bool:
@@ -304,7 +414,7 @@ def _add_const(base: Expr, c: float) -> Expr:
         return base
     # One canonical form (add a signed constant) so that shapes differing only in the sign of an
     # offset share generated code; str() prints a negative offset as a subtraction.
-    return Expr("add", (base, Expr("const", (), c)))
+    return _intern("add", (base, _intern("const", (), c)))
 
 
 def _add(a: Expr, b: Expr) -> Expr:
@@ -322,7 +432,7 @@ def _add(a: Expr, b: Expr) -> Expr:
         return _add_const(base, c + b.attr)
     if b.op == "neg":
         return _sub(a, b.args[0])
-    return Expr("add", (a, b))
+    return _intern("add", (a, b))
 
 
 def _sub(a: Expr, b: Expr) -> Expr:
@@ -337,7 +447,7 @@ def _sub(a: Expr, b: Expr) -> Expr:
         return _add_const(base, c - b.attr)
     if b.op == "neg":
         return _add(a, b.args[0])
-    return Expr("sub", (a, b))
+    return _intern("sub", (a, b))
 
 
 def _mul(a: Expr, b: Expr) -> Expr:
@@ -354,10 +464,10 @@ def _mul(a: Expr, b: Expr) -> Expr:
         if b.attr == -1.0:
             return _neg(a)
         if a.op == "neg":
-            return _mul(a.args[0], Expr("const", (), -b.attr))
+            return _mul(a.args[0], _intern("const", (), -b.attr))
         if a.op == "mul" and a.args[1].op == "const":
             return _mul(a.args[0], _fold(np.multiply, a.args[1].attr, b.attr))
-    return Expr("mul", (a, b))
+    return _intern("mul", (a, b))
 
 
 def _div(a: Expr, b: Expr) -> Expr:
@@ -367,15 +477,15 @@ def _div(a: Expr, b: Expr) -> Expr:
         return a
     if _is(b, -1.0):
         return _neg(a)
-    return Expr("div", (a, b))
+    return _intern("div", (a, b))
 
 
 def _neg(a: Expr) -> Expr:
     if a.op == "const":
-        return Expr("const", (), -a.attr)
+        return _intern("const", (), -a.attr)
     if a.op == "neg":
         return a.args[0]
-    return Expr("neg", (a,))
+    return _intern("neg", (a,))
 
 
 def _pow(a: Expr, b: Expr) -> Expr:
@@ -386,18 +496,18 @@ def _pow(a: Expr, b: Expr) -> Expr:
         if p == 1.0:
             return a
         if p == 0.0:
-            return Expr("const", (), 1.0)
+            return _intern("const", (), 1.0)
         if p == 0.5:
             return sym_sqrt(a)
-        return Expr("powc", (a,), p)
-    return Expr("pow", (a, b))
+        return _intern("powc", (a,), p)
+    return _intern("pow", (a, b))
 
 
 def _unary(op: str, fn, a, name: str) -> Expr:
     a = as_expr(a, name)
     if a.op == "const":
         return _fold(fn, a.attr)
-    return Expr(op, (a,))
+    return _intern(op, (a,))
 
 
 def _square_base(node: Expr):
@@ -444,32 +554,32 @@ def sym_abs(a: Expr | float) -> Expr:
     """Absolute value. At ``a = 0`` the gradient is that of ``+a`` (the right-sided one)."""
     a = as_expr(a, "a")
     if a.op == "const":
-        return Expr("const", (), abs(a.attr))
+        return _intern("const", (), abs(a.attr))
     if a.op in ("abs", "length", "sqrt", "exp"):
         return a
     if a.op == "neg":
         return sym_abs(a.args[0])
-    return Expr("abs", (a,))
+    return _intern("abs", (a,))
 
 
 def sym_min(a: Expr | float, b: Expr | float) -> Expr:
     """Minimum. At a tie the gradient of ``a`` (the left operand) is returned."""
     a, b = as_expr(a, "a"), as_expr(b, "b")
     if _both_const(a, b):
-        return Expr("const", (), a.attr if a.attr <= b.attr else b.attr)
+        return _intern("const", (), a.attr if a.attr <= b.attr else b.attr)
     if a is b:
         return a
-    return Expr("min", (a, b))
+    return _intern("min", (a, b))
 
 
 def sym_max(a: Expr | float, b: Expr | float) -> Expr:
     """Maximum. At a tie the gradient of ``a`` (the left operand) is returned."""
     a, b = as_expr(a, "a"), as_expr(b, "b")
     if _both_const(a, b):
-        return Expr("const", (), a.attr if a.attr >= b.attr else b.attr)
+        return _intern("const", (), a.attr if a.attr >= b.attr else b.attr)
     if a is b:
         return a
-    return Expr("max", (a, b))
+    return _intern("max", (a, b))
 
 
 def sym_length(a: Expr | float, b: Expr | float) -> Expr:
@@ -480,12 +590,12 @@ def sym_length(a: Expr | float, b: Expr | float) -> Expr:
     """
     a, b = as_expr(a, "a"), as_expr(b, "b")
     if _both_const(a, b):
-        return Expr("const", (), float(math.hypot(a.attr, b.attr)))
+        return _intern("const", (), float(math.hypot(a.attr, b.attr)))
     if _is(b, 0.0):
         return sym_abs(a)
     if _is(a, 0.0):
         return sym_abs(b)
-    return Expr("length", (a, b))
+    return _intern("length", (a, b))
 
 
 def _param_blend(a, b, k: Expr, kind: str, sign: float) -> Expr:
@@ -539,8 +649,8 @@ def sym_smin(a: Expr | float, b: Expr | float, k: float) -> Expr:
         return _param_blend(a, b, k, "exponential", 1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
     if _both_const(a, b):
-        return Expr("const", (), _smin_value(a.attr, b.attr, k))
-    return Expr("smin", (a, b), k)
+        return _intern("const", (), _smin_value(a.attr, b.attr, k))
+    return _intern("smin", (a, b), k)
 
 
 def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
@@ -550,8 +660,8 @@ def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
         return _param_blend(a, b, k, "exponential", -1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_k(k)
     if _both_const(a, b):
-        return Expr("const", (), -_smin_value(-a.attr, -b.attr, k))
-    return Expr("smax", (a, b), k)
+        return _intern("const", (), -_smin_value(-a.attr, -b.attr, k))
+    return _intern("smax", (a, b), k)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -577,7 +687,7 @@ def sym_select(cond: Expr | float, a: Expr | float, b: Expr | float) -> Expr:
         return a if cond.attr > 0 else b
     if a is b:
         return a
-    return Expr("select", (cond, a, b))
+    return _intern("select", (cond, a, b))
 
 
 def _check_width(k, name="k") -> float:
@@ -609,8 +719,8 @@ def sym_qmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
         return _param_blend(a, b, k, "quadratic", 1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_width(k)
     if _both_const(a, b):
-        return Expr("const", (), _poly_smin_value(a.attr, b.attr, k, False))
-    return Expr("qmin", (a, b), k)
+        return _intern("const", (), _poly_smin_value(a.attr, b.attr, k, False))
+    return _intern("qmin", (a, b), k)
 
 
 def sym_cmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
@@ -622,8 +732,8 @@ def sym_cmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
         return _param_blend(a, b, k, "cubic", 1.0)
     a, b, k = as_expr(a, "a"), as_expr(b, "b"), _check_width(k)
     if _both_const(a, b):
-        return Expr("const", (), _poly_smin_value(a.attr, b.attr, k, True))
-    return Expr("cmin", (a, b), k)
+        return _intern("const", (), _poly_smin_value(a.attr, b.attr, k, True))
+    return _intern("cmin", (a, b), k)
 
 
 def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants, data: Any = None) -> Expr:
@@ -637,7 +747,7 @@ def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants, data: Any 
     # A constant may also be an expression of runtime parameters (an ellipse's axes).
     consts = tuple(c if isinstance(c, Expr) and c.op != "const" and not c.syms
                    else as_expr(float(c), "constant") for c in constants)
-    return Expr("prim", (as_expr(u, "u"), as_expr(v, "v")) + consts, (kind, data))
+    return _intern("prim", (as_expr(u, "u"), as_expr(v, "v")) + consts, (kind, data))
 
 
 def _rebuild(node: Expr, args: tuple) -> Expr:
@@ -647,7 +757,7 @@ def _rebuild(node: Expr, args: tuple) -> Expr:
         return {"neg": _neg, "sqrt": sym_sqrt, "exp": sym_exp, "log": sym_log, "sin": sym_sin,
                 "cos": sym_cos, "abs": sym_abs, "floor": sym_floor}[op](args[0])
     if op == "powc":
-        return _pow(args[0], Expr("const", (), node.attr))
+        return _pow(args[0], _intern("const", (), node.attr))
     if op in ("add", "sub", "mul", "div", "pow", "min", "max", "length"):
         return {"add": _add, "sub": _sub, "mul": _mul, "div": _div, "pow": _pow,
                 "min": sym_min, "max": sym_max, "length": sym_length}[op](*args)
@@ -686,20 +796,25 @@ def substitute(root: Expr, mapping: dict) -> Expr:
 
 def topological_order(root: Expr) -> list:
     """All nodes reachable from ``root``, each once, children before parents."""
+    # Nodes hash by identity: sets of nodes, not of id()s (no call per lookup).
     order, seen = [], set()
+    append, add = order.append, seen.add
     stack = [(root, False)]
+    pop, push = stack.pop, stack.append
     while stack:
-        node, expanded = stack.pop()
+        node, expanded = pop()
         if expanded:
-            order.append(node)
+            append(node)
             continue
-        if id(node) in seen:
+        if node in seen:
             continue
-        seen.add(id(node))
-        stack.append((node, True))
-        for arg in reversed(node.args):
-            if id(arg) not in seen:
-                stack.append((arg, False))
+        add(node)
+        push((node, True))
+        args = node.args
+        if args:
+            for arg in reversed(args):
+                if arg not in seen:
+                    push((arg, False))
     return order
 
 
@@ -721,23 +836,70 @@ def _from_flat(flat) -> Expr:
 
 
 def _to_str(root: Expr, limit: int | None = None) -> str:
+    if limit is None:
+        nodes = topological_order(root)
+    else:
+        nodes = _near_root(root, limit + 1)
     text = {}
-    for node in topological_order(root):
-        if node.op == "const":
+    for node in nodes:
+        op = node.op
+        if op == "const":
             s = fmt_const(node.attr)
-        elif node.op == "sym":
+        elif op == "sym":
             s = node.attr
-        elif node.op == "param":
+        elif op == "param":
             s = node.attr[0]
         else:
-            s = OPS[node.op].fmt(node, [text[id(a)] for a in node.args])
+            s = OPS[op].fmt(node, [text.get(a, "") for a in node.args])
         # With a limit only the first `limit` characters are kept: cutting every part keeps that
         # prefix exact and makes printing a deep chain linear, not quadratic, in its depth.
-        text[id(node)] = s if limit is None else s[:limit + 1]
-    out = text[id(root)]
+        text[node] = s if limit is None else s[:limit + 1]
+    out = text[root]
     if limit is not None and len(out) > limit:
         out = out[:limit - 3] + "..."
     return out
+
+
+def _near_root(root: Expr, depth: int) -> list:
+    """The nodes whose printed text can reach into the first ``depth`` characters of ``root``'s,
+    children first. Every operation prints at least one character before each argument
+    (``min(``, ``(``), except ``powc`` (``u**2``): a node at ``d`` such levels below the root
+    starts at character ``d`` or later, and deeper nodes (printed as empty strings by
+    :func:`_to_str`) cannot change the first ``depth`` characters. A 0-1 breadth-first search
+    finds each node's smallest such depth; printing a long scene then costs O(depth), not
+    O(nodes)."""
+    dist = {root: 0}
+    queue = collections.deque([root])
+    while queue:
+        node = queue.popleft()
+        d = dist[node]
+        w = 0 if node.op == "powc" else 1
+        if d + w > depth:
+            continue
+        for a in node.args:
+            old = dist.get(a)
+            if old is None or d + w < old:
+                dist[a] = d + w
+                if w:
+                    queue.append(a)
+                else:
+                    queue.appendleft(a)
+    # children first, among the kept nodes
+    order, seen = [], set()
+    stack = [(root, False)]
+    while stack:
+        node, expanded = stack.pop()
+        if expanded:
+            order.append(node)
+            continue
+        if node in seen:
+            continue
+        seen.add(node)
+        stack.append((node, True))
+        for a in reversed(node.args):
+            if a not in seen and a in dist and dist[a] <= depth:
+                stack.append((a, False))
+    return order
 
 
 # ---------------------------------------------------------------------------------------------

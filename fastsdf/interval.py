@@ -18,8 +18,6 @@ are combined, node by node:
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
 from .graph import Expr, topological_order
@@ -27,14 +25,25 @@ from .ops import OPS
 
 __all__ = ["node_bounds", "bounds", "note_lipschitz", "node_values"]
 
-# Expressions known to be 1-Lipschitz (exact and 'bound' SDFs), noted by the modelling layer.
-_LIPSCHITZ: "weakref.WeakKeyDictionary[Expr, float]" = weakref.WeakKeyDictionary()
+class _Hints:
+    """Lipschitz constants noted for expressions (exact and 'bound' SDFs, noted by the
+    modelling layer): ``_LIPSCHITZ.get(node)`` is the constant or None. Kept on the node itself
+    (its ``lip`` slot), which lives exactly as long as the node, at no cost per lookup."""
+
+    @staticmethod
+    def get(node: Expr, default=None):
+        value = node.lip
+        return default if value is None else value
+
+
+_LIPSCHITZ = _Hints()
+_set_lip = Expr.lip.__set__
 
 
 def note_lipschitz(expr: Expr, L: float) -> None:
     """Record that ``expr`` is ``L``-Lipschitz in its symbols (e.g. 1 for an exact SDF)."""
-    old = _LIPSCHITZ.get(expr)
-    _LIPSCHITZ[expr] = L if old is None else min(old, L)
+    old = expr.lip
+    _set_lip(expr, L if old is None else min(old, L))
 
 
 def node_values(root: Expr, symbols: dict) -> dict:

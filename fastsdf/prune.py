@@ -38,6 +38,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from .graph import _gc_paused
 from .interval import _LIPSCHITZ, node_bounds
 from .ops import OPS
 
@@ -109,17 +110,31 @@ def _steps_bounds_chunk(group, ranges):
         return (np.stack([o[id(m)][0] for o, m in zip(out, members)]),
                 np.stack([o[id(m)][1] for o, m in zip(out, members)]))
     T = len(next(iter(ranges.values()))[0])
-    centres = {k: 0.5 * (lo + hi)[None, :] for k, (lo, hi) in ranges.items()}
+    hints = [_LIPSCHITZ.get(m) for m in members]
+    hint = max(hints) if all(h is not None for h in hints) else None
+    lo, hi = _template_bounds(steps, [rows[:, j][:, None] for j in range(rows.shape[1])],
+                              {k: (lo[None, :], hi[None, :]) for k, (lo, hi) in ranges.items()},
+                              (1, T), hint)
+    M = len(members)
+    return (np.broadcast_to(lo, (M, T)), np.broadcast_to(hi, (M, T)))
+
+
+def _template_bounds(steps, cols, ranges, shape, hint):
+    """Bounds ``(lo, hi)`` of a group's template with constants ``cols[j]`` over boxes
+    ``ranges`` (arrays broadcasting together: (members, 1) columns against (1, tiles) boxes, or
+    one entry per (member, tile) pair), intersected with the Lipschitz bound around each box's
+    centre; ``hint``: a Lipschitz constant of the result known from the modelling layer (an
+    array per entry, or a number, or None)."""
+    centres = {k: 0.5 * (lo + hi) for k, (lo, hi) in ranges.items()}
     with np.errstate(all="ignore"):  # huge tiles: an infinite half-diagonal is sound
-        half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))[None, :]
+        half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))
         scale = sum(np.abs(c) for c in centres.values()) + half
-    cols = [rows[:, j][:, None] for j in range(rows.shape[1])]
     lo_s, hi_s, c_s, L_s = [], [], [], []
     with np.errstate(all="ignore"):
         for i, (node, refs) in enumerate(steps):
             if node.op == "sym":
-                lo, hi = (r[None, :] for r in ranges[node.attr])
-                c, L = centres[node.attr], np.ones((1, T))
+                lo, hi = ranges[node.attr]
+                c, L = centres[node.attr], np.ones(shape)
             else:
                 alo, ahi, ac, aL = [], [], [], []
                 for kind, j in refs:
@@ -137,27 +152,39 @@ def _steps_bounds_chunk(group, ranges):
                 L = spec.lipschitz(node, aL, alo, ahi) if spec.lipschitz is not None \
                     else np.full(np.broadcast(lo, hi).shape, np.inf)
                 L = np.where(np.isnan(L), np.inf, L)
-                if i == len(steps) - 1:
-                    hints = [_LIPSCHITZ.get(m) for m in members]
-                    if all(h is not None for h in hints):
-                        L = np.minimum(L, max(hints))
+                if i == len(steps) - 1 and hint is not None:
+                    L = np.minimum(L, hint)
                 r = L * half
                 m = 1e-10 * (np.abs(c) + r + scale) + 1e-290
                 ok = np.isfinite(c) & np.isfinite(r)
                 lo = np.where(ok, np.maximum(lo, c - r - m), lo)
                 hi = np.where(ok, np.minimum(hi, c + r + m), hi)
             lo_s.append(lo), hi_s.append(hi), c_s.append(c), L_s.append(L)
-    M = len(members)
-    return (np.broadcast_to(lo_s[-1], (M, T)), np.broadcast_to(hi_s[-1], (M, T)))
+    return lo_s[-1], hi_s[-1]
 
 
 def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
     """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.codegen.generate_module`)
     over ``bounds = ((x0, x1), (y0, y1))`` cut into ``nx x ny`` tiles."""
+    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+        return _make_plan(groups, bounds, nx, ny, tol)
+
+
+def _make_plan(groups, bounds, nx, ny, tol):
     t0 = time.perf_counter()
     ranges = _tile_ranges(bounds, nx, ny)
     T = nx * ny
-    member_bounds = [_steps_bounds(g, ranges) for g in groups]
+    # Bounds of every member over every tile, computed where a chain needs them (chains of
+    # min, max, smin, smax over many tiles go coarse to fine instead, see _keep_coarse_to_fine).
+    cache: dict = {}
+
+    class _Bounds:
+        def __getitem__(self, gi):
+            if gi not in cache:
+                cache[gi] = _steps_bounds(groups[gi], ranges)
+            return cache[gi]
+
+    member_bounds = _Bounds()
     # Bounds of each chain's operands that are not in a group.
     chains: dict = {}
     for gi, g in enumerate(groups):
@@ -166,6 +193,10 @@ def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None =
     for gis in chains.values():
         g0 = groups[gis[0]]
         op, k = g0["op"], g0["k"]
+        if op not in ("qmin", "cmin") and T >= _COARSE_MIN_TILES:
+            for gi, kk in zip(gis, _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol)):
+                keep[gi] = kk
+            continue
         if op in ("qmin", "cmin"):
             for gi in gis:
                 keep[gi] = _keep_ordered(groups, gi, member_bounds, ranges, T)
@@ -212,6 +243,154 @@ def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None =
             rows = np.flatnonzero(kk[:, t])
             act[offs[t, gi]:offs[t, gi + 1]] = rows
     return PrunePlan(bounds, nx, ny, act, offs, kept, sizes, time.perf_counter() - t0, tol)
+
+
+#: Plans over at least this many tiles find each chain's survivors coarse to fine.
+_COARSE_MIN_TILES = 64
+#: ... starting from the level of at most this many tiles.
+_COARSE_TOP_TILES = 16
+
+
+def _levels(ranges, nx, ny):
+    """Tile levels from the fine tiles (``s = 1``) up, each tile of level ``s`` covering
+    ``s x s`` fine tiles (fewer at the far edges): ``[(s, lnx, lny, ranges)]``, coarsest first.
+    A level tile's box is the smallest holding its fine tiles' boxes."""
+    fx = (ranges["x"][0][:nx], ranges["x"][1][:nx])        # per column of fine tiles
+    fy = (ranges["y"][0][::nx], ranges["y"][1][::nx])      # per row
+    out = [(1, nx, ny, ranges)]
+    s = 1
+    while out[-1][1] * out[-1][2] > _COARSE_TOP_TILES:
+        s *= 2
+        lnx, lny = -(-nx // s), -(-ny // s)
+        cx, cy = np.arange(0, nx, s), np.arange(0, ny, s)
+        xlo, xhi = np.minimum.reduceat(fx[0], cx), np.maximum.reduceat(fx[1], cx)
+        ylo, yhi = np.minimum.reduceat(fy[0], cy), np.maximum.reduceat(fy[1], cy)
+        out.append((s, lnx, lny, {"x": (np.tile(xlo, lny), np.tile(xhi, lny)),
+                                  "y": (np.repeat(ylo, lnx), np.repeat(yhi, lnx))}))
+    return out[::-1]
+
+
+def _member_hints(members):
+    """Per member, the Lipschitz hint that the dense bounds (chunks of ``_MEMBER_CHUNK``
+    members) apply: the chunk's largest if every member of the chunk has one, else inf."""
+    out = np.full(len(members), np.inf)
+    for i in range(0, len(members), _MEMBER_CHUNK):
+        hints = [_LIPSCHITZ.get(m) for m in members[i:i + _MEMBER_CHUNK]]
+        if all(h is not None for h in hints):
+            out[i:i + _MEMBER_CHUNK] = max(hints)
+    return out
+
+
+def _pair_bounds(group, hints, mem, til, lranges):
+    """Bounds ``(lo, hi)`` of member ``mem[p]`` over tile ``til[p]`` of a level, per pair p
+    (pairs ordered by member): the same numbers as the dense (members x tiles) bounds."""
+    steps, members = group["steps"], group["members"]
+    if not len(mem):
+        return np.empty(0), np.empty(0)
+    if any(node.op == "prim" for node, _ in steps):
+        lo, hi = np.empty(len(mem)), np.empty(len(mem))
+        cuts = np.flatnonzero(np.diff(mem)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(mem)]):
+            m = members[mem[a]]
+            t = til[a:b]
+            out = node_bounds(m, {k: (v[0][t], v[1][t]) for k, v in lranges.items()})[id(m)]
+            lo[a:b], hi[a:b] = out
+        return lo, hi
+    rows = group["rows"]
+    cols = [rows[mem, j] for j in range(rows.shape[1])]
+    boxes = {k: (v[0][til], v[1][til]) for k, v in lranges.items()}
+    lo, hi = _template_bounds(steps, cols, boxes, (len(mem),), hints[mem])
+    return np.broadcast_to(lo, mem.shape), np.broadcast_to(hi, mem.shape)
+
+
+def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
+    """Rows kept per tile, (members, tiles) per group, for a chain of ``min``, ``max``,
+    ``smin`` or ``smax``: the rule of :func:`make_plan` applied coarse to fine. A member
+    dropped over a level tile (its bounds there say it cannot matter anywhere in it: for
+    ``min``, its lower bound exceeds the smallest upper bound of all operands over the tile)
+    is dropped in every fine tile under it, and only the surviving (member, tile) pairs are
+    bounded at the next level. At the fine level the survivors' bounds are the numbers the
+    dense computation gives, and a member dropped higher up has bounds above the fine tile's
+    minimum there too (bounds shrink with the box), so the kept rows are the dense rule's.
+    For the exponential blends with the default tolerance (half an ulp of the chain's value),
+    coarse levels use the smallest magnitude the fine tiles' value can have."""
+    g0 = groups[gis[0]]
+    op, k = g0["op"], g0["k"]
+    lower = op in ("min", "smin")  # the chain's value is below every upper bound
+    n_ops = len(g0["others"]) + sum(len(groups[gi]["members"]) for gi in gis)
+    levels = _levels(ranges, nx, ny)
+    hints = [_member_hints(groups[gi]["members"]) for gi in gis]
+    T0 = levels[0][1] * levels[0][2]
+    pairs = [(np.repeat(np.arange(len(groups[gi]["members"])), T0),
+              np.tile(np.arange(T0), len(groups[gi]["members"]))) for gi in gis]
+    for li, (s, lnx, lny, lranges) in enumerate(levels):
+        fine = li == len(levels) - 1
+        Tl = lnx * lny
+        bounds = [_pair_bounds(groups[gi], h, mem, til, lranges)
+                  for gi, h, (mem, til) in zip(gis, hints, pairs)]
+        others = [node_bounds(o, lranges)[id(o)] if o.op != "const"
+                  else (np.full(Tl, o.attr), np.full(Tl, o.attr)) for o in g0["others"]]
+        # H: the smallest upper bound (min, smin), or the largest lower bound (max, smax); F:
+        # the other end over all operands (for the magnitude of the fine tiles' H)
+        H = np.full(Tl, np.inf if lower else -np.inf)
+        F = np.full(Tl, np.inf if lower else -np.inf)
+        red = np.minimum if lower else np.maximum
+        for (lo, hi), (mem, til) in zip(bounds, pairs):
+            red.at(H, til, hi if lower else lo)
+            red.at(F, til, lo if lower else hi)
+        for olo, ohi in others:
+            H = red(H, ohi if lower else olo)
+            F = red(F, olo if lower else ohi)
+        with np.errstate(all="ignore"):
+            if op in ("smin", "smax"):
+                if tol is not None:
+                    t = np.full(Tl, float(tol))
+                elif fine:
+                    t = 0.5 * np.spacing(np.abs(H))
+                else:  # the fine tiles' H lies between F and H: its smallest magnitude
+                    mag = np.where(F > 0, F, np.where(H < 0, -H, 0.0)) if lower else \
+                        np.where(F < 0, -F, np.where(H > 0, H, 0.0))
+                    t = 0.5 * np.spacing(mag)
+                budget = np.expm1(k * t)
+                margin = np.where(budget > 0, np.log(n_ops / budget) / k, np.inf)
+            unknown = ~np.isfinite(H)
+            new = []
+            for (lo, hi), (mem, til) in zip(bounds, pairs):
+                if op == "min":
+                    kp = lo <= H[til]
+                elif op == "max":
+                    kp = hi >= H[til]
+                elif op == "smin":
+                    kp = ~(lo >= (H + margin)[til])
+                else:
+                    kp = ~(hi <= (H - margin)[til])
+                kp |= unknown[til]
+                new.append((mem[kp], til[kp]))
+        pairs = new
+        if fine:
+            break
+        # the surviving pairs' children at the next level, still ordered by member
+        cnx, cny = levels[li + 1][1], levels[li + 1][2]
+        nxt = []
+        for mem, til in pairs:
+            tx, ty = til % lnx, til // lnx
+            cm, ct = [], []
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    cx, cy = 2 * tx + dx, 2 * ty + dy
+                    ok = (cx < cnx) & (cy < cny)
+                    cm.append(mem[ok])
+                    ct.append((cy * cnx + cx)[ok])
+            cm, ct = np.concatenate(cm), np.concatenate(ct)
+            order = np.argsort(cm, kind="stable")
+            nxt.append((cm[order], ct[order]))
+        pairs = nxt
+    out = []
+    for gi, (mem, til) in zip(gis, pairs):
+        kk = np.zeros((len(groups[gi]["members"]), nx * ny), dtype=bool)
+        kk[mem, til] = True
+        out.append(kk)
+    return out
 
 
 def _keep_ordered(groups, gi, member_bounds, ranges, T):

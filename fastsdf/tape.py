@@ -26,7 +26,10 @@ an array per call); the time derivative (``time_derivative=True``) is not offere
 Per point the tape costs several times the compiled kernel (``python -m bench.bench_tape``), so
 it is for the first calls of a new scene: :class:`fastsdf.graph.Function` uses it with
 ``backend='tape'`` (always) or ``backend='auto'`` (while the scene's kernel compiles in a
-background thread; see :class:`fastsdf.function.Function`).
+background thread, where the cost model prefers it to the NumPy path of
+:mod:`fastsdf.npeval`, which needs no numba at all: scenes of thousands of nodes per point,
+once numba's one-time setup in the process is paid or worth paying; see
+:class:`fastsdf.function.Function`).
 """
 
 from __future__ import annotations

@@ -211,3 +211,44 @@ def test_input_shapes_and_types():
         f(np.zeros(2), np.zeros(2, dtype=complex))
     with pytest.raises(TypeError, match="x must hold real numbers"):
         f(np.array([1, None]), np.zeros(2))
+
+
+def test_interned_nodes_are_unique_and_forgotten_when_unused():
+    import gc
+    x, y = cg.Symbol("x"), cg.Symbol("y")
+    # constants are told apart by their bits: 0.0 and -0.0 are two nodes, NaN is one
+    assert cg.Constant(-0.0) is not cg.Constant(0.0)
+    assert cg.Constant(math.nan) is cg.Constant(math.nan)
+    assert cg.Constant(np.float64(2.5)) is cg.Constant(2.5)
+    e = cg.sym_min(x * 3.25 + 1.5, y)
+    assert cg.sym_min(x * 3.25 + 1.5, y) is e
+    assert e.syms == {"x", "y"} and e.args[0].syms == {"x"} and not e.prms
+    p = cg.Param("pp_intern", 0.5)
+    assert (e + p).prms == {("pp_intern", 0.5)} and (e + p).syms == {"x", "y"}
+    gc.collect()
+    before = len(cg._INTERN)
+    nodes = [x * (1.0 + i / 7) - i for i in range(500)]
+    assert len(cg._INTERN) >= before + 1000
+    del nodes
+    gc.collect()
+    assert len(cg._INTERN) <= before  # the table holds its nodes weakly
+    # a node rebuilt after its twin was collected is interned again
+    a = x * 123.0
+    assert x * 123.0 is a
+
+
+@pytest.mark.parametrize("limit", [3, 20, 200, 300, 10 ** 6])
+def test_printing_with_a_limit_is_the_prefix_of_the_full_text(limit):
+    # a limited print walks only the nodes near the root: the same text as cutting the full one
+    import functools
+    x, y = cg.Symbol("x"), cg.Symbol("y")
+    exprs = [
+        ((((x * 2 + 1) ** 2 + 1) ** 3) ** 2 + y) ** 2,  # powers print their base first
+        functools.reduce(cg.sym_min, [x * float(i) + y for i in range(1, 300)]),
+        functools.reduce(lambda a, b: b + a, [cg.sym_abs(x - float(i)) for i in range(300)]),
+        cg.sym_smin(cg.sym_select(x, y ** 3, cg.sym_length(x, y)), -x, 4.0),
+    ]
+    for e in exprs:
+        full = cg._to_str(e)
+        want = full if len(full) <= limit else full[:limit - 3] + "..."
+        assert cg._to_str(e, limit=limit) == want

@@ -226,3 +226,66 @@ def test_pruned_polynomial_chains_are_bit_identical(seed, n, kind, k, tiles):
     assert _bits(out, d0) and _bits(grad, g0)
     if tiles >= 8 and k < 0.4:
         assert plan.fraction < 0.6
+
+
+def _mixed_chain(seed, n, k, op):
+    """Boxes, ellipses and polygons (compiled primitives) at random places in one chain."""
+    rng = np.random.default_rng(seed)
+    shapes = []
+    for i in range(n):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
+            shapes.append([sdf.Box([-0.05, -0.03], [0.04, 0.06]), sdf.Ellipse([0, 0], [0.06, 0.03]),
+                           sdf.Star([0, 0], 0.07, 5)][i % 3])
+    shapes.append(sdf.Halfspace([0.2, 1], -1.7))
+    return sdf.union(shapes, k=k) if op == "|" else sdf.intersection(shapes, k=k)
+
+
+@settings(max_examples=8, deadline=None, derandomize=True, phases=_NO_SHRINK)
+@given(seed=st.integers(0, 10 ** 6), n=st.integers(12, 45), op=st.sampled_from(["|", "&"]),
+       k=st.sampled_from([0.0, 5.0, 40.0]), tol=st.sampled_from([None, 1e-6]),
+       tiles=st.sampled_from([(8, 8), (32, 32), (20, 7), (3, 40)]))
+def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(seed, n, op, k, tol,
+                                                                          tiles):
+    # Plans over many tiles bound each chain's members coarse to fine: a member that cannot
+    # matter anywhere in a coarse tile is dropped in all its tiles. Checked against the values
+    # of every operand (NumPy reference) at random points: each tile keeps the operands that
+    # reach the chain's minimum (maximum) there, and for the exponential blends the dropped
+    # operands change the value by less than the tolerance; the plan keeps at most the rows of
+    # the dense rule (every member bounded over every tile: its Lipschitz bounds around a small
+    # tile's centre can be looser than the coarse tile's).
+    from fastsdf import prune
+    f = _mixed_chain(seed, n, k, op)
+    groups = f.compiled.groups
+    assert len(groups) == 3 and any(g["steps"][-1][0].op == "prim" for g in groups)
+    bounds = ((-2.5, 2.5), (-2.4, 2.6))
+    plan = prune.make_plan(groups, bounds, *tiles, tol)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(prune, "_COARSE_MIN_TILES", 10 ** 9)
+        dense = prune.make_plan(groups, bounds, *tiles, tol)
+    assert plan.act.size <= dense.act.size
+    rng = np.random.default_rng(seed)
+    p = np.stack([rng.uniform(*bounds[0], 2000), rng.uniform(*bounds[1], 2000)])
+    order, starts = prune.bin_points(p[0], p[1], plan)
+    tile = np.empty(p.shape[1], dtype=np.int64)
+    for t in range(len(starts) - 1):
+        tile[order[starts[t]:starts[t + 1]]] = t
+    pts = {"x": p[0], "y": p[1]}
+    sign = 1.0 if op == "|" else -1.0  # a max is the min of the negated operands
+    vals, kept = [], []
+    for gi, g in enumerate(groups):
+        for j, m in enumerate(g["members"]):
+            vals.append(sign * evaluate_numpy(m, pts))
+            rows = [set(plan.act[plan.offs[t, gi]:plan.offs[t, gi + 1]].tolist())
+                    for t in range(plan.nx * plan.ny)]
+            kept.append(np.array([j in rows[t] for t in tile]))
+    vals += [sign * evaluate_numpy(o, pts) for o in groups[0]["others"]]
+    kept += [np.ones(p.shape[1], dtype=bool)] * len(groups[0]["others"])
+    vals, kept = np.array(vals), np.array(kept)
+    low = vals.min(axis=0)
+    if k == 0.0:
+        assert np.all(kept[vals == low[None, :]])
+    else:
+        lost = np.log1p(np.sum(np.where(kept, 0.0, np.exp(-k * (vals - low))), axis=0)) / k
+        assert np.all(lost <= (tol if tol is not None else np.spacing(np.abs(low))))
+    if op == "|" and k == 0.0 and tiles[0] * tiles[1] >= 256:
+        assert plan.fraction < 0.5

@@ -330,3 +330,36 @@ def test_mixed_scene_is_its_floor_cut_by_seeded_shapes():
     np.testing.assert_array_equal(a, b)
     c = evaluate_numpy(mixed_scene(12, seed=5).f, {"x": x, "y": y})
     assert np.any(a != c) and np.any(a != y + 1.8)
+
+
+@pytest.mark.parametrize("k, kind", [(0.0, "exponential"), (5.0, "exponential"),
+                                     (0.1, "quadratic"), (0.1, "cubic")])
+def test_nary_union_and_intersection_are_the_left_folds(k, kind):
+    # fastsdf.union / intersection of a list: the same expression (same node, so the same
+    # kernels) and the same exactness bookkeeping as the left fold of the binary operations
+    import functools
+    rng = np.random.default_rng(3)
+    shapes = []
+    for i, c in enumerate(rng.uniform(-2, 2, (12, 2))):
+        with sdf.transform(angle=float(rng.uniform(-1, 1)) if i % 3 == 0 else 0.0):
+            shapes.append(sdf.Box(c - 0.1, c + 0.2) if i % 2 else sdf.Circle(c, 0.15))
+    for nary, binary in ((sdf.union, "union"), (sdf.intersection, "intersection")):
+        want = functools.reduce(lambda a, b: getattr(a, binary)(b, k=k, kind=kind), shapes)
+        got = nary(iter(shapes), k=k, kind=kind)  # any iterable
+        assert got.f is want.f
+        assert got.exactness == want.exactness and got._info == want._info
+    assert sdf.union(shapes[:1]) is shapes[0]
+
+
+def test_nary_union_rejects_bad_input():
+    c = sdf.Circle([0, 0], 1.0)
+    with pytest.raises(ValueError, match="at least one shape"):
+        sdf.union([])
+    with pytest.raises(TypeError, match="one SDF"):
+        sdf.union(c)
+    with pytest.raises(TypeError, match=r"shapes\[1\]"):
+        sdf.intersection([c, 3.0])
+    with pytest.raises(TypeError, match="iterable"):
+        sdf.union(5)
+    with pytest.raises(ValueError, match="k"):
+        sdf.union([c, c], k=-1.0)

@@ -30,19 +30,23 @@ def _points(n, seed, bad=True):
     return p
 
 
-def assert_agree(f, p, **params):
-    """Tape and kernel agree, value (also value-only calls) and gradient."""
+def assert_agree(f, p, backends=("tape", "numpy"), **params):
+    """Tape and NumPy path each agree with the kernel, value (also value-only calls) and
+    gradient; non-finite points give NaN for those points only."""
     dk, gk = f(*p.T, compute_gradient=True, **params)
-    dt, gt = f(*p.T, compute_gradient=True, backend="tape", **params)
     ok = np.isfinite(p).all(axis=1)
-    assert np.all(np.isnan(dt[~ok])) and np.all(np.isnan(gt[~ok]))
-    assert np.array_equal(np.isnan(dt), np.isnan(dk))
-    scale = max(1.0, float(np.nanmax(np.abs(dk[ok])))) if ok.any() else 1.0
-    np.testing.assert_allclose(dt[ok], dk[ok], rtol=1e-12, atol=1e-12 * scale)
-    np.testing.assert_allclose(gt[ok], gk[ok], rtol=1e-9, atol=1e-9)
-    vt = f(*p.T, backend="tape", **params)
-    np.testing.assert_array_equal(vt, dt)  # the value does not depend on the gradient's mode
-    return dt, gt
+    for backend in backends:
+        dt, gt = f(*p.T, compute_gradient=True, backend=backend, **params)
+        assert np.all(np.isnan(dt[~ok])) and np.all(np.isnan(gt[~ok]))
+        assert np.array_equal(np.isnan(dt), np.isnan(dk))
+        scale = max(1.0, float(np.nanmax(np.abs(dk[ok])))) if ok.any() else 1.0
+        np.testing.assert_allclose(dt[ok], dk[ok], rtol=1e-12, atol=1e-12 * scale)
+        np.testing.assert_allclose(gt[ok], gk[ok], rtol=1e-9, atol=1e-9)
+        vt = f(*p.T, backend=backend, **params)
+        np.testing.assert_array_equal(vt, dt)  # the value does not depend on the gradient's mode
+        if backend == backends[0]:
+            out = dt, gt
+    return out
 
 
 def _every_primitive():
@@ -198,7 +202,8 @@ def test_backend_switch_and_errors():
 
 
 def test_auto_backend_answers_then_switches_to_the_kernel():
-    """``backend='auto'``: the first call answers through the tape and starts the compilation
+    """``backend='auto'``: the first call answers through the tape or NumPy (whichever the cost
+    model says is cheaper) and starts the compilation
     in a background thread; once it is done, calls run the kernel (same answers)."""
     rng = np.random.default_rng(11)
     f = sdf.Halfspace([0, 1], -1.8)
@@ -209,7 +214,7 @@ def test_auto_backend_answers_then_switches_to_the_kernel():
     p = _points(5000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, backend="auto")
     c = f.compiled
-    assert c._tape is not None and c._warm is not None
+    assert (c._tape is not None or c._numpy is not None) and c._warm is not None
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
     d1, g1 = f(*p.T, compute_gradient=True, backend="auto")
     ok = np.isfinite(p).all(axis=1)

@@ -29,13 +29,14 @@ Beyond the notebook: more primitives with exact distances (:class:`Segment`, :cl
 from .context import (BLEND_KINDS, current_blend, current_smoothness, smoothness,  # noqa: F401
                       transform)
 from .exactness import EXACTNESS  # noqa: F401
-from .operations import (SDF, Difference, Intersection, Union, mirror, offset,  # noqa: F401
-                         repeat, rotate, scale, shell, translate)
+from .operations import (SDF, Difference, Intersection, Union, intersection,  # noqa: F401
+                         mirror, offset, repeat, rotate, scale, shell, translate, union)
 from .primitives import (Arc, Box, Capsule, Circle, Ellipse, EquilateralTriangle,  # noqa: F401
                          Halfspace, OrientedBox, Polygon, RegularPolygon, Ring, RoundedBox,
                          Segment, Star, Triangle)
 
 __all__ = ["SDF", "Circle", "Halfspace", "Box", "Union", "Intersection", "Difference",
+           "union", "intersection",
            "smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS",
            "EXACTNESS",
            "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",

@@ -11,10 +11,9 @@ import contextvars
 import math
 import numbers
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
 
 import numpy as np
-from typing import Iterator
+from typing import Iterator, NamedTuple
 from numpy.typing import ArrayLike
 
 from .._validate import check_length as _check_length
@@ -38,10 +37,10 @@ BLEND_KINDS = ("exponential", "quadratic", "cubic")
 _IDENTITY = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True)
-class _State:
+class _State(NamedTuple):
     """The modelling state: the coordinate expressions new primitives are built in, their
-    frame, and the smoothness (and blend kind) of ``|`` and ``&``."""
+    frame, and the smoothness (and blend kind) of ``|`` and ``&``. (Immutable; a named tuple:
+    entering a context costs a ``_replace``, cheaper than a frozen dataclass's.)"""
     x: Expr = _X
     y: Expr = _Y
     smoothness: float = 0.0
@@ -71,6 +70,8 @@ def _frame() -> tuple:
 def _smoothness_value(k) -> float:
     if k is None:
         return 0.0
+    if type(k) is float and k == 0.0:  # hard: the common case
+        return k
     if is_param(k):  # a runtime parameter: checked > 0 at the parameters' defaults
         _, number = real_or_param(k, "k")
         if not number > 0:
@@ -102,7 +103,7 @@ def _blend_kind(kind) -> str:
 
 @contextmanager
 def _properties(**props):
-    token = _context.set(replace(_context.get(), **props))
+    token = _context.set(_context.get()._replace(**props))
     try:
         yield
     finally:
@@ -143,6 +144,8 @@ def transform(angle: float = 0.0, offset: ArrayLike = (0.0, 0.0)) -> Iterator[No
     """
     angle, _ = real_or_param(angle, "angle")
     offset, _ = coord2_or_param(offset, "offset")
+    if isinstance(offset, np.ndarray):  # numbers: Python floats (the same values, and faster
+        offset = tuple(offset.tolist())  # than NumPy scalars in the frame's arithmetic)
     if is_param(angle):  # a runtime parameter: the rotation is computed in the kernel
         return _transformed(sym_cos(angle), sym_sin(angle), offset)
     return _transformed(math.cos(angle), math.sin(angle), offset)

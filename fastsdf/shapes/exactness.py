@@ -4,7 +4,7 @@ convexity, bounding box, mirror symmetries) and the rules that carry it through 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,8 +22,7 @@ EXACTNESS = ("exact", "bound", "none")
 # to keep exactness: convexity, a bounding box, mirror symmetries about the coordinate axes.
 # Unknown means False / None / empty: the flags are conservative.
 
-@dataclass(frozen=True)
-class _Info:
+class _Info(NamedTuple):  # (a named tuple: cheaper to build than a frozen dataclass)
     outside: bool = False       # exact where f > 0
     inside: bool = False        # exact where f < 0
     bound: bool = False         # 1-Lipschitz (implies |f| <= true distance, sign correct)

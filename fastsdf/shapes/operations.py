@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -14,13 +13,13 @@ from .._validate import length as _length
 from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
 from ..interval import note_lipschitz
-from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
-                     sym_qmin, sym_smax, sym_smin)
+from ..graph import (Expr, Function, _gc_paused, substitute, sym_abs, sym_cmin, sym_floor,
+                     sym_max, sym_min, sym_qmin, sym_smax, sym_smin)
 from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
 from .exactness import (_NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow,
                         _Info)
 
-__all__ = ["SDF", "Union", "Intersection", "Difference",
+__all__ = ["SDF", "Union", "Intersection", "Difference", "union", "intersection",
            "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
 
 
@@ -167,9 +166,9 @@ class SDF(Function):
         if r == 0:
             return SDF(self.f, i)
         if r > 0:
-            info = replace(i, inside=i.inside and i.outside and i.convex, bbox=_grow(i.bbox, r))
+            info = i._replace(inside=i.inside and i.outside and i.convex, bbox=_grow(i.bbox, r))
         else:
-            info = replace(i, outside=False)
+            info = i._replace(outside=False)
         return SDF(self.f - r, info)
 
     def shell(self, thickness: float) -> SDF:
@@ -199,7 +198,8 @@ class SDF(Function):
         inv = 1.0 / s
         i = self._info
         bbox = None if i.bbox is None or is_param(s) else tuple(v * s for v in i.bbox)
-        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s, replace(i, bbox=bbox))
+        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s,
+                   i._replace(bbox=bbox))
 
     def translate(self, offset: ArrayLike) -> SDF:
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
@@ -209,12 +209,12 @@ class SDF(Function):
         i = self._info
         if any(is_param(v) for v in o):  # moved by runtime parameters
             expr = substitute(self.f, {"x": _X - o[0], "y": _Y - o[1]})
-            return SDF(expr, replace(i, bbox=None, sym=frozenset()))
+            return SDF(expr, i._replace(bbox=None, sym=frozenset()))
         bbox = None if i.bbox is None else (i.bbox[0] + o[0], i.bbox[1] + o[1],
                                              i.bbox[2] + o[0], i.bbox[3] + o[1])
         sym = frozenset(a for a, ov in zip("xy", o) if a in i.sym and ov == 0.0)
         expr = substitute(self.f, {"x": _X - float(o[0]), "y": _Y - float(o[1])})
-        return SDF(expr, replace(i, bbox=bbox, sym=sym))
+        return SDF(expr, i._replace(bbox=bbox, sym=sym))
 
     def rotate(self, angle: float) -> SDF:
         """The shape rotated counter-clockwise by ``angle`` (radians) about the origin:
@@ -225,12 +225,12 @@ class SDF(Function):
         if is_param(angle):  # turned by runtime parameters
             c, s = sym_cos(angle), sym_sin(angle)
             expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
-            return SDF(expr, replace(i, bbox=None, sym=frozenset()))
+            return SDF(expr, i._replace(bbox=None, sym=frozenset()))
         c, s = math.cos(angle), math.sin(angle)
         bbox = _frame_bbox(i.bbox, (c, -s, s, c, 0.0, 0.0))
         sym = i.sym if angle == 0.0 else frozenset()
         expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
-        return SDF(expr, replace(i, bbox=bbox, sym=sym))
+        return SDF(expr, i._replace(bbox=bbox, sym=sym))
 
     def mirror(self, axis: str = "x") -> SDF:
         """Mirror symmetry: ``axis='x'`` evaluates ``f(|x|, y)``, the part of the shape with
@@ -286,7 +286,7 @@ class SDF(Function):
             _check_length(v, "spacing", spacing)
         i = self._info
         if any(is_param(v) for v in (*sp, *ct)):  # given by parameters: the copies move
-            i = replace(i, bbox=None)
+            i = i._replace(bbox=None)
         sub, symmetric, contained = {}, True, i.bbox is not None
         lo = list(i.bbox[:2]) if i.bbox is not None else None
         hi = list(i.bbox[2:]) if i.bbox is not None else None
@@ -437,3 +437,82 @@ class Difference(SDF):
         info = _Info(inside=k == 0 and ia.inside and ib.outside, bound=ia.bound and ib.bound,
                      bbox=ia.bbox, sym=ia.sym & ib.sym)
         super().__init__(_blend_max(a.f, -b.f, k, kind), info)
+
+
+# ---------------------------------------------------------------------------------------------
+# Many shapes at once.
+
+def _shapes_list(shapes, name) -> list:
+    if isinstance(shapes, SDF):
+        raise TypeError(f"{name} takes an iterable of SDFs (a list, a generator), got one SDF; "
+                        f"write {name}([a, b, ...])")
+    try:
+        out = list(shapes)
+    except TypeError:
+        raise TypeError(f"shapes must be an iterable of fastsdf SDF objects, got "
+                        f"{shapes!r} of type {type(shapes).__name__}") from None
+    if not out:
+        raise ValueError(f"{name} needs at least one shape, got an empty iterable")
+    for i, f in enumerate(out):
+        _check_sdf(f, f"shapes[{i}]")
+    return out
+
+
+def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+    """The union of many shapes: ``shapes[0] | shapes[1] | ...`` with one blend (``k`` and
+    ``kind`` as for :class:`Union`; the :func:`smoothness` context is not used).
+
+    The same expression as the left fold of :class:`Union` (so the same kernels and exactness
+    flags), built in one step instead of one intermediate :class:`SDF` per shape: write a large
+    scene as ``union(Box(lo, hi) for lo, hi in corners)``. One shape is returned as it is.
+    """
+    out = _shapes_list(shapes, "union")
+    k, kind = _k_and_kind(k, kind)
+    if len(out) == 1:
+        return out[0]
+    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+        return _union(out, k, kind)
+
+
+def _union(out: list, k, kind: str) -> SDF:
+    e, info = out[0].f, out[0]._info
+    outside, bound, bbox, sym = info.outside, info.bound, info.bbox, info.sym
+    depth = _blend_depth(k, kind)
+    for f in out[1:]:
+        i = f._info
+        e = _blend_min(e, f.f, k, kind)
+        # the rules of Union, step by step (the bounding box grows at every blend)
+        outside = k == 0 and outside and i.outside
+        bound = bound and i.bound
+        bbox = _bbox_union(bbox, i.bbox, depth)
+        sym = sym & i.sym
+        if bound and not e.prms:  # as the intermediate Union would note (see SDF)
+            note_lipschitz(e, 1.0)
+    return SDF(e, _Info(outside=outside, bound=bound, bbox=bbox, sym=sym))
+
+
+def intersection(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+    """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
+    :func:`union` and :class:`Intersection`), built in one step."""
+    out = _shapes_list(shapes, "intersection")
+    k, kind = _k_and_kind(k, kind)
+    if len(out) == 1:
+        return out[0]
+    with _gc_paused():
+        return _intersection(out, k, kind)
+
+
+def _intersection(out: list, k, kind: str) -> SDF:
+    e, info = out[0].f, out[0]._info
+    inside, bound, convex, bbox, sym = info.inside, info.bound, info.convex, info.bbox, info.sym
+    for f in out[1:]:
+        i = f._info
+        e = _blend_max(e, f.f, k, kind)
+        inside = k == 0 and inside and i.inside
+        bound = bound and i.bound
+        convex = k == 0 and convex and i.convex
+        bbox = _bbox_meet(bbox, i.bbox)
+        sym = sym & i.sym
+        if bound and not e.prms:
+            note_lipschitz(e, 1.0)
+    return SDF(e, _Info(inside=inside, bound=bound, convex=convex, bbox=bbox, sym=sym))

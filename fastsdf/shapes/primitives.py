@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -148,6 +147,14 @@ class Circle(SDF):
         else:
             center = _point(center, "center")
             radius = _positive(radius, "radius")
+            self.center, self.radius = center, radius
+            c0, c1 = center.tolist()
+            x, y = _coords()
+            # (numbers: the general path's bounding box and symmetries, in Python floats)
+            info = _primitive_info((c0 - radius, c1 - radius, c0 + radius, c1 + radius),
+                                   _center_sym((c0, c1)), convex=True)
+            SDF.__init__(self, sym_length(x - c0, y - c1) - radius, info)
+            return
         self.center, self.radius = center, radius
         x, y = _coords()
         moving = is_param(radius) or any(is_param(v) for v in center)
@@ -206,8 +213,8 @@ class Box(SDF):
         if _has_param(minc) or _has_param(maxc):
             (minc, lo), (maxc, hi) = coord2_or_param(minc, "minc"), coord2_or_param(maxc, "maxc")
         else:
-            minc, maxc = _point(minc, "minc"), _point(maxc, "maxc")
-            lo, hi = minc, maxc
+            self._init_numbers(_point(minc, "minc"), _point(maxc, "maxc"))
+            return
         if not np.all(lo < hi):
             raise ValueError(f"minc must be below maxc in both coordinates, got "
                              f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
@@ -222,6 +229,24 @@ class Box(SDF):
         sym = set() if moving else {ax for ax, a, b in zip("xy", lo, hi) if a == -b}
         info = _primitive_info(None if moving else _points_bbox([lo, hi]), sym, convex=True)
         super().__init__(_box_expr(qx, qy), info)
+
+    def _init_numbers(self, minc: np.ndarray, maxc: np.ndarray) -> None:
+        """The corners are numbers (the common case): the same expression and checks as the
+        general path, in Python floats (building many boxes is dominated by NumPy's per-call
+        cost on two-element arrays otherwise)."""
+        (l0, l1), (h0, h1) = minc.tolist(), maxc.tolist()
+        if not (l0 < h0 and l1 < h1):
+            raise ValueError(f"minc must be below maxc in both coordinates, got "
+                             f"minc={[l0, l1]!r}, maxc={[h0, h1]!r}")
+        _check_length(min(h0 - l0, h1 - l1), "the smaller side maxc - minc")
+        self.minc, self.maxc = minc, maxc
+        x, y = _coords()
+        qx = sym_abs(x - (l0 + h0) * 0.5) - (h0 - l0) * 0.5
+        qy = sym_abs(y - (l1 + h1) * 0.5) - (h1 - l1) * 0.5
+        sym = {ax for ax, a, b in (("x", l0, h0), ("y", l1, h1)) if a == -b}
+        # (the bounding box of the corners: l < h in both coordinates)
+        info = _primitive_info((l0, l1, h0, h1), sym, convex=True)
+        SDF.__init__(self, _box_expr(qx, qy), info)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -723,7 +748,7 @@ class Star(Polygon):
         sym = {"x"} if center[0] == 0 else set()
         if center[1] == 0 and n % 2 == 0:
             sym.add("y")
-        self._info = replace(self._info, sym=frozenset(sym) if _frame() == _IDENTITY
+        self._info = self._info._replace(sym=frozenset(sym) if _frame() == _IDENTITY
                              else frozenset())
 
 
@@ -836,5 +861,5 @@ class Arc(SDF):
         info = _primitive_info(None if moving else _points_bbox([cv], rv + tv / 2),
                                set() if moving else _center_sym(cv) & {"x"})
         if not exact:
-            info = replace(info, inside=False)
+            info = info._replace(inside=False)
         super().__init__(dist - thickness / 2, info)

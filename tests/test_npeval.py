@@ -1,0 +1,211 @@
+"""The NumPy path (fastsdf.npeval): agreement with the compiled kernel (values 1e-12 relative,
+gradients 1e-9), pruning of hard unions and intersections that changes no bit, non-finite
+points, and a first answer that never touches numba. (Every scene of test_tape.py is also
+checked through the NumPy path, by its ``assert_agree``.)"""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import fastsdf as sdf
+from fastsdf.graph import Symbol, sym_length
+from fastsdf.npeval import GROUP_MIN, _Program, compile_numpy
+
+from test_tape import _points, assert_agree
+
+X, Y = Symbol("x"), Symbol("y")
+
+
+def _bits(a, b):
+    return np.array_equal(np.asarray(a).view(np.int64), np.asarray(b).view(np.int64))
+
+
+def _shape(kind, rng):
+    with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-1.9, 1.9, 2)):
+        if kind == "box":
+            return sdf.Box(-rng.uniform(0.02, 0.2, 2), rng.uniform(0.02, 0.2, 2))
+        if kind == "circle":
+            return sdf.Circle(rng.uniform(-0.1, 0.1, 2), rng.uniform(0.02, 0.2))
+        return sdf.Capsule([0, 0], rng.uniform(0.05, 0.3, 2), rng.uniform(0.02, 0.1))
+
+
+def _union(kinds, seed, intersect=False, raw=False):
+    """A hard union (or a big disc minus every shape: a max chain) of shapes of a few kinds;
+    ``raw``: circles from graph operations, with no Lipschitz note (interval bounds)."""
+    rng = np.random.default_rng(seed)
+    f = sdf.Circle([0, 0], 2.2) if intersect else sdf.Halfspace([0, 1], -1.8)
+    e = f.f
+    for kind in kinds:
+        if raw:
+            c, r = rng.uniform(-1.9, 1.9, 2), rng.uniform(0.02, 0.2)
+            s = sym_length(X - float(c[0]), Y - float(c[1])) - float(r)
+        else:
+            s = _shape(kind, rng).f
+        e = sdf.sym_max(e, -s) if intersect else sdf.sym_min(e, s)
+    return sdf.Function(e, [X, Y])
+
+
+def _clouds(seed):
+    rng = np.random.default_rng(seed)
+    yield _points(3000, seed)                                    # uniform, non-finite ones
+    yield rng.normal([0.3, -0.2], 0.05, (2000, 2))               # clustered
+    yield np.stack([rng.uniform(-2, 2, 3000), rng.uniform(0.1, 0.12, 3000)], 1)  # a strip
+    yield np.array([[0.1, 0.2]])                                 # a single point
+    yield np.concatenate([rng.uniform(-50, 50, (500, 2)), [[1e200, 0.0], [0.0, -1e200]]])
+
+
+def test_pruned_chains_agree_with_the_kernel():
+    """Hard union and intersection of 90 shapes of three kinds (one kernel each to compile)."""
+    for intersect in (False, True):
+        f = _union(["box", "circle", "capsule"] * 30, 1, intersect)
+        scene = f.compiled.numpy_scene
+        assert scene.pruned and len(scene.chain.groups) == 3
+        assert all(g.lip == 1.0 for g in scene.chain.groups)
+        assert_agree(f, _points(4000, 5), backends=("numpy",))
+
+
+@settings(max_examples=12, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(kinds=st.lists(st.sampled_from(["box", "circle", "capsule"]), min_size=GROUP_MIN,
+                      max_size=120),
+       seed=st.integers(0, 10_000), intersect=st.booleans(), raw=st.booleans())
+def test_pruning_changes_no_bit(kinds, seed, intersect, raw):
+    """Pruned, unpruned and the general path (every operand streamed in chain order) give the
+    same bits, value and gradient, for random hard chains and point clouds (uniform, clustered, a
+    thin strip, one point, far away and huge coordinates, non-finite ones)."""
+    f = _union(kinds, seed, intersect, raw)
+    scene = compile_numpy(f.f, ["x", "y"])
+    general = compile_numpy(f.f, ["x", "y"])
+    general._prog = _Program(f.f, "x")
+    for p in _clouds(seed):
+        d, g = scene(*p.T, compute_gradient=True)
+        du, gu = scene(*p.T, compute_gradient=True, prune=False)
+        dg, gg = general(*p.T, compute_gradient=True)
+        assert _bits(d, du) and _bits(g, gu)
+        assert _bits(d, dg) and _bits(g, gg)
+        assert _bits(scene(*p.T), d)
+        ok = np.isfinite(p).all(axis=1)
+        assert np.isnan(d[~ok]).all() and np.isnan(g[~ok]).all()
+        assert np.isfinite(d[ok]).all() and np.isfinite(g[ok]).all()
+
+
+def test_pruning_keeps_few_operands():
+    """Pruning does prune: 1000 small boxes, each point evaluates a handful of them."""
+    from fastsdf.npeval import _prune, _snap, _splits
+    f = _union(["box"] * 1000, 3)
+    group = f.compiled.numpy_scene.chain.groups[0]
+    x, y = np.random.default_rng(0).uniform(-2, 2, (2, 50_000))
+    tile, offs, act = _prune(group, 1.0, x, y, _snap(x, y), _splits(len(x)))
+    kept = (offs[1:] - offs[:-1])[tile]
+    assert kept.min() >= 1 and kept.mean() < 20
+
+
+def test_parameters_and_symbol_names():
+    """Runtime parameters are read per call; any two symbol names (in the given order)."""
+    a = sdf.graph.Param("angle", 0.3)
+    with sdf.transform(angle=a, offset=[0.1, 0.2]):
+        bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
+    f = bar | sdf.Circle([0.5, 0.4], 0.3).translate([0.0, 0.5 * sdf.t])
+    p = _points(500, 7)
+    for vals in ({}, dict(angle=-0.4, t=0.3)):
+        d, g = f(*p.T, compute_gradient=True, backend="numpy", **vals)
+        dt, gt = f(*p.T, compute_gradient=True, backend="tape", **vals)
+        ok = np.isfinite(p).all(axis=1)
+        np.testing.assert_allclose(d[ok], dt[ok], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(g[ok], gt[ok], rtol=1e-9, atol=1e-9)
+    u, v = Symbol("u"), Symbol("v")
+    h = sdf.Function(sdf.sym_sqrt(u * u + 4.0 * v * v) - 1.0 + 0.5 * v, [v, u])
+    d, g = h(np.array([0.3]), np.array([0.7]), compute_gradient=True, backend="numpy")
+    r = np.sqrt(0.49 + 4 * 0.09)
+    np.testing.assert_allclose(d, [r - 1 + 0.15], rtol=1e-14)
+    np.testing.assert_allclose(g[0], [4 * 0.3 / r + 0.5, 0.7 / r], rtol=1e-14)
+
+
+_FRESH = r"""
+import json, sys, numpy as np
+import fastsdf
+from fastsdf.scenes import box_world, seed_world
+from fastsdf.function import _numba_warm
+out = {}
+f = box_world(20, seed=123)
+out["path"] = f.compiled.first_path(100_000)
+x, y = np.random.default_rng(0).uniform(-2, 2, (2, 100_000))
+d, g = f(x, y, compute_gradient=True, backend="numpy")
+out["numba_setup"] = "numba.np.arraymath" in sys.modules or _numba_warm()
+s = seed_world()
+d, g = s(x, y, compute_gradient=True, backend="auto")  # then compiles in a daemon thread
+out["auto_numpy"] = s.compiled._numpy is not None and s.compiled._tape is None
+print(json.dumps(out))
+"""
+
+
+def test_first_answer_needs_no_numba(tmp_path):
+    """In a fresh process, a new scene answers through NumPy without numba's one-time setup
+    (which would import numba's registries: numba.np.arraymath), and ``'auto'`` chooses NumPy
+    there for 1e5 points."""
+    env = dict(os.environ, FASTSDF_CACHE_DIR=str(tmp_path))
+    res = subprocess.run([sys.executable, "-c", _FRESH], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out == {"path": "numpy", "auto_numpy": True, "numba_setup": False}
+
+
+def test_operands_that_differ_in_sharing_or_attributes():
+    """An operand is taken for a shape only with the shape's sharing (``w + w`` with ``w``
+    shared; ``u * u + v * v`` reads the same constants from two nodes, so it may take the
+    other's) and attributes (smooth unions of different ``k``): the pruned chain gives the
+    bits of every operand streamed in order."""
+    rng = np.random.default_rng(4)
+    e = None
+    for i in range(120):
+        c = rng.uniform(-2, 2, 4)
+        u = (X - float(c[0])) * 0.7 + (Y - float(c[1]))
+        v = (X - float(c[2])) * 0.7 + (Y - float(c[3]))
+        s = [u * u + u * u - 0.01, u * u + v * v - 0.01,
+             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 2.0) - 0.05,
+             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 3.0) - 0.05][i % 4]
+        e = s if e is None else sdf.sym_min(e, s)
+    scene = compile_numpy(e, ["x", "y"])
+    assert scene.pruned and sorted(len(g.pos) for g in scene.chain.groups) == [30] * 4
+    general = compile_numpy(e, ["x", "y"])
+    general._prog = _Program(e, "x")
+    p = _points(2000, 8)
+    d, g = scene(*p.T, compute_gradient=True)
+    dg, gg = general(*p.T, compute_gradient=True)
+    assert _bits(d, dg) and _bits(g, gg)
+
+
+def _nested(seed):
+    """Hard chains below the root: a floor smoothly united with a union of 40 boxes, minus a
+    union of 30 circles (a max whose operand is the negated min chain)."""
+    rng = np.random.default_rng(seed)
+    boxes = _shape("box", rng)
+    for _ in range(39):
+        boxes = boxes | _shape("box", rng)
+    holes = _shape("circle", rng)
+    for _ in range(29):
+        holes = holes | _shape("circle", rng)
+    with sdf.smoothness(8):
+        f = sdf.Halfspace([0, 1], -1.8) | boxes
+    return f - holes
+
+
+def test_chains_below_the_root():
+    """Pruned chains anywhere in the expression: the kernel's answers, and the bits of the
+    same expression evaluated without pruning."""
+    f = _nested(2)
+    scene = f.compiled.numpy_scene
+    assert scene.chain is None and len(scene._prog.chains) == 2
+    assert_agree(f, _points(3000, 9), backends=("numpy",))
+    general = compile_numpy(f.f, ["x", "y"])
+    general._prog = _Program(f.f, "x")
+    for p in _clouds(2):
+        d, g = scene(*p.T, compute_gradient=True)
+        dg, gg = general(*p.T, compute_gradient=True)
+        assert _bits(d, dg) and _bits(g, gg)
