@@ -7,6 +7,7 @@ import numbers
 
 import numpy as np
 from numpy.typing import ArrayLike
+from typing import Iterable
 
 from .._validate import check_length as _check_length
 from .._validate import length as _length
@@ -458,7 +459,7 @@ def _shapes_list(shapes, name) -> list:
     return out
 
 
-def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+def union(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> SDF:
     """The union of many shapes: ``shapes[0] | shapes[1] | ...`` with one blend (``k`` and
     ``kind`` as for :class:`Union`; the :func:`smoothness` context is not used).
 
@@ -491,7 +492,7 @@ def _union(out: list, k, kind: str) -> SDF:
     return SDF(e, _Info(outside=outside, bound=bound, bbox=bbox, sym=sym))
 
 
-def intersection(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+def intersection(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> SDF:
     """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
     :func:`union` and :class:`Intersection`), built in one step."""
     out = _shapes_list(shapes, "intersection")
