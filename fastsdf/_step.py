@@ -1569,14 +1569,15 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_respond_all(S, always, skip, lip, margin):
-    """:func:`_simd_respond` of a block where some particle may touch a surface."""
-    return _simd_respond(S, always, skip, lip, margin, True)
+    """:func:`_simd_respond` of a block where some particle may touch a surface, with budgets
+    (``skip``)."""
+    return _simd_respond(S, always, True, lip, margin, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_respond_none(S, always, skip, lip, margin):
-    """:func:`_simd_respond` of a block where no particle touches a surface."""
-    return _simd_respond(S, always, skip, lip, margin, False)
+    """:func:`_simd_respond` of a block where no particle touches a surface, with budgets."""
+    return _simd_respond(S, always, True, lip, margin, False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
