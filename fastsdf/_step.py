@@ -1231,28 +1231,44 @@ def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, off, b0, nb, use_m):
-    """A block's state into the scratch rows (lanes past ``nb`` idle)."""
+def _simd_load(S, Xf, Vf, M, R, CR, CF, FLAGS, b0, nb, use_m, check_all):
+    """A block's state into the scratch rows (lanes past ``nb`` idle), with the checks of
+    :func:`_check_block` (a particle that fails is flagged and idle). Returns how many
+    failed."""
     L = LANES
     W = _STRIDE
+    bad = 0
     for k in range(L):
         if k < nb:
             i = np.uint64(b0 + k)
             ix = np.uint64(2) * i
-            S[_X * W + k] = Xf[ix]
-            S[_Y * W + k] = Xf[ix + np.uint64(1)]
-            S[_VX * W + k] = Vf[ix]
-            S[_VY * W + k] = Vf[ix + np.uint64(1)]
-            S[_R * W + k] = R[i]
+            x = float(Xf[ix])
+            y = float(Xf[ix + np.uint64(1)])
+            vx = float(Vf[ix])
+            vy = float(Vf[ix + np.uint64(1)])
+            r = float(R[i])
+            m = float(M[i]) if use_m or check_all else 1.0
+            ok = _valid_input(x, y, vx, vy, r, m, use_m or check_all)
+            if check_all:
+                ok = ok and _coeffs(CR, CF, i)[2]
+            if not ok:
+                FLAGS[i] = FLAG_INPUT
+                bad += 1
+            S[_X * W + k] = x
+            S[_Y * W + k] = y
+            S[_VX * W + k] = vx
+            S[_VY * W + k] = vy
+            S[_R * W + k] = r
             S[_CR * W + k] = CR[i]
             S[_CF * W + k] = CF[i]
-            S[_IM * W + k] = inv_mass[off + k] if use_m else 1.0
+            S[_IM * W + k] = 1.0 / m if use_m else 1.0
             S[_M * W + k] = M[i] if USE_FORCE else 1.0
-            S[_LIVE * W + k] = 1.0 if clear[off + k] >= 0.0 else 0.0
+            S[_LIVE * W + k] = 1.0 if ok else 0.0
         else:
             for row in (_X, _Y, _VX, _VY, _R, _CR, _CF, _IM, _M, _LIVE):
                 S[row * W + k] = 0.0
         S[_CLR * W + k] = 0.0
+    return bad
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -1543,9 +1559,9 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         cf = S[_CF * W + q]
         cok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
         contact = (s <= 0.0) & contacts
-        rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, _sel(ok, S[_GX * W + q], math.nan),
-                                        _sel(ok, S[_GY * W + q], math.nan), cr, cf,
-                                        always & (not bounced))
+        # (where not ok, s is NaN: no contact, so the gradient's value does not matter)
+        rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, S[_GX * W + q], S[_GY * W + q], cr,
+                                        cf, always & (not bounced))
         x = _sel(contact, rx, x)
         y = _sel(contact, ry, y)
         vx = _sel(contact, rvx, vx)
@@ -1638,15 +1654,13 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
     row = np.uint64(3 * ny)
     fbchk = GRID_EXACT and data[0] == 0
     use_m = use_m or USE_FORCE
-    clear = np.zeros(hi - lo)
-    inv_mass = np.empty(hi - lo if use_m else 0)
-    bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
     S = np.zeros(_ROWS * _STRIDE)
+    bad = 0
     for b0 in range(lo, hi, LANES):
         nb = min(hi, b0 + LANES) - b0
-        _simd_load(S, Xf, Vf, M, R, CR, CF, clear, inv_mass, b0 - lo, b0, nb, use_m)
+        bad += _simd_load(S, Xf, Vf, M, R, CR, CF, FLAGS, b0, nb, use_m, check_all)
         for step in range(steps):
             t = t0 + step * dt
             if skip or fbchk:
