@@ -481,7 +481,45 @@ def _force_alone_ns(grid, state, force, m=8192, reps=5, calls=200) -> float:
 
 LIMIT = """### Where the settled step stops: the per-particle limit
 
-A settled particle touches the funnel nearly every step, so each step does the whole work: read
+Since this session a static grid world with stored gradients and float64 state runs the block
+kernel (`simd_par` in `fastsdf/_step.py`; the analysis of the particle-by-particle step below
+still holds for every other world). It keeps 128 particles in the rows of one scratch array
+through all steps of a `run(k)` call and runs each step as passes over them: a vector pass of
+forces (fused `@njit` forces and `FieldForce` inlined), integration, free-flight budgets and
+the grid cell (index and bilinear fractions); a scalar pass that loads each cell's two runs of
+six grid values and blends its three channels in one 4-wide vector (where every particle
+queries, four particles' results transposed in registers and stored as three vector stores);
+a scalar fix-up of only the particles that need a tunnelling sweep or a query outside the
+grid; and a vector pass of the response with selects instead of branches. A step in which no
+particle of the block needs a query is the first pass alone. `python -m bench.step_asm` counts
+the innermost loops: in the peers' configuration about 27 instructions per particle-step to
+move and locate, 22 to gather and blend, 36 to respond (10.5 in a block where no particle
+touches a surface), all 4-wide (ymm) but the gather's loads: about 85 instructions per
+particle-step against 200-250 for the scalar contact step, with the response's square root
+and division shared by four particles, and no dependent chain longer than one pass.
+
+- Measured (`python -m bench.step_ab --rev 3194da4 --phase settled fall` with `--peer-work`,
+  none, `--force wind`, `--force field`: the kernel before this change, side by side with
+  Taichi, results bit-identical in every run; load 3.1-3.9, so trust the ratios): the peers'
+  work 1.76x the previous kernel settled (1.88x Taichi) and 1.12x falling (1.04x Taichi); the
+  defaults 1.35x settled (0.92x Taichi: sliding particles are still swept in scalar code, three
+  to four queries each) and 1.07x falling (1.88x Taichi); with the `wind` force 1.31x settled
+  and 1.25x falling, with the `FieldForce` attractor 1.33x settled and 1.49x falling.
+- The limit now: the throughput bound of the bullet below, about 85 instructions per
+  particle-step at 3-4 per cycle, 25-30 cycles, against the 100-cycle dependent chain of the
+  scalar step. 2x Taichi in the peers' configuration is close (1.88x at load 3) but not
+  reached. What blocked the first version (0.84x the scalar kernel, though fully vectorized):
+  LLVM turns a row rewritten from its own load under a condition (`row = select(c, new,
+  row)`) into masked stores (`vmaskmovpd`), microcoded and slow on Zen 2, so every pass
+  writes its results to rows of its own; a gather of 12 scalar loads and 12 scalar stores
+  per particle (store-bound), replaced by the blend in vector registers; the cell index
+  converted from float in the scalar pass (now in the vector pass, as int64 bits). Not done:
+  fusing one step's response with the next step's first pass (it would save about ten loads
+  and stores per four particles) and vectorizing the tunnelling sweep (the defaults' settled
+  phase is dominated by it).
+
+The particle-by-particle step (every other world, and before this session every world). A
+settled particle touches the funnel nearly every step, so each step does the whole work: read
 `x, v, r` (40 bytes; `cr, cf` 16 more at a contact), write `x, v` (32 bytes), and read 12
 doubles of the grid (value and gradient at the cell's 4 nodes, two runs of 48 bytes, 2 to 4 cache
 lines). Counting the arithmetic of that path in `fastsdf/_step.py`: integration 8 flops, locating
@@ -524,7 +562,7 @@ arithmetic and no gather instruction).
   per call; a compiled force field evaluated for 32 particles ahead of their steps
   (the same with `--force field`: 1.26x settled, 1.16x falling, bit-identical; a cheap
   `@njit` force such as the bench's `wind` is still evaluated inline: 1.04x settled, 0.95x falling). Not done: re-sorting particles by grid cell (it reorders the user's arrays
-  and needs a permutation layer) and explicit SIMD (numba intrinsics for masked gathers).
+  and needs a permutation layer); explicit SIMD: the block kernel above.
 - The peers' work (skipping and the tunnelling check off) runs a kernel of its own,
   `plain_par` in `fastsdf/_step.py` (compiled only when first used; same results bit for bit,
   tested against the general kernel): no budgets and no sweep; flat unsigned indexing of the
@@ -545,7 +583,7 @@ arithmetic and no gather instruction).
   out-of-order execution overlaps about two. The two-pass batches take the response's
   mispredicted branch off the queries' chain, which is what the +7% is; 2x Taichi needs the
   queries of 4 particles in SIMD lanes (AVX2 has gathers, which Zen 2 runs as about one load
-  per element, so the gain would come from the arithmetic only) and is not reached.
+  per element, so the gain would come from the arithmetic only): the block kernel above.
 - What fused forces cost: the forces table gives each force's arithmetic alone next to one
   gravity step. In free flight a skipped step is only integration and the budget (a few ns),
   so even the wind's ten flops are a sizable part of it; the attractor's value and gradient
