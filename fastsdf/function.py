@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 import numbers
+import sys
 import threading
 
 import numba
@@ -605,8 +606,10 @@ class Function:
 def _numba_warm() -> bool:
     """Whether this process has paid numba's one-time setup already (the tape interpreter is
     loaded, or a scene's kernel ran)."""
-    from .tape import _eval_par
-    return bool(_eval_par.overloads) or _KERNEL_RAN[0]
+    if _KERNEL_RAN[0]:
+        return True
+    tape = sys.modules.get("fastsdf.tape")  # not imported: not loaded (importing costs 10 ms)
+    return tape is not None and bool(tape._eval_par.overloads)
 
 
 #: Set once any compiled kernel has run in this process.
