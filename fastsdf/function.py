@@ -404,7 +404,7 @@ class Function:
     The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
     in the last bits depending on whether the background compilation has finished (a program's
     output would depend on timing), and calls made while it compiles share the GIL and the
-    cores with it (measured by ``python -m bench.bench_tape``: up to 2.7x slower meanwhile).
+    cores with it (measured by ``python -m bench.bench_tape``: up to 3x slower meanwhile).
     For interactive work, where the first answer matters most, set ``Function.backend =
     'auto'`` (or on one function).
 
