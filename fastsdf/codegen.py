@@ -47,7 +47,7 @@ from typing import Sequence
 
 from . import __version__
 from ._simd import block_source, drive_import, program_source, vectorizable, vmath_import
-from .graph import Expr, parameters
+from .graph import Expr, _gc_paused, parameters
 from .ops import OPS, lit
 
 __all__ = ["generate_module_source", "MIN_LOOP"]
@@ -1192,6 +1192,11 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     (one dict per loop over a table, in the order of the kernels' row lists: ``op``, ``k``,
     ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
     ``rows`` (their shared template and constants), ``others`` (the chain's other operands))."""
+    with _gc_paused():  # a bulk pass over the graph (see fastsdf.graph._GCPaused)
+        return _generate_module(root, symbol_names, vmath)
+
+
+def _generate_module(root: Expr, symbol_names, vmath: bool):
     tables: dict = {}
     pn = scene_parameters(root)
     memo: dict = {}

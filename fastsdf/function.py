@@ -25,7 +25,7 @@ from ._cache import load_module
 from ._drive import max_threads, scratch
 from .codegen import generate_module, scene_parameters
 from .prune import PrunePlan, bin_points, make_plan, snap_bounds
-from .graph import Expr, _to_str, as_expr, parameters, substitute_params
+from .graph import Expr, _gc_paused, _to_str, as_expr, parameters, substitute_params
 
 __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS",
            "BACKENDS"]
@@ -166,7 +166,8 @@ class CompiledSDF:
         ``ValueError`` for an expression the tape does not evaluate)."""
         if self._tape is None:
             from .tape import compile_tape
-            self._tape = compile_tape(self.expr, self.symbol_names)
+            with _gc_paused():  # a bulk pass over the graph (see fastsdf.graph._GCPaused)
+                self._tape = compile_tape(self.expr, self.symbol_names)
         return self._tape
 
     @property
@@ -174,7 +175,8 @@ class CompiledSDF:
         """The :class:`fastsdf.npeval.NumpyScene` of the expression (built on first use)."""
         if self._numpy is None:
             from .npeval import compile_numpy
-            self._numpy = compile_numpy(self.expr, self.symbol_names)
+            with _gc_paused():
+                self._numpy = compile_numpy(self.expr, self.symbol_names)
         return self._numpy
 
     def first_path(self, n: int) -> str:

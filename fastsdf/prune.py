@@ -38,6 +38,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from .graph import _gc_paused
 from .interval import _LIPSCHITZ, node_bounds
 from .ops import OPS
 
@@ -165,6 +166,11 @@ def _template_bounds(steps, cols, ranges, shape, hint):
 def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
     """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.codegen.generate_module`)
     over ``bounds = ((x0, x1), (y0, y1))`` cut into ``nx x ny`` tiles."""
+    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+        return _make_plan(groups, bounds, nx, ny, tol)
+
+
+def _make_plan(groups, bounds, nx, ny, tol):
     t0 = time.perf_counter()
     ranges = _tile_ranges(bounds, nx, ny)
     T = nx * ny

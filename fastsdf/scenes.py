@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .graph import _gc_paused
 from .shapes import SDF, Box, Circle, Halfspace, smoothness, transform
 
 __all__ = ["funnel", "seed_world", "box_world", "mixed_scene"]
@@ -30,9 +31,14 @@ def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
     """
     if int(n_boxes) != n_boxes or n_boxes < 0:
         raise ValueError(f"n_boxes must be a non-negative integer, got n_boxes={n_boxes!r}")
+    with _gc_paused():  # a bulk build (see fastsdf.graph._GCPaused)
+        return _box_world(int(n_boxes), seed)
+
+
+def _box_world(n_boxes: int, seed) -> SDF:
     rng = np.random.default_rng(seed)
     f = funnel()
-    for _ in range(int(n_boxes)):
+    for _ in range(n_boxes):
         with transform(angle=rng.uniform(-0.8, 0.8), offset=rng.uniform(-2, 2, size=2)), \
                 smoothness(5):
             f |= Box(minc=rng.uniform(-0.3, -0.1, size=2), maxc=rng.uniform(0.1, 0.3, size=2))
@@ -47,6 +53,11 @@ def mixed_scene(n: int, seed: int = 1) -> SDF:
     (used by the benchmarks and tests)."""
     if int(n) != n or n < 1:
         raise ValueError(f"n must be a positive integer, got n={n!r}")
+    with _gc_paused():  # a bulk build (see fastsdf.graph._GCPaused)
+        return _mixed_scene(int(n), seed)
+
+
+def _mixed_scene(n: int, seed) -> SDF:
     rng = np.random.default_rng(seed)
     f = Halfspace([0, 1], -1.8)
     for i in range(int(n) - 1):

@@ -7,14 +7,15 @@ import numbers
 
 import numpy as np
 from numpy.typing import ArrayLike
+from typing import Iterable
 
 from .._validate import check_length as _check_length
 from .._validate import length as _length
 from .._validate import coord2_or_param, is_param, real_or_param
 from ..graph import sym_cos, sym_exp, sym_log, sym_sin
 from ..interval import note_lipschitz
-from ..graph import (Expr, Function, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min,
-                     sym_qmin, sym_smax, sym_smin)
+from ..graph import (Expr, Function, _gc_paused, substitute, sym_abs, sym_cmin, sym_floor,
+                     sym_max, sym_min, sym_qmin, sym_smax, sym_smin)
 from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
 from .exactness import (_NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow,
                         _Info)
@@ -458,7 +459,7 @@ def _shapes_list(shapes, name) -> list:
     return out
 
 
-def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+def union(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> SDF:
     """The union of many shapes: ``shapes[0] | shapes[1] | ...`` with one blend (``k`` and
     ``kind`` as for :class:`Union`; the :func:`smoothness` context is not used).
 
@@ -470,6 +471,11 @@ def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:
         return out[0]
+    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+        return _union(out, k, kind)
+
+
+def _union(out: list, k, kind: str) -> SDF:
     e, info = out[0].f, out[0]._info
     outside, bound, bbox, sym = info.outside, info.bound, info.bbox, info.sym
     depth = _blend_depth(k, kind)
@@ -486,13 +492,18 @@ def union(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
     return SDF(e, _Info(outside=outside, bound=bound, bbox=bbox, sym=sym))
 
 
-def intersection(shapes, k: float = 0.0, kind: str = "exponential") -> SDF:
+def intersection(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> SDF:
     """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
     :func:`union` and :class:`Intersection`), built in one step."""
     out = _shapes_list(shapes, "intersection")
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:
         return out[0]
+    with _gc_paused():
+        return _intersection(out, k, kind)
+
+
+def _intersection(out: list, k, kind: str) -> SDF:
     e, info = out[0].f, out[0]._info
     inside, bound, convex, bbox, sym = info.inside, info.bound, info.convex, info.bbox, info.sym
     for f in out[1:]:
