@@ -818,7 +818,7 @@ class NumpyScene:
         self._prog = _Program(expr, self.xname, prune=True)
 
     @property
-    def chain(self):
+    def chain(self) -> "_Chain | None":
         """The pruned chain at the root (None if the root is not one)."""
         return self._prog.chains.get(len(self._prog.steps) - 1)
 
