@@ -235,6 +235,7 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
         sim = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=tunnelling)
         sim.force_generators.append(phys.Gravity())
         sim._skip = False
+        sim._simd = False          # (a grid world would take the block kernel, tested below)
         sims.append(sim)
     sims[0].run(60)
     assert sims[0]._module.plain_ser.signatures          # compiled and called
@@ -546,3 +547,120 @@ def test_sleeping_particles_give_the_results_of_single_steps():
 def test_rest_speed_is_validated(bad):
     with pytest.raises(ValueError, match="rest_speed must be finite and >= 0"):
         phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=2, rest_speed=bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# The block kernel of grid worlds (simd_ser/simd_par) against the particle-by-particle kernels.
+
+@njit(cache=True)
+def _gust(x, y, vx, vy, m, t):
+    """A fused user force for the block kernel's tests (depends on position, velocity,
+    mass and time)."""
+    return 0.2 * (0.5 + 0.3 * y - vx) * m, -0.1 * vy + 0.05 * math.sin(3.0 * t)
+
+
+def _block_pair(grid, n, seed, block, forces=(), **kw):
+    """Two simulations in the same state: the block kernel and the particle-by-particle one."""
+    rng = np.random.default_rng(seed)
+    sims = []
+    for simd in (True, False):
+        sim = phys.ParticleSimulation(grid, n=n, seed=seed, block=block, **kw)
+        sim.force_generators += [phys.Gravity()] + list(forces)
+        sim._simd = simd
+        sims.append(sim)
+    k = n // 4
+    # resting on the floor of the seed world's funnel, falling, fast across the scene, and
+    # beyond the grid's bounds (the exact fallback, or the clamped answer for 'nearest')
+    x = np.r_[np.c_[rng.uniform(-0.3, 0.3, k), rng.uniform(-1.0, -0.5, k)],
+              np.c_[rng.normal(0, 0.3, k), rng.uniform(0.5, 1.8, k)],
+              np.c_[rng.uniform(-1.8, 1.8, k), rng.uniform(-1.8, 1.8, k)],
+              np.c_[rng.uniform(1.9, 2.6, n - 3 * k), rng.uniform(-2.5, 2.5, n - 3 * k)]]
+    v = np.r_[rng.normal(scale=0.05, size=(2 * k, 2)), rng.normal(scale=4.0, size=(n - 2 * k, 2))]
+    for sim in sims:
+        sim.p["x"] = x
+        sim.p["v"] = v
+        sim.p["r"] = rng.uniform(0.0, 0.05, n) if sim is sims[0] else sims[0].p["r"]
+        sim.p["m"] = rng.uniform(0.5, 2.0, n) if sim is sims[0] else sims[0].p["m"]
+        sim.p["cr"] = rng.uniform(0.0, 1.0, n) if sim is sims[0] else sims[0].p["cr"]
+        sim.p["cf"] = rng.uniform(0.0, 1.0, n) if sim is sims[0] else sims[0].p["cf"]
+    return sims
+
+
+def _run_pair(sims, calls, steps):
+    """Run both; the states, clocks and any errors must agree bit for bit after each call."""
+    for _ in range(calls):
+        errors = []
+        for sim in sims:
+            try:
+                sim.run(steps)
+                errors.append(None)
+            except ValueError as e:
+                errors.append(str(e))
+        assert errors[0] == errors[1]
+        for f in ("x", "v"):
+            np.testing.assert_array_equal(sims[0].p[f], sims[1].p[f])
+        assert sims[0].t == sims[1].t
+
+
+@pytest.mark.parametrize("tunnelling, skip, extra", [
+    (False, False, {}),                                     # the peers' work
+    (True, True, {}),                                       # the defaults
+    (True, False, {"integrator": "euler", "collision": "notebook"}),
+    (False, True, {})])
+@pytest.mark.parametrize("block", [100, 300])
+def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra, block):
+    g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
+    sims = _block_pair(g, 1000, 3, block, prevent_tunnelling=tunnelling, **extra)
+    for sim in sims:
+        sim._skip = skip
+        sim.p["x"][7] = math.nan            # invalid input: frozen, flagged, left as it is
+        sim.p["v"][8] = math.inf
+        sim.p["cr"][:40] = 1.5              # invalid cr, found at a contact
+    sims[0].force_generators.append(phys.Drag(0.2))
+    sims[1].force_generators.append(phys.Drag(0.2))
+    _run_pair(sims, 3, 30)
+    assert sims[0]._module.simd_ser.signatures
+    # some particles touched surfaces, some left the grid, some were frozen
+    assert np.any(np.abs(sims[0].p["x"]) > 2.0)
+    assert np.isnan(sims[0].p["x"][7, 0]) and np.isinf(sims[0].p["v"][8, 0])
+
+
+@pytest.mark.parametrize("mode", ["exact", "nearest"])
+def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
+    # A fused user force, blocks over threads, blocks not a multiple of the lanes, and a grid
+    # whose exact fallback is bound when the first particle comes near its edge ('exact').
+    g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j], mode=mode)
+    n = phys.PARALLEL_MIN_PARTICLES + 77
+    sims = _block_pair(g, n, 5, 700, forces=[_gust])
+    _run_pair(sims, 2, 25)
+    sims[0]._skip = sims[1]._skip = False
+    _run_pair(sims, 1, 25)
+    assert sims[0]._kernel((_gust,))[0].simd_par.signatures
+    assert sims[0]._exact_ptr is not None or mode == "nearest"
+
+
+def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
+    g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+    picked = []
+    pick = phys.ParticleSimulation._pick_kernel
+
+    def spy(self, *args):
+        kernel = pick(self, *args)
+        picked.append(kernel.py_func.__name__)
+        return kernel
+
+    monkeypatch.setattr(phys.ParticleSimulation, "_pick_kernel", spy)
+    cases = [({}, "simd_ser"), ({"prevent_tunnelling": False}, "simd_ser"),
+             ({"rest_speed": 0.1}, "run_ser"), ({"dtype": np.float32}, "run_ser")]
+    for kw, name in cases:
+        picked.clear()
+        sim = phys.ParticleSimulation(g, n=200, seed=2, **kw)
+        sim.force_generators.append(phys.Gravity())
+        sim.run(2)
+        assert set(picked) == {name}      # (twice where particles resume at the edge)
+    picked.clear()
+    sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))   # a Python force
+    sim.run(1)
+    assert set(picked) == {"run_ser"}
+    # an exact-SDF world has no block kernel
+    assert not phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)._module.GRID_SIMD
