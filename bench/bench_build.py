@@ -10,8 +10,8 @@ tiles; only scenes with loops over tables have one). Every repeat builds the sce
 random constants (``seed``), so no cache keyed by the expression helps.
 
 Box unions are written two ways: ``f = f | Box(...)`` in a loop, and the n-ary
-``fastsdf.union`` of a list comprehension of boxes; the mixed scenes are
-:func:`fastsdf.scenes.mixed_scene`.
+``fastsdf.union`` of a list comprehension of boxes; polygons (stars and triangles, the compiled
+polygon primitive) are united at once; the mixed scenes are :func:`fastsdf.scenes.mixed_scene`.
 """
 
 from __future__ import annotations
@@ -49,6 +49,18 @@ def boxes_list(n: int, seed: int = 0):
     return sdf.union(shapes)
 
 
+def polygons_list(n: int, seed: int = 0):
+    """A union of ``n`` small rotated stars and triangles (compiled polygon primitives)."""
+    import fastsdf as sdf
+    rng = np.random.default_rng(seed)
+    shapes = []
+    for i, p in enumerate(rng.uniform(-2, 2, (n, 2))):
+        with sdf.transform(angle=float(rng.uniform(-3, 3)), offset=p):
+            shapes.append(sdf.Star([0, 0], 0.08, 5) if i % 2 else
+                          sdf.Polygon([[0, 0], [0.1, 0], [0.05, 0.07]]))
+    return sdf.union(shapes)
+
+
 def _scenes(quick: bool):
     from fastsdf import scenes
     out = [("seed world", 1, lambda seed: scenes.seed_world())]
@@ -56,6 +68,8 @@ def _scenes(quick: bool):
     for n in sizes:
         out.append((f"{n} boxes, `f = f \\| Box` loop", n, lambda seed, n=n: boxes_loop(n, seed)))
         out.append((f"{n} boxes, `union([...])`", n, lambda seed, n=n: boxes_list(n, seed)))
+    out.append(("1000 polygons (stars, triangles), `union([...])`", 1000,
+                lambda seed: polygons_list(1000, seed)))
     for n in (200, 1000):
         out.append((f"mixed_scene({n})", n, lambda seed, n=n: scenes.mixed_scene(n, seed + 1)))
     return out

@@ -112,11 +112,17 @@ if BACKEND == "setup":  # one point through the tape: numba's one-time setup, an
     out["setup_s"] = time.perf_counter() - t0
     print(json.dumps(out))
     sys.exit(0)
+ONLY_FIRST = BACKEND == "autofirst"  # the first answer only (a repeat of it)
+if ONLY_FIRST:
+    BACKEND = "auto"
 if BACKEND == "auto":
     path = f.compiled.first_path(p.shape[1])
     out["path"] = path
 d, g = f(p[0], p[1], compute_gradient=True, backend=BACKEND)
 out["first_s"] = time.perf_counter() - t0
+if ONLY_FIRST:
+    print(json.dumps(out))
+    sys.exit(0)
 if BACKEND == "auto":
     calls = []
     t1 = time.perf_counter()
@@ -139,6 +145,10 @@ if BACKEND == "auto":
     out["alone_s"] = float(np.median(calls))
 print(json.dumps(out))
 """
+
+#: Fresh processes per backend and scene (the first answers reported are the best of them;
+#: one more ``'auto'`` process measures the calls made while the kernel compiles).
+REPEATS = 2
 
 _SCENES = [("seed", "seed world"), ("box20", "20-box world"),
            ("mixed", "mixed ops, 200 primitives"), ("hard1000", "hard union of 1000 boxes"),
@@ -165,10 +175,17 @@ def _first_answer(quick: bool) -> tuple:
         scenes = _SCENES[:2] if quick else _SCENES
         for kind, label in scenes:
             res = {}
-            for backend in ("auto", "tape", "kernel"):
-                seed += 1
-                res[backend] = _fresh(kind, backend, seed, cache)
+            for backend in ("auto", "tape", "kernel", "autofirst"):
+                runs = []
+                for _ in range({"auto": 1, "autofirst": REPEATS - 1}.get(backend, REPEATS)):
+                    seed += 1
+                    runs.append(_fresh(kind, backend, seed, cache))
+                if runs:
+                    res[backend] = min(runs, key=lambda r: r["first_s"])
             a = res["auto"]
+            # the first answer: best of the fresh processes (the machine is shared)
+            if "autofirst" in res:
+                a["first_s"] = min(a["first_s"], res["autofirst"]["first_s"])
             rows.append([label, f"{a['import_s']:.2f}", f"{a['build_s']:.3f}",
                          f"**{a['first_s']:.3f}** ({a['path']})",
                          f"{a['import_s'] + a['build_s'] + a['first_s']:.2f}",
@@ -196,9 +213,11 @@ def run(quick: bool = False) -> str:
         "## A new scene's first answer: NumPy, the tape interpreter, the kernel", "",
         stamp(COMMAND) + f" Load average (1, 5, 15 min) before: {load[0]:.2f}, {load[1]:.2f}, "
         f"{load[2]:.2f}; after: {load2[0]:.2f}, {load2[1]:.2f}, {load2[2]:.2f}.", "",
-        "Fresh process per cell, empty kernel cache, warm installation cache (the tape "
+        "Fresh processes, empty kernel cache, warm installation cache (the tape "
         "interpreter and the scene-independent kernels compiled once before), fresh random "
-        "constants. *First answer*: from the built scene to the answer of 1e5 random points in "
+        f"constants; each first answer is the best of {REPEATS} fresh processes (for 'auto' "
+        "one of them also measures the calls made while the kernel compiles; import and "
+        "construction are from that one). *First answer*: from the built scene to the answer of 1e5 random points in "
         "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
         "(`fastsdf.npeval`, no numba: hard unions of many shapes pruned per tile) and the tape "
         "(which first pays numba's one-time setup in the process), then compiles the kernel in "

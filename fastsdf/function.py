@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 import numbers
+import sys
 import threading
 
 import numba
@@ -405,7 +406,7 @@ class Function:
     The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
     in the last bits depending on whether the background compilation has finished (a program's
     output would depend on timing), and calls made while it compiles share the GIL and the
-    cores with it (measured by ``python -m bench.bench_tape``: up to 2.7x slower meanwhile).
+    cores with it (measured by ``python -m bench.bench_tape``: up to 3x slower meanwhile).
     For interactive work, where the first answer matters most, set ``Function.backend =
     'auto'`` (or on one function).
 
@@ -607,8 +608,10 @@ class Function:
 def _numba_warm() -> bool:
     """Whether this process has paid numba's one-time setup already (the tape interpreter is
     loaded, or a scene's kernel ran)."""
-    from .tape import _eval_par
-    return bool(_eval_par.overloads) or _KERNEL_RAN[0]
+    if _KERNEL_RAN[0]:
+        return True
+    tape = sys.modules.get("fastsdf.tape")  # not imported: not loaded (importing costs 10 ms)
+    return tape is not None and bool(tape._eval_par.overloads)
 
 
 #: Set once any compiled kernel has run in this process.

@@ -8,9 +8,10 @@ blocks that stay in the cache. It is the path of ``backend='numpy'`` and of the 
 ``backend='auto'`` (see :class:`fastsdf.function.Function`).
 
 The formulas are those of the compiled kernels (:mod:`fastsdf.codegen`): chains of ``min``/
-``max``/``smin``/``smax`` are flattened and streamed operand by operand (the earlier operand wins
-a tie; smooth chains as the kernels' online log-sum-exp), ``length`` as ``sqrt(a*a + b*b)`` with
-the ``hypot`` fallback, the other operations by the NumPy reference of :mod:`fastsdf.ops`.
+``max``/``smin``/``smax`` are flattened, hard ones streamed operand by operand (the earlier
+operand wins a tie), smooth ones as a log-sum-exp relative to their extremum (the kernels'
+streamed sum, to rounding), ``length`` as ``sqrt(a*a + b*b)`` with the ``hypot`` fallback, the
+other operations by the NumPy reference of :mod:`fastsdf.ops`.
 Results agree with the kernels to rounding (tested: values 1e-12 relative, gradients 1e-9);
 ties between different operands of a chain may pick another (equal-valued) operand's gradient
 where the kernels reorder a chain. Non-finite points give NaN for those points only.
@@ -291,39 +292,29 @@ def _op_hard(node, av, ag, x, y, ctx):
 
 
 def _op_smooth(node, av, ag, x, y, ctx):
-    """An exponential smooth chain as the kernels' online log-sum-exp: the running extremum
-    ``m``, the sum of weights ``s`` relative to it, the weighted gradient."""
+    """An exponential smooth chain as a log-sum-exp relative to its extremum ``m``: ``m -+
+    log(sum exp(-k |a_i - m|)) / k``, the gradient the weighted mean of the operands'. The
+    kernels stream the same sum operand by operand (rescaling when the extremum changes): the
+    same value to rounding, with half the array operations here."""
     less = node.op == "smin"
-    nk = -node.attr
+    k = node.attr
     m = av[0]
-    s = 1.0
-    g = ag[0] if ag is not None else None
-    for j in range(1, len(av)):
-        v = av[j]
-        w = (v < m) if less else (v > m)
-        e = np.exp(nk * np.abs(v - m))
-        s = np.where(w, s * e + 1.0, s + e)
-        if g is not None:
-            gv = ag[j]
-            g = tuple(_blend_c(w, g[c], gv[c], e) for c in (0, 1))
-        m = np.where(w, v, m)
-    ls = np.log(s) * (1.0 / node.attr)
+    for v in av[1:]:
+        m = np.minimum(m, v) if less else np.maximum(m, v)
+    s = 0.0
+    gx = gy = None
+    for j, v in enumerate(av):
+        e = np.exp(np.abs(v - m) * -k)
+        s = s + e
+        if ag is not None:
+            gx = _add_c(gx, _sc(ag[j][0], e))
+            gy = _add_c(gy, _sc(ag[j][1], e))
+    ls = np.log(s) * (1.0 / k)
     v = m - ls if less else m + ls
-    if g is None:
+    if ag is None:
         return v, None
     si = 1.0 / s
-    return v, (_sc(g[0], si), _sc(g[1], si))
-
-
-def _blend_c(w, gm, gv, e):
-    """``gm * e + gv`` where ``w`` (the new operand leads), else ``gm + gv * e``."""
-    if gm is None and gv is None:
-        return None
-    if gm is None:
-        return np.where(w, gv, gv * e)
-    if gv is None:
-        return np.where(w, gm * e, gm)
-    return np.where(w, gm * e + gv, gm + gv * e)
+    return v, (_sc(gx, si), _sc(gy, si))
 
 
 _UP = 2.0 ** 600
@@ -818,7 +809,7 @@ class NumpyScene:
         self._prog = _Program(expr, self.xname, prune=True)
 
     @property
-    def chain(self):
+    def chain(self) -> "_Chain | None":
         """The pruned chain at the root (None if the root is not one)."""
         return self._prog.chains.get(len(self._prog.steps) - 1)
 

@@ -101,11 +101,19 @@ def _steps_bounds(group, ranges):
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
+def _per_member(steps) -> bool:
+    """Whether a group's members must be bounded one by one: a compiled primitive with numeric
+    arguments (an ellipse's axes), which its interval rule reads from the node itself. A
+    polygon's only arguments are its coordinates (its vertices are the node's structure, the
+    same in every member), so a group of them is bounded over the table like any template."""
+    return any(node.op == "prim" and len(node.args) > 2 for node, _ in steps)
+
+
 def _steps_bounds_chunk(group, ranges):
     """Bounds ``(lo, hi)`` of shape (members, tiles) of every member of a group: the shared
     template is evaluated once on (members x tiles) arrays, the constants as columns."""
     steps, rows, members = group["steps"], group["rows"], group["members"]
-    if any(node.op == "prim" for node, _ in steps):  # per-member constants in the reference
+    if _per_member(steps):  # per-member constants in the reference
         out = [node_bounds(m, ranges) for m in members]
         return (np.stack([o[id(m)][0] for o, m in zip(out, members)]),
                 np.stack([o[id(m)][1] for o, m in zip(out, members)]))
@@ -287,7 +295,7 @@ def _pair_bounds(group, hints, mem, til, lranges):
     steps, members = group["steps"], group["members"]
     if not len(mem):
         return np.empty(0), np.empty(0)
-    if any(node.op == "prim" for node, _ in steps):
+    if _per_member(steps):
         lo, hi = np.empty(len(mem)), np.empty(len(mem))
         cuts = np.flatnonzero(np.diff(mem)) + 1
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(mem)]):

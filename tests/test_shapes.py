@@ -363,3 +363,18 @@ def test_nary_union_rejects_bad_input():
         sdf.union(5)
     with pytest.raises(ValueError, match="k"):
         sdf.union([c, c], k=-1.0)
+
+
+def test_polygons_with_the_same_vertices_share_their_checks_not_their_arrays():
+    # the checks of a polygon's vertices run once per distinct shape (cached); each polygon
+    # still owns its vertex array, and an invalid shape raises every time
+    tri = [[0.0, 0.0], [1.0, 0.0], [0.3, 0.8]]
+    a, b = sdf.Polygon(tri), sdf.Polygon(np.array(tri))
+    assert a.f is b.f and a.vertices is not b.vertices
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    a.vertices[0, 0] = 5.0  # the caller's copy: the next polygon is unaffected
+    assert sdf.Polygon(tri).vertices[0, 0] == 0.0
+    bowtie = [[0, 0], [1, 1], [1, 0], [0, 1]]
+    for _ in range(2):
+        with pytest.raises(ValueError, match="vertices"):
+            sdf.Polygon(bowtie)

@@ -4,6 +4,7 @@ unless their docstring says otherwise."""
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 
@@ -652,6 +653,27 @@ class EquilateralTriangle(RegularPolygon):
         super().__init__(center=center, radius=radius, n=3)
 
 
+@functools.lru_cache(maxsize=1024)
+def _polygon_local(key: bytes, n: int) -> tuple:
+    """What a polygon's checks and bookkeeping derive from its (deduplicated) vertices alone:
+    ``(w, unit, data, bbox, sym, convex)``. Cached by the vertices' bytes: scenes repeat one
+    shape many times (at other places, under :func:`transform`), and the simplicity check is
+    O(n^2). A polygon that fails a check raises every time (exceptions are not cached)."""
+    v = np.frombuffer(key, dtype=np.float64).reshape(n, 2)
+    _check_length(float(np.abs(v - v[0]).max()), "the polygon's size max|v_i - v_0|")
+    # Checks and the compiled loop (which compares squared lengths) work on the vertices
+    # divided by a power of two near their magnitude: exact, and free of over- and
+    # underflow at any scale. Polygons of moderate magnitude are left as they are.
+    k = math.frexp(float(np.abs(v).max()))[1]
+    unit = math.ldexp(1.0, -k) if abs(k) > 100 else 1.0
+    w = v * unit
+    _check_simple(w, "vertices")
+    w = _ccw(w)
+    w.flags.writeable = False  # shared by every polygon with these vertices
+    data = tuple((float(p[0]), float(p[1])) for p in w)
+    return w, unit, data, _points_bbox(v), _edges_symmetry(v), _is_convex(w)
+
+
 class Polygon(SDF):
     """Any simple polygon, given by its vertices (either orientation, not repeated at the end).
 
@@ -673,23 +695,14 @@ class Polygon(SDF):
         if len(v) < 3:
             raise ValueError(f"vertices needs at least 3 distinct vertices, got "
                              f"{np.asarray(vertices).tolist()!r}")
-        _check_length(float(np.abs(v - v[0]).max()), "the polygon's size max|v_i - v_0|")
-        # Checks and the compiled loop (which compares squared lengths) work on the vertices
-        # divided by a power of two near their magnitude: exact, and free of over- and
-        # underflow at any scale. Polygons of moderate magnitude are left as they are.
-        k = math.frexp(float(np.abs(v).max()))[1]
-        unit = math.ldexp(1.0, -k) if abs(k) > 100 else 1.0
-        w = v * unit
-        _check_simple(w, "vertices")
-        w = _ccw(w)
+        w, unit, data, bbox, sym, convex = _polygon_local(v.tobytes(), len(v))
         self.vertices = w / unit
-        data = tuple((float(p[0]), float(p[1])) for p in w)
         x, y = _coords()
         if unit == 1.0:
             expr = sym_prim("polygon", x, y, data=data)
         else:
             expr = sym_prim("polygon", x * unit, y * unit, data=data) * (1.0 / unit)
-        info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=_is_convex(w))
+        info = _primitive_info(bbox, sym, convex=convex)
         super().__init__(expr, info)
 
     def _init_param(self, vertices) -> None:
