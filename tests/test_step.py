@@ -664,3 +664,11 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
     assert set(picked) == {"run_ser"}
     # an exact-SDF world has no block kernel
     assert not phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)._module.GRID_SIMD
+
+
+def test_block_kernel_on_a_float32_grid():
+    # The cells' values are widened to float64 as the scalar sampler does.
+    g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j], dtype=np.float32)
+    sims = _block_pair(g, 600, 8, 256)
+    _run_pair(sims, 2, 30)
+    assert sims[0]._module.simd_ser.signatures
