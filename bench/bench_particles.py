@@ -499,24 +499,27 @@ particle-step against 200-250 for the scalar contact step, with the response's s
 and division shared by four particles, and no dependent chain longer than one pass.
 
 - Measured (`python -m bench.step_ab --rev 3194da4 --phase settled fall` with `--peer-work`,
-  none, `--force wind`, `--force field`: the kernel before this change, side by side with
-  Taichi, results bit-identical in every run; load 3.1-3.9, so trust the ratios): the peers'
-  work 1.76x the previous kernel settled (1.88x Taichi) and 1.12x falling (1.04x Taichi); the
-  defaults 1.35x settled (0.92x Taichi: sliding particles are still swept in scalar code, three
-  to four queries each) and 1.07x falling (1.88x Taichi); with the `wind` force 1.31x settled
-  and 1.25x falling, with the `FieldForce` attractor 1.33x settled and 1.49x falling.
+  none, `--force wind`, `--force field`: the kernel before this change side by side, results
+  bit-identical in every run; load 1.1-1.5): the peers' work 1.81x the previous kernel settled
+  and 1.29x falling; the defaults 1.29x settled and 1.08x falling; with the `wind` force 1.30x
+  settled and 1.24x falling, with the `FieldForce` attractor 1.36x settled and 1.46x falling.
+  Against Taichi see the table above (its last column); `python -m bench.step_ab --rev main
+  --peer-work` at load 1.0 (main then held this kernel) measured it at 1.98x Taichi settled
+  and 1.10x falling. The defaults' settled phase stays below Taichi: sliding particles are
+  still swept in scalar code, three to four queries each.
 - The limit now: the throughput bound of the bullet below, about 85 instructions per
   particle-step at 3-4 per cycle, 25-30 cycles, against the 100-cycle dependent chain of the
-  scalar step. 2x Taichi in the peers' configuration is close (1.88x at load 3) but not
-  reached. What blocked the first version (0.84x the scalar kernel, though fully vectorized):
+  scalar step. 2x Taichi in the peers' configuration is at the edge: 1.9-2.0x on a quiet
+  machine, about 1.8x at load 3. What blocked the first version (0.84x the scalar kernel, though fully vectorized):
   LLVM turns a row rewritten from its own load under a condition (`row = select(c, new,
   row)`) into masked stores (`vmaskmovpd`), microcoded and slow on Zen 2, so every pass
   writes its results to rows of its own; a gather of 12 scalar loads and 12 scalar stores
   per particle (store-bound), replaced by the blend in vector registers; the cell index
-  converted from float in the scalar pass (now in the vector pass, as int64 bits). Not done:
-  fusing one step's response with the next step's first pass (it would save about ten loads
-  and stores per four particles) and vectorizing the tunnelling sweep (the defaults' settled
-  phase is dominated by it).
+  converted from float in the scalar pass (now in the vector pass, as int64 bits). Measured
+  and not kept: fusing one step's response with the next step's first pass into one loop
+  (0.82x settled, 0.88x falling against the passes apart, bit-identical, load 1.0; not
+  analysed further). Not done: vectorizing the tunnelling sweep (the
+  defaults' settled phase is dominated by it).
 
 The particle-by-particle step (every other world, and before this session every world). A
 settled particle touches the funnel nearly every step, so each step does the whole work: read
