@@ -1005,6 +1005,9 @@ def plain_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay
 # The block step of grid worlds: a block of particles held in scratch rows through all steps,
 # each step in passes over the block that LLVM vectorizes (several particles per instruction).
 
+# A copy of fastsdf._intrinsics.select: this module imports nothing from fastsdf, because the
+# kernel cache hashes this file's source alone (a change in an imported intrinsic would not
+# invalidate the compiled kernels).
 @intrinsic
 def _sel(typingctx, cond, a, b):
     """``a if cond else b`` for float64 values, compiled to a ``select`` (no branch), so that
