@@ -483,7 +483,7 @@ LIMIT = """### Where the settled step stops: the per-particle limit
 
 Since this session a static grid world with stored gradients and float64 state runs the block
 kernel (`simd_par` in `fastsdf/_step.py`; the analysis of the particle-by-particle step below
-still holds for every other world). It keeps 128 particles in the rows of one scratch array
+still holds for every other world). It keeps 64 particles (20 KB of rows, within the L1 cache) in the rows of one scratch array
 through all steps of a `run(k)` call and runs each step as passes over them: a vector pass of
 forces (fused `@njit` forces and `FieldForce` inlined), integration, free-flight budgets and
 the grid cell (index and bilinear fractions); a scalar pass that loads each cell's two runs of

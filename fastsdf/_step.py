@@ -1181,9 +1181,10 @@ def _gather4(typingctx, grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_a
     return sig, codegen
 
 
-#: Particles per block of the vector step (a multiple of every vector width; a block's scratch
-#: rows stay in the L1/L2 cache through all steps of a call).
-LANES = 128
+#: Particles per block of the vector step (a multiple of every vector width). A block's scratch
+#: rows (35 rows of 72 doubles, 20 KB) stay in a 32 KB L1 data cache through all steps of a
+#: call: measured against 128 (38 KB), +3% settled and +16% falling with skipping off.
+LANES = 64
 # Rows of the block step's scratch array, one row of LANES values each (row k at k * _STRIDE):
 # the constant distance between rows lets LLVM prove loads and stores of different rows
 # independent without runtime checks. Flags are stored as 1.0 / 0.0.

@@ -799,7 +799,7 @@ class ParticleSimulation:
     Kernels (all give the same results, bit for bit; the choice is automatic, per call): a
     GridSDF world with stored gradients (the default ``gradient='stored'``, any grid dtype,
     either ``mode``) and float64 state, without ``rest_speed`` and Python force generators,
-    runs the block kernel (``simd_par`` in :mod:`fastsdf._step`): 128 particles at a time held
+    runs the block kernel (``simd_par`` in :mod:`fastsdf._step`): 64 particles at a time held
     in scratch rows through all steps of a :meth:`run` call, each step in passes that the
     compiler turns into 4-wide vector code (forces, fused ``@njit`` forces and
     :class:`FieldForce` included; integration; the grid cell; the response), a short scalar
