@@ -510,7 +510,11 @@ and division shared by four particles, and no dependent chain longer than one pa
 - The limit now: the throughput bound of the bullet below, about 85 instructions per
   particle-step at 3-4 per cycle, 25-30 cycles, against the 100-cycle dependent chain of the
   scalar step. 2x Taichi in the peers' configuration is at the edge: 1.9-2.0x on a quiet
-  machine, about 1.8x at load 3. What blocked the first version (0.84x the scalar kernel, though fully vectorized):
+  machine with 128 particles per block, about 1.8x at load 3. 64 particles per block (35 rows
+  of 72 doubles, 20 KB, within the 32 KB L1 cache; 128 took 38 KB): `python -m bench.step_ab
+  --rev 7a0d1e0 --peer-work --phase settled fall` (the 128 version) at load 1.1-1.5 measured
+  1.03-1.04x settled (2.02-2.03x Taichi) and 1.16x falling, bit-identical; the defaults and the
+  `FieldForce` attractor unchanged (1.00-1.02x); 32 per block: 1.03x settled, 1.27x falling. What blocked the first version (0.84x the scalar kernel, though fully vectorized):
   LLVM turns a row rewritten from its own load under a condition (`row = select(c, new,
   row)`) into masked stores (`vmaskmovpd`), microcoded and slow on Zen 2, so every pass
   writes its results to rows of its own; a gather of 12 scalar loads and 12 scalar stores
