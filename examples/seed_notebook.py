@@ -9,7 +9,10 @@
 and the IPython magic ``%matplotlib inline`` (not Python) turned into a comment. Two lines of the
 notebook's own hand-written simulation (cell 16) no longer run on today's libraries and are
 edited, marked ``[was ...]``: NumPy 2 reads the field spec ``('m', float, 1)`` as a shape-(1,)
-field, and Matplotlib 3.5 removed ``PatchCollection(offset_position='data')``. Each figure is
+field, and Matplotlib 3.5 removed ``PatchCollection(offset_position='data')`` (today the circles
+are placed by ``offset_transform=ax.transData`` and sized by the data transform without its
+translation, ``AffineDeltaTransform(ax.transData)``: with ``transData`` for both, the origin shift
+is applied twice and every circle lands off the canvas). Each figure is
 saved as ``OUT/cell_NN.png``. Each animation is written as a video file, ``OUT/cell_NN.mp4``
 (``.gif`` without ffmpeg; ``pip install 'fastsdf[video]'`` provides one), with a small page
 ``OUT/cell_NN.html`` that plays it: the notebook's ``anim.to_html5_video()`` embeds the whole
@@ -65,6 +68,9 @@ _create_animation = _phys.create_animation
 def _video_animation(fig, ax, sim, frames=300, **kwargs):
     """The notebook's create_animation, whose to_html5_video() writes OUT/cell_NN.mp4 and
     returns a page that plays the file instead of embedding it."""
+    # The world alone, before the animation draws any particle: a test compares it with the
+    # last frame to see that particles were drawn.
+    fig.savefig(os.path.join(OUT, f"cell_{_cell_no[0] + 1:02d}_world.png"), dpi=80)
     anim = _create_animation(fig, ax, sim, frames=frames, **kwargs)
 
     def to_html5_video(embed_limit=None):
@@ -72,6 +78,7 @@ def _video_animation(fig, ax, sim, frames=300, **kwargs):
         from fastsdf.render import save_animation
         name = f"cell_{_cell_no[0] + 1:02d}" + (".mp4" if ffmpeg_available() else ".gif")
         save_animation(anim, os.path.join(OUT, name), fps=30)
+        fig.savefig(os.path.join(OUT, f"cell_{_cell_no[0] + 1:02d}_last.png"), dpi=80)
         if name.endswith(".gif"):
             return f'<img src="{name}">'
         return f'<video src="{name}" controls autoplay loop></video>'
@@ -234,6 +241,7 @@ _cell(13)
 # ---- In [14] --------------------------------------------------------------------------------
 import fastsdf.particles as phys
 from matplotlib.collections import PatchCollection
+from matplotlib.transforms import AffineDeltaTransform  # [added: see reset below]
 _cell(14)
 
 # ---- In [15] --------------------------------------------------------------------------------
@@ -284,8 +292,11 @@ def reset(self, ax):
         self.drawable.remove()
 
     actors = [plt.Circle((0,0), radius=self.p['r'][i]) for i in range(self.n)]
-    # [was offset_position='data', removed in Matplotlib 3.5; offset_transform says the same]
-    self.drawable = ax.add_artist(PatchCollection(actors, offset_transform=ax.transData, alpha=0.6, zorder=10))
+    # [was offset_position='data', removed in Matplotlib 3.5: offsets in data coordinates, and
+    #  circle radii scaled by the data transform without its translation]
+    self.drawable = ax.add_artist(PatchCollection(actors, offset_transform=ax.transData,
+                                                  transform=AffineDeltaTransform(ax.transData),
+                                                  alpha=0.6, zorder=10))
     self.drawable.set_array(np.random.rand(len(actors)))
 
 SimpleParticleSimulation.reset = reset
