@@ -29,8 +29,8 @@ import numpy as np
 
 import fastsdf.particles as phys
 from fastsdf import GridSDF, NarrowBandGridSDF
-from fastsdf.band import band_points, measure_band_error
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.fields.band import band_points, measure_band_error
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from .common import HERE, Progress, fmt_rate, stamp, table
 

@@ -11,7 +11,7 @@ random constants (``seed``), so no cache keyed by the expression helps.
 
 Box unions are written two ways: ``f = f | Box(...)`` in a loop, and the n-ary
 ``fastsdf.union`` of a list comprehension of boxes; polygons (stars and triangles, the compiled
-polygon primitive) are united at once; the mixed scenes are :func:`fastsdf.scenes.mixed_scene`.
+polygon primitive) are united at once; the mixed scenes are :func:`fastsdf.shapes.scenes.mixed_scene`.
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def polygons_list(n: int, seed: int = 0):
 
 
 def _scenes(quick: bool):
-    from fastsdf import scenes
+    from fastsdf.shapes import scenes
     out = [("seed world", 1, lambda seed: scenes.seed_world())]
     sizes = (200, 1000) if quick else (200, 1000, 5000)
     for n in sizes:
@@ -107,7 +107,7 @@ def _ms(s):
 
 def run(quick: bool = False) -> str:
     import fastsdf  # noqa: F401 - import cost is not part of the table
-    from fastsdf import scenes
+    from fastsdf.shapes import scenes
     scenes.mixed_scene(20)  # warm-up: first-call costs of the modelling layer
     boxes_list(20)
     load = os.getloadavg()[0]

@@ -13,8 +13,8 @@ import tempfile
 import numba
 import numpy as np
 
-from fastsdf.graph import evaluate_numpy
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.expr.graph import evaluate_numpy
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from .common import Progress, fmt_rate, run_fresh_process, stamp, table, timeit
 
@@ -37,7 +37,7 @@ import time, json
 t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
-from fastsdf.scenes import box_world, mixed_scene, seed_world
+from fastsdf.shapes.scenes import box_world, mixed_scene, seed_world
 t_import = time.perf_counter() - t0
 
 t0 = time.perf_counter()

@@ -42,9 +42,9 @@ def run(quick: bool = False) -> str:
     from distributed import Client
 
     from fastsdf import GridSDF
-    from fastsdf.distributed import DistributedSimulation, local_cluster
+    from fastsdf.apps.distributed import DistributedSimulation, local_cluster
     from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.scenes import seed_world
+    from fastsdf.shapes.scenes import seed_world
 
     n = 200_000 if quick else 4_000_000
     steps = 10 if quick else 100

@@ -6,7 +6,7 @@ gradient mode, beside the exact compiled SDF and the seed's scipy ``map_coordina
 
 Every throughput is value + gradient at the same uniform random points inside the grid's
 bounds (1e6 of them), the median of repeats after warm-up, measured in one process beside its
-baselines. Errors come from :func:`fastsdf.grid.measure_error` on those same points.
+baselines. Errors come from :func:`fastsdf.fields.grid.measure_error` on those same points.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import time
 import numba
 import numpy as np
 
-from fastsdf.grid import GridSDF, measure_error
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.fields.grid import GridSDF, measure_error
+from fastsdf.shapes.scenes import box_world, seed_world
 from fastsdf.shapes import Circle
 
 from .common import HERE, Progress, fmt_rate, stamp, table, timeit

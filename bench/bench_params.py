@@ -21,7 +21,7 @@ import tempfile
 import numpy as np
 
 import fastsdf as sdf
-from fastsdf.scenes import funnel
+from fastsdf.shapes.scenes import funnel
 
 from .common import Progress, fmt_rate, run_fresh_process, stamp, table, timeit
 

@@ -29,7 +29,7 @@ from numba import njit, prange
 
 import fastsdf.particles as phys
 from fastsdf import GridSDF
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from .bench_grid import SeedGridSDF
 from .common import Progress, fmt_rate, stamp, table
@@ -373,7 +373,7 @@ def wind(x, y, vx, vy, m, t):
 
 
 def _attractor():
-    from fastsdf.graph import Symbol, sym_sqrt
+    from fastsdf.expr.graph import Symbol, sym_sqrt
     x, y = Symbol("x"), Symbol("y")
     return phys.FieldForce(potential=-0.05 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1),
                            per_mass=True)

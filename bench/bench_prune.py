@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 import fastsdf as sdf
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from .common import fmt_rate, run_fresh_process, stamp, table, timeit
 

@@ -19,9 +19,9 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from fastsdf._vmath import vexp, vlog, vlog1p
+from fastsdf.backends.kernel.vmath import vexp, vlog, vlog1p
 from fastsdf.function import compile_expr
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from .common import HERE, fmt_rate, run_fresh_process, stamp, table
 
@@ -123,7 +123,7 @@ def _elementary(quick: bool) -> str:
         u = _ulps(ov, om)
         rows.append((f"`{name}`", where, f"{fmt_rate(n / t['m'])}/s", f"**{fmt_rate(n / t['v'])}/s**",
                      f"**{t['m'] / t['v']:.1f}x**", f"{u.max():.0f}", f"{np.mean(u > 0):.1%}"))
-    return table(["function", "arguments", "C library (`math.*`)", "fastsdf._vmath",
+    return table(["function", "arguments", "C library (`math.*`)", "fastsdf.backends.kernel.vmath",
                   "speed-up", "max ulp vs C library", "results differing by 1 ulp"], rows) + (
         f"\n\n{n:,} arguments, {numba.get_num_threads()} threads, a `prange` loop per function. "
         "Random bit patterns over the whole float64 range and the IEEE edge cases (0, subnormals, "
@@ -277,7 +277,7 @@ print(json.dumps(dict(wall=time.perf_counter() - t0, cpu=time.process_time() - c
 """
 
 _NEW = """
-from fastsdf.scenes import box_world
+from fastsdf.shapes.scenes import box_world
 from fastsdf.function import compile_expr
 kernel = compile_expr(box_world(20).f, ["x", "y"]).kernel("vg")
 """

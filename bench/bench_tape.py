@@ -27,7 +27,7 @@ import tempfile
 
 import numpy as np
 
-from fastsdf.scenes import box_world, mixed_scene, seed_world
+from fastsdf.shapes.scenes import box_world, mixed_scene, seed_world
 
 from .bench_prune import hard_union
 from .common import HERE, fmt_rate, run_fresh_process, stamp, table, timeit
@@ -85,7 +85,7 @@ t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
 t_import = time.perf_counter() - t0
-from fastsdf.scenes import box_world, mixed_scene
+from fastsdf.shapes.scenes import box_world, mixed_scene
 from bench.bench_prune import hard_union
 KIND, BACKEND, SEED = "KIND_", "BACKEND_", SEED_
 def scene(kind, seed):
@@ -222,7 +222,7 @@ def run(quick: bool = False) -> str:
         "one of them also measures the calls made while the kernel compiles; import and "
         "construction are from that one). *First answer*: from the built scene to the answer of 1e5 random points in "
         "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
-        "(`fastsdf.npeval`, no numba: hard unions of many shapes pruned per tile) and the tape "
+        "(`fastsdf.backends.npeval`, no numba: hard unions of many shapes pruned per tile) and the tape "
         "(which first pays numba's one-time setup in the process), then compiles the kernel in "
         "a background thread; *total* = import + construction + first answer.", "",
         first, "",

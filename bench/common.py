@@ -96,4 +96,4 @@ def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) 
     return res.stdout
 
 
-from fastsdf._progress import Progress  # noqa: E402,F401 - re-exported for sections
+from fastsdf.viz.progress import Progress  # noqa: E402,F401 - re-exported for sections

@@ -37,7 +37,7 @@ def main(argv=None) -> int:
 
     import fastsdf.particles as phys
     from fastsdf import GridSDF
-    from fastsdf.scenes import seed_world
+    from fastsdf.shapes.scenes import seed_world
 
     grid = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
     sim = phys.ParticleSimulation(grid, n=args.particles, seed=0)

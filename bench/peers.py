@@ -4,7 +4,7 @@ when its package is not installed)."""
 
 import time
 
-from fastsdf.graph import topological_order
+from fastsdf.expr.graph import topological_order
 
 
 def jax_value_and_grad(expr, symbol_names=("x", "y")):

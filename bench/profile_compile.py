@@ -30,7 +30,7 @@ SCENES = {
 
 def _mixed(sdf, n):
     """bench_core's scene without repeated structure next to each other (the same draws)."""
-    from fastsdf.scenes import mixed_scene
+    from fastsdf.shapes.scenes import mixed_scene
     return mixed_scene(n)
 
 
@@ -48,7 +48,7 @@ def profile(key: str):
     import numpy as np
 
     import fastsdf as sdf
-    from fastsdf import scenes
+    from fastsdf.shapes import scenes
 
     name, build = SCENES[key]
     t0 = time.perf_counter()
@@ -91,13 +91,13 @@ def main(argv=None) -> int:
     os.environ["FASTSDF_CACHE_DIR"] = tempfile.mkdtemp(prefix="fastsdf-profile-")
     if args.source:
         import fastsdf as sdf
-        from fastsdf import scenes
+        from fastsdf.shapes import scenes
         f = SCENES[args.source][1](sdf, scenes)
         print(f.compiled.module_source if args.module else f.source())
         return 0
     t0 = time.perf_counter()
     import numba  # noqa: F401 - import cost shown separately
-    import fastsdf.codegen  # noqa: F401
+    import fastsdf.backends.kernel.codegen  # noqa: F401
     print(f"import numba + fastsdf: {time.perf_counter() - t0:.2f} s (once per process)")
     keys = args.scene or ["circle", "seed", "box20", "box200", "mixed50", "mixed200"]
     header = ("scene", "lines", "build graph", "codegen", "import module", "first call",

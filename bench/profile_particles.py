@@ -64,7 +64,7 @@ def main(argv=None) -> int:
 
     import fastsdf as sdf
     import fastsdf.particles as phys
-    from fastsdf.scenes import box_world, seed_world
+    from fastsdf.shapes.scenes import box_world, seed_world
 
     world = seed_world() if args.world == "seed" else box_world(20)
     f = world if args.exact else sdf.GridSDF(world, bounds=[(-2, 2), (-2, 2)],

@@ -39,7 +39,7 @@ def main(argv=None) -> int:
 
     import fastsdf.particles as phys
     from fastsdf import GridSDF
-    from fastsdf.scenes import seed_world
+    from fastsdf.shapes.scenes import seed_world
 
     from . import peers
     from .bench_particles import Fused, Peer, _attractor, _states, cell, compare, wind

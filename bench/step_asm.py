@@ -54,7 +54,7 @@ def main() -> None:
     os.environ["FASTSDF_CACHE_DIR"] = tempfile.mkdtemp(prefix="fastsdf_asm_")
     import fastsdf as sdf
     import fastsdf.particles as phys
-    from fastsdf.scenes import seed_world
+    from fastsdf.shapes.scenes import seed_world
 
     g = sdf.GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     sim = phys.ParticleSimulation(g, n=100, seed=0)

@@ -26,9 +26,9 @@ import numpy as np  # noqa: E402
 import fastsdf as sdf  # noqa: E402
 import fastsdf.graph as cg  # noqa: E402
 import fastsdf.particles as phys  # noqa: E402
-from fastsdf._progress import progress  # noqa: E402
-from fastsdf.render import render_frame, sim_title  # noqa: E402
-from fastsdf.scenes import seed_world  # noqa: E402
+from fastsdf.viz.progress import progress  # noqa: E402
+from fastsdf.viz.render import render_frame, sim_title  # noqa: E402
+from fastsdf.shapes.scenes import seed_world  # noqa: E402
 
 
 def vortex(k: float = 1.5, s: float = 1.0) -> phys.FieldForce:

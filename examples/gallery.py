@@ -21,8 +21,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
-from fastsdf._progress import progress  # noqa: E402
-from fastsdf.plotting import sdf_grid  # noqa: E402
+from fastsdf.viz.progress import progress  # noqa: E402
+from fastsdf.viz.plotting import sdf_grid  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "..", "docs", "gallery.png")

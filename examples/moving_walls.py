@@ -24,8 +24,8 @@ from matplotlib.animation import FuncAnimation  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
 import fastsdf.particles as phys  # noqa: E402
-from fastsdf._video import ffmpeg_available  # noqa: E402
-from fastsdf.render import draw_particles, save_animation  # noqa: E402
+from fastsdf.viz.video import ffmpeg_available  # noqa: E402
+from fastsdf.viz.render import draw_particles, save_animation  # noqa: E402
 
 #: Angular speed of the stirrer, rad/s (blade tips at 1.2 move at about 1 length/s).
 OMEGA = 0.8

@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 from numba import njit, prange  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
-from fastsdf.scenes import box_world  # noqa: E402
+from fastsdf.shapes.scenes import box_world  # noqa: E402
 
 
 def make_kernel(f):

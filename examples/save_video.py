@@ -2,7 +2,7 @@
 
     python examples/save_video.py [OUT]          # OUT/particles.mp4 (.gif without ffmpeg)
 
-``fastsdf.render.animate`` animates a simulation from its current state (it never resets it);
+``fastsdf.viz.render.animate`` animates a simulation from its current state (it never resets it);
 ``save_animation`` picks the writer from the extension. MP4 needs ffmpeg: a system one, or
 ``pip install 'fastsdf[video]'`` (imageio-ffmpeg ships a binary); otherwise this writes a GIF.
 """
@@ -17,9 +17,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
 import fastsdf.particles as phys  # noqa: E402
-from fastsdf._video import ffmpeg_available  # noqa: E402
-from fastsdf.render import animate, save_animation  # noqa: E402
-from fastsdf.scenes import seed_world  # noqa: E402
+from fastsdf.viz.video import ffmpeg_available  # noqa: E402
+from fastsdf.viz.render import animate, save_animation  # noqa: E402
+from fastsdf.shapes.scenes import seed_world  # noqa: E402
 
 
 def main(out: str = "examples-out", n: int = 200_000, frames: int = 90) -> str:

@@ -38,7 +38,7 @@ OUT = sys.argv[1] if len(sys.argv) > 1 else "notebook-out"
 os.makedirs(OUT, exist_ok=True)
 SMALL = os.environ.get("FASTSDF_EXAMPLE_SMALL") == "1"
 _cell_no = [0]
-from fastsdf._progress import progress as _progress  # noqa: E402
+from fastsdf.viz.progress import progress as _progress  # noqa: E402
 _cells_bar = _progress(22, "notebook cells")
 
 
@@ -74,8 +74,8 @@ def _video_animation(fig, ax, sim, frames=300, **kwargs):
     anim = _create_animation(fig, ax, sim, frames=frames, **kwargs)
 
     def to_html5_video(embed_limit=None):
-        from fastsdf._video import ffmpeg_available
-        from fastsdf.render import save_animation
+        from fastsdf.viz.video import ffmpeg_available
+        from fastsdf.viz.render import save_animation
         name = f"cell_{_cell_no[0] + 1:02d}" + (".mp4" if ffmpeg_available() else ".gif")
         save_animation(anim, os.path.join(OUT, name), fps=30)
         fig.savefig(os.path.join(OUT, f"cell_{_cell_no[0] + 1:02d}_last.png"), dpi=80)

@@ -4,23 +4,20 @@
 ``sdf.Box``, ``|``, ``&``, ``-``, ``sdf.smoothness``, ``sdf.transform``) and more primitives,
 modifiers and blends (``sdf.Ellipse``, ``sdf.Polygon``, ``f.round(r)``, ``f.repeat(...)``,
 ``a.union(b, k=0.1, kind='quadratic')``, ...); ``fastsdf.graph``
-is the symbolic layer (``Symbol``, ``Function``, ``sym_*``). Distances are negative inside,
+is the notebook's symbolic layer (``Symbol``, ``Function``, ``sym_*``). Distances are negative inside,
 positive outside, in the units of the coordinates; all arithmetic is float64.
 """
 
-__version__ = "0.1.0"
+from fastsdf.version import __version__
 
-from .graph import Param, t  # noqa: E402  (runtime parameters and time)
-from .graph import (Expr, Function, Symbol, sym_abs, sym_cos, sym_exp, sym_length,  # noqa: E402
-                    sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt)
-from .shapes import (SDF, Box, Circle, Difference, Halfspace, Intersection, Union,  # noqa: E402
-                     intersection, smoothness, transform, union)
-from .shapes import (Arc, Capsule, Ellipse, EquilateralTriangle, OrientedBox,  # noqa: E402
-                     Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle,
-                     mirror, offset, repeat, rotate, scale, shell, translate)
-from .grid import GridSDF  # noqa: E402
-from .band import NarrowBandGridSDF  # noqa: E402
-from .plotting import plot_sdf  # noqa: E402
+from fastsdf.expr.graph import Param, t  # noqa: E402  (runtime parameters and time)
+from fastsdf.expr.graph import Expr, Symbol, sym_abs, sym_cos, sym_exp, sym_length, sym_log, sym_max, sym_min, sym_sin, sym_smax, sym_smin, sym_sqrt
+from fastsdf.function import Function
+from fastsdf.shapes import SDF, Box, Circle, Difference, Halfspace, Intersection, Union, intersection, smoothness, transform, union
+from fastsdf.shapes import Arc, Capsule, Ellipse, EquilateralTriangle, OrientedBox, Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle, mirror, offset, repeat, rotate, scale, shell, translate
+from fastsdf.fields.grid import GridSDF  # noqa: E402
+from fastsdf.fields.band import NarrowBandGridSDF  # noqa: E402
+from fastsdf.viz.plotting import plot_sdf  # noqa: E402
 
 __all__ = [
     "__version__",

@@ -4,7 +4,7 @@ This is a real module: its functions are importable and tested directly (``tests
 against the small analytic world defined in the marked *scene block* below. A simulation does
 not call them from here: :func:`fastsdf.particles._kernel_module` copies this file's source,
 replaces the scene block with the simulation's own query and forces, writes the result to a
-content-hashed file in the kernel cache (:mod:`fastsdf._cache`) and imports that. Because the
+content-hashed file in the kernel cache (:mod:`fastsdf.backends.kernel.cache`) and imports that. Because the
 whole of this source is in the generated file, editing this module changes the hash, so a
 stale compiled kernel is never loaded (numba's ``cache=True`` does not notice changes in other
 modules a cached function calls into).
@@ -63,7 +63,7 @@ A grid object ``g`` used as a world has:
     a tuple of arrays and scalars (the grid's storage and geometry); arrays inside it are
     passed without reference counting (see :func:`borrow_all`), so ``g`` must keep them alive.
 ``g.exact``
-    the exact SDF (a :class:`fastsdf.graph.Function`), evaluated where ``inside`` is False
+    the exact SDF (a :class:`fastsdf.function.Function`), evaluated where ``inside`` is False
     when ``g.mode == 'exact'``; ``g.mode == 'nearest'`` keeps the sampler's clamped answer.
 ``g.bounds`` (optional)
     ``((x0, x1), (y0, y1))``, the rectangle where ``inside`` is True (without it the exact
@@ -1005,7 +1005,7 @@ def plain_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay
 # The block step of grid worlds: a block of particles held in scratch rows through all steps,
 # each step in passes over the block that LLVM vectorizes (several particles per instruction).
 
-# A copy of fastsdf._intrinsics.select: this module imports nothing from fastsdf, because the
+# A copy of fastsdf.backends.kernel.intrinsics.select: this module imports nothing from fastsdf, because the
 # kernel cache hashes this file's source alone (a change in an imported intrinsic would not
 # invalidate the compiled kernels).
 @intrinsic
@@ -1204,7 +1204,7 @@ _STRIDE = LANES + 8
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _lerp(tx, ty, a, b, c, e):
-    """The bilinear blend of ``fastsdf.grid`` (same operations, same order)."""
+    """The bilinear blend of ``fastsdf.fields.grid`` (same operations, same order)."""
     lo = a + ty * (b - a)
     hi = c + ty * (e - c)
     return lo + tx * (hi - lo)
@@ -1294,7 +1294,7 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
     """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
     whose budget covers the step moves here and needs no query), the check for a grid
     fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
-    operations of ``fastsdf.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
+    operations of ``fastsdf.fields.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
     ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
     Returns how many particles need a query, how many were frozen, and how many of those
     that query end outside the grid. ``budget``, ``skipping``: constants in the compiled
@@ -1399,7 +1399,7 @@ def _simd_gather(S, grid, row, lip, trace, every, marks):
     """Pass 2 (scalar: loads from computed places): the bilinear value and gradient at the
     end point of each particle that needs a query, from its cell's two runs of 6 grid values
     (``row``: the flat distance between nodes (i, j) and (i + 1, j)); the operations of
-    ``fastsdf.grid.sample_stored`` (its NaN for a non-finite point is applied where the
+    ``fastsdf.fields.grid.sample_stored`` (its NaN for a non-finite point is applied where the
     values are used, from the ``_OK`` row). Returns how many may touch a surface (a hint:
     ``d <= r`` before that NaN). ``every``: a constant in the two compiled versions, True
     when every particle queries (no test per particle; the others' cells are valid ones).

@@ -87,15 +87,15 @@ from typing import Any, Sequence
 from numpy.typing import ArrayLike
 from numba.core.dispatcher import Dispatcher
 
-from ._validate import real
-from ._validate import vec2 as _vec2
-from . import __version__
-from ._cache import load_module
-from . import _step
-from . import grid as _grid
-from . import prune as _prune
-from ._step import CONTACT_TOL, MAX_BOUNCES, MAX_MARCH, MIN_STEP, TRACE_FRACTION
-from .graph import Function
+from fastsdf.expr.validate import real
+from fastsdf.expr.validate import vec2 as _vec2
+from fastsdf.version import __version__
+from fastsdf.backends.kernel.cache import load_module
+from fastsdf import _step
+from fastsdf.fields import grid as _grid
+from fastsdf.backends import prune as _prune
+from fastsdf._step import CONTACT_TOL, MAX_BOUNCES, MAX_MARCH, MIN_STEP, TRACE_FRACTION
+from fastsdf.function import Function
 
 __all__ = ["SimulationParams", "ParticleSimulation", "Particles", "Gravity", "Drag", "FieldForce",
            "create_animation",
@@ -194,7 +194,7 @@ class FieldForce:
     ``FieldForce(fx, fy)``: the force ``(fx(x, y), fy(x, y))`` (mass * length / s**2);
     ``FieldForce(potential=U)``: the conservative force ``-grad U(x, y)`` (U in energy units).
     With ``per_mass=True`` the field is an acceleration (the force is ``m`` times it), like
-    :class:`Gravity`. Each of ``fx``, ``fy``, ``U`` is a :class:`fastsdf.graph.Function` (any
+    :class:`Gravity`. Each of ``fx``, ``fy``, ``U`` is a :class:`fastsdf.function.Function` (any
     fastsdf shape is one), or an expression of the symbols named ``x`` and ``y``. Each is
     compiled like an SDF (analytic gradient for the potential), so an attractor
     ``FieldForce(potential=-k / sym_sqrt(x**2 + y**2), per_mass=True)`` costs one inlined
@@ -271,7 +271,7 @@ def _field_function(value, name: str) -> Function:
     """A Function of (x, y) from a Function or an expression of symbols named x and y."""
     if isinstance(value, Function):
         return value
-    from .graph import Symbol, as_expr
+    from fastsdf.expr.graph import Symbol, as_expr
     try:
         expr = as_expr(value, name)
     except (TypeError, ValueError):
@@ -424,7 +424,7 @@ def _module_hash(mod_name: str) -> str:
 
 def _exactness(f) -> str:
     """``'exact'``, ``'bound'`` or ``'none'`` (see :attr:`fastsdf.SDF.exactness`) of the world
-    (of a grid's exact SDF); ``'unknown'`` for a bare :class:`fastsdf.graph.Function`."""
+    (of a grid's exact SDF); ``'unknown'`` for a bare :class:`fastsdf.function.Function`."""
     g = f.exact if _is_grid(f) else f
     return getattr(g, "exactness", "unknown")
 
@@ -474,7 +474,7 @@ def _step_source() -> tuple:
 
 def _exact_address(exact) -> tuple:
     """A C function ``void(double x, double y, double *out, double *h)`` evaluating the exact
-    SDF (``h``: a plan header of :mod:`fastsdf.prune`; a scene with loops over tables evaluates
+    SDF (``h``: a plan header of :mod:`fastsdf.backends.prune`; a scene with loops over tables evaluates
     only the rows of the point's tile): the grid kernel's fallback outside the grid and the
     pruned particle step, bound at run time through its address so that the kernel does not
     depend on the scene. Returns ``(address, keepalive)``."""
@@ -492,7 +492,7 @@ def _prunes(f) -> bool:
     """Whether the particle step on the SDF ``f`` evaluates per-tile row lists (a scene with
     at least ``PRUNE_MIN_OPERANDS`` operands in loops over tables, without parameters, and not
     only exponential blends with ``f.prune_tol`` unset), decided when the step is built."""
-    from . import function as _function
+    from fastsdf import function as _function
     comp = f.compiled
     if comp.parametric:
         return False
@@ -505,7 +505,7 @@ def _prunes(f) -> bool:
 def _plan_import() -> str:
     with open(_prune.__file__, "rb") as fh:
         digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-    return f"from fastsdf.prune import _call_vg_plan  # prune.py sha256 {digest}"
+    return f"from fastsdf.backends.prune import _call_vg_plan  # prune.py sha256 {digest}"
 
 
 _PLAN_IMPORT = _plan_import()
@@ -730,11 +730,11 @@ class ParticleSimulation:
 
     Parameters
     ----------
-    f : fastsdf SDF (:class:`fastsdf.graph.Function`) or GridSDF
+    f : fastsdf SDF (:class:`fastsdf.function.Function`) or GridSDF
         The world; negative inside matter. A GridSDF is sampled bilinearly (its ``sampler``),
         falling back to its exact SDF outside its bounds in ``mode='exact'``. An exact SDF (or
         fallback) with many operands in loops over tables is pruned as ``f(x, y)`` is (see
-        :mod:`fastsdf.prune`): each query evaluates only the rows of its tile's lists, with
+        :mod:`fastsdf.backends.prune`): each query evaluates only the rows of its tile's lists, with
         the same bits for hard unions and intersections.
     n : int, default 100
         Number of particles (> 0).
@@ -774,7 +774,7 @@ class ParticleSimulation:
         interpolant of a 1-Lipschitz function). That is right for SDFs whose ``exactness`` is
         ``'exact'`` or ``'bound'`` (every primitive, transform, hard and smooth blend of the
         library); for a world not known to be a distance bound (``exactness == 'none'``, or a
-        bare :class:`fastsdf.graph.Function`) a ``RuntimeWarning`` says so, queries are never
+        bare :class:`fastsdf.function.Function`) a ``RuntimeWarning`` says so, queries are never
         skipped, and you should pass the bound.
     block : int or None
         Particles per block in :meth:`run` (tuning; ``None``: :data:`DEFAULT_BLOCK`).
@@ -923,10 +923,10 @@ class ParticleSimulation:
 
         ``x ~ N([0, 1.5], 0.05 I)``, ``v ~ N(0, 0.1 I)``, ``m ~ U(1, 10)``, ``r = 0.01 m``,
         ``cr``, ``cf`` from the constructor. With an ``ax`` (the notebook's interface), also
-        (re)draws the particles there with :func:`fastsdf.render.draw_particles`: discs of the
+        (re)draws the particles there with :func:`fastsdf.viz.render.draw_particles`: discs of the
         particles' radii in data units for up to 5000 particles, a density image above; returns
         the drawn artists (for matplotlib's blitting). To animate a simulation without resetting
-        it, use :func:`fastsdf.render.animate`.
+        it, use :func:`fastsdf.viz.render.animate`.
         """
         rng = self.seed if isinstance(self.seed, np.random.Generator) \
             else np.random.default_rng(self.seed)
@@ -1321,13 +1321,13 @@ class ParticleSimulation:
         # The notebook's reset(ax)/update(ax) draw; the drawing and its state live in render.
         if ax is None:
             return ()
-        from .render import notebook_draw
+        from fastsdf.viz.render import notebook_draw
         return notebook_draw(self, ax, new)
 
     def __getstate__(self):
         # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
         # kernel module and scratch buffers stay behind and are rebuilt on unpickling (the
-        # simulation holds no drawing: that lives in fastsdf.render).
+        # simulation holds no drawing: that lives in fastsdf.viz.render).
         # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
         for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_wall_table",
@@ -1454,7 +1454,7 @@ def create_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: boo
         def to_html5_video(self, embed_limit=None):
             from matplotlib import animation, rcParams
 
-            from ._video import ffmpeg_available
+            from fastsdf.viz.video import ffmpeg_available
             ffmpeg_available()  # points matplotlib at imageio-ffmpeg's binary when installed
             if animation.writers.is_available(rcParams["animation.writer"]):
                 return super().to_html5_video(embed_limit=embed_limit)

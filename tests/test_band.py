@@ -11,9 +11,9 @@ from numba import njit
 
 import fastsdf as sdf
 import fastsdf.particles as phys
-from fastsdf.band import NarrowBandGridSDF, band_points, measure_band_error, sample_band
-from fastsdf.grid import GridSDF
-from fastsdf.scenes import seed_world
+from fastsdf.fields.band import NarrowBandGridSDF, band_points, measure_band_error, sample_band
+from fastsdf.fields.grid import GridSDF
+from fastsdf.shapes.scenes import seed_world
 
 from conftest import brute_distance
 

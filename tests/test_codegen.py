@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import fastsdf as sdf
-from fastsdf.graph import evaluate_numpy
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.expr.graph import evaluate_numpy
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from conftest import central_gradient
 
@@ -94,7 +94,7 @@ def test_folded_block_kernels_match_the_straight_line_code(seed, cap, monkeypatc
     Both give the same bits, value and gradient, serial and parallel; and they agree with the
     NumPy reference and with central differences. ``cap``: a small budget of stored values per
     point, so that only some groups are folded."""
-    from fastsdf import codegen
+    from fastsdf.backends.kernel import codegen
     monkeypatch.setattr(codegen, "COMBINE_PROGRAMS", False)  # see test_combine.py for those
     if cap is not None:
         monkeypatch.setattr(codegen, "MAX_FOLD_ROWS", cap)
@@ -172,7 +172,7 @@ def _run(code, cache_dir):
 
 _CACHE_PROBE = """
 import numpy as np
-from fastsdf.scenes import box_world
+from fastsdf.shapes.scenes import box_world
 f = box_world({n})
 p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
 d, g = f(p[:, 0], p[:, 1], compute_gradient=True)
@@ -205,7 +205,7 @@ def test_changed_scene_never_reuses_a_stale_kernel(tmp_path):
 
 
 def test_corrupted_cache_file_is_not_used(tmp_path, monkeypatch):
-    from fastsdf import _cache
+    from fastsdf.backends.kernel import cache as _cache
 
     monkeypatch.setenv("FASTSDF_CACHE_DIR", str(tmp_path))
     source = "VALUE = 1\n"

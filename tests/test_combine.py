@@ -1,5 +1,5 @@
 """Combine programs: a long scene that is a tree of blends (min, max, smin, smax) over small
-subexpressions runs its blends through the installation's interpreter (``fastsdf._drive``)
+subexpressions runs its blends through the installation's interpreter (``fastsdf.backends.kernel.drive``)
 instead of straight-line code. The program must give the same bits as the per-point
 straight-line functions, value and gradient, for every blend kind, argument order, tie and
 non-finite point."""
@@ -10,10 +10,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import fastsdf as sdf
-from fastsdf import codegen
+from fastsdf.backends.kernel import codegen
 from fastsdf.function import compile_expr
-from fastsdf.graph import evaluate_numpy
-from fastsdf.scenes import mixed_scene
+from fastsdf.expr.graph import evaluate_numpy
+from fastsdf.shapes.scenes import mixed_scene
 
 # One step of a random scene: (primitive kind, operation, smoothness, operand order).
 _STEP = st.tuples(st.integers(0, 3), st.sampled_from(["|", "&", "-", "cut", "q|", "c&", "q-"]),

@@ -40,7 +40,7 @@ def test_cli_errors_are_one_line_with_exit_code_2(args, needle):
 
 
 def test_cli_help_and_version():
-    from fastsdf import __version__
+    from fastsdf.version import __version__
 
     res = _cli("demo", "--help")
     assert res.returncode == 0
@@ -62,7 +62,7 @@ def test_console_script_is_declared():
 
 
 def test_main_returns_through_systemexit_for_version(capsys):
-    from fastsdf.__main__ import main
+    from fastsdf.apps.cli import main
 
     with pytest.raises(SystemExit) as info:
         main(["--version"])
@@ -71,8 +71,8 @@ def test_main_returns_through_systemexit_for_version(capsys):
 
 def test_spawn_in_free_space_leaves_no_particle_in_matter():
     import fastsdf.particles as phys
-    from fastsdf.demo import spawn_in_free_space
-    from fastsdf.scenes import box_world
+    from fastsdf.apps.demo import spawn_in_free_space
+    from fastsdf.shapes.scenes import box_world
 
     world = box_world(20, seed=0)
     sim = phys.ParticleSimulation(world, n=2000, seed=1)
@@ -87,7 +87,7 @@ def test_spawn_in_free_space_leaves_no_particle_in_matter():
 
 
 def test_frame_schedule_ends_at_the_last_step():
-    from fastsdf.demo import _frame_schedule
+    from fastsdf.apps.demo import _frame_schedule
 
     for steps, frames in [(300, 120), (7, 7), (10, 3), (5, 1), (1, 1), (299, 60)]:
         sched = _frame_schedule(steps, frames)
@@ -105,10 +105,10 @@ def _hex(color):
 def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     from matplotlib.image import imread
 
-    from fastsdf.demo import run_demo, summary
-    from fastsdf.plotting import SOLID_COLOR
-    from fastsdf.render import PARTICLE_COLOR, render_frame
-    from fastsdf.scenes import box_world
+    from fastsdf.apps.demo import run_demo, summary
+    from fastsdf.viz.plotting import SOLID_COLOR
+    from fastsdf.viz.render import PARTICLE_COLOR, render_frame
+    from fastsdf.shapes.scenes import box_world
 
     res = run_demo(particles=3000, steps=45, grid=120, exact=exact, seed=3, out=str(tmp_path),
                    frames=3, world="boxes")
@@ -190,7 +190,7 @@ def test_examples_run_at_small_size(tmp_path, name, outputs):
 
 
 def test_summary_counts_in_words_and_explains_the_rate():
-    from fastsdf.demo import DemoResult, summary
+    from fastsdf.apps.demo import DemoResult, summary
 
     base = dict(world="seed", particles=1, steps=1, timestep=1 / 30, sdf="a 50x50 GridSDF",
                 mode="exact", sim_seconds=0.0, first_step_seconds=0.5,

@@ -1,4 +1,4 @@
-"""Pickling of scenes and simulations; fastsdf.distributed on a real 2-process LocalCluster.
+"""Pickling of scenes and simulations; fastsdf.apps.distributed on a real 2-process LocalCluster.
 
 The cluster tests start one LocalCluster (2 worker processes, 1 thread each, loopback only) for
 the whole module and compare every distributed result with the single-process computation.
@@ -13,8 +13,8 @@ import pytest
 
 import fastsdf as sdf
 from fastsdf.particles import Drag, Gravity, ParticleSimulation
-from fastsdf.render import density_image
-from fastsdf.scenes import seed_world
+from fastsdf.viz.render import density_image
+from fastsdf.shapes.scenes import seed_world
 
 
 def _same(a, b):
@@ -47,7 +47,7 @@ def test_deep_graph_pickles_without_recursion():
     h = pickle.loads(data)
     assert h.f is g.f
     # In a process that never saw the graph the nodes are rebuilt: same text, same structure.
-    from fastsdf.graph import _from_flat, _to_flat
+    from fastsdf.expr.graph import _from_flat, _to_flat
     flat = _to_flat(g.f)
     assert len(flat) > 3000 and _from_flat(flat) is g.f
 
@@ -82,8 +82,7 @@ def test_simulation_pickle_continues_with_the_same_bits():
 # A real cluster: 2 worker processes on the loopback interface.
 
 distributed = pytest.importorskip("distributed")
-from fastsdf.distributed import (DistributedSimulation, ShardLostError, evaluate,  # noqa: E402
-                                 local_cluster, shard_seed, shard_sizes)
+from fastsdf.apps.distributed import DistributedSimulation, ShardLostError, evaluate, local_cluster, shard_seed, shard_sizes
 
 
 @pytest.fixture(scope="module")
@@ -215,8 +214,8 @@ def test_bad_parameters_are_named_at_construction(client, grid):
 
 @pytest.mark.slow
 def test_demo_on_the_cluster(client, tmp_path):
-    from fastsdf.__main__ import build_parser
-    from fastsdf.distributed import run_demo
+    from fastsdf.apps.cli import build_parser
+    from fastsdf.apps.distributed import run_demo
     assert build_parser().parse_args(["demo", "--workers", "2"]).workers == 2
     # The single-process demo test's scenario and bound (particles spawned inside boxes
     # have been pushed out by step 45).

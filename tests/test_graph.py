@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import fastsdf.graph as cg
-from fastsdf.graph import evaluate_numpy
+from fastsdf.expr.graph import evaluate_numpy
 
 from conftest import central_gradient
 
@@ -249,6 +249,6 @@ def test_printing_with_a_limit_is_the_prefix_of_the_full_text(limit):
         cg.sym_smin(cg.sym_select(x, y ** 3, cg.sym_length(x, y)), -x, 4.0),
     ]
     for e in exprs:
-        full = cg._to_str(e)
+        full = cg.expr_to_str(e)
         want = full if len(full) <= limit else full[:limit - 3] + "..."
-        assert cg._to_str(e, limit=limit) == want
+        assert cg.expr_to_str(e, limit=limit) == want

@@ -10,8 +10,8 @@ from numba import njit
 
 import fastsdf as sdf
 import fastsdf.graph as cg
-from fastsdf.codegen import PARALLEL_MIN_POINTS
-from fastsdf.grid import BYTES_PER_NODE, GridError, GridSDF, measure_error
+from fastsdf.expr.points import PARALLEL_MIN_POINTS
+from fastsdf.fields.grid import BYTES_PER_NODE, GridError, GridSDF, measure_error
 
 EPS32 = 2.0 ** -24
 MODES = ("exact", "nearest")

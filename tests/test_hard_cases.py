@@ -370,7 +370,7 @@ def test_outside_the_supported_range_is_a_clear_error(make, words):
 
 
 def test_graph_blends_reject_widths_whose_inverse_overflows():
-    from fastsdf.graph import Symbol, sym_cmin, sym_qmin, sym_smin
+    from fastsdf.expr.graph import Symbol, sym_cmin, sym_qmin, sym_smin
     x = Symbol("x")
     for op in (sym_qmin, sym_cmin, sym_smin):
         with pytest.raises(ValueError, match="too small"):
@@ -383,7 +383,7 @@ def test_graph_blends_reject_widths_whose_inverse_overflows():
 def test_subnormal_and_zero_radius_gradients():
     """1/r overflowed for subnormal r: unit gradients, compiled and in the NumPy reference,
     at subnormal offsets from every centre (circle, ring, arc, ellipse, polygon vertex)."""
-    from fastsdf.graph import evaluate_numpy
+    from fastsdf.expr.graph import evaluate_numpy
     tiny = np.array([[5e-324, 0.0], [0.0, -5e-324], [1e-323, 1.5e-323], [-4e-320, 2e-321],
                      [1e-310, -1e-310], [0.0, 0.0], [3e-200, 4e-200]])
     fs = [sdf.Circle([0, 0], 1.0), sdf.Ring([0, 0], 1.0, 0.2), sdf.Arc([0, 0], 1.0),

@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 
 import fastsdf as sdf
 import fastsdf.graph as cg
-from fastsdf.graph import topological_order
-from fastsdf.interval import bounds, node_bounds, node_values
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.expr.graph import topological_order
+from fastsdf.expr.interval import bounds, node_bounds, node_values
+from fastsdf.shapes.scenes import box_world, seed_world
 
 # Shrinking a failing scene takes minutes; the failing example is reported as found.
 _NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)

@@ -1,4 +1,4 @@
-"""The NumPy path (fastsdf.npeval): agreement with the compiled kernel (values 1e-12 relative,
+"""The NumPy path (fastsdf.backends.npeval): agreement with the compiled kernel (values 1e-12 relative,
 gradients 1e-9), pruning of hard unions and intersections that changes no bit, non-finite
 points, and a first answer that never touches numba. (Every scene of test_tape.py is also
 checked through the NumPy path, by its ``assert_agree``.)"""
@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import fastsdf as sdf
-from fastsdf.graph import Symbol, sym_length
-from fastsdf.npeval import GROUP_MIN, _Program, compile_numpy
+from fastsdf.expr.graph import Symbol, sym_length
+from fastsdf.backends.npeval import GROUP_MIN, _Program, compile_numpy
 
 from test_tape import _points, assert_agree
 
@@ -96,7 +96,7 @@ def test_pruning_changes_no_bit(kinds, seed, intersect, raw):
 
 def test_pruning_keeps_few_operands():
     """Pruning does prune: 1000 small boxes, each point evaluates a handful of them."""
-    from fastsdf.npeval import _prune, _snap, _splits
+    from fastsdf.backends.npeval import _prune, _snap, _splits
     f = _union(["box"] * 1000, 3)
     group = f.compiled.numpy_scene.chain.groups[0]
     x, y = np.random.default_rng(0).uniform(-2, 2, (2, 50_000))
@@ -129,7 +129,7 @@ def test_parameters_and_symbol_names():
 _FRESH = r"""
 import json, sys, numpy as np
 import fastsdf
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.shapes.scenes import box_world, seed_world
 from fastsdf.function import _numba_warm
 out = {}
 f = box_world(20, seed=123)

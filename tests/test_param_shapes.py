@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
-from fastsdf.graph import Param, Symbol, evaluate_numpy, sym_cmin, sym_qmin, sym_smax, sym_smin
+from fastsdf.expr.graph import Param, Symbol, evaluate_numpy, sym_cmin, sym_qmin, sym_smax, sym_smin
 
 rng = np.random.default_rng(13)
 PX, PY = rng.uniform(-2.5, 2.5, (2, 300))

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
-from fastsdf import _cache
-from fastsdf.graph import Function, Param, Symbol, evaluate_numpy, sym_cos, sym_sin
+from fastsdf.backends.kernel import cache as _cache
+from fastsdf.function import Function
+from fastsdf.expr.graph import Param, Symbol, evaluate_numpy, sym_cos, sym_sin
 
 X, Y = Symbol("x"), Symbol("y")
 rng = np.random.default_rng(7)
@@ -192,7 +193,7 @@ def test_parametric_block_kernels_at_block_edges(n):
     # The batch kernels of a parametric scene are the SIMD block kernels (parameters and time
     # read once per block): every kind, any length, non-finite points NaN, the same numbers as
     # the one-point function.
-    from fastsdf._simd import BLOCK
+    from fastsdf.backends.kernel.simd import BLOCK
     assert BLOCK == 512
     f = Function(_moving_scene(Param("px", 0.3), Param("w", 2.0), sdf.t), [X, Y])
     assert "def _block_vgt(" in f.compiled.module_source

@@ -11,8 +11,9 @@ import pytest
 import fastsdf as sdf
 import fastsdf.particles as phys
 from fastsdf import GridSDF
-from fastsdf.graph import Function, Symbol, sym_abs
-from fastsdf.scenes import seed_world
+from fastsdf.function import Function
+from fastsdf.expr.graph import Symbol, sym_abs
+from fastsdf.shapes.scenes import seed_world
 
 G = 1.0  # |acceleration| of phys.Gravity() (the notebook's gravity)
 

@@ -18,9 +18,9 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.image import AxesImage  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
-from fastsdf import plotting, render  # noqa: E402
-from fastsdf.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf  # noqa: E402
-from fastsdf.render import ParticleLayer, density_image, draw_particles, render_frame  # noqa: E402
+from fastsdf.viz import plotting, render  # noqa: E402
+from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf  # noqa: E402
+from fastsdf.viz.render import ParticleLayer, density_image, draw_particles, render_frame  # noqa: E402
 
 BOUNDS = [(-2, 2), (-2, 2)]
 

@@ -12,7 +12,7 @@ import pytest
 from matplotlib.path import Path
 
 import fastsdf as sdf
-from fastsdf.graph import Symbol, evaluate_numpy, substitute, sym_abs, sym_cmin, sym_qmin
+from fastsdf.expr.graph import Symbol, evaluate_numpy, substitute, sym_abs, sym_cmin, sym_qmin
 
 from conftest import brute_distance, central_gradient, rotate
 

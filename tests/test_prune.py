@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 import fastsdf as sdf
-from fastsdf.graph import evaluate_numpy
+from fastsdf.expr.graph import evaluate_numpy
 
 finite = dict(allow_nan=False, allow_infinity=False)
 _NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)
@@ -110,8 +110,8 @@ def test_grid_construction_uses_pruning_and_matches():
 @settings(max_examples=25, deadline=None, derandomize=True)
 @given(counts=st.lists(st.integers(0, 1300), min_size=1, max_size=12), seed=st.integers(0, 99))
 def test_tile_blocks_cover_every_point_once_with_the_union_of_their_tiles_rows(counts, seed):
-    from fastsdf._drive import _merge_rows, _tile_work
-    from fastsdf._simd import BLOCK
+    from fastsdf.backends.kernel.drive import _merge_rows, _tile_work
+    from fastsdf.backends.kernel.simd import BLOCK
     rng = np.random.default_rng(seed)
     T, sizes = len(counts), [7, 3]
     starts = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
@@ -253,7 +253,7 @@ def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(seed, 
     # operands change the value by less than the tolerance; the plan keeps at most the rows of
     # the dense rule (every member bounded over every tile: its Lipschitz bounds around a small
     # tile's centre can be looser than the coarse tile's).
-    from fastsdf import prune
+    from fastsdf.backends import prune
     f = _mixed_chain(seed, n, k, op)
     groups = f.compiled.groups
     assert len(groups) == 3 and any(g["steps"][-1][0].op == "prim" for g in groups)

@@ -14,8 +14,8 @@ from matplotlib.figure import Figure  # noqa: E402
 
 import fastsdf as sdf  # noqa: E402
 import fastsdf.particles as phys  # noqa: E402
-from fastsdf import render  # noqa: E402
-from fastsdf.render import animate, draw_particles, save_animation  # noqa: E402
+from fastsdf.viz import render  # noqa: E402
+from fastsdf.viz.render import animate, draw_particles, save_animation  # noqa: E402
 
 # Animations stepped by hand (not saved) are fine to drop.
 pytestmark = pytest.mark.filterwarnings("ignore:Animation was deleted")
@@ -97,7 +97,7 @@ def test_save_animation_rejects_unknown_extension_and_missing_ffmpeg(floor, tmp_
     anim = animate(sim, ax, frames=2)
     with pytest.raises(ValueError, match=r"path must end in one of .*\.mp4.*got path="):
         save_animation(anim, str(tmp_path / "clip.avi"))
-    import fastsdf._video as video
+    import fastsdf.viz.video as video
     monkeypatch.setattr(video, "ffmpeg_available", lambda: False)
     with pytest.raises(RuntimeError, match=r"fastsdf\[video\]"):
         save_animation(anim, str(tmp_path / "clip.mp4"))
@@ -142,7 +142,7 @@ def test_render_module_layering():
     import ast
     import inspect
 
-    from fastsdf import plotting
+    from fastsdf.viz import plotting
 
     for module, banned in ((plotting, "render"),):
         tree = ast.parse(inspect.getsource(module))

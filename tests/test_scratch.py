@@ -1,4 +1,4 @@
-"""Scratch space of the scene-independent kernels (``fastsdf._drive``): the buffer is kept per
+"""Scratch space of the scene-independent kernels (``fastsdf.backends.kernel.drive``): the buffer is kept per
 Python thread between calls and a small call computes only the lanes it needs. Neither may
 change a bit: stale rows must never be read, and two threads must never share a buffer."""
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
-from fastsdf.scenes import mixed_scene
+from fastsdf.shapes.scenes import mixed_scene
 
 SIZES = (0, 1, 7, 8, 9, 511, 512, 513, 1100)
 

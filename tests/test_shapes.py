@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
-from fastsdf.scenes import box_world, mixed_scene
-from fastsdf.graph import evaluate_numpy
+from fastsdf.shapes.scenes import box_world, mixed_scene
+from fastsdf.expr.graph import evaluate_numpy
 
 from conftest import brute_distance, central_gradient, rotate
 
@@ -115,7 +115,7 @@ def test_smooth_blends_reproduce_the_notebook_formula(rng, k):
 
 def test_seed_world_value_matches_notebook_construction(rng):
     """Notebook cell 21's world, built through the DSL, against the literal notebook formulas."""
-    from fastsdf.scenes import seed_world
+    from fastsdf.shapes.scenes import seed_world
     f = seed_world()
     p = rng.uniform(-2, 2, (1000, 2))
     X, Y = p.T

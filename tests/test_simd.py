@@ -6,11 +6,12 @@ import numba
 import numpy as np
 import pytest
 
-from fastsdf._drive import BLOCK_SIG
-from fastsdf._simd import BLOCK, choose_lanes
-from fastsdf.codegen import compile_expr
-from fastsdf.graph import Function, Symbol, evaluate_numpy, sym_exp, sym_log, sym_max
-from fastsdf.scenes import box_world, seed_world
+from fastsdf.backends.kernel.drive import BLOCK_SIG
+from fastsdf.backends.kernel.simd import BLOCK, choose_lanes
+from fastsdf.function import compile_expr
+from fastsdf.function import Function
+from fastsdf.expr.graph import Symbol, evaluate_numpy, sym_exp, sym_log, sym_max
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from test_vmath import PACKED, _has_avx2
 
@@ -135,7 +136,7 @@ def test_batch_kernels_are_compiled_once_for_all_scenes():
     """The parallel and serial kernels take a scene's block function as a first-class function
     value: two scenes (different block functions and scratch sizes) share one compiled kernel,
     and each gives exactly what its per-point function gives."""
-    from fastsdf import _drive
+    from fastsdf.backends.kernel import drive as _drive
     for f in (box_world(3), seed_world()):
         for n in (4099, 37):  # parallel, serial
             p = np.random.default_rng(n).uniform(-2, 2, (n, 2))

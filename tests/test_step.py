@@ -14,7 +14,7 @@ from numba import njit
 import fastsdf as sdf
 import fastsdf.particles as phys
 from fastsdf import GridSDF, _step
-from fastsdf.scenes import seed_world
+from fastsdf.shapes.scenes import seed_world
 
 
 def world(planes=(), discs=()):
@@ -372,7 +372,7 @@ def test_timestep_is_validated_on_assignment(dt):
 
 
 def test_field_forces_from_expressions_equal_their_numpy_forms():
-    from fastsdf.graph import Symbol, sym_sqrt
+    from fastsdf.expr.graph import Symbol, sym_sqrt
     x, y = Symbol("x"), Symbol("y")
     rr = sym_sqrt(x * x + y * y + 0.01)
     attractor = phys.FieldForce(potential=-0.5 / rr, per_mass=True)     # -grad U = -0.5 p / rr^3
@@ -442,7 +442,7 @@ def test_fields_evaluated_ahead_give_the_results_of_inline_forces():
     # force wrapped in a plain @njit function is evaluated inline, one particle at a time.
     # The two orders of work must give bit-identical trajectories (with contacts, a particle
     # count that is not a multiple of the batch, and the parallel kernel).
-    from fastsdf.graph import Symbol, sym_sqrt
+    from fastsdf.expr.graph import Symbol, sym_sqrt
     x, y = Symbol("x"), Symbol("y")
     field = phys.FieldForce(potential=-0.02 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1),
                             per_mass=True)
@@ -475,7 +475,7 @@ def test_a_users_force_keeps_numbas_own_cache_format(tmp_path, monkeypatch):
     import sys
     import types
 
-    from fastsdf import _cache
+    from fastsdf.backends.kernel import cache as _cache
     (tmp_path / "user_force_mod.py").write_text(
         "from numba import njit\n\n\n@njit(cache=True)\n"
         "def push(x, y, vx, vy, m, t):\n    return 0.1 * m, 0.0\n")

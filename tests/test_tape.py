@@ -1,4 +1,4 @@
-"""The tape interpreter (fastsdf.tape) against the compiled kernels: two independent evaluators
+"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: two independent evaluators
 of one scene must agree to rounding (values 1e-12 relative, gradients 1e-9) on random scenes,
 every primitive kind, smooth blends, transforms, parameters and non-finite points; and the
 ``backend`` switch of Function (``'auto'`` answers through the tape, then the kernel)."""
@@ -11,9 +11,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import fastsdf as sdf
-from fastsdf.graph import Param, Symbol, evaluate_numpy
-from fastsdf.scenes import box_world, seed_world
-from fastsdf.tape import BLOCK, compile_tape
+from fastsdf.expr.graph import Param, Symbol, evaluate_numpy
+from fastsdf.shapes.scenes import box_world, seed_world
+from fastsdf.backends.vm import BLOCK, compile_tape
 
 from test_codegen import (_long_straight_line_scene, _unstructured_scene, build_scene, operation,
                           placed)

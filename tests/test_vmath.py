@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from numba import njit
 
-from fastsdf._vmath import vexp, vlog, vlog1p
+from fastsdf.backends.kernel.vmath import vexp, vlog, vlog1p
 
 
 def _loop(fn):

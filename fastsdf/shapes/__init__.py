@@ -8,7 +8,7 @@ Usage mirrors the notebook's ``cgraph.sdf``::
         f |= sdf.Circle(center=[0, 0], radius=0.5) & sdf.Box(minc=[-1, -0.2], maxc=[1, 0.2])
     d, grad = f(x, y, compute_gradient=True)
 
-Every shape is an :class:`SDF`: a :class:`fastsdf.graph.Function` of the symbols ``x`` and
+Every shape is an :class:`SDF`: a :class:`fastsdf.function.Function` of the symbols ``x`` and
 ``y``, callable on points, negative inside and positive outside, in the units of the
 coordinates. ``a | b`` is the union, ``a & b`` the intersection, ``a - b`` the difference. Under
 ``smoothness(k)`` with ``k > 0``, union and intersection become the notebook's exponential
@@ -26,14 +26,10 @@ Beyond the notebook: more primitives with exact distances (:class:`Segment`, :cl
 ``f.exactness`` (``'exact'``, ``'bound'`` or ``'none'``), tracked through all of them.
 """
 
-from .context import (BLEND_KINDS, current_blend, current_smoothness, smoothness,  # noqa: F401
-                      transform)
-from .exactness import EXACTNESS  # noqa: F401
-from .operations import (SDF, Difference, Intersection, Union, intersection,  # noqa: F401
-                         mirror, offset, repeat, rotate, scale, shell, translate, union)
-from .primitives import (Arc, Box, Capsule, Circle, Ellipse, EquilateralTriangle,  # noqa: F401
-                         Halfspace, OrientedBox, Polygon, RegularPolygon, Ring, RoundedBox,
-                         Segment, Star, Triangle)
+from fastsdf.shapes.context import BLEND_KINDS, current_blend, current_smoothness, smoothness, transform
+from fastsdf.shapes.exactness import EXACTNESS  # noqa: F401
+from fastsdf.shapes.operations import SDF, Difference, Intersection, Union, intersection, mirror, offset, repeat, rotate, scale, shell, translate, union
+from fastsdf.shapes.primitives import Arc, Box, Capsule, Circle, Ellipse, EquilateralTriangle, Halfspace, OrientedBox, Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle
 
 __all__ = ["SDF", "Circle", "Halfspace", "Box", "Union", "Intersection", "Difference",
            "union", "intersection",

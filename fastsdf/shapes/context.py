@@ -16,12 +16,12 @@ import numpy as np
 from typing import Iterator, NamedTuple
 from numpy.typing import ArrayLike
 
-from .._validate import check_length as _check_length
-from .._validate import coord2 as _vec2
-from .._validate import real as _real
-from .._validate import vec2 as _vec2
-from .._validate import coord2_or_param, is_param, real_or_param
-from ..graph import Expr, Symbol, sym_cos, sym_sin
+from fastsdf.expr.validate import check_length as _check_length
+from fastsdf.expr.validate import coord2 as _vec2
+from fastsdf.expr.validate import real as _real
+from fastsdf.expr.validate import vec2 as _vec2
+from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
+from fastsdf.expr.graph import Expr, Symbol, sym_cos, sym_sin
 
 __all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
 

@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .context import _IDENTITY, _frame
+from fastsdf.shapes.context import _IDENTITY, _frame
 
 __all__ = ["EXACTNESS"]
 

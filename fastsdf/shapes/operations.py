@@ -9,16 +9,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 from typing import Iterable
 
-from .._validate import check_length as _check_length
-from .._validate import length as _length
-from .._validate import coord2_or_param, is_param, real_or_param
-from ..graph import sym_cos, sym_exp, sym_log, sym_sin
-from ..interval import note_lipschitz
-from ..graph import (Expr, Function, _gc_paused, substitute, sym_abs, sym_cmin, sym_floor,
-                     sym_max, sym_min, sym_qmin, sym_smax, sym_smin)
-from .context import _X, _Y, _blend_kind, _smoothness_value, current_blend
-from .exactness import (_NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow,
-                        _Info)
+from fastsdf.expr.validate import check_length as _check_length
+from fastsdf.expr.validate import length as _length
+from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
+from fastsdf.expr.graph import sym_cos, sym_exp, sym_log, sym_sin
+from fastsdf.expr.interval import note_lipschitz
+from fastsdf.expr.graph import Expr, gc_paused, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min, sym_qmin, sym_smax, sym_smin
+from fastsdf.function import Function
+from fastsdf.shapes.context import _X, _Y, _blend_kind, _smoothness_value, current_blend
+from fastsdf.shapes.exactness import _NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow, _Info
 
 __all__ = ["SDF", "Union", "Intersection", "Difference", "union", "intersection",
            "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
@@ -71,7 +70,7 @@ def _check_sdf(value, name):
 class SDF(Function):
     """A signed distance function of the plane: negative inside, positive outside.
 
-    Callable as ``f(x, y, compute_gradient=False)`` (see :class:`fastsdf.graph.Function`);
+    Callable as ``f(x, y, compute_gradient=False)`` (see :class:`fastsdf.function.Function`);
     ``f.f`` is its expression. Combine with ``|`` (union), ``&`` (intersection), ``-``
     (difference); ``|=`` and friends work too. The operators blend as the :func:`smoothness`
     context says; the methods :meth:`union`, :meth:`intersection`, :meth:`difference` take the
@@ -471,7 +470,7 @@ def union(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> S
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:
         return out[0]
-    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+    with gc_paused():  # a bulk pass (see fastsdf.expr.graph._GCPaused)
         return _union(out, k, kind)
 
 
@@ -499,7 +498,7 @@ def intersection(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:
         return out[0]
-    with _gc_paused():
+    with gc_paused():
         return _intersection(out, k, kind)
 
 

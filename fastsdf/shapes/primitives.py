@@ -11,15 +11,14 @@ import numbers
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .._validate import MAX_COORD, check_length as _check_length
-from .._validate import coord as _coord
-from .._validate import coord2 as _point
-from .._validate import length as _length
-from .._validate import real as _real
-from .._validate import vec2 as _vec2
-from ..graph import (Expr, as_expr, sym_abs, sym_cos, sym_length, sym_max, sym_min, sym_prim,
-                     sym_select, sym_sin)
-from .._validate import coord2_or_param, is_param, real_or_param, vec2_or_param
+from fastsdf.expr.validate import MAX_COORD, check_length as _check_length
+from fastsdf.expr.validate import coord as _coord
+from fastsdf.expr.validate import coord2 as _point
+from fastsdf.expr.validate import length as _length
+from fastsdf.expr.validate import real as _real
+from fastsdf.expr.validate import vec2 as _vec2
+from fastsdf.expr.graph import Expr, as_expr, sym_abs, sym_cos, sym_length, sym_max, sym_min, sym_prim, sym_select, sym_sin
+from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param, vec2_or_param
 
 
 def _has_param(value) -> bool:
@@ -121,9 +120,9 @@ def _polygon_expr_p(x: Expr, y: Expr, vertices) -> Expr:
         flip = sym_select(sym_abs(c1 + c2 + c3) - 2.0, -1.0, 1.0)  # all three or none
         sign = flip if sign is None else sign * flip
     return sign * dist
-from .context import _IDENTITY, _coords, _frame
-from .exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
-from .operations import SDF
+from fastsdf.shapes.context import _IDENTITY, _coords, _frame
+from fastsdf.shapes.exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
+from fastsdf.shapes.operations import SDF
 
 __all__ = ["Circle", "Halfspace", "Box",
            "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
@@ -788,7 +787,7 @@ class Ellipse(SDF):
             self.center, self.axes = center, axes_p
             x, y = _coords()
             # The axes are arguments of the compiled solve; its derivative in them (for dd/dt)
-            # comes from the closest point (see fastsdf.ops).
+            # comes from the closest point (see fastsdf.expr.ops).
             expr = sym_prim("ellipse", x - center[0], y - center[1], axes_p[0], axes_p[1])
             super().__init__(expr, _primitive_info(None, convex=True))
             return

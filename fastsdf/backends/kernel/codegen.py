@@ -29,9 +29,9 @@ Design (see the README's design section for the measurements behind it):
 * Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
   tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
   makes numba's compile time explode. For scenes without parameters the ``prange`` kernels are
-  scene-independent (:mod:`fastsdf._drive`, compiled once per installation) and call the
+  scene-independent (:mod:`fastsdf.backends.kernel.drive`, compiled once per installation) and call the
   scene's block functions by address.
-* Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf._cache`)
+* Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf.backends.kernel.cache`)
   and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
   compiles gradient code.
 """
@@ -45,10 +45,11 @@ import numba
 import numpy as np
 from typing import Sequence
 
-from . import __version__
-from ._simd import block_source, drive_import, program_source, vectorizable, vmath_import
-from .graph import Expr, _gc_paused, parameters
-from .ops import OPS, lit
+from fastsdf.version import __version__
+from fastsdf.backends.kernel.cache import hashed_import
+from fastsdf.backends.kernel.simd import block_source, drive_import, program_source, vectorizable, vmath_import
+from fastsdf.expr.graph import Expr, gc_paused, parameters
+from fastsdf.expr.ops import OPS, lit
 
 __all__ = ["generate_module_source", "MIN_LOOP"]
 
@@ -84,7 +85,7 @@ _lit = lit
 
 
 class _OpNode:
-    """What the emitters of :mod:`fastsdf.ops` read of a node (its op and attribute), for the
+    """What the emitters of :mod:`fastsdf.expr.ops` read of a node (its op and attribute), for the
     steps of a chain that has no node of its own."""
 
     __slots__ = ("op", "attr")
@@ -142,7 +143,7 @@ def _neg(g):
 
 
 def _chain_rule(rule, args, ncomp):
-    """Gradient component sources of a node from its op's gradient rule (see fastsdf.ops)."""
+    """Gradient component sources of a node from its op's gradient rule (see fastsdf.expr.ops)."""
     if rule is None:
         return [None] * ncomp
     if callable(rule):
@@ -307,7 +308,7 @@ def _flatten_chain(node: Expr) -> list:
 class _Emitter:
     """Emits the body of one per-point function (value only, or value and gradient).
 
-    Operations come from the table of :mod:`fastsdf.ops`; the emitter applies their gradient
+    Operations come from the table of :mod:`fastsdf.expr.ops`; the emitter applies their gradient
     rules to every coordinate component alike (``COMPONENTS``: variable suffixes, one per
     coordinate) and emits the n-ary chains (min, max, smin, smax) itself.
     """
@@ -609,7 +610,7 @@ class _Emitter:
         Every maximal small subexpression is evaluated in a loop over a table first (see
         :meth:`_prefold`, one-member shapes included); if what remains is a tree of chains
         (min, max, smin, smax; no loops over tables) over those results, it becomes a list of
-        steps for the installation's interpreter (:func:`fastsdf._drive._combine`) instead of
+        steps for the installation's interpreter (:func:`fastsdf.backends.kernel.drive._combine`) instead of
         straight-line code. Steps are tuples ``(op, operand, acc, k, zero)``: ``operand`` the
         first of the operand's rows (value, then one per gradient component), ``acc`` the first
         of the accumulator's rows (m, the gradient components, s), ``zero`` which of the
@@ -899,7 +900,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from fastsdf._intrinsics import select as _sel
+from fastsdf.backends.kernel.intrinsics import select as _sel
 
 '''
 
@@ -963,7 +964,7 @@ def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = Fal
     """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
     shorter than the gradient body, so the two may differ). With loop groups, the lanes
     functions take row lists (the batch kernels pass all rows; the tile kernels of pruning are
-    the block kernels of :mod:`fastsdf._simd`, which take them as data too).
+    the block kernels of :mod:`fastsdf.backends.kernel.simd`, which take them as data too).
     Kernels of a scene with parameters take time ``t`` and the parameter tuple ``prm`` after
     the output arrays."""
     parts = []
@@ -1122,10 +1123,10 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
             ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
     if em.groups and grad and param_names is None and not time:
         # The one-point function over given row lists (pointers to int64: a tile's pruned
-        # lists), for per-point callers such as the particle step (see fastsdf.prune).
+        # lists), for per-point callers such as the particle step (see fastsdf.backends.prune).
         many += _POINT_TEMPLATE.format(
             name="rows_vg", doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
-            "pointers, see fastsdf.prune).", body="\n".join("    " + line for line in em.lines),
+            "pointers, see fastsdf.backends.prune).", body="\n".join("    " + line for line in em.lines),
             pargs=", _act, _off", ret=", ".join(results), nan_return=single[2])
     if param_names is None and not time:
         kind = "vg" if grad else "v"
@@ -1192,7 +1193,7 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
     (one dict per loop over a table, in the order of the kernels' row lists: ``op``, ``k``,
     ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
     ``rows`` (their shared template and constants), ``others`` (the chain's other operands))."""
-    with _gc_paused():  # a bulk pass over the graph (see fastsdf.graph._GCPaused)
+    with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
         return _generate_module(root, symbol_names, vmath)
 
 
@@ -1204,7 +1205,7 @@ def _generate_module(root: Expr, symbol_names, vmath: bool):
                                                         vmath=vmath, memo=memo)
     vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
                                                          vmath=vmath, memo=memo)
-    # The batch kernels are the SIMD block kernels of fastsdf._simd (defined last, they
+    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last, they
     # replace the multi-lane batch kernels of the same name).
     blocks = []
     if isinstance(v_one, tuple):
@@ -1250,31 +1251,10 @@ def _generate_module(root: Expr, symbol_names, vmath: bool):
 
 
 def _prims_import() -> str:
-    """Import of the compiled primitives, with a hash of their source: numba's cache does not
-    notice changes in a callee's module, so a changed ``_prims.py`` must change the scene file."""
-    global _PRIMS_LINE
-    if _PRIMS_LINE is None:
-        import hashlib
-        from . import _prims
-        with open(_prims.__file__, "rb") as fh:
-            digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-        _PRIMS_LINE = f"from fastsdf import _prims as _P  # _prims.py sha256 {digest}\n"
-    return _PRIMS_LINE
-
-
-_PRIMS_LINE = None
+    """Import of the compiled primitives of :mod:`fastsdf.backends.kernel.prims`."""
+    return hashed_import("fastsdf.backends.kernel.prims", alias="_P") + "\n"
 
 
 def _short(root: Expr) -> str:
-    from .graph import _to_str
-    return _to_str(root, limit=300)
-
-
-
-
-def __getattr__(name):
-    # The compiled-function layer moved to fastsdf.function (it imports this module).
-    if name in ("CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS"):
-        from . import function
-        return getattr(function, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from fastsdf.expr.graph import expr_to_str
+    return expr_to_str(root, limit=300)

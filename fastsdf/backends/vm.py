@@ -1,6 +1,6 @@
 """A scene-independent tape interpreter: answers a new scene at once, while its kernel compiles.
 
-A scene's expression DAG (:mod:`fastsdf.graph`) is flattened into a *tape*: a deduplicated
+A scene's expression DAG (:mod:`fastsdf.expr.graph`) is flattened into a *tape*: a deduplicated
 instruction list in topological order, each instruction an opcode, operand registers and a
 constant (libfive and Fidget evaluate such tapes next to their JITs). One numba function,
 :func:`_eval_par` (``@njit(cache=True)``, compiled once per installation and cached beside this
@@ -9,25 +9,25 @@ the whole block (the dispatch costs once per block, not per point), with a regis
 ``BLOCK`` values (and two gradient rows) per live value. Registers are reused once their value
 is dead (linear scan), so the register file follows the scene's width, not its size.
 
-The tape follows the compiled code (:mod:`fastsdf.codegen`) operation by operation: the same
-formulas for values and partial derivatives (the table of :mod:`fastsdf.ops`), chains of
+The tape follows the compiled code (:mod:`fastsdf.backends.kernel.codegen`) operation by operation: the same
+formulas for values and partial derivatives (the table of :mod:`fastsdf.expr.ops`), chains of
 ``min``/``max``/``smin``/``smax`` flattened and streamed operand by operand in the generated
 code's order with its tie rule (the earlier operand wins), smooth chains as the same online
-log-sum-exp, the same branch-free ``exp``/``log``/``length`` of :mod:`fastsdf._vmath`, the same
-compiled primitives of :mod:`fastsdf._prims`. Gradients are forward mode with the same one-sided
+log-sum-exp, the same branch-free ``exp``/``log``/``length`` of :mod:`fastsdf.backends.kernel.vmath`, the same
+compiled primitives of :mod:`fastsdf.backends.kernel.prims`. Gradients are forward mode with the same one-sided
 conventions at kinks; a gradient component known to be zero is never multiplied by a partial
 (as the generated code omits it). Results agree with the compiled kernels to rounding (tested:
 values to 1e-12 relative, gradients to 1e-9). Non-finite input points give NaN for those
 points only.
 
-Runtime parameters (:func:`fastsdf.graph.Param`, time ``t``) are inputs of the tape (read from
+Runtime parameters (:func:`fastsdf.expr.graph.Param`, time ``t``) are inputs of the tape (read from
 an array per call); the time derivative (``time_derivative=True``) is not offered by the tape.
 
 Per point the tape costs several times the compiled kernel (``python -m bench.bench_tape``), so
-it is for the first calls of a new scene: :class:`fastsdf.graph.Function` uses it with
+it is for the first calls of a new scene: :class:`fastsdf.function.Function` uses it with
 ``backend='tape'`` (always) or ``backend='auto'`` (while the scene's kernel compiles in a
 background thread, where the cost model prefers it to the NumPy path of
-:mod:`fastsdf.npeval`, which needs no numba at all: scenes of thousands of nodes per point,
+:mod:`fastsdf.backends.npeval`, which needs no numba at all: scenes of thousands of nodes per point,
 once numba's one-time setup in the process is paid or worth paying; see
 :class:`fastsdf.function.Function`).
 """
@@ -42,10 +42,10 @@ from numba import njit, prange
 from typing import Any, Sequence
 from numpy.typing import ArrayLike
 
-from . import _prims as _P
-from ._intrinsics import select as _sel
-from ._vmath import vexp, vlength, vlength_grad, vlog
-from .graph import Expr
+from fastsdf.backends.kernel import prims as _P
+from fastsdf.backends.kernel.intrinsics import select as _sel
+from fastsdf.backends.kernel.vmath import vexp, vlength, vlength_grad, vlog
+from fastsdf.expr.graph import Expr
 
 __all__ = ["Tape", "compile_tape", "BLOCK"]
 
@@ -78,7 +78,7 @@ class Tape:
 
     ``tape(x, y)`` evaluates it (signed distance, negative inside, in the coordinates' units);
     ``tape(x, y, compute_gradient=True)`` returns ``(d, grad)`` with ``grad[..., 0] = dd/dx``,
-    ``grad[..., 1] = dd/dy``, as :class:`fastsdf.graph.Function` does. ``params`` gives values
+    ``grad[..., 1] = dd/dy``, as :class:`fastsdf.function.Function` does. ``params`` gives values
     of runtime parameters by name (the others take their defaults; ``'t'`` is time).
 
     Attributes: ``code`` (one row per instruction: opcode, destination register, operand
@@ -126,7 +126,7 @@ class Tape:
 
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
                  params: dict | None = None) -> Any:
-        from .function import as_points
+        from fastsdf.expr.points import as_points
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
@@ -178,7 +178,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
 
     Raises ``ValueError`` for what the tape does not evaluate (a symbol other than the two
     coordinates, a primitive whose constants depend on the coordinates)."""
-    from .codegen import _Emitter
+    from fastsdf.backends.kernel.codegen import _Emitter
     names = tuple(symbol_names)
     planner = _Emitter(names, False, {})
     b = _Builder(names)
@@ -225,7 +225,7 @@ def _plan(planner, node):
     """A chain's operands in the generated code's order (loops over tables placed where their
     first member stood) and whether it starts from +-huge (as the generated code does when its
     first item is a loop)."""
-    from .codegen import _flatten_chain
+    from fastsdf.backends.kernel.codegen import _flatten_chain
     operands = _flatten_chain(node)
     if len(operands) <= 2:  # the generated code's order is the written one
         return operands, False
@@ -735,7 +735,7 @@ def _eval_par(code, consts, table, nreg, root, xs, ys, prm, out, gout, grad, chu
 def _guard():
     import sys
 
-    from ._cache import guard_module
+    from fastsdf.backends.kernel.cache import guard_module
     guard_module(sys.modules[__name__])
 
 

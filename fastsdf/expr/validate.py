@@ -10,7 +10,7 @@ import numbers
 
 import numpy as np
 
-from .graph import Expr
+from fastsdf.expr.graph import Expr
 
 
 def real(value, name: str, finite: bool = True) -> float:
@@ -119,14 +119,14 @@ def check_length(size: float, name: str, shown=None) -> None:
                          f"magnitude ({_RANGE}), got {name}={shown!r}")
 
 
-# Runtime parameters (fastsdf.graph.Param) are accepted wherever a scene takes a number: the
+# Runtime parameters (fastsdf.expr.graph.Param) are accepted wherever a scene takes a number: the
 # checks run on the value the expression has at the parameters' defaults (values set later are
 # the caller's responsibility), and the shape bookkeeping treats such a number as unknown.
 
 def _param_value(expr, name: str) -> float:
     """The value of a parameter expression at its parameters' defaults (it must not depend on
     the coordinates)."""
-    from .graph import evaluate_numpy
+    from fastsdf.expr.graph import evaluate_numpy
     if expr.syms:
         raise ValueError(f"{name} must be a number or an expression of parameters, got one of "
                          f"the coordinates {sorted(expr.syms)}: {name}={expr}")

@@ -1,7 +1,7 @@
 """NarrowBandGridSDF: fine samples only near the surface, a lower bound everywhere else.
 
 A particle (or any collision test) only needs an accurate distance where it may touch a
-surface. A dense :class:`fastsdf.grid.GridSDF` spends almost all its memory far from any
+surface. A dense :class:`fastsdf.fields.grid.GridSDF` spends almost all its memory far from any
 surface; its memory grows with the area while its accuracy is set by the spacing. A
 :class:`NarrowBandGridSDF` keeps a coarse level of *tiles* over ``bounds`` (8 x 8 fine
 cells each, like the leaves of OpenVDB; Museth 2013) and stores fine nodes (value and gradient,
@@ -13,7 +13,7 @@ Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
 centre ``c`` and half-diagonal ``rt`` has ``f(c) - L rt <= f(p) <= f(c) + L rt``; a tile is
 *far* when that range misses the band. For a function with no known bound the interval bounds of
-:mod:`fastsdf.interval` over the tile take its place. A far tile stores one int32: a lower bound
+:mod:`fastsdf.expr.interval` over the tile take its place. A far tile stores one int32: a lower bound
 of ``|f|`` over the tile (with ``f``'s sign there, quantized downwards) less half a fine cell
 diagonal, and the direction of ``f``'s gradient at the tile centre (in 4096 steps), which it
 answers as the gradient (so that a particle that starts deep inside matter is still pushed out).
@@ -38,7 +38,7 @@ its bounds; the particle loop's ``inside=False`` path). The achieved error is me
 :func:`measure_band_error`); ``nbytes`` and ``memory`` report the storage.
 
 For numba code: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)`` as for the dense grid
-(:data:`fastsdf.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
+(:data:`fastsdf.fields.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
 and for non-finite points (then the values are NaN), and the caller evaluates
 ``g.exact.point_fn(x, y)`` there (finite points). :class:`fastsdf.particles.ParticleSimulation`
 accepts a NarrowBandGridSDF as its world. For particles choose ``band=(-w, r_max + w)`` with
@@ -62,10 +62,9 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .function import PARALLEL_MIN_POINTS, as_points
-from .graph import Function
-from .grid import (GridError, _check_bounds, _check_dtype, _check_samples, _fetch_add,
-                   _n_chunks, _stats)
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
+from fastsdf.function import Function
+from fastsdf.fields.grid import GridError, _check_bounds, _check_dtype, _check_samples, _fetch_add, _n_chunks, _stats
 
 __all__ = ["NarrowBandGridSDF", "sample_band", "measure_band_error"]
 
@@ -317,7 +316,7 @@ class NarrowBandGridSDF:
 
     Parameters
     ----------
-    f : fastsdf.graph.Function
+    f : fastsdf.function.Function
         The exact SDF (negative inside). Evaluated only at the tile centres, at the nodes of the
         fine tiles and (tolerance builds) at the midpoints of their cells.
     bounds : [(x0, x1), (y0, y1)]
@@ -327,7 +326,7 @@ class NarrowBandGridSDF:
         ``lo <= f <= hi`` (a pair, ``lo <= 0 <= hi``, ``lo < hi``) lies in a fine tile. For
         particles: ``(-w, r_max + w)``, see the module docstring.
     samples : [nx, ny], optional
-        Fine node counts over ``bounds`` as for :class:`fastsdf.grid.GridSDF` (``400j`` or 400):
+        Fine node counts over ``bounds`` as for :class:`fastsdf.fields.grid.GridSDF` (``400j`` or 400):
         spacing ``h = (x1 - x0) / (nx - 1)``; the fine nodes are exactly those of the dense grid
         with these samples. Give ``samples`` or ``tolerance`` (or both).
     tolerance : float, optional
@@ -341,8 +340,8 @@ class NarrowBandGridSDF:
     lipschitz : float, optional
         A bound on ``|grad f|``; default 1 for shapes whose ``exactness`` is ``'exact'`` or
         ``'bound'``. For other functions (``exactness == 'none'``, a bare
-        :class:`fastsdf.graph.Function`) without ``lipschitz``, tiles are classified with the
-        interval bounds of :mod:`fastsdf.interval` over each tile (sound, but slower to build),
+        :class:`fastsdf.function.Function`) without ``lipschitz``, tiles are classified with the
+        interval bounds of :mod:`fastsdf.expr.interval` over each tile (sound, but slower to build),
         and ``lipschitz`` is None.
 
     Attributes
@@ -364,7 +363,7 @@ class NarrowBandGridSDF:
                  lipschitz: float | None = None):
         t0 = time.perf_counter()
         if not isinstance(f, Function):
-            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
+            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.function.Function such as "
                             f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
         if f.time_dependent:   # as GridSDF: a sampled scene does not move
             raise ValueError("f depends on time (sdf.t): a narrow band samples a scene that "
@@ -466,7 +465,7 @@ class NarrowBandGridSDF:
 
     def _interval_range(self, cx, cy, wx, wy):
         """Bounds ``(lo, hi)`` of ``f`` over every tile (x-major), from interval evaluation."""
-        from .interval import bounds as interval_bounds
+        from fastsdf.expr.interval import bounds as interval_bounds
 
         CX, CY = np.meshgrid(cx, cy, indexing="ij")
         sx, sy = (s.attr for s in self.exact.symbols)
@@ -556,7 +555,7 @@ class NarrowBandGridSDF:
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
         (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
         and in exact cells; NaN for non-finite points. Conventions as
-        :class:`fastsdf.graph.Function`."""
+        :class:`fastsdf.function.Function`."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
@@ -622,9 +621,9 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;
     they cover the band) and the band statistics keep those with ``|d_exact| < band`` (or
-    ``lo < d_exact < hi`` for ``band=(lo, hi)``; default ``g.band``). ``g`` may also be a dense :class:`fastsdf.grid.GridSDF`; then ``points`` (an
+    ``lo < d_exact < hi`` for ``band=(lo, hi)``; default ``g.band``). ``g`` may also be a dense :class:`fastsdf.fields.grid.GridSDF`; then ``points`` (an
     ``(x, y)`` pair, e.g. drawn for a band grid) should be given. Returns a
-    :class:`fastsdf.grid.GridError` (value errors in coordinate units, gradient angles in
+    :class:`fastsdf.fields.grid.GridError` (value errors in coordinate units, gradient angles in
     degrees; far-tile answers are not in the band, where they would not be errors but bounds).
     """
     if points is None:

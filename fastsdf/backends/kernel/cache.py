@@ -26,6 +26,7 @@ The directory is ``$FASTSDF_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/fastsdf``
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
 import pickle
 import sys
@@ -33,6 +34,7 @@ import tempfile
 import threading
 import types
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
 
 _MODULES: dict = {}
@@ -60,6 +62,26 @@ def cache_dir() -> Path:
 def source_key(source: str) -> str:
     """Content hash naming a generated module."""
     return hashlib.sha256(source.encode("utf-8")).hexdigest()[:40]
+
+
+_FILE_DIGESTS: dict = {}
+
+
+def hashed_import(module: str, names: Iterable[str] = (), alias: str | None = None) -> str:
+    """The line ``from module import names`` (or ``import module as alias``) followed by a hash
+    of that module's source.
+
+    numba's cache does not notice changes in a callee's module: a generated module that calls
+    into ``module`` carries its hash, so a changed callee changes the generated source, hence
+    its cache key."""
+    digest = _FILE_DIGESTS.get(module)
+    if digest is None:
+        path = importlib.util.find_spec(module).origin
+        with open(path, "rb") as fh:
+            digest = hashlib.sha256(fh.read()).hexdigest()[:16]
+        _FILE_DIGESTS[module] = digest
+    head = f"import {module} as {alias}" if alias else f"from {module} import {', '.join(names)}"
+    return f"{head}  # sha256 {digest}"
 
 
 def _report(path, what: str) -> None:

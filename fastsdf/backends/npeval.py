@@ -7,11 +7,11 @@ with NumPy alone: one whole-array operation per node of the expression, the poin
 blocks that stay in the cache. It is the path of ``backend='numpy'`` and of the first calls of
 ``backend='auto'`` (see :class:`fastsdf.function.Function`).
 
-The formulas are those of the compiled kernels (:mod:`fastsdf.codegen`): chains of ``min``/
+The formulas are those of the compiled kernels (:mod:`fastsdf.backends.kernel.codegen`): chains of ``min``/
 ``max``/``smin``/``smax`` are flattened, hard ones streamed operand by operand (the earlier
 operand wins a tie), smooth ones as a log-sum-exp relative to their extremum (the kernels'
 streamed sum, to rounding), ``length`` as ``sqrt(a*a + b*b)`` with the ``hypot`` fallback, the
-other operations by the NumPy reference of :mod:`fastsdf.ops`.
+other operations by the NumPy reference of :mod:`fastsdf.expr.ops`.
 Results agree with the kernels to rounding (tested: values 1e-12 relative, gradients 1e-9);
 ties between different operands of a chain may pick another (equal-valued) operand's gradient
 where the kernels reorder a chain. Non-finite points give NaN for those points only.
@@ -35,8 +35,8 @@ import math
 import numpy as np
 from typing import Any, Sequence
 
-from .graph import Expr
-from .ops import OPS
+from fastsdf.expr.graph import Expr
+from fastsdf.expr.ops import OPS
 
 __all__ = ["NumpyScene", "compile_numpy", "BLOCK"]
 
@@ -323,7 +323,7 @@ _UP = 2.0 ** 600
 def _op_length(node, av, ag, x, y, ctx):
     a, b = av
     v = np.sqrt(a * a + b * b)
-    # The kernels' rare branch (see fastsdf.ops._emit_length), on the points that take it.
+    # The kernels' rare branch (see fastsdf.expr.ops._emit_length), on the points that take it.
     bad = np.flatnonzero(~((v > 1e-150) & (v < 1e150)))
     if ag is None:
         if len(bad):
@@ -364,7 +364,7 @@ def _op_param(node, av, ag, x, y, ctx):
 
 
 def _generic(node, av, ag, x, y, ctx):
-    """Any other operation by its NumPy reference (:mod:`fastsdf.ops`)."""
+    """Any other operation by its NumPy reference (:mod:`fastsdf.expr.ops`)."""
     shape = np.broadcast(x, y).shape
     args = [np.broadcast_to(np.asarray(a, dtype=np.float64), shape) for a in av]
     v, rule = OPS[node.op].np(node, args, ag is not None)
@@ -471,7 +471,7 @@ def _matcher(prog: _Program):
     body.append(f"return [{consts}]")
     src = f"def match(n{last}):\n" + "\n".join("    " + line for line in body) + "\n"
     env = {"A": attrs, "L": leaves, "F": _flatten}
-    exec(compile(src, "<fastsdf.npeval matcher>", "exec"), env)
+    exec(compile(src, "<fastsdf.backends.npeval matcher>", "exec"), env)
     fn = env["match"]
 
     def match(operand):
@@ -487,7 +487,7 @@ class _Chain:
     :data:`GROUP_MIN`) and the other operands; ``useful`` says whether any group exists."""
 
     def __init__(self, root: Expr, operands: list, xname: str):
-        from .interval import _LIPSCHITZ
+        from fastsdf.expr.interval import LIPSCHITZ_RULES
         self.op = root.op
         self.n = len(operands)
         groups: list = []  # [prog, match, pos, rows, lips]
@@ -518,7 +518,7 @@ class _Chain:
             g[2].append(p)
             g[3].append(c)
             # A Lipschitz constant noted by the modelling layer (a negated SDF keeps it).
-            g[4].append(_LIPSCHITZ.get(operand.args[0] if operand.op == "neg" else operand))
+            g[4].append(LIPSCHITZ_RULES.get(operand.args[0] if operand.op == "neg" else operand))
         self.groups = []
         if not any(len(g[2]) >= GROUP_MIN for g in groups):
             self.others = []  # nothing to prune: the caller evaluates the chain as it is
@@ -601,7 +601,7 @@ def _group_bounds(group: _Group, members, cx, cy, hx, hy, scale):
 
 
 def _interval_bounds(group: _Group, members, cx, cy, hx, hy):
-    """Interval arithmetic over the shape's program (the rules of :mod:`fastsdf.ops`) for the
+    """Interval arithmetic over the shape's program (the rules of :mod:`fastsdf.expr.ops`) for the
     tiles ``[cx - hx, cx + hx] x [cy - hy, cy + hy]`` (``hx, hy`` include a sliver)."""
     consts = group.consts(members)
     lo_s, hi_s = [], []
@@ -881,7 +881,7 @@ class NumpyScene:
 
     def __call__(self, x, y, compute_gradient: bool = False, params: dict | None = None,
                  prune: bool = True) -> Any:
-        from .function import as_points
+        from fastsdf.expr.points import as_points
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .graph import _gc_paused
-from .shapes import SDF, Box, Circle, Halfspace, smoothness, transform
+from fastsdf.expr.graph import gc_paused
+from fastsdf.shapes import SDF, Box, Circle, Halfspace, smoothness, transform
 
 __all__ = ["funnel", "seed_world", "box_world", "mixed_scene"]
 
@@ -31,7 +31,7 @@ def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
     """
     if int(n_boxes) != n_boxes or n_boxes < 0:
         raise ValueError(f"n_boxes must be a non-negative integer, got n_boxes={n_boxes!r}")
-    with _gc_paused():  # a bulk build (see fastsdf.graph._GCPaused)
+    with gc_paused():  # a bulk build (see fastsdf.expr.graph._GCPaused)
         return _box_world(int(n_boxes), seed)
 
 
@@ -53,7 +53,7 @@ def mixed_scene(n: int, seed: int = 1) -> SDF:
     (used by the benchmarks and tests)."""
     if int(n) != n or n < 1:
         raise ValueError(f"n must be a positive integer, got n={n!r}")
-    with _gc_paused():  # a bulk build (see fastsdf.graph._GCPaused)
+    with gc_paused():  # a bulk build (see fastsdf.expr.graph._GCPaused)
         return _mixed_scene(int(n), seed)
 
 

@@ -9,7 +9,7 @@ frame of an animation. :func:`render_frame` draws a world and particles into one
 animation (without resetting it) and :func:`save_animation` writes one to MP4, GIF or HTML.
 
 Drawing lives here, apart from the physics: a simulation holds no artists. This module imports
-:mod:`fastsdf.plotting` (the SDF's picture), never the other way round.
+:mod:`fastsdf.viz.plotting` (the SDF's picture), never the other way round.
 
 Image convention (shared by every function here): an image of ``shape=(H, W)`` covers
 ``bounds=[(x0, x1), (y0, y1)]`` in data units; pixel ``[i, j]`` holds the points with
@@ -32,7 +32,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .plotting import check_bounds
+from fastsdf.viz.plotting import check_bounds
 
 __all__ = ["density_image", "draw_particles", "ParticleLayer", "render_frame", "animate",
            "save_animation", "PARTICLE_COLOR", "PARTICLE_CMAP_COLORS", "DEFAULT_MAX_CIRCLES",
@@ -41,7 +41,7 @@ __all__ = ["density_image", "draw_particles", "ParticleLayer", "render_frame", "
 #: Face colour of particles drawn as circles.
 PARTICLE_COLOR = "#e6550d"
 #: Colours (low to high density) of the colour map of the density image. Every one is far from
-#: the SDF fill colours of :mod:`fastsdf.plotting`, so particles stay visible over either.
+#: the SDF fill colours of :mod:`fastsdf.viz.plotting`, so particles stay visible over either.
 PARTICLE_CMAP_COLORS = ("#fd8d3c", "#d94801", "#7f2704")
 #: Up to this many particles :func:`draw_particles` draws circles; above, a density image.
 DEFAULT_MAX_CIRCLES = 5000
@@ -128,7 +128,7 @@ def _check_count(value, name: str, minimum: int) -> int:
     return int(value)
 
 
-def _check_shape(shape) -> tuple:
+def check_shape(shape) -> tuple:
     try:
         h, w = shape
     except (TypeError, ValueError):
@@ -177,7 +177,7 @@ def density_image(x: Any, y: Any, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
     serial kernel. Both give the same image (the parallel one up to float rounding of weights).
     """
     (x0, x1), (y0, y1) = check_bounds(bounds)
-    h, w = _check_shape(shape)
+    h, w = check_shape(shape)
     xs, ys = _coords(x, "x"), _coords(y, "y")
     if xs.shape != ys.shape:
         raise ValueError(f"x and y must have the same number of points, got {xs.size} and "
@@ -230,7 +230,7 @@ def _axes_image_shape(ax, bounds) -> tuple:
     return _clip_side(h), _clip_side(w)
 
 
-def _plain_log_ticks(colorbar) -> None:
+def plain_log_ticks(colorbar) -> None:
     """Tick labels ``1, 2, 5, 10, 100`` on a logarithmic colour bar instead of ``2x10^0``."""
     from matplotlib.ticker import FuncFormatter
 
@@ -336,7 +336,7 @@ class ParticleLayer:
             if self._fixed_norm is None:
                 self.artist.norm.vmax = vmax
                 if self.colorbar is not None:  # a new range resets the bar's tick labels
-                    _plain_log_ticks(self.colorbar)
+                    plain_log_ticks(self.colorbar)
         else:
             self._drop()
             norm = self._fixed_norm if self._fixed_norm is not None else LogNorm(1.0, vmax)
@@ -356,7 +356,7 @@ class ParticleLayer:
                                                         label="particles per pixel",
                                                         fraction=0.046, pad=0.03)
             if self.colorbar is not None:
-                _plain_log_ticks(self.colorbar)
+                plain_log_ticks(self.colorbar)
         self.image = img
 
     def _drop(self):
@@ -425,7 +425,7 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
     bounds = check_bounds(bounds)
     max_circles = _check_count(max_circles, "max_circles", 0)
     if shape is not None:
-        shape = _check_shape(shape)
+        shape = check_shape(shape)
     layer = ParticleLayer(ax, bounds, shape, max_circles, color,
                           cmap if cmap is not None else _particle_cmap(), norm, alpha, zorder,
                           marker_points, colorbar)
@@ -436,14 +436,14 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
 # ---------------------------------------------------------------------------------------------
 # A world with particles in one figure; animations of a running simulation; saving them.
 
-def _world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
+def world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
                   ticks: bool = True) -> tuple:
     """``(fig, ax, cax)``: ``f``'s filled view on ``ax``, and a hidden axes ``cax`` for a colour
     bar beside it, laid out by hand so that nothing is cut and no margin is wasted (matplotlib's
     layout engines misplace a colour bar beside an equal-aspect axes)."""
     from matplotlib.figure import Figure
 
-    from .plotting import check_bounds, plot_sdf
+    from fastsdf.viz.plotting import check_bounds, plot_sdf
 
     (x0, x1), (y0, y1) = check_bounds(bounds)
     fig = Figure(figsize=figsize, dpi=dpi)
@@ -467,8 +467,8 @@ def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), 
                  dpi: float = 100, colorbar: bool = True, ticks: bool = True) -> Any:
     """Draw the SDF ``f`` and particles at ``(x, y)`` in one figure, and save it as a PNG.
 
-    The figure shows ``f``'s filled view (solid in :data:`fastsdf.plotting.SOLID_COLOR`, free
-    space in :data:`fastsdf.plotting.BACKGROUND_COLOR`) with its zero contour, over ``bounds``
+    The figure shows ``f``'s filled view (solid in :data:`fastsdf.viz.plotting.SOLID_COLOR`, free
+    space in :data:`fastsdf.viz.plotting.BACKGROUND_COLOR`) with its zero contour, over ``bounds``
     (data units, sampled ``samples`` times per axis, axes labelled in data units unless
     ``ticks=False``), and the particles on top via :func:`draw_particles`: circles of radius
     ``r`` (data units; scalar or per particle) up to ``max_circles`` particles (default
@@ -482,7 +482,7 @@ def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), 
     Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
     closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
     """
-    fig, ax, cax = _world_figure(f, bounds, samples, figsize, dpi, ticks)
+    fig, ax, cax = world_figure(f, bounds, samples, figsize, dpi, ticks)
     layer = draw_particles(ax, x, y, r=r, bounds=bounds, colorbar=cax if colorbar else False,
                            max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles)
     fig.particle_layer = layer
@@ -602,8 +602,8 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
 
     from matplotlib import animation
 
-    from ._progress import progress as _bar
-    from ._video import ffmpeg_available
+    from fastsdf.viz.progress import progress as _bar
+    from fastsdf.viz.video import ffmpeg_available
 
     ext = os.path.splitext(str(path))[1].lower()
     if ext not in VIDEO_FORMATS:

@@ -1,6 +1,6 @@
 """Scene-independent batch kernels: they call a scene's block functions through pointers.
 
-A scene's generated module defines ``_block_v`` / ``_block_vg`` (see :mod:`fastsdf._simd`), one
+A scene's generated module defines ``_block_v`` / ``_block_vg`` (see :mod:`fastsdf.backends.kernel.simd`), one
 block of at most ``BLOCK`` points, over raw pointers with the signature :data:`BLOCK_SIG`
 ``(xs, ys, out, grad, n, scratch)``, and for long scenes ``_fold_v`` / ``_fold_vg`` (the loops
 over same-shape subexpressions, run first on the same block). The kernels here loop over the
@@ -23,9 +23,9 @@ from llvmlite import ir
 from numba import get_thread_id, njit, prange, types
 from numba.extending import intrinsic
 
-from ._intrinsics import select as _sel
-from ._simd import BLOCK
-from ._vmath import vexp as _vexp, vlog as _vlog
+from fastsdf.backends.kernel.intrinsics import select as _sel
+from fastsdf.backends.kernel.layout import BLOCK
+from fastsdf.backends.kernel.vmath import vexp as _vexp, vlog as _vlog
 
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
            "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
@@ -720,7 +720,7 @@ def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
 
 
 def _guard():
-    from ._cache import guard_module
+    from fastsdf.backends.kernel.cache import guard_module
     guard_module(sys.modules[__name__])
 
 

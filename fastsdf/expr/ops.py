@@ -1,14 +1,14 @@
-"""The table of operations: every node operation of :mod:`fastsdf.graph` is defined once, here.
+"""The table of operations: every node operation of :mod:`fastsdf.expr.graph` is defined once, here.
 
 Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
 
 ``fmt(node, args) -> str``
-    how :func:`fastsdf.graph._to_str` prints the node (``args``: the printed arguments).
+    how :func:`fastsdf.expr.graph.expr_to_str` prints the node (``args``: the printed arguments).
 ``np(node, av, with_grad) -> (value, partials)``
-    the NumPy reference (whole arrays, one operation per node; :func:`fastsdf.graph.evaluate_numpy`).
+    the NumPy reference (whole arrays, one operation per node; :func:`fastsdf.expr.graph.evaluate_numpy`).
     ``partials`` (only when ``with_grad``) is a :ref:`gradient rule <rules>`.
 ``emit(em, out, node, a, r) -> partials``
-    the code template for the generated numba code (:mod:`fastsdf.codegen`): append source lines
+    the code template for the generated numba code (:mod:`fastsdf.backends.kernel.codegen`): append source lines
     to ``out`` that assign the node's value to the variable named ``r``; ``a`` holds the
     arguments' emitted values (``a[i].v`` is a Python expression); ``em.grad`` says whether the
     gradient is wanted, ``em.assign(out, name, expr)`` appends an assignment and returns
@@ -16,7 +16,7 @@ Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
     expressions), or None when ``em.grad`` is false.
 ``interval(node, lo, hi) -> (lo, hi)``
     bounds of the node's value over a set of boxes (arrays, one entry per box) given bounds of
-    its arguments; sound for the values the compiled code computes (see :mod:`fastsdf.interval`).
+    its arguments; sound for the values the compiled code computes (see :mod:`fastsdf.expr.interval`).
 ``lipschitz(node, L, lo, hi) -> L``
     a bound of the gradient's length over the boxes from the arguments' bounds ``L`` (optional:
     ``None`` means no bound is known).
@@ -37,7 +37,7 @@ arguments' values for one component to the node's; returning ``None`` from ``com
 rule of all ``None``) means a zero component.
 
 **Adding an operation**: one :class:`Op` entry here, plus a ``sym_*`` constructor in
-:mod:`fastsdf.graph` (which folds constants and simplifies).
+:mod:`fastsdf.expr.graph` (which folds constants and simplifies).
 """
 
 from __future__ import annotations
@@ -690,7 +690,7 @@ def _prim_constants(node, av):
 
 
 def _np_prim(node, av, g):
-    from ._prims_ref import evaluate as _prim_reference
+    from fastsdf.expr.prims_ref import evaluate as _prim_reference
     consts = _prim_constants(node, av)
     if all(len(c) <= 1 for c in consts):
         d, du, dv = _prim_reference(node.attr[0], node.attr[1], av[0], av[1],
@@ -721,7 +721,7 @@ def _prim_constant_partials(node, a, d, du, dv, lib):
 
 
 def _emit_prim(em, out, node, a, r):
-    # A fixed compiled function of fastsdf._prims returns (d, dd/du, dd/dv) at the local
+    # A fixed compiled function of fastsdf.backends.kernel.prims returns (d, dd/du, dd/dv) at the local
     # coordinates (u, v) = (a[0], a[1]); structural data (polygon vertices) becomes a table.
     kind, data = node.attr
     extra = [c.v for c in a[2:]]
@@ -742,7 +742,7 @@ def _emit_prim(em, out, node, a, r):
 def _iv_prim(node, lo, hi):
     # Primitives are exact distances of (u, v), hence 1-Lipschitz there: the value over a box of
     # (u, v) is within its half-diagonal of the value at the box's centre.
-    from ._prims_ref import evaluate as _prim_reference
+    from fastsdf.expr.prims_ref import evaluate as _prim_reference
     # Constants given by parameters (an ellipse's axes) have ranges: the distance changes by at
     # most the change of each axis (|dd/da| = |n_u q_u / a| <= 1), so their half-widths add.
     cu, cv = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])

@@ -3,7 +3,7 @@
 :func:`plot_sdf` draws an SDF on an axes: contour lines of the distance (all levels, or only the
 zero level, the surface), optional labels on them, an optional quiver of the gradient coloured by
 the distance, an optional filled inside/outside view and an optional colour bar of the distance.
-Particles and animations are drawn by :mod:`fastsdf.render`, which builds on this module (this
+Particles and animations are drawn by :mod:`fastsdf.viz.render`, which builds on this module (this
 module never imports it).
 
 The SDF can be anything callable that returns the distance (negative inside, positive outside)
@@ -11,7 +11,7 @@ for arrays of coordinates:
 
 - ``f(x, y, compute_gradient=...)``, returning ``d`` or, with ``compute_gradient=True``,
   ``(d, grad)`` with ``grad[..., 0] = dd/dx`` and ``grad[..., 1] = dd/dy``: a
-  :class:`fastsdf.graph.Function` (every shape of :mod:`fastsdf.shapes`) or a GridSDF;
+  :class:`fastsdf.function.Function` (every shape of :mod:`fastsdf.shapes`) or a GridSDF;
 - a plain ``f(x, y)`` returning ``d``;
 - a plain ``f(p)`` taking an ``(n, 2)`` array of points and returning ``(n,)`` distances.
 

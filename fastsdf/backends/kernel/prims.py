@@ -3,8 +3,8 @@
 Every kind has two ``@njit`` functions of the local coordinates ``(u, v)`` and the kind's
 arguments: ``<kind>_vg`` returns ``(d, dd/du, dd/dv)`` and ``<kind>_v`` returns ``d``. The code
 generator calls them from the per-point functions and applies the chain rule to ``x, y``;
-:mod:`fastsdf._prims_ref` holds independent NumPy references for the tests and
-:func:`fastsdf.graph.evaluate_numpy`.
+:mod:`fastsdf.expr.prims_ref` holds independent NumPy references for the tests and
+:func:`fastsdf.expr.graph.evaluate_numpy`.
 
 Kinds:
 
@@ -238,7 +238,7 @@ def polygon_v(u, v, verts):
 def _guard():
     import sys
 
-    from ._cache import guard_module
+    from fastsdf.backends.kernel.cache import guard_module
     guard_module(sys.modules[__name__])
 
 

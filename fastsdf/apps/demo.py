@@ -33,12 +33,12 @@ DEFAULT_FPS = 20
 
 
 def _boxes() -> Any:
-    from .scenes import box_world
+    from fastsdf.shapes.scenes import box_world
     return box_world(20, seed=0)
 
 
 def _seed() -> Any:
-    from .scenes import seed_world
+    from fastsdf.shapes.scenes import seed_world
     return seed_world()
 
 
@@ -139,7 +139,7 @@ def _frame_schedule(steps: int, frames: int) -> list[int]:
 
 
 def _video_writer_ext(err: IO[str]) -> str:
-    from ._video import ffmpeg_available
+    from fastsdf.viz.video import ffmpeg_available
     if ffmpeg_available():
         return ".mp4"
     err.write("note: no ffmpeg found (pip install 'fastsdf[video]' provides one): writing a GIF "
@@ -214,10 +214,9 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
     import matplotlib
     matplotlib.use("Agg")
 
-    from .grid import GridSDF, measure_error
-    from .particles import Gravity, ParticleSimulation
-    from .render import _world_figure, animate as _animate, render_frame, save_animation, \
-        sim_title
+    from fastsdf.fields.grid import GridSDF, measure_error
+    from fastsdf.particles import Gravity, ParticleSimulation
+    from fastsdf.viz.render import world_figure, animate as _animate, render_frame, save_animation, sim_title
 
     for name, value, low in (("particles", particles, 1), ("steps", steps, 1), ("grid", grid, 2),
                              ("frames", frames, 1), ("fps", fps, 1)):
@@ -266,7 +265,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
     label = f"{particles:,} particles, "
     animation_path = None
     if animate:
-        fig, ax, cax = _world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+        fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
         anim = _animate(sim, ax, frames, _frame_schedule(steps, frames), advance=advance,
                         title=label, colorbar=cax, bounds=BOUNDS)
         animation_path = os.path.join(out, "particles" + _video_writer_ext(err))

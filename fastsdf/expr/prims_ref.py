@@ -1,4 +1,4 @@
-"""Independent NumPy references for the compiled primitives of :mod:`fastsdf._prims`.
+"""Independent NumPy references for the compiled primitives of :mod:`fastsdf.backends.kernel.prims`.
 
 They use different methods from the compiled code, so that agreement means something:
 

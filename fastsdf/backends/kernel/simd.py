@@ -2,7 +2,7 @@
 
 LLVM's loop vectorizer turns a counted innermost loop into SIMD code (4 float64 lanes with AVX2,
 8 with AVX-512) when its body is inlined, free of branches and calls, and its loads and stores
-are contiguous. The per-point code of :mod:`fastsdf.codegen` is branch-free already (selects for
+are contiguous. The per-point code of :mod:`fastsdf.backends.kernel.codegen` is branch-free already (selects for
 every min, max and blend); this module re-arranges it:
 
 * A non-parallel ``@njit`` block function evaluates ``BLOCK`` points: the per-point statements
@@ -16,7 +16,7 @@ every min, max and blend); this module re-arranges it:
   ``BLOCK`` values each (the constant distance between rows lets LLVM prove the stores and loads
   independent without runtime checks).
 * ``math.exp``/``math.log``/``math.log1p`` (scalar calls into the C library) are replaced by the
-  branch-free :mod:`fastsdf._vmath` functions, and the overflow-safe ``length`` by its branch-free
+  branch-free :mod:`fastsdf.backends.kernel.vmath` functions, and the overflow-safe ``length`` by its branch-free
   form, unless ``vmath=False`` (kept to compare against the C library).
 
 Non-finite input points are evaluated at the origin and their outputs set to NaN afterwards.
@@ -24,14 +24,13 @@ Non-finite input points are evaluated at the origin and their outputs set to NaN
 
 from __future__ import annotations
 
-import hashlib
 import re
 
 __all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import", "vectorizable", "vmath_import"]
 
-#: Points per block: a multiple of every vector width, small enough that a block's scratch rows
-#: stay in the L1/L2 cache.
-BLOCK = 512
+from fastsdf.backends.kernel.cache import hashed_import
+from fastsdf.backends.kernel.layout import BLOCK
+
 #: Bodies longer than this (generated lines) get one lane: copies would multiply compile time.
 LONG_BODY_LINES = 400
 
@@ -60,7 +59,7 @@ def _split_args(text: str) -> list:
 
 def vectorizable(lines: list) -> list:
     """The statements with the C library's exp/log/log1p and the branchy overflow-safe length
-    (and its partials) replaced by the branch-free versions of :mod:`fastsdf._vmath`."""
+    (and its partials) replaced by the branch-free versions of :mod:`fastsdf.backends.kernel.vmath`."""
     out, i = [], 0
     sqrt_at: dict = {}  # variable -> index in out of its latest "v = math.sqrt(...)" (linear time)
 
@@ -322,10 +321,10 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
-    ``lines`` are the per-point statements of :class:`fastsdf.codegen._Emitter` (reading ``x``,
+    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter` (reading ``x``,
     ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
     of the two gradient components for ``kind='vg'``). The kernels are plain Python functions
-    that hand the block function to the scene-independent kernels of :mod:`fastsdf._drive`.
+    that hand the block function to the scene-independent kernels of :mod:`fastsdf.backends.kernel.drive`.
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
     replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
@@ -425,7 +424,7 @@ _fold_{kind}_fn = _BlockFn(_fold_{kind})
 @njit(cache=True, nogil=True, error_model="numpy")
 def _block_{kind}(xp, yp, op, gp, n, sp, ap, fp):
     """{'Value and gradient' if grad else 'Value'} at ``n`` (at most {BLOCK}) points from pointers
-    (:data:`fastsdf._drive.BLOCK_SIG`){', ``grad`` flat (x, y pairs)' if grad else ' (``gp`` unused)'};
+    (:data:`fastsdf.backends.kernel.drive.BLOCK_SIG`){', ``grad`` flat (x, y pairs)' if grad else ' (``gp`` unused)'};
     scratch ``sp[:{size}]``."""
 {head(body)}
 {chr(10).join(body)}
@@ -434,7 +433,7 @@ def _block_{kind}(xp, yp, op, gp, n, sp, ap, fp):
 _block_{kind}_fn = _BlockFn(_block_{kind})
 
 
-#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf._drive.scratch`).
+#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf.backends.kernel.drive.scratch`).
 scratch_{kind} = {size}
 
 
@@ -455,7 +454,7 @@ def batch_{kind}_ser({sig}, S=None):
 
 def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
     """Points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``) in parallel
-    blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.prune`)."""
+    blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.backends.prune`)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
     _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
 '''
@@ -471,7 +470,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
     (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
     ``batch_<kind>_ser``, which run both through the installation's kernels
-    (:func:`fastsdf._drive.run_prog_vg_par`). The scene's compiled code is the fold function
+    (:func:`fastsdf.backends.kernel.drive.run_prog_vg_par`). The scene's compiled code is the fold function
     alone: it grows with the number of distinct shapes, not with the primitives."""
     grad = kind == "vg"
     segs = _split(lines)
@@ -484,7 +483,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
     # With gradients, only the block's first nv points (its n rounded up to whole vectors, as
-    # the program in fastsdf._drive._lanes): a call on a few points does not pay for a whole
+    # the program in fastsdf.backends.kernel.drive._lanes): a call on a few points does not pay for a whole
     # block. Not for the value alone: there LLVM vectorizes the loops worse without their
     # constant trip count (a whole block measured 1.6x slower), so they keep it.
     whole = f"        for i in range({BLOCK}):"
@@ -538,7 +537,7 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
 @njit(cache=True, nogil=True, error_model="numpy")
 def point_{kind}(x, y):
     """{'Value and gradient (d, dd/dx, dd/dy)' if grad else 'Value'} at one point: the scene's subexpressions in loops over
-    tables, then its combine program (fastsdf._drive.combine_point_{kind})."""
+    tables, then its combine program (fastsdf.backends.kernel.drive.combine_point_{kind})."""
     if not (math.isfinite(x) and math.isfinite(y)):
         return {'math.nan, math.nan, math.nan' if grad else 'math.nan'}
 {nl.join(used)}
@@ -558,13 +557,13 @@ def _fold_{kind}(xp, yp, op, gp, n, sp, ap, fp):
 
 _fold_{kind}_fn = _BlockFn(_fold_{kind})
 
-#: The combine program (see fastsdf._drive.PROG_COLS).
+#: The combine program (see fastsdf.backends.kernel.drive.PROG_COLS).
 _PROG_{kind.upper()} = np.array([
     {prog},
 ], dtype=np.float64)
 
 
-#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf._drive.scratch`).
+#: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf.backends.kernel.drive.scratch`).
 scratch_{kind} = {size}
 
 
@@ -583,20 +582,15 @@ def batch_{kind}_ser({sig}, S=None):
 
 
 def drive_import() -> str:
-    """Import of the scene-independent kernels of :mod:`fastsdf._drive`, with a hash of their
-    source (numba's cache does not notice changes in a callee's module)."""
-    from . import _drive
-    with open(_drive.__file__, "rb") as fh:
-        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-    return ("from numba import carray\n"
-            "from fastsdf._drive import BlockFn as _BlockFn, run_v_par as _run_v_par, "
-            "run_v_ser as _run_v_ser, run_vg_par as _run_vg_par, run_vg_ser as _run_vg_ser, "
-            "max_threads as _max_threads, NOFOLD as _drive_nofold, tiles_par as _tiles_par, "
-            "NOROWS as _NOROWS, NOGRAD as _NOGRAD, run_prog_v_par as _run_prog_v_par, "
-            "run_prog_v_ser as _run_prog_v_ser, run_prog_vg_par as _run_prog_vg_par, "
-            "run_prog_vg_ser as _run_prog_vg_ser, combine_point_v as _combine_point_v, "
-            "combine_point_vg as _combine_point_vg, scratch as _drive_scratch"
-            f"  # _drive.py sha256 {digest}\n")
+    """Import of the scene-independent kernels of :mod:`fastsdf.backends.kernel.drive`."""
+    names = ["BlockFn as _BlockFn", "run_v_par as _run_v_par", "run_v_ser as _run_v_ser",
+             "run_vg_par as _run_vg_par", "run_vg_ser as _run_vg_ser",
+             "max_threads as _max_threads", "NOFOLD as _drive_nofold", "tiles_par as _tiles_par",
+             "NOROWS as _NOROWS", "NOGRAD as _NOGRAD", "run_prog_v_par as _run_prog_v_par",
+             "run_prog_v_ser as _run_prog_v_ser", "run_prog_vg_par as _run_prog_vg_par",
+             "run_prog_vg_ser as _run_prog_vg_ser", "combine_point_v as _combine_point_v",
+             "combine_point_vg as _combine_point_vg", "scratch as _drive_scratch"]
+    return "from numba import carray\n" + hashed_import("fastsdf.backends.kernel.drive", names) + "\n"
 
 
 def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
@@ -604,7 +598,7 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     """:func:`block_source` for scenes with parameters: the block function takes arrays and the
     parameters, and the kernels that call it are compiled with the scene.
 
-    ``lines`` are the per-point statements of :class:`fastsdf.codegen._Emitter` (reading ``x``,
+    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter` (reading ``x``,
     ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
     of the two gradient components for ``kind='vg'``). ``extra_args`` are names of further
     arguments passed unchanged from the kernels to the block function (e.g. parameter arrays),
@@ -691,10 +685,7 @@ def batch_{kind}_ser({sig}):
 
 
 def vmath_import() -> str:
-    """Import of the vectorizable functions, with a hash of their source: numba's cache does not
-    notice changes in a callee's module, so a changed ``_vmath.py`` must change the scene file."""
-    from . import _vmath
-    with open(_vmath.__file__, "rb") as fh:
-        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-    return ("from fastsdf._vmath import vexp as _vexp, vlog as _vlog, vlog1p as _vlog1p, "
-            f"vlength as _vlength, vlength_grad as _vlength_grad  # _vmath.py sha256 {digest}\n")
+    """Import of the vectorizable functions of :mod:`fastsdf.backends.kernel.vmath`."""
+    names = ["vexp as _vexp", "vlog as _vlog", "vlog1p as _vlog1p", "vlength as _vlength",
+             "vlength_grad as _vlength_grad"]
+    return hashed_import("fastsdf.backends.kernel.vmath", names) + "\n"

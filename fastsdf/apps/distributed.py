@@ -6,9 +6,9 @@ independent shards. This module runs them on a ``dask.distributed`` cluster (ins
 
     from dask.distributed import Client
     import fastsdf as sdf
-    from fastsdf.distributed import DistributedSimulation, local_cluster
+    from fastsdf.apps.distributed import DistributedSimulation, local_cluster
     from fastsdf.particles import Gravity
-    from fastsdf.scenes import box_world
+    from fastsdf.shapes.scenes import box_world
 
     with local_cluster(workers=2) as cluster, Client(cluster) as client:
         world = sdf.GridSDF(box_world(20), samples=[400j, 400j])
@@ -73,7 +73,7 @@ def _require_dask():
         import dask  # noqa: F401
         import distributed  # noqa: F401
     except ImportError as exc:  # pragma: no cover - the extra is installed in CI
-        raise ImportError("fastsdf.distributed needs dask.distributed: pip install "
+        raise ImportError("fastsdf.apps.distributed needs dask.distributed: pip install "
                           "'fastsdf[distributed]'") from exc
 
 
@@ -82,8 +82,8 @@ def _digest(obj) -> str:
 
 
 def _check_world(f, name: str = "f"):
-    from .graph import Function
-    from .grid import GridSDF
+    from fastsdf.function import Function
+    from fastsdf.fields.grid import GridSDF
     if not isinstance(f, (Function, GridSDF)):
         raise TypeError(f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
                         f"of type {type(f).__name__}")
@@ -187,7 +187,7 @@ class _Config:
 
     def build(self, i: int):
         """Shard ``i`` and what ``init(sim, i)`` returned (None without ``init``)."""
-        from .particles import ParticleSimulation
+        from fastsdf.particles import ParticleSimulation
         sizes = shard_sizes(self.n, self.shards)
         sim = ParticleSimulation(self.world, n=sizes[i], seed=shard_seed(self.seed, self.shards, i),
                                  **dict(self.parameters))
@@ -243,7 +243,7 @@ class _Group:
         return dict(self.steps), out
 
     def density(self, bounds, shape):
-        from .render import density_image
+        from fastsdf.viz.render import density_image
         _set_threads(self.threads)
         total = np.zeros(shape)
         for sim in self.sims.values():
@@ -338,7 +338,7 @@ class DistributedSimulation:
         _require_dask()
         from distributed import Client
 
-        from .particles import ParticleSimulation
+        from fastsdf.particles import ParticleSimulation
 
         if not isinstance(client, Client):
             raise TypeError(f"client must be a dask.distributed.Client, got client={client!r}")
@@ -555,14 +555,14 @@ class DistributedSimulation:
 
     def density(self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)),
                 shape: tuple = (400, 400)) -> np.ndarray:
-        """Particle counts per pixel: the sum of the shards' :func:`fastsdf.render.density_image`
+        """Particle counts per pixel: the sum of the shards' :func:`fastsdf.viz.render.density_image`
         (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
         counts, so the order of summation does not matter). Each worker sends one summed image:
         the client holds O(workers * H * W), not O(n)."""
-        from .plotting import check_bounds
-        from .render import _check_shape
+        from fastsdf.viz.plotting import check_bounds
+        from fastsdf.viz.render import check_shape
         bounds = check_bounds(bounds)
-        shape = _check_shape(shape)
+        shape = check_shape(shape)
         total = np.zeros(shape)
         for _, image in self._call("density", bounds, shape):
             total += image
@@ -578,7 +578,7 @@ class DistributedSimulation:
         if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Integral) \
                 or not 0 <= k <= self.n:
             raise ValueError(f"k must be an integer in [0, n={self.n}], got k={k!r}")
-        from .particles import Particles
+        from fastsdf.particles import Particles
         rng = np.random.default_rng(seed)
         index = np.sort(rng.choice(self.n, size=int(k), replace=False))
         starts = np.concatenate([[0], np.cumsum(self.sizes)])
@@ -601,7 +601,7 @@ class DistributedSimulation:
     def gather(self) -> Any:
         """All particles on the client as one :class:`fastsdf.particles.Particles`, shards in
         order: O(n) memory, for tests and small runs only."""
-        from .particles import Particles
+        from fastsdf.particles import Particles
         parts = {}
         for _, payload in self._call("particles"):
             parts.update(payload)
@@ -659,12 +659,12 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
 # The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
 
 def _draw_density(ax, image, bounds, cax=None):
-    """Show a density image (counts per pixel) as :func:`fastsdf.render.draw_particles` does:
+    """Show a density image (counts per pixel) as :func:`fastsdf.viz.render.draw_particles` does:
     the same colour map, logarithmic from 1 count, empty pixels transparent; with ``cax``, its
     colour bar of particles per pixel there."""
     from matplotlib.colors import LinearSegmentedColormap, LogNorm
 
-    from .render import PARTICLE_CMAP_COLORS
+    from fastsdf.viz.render import PARTICLE_CMAP_COLORS
     cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
     cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
     (x0, x1), (y0, y1) = bounds
@@ -673,9 +673,9 @@ def _draw_density(ax, image, bounds, cax=None):
                       norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
                       interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
     if cax is not None:
-        from .render import _plain_log_ticks
+        from fastsdf.viz.render import plain_log_ticks
         cax.set_visible(True)
-        _plain_log_ticks(ax.figure.colorbar(shown, cax=cax, label="particles per pixel"))
+        plain_log_ticks(ax.figure.colorbar(shown, cax=cax, label="particles per pixel"))
     return shown
 
 
@@ -687,7 +687,7 @@ class _Spawn:
     seed: int
 
     def __call__(self, sim, i):
-        from .demo import spawn_in_free_space
+        from fastsdf.apps.demo import spawn_in_free_space
         return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
 
 
@@ -695,12 +695,12 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
              exact: bool = False, seed: int = 0, out: str = "demo-out", frames: int | None = None,
              fps: int | None = None, animate: bool = True, world: str = "boxes",
              mode: str = "exact", stream: Any = None, client: Any = None) -> Any:
-    """:func:`fastsdf.demo.run_demo` with the particles on a :func:`local_cluster` of
+    """:func:`fastsdf.apps.demo.run_demo` with the particles on a :func:`local_cluster` of
     ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
 
-    Same parameters and result (a :class:`fastsdf.demo.DemoResult`). The particles live on the
+    Same parameters and result (a :class:`fastsdf.apps.demo.DemoResult`). The particles live on the
     workers, one shard per worker; each shard spawns its particles in free space there
-    (:func:`fastsdf.demo.spawn_in_free_space`); video frames and the last frame are drawn from
+    (:func:`fastsdf.apps.demo.spawn_in_free_space`); video frames and the last frame are drawn from
     :meth:`DistributedSimulation.density` images, so only images travel to this process, and
     the share of particles inside matter at the end is measured on a random sample of up to
     100,000 particles (:meth:`DistributedSimulation.sample`).
@@ -712,10 +712,10 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     from distributed import Client
     from matplotlib.animation import FuncAnimation
 
-    from . import demo as _demo
-    from .grid import GridSDF, measure_error
-    from .particles import Gravity
-    from .render import _world_figure, save_animation
+    from fastsdf.apps import demo as _demo
+    from fastsdf.fields.grid import GridSDF, measure_error
+    from fastsdf.particles import Gravity
+    from fastsdf.viz.render import world_figure, save_animation
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
@@ -769,7 +769,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         shape = (480, 480)
         animation_path = None
         if animate:
-            fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+            fig, ax, cax = world_figure(f, bounds, 400, (6.4, 5.6), 100)
             artist = _draw_density(ax, sim.density(bounds, shape), bounds, cax)
             title = ax.set_title(label + "t = 0.00 s (step 0)")
             schedule = _demo._frame_schedule(steps, frames)
@@ -787,7 +787,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             save_animation(anim, animation_path, fps=fps)
         advance(steps - timing["steps"])
         last = os.path.join(out, "last_frame.png")
-        fig, ax, cax = _world_figure(f, bounds, 400, (6.4, 5.6), 100)
+        fig, ax, cax = world_figure(f, bounds, 400, (6.4, 5.6), 100)
         _draw_density(ax, sim.density(bounds, (600, 600)), bounds, cax)
         ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
         fig.savefig(last, dpi=100)

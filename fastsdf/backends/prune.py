@@ -1,9 +1,9 @@
 """Pruning per tile: evaluate only the operands of a chain that can matter near a point.
 
 The generated kernels evaluate every loop over a constant table ("group": the same-shape
-operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.codegen`) over a list of
+operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.backends.kernel.codegen`) over a list of
 rows given as data. A :class:`PrunePlan` covers a rectangle with tiles and, from sound interval
-bounds of every operand over every tile (:mod:`fastsdf.interval`), keeps per tile only the rows
+bounds of every operand over every tile (:mod:`fastsdf.expr.interval`), keeps per tile only the rows
 that can matter:
 
 * hard ``min``: operand ``i`` is dropped where ``lo_i > min_j hi_j`` (``j`` over every operand of
@@ -21,7 +21,7 @@ that can matter:
   blend is exactly the running value, value and gradient: bit-identical.
 
 Points are sorted by tile (a counting sort) and run through the scene's SIMD block functions
-(:mod:`fastsdf._simd`, driven by :func:`fastsdf._drive.tiles_par`) with each tile's row lists as
+(:mod:`fastsdf.backends.kernel.simd`, driven by :func:`fastsdf.backends.kernel.drive.tiles_par`) with each tile's row lists as
 data: pruning never recompiles anything. A tile's points fill whole blocks of 512; the last few
 points of consecutive tiles share blocks, which run the union of those tiles' lists (a superset
 of the rows that can matter visits them in the same order: the same bits).
@@ -38,9 +38,10 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .graph import _gc_paused
-from .interval import _LIPSCHITZ, node_bounds
-from .ops import OPS
+from fastsdf.backends.kernel.cache import hashed_import
+from fastsdf.expr.graph import gc_paused
+from fastsdf.expr.interval import LIPSCHITZ_RULES, node_bounds
+from fastsdf.expr.ops import OPS
 
 __all__ = ["PrunePlan", "make_plan", "bin_points", "plan_header", "HEADER_SIZE"]
 
@@ -118,7 +119,7 @@ def _steps_bounds_chunk(group, ranges):
         return (np.stack([o[id(m)][0] for o, m in zip(out, members)]),
                 np.stack([o[id(m)][1] for o, m in zip(out, members)]))
     T = len(next(iter(ranges.values()))[0])
-    hints = [_LIPSCHITZ.get(m) for m in members]
+    hints = [LIPSCHITZ_RULES.get(m) for m in members]
     hint = max(hints) if all(h is not None for h in hints) else None
     lo, hi = _template_bounds(steps, [rows[:, j][:, None] for j in range(rows.shape[1])],
                               {k: (lo[None, :], hi[None, :]) for k, (lo, hi) in ranges.items()},
@@ -172,9 +173,9 @@ def _template_bounds(steps, cols, ranges, shape, hint):
 
 
 def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
-    """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.codegen.generate_module`)
+    """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.backends.kernel.codegen.generate_module`)
     over ``bounds = ((x0, x1), (y0, y1))`` cut into ``nx x ny`` tiles."""
-    with _gc_paused():  # a bulk pass (see fastsdf.graph._GCPaused)
+    with gc_paused():  # a bulk pass (see fastsdf.expr.graph._GCPaused)
         return _make_plan(groups, bounds, nx, ny, tol)
 
 
@@ -283,7 +284,7 @@ def _member_hints(members):
     members) apply: the chunk's largest if every member of the chunk has one, else inf."""
     out = np.full(len(members), np.inf)
     for i in range(0, len(members), _MEMBER_CHUNK):
-        hints = [_LIPSCHITZ.get(m) for m in members[i:i + _MEMBER_CHUNK]]
+        hints = [LIPSCHITZ_RULES.get(m) for m in members[i:i + _MEMBER_CHUNK]]
         if all(h is not None for h in hints):
             out[i:i + _MEMBER_CHUNK] = max(hints)
     return out
@@ -543,14 +544,11 @@ def exact_source(scene: str, rows: bool, version: str) -> str:
     """Source of the module defining ``exact_out``, the C function of the scene module
     ``scene`` for per-point callers (see above); ``rows``: the scene has loops over tables (its
     ``rows_vg`` is used inside the plan)."""
-    with open(__file__, "rb") as fh:
-        import hashlib
-        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
     body = ["    d, gx, gy = _exact(x, y)"]
     imports = [f"from {scene} import point_vg as _exact"]
     if rows:
         imports += [f"from {scene} import rows_vg as _rows",
-                    f"from fastsdf.prune import _iptr  # prune.py sha256 {digest}"]
+                    hashed_import("fastsdf.backends.prune", ["_iptr"])]
         body = ["    if h[7] != 0.0 and h[0] <= x <= h[1] and h[2] <= y <= h[3]:",
                 "        nx, ny = int(h[4]), int(h[5])",
                 "        tx = min(int((x - h[0]) * (nx / (h[1] - h[0]))), nx - 1)",

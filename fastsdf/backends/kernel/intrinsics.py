@@ -7,7 +7,7 @@ are always evaluated, so they must be safe to compute (no side effects, no traps
 
 :func:`f64_bits` and :func:`bits_f64` reinterpret a float64 as an int64 and back (no
 conversion) and :func:`fmuladd` is a multiply-add that may be fused: the vectorizable elementary
-functions of :mod:`fastsdf._vmath` are built from them.
+functions of :mod:`fastsdf.backends.kernel.vmath` are built from them.
 """
 
 from llvmlite import ir

@@ -1,12 +1,12 @@
 """GridSDF: an SDF sampled on a regular grid and queried by bilinear interpolation.
 
-A :class:`GridSDF` evaluates any fastsdf SDF (a :class:`fastsdf.graph.Function`) once at the
+A :class:`GridSDF` evaluates any fastsdf SDF (a :class:`fastsdf.function.Function`) once at the
 nodes of a regular grid over ``bounds``, then answers queries in time independent of the scene:
 a handful of loads and multiply-adds per point, in a numba kernel (parallel for large inputs,
 serial for small ones). It is the notebook's ``GridSDF`` (cell 22), which used three passes of
 ``scipy.ndimage.map_coordinates``, rebuilt as one fused gather.
 
-Conventions are those of :class:`fastsdf.graph.Function`: distances in the units of the
+Conventions are those of :class:`fastsdf.function.Function`: distances in the units of the
 coordinates, negative inside; ``g(x, y)`` returns float64 values of the shape of ``x``;
 ``g(x, y, compute_gradient=True)`` returns ``(d, grad)`` with ``grad[..., 0] = dd/dx`` and
 ``grad[..., 1] = dd/dy``; a point with a NaN or infinite coordinate gets NaN value and gradient.
@@ -43,8 +43,8 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .function import PARALLEL_MIN_POINTS, as_points
-from .graph import Function
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
+from fastsdf.function import Function
 
 __all__ = ["GridSDF", "GridError", "measure_error", "sample_stored", "sample_fd",
            "BYTES_PER_NODE"]
@@ -449,7 +449,7 @@ class GridSDF:
 
     Parameters
     ----------
-    f : fastsdf.graph.Function
+    f : fastsdf.function.Function
         The exact SDF (any fastsdf shape or composition). A scene with runtime parameters is
         sampled at their current values (``f.frozen()``); a scene that moves (uses ``sdf.t``)
         is refused: simulations use moving scenes exactly. It is evaluated once, at every node,
@@ -485,10 +485,10 @@ class GridSDF:
         The derivative of the bilinear interpolant itself was not chosen: it is discontinuous
         across cell edges and only first order.
 
-    Calling ``g(x, y, compute_gradient=False)`` follows :class:`fastsdf.graph.Function`: any
+    Calling ``g(x, y, compute_gradient=False)`` follows :class:`fastsdf.function.Function`: any
     real array shapes (equal), float64 results of the input's shape, ``grad[..., 0] = dd/dx``,
     NaN for points with a non-finite coordinate. Large inputs run in a parallel numba kernel,
-    small ones (below ``fastsdf.codegen.PARALLEL_MIN_POINTS``) serially.
+    small ones (below ``fastsdf.backends.kernel.codegen.PARALLEL_MIN_POINTS``) serially.
 
     Attributes
     ----------
@@ -503,7 +503,7 @@ class GridSDF:
                  samples: ArrayLike = (400j, 400j), mode: str = "exact", dtype: Any = np.float64,
                  gradient: str = "stored"):
         if not isinstance(f, Function):
-            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.graph.Function such as "
+            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.function.Function such as "
                             f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
         if f.time_dependent:
             raise ValueError("f depends on time (sdf.t): a grid samples a scene that does not "

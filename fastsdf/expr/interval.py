@@ -5,12 +5,12 @@ a range), ``lo <= value <= hi`` for every node, where ``value`` is what the comp
 compute at any point of the box (rounding included) wherever that value is finite. Two bounds
 are combined, node by node:
 
-* interval arithmetic, by the ``interval`` rule of each operation in :mod:`fastsdf.ops`. Correctly
+* interval arithmetic, by the ``interval`` rule of each operation in :mod:`fastsdf.expr.ops`. Correctly
   rounded monotone operations need no widening (rounding is monotone, so the floating-point bound
   of the bounds bounds the floating-point result); library functions and compound operations are
   widened by a margin relative to the magnitudes involved;
 * a Lipschitz bound: ``|f(p) - f(c)| <= L * |p - c|`` from the value at the box's centre, where
-  ``L`` bounds the gradient's length over the box (the ``lipschitz`` rules of :mod:`fastsdf.ops`,
+  ``L`` bounds the gradient's length over the box (the ``lipschitz`` rules of :mod:`fastsdf.expr.ops`,
   or 1 for an expression known to be an exact or 'bound' SDF, see :func:`note_lipschitz`). This
   is much tighter than interval arithmetic for shapes that are rotated or built from many
   operations, since interval arithmetic forgets that ``x`` is the same ``x`` everywhere.
@@ -20,14 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .graph import Expr, topological_order
-from .ops import OPS
+from fastsdf.expr.graph import Expr, topological_order
+from fastsdf.expr.ops import OPS
 
 __all__ = ["node_bounds", "bounds", "note_lipschitz", "node_values"]
 
 class _Hints:
     """Lipschitz constants noted for expressions (exact and 'bound' SDFs, noted by the
-    modelling layer): ``_LIPSCHITZ.get(node)`` is the constant or None. Kept on the node itself
+    modelling layer): ``LIPSCHITZ_RULES.get(node)`` is the constant or None. Kept on the node itself
     (its ``lip`` slot), which lives exactly as long as the node, at no cost per lookup."""
 
     @staticmethod
@@ -36,7 +36,7 @@ class _Hints:
         return default if value is None else value
 
 
-_LIPSCHITZ = _Hints()
+LIPSCHITZ_RULES = _Hints()
 _set_lip = Expr.lip.__set__
 
 
@@ -116,7 +116,7 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
                     L = spec.lipschitz(node, [lip[id(a)] for a in node.args], alo, ahi) \
                         if spec.lipschitz is not None else np.full(shape, np.inf)
                     L = np.where(np.isnan(L), np.inf, L)
-                    hint = _LIPSCHITZ.get(node)
+                    hint = LIPSCHITZ_RULES.get(node)
                     if hint is not None:
                         L = np.minimum(L, hint)
                     c = centre[id(node)]

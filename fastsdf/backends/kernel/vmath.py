@@ -40,8 +40,8 @@ import math
 
 from numba import njit
 
-from ._intrinsics import bits_f64, f64_bits, select
-from ._intrinsics import fmuladd as fma
+from fastsdf.backends.kernel.intrinsics import bits_f64, f64_bits, select
+from fastsdf.backends.kernel.intrinsics import fmuladd as fma
 
 __all__ = ["vexp", "vlog", "vlog1p", "vlength"]
 
