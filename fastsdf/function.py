@@ -26,7 +26,7 @@ from fastsdf.backends.kernel.drive import max_threads, scratch
 from fastsdf.backends.kernel.codegen import generate_module, scene_parameters
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
 from fastsdf.expr.graph import Expr, gc_paused, expr_to_str, as_expr, parameters, substitute_params
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 
 __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS",
            "BACKENDS"]
@@ -501,9 +501,10 @@ class Function:
     #: the class docstring for why it is ``'kernel'``).
     backend = "kernel"
 
-    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False,
                  prune: bool | None = None, time_derivative: bool = False,
                  backend: str | None = None, **params: float) -> Any:
+        x, y = point_arrays(x, y)
         backend = self.backend if backend is None else backend
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {list(BACKENDS)}, got backend={backend!r}")

@@ -6,23 +6,54 @@ from numpy.typing import ArrayLike
 PARALLEL_MIN_POINTS = 4096
 
 
-def as_points(x: ArrayLike, y: ArrayLike) -> tuple:
+def as_points(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, tuple]:
     """Validate coordinates; returns ``(xs, ys, shape)`` with flat contiguous float64 arrays.
 
-    Raises ``TypeError`` for non-real data and ``ValueError`` if x and y differ in shape.
+    ``x`` and ``y`` broadcast against each other (``f(x, 0.0)`` is a horizontal line); with
+    ``y`` omitted, ``x`` holds points along its last axis of length 2 (``f(points)`` for an
+    ``(n, 2)`` array). ``shape`` is the shape of the result. Raises ``TypeError`` for non-real
+    data and ``ValueError`` for shapes that do not fit.
     """
-    xa, ya = np.asarray(x), np.asarray(y)
+    xa = np.asarray(x)
+    if y is None:
+        if xa.ndim == 0 or xa.shape[-1] != 2:
+            raise ValueError(f"points given without y must have a last axis of length 2 (x, y), "
+                             f"got an array of shape {xa.shape}")
+        xa, ya = xa[..., 0], xa[..., 1]
+    else:
+        ya = np.asarray(y)
     for name, arr in (("x", xa), ("y", ya)):
         if arr.dtype.kind not in "iuf":
             raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype} "
                             f"(value {_preview(arr)})")
     if xa.shape != ya.shape:
-        raise ValueError(f"x and y must have the same shape, got x.shape={xa.shape} and "
-                         f"y.shape={ya.shape}")
+        try:
+            xa, ya = np.broadcast_arrays(xa, ya)
+        except ValueError:
+            raise ValueError(f"x and y must have the same shape (or shapes that broadcast), got "
+                             f"x.shape={xa.shape} and y.shape={ya.shape}") from None
     shape = xa.shape if xa.ndim else (1,)
     xs = np.ascontiguousarray(xa, dtype=np.float64).reshape(-1)
     ys = np.ascontiguousarray(ya, dtype=np.float64).reshape(-1)
     return xs, ys, shape
+
+
+def point_arrays(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y)`` as two arrays of one shape, by the rules of :func:`as_points` (``y`` omitted:
+    ``x`` holds points along its last axis), for entry points that keep the caller's shape."""
+    if y is None:
+        xa = np.asarray(x)
+        if xa.ndim == 0 or xa.shape[-1] != 2:
+            raise ValueError(f"points given without y must have a last axis of length 2 (x, y), "
+                             f"got an array of shape {xa.shape}")
+        return xa[..., 0], xa[..., 1]
+    xa, ya = np.asarray(x), np.asarray(y)
+    if xa.shape != ya.shape and xa.dtype.kind in "iuf" and ya.dtype.kind in "iuf":
+        try:
+            xa, ya = np.broadcast_arrays(xa, ya)
+        except ValueError:
+            pass  # as_points reports the shapes
+    return xa, ya
 
 
 def _preview(arr) -> str:

@@ -62,7 +62,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 from fastsdf.function import Function
 from fastsdf.fields.grid import GridError, _check_bounds, _check_dtype, _check_samples, _fetch_add, _n_chunks, _stats
 
@@ -551,7 +551,9 @@ class NarrowBandGridSDF:
                              self._quantum)
 
     # -- queries ------------------------------------------------------------------------------
-    def __call__(self, x, y, compute_gradient=False):
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
+                 compute_gradient: bool = False) -> Any:
+        x, y = point_arrays(x, y)
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
         (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
         and in exact cells; NaN for non-finite points. Conventions as

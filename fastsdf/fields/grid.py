@@ -43,7 +43,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 from fastsdf.function import Function
 
 __all__ = ["GridSDF", "GridError", "measure_error", "sample_stored", "sample_fd",
@@ -586,7 +586,9 @@ class GridSDF:
             f"where f is defined, got bounds={[list(b) for b in self.bounds]!r}")
 
     # -- queries ------------------------------------------------------------------------------
-    def __call__(self, x, y, compute_gradient=False):
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
+                 compute_gradient: bool = False) -> Any:
+        x, y = point_arrays(x, y)
         """Interpolated distance (and gradient) at points; see the class docstring."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
