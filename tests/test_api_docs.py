@@ -88,8 +88,8 @@ def test_pdoc_builds_the_api_reference(tmp_path):
                           "-o", str(tmp_path), *modules], capture_output=True, text=True,
                          env=env, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
-    for page in ("fastsdf.html", "fastsdf/render.html", "fastsdf/particles.html",
-                 "fastsdf/grid.html"):
+    for page in ("fastsdf.html", "fastsdf/viz/render.html", "fastsdf/particles.html",
+                 "fastsdf/fields/grid.html"):
         assert (tmp_path / page).exists(), page
-    text = (tmp_path / "fastsdf" / "render.html").read_text()
+    text = (tmp_path / "fastsdf" / "viz" / "render.html").read_text()
     assert "save_animation" in text and "animate" in text

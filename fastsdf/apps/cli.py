@@ -10,6 +10,8 @@ import argparse
 import sys
 from typing import NoReturn, Sequence
 
+__all__ = ["main"]
+
 
 class _Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose errors are one line (no usage block) and exit with 2."""

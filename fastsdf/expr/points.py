@@ -3,6 +3,8 @@
 import numpy as np
 from numpy.typing import ArrayLike
 
+__all__ = ["PARALLEL_MIN_POINTS", "as_points", "point_arrays"]
+
 PARALLEL_MIN_POINTS = 4096
 
 

@@ -12,6 +12,8 @@ They use different methods from the compiled code, so that agreement means somet
 slow (O(points x samples)); they exist for testing.
 """
 
+from typing import Any
+
 import numpy as np
 
 __all__ = ["evaluate", "ellipse", "polygon"]
@@ -19,7 +21,8 @@ __all__ = ["evaluate", "ellipse", "polygon"]
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 
 
-def evaluate(kind, data, u, v, constants):
+def evaluate(kind: str, data: Any, u: np.ndarray, v: np.ndarray, constants: Any) -> tuple:
+    """Distance and its partials ``(d, dd/du, dd/dv)`` of the primitive ``kind`` at ``(u, v)``."""
     u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
     if kind == "ellipse":
         return ellipse(u, v, *constants)
@@ -28,7 +31,8 @@ def evaluate(kind, data, u, v, constants):
     raise NotImplementedError(kind)
 
 
-def ellipse(u, v, a, b, samples=4097, chunk=256):
+def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 4097,
+            chunk: int = 256) -> tuple:
     """Signed distance to the ellipse ``(u/a)**2 + (v/b)**2 = 1`` and its gradient (the outward
     unit normal at the closest point) by search over the angle ``t`` of ``(a cos t, b sin t)``."""
     shape = u.shape
@@ -89,7 +93,7 @@ def ellipse(u, v, a, b, samples=4097, chunk=256):
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)
 
 
-def polygon(u, v, verts, chunk=256):
+def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256) -> tuple:
     """Signed distance to the polygon with vertices ``verts`` (either orientation) and its
     gradient, as the minimum of vertex and edge-interior distances, signed by winding number."""
     shape = u.shape

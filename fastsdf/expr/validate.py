@@ -8,12 +8,16 @@ from __future__ import annotations
 import math
 import numbers
 
+from typing import Any
+
 import numpy as np
 
 from fastsdf.expr.graph import Expr
 
+__all__ = ["MAX_COORD", "MIN_LENGTH", "real", "vec2", "coord", "coord2", "length", "check_length", "is_param", "real_or_param", "vec2_or_param", "coord2_or_param"]
 
-def real(value, name: str, finite: bool = True) -> float:
+
+def real(value: Any, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
     if isinstance(value, float):  # float and np.float64: the common case
@@ -52,7 +56,7 @@ def _pair_fast(value):
 _SCALARS = frozenset((float, int, np.float64, np.float32, np.int64, np.int32))
 
 
-def vec2(value, name: str) -> np.ndarray:
+def vec2(value: Any, name: str) -> np.ndarray:
     """``value`` as a finite float64 array of shape (2,), with errors naming ``name``."""
     fast = _pair_fast(value)
     if fast is not None and math.isfinite(fast[0]) and math.isfinite(fast[1]):
@@ -80,7 +84,7 @@ MIN_LENGTH = 1e-150
 _RANGE = "the supported range of fastsdf geometry is 1e-150 to 1e150"
 
 
-def coord(value, name: str) -> float:
+def coord(value: Any, name: str) -> float:
     """A real coordinate (or signed offset) with ``|value| <= MAX_COORD``."""
     value = real(value, name)
     if abs(value) > MAX_COORD:
@@ -89,7 +93,7 @@ def coord(value, name: str) -> float:
     return value
 
 
-def coord2(value, name: str) -> np.ndarray:
+def coord2(value: Any, name: str) -> np.ndarray:
     """A finite point (shape (2,)) with both coordinates at most ``MAX_COORD`` in magnitude."""
     fast = _pair_fast(value)
     if fast is not None and abs(fast[0]) <= MAX_COORD and abs(fast[1]) <= MAX_COORD:
@@ -101,7 +105,7 @@ def coord2(value, name: str) -> np.ndarray:
     return arr
 
 
-def length(value, name: str, zero: bool = False) -> float:
+def length(value: Any, name: str, zero: bool = False) -> float:
     """A length: ``MIN_LENGTH <= |value| <= MAX_COORD`` (``0`` too if ``zero``); the sign is
     not checked here."""
     value = real(value, name)
@@ -111,7 +115,7 @@ def length(value, name: str, zero: bool = False) -> float:
     return value
 
 
-def check_length(size: float, name: str, shown=None) -> None:
+def check_length(size: float, name: str, shown: Any = None) -> None:
     """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
     if not (MIN_LENGTH <= size <= MAX_COORD):
         shown = size if shown is None else shown
@@ -133,12 +137,12 @@ def _param_value(expr, name: str) -> float:
     return float(evaluate_numpy(expr, {"_": np.zeros(1)})[0])
 
 
-def is_param(value) -> bool:
+def is_param(value: Any) -> bool:
     """Whether ``value`` is an expression (of parameters) rather than a number."""
     return isinstance(value, Expr) and value.op != "const"
 
 
-def real_or_param(value, name: str):
+def real_or_param(value: Any, name: str) -> Any:
     """``(value, number)``: ``value`` as a float (checked like :func:`real`) or an expression of
     parameters, and the number to check ranges on (the expression at the defaults)."""
     if type(value) is float and math.isfinite(value):  # the common case, checked at once
@@ -156,7 +160,7 @@ def real_or_param(value, name: str):
     return v, v
 
 
-def vec2_or_param(value, name: str):
+def vec2_or_param(value: Any, name: str) -> Any:
     """``(pair, numbers)``: a pair whose components may be expressions of parameters (else the
     float64 array of :func:`vec2`), and the float64 array of its values at the defaults."""
     fast = _pair_fast(value)
@@ -172,7 +176,7 @@ def vec2_or_param(value, name: str):
     return arr, arr
 
 
-def coord2_or_param(value, name: str):
+def coord2_or_param(value: Any, name: str) -> Any:
     """:func:`vec2_or_param` with the coordinate range of :func:`coord2` checked on the numbers
     (for expressions of parameters: their values at the defaults)."""
     fast = _pair_fast(value)

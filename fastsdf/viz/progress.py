@@ -43,6 +43,7 @@ class Progress:
         return self
 
     def step(self, note: str = "", count: int = 1) -> None:
+        """Advance by ``count`` and show ``note`` beside the bar."""
         if note:
             self._bar.set_postfix_str(note[:40], refresh=False)
         self._bar.update(count)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import shutil
 
+__all__ = ["ffmpeg_available"]
+
 
 def ffmpeg_available() -> bool:
     """True if matplotlib can write MP4: a system ffmpeg, or imageio-ffmpeg's (configured here)."""

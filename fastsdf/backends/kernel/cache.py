@@ -36,6 +36,9 @@ import types
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
+
+__all__ = ["cache_dir", "source_key", "hashed_import", "load_module", "guard_module", "guard_dispatcher"]
 
 _MODULES: dict = {}
 _LOCK = threading.Lock()
@@ -127,7 +130,7 @@ def _read(path: Path):
         return None
 
 
-def load_module(source: str, prefix: str = "fastsdf_kernel"):
+def load_module(source: str, prefix: str = "fastsdf_kernel") -> types.ModuleType:
     """Import the module with this source, writing it to the cache directory if needed.
 
     Returns the module; repeated calls in one process return the same module object. A cached
@@ -177,7 +180,7 @@ def load_module(source: str, prefix: str = "fastsdf_kernel"):
 # ---------------------------------------------------------------------------------------------
 # numba's cache files: sealed, checked, repaired.
 
-def guard_module(module) -> None:
+def guard_module(module: types.ModuleType) -> None:
     """Seal and check the numba cache files of every cached dispatcher of fastsdf's in
     ``module`` (its own and those it imports from fastsdf). A user's function it imports (a
     fused force) is left alone: sealing its cache files would make numba fail to read them
@@ -188,7 +191,7 @@ def guard_module(module) -> None:
             guard_dispatcher(value)
 
 
-def guard_dispatcher(dispatcher) -> None:
+def guard_dispatcher(dispatcher: Any) -> None:
     """Make the disk cache of one numba dispatcher (``@njit(cache=True)``) safe: sealed files,
     and a damaged entry is removed, recompiled, stored again and reported once instead of
     raising. Anything that is not a cached dispatcher is left alone."""

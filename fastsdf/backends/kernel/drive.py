@@ -17,6 +17,8 @@ from __future__ import annotations
 import math
 import sys
 
+from typing import Any
+
 import numba
 import numpy as np
 from llvmlite import ir
@@ -75,12 +77,13 @@ class BlockFn:
     first use. An integer argument keeps numba's dispatch of the kernels as cheap as for any
     array call (a first-class function object is typed in Python on every call: +25 us)."""
 
-    def __init__(self, dispatcher):
+    def __init__(self, dispatcher: Any) -> None:
         self.dispatcher = dispatcher
         self._addr = None
 
     @property
     def address(self) -> int:
+        """The C-callable address of the compiled block function."""
         if self._addr is None:
             args = BLOCK_SIG.args
             self.dispatcher.compile(args)

@@ -15,6 +15,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+__all__ = ["select", "f64_bits", "bits_f64", "fmuladd"]
+
 
 @intrinsic
 def select(typingctx, cond, a, b):
