@@ -38,6 +38,8 @@ SECTIONS = [
      "tape interpreter: cost per point against the kernels, first answer of a new scene"),
     ("simd", "bench.bench_simd",
      "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
+    ("video", "bench.bench_video",
+     "video frames of 1e6 particles at 720p: the compiled frame writer vs save_animation"),
 ]
 
 HEADER = """# fastsdf benchmark results
