@@ -87,7 +87,7 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
     forces = _check_forces(sim)
     state = sim.__getstate__()
     p = state.pop("p")
-    arrays = {name: np.ascontiguousarray(p[name]) for name in _FIELDS}
+    arrays: dict[str, Any] = {name: np.ascontiguousarray(p[name]) for name in _FIELDS}
     meta = {"format": FORMAT, "version": FORMAT_VERSION,
             "fastsdf": _version(), "class": f"{type(sim).__module__}.{type(sim).__qualname__}",
             "n": int(len(arrays["r"])), "dtype": str(arrays["x"].dtype),
