@@ -38,8 +38,9 @@ __all__ = ["TrajectoryRecorder", "read_trajectory", "FIELDS"]
 
 #: Recordable fields: H5MD element name -> the simulation's particle field.
 FIELDS = {"position": "x", "velocity": "v", "mass": "m", "radius": "r"}
-# Particles per chunk along N (a chunk of one frame: 1 MiB of float64 positions).
-_CHUNK_PARTICLES = 1 << 16
+# Particles per chunk along N (a chunk of one frame: 4 MiB of float64 positions; smaller chunks
+# cost more per byte in SWMR mode).
+_CHUNK_PARTICLES = 1 << 18
 
 
 def _h5py() -> Any:
