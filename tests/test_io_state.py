@@ -133,3 +133,26 @@ def test_bad_files_and_arguments(tmp_path):
         load_simulation(other)
     with pytest.raises(TypeError, match="sim must be a ParticleSimulation"):
         save_simulation(object(), tmp_path / "x.npz")
+
+
+def test_parameters_and_moving_walls_resume_bit_exactly(tmp_path):
+    import fastsdf as sdf
+
+    # the piston of test_moving_walls (the same kernel): its parameters set away from defaults
+    piston = sdf.Halfspace(normal=[1, 0], d=sdf.Param("x0", -1.0) + sdf.Param("u", 0.5) * sdf.t)
+
+    def make_piston():
+        sim = ParticleSimulation(piston, n=64, timestep=1 / 60, seed=2)
+        sim.params.update({"u": 0.8, "x0": -1.5})
+        sim.force_generators.append(Gravity((0.0, -0.5)))
+        return sim
+
+    straight, first = make_piston(), make_piston()
+    straight.run(30)
+    straight.run(40)
+    first.run(30)
+    resumed = load_simulation(save_simulation(first, tmp_path / "piston.npz"))
+    assert resumed.params == {"u": 0.8, "x0": -1.5}
+    resumed.run(40)
+    assert_same(resumed, straight)
+    assert np.ptp(straight.p["x"][:, 0]) > 0 and straight.t > 1.0

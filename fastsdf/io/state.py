@@ -23,7 +23,9 @@ are; a lambda or a function defined inside another function is not, and
 
 Pickling: a :class:`fastsdf.particles.ParticleSimulation` also pickles as it is
 (``pickle.dumps(sim)``, ``copy.deepcopy(sim)``, sending it to another process); the unpickled
-copy continues bit for bit too. Loading a file, like unpickling, runs code named in it: load
+copy continues bit for bit too. The exception is a world with runtime parameters
+(:func:`fastsdf.Param`): its ``sim.params`` table does not unpickle (``KeyError``), while
+:func:`save_simulation` stores the values apart and restores them. Loading a file, like unpickling, runs code named in it: load
 only files you trust.
 """
 
@@ -87,6 +89,10 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
     forces = _check_forces(sim)
     state = sim.__getstate__()
     p = state.pop("p")
+    # The world's parameter values travel as a plain dict, set again after loading (the
+    # simulation rebuilds its parameter table from the world when its SDF is assigned).
+    params = state.pop("params", None)
+    state["_saved_params"] = dict(params) if params is not None else {}
     arrays: dict[str, Any] = {name: np.ascontiguousarray(p[name]) for name in _FIELDS}
     meta = {"format": FORMAT, "version": FORMAT_VERSION,
             "fastsdf": _version(), "class": f"{type(sim).__module__}.{type(sim).__qualname__}",
@@ -149,6 +155,9 @@ def load_simulation(path: str | os.PathLike) -> Any:
     for name, arr in arrays.items():
         p[name] = arr
     state["p"] = p
+    params = state.pop("_saved_params", {})
     sim = cls.__new__(cls)
     sim.__setstate__(state)
+    if params:
+        sim.params.update(params)
     return sim
