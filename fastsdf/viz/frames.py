@@ -1,7 +1,7 @@
 """Video frames at the speed of the physics: a static background and a compiled particle layer.
 
-Matplotlib is the right tool for a still picture and far too slow for a million particles at
-video rates: a figure redrawn per frame costs 0.1-0.5 s. :class:`VideoWriter` draws everything
+Matplotlib is the right tool for a still picture, and too slow to redraw a whole figure per
+frame of a video of millions of particles. :class:`VideoWriter` draws everything
 that does not change (the world, the axes, their labels, the title, the colour bar) once with
 Matplotlib into an RGB background; each frame then only
 
