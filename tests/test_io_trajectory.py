@@ -150,3 +150,24 @@ def test_frames_flushed_before_a_kill_survive(tmp_path):
     with pyh5md.File(path, "r", swmr=True) as f:
         pos = pyh5md.element(f.particles_group("all"), "position")
         assert pos.step.shape[0] == frames and np.all(pos.value[frames - 1] == frames - 1)
+
+
+def test_sharded_simulation_is_gathered_by_the_client(tmp_path):
+    # DistributedSimulation has no p: the recorder asks for gather() (shards in order)
+    local = FakeSim(n=30)
+
+    class Sharded:
+        t, dt = 0.0, 0.1
+
+        def gather(self):
+            return local.p
+
+        def run(self, k):
+            local.run(k)
+            self.t = local.t
+
+    with TrajectoryRecorder(tmp_path / "d.h5", every=2) as rec:
+        rec.run(Sharded(), 4)
+    traj = read_trajectory(tmp_path / "d.h5")
+    np.testing.assert_array_equal(traj["step"], [0, 2, 4])
+    np.testing.assert_allclose(traj["position"][-1], local.p["x"])

@@ -25,8 +25,8 @@ Pickling: a :class:`fastsdf.particles.ParticleSimulation` also pickles as it is
 (``pickle.dumps(sim)``, ``copy.deepcopy(sim)``, sending it to another process); the unpickled
 copy continues bit for bit too. The exception is a world with runtime parameters
 (:func:`fastsdf.Param`): its ``sim.params`` table does not unpickle (``KeyError``), while
-:func:`save_simulation` stores the values apart and restores them. Loading a file, like unpickling, runs code named in it: load
-only files you trust.
+:func:`save_simulation` stores the values apart and restores them. Loading a file, like
+unpickling, runs code named in it: load only files you trust.
 """
 
 from __future__ import annotations

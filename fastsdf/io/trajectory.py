@@ -51,6 +51,14 @@ def _h5py() -> Any:
     return h5py
 
 
+def _particles(sim: Any) -> Any:
+    """The particle fields of ``sim``: ``sim.p``, or for a simulation sharded over Dask workers
+    (:class:`fastsdf.distributed.DistributedSimulation`, which has no ``p``) ``sim.gather()``:
+    the client collects the shards in order and writes one file."""
+    p = getattr(sim, "p", None)
+    return p if p is not None else sim.gather()
+
+
 def _step_of(sim: Any) -> int:
     dt = float(sim.dt)
     return int(round(float(sim.t) / dt)) if dt > 0 else 0
@@ -73,7 +81,10 @@ class TrajectoryRecorder:
         traj = read_trajectory("run.h5")          # {'position': [frames, N, 2], 'step', 'time'}
 
     or call :meth:`record` yourself whenever a frame should be written. The step of a frame is
-    ``round(sim.t / sim.dt)``, its time ``sim.t``. Every frame is flushed to disk before
+    ``round(sim.t / sim.dt)``, its time ``sim.t``. A simulation sharded over Dask workers
+    (:class:`fastsdf.distributed.DistributedSimulation`) is recorded into one file by the
+    client, which gathers the shards at each frame (``sim.gather()``: all particles travel to
+    the client once per frame). Every frame is flushed to disk before
     :meth:`record` returns. An existing file at ``path`` is replaced when the first frame is
     written.
     """
@@ -132,8 +143,9 @@ class TrajectoryRecorder:
             box = particles.create_group("box")
             box.attrs["dimension"] = 2
             box.attrs["boundary"] = np.array([b"none", b"none"])
+            p = _particles(sim)
             for k, name in enumerate(self.fields):
-                arr = np.asarray(sim.p[FIELDS[name]])
+                arr = np.asarray(p[FIELDS[name]])
                 dtype = self.dtype if self.dtype is not None else arr.dtype
                 n = arr.shape[0]
                 tail = arr.shape[1:]
@@ -169,8 +181,9 @@ class TrajectoryRecorder:
                 raise RuntimeError(f"this recorder is closed; {self.path} was finished")
             self._create(sim)
         k = self.frames
+        p = _particles(sim)
         for name, ds in self._values.items():
-            arr = np.asarray(sim.p[FIELDS[name]])
+            arr = np.asarray(p[FIELDS[name]])
             if arr.shape != ds.shape[1:]:
                 raise ValueError(f"p[{FIELDS[name]!r}] has shape {arr.shape}; this trajectory "
                                  f"holds {ds.shape[1:]} per frame")
