@@ -159,7 +159,7 @@ def test_discs_video_of_a_simulation(tmp_path):
     from fastsdf.particles import Gravity, ParticleSimulation
     from fastsdf.shapes import Halfspace
 
-    floor = Halfspace([0.0, 1.0], -0.5)
+    floor = Halfspace([0.0, 1.0], -1.0)  # the world of test_io_trajectory (one kernel)
     sim = ParticleSimulation(floor, n=20, timestep=1 / 30, seed=1)
     sim.force_generators.append(Gravity())
     sim.p["r"] = 0.1
