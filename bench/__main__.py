@@ -38,6 +38,10 @@ SECTIONS = [
      "tape interpreter: cost per point against the kernels, first answer of a new scene"),
     ("simd", "bench.bench_simd",
      "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
+    ("video", "bench.bench_video",
+     "video frames of 1e6 particles at 720p: the compiled frame writer vs save_animation"),
+    ("io", "bench.bench_io",
+     "trajectory files: recording 1e6 positions every 10 steps against the run alone"),
 ]
 
 HEADER = """# fastsdf benchmark results
