@@ -32,13 +32,13 @@ from .exactness import EXACTNESS  # noqa: F401
 from .operations import (SDF, Difference, Intersection, Union, intersection,  # noqa: F401
                          mirror, offset, repeat, rotate, scale, shell, translate, union)
 from .primitives import (Arc, Box, Capsule, Circle, Ellipse, EquilateralTriangle,  # noqa: F401
-                         Halfspace, OrientedBox, Polygon, RegularPolygon, Ring, RoundedBox,
-                         Segment, Star, Triangle)
+                         Halfspace, OrientedBox, Outline, Polygon, RegularPolygon, Ring,
+                         RoundedBox, Segment, Star, Triangle)
 
 __all__ = ["SDF", "Circle", "Halfspace", "Box", "Union", "Intersection", "Difference",
            "union", "intersection",
            "smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS",
            "EXACTNESS",
            "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
-           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring",
+           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring", "Outline",
            "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
