@@ -379,7 +379,12 @@ def outline_vg(u, v, table):
     shared end is counted once). The gradient is the unit vector from the closest point,
     negated inside; on the curve, its normal."""
     nonzero = table[0, 0] == 2.0
+    # An upper bound first (the nearest segment start), so that the bounding-box test below
+    # skips most segments before any closest-point solve.
     best = math.inf
+    for i in range(1, table.shape[0]):
+        best = min(best, (u - table[i, 1]) ** 2 + (v - table[i, 2]) ** 2)
+    best = best * (1.0 + 1e-12)   # a start is itself on a segment: keep it reachable below
     bkind = -1
     bi = 0
     bt = 0.0
@@ -401,7 +406,7 @@ def outline_vg(u, v, table):
         # lower bound: the distance to the segment's bounding box
         gx = max(table[i, 7] - u, 0.0, u - table[i, 9])
         gy = max(table[i, 8] - v, 0.0, v - table[i, 10])
-        if gx * gx + gy * gy >= best:
+        if gx * gx + gy * gy > best:
             continue
         if kind == 0.0:
             ex, ey = x2 - x0, y2 - y0
@@ -413,7 +418,7 @@ def outline_vg(u, v, table):
             dd = (u - qx) ** 2 + (v - qy) ** 2
         else:
             t, dd = quad_closest(u, v, x0, y0, table[i, 3], table[i, 4], x2, y2)
-        if dd < best:
+        if dd <= best:
             best, bkind, bi, bt = dd, kind, i, t
     inside = (wind != 0) if nonzero else (wind % 2 != 0)
     s = -1.0 if inside else 1.0
