@@ -425,7 +425,7 @@ def _module_hash(mod_name: str) -> str:
 def _exactness(f) -> str:
     """``'exact'``, ``'bound'`` or ``'none'`` (see :attr:`fastsdf.SDF.exactness`) of the world
     (of a grid's exact SDF); ``'unknown'`` for a bare :class:`fastsdf.function.Function`."""
-    g = f.exact if _is_grid(f) else f
+    g = f.exact if _is_grid(f) and f.exact is not None else f
     return getattr(g, "exactness", "unknown")
 
 
@@ -608,7 +608,7 @@ def _kernel_module(f, forces=()):
     grid_exact = False
     if _is_grid(f):
         exact = f.exact
-        if not isinstance(exact, Function):
+        if f.mode == "exact" and not isinstance(exact, Function):
             raise TypeError(f"grid.exact must be a fastsdf Function, got {exact!r}")
         mode = f.mode
         if mode not in ("exact", "nearest"):

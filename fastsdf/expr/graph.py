@@ -670,7 +670,7 @@ def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
 
 #: Kinds of "prim" nodes: the numba functions ``_prims.<kind>_v``/``<kind>_vg`` evaluate them
 #: and ``_prims_ref.evaluate`` is their independent NumPy reference.
-PRIM_KINDS = ("ellipse", "polygon")
+PRIM_KINDS = ("ellipse", "polygon", "outline")
 
 
 def sym_floor(a: Expr | float) -> Expr:

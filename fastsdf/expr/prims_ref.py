@@ -6,7 +6,10 @@ They use different methods from the compiled code, so that agreement means somet
   golden-section refinement (no secular equation, no Newton);
 * polygon: the minimum over the distances to the vertices and to the interiors of the edges
   (perpendicular distance where the foot lies on the edge), with the inside test by winding
-  number (a sum of signed angles, not a crossing count).
+  number (a sum of signed angles, not a crossing count);
+* outline: the stationary points of the squared distance to each quadratic segment as the
+  eigenvalues of the cubic's companion matrix (no closed form, no Newton), the sign by counting
+  the roots of ``y(t) = v`` in [0, 1) with the quadratic formula (no monotone split).
 
 ``evaluate(kind, data, u, v, constants)`` returns ``(d, dd/du, dd/dv)`` as arrays. These are
 slow (O(points x samples)); they exist for testing.
@@ -16,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["evaluate", "ellipse", "polygon"]
+__all__ = ["evaluate", "ellipse", "outline", "polygon"]
 
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 
@@ -28,6 +31,8 @@ def evaluate(kind: str, data: Any, u: np.ndarray, v: np.ndarray, constants: Any)
         return ellipse(u, v, *constants)
     if kind == "polygon":
         return polygon(u, v, np.asarray(data, dtype=np.float64))
+    if kind == "outline":
+        return outline(u, v, np.asarray(data, dtype=np.float64))
     raise NotImplementedError(kind)
 
 
@@ -138,4 +143,77 @@ def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256) -
         d[s:s + chunk] = sign * dist
         gu[s:s + chunk] = gx
         gv[s:s + chunk] = gy
+    return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)
+
+
+def outline(u, v, table, chunk=64):
+    """Signed distance to the region bounded by the outline ``table`` (the layout of
+    :func:`fastsdf.backends.kernel.prims.outline_vg`) and its gradient."""
+    shape = u.shape
+    pu, pv = u.ravel(), v.ravel()
+    rows = table[1:]
+    kind = rows[:, 0]
+    p0, p1, p2 = rows[:, 1:3], rows[:, 3:5], rows[:, 5:7]
+    p1 = np.where(kind[:, None] == 0, 0.5 * (p0 + p2), p1)   # a line as a flat quadratic
+    a, b = p1 - p0, p0 - 2 * p1 + p2
+    nonzero = table[0, 0] == 2.0
+    d = np.empty(pu.size)
+    gu = np.empty(pu.size)
+    gv = np.empty(pu.size)
+    ts = np.linspace(0.0, 1.0, 3)
+    for s in range(0, pu.size, chunk):
+        x, y = pu[s:s + chunk, None], pv[s:s + chunk, None]
+        dx, dy = p0[:, 0] - x, p0[:, 1] - y                    # (points, segments)
+        bb = np.broadcast_to(b[:, 0] ** 2 + b[:, 1] ** 2, dx.shape)
+        ab = np.broadcast_to(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1], dx.shape)
+        aa = np.broadcast_to(a[:, 0] ** 2 + a[:, 1] ** 2, dx.shape)
+        db = dx * b[:, 0] + dy * b[:, 1]
+        da = dx * a[:, 0] + dy * a[:, 1]
+        # candidates: the ends, the line foot (flat curves), the cubic's roots
+        cands = [np.broadcast_to(t, dx.shape) for t in ts[[0, 2]]]
+        with np.errstate(all="ignore"):
+            cands.append(np.clip(-da / (2 * aa), 0, 1))
+            flat = bb <= 1e-20 * aa
+            c2 = np.where(flat, 0.0, 3 * ab / bb)
+            c1 = np.where(flat, 0.0, (2 * aa + db) / bb)
+            c0 = np.where(flat, 0.0, da / bb)
+        comp = np.zeros(dx.shape + (3, 3))
+        comp[..., 0, 0], comp[..., 0, 1], comp[..., 0, 2] = -c2, -c1, -c0
+        comp[..., 1, 0] = comp[..., 2, 1] = 1.0
+        roots = np.linalg.eigvals(comp).real
+        cands += [np.clip(roots[..., k], 0, 1) for k in range(3)]
+        T = np.stack(cands, -1)                                # (points, segments, 6)
+        qx = (1 - T) ** 2 * p0[:, 0, None] + 2 * T * (1 - T) * p1[:, 0, None] \
+            + T ** 2 * p2[:, 0, None]
+        qy = (1 - T) ** 2 * p0[:, 1, None] + 2 * T * (1 - T) * p1[:, 1, None] \
+            + T ** 2 * p2[:, 1, None]
+        dist2 = (x[..., None] - qx) ** 2 + (y[..., None] - qy) ** 2
+        flat_idx = dist2.reshape(dist2.shape[0], -1).argmin(1)
+        r = np.arange(dist2.shape[0])
+        bx = qx.reshape(qx.shape[0], -1)[r, flat_idx]
+        by = qy.reshape(qy.shape[0], -1)[r, flat_idx]
+        dist = np.hypot(x[:, 0] - bx, y[:, 0] - by)
+        # winding: roots of y(t) = v in [0, 1), direction from y'(t)
+        A = np.broadcast_to(b[:, 1], dx.shape)
+        B = np.broadcast_to(2 * a[:, 1], dx.shape)
+        C = p0[:, 1] - y
+        wind = np.zeros(x.shape[0])
+        with np.errstate(all="ignore"):
+            disc = np.sqrt(np.maximum(B * B - 4 * A * C, 0.0))
+            lin = np.abs(A) < 1e-14 * (np.abs(B) + np.abs(C) + 1e-300)
+            for sg in (1.0, -1.0):
+                t = np.where(lin, -C / B, (-B + sg * disc) / (2 * A))
+                if sg < 0:
+                    t = np.where(lin | (disc == 0), np.nan, t)   # a double or single root
+                ok = (t >= 0) & (t < 1)
+                xt = (1 - t) ** 2 * p0[:, 0] + 2 * t * (1 - t) * p1[:, 0] + t ** 2 * p2[:, 0]
+                slope = 2 * A * t + B
+                hit = ok & (xt > x) & (slope != 0)
+                wind += np.sum(np.where(hit, np.sign(slope), 0.0), axis=1)
+        inside = (wind != 0) if nonzero else (np.abs(wind) % 2 == 1)
+        sign = np.where(inside, -1.0, 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d[s:s + chunk] = sign * dist
+            gu[s:s + chunk] = sign * (x[:, 0] - bx) / dist
+            gv[s:s + chunk] = sign * (y[:, 0] - by) / dist
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)

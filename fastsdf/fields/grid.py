@@ -499,6 +499,9 @@ class GridSDF:
     sampler, sampler_data : per-point interpolation for numba code, see :attr:`sampler`.
     """
 
+    #: Set by :meth:`from_samples` only (a grid built from an SDF reads ``exact.exactness``).
+    exactness: str
+
     def __init__(self, f: Function, bounds: ArrayLike = ((-2, 2), (-2, 2)),
                  samples: ArrayLike = (400j, 400j), mode: str = "exact", dtype: Any = np.float64,
                  gradient: str = "stored"):
@@ -527,6 +530,50 @@ class GridSDF:
         ihx, ihy = 1.0 / self.spacing[0], 1.0 / self.spacing[1]
         self.sampler_data = (self.data.reshape(-1), x0, x1, y0, y1, ihx, ihy, nx, ny)
         self._channels = 3 if self.gradient == "stored" else 1
+
+    @classmethod
+    def from_samples(cls, values: ArrayLike, bounds: ArrayLike, exact: Function | None = None,
+                     mode: str = "nearest", dtype: Any = np.float64,
+                     exactness: str = "none") -> GridSDF:
+        """A grid from node values already computed (e.g. a distance transform of an image).
+
+        ``values[i, j]`` is the signed distance at ``(x0 + i * hx, y0 + j * hy)`` (x along the
+        first axis, both ends of ``bounds`` included, at least 2 nodes per axis); gradients are
+        taken by finite differences (``gradient='fd'``). ``exact`` is the SDF answering points
+        outside ``bounds`` in ``mode='exact'``; without one the mode must be ``'nearest'``.
+        ``exactness`` ('exact', 'bound' or 'none', as :attr:`fastsdf.SDF.exactness`) says
+        whether the values are samples of a 1-Lipschitz distance (neighbouring nodes differ by
+        at most their spacing), which lets simulations skip queries safely.
+        """
+        v = np.asarray(values)
+        if v.ndim != 2 or v.shape[0] < 2 or v.shape[1] < 2 or v.dtype.kind not in "iuf":
+            raise ValueError(f"values must be a real 2-d array with at least 2 nodes per axis, "
+                             f"got shape {v.shape} and dtype {v.dtype}")
+        if not np.isfinite(v).all():
+            raise ValueError("values must be finite at every node")
+        if exact is not None and not isinstance(exact, Function):
+            raise TypeError(f"exact must be a fastsdf SDF or None, got exact={exact!r}")
+        g = cls.__new__(cls)
+        g.bounds = _check_bounds(bounds)
+        g.mode = _check_choice(mode, "mode", _MODES)
+        if g.mode == "exact" and exact is None:
+            raise ValueError("mode='exact' needs the exact SDF (exact=...) to answer points "
+                             "outside bounds; pass one or use mode='nearest'")
+        g.exactness = _check_choice(exactness, "exactness", ("exact", "bound", "none"))
+        g.gradient = "fd"
+        g.dtype = _check_dtype(dtype)
+        g.exact = exact
+        g.shape = (int(v.shape[0]), int(v.shape[1]))
+        (x0, x1), (y0, y1) = g.bounds
+        nx, ny = g.shape
+        g.spacing = ((x1 - x0) / (nx - 1), (y1 - y0) / (ny - 1))
+        g.bytes_per_node = BYTES_PER_NODE[(g.gradient, g.dtype.name)]
+        g.data = np.ascontiguousarray(v, dtype=g.dtype)
+        g.nbytes = int(g.data.nbytes)
+        g.sampler_data = (g.data.reshape(-1), x0, x1, y0, y1, 1.0 / g.spacing[0],
+                          1.0 / g.spacing[1], nx, ny)
+        g._channels = 1
+        return g
 
     # -- construction -------------------------------------------------------------------------
     @property

@@ -126,7 +126,7 @@ from fastsdf.shapes.operations import SDF
 
 __all__ = ["Circle", "Halfspace", "Box",
            "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
-           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring"]
+           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring", "Outline"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -875,3 +875,87 @@ class Arc(SDF):
         if not exact:
             info = info._replace(inside=False)
         super().__init__(dist - thickness / 2, info)
+
+
+# ---------------------------------------------------------------------------------------------
+# Outlines of line and quadratic Bezier segments (fonts, SVG paths: fastsdf.geometry builds
+# them from text and path data, cubics and arcs converted with a stated tolerance).
+
+FILL_RULES = ("evenodd", "nonzero")
+
+
+def _split_quadratic_y(row):
+    """A quadratic segment row split at its y extremum (de Casteljau): one or two rows, each
+    monotone in y."""
+    kind, x0, y0, x1, y1, x2, y2 = row
+    den = y0 - 2.0 * y1 + y2
+    if kind != 1.0 or den == 0.0:
+        return [row]
+    t = (y0 - y1) / den
+    if not 0.0 < t < 1.0:
+        return [row]
+    ax, ay = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+    bx, by = x1 + t * (x2 - x1), y1 + t * (y2 - y1)
+    mx, my = ax + t * (bx - ax), ay + t * (by - ay)
+    return [(1.0, x0, y0, ax, ay, mx, my), (1.0, mx, my, bx, by, x2, y2)]
+
+
+def outline_table(segments: ArrayLike, fill_rule: str = "nonzero") -> np.ndarray:
+    """The table of the compiled ``outline`` primitive (:func:`fastsdf.backends.kernel.prims.outline_vg`)
+    from segment rows ``[kind, x0, y0, x1, y1, x2, y2]`` (kind 0: the line from ``(x0, y0)``
+    to ``(x2, y2)``; kind 1: the quadratic Bezier with control ``(x1, y1)``): quadratics split
+    into y-monotone pieces, a bounding box per row, a header row with the fill rule."""
+    if fill_rule not in FILL_RULES:
+        raise ValueError(f"fill_rule must be one of {FILL_RULES}, got fill_rule={fill_rule!r}")
+    seg = np.asarray(segments, dtype=np.float64)
+    if seg.ndim != 2 or seg.shape[1] != 7 or len(seg) == 0:
+        raise ValueError(f"segments must be rows [kind, x0, y0, x1, y1, x2, y2], got an array "
+                         f"of shape {seg.shape}")
+    if not np.isfinite(seg).all():
+        raise ValueError("segments must hold finite numbers")
+    if not np.isin(seg[:, 0], (0.0, 1.0)).all():
+        raise ValueError(f"segment kinds must be 0 (line) or 1 (quadratic), got "
+                         f"{sorted(set(seg[:, 0].tolist()))}")
+    # Every end must be the start of another segment: closed loops (to a relative 1e-9).
+    scale = float(np.abs(seg[:, 1:]).max()) or 1.0
+    starts = np.round(seg[:, 1:3] / (1e-9 * scale))
+    ends = np.round(seg[:, 5:7] / (1e-9 * scale))
+    if not np.array_equal(starts[np.lexsort(starts.T)], ends[np.lexsort(ends.T)]):
+        raise ValueError("segments must form closed loops (every segment's end is another's "
+                         "start)")
+    rows = [r for row in seg.tolist() for r in _split_quadratic_y(tuple(row))]
+    body = np.array(rows)
+    pts = body[:, 1:7].reshape(-1, 3, 2)
+    lines = body[:, 0] == 0.0
+    pts[lines, 1] = pts[lines, 0]            # a line's unused control: not in its box
+    lo, hi = pts.min(axis=1), pts.max(axis=1)
+    table = np.zeros((len(body) + 1, 11))
+    table[0, 0] = 1.0 if fill_rule == "evenodd" else 2.0
+    table[1:, :7] = body
+    table[1:, 7:9] = lo
+    table[1:, 9:11] = hi
+    return table
+
+
+class Outline(SDF):
+    """A region bounded by closed loops of line segments and quadratic Bezier segments, filled
+    by the ``'nonzero'`` (default) or ``'evenodd'`` rule, holes included.
+
+    ``segments``: rows ``[kind, x0, y0, x1, y1, x2, y2]`` (kind 0: a line from ``(x0, y0)`` to
+    ``(x2, y2)``; kind 1: a quadratic Bezier with control point ``(x1, y1)``), forming closed
+    loops. Exact distances (a quadratic's closest point solves a cubic, in closed form); one
+    compiled loop over the segments (graph op ``prim``, kind ``'outline'``), skipping those
+    whose bounding box is farther than the best so far. ``fastsdf.geometry`` builds outlines
+    from SVG path data and text (cubics and arcs converted within a stated tolerance).
+    """
+
+    def __init__(self, segments: ArrayLike, fill_rule: str = "nonzero"):
+        table = outline_table(segments, fill_rule)
+        self.segments = table[1:, :7]
+        self.fill_rule = fill_rule
+        data = tuple(map(tuple, table.tolist()))
+        x, y = _coords()
+        expr = sym_prim("outline", x, y, data=data)
+        bbox = (float(table[1:, 7].min()), float(table[1:, 8].min()),
+                float(table[1:, 9].max()), float(table[1:, 10].max()))
+        super().__init__(expr, _primitive_info(bbox))

@@ -15,6 +15,8 @@ Kinds:
   support point (:func:`_ellipse_far`), where the iteration's variables would overflow.
 * ``polygon(u, v, verts)``: exact signed distance to a simple polygon whose vertices are the
   rows of ``verts`` (counter-clockwise); the sign comes from an even-odd crossing test.
+* ``outline(u, v, table)``: exact signed distance to a region bounded by line segments and
+  quadratic Bezier segments (fonts, SVG paths), filled by the even-odd or non-zero rule.
 
 The gradient is the unit vector from the closest boundary point (outward normal direction
 on the boundary); at points with several closest points (the medial axis) one of them is used.
@@ -24,7 +26,8 @@ import math
 
 from numba import njit
 
-__all__ = ["ellipse_v", "ellipse_vg", "polygon_v", "polygon_vg"]
+__all__ = ["ellipse_v", "ellipse_vg", "outline_v", "outline_vg", "polygon_v", "polygon_vg",
+           "quad_closest"]
 
 _EPS = 2.220446049250313e-16
 _UP = 2.0 ** 600  # brings subnormal and tiny lengths into the normal range, exactly
@@ -243,3 +246,203 @@ def _guard():
 
 
 _guard()
+
+
+# ---------------------------------------------------------------------------------------------
+# Outlines: closed curves of line segments and quadratic Bezier segments (fonts, SVG paths).
+# The table (see fastsdf.geometry.outline.outline_table) has one header row
+# ``[fill rule (1: even-odd, 2: non-zero), 0, ...]`` then one row per segment:
+# ``[kind (0 line, 1 quadratic), x0, y0, x1, y1, x2, y2, bbox x min, y min, x max, y max]``
+# with start (x0, y0), control (x1, y1) (unused by lines) and end (x2, y2). Quadratics are
+# monotone in y (split at their y extremum when the table is built), so each crosses a
+# horizontal line at most once.
+OUTLINE_COLUMNS = 11
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _quad_point(t, x0, y0, x1, y1, x2, y2):
+    s = 1.0 - t
+    return (s * s * x0 + 2.0 * s * t * x1 + t * t * x2,
+            s * s * y0 + 2.0 * s * t * y1 + t * t * y2)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _quad_polish(t, u, v, x0, y0, x1, y1, x2, y2):
+    """Newton steps on ``(B(t) - p) . B'(t) = 0`` from ``t`` (kept in [0, 1]); returns the
+    parameter and squared distance of the best point seen."""
+    ax, ay = x1 - x0, y1 - y0                  # B'(t) = 2 (a + b t)
+    bx, by = x0 - 2.0 * x1 + x2, y0 - 2.0 * y1 + y2
+    bt = min(max(t, 0.0), 1.0)
+    qx, qy = _quad_point(bt, x0, y0, x1, y1, x2, y2)
+    best = (qx - u) ** 2 + (qy - v) ** 2
+    t = bt
+    for _ in range(4):
+        px, py = _quad_point(t, x0, y0, x1, y1, x2, y2)
+        dx, dy = ax + bx * t, ay + by * t
+        g = (px - u) * dx + (py - v) * dy
+        h = dx * dx + dy * dy + (px - u) * bx + (py - v) * by
+        if h <= 0.0:
+            break
+        t = min(max(t - g / h, 0.0), 1.0)
+        qx, qy = _quad_point(t, x0, y0, x1, y1, x2, y2)
+        dd = (qx - u) ** 2 + (qy - v) ** 2
+        if dd < best:
+            best = dd
+            bt = t
+        else:
+            break
+    return bt, best
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cbrt(x):
+    return math.copysign(abs(x) ** (1.0 / 3.0), x)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def quad_closest(u, v, x0, y0, x1, y1, x2, y2):
+    """Parameter ``t`` in [0, 1] and squared distance of the point of the quadratic Bezier
+    ``(x0, y0), (x1, y1), (x2, y2)`` closest to ``(u, v)``: the stationary points solve a cubic
+    (Inigo Quilez's closed form, sdBezier), each root polished by Newton steps, compared with
+    the two ends."""
+    ax, ay = x1 - x0, y1 - y0
+    bx, by = x0 - 2.0 * x1 + x2, y0 - 2.0 * y1 + y2
+    dx, dy = x0 - u, y0 - v
+    best_t = 0.0
+    best = dx * dx + dy * dy
+    ex, ey = x2 - u, y2 - v
+    e = ex * ex + ey * ey
+    if e < best:
+        best, best_t = e, 1.0
+    bb = bx * bx + by * by
+    scale = max(ax * ax + ay * ay, (x2 - x0) ** 2 + (y2 - y0) ** 2)
+    if bb <= 1e-20 * scale:
+        # (nearly) a straight line traversed at constant speed: the foot of the perpendicular
+        lx, ly = x2 - x0, y2 - y0
+        ll = lx * lx + ly * ly
+        if ll > 0.0:
+            t, dd = _quad_polish(-(dx * lx + dy * ly) / ll, u, v, x0, y0, x1, y1, x2, y2)
+            if dd < best:
+                best, best_t = dd, t
+        return best_t, best
+    kk = 1.0 / bb
+    kx = kk * (ax * bx + ay * by)
+    ky = kk * (2.0 * (ax * ax + ay * ay) + (dx * bx + dy * by)) / 3.0
+    kz = kk * (dx * ax + dy * ay)
+    p = ky - kx * kx
+    q = kx * (2.0 * kx * kx - 3.0 * ky) + kz
+    h = q * q + 4.0 * p * p * p
+    if h >= 0.0:
+        h = math.sqrt(h)
+        t, dd = _quad_polish(_cbrt(0.5 * (h - q)) + _cbrt(0.5 * (-h - q)) - kx,
+                             u, v, x0, y0, x1, y1, x2, y2)
+        if dd < best:
+            best, best_t = dd, t
+    else:
+        z = math.sqrt(-p)
+        c = min(max(q / (p * z * 2.0), -1.0), 1.0)
+        ang = math.acos(c) / 3.0
+        m = math.cos(ang)
+        n = math.sin(ang) * 1.7320508075688772
+        for r in ((m + m) * z - kx, (-n - m) * z - kx, (n - m) * z - kx):
+            t, dd = _quad_polish(r, u, v, x0, y0, x1, y1, x2, y2)
+            if dd < best:
+                best, best_t = dd, t
+    return best_t, best
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _quad_root_y(v, y0, y1, y2):
+    """The parameter in [0, 1] where a y-monotone quadratic reaches height ``v``."""
+    a = y0 - 2.0 * y1 + y2
+    b = 2.0 * (y1 - y0)
+    c = y0 - v
+    if abs(a) <= 1e-14 * (abs(b) + abs(c)):
+        t = -c / b if b != 0.0 else 0.0
+    else:
+        disc = math.sqrt(max(b * b - 4.0 * a * c, 0.0))
+        qq = -0.5 * (b + math.copysign(disc, b))
+        t1 = qq / a
+        t2 = c / qq if qq != 0.0 else t1
+        t = t1 if (t1 >= -1e-12 and t1 <= 1.0 + 1e-12) else t2
+    return min(max(t, 0.0), 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def outline_vg(u, v, table):
+    """``(d, dd/du, dd/dv)`` of the region bounded by the outline ``table`` (line and
+    quadratic Bezier segments, see ``OUTLINE_COLUMNS``), filled by the table's rule.
+
+    The distance is to the nearest segment (exact: the quadratics' closest points solve a
+    cubic); segments whose bounding box is farther than the best so far are skipped. The sign
+    counts crossings of the ray from ``(u, v)`` towards +x (half-open in y, so a crossing at a
+    shared end is counted once). The gradient is the unit vector from the closest point,
+    negated inside; on the curve, its normal."""
+    nonzero = table[0, 0] == 2.0
+    # An upper bound first (the nearest segment start), so that the bounding-box test below
+    # skips most segments before any closest-point solve.
+    best = math.inf
+    for i in range(1, table.shape[0]):
+        best = min(best, (u - table[i, 1]) ** 2 + (v - table[i, 2]) ** 2)
+    best = best * (1.0 + 1e-12)   # a start is itself on a segment: keep it reachable below
+    bkind = -1
+    bi = 0
+    bt = 0.0
+    wind = 0
+    for i in range(1, table.shape[0]):
+        x0 = table[i, 1]
+        y0 = table[i, 2]
+        x2 = table[i, 5]
+        y2 = table[i, 6]
+        kind = table[i, 0]
+        if (y0 > v) != (y2 > v):
+            if kind == 0.0:
+                xc = x0 + (v - y0) * ((x2 - x0) / (y2 - y0))
+            else:
+                t = _quad_root_y(v, y0, table[i, 4], y2)
+                xc = _quad_point(t, x0, y0, table[i, 3], table[i, 4], x2, y2)[0]
+            if u < xc:
+                wind += 1 if y2 > y0 else -1
+        # lower bound: the distance to the segment's bounding box
+        gx = max(table[i, 7] - u, 0.0, u - table[i, 9])
+        gy = max(table[i, 8] - v, 0.0, v - table[i, 10])
+        if gx * gx + gy * gy > best:
+            continue
+        if kind == 0.0:
+            ex, ey = x2 - x0, y2 - y0
+            ee = ex * ex + ey * ey
+            t = 0.0
+            if ee > 0.0:
+                t = min(max(((u - x0) * ex + (v - y0) * ey) / ee, 0.0), 1.0)
+            qx, qy = x0 + t * ex, y0 + t * ey
+            dd = (u - qx) ** 2 + (v - qy) ** 2
+        else:
+            t, dd = quad_closest(u, v, x0, y0, table[i, 3], table[i, 4], x2, y2)
+        if dd <= best:
+            best, bkind, bi, bt = dd, kind, i, t
+    inside = (wind != 0) if nonzero else (wind % 2 != 0)
+    s = -1.0 if inside else 1.0
+    if bkind < 0:
+        return math.inf, 0.0, 0.0
+    x0, y0 = table[bi, 1], table[bi, 2]
+    x1, y1 = table[bi, 3], table[bi, 4]
+    x2, y2 = table[bi, 5], table[bi, 6]
+    if bkind == 0.0:
+        qx, qy = x0 + bt * (x2 - x0), y0 + bt * (y2 - y0)
+        tx, ty = x2 - x0, y2 - y0
+    else:
+        qx, qy = _quad_point(bt, x0, y0, x1, y1, x2, y2)
+        tx = (x1 - x0) + (x0 - 2.0 * x1 + x2) * bt
+        ty = (y1 - y0) + (y0 - 2.0 * y1 + y2) * bt
+    dist, gx, gy = _unit(u - qx, v - qy)
+    if dist > 0.0:
+        return s * dist, s * gx, s * gy
+    # on the curve: a normal (the tangent turned clockwise; its sign is a limit choice)
+    dist, gx, gy = _unit(ty, -tx)
+    return 0.0, gx, gy
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def outline_v(u, v, table):
+    """Signed distance to the region bounded by the outline ``table``."""
+    return outline_vg(u, v, table)[0]
