@@ -199,3 +199,5 @@ def test_discs_need_radii(tmp_path):
     w = VideoWriter(str(tmp_path / "x.mp4"), None, mode="discs", **SMALL)
     with pytest.raises(ValueError, match="r "):
         w.add([0.0], [0.0])
+    empty = w.render([], [])  # no particles: the background alone
+    np.testing.assert_array_equal(empty[w.pixel(0.0, 0.0)], empty[w.pixel(1.0, 1.0)])

@@ -457,6 +457,8 @@ class VideoWriter:
             splat_counts(xs, ys, x0, y1, self._sx, self._sy, counts)
         else:
             if r is None:
+                if xs.size == 0:
+                    return counts
                 raise ValueError("r (the particles' radii) is needed to draw discs")
             rs = _coords(r, "r")
             if rs.size not in (1, xs.size):
