@@ -139,7 +139,7 @@ def test_svg_reads_back_to_the_same_points(tmp_path):
 
 
 def test_dxf_reads_back(tmp_path):
-    ezdxf = pytest.importorskip("ezdxf")
+    import ezdxf
     cs = contours(_numpy(sdf.Circle([0, 0], 1.0) - sdf.Circle([0, 0], 0.5)), bounds=BOUNDS,
                   resolution=40)
     target = tmp_path / "ring.dxf"

@@ -119,8 +119,7 @@ def _agrees_with_samples(dist, brute, dense, tol):
 
 
 def test_svg_path_against_shapely_and_brute_force():
-    shapely = pytest.importorskip("shapely")
-    pytest.importorskip("svgelements")
+    import shapely
     d = ("M 10 10 C 20 0 40 0 50 10 A 20 20 0 0 1 10 10 Z "
          "M 25 8 Q 30 4 35 8 L 30 12 Z")
     tol = 1e-6
@@ -139,7 +138,6 @@ def test_svg_path_against_shapely_and_brute_force():
 
 
 def test_svg_open_subpaths_are_closed_and_bad_data_is_refused():
-    pytest.importorskip("svgelements")
     rows = path_segments("M 0 0 L 1 0 L 1 1")          # closed by a line back to the start
     assert len(rows) == 3 and np.allclose(rows[-1, 5:7], [0, 0])
     with pytest.raises(ValueError):
@@ -151,12 +149,15 @@ def test_svg_open_subpaths_are_closed_and_bad_data_is_refused():
 
 
 def test_text_is_an_exact_sdf_like_any_other():
-    shapely = pytest.importorskip("shapely")
+    import shapely
     from matplotlib.textpath import TextPath
     word = Text("fastsdf", size=1.0)
     x, y = np.random.default_rng(6).uniform([-0.1, -0.3], [4.0, 1.0], (400, 2)).T
     d = word(x, y)                                     # the compiled kernel
     np.testing.assert_allclose(d, word(x, y, backend="numpy"), atol=1e-12)
+    np.testing.assert_allclose(d, word(x, y, backend="tape"), atol=1e-12)
+    split = Text("fastsdf", size=1.0, split_glyphs=True)   # a union of glyph outlines
+    np.testing.assert_allclose(split(x, y, backend="numpy"), d, atol=1e-12)
     # brute force against matplotlib's own evaluation of the glyphs' Bezier segments
     tp = TextPath((0, 0), "fastsdf", size=1.0)
     tt = np.linspace(0, 1, 400)

@@ -58,9 +58,9 @@ BLOCK = 256
 # operand updating the accumulator in place (and, for smooth chains, the sum of weights in a
 # register of its own made by _SINIT), and _SEND (smooth chains: m -+ log(s) / k).
 (_CONST, _SYMX, _SYMY, _PARAM, _ADD, _SUB, _MUL, _DIV, _NEG, _POWC, _POW, _SQRT, _EXP, _LOG,
- _SIN, _COS, _ABS, _FLOOR, _LENGTH, _QMIN, _CMIN, _SELECT, _ELLIPSE, _POLYGON,
+ _SIN, _COS, _ABS, _FLOOR, _LENGTH, _QMIN, _CMIN, _SELECT, _ELLIPSE, _POLYGON, _OUTLINE,
  _CINIT, _SINIT, _SEND, _MINSTEP, _MAXSTEP, _SMINSTEP, _SMAXSTEP,
- _ADDK, _SUBK, _KSUB, _MULK, _DIVK) = range(36)
+ _ADDK, _SUBK, _KSUB, _MULK, _DIVK) = range(37)
 # The last five take their constant as an immediate (a + k, a - k, k - a, a * k, a / k): most
 # constants of a scene (transforms, sizes) then cost no instruction and no register.
 
@@ -323,6 +323,12 @@ def _emit_node(b: _Builder, node: Expr, reg) -> int:
             off = len(b.table)
             b.table.extend(map(tuple, verts))
             return b.emit(_POLYGON, args[:2], c=off, d=len(verts))
+        if kind == "outline":   # rows of 11 numbers, padded to 12: 6 table rows each
+            rows = np.asarray(data, dtype=np.float64)
+            rows = np.concatenate([rows, np.zeros((len(rows), 1))], axis=1).reshape(-1, 2)
+            off = len(b.table)
+            b.table.extend(map(tuple, rows))
+            return b.emit(_OUTLINE, args[:2], c=off, d=len(rows) // 6)
     raise ValueError(f"the tape has no instruction for operation {op!r}"
                      + (f" (primitive {node.attr[0]!r})" if op == "prim" else ""))
 
@@ -341,7 +347,7 @@ def _reg_columns(op):
         return (2, 3, 4)
     if op == _ELLIPSE:
         return (2, 3, 4, 5)
-    if op == _POLYGON:
+    if op in (_POLYGON, _OUTLINE):
         return (2, 3)
     if op in _UNARY.values() or op >= _ADDK:
         return (2,)
@@ -586,6 +592,14 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
             verts = table[c:c + code[ins, 5]]
             for i in range(n):
                 r, p, q = _P.polygon_vg(V[a, i], V[b, i], verts)
+                V[d, i] = r
+                PA[i] = p
+                PB[i] = q
+            lin = 2
+        elif op == _OUTLINE:
+            rows = table[c:c + 6 * code[ins, 5]].reshape(code[ins, 5], 12)
+            for i in range(n):
+                r, p, q = _P.outline_vg(V[a, i], V[b, i], rows)
                 V[d, i] = r
                 PA[i] = p
                 PB[i] = q

@@ -296,15 +296,21 @@ def _group_loops(loops: list) -> list:
 
 
 def Text(text: str, size: float = 1.0, position: ArrayLike = (0.0, 0.0),
-         family: str | None = None, tol: float = 1e-4) -> SDF:
+         family: str | None = None, tol: float = 1e-4, split_glyphs: bool = False) -> SDF:
     """``text`` as an exact SDF: glyph outlines from matplotlib's ``TextPath`` (font
     ``family``, default matplotlib's), baseline from ``position``, em size ``size``, filled by
-    the non-zero rule. A hard union of one :class:`fastsdf.shapes.Outline` per glyph group, so
-    it compiles, prunes per tile and blends like any SDF. TrueType glyphs are exact; cubic
-    (PostScript) glyphs are within ``tol``. Where glyphs overlap, the union's distance inside
-    the overlap is a bound, not exact."""
+    the non-zero rule; it compiles and blends like any SDF. TrueType glyphs are exact; cubic
+    (PostScript) glyphs are within ``tol``. Where glyphs overlap, the distance inside the
+    overlap is a bound, not exact.
+
+    By default one :class:`fastsdf.shapes.Outline` holds every glyph (one loop over all
+    segments per point, with bounding-box skips). ``split_glyphs=True`` builds a hard union of
+    one outline per glyph group instead: slower per point for short texts (each glyph solves
+    at least one closest point), but a union that the tile pruning of long scenes can cut
+    down to the glyphs near each tile."""
     groups = text_segments(text, size, position, family, tol)
     if not groups:
         raise ValueError(f"text={text!r} has no visible glyphs")
-    shapes = [Outline(g, "nonzero") for g in groups]
-    return union(shapes)
+    if not split_glyphs:
+        return Outline(np.concatenate(groups), "nonzero")
+    return union([Outline(g, "nonzero") for g in groups])
