@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import NoReturn, Sequence
+from collections.abc import Sequence
+from typing import NoReturn
 
 
 class _Parser(argparse.ArgumentParser):
@@ -39,8 +40,8 @@ def _grid_size(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line parser (``fastsdf`` and its ``demo`` subcommand)."""
-    from fastsdf.version import __version__
     from fastsdf.apps.demo import DEFAULT_FPS, DEFAULT_FRAMES, WORLDS
+    from fastsdf.version import __version__
 
     parser = _Parser(
         prog="fastsdf",

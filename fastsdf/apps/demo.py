@@ -17,8 +17,9 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import IO, Any, Callable
+from typing import IO, Any
 
 import numpy as np
 
@@ -201,8 +202,8 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
              mode: str = "exact", stream: IO[str] | None = None) -> DemoResult:
     """Simulate ``particles`` particles for ``steps`` steps (1/30 s each) in a notebook world.
 
-    ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the GridSDF's
-    samples per axis over :data:`BOUNDS`; ``mode``: the grid's answer outside its bounds
+    ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the
+    GridSDF's samples per axis over :data:`BOUNDS`; ``mode``: the grid's answer outside its bounds
     (``'exact'``: the exact SDF, ``'nearest'``: clamped to the edge); ``exact=True`` queries the
     exact compiled SDF everywhere instead of a grid. Particles start in the notebook's blob,
     redrawn where they would start inside matter (:func:`spawn_in_free_space`). ``frames`` video
@@ -216,7 +217,8 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
 
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.render import world_figure, animate as _animate, render_frame, save_animation, sim_title
+    from fastsdf.viz.render import animate as _animate
+    from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
     for name, value, low in (("particles", particles, 1), ("steps", steps, 1), ("grid", grid, 2),
                              ("frames", frames, 1), ("fps", fps, 1)):

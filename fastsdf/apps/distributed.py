@@ -55,10 +55,11 @@ import pickle
 import time
 import uuid
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from typing import Any, Sequence
 from numpy.typing import ArrayLike
 
 __all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
@@ -70,7 +71,7 @@ POLL_SECONDS = 0.5
 
 def _require_dask():
     try:
-        import dask  # noqa: F401
+        import dask  # noqa: F401  (only whether it imports)
         import distributed  # noqa: F401
     except ImportError as exc:  # pragma: no cover - the extra is installed in CI
         raise ImportError("fastsdf.apps.distributed needs dask.distributed: pip install "
@@ -82,8 +83,8 @@ def _digest(obj) -> str:
 
 
 def _check_world(f, name: str = "f"):
-    from fastsdf.function import Function
     from fastsdf.fields.grid import GridSDF
+    from fastsdf.function import Function
     if not isinstance(f, (Function, GridSDF)):
         raise TypeError(f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
                         f"of type {type(f).__name__}")
@@ -255,7 +256,8 @@ class _Group:
         out = {}
         for i, rows in local.items():
             p = self.sims[i].p
-            out[i] = {k: np.array(p[k][rows]) for k in p.keys()}
+            # (Particles has keys() but is not iterable)
+            out[i] = {k: np.array(p[k][rows]) for k in p.keys()}  # noqa: SIM118
         return dict(self.steps), out
 
     def particles(self):
@@ -444,7 +446,7 @@ class DistributedSimulation:
                         if dead:
                             raise self._lost_error(dead, "worker no longer in the cluster") \
                                 from None
-                    except Exception as exc:  # noqa: BLE001
+                    except Exception as exc:
                         self._raise_if_lost(i, exc)
                         raise
         out = [results[i] for i in sorted(results)]
@@ -555,10 +557,10 @@ class DistributedSimulation:
 
     def density(self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)),
                 shape: tuple = (400, 400)) -> np.ndarray:
-        """Particle counts per pixel: the sum of the shards' :func:`fastsdf.viz.render.density_image`
-        (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
-        counts, so the order of summation does not matter). Each worker sends one summed image:
-        the client holds O(workers * H * W), not O(n)."""
+        """Particle counts per pixel: the sum of the shards'
+        :func:`fastsdf.viz.render.density_image` (float64, ``shape=(H, W)``, row 0 at the bottom,
+        covering ``bounds``; exact integer counts, so the order of summation does not matter). Each
+        worker sends one summed image: the client holds O(workers * H * W), not O(n)."""
         from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import check_shape
         bounds = check_bounds(bounds)
@@ -622,10 +624,8 @@ class DistributedSimulation:
         futures = self._futures + [self._config_future]
         self._actors = None
         self._futures = []
-        try:
+        with contextlib.suppress(Exception):  # a closed client has nothing left to free
             self.client.cancel(futures)
-        except Exception:  # noqa: BLE001 - a closed client has nothing left to free
-            pass
 
     def __enter__(self):
         return self
@@ -715,7 +715,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     from fastsdf.apps import demo as _demo
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity
-    from fastsdf.viz.render import world_figure, save_animation
+    from fastsdf.viz.render import save_animation, world_figure
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps

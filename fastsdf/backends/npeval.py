@@ -7,8 +7,8 @@ with NumPy alone: one whole-array operation per node of the expression, the poin
 blocks that stay in the cache. It is the path of ``backend='numpy'`` and of the first calls of
 ``backend='auto'`` (see :class:`fastsdf.function.Function`).
 
-The formulas are those of the compiled kernels (:mod:`fastsdf.backends.kernel.codegen`): chains of ``min``/
-``max``/``smin``/``smax`` are flattened, hard ones streamed operand by operand (the earlier
+The formulas are those of the compiled kernels (:mod:`fastsdf.backends.kernel.codegen`): chains of
+``min``/ ``max``/``smin``/``smax`` are flattened, hard ones streamed operand by operand (the earlier
 operand wins a tie), smooth ones as a log-sum-exp relative to their extremum (the kernels'
 streamed sum, to rounding), ``length`` as ``sqrt(a*a + b*b)`` with the ``hypot`` fallback, the
 other operations by the NumPy reference of :mod:`fastsdf.expr.ops`.
@@ -31,9 +31,10 @@ the gradient only of the winner.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
-from typing import Any, Sequence
 
 from fastsdf.expr.graph import Expr
 from fastsdf.expr.ops import OPS
@@ -809,7 +810,7 @@ class NumpyScene:
         self._prog = _Program(expr, self.xname, prune=True)
 
     @property
-    def chain(self) -> "_Chain | None":
+    def chain(self) -> _Chain | None:
         """The pruned chain at the root (None if the root is not one)."""
         return self._prog.chains.get(len(self._prog.steps) - 1)
 

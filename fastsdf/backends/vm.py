@@ -9,16 +9,16 @@ the whole block (the dispatch costs once per block, not per point), with a regis
 ``BLOCK`` values (and two gradient rows) per live value. Registers are reused once their value
 is dead (linear scan), so the register file follows the scene's width, not its size.
 
-The tape follows the compiled code (:mod:`fastsdf.backends.kernel.codegen`) operation by operation: the same
-formulas for values and partial derivatives (the table of :mod:`fastsdf.expr.ops`), chains of
-``min``/``max``/``smin``/``smax`` flattened and streamed operand by operand in the generated
+The tape follows the compiled code (:mod:`fastsdf.backends.kernel.codegen`) operation by operation:
+the same formulas for values and partial derivatives (the table of :mod:`fastsdf.expr.ops`), chains
+of ``min``/``max``/``smin``/``smax`` flattened and streamed operand by operand in the generated
 code's order with its tie rule (the earlier operand wins), smooth chains as the same online
-log-sum-exp, the same branch-free ``exp``/``log``/``length`` of :mod:`fastsdf.backends.kernel.vmath`, the same
-compiled primitives of :mod:`fastsdf.backends.kernel.prims`. Gradients are forward mode with the same one-sided
-conventions at kinks; a gradient component known to be zero is never multiplied by a partial
-(as the generated code omits it). Results agree with the compiled kernels to rounding (tested:
-values to 1e-12 relative, gradients to 1e-9). Non-finite input points give NaN for those
-points only.
+log-sum-exp, the same branch-free ``exp``/``log``/``length`` of
+:mod:`fastsdf.backends.kernel.vmath`, the same compiled primitives of
+:mod:`fastsdf.backends.kernel.prims`. Gradients are forward mode with the same one-sided conventions
+at kinks; a gradient component known to be zero is never multiplied by a partial (as the generated
+code omits it). Results agree with the compiled kernels to rounding (tested: values to 1e-12
+relative, gradients to 1e-9). Non-finite input points give NaN for those points only.
 
 Runtime parameters (:func:`fastsdf.expr.graph.Param`, time ``t``) are inputs of the tape (read from
 an array per call); the time derivative (``time_derivative=True``) is not offered by the tape.
@@ -35,11 +35,12 @@ once numba's one-time setup in the process is paid or worth paying; see
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numba
 import numpy as np
 from numba import njit, prange
-from typing import Any, Sequence
 from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel import prims as _P

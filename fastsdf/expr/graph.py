@@ -34,9 +34,9 @@ import struct
 import threading
 import weakref
 from _weakref import _remove_dead_weakref
+from typing import Any
 
 import numpy as np
-from typing import Any
 
 from fastsdf.expr.ops import OPS, chain_rule_numpy, fmt_const
 
@@ -377,7 +377,8 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
     if isinstance(value, Expr):
         return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        if isinstance(value, np.ndarray) and value.shape == () and np.issubdtype(value.dtype, np.number) \
+        if isinstance(value, np.ndarray) and value.shape == () \
+                and np.issubdtype(value.dtype, np.number) \
                 and not np.issubdtype(value.dtype, np.complexfloating):
             return _intern("const", (), float(value))
         raise TypeError(f"{name} must be a real number or an expression, got {value!r} "
@@ -666,7 +667,8 @@ def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
 
 # ---------------------------------------------------------------------------------------------
 # Floor, select, the polynomial smooth minima and the generic "prim" node
-# (primitives evaluated by fixed numba functions in fastsdf.backends.kernel.prims), and graph substitution.
+# (primitives evaluated by fixed numba functions in fastsdf.backends.kernel.prims), and graph
+# substitution.
 
 #: Kinds of "prim" nodes: the numba functions ``_prims.<kind>_v``/``<kind>_vg`` evaluate them
 #: and ``_prims_ref.evaluate`` is their independent NumPy reference.

@@ -5,15 +5,16 @@ a range), ``lo <= value <= hi`` for every node, where ``value`` is what the comp
 compute at any point of the box (rounding included) wherever that value is finite. Two bounds
 are combined, node by node:
 
-* interval arithmetic, by the ``interval`` rule of each operation in :mod:`fastsdf.expr.ops`. Correctly
-  rounded monotone operations need no widening (rounding is monotone, so the floating-point bound
-  of the bounds bounds the floating-point result); library functions and compound operations are
-  widened by a margin relative to the magnitudes involved;
+* interval arithmetic, by the ``interval`` rule of each operation in :mod:`fastsdf.expr.ops`.
+  Correctly rounded monotone operations need no widening (rounding is monotone, so the
+  floating-point bound of the bounds bounds the floating-point result); library functions and
+  compound operations are widened by a margin relative to the magnitudes involved;
 * a Lipschitz bound: ``|f(p) - f(c)| <= L * |p - c|`` from the value at the box's centre, where
-  ``L`` bounds the gradient's length over the box (the ``lipschitz`` rules of :mod:`fastsdf.expr.ops`,
-  or 1 for an expression known to be an exact or 'bound' SDF, see :func:`note_lipschitz`). This
-  is much tighter than interval arithmetic for shapes that are rotated or built from many
-  operations, since interval arithmetic forgets that ``x`` is the same ``x`` everywhere.
+  ``L`` bounds the gradient's length over the box (the ``lipschitz`` rules of
+  :mod:`fastsdf.expr.ops`, or 1 for an expression known to be an exact or 'bound' SDF, see
+  :func:`note_lipschitz`). This is much tighter than interval arithmetic for shapes that are rotated
+  or built from many operations, since interval arithmetic forgets that ``x`` is the same ``x``
+  everywhere.
 """
 
 from __future__ import annotations

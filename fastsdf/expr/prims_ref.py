@@ -45,8 +45,8 @@ def ellipse(u, v, a, b, samples=4097, chunk=256):
         hi = np.clip(grid[i] + step, 0.0, np.pi / 2)
         p0, p1 = p0[:, 0], p1[:, 0]
 
-        def dist2(t):
-            return (p0 - a * np.cos(t)) ** 2 + (p1 - b * np.sin(t)) ** 2
+        def dist2(t):  # called only in this iteration of the loop
+            return (p0 - a * np.cos(t)) ** 2 + (p1 - b * np.sin(t)) ** 2  # noqa: B023
 
         for _ in range(90):  # golden section: the bracket shrinks to rounding
             m1 = hi - _GOLDEN * (hi - lo)

@@ -59,7 +59,7 @@ def vec2(value, name: str) -> np.ndarray:
         return np.array(fast)
     try:
         arr = np.asarray(value)
-    except Exception:  # noqa: BLE001 - any conversion failure is a type error for the user
+    except Exception:  # any conversion failure is a type error for the user
         raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}") from None
     if arr.dtype.kind not in "iuf":
         raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}")

@@ -33,15 +33,15 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numba
 import numpy as np
-from typing import Any
-from numpy.typing import ArrayLike
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
+from numpy.typing import ArrayLike
 
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
 from fastsdf.function import Function
@@ -544,8 +544,8 @@ class GridSDF:
         comp = self.exact.compiled
         rows = max(1, _BUILD_BLOCK // ny)
         # Pruning: one plan over the whole grid, used by every block (None where it does not pay).
-        plan = comp.pruned_plan(ax, ay, count=nx * ny,
-                                bounds=((float(ax[0]), float(ax[-1])), (float(ay[0]), float(ay[-1]))))
+        grid_bounds = ((float(ax[0]), float(ax[-1])), (float(ay[0]), float(ay[-1])))
+        plan = comp.pruned_plan(ax, ay, count=nx * ny, bounds=grid_bounds)
         for r0 in range(0, nx, rows):
             r1 = min(nx, r0 + rows)
             xs = np.repeat(ax[r0:r1], ny)

@@ -10,18 +10,16 @@ from __future__ import annotations
 import contextvars
 import math
 import numbers
+from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import numpy as np
-from typing import Iterator, NamedTuple
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import check_length as _check_length
-from fastsdf.expr.validate import coord2 as _vec2
-from fastsdf.expr.validate import real as _real
-from fastsdf.expr.validate import vec2 as _vec2
-from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
 from fastsdf.expr.graph import Expr, Symbol, sym_cos, sym_sin
+from fastsdf.expr.validate import check_length as _check_length
+from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
 
 __all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
 
@@ -48,9 +46,10 @@ class _State(NamedTuple):
     frame: tuple = _IDENTITY
 
 
-# Immutable states in a context variable: context managers set a new one and reset on exit.
-_context: contextvars.ContextVar[_State] = contextvars.ContextVar("fastsdf_modelling_state",
-                                                                  default=_State())
+# Immutable states in a context variable: context managers set a new one and reset on exit (the
+# default is a NamedTuple, immutable).
+_context: contextvars.ContextVar[_State] = contextvars.ContextVar(
+    "fastsdf_modelling_state", default=_State())  # noqa: B039
 
 
 def _coords() -> tuple:

@@ -4,20 +4,43 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterable
 
 import numpy as np
 from numpy.typing import ArrayLike
-from typing import Iterable
 
-from fastsdf.expr.validate import check_length as _check_length
-from fastsdf.expr.validate import length as _length
-from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
-from fastsdf.expr.graph import sym_cos, sym_exp, sym_log, sym_sin
+from fastsdf.expr.graph import (
+    Expr,
+    gc_paused,
+    substitute,
+    sym_abs,
+    sym_cmin,
+    sym_cos,
+    sym_exp,
+    sym_floor,
+    sym_log,
+    sym_max,
+    sym_min,
+    sym_qmin,
+    sym_sin,
+    sym_smax,
+    sym_smin,
+)
 from fastsdf.expr.interval import note_lipschitz
-from fastsdf.expr.graph import Expr, gc_paused, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min, sym_qmin, sym_smax, sym_smin
+from fastsdf.expr.validate import check_length as _check_length
+from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
+from fastsdf.expr.validate import length as _length
 from fastsdf.function import Function
 from fastsdf.shapes.context import _X, _Y, _blend_kind, _smoothness_value, current_blend
-from fastsdf.shapes.exactness import _NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow, _Info
+from fastsdf.shapes.exactness import (
+    _NONE,
+    _bbox_meet,
+    _bbox_union,
+    _blend_depth,
+    _frame_bbox,
+    _grow,
+    _Info,
+)
 
 __all__ = ["SDF", "Union", "Intersection", "Difference", "union", "intersection",
            "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
@@ -354,7 +377,7 @@ def scale(f: SDF, s: float) -> SDF:
     return _check_sdf(f, "f").scale(s)
 
 
-def translate(f: SDF, offset: ArrayLike) -> SDF:  # noqa: F811 - shadows offset() here only
+def translate(f: SDF, offset: ArrayLike) -> SDF:  # shadows offset() here only
     """``f.translate(offset)`` (see :meth:`SDF.translate`)."""
     return _check_sdf(f, "f").translate(offset)
 

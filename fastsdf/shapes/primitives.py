@@ -11,14 +11,28 @@ import numbers
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import MAX_COORD, check_length as _check_length
+from fastsdf.expr.graph import (
+    Expr,
+    as_expr,
+    sym_abs,
+    sym_cos,
+    sym_length,
+    sym_max,
+    sym_min,
+    sym_prim,
+    sym_select,
+    sym_sin,
+)
+from fastsdf.expr.validate import MAX_COORD, coord2_or_param, is_param, real_or_param, vec2_or_param
+from fastsdf.expr.validate import check_length as _check_length
 from fastsdf.expr.validate import coord as _coord
 from fastsdf.expr.validate import coord2 as _point
 from fastsdf.expr.validate import length as _length
 from fastsdf.expr.validate import real as _real
 from fastsdf.expr.validate import vec2 as _vec2
-from fastsdf.expr.graph import Expr, as_expr, sym_abs, sym_cos, sym_length, sym_max, sym_min, sym_prim, sym_select, sym_sin
-from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param, vec2_or_param
+from fastsdf.shapes.context import _IDENTITY, _coords, _frame
+from fastsdf.shapes.exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
+from fastsdf.shapes.operations import SDF
 
 
 def _has_param(value) -> bool:
@@ -120,9 +134,7 @@ def _polygon_expr_p(x: Expr, y: Expr, vertices) -> Expr:
         flip = sym_select(sym_abs(c1 + c2 + c3) - 2.0, -1.0, 1.0)  # all three or none
         sign = flip if sign is None else sign * flip
     return sign * dist
-from fastsdf.shapes.context import _IDENTITY, _coords, _frame
-from fastsdf.shapes.exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
-from fastsdf.shapes.operations import SDF
+
 
 __all__ = ["Circle", "Halfspace", "Box",
            "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
@@ -314,7 +326,7 @@ def _convex_polygon_expr(x: Expr, y: Expr, vertices: np.ndarray) -> Expr:
 def _vertices(value, name, minimum=3) -> np.ndarray:
     try:
         arr = np.asarray(value)
-    except Exception:  # noqa: BLE001
+    except Exception:
         raise TypeError(f"{name} must be a sequence of (x, y) pairs, got {name}={value!r}") \
             from None
     if arr.dtype.kind not in "iuf":
@@ -731,7 +743,7 @@ class Star(Polygon):
                  inner_radius: float | None = None):
         _not_param(n, "n", "the number of points sets the structure of the generated code")
         if _any_param(center, radius, inner_radius):
-            (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
+            (center, _), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
             inner, iv = (radius / 2, rv / 2) if inner_radius is None else \
                 _positive_p(inner_radius, "inner_radius")
             n = _check_n(n, minimum=2)
@@ -782,7 +794,7 @@ class Ellipse(SDF):
 
     def __init__(self, center: ArrayLike = (0.0, 0.0), axes: ArrayLike = (1.0, 0.5)):
         if _any_param(center, axes):
-            (center, cv), (axes_p, av) = _point_p(center, "center"), vec2_or_param(axes, "axes")
+            (center, _), (axes_p, av) = _point_p(center, "center"), vec2_or_param(axes, "axes")
             self._check_axes(av)
             self.center, self.axes = center, axes_p
             x, y = _coords()

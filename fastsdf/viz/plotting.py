@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import inspect
 import numbers
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -150,7 +151,7 @@ def _setup_axes(ax: Any, bounds: tuple, ticks: bool = False) -> None:
 
 
 def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
-             bounds: Any = [(-2, 2), (-2, 2)], samples: Any = 200, show_quiver: bool = True,
+             bounds: Any = ((-2, 2), (-2, 2)), samples: Any = 200, show_quiver: bool = True,
              show_isolines: str | bool | None = 'all', show_isolabels: bool = False,
              filled: bool = False, colorbar: bool = False, ticks: bool = False) -> dict:
     """Plot the signed distance function ``f`` on a matplotlib axes.

@@ -22,6 +22,7 @@ with a NaN/infinite coordinate are dropped.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 import time
@@ -218,10 +219,8 @@ def _particle_cmap():
 
 def _axes_image_shape(ax, bounds) -> tuple:
     """One image pixel per screen pixel of ``ax`` over ``bounds`` (at the figure's dpi)."""
-    try:
+    with contextlib.suppress(Exception):  # a layout not resolved yet: use the box as is
         ax.apply_aspect()
-    except Exception:  # noqa: BLE001 - a layout that cannot be resolved yet: use the box as is
-        pass
     box = ax.get_window_extent()
     (xl0, xl1), (yl0, yl1) = ax.get_xlim(), ax.get_ylim()
     (x0, x1), (y0, y1) = bounds
@@ -461,7 +460,7 @@ def world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
     return fig, ax, cax
 
 
-def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), (-2, 2)],
+def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = ((-2, 2), (-2, 2)),
                  out_png: str | None = None, title: str | None = None, samples: int = 400,
                  max_circles: int | None = None, figsize: tuple = (6.4, 5.6),
                  dpi: float = 100, colorbar: bool = True, ticks: bool = True) -> Any:
@@ -526,8 +525,8 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
     it; ``colorbar``, ``True`` or an axes, adds a colour bar of particles per pixel to the
     density image).
     ``title``: when not ``None``, the axes title is ``title`` followed by each frame's simulated
-    time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay between frames in ms (default the
-    simulation's timestep times ``steps_per_frame``).
+    time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay
+    between frames in ms (default the simulation's timestep times ``steps_per_frame``).
 
     Each frame advances the simulation once more every time the animation is drawn or saved:
     saving it twice continues the simulation. Returns a ``FuncAnimation`` (keep a reference;
@@ -573,7 +572,8 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
             artists = artists + (text,)
         return artists
 
-    anim = FuncAnimation(ax.figure, frame, frames=frames, init_func=lambda: layer.update(*_state(sim)),
+    anim = FuncAnimation(ax.figure, frame, frames=frames,
+                         init_func=lambda: layer.update(*_state(sim)),
                          interval=interval, blit=blit, repeat=repeat)
     anim.particle_layer = layer
     return anim
@@ -633,7 +633,7 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
 # ---------------------------------------------------------------------------------------------
 # The notebook's reset(ax) / update(ax): a simulation drawn on an axes, state kept here.
 
-_VIEWS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def notebook_draw(sim: Any, ax: Any, new: bool) -> tuple:

@@ -165,7 +165,7 @@ def load_module(source: str, prefix: str = "fastsdf_kernel"):
     sys.modules[name] = mod
     try:
         # Run the verified source, not whatever the file holds now; no .pyc is involved.
-        exec(compile(source, str(path), "exec"), mod.__dict__)  # noqa: S102
+        exec(compile(source, str(path), "exec"), mod.__dict__)
     except BaseException:
         sys.modules.pop(name, None)
         raise
@@ -209,18 +209,18 @@ def guard_dispatcher(dispatcher) -> None:
     def load_overload(sig, target_context):
         try:
             return load(sig, target_context)
-        except Exception as exc:  # noqa: BLE001 - a cache must never break a computation
+        except Exception as exc:  # a cache must never break a computation
             _discard(files, index_path, exc)
             return None
 
     def save_overload(sig, data):
         try:
             save(sig, data)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             _discard(files, index_path, exc)
             try:
                 save(sig, data)  # the damaged entry is gone: store a fresh one
-            except Exception as again:  # noqa: BLE001
+            except Exception as again:
                 _report(index_path, f"could not store a compiled kernel ({again!r}); it will "
                                     f"be compiled again in the next process")
 

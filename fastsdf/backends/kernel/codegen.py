@@ -29,27 +29,33 @@ Design (see the README's design section for the measurements behind it):
 * Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
   tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
   makes numba's compile time explode. For scenes without parameters the ``prange`` kernels are
-  scene-independent (:mod:`fastsdf.backends.kernel.drive`, compiled once per installation) and call the
-  scene's block functions by address.
-* Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf.backends.kernel.cache`)
-  and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
-  compiles gradient code.
+  scene-independent (:mod:`fastsdf.backends.kernel.drive`, compiled once per installation) and call
+  the scene's block functions by address.
+* Each module is written to a content-hashed file in the cache directory
+  (:mod:`fastsdf.backends.kernel.cache`) and compiled with ``cache=True``; every function compiles
+  lazily, so a value-only call never compiles gradient code.
 """
 
 from __future__ import annotations
 
 import platform
 import re
+from collections.abc import Sequence
 
 import numba
 import numpy as np
-from typing import Sequence
 
-from fastsdf.version import __version__
 from fastsdf.backends.kernel.cache import hashed_import
-from fastsdf.backends.kernel.simd import block_source, drive_import, program_source, vectorizable, vmath_import
+from fastsdf.backends.kernel.simd import (
+    block_source,
+    drive_import,
+    program_source,
+    vectorizable,
+    vmath_import,
+)
 from fastsdf.expr.graph import Expr, gc_paused, parameters
 from fastsdf.expr.ops import OPS, lit
+from fastsdf.version import __version__
 
 __all__ = ["generate_module_source", "MIN_LOOP"]
 
@@ -406,7 +412,8 @@ class _Emitter:
         if first is not None:
             items = items[1:]
             cur = {"m": first.v, "s": "1.0"}
-            cur.update(zip(self.COMPONENTS, (_zero(comp) for comp in first.grads(len(self.COMPONENTS)))))
+            first_grads = first.grads(len(self.COMPONENTS))
+            cur.update(zip(self.COMPONENTS, (_zero(comp) for comp in first_grads)))
         else:
             cur = {"m": _HUGE if less == "<" else f"-{_HUGE}", "s": "0.0"}
             cur.update((suffix, "0.0") for suffix in self.COMPONENTS)
@@ -424,7 +431,9 @@ class _Emitter:
                 if g:
                     for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
                         comp, acc = _zero(comp), cur[suffix]
-                        body.append(f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
+                        blend = _prod(comp, e) if comp != '0.0' else '0.0'
+                        body.append(
+                            f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {blend})")
             elif g:
                 for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
                     body.append(f"{new[suffix]} = _sel({w}, {_zero(comp)}, {cur[suffix]})")
@@ -610,9 +619,9 @@ class _Emitter:
         Every maximal small subexpression is evaluated in a loop over a table first (see
         :meth:`_prefold`, one-member shapes included); if what remains is a tree of chains
         (min, max, smin, smax; no loops over tables) over those results, it becomes a list of
-        steps for the installation's interpreter (:func:`fastsdf.backends.kernel.drive._combine`) instead of
-        straight-line code. Steps are tuples ``(op, operand, acc, k, zero)``: ``operand`` the
-        first of the operand's rows (value, then one per gradient component), ``acc`` the first
+        steps for the installation's interpreter (:func:`fastsdf.backends.kernel.drive._combine`)
+        instead of straight-line code. Steps are tuples ``(op, operand, acc, k, zero)``: ``operand``
+        the first of the operand's rows (value, then one per gradient component), ``acc`` the first
         of the accumulator's rows (m, the gradient components, s), ``zero`` which of the
         operand's gradient components are known to be zero. A row is ``('F', group, entry)``
         (a folded subexpression's entry) or ``('A', n)`` (accumulator rows). The last step is
@@ -1126,7 +1135,8 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         # lists), for per-point callers such as the particle step (see fastsdf.backends.prune).
         many += _POINT_TEMPLATE.format(
             name="rows_vg", doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
-            "pointers, see fastsdf.backends.prune).", body="\n".join("    " + line for line in em.lines),
+            "pointers, see fastsdf.backends.prune).",
+            body="\n".join("    " + line for line in em.lines),
             pargs=", _act, _off", ret=", ".join(results), nan_return=single[2])
     if param_names is None and not time:
         kind = "vg" if grad else "v"
@@ -1205,8 +1215,8 @@ def _generate_module(root: Expr, symbol_names, vmath: bool):
                                                         vmath=vmath, memo=memo)
     vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
                                                          vmath=vmath, memo=memo)
-    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last, they
-    # replace the multi-lane batch kernels of the same name).
+    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last,
+    # they replace the multi-lane batch kernels of the same name).
     blocks = []
     if isinstance(v_one, tuple):
         (v_one, v_block), (vg_one, vg_block) = v_one, vg_one

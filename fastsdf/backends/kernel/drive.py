@@ -1,12 +1,12 @@
 """Scene-independent batch kernels: they call a scene's block functions through pointers.
 
-A scene's generated module defines ``_block_v`` / ``_block_vg`` (see :mod:`fastsdf.backends.kernel.simd`), one
-block of at most ``BLOCK`` points, over raw pointers with the signature :data:`BLOCK_SIG`
-``(xs, ys, out, grad, n, scratch)``, and for long scenes ``_fold_v`` / ``_fold_vg`` (the loops
-over same-shape subexpressions, run first on the same block). The kernels here loop over the
-blocks (``prange`` over chunks of blocks, or serially) and call those functions by address: they
-do not depend on the scene, so each is compiled once per installation and cached beside this
-file. A new scene then compiles only its block functions. The parallel kernel used to be
+A scene's generated module defines ``_block_v`` / ``_block_vg`` (see
+:mod:`fastsdf.backends.kernel.simd`), one block of at most ``BLOCK`` points, over raw pointers with
+the signature :data:`BLOCK_SIG` ``(xs, ys, out, grad, n, scratch)``, and for long scenes ``_fold_v``
+/ ``_fold_vg`` (the loops over same-shape subexpressions, run first on the same block). The kernels
+here loop over the blocks (``prange`` over chunks of blocks, or serially) and call those functions
+by address: they do not depend on the scene, so each is compiled once per installation and cached
+beside this file. A new scene then compiles only its block functions. The parallel kernel used to be
 compiled per scene (numba's ``parfor`` lowering and its gufunc, and LLVM optimizing the block
 function again inside every caller it was linked into), which cost about as much as the block
 function itself. Two indirect calls per block of 512 points cost nothing measurable.
@@ -25,7 +25,8 @@ from numba.extending import intrinsic
 
 from fastsdf.backends.kernel.intrinsics import select as _sel
 from fastsdf.backends.kernel.layout import BLOCK
-from fastsdf.backends.kernel.vmath import vexp as _vexp, vlog as _vlog
+from fastsdf.backends.kernel.vmath import vexp as _vexp
+from fastsdf.backends.kernel.vmath import vlog as _vlog
 
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
            "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
@@ -142,8 +143,10 @@ def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(act, 0), _at(off, 0))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(act, 0), _at(off, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at),
+                  _at(act, 0), _at(off, 0))
+            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at),
+                  _at(act, 0), _at(off, 0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -153,8 +156,10 @@ def run_vg_ser(pre, fn, xs, ys, out, grad, S, size, act, off):
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act,
+              0), _at(off, 0))
+        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0),
+              _at(off, 0))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -169,8 +174,10 @@ def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0), _at(off, 0))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0), _at(off, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act,
+                  0), _at(off, 0))
+            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0),
+                  _at(off, 0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -180,8 +187,10 @@ def run_v_ser(pre, fn, xs, ys, out, S, size, act, off):
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0),
+              _at(off, 0))
+        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0),
+              _at(off, 0))
 
 
 @njit(cache=True, nogil=True)
@@ -670,7 +679,8 @@ def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z, 0), _at(z, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z,
+                  0), _at(z, 0))
             _combine(S, at, prog, True, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
 
@@ -683,7 +693,8 @@ def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0), _at(z, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0),
+              _at(z, 0))
         _combine(S, 0, prog, True, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
 
@@ -701,7 +712,8 @@ def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0), _at(z, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0),
+                  _at(z, 0))
             _combine(S, at, prog, False, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, out, s, m, False)
 
@@ -714,7 +726,8 @@ def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0), _at(z, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0),
+              _at(z, 0))
         _combine(S, 0, prog, False, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 

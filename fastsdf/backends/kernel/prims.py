@@ -212,9 +212,9 @@ def polygon_vg(u, v, verts):
             bey = ey
             bc = c
             bee = ee
-        if (ay > v) != (by > v):  # the edge crosses the horizontal line through the point
-            if u < ax + (v - ay) * (ex / ey):
-                inside = not inside
+        # the edge crosses the horizontal line through the point, right of the point
+        if (ay > v) != (by > v) and u < ax + (v - ay) * (ex / ey):
+            inside = not inside
         ax = bx
         ay = by
     s = -1.0 if inside else 1.0

@@ -2,8 +2,8 @@
 
 LLVM's loop vectorizer turns a counted innermost loop into SIMD code (4 float64 lanes with AVX2,
 8 with AVX-512) when its body is inlined, free of branches and calls, and its loads and stores
-are contiguous. The per-point code of :mod:`fastsdf.backends.kernel.codegen` is branch-free already (selects for
-every min, max and blend); this module re-arranges it:
+are contiguous. The per-point code of :mod:`fastsdf.backends.kernel.codegen` is branch-free already
+(selects for every min, max and blend); this module re-arranges it:
 
 * A non-parallel ``@njit`` block function evaluates ``BLOCK`` points: the per-point statements
   become the body of ``for i in range(n)``. The parallel kernel is a tiny ``prange`` over chunks
@@ -16,8 +16,8 @@ every min, max and blend); this module re-arranges it:
   ``BLOCK`` values each (the constant distance between rows lets LLVM prove the stores and loads
   independent without runtime checks).
 * ``math.exp``/``math.log``/``math.log1p`` (scalar calls into the C library) are replaced by the
-  branch-free :mod:`fastsdf.backends.kernel.vmath` functions, and the overflow-safe ``length`` by its branch-free
-  form, unless ``vmath=False`` (kept to compare against the C library).
+  branch-free :mod:`fastsdf.backends.kernel.vmath` functions, and the overflow-safe ``length`` by
+  its branch-free form, unless ``vmath=False`` (kept to compare against the C library).
 
 Non-finite input points are evaluated at the origin and their outputs set to NaN afterwards.
 """
@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import", "vectorizable", "vmath_import"]
+__all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import",
+           "vectorizable", "vmath_import"]
 
 from fastsdf.backends.kernel.cache import hashed_import
 from fastsdf.backends.kernel.layout import BLOCK
@@ -59,7 +60,8 @@ def _split_args(text: str) -> list:
 
 def vectorizable(lines: list) -> list:
     """The statements with the C library's exp/log/log1p and the branchy overflow-safe length
-    (and its partials) replaced by the branch-free versions of :mod:`fastsdf.backends.kernel.vmath`."""
+    (and its partials) replaced by the branch-free versions of
+    :mod:`fastsdf.backends.kernel.vmath`."""
     out, i = [], 0
     sqrt_at: dict = {}  # variable -> index in out of its latest "v = math.sqrt(...)" (linear time)
 
@@ -321,10 +323,11 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
-    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter` (reading ``x``,
-    ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
-    of the two gradient components for ``kind='vg'``). The kernels are plain Python functions
-    that hand the block function to the scene-independent kernels of :mod:`fastsdf.backends.kernel.drive`.
+    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter`
+    (reading ``x``, ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the
+    value (and of the two gradient components for ``kind='vg'``). The kernels are plain Python
+    functions that hand the block function to the scene-independent kernels of
+    :mod:`fastsdf.backends.kernel.drive`.
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
     replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
@@ -368,7 +371,8 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
                "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
                "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0",
+               f"        S[{BLOCK} + i] = 0.0"]
     # The loops that fill the _F arrays open the body; they go to a function of their own
     # (_fold_<kind>), called before the block function: in one function with the rest, LLVM
     # stops inlining the exp/log calls of the long straight-line loop, which then stays scalar.
@@ -448,7 +452,7 @@ def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
-'''
+'''  # noqa: E501 - generated source, kept as written
     if rows != "_NOROWS, _NOROWS":
         src += f'''
 
@@ -457,7 +461,7 @@ def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
     blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.backends.prune`)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
     _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
-'''
+'''  # noqa: E501 - generated source, kept as written
     return src
 
 
@@ -470,8 +474,8 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
     (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
     ``batch_<kind>_ser``, which run both through the installation's kernels
-    (:func:`fastsdf.backends.kernel.drive.run_prog_vg_par`). The scene's compiled code is the fold function
-    alone: it grows with the number of distinct shapes, not with the primitives."""
+    (:func:`fastsdf.backends.kernel.drive.run_prog_vg_par`). The scene's compiled code is the fold
+    function alone: it grows with the number of distinct shapes, not with the primitives."""
     grad = kind == "vg"
     segs = _split(lines)
     assert segs and all(seg[0] == "loop" for seg in segs)
@@ -483,8 +487,8 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
     # With gradients, only the block's first nv points (its n rounded up to whole vectors, as
-    # the program in fastsdf.backends.kernel.drive._lanes): a call on a few points does not pay for a whole
-    # block. Not for the value alone: there LLVM vectorizes the loops worse without their
+    # the program in fastsdf.backends.kernel.drive._lanes): a call on a few points does not pay for
+    # a whole block. Not for the value alone: there LLVM vectorizes the loops worse without their
     # constant trip count (a whole block measured 1.6x slower), so they keep it.
     whole = f"        for i in range({BLOCK}):"
     assert whole in body
@@ -544,7 +548,7 @@ def point_{kind}(x, y):
     F = np.empty({first + acc_rows})
 {nl.join(plines)}
     return _combine_point_{kind}(F, _PROG_{kind.upper()})
-'''
+'''  # noqa: E501 - generated source, kept as written
     return point, f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -578,7 +582,7 @@ def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
-'''
+'''  # noqa: E501 - generated source, kept as written
 
 
 def drive_import() -> str:
@@ -590,7 +594,8 @@ def drive_import() -> str:
              "run_prog_v_ser as _run_prog_v_ser", "run_prog_vg_par as _run_prog_vg_par",
              "run_prog_vg_ser as _run_prog_vg_ser", "combine_point_v as _combine_point_v",
              "combine_point_vg as _combine_point_vg", "scratch as _drive_scratch"]
-    return "from numba import carray\n" + hashed_import("fastsdf.backends.kernel.drive", names) + "\n"
+    drive = hashed_import("fastsdf.backends.kernel.drive", names)
+    return "from numba import carray\n" + drive + "\n"
 
 
 def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
@@ -598,12 +603,12 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     """:func:`block_source` for scenes with parameters: the block function takes arrays and the
     parameters, and the kernels that call it are compiled with the scene.
 
-    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter` (reading ``x``,
-    ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
-    of the two gradient components for ``kind='vg'``). ``extra_args`` are names of further
-    arguments passed unchanged from the kernels to the block function (e.g. parameter arrays),
-    ``binds`` statements run once at the top of the block function (e.g. ``_p0 = prm[0]``, the
-    runtime parameters read from their tuple). ``kind='vgt'`` also writes ``dt`` (a fourth
+    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter`
+    (reading ``x``, ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the
+    value (and of the two gradient components for ``kind='vg'``). ``extra_args`` are names of
+    further arguments passed unchanged from the kernels to the block function (e.g. parameter
+    arrays), ``binds`` statements run once at the top of the block function (e.g. ``_p0 = prm[0]``,
+    the runtime parameters read from their tuple). ``kind='vgt'`` also writes ``dt`` (a fourth
     result, the time derivative).
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
@@ -632,7 +637,8 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
              "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
              "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-             f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+             f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0",
+             f"        S[{BLOCK} + i] = 0.0"]
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
     res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
@@ -680,7 +686,7 @@ def batch_{kind}_ser({sig}):
     S = np.empty({size})
     for s in range(0, n, {BLOCK}):
         _block_{kind}({sig}, s, min(s + {BLOCK}, n), S, 0)
-'''
+'''  # noqa: E501 - generated source, kept as written
     return src
 
 
