@@ -25,6 +25,6 @@ def as_points(x: ArrayLike, y: ArrayLike) -> tuple:
     return xs, ys, shape
 
 
-def _preview(arr) -> str:
+def _preview(arr: np.ndarray) -> str:
     text = repr(arr.reshape(-1)[:3].tolist()) if arr.size else "[]"
     return text if len(text) < 80 else text[:77] + "..."

@@ -7,13 +7,24 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
+from typing import TypeAlias, TypeGuard
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from fastsdf.expr.graph import Expr
 
+#: A number, or an expression of runtime parameters (:func:`fastsdf.expr.graph.Param`, time
+#: ``t``), wherever a scene takes a number.
+FloatOrParam: TypeAlias = "float | Expr"
+#: Two numbers (a tuple, list or array), each of which may be an expression of parameters.
+PairOrParam: TypeAlias = "ArrayLike | Sequence[float | Expr]"
+#: A checked pair: a float64 array of shape (2,), or a tuple holding expressions of parameters.
+Pair: TypeAlias = "np.ndarray | tuple[float | Expr, float | Expr]"
 
-def real(value, name: str, finite: bool = True) -> float:
+
+def real(value: object, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
     if isinstance(value, float):  # float and np.float64: the common case
@@ -28,15 +39,15 @@ def real(value, name: str, finite: bool = True) -> float:
     return value
 
 
-def _pair_fast(value):
+def _pair_fast(value: object) -> tuple[float, float] | None:
     """``(a, b)`` as Python floats for the common input, a tuple, list or 1-d array of two real
     numbers (not bools), else None (then the general checks run and name the problem)."""
     t = type(value)
-    if t is np.ndarray:
+    if isinstance(value, np.ndarray) and t is np.ndarray:
         if value.shape != (2,) or value.dtype.kind not in "iuf":
             return None
         a, b = value.tolist()
-    elif (t is tuple or t is list) and len(value) == 2:
+    elif isinstance(value, (tuple, list)) and (t is tuple or t is list) and len(value) == 2:
         a, b = value
         if type(a) not in _SCALARS or type(b) not in _SCALARS:
             return None
@@ -52,7 +63,7 @@ def _pair_fast(value):
 _SCALARS = frozenset((float, int, np.float64, np.float32, np.int64, np.int32))
 
 
-def vec2(value, name: str) -> np.ndarray:
+def vec2(value: object, name: str) -> np.ndarray:
     """``value`` as a finite float64 array of shape (2,), with errors naming ``name``."""
     fast = _pair_fast(value)
     if fast is not None and math.isfinite(fast[0]) and math.isfinite(fast[1]):
@@ -80,16 +91,16 @@ MIN_LENGTH = 1e-150
 _RANGE = "the supported range of fastsdf geometry is 1e-150 to 1e150"
 
 
-def coord(value, name: str) -> float:
+def coord(value: object, name: str) -> float:
     """A real coordinate (or signed offset) with ``|value| <= MAX_COORD``."""
-    value = real(value, name)
-    if abs(value) > MAX_COORD:
+    number = real(value, name)
+    if abs(number) > MAX_COORD:
         raise ValueError(f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got "
-                         f"{name}={value!r}")
-    return value
+                         f"{name}={number!r}")
+    return number
 
 
-def coord2(value, name: str) -> np.ndarray:
+def coord2(value: object, name: str) -> np.ndarray:
     """A finite point (shape (2,)) with both coordinates at most ``MAX_COORD`` in magnitude."""
     fast = _pair_fast(value)
     if fast is not None and abs(fast[0]) <= MAX_COORD and abs(fast[1]) <= MAX_COORD:
@@ -101,17 +112,17 @@ def coord2(value, name: str) -> np.ndarray:
     return arr
 
 
-def length(value, name: str, zero: bool = False) -> float:
+def length(value: object, name: str, zero: bool = False) -> float:
     """A length: ``MIN_LENGTH <= |value| <= MAX_COORD`` (``0`` too if ``zero``); the sign is
     not checked here."""
-    value = real(value, name)
-    if value == 0.0 and zero:
-        return value
-    check_length(abs(value), name, value)
-    return value
+    number = real(value, name)
+    if number == 0.0 and zero:
+        return number
+    check_length(abs(number), name, number)
+    return number
 
 
-def check_length(size: float, name: str, shown=None) -> None:
+def check_length(size: float, name: str, shown: object = None) -> None:
     """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
     if not (MIN_LENGTH <= size <= MAX_COORD):
         shown = size if shown is None else shown
@@ -123,7 +134,7 @@ def check_length(size: float, name: str, shown=None) -> None:
 # checks run on the value the expression has at the parameters' defaults (values set later are
 # the caller's responsibility), and the shape bookkeeping treats such a number as unknown.
 
-def _param_value(expr, name: str) -> float:
+def _param_value(expr: Expr, name: str) -> float:
     """The value of a parameter expression at its parameters' defaults (it must not depend on
     the coordinates)."""
     from fastsdf.expr.graph import evaluate_numpy
@@ -133,12 +144,12 @@ def _param_value(expr, name: str) -> float:
     return float(evaluate_numpy(expr, {"_": np.zeros(1)})[0])
 
 
-def is_param(value) -> bool:
+def is_param(value: object) -> TypeGuard[Expr]:
     """Whether ``value`` is an expression (of parameters) rather than a number."""
     return isinstance(value, Expr) and value.op != "const"
 
 
-def real_or_param(value, name: str):
+def real_or_param(value: object, name: str) -> tuple[float | Expr, float]:
     """``(value, number)``: ``value`` as a float (checked like :func:`real`) or an expression of
     parameters, and the number to check ranges on (the expression at the defaults)."""
     if type(value) is float and math.isfinite(value):  # the common case, checked at once
@@ -156,7 +167,7 @@ def real_or_param(value, name: str):
     return v, v
 
 
-def vec2_or_param(value, name: str):
+def vec2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
     """``(pair, numbers)``: a pair whose components may be expressions of parameters (else the
     float64 array of :func:`vec2`), and the float64 array of its values at the defaults."""
     fast = _pair_fast(value)
@@ -166,13 +177,13 @@ def vec2_or_param(value, name: str):
     if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
         if len(value) != 2:
             raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
-        parts = [real_or_param(v, name) for v in value]
-        return tuple(p[0] for p in parts), np.array([p[1] for p in parts])
+        (a, na), (b, nb) = (real_or_param(v, name) for v in value)
+        return (a, b), np.array([na, nb])
     arr = vec2(value, name)
     return arr, arr
 
 
-def coord2_or_param(value, name: str):
+def coord2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
     """:func:`vec2_or_param` with the coordinate range of :func:`coord2` checked on the numbers
     (for expressions of parameters: their values at the defaults)."""
     fast = _pair_fast(value)
