@@ -17,7 +17,7 @@ import sys
 import threading
 from collections.abc import Sequence
 from types import ModuleType
-from typing import Any
+from typing import Any, Literal, overload
 
 import numba
 import numpy as np
@@ -71,13 +71,11 @@ class CompiledSDF:
         self.expr = expr
         self.vmath = vmath
         self.symbol_names = tuple(symbol_names)
-        self._source = None
-        self._functions = None
-        self._groups = None
-        self._module = None
+        self._generated: tuple[str, dict, list] | None = None
+        self._module: ModuleType | None = None
         self._plans: dict = {}
-        self._tape = None
-        self._numpy = None
+        self._tape: Any = None
+        self._numpy: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
         # Per Python thread: the scratch buffer handed to the scene-independent kernels (calls
@@ -102,26 +100,27 @@ class CompiledSDF:
                              "or time; a static scene's dd/dt is 0")
         return kind
 
+    def _generate(self) -> tuple[str, dict, list]:
+        """``(module source, per-point function sources, loop groups)``, generated on demand."""
+        if self._generated is None:
+            self._generated = generate_module(self.expr, self.symbol_names, vmath=self.vmath)
+        return self._generated
+
     @property
     def module_source(self) -> str:
         """The complete generated module (tables, per-point functions, kernels)."""
-        if self._source is None:
-            self._source, self._functions, self._groups = generate_module(
-                self.expr, self.symbol_names, vmath=self.vmath)
-        return self._source
+        return self._generate()[0]
 
     @property
     def groups(self) -> list:
         """The loop groups of the generated code (see
         :func:`fastsdf.backends.kernel.codegen.generate_module`)."""
-        self.module_source  # noqa: B018 - generates on demand
-        return self._groups
+        return self._generate()[2]
 
     def function_source(self, kind: str = "vg") -> str:
         """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
         scene with parameters, ``'vgt'`` (with dd/dt)."""
-        self.module_source  # noqa: B018 - generates on demand
-        return self._functions[self._kind(kind)]
+        return self._generate()[1][self._kind(kind)]
 
     @property
     def module(self) -> ModuleType:
@@ -201,10 +200,10 @@ class CompiledSDF:
                                  daemon=True).start()
         return self._warm
 
-    def _compile_now(self, job=None) -> None:
+    def _compile_now(self, job: tuple | None = None) -> None:
         try:
             xs = np.zeros(4)
-            kw = {}
+            kw: dict[str, Any] = {}
             if self.parametric:
                 kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
             for g in (True, False):
@@ -215,9 +214,10 @@ class CompiledSDF:
         except BaseException as exc:  # reported through warm_error; the kernel path re-raises
             self.warm_error = exc
         finally:
+            assert self._warm is not None  # (created before the thread starts)
             self._warm.set()
 
-    def plan(self, bounds: ArrayLike, tiles: tuple | None = None,
+    def plan(self, bounds: Sequence[Sequence[float]], tiles: Sequence[int] | None = None,
              tol: float | None = None) -> PrunePlan:
         """The pruning plan over ``bounds = ((x0, x1), (y0, y1))`` with ``tiles = (nx, ny)``
         (default 32 x 32), cached per arguments."""
@@ -400,7 +400,7 @@ class Function:
     forces it. :meth:`pruning_report` shows what survives per tile.
     """
 
-    def __init__(self, f: Expr, symbols: Sequence[Expr | str]):
+    def __init__(self, f: Expr, symbols: Sequence[Expr]):
         f = as_expr(f, "f")
         try:
             symbols = list(symbols)
@@ -416,7 +416,7 @@ class Function:
                              f"among symbols={[s.attr for s in symbols]}")
         self.f = f
         self.symbols = symbols
-        self._compiled = None
+        self._compiled: CompiledSDF | None = None
         self._params = parameters(f) if f.prms else {}
 
     # -- parameters ----------------------------------------------------------------------------
@@ -507,13 +507,36 @@ class Function:
     #: the class docstring for why it is ``'kernel'``).
     backend = "kernel"
 
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: Literal[False] = False,
+                 prune: bool | None = None, time_derivative: Literal[False] = False,
+                 backend: str | None = None, **params: float) -> np.ndarray: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: Literal[True],
+                 prune: bool | None = None, time_derivative: Literal[False] = False,
+                 backend: str | None = None, **params: float) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 prune: bool | None = None, *, time_derivative: Literal[True],
+                 backend: str | None = None, **params: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    @overload
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
                  prune: bool | None = None, time_derivative: bool = False,
-                 backend: str | None = None, **params: float) -> Any:
+                 backend: str | None = None, **params: float
+                 ) -> np.ndarray | tuple[np.ndarray, ...]: ...
+
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 prune: bool | None = None, time_derivative: bool = False,
+                 backend: str | None = None, **params: float
+                 ) -> np.ndarray | tuple[np.ndarray, ...]:
         backend = self.backend if backend is None else backend
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {list(BACKENDS)}, got backend={backend!r}")
-        kw = {}
+        kw: dict[str, Any] = {}
         vals = None
         if self._params or params:
             vals = self._values(params)
@@ -543,7 +566,7 @@ class Function:
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
                                       tol=self.prune_tol, **kw)
 
-    def _path_for(self, backend: str, x: Any):
+    def _path_for(self, backend: str, x: Any) -> str | None:
         """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
         c = self.compiled
         if backend == "numpy":
@@ -576,14 +599,14 @@ class Function:
                                   self.prune_tol if tol is None else tol)
         return plan.report()
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict:
         # Pickles carry the graph, never compiled code: the receiving process rebuilds the
         # kernels on first use from its own disk cache (compiling once per machine).
         state = self.__dict__.copy()
         state["_compiled"] = None
         return state
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"Function({expr_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 from llvmlite import ir
@@ -104,7 +105,7 @@ def _steps_bounds(group, ranges):
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
-def _per_member(steps) -> bool:
+def _per_member(steps: list) -> bool:
     """Whether a group's members must be bounded one by one: a compiled primitive with numeric
     arguments (an ellipse's axes), which its interval rule reads from the node itself. A
     polygon's only arguments are its coordinates (its vertices are the node's structure, the
@@ -182,7 +183,7 @@ def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None =
         return _make_plan(groups, bounds, nx, ny, tol)
 
 
-def _make_plan(groups, bounds, nx, ny, tol):
+def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None) -> PrunePlan:
     t0 = time.perf_counter()
     ranges = _tile_ranges(bounds, nx, ny)
     T = nx * ny
@@ -191,7 +192,7 @@ def _make_plan(groups, bounds, nx, ny, tol):
     cache: dict = {}
 
     class _Bounds:
-        def __getitem__(self, gi):
+        def __getitem__(self, gi: int) -> tuple:
             if gi not in cache:
                 cache[gi] = _steps_bounds(groups[gi], ranges)
             return cache[gi]
@@ -201,7 +202,7 @@ def _make_plan(groups, bounds, nx, ny, tol):
     chains: dict = {}
     for gi, g in enumerate(groups):
         chains.setdefault(id(g["chain"]), []).append(gi)
-    keep = [None] * len(groups)
+    keep: list[Any] = [None] * len(groups)  # (every slot is set below: an array per group)
     for gis in chains.values():
         g0 = groups[gis[0]]
         op, k = g0["op"], g0["k"]

@@ -143,7 +143,7 @@ class Tape:
 class _Builder:
     """Instructions over virtual registers (one per instruction; register allocation later)."""
 
-    def __init__(self, symbol_names):
+    def __init__(self, symbol_names: Sequence[str]) -> None:
         self.names = tuple(symbol_names)
         self.rows: list = []      # [op, dst(virtual), a, b, c, d, mask]
         self.consts: list = []
@@ -219,7 +219,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
     code, nreg = _allocate(b, root)
     return Tape(code, np.asarray(b.consts, dtype=np.float64),
                 np.asarray(b.table, dtype=np.float64).reshape(-1, 2), nreg, int(code[root, 1]),
-                sorted(b.params, key=b.params.get), b.defaults, nodes)
+                sorted(b.params, key=lambda name: b.params[name]), b.defaults, nodes)
 
 
 def _plan(planner, node):
@@ -283,7 +283,7 @@ _IMMEDIATE = {("add", 1): _ADDK, ("add", 0): _ADDK, ("sub", 1): _SUBK, ("sub", 0
               ("mul", 1): _MULK, ("mul", 0): _MULK, ("div", 1): _DIVK}
 
 
-def _emit_node(b: _Builder, node: Expr, reg) -> int:
+def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
     op = node.op
     if op in ("add", "sub", "mul", "div"):
         for j in (1, 0):  # one constant argument (two are folded when the graph is built)
@@ -349,7 +349,7 @@ def _reg_columns(op):
     return (2, 3)
 
 
-def _allocate(b: _Builder, root: int):
+def _allocate(b: _Builder, root: int) -> tuple[np.ndarray, int]:
     """Physical registers by linear scan: a register is free after its value's last use. A
     chain's steps and end update the accumulator in place (and a smooth chain's sum of weights);
     other destinations never share a register with their own operands."""

@@ -36,6 +36,7 @@ import types
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 _MODULES: dict = {}
 _LOCK = threading.Lock()
@@ -76,15 +77,17 @@ def hashed_import(module: str, names: Iterable[str] = (), alias: str | None = No
     its cache key."""
     digest = _FILE_DIGESTS.get(module)
     if digest is None:
-        path = importlib.util.find_spec(module).origin
-        with open(path, "rb") as fh:
+        spec = importlib.util.find_spec(module)
+        if spec is None or spec.origin is None:
+            raise ImportError(f"no source file for module {module!r}")
+        with open(spec.origin, "rb") as fh:
             digest = hashlib.sha256(fh.read()).hexdigest()[:16]
         _FILE_DIGESTS[module] = digest
     head = f"import {module} as {alias}" if alias else f"from {module} import {', '.join(names)}"
     return f"{head}  # sha256 {digest}"
 
 
-def _report(path, what: str) -> None:
+def _report(path: object, what: str) -> None:
     """Warn once per process and file."""
     key = (str(path), what)
     with _LOCK:
@@ -98,28 +101,29 @@ def _write_atomic(path: Path, data: bytes, replace: bool) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same directory. With
     ``replace`` an existing file is replaced atomically; without, an existing file is kept
     (create-if-absent, so concurrent writers of the same content never clobber a reader)."""
-    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=path.suffix, dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=".tmp_", suffix=path.suffix, dir=path.parent)
+    tmp: str | None = name
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
         if replace:
-            os.replace(tmp, path)
+            os.replace(name, path)
             tmp = None
             return
         try:
-            os.link(tmp, path)  # atomic create-if-absent
+            os.link(name, path)  # atomic create-if-absent
         except FileExistsError:
             pass
         except OSError:  # file systems without hard links
             if not path.exists():
-                os.replace(tmp, path)
+                os.replace(name, path)
                 tmp = None
     finally:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
 
 
-def _read(path: Path):
+def _read(path: Path) -> bytes | None:
     try:
         with open(path, "rb") as fh:
             return fh.read()
@@ -127,7 +131,7 @@ def _read(path: Path):
         return None
 
 
-def load_module(source: str, prefix: str = "fastsdf_kernel"):
+def load_module(source: str, prefix: str = "fastsdf_kernel") -> types.ModuleType:
     """Import the module with this source, writing it to the cache directory if needed.
 
     Returns the module; repeated calls in one process return the same module object. A cached
@@ -177,7 +181,7 @@ def load_module(source: str, prefix: str = "fastsdf_kernel"):
 # ---------------------------------------------------------------------------------------------
 # numba's cache files: sealed, checked, repaired.
 
-def guard_module(module) -> None:
+def guard_module(module: types.ModuleType) -> None:
     """Seal and check the numba cache files of every cached dispatcher of fastsdf's in
     ``module`` (its own and those it imports from fastsdf). A user's function it imports (a
     fused force) is left alone: sealing its cache files would make numba fail to read them
@@ -188,11 +192,11 @@ def guard_module(module) -> None:
             guard_dispatcher(value)
 
 
-def guard_dispatcher(dispatcher) -> None:
+def guard_dispatcher(dispatcher: object) -> None:
     """Make the disk cache of one numba dispatcher (``@njit(cache=True)``) safe: sealed files,
     and a damaged entry is removed, recompiled, stored again and reported once instead of
     raising. Anything that is not a cached dispatcher is left alone."""
-    cache = getattr(dispatcher, "_cache", None)
+    cache: Any = getattr(dispatcher, "_cache", None)  # numba's internals: untyped
     files = getattr(cache, "_cache_file", None)
     if files is None or getattr(cache, "_fastsdf_guarded", False):
         return
@@ -206,14 +210,14 @@ def guard_dispatcher(dispatcher) -> None:
     files._load_data = types.MethodType(_load_data, files)
     files._save_data = types.MethodType(_save_data, files)
 
-    def load_overload(sig, target_context):
+    def load_overload(sig: object, target_context: object) -> object:
         try:
             return load(sig, target_context)
         except Exception as exc:  # a cache must never break a computation
             _discard(files, index_path, exc)
             return None
 
-    def save_overload(sig, data):
+    def save_overload(sig: object, data: object) -> None:
         try:
             save(sig, data)
         except Exception as exc:
@@ -229,7 +233,7 @@ def guard_dispatcher(dispatcher) -> None:
     cache._fastsdf_guarded = True
 
 
-def _discard(files, index_path, exc) -> None:
+def _discard(files: object, index_path: str, exc: BaseException) -> None:
     """Remove a function's damaged index and data files (they are rewritten on save)."""
     directory = os.path.dirname(index_path)
     base = os.path.basename(index_path)[:-len(".nbi")]
@@ -256,7 +260,7 @@ def _seal(payload: bytes) -> bytes:
     return _MAGIC + hashlib.sha256(payload).digest() + payload
 
 
-def _unseal(raw: bytes, path) -> bytes:
+def _unseal(raw: bytes, path: str) -> bytes:
     head = len(_MAGIC)
     if not raw.startswith(_MAGIC) or len(raw) < head + _DIGEST:
         raise _Corrupt(f"{os.path.basename(path)} is not a sealed fastsdf cache file")
@@ -266,7 +270,7 @@ def _unseal(raw: bytes, path) -> bytes:
     return payload
 
 
-def _load_index(self):
+def _load_index(self: Any) -> dict:
     # numba's format is pickle(version) + pickle((stamp, overloads)); sealed here as one pickle.
     raw = _read(Path(self._index_path))
     if raw is None:
@@ -279,19 +283,19 @@ def _load_index(self):
     return overloads
 
 
-def _save_index(self, overloads):
+def _save_index(self: Any, overloads: dict) -> None:
     payload = self._dump((self._version, self._source_stamp, overloads))
     with self._open_for_write(self._index_path) as fh:
         fh.write(_seal(payload))
 
 
-def _load_data(self, name):
+def _load_data(self: Any, name: str) -> object:
     path = self._data_path(name)
     with open(path, "rb") as fh:  # a missing file is an OSError, which numba treats as a miss
         raw = fh.read()
     return pickle.loads(_unseal(raw, path))
 
 
-def _save_data(self, name, data):
+def _save_data(self: Any, name: str, data: object) -> None:
     with self._open_for_write(self._data_path(name)) as fh:
         fh.write(_seal(self._dump(data)))

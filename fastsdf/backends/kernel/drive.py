@@ -93,7 +93,7 @@ class BlockFn:
 def max_threads() -> int:
     """The most threads a parallel region can run on (``NUMBA_NUM_THREADS``): thread ids
     (``numba.get_thread_id``) index the scratch space."""
-    return numba.config.NUMBA_NUM_THREADS
+    return numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at run time
 
 
 @njit(cache=True, nogil=True, inline="always")

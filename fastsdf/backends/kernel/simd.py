@@ -25,6 +25,7 @@ Non-finite input points are evaluated at the origin and their outputs set to NaN
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Sequence
 
 __all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import",
            "vectorizable", "vmath_import"]
@@ -62,7 +63,8 @@ def vectorizable(lines: list) -> list:
     """The statements with the C library's exp/log/log1p and the branchy overflow-safe length
     (and its partials) replaced by the branch-free versions of
     :mod:`fastsdf.backends.kernel.vmath`."""
-    out, i = [], 0
+    out: list[str] = []
+    i = 0
     sqrt_at: dict = {}  # variable -> index in out of its latest "v = math.sqrt(...)" (linear time)
 
     def push(line):
@@ -108,7 +110,8 @@ def vectorizable(lines: list) -> list:
 def _split(lines: list) -> list:
     """Top-level segments: ``('line', [stmts])`` runs and ``('loop', header, [body])`` loops
     (an ``if`` statement stays with its indented block inside a run)."""
-    segs, i = [], 0
+    segs: list[tuple] = []
+    i = 0
     while i < len(lines):
         line = lines[i]
         j = i + 1
@@ -125,11 +128,14 @@ def _split(lines: list) -> list:
     return segs
 
 
-def _defs_uses(stmts: list):
+def _defs_uses(stmts: list) -> tuple[list[str], list[str], set[str]]:
     """Names assigned, and names read before being assigned, in a list of statements (in
     order); also which assigned names hold booleans (a comparison at the top level)."""
-    defs, uses, bools = [], [], set()
-    seen, defined = set(), set()  # names in defs or uses, in defs (linear time)
+    defs: list[str] = []
+    uses: list[str] = []
+    bools: set[str] = set()
+    seen: set[str] = set()  # names in defs or uses (linear time)
+    defined: set[str] = set()  # names in defs
     for st in stmts:
         s = st.strip()
         if s.startswith(("if ", "for ")):
@@ -180,7 +186,7 @@ def choose_lanes(lines: list) -> int:
 
 def _units(stmts: list) -> list:
     """Statements grouped with their indented continuation (an ``if`` and its block)."""
-    out = []
+    out: list[list[str]] = []
     for st in stmts:
         if st.startswith(" ") and out:
             out[-1].append(st)
@@ -211,7 +217,7 @@ class _Staging:
     """
 
     def __init__(self, segs: list, result_names: list, lanes: int, slots: dict,
-                 fbase: list = (), fold_loop: dict | None = None):
+                 fbase: Sequence[int] = (), fold_loop: dict | None = None):
         self.lanes, self.half = lanes, BLOCK // lanes
         self.slots, self.fbase = slots, fbase
         self.fold_loop = {} if fold_loop is None else fold_loop
@@ -219,7 +225,7 @@ class _Staging:
         self.bools = set()
         for _, _, b in self.info:
             self.bools |= b
-        self.later_uses = [set() for _ in segs]
+        self.later_uses: list[set[str]] = [set() for _ in segs]
         acc = set(result_names)
         for k in range(len(segs) - 1, -1, -1):
             self.later_uses[k] = set(acc)
@@ -245,7 +251,7 @@ class _Staging:
                 out += [pad + _lane(st, k) for st in unit]
         return out
 
-    def segment(self, k: int, seg) -> list:
+    def segment(self, k: int, seg: tuple) -> list:
         """The code of segment ``k`` (``('line', stmts)`` or ``('loop', header, stmts)``)."""
         code = []
         defs, uses, _ = self.info[k]
@@ -263,7 +269,7 @@ class _Staging:
             loop_var = header.split()[1]
             hoisted: dict = {}
 
-            def hoist(mt, loop_var, hoisted=hoisted):
+            def hoist(mt: re.Match, loop_var: str, hoisted: dict = hoisted) -> str:
                 if mt.group(2) != loop_var:
                     return mt.group(0)
                 key = (mt.group(1), mt.group(3))
@@ -276,7 +282,7 @@ class _Staging:
                 # a loop over a row list (pruning): the row index is the same for all points
                 loop_var = row.group(1)
                 stmts = stmts[1:]
-            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
+            stmts = [_TABLE_READ.sub(lambda mt: hoist(mt, loop_var), st) for st in stmts]
             defs, uses, _ = _defs_uses(stmts)
             code.append(f"    {header}")
             if row:
@@ -297,7 +303,7 @@ class _Staging:
         return code
 
 
-def _fold_layout(fold_sizes):
+def _fold_layout(fold_sizes: Sequence[int]) -> tuple[dict, list, dict, Callable]:
     """Scratch rows of a block: ``x``, ``y``, then each loop group's stored values.
 
     Returns ``(slots, fbase, fold_loop, fold_store)``: the row of every name, each group's first
@@ -305,12 +311,13 @@ def _fold_layout(fold_sizes):
     ``re.sub`` callback that turns a group's store into a store into its scratch row.
     """
     slots: dict = {"x": 0, "y": 1}
-    fbase, fold_loop = [], {}
+    fbase: list[int] = []
+    fold_loop: dict[int, tuple] = {}
     for g, count in enumerate(fold_sizes):
         fbase.append(len(slots))
         slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
 
-    def fold_store(mt):
+    def fold_store(mt: re.Match) -> str:
         g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
         fold_loop[g] = (loop_var, size)
         return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
@@ -319,7 +326,8 @@ def _fold_layout(fold_sizes):
 
 
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
-                 lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
+                 lanes: int | None = None, binds: tuple = (), fold_sizes: Sequence[int] = ()
+                 ) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
@@ -354,7 +362,7 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
     gflat = "grad.reshape(-1), " if grad else ""
-    body = []
+    body: list[str] = []
 
     slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
@@ -469,7 +477,8 @@ _PROG_OPS = {"init": 0, "min": 1, "max": 2, "smin": 3, "smax": 4, "fin_smin": 5,
              "out": 7, "smin2": 8, "smax2": 9, "neg": 10, "qmin": 11, "cmin": 12}
 
 
-def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_rows: int) -> str:
+def program_source(lines: list, kind: str, fold_sizes: Sequence[int], steps: list,
+                   acc_rows: int) -> tuple[str, str]:
     """Source of ``_fold_<kind>`` (the loops over same-shape subexpressions, as in
     :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
     (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
