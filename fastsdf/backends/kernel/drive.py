@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Any
 
 import numba
 import numpy as np
@@ -76,9 +77,9 @@ class BlockFn:
     first use. An integer argument keeps numba's dispatch of the kernels as cheap as for any
     array call (a first-class function object is typed in Python on every call: +25 us)."""
 
-    def __init__(self, dispatcher):
+    def __init__(self, dispatcher: Any) -> None:
         self.dispatcher = dispatcher
-        self._addr = None
+        self._addr: int | None = None
 
     @property
     def address(self) -> int:
@@ -93,7 +94,7 @@ class BlockFn:
 def max_threads() -> int:
     """The most threads a parallel region can run on (``NUMBA_NUM_THREADS``): thread ids
     (``numba.get_thread_id``) index the scratch space."""
-    return numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # set at run time
+    return numba.config.NUMBA_NUM_THREADS
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -128,7 +129,9 @@ NOGRAD = np.empty((0, 2))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
+def run_vg_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+               grad: np.ndarray, S: np.ndarray, size: int, chunks: int, threads: int,
+               act: np.ndarray, off: np.ndarray) -> None:
     """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
     block, blocks in parallel chunks, each thread with ``size`` floats of the scratch space
     ``S`` (at least ``threads * size`` floats, ``threads``: :func:`max_threads`; see
@@ -150,7 +153,9 @@ def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(pre, fn, xs, ys, out, grad, S, size, act, off):
+def run_vg_ser(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+               grad: np.ndarray, S: np.ndarray, size: int, act: np.ndarray,
+               off: np.ndarray) -> None:
     """:func:`run_vg_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
     _check_scratch(S, size)
@@ -163,7 +168,8 @@ def run_vg_ser(pre, fn, xs, ys, out, grad, S, size, act, off):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
+def run_v_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, S: np.ndarray,
+              size: int, chunks: int, threads: int, act: np.ndarray, off: np.ndarray) -> None:
     """Value at all points (the block functions' ``grad`` pointer is not used)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -181,7 +187,8 @@ def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(pre, fn, xs, ys, out, S, size, act, off):
+def run_v_ser(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, S: np.ndarray,
+              size: int, act: np.ndarray, off: np.ndarray) -> None:
     """:func:`run_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
@@ -268,8 +275,9 @@ def _merge_rows(act, offs, t0, t1, starts, actb, offb, cur):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def tiles_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, order, starts, act, offs,
-              rows):
+def tiles_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, grad: np.ndarray,
+              S: np.ndarray, size: int, chunks: int, threads: int, order: np.ndarray,
+              starts: np.ndarray, act: np.ndarray, offs: np.ndarray, rows: int) -> None:
     """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
@@ -531,7 +539,7 @@ def _combine(S, at, prog, grad, nv):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def combine_point_vg(F, prog):
+def combine_point_vg(F: np.ndarray, prog: np.ndarray) -> tuple[float, float, float]:
     """The program ``prog`` at one point: rows are single floats ``F[row]`` (the program's
     offsets divided by ``BLOCK``); the same formulas as :func:`_step_vg`, so the same bits.
     Returns the value and gradient."""
@@ -605,7 +613,7 @@ def combine_point_vg(F, prog):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def combine_point_v(F, prog):
+def combine_point_v(F: np.ndarray, prog: np.ndarray) -> float:
     """:func:`combine_point_vg` for the value alone (the rows of :func:`_step_v`)."""
     for p in range(prog.shape[0] - 1):
         op = int(prog[p, 0])
@@ -666,7 +674,8 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
+def run_prog_vg_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                    grad: np.ndarray, S: np.ndarray, size: int, chunks: int, threads: int) -> None:
     """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
     filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
     n = xs.shape[0]
@@ -686,7 +695,8 @@ def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
+def run_prog_vg_ser(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                    grad: np.ndarray, S: np.ndarray, size: int) -> None:
     """:func:`run_prog_vg_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
@@ -700,7 +710,8 @@ def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
+def run_prog_v_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                   S: np.ndarray, size: int, chunks: int, threads: int) -> None:
     """Value at all points (see :func:`run_prog_vg_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -719,7 +730,8 @@ def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
+def run_prog_v_ser(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                   S: np.ndarray, size: int) -> None:
     """:func:`run_prog_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
