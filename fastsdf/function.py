@@ -204,7 +204,7 @@ class CompiledSDF:
         try:
             xs = np.zeros(4)
             kw: dict[str, Any] = {}
-            if self.parametric:
+            if self.param_names is not None:
                 kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
             for g in (True, False):
                 self.evaluate(xs, xs, compute_gradient=g, prune=False, **kw)
@@ -308,7 +308,7 @@ class CompiledSDF:
         n = xs.shape[0]
         out = np.empty(n)
         _KERNEL_RAN[0] = True
-        if self.parametric:
+        if self.param_names is not None:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
                 raise ValueError(f"params must hold {len(self.param_names)} values (for "

@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 import numbers
 import time
-from typing import Any
+from typing import Any, Literal, overload
 
 import numba
 import numpy as np
@@ -139,7 +139,7 @@ def _lerp2(tx, ty, a, b, c, e):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def sample_band(data, x, y):
+def sample_band(data: tuple, x: float, y: float) -> tuple[float, float, float, bool]:
     """Value and gradient at one point of a :class:`NarrowBandGridSDF`.
 
     ``data`` is ``g.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` (float64 x3, bool):
@@ -559,7 +559,20 @@ class NarrowBandGridSDF:
                              self._quantum)
 
     # -- queries ------------------------------------------------------------------------------
-    def __call__(self, x, y, compute_gradient=False):
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: Literal[False] = False
+                 ) -> np.ndarray: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: Literal[True]
+                 ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
+
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
         (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
         and in exact cells; NaN for non-finite points. Conventions as
@@ -582,11 +595,11 @@ class NarrowBandGridSDF:
             if miss:
                 idx = np.flatnonzero(np.isnan(out) & np.isfinite(xs) & np.isfinite(ys))
                 if idx.size:
-                    if compute_gradient:
+                    if grad is not None:
                         out[idx], grad[idx] = self.exact(xs[idx], ys[idx], compute_gradient=True)
                     else:
                         out[idx] = self.exact(xs[idx], ys[idx])
-        if compute_gradient:
+        if grad is not None:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
@@ -613,7 +626,7 @@ class NarrowBandGridSDF:
         False (finite points)."""
         return sample_band
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         tol = "" if self.tolerance is None else f", tolerance={self.tolerance:g}"
         return (f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band!r}, "
                 f"samples={list(self.shape)}{tol}, tile={self.tile}, dtype={self.dtype.name}, "
@@ -658,7 +671,8 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
                      band_value_rms=vrms, band_angle_max_deg=amax, band_angle_rms_deg=arms)
 
 
-def band_points(g: NarrowBandGridSDF, n: int = 200_000, seed=0):
+def band_points(g: NarrowBandGridSDF, n: int = 200_000, seed: int | np.random.Generator | None = 0
+                ) -> tuple[np.ndarray, np.ndarray]:
     """``n`` points drawn uniformly from the fine tiles of ``g`` inside its bounds: (x, y)."""
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n < 1:
         raise ValueError(f"n must be a positive integer, got n={n!r}")

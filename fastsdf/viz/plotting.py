@@ -66,7 +66,7 @@ def _check_samples(samples: Any) -> tuple:
     """``samples`` (an int, or a pair for x and y) as ``(nx, ny)``, each an integer >= 2."""
     pair = samples if isinstance(samples, (tuple, list, np.ndarray)) else (samples, samples)
     if len(pair) != 2 or not all(
-            isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and v >= 2
+            isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 2
             for v in pair):
         raise ValueError(f"samples must be an integer >= 2 or a pair of them (x, y), got "
                          f"samples={samples!r}")

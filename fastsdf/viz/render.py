@@ -32,6 +32,7 @@ from typing import Any
 import numba
 import numpy as np
 from numba import njit, prange
+from numpy.typing import ArrayLike
 
 from fastsdf.viz.plotting import check_bounds
 
@@ -121,27 +122,27 @@ def _splat_parallel(xs, ys, ws, use_w, img, xe, ye, chunks):
 # ---------------------------------------------------------------------------------------------
 # Validation helpers (errors name the parameter and the value).
 
-def _check_count(value, name: str, minimum: int) -> int:
+def _check_count(value: object, name: str, minimum: int) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
-    if value < minimum:
+    if int(value) < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
     return int(value)
 
 
-def check_shape(shape) -> tuple:
+def check_shape(shape: Any) -> tuple[int, int]:
     try:
         h, w = shape
     except (TypeError, ValueError):
         raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}") \
             from None
-    if not all(isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and v >= 1
-               for v in (h, w)):
+    if not all(isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
+               and int(v) >= 1 for v in (h, w)):
         raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}")
     return int(h), int(w)
 
 
-def _coords(v, name: str) -> np.ndarray:
+def _coords(v: ArrayLike, name: str) -> np.ndarray:
     try:
         arr = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -217,7 +218,7 @@ def _particle_cmap():
     return cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
 
 
-def _axes_image_shape(ax, bounds) -> tuple:
+def _axes_image_shape(ax: Any, bounds: tuple) -> tuple[int, int]:
     """One image pixel per screen pixel of ``ax`` over ``bounds`` (at the figure's dpi)."""
     with contextlib.suppress(Exception):  # a layout not resolved yet: use the box as is
         ax.apply_aspect()
@@ -229,7 +230,7 @@ def _axes_image_shape(ax, bounds) -> tuple:
     return _clip_side(h), _clip_side(w)
 
 
-def plain_log_ticks(colorbar) -> None:
+def plain_log_ticks(colorbar: Any) -> None:
     """Tick labels ``1, 2, 5, 10, 100`` on a logarithmic colour bar instead of ``2x10^0``."""
     from matplotlib.ticker import FuncFormatter
 
@@ -552,7 +553,7 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
         interval = 1000.0 * dt * max(1, schedule[-1])
     x, y, r = _state(sim)
     layer = draw_particles(ax, x, y, r=r, colorbar=colorbar, **draw_kwargs)
-    state = {"wall": None}
+    state: dict[str, float | None] = {"wall": None}
     text = ax.set_title(sim_title(sim, title)) if title is not None else None
 
     def frame(i: int) -> tuple:
@@ -567,7 +568,7 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
                 run(k)
         xs, ys, rs = _state(sim)
         artists = layer.update(xs, ys, rs)
-        if text is not None:
+        if text is not None and title is not None:
             text.set_text(sim_title(sim, title))
             artists = artists + (text,)
         return artists
@@ -575,7 +576,7 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
     anim = FuncAnimation(ax.figure, frame, frames=frames,
                          init_func=lambda: layer.update(*_state(sim)),
                          interval=interval, blit=blit, repeat=repeat)
-    anim.particle_layer = layer
+    anim.particle_layer = layer  # type: ignore[attr-defined]  # the layer rides along
     return anim
 
 
@@ -617,14 +618,16 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
             raise RuntimeError(f"writing {ext} needs ffmpeg: pip install 'fastsdf[video]' (it "
                                f"installs imageio-ffmpeg, which ships one), or install ffmpeg, "
                                f"or save a .gif")
-        writer = animation.FFMpegWriter(fps=fps, bitrate=2400 if ext != ".webm" else -1)
+        # (matplotlib's stubs say int, its writers take any frame rate)
+        writer: animation.AbstractMovieWriter = animation.FFMpegWriter(
+            fps=fps, bitrate=2400 if ext != ".webm" else -1)  # type: ignore[arg-type]
     elif kind == "pillow":
-        writer = animation.PillowWriter(fps=fps)
+        writer = animation.PillowWriter(fps=fps)  # type: ignore[arg-type]
     else:
-        writer = animation.HTMLWriter(fps=fps, embed_frames=True)
+        writer = animation.HTMLWriter(fps=fps, embed_frames=True)  # type: ignore[arg-type]
     total = getattr(anim, "_save_count", None) or 0
-    with _bar(total, f"writing {os.path.basename(str(path))}",
-              **({} if progress else {"disable": True})) as bar:
+    bar_options: dict[str, Any] = {} if progress else {"disable": True}
+    with _bar(total, f"writing {os.path.basename(str(path))}", **bar_options) as bar:
         anim.save(str(path), writer=writer, dpi=dpi,
                   progress_callback=lambda i, n: bar.update(1))
     return os.path.abspath(str(path))
