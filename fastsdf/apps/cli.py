@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
-from typing import NoReturn
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
 
 
 class _Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose errors are one line (no usage block) and exit with 2."""
+
+    _demo: argparse.ArgumentParser  # the demo subcommand's parser (set by build_parser)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -91,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0, or 2 after a one-line error)."""
     parser = build_parser()
+    assert isinstance(parser, _Parser)
     args = parser.parse_args(argv)
     if args.command == "demo":
         demo = parser._demo
@@ -99,8 +102,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                        f"advances at least one step)")
         from fastsdf.apps.demo import check_output_dir, run_demo, summary
         extra = {}
+        runner: Callable[..., Any] = run_demo
         if args.workers:
-            from fastsdf.apps.distributed import run_demo
+            from fastsdf.apps.distributed import run_demo as run_distributed_demo
+            runner = run_distributed_demo
             extra["workers"] = args.workers
         try:
             check_output_dir(args.out)
@@ -108,10 +113,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             demo.error(f"--out {args.out!r} is not a writable folder: "
                        f"{exc.strerror or exc}")
         try:
-            res = run_demo(particles=args.particles, steps=args.steps, grid=args.grid,
-                           exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
-                           fps=args.fps, world=args.world, mode=args.mode,
-                           animate=not args.no_animation, **extra)
+            res = runner(particles=args.particles, steps=args.steps, grid=args.grid,
+                         exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
+                         fps=args.fps, world=args.world, mode=args.mode,
+                         animate=not args.no_animation, **extra)
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))

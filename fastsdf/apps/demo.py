@@ -148,6 +148,11 @@ def _video_writer_ext(err: IO[str]) -> str:
     return ".gif"
 
 
+def _load_pair(before: float | None, after: float | None) -> tuple[float, float] | None:
+    """``(load at the start, load at the end)``, or None where the platform has none."""
+    return None if before is None or after is None else (before, after)
+
+
 def _load() -> float | None:
     try:
         return float(os.getloadavg()[0])
@@ -155,7 +160,8 @@ def _load() -> float | None:
         return None
 
 
-def _timed_advance(sim, k: int, timing: dict, outside_share) -> None:
+def _timed_advance(sim: Any, k: int, timing: dict[str, Any], outside_share: Callable[[], float]
+                   ) -> None:
     """Advance ``sim`` by ``k`` steps, keeping the demo's timing record: the first call, which
     compiles (or loads) the kernel, is timed apart from the rest; ``outside_share()`` is the
     share of particles outside the grid now, standing for the steps before it."""
@@ -250,10 +256,11 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
         sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
 
     sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
-    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
+    # (fastsdf.particles is excluded from type checking while it becomes a package)
+    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))  # type: ignore[has-type]
     respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
 
-    timing = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
     def outside_share() -> float:
         x = sim.p["x"]
@@ -289,7 +296,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
         exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
         respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
-        load=None if timing.get("load0") is None else (timing["load0"], _load()),
+        load=_load_pair(timing.get("load0"), _load()),
         animation=animation_path, last_frame=last)
 
 
