@@ -194,7 +194,8 @@ class CompiledSDF:
             if self._warm is None:
                 self._warm = threading.Event()
                 job = None
-                if xs is not None and not self.parametric and len(xs) >= PRUNE_MIN_POINTS:
+                if xs is not None and ys is not None and not self.parametric \
+                        and len(xs) >= PRUNE_MIN_POINTS:
                     job = (snap_bounds(xs, ys), len(xs), tol)
                 threading.Thread(target=self._compile_now, args=(job,), name="fastsdf-compile",
                                  daemon=True).start()

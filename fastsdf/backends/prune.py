@@ -468,7 +468,7 @@ def bin_points(xs: np.ndarray, ys: np.ndarray, plan: PrunePlan) -> tuple:
     return _bin(xs, ys, x0, y0, plan.nx / (x1 - x0), plan.ny / (y1 - y0), plan.nx, plan.ny)
 
 
-def snap_bounds(xs, ys):
+def snap_bounds(xs: np.ndarray, ys: np.ndarray) -> tuple[tuple[float, float], ...] | None:
     """A rectangle holding the finite points, snapped outward to a coarse grid so that calls on
     similar point sets share one plan. None if there are no finite points."""
     ok = np.isfinite(xs) & np.isfinite(ys)
