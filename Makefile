@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 export FASTSDF_CACHE_DIR ?= $(CURDIR)/.cache/kernels
 export MPLBACKEND ?= Agg
 
-.PHONY: venv demo docs test bench bench-quick clean
+.PHONY: venv demo docs lint test bench bench-quick clean
 
 $(VENV)/.base: setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,10 +44,18 @@ docs: $(VENV)/.docs
 	$(PY) -m pdoc --docformat restructuredtext -o docs/api $$($(PUBLIC_MODULES))
 	@echo "API reference: docs/api/index.html"
 
+# The habits the tests do not check: ruff's lint rules (pyproject [tool.ruff]), mypy over the
+# package (pyproject [tool.mypy]) and the layer contract (pyproject [tool.importlinter]).
+lint: $(VENV)/.test
+	$(VENV)/bin/ruff check fastsdf tests bench examples
+	$(VENV)/bin/mypy fastsdf
+	$(VENV)/bin/lint-imports
+
 # One pytest worker per core (pytest-xdist): most of the suite's time is numba compiling the
 # scenes of the tests, one core per compile. Tests are grouped by file, so a file's scenes are
 # compiled by one worker; workers share the kernel cache (safe under concurrent processes).
-test: $(VENV)/.test
+# The lint runs first: it takes seconds, the suite minutes.
+test: lint
 	$(PY) -m pytest -q -n auto --dist loadfile
 
 bench: $(VENV)/.bench

@@ -11,7 +11,8 @@ random constants (``seed``), so no cache keyed by the expression helps.
 
 Box unions are written two ways: ``f = f | Box(...)`` in a loop, and the n-ary
 ``fastsdf.union`` of a list comprehension of boxes; polygons (stars and triangles, the compiled
-polygon primitive) are united at once; the mixed scenes are :func:`fastsdf.shapes.scenes.mixed_scene`.
+polygon primitive) are united at once; the mixed scenes are
+:func:`fastsdf.shapes.scenes.mixed_scene`.
 """
 
 from __future__ import annotations

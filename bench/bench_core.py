@@ -79,17 +79,20 @@ def _compile_times(quick: bool):
           f"**{c['build_s'] + c['codegen_s'] + c['compile_s']:.2f} s**",
           f"**{w['build_s'] + w['codegen_s'] + w['compile_s']:.2f} s**", f"{c['import_s']:.2f} s")
          for n, p, c, w in rows])]
-    out.append("\n'cold' is a fresh process with an empty kernel cache: graph build, code generation, "
+    out.append("\n'cold' is a fresh process with an empty kernel cache: graph build, code "
+               "generation, "
                "numba compilation of the scene's value+gradient block functions (the parallel "
                "kernel that calls them is compiled once per installation) and a first call on "
-               "8192 points; 'warm cache' is a second fresh process on the same cache directory (the "
+               "8192 points; 'warm cache' is a second fresh process on the same cache directory "
+               "(the "
                "same steps, the kernel loaded from disk). Import time is listed separately. "
                "Targets: 20-box world cold <= 3 s, 200-primitive world cold <= 10 s, "
                "mixed ops cold: 50 primitives <= 3 s, 200 primitives <= 10 s; warm <= 0.5 s. "
                "The 'mixed ops' scenes have no repeated structure next to each other (each "
                "primitive differs in kind, operation or smoothness from its neighbour), the "
                "worst case for compile time: their block kernels evaluate the primitives of one "
-               "shape in loops wherever they stand (one loop per distinct shape), and the blends above "
+               "shape in loops wherever they stand (one loop per distinct shape), and the blends "
+               "above "
                "them run as a combine program, data for an interpreter compiled once per "
                "installation. The installation's kernels (the parallel drivers and that "
                "interpreter, cached by numba next to fastsdf's own modules) are compiled before "
@@ -156,7 +159,8 @@ def _jax(quick: bool):
         return (f"JAX is not installed ({err}); install the `peers` extra "
                 f"(`pip install -e '.[peers]'`) to add this comparison.")
     rows = []
-    cases = [("seed world (cell 21)", seed_world(), 1_000_000), ("5-box world", box_world(5), 100_000),
+    cases = [("seed world (cell 21)", seed_world(), 1_000_000),
+             ("5-box world", box_world(5), 100_000),
              ("20-box world (cell 13)", box_world(20), 100_000)]
     if quick:
         cases = cases[:2]
@@ -225,7 +229,8 @@ def _scaling(quick: bool):
     text = table(["points per call", *by_points], rows)
     text += "\n\n" + table(["primitives", "value+gradient"],
                             [(c, f"{fmt_rate(r)} pts/s") for c, r in zip(counts, by_prims)])
-    return text + ("\n\nScenes of 1 (circle), 5 (seed world) and n (funnel + n-3 boxes) primitives. "
+    return text + ("\n\nScenes of 1 (circle), 5 (seed world) and n (funnel + n-3 boxes) "
+                   "primitives. "
                    "Small calls (< 4096 points) run serially. ![scaling](core_scaling.png)")
 
 

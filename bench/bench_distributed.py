@@ -186,7 +186,8 @@ def run(quick: bool = False) -> str:
               "client's overhead grows linearly in the worker count as fitted here on loopback "
               "(a real network adds its round-trip time once per call, since the calls go out "
               "concurrently; one client drives all calls, so at thousands of workers a tree of "
-              "clients or longer `run(k)` calls would be needed); 1e9 particles hold 64 GB of state in float64 (32 GB in float32), "
+              "clients or longer `run(k)` calls would be needed); 1e9 particles hold 64 GB of "
+              "state in float64 (32 GB in float32), "
               "so at least 4 machines of 24 GiB are needed before any speed question.", "",
               f"Machine load (1, 5, 15 min) before: {load_before}; after: {_load()}.", ""]
     return "\n".join(lines)

@@ -20,8 +20,8 @@ import numba
 import numpy as np
 
 from fastsdf.fields.grid import GridSDF, measure_error
-from fastsdf.shapes.scenes import box_world, seed_world
 from fastsdf.shapes import Circle
+from fastsdf.shapes.scenes import box_world, seed_world
 
 from .common import HERE, Progress, fmt_rate, stamp, table, timeit
 
@@ -204,14 +204,14 @@ def run(quick: bool = False) -> str:
                                             band_angle_rms=err.band_angle_rms_deg,
                                             value_max=err.value_max))
                         prog.step(f"{wname} {res} {dname} {gradient}")
-                        del g
+                        g = None  # the grid's memory is freed before the next one is built
                 prog.step(f"{wname} {res}")
 
     access = _access_pattern(xs, ys, quick)
     conv_text, _ = _convergence(quick)
     plot_path = _plot(results, quick)
 
-    out = [f"## GridSDF: sampled SDFs, bilinear queries", "", stamp(command), ""]
+    out = ["## GridSDF: sampled SDFs, bilinear queries", "", stamp(command), ""]
     out.append(f"Queries: value + gradient at {N_POINTS:,} uniform random points in "
                f"{BOUNDS}, {threads} numba threads; speeds are medians over repeats, the best "
                f"run in brackets; 'vs seed' is the ratio of medians to the notebook's GridSDF "

@@ -623,7 +623,7 @@ arithmetic and no gather instruction).
   11% rest and `run(20)` runs 1.12x the default contact (0.96x Taichi); from step 300 69% rest,
   2.64x the default and 2.51x Taichi's kernel; from step 450 99% rest, 11x the default and
   10x Taichi (which keeps stepping every particle).
-"""
+"""  # noqa: E501 - markdown written to the results file as is
 
 
 _FIRST_CALL = r"""
@@ -661,6 +661,7 @@ def _first_call_rows() -> list:
     """First ``run(1)`` of a grid world in fresh processes: empty kernel cache, then a new scene
     with the installation's kernels cached."""
     import tempfile
+
     from .common import run_fresh_process
     cache = tempfile.mkdtemp(prefix="fastsdf_first_")
     env = {"FASTSDF_CACHE_DIR": cache}
@@ -680,7 +681,7 @@ def _first_call_rows() -> list:
         try:
             t = float(run_fresh_process(_TAICHI_FIRST.format(cache=flag)).split()[-1])
             peers_rows.append([f"Taichi, {label}", "", "", f"{t:.2f} s"])
-        except Exception as exc:  # noqa: BLE001 - optional peer
+        except Exception as exc:  # optional peer
             peers_rows.append([f"Taichi, {label}", "", "", f"skipped ({str(exc)[-80:]})"])
     return [
         "### First call of a grid-world simulation (fresh processes)", "",
@@ -736,7 +737,10 @@ def _splice_peers(n: int, reps: int) -> str:
     bench/results/particles.md in place of the ones there (or at its end)."""
     text = "\n".join(peers_section(n=n, reps=reps))
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "particles.md")
-    old = open(path, encoding="utf-8").read() if os.path.exists(path) else ""
+    old = ""
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as fh:
+            old = fh.read()
     head = old.split("### Peers: Taichi and Warp", 1)[0].rstrip()
     stamp_line = stamp("python -m bench.bench_particles --peers")
     with open(path, "w", encoding="utf-8") as fh:
@@ -751,7 +755,8 @@ if __name__ == "__main__":  # pragma: no cover
         # Re-run only the first-call table and put it in place of the one in particles.md.
         path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
                             "particles.md")
-        text = open(path, encoding="utf-8").read()
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
         head = text.split("### First call of a grid-world simulation", 1)[0]
         new_rows = "\n".join(_first_call_rows())
         with open(path, "w", encoding="utf-8") as fh:

@@ -109,7 +109,8 @@ def _elementary(quick: bool) -> str:
     n = 1_000_000 if quick else 4_000_000
     rng = np.random.default_rng(0)
     cases = [
-        ("exp", vexp, _m_exp, "[-10, 0] (smooth blends: exp(-k abs(a - b)))", rng.uniform(-10, 0, n)),
+        ("exp", vexp, _m_exp, "[-10, 0] (smooth blends: exp(-k abs(a - b)))",
+         rng.uniform(-10, 0, n)),
         ("exp", vexp, _m_exp, "[-745, 710] (whole range)", rng.uniform(-745, 710, n)),
         ("log", vlog, _m_log, "[1, 21] (blend sums)", rng.uniform(1, 21, n)),
         ("log", vlog, _m_log, "exp of [-745, 709]", np.exp(rng.uniform(-745, 709, n))),
@@ -121,8 +122,9 @@ def _elementary(quick: bool) -> str:
         ov, om = np.empty_like(a), np.empty_like(a)
         t = _interleaved({"v": lambda: kv(a, ov), "m": lambda: km(a, om)}, 3 if quick else 9)
         u = _ulps(ov, om)
-        rows.append((f"`{name}`", where, f"{fmt_rate(n / t['m'])}/s", f"**{fmt_rate(n / t['v'])}/s**",
-                     f"**{t['m'] / t['v']:.1f}x**", f"{u.max():.0f}", f"{np.mean(u > 0):.1%}"))
+        rows.append((f"`{name}`", where, f"{fmt_rate(n / t['m'])}/s",
+                     f"**{fmt_rate(n / t['v'])}/s**", f"**{t['m'] / t['v']:.1f}x**",
+                     f"{u.max():.0f}", f"{np.mean(u > 0):.1%}"))
     return table(["function", "arguments", "C library (`math.*`)", "fastsdf.backends.kernel.vmath",
                   "speed-up", "max ulp vs C library", "results differing by 1 ulp"], rows) + (
         f"\n\n{n:,} arguments, {numba.get_num_threads()} threads, a `prange` loop per function. "
@@ -147,8 +149,10 @@ def _taichi_seed():
     k = 10.0
 
     @ti.kernel
-    def seed_vg(xs: ti.types.ndarray(dtype=ti.f64, ndim=1), ys: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                out: ti.types.ndarray(dtype=ti.f64, ndim=1), grad: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    def seed_vg(xs: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                ys: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                out: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                grad: ti.types.ndarray(dtype=ti.f64, ndim=2)):
         for i in xs:
             x, y = xs[i], ys[i]
             d, gx, gy = y + 1.8, 0.0, 1.0
@@ -191,8 +195,10 @@ def _taichi_seed():
 def _kernels(quick: bool) -> tuple[str, str]:
     threads = numba.get_num_threads()
     repeats = 3 if quick else 11
-    scenes = [("seed world (cell 21)", seed_world(), "seed_world", 1_000_000 if not quick else 200_000),
-              ("20-box world (cell 13)", box_world(20), "box_world_20", 1_000_000 if not quick else 100_000)]
+    scenes = [("seed world (cell 21)", seed_world(), "seed_world",
+               1_000_000 if not quick else 200_000),
+              ("20-box world (cell 13)", box_world(20), "box_world_20",
+               1_000_000 if not quick else 100_000)]
     speed_rows, err_rows = [], []
     taichi = _taichi_seed()
     for name, f, base, n in scenes:
@@ -216,7 +222,8 @@ def _kernels(quick: bool) -> tuple[str, str]:
         rate = {k: n / v for k, v in t.items()}
         rate1 = {k: n / v for k, v in res[1].items()}
         speed_rows.append((
-            f"{name}, {n:,} points", f"{fmt_rate(rate['today'])} pts/s ({fmt_rate(rate1['today'])})",
+            f"{name}, {n:,} points",
+            f"{fmt_rate(rate['today'])} pts/s ({fmt_rate(rate1['today'])})",
             f"{fmt_rate(rate['libm'])} pts/s ({fmt_rate(rate1['libm'])})",
             f"**{fmt_rate(rate['new'])} pts/s** ({fmt_rate(rate1['new'])})",
             f"**{rate['new'] / rate['today']:.2f}x** ({rate1['new'] / rate1['today']:.2f}x)",
@@ -287,7 +294,7 @@ import importlib.util
 spec = importlib.util.spec_from_file_location("box_world_20", os.path.join(os.environ["BASEDIR"], "box_world_20.py"))
 mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)
 kernel = mod.batch_vg_par
-"""
+"""  # noqa: E501 - a script for a fresh process
 
 
 def _compile(quick: bool) -> str:

@@ -220,9 +220,11 @@ def run(quick: bool = False) -> str:
         "interpreter and the scene-independent kernels compiled once before), fresh random "
         f"constants; each first answer is the best of {REPEATS} fresh processes (for 'auto' "
         "one of them also measures the calls made while the kernel compiles; import and "
-        "construction are from that one). *First answer*: from the built scene to the answer of 1e5 random points in "
+        "construction are from that one). *First answer*: from the built scene to the answer of "
+        "1e5 random points in "
         "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
-        "(`fastsdf.backends.npeval`, no numba: hard unions of many shapes pruned per tile) and the tape "
+        "(`fastsdf.backends.npeval`, no numba: hard unions of many shapes pruned per tile) and "
+        "the tape "
         "(which first pays numba's one-time setup in the process), then compiles the kernel in "
         "a background thread; *total* = import + construction + first answer.", "",
         first, "",

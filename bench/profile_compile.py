@@ -97,6 +97,7 @@ def main(argv=None) -> int:
         return 0
     t0 = time.perf_counter()
     import numba  # noqa: F401 - import cost shown separately
+
     import fastsdf.backends.kernel.codegen  # noqa: F401
     print(f"import numba + fastsdf: {time.perf_counter() - t0:.2f} s (once per process)")
     keys = args.scene or ["circle", "seed", "box20", "box200", "mixed50", "mixed200"]

@@ -21,14 +21,14 @@ import time
 import matplotlib
 
 matplotlib.use("Agg")
-import numpy as np  # noqa: E402
+import numpy as np
 
-import fastsdf as sdf  # noqa: E402
-import fastsdf.graph as cg  # noqa: E402
-import fastsdf.particles as phys  # noqa: E402
-from fastsdf.viz.progress import progress  # noqa: E402
-from fastsdf.viz.render import render_frame, sim_title  # noqa: E402
-from fastsdf.shapes.scenes import seed_world  # noqa: E402
+import fastsdf as sdf
+import fastsdf.graph as cg
+import fastsdf.particles as phys
+from fastsdf.shapes.scenes import seed_world
+from fastsdf.viz.progress import progress
+from fastsdf.viz.render import render_frame, sim_title
 
 
 def vortex(k: float = 1.5, s: float = 1.0) -> phys.FieldForce:

@@ -1,6 +1,7 @@
 """A scene of your own from primitives, blends and modifiers, drawn with plot_sdf.
 
-    python examples/custom_scene.py [OUT]        # writes OUT/custom_scene.png (default ./examples-out)
+    python examples/custom_scene.py [OUT]        # writes OUT/custom_scene.png (default
+    ./examples-out)
 
 A cup: a rounded box hollowed by a smaller one, a ring for a handle, a repeated row of holes, and
 a smooth (quadratic) blend where the handle meets the body. Left: the filled shape with distance
@@ -13,9 +14,9 @@ import sys
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-import fastsdf as sdf  # noqa: E402
+import fastsdf as sdf
 
 
 def cup() -> sdf.SDF:

@@ -16,13 +16,12 @@ import sys
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-import fastsdf as sdf  # noqa: E402
-from fastsdf.viz.progress import progress  # noqa: E402
-from fastsdf.viz.plotting import sdf_grid  # noqa: E402
+import fastsdf as sdf
+from fastsdf.viz.plotting import sdf_grid
+from fastsdf.viz.progress import progress
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "..", "docs", "gallery.png")

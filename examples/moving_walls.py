@@ -18,14 +18,14 @@ import time
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.animation import FuncAnimation
 
-import fastsdf as sdf  # noqa: E402
-import fastsdf.particles as phys  # noqa: E402
-from fastsdf.viz.video import ffmpeg_available  # noqa: E402
-from fastsdf.viz.render import draw_particles, save_animation  # noqa: E402
+import fastsdf as sdf
+import fastsdf.particles as phys
+from fastsdf.viz.render import draw_particles, save_animation
+from fastsdf.viz.video import ffmpeg_available
 
 #: Angular speed of the stirrer, rad/s (blade tips at 1.2 move at about 1 length/s).
 OMEGA = 0.8

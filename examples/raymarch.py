@@ -16,12 +16,11 @@ import sys
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from numba import njit, prange  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from numba import njit, prange
 
-import fastsdf as sdf  # noqa: E402
-from fastsdf.shapes.scenes import box_world  # noqa: E402
+from fastsdf.shapes.scenes import box_world
 
 
 def make_kernel(f):

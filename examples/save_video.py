@@ -16,14 +16,14 @@ import sys
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-import fastsdf as sdf  # noqa: E402
-import fastsdf.particles as phys  # noqa: E402
-from fastsdf.viz.video import ffmpeg_available  # noqa: E402
-from fastsdf.viz.render import animate, save_animation  # noqa: E402
-from fastsdf.shapes.scenes import seed_world  # noqa: E402
-from fastsdf.viz.frames import record_video  # noqa: E402
+import fastsdf as sdf
+import fastsdf.particles as phys
+from fastsdf.shapes.scenes import seed_world
+from fastsdf.viz.frames import record_video
+from fastsdf.viz.render import animate, save_animation
+from fastsdf.viz.video import ffmpeg_available
 
 
 def main(out: str = "examples-out", n: int = 200_000, frames: int = 90) -> str:

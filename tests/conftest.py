@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 # Tests must never depend on a user's kernel cache: use the Makefile's (or a private) directory.
-os.environ.setdefault("FASTSDF_CACHE_DIR", os.path.join(tempfile.gettempdir(), "fastsdf-test-cache"))
+os.environ.setdefault("FASTSDF_CACHE_DIR",
+                      os.path.join(tempfile.gettempdir(), "fastsdf-test-cache"))
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 

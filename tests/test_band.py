@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import brute_distance
 from numba import njit
 
 import fastsdf as sdf
@@ -14,8 +15,6 @@ import fastsdf.particles as phys
 from fastsdf.fields.band import NarrowBandGridSDF, band_points, measure_band_error, sample_band
 from fastsdf.fields.grid import GridSDF
 from fastsdf.shapes.scenes import seed_world
-
-from conftest import brute_distance
 
 BOUNDS = [(-2, 2), (-2, 2)]
 

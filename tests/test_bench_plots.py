@@ -4,11 +4,11 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import numpy as np  # noqa: E402
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from bench.plots import _plain, pareto_front, plain_log_ticks  # noqa: E402
+from bench.plots import _plain, pareto_front, plain_log_ticks
 
 pairs = st.lists(st.tuples(st.floats(1e-6, 1.0), st.floats(1.0, 1e3)), min_size=1, max_size=30)
 

@@ -10,14 +10,13 @@ import time
 
 import numpy as np
 import pytest
+from conftest import central_gradient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import fastsdf as sdf
 from fastsdf.expr.graph import evaluate_numpy
 from fastsdf.shapes.scenes import box_world, seed_world
-
-from conftest import central_gradient
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -72,14 +71,15 @@ def _unstructured_scene(seed, n=24):
     long enough that the block kernels evaluate same-shape primitives in loops."""
     rng = np.random.default_rng(seed)
     f = sdf.Halfspace([0, 1], -1.8)
-    for i in range(n):
+    for _ in range(n):
         with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
                 sdf.smoothness(float(rng.choice([0, 4, 8]))):
             kind = rng.integers(4)
             s = [lambda: sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2)),
                  lambda: sdf.Circle(rng.uniform(-0.1, 0.1, 2), rng.uniform(0.1, 0.3)),
                  lambda: sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2)),
-                 lambda: sdf.Triangle([-0.2, -0.1], [0.2, -0.1], rng.uniform(-0.1, 0.1, 2) + [0, 0.2]),
+                 lambda: sdf.Triangle([-0.2, -0.1], [0.2, -0.1],
+                                      rng.uniform(-0.1, 0.1, 2) + [0, 0.2]),
                  ][kind]()
             op = rng.integers(3)
             f = f | s if op == 0 else f & (sdf.Circle([0, 0], 3.0) - s) if op == 1 else f - s
@@ -314,7 +314,8 @@ def test_looped_chains_match_numpy_reference(n, k, union, seed):
         with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
                 sdf.smoothness(k):
             shape = sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2)) \
-                if rng.random() < 0.5 else sdf.Circle(rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.3))
+                if rng.random() < 0.5 \
+                else sdf.Circle(rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.3))
             f = f | shape if union else f & sdf.Circle([0, 0], 2.5) - shape
     assert "for i" in f.source()  # 8+ operands of two kinds: one kind has at least 4
     p = rng.uniform(-2.5, 2.5, (400, 2))

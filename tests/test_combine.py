@@ -1,8 +1,8 @@
 """Combine programs: a long scene that is a tree of blends (min, max, smin, smax) over small
-subexpressions runs its blends through the installation's interpreter (``fastsdf.backends.kernel.drive``)
-instead of straight-line code. The program must give the same bits as the per-point
-straight-line functions, value and gradient, for every blend kind, argument order, tie and
-non-finite point."""
+subexpressions runs its blends through the installation's interpreter
+(``fastsdf.backends.kernel.drive``) instead of straight-line code. The program must give the same
+bits as the per-point straight-line functions, value and gradient, for every blend kind, argument
+order, tie and non-finite point."""
 
 import numpy as np
 import pytest
@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 import fastsdf as sdf
 from fastsdf.backends.kernel import codegen
-from fastsdf.function import compile_expr
 from fastsdf.expr.graph import evaluate_numpy
+from fastsdf.function import compile_expr
 from fastsdf.shapes.scenes import mixed_scene
 
 # One step of a random scene: (primitive kind, operation, smoothness, operand order).
@@ -91,7 +91,7 @@ def _check(f, p):
     # the one-point functions of the program module (the particle step's exact query)
     own = f.compiled.point_fn("vg")
     mine = np.array([own(x, y) for x, y in p])
-    assert same(mine[:, 0], ref[:, 0]) and same(mine[:, 1], ref[:, 1]) and same(mine[:, 2], ref[:, 2])
+    assert all(same(mine[:, j], ref[:, j]) for j in range(3))
     own_v = f.compiled.point_fn("v")
     assert same(np.array([own_v(x, y) for x, y in p[:300]]), dv[:300])
     bad = ~np.isfinite(p).all(axis=1)

@@ -106,9 +106,9 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     from matplotlib.image import imread
 
     from fastsdf.apps.demo import run_demo, summary
+    from fastsdf.shapes.scenes import box_world
     from fastsdf.viz.plotting import SOLID_COLOR
     from fastsdf.viz.render import PARTICLE_COLOR, render_frame
-    from fastsdf.shapes.scenes import box_world
 
     res = run_demo(particles=3000, steps=45, grid=120, exact=exact, seed=3, out=str(tmp_path),
                    frames=3, world="boxes")

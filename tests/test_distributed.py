@@ -13,8 +13,8 @@ import pytest
 
 import fastsdf as sdf
 from fastsdf.particles import Drag, Gravity, ParticleSimulation
-from fastsdf.viz.render import density_image
 from fastsdf.shapes.scenes import seed_world
+from fastsdf.viz.render import density_image
 
 
 def _same(a, b):
@@ -74,7 +74,7 @@ def test_simulation_pickle_continues_with_the_same_bits():
     sim.run(30)
     clone.run(30)
     assert clone.t == sim.t
-    for k in sim.p.keys():
+    for k in sim.p.keys():  # noqa: SIM118 - Particles has keys() but is not iterable
         assert _same(sim.p[k], clone.p[k])
 
 
@@ -82,7 +82,14 @@ def test_simulation_pickle_continues_with_the_same_bits():
 # A real cluster: 2 worker processes on the loopback interface.
 
 distributed = pytest.importorskip("distributed")
-from fastsdf.apps.distributed import DistributedSimulation, ShardLostError, evaluate, local_cluster, shard_seed, shard_sizes
+from fastsdf.apps.distributed import (  # noqa: E402 - after the skip
+    DistributedSimulation,
+    ShardLostError,
+    evaluate,
+    local_cluster,
+    shard_seed,
+    shard_sizes,
+)
 
 
 @pytest.fixture(scope="module")
@@ -160,7 +167,7 @@ def test_sharded_simulation_equals_shards_run_in_one_process(client, grid):
             sim.run(k)
         assert sim.t == ref[0].t and sim.steps == sum(runs)
         p = sim.gather()
-        for k in p.keys():
+        for k in p.keys():  # noqa: SIM118 - Particles has keys() but is not iterable
             assert _same(p[k], np.concatenate([s.p[k] for s in ref])), k
         st = sim.stats()
         assert st.counts == tuple(shard_sizes(n, shards)) and st.n == n
@@ -174,7 +181,7 @@ def test_sharded_simulation_equals_shards_run_in_one_process(client, grid):
         assert _same(img, np.histogram2d(x[:, 0], x[:, 1], bins=(90, 70), range=bounds)[0].T)
         smp = sim.sample(50, seed=2)
         assert len(np.unique(smp["index"])) == 50
-        for k in p.keys():
+        for k in p.keys():  # noqa: SIM118 - Particles has keys() but is not iterable
             assert _same(smp[k], p[k][smp["index"]])
 
 

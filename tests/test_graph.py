@@ -6,11 +6,10 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import central_gradient
 
 import fastsdf.graph as cg
 from fastsdf.expr.graph import evaluate_numpy
-
-from conftest import central_gradient
 
 x, y = cg.Symbol("x"), cg.Symbol("y")
 
@@ -113,7 +112,8 @@ OPS = [
     ("powc_frac", (x * x + 1) ** 1.5, lambda X, Y: (X * X + 1) ** 1.5, (-3, 3)),
     ("pow_inv", (x * x + 1) ** -1, lambda X, Y: 1 / (X * X + 1), (-3, 3)),
     ("pow_general", (x * x + 1) ** (y * y), lambda X, Y: (X * X + 1) ** (Y * Y), (-1.5, 1.5)),
-    ("sqrt", cg.sym_sqrt(x * x + 2 * y * y + 1), lambda X, Y: np.sqrt(X * X + 2 * Y * Y + 1), (-3, 3)),
+    ("sqrt", cg.sym_sqrt(x * x + 2 * y * y + 1), lambda X, Y: np.sqrt(X * X + 2 * Y * Y + 1),
+     (-3, 3)),
     ("exp", cg.sym_exp(x - y), lambda X, Y: np.exp(X - Y), (-3, 3)),
     ("log", cg.sym_log(x * x + y * y + 0.5), lambda X, Y: np.log(X * X + Y * Y + 0.5), (-3, 3)),
     ("sin", cg.sym_sin(x * y), lambda X, Y: np.sin(X * Y), (-3, 3)),

@@ -395,8 +395,8 @@ def test_subnormal_and_zero_radius_gradients():
         np.testing.assert_allclose(np.hypot(g[:, 0], g[:, 1]), 1.0, atol=1e-12)
         if type(f).__name__ in ("Circle", "Ellipse", "Capsule"):
             nz = np.any(tiny != 0, axis=1)  # away from the centre: the exact radial direction
-            want = tiny[nz] / np.hypot(tiny[nz, 0] * 2.0 ** 600, tiny[nz, 1] * 2.0 ** 600)[:, None] \
-                * 2.0 ** 600
+            scaled = np.hypot(tiny[nz, 0] * 2.0 ** 600, tiny[nz, 1] * 2.0 ** 600)
+            want = tiny[nz] / scaled[:, None] * 2.0 ** 600
             np.testing.assert_allclose(g[nz], want, atol=1e-15)
         if type(f).__name__ not in ("Polygon", "Ellipse"):  # graph-built: the NumPy reference
             dr, gr = evaluate_numpy(f.f, {"x": tiny[:, 0], "y": tiny[:, 1]},

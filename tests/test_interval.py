@@ -83,23 +83,29 @@ def build_scene(prims, ops):
     return f
 
 
+# Every operation of the table, each as a function of two operands and a parameter in [0, 1).
+_EXPR_OPS = [
+    lambda a, b, c: a + b, lambda a, b, c: a - b * c, lambda a, b, c: a * b,
+    lambda a, b, c: a / (b * b + 0.5), lambda a, b, c: -a, lambda a, b, c: a ** 2,
+    lambda a, b, c: cg.sym_abs(a) ** 1.5, lambda a, b, c: a ** 3,
+    lambda a, b, c: 1.0 / (cg.sym_abs(a) + 0.1), lambda a, b, c: (cg.sym_abs(b) + 0.5) ** a,
+    lambda a, b, c: cg.sym_sqrt(cg.sym_abs(a)), lambda a, b, c: cg.sym_exp(a * 0.5),
+    lambda a, b, c: cg.sym_log(a * a + 0.01), lambda a, b, c: cg.sym_sin(a * (1 + 5 * c)),
+    lambda a, b, c: cg.sym_cos(a), lambda a, b, c: cg.sym_abs(a - c),
+    lambda a, b, c: cg.sym_min(a, b), lambda a, b, c: cg.sym_max(a, b),
+    lambda a, b, c: cg.sym_length(a, b), lambda a, b, c: cg.sym_smin(a, b, 1 + 10 * c),
+    lambda a, b, c: cg.sym_smax(a, b, 0.5 + c), lambda a, b, c: cg.sym_floor(a * 2.0),
+    lambda a, b, c: cg.sym_select(a - c, a, b), lambda a, b, c: cg.sym_qmin(a, b, 0.1 + c),
+    lambda a, b, c: cg.sym_cmin(a, b, 0.1 + c),
+]
+
+
 def _expr(draw_ops):
     """A raw expression using every operation of the table (not only SDF-shaped ones)."""
     e = [X, Y, X * 0.7 - Y, cg.sym_sin(X * 3.0), cg.sym_cos(Y - 0.3)]
     for code, c in draw_ops:
         a, b = e[-1], e[-2 - int(c * 3) % min(len(e) - 1, 4)]
-        e.append([
-            lambda: a + b, lambda: a - b * c, lambda: a * b, lambda: a / (b * b + 0.5),
-            lambda: -a, lambda: a ** 2, lambda: cg.sym_abs(a) ** 1.5, lambda: a ** 3,
-            lambda: 1.0 / (cg.sym_abs(a) + 0.1), lambda: (cg.sym_abs(b) + 0.5) ** a,
-            lambda: cg.sym_sqrt(cg.sym_abs(a)), lambda: cg.sym_exp(a * 0.5),
-            lambda: cg.sym_log(a * a + 0.01), lambda: cg.sym_sin(a * (1 + 5 * c)),
-            lambda: cg.sym_cos(a), lambda: cg.sym_abs(a - c), lambda: cg.sym_min(a, b),
-            lambda: cg.sym_max(a, b), lambda: cg.sym_length(a, b),
-            lambda: cg.sym_smin(a, b, 1 + 10 * c), lambda: cg.sym_smax(a, b, 0.5 + c),
-            lambda: cg.sym_floor(a * 2.0), lambda: cg.sym_select(a - c, a, b),
-            lambda: cg.sym_qmin(a, b, 0.1 + c), lambda: cg.sym_cmin(a, b, 0.1 + c),
-        ][code % 25]())
+        e.append(_EXPR_OPS[code % len(_EXPR_OPS)](a, b, c))
     return e[-1]
 
 

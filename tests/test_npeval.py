@@ -1,5 +1,5 @@
-"""The NumPy path (fastsdf.backends.npeval): agreement with the compiled kernel (values 1e-12 relative,
-gradients 1e-9), pruning of hard unions and intersections that changes no bit, non-finite
+"""The NumPy path (fastsdf.backends.npeval): agreement with the compiled kernel (values 1e-12
+relative, gradients 1e-9), pruning of hard unions and intersections that changes no bit, non-finite
 points, and a first answer that never touches numba. (Every scene of test_tape.py is also
 checked through the NumPy path, by its ``assert_agree``.)"""
 
@@ -11,12 +11,11 @@ import sys
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_tape import _points, assert_agree
 
 import fastsdf as sdf
-from fastsdf.expr.graph import Symbol, sym_length
 from fastsdf.backends.npeval import GROUP_MIN, _Program, compile_numpy
-
-from test_tape import _points, assert_agree
+from fastsdf.expr.graph import Symbol, sym_length
 
 X, Y = Symbol("x"), Symbol("y")
 

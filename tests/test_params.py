@@ -7,8 +7,8 @@ import pytest
 
 import fastsdf as sdf
 from fastsdf.backends.kernel import cache as _cache
-from fastsdf.function import Function
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy, sym_cos, sym_sin
+from fastsdf.function import Function
 
 X, Y = Symbol("x"), Symbol("y")
 rng = np.random.default_rng(7)

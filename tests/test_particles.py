@@ -11,8 +11,8 @@ import pytest
 import fastsdf as sdf
 import fastsdf.particles as phys
 from fastsdf import GridSDF
-from fastsdf.function import Function
 from fastsdf.expr.graph import Symbol, sym_abs
+from fastsdf.function import Function
 from fastsdf.shapes.scenes import seed_world
 
 G = 1.0  # |acceleration| of phys.Gravity() (the notebook's gravity)

@@ -6,21 +6,21 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.image as mpimg  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.collections import EllipseCollection  # noqa: E402
-from matplotlib.colors import to_rgb, to_rgba  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.image import AxesImage  # noqa: E402
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import EllipseCollection
+from matplotlib.colors import to_rgb, to_rgba
+from matplotlib.figure import Figure
+from matplotlib.image import AxesImage
 
-import fastsdf as sdf  # noqa: E402
-from fastsdf.viz import plotting, render  # noqa: E402
-from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf  # noqa: E402
-from fastsdf.viz.render import ParticleLayer, density_image, draw_particles, render_frame  # noqa: E402
+import fastsdf as sdf
+from fastsdf.viz import plotting, render
+from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf
+from fastsdf.viz.render import ParticleLayer, density_image, draw_particles, render_frame
 
 BOUNDS = [(-2, 2), (-2, 2)]
 

@@ -9,12 +9,11 @@ import math
 
 import numpy as np
 import pytest
+from conftest import brute_distance, central_gradient, rotate
 from matplotlib.path import Path
 
 import fastsdf as sdf
 from fastsdf.expr.graph import Symbol, evaluate_numpy, substitute, sym_abs, sym_cmin, sym_qmin
-
-from conftest import brute_distance, central_gradient, rotate
 
 TF = (0.4, (0.3, -0.2))  # a transform every primitive is also built under
 
@@ -130,7 +129,7 @@ def _case(name):
         c, r, t = (0.1, 0.0), 0.7, 0.3
         outline = np.concatenate([_arc_points(c, r - t / 2, 0, 2 * np.pi),
                                   _arc_points(c, r + t / 2, 0, 2 * np.pi)])
-        inside = lambda p: np.abs(np.hypot(*(p - c).T) - r) < t / 2  # noqa: E731
+        inside = lambda p: np.abs(np.hypot(*(p - c).T) - r) < t / 2
         return (lambda: sdf.Ring(c, r, t), outline, inside, 1.0)
     if name.startswith("arc"):
         c, r, ap, t = {"arc": ((0.1, 0.0), 0.8, 2.0, 0.2), "arc_wide": ((0.0, 0.0), 0.8, 5.5, 0.3),
@@ -405,7 +404,7 @@ def test_union_of_exact_is_exact_outside_but_not_inside():
     a, b = sdf.Circle([-0.3, 0], 0.5), sdf.Circle([0.3, 0], 0.5)
     u = a | b
     t = np.linspace(0, 2 * np.pi, 20000)
-    ring = lambda c: np.stack([c[0] + 0.5 * np.cos(t), c[1] + 0.5 * np.sin(t)], -1)  # noqa: E731
+    ring = lambda c: np.stack([c[0] + 0.5 * np.cos(t), c[1] + 0.5 * np.sin(t)], -1)
     boundary = np.concatenate([ring((-0.3, 0)), ring((0.3, 0))])
     boundary = boundary[np.minimum(a(*boundary.T), b(*boundary.T)) >= -1e-12]
     boundary = boundary[np.minimum(np.hypot(boundary[:, 0] + 0.3, boundary[:, 1]),

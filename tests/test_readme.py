@@ -59,7 +59,7 @@ def test_every_readme_python_block_runs(tmp_path, monkeypatch):
             code = compile(scale_down(source), f"README.md:{line}", "exec")
             try:
                 exec(code, namespace)
-            except Exception as exc:  # noqa: BLE001 - name the block that failed
+            except Exception as exc:  # name the block that failed
                 raise AssertionError(f"README.md block at line {line} failed: "
                                      f"{type(exc).__name__}: {exc}\n{source}") from exc
     finally:

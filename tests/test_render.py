@@ -7,15 +7,15 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+import numpy as np
+import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-import fastsdf as sdf  # noqa: E402
-import fastsdf.particles as phys  # noqa: E402
-from fastsdf.viz import render  # noqa: E402
-from fastsdf.viz.render import animate, draw_particles, save_animation  # noqa: E402
+import fastsdf as sdf
+import fastsdf.particles as phys
+from fastsdf.viz import render
+from fastsdf.viz.render import animate, draw_particles, save_animation
 
 # Animations stepped by hand (not saved) are fine to drop.
 pytestmark = pytest.mark.filterwarnings("ignore:Animation was deleted")

@@ -1,5 +1,5 @@
-"""Scratch space of the scene-independent kernels (``fastsdf.backends.kernel.drive``): the buffer is kept per
-Python thread between calls and a small call computes only the lanes it needs. Neither may
+"""Scratch space of the scene-independent kernels (``fastsdf.backends.kernel.drive``): the buffer is
+kept per Python thread between calls and a small call computes only the lanes it needs. Neither may
 change a bit: stale rows must never be read, and two threads must never share a buffer."""
 
 import threading

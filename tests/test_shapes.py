@@ -6,12 +6,11 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import brute_distance, central_gradient, rotate
 
 import fastsdf as sdf
-from fastsdf.shapes.scenes import box_world, mixed_scene
 from fastsdf.expr.graph import evaluate_numpy
-
-from conftest import brute_distance, central_gradient, rotate
+from fastsdf.shapes.scenes import box_world, mixed_scene
 
 
 def _boundary_circle(center, radius, n=20000):
@@ -43,7 +42,8 @@ def test_circle_is_exact_against_sampled_boundary(rng):
     np.testing.assert_allclose(np.abs(d), brute, atol=spacing / 2)
 
 
-@pytest.mark.parametrize("angle,offset", [(0.0, (0.0, 0.0)), (0.4, (0.5, -0.3)), (-2.0, (1.0, 1.0))])
+@pytest.mark.parametrize("angle,offset",
+                         [(0.0, (0.0, 0.0)), (0.4, (0.5, -0.3)), (-2.0, (1.0, 1.0))])
 def test_box_is_exact_against_sampled_boundary(rng, angle, offset):
     minc, maxc = np.array([-0.5, -0.2]), np.array([0.3, 0.6])
     with sdf.transform(angle=angle, offset=offset):
@@ -120,9 +120,11 @@ def test_seed_world_value_matches_notebook_construction(rng):
     p = rng.uniform(-2, 2, (1000, 2))
     X, Y = p.T
     n2 = np.array([1, 1]) / math.sqrt(2)
-    floor = np.minimum(np.minimum(Y + 1.8, n2[0] * X + n2[1] * Y + 1.8), -n2[0] * X + n2[1] * Y + 1.8)
+    floor = np.minimum(np.minimum(Y + 1.8, n2[0] * X + n2[1] * Y + 1.8),
+                       -n2[0] * X + n2[1] * Y + 1.8)
     n4 = np.array([0.1, 1]) / np.hypot(0.1, 1)
-    disc = np.log(np.exp(10 * (np.hypot(X, Y) - 0.5)) + np.exp(10 * (n4[0] * X + n4[1] * Y - 0.3))) / 10
+    disc = np.log(np.exp(10 * (np.hypot(X, Y) - 0.5))
+                  + np.exp(10 * (n4[0] * X + n4[1] * Y - 0.3))) / 10
     ref = -np.log(np.exp(-10 * floor) + np.exp(-10 * disc)) / 10
     np.testing.assert_allclose(f(X, Y), ref, rtol=1e-12, atol=1e-12)
 
@@ -243,9 +245,8 @@ def test_context_managers_nest_and_restore():
 
 
 def test_context_restored_after_exception():
-    with pytest.raises(RuntimeError):
-        with sdf.smoothness(3), sdf.transform(angle=1.0):
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), sdf.smoothness(3), sdf.transform(angle=1.0):
+        raise RuntimeError("boom")
     assert sdf.shapes.current_smoothness() == 0
     assert sdf.Halfspace([1, 0], 0)(np.array([2.0]), np.array([0.0]))[0] == 2.0
 

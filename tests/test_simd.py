@@ -1,19 +1,18 @@
-"""Block kernels: vectorizable shape, agreement with the C-library kernels and the point functions."""
+"""Block kernels: vectorizable shape, agreement with the C-library kernels and the point
+functions."""
 
 import re
 
 import numba
 import numpy as np
 import pytest
+from test_vmath import PACKED, _has_avx2
 
 from fastsdf.backends.kernel.drive import BLOCK_SIG
 from fastsdf.backends.kernel.simd import BLOCK, choose_lanes
-from fastsdf.function import compile_expr
-from fastsdf.function import Function
 from fastsdf.expr.graph import Symbol, evaluate_numpy, sym_exp, sym_log, sym_max
+from fastsdf.function import Function, compile_expr
 from fastsdf.shapes.scenes import box_world, seed_world
-
-from test_vmath import PACKED, _has_avx2
 
 
 def _points(n, seed, nan_every=0):
@@ -87,7 +86,8 @@ def test_table_loop_becomes_the_outer_loop():
     loop = r"for (i\d+)q in range\(_off\[0\], _off\[1\]\):"
     assert re.search(r"^    " + loop + "$", src, re.M)
     block = box_world(20).compiled.module_source
-    block = block[block.index("def _block_vg"):block.index("def batch_vg_par", block.index("def _block_vg"))]
+    start = block.index("def _block_vg")
+    block = block[start:block.index("def batch_vg_par", start)]
     outer = re.search(r"^    " + loop + r"\n((?:        .*\n)+)", block, re.M)
     assert outer, block
     body = outer.group(2)
@@ -104,7 +104,8 @@ def test_loop_free_bodies_interleave_two_lanes():
     chains), each lane reading and writing its own rows of the scratch array."""
     comp = seed_world().compiled
     src = comp.module_source
-    block = src[src.index("def _block_vg"):src.index("def batch_vg_par", src.index("def _block_vg"))]
+    start = src.index("def _block_vg")
+    block = src[start:src.index("def batch_vg_par", start)]
     lanes = choose_lanes(comp.function_source("vg").splitlines()[4:])
     assert lanes == 2
     assert f"    for i in range({BLOCK // 2}):" in block

@@ -112,7 +112,7 @@ def test_borrow_all_keeps_values():
 def kernel_args(n, x, v, r=0.05, m=1.0, cr=0.5, cf=0.2):
     X = np.array(x, dtype=np.float64).reshape(n, 2).copy()
     V = np.array(v, dtype=np.float64).reshape(n, 2).copy()
-    full = lambda val: np.full(n, val, dtype=np.float64)   # noqa: E731
+    full = lambda val: np.full(n, val, dtype=np.float64)
     return X, V, full(m), full(r), full(cr), full(cf)
 
 
@@ -262,7 +262,8 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
 def test_generated_kernel_is_the_step_module_with_one_scene_block():
     head, tail = phys._step_source()
     sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
-    src = open(sim._module.__file__).read()
+    with open(sim._module.__file__) as fh:
+        src = fh.read()
     assert src.startswith(head) and src.endswith(tail)
     assert "# >>> SCENE BLOCK" not in src and "_CACHE = True" in src
 

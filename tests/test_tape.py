@@ -1,6 +1,6 @@
-"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: two independent evaluators
-of one scene must agree to rounding (values 1e-12 relative, gradients 1e-9) on random scenes,
-every primitive kind, smooth blends, transforms, parameters and non-finite points; and the
+"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: two independent
+evaluators of one scene must agree to rounding (values 1e-12 relative, gradients 1e-9) on random
+scenes, every primitive kind, smooth blends, transforms, parameters and non-finite points; and the
 ``backend`` switch of Function (``'auto'`` answers through the tape, then the kernel)."""
 
 import math
@@ -9,14 +9,18 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_codegen import (
+    _long_straight_line_scene,
+    _unstructured_scene,
+    build_scene,
+    operation,
+    placed,
+)
 
 import fastsdf as sdf
+from fastsdf.backends.vm import BLOCK, compile_tape
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy
 from fastsdf.shapes.scenes import box_world, seed_world
-from fastsdf.backends.vm import BLOCK, compile_tape
-
-from test_codegen import (_long_straight_line_scene, _unstructured_scene, build_scene, operation,
-                          placed)
 
 X, Y = Symbol("x"), Symbol("y")
 
@@ -197,7 +201,7 @@ def test_backend_switch_and_errors():
     with pytest.raises(ValueError, match="got symbol .z."):
         compile_tape(X + Symbol("z"), ["x", "y"])
     assert sdf.Function.backend == "kernel"  # nothing changes for users who don't opt in
-    d = f(*p.T)
+    f(*p.T)
     assert f.compiled._tape is None  # the default path never builds a tape
 
 

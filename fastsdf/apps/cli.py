@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import NoReturn, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
 
 __all__ = ["main"]
 
 
 class _Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose errors are one line (no usage block) and exit with 2."""
+
+    _demo: argparse.ArgumentParser  # the demo subcommand's parser (set by build_parser)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -41,8 +44,8 @@ def _grid_size(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line parser (``fastsdf`` and its ``demo`` subcommand)."""
-    from fastsdf.version import __version__
     from fastsdf.apps.demo import DEFAULT_FPS, DEFAULT_FRAMES, WORLDS
+    from fastsdf.version import __version__
 
     parser = _Parser(
         prog="fastsdf",
@@ -92,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0, or 2 after a one-line error)."""
     parser = build_parser()
+    assert isinstance(parser, _Parser)
     args = parser.parse_args(argv)
     if args.command == "demo":
         demo = parser._demo
@@ -100,8 +104,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                        f"advances at least one step)")
         from fastsdf.apps.demo import check_output_dir, run_demo, summary
         extra = {}
+        runner: Callable[..., Any] = run_demo
         if args.workers:
-            from fastsdf.apps.distributed import run_demo
+            from fastsdf.apps.distributed import run_demo as run_distributed_demo
+            runner = run_distributed_demo
             extra["workers"] = args.workers
         try:
             check_output_dir(args.out)
@@ -109,10 +115,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             demo.error(f"--out {args.out!r} is not a writable folder: "
                        f"{exc.strerror or exc}")
         try:
-            res = run_demo(particles=args.particles, steps=args.steps, grid=args.grid,
-                           exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
-                           fps=args.fps, world=args.world, mode=args.mode,
-                           animate=not args.no_animation, **extra)
+            res = runner(particles=args.particles, steps=args.steps, grid=args.grid,
+                         exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
+                         fps=args.fps, world=args.world, mode=args.mode,
+                         animate=not args.no_animation, **extra)
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))

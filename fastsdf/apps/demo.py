@@ -17,8 +17,9 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import IO, Any, Callable
+from typing import IO, Any
 
 import numpy as np
 
@@ -149,6 +150,11 @@ def _video_writer_ext(err: IO[str]) -> str:
     return ".gif"
 
 
+def _load_pair(before: float | None, after: float | None) -> tuple[float, float] | None:
+    """``(load at the start, load at the end)``, or None where the platform has none."""
+    return None if before is None or after is None else (before, after)
+
+
 def _load() -> float | None:
     try:
         return float(os.getloadavg()[0])
@@ -156,7 +162,8 @@ def _load() -> float | None:
         return None
 
 
-def _timed_advance(sim, k: int, timing: dict, outside_share) -> None:
+def _timed_advance(sim: Any, k: int, timing: dict[str, Any], outside_share: Callable[[], float]
+                   ) -> None:
     """Advance ``sim`` by ``k`` steps, keeping the demo's timing record: the first call, which
     compiles (or loads) the kernel, is timed apart from the rest; ``outside_share()`` is the
     share of particles outside the grid now, standing for the steps before it."""
@@ -203,8 +210,8 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
              mode: str = "exact", stream: IO[str] | None = None) -> DemoResult:
     """Simulate ``particles`` particles for ``steps`` steps (1/30 s each) in a notebook world.
 
-    ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the GridSDF's
-    samples per axis over :data:`BOUNDS`; ``mode``: the grid's answer outside its bounds
+    ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the
+    GridSDF's samples per axis over :data:`BOUNDS`; ``mode``: the grid's answer outside its bounds
     (``'exact'``: the exact SDF, ``'nearest'``: clamped to the edge); ``exact=True`` queries the
     exact compiled SDF everywhere instead of a grid. Particles start in the notebook's blob,
     redrawn where they would start inside matter (:func:`spawn_in_free_space`). ``frames`` video
@@ -218,8 +225,9 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
 
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.render import world_figure, animate as _animate, render_frame, save_animation, sim_title
+    from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
     for name, value, low in (("particles", particles, 1), ("steps", steps, 1), ("grid", grid, 2),
                              ("frames", frames, 1), ("fps", fps, 1)):
@@ -251,10 +259,11 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
         sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
 
     sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
-    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
+    # (fastsdf.particles is excluded from type checking while it becomes a package)
+    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))  # type: ignore[has-type]
     respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
 
-    timing = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
     def outside_share() -> float:
         x = sim.p["x"]
@@ -303,7 +312,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
         exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
         respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
-        load=None if timing.get("load0") is None else (timing["load0"], _load()),
+        load=_load_pair(timing.get("load0"), _load()),
         animation=animation_path, last_frame=last)
 
 

@@ -55,10 +55,11 @@ import pickle
 import time
 import uuid
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from typing import Any, Sequence
 from numpy.typing import ArrayLike
 
 __all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
@@ -70,20 +71,20 @@ POLL_SECONDS = 0.5
 
 def _require_dask():
     try:
-        import dask  # noqa: F401
+        import dask  # noqa: F401  (only whether it imports)
         import distributed  # noqa: F401
     except ImportError as exc:  # pragma: no cover - the extra is installed in CI
         raise ImportError("fastsdf.apps.distributed needs dask.distributed: pip install "
                           "'fastsdf[distributed]'") from exc
 
 
-def _digest(obj) -> str:
+def _digest(obj: object) -> str:
     return hashlib.sha256(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)).hexdigest()[:32]
 
 
-def _check_world(f, name: str = "f"):
-    from fastsdf.function import Function
+def _check_world(f: Any, name: str = "f") -> Any:
     from fastsdf.fields.grid import GridSDF
+    from fastsdf.function import Function
     if not isinstance(f, (Function, GridSDF)):
         raise TypeError(f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
                         f"of type {type(f).__name__}")
@@ -93,7 +94,7 @@ def _check_world(f, name: str = "f"):
 # ---------------------------------------------------------------------------------------------
 # Point sets.
 
-def _evaluate_block(xb, yb, f, gradient):
+def _evaluate_block(xb: np.ndarray, yb: np.ndarray, f: Any, gradient: bool) -> np.ndarray:
     if gradient:
         d, g = f(xb, yb, compute_gradient=True)
         out = np.empty(d.shape + (3,))
@@ -119,25 +120,25 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
     import dask.array as da
 
     _check_world(f)
-    x = x if isinstance(x, da.Array) else da.asarray(x)
-    y = y if isinstance(y, da.Array) else da.asarray(y)
-    for name, a in (("x", x), ("y", y)):
+    xd = x if isinstance(x, da.Array) else da.asarray(x)
+    yd = y if isinstance(y, da.Array) else da.asarray(y)
+    for name, a in (("x", xd), ("y", yd)):
         if a.dtype.kind not in "iuf":
             raise TypeError(f"{name} must hold real numbers, got dtype {a.dtype}")
-    if x.shape != y.shape:
-        raise ValueError(f"x and y must have the same shape, got {x.shape} and {y.shape}")
-    y = y.rechunk(x.chunks)
+    if xd.shape != yd.shape:
+        raise ValueError(f"x and y must have the same shape, got {xd.shape} and {yd.shape}")
+    yd = yd.rechunk(xd.chunks)
     world = dask.delayed(f, name="fastsdf-world-" + _digest(f), pure=True)
     gradient = bool(compute_gradient)
     if not gradient:
-        return da.map_blocks(_evaluate_block, x, y, world, gradient, dtype=np.float64,
-                             meta=np.empty((0,) * x.ndim), name="fastsdf-evaluate-"
-                             + dask.base.tokenize(world.key, x.name, y.name, False))
-    out = da.map_blocks(_evaluate_block, x, y, world, gradient, dtype=np.float64,
-                        new_axis=x.ndim, chunks=x.chunks + ((3,),),
-                        meta=np.empty((0,) * (x.ndim + 1)),
-                        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, x.name,
-                                                                          y.name, True))
+        return da.map_blocks(_evaluate_block, xd, yd, world, gradient, dtype=np.float64,
+                             meta=np.empty((0,) * xd.ndim), name="fastsdf-evaluate-"
+                             + dask.base.tokenize(world.key, xd.name, yd.name, False))
+    out = da.map_blocks(_evaluate_block, xd, yd, world, gradient, dtype=np.float64,
+                        new_axis=xd.ndim, chunks=xd.chunks + ((3,),),
+                        meta=np.empty((0,) * (xd.ndim + 1)),
+                        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, xd.name,
+                                                                          yd.name, True))
     return out[..., 0], out[..., 1:]
 
 
@@ -183,9 +184,9 @@ class _Config:
     shards: int
     seed: object
     parameters: tuple
-    init: object = None
+    init: Callable | None = None
 
-    def build(self, i: int):
+    def build(self, i: int) -> tuple[Any, Any]:
         """Shard ``i`` and what ``init(sim, i)`` returned (None without ``init``)."""
         from fastsdf.particles import ParticleSimulation
         sizes = shard_sizes(self.n, self.shards)
@@ -194,14 +195,14 @@ class _Config:
         return sim, (self.init(sim, i) if self.init is not None else None)
 
 
-def _workers(client) -> dict:
+def _workers(client: Any) -> dict:
     """The scheduler's live workers, ``{address: info}``, asked now. (Not
     ``client.scheduler_info()``: the client refreshes that cache in the background without the
     worker list, so reading it right after a refresh can show an empty cluster.)"""
     return dict(client.sync(client.scheduler.identity, n_workers=-1)["workers"])
 
 
-def _set_threads(threads: int):
+def _set_threads(threads: int) -> None:
     import numba
     numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
 
@@ -219,10 +220,10 @@ class _Group:
         self.init_results = {i: b[1] for i, b in built.items()}
         self.steps = {i: 0 for i in indices}
 
-    def initialized(self):
+    def initialized(self) -> tuple[dict, dict]:
         return dict(self.steps), self.init_results
 
-    def run(self, steps: int, generators: list):
+    def run(self, steps: int, generators: list) -> tuple[dict, dict]:
         _set_threads(self.threads)
         for i, sim in self.sims.items():
             sim.force_generators = list(generators)
@@ -230,7 +231,7 @@ class _Group:
             self.steps[i] += steps
         return dict(self.steps), {i: sim.t for i, sim in self.sims.items()}
 
-    def summary(self, generators: list):
+    def summary(self, generators: list) -> tuple[dict, dict]:
         out = {}
         for i, sim in self.sims.items():
             sim.force_generators = list(generators)
@@ -242,7 +243,7 @@ class _Group:
             out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
         return dict(self.steps), out
 
-    def density(self, bounds, shape):
+    def density(self, bounds: tuple, shape: tuple) -> tuple[dict, np.ndarray]:
         from fastsdf.viz.render import density_image
         _set_threads(self.threads)
         total = np.zeros(shape)
@@ -251,14 +252,15 @@ class _Group:
             total += density_image(x[:, 0], x[:, 1], bounds, shape)
         return dict(self.steps), total
 
-    def take(self, local: dict):
+    def take(self, local: dict) -> tuple[dict, dict]:
         out = {}
         for i, rows in local.items():
             p = self.sims[i].p
-            out[i] = {k: np.array(p[k][rows]) for k in p.keys()}
+            # (Particles has keys() but is not iterable)
+            out[i] = {k: np.array(p[k][rows]) for k in p.keys()}  # noqa: SIM118
         return dict(self.steps), out
 
-    def particles(self):
+    def particles(self) -> tuple[dict, dict]:
         return dict(self.steps), {i: sim.p.copy() for i, sim in self.sims.items()}
 
 
@@ -328,6 +330,22 @@ class DistributedSimulation:
     Each worker holds its shards' state (64 bytes per particle in float64); the client holds
     only small results. Use as a context manager or call :meth:`close` to free the workers.
     """
+
+    client: Any
+    n: int
+    shards: int
+    dtype: np.dtype
+    steps: int
+    t: float
+    dt: float
+    workers: list[str]
+    init_results: list
+    force_generators: list
+    _lost: ShardLostError | None
+    _groups: dict[str, list[int]]
+    _futures: list
+    _config_future: Any
+    _actors: dict[str, Any] | None
 
     def __init__(self, world: Any, n: int, *, client: Any, shards: int | None = None,
                  seed: Any = None, force_generators: Sequence = (), timestep: float = 1 / 30,
@@ -409,7 +427,7 @@ class DistributedSimulation:
                     self.init_results[i] = value
 
     # -- calls and loss detection -----------------------------------------------------------
-    def _lost_error(self, shards, detail=""):
+    def _lost_error(self, shards: Sequence[int], detail: str = "") -> ShardLostError:
         # Shards share their worker's fate: name every shard that lived on a lost worker.
         gone = {self.workers[i] for i in shards}
         shards = sorted(i for i, w in enumerate(self.workers) if w in gone)
@@ -420,7 +438,7 @@ class DistributedSimulation:
         alive = set(_workers(self.client))
         return [i for i, w in enumerate(self.workers) if w not in alive]
 
-    def _gather(self, pending, check_steps=True) -> list:
+    def _gather(self, pending: list, check_steps: bool = True) -> list:
         """Results of ``(shard, future)`` pairs (Dask futures or actor futures), in shard order.
 
         Waits in slices of :data:`POLL_SECONDS`; between slices it asks the scheduler which
@@ -444,7 +462,7 @@ class DistributedSimulation:
                         if dead:
                             raise self._lost_error(dead, "worker no longer in the cluster") \
                                 from None
-                    except Exception as exc:  # noqa: BLE001
+                    except Exception as exc:
                         self._raise_if_lost(i, exc)
                         raise
         out = [results[i] for i in sorted(results)]
@@ -456,7 +474,7 @@ class DistributedSimulation:
                                               f"simulation's {self.steps}")
         return out
 
-    async def _gather_async(self, pending):
+    async def _gather_async(self, pending: list) -> dict:
         import asyncio
 
         async def one(fut):
@@ -486,7 +504,7 @@ class DistributedSimulation:
                 task.cancel()
         return results
 
-    def _raise_if_lost(self, i, exc):
+    def _raise_if_lost(self, i: int, exc: BaseException) -> None:
         """Raise :class:`ShardLostError` if ``exc`` says that shard ``i``'s worker is gone."""
         from distributed.comm.core import CommClosedError
         name = type(exc).__name__
@@ -496,7 +514,7 @@ class DistributedSimulation:
                 isinstance(exc, RuntimeError) and ("lost" in text or "released" in text)):
             raise self._lost_error([i], f"{name}: {exc}") from None
 
-    def _call(self, method: str, *args, workers=None) -> list:
+    def _call(self, method: str, *args: Any, workers: dict | None = None) -> list:
         """Call ``method(*args)`` on the actor of every worker (or of the given ones, a dict
         ``{worker: args}``) concurrently; ``[(steps, payload)]`` in worker order."""
         if self._lost is not None:
@@ -555,10 +573,10 @@ class DistributedSimulation:
 
     def density(self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)),
                 shape: tuple = (400, 400)) -> np.ndarray:
-        """Particle counts per pixel: the sum of the shards' :func:`fastsdf.viz.render.density_image`
-        (float64, ``shape=(H, W)``, row 0 at the bottom, covering ``bounds``; exact integer
-        counts, so the order of summation does not matter). Each worker sends one summed image:
-        the client holds O(workers * H * W), not O(n)."""
+        """Particle counts per pixel: the sum of the shards'
+        :func:`fastsdf.viz.render.density_image` (float64, ``shape=(H, W)``, row 0 at the bottom,
+        covering ``bounds``; exact integer counts, so the order of summation does not matter). Each
+        worker sends one summed image: the client holds O(workers * H * W), not O(n)."""
         from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import check_shape
         bounds = check_bounds(bounds)
@@ -622,23 +640,22 @@ class DistributedSimulation:
         futures = self._futures + [self._config_future]
         self._actors = None
         self._futures = []
-        try:
+        with contextlib.suppress(Exception):  # a closed client has nothing left to free
             self.client.cancel(futures)
-        except Exception:  # noqa: BLE001 - a closed client has nothing left to free
-            pass
 
-    def __enter__(self):
+    def __enter__(self) -> DistributedSimulation:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"DistributedSimulation(n={self.n}, shards={self.shards}, "
                 f"workers={len(set(self.workers))}, t={self.t:.4g}, steps={self.steps})")
 
 
-def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs) -> Any:
+def local_cluster(workers: int = 2, threads_per_worker: int | None = None,
+                  **kwargs: Any) -> Any:
     """A ``dask.distributed.LocalCluster`` of ``workers`` processes on the loopback interface
     (127.0.0.1, no dashboard), ``threads_per_worker`` threads each (default: the machine's
     cores divided among the workers, at least 1). Close it (``with`` or ``.close()``)."""
@@ -658,15 +675,15 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
 # ---------------------------------------------------------------------------------------------
 # The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
 
-def _draw_density(ax, image, bounds, cax=None):
+def _draw_density(ax: Any, image: np.ndarray, bounds: tuple, cax: Any = None) -> Any:
     """Show a density image (counts per pixel) as :func:`fastsdf.viz.render.draw_particles` does:
     the same colour map, logarithmic from 1 count, empty pixels transparent; with ``cax``, its
     colour bar of particles per pixel there."""
     from matplotlib.colors import LinearSegmentedColormap, LogNorm
 
     from fastsdf.viz.render import PARTICLE_CMAP_COLORS
-    cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
-    cmap = cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
+    base = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
+    cmap = base.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
     (x0, x1), (y0, y1) = bounds
     shown = ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
                       extent=(x0, x1, y0, y1), cmap=cmap,
@@ -686,7 +703,7 @@ class _Spawn:
     world: object
     seed: int
 
-    def __call__(self, sim, i):
+    def __call__(self, sim: Any, i: int) -> int:
         from fastsdf.apps.demo import spawn_in_free_space
         return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
 
@@ -715,7 +732,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     from fastsdf.apps import demo as _demo
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity
-    from fastsdf.viz.render import world_figure, save_animation
+    from fastsdf.viz.render import save_animation, world_figure
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
@@ -756,7 +773,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             sdf, particles, client=client, seed=seed, timestep=1 / 30,
             force_generators=[Gravity(acceleration=(0.0, -1.0))], init=_Spawn(f, seed)))
         sdf_name += f", particles on {workers} Dask worker processes"
-        timing = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+        timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
         def outside_share() -> float:
             # Particles inside the bounds, edges included: a 1x1 density image counts them.

@@ -7,8 +7,8 @@ with NumPy alone: one whole-array operation per node of the expression, the poin
 blocks that stay in the cache. It is the path of ``backend='numpy'`` and of the first calls of
 ``backend='auto'`` (see :class:`fastsdf.function.Function`).
 
-The formulas are those of the compiled kernels (:mod:`fastsdf.backends.kernel.codegen`): chains of ``min``/
-``max``/``smin``/``smax`` are flattened, hard ones streamed operand by operand (the earlier
+The formulas are those of the compiled kernels (:mod:`fastsdf.backends.kernel.codegen`): chains of
+``min``/ ``max``/``smin``/``smax`` are flattened, hard ones streamed operand by operand (the earlier
 operand wins a tie), smooth ones as a log-sum-exp relative to their extremum (the kernels'
 streamed sum, to rounding), ``length`` as ``sqrt(a*a + b*b)`` with the ``hypot`` fallback, the
 other operations by the NumPy reference of :mod:`fastsdf.expr.ops`.
@@ -31,9 +31,11 @@ the gradient only of the winner.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
-from typing import Any, Sequence
+from numpy.typing import ArrayLike
 
 from fastsdf.expr.graph import Expr
 from fastsdf.expr.ops import OPS
@@ -70,11 +72,12 @@ def _flatten(node: Expr) -> list:
     return out
 
 
-def _kids(node: Expr):
+def _kids(node: Expr) -> Sequence[Expr]:
     return _flatten(node) if node.op in _CHAINS else node.args
 
 
-def _linearize(root: Expr, slots: bool = False, leaf=None):
+def _linearize(root: Expr, slots: bool = False, leaf: Callable | None = None
+               ) -> tuple[list, list]:
     """``(steps, consts)``: ``steps[i] = (node, refs)`` in evaluation order, each ref
     ``('n', i)`` (the value of step i) or ``('c', j)`` (constant j: ``consts[j]``, one per
     occurrence when ``slots``, else one per distinct constant node). ``leaf(node, kids)``, if
@@ -82,8 +85,9 @@ def _linearize(root: Expr, slots: bool = False, leaf=None):
     and nothing below it is visited."""
     index: dict = {}
     cindex: dict = {}
-    steps, consts = [], []
-    stack = [(root, None)]
+    steps: list[tuple] = []
+    consts: list = []
+    stack: list[tuple] = [(root, None)]
     while stack:
         node, kids = stack.pop()
         if id(node) in index:
@@ -149,7 +153,7 @@ class _Program:
                 if kind == "n":
                     last[j] = i
         last[-1] = len(steps)
-        self.free = [[] for _ in steps]
+        self.free: list[list[int]] = [[] for _ in steps]
         for j, i in enumerate(last):
             if i < len(steps):
                 self.free[i].append(j)
@@ -162,7 +166,8 @@ class _Program:
         """Nodes evaluated per point without pruning."""
         return len(self.steps) - len(self.chains) + sum(c.size for c in self.chains.values())
 
-    def run(self, x, y, consts, grad: bool, params: dict | None = None, prune: bool = True):
+    def run(self, x: Any, y: Any, consts: Sequence, grad: bool, params: dict | None = None,
+            prune: bool = True) -> tuple[Any, Any]:
         """Value (and gradient ``[gx, gy]``, each an array, a float or None for zero) at the
         points ``x, y`` (arrays of equal shape, or anything that broadcasts); ``consts[j]`` is
         constant j (a float, or an array over the points)."""
@@ -421,14 +426,14 @@ class _Group:
                 self.cols.append(np.ascontiguousarray(table[:, j]))
         self.lip = lip
 
-    def consts(self, members: np.ndarray | None):
+    def consts(self, members: np.ndarray | None) -> list:
         """Constant slots for the rows ``members`` (arrays) or, if None, for every member."""
         if members is None:
             return self.cols
         return [c if isinstance(c, float) else c.take(members) for c in self.cols]
 
 
-def _matcher(prog: _Program):
+def _matcher(prog: _Program) -> Callable:
     """A function ``operand -> constants or None``: the operand's constants if it has the
     shape of ``prog`` (a program with constant slots), else None.
 
@@ -546,7 +551,8 @@ class _Chain:
                    for g in self.groups) + \
             sum(_general_cost(q, n) for _, q in self.others if not isinstance(q, float))
 
-    def evaluate(self, xs, ys, grad: bool, params, prune: bool = True):
+    def evaluate(self, xs: Any, ys: Any, grad: bool, params: dict | None, prune: bool = True
+                 ) -> tuple[Any, Any]:
         """Value and gradient (components: arrays, floats or None) at the points: each group's
         extremum (pruned), then every operand in chain order, streamed with the kernels' tie
         rule (the earlier operand wins)."""
@@ -563,7 +569,9 @@ class _Chain:
                 continue
             v, gg = prog.run(xs, ys, prog.consts, grad, params, prune)
             parts.append((np.full(len(xs), p), v, gg))
-        m = mg = mp = None
+        m: Any = None
+        mg: Any = None
+        mp: Any = None
         for pos, v, gg in parts:
             v = np.broadcast_to(v, xs.shape)
             if m is None:
@@ -582,7 +590,9 @@ class _Chain:
         return bool(self.groups)
 
 
-def _group_bounds(group: _Group, members, cx, cy, hx, hy, scale):
+def _group_bounds(group: _Group, members: np.ndarray | None, cx: np.ndarray, cy: np.ndarray,
+                  hx: np.ndarray, hy: np.ndarray, scale: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Sound bounds ``(lo, hi)`` of the members ``members`` over the tiles of centres ``cx,
     cy`` (arrays over the pairs) and half-sizes ``hx, hy``."""
     half = math.hypot(hx, hy)
@@ -600,11 +610,14 @@ def _group_bounds(group: _Group, members, cx, cy, hx, hy, scale):
     return _interval_bounds(group, members, cx, cy, hx, hy)
 
 
-def _interval_bounds(group: _Group, members, cx, cy, hx, hy):
+def _interval_bounds(group: _Group, members: np.ndarray | None, cx: np.ndarray,
+                     cy: np.ndarray, hx: np.ndarray, hy: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Interval arithmetic over the shape's program (the rules of :mod:`fastsdf.expr.ops`) for the
     tiles ``[cx - hx, cx + hx] x [cy - hy, cy + hy]`` (``hx, hy`` include a sliver)."""
     consts = group.consts(members)
-    lo_s, hi_s = [], []
+    lo_s: list = []
+    hi_s: list = []
     with np.errstate(all="ignore"):
         for node, refs in group.prog.steps:
             if node.op == "sym":
@@ -649,7 +662,8 @@ def _runs(codes):
     return np.flatnonzero(np.concatenate(([True], codes[1:] != codes[:-1])))
 
 
-def _prune(group: _Group, sign: float, xs, ys, bounds, splits: Sequence[int]):
+def _prune(group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, bounds: tuple,
+           splits: Sequence[int]) -> tuple:
     """Leaf tiles of the points and the surviving members per leaf: ``(leaf of each point,
     offsets, act)``: leaf ``t``'s members are ``act[offs[t]:offs[t + 1]]``, in chain order.
 
@@ -744,7 +758,8 @@ def _snap(xs, ys):
     return tuple(out)
 
 
-def _eval_group(group: _Group, sign: float, xs, ys, grad: bool, prune: bool):
+def _eval_group(group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, grad: bool,
+                prune: bool) -> tuple:
     """The extremum over the group's members at finite points: value, gradient and the chain
     position of the winner per point."""
     n = len(xs)
@@ -809,7 +824,7 @@ class NumpyScene:
         self._prog = _Program(expr, self.xname, prune=True)
 
     @property
-    def chain(self) -> "_Chain | None":
+    def chain(self) -> _Chain | None:
         """The pruned chain at the root (None if the root is not one)."""
         return self._prog.chains.get(len(self._prog.steps) - 1)
 
@@ -879,8 +894,9 @@ class NumpyScene:
             grad[:] = np.nan
             grad[ok] = g
 
-    def __call__(self, x, y, compute_gradient: bool = False, params: dict | None = None,
-                 prune: bool = True) -> Any:
+    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
+                 params: dict | None = None, prune: bool = True
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         from fastsdf.expr.points import as_points
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]

@@ -1,10 +1,10 @@
 """Pruning per tile: evaluate only the operands of a chain that can matter near a point.
 
 The generated kernels evaluate every loop over a constant table ("group": the same-shape
-operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.backends.kernel.codegen`) over a list of
-rows given as data. A :class:`PrunePlan` covers a rectangle with tiles and, from sound interval
-bounds of every operand over every tile (:mod:`fastsdf.expr.interval`), keeps per tile only the rows
-that can matter:
+operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.backends.kernel.codegen`)
+over a list of rows given as data. A :class:`PrunePlan` covers a rectangle with tiles and, from
+sound interval bounds of every operand over every tile (:mod:`fastsdf.expr.interval`), keeps per
+tile only the rows that can matter:
 
 * hard ``min``: operand ``i`` is dropped where ``lo_i > min_j hi_j`` (``j`` over every operand of
   the chain); it can never be the minimum (nor tie with it) in the tile, so value and gradient
@@ -21,16 +21,17 @@ that can matter:
   blend is exactly the running value, value and gradient: bit-identical.
 
 Points are sorted by tile (a counting sort) and run through the scene's SIMD block functions
-(:mod:`fastsdf.backends.kernel.simd`, driven by :func:`fastsdf.backends.kernel.drive.tiles_par`) with each tile's row lists as
-data: pruning never recompiles anything. A tile's points fill whole blocks of 512; the last few
-points of consecutive tiles share blocks, which run the union of those tiles' lists (a superset
-of the rows that can matter visits them in the same order: the same bits).
+(:mod:`fastsdf.backends.kernel.simd`, driven by :func:`fastsdf.backends.kernel.drive.tiles_par`)
+with each tile's row lists as data: pruning never recompiles anything. A tile's points fill whole
+blocks of 512; the last few points of consecutive tiles share blocks, which run the union of those
+tiles' lists (a superset of the rows that can matter visits them in the same order: the same bits).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 from llvmlite import ir
@@ -64,7 +65,9 @@ class PrunePlan:
     def fraction(self) -> float:
         """Evaluated rows over all rows, averaged over tiles (1 = nothing pruned)."""
         total = sum(self.sizes)
-        return float(sum(k.sum() for k in self.kept) / (total * self.nx * self.ny)) if total else 1.0
+        if not total:
+            return 1.0
+        return float(sum(k.sum() for k in self.kept) / (total * self.nx * self.ny))
 
     def report(self) -> dict:
         """A summary: tiles, bounds, operands, survivors per tile (mean, max), the fraction
@@ -102,7 +105,7 @@ def _steps_bounds(group, ranges):
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
-def _per_member(steps) -> bool:
+def _per_member(steps: list) -> bool:
     """Whether a group's members must be bounded one by one: a compiled primitive with numeric
     arguments (an ellipse's axes), which its interval rule reads from the node itself. A
     polygon's only arguments are its coordinates (its vertices are the node's structure, the
@@ -173,13 +176,14 @@ def _template_bounds(steps, cols, ranges, shape, hint):
 
 
 def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
-    """The :class:`PrunePlan` of ``groups`` (from :func:`fastsdf.backends.kernel.codegen.generate_module`)
-    over ``bounds = ((x0, x1), (y0, y1))`` cut into ``nx x ny`` tiles."""
+    """The :class:`PrunePlan` of ``groups`` (from
+    :func:`fastsdf.backends.kernel.codegen.generate_module`) over ``bounds = ((x0, x1), (y0, y1))``
+    cut into ``nx x ny`` tiles."""
     with gc_paused():  # a bulk pass (see fastsdf.expr.graph._GCPaused)
         return _make_plan(groups, bounds, nx, ny, tol)
 
 
-def _make_plan(groups, bounds, nx, ny, tol):
+def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None) -> PrunePlan:
     t0 = time.perf_counter()
     ranges = _tile_ranges(bounds, nx, ny)
     T = nx * ny
@@ -188,7 +192,7 @@ def _make_plan(groups, bounds, nx, ny, tol):
     cache: dict = {}
 
     class _Bounds:
-        def __getitem__(self, gi):
+        def __getitem__(self, gi: int) -> tuple:
             if gi not in cache:
                 cache[gi] = _steps_bounds(groups[gi], ranges)
             return cache[gi]
@@ -198,7 +202,7 @@ def _make_plan(groups, bounds, nx, ny, tol):
     chains: dict = {}
     for gi, g in enumerate(groups):
         chains.setdefault(id(g["chain"]), []).append(gi)
-    keep = [None] * len(groups)
+    keep: list[Any] = [None] * len(groups)  # (every slot is set below: an array per group)
     for gis in chains.values():
         g0 = groups[gis[0]]
         op, k = g0["op"], g0["k"]
@@ -332,7 +336,7 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
     T0 = levels[0][1] * levels[0][2]
     pairs = [(np.repeat(np.arange(len(groups[gi]["members"])), T0),
               np.tile(np.arange(T0), len(groups[gi]["members"]))) for gi in gis]
-    for li, (s, lnx, lny, lranges) in enumerate(levels):
+    for li, (_s, lnx, lny, lranges) in enumerate(levels):
         fine = li == len(levels) - 1
         Tl = lnx * lny
         bounds = [_pair_bounds(groups[gi], h, mem, til, lranges)
@@ -344,7 +348,7 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
         H = np.full(Tl, np.inf if lower else -np.inf)
         F = np.full(Tl, np.inf if lower else -np.inf)
         red = np.minimum if lower else np.maximum
-        for (lo, hi), (mem, til) in zip(bounds, pairs):
+        for (lo, hi), (_mem, til) in zip(bounds, pairs):
             red.at(H, til, hi if lower else lo)
             red.at(F, til, lo if lower else hi)
         for olo, ohi in others:
@@ -464,7 +468,7 @@ def bin_points(xs: np.ndarray, ys: np.ndarray, plan: PrunePlan) -> tuple:
     return _bin(xs, ys, x0, y0, plan.nx / (x1 - x0), plan.ny / (y1 - y0), plan.nx, plan.ny)
 
 
-def snap_bounds(xs, ys):
+def snap_bounds(xs: np.ndarray, ys: np.ndarray) -> tuple[tuple[float, float], ...] | None:
     """A rectangle holding the finite points, snapped outward to a coarse grid so that calls on
     similar point sets share one plan. None if there are no finite points."""
     ok = np.isfinite(xs) & np.isfinite(ys)

@@ -9,16 +9,16 @@ the whole block (the dispatch costs once per block, not per point), with a regis
 ``BLOCK`` values (and two gradient rows) per live value. Registers are reused once their value
 is dead (linear scan), so the register file follows the scene's width, not its size.
 
-The tape follows the compiled code (:mod:`fastsdf.backends.kernel.codegen`) operation by operation: the same
-formulas for values and partial derivatives (the table of :mod:`fastsdf.expr.ops`), chains of
-``min``/``max``/``smin``/``smax`` flattened and streamed operand by operand in the generated
+The tape follows the compiled code (:mod:`fastsdf.backends.kernel.codegen`) operation by operation:
+the same formulas for values and partial derivatives (the table of :mod:`fastsdf.expr.ops`), chains
+of ``min``/``max``/``smin``/``smax`` flattened and streamed operand by operand in the generated
 code's order with its tie rule (the earlier operand wins), smooth chains as the same online
-log-sum-exp, the same branch-free ``exp``/``log``/``length`` of :mod:`fastsdf.backends.kernel.vmath`, the same
-compiled primitives of :mod:`fastsdf.backends.kernel.prims`. Gradients are forward mode with the same one-sided
-conventions at kinks; a gradient component known to be zero is never multiplied by a partial
-(as the generated code omits it). Results agree with the compiled kernels to rounding (tested:
-values to 1e-12 relative, gradients to 1e-9). Non-finite input points give NaN for those
-points only.
+log-sum-exp, the same branch-free ``exp``/``log``/``length`` of
+:mod:`fastsdf.backends.kernel.vmath`, the same compiled primitives of
+:mod:`fastsdf.backends.kernel.prims`. Gradients are forward mode with the same one-sided conventions
+at kinks; a gradient component known to be zero is never multiplied by a partial (as the generated
+code omits it). Results agree with the compiled kernels to rounding (tested: values to 1e-12
+relative, gradients to 1e-9). Non-finite input points give NaN for those points only.
 
 Runtime parameters (:func:`fastsdf.expr.graph.Param`, time ``t``) are inputs of the tape (read from
 an array per call); the time derivative (``time_derivative=True``) is not offered by the tape.
@@ -35,11 +35,12 @@ once numba's one-time setup in the process is paid or worth paying; see
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numba
 import numpy as np
 from numba import njit, prange
-from typing import Any, Sequence
 from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel import prims as _P
@@ -142,7 +143,7 @@ class Tape:
 class _Builder:
     """Instructions over virtual registers (one per instruction; register allocation later)."""
 
-    def __init__(self, symbol_names):
+    def __init__(self, symbol_names: Sequence[str]) -> None:
         self.names = tuple(symbol_names)
         self.rows: list = []      # [op, dst(virtual), a, b, c, d, mask]
         self.consts: list = []
@@ -218,7 +219,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
     code, nreg = _allocate(b, root)
     return Tape(code, np.asarray(b.consts, dtype=np.float64),
                 np.asarray(b.table, dtype=np.float64).reshape(-1, 2), nreg, int(code[root, 1]),
-                sorted(b.params, key=b.params.get), b.defaults, nodes)
+                sorted(b.params, key=lambda name: b.params[name]), b.defaults, nodes)
 
 
 def _plan(planner, node):
@@ -282,7 +283,7 @@ _IMMEDIATE = {("add", 1): _ADDK, ("add", 0): _ADDK, ("sub", 1): _SUBK, ("sub", 0
               ("mul", 1): _MULK, ("mul", 0): _MULK, ("div", 1): _DIVK}
 
 
-def _emit_node(b: _Builder, node: Expr, reg) -> int:
+def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
     op = node.op
     if op in ("add", "sub", "mul", "div"):
         for j in (1, 0):  # one constant argument (two are folded when the graph is built)
@@ -354,7 +355,7 @@ def _reg_columns(op):
     return (2, 3)
 
 
-def _allocate(b: _Builder, root: int):
+def _allocate(b: _Builder, root: int) -> tuple[np.ndarray, int]:
     """Physical registers by linear scan: a register is free after its value's last use. A
     chain's steps and end update the accumulator in place (and a smooth chain's sum of weights);
     other destinations never share a register with their own operands."""

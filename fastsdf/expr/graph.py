@@ -33,10 +33,11 @@ import numbers
 import struct
 import threading
 import weakref
-from _weakref import _remove_dead_weakref
+from _weakref import _remove_dead_weakref  # type: ignore[attr-defined]  # not in typeshed
+from collections.abc import Callable
+from typing import Any, Literal, TypeGuard
 
 import numpy as np
-from typing import Any
 
 from fastsdf.expr.ops import OPS, chain_rule_numpy, fmt_const
 
@@ -68,9 +69,11 @@ class _Ref(weakref.ref):
     is collected)."""
 
     __slots__ = ("key",)
+    key: tuple
 
 
-def _forget(ref, _remove=_remove_dead_weakref, _intern=_INTERN):
+def _forget(ref: _Ref, _remove: Callable = _remove_dead_weakref,
+            _intern: dict = _INTERN) -> None:
     # Atomic: removes the entry only if it still is this (dead) reference.
     _remove(_intern, ref.key)
 
@@ -83,7 +86,7 @@ def _float_key(value: float) -> bytes:
     return _pack_double(value)
 
 
-_NO_SYMBOLS = frozenset()
+_NO_SYMBOLS: frozenset = frozenset()
 
 
 class _GCPaused:
@@ -102,7 +105,7 @@ class _GCPaused:
     _depth = 0
     _was_enabled = False
 
-    def __enter__(self):
+    def __enter__(self) -> _GCPaused:
         with _GCPaused._lock:
             if _GCPaused._depth == 0:
                 _GCPaused._was_enabled = gc.isenabled()
@@ -110,7 +113,7 @@ class _GCPaused:
             _GCPaused._depth += 1
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> Literal[False]:
         with _GCPaused._lock:
             _GCPaused._depth -= 1
             if _GCPaused._depth == 0 and _GCPaused._was_enabled:
@@ -121,7 +124,7 @@ class _GCPaused:
 gc_paused = _GCPaused
 
 
-def _param_set(op, args, attr) -> frozenset:
+def _param_set(op: str, args: tuple, attr: Any) -> frozenset:
     """``(name, default)`` of the runtime parameters a new node depends on (O(1) per node, as
     :func:`_symbol_set`)."""
     if op == "param":
@@ -133,7 +136,7 @@ def _param_set(op, args, attr) -> frozenset:
     return out
 
 
-def _symbol_set(op, args, attr) -> frozenset:
+def _symbol_set(op: str, args: tuple, attr: Any) -> frozenset:
     """Symbols a new node depends on, computed once at construction (O(1) per node: the sets
     of the arguments are reused when they are equal, which they almost always are)."""
     if op == "sym":
@@ -162,57 +165,61 @@ class Expr:
 
     op: str
     args: tuple
-    attr: object
+    attr: Any  # a constant's value, a symbol's name, a parameter's (name, default), ...
+    syms: frozenset
+    prms: frozenset
+    lip: float | None
+    tree: int
 
-    def __new__(cls, op: str, args: tuple = (), attr=None):
+    def __new__(cls, op: str, args: tuple = (), attr: Any = None) -> Expr:
         return _intern(op, args, attr)
 
-    def __setattr__(self, name, value):
+    def __setattr__(self, name: str, value: object) -> None:
         raise AttributeError("Expr nodes are immutable")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple:
         # Flat, children-first node list: pickling a deep graph node by node would recurse
         # once per level and hit the recursion limit. Unpickling re-interns the nodes.
         return (_from_flat, (_to_flat(self),))
 
     # Arithmetic operators build (and fold) new nodes.
-    def __add__(self, other):
+    def __add__(self, other: Expr | float) -> Expr:
         return _add(self, as_expr(other, "other"))
 
-    def __radd__(self, other):
+    def __radd__(self, other: Expr | float) -> Expr:
         return _add(as_expr(other, "other"), self)
 
-    def __sub__(self, other):
+    def __sub__(self, other: Expr | float) -> Expr:
         return _sub(self, as_expr(other, "other"))
 
-    def __rsub__(self, other):
+    def __rsub__(self, other: Expr | float) -> Expr:
         return _sub(as_expr(other, "other"), self)
 
-    def __mul__(self, other):
+    def __mul__(self, other: Expr | float) -> Expr:
         return _mul(self, as_expr(other, "other"))
 
-    def __rmul__(self, other):
+    def __rmul__(self, other: Expr | float) -> Expr:
         return _mul(as_expr(other, "other"), self)
 
-    def __truediv__(self, other):
+    def __truediv__(self, other: Expr | float) -> Expr:
         return _div(self, as_expr(other, "other"))
 
-    def __rtruediv__(self, other):
+    def __rtruediv__(self, other: Expr | float) -> Expr:
         return _div(as_expr(other, "other"), self)
 
-    def __pow__(self, other):
+    def __pow__(self, other: Expr | float) -> Expr:
         return _pow(self, as_expr(other, "exponent"))
 
-    def __rpow__(self, other):
+    def __rpow__(self, other: Expr | float) -> Expr:
         return _pow(as_expr(other, "base"), self)
 
-    def __neg__(self):
+    def __neg__(self) -> Expr:
         return _neg(self)
 
-    def __pos__(self):
+    def __pos__(self) -> Expr:
         return self
 
-    def __bool__(self):
+    def __bool__(self) -> bool:
         raise TypeError("a symbolic expression has no truth value; use sym_min/sym_max "
                         "instead of comparisons")
 
@@ -232,22 +239,29 @@ class Expr:
         """Names of the symbols this expression depends on."""
         return set(self.syms)
 
-    def __str__(self):
+    def __str__(self) -> str:
         return expr_to_str(self)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"Expr({expr_to_str(self, limit=200)})"
 
 
 _object_new = object.__new__
-_set_op, _set_args, _set_attr = Expr.op.__set__, Expr.args.__set__, Expr.attr.__set__
-_set_syms, _set_prms, _set_lip = Expr.syms.__set__, Expr.prms.__set__, Expr.lip.__set__
-_set_tree = Expr.tree.__set__
+
+
+def _slot_setter(name: str) -> Callable[[Expr, Any], None]:
+    """The ``__set__`` of one of Expr's slot descriptors (``Expr.__setattr__`` refuses)."""
+    return vars(Expr)[name].__set__
+
+
+_set_op, _set_args, _set_attr = _slot_setter("op"), _slot_setter("args"), _slot_setter("attr")
+_set_syms, _set_prms, _set_lip = _slot_setter("syms"), _slot_setter("prms"), _slot_setter("lip")
+_set_tree = _slot_setter("tree")
 #: Cap of the ``tree`` size of nodes (far above any size the code generator asks about).
 TREE_CAP = 1 << 40
 
 
-def _intern(op: str, args: tuple = (), attr=None) -> Expr:
+def _intern(op: str, args: tuple = (), attr: Any = None) -> Expr:
     """The unique node ``(op, args, attr)``: the existing one, or a new one interned (what
     ``Expr(op, args, attr)`` does; called directly by the constructors below)."""
     key = (op, args, _pack_double(attr) if op == "const" else attr)
@@ -367,17 +381,15 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
 
     Raises ``TypeError`` naming ``name`` for anything else (strings, complex numbers, arrays).
     """
-    t = type(value)
-    if t is Expr:
+    if isinstance(value, Expr):
         return value
-    if t is float:
+    if type(value) is float:
         return _intern("const", (), value)
     if isinstance(value, float):  # np.float64 (a subclass of float)
         return _intern("const", (), float(value))
-    if isinstance(value, Expr):
-        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        if isinstance(value, np.ndarray) and value.shape == () and np.issubdtype(value.dtype, np.number) \
+        if isinstance(value, np.ndarray) and value.shape == () \
+                and np.issubdtype(value.dtype, np.number) \
                 and not np.issubdtype(value.dtype, np.complexfloating):
             return _intern("const", (), float(value))
         raise TypeError(f"{name} must be a real number or an expression, got {value!r} "
@@ -392,7 +404,7 @@ def _both_const(a: Expr, b: Expr) -> bool:
     return a.op == "const" and b.op == "const"
 
 
-def _fold(fn, *values) -> Expr:
+def _fold(fn: Callable, *values: float) -> Expr:
     with np.errstate(all="ignore"):
         return _intern("const", (), float(fn(*[np.float64(v) for v in values])))
 
@@ -401,7 +413,7 @@ def _is(node: Expr, value: float) -> bool:
     return node.op == "const" and node.attr == value
 
 
-def _offset(a: Expr):
+def _offset(a: Expr) -> tuple[Expr, float]:
     """Split ``a`` into ``(base, c)`` with ``a = base + c`` for a constant ``c`` (else c = 0)."""
     if a.op in ("add", "sub") and a.args[1].op == "const":
         c = a.args[1].attr
@@ -503,14 +515,14 @@ def _pow(a: Expr, b: Expr) -> Expr:
     return _intern("pow", (a, b))
 
 
-def _unary(op: str, fn, a, name: str) -> Expr:
-    a = as_expr(a, name)
-    if a.op == "const":
-        return _fold(fn, a.attr)
-    return _intern(op, (a,))
+def _unary(op: str, fn: Callable, a: Expr | float, name: str) -> Expr:
+    e = as_expr(a, name)
+    if e.op == "const":
+        return _fold(fn, e.attr)
+    return _intern(op, (e,))
 
 
-def _square_base(node: Expr):
+def _square_base(node: Expr) -> Expr | None:
     """``u`` if ``node`` is ``u**2`` or ``u*u``, else None."""
     if node.op == "powc" and node.attr == 2.0:
         return node.args[0]
@@ -598,7 +610,7 @@ def sym_length(a: Expr | float, b: Expr | float) -> Expr:
     return _intern("length", (a, b))
 
 
-def _param_blend(a, b, k: Expr, kind: str, sign: float) -> Expr:
+def _param_blend(a: Expr | float, b: Expr | float, k: Expr, kind: str, sign: float) -> Expr:
     """A smooth minimum (``sign = 1``) or maximum (``-1``) whose ``k`` is an expression of
     runtime parameters, from generic operations (the blend nodes take a constant ``k``): the
     same formulas, so the same values, with gradients in x, y and t from the graph. ``k`` is
@@ -607,8 +619,8 @@ def _param_blend(a, b, k: Expr, kind: str, sign: float) -> Expr:
     if not number > 0 or not math.isfinite(1.0 / number):
         raise ValueError(f"k given by parameters must be finite and > 0 (at their defaults, "
                          f"and not depend on x or y), got k={k} = {number!r}")
-    a, b = as_expr(a, "a") * sign, as_expr(b, "b") * sign
-    m, gap = sym_min(a, b), sym_abs(a - b)
+    ea, eb = as_expr(a, "a") * sign, as_expr(b, "b") * sign
+    m, gap = sym_min(ea, eb), sym_abs(ea - eb)
     if kind == "exponential":
         r = m - sym_log(1.0 + sym_exp(-k * gap)) / k
     else:
@@ -617,11 +629,11 @@ def _param_blend(a, b, k: Expr, kind: str, sign: float) -> Expr:
     return r * sign
 
 
-def _is_param_k(k) -> bool:
+def _is_param_k(k: object) -> TypeGuard[Expr]:
     return isinstance(k, Expr) and k.op != "const"
 
 
-def _check_k(k, name="k") -> float:
+def _check_k(k: object, name: str = "k") -> float:
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {k!r} of type {type(k).__name__}")
     k = float(k)
@@ -638,7 +650,7 @@ def _smin_value(a: float, b: float, k: float) -> float:
     return m - math.log1p(math.exp(-k * abs(a - b))) / k
 
 
-def sym_smin(a: Expr | float, b: Expr | float, k: float) -> Expr:
+def sym_smin(a: Expr | float, b: Expr | float, k: Expr | float) -> Expr:
     """Exponential smooth minimum ``-log(exp(-k a) + exp(-k b)) / k`` (the notebook's smooth
     union), evaluated as ``min(a, b) - log1p(exp(-k |a - b|)) / k`` so that it never overflows.
 
@@ -653,7 +665,7 @@ def sym_smin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     return _intern("smin", (a, b), k)
 
 
-def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
+def sym_smax(a: Expr | float, b: Expr | float, k: Expr | float) -> Expr:
     """Exponential smooth maximum ``log(exp(k a) + exp(k b)) / k`` (the notebook's smooth
     intersection), evaluated as ``max(a, b) + log1p(exp(-k |a - b|)) / k``."""
     if _is_param_k(k):
@@ -666,7 +678,8 @@ def sym_smax(a: Expr | float, b: Expr | float, k: float) -> Expr:
 
 # ---------------------------------------------------------------------------------------------
 # Floor, select, the polynomial smooth minima and the generic "prim" node
-# (primitives evaluated by fixed numba functions in fastsdf.backends.kernel.prims), and graph substitution.
+# (primitives evaluated by fixed numba functions in fastsdf.backends.kernel.prims), and graph
+# substitution.
 
 #: Kinds of "prim" nodes: the numba functions ``_prims.<kind>_v``/``<kind>_vg`` evaluate them
 #: and ``_prims_ref.evaluate`` is their independent NumPy reference.
@@ -690,7 +703,7 @@ def sym_select(cond: Expr | float, a: Expr | float, b: Expr | float) -> Expr:
     return _intern("select", (cond, a, b))
 
 
-def _check_width(k, name="k") -> float:
+def _check_width(k: object, name: str = "k") -> float:
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {k!r} of type {type(k).__name__}")
     k = float(k)
@@ -707,7 +720,7 @@ def _poly_smin_value(a: float, b: float, k: float, cubic: bool) -> float:
     return min(a, b) - (h * h * h * k / 6.0 if cubic else h * h * k / 4.0)
 
 
-def sym_qmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
+def sym_qmin(a: Expr | float, b: Expr | float, k: Expr | float) -> Expr:
     """Quadratic polynomial smooth minimum with blend width ``k`` (distance units):
     ``min(a, b) - k h**2 / 4`` with ``h = max(k - |a - b|, 0) / k``.
 
@@ -723,7 +736,7 @@ def sym_qmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     return _intern("qmin", (a, b), k)
 
 
-def sym_cmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
+def sym_cmin(a: Expr | float, b: Expr | float, k: Expr | float) -> Expr:
     """Cubic polynomial smooth minimum with blend width ``k``: ``min(a, b) - k h**3 / 6`` with
     ``h = max(k - |a - b|, 0) / k``; exactly ``min(a, b)`` where ``|a - b| >= k``; C2; at
     ``a = b`` it is ``k / 6`` below the minimum; gradient ``(1 - h**2/2) grad(min operand) +
@@ -736,7 +749,8 @@ def sym_cmin(a: Expr | float, b: Expr | float, k: float) -> Expr:
     return _intern("cmin", (a, b), k)
 
 
-def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants, data: Any = None) -> Expr:
+def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants: Any,
+             data: Any = None) -> Expr:
     """A primitive evaluated by a fixed compiled function: ``kind`` (one of ``PRIM_KINDS``) at
     local coordinates ``(u, v)`` (expressions), with numeric ``constants`` (become table columns
     when same-kind primitives are folded into a loop) and hashable structural ``data`` (e.g. a
@@ -797,7 +811,8 @@ def substitute(root: Expr, mapping: dict) -> Expr:
 def topological_order(root: Expr) -> list:
     """All nodes reachable from ``root``, each once, children before parents."""
     # Nodes hash by identity: sets of nodes, not of id()s (no call per lookup).
-    order, seen = [], set()
+    order: list[Expr] = []
+    seen: set[Expr] = set()
     append, add = order.append, seen.add
     stack = [(root, False)]
     pop, push = stack.pop, stack.append
@@ -820,16 +835,17 @@ def topological_order(root: Expr) -> list:
 
 def _to_flat(root: Expr) -> tuple:
     """``root``'s DAG as a tuple of ``(op, arg_indices, attr)``, children first, root last."""
-    index, flat = {}, []
+    index: dict[int, int] = {}
+    flat: list[tuple] = []
     for node in topological_order(root):
         index[id(node)] = len(flat)
         flat.append((node.op, tuple(index[id(a)] for a in node.args), node.attr))
     return tuple(flat)
 
 
-def _from_flat(flat) -> Expr:
+def _from_flat(flat: tuple) -> Expr:
     """Inverse of :func:`_to_flat` (the nodes are interned: same graph, same node objects)."""
-    nodes = []
+    nodes: list[Expr] = []
     for op, args, attr in flat:
         nodes.append(Expr(op, tuple(nodes[i] for i in args), attr))
     return nodes[-1]
@@ -840,7 +856,7 @@ def expr_to_str(root: Expr, limit: int | None = None) -> str:
         nodes = topological_order(root)
     else:
         nodes = _near_root(root, limit + 1)
-    text = {}
+    text: dict[Expr, str] = {}
     for node in nodes:
         op = node.op
         if op == "const":
@@ -920,12 +936,14 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
     names = list(symbols)
     shape = np.broadcast(*[np.asarray(v) for v in symbols.values()]).shape
     zero = np.zeros(shape)
-    val, grad = {}, {}
+    val: dict[int, np.ndarray] = {}
+    grad: dict[int, list | None] = {}
     with np.errstate(all="ignore"):
         for node in topological_order(root):
             i, op, a = id(node), node.op, node.args
             av = [val[id(c)] for c in a]
-            ag = [grad[id(c)] for c in a] if compute_gradient else None
+            ag: list | None = [grad[id(c)] for c in a] if compute_gradient else None
+            g: list | None
             if op == "const":
                 v = np.full(shape, node.attr)
                 g = [zero] * len(names)
@@ -943,7 +961,7 @@ def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
                 g = [np.ones(shape) if n == name else zero for n in names]
             else:
                 v, rule = OPS[op].np(node, av, compute_gradient)
-                g = chain_rule_numpy(rule, ag, v) if compute_gradient else None
+                g = chain_rule_numpy(rule, ag, v) if ag is not None else None
             val[i] = v
             if compute_gradient:
                 grad[i] = g

@@ -5,15 +5,16 @@ a range), ``lo <= value <= hi`` for every node, where ``value`` is what the comp
 compute at any point of the box (rounding included) wherever that value is finite. Two bounds
 are combined, node by node:
 
-* interval arithmetic, by the ``interval`` rule of each operation in :mod:`fastsdf.expr.ops`. Correctly
-  rounded monotone operations need no widening (rounding is monotone, so the floating-point bound
-  of the bounds bounds the floating-point result); library functions and compound operations are
-  widened by a margin relative to the magnitudes involved;
+* interval arithmetic, by the ``interval`` rule of each operation in :mod:`fastsdf.expr.ops`.
+  Correctly rounded monotone operations need no widening (rounding is monotone, so the
+  floating-point bound of the bounds bounds the floating-point result); library functions and
+  compound operations are widened by a margin relative to the magnitudes involved;
 * a Lipschitz bound: ``|f(p) - f(c)| <= L * |p - c|`` from the value at the box's centre, where
-  ``L`` bounds the gradient's length over the box (the ``lipschitz`` rules of :mod:`fastsdf.expr.ops`,
-  or 1 for an expression known to be an exact or 'bound' SDF, see :func:`note_lipschitz`). This
-  is much tighter than interval arithmetic for shapes that are rotated or built from many
-  operations, since interval arithmetic forgets that ``x`` is the same ``x`` everywhere.
+  ``L`` bounds the gradient's length over the box (the ``lipschitz`` rules of
+  :mod:`fastsdf.expr.ops`, or 1 for an expression known to be an exact or 'bound' SDF, see
+  :func:`note_lipschitz`). This is much tighter than interval arithmetic for shapes that are rotated
+  or built from many operations, since interval arithmetic forgets that ``x`` is the same ``x``
+  everywhere.
 """
 
 from __future__ import annotations
@@ -31,13 +32,13 @@ class _Hints:
     (its ``lip`` slot), which lives exactly as long as the node, at no cost per lookup."""
 
     @staticmethod
-    def get(node: Expr, default=None):
+    def get(node: Expr, default: float | None = None) -> float | None:
         value = node.lip
         return default if value is None else value
 
 
 LIPSCHITZ_RULES = _Hints()
-_set_lip = Expr.lip.__set__
+_set_lip = vars(Expr)["lip"].__set__  # the slot's own setter: Expr refuses setattr
 
 
 def note_lipschitz(expr: Expr, L: float) -> None:
@@ -49,7 +50,7 @@ def note_lipschitz(expr: Expr, L: float) -> None:
 def node_values(root: Expr, symbols: dict) -> dict:
     """Value of every node (``id(node) -> array``) by the NumPy reference of each operation."""
     shape = np.broadcast(*[np.asarray(v) for v in symbols.values()]).shape
-    val = {}
+    val: dict[int, np.ndarray] = {}
     with np.errstate(all="ignore"):
         for node in topological_order(root):
             if node.op == "const":
@@ -63,7 +64,7 @@ def node_values(root: Expr, symbols: dict) -> dict:
     return val
 
 
-def _as_ranges(boxes: dict) -> dict:
+def _as_ranges(boxes: dict) -> tuple[dict, tuple]:
     out = {}
     for name, (lo, hi) in boxes.items():
         lo, hi = np.atleast_1d(np.asarray(lo, dtype=np.float64)), \
@@ -95,7 +96,8 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
         with np.errstate(all="ignore"):  # huge ranges: an infinite half-diagonal is sound
             half = np.sqrt(sum((0.5 * (hi - lo)) ** 2 for lo, hi in ranges.values()))
             scale = sum(np.abs(0.5 * (lo + hi)) for lo, hi in ranges.values()) + half
-    out, lip = {}, {}
+    out: dict[int, tuple] = {}
+    lip: dict[int, np.ndarray] = {}
     with np.errstate(all="ignore"):
         for node in order:
             op = node.op

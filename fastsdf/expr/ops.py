@@ -5,18 +5,20 @@ Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
 ``fmt(node, args) -> str``
     how :func:`fastsdf.expr.graph.expr_to_str` prints the node (``args``: the printed arguments).
 ``np(node, av, with_grad) -> (value, partials)``
-    the NumPy reference (whole arrays, one operation per node; :func:`fastsdf.expr.graph.evaluate_numpy`).
-    ``partials`` (only when ``with_grad``) is a :ref:`gradient rule <rules>`.
+    the NumPy reference (whole arrays, one operation per node;
+    :func:`fastsdf.expr.graph.evaluate_numpy`). ``partials`` (only when ``with_grad``) is a
+    :ref:`gradient rule <rules>`.
 ``emit(em, out, node, a, r) -> partials``
-    the code template for the generated numba code (:mod:`fastsdf.backends.kernel.codegen`): append source lines
-    to ``out`` that assign the node's value to the variable named ``r``; ``a`` holds the
-    arguments' emitted values (``a[i].v`` is a Python expression); ``em.grad`` says whether the
+    the code template for the generated numba code (:mod:`fastsdf.backends.kernel.codegen`): append
+    source lines to ``out`` that assign the node's value to the variable named ``r``; ``a`` holds
+    the arguments' emitted values (``a[i].v`` is a Python expression); ``em.grad`` says whether the
     gradient is wanted, ``em.assign(out, name, expr)`` appends an assignment and returns
     ``name``, ``em.table(array)`` names a constant table. Returns the gradient rule (source
     expressions), or None when ``em.grad`` is false.
 ``interval(node, lo, hi) -> (lo, hi)``
     bounds of the node's value over a set of boxes (arrays, one entry per box) given bounds of
-    its arguments; sound for the values the compiled code computes (see :mod:`fastsdf.expr.interval`).
+    its arguments; sound for the values the compiled code computes (see
+    :mod:`fastsdf.expr.interval`).
 ``lipschitz(node, L, lo, hi) -> L``
     a bound of the gradient's length over the boxes from the arguments' bounds ``L`` (optional:
     ``None`` means no bound is known).
@@ -43,11 +45,11 @@ rule of all ``None``) means a zero component.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any
 
 import numpy as np
-from typing import Any, Sequence
 
 __all__ = ["Op", "OPS", "chain_rule_numpy", "lit", "fmt_const"]
 
@@ -721,8 +723,8 @@ def _prim_constant_partials(node, a, d, du, dv, lib):
 
 
 def _emit_prim(em, out, node, a, r):
-    # A fixed compiled function of fastsdf.backends.kernel.prims returns (d, dd/du, dd/dv) at the local
-    # coordinates (u, v) = (a[0], a[1]); structural data (polygon vertices) becomes a table.
+    # A fixed compiled function of fastsdf.backends.kernel.prims returns (d, dd/du, dd/dv) at the
+    # local coordinates (u, v) = (a[0], a[1]); structural data (polygon vertices) becomes a table.
     kind, data = node.attr
     extra = [c.v for c in a[2:]]
     if data is not None:

@@ -58,6 +58,6 @@ def point_arrays(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, 
     return xa, ya
 
 
-def _preview(arr) -> str:
+def _preview(arr: np.ndarray) -> str:
     text = repr(arr.reshape(-1)[:3].tolist()) if arr.size else "[]"
     return text if len(text) < 80 else text[:77] + "..."

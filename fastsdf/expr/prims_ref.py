@@ -15,29 +15,32 @@ They use different methods from the compiled code, so that agreement means somet
 slow (O(points x samples)); they exist for testing.
 """
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = ["evaluate", "ellipse", "outline", "polygon"]
 
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 
 
-def evaluate(kind: str, data: Any, u: np.ndarray, v: np.ndarray, constants: Any) -> tuple:
-    """Distance and its partials ``(d, dd/du, dd/dv)`` of the primitive ``kind`` at ``(u, v)``."""
-    u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+def evaluate(kind: str, data: Any, u: ArrayLike, v: ArrayLike, constants: Sequence[float]
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(d, dd/du, dd/dv)`` of the primitive ``kind`` (with its ``data`` and ``constants``, as in
+    a ``prim`` node) at local coordinates ``(u, v)``."""
+    ub, vb = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
     if kind == "ellipse":
-        return ellipse(u, v, *constants)
+        a, b = constants  # the semi-axes
+        return ellipse(ub, vb, a, b)
     if kind == "polygon":
-        return polygon(u, v, np.asarray(data, dtype=np.float64))
-    if kind == "outline":
-        return outline(u, v, np.asarray(data, dtype=np.float64))
+        return polygon(ub, vb, np.asarray(data, dtype=np.float64))
     raise NotImplementedError(kind)
 
 
 def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 4097,
-            chunk: int = 256) -> tuple:
+            chunk: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed distance to the ellipse ``(u/a)**2 + (v/b)**2 = 1`` and its gradient (the outward
     unit normal at the closest point) by search over the angle ``t`` of ``(a cos t, b sin t)``."""
     shape = u.shape
@@ -54,8 +57,8 @@ def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 409
         hi = np.clip(grid[i] + step, 0.0, np.pi / 2)
         p0, p1 = p0[:, 0], p1[:, 0]
 
-        def dist2(t):
-            return (p0 - a * np.cos(t)) ** 2 + (p1 - b * np.sin(t)) ** 2
+        def dist2(t):  # called only in this iteration of the loop
+            return (p0 - a * np.cos(t)) ** 2 + (p1 - b * np.sin(t)) ** 2  # noqa: B023
 
         for _ in range(90):  # golden section: the bracket shrinks to rounding
             m1 = hi - _GOLDEN * (hi - lo)
@@ -98,7 +101,8 @@ def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 409
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)
 
 
-def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256) -> tuple:
+def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed distance to the polygon with vertices ``verts`` (either orientation) and its
     gradient, as the minimum of vertex and edge-interior distances, signed by winding number."""
     shape = u.shape

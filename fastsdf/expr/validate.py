@@ -7,17 +7,29 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
+from typing import TypeAlias, TypeGuard
 
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from fastsdf.expr.graph import Expr
 
-__all__ = ["MAX_COORD", "MIN_LENGTH", "real", "vec2", "coord", "coord2", "length", "check_length", "is_param", "real_or_param", "vec2_or_param", "coord2_or_param"]
+__all__ = ["MAX_COORD", "MIN_LENGTH", "real", "vec2", "coord", "coord2", "length", "check_length",
+           "is_param", "real_or_param", "vec2_or_param", "coord2_or_param"]
+
+#: A number, or an expression of runtime parameters (:func:`fastsdf.expr.graph.Param`, time
+#: ``t``), wherever a scene takes a number.
+FloatOrParam: TypeAlias = "float | Expr"
+#: Two numbers (a tuple, list or array), each of which may be an expression of parameters.
+PairOrParam: TypeAlias = "ArrayLike | Sequence[float | Expr]"
+#: A checked pair: a float64 array of shape (2,), or a tuple holding expressions of parameters.
+Pair: TypeAlias = "np.ndarray | tuple[float | Expr, float | Expr]"
 
 
-def real(value: Any, name: str, finite: bool = True) -> float:
+def real(value: object, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
     if isinstance(value, float):  # float and np.float64: the common case
@@ -32,15 +44,15 @@ def real(value: Any, name: str, finite: bool = True) -> float:
     return value
 
 
-def _pair_fast(value):
+def _pair_fast(value: object) -> tuple[float, float] | None:
     """``(a, b)`` as Python floats for the common input, a tuple, list or 1-d array of two real
     numbers (not bools), else None (then the general checks run and name the problem)."""
     t = type(value)
-    if t is np.ndarray:
+    if isinstance(value, np.ndarray) and t is np.ndarray:
         if value.shape != (2,) or value.dtype.kind not in "iuf":
             return None
         a, b = value.tolist()
-    elif (t is tuple or t is list) and len(value) == 2:
+    elif isinstance(value, (tuple, list)) and (t is tuple or t is list) and len(value) == 2:
         a, b = value
         if type(a) not in _SCALARS or type(b) not in _SCALARS:
             return None
@@ -56,14 +68,14 @@ def _pair_fast(value):
 _SCALARS = frozenset((float, int, np.float64, np.float32, np.int64, np.int32))
 
 
-def vec2(value: Any, name: str) -> np.ndarray:
+def vec2(value: object, name: str) -> np.ndarray:
     """``value`` as a finite float64 array of shape (2,), with errors naming ``name``."""
     fast = _pair_fast(value)
     if fast is not None and math.isfinite(fast[0]) and math.isfinite(fast[1]):
         return np.array(fast)
     try:
         arr = np.asarray(value)
-    except Exception:  # noqa: BLE001 - any conversion failure is a type error for the user
+    except Exception:  # any conversion failure is a type error for the user
         raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}") from None
     if arr.dtype.kind not in "iuf":
         raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}")
@@ -84,16 +96,16 @@ MIN_LENGTH = 1e-150
 _RANGE = "the supported range of fastsdf geometry is 1e-150 to 1e150"
 
 
-def coord(value: Any, name: str) -> float:
+def coord(value: object, name: str) -> float:
     """A real coordinate (or signed offset) with ``|value| <= MAX_COORD``."""
-    value = real(value, name)
-    if abs(value) > MAX_COORD:
+    number = real(value, name)
+    if abs(number) > MAX_COORD:
         raise ValueError(f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got "
-                         f"{name}={value!r}")
-    return value
+                         f"{name}={number!r}")
+    return number
 
 
-def coord2(value: Any, name: str) -> np.ndarray:
+def coord2(value: object, name: str) -> np.ndarray:
     """A finite point (shape (2,)) with both coordinates at most ``MAX_COORD`` in magnitude."""
     fast = _pair_fast(value)
     if fast is not None and abs(fast[0]) <= MAX_COORD and abs(fast[1]) <= MAX_COORD:
@@ -105,17 +117,17 @@ def coord2(value: Any, name: str) -> np.ndarray:
     return arr
 
 
-def length(value: Any, name: str, zero: bool = False) -> float:
+def length(value: object, name: str, zero: bool = False) -> float:
     """A length: ``MIN_LENGTH <= |value| <= MAX_COORD`` (``0`` too if ``zero``); the sign is
     not checked here."""
-    value = real(value, name)
-    if value == 0.0 and zero:
-        return value
-    check_length(abs(value), name, value)
-    return value
+    number = real(value, name)
+    if number == 0.0 and zero:
+        return number
+    check_length(abs(number), name, number)
+    return number
 
 
-def check_length(size: float, name: str, shown: Any = None) -> None:
+def check_length(size: float, name: str, shown: object = None) -> None:
     """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
     if not (MIN_LENGTH <= size <= MAX_COORD):
         shown = size if shown is None else shown
@@ -127,7 +139,7 @@ def check_length(size: float, name: str, shown: Any = None) -> None:
 # checks run on the value the expression has at the parameters' defaults (values set later are
 # the caller's responsibility), and the shape bookkeeping treats such a number as unknown.
 
-def _param_value(expr, name: str) -> float:
+def _param_value(expr: Expr, name: str) -> float:
     """The value of a parameter expression at its parameters' defaults (it must not depend on
     the coordinates)."""
     from fastsdf.expr.graph import evaluate_numpy
@@ -137,12 +149,12 @@ def _param_value(expr, name: str) -> float:
     return float(evaluate_numpy(expr, {"_": np.zeros(1)})[0])
 
 
-def is_param(value: Any) -> bool:
+def is_param(value: object) -> TypeGuard[Expr]:
     """Whether ``value`` is an expression (of parameters) rather than a number."""
     return isinstance(value, Expr) and value.op != "const"
 
 
-def real_or_param(value: Any, name: str) -> Any:
+def real_or_param(value: object, name: str) -> tuple[float | Expr, float]:
     """``(value, number)``: ``value`` as a float (checked like :func:`real`) or an expression of
     parameters, and the number to check ranges on (the expression at the defaults)."""
     if type(value) is float and math.isfinite(value):  # the common case, checked at once
@@ -160,7 +172,7 @@ def real_or_param(value: Any, name: str) -> Any:
     return v, v
 
 
-def vec2_or_param(value: Any, name: str) -> Any:
+def vec2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
     """``(pair, numbers)``: a pair whose components may be expressions of parameters (else the
     float64 array of :func:`vec2`), and the float64 array of its values at the defaults."""
     fast = _pair_fast(value)
@@ -170,13 +182,13 @@ def vec2_or_param(value: Any, name: str) -> Any:
     if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
         if len(value) != 2:
             raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
-        parts = [real_or_param(v, name) for v in value]
-        return tuple(p[0] for p in parts), np.array([p[1] for p in parts])
+        (a, na), (b, nb) = (real_or_param(v, name) for v in value)
+        return (a, b), np.array([na, nb])
     arr = vec2(value, name)
     return arr, arr
 
 
-def coord2_or_param(value: Any, name: str) -> Any:
+def coord2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
     """:func:`vec2_or_param` with the coordinate range of :func:`coord2` checked on the numbers
     (for expressions of parameters: their values at the defaults)."""
     fast = _pair_fast(value)

@@ -13,8 +13,8 @@ Which tiles are fine is decided soundly: with ``L`` a Lipschitz bound of ``f`` (
 shapes whose ``exactness`` is ``'exact'`` or ``'bound'``), every point ``p`` of a tile with
 centre ``c`` and half-diagonal ``rt`` has ``f(c) - L rt <= f(p) <= f(c) + L rt``; a tile is
 *far* when that range misses the band. For a function with no known bound the interval bounds of
-:mod:`fastsdf.expr.interval` over the tile take its place. A far tile stores one int32: a lower bound
-of ``|f|`` over the tile (with ``f``'s sign there, quantized downwards) less half a fine cell
+:mod:`fastsdf.expr.interval` over the tile take its place. A far tile stores one int32: a lower
+bound of ``|f|`` over the tile (with ``f``'s sign there, quantized downwards) less half a fine cell
 diagonal, and the direction of ``f``'s gradient at the tile centre (in 4096 steps), which it
 answers as the gradient (so that a particle that starts deep inside matter is still pushed out).
 So every far answer is a correct lower bound of ``|d|`` with the right sign: collision tests and
@@ -38,8 +38,8 @@ its bounds; the particle loop's ``inside=False`` path). The achieved error is me
 :func:`measure_band_error`); ``nbytes`` and ``memory`` report the storage.
 
 For numba code: ``d, gx, gy, inside = g.sampler(g.sampler_data, x, y)`` as for the dense grid
-(:data:`fastsdf.fields.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact cells
-and for non-finite points (then the values are NaN), and the caller evaluates
+(:data:`fastsdf.fields.grid.GridSDF.sampler`); ``inside`` is False outside ``bounds``, in exact
+cells and for non-finite points (then the values are NaN), and the caller evaluates
 ``g.exact.point_fn(x, y)`` there (finite points). :class:`fastsdf.particles.ParticleSimulation`
 accepts a NarrowBandGridSDF as its world. For particles choose ``band=(-w, r_max + w)`` with
 ``r_max`` the largest particle radius and ``w`` a few spacings (or a symmetric ``band`` of at
@@ -53,18 +53,26 @@ from __future__ import annotations
 import math
 import numbers
 import time
+from typing import Any, Literal, overload
 
 import numba
 import numpy as np
-from typing import Any
-from numpy.typing import ArrayLike
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
+from numpy.typing import ArrayLike
 
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
+from fastsdf.fields.grid import (
+    GridError,
+    _check_bounds,
+    _check_dtype,
+    _check_samples,
+    _fetch_add,
+    _n_chunks,
+    _stats,
+)
 from fastsdf.function import Function
-from fastsdf.fields.grid import GridError, _check_bounds, _check_dtype, _check_samples, _fetch_add, _n_chunks, _stats
 
 __all__ = ["NarrowBandGridSDF", "sample_band", "measure_band_error"]
 
@@ -117,9 +125,9 @@ def _band_locate(data, x, y):
     a = i - (ti << _SHIFT)
     b = j - (tj << _SHIFT)
     k = e >> 1
-    if e & 1:                   # the tile has exact cells: look at its mask
-        if (masks[np.uint64(k)] >> np.uint64((a << _SHIFT) + b)) & np.uint64(1):
-            return 0, 0, 0, 0.0, 0.0, 0.0, 2
+    # the tile has exact cells: look at its mask
+    if e & 1 and (masks[np.uint64(k)] >> np.uint64((a << _SHIFT) + b)) & np.uint64(1):
+        return 0, 0, 0, 0.0, 0.0, 0.0, 2
     return k, a, b, u - i, v - j, 0.0, 0
 
 
@@ -131,7 +139,7 @@ def _lerp2(tx, ty, a, b, c, e):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def sample_band(data, x, y):
+def sample_band(data: tuple, x: float, y: float) -> tuple[float, float, float, bool]:
     """Value and gradient at one point of a :class:`NarrowBandGridSDF`.
 
     ``data`` is ``g.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` (float64 x3, bool):
@@ -326,9 +334,9 @@ class NarrowBandGridSDF:
         ``lo <= f <= hi`` (a pair, ``lo <= 0 <= hi``, ``lo < hi``) lies in a fine tile. For
         particles: ``(-w, r_max + w)``, see the module docstring.
     samples : [nx, ny], optional
-        Fine node counts over ``bounds`` as for :class:`fastsdf.fields.grid.GridSDF` (``400j`` or 400):
-        spacing ``h = (x1 - x0) / (nx - 1)``; the fine nodes are exactly those of the dense grid
-        with these samples. Give ``samples`` or ``tolerance`` (or both).
+        Fine node counts over ``bounds`` as for :class:`fastsdf.fields.grid.GridSDF` (``400j`` or
+        400): spacing ``h = (x1 - x0) / (nx - 1)``; the fine nodes are exactly those of the dense
+        grid with these samples. Give ``samples`` or ``tolerance`` (or both).
     tolerance : float, optional
         Target for the band's value error (coordinate units). Without ``samples`` the spacing is
         chosen from a measured error estimate (see the module docstring); cells whose estimated
@@ -439,8 +447,8 @@ class NarrowBandGridSDF:
         a = np.arange(n1)
         I = (ti[:, None] * T + a[None, :])            # (nf, n1)
         J = (tj[:, None] * T + a[None, :])
-        xs_t = np.where(I == nx, x1, I * hx + x0)
-        ys_t = np.where(J == ny, y1, J * hy + y0)
+        xs_t = np.where(nx == I, x1, I * hx + x0)
+        ys_t = np.where(ny == J, y1, J * hy + y0)
         X = np.broadcast_to(xs_t[:, :, None], (nf, n1, n1)).ravel()
         Y = np.broadcast_to(ys_t[:, None, :], (nf, n1, n1)).ravel()
         q = np.empty((nf, n1, n1, 3), dtype=self.dtype)
@@ -551,8 +559,24 @@ class NarrowBandGridSDF:
                              self._quantum)
 
     # -- queries ------------------------------------------------------------------------------
+    @overload
     def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False) -> Any:
+                 compute_gradient: Literal[False] = False
+                 ) -> np.ndarray: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None, *,
+                 compute_gradient: Literal[True]
+                 ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
+                 compute_gradient: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
+
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
+                 compute_gradient: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         x, y = point_arrays(x, y)
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
         (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
@@ -576,11 +600,11 @@ class NarrowBandGridSDF:
             if miss:
                 idx = np.flatnonzero(np.isnan(out) & np.isfinite(xs) & np.isfinite(ys))
                 if idx.size:
-                    if compute_gradient:
+                    if grad is not None:
                         out[idx], grad[idx] = self.exact(xs[idx], ys[idx], compute_gradient=True)
                     else:
                         out[idx] = self.exact(xs[idx], ys[idx])
-        if compute_gradient:
+        if grad is not None:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
@@ -607,7 +631,7 @@ class NarrowBandGridSDF:
         False (finite points)."""
         return sample_band
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         tol = "" if self.tolerance is None else f", tolerance={self.tolerance:g}"
         return (f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band!r}, "
                 f"samples={list(self.shape)}{tol}, tile={self.tile}, dtype={self.dtype.name}, "
@@ -623,8 +647,9 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;
     they cover the band) and the band statistics keep those with ``|d_exact| < band`` (or
-    ``lo < d_exact < hi`` for ``band=(lo, hi)``; default ``g.band``). ``g`` may also be a dense :class:`fastsdf.fields.grid.GridSDF`; then ``points`` (an
-    ``(x, y)`` pair, e.g. drawn for a band grid) should be given. Returns a
+    ``lo < d_exact < hi`` for ``band=(lo, hi)``; default ``g.band``). ``g`` may also be a dense
+    :class:`fastsdf.fields.grid.GridSDF`; then ``points`` (an ``(x, y)`` pair, e.g. drawn for a band
+    grid) should be given. Returns a
     :class:`fastsdf.fields.grid.GridError` (value errors in coordinate units, gradient angles in
     degrees; far-tile answers are not in the band, where they would not be errors but bounds).
     """
@@ -651,7 +676,8 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
                      band_value_rms=vrms, band_angle_max_deg=amax, band_angle_rms_deg=arms)
 
 
-def band_points(g: NarrowBandGridSDF, n: int = 200_000, seed=0):
+def band_points(g: NarrowBandGridSDF, n: int = 200_000, seed: int | np.random.Generator | None = 0
+                ) -> tuple[np.ndarray, np.ndarray]:
     """``n`` points drawn uniformly from the fine tiles of ``g`` inside its bounds: (x, y)."""
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n < 1:
         raise ValueError(f"n must be a positive integer, got n={n!r}")

@@ -33,15 +33,15 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import asdict, dataclass
+from typing import Any, Literal, overload
 
 import numba
 import numpy as np
-from typing import Any
-from numpy.typing import ArrayLike
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
+from numpy.typing import ArrayLike
 
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 from fastsdf.function import Function
@@ -122,7 +122,7 @@ def _lerp2(tx, ty, a, b, c, e):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def sample_stored(data, x, y):
+def sample_stored(data: tuple, x: float, y: float) -> tuple[float, float, float, bool]:
     """Bilinear value and gradient at one point of a ``gradient='stored'`` grid.
 
     ``data`` is ``GridSDF.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)`` as
@@ -163,7 +163,7 @@ def _dnode(q, k, n, at, step, ih):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def sample_fd(data, x, y):
+def sample_fd(data: tuple, x: float, y: float) -> tuple[float, float, float, bool]:
     """Bilinear value and finite-difference gradient at one point of a ``gradient='fd'`` grid.
 
     ``data`` is ``GridSDF.sampler_data``. Returns ``(d, dd/dx, dd/dy, inside)``: the value is
@@ -591,8 +591,8 @@ class GridSDF:
         comp = self.exact.compiled
         rows = max(1, _BUILD_BLOCK // ny)
         # Pruning: one plan over the whole grid, used by every block (None where it does not pay).
-        plan = comp.pruned_plan(ax, ay, count=nx * ny,
-                                bounds=((float(ax[0]), float(ax[-1])), (float(ay[0]), float(ay[-1]))))
+        grid_bounds = ((float(ax[0]), float(ax[-1])), (float(ay[0]), float(ay[-1])))
+        plan = comp.pruned_plan(ax, ay, count=nx * ny, bounds=grid_bounds)
         for r0 in range(0, nx, rows):
             r1 = min(nx, r0 + rows)
             xs = np.repeat(ax[r0:r1], ny)
@@ -633,8 +633,24 @@ class GridSDF:
             f"where f is defined, got bounds={[list(b) for b in self.bounds]!r}")
 
     # -- queries ------------------------------------------------------------------------------
+    @overload
     def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False) -> Any:
+                 compute_gradient: Literal[False] = False
+                 ) -> np.ndarray: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None, *,
+                 compute_gradient: Literal[True]
+                 ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
+                 compute_gradient: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
+
+    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
+                 compute_gradient: bool = False
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         x, y = point_arrays(x, y)
         """Interpolated distance (and gradient) at points; see the class docstring."""
         xs, ys, shape = as_points(x, y)
@@ -660,7 +676,7 @@ class GridSDF:
                 outside = _v_range(self.sampler_data, self._channels, xs, ys, out, 0, n)
             if outside and self.mode == "exact":
                 self._exact_outside(xs, ys, out, grad)
-        if compute_gradient:
+        if grad is not None:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
@@ -707,7 +723,7 @@ class GridSDF:
         """
         return sample_stored if self.gradient == "stored" else sample_fd
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict:
         # A pickle holds the exact SDF's graph (no compiled code: the receiver rebuilds its
         # kernels from its own cache) and the node array once; ``sampler_data`` is a view of
         # that array and is rebuilt, so the samples arrive bit for bit.
@@ -715,14 +731,14 @@ class GridSDF:
         state.pop("sampler_data", None)
         return state
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         (x0, x1), (y0, y1) = self.bounds
         nx, ny = self.shape
         self.sampler_data = (self.data.reshape(-1), x0, x1, y0, y1,
                              1.0 / self.spacing[0], 1.0 / self.spacing[1], nx, ny)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"GridSDF(bounds={[list(b) for b in self.bounds]}, samples={list(self.shape)}, "
                 f"mode={self.mode!r}, dtype={self.dtype.name}, gradient={self.gradient!r}, "
                 f"nbytes={self.nbytes})")

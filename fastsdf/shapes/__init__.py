@@ -26,10 +26,47 @@ Beyond the notebook: more primitives with exact distances (:class:`Segment`, :cl
 ``f.exactness`` (``'exact'``, ``'bound'`` or ``'none'``), tracked through all of them.
 """
 
-from fastsdf.shapes.context import BLEND_KINDS, current_blend, current_smoothness, smoothness, transform
-from fastsdf.shapes.exactness import EXACTNESS  # noqa: F401
-from fastsdf.shapes.operations import SDF, Difference, Intersection, Union, intersection, mirror, offset, repeat, rotate, scale, shell, translate, union
-from fastsdf.shapes.primitives import Arc, Box, Capsule, Circle, Ellipse, EquilateralTriangle, Halfspace, OrientedBox, Outline, Polygon, RegularPolygon, Ring, RoundedBox, Segment, Star, Triangle
+from fastsdf.shapes.context import (
+           BLEND_KINDS,
+           current_blend,
+           current_smoothness,
+           smoothness,
+           transform,
+)
+from fastsdf.shapes.exactness import EXACTNESS
+from fastsdf.shapes.operations import (
+           SDF,
+           Difference,
+           Intersection,
+           Union,
+           intersection,
+           mirror,
+           offset,
+           repeat,
+           rotate,
+           scale,
+           shell,
+           translate,
+           union,
+)
+from fastsdf.shapes.primitives import (
+           Arc,
+           Box,
+           Capsule,
+           Circle,
+           Ellipse,
+           EquilateralTriangle,
+           Halfspace,
+           OrientedBox,
+           Outline,
+           Polygon,
+           RegularPolygon,
+           Ring,
+           RoundedBox,
+           Segment,
+           Star,
+           Triangle,
+)
 
 __all__ = ["SDF", "Circle", "Halfspace", "Box", "Union", "Intersection", "Difference",
            "union", "intersection",

@@ -10,18 +10,21 @@ from __future__ import annotations
 import contextvars
 import math
 import numbers
-from contextlib import contextmanager
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager
+from typing import Any, NamedTuple
 
 import numpy as np
-from typing import Iterator, NamedTuple
-from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import check_length as _check_length
-from fastsdf.expr.validate import coord2 as _vec2
-from fastsdf.expr.validate import real as _real
-from fastsdf.expr.validate import vec2 as _vec2
-from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
 from fastsdf.expr.graph import Expr, Symbol, sym_cos, sym_sin
+from fastsdf.expr.validate import (
+    FloatOrParam,
+    PairOrParam,
+    coord2_or_param,
+    is_param,
+    real_or_param,
+)
+from fastsdf.expr.validate import check_length as _check_length
 
 __all__ = ["smoothness", "transform", "current_smoothness", "current_blend", "BLEND_KINDS"]
 
@@ -43,23 +46,24 @@ class _State(NamedTuple):
     entering a context costs a ``_replace``, cheaper than a frozen dataclass's.)"""
     x: Expr = _X
     y: Expr = _Y
-    smoothness: float = 0.0
+    smoothness: FloatOrParam = 0.0
     blend: str = "exponential"
-    frame: tuple = _IDENTITY
+    frame: tuple | None = _IDENTITY
 
 
-# Immutable states in a context variable: context managers set a new one and reset on exit.
-_context: contextvars.ContextVar[_State] = contextvars.ContextVar("fastsdf_modelling_state",
-                                                                  default=_State())
+# Immutable states in a context variable: context managers set a new one and reset on exit (the
+# default is a NamedTuple, immutable).
+_context: contextvars.ContextVar[_State] = contextvars.ContextVar(
+    "fastsdf_modelling_state", default=_State())  # noqa: B039
 
 
-def _coords() -> tuple:
+def _coords() -> tuple[Expr, Expr]:
     """``(x, y)``: the expressions of the local coordinates new primitives are built in."""
     s = _context.get()
     return s.x, s.y
 
 
-def _frame() -> tuple:
+def _frame() -> tuple | None:
     """The local -> world frame of new primitives."""
     return _context.get().frame
 
@@ -67,7 +71,7 @@ def _frame() -> tuple:
 # ---------------------------------------------------------------------------------------------
 # Parameter validation: errors name the parameter and the value.
 
-def _smoothness_value(k) -> float:
+def _smoothness_value(k: object) -> FloatOrParam:
     if k is None:
         return 0.0
     if type(k) is float and k == 0.0:  # hard: the common case
@@ -80,17 +84,17 @@ def _smoothness_value(k) -> float:
         return k
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
         raise TypeError(f"smoothness k must be a real number, got k={k!r}")
-    k = float(k)
-    if not math.isfinite(k) or k < 0:
+    number = float(k)
+    if not math.isfinite(number) or number < 0:
         raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), "
-                         f"got k={k!r}")
-    if k > 0:
+                         f"got k={number!r}")
+    if number > 0:
         # a blend width (or, for the exponential blend, its inverse) is a length
-        _check_length(k, "smoothness k")
-    return k
+        _check_length(number, "smoothness k")
+    return number
 
 
-def _blend_kind(kind) -> str:
+def _blend_kind(kind: object) -> str:
     if kind == "exp":
         kind = "exponential"
     if not isinstance(kind, str) or kind not in BLEND_KINDS:
@@ -102,7 +106,7 @@ def _blend_kind(kind) -> str:
 # The modelling context.
 
 @contextmanager
-def _properties(**props):
+def _properties(**props: Any) -> Iterator[None]:
     token = _context.set(_context.get()._replace(**props))
     try:
         yield
@@ -110,7 +114,8 @@ def _properties(**props):
         _context.reset(token)
 
 
-def smoothness(k: float, kind: str = "exponential") -> Iterator[None]:
+def smoothness(k: FloatOrParam | None, kind: str = "exponential"
+               ) -> AbstractContextManager[None]:
     """Context manager: ``|`` and ``&`` created inside blend with parameter ``k``.
 
     ``kind='exponential'`` (the default, the notebook's blend): ``k`` is the sharpness in
@@ -124,7 +129,7 @@ def smoothness(k: float, kind: str = "exponential") -> Iterator[None]:
     return _properties(smoothness=_smoothness_value(k), blend=_blend_kind(kind))
 
 
-def current_smoothness() -> float:
+def current_smoothness() -> FloatOrParam:
     """The smoothness that ``|`` and ``&`` use right now."""
     return _context.get().smoothness
 
@@ -135,24 +140,25 @@ def current_blend() -> tuple:
     return s.smoothness, s.blend
 
 
-def transform(angle: float = 0.0, offset: ArrayLike = (0.0, 0.0)) -> Iterator[None]:
+def transform(angle: FloatOrParam = 0.0, offset: PairOrParam = (0.0, 0.0)
+              ) -> AbstractContextManager[None]:
     """Context manager: primitives created inside are rotated by ``angle`` (radians,
     counter-clockwise) about their own origin, then translated by ``offset``.
 
     Nested transforms compose, the outer one applied last. Rotations and translations keep
     distances exact.
     """
-    angle, _ = real_or_param(angle, "angle")
-    offset, _ = coord2_or_param(offset, "offset")
-    if isinstance(offset, np.ndarray):  # numbers: Python floats (the same values, and faster
-        offset = tuple(offset.tolist())  # than NumPy scalars in the frame's arithmetic)
-    if is_param(angle):  # a runtime parameter: the rotation is computed in the kernel
-        return _transformed(sym_cos(angle), sym_sin(angle), offset)
-    return _transformed(math.cos(angle), math.sin(angle), offset)
+    a, a0 = real_or_param(angle, "angle")  # (a0 = a unless a is a parameter expression)
+    shift, _ = coord2_or_param(offset, "offset")
+    if isinstance(shift, np.ndarray):  # numbers: Python floats (the same values, and faster
+        shift = tuple(shift.tolist())  # than NumPy scalars in the frame's arithmetic)
+    if is_param(a):  # a runtime parameter: the rotation is computed in the kernel
+        return _transformed(sym_cos(a), sym_sin(a), shift)
+    return _transformed(math.cos(a0), math.sin(a0), shift)
 
 
 @contextmanager
-def _transformed(c: float, s: float, offset):
+def _transformed(c: FloatOrParam, s: FloatOrParam, offset: tuple) -> Iterator[None]:
     # Composed on entry, not on the call to transform(), so that the outer context is the one
     # in force where the block runs.
     x, y = _coords()

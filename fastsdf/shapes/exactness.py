@@ -4,10 +4,13 @@ convexity, bounding box, mirror symmetries) and the rules that carry it through 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from collections.abc import Iterable, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import FloatOrParam
 from fastsdf.shapes.context import _IDENTITY, _frame
 
 __all__ = ["EXACTNESS"]
@@ -34,7 +37,7 @@ class _Info(NamedTuple):  # (a named tuple: cheaper to build than a frozen datac
 _NONE = _Info()
 
 
-def _frame_bbox(bbox, frame=None):
+def _frame_bbox(bbox: tuple | None, frame: tuple | None = None) -> tuple | None:
     """World bounding box of a local bounding box under the current (or given) frame."""
     frame = _frame() if frame is None else frame
     if bbox is None or frame is None:   # no frame: the primitive moves with parameters
@@ -46,26 +49,28 @@ def _frame_bbox(bbox, frame=None):
     return (min(cx), min(cy), max(cx), max(cy))
 
 
-def _grow(bbox, r):
+def _grow(bbox: tuple | None, r: float) -> tuple | None:
     if bbox is None:
         return None
     return (bbox[0] - r, bbox[1] - r, bbox[2] + r, bbox[3] + r)
 
 
-def _primitive_info(bbox, sym=(), convex=False, exact=True) -> _Info:
+def _primitive_info(bbox: tuple | None, sym: Iterable[str] = (), convex: bool = False,
+                    exact: bool = True) -> _Info:
     """Info of a primitive built now, from its local bounding box and symmetries."""
     world_sym = frozenset(sym) if _frame() == _IDENTITY else frozenset()
     return _Info(outside=exact, inside=exact, bound=True, convex=convex,
                  bbox=_frame_bbox(bbox), sym=world_sym)
 
 
-def _points_bbox(points, r=0.0):
+def _points_bbox(points: Sequence[Any] | np.ndarray, r: float = 0.0
+                 ) -> tuple[float, float, float, float]:
     p = np.asarray(points, dtype=np.float64)
     return (float(p[:, 0].min() - r), float(p[:, 1].min() - r),
             float(p[:, 0].max() + r), float(p[:, 1].max() + r))
 
 
-def _edges_symmetry(points, closed=True) -> frozenset:
+def _edges_symmetry(points: ArrayLike, closed: bool = True) -> frozenset:
     """Axes about which the polyline through ``points`` is mirror-symmetric (to 1e-12)."""
     p = np.asarray(points, dtype=np.float64)
     tol = 1e-12 * (float(np.abs(p).max()) or 1.0)  # relative: also for tiny shapes
@@ -74,7 +79,8 @@ def _edges_symmetry(points, closed=True) -> frozenset:
     edges = np.concatenate([p, q], axis=1)
     edges = np.concatenate([edges, edges[:, [2, 3, 0, 1]]])  # both directions
 
-    def same(a, b):  # equal as sets of edges, to the tolerance (conservative at its edge)
+    # equal as sets of edges, to the tolerance (conservative at its edge)
+    def same(a: np.ndarray, b: np.ndarray) -> bool:
         a, b = np.round(a / tol), np.round(b / tol)
         return np.array_equal(a[np.lexsort(a.T[::-1])], b[np.lexsort(b.T[::-1])])
 
@@ -86,11 +92,11 @@ def _edges_symmetry(points, closed=True) -> frozenset:
     return frozenset(out)
 
 
-def _center_sym(center) -> set:
+def _center_sym(center: Iterable) -> set:
     return {axis for axis, c in zip("xy", center) if c == 0.0}
 
 
-def _blend_depth(k: float, kind: str) -> float:
+def _blend_depth(k: FloatOrParam, kind: str) -> float | None:
     """How far a smooth union can reach beyond the hard one (bounding boxes grow by this)."""
     if not isinstance(k, float):
         return None  # a blend width given by parameters: unknown
@@ -99,13 +105,13 @@ def _blend_depth(k: float, kind: str) -> float:
     return {"exponential": math.log(2.0) / k, "quadratic": k / 4.0, "cubic": k / 6.0}[kind]
 
 
-def _bbox_union(a, b, grow=0.0):
+def _bbox_union(a: tuple | None, b: tuple | None, grow: float | None = 0.0) -> tuple | None:
     if a is None or b is None or grow is None:
         return None
     return _grow((min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])), grow)
 
 
-def _bbox_meet(a, b):
+def _bbox_meet(a: tuple | None, b: tuple | None) -> tuple | None:
     if a is None:
         return b
     if b is None:

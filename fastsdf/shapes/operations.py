@@ -4,20 +4,49 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
-from typing import Iterable
 
+from fastsdf.expr.graph import (
+    Expr,
+    gc_paused,
+    substitute,
+    sym_abs,
+    sym_cmin,
+    sym_cos,
+    sym_exp,
+    sym_floor,
+    sym_log,
+    sym_max,
+    sym_min,
+    sym_qmin,
+    sym_sin,
+    sym_smax,
+    sym_smin,
+)
+from fastsdf.expr.interval import note_lipschitz
+from fastsdf.expr.validate import (
+    FloatOrParam,
+    PairOrParam,
+    coord2_or_param,
+    is_param,
+    real_or_param,
+)
 from fastsdf.expr.validate import check_length as _check_length
 from fastsdf.expr.validate import length as _length
-from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param
-from fastsdf.expr.graph import sym_cos, sym_exp, sym_log, sym_sin
-from fastsdf.expr.interval import note_lipschitz
-from fastsdf.expr.graph import Expr, gc_paused, substitute, sym_abs, sym_cmin, sym_floor, sym_max, sym_min, sym_qmin, sym_smax, sym_smin
 from fastsdf.function import Function
 from fastsdf.shapes.context import _X, _Y, _blend_kind, _smoothness_value, current_blend
-from fastsdf.shapes.exactness import _NONE, _bbox_meet, _bbox_union, _blend_depth, _frame_bbox, _grow, _Info
+from fastsdf.shapes.exactness import (
+    _NONE,
+    _bbox_meet,
+    _bbox_union,
+    _blend_depth,
+    _frame_bbox,
+    _grow,
+    _Info,
+)
 
 __all__ = ["SDF", "Union", "Intersection", "Difference", "union", "intersection",
            "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
@@ -37,7 +66,7 @@ def _param_blend_min(a: Expr, b: Expr, k: Expr, kind: str) -> Expr:
     return m - (k * h * h * h / 6.0 if kind == "cubic" else k * h * h / 4.0)
 
 
-def _blend_min(a: Expr, b: Expr, k: float, kind: str) -> Expr:
+def _blend_min(a: Expr, b: Expr, k: FloatOrParam, kind: str) -> Expr:
     if is_param(k):
         return _param_blend_min(a, b, k, kind)
     if k == 0.0:
@@ -47,7 +76,7 @@ def _blend_min(a: Expr, b: Expr, k: float, kind: str) -> Expr:
     return (sym_qmin if kind == "quadratic" else sym_cmin)(a, b, k)
 
 
-def _blend_max(a: Expr, b: Expr, k: float, kind: str) -> Expr:
+def _blend_max(a: Expr, b: Expr, k: FloatOrParam, kind: str) -> Expr:
     if is_param(k):
         return -_param_blend_min(-a, -b, k, kind)
     if k == 0.0:
@@ -57,7 +86,7 @@ def _blend_max(a: Expr, b: Expr, k: float, kind: str) -> Expr:
     return -(sym_qmin if kind == "quadratic" else sym_cmin)(-a, -b, k)
 
 
-def _check_sdf(value, name):
+def _check_sdf(value: object, name: str) -> SDF:
     if not isinstance(value, SDF):
         raise TypeError(f"{name} must be a fastsdf SDF, got {name}={value!r} of type "
                         f"{type(value).__name__}")
@@ -115,39 +144,41 @@ class SDF(Function):
         return self._info.inside
 
     # -- set operations ------------------------------------------------------------------------
-    def _other(self, other, op: str):
+    def _other(self, other: object, op: str) -> SDF:
         if not isinstance(other, SDF):
             raise TypeError(f"cannot {op} an SDF with {other!r} of type {type(other).__name__}; "
                             "both operands must be fastsdf SDF objects")
         return other
 
-    def __or__(self, other):
+    def __or__(self, other: SDF) -> Union:
         k, kind = current_blend()
         return Union(self, self._other(other, "unite"), k=k, kind=kind)
 
-    def __and__(self, other):
+    def __and__(self, other: SDF) -> Intersection:
         k, kind = current_blend()
         return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
 
-    def __sub__(self, other):
+    def __sub__(self, other: SDF) -> Difference:
         return Difference(self, self._other(other, "subtract"))
 
-    def union(self, other: SDF, k: float = 0.0, kind: str = "exponential") -> SDF:
+    def union(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
         """``self | other`` with an explicit blend (the :func:`smoothness` context is ignored):
         ``k = 0`` hard; ``kind='exponential'`` (``k`` = sharpness, 1/distance), ``'quadratic'``
         or ``'cubic'`` (``k`` = blend width, distance). See :class:`Union`."""
         return Union(self, self._other(other, "unite"), k=k, kind=kind)
 
-    def intersection(self, other: SDF, k: float = 0.0, kind: str = "exponential") -> SDF:
+    def intersection(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"
+                     ) -> SDF:
         """``self & other`` with an explicit blend (see :meth:`union`, :class:`Intersection`)."""
         return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
 
-    def difference(self, other: SDF, k: float = 0.0, kind: str = "exponential") -> SDF:
+    def difference(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"
+                   ) -> SDF:
         """``self - other``, smooth for ``k > 0`` (see :meth:`union`, :class:`Difference`)."""
         return Difference(self, self._other(other, "subtract"), k=k, kind=kind)
 
     # -- modifiers -----------------------------------------------------------------------------
-    def round(self, r: float) -> SDF:
+    def round(self, r: FloatOrParam) -> SDF:
         """Offset: ``f - r`` (``r > 0`` grows the shape and rounds its convex corners by
         ``r``; ``r < 0`` erodes it).
 
@@ -156,13 +187,11 @@ class SDF(Function):
         shape the inside value is only a bound (filled concavities are deeper than ``r - f``).
         For ``r < 0``: exact inside if ``f`` is, a bound outside. Always a bound if ``f`` is.
         """
-        if is_param(r):
-            r, _ = real_or_param(r, "r")
-        else:
-            r = _length(r, "r", zero=True)
         i = self._info
         if is_param(r):  # its sign may change at run time: only a bound is kept
-            return SDF(self.f - r, _Info(bound=i.bound))
+            rp, _ = real_or_param(r, "r")
+            return SDF(self.f - rp, _Info(bound=i.bound))
+        r = _length(r, "r", zero=True)
         if r == 0:
             return SDF(self.f, i)
         if r > 0:
@@ -171,7 +200,7 @@ class SDF(Function):
             info = i._replace(outside=False)
         return SDF(self.f - r, info)
 
-    def shell(self, thickness: float) -> SDF:
+    def shell(self, thickness: FloatOrParam) -> SDF:
         """Annulus of the boundary: ``|f| - thickness / 2``, a band of total width
         ``thickness`` centred on the surface (IQ's onion).
 
@@ -185,23 +214,23 @@ class SDF(Function):
         _check_length(tv, "thickness")
         i = self._info
         info = _Info(outside=i.outside and i.inside, inside=False, bound=i.bound,
-                     bbox=None if is_param(t) else _grow(i.bbox, t / 2), sym=i.sym)
+                     bbox=None if is_param(t) else _grow(i.bbox, tv / 2), sym=i.sym)
         return SDF(sym_abs(self.f) - t / 2, info)
 
-    def scale(self, s: float) -> SDF:
+    def scale(self, s: FloatOrParam) -> SDF:
         """Uniform scale about the origin: ``s * f(p / s)`` with ``s > 0``; keeps the value a
         distance, so exactness is kept."""
-        s, sv = real_or_param(s, "s")
+        factor, sv = real_or_param(s, "s")
         if sv <= 0:
-            raise ValueError(f"s must be > 0, got s={s!r}")
+            raise ValueError(f"s must be > 0, got s={factor!r}")
         _check_length(sv, "s")
-        inv = 1.0 / s
+        inv = 1.0 / factor
         i = self._info
-        bbox = None if i.bbox is None or is_param(s) else tuple(v * s for v in i.bbox)
-        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * s,
+        bbox = None if i.bbox is None or is_param(factor) else tuple(v * sv for v in i.bbox)
+        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * factor,
                    i._replace(bbox=bbox))
 
-    def translate(self, offset: ArrayLike) -> SDF:
+    def translate(self, offset: PairOrParam) -> SDF:
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
         active :func:`transform` context plays no part). Same as building it under
         ``transform(offset=offset)``; keeps exactness."""
@@ -210,25 +239,26 @@ class SDF(Function):
         if any(is_param(v) for v in o):  # moved by runtime parameters
             expr = substitute(self.f, {"x": _X - o[0], "y": _Y - o[1]})
             return SDF(expr, i._replace(bbox=None, sym=frozenset()))
+        o = numbers_  # (the same array: no parameters)
         bbox = None if i.bbox is None else (i.bbox[0] + o[0], i.bbox[1] + o[1],
                                              i.bbox[2] + o[0], i.bbox[3] + o[1])
         sym = frozenset(a for a, ov in zip("xy", o) if a in i.sym and ov == 0.0)
         expr = substitute(self.f, {"x": _X - float(o[0]), "y": _Y - float(o[1])})
         return SDF(expr, i._replace(bbox=bbox, sym=sym))
 
-    def rotate(self, angle: float) -> SDF:
+    def rotate(self, angle: FloatOrParam) -> SDF:
         """The shape rotated counter-clockwise by ``angle`` (radians) about the origin:
         ``f(R(-angle) p)``. Same as building it under ``transform(angle=angle)``; keeps
         exactness."""
-        angle, _ = real_or_param(angle, "angle")
+        a, a0 = real_or_param(angle, "angle")  # (a0 = a unless a is a parameter expression)
         i = self._info
-        if is_param(angle):  # turned by runtime parameters
-            c, s = sym_cos(angle), sym_sin(angle)
-            expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
+        if is_param(a):  # turned by runtime parameters
+            pc, ps = sym_cos(a), sym_sin(a)
+            expr = substitute(self.f, {"x": _X * pc + _Y * ps, "y": _Y * pc - _X * ps})
             return SDF(expr, i._replace(bbox=None, sym=frozenset()))
-        c, s = math.cos(angle), math.sin(angle)
+        c, s = math.cos(a0), math.sin(a0)
         bbox = _frame_bbox(i.bbox, (c, -s, s, c, 0.0, 0.0))
-        sym = i.sym if angle == 0.0 else frozenset()
+        sym = i.sym if a0 == 0.0 else frozenset()
         expr = substitute(self.f, {"x": _X * c + _Y * s, "y": _Y * c - _X * s})
         return SDF(expr, i._replace(bbox=bbox, sym=sym))
 
@@ -263,7 +293,8 @@ class SDF(Function):
             f = SDF(substitute(f.f, sub), info)
         return f
 
-    def repeat(self, spacing: ArrayLike, count: ArrayLike) -> SDF:
+    def repeat(self, spacing: FloatOrParam | PairOrParam, count: FloatOrParam | PairOrParam
+               ) -> SDF:
         """Finite repetition (IQ's opRepLim): copies of the shape at
         ``(i * spacing_x, j * spacing_y)`` for ``0 <= i < count_x``, ``0 <= j < count_y``.
         ``spacing`` and ``count`` are numbers or pairs; a count of 1 leaves that axis alone.
@@ -276,10 +307,10 @@ class SDF(Function):
         another one, and the value jumps at cell borders: exactness ``'none'``. Known symmetry
         comes from the construction (primitives centred at the origin, :meth:`mirror`).
         """
-        sp = _pair(spacing, "spacing", lambda v, name: real_or_param(v, name))
+        sp_checked = _pair(spacing, "spacing", lambda v, name: real_or_param(v, name))
         ct = _pair(count, "count", _count)
-        spv = [v[1] for v in sp]
-        sp = [v[0] for v in sp]
+        spv = [v[1] for v in sp_checked]
+        sp = [v[0] for v in sp_checked]
         if not all(v > 0 for v in spv):
             raise ValueError(f"spacing must be > 0, got spacing={spacing!r}")
         for v in spv:
@@ -287,7 +318,8 @@ class SDF(Function):
         i = self._info
         if any(is_param(v) for v in (*sp, *ct)):  # given by parameters: the copies move
             i = i._replace(bbox=None)
-        sub, symmetric, contained = {}, True, i.bbox is not None
+        sub: dict[str, Expr] = {}
+        symmetric, contained = True, i.bbox is not None
         lo = list(i.bbox[:2]) if i.bbox is not None else None
         hi = list(i.bbox[2:]) if i.bbox is not None else None
         for j, (ax, s, n) in enumerate(zip("xy", sp, ct)):
@@ -297,7 +329,7 @@ class SDF(Function):
             cell = sym_min(sym_max(sym_floor(coord * (1.0 / s) + 0.5), 0.0), n - 1)
             sub[ax] = coord - cell * s
             symmetric = symmetric and ax in i.sym
-            if i.bbox is not None:
+            if i.bbox is not None and hi is not None:
                 contained = contained and max(-i.bbox[j], i.bbox[2 + j]) < spv[j] / 2
                 hi[j] += (n - 1) * s
         if not sub:
@@ -305,14 +337,14 @@ class SDF(Function):
         info = _Info(outside=symmetric and i.outside,
                      inside=symmetric and contained and i.inside,
                      bound=symmetric and i.bound,
-                     bbox=None if lo is None else (lo[0], lo[1], hi[0], hi[1]))
+                     bbox=None if lo is None or hi is None else (lo[0], lo[1], hi[0], hi[1]))
         return SDF(substitute(self.f, sub), info)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.f)[:200]})"
 
 
-def _pair(value, name, check):
+def _pair(value: object, name: str, check: Callable[[Any, str], Any]) -> tuple:
     if isinstance(value, (tuple, list, np.ndarray)):
         if len(value) != 2:
             raise ValueError(f"{name} must be a number or a pair, got {name}={value!r}")
@@ -321,15 +353,15 @@ def _pair(value, name, check):
     return (v, v)
 
 
-def _count(value, name):
+def _count(value: object, name: str) -> Expr | int:
     """A count: an integer >= 1, or an expression of parameters (rounded down at run time,
     checked at the defaults)."""
     if is_param(value):
-        value, number = real_or_param(value, name)
+        expr, number = real_or_param(value, name)
         if number < 1 or number != int(number):
-            raise ValueError(f"{name} must be an integer >= 1, got {name}={value} = {number!r} "
+            raise ValueError(f"{name} must be an integer >= 1, got {name}={expr} = {number!r} "
                              f"at the parameters' defaults")
-        return sym_floor(value)
+        return sym_floor(expr)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise TypeError(f"{name} must be an integer, got {name}={value!r}")
     if value < 1:
@@ -339,27 +371,27 @@ def _count(value, name):
 
 # Modifiers as functions (the methods of SDF).
 
-def offset(f: SDF, r: float) -> SDF:
+def offset(f: SDF, r: FloatOrParam) -> SDF:
     """``f.round(r)``: the shape offset by ``r`` (see :meth:`SDF.round`)."""
     return _check_sdf(f, "f").round(r)
 
 
-def shell(f: SDF, thickness: float) -> SDF:
+def shell(f: SDF, thickness: FloatOrParam) -> SDF:
     """``f.shell(thickness)`` (see :meth:`SDF.shell`)."""
     return _check_sdf(f, "f").shell(thickness)
 
 
-def scale(f: SDF, s: float) -> SDF:
+def scale(f: SDF, s: FloatOrParam) -> SDF:
     """``f.scale(s)`` (see :meth:`SDF.scale`)."""
     return _check_sdf(f, "f").scale(s)
 
 
-def translate(f: SDF, offset: ArrayLike) -> SDF:  # noqa: F811 - shadows offset() here only
+def translate(f: SDF, offset: PairOrParam) -> SDF:  # shadows offset() here only
     """``f.translate(offset)`` (see :meth:`SDF.translate`)."""
     return _check_sdf(f, "f").translate(offset)
 
 
-def rotate(f: SDF, angle: float) -> SDF:
+def rotate(f: SDF, angle: FloatOrParam) -> SDF:
     """``f.rotate(angle)`` (see :meth:`SDF.rotate`)."""
     return _check_sdf(f, "f").rotate(angle)
 
@@ -369,7 +401,8 @@ def mirror(f: SDF, axis: str = "x") -> SDF:
     return _check_sdf(f, "f").mirror(axis)
 
 
-def repeat(f: SDF, spacing: ArrayLike, count: ArrayLike) -> SDF:
+def repeat(f: SDF, spacing: FloatOrParam | PairOrParam,
+           count: FloatOrParam | PairOrParam) -> SDF:
     """``f.repeat(spacing, count)`` (see :meth:`SDF.repeat`)."""
     return _check_sdf(f, "f").repeat(spacing, count)
 
@@ -377,7 +410,7 @@ def repeat(f: SDF, spacing: ArrayLike, count: ArrayLike) -> SDF:
 # ---------------------------------------------------------------------------------------------
 # Set operations.
 
-def _k_and_kind(k, kind):
+def _k_and_kind(k: object, kind: object) -> tuple[FloatOrParam, str]:
     return _smoothness_value(k), _blend_kind(kind)
 
 
@@ -394,7 +427,7 @@ class Union(SDF):
     it is 1-Lipschitz.
     """
 
-    def __init__(self, a: SDF, b: SDF, k: float = 0.0, kind: str = "exponential"):
+    def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
@@ -412,7 +445,7 @@ class Intersection(SDF):
     corner the distance to the intersection is larger than either operand). Blends: a bound.
     """
 
-    def __init__(self, a: SDF, b: SDF, k: float = 0.0, kind: str = "exponential"):
+    def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
@@ -430,7 +463,7 @@ class Difference(SDF):
     outside. Blends: a bound.
     """
 
-    def __init__(self, a: SDF, b: SDF, k: float = 0.0, kind: str = "exponential"):
+    def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
@@ -442,7 +475,7 @@ class Difference(SDF):
 # ---------------------------------------------------------------------------------------------
 # Many shapes at once.
 
-def _shapes_list(shapes, name) -> list:
+def _shapes_list(shapes: Iterable[SDF], name: str) -> list[SDF]:
     if isinstance(shapes, SDF):
         raise TypeError(f"{name} takes an iterable of SDFs (a list, a generator), got one SDF; "
                         f"write {name}([a, b, ...])")
@@ -458,7 +491,7 @@ def _shapes_list(shapes, name) -> list:
     return out
 
 
-def union(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> SDF:
+def union(shapes: Iterable[SDF], k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
     """The union of many shapes: ``shapes[0] | shapes[1] | ...`` with one blend (``k`` and
     ``kind`` as for :class:`Union`; the :func:`smoothness` context is not used).
 
@@ -474,7 +507,7 @@ def union(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> S
         return _union(out, k, kind)
 
 
-def _union(out: list, k, kind: str) -> SDF:
+def _union(out: list, k: FloatOrParam, kind: str) -> SDF:
     e, info = out[0].f, out[0]._info
     outside, bound, bbox, sym = info.outside, info.bound, info.bbox, info.sym
     depth = _blend_depth(k, kind)
@@ -491,7 +524,8 @@ def _union(out: list, k, kind: str) -> SDF:
     return SDF(e, _Info(outside=outside, bound=bound, bbox=bbox, sym=sym))
 
 
-def intersection(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential") -> SDF:
+def intersection(shapes: Iterable[SDF], k: FloatOrParam = 0.0, kind: str = "exponential"
+                 ) -> SDF:
     """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
     :func:`union` and :class:`Intersection`), built in one step."""
     out = _shapes_list(shapes, "intersection")
@@ -502,7 +536,7 @@ def intersection(shapes: Iterable[SDF], k: float = 0.0, kind: str = "exponential
         return _intersection(out, k, kind)
 
 
-def _intersection(out: list, k, kind: str) -> SDF:
+def _intersection(out: list, k: FloatOrParam, kind: str) -> SDF:
     e, info = out[0].f, out[0]._info
     inside, bound, convex, bbox, sym = info.inside, info.bound, info.convex, info.bbox, info.sym
     for f in out[1:]:

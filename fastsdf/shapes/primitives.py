@@ -7,31 +7,55 @@ from __future__ import annotations
 import functools
 import math
 import numbers
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import MAX_COORD, check_length as _check_length
+from fastsdf.expr.graph import (
+    Expr,
+    as_expr,
+    sym_abs,
+    sym_cos,
+    sym_length,
+    sym_max,
+    sym_min,
+    sym_prim,
+    sym_select,
+    sym_sin,
+)
+from fastsdf.expr.validate import (
+    MAX_COORD,
+    FloatOrParam,
+    Pair,
+    PairOrParam,
+    coord2_or_param,
+    is_param,
+    real_or_param,
+    vec2_or_param,
+)
+from fastsdf.expr.validate import check_length as _check_length
 from fastsdf.expr.validate import coord as _coord
 from fastsdf.expr.validate import coord2 as _point
 from fastsdf.expr.validate import length as _length
 from fastsdf.expr.validate import real as _real
 from fastsdf.expr.validate import vec2 as _vec2
-from fastsdf.expr.graph import Expr, as_expr, sym_abs, sym_cos, sym_length, sym_max, sym_min, sym_prim, sym_select, sym_sin
-from fastsdf.expr.validate import coord2_or_param, is_param, real_or_param, vec2_or_param
+from fastsdf.shapes.context import _IDENTITY, _coords, _frame
+from fastsdf.shapes.exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
+from fastsdf.shapes.operations import SDF
 
 
-def _has_param(value) -> bool:
+def _has_param(value: object) -> bool:
     """Whether a pair holds an expression of runtime parameters."""
     return isinstance(value, (tuple, list)) and any(is_param(v) for v in value)
 
 
-def _any_param(*values) -> bool:
+def _any_param(*values: object) -> bool:
     """Whether any of the numbers or pairs is (or holds) an expression of parameters."""
     return any(is_param(v) or _has_param(v) for v in values)
 
 
-def _point_p(value, name):
+def _point_p(value: object, name: str) -> tuple[Pair, np.ndarray]:
     """``(pair, numbers)``: a point whose coordinates may be expressions of parameters (checked
     at the parameters' defaults) and its value there as a float64 array."""
     if _has_param(value):
@@ -40,22 +64,22 @@ def _point_p(value, name):
     return p, p
 
 
-def _positive_p(value, name, size=True):
+def _positive_p(value: object, name: str, size: bool = True) -> tuple[FloatOrParam, float]:
     """``(value, number)``: :func:`_positive` for a number or an expression of parameters
     (checked at the defaults)."""
     if is_param(value):
-        value, number = real_or_param(value, name)
+        expr, number = real_or_param(value, name)
         if not number > 0:
-            raise ValueError(f"{name} must be > 0, got {name}={value} = {number!r} at the "
+            raise ValueError(f"{name} must be > 0, got {name}={expr} = {number!r} at the "
                              f"parameters' defaults")
         if size:
             _check_length(number, name)
-        return value, number
+        return expr, number
     v = _positive(value, name, size)
     return v, v
 
 
-def _not_param(value, name, why):
+def _not_param(value: object, name: str, why: str) -> None:
     """``TypeError`` for a number that cannot be a runtime parameter, saying why."""
     if is_param(value) or _has_param(value):
         raise TypeError(f"{name} cannot be a runtime parameter ({why}), got {name}={value!r}")
@@ -66,7 +90,7 @@ def _not_param(value, name, why):
 _TINY = 1e-300
 
 
-def _segment_expr_p(x: Expr, y: Expr, a, b, normal=None) -> Expr:
+def _segment_expr_p(x: Expr, y: Expr, a: Pair, b: Pair, normal: tuple | None = None) -> Expr:
     """:func:`_segment_expr` with ends (and normal) that may be expressions of parameters: the
     same formula, with the length and direction computed in the kernel."""
     px, py = x - a[0], y - a[1]
@@ -84,12 +108,14 @@ def _segment_expr_p(x: Expr, y: Expr, a, b, normal=None) -> Expr:
     return sym_select(beside, sym_abs(h), sym_length(ux, uy))
 
 
-def _convex_polygon_expr_p(x: Expr, y: Expr, vertices, orientation=1.0) -> Expr:
+def _convex_polygon_expr_p(x: Expr, y: Expr, vertices: Sequence[Pair],
+                           orientation: FloatOrParam = 1.0) -> Expr:
     """:func:`_convex_polygon_expr` for vertices that may be expressions of parameters, in
     counter-clockwise order when ``orientation`` is 1 and clockwise when it is -1 (a number,
     or an expression that is +-1 at run time)."""
     n = len(vertices)
-    dist = line = None
+    dist: Expr | None = None
+    line: Expr | None = None
     for i in range(n):
         a, b = vertices[i], vertices[(i + 1) % n]
         ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
@@ -99,15 +125,17 @@ def _convex_polygon_expr_p(x: Expr, y: Expr, vertices, orientation=1.0) -> Expr:
         h = (x - a[0]) * normal[0] + (y - a[1]) * normal[1]
         dist = seg if dist is None else sym_min(dist, seg)
         line = h if line is None else sym_max(line, h)
+    assert dist is not None and line is not None  # (n >= 3 edges)
     return sym_select(line, dist, line)
 
 
-def _polygon_expr_p(x: Expr, y: Expr, vertices) -> Expr:
+def _polygon_expr_p(x: Expr, y: Expr, vertices: Sequence[Pair]) -> Expr:
     """Exact SDF of a simple polygon whose vertices may be expressions of parameters, from
     graph operations: the distance to the nearest edge, negated inside by an even-odd crossing
     count (IQ's sdPolygon: each edge that a ray from the point crosses flips the sign)."""
     n = len(vertices)
-    dist = sign = None
+    dist: Expr | None = None
+    sign: Expr | None = None
     for i in range(n):
         a, b = vertices[i], vertices[i - 1]
         seg = _segment_expr_p(x, y, a, b)
@@ -119,10 +147,9 @@ def _polygon_expr_p(x: Expr, y: Expr, vertices) -> Expr:
         c3 = sym_select(ex * wy - ey * wx, 1.0, -1.0)  # the point left of the edge
         flip = sym_select(sym_abs(c1 + c2 + c3) - 2.0, -1.0, 1.0)  # all three or none
         sign = flip if sign is None else sign * flip
+    assert dist is not None and sign is not None  # (n >= 3 edges)
     return sign * dist
-from fastsdf.shapes.context import _IDENTITY, _coords, _frame
-from fastsdf.shapes.exactness import _center_sym, _edges_symmetry, _points_bbox, _primitive_info
-from fastsdf.shapes.operations import SDF
+
 
 __all__ = ["Circle", "Halfspace", "Box",
            "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
@@ -138,7 +165,10 @@ class Circle(SDF):
     At the centre, where every direction is steepest, the gradient is the local +x axis.
     """
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
+    center: Pair
+    radius: FloatOrParam
+
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0):
         if is_param(radius) or _has_param(center):
             center, _ = coord2_or_param(center, "center")
             radius, r0 = real_or_param(radius, "radius")
@@ -158,7 +188,7 @@ class Circle(SDF):
         self.center, self.radius = center, radius
         x, y = _coords()
         moving = is_param(radius) or any(is_param(v) for v in center)
-        info = _primitive_info(None if moving else _points_bbox([center], radius),
+        info = _primitive_info(None if moving else _points_bbox([center], r0),
                                () if moving else _center_sym(center), convex=True)
         super().__init__(sym_length(x - center[0], y - center[1]) - radius, info)
 
@@ -167,7 +197,10 @@ class Halfspace(SDF):
     """Half-plane ``{p : n . p <= d}`` with outward normal ``normal`` (normalized here) and
     signed offset ``d`` from the origin (Hessian normal form; exact distance)."""
 
-    def __init__(self, normal: ArrayLike = (1.0, 0.0), d: float = 0.0):
+    normal: Pair
+    d: FloatOrParam
+
+    def __init__(self, normal: PairOrParam = (1.0, 0.0), d: FloatOrParam = 0.0):
         d = real_or_param(d, "d")[0] if is_param(d) else _coord(d, "d")
         if _has_param(normal):  # turned by parameters: normalized in the kernel
             normal, nv = vec2_or_param(normal, "normal")
@@ -209,7 +242,7 @@ class Box(SDF):
     L-infinity distance, with an axis-aligned gradient.)
     """
 
-    def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0)):
+    def __init__(self, minc: PairOrParam = (-1.0, -1.0), maxc: PairOrParam = (1.0, 1.0)):
         if _has_param(minc) or _has_param(maxc):
             (minc, lo), (maxc, hi) = coord2_or_param(minc, "minc"), coord2_or_param(maxc, "maxc")
         else:
@@ -253,7 +286,8 @@ class Box(SDF):
 # Segments, boxes, polygons, ellipses, rings and arcs, and the geometry helpers they share.
 
 
-def _segment_expr(x: Expr, y: Expr, a, b, normal=None) -> Expr:
+def _segment_expr(x: Expr, y: Expr, a: np.ndarray, b: np.ndarray,
+                  normal: tuple | None = None) -> Expr:
     """Unsigned distance from (x, y) to the segment a-b (a point if a == b).
 
     Beside the segment (its foot between ``a`` and ``b``) the distance is ``|h|``, the distance
@@ -298,7 +332,8 @@ def _convex_polygon_expr(x: Expr, y: Expr, vertices: np.ndarray) -> Expr:
     point just outside an edge, that edge's segment distance is ``|h| = h`` and the gradient is
     the edge's outward normal on both sides and on the edge itself."""
     n = len(vertices)
-    dist = line = None
+    dist: Expr | None = None
+    line: Expr | None = None
     for i in range(n):
         a, b = vertices[i], vertices[(i + 1) % n]
         e = b - a
@@ -308,13 +343,14 @@ def _convex_polygon_expr(x: Expr, y: Expr, vertices: np.ndarray) -> Expr:
         h = (x - float(a[0])) * normal[0] + (y - float(a[1])) * normal[1]
         dist = seg if dist is None else sym_min(dist, seg)
         line = h if line is None else sym_max(line, h)
+    assert dist is not None and line is not None  # (n >= 3 edges)
     return sym_select(line, dist, line)
 
 
-def _vertices(value, name, minimum=3) -> np.ndarray:
+def _vertices(value: object, name: str, minimum: int = 3) -> np.ndarray:
     try:
         arr = np.asarray(value)
-    except Exception:  # noqa: BLE001
+    except Exception:
         raise TypeError(f"{name} must be a sequence of (x, y) pairs, got {name}={value!r}") \
             from None
     if arr.dtype.kind not in "iuf":
@@ -355,7 +391,7 @@ def _check_simple(v: np.ndarray, name: str) -> None:
         raise ValueError(f"{name} must enclose a non-zero area (got collinear or coincident "
                          f"vertices: {v.tolist()!r})")
 
-    def orient(p, q, r):
+    def orient(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
         return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - \
             (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
 
@@ -411,7 +447,7 @@ class Segment(SDF):
     ``Segment(a, b).round(r)`` is the same shape as ``Capsule(a, b, r)``.
     """
 
-    def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0)):
+    def __init__(self, a: PairOrParam = (0.0, 0.0), b: PairOrParam = (1.0, 0.0)):
         if _any_param(a, b):
             (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
             _segment_length(av, bv)
@@ -432,7 +468,8 @@ class Capsule(SDF):
     On the spine (the segment ``a``-``b``) the gradient is the unit normal to the left of
     ``b - a``, as for :class:`Segment`."""
 
-    def __init__(self, a: ArrayLike = (0.0, 0.0), b: ArrayLike = (1.0, 0.0), radius: float = 0.25):
+    def __init__(self, a: PairOrParam = (0.0, 0.0), b: PairOrParam = (1.0, 0.0),
+                 radius: FloatOrParam = 0.25):
         if _any_param(a, b, radius):
             (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
             radius, _ = _positive_p(radius, "radius")
@@ -458,8 +495,8 @@ class RoundedBox(SDF):
     ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
     """
 
-    def __init__(self, minc: ArrayLike = (-1.0, -1.0), maxc: ArrayLike = (1.0, 1.0),
-                 radii: ArrayLike = 0.25):
+    def __init__(self, minc: PairOrParam = (-1.0, -1.0), maxc: PairOrParam = (1.0, 1.0),
+                 radii: FloatOrParam | PairOrParam = 0.25):
         # Any of the numbers may be an expression of parameters: the checks run at the
         # parameters' defaults, the formulas are the same.
         (minc, lo), (maxc, hi) = _point_p(minc, "minc"), _point_p(maxc, "maxc")
@@ -512,8 +549,8 @@ class OrientedBox(SDF):
     """Rectangle along the segment ``a``-``b``: length ``|b - a|``, total width ``thickness``
     (IQ's oriented box; the ends are flat, at ``a`` and ``b``)."""
 
-    def __init__(self, a: ArrayLike = (-1.0, 0.0), b: ArrayLike = (1.0, 0.0),
-                 thickness: float = 0.5):
+    def __init__(self, a: PairOrParam = (-1.0, 0.0), b: PairOrParam = (1.0, 0.0),
+                 thickness: FloatOrParam = 0.5):
         if _any_param(a, b, thickness):
             (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
             thickness, _ = _positive_p(thickness, "thickness")
@@ -522,11 +559,11 @@ class OrientedBox(SDF):
                                  f"b={bv.tolist()!r} at the parameters' defaults")
             self.a, self.b, self.thickness = a, b, thickness
             ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
-            length = sym_length(ex, ey)
-            dx, dy = ex / sym_max(length, _TINY), ey / sym_max(length, _TINY)
+            span = sym_length(ex, ey)
+            dx, dy = ex / sym_max(span, _TINY), ey / sym_max(span, _TINY)
             x, y = _coords()
             px, py = x - (a[0] + b[0]) / 2, y - (a[1] + b[1]) / 2
-            qx = sym_abs(px * dx + py * dy) - length / 2
+            qx = sym_abs(px * dx + py * dy) - span / 2
             qy = sym_abs(py * dx - px * dy) - thickness / 2
             super().__init__(_box_expr(qx, qy), _primitive_info(None, convex=True))
             return
@@ -554,8 +591,10 @@ class OrientedBox(SDF):
 class Triangle(SDF):
     """The triangle with corners ``p0, p1, p2`` (either orientation; not collinear)."""
 
-    def __init__(self, p0: ArrayLike = (-1.0, -0.5), p1: ArrayLike = (1.0, -0.5),
-                 p2: ArrayLike = (0.0, 1.0)):
+    vertices: np.ndarray | tuple
+
+    def __init__(self, p0: PairOrParam = (-1.0, -0.5), p1: PairOrParam = (1.0, -0.5),
+                 p2: PairOrParam = (0.0, 1.0)):
         pts = [_point_p(p, name) for p, name in ((p0, "p0"), (p1, "p1"), (p2, "p2"))]
         v = np.array([p[1] for p in pts])
         size = float(np.abs(v - v[0]).max())
@@ -576,17 +615,19 @@ class Triangle(SDF):
                                           sym_select(area2, 1.0, -1.0))
             super().__init__(expr, _primitive_info(None, convex=True))
             return
-        self.vertices = _ccw(v)
+        ccw = _ccw(v)
+        self.vertices = ccw
         info = _primitive_info(_points_bbox(v), _edges_symmetry(v), convex=True)
-        super().__init__(_convex_polygon_expr(*_coords(), self.vertices), info)
+        super().__init__(_convex_polygon_expr(*_coords(), ccw), info)
 
 
-def _regular_vertices(center, radius, n, phase=math.pi / 2):
+def _regular_vertices(center: np.ndarray, radius: float, n: int, phase: float = math.pi / 2
+                      ) -> np.ndarray:
     t = phase + 2 * math.pi * np.arange(n) / n
     return np.stack([center[0] + radius * np.cos(t), center[1] + radius * np.sin(t)], -1)
 
 
-def _check_n(n, name="n", minimum=3) -> int:
+def _check_n(n: object, name: str = "n", minimum: int = 3) -> int:
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
         raise TypeError(f"{name} must be an integer, got {name}={n!r}")
     if n < minimum:
@@ -594,7 +635,7 @@ def _check_n(n, name="n", minimum=3) -> int:
     return int(n)
 
 
-def _positive(value, name, size=True) -> float:
+def _positive(value: object, name: str, size: bool = True) -> float:
     """A positive real; with ``size``, a length in the supported range."""
     value = _real(value, name)
     if value <= 0:
@@ -604,7 +645,7 @@ def _positive(value, name, size=True) -> float:
     return value
 
 
-def _segment_length(a, b) -> float:
+def _segment_length(a: np.ndarray, b: np.ndarray) -> float:
     """``|b - a|`` (overflow-free), which must be 0 or a length in the supported range."""
     e = b - a
     big = float(np.abs(e).max())
@@ -619,7 +660,10 @@ class RegularPolygon(SDF):
     ``center``, one vertex pointing up (+y). Built from graph operations: ``n`` segments (one
     loop over a table in the generated code for ``n >= 4``)."""
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 6):
+    vertices: np.ndarray | list
+
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0,
+                 n: int = 6):
         _not_param(n, "n", "the number of vertices sets the structure of the generated code")
         n = _check_n(n)
         if _any_param(center, radius):
@@ -648,7 +692,7 @@ class EquilateralTriangle(RegularPolygon):
     """Equilateral triangle inscribed in the circle of ``radius`` around ``center``, one
     corner pointing up (+y)."""
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0):
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0):
         super().__init__(center=center, radius=radius, n=3)
 
 
@@ -682,7 +726,7 @@ class Polygon(SDF):
     ``'polygon'``): O(n) per point; the vertices are a table in the generated module.
     """
 
-    def __init__(self, vertices: ArrayLike):
+    def __init__(self, vertices: ArrayLike | Sequence[PairOrParam]):
         if isinstance(vertices, (tuple, list)) and any(_any_param(p) for p in vertices):
             self._init_param(vertices)
             return
@@ -704,7 +748,7 @@ class Polygon(SDF):
         info = _primitive_info(bbox, sym, convex=convex)
         super().__init__(expr, info)
 
-    def _init_param(self, vertices) -> None:
+    def _init_param(self, vertices: Sequence[PairOrParam]) -> None:
         """Vertices given by parameters: checked at the parameters' defaults (simple, non-zero
         area, in range) and evaluated by graph operations (an unrolled loop over the edges)
         instead of the compiled loop, whose vertex table is part of the generated code."""
@@ -727,11 +771,11 @@ class Star(Polygon):
     """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
     pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``."""
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, n: int = 5,
-                 inner_radius: float | None = None):
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0, n: int = 5,
+                 inner_radius: FloatOrParam | None = None):
         _not_param(n, "n", "the number of points sets the structure of the generated code")
         if _any_param(center, radius, inner_radius):
-            (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
+            (center, _), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
             inner, iv = (radius / 2, rv / 2) if inner_radius is None else \
                 _positive_p(inner_radius, "inner_radius")
             n = _check_n(n, minimum=2)
@@ -739,10 +783,10 @@ class Star(Polygon):
                 raise ValueError(f"inner_radius must be < radius, got inner_radius={inner!r}, "
                                  f"radius={radius!r} (at the parameters' defaults)")
             ang = math.pi / 2 + math.pi * np.arange(2 * n) / n
-            v = [(center[0] + (radius if k % 2 == 0 else inner) * float(math.cos(a)),
-                  center[1] + (radius if k % 2 == 0 else inner) * float(math.sin(a)))
-                 for k, a in enumerate(ang)]
-            super().__init__(v)
+            pts = [(center[0] + (radius if k % 2 == 0 else inner) * float(math.cos(a)),
+                    center[1] + (radius if k % 2 == 0 else inner) * float(math.sin(a)))
+                   for k, a in enumerate(ang)]
+            super().__init__(pts)
             self.center, self.radius, self.n, self.inner_radius = center, radius, n, inner
             return
         center = _point(center, "center")
@@ -780,9 +824,9 @@ class Ellipse(SDF):
     minor axis (+y for ``a > b``).
     """
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), axes: ArrayLike = (1.0, 0.5)):
+    def __init__(self, center: PairOrParam = (0.0, 0.0), axes: PairOrParam = (1.0, 0.5)):
         if _any_param(center, axes):
-            (center, cv), (axes_p, av) = _point_p(center, "center"), vec2_or_param(axes, "axes")
+            (center, _), (axes_p, av) = _point_p(center, "center"), vec2_or_param(axes, "axes")
             self._check_axes(av)
             self.center, self.axes = center, axes_p
             x, y = _coords()
@@ -803,7 +847,7 @@ class Ellipse(SDF):
         super().__init__(expr, info)
 
     @staticmethod
-    def _check_axes(axes) -> None:
+    def _check_axes(axes: np.ndarray) -> None:
         if not np.all(axes > 0):
             raise ValueError(f"axes must be > 0, got axes={axes.tolist()!r}")
         for v in axes:
@@ -817,7 +861,8 @@ class Ring(SDF):
     """Annulus: the circle of ``radius`` around ``center`` thickened to total width
     ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0, thickness: float = 0.2):
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0,
+                 thickness: FloatOrParam = 0.2):
         (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
         thickness, tv = _positive_p(thickness, "thickness")
         if not tv < 2 * rv:
@@ -842,8 +887,8 @@ class Arc(SDF):
     a bound inside (reported as ``'bound'``).
     """
 
-    def __init__(self, center: ArrayLike = (0.0, 0.0), radius: float = 1.0,
-                 aperture: float = math.pi, thickness: float = 0.2):
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0,
+                 aperture: FloatOrParam = math.pi, thickness: FloatOrParam = 0.2):
         (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
         aperture, apv = _positive_p(aperture, "aperture", size=False)
         if apv > 2 * math.pi:
@@ -864,7 +909,7 @@ class Arc(SDF):
             # (at a full circle given by parameters, the end point's branch is the circle's
             # own value: the formula is continuous there)
             s, c = (sym_sin(aperture / 2), sym_cos(aperture / 2)) if is_param(aperture) else \
-                (math.sin(aperture / 2), math.cos(aperture / 2))
+                (math.sin(apv / 2), math.cos(apv / 2))  # (apv = aperture: a number)
             ax = sym_abs(px)
             # beyond the end's ray the end point is nearest, else the circle
             dist = sym_select(ax * c - py * s, sym_length(ax - s * radius, py - c * radius), ring)

@@ -35,7 +35,7 @@ def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
         return _box_world(int(n_boxes), seed)
 
 
-def _box_world(n_boxes: int, seed) -> SDF:
+def _box_world(n_boxes: int, seed: int) -> SDF:
     rng = np.random.default_rng(seed)
     f = funnel()
     for _ in range(n_boxes):
@@ -57,9 +57,9 @@ def mixed_scene(n: int, seed: int = 1) -> SDF:
         return _mixed_scene(int(n), seed)
 
 
-def _mixed_scene(n: int, seed) -> SDF:
+def _mixed_scene(n: int, seed: int) -> SDF:
     rng = np.random.default_rng(seed)
-    f = Halfspace([0, 1], -1.8)
+    f: SDF = Halfspace([0, 1], -1.8)
     for i in range(int(n) - 1):
         with transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
                 smoothness([0, 5, 10][i % 3]):

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import inspect
 import numbers
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ def _check_samples(samples: Any) -> tuple:
     """``samples`` (an int, or a pair for x and y) as ``(nx, ny)``, each an integer >= 2."""
     pair = samples if isinstance(samples, (tuple, list, np.ndarray)) else (samples, samples)
     if len(pair) != 2 or not all(
-            isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and v >= 2
+            isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 2
             for v in pair):
         raise ValueError(f"samples must be an integer >= 2 or a pair of them (x, y), got "
                          f"samples={samples!r}")
@@ -150,7 +151,7 @@ def _setup_axes(ax: Any, bounds: tuple, ticks: bool = False) -> None:
 
 
 def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
-             bounds: Any = [(-2, 2), (-2, 2)], samples: Any = 200, show_quiver: bool = True,
+             bounds: Any = ((-2, 2), (-2, 2)), samples: Any = 200, show_quiver: bool = True,
              show_isolines: str | bool | None = 'all', show_isolabels: bool = False,
              filled: bool = False, colorbar: bool = False, ticks: bool = False) -> dict:
     """Plot the signed distance function ``f`` on a matplotlib axes.

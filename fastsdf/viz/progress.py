@@ -39,7 +39,7 @@ class Progress:
     def __init__(self, total: int, label: str = "", stream: IO[str] | None = None):
         self._bar = progress(total, label, stream)
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Progress:
         return self
 
     def step(self, note: str = "", count: int = 1) -> None:

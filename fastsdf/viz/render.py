@@ -22,6 +22,7 @@ with a NaN/infinite coordinate are dropped.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 import time
@@ -31,6 +32,7 @@ from typing import Any
 import numba
 import numpy as np
 from numba import njit, prange
+from numpy.typing import ArrayLike
 
 from fastsdf.viz.plotting import check_bounds
 
@@ -120,27 +122,27 @@ def _splat_parallel(xs, ys, ws, use_w, img, xe, ye, chunks):
 # ---------------------------------------------------------------------------------------------
 # Validation helpers (errors name the parameter and the value).
 
-def _check_count(value, name: str, minimum: int) -> int:
+def _check_count(value: object, name: str, minimum: int) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
-    if value < minimum:
+    if int(value) < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
     return int(value)
 
 
-def check_shape(shape) -> tuple:
+def check_shape(shape: Any) -> tuple[int, int]:
     try:
         h, w = shape
     except (TypeError, ValueError):
         raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}") \
             from None
-    if not all(isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and v >= 1
-               for v in (h, w)):
+    if not all(isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
+               and int(v) >= 1 for v in (h, w)):
         raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}")
     return int(h), int(w)
 
 
-def _coords(v, name: str) -> np.ndarray:
+def _coords(v: ArrayLike, name: str) -> np.ndarray:
     try:
         arr = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -216,12 +218,10 @@ def _particle_cmap():
     return cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
 
 
-def _axes_image_shape(ax, bounds) -> tuple:
+def _axes_image_shape(ax: Any, bounds: tuple) -> tuple[int, int]:
     """One image pixel per screen pixel of ``ax`` over ``bounds`` (at the figure's dpi)."""
-    try:
+    with contextlib.suppress(Exception):  # a layout not resolved yet: use the box as is
         ax.apply_aspect()
-    except Exception:  # noqa: BLE001 - a layout that cannot be resolved yet: use the box as is
-        pass
     box = ax.get_window_extent()
     (xl0, xl1), (yl0, yl1) = ax.get_xlim(), ax.get_ylim()
     (x0, x1), (y0, y1) = bounds
@@ -230,7 +230,7 @@ def _axes_image_shape(ax, bounds) -> tuple:
     return _clip_side(h), _clip_side(w)
 
 
-def plain_log_ticks(colorbar) -> None:
+def plain_log_ticks(colorbar: Any) -> None:
     """Tick labels ``1, 2, 5, 10, 100`` on a logarithmic colour bar instead of ``2x10^0``."""
     from matplotlib.ticker import FuncFormatter
 
@@ -461,7 +461,7 @@ def world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
     return fig, ax, cax
 
 
-def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = [(-2, 2), (-2, 2)],
+def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = ((-2, 2), (-2, 2)),
                  out_png: str | None = None, title: str | None = None, samples: int = 400,
                  max_circles: int | None = None, figsize: tuple = (6.4, 5.6),
                  dpi: float = 100, colorbar: bool = True, ticks: bool = True) -> Any:
@@ -526,8 +526,8 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
     it; ``colorbar``, ``True`` or an axes, adds a colour bar of particles per pixel to the
     density image).
     ``title``: when not ``None``, the axes title is ``title`` followed by each frame's simulated
-    time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay between frames in ms (default the
-    simulation's timestep times ``steps_per_frame``).
+    time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay
+    between frames in ms (default the simulation's timestep times ``steps_per_frame``).
 
     Each frame advances the simulation once more every time the animation is drawn or saved:
     saving it twice continues the simulation. Returns a ``FuncAnimation`` (keep a reference;
@@ -553,7 +553,7 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
         interval = 1000.0 * dt * max(1, schedule[-1])
     x, y, r = _state(sim)
     layer = draw_particles(ax, x, y, r=r, colorbar=colorbar, **draw_kwargs)
-    state = {"wall": None}
+    state: dict[str, float | None] = {"wall": None}
     text = ax.set_title(sim_title(sim, title)) if title is not None else None
 
     def frame(i: int) -> tuple:
@@ -568,14 +568,15 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
                 run(k)
         xs, ys, rs = _state(sim)
         artists = layer.update(xs, ys, rs)
-        if text is not None:
+        if text is not None and title is not None:
             text.set_text(sim_title(sim, title))
             artists = artists + (text,)
         return artists
 
-    anim = FuncAnimation(ax.figure, frame, frames=frames, init_func=lambda: layer.update(*_state(sim)),
+    anim = FuncAnimation(ax.figure, frame, frames=frames,
+                         init_func=lambda: layer.update(*_state(sim)),
                          interval=interval, blit=blit, repeat=repeat)
-    anim.particle_layer = layer
+    anim.particle_layer = layer  # type: ignore[attr-defined]  # the layer rides along
     return anim
 
 
@@ -617,14 +618,16 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
             raise RuntimeError(f"writing {ext} needs ffmpeg: pip install 'fastsdf[video]' (it "
                                f"installs imageio-ffmpeg, which ships one), or install ffmpeg, "
                                f"or save a .gif")
-        writer = animation.FFMpegWriter(fps=fps, bitrate=2400 if ext != ".webm" else -1)
+        # (matplotlib's stubs say int, its writers take any frame rate)
+        writer: animation.AbstractMovieWriter = animation.FFMpegWriter(
+            fps=fps, bitrate=2400 if ext != ".webm" else -1)  # type: ignore[arg-type]
     elif kind == "pillow":
-        writer = animation.PillowWriter(fps=fps)
+        writer = animation.PillowWriter(fps=fps)  # type: ignore[arg-type]
     else:
-        writer = animation.HTMLWriter(fps=fps, embed_frames=True)
+        writer = animation.HTMLWriter(fps=fps, embed_frames=True)  # type: ignore[arg-type]
     total = getattr(anim, "_save_count", None) or 0
-    with _bar(total, f"writing {os.path.basename(str(path))}",
-              **({} if progress else {"disable": True})) as bar:
+    bar_options: dict[str, Any] = {} if progress else {"disable": True}
+    with _bar(total, f"writing {os.path.basename(str(path))}", **bar_options) as bar:
         anim.save(str(path), writer=writer, dpi=dpi,
                   progress_callback=lambda i, n: bar.update(1))
     return os.path.abspath(str(path))
@@ -633,7 +636,7 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
 # ---------------------------------------------------------------------------------------------
 # The notebook's reset(ax) / update(ax): a simulation drawn on an axes, state kept here.
 
-_VIEWS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def notebook_draw(sim: Any, ax: Any, new: bool) -> tuple:

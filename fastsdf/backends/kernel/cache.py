@@ -79,15 +79,17 @@ def hashed_import(module: str, names: Iterable[str] = (), alias: str | None = No
     its cache key."""
     digest = _FILE_DIGESTS.get(module)
     if digest is None:
-        path = importlib.util.find_spec(module).origin
-        with open(path, "rb") as fh:
+        spec = importlib.util.find_spec(module)
+        if spec is None or spec.origin is None:
+            raise ImportError(f"no source file for module {module!r}")
+        with open(spec.origin, "rb") as fh:
             digest = hashlib.sha256(fh.read()).hexdigest()[:16]
         _FILE_DIGESTS[module] = digest
     head = f"import {module} as {alias}" if alias else f"from {module} import {', '.join(names)}"
     return f"{head}  # sha256 {digest}"
 
 
-def _report(path, what: str) -> None:
+def _report(path: object, what: str) -> None:
     """Warn once per process and file."""
     key = (str(path), what)
     with _LOCK:
@@ -101,28 +103,29 @@ def _write_atomic(path: Path, data: bytes, replace: bool) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same directory. With
     ``replace`` an existing file is replaced atomically; without, an existing file is kept
     (create-if-absent, so concurrent writers of the same content never clobber a reader)."""
-    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=path.suffix, dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=".tmp_", suffix=path.suffix, dir=path.parent)
+    tmp: str | None = name
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
         if replace:
-            os.replace(tmp, path)
+            os.replace(name, path)
             tmp = None
             return
         try:
-            os.link(tmp, path)  # atomic create-if-absent
+            os.link(name, path)  # atomic create-if-absent
         except FileExistsError:
             pass
         except OSError:  # file systems without hard links
             if not path.exists():
-                os.replace(tmp, path)
+                os.replace(name, path)
                 tmp = None
     finally:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
 
 
-def _read(path: Path):
+def _read(path: Path) -> bytes | None:
     try:
         with open(path, "rb") as fh:
             return fh.read()
@@ -168,7 +171,7 @@ def load_module(source: str, prefix: str = "fastsdf_kernel") -> types.ModuleType
     sys.modules[name] = mod
     try:
         # Run the verified source, not whatever the file holds now; no .pyc is involved.
-        exec(compile(source, str(path), "exec"), mod.__dict__)  # noqa: S102
+        exec(compile(source, str(path), "exec"), mod.__dict__)
     except BaseException:
         sys.modules.pop(name, None)
         raise
@@ -191,11 +194,11 @@ def guard_module(module: types.ModuleType) -> None:
             guard_dispatcher(value)
 
 
-def guard_dispatcher(dispatcher: Any) -> None:
+def guard_dispatcher(dispatcher: object) -> None:
     """Make the disk cache of one numba dispatcher (``@njit(cache=True)``) safe: sealed files,
     and a damaged entry is removed, recompiled, stored again and reported once instead of
     raising. Anything that is not a cached dispatcher is left alone."""
-    cache = getattr(dispatcher, "_cache", None)
+    cache: Any = getattr(dispatcher, "_cache", None)  # numba's internals: untyped
     files = getattr(cache, "_cache_file", None)
     if files is None or getattr(cache, "_fastsdf_guarded", False):
         return
@@ -209,21 +212,21 @@ def guard_dispatcher(dispatcher: Any) -> None:
     files._load_data = types.MethodType(_load_data, files)
     files._save_data = types.MethodType(_save_data, files)
 
-    def load_overload(sig, target_context):
+    def load_overload(sig: object, target_context: object) -> object:
         try:
             return load(sig, target_context)
-        except Exception as exc:  # noqa: BLE001 - a cache must never break a computation
+        except Exception as exc:  # a cache must never break a computation
             _discard(files, index_path, exc)
             return None
 
-    def save_overload(sig, data):
+    def save_overload(sig: object, data: object) -> None:
         try:
             save(sig, data)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             _discard(files, index_path, exc)
             try:
                 save(sig, data)  # the damaged entry is gone: store a fresh one
-            except Exception as again:  # noqa: BLE001
+            except Exception as again:
                 _report(index_path, f"could not store a compiled kernel ({again!r}); it will "
                                     f"be compiled again in the next process")
 
@@ -232,7 +235,7 @@ def guard_dispatcher(dispatcher: Any) -> None:
     cache._fastsdf_guarded = True
 
 
-def _discard(files, index_path, exc) -> None:
+def _discard(files: object, index_path: str, exc: BaseException) -> None:
     """Remove a function's damaged index and data files (they are rewritten on save)."""
     directory = os.path.dirname(index_path)
     base = os.path.basename(index_path)[:-len(".nbi")]
@@ -259,7 +262,7 @@ def _seal(payload: bytes) -> bytes:
     return _MAGIC + hashlib.sha256(payload).digest() + payload
 
 
-def _unseal(raw: bytes, path) -> bytes:
+def _unseal(raw: bytes, path: str) -> bytes:
     head = len(_MAGIC)
     if not raw.startswith(_MAGIC) or len(raw) < head + _DIGEST:
         raise _Corrupt(f"{os.path.basename(path)} is not a sealed fastsdf cache file")
@@ -269,7 +272,7 @@ def _unseal(raw: bytes, path) -> bytes:
     return payload
 
 
-def _load_index(self):
+def _load_index(self: Any) -> dict:
     # numba's format is pickle(version) + pickle((stamp, overloads)); sealed here as one pickle.
     raw = _read(Path(self._index_path))
     if raw is None:
@@ -282,19 +285,19 @@ def _load_index(self):
     return overloads
 
 
-def _save_index(self, overloads):
+def _save_index(self: Any, overloads: dict) -> None:
     payload = self._dump((self._version, self._source_stamp, overloads))
     with self._open_for_write(self._index_path) as fh:
         fh.write(_seal(payload))
 
 
-def _load_data(self, name):
+def _load_data(self: Any, name: str) -> object:
     path = self._data_path(name)
     with open(path, "rb") as fh:  # a missing file is an OSError, which numba treats as a miss
         raw = fh.read()
     return pickle.loads(_unseal(raw, path))
 
 
-def _save_data(self, name, data):
+def _save_data(self: Any, name: str, data: object) -> None:
     with self._open_for_write(self._data_path(name)) as fh:
         fh.write(_seal(self._dump(data)))

@@ -29,27 +29,34 @@ Design (see the README's design section for the measurements behind it):
 * Per-point functions are plain ``@njit`` functions (branch-free selects, no ``parallel``), and
   tiny ``prange`` kernels call them; long generated code inside a ``parallel=True`` body is what
   makes numba's compile time explode. For scenes without parameters the ``prange`` kernels are
-  scene-independent (:mod:`fastsdf.backends.kernel.drive`, compiled once per installation) and call the
-  scene's block functions by address.
-* Each module is written to a content-hashed file in the cache directory (:mod:`fastsdf.backends.kernel.cache`)
-  and compiled with ``cache=True``; every function compiles lazily, so a value-only call never
-  compiles gradient code.
+  scene-independent (:mod:`fastsdf.backends.kernel.drive`, compiled once per installation) and call
+  the scene's block functions by address.
+* Each module is written to a content-hashed file in the cache directory
+  (:mod:`fastsdf.backends.kernel.cache`) and compiled with ``cache=True``; every function compiles
+  lazily, so a value-only call never compiles gradient code.
 """
 
 from __future__ import annotations
 
 import platform
 import re
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numba
 import numpy as np
-from typing import Sequence
 
-from fastsdf.version import __version__
 from fastsdf.backends.kernel.cache import hashed_import
-from fastsdf.backends.kernel.simd import block_source, drive_import, program_source, vectorizable, vmath_import
+from fastsdf.backends.kernel.simd import (
+    block_source,
+    drive_import,
+    program_source,
+    vectorizable,
+    vmath_import,
+)
 from fastsdf.expr.graph import Expr, gc_paused, parameters
 from fastsdf.expr.ops import OPS, lit
+from fastsdf.version import __version__
 
 __all__ = ["generate_module_source", "MIN_LOOP"]
 
@@ -90,7 +97,7 @@ class _OpNode:
 
     __slots__ = ("op", "attr")
 
-    def __init__(self, op, attr):
+    def __init__(self, op: str, attr: Any) -> None:
         self.op, self.attr = op, attr
 
 
@@ -102,7 +109,7 @@ class _Val:
 
     __slots__ = ("v", "g")
 
-    def __init__(self, v, g=None):
+    def __init__(self, v: str, g: tuple | None = None) -> None:
         self.v, self.g = v, g
 
     def grads(self, n: int) -> tuple:
@@ -159,7 +166,7 @@ def _zero(g):
 # ---------------------------------------------------------------------------------------------
 # Shapes of subexpressions (structure with constants abstracted).
 
-def _template(root: Expr):
+def _template(root: Expr) -> tuple[tuple, list, list]:
     """Linearize the sub-DAG of ``root`` with constants abstracted.
 
     Returns ``(signature, steps, constants)``: ``steps`` lists ``(node, argrefs)`` in
@@ -169,7 +176,10 @@ def _template(root: Expr):
     """
     # Templates are of small subexpressions (a primitive): a recursive walk is the fastest;
     # a deep one falls back to the iterative walk (the same order).
-    local, steps, sig, consts = {}, [], [], []
+    local: dict[Expr, int] = {}
+    steps: list[tuple] = []
+    sig: list[tuple] = []
+    consts: list[float] = []
 
     def visit(node):
         args = node.args
@@ -195,10 +205,13 @@ def _template(root: Expr):
     return tuple(sig), steps, consts
 
 
-def _template_iterative(root: Expr):
+def _template_iterative(root: Expr) -> tuple[tuple, list, list]:
     """:func:`_template` without recursion (for deep subexpressions)."""
     # (nodes hash by identity: dicts keyed by node, not by id(), save a call per lookup)
-    local, steps, sig, consts = {}, [], [], []
+    local: dict[Expr, int] = {}
+    steps: list[tuple] = []
+    sig: list[tuple] = []
+    consts: list[float] = []
     stack = [(root, False)]
     pop, push = stack.pop, stack.append
     while stack:
@@ -206,14 +219,14 @@ def _template_iterative(root: Expr):
         if expanded:
             if node in local:
                 continue
-            refs = []
+            arg_refs = []
             for a in node.args:
                 if a.op == "const":
-                    refs.append(("c", len(consts)))
+                    arg_refs.append(("c", len(consts)))
                     consts.append(a.attr)
                 else:
-                    refs.append(("n", local[a]))
-            refs = tuple(refs)
+                    arg_refs.append(("n", local[a]))
+            refs = tuple(arg_refs)
             local[node] = len(steps)
             steps.append((node, refs))
             sig.append((node.op, node.attr if node.op != "const" else None, refs))
@@ -227,14 +240,15 @@ def _template_iterative(root: Expr):
     return tuple(sig), steps, consts
 
 
-def _varying_columns(rows: list):
+def _varying_columns(rows: list) -> tuple[np.ndarray, list]:
     """Split a group's constants into a table of the columns that differ between members and
     literals for the columns that are the same in every member (e.g. the 0 of ``max(q, 0)``).
 
     Returns ``(table_rows, refs)`` where ``refs[j]`` is ``('t', column)`` or ``('l', value)``.
     """
     arr = np.asarray(rows, dtype=np.float64)
-    refs, columns = [], []
+    refs: list[tuple] = []
+    columns: list[np.ndarray] = []
     for j in range(arr.shape[1]):
         col = arr[:, j]
         if np.all(col.view(np.int64) == col[0:1].view(np.int64)):  # bitwise: keeps -0.0 apart
@@ -273,7 +287,8 @@ def _foldable(root: Expr, memo: dict | None = None) -> bool:
 
 def _dag_size(root: Expr, limit: int) -> int:
     """Distinct nodes under ``root``, counted up to ``limit + 1``."""
-    seen, stack = set(), [root]
+    seen: set[int] = set()
+    stack = [root]
     while stack and len(seen) <= limit:
         node = stack.pop()
         if id(node) not in seen:
@@ -315,10 +330,11 @@ class _Emitter:
 
     #: The coordinates: argument names of the generated functions, also the suffixes of
     #: gradient variables (``v3x`` is dv3/dx).
-    COMPONENTS = ("x", "y")
+    COMPONENTS: tuple[str, ...] = ("x", "y")
 
-    def __init__(self, symbol_names, grad: bool, tables: dict, param_names=(), time=False,
-                 fold: bool = False, memo: dict | None = None):
+    def __init__(self, symbol_names: Sequence[str], grad: bool, tables: dict,
+                 param_names: Sequence[str] = (), time: bool = False, fold: bool = False,
+                 memo: dict | None = None):
         self.grad = grad
         # fold: evaluate same-shape subexpressions anywhere in the scene in loops first (into
         # the per-point arrays _F<g>); the straight-line code then only reads their entries.
@@ -375,6 +391,7 @@ class _Emitter:
         r = self._name()  # taken for chains too: keeps generated names (and cache keys) stable
         if spec.chain:
             return self.chain(out, node.op, node.attr, [("val", v) for v in a])
+        assert spec.emit is not None  # (every operation but the chains has an emitter)
         rule = spec.emit(self, out, node, a, r)
         if not self.grad:
             return _Val(r)
@@ -382,7 +399,7 @@ class _Emitter:
         return _Val(r, self._grad(out, r, comps))
 
     # -- n-ary chains -------------------------------------------------------------------------
-    def chain(self, out: list, op: str, k, items: list) -> _Val:
+    def chain(self, out: list, op: str, k: float, items: list) -> _Val:
         """Emit an n-ary min/max/smin/smax over ``items``.
 
         Each item is ``("val", _Val)`` for an operand already computed, or
@@ -406,12 +423,13 @@ class _Emitter:
         if first is not None:
             items = items[1:]
             cur = {"m": first.v, "s": "1.0"}
-            cur.update(zip(self.COMPONENTS, (_zero(comp) for comp in first.grads(len(self.COMPONENTS)))))
+            first_grads = first.grads(len(self.COMPONENTS))
+            cur.update(zip(self.COMPONENTS, (_zero(comp) for comp in first_grads)))
         else:
             cur = {"m": _HUGE if less == "<" else f"-{_HUGE}", "s": "0.0"}
             cur.update((suffix, "0.0") for suffix in self.COMPONENTS)
 
-        def update(body: list, v: _Val, new: dict):
+        def update(body: list, v: _Val, new: dict | None) -> None:
             w = self._name("w")
             new = new or {key: f"{w}{key}" for key in keys}
             m = cur["m"]
@@ -424,7 +442,9 @@ class _Emitter:
                 if g:
                     for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
                         comp, acc = _zero(comp), cur[suffix]
-                        body.append(f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {_prod(comp, e) if comp != '0.0' else '0.0'})")
+                        blend = _prod(comp, e) if comp != '0.0' else '0.0'
+                        body.append(
+                            f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {blend})")
             elif g:
                 for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
                     body.append(f"{new[suffix]} = _sel({w}, {_zero(comp)}, {cur[suffix]})")
@@ -478,7 +498,7 @@ class _Emitter:
             return self.syms[node.attr]
         return self.params[node.attr[0]]
 
-    def table(self, rows: list) -> str:
+    def table(self, rows: np.ndarray | list) -> str:
         arr = np.asarray(rows, dtype=np.float64)
         key = (arr.shape, arr.tobytes())
         name = self.tables.get(key)
@@ -556,7 +576,7 @@ class _Emitter:
             zero = tuple(comp is None or comp == "0.0" for comp in comps)
             if singles and self.grad:  # combine programs read value, x, y in consecutive rows
                 comps = tuple(_zero(comp) for comp in comps)
-            stored = (None,) + tuple(c for c in range(ncomp) if comps[c] is not None)
+            stored: tuple = (None,) + tuple(c for c in range(ncomp) if comps[c] is not None)
             g = len(self.fold_sizes)
             size = len(stored)
             body.append(f"_F{g}[{loop} * {size}] = {val.v}")
@@ -570,10 +590,12 @@ class _Emitter:
                 self.fold_zero[id(member)] = zero
                 plans[id(member)] = ([], None)
 
-    def _candidates(self, root: Expr, plans: dict, singles: bool, too_big) -> dict:
+    def _candidates(self, root: Expr, plans: dict, singles: bool, too_big: Callable) -> dict:
         """:meth:`_prefold`'s candidates: ``{signature: (steps, members, rows)}`` in the order
         of their first member."""
-        seen, order, under_big = set(), [], set()
+        seen: set[Expr] = set()
+        order: list[Expr] = []
+        under_big: set[Expr] = set()
         stack = [root]
         while stack:
             node = stack.pop()
@@ -604,15 +626,15 @@ class _Emitter:
             shapes[sig][2].append(consts)
         return shapes
 
-    def program(self, root: Expr):
+    def program(self, root: Expr) -> tuple[list, int] | None:
         """The combine program of ``root`` for the block kernels, or None.
 
         Every maximal small subexpression is evaluated in a loop over a table first (see
         :meth:`_prefold`, one-member shapes included); if what remains is a tree of chains
         (min, max, smin, smax; no loops over tables) over those results, it becomes a list of
-        steps for the installation's interpreter (:func:`fastsdf.backends.kernel.drive._combine`) instead of
-        straight-line code. Steps are tuples ``(op, operand, acc, k, zero)``: ``operand`` the
-        first of the operand's rows (value, then one per gradient component), ``acc`` the first
+        steps for the installation's interpreter (:func:`fastsdf.backends.kernel.drive._combine`)
+        instead of straight-line code. Steps are tuples ``(op, operand, acc, k, zero)``: ``operand``
+        the first of the operand's rows (value, then one per gradient component), ``acc`` the first
         of the accumulator's rows (m, the gradient components, s), ``zero`` which of the
         operand's gradient components are known to be zero. A row is ``('F', group, entry)``
         (a folded subexpression's entry) or ``('A', n)`` (accumulator rows). The last step is
@@ -624,7 +646,10 @@ class _Emitter:
             return None
         ncomp = len(self.COMPONENTS)
         # post-order over the chains above the folded subexpressions; uses of each chain
-        order, uses, seen, stack = [], {}, set(), [(root, False)]
+        order: list[Expr] = []
+        uses: dict[int, int] = {}
+        seen: set[int] = set()
+        stack = [(root, False)]
         while stack:
             node, expanded = stack.pop()
             if expanded:
@@ -685,6 +710,7 @@ class _Emitter:
                     if uses[id(arg)] == 0 and result[id(arg)] is not acc:
                         free.append(result[id(arg)])
                 continue
+            assert items is not None  # (the other nodes here are chains)
             operands = [item[1] for item in items]
             first = operands[0]
             acc = None
@@ -731,20 +757,20 @@ class _Emitter:
         size = root.tree
         return size if size <= MAX_TEMPLATE_NODES else MAX_TEMPLATE_NODES + 1
 
-    def _template(self, node: Expr):
+    def _template(self, node: Expr) -> tuple[tuple, list, list]:
         """:func:`_template`, memoized."""
         t = self._templates.get(id(node))
         if t is None:
             t = self._templates[id(node)] = _template(node)
         return t
 
-    def _plan(self, node: Expr):
+    def _plan(self, node: Expr) -> tuple[list, list | None]:
         plan = self._plans.get(id(node))
         if plan is None:
             plan = self._plans[id(node)] = self._plan_of(node)
         return plan
 
-    def _plan_of(self, node: Expr):
+    def _plan_of(self, node: Expr) -> tuple[list, list | None]:
         if node.op not in _CHAIN_OPS:
             return list(node.args), None
         operands = _flatten_chain(node)
@@ -765,7 +791,8 @@ class _Emitter:
                 order.append(("group", sig))
             group[1].append(operand)
             group[2].append(consts)
-        items, deps = [], []
+        items: list[tuple] = []
+        deps: list[Expr] = []
         for kind, ref in order:
             if kind == "node":
                 items.append(("node", ref))
@@ -782,10 +809,12 @@ class _Emitter:
         # placed where their first member stood. (Ties go to the operand evaluated first.)
         return deps, items
 
-    def _plan_ordered(self, operands: list):
+    def _plan_ordered(self, operands: list) -> tuple[list, list]:
         """:meth:`_plan` of a left fold: runs of consecutive same-shape operands become loops,
         in place (the order of the operands is the written one)."""
-        items, deps, run = [], [], None
+        items: list[tuple] = []
+        deps: list[Expr] = []
+        run: list | None = None
 
         def flush():
             if run is None:
@@ -812,18 +841,18 @@ class _Emitter:
         flush()
         return deps, items
 
-    def ordered_chain(self, out: list, op: str, k, items: list) -> _Val:
+    def ordered_chain(self, out: list, op: str, k: float, items: list) -> _Val:
         """Emit the left fold of the blend ``op`` (qmin, cmin) over ``items`` (as
         :meth:`chain`): each step is the binary operation's own code, so the results are those
         of the nested binary operations. A loop carries the running value and gradient in
         variables reassigned per row; a chain that opens with a loop starts from +huge (the
         blend of +huge and ``a`` is ``a``: ``|a - huge| > k``)."""
-        node = _OpNode(op, k)
+        node: Any = _OpNode(op, k)  # (what the emitters read of a node)
         n = len(self.COMPONENTS)
         c = self._name("c")
         base = {"m": f"{c}m"}
         base.update((suffix, f"{c}{suffix}") for suffix in self.COMPONENTS)
-        cur = None
+        cur: _Val | None = None
         for item in items:
             if item[0] == "val":
                 cur = item[1] if cur is None else self.op(out, node, [cur, item[1]])
@@ -848,16 +877,17 @@ class _Emitter:
             out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
             out.extend("    " + line for line in body)
             cur = carried
+        assert cur is not None  # (a chain has operands)
         return cur
 
-    def _emit_planned(self, node: Expr, plan, done) -> _Val:
+    def _emit_planned(self, node: Expr, plan: tuple, done: dict) -> _Val:
         deps, items = plan
         folded = self.fold_of.get(id(node))
         if folded is not None:  # evaluated in a loop already: read its entries
             g, j, stored = folded
             r = self._name()
             self.lines.append(f"{r} = _F{g}[{j * len(stored)}]")
-            comps = [None] * len(self.COMPONENTS)
+            comps: list[str | None] = [None] * len(self.COMPONENTS)
             for slot, c in enumerate(stored[1:], 1):
                 comps[c] = self.assign(self.lines, f"{r}{self.COMPONENTS[c]}",
                                        f"_F{g}[{j * len(stored) + slot}]")
@@ -868,7 +898,7 @@ class _Emitter:
             return self.leaf(node)
         if items is None:
             return self.op(self.lines, node, [done[id(a)] for a in node.args])
-        chain_items = []
+        chain_items: list[tuple] = []
         others = [item[1] for item in items if item[0] == "node"]
         before: list = []  # the chain's items so far: ("node", operand) or ("group", index)
         for item in items:
@@ -1058,8 +1088,9 @@ def _as_float(expr: str) -> str:
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
 
 
-def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_names=None,
-                     time: bool = False, vmath: bool = True, memo: dict | None = None):
+def _function_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables: dict,
+                     param_names: Sequence[str] | None = None, time: bool = False,
+                     vmath: bool = True, memo: dict | None = None) -> tuple[Any, str, int, list]:
     """Sources of the one-point function and of the multi-lane function for the batch kernels;
     also returns the number of lanes. ``param_names`` (None for a scene without parameters):
     the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
@@ -1103,8 +1134,9 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
     # row lists as arguments (all rows, or a tile's pruned lists).
     all_rows = ["_act = _ACTG", "_off = _OFFG"] if em.groups else []
     body = "\n".join("    " + line for line in all_rows + em.lines) or "    pass"
-    one = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
-                                 ret=", ".join(results), nan_return=single[2])
+    point = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
+                                   ret=", ".join(results), nan_return=single[2])
+    one: str | tuple[str, str] = point
     bind, rest = em.lines[:len(binds)], em.lines[len(binds):]
     if param_names is None and not time:
         # A static scene's batch kernels are its block kernels: no multi-lane function.
@@ -1126,11 +1158,12 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
         # lists), for per-point callers such as the particle step (see fastsdf.backends.prune).
         many += _POINT_TEMPLATE.format(
             name="rows_vg", doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
-            "pointers, see fastsdf.backends.prune).", body="\n".join("    " + line for line in em.lines),
+            "pointers, see fastsdf.backends.prune).",
+            body="\n".join("    " + line for line in em.lines),
             pargs=", _act, _off", ret=", ".join(results), nan_return=single[2])
     if param_names is None and not time:
         kind = "vg" if grad else "v"
-        fold_sizes = ()
+        fold_sizes: Sequence[int] = ()
         prog = None
         if len(rest) > FOLD_MIN_LINES and vmath and not em.groups and COMBINE_PROGRAMS:
             # A long body that is a tree of blends over small subexpressions: those in loops
@@ -1151,15 +1184,16 @@ def _function_source(root: Expr, symbol_names, grad: bool, tables: dict, param_n
                                                   fres.grads(len(fe.COMPONENTS))] if grad else [])
                 fold_sizes = fe.fold_sizes
         if prog is None:
-            one = (one, block_source(rest, results, kind, fold_sizes=fold_sizes))
+            one = (point, block_source(rest, results, kind, fold_sizes=fold_sizes))
     elif param_names is not None:  # parameters are data: read once per block from prm
         kind = "vgt" if time else "vg" if grad else "v"
-        one = (one, block_source(list(rest), results, kind, ("t", "prm"),
+        one = (point, block_source(list(rest), results, kind, ("t", "prm"),
                                  binds=tuple(ln for ln in bind if ln.startswith("_p"))))
     return one, many, lanes, em.groups
 
 
-def _program_source(root: Expr, symbol_names, grad: bool, tables: dict, memo: dict):
+def _program_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables: dict,
+                    memo: dict | None) -> tuple[str, str] | None:
     """``(point function, block kernels)`` of a combine program for ``root``, or None (see
     ``_Emitter.program``). The one-point function runs the program too: numba's time for the
     straight-line one grows faster than the scene (38 s at 200 mixed primitives)."""
@@ -1172,7 +1206,7 @@ def _program_source(root: Expr, symbol_names, grad: bool, tables: dict, memo: di
     return program_source(vectorizable(pe.lines), "vg" if grad else "v", pe.fold_sizes, *prog)
 
 
-def scene_parameters(root: Expr):
+def scene_parameters(root: Expr) -> tuple[str, ...] | None:
     """``None`` for a scene without parameters, else the sorted names of its parameters other
     than time (the order of the ``prm`` tuple the kernels take)."""
     names = parameters(root)
@@ -1188,7 +1222,8 @@ def generate_module_source(root: Expr, symbol_names: Sequence[str],
     return source, funcs
 
 
-def generate_module(root: Expr, symbol_names, vmath: bool = True):
+def generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool = True
+                    ) -> tuple[str, dict, list]:
     """``(source, functions, groups)``: :func:`generate_module_source` plus the loop groups
     (one dict per loop over a table, in the order of the kernels' row lists: ``op``, ``k``,
     ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
@@ -1197,7 +1232,8 @@ def generate_module(root: Expr, symbol_names, vmath: bool = True):
         return _generate_module(root, symbol_names, vmath)
 
 
-def _generate_module(root: Expr, symbol_names, vmath: bool):
+def _generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool
+                     ) -> tuple[str, dict, list]:
     tables: dict = {}
     pn = scene_parameters(root)
     memo: dict = {}
@@ -1205,8 +1241,8 @@ def _generate_module(root: Expr, symbol_names, vmath: bool):
                                                         vmath=vmath, memo=memo)
     vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
                                                          vmath=vmath, memo=memo)
-    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last, they
-    # replace the multi-lane batch kernels of the same name).
+    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last,
+    # they replace the multi-lane batch kernels of the same name).
     blocks = []
     if isinstance(v_one, tuple):
         (v_one, v_block), (vg_one, vg_block) = v_one, vg_one

@@ -1,12 +1,12 @@
 """Scene-independent batch kernels: they call a scene's block functions through pointers.
 
-A scene's generated module defines ``_block_v`` / ``_block_vg`` (see :mod:`fastsdf.backends.kernel.simd`), one
-block of at most ``BLOCK`` points, over raw pointers with the signature :data:`BLOCK_SIG`
-``(xs, ys, out, grad, n, scratch)``, and for long scenes ``_fold_v`` / ``_fold_vg`` (the loops
-over same-shape subexpressions, run first on the same block). The kernels here loop over the
-blocks (``prange`` over chunks of blocks, or serially) and call those functions by address: they
-do not depend on the scene, so each is compiled once per installation and cached beside this
-file. A new scene then compiles only its block functions. The parallel kernel used to be
+A scene's generated module defines ``_block_v`` / ``_block_vg`` (see
+:mod:`fastsdf.backends.kernel.simd`), one block of at most ``BLOCK`` points, over raw pointers with
+the signature :data:`BLOCK_SIG` ``(xs, ys, out, grad, n, scratch)``, and for long scenes ``_fold_v``
+/ ``_fold_vg`` (the loops over same-shape subexpressions, run first on the same block). The kernels
+here loop over the blocks (``prange`` over chunks of blocks, or serially) and call those functions
+by address: they do not depend on the scene, so each is compiled once per installation and cached
+beside this file. A new scene then compiles only its block functions. The parallel kernel used to be
 compiled per scene (numba's ``parfor`` lowering and its gufunc, and LLVM optimizing the block
 function again inside every caller it was linked into), which cost about as much as the block
 function itself. Two indirect calls per block of 512 points cost nothing measurable.
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Any
 
 from typing import Any
 
@@ -27,7 +28,8 @@ from numba.extending import intrinsic
 
 from fastsdf.backends.kernel.intrinsics import select as _sel
 from fastsdf.backends.kernel.layout import BLOCK
-from fastsdf.backends.kernel.vmath import vexp as _vexp, vlog as _vlog
+from fastsdf.backends.kernel.vmath import vexp as _vexp
+from fastsdf.backends.kernel.vmath import vlog as _vlog
 
 __all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
            "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
@@ -79,7 +81,7 @@ class BlockFn:
 
     def __init__(self, dispatcher: Any) -> None:
         self.dispatcher = dispatcher
-        self._addr = None
+        self._addr: int | None = None
 
     @property
     def address(self) -> int:
@@ -130,7 +132,9 @@ NOGRAD = np.empty((0, 2))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
+def run_vg_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+               grad: np.ndarray, S: np.ndarray, size: int, chunks: int, threads: int,
+               act: np.ndarray, off: np.ndarray) -> None:
     """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
     block, blocks in parallel chunks, each thread with ``size`` floats of the scratch space
     ``S`` (at least ``threads * size`` floats, ``threads``: :func:`max_threads`; see
@@ -145,23 +149,30 @@ def run_vg_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, act, off):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(act, 0), _at(off, 0))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(act, 0), _at(off, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at),
+                  _at(act, 0), _at(off, 0))
+            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at),
+                  _at(act, 0), _at(off, 0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(pre, fn, xs, ys, out, grad, S, size, act, off):
+def run_vg_ser(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+               grad: np.ndarray, S: np.ndarray, size: int, act: np.ndarray,
+               off: np.ndarray) -> None:
     """:func:`run_vg_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act,
+              0), _at(off, 0))
+        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0),
+              _at(off, 0))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
+def run_v_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, S: np.ndarray,
+              size: int, chunks: int, threads: int, act: np.ndarray, off: np.ndarray) -> None:
     """Value at all points (the block functions' ``grad`` pointer is not used)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -172,19 +183,24 @@ def run_v_par(pre, fn, xs, ys, out, S, size, chunks, threads, act, off):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0), _at(off, 0))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0), _at(off, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act,
+                  0), _at(off, 0))
+            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0),
+                  _at(off, 0))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(pre, fn, xs, ys, out, S, size, act, off):
+def run_v_ser(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, S: np.ndarray,
+              size: int, act: np.ndarray, off: np.ndarray) -> None:
     """:func:`run_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0), _at(off, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0),
+              _at(off, 0))
+        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0),
+              _at(off, 0))
 
 
 @njit(cache=True, nogil=True)
@@ -262,8 +278,9 @@ def _merge_rows(act, offs, t0, t1, starts, actb, offb, cur):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def tiles_par(pre, fn, xs, ys, out, grad, S, size, chunks, threads, order, starts, act, offs,
-              rows):
+def tiles_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, grad: np.ndarray,
+              S: np.ndarray, size: int, chunks: int, threads: int, order: np.ndarray,
+              starts: np.ndarray, act: np.ndarray, offs: np.ndarray, rows: int) -> None:
     """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
@@ -525,7 +542,7 @@ def _combine(S, at, prog, grad, nv):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def combine_point_vg(F, prog):
+def combine_point_vg(F: np.ndarray, prog: np.ndarray) -> tuple[float, float, float]:
     """The program ``prog`` at one point: rows are single floats ``F[row]`` (the program's
     offsets divided by ``BLOCK``); the same formulas as :func:`_step_vg`, so the same bits.
     Returns the value and gradient."""
@@ -599,7 +616,7 @@ def combine_point_vg(F, prog):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def combine_point_v(F, prog):
+def combine_point_v(F: np.ndarray, prog: np.ndarray) -> float:
     """:func:`combine_point_vg` for the value alone (the rows of :func:`_step_v`)."""
     for p in range(prog.shape[0] - 1):
         op = int(prog[p, 0])
@@ -660,7 +677,8 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
+def run_prog_vg_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                    grad: np.ndarray, S: np.ndarray, size: int, chunks: int, threads: int) -> None:
     """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
     filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
     n = xs.shape[0]
@@ -673,26 +691,30 @@ def run_prog_vg_par(pre, prog, xs, ys, out, grad, S, size, chunks, threads):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z, 0), _at(z, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z,
+                  0), _at(z, 0))
             _combine(S, at, prog, True, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_vg_ser(pre, prog, xs, ys, out, grad, S, size):
+def run_prog_vg_ser(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                    grad: np.ndarray, S: np.ndarray, size: int) -> None:
     """:func:`run_prog_vg_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0), _at(z, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0),
+              _at(z, 0))
         _combine(S, 0, prog, True, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
+def run_prog_v_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                   S: np.ndarray, size: int, chunks: int, threads: int) -> None:
     """Value at all points (see :func:`run_prog_vg_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -704,20 +726,23 @@ def run_prog_v_par(pre, prog, xs, ys, out, S, size, chunks, threads):
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0), _at(z, 0))
+            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0),
+                  _at(z, 0))
             _combine(S, at, prog, False, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, out, s, m, False)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_v_ser(pre, prog, xs, ys, out, S, size):
+def run_prog_v_ser(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
+                   S: np.ndarray, size: int) -> None:
     """:func:`run_prog_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0), _at(z, 0))
+        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0),
+              _at(z, 0))
         _combine(S, 0, prog, False, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 

@@ -10,6 +10,11 @@ conversion) and :func:`fmuladd` is a multiply-add that may be fused: the vectori
 functions of :mod:`fastsdf.backends.kernel.vmath` are built from them.
 """
 
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -19,7 +24,8 @@ __all__ = ["select", "f64_bits", "bits_f64", "fmuladd"]
 
 
 @intrinsic
-def select(typingctx, cond, a, b):
+def select(typingctx: object, cond: types.Type, a: types.Type, b: types.Type
+           ) -> tuple[Any, Callable] | None:
     """``a if cond else b`` for float64 values, compiled without a branch."""
     if not isinstance(cond, types.Boolean):
         return None
@@ -35,7 +41,7 @@ def select(typingctx, cond, a, b):
 
 
 @intrinsic
-def f64_bits(typingctx, x):
+def f64_bits(typingctx: object, x: types.Type) -> tuple[Any, Callable] | None:
     """The IEEE-754 bit pattern of a float64 as an int64 (a bit cast, no conversion)."""
     if not isinstance(x, types.Float):
         return None
@@ -49,7 +55,7 @@ def f64_bits(typingctx, x):
 
 
 @intrinsic
-def bits_f64(typingctx, i):
+def bits_f64(typingctx: object, i: types.Type) -> tuple[Any, Callable] | None:
     """The float64 whose IEEE-754 bit pattern is the int64 ``i`` (a bit cast, no conversion)."""
     if not isinstance(i, types.Integer):
         return None
@@ -63,7 +69,8 @@ def bits_f64(typingctx, i):
 
 
 @intrinsic
-def fmuladd(typingctx, a, b, c):
+def fmuladd(typingctx: object, a: types.Type, b: types.Type, c: types.Type
+            ) -> tuple[Any, Callable] | None:
     """``a * b + c`` for float64, fused into one FMA instruction where the CPU has one (then
     rounded once, so the result may differ from ``a * b + c`` in the last bit); otherwise a
     multiplication and an addition. Vectorizes like plain arithmetic (LLVM's ``fmuladd``)."""

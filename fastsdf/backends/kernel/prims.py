@@ -22,8 +22,11 @@ The gradient is the unit vector from the closest boundary point (outward normal 
 on the boundary); at points with several closest points (the medial axis) one of them is used.
 """
 
+from __future__ import annotations
+
 import math
 
+import numpy as np
 from numba import njit
 
 __all__ = ["ellipse_v", "ellipse_vg", "outline_v", "outline_vg", "polygon_v", "polygon_vg",
@@ -135,7 +138,7 @@ def _ellipse_far(y0, y1, e0, e1):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ellipse_vg(u, v, a, b):
+def ellipse_vg(u: float, v: float, a: float, b: float) -> tuple[float, float, float]:
     """``(d, dd/du, dd/dv)`` of the ellipse with semi-axes ``a`` (along u) and ``b``."""
     su = 1.0 if u >= 0.0 else -1.0
     sv = 1.0 if v >= 0.0 else -1.0
@@ -156,13 +159,13 @@ def ellipse_vg(u, v, a, b):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ellipse_v(u, v, a, b):
+def ellipse_v(u: float, v: float, a: float, b: float) -> float:
     """Signed distance to the ellipse with semi-axes ``a`` (along u) and ``b``."""
     return ellipse_vg(u, v, a, b)[0]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def polygon_vg(u, v, verts):
+def polygon_vg(u: float, v: float, verts: np.ndarray) -> tuple[float, float, float]:
     """``(d, dd/du, dd/dv)`` of the simple polygon with counter-clockwise vertices ``verts``
     (an ``(n, 2)`` array, not closed: the last vertex connects to the first).
 
@@ -215,9 +218,9 @@ def polygon_vg(u, v, verts):
             bey = ey
             bc = c
             bee = ee
-        if (ay > v) != (by > v):  # the edge crosses the horizontal line through the point
-            if u < ax + (v - ay) * (ex / ey):
-                inside = not inside
+        # the edge crosses the horizontal line through the point, right of the point
+        if (ay > v) != (by > v) and u < ax + (v - ay) * (ex / ey):
+            inside = not inside
         ax = bx
         ay = by
     s = -1.0 if inside else 1.0
@@ -233,7 +236,7 @@ def polygon_vg(u, v, verts):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def polygon_v(u, v, verts):
+def polygon_v(u: float, v: float, verts: np.ndarray) -> float:
     """Signed distance to the simple polygon with counter-clockwise vertices ``verts``."""
     return polygon_vg(u, v, verts)[0]
 

@@ -2,8 +2,8 @@
 
 LLVM's loop vectorizer turns a counted innermost loop into SIMD code (4 float64 lanes with AVX2,
 8 with AVX-512) when its body is inlined, free of branches and calls, and its loads and stores
-are contiguous. The per-point code of :mod:`fastsdf.backends.kernel.codegen` is branch-free already (selects for
-every min, max and blend); this module re-arranges it:
+are contiguous. The per-point code of :mod:`fastsdf.backends.kernel.codegen` is branch-free already
+(selects for every min, max and blend); this module re-arranges it:
 
 * A non-parallel ``@njit`` block function evaluates ``BLOCK`` points: the per-point statements
   become the body of ``for i in range(n)``. The parallel kernel is a tiny ``prange`` over chunks
@@ -16,8 +16,8 @@ every min, max and blend); this module re-arranges it:
   ``BLOCK`` values each (the constant distance between rows lets LLVM prove the stores and loads
   independent without runtime checks).
 * ``math.exp``/``math.log``/``math.log1p`` (scalar calls into the C library) are replaced by the
-  branch-free :mod:`fastsdf.backends.kernel.vmath` functions, and the overflow-safe ``length`` by its branch-free
-  form, unless ``vmath=False`` (kept to compare against the C library).
+  branch-free :mod:`fastsdf.backends.kernel.vmath` functions, and the overflow-safe ``length`` by
+  its branch-free form, unless ``vmath=False`` (kept to compare against the C library).
 
 Non-finite input points are evaluated at the origin and their outputs set to NaN afterwards.
 """
@@ -25,8 +25,10 @@ Non-finite input points are evaluated at the origin and their outputs set to NaN
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Sequence
 
-__all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import", "vectorizable", "vmath_import"]
+__all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import",
+           "vectorizable", "vmath_import"]
 
 from fastsdf.backends.kernel.cache import hashed_import
 from fastsdf.backends.kernel.layout import BLOCK
@@ -59,8 +61,10 @@ def _split_args(text: str) -> list:
 
 def vectorizable(lines: list) -> list:
     """The statements with the C library's exp/log/log1p and the branchy overflow-safe length
-    (and its partials) replaced by the branch-free versions of :mod:`fastsdf.backends.kernel.vmath`."""
-    out, i = [], 0
+    (and its partials) replaced by the branch-free versions of
+    :mod:`fastsdf.backends.kernel.vmath`."""
+    out: list[str] = []
+    i = 0
     sqrt_at: dict = {}  # variable -> index in out of its latest "v = math.sqrt(...)" (linear time)
 
     def push(line):
@@ -106,7 +110,8 @@ def vectorizable(lines: list) -> list:
 def _split(lines: list) -> list:
     """Top-level segments: ``('line', [stmts])`` runs and ``('loop', header, [body])`` loops
     (an ``if`` statement stays with its indented block inside a run)."""
-    segs, i = [], 0
+    segs: list[tuple] = []
+    i = 0
     while i < len(lines):
         line = lines[i]
         j = i + 1
@@ -123,11 +128,14 @@ def _split(lines: list) -> list:
     return segs
 
 
-def _defs_uses(stmts: list):
+def _defs_uses(stmts: list) -> tuple[list[str], list[str], set[str]]:
     """Names assigned, and names read before being assigned, in a list of statements (in
     order); also which assigned names hold booleans (a comparison at the top level)."""
-    defs, uses, bools = [], [], set()
-    seen, defined = set(), set()  # names in defs or uses, in defs (linear time)
+    defs: list[str] = []
+    uses: list[str] = []
+    bools: set[str] = set()
+    seen: set[str] = set()  # names in defs or uses (linear time)
+    defined: set[str] = set()  # names in defs
     for st in stmts:
         s = st.strip()
         if s.startswith(("if ", "for ")):
@@ -178,7 +186,7 @@ def choose_lanes(lines: list) -> int:
 
 def _units(stmts: list) -> list:
     """Statements grouped with their indented continuation (an ``if`` and its block)."""
-    out = []
+    out: list[list[str]] = []
     for st in stmts:
         if st.startswith(" ") and out:
             out[-1].append(st)
@@ -209,7 +217,7 @@ class _Staging:
     """
 
     def __init__(self, segs: list, result_names: list, lanes: int, slots: dict,
-                 fbase: list = (), fold_loop: dict | None = None):
+                 fbase: Sequence[int] = (), fold_loop: dict | None = None):
         self.lanes, self.half = lanes, BLOCK // lanes
         self.slots, self.fbase = slots, fbase
         self.fold_loop = {} if fold_loop is None else fold_loop
@@ -217,7 +225,7 @@ class _Staging:
         self.bools = set()
         for _, _, b in self.info:
             self.bools |= b
-        self.later_uses = [set() for _ in segs]
+        self.later_uses: list[set[str]] = [set() for _ in segs]
         acc = set(result_names)
         for k in range(len(segs) - 1, -1, -1):
             self.later_uses[k] = set(acc)
@@ -243,7 +251,7 @@ class _Staging:
                 out += [pad + _lane(st, k) for st in unit]
         return out
 
-    def segment(self, k: int, seg) -> list:
+    def segment(self, k: int, seg: tuple) -> list:
         """The code of segment ``k`` (``('line', stmts)`` or ``('loop', header, stmts)``)."""
         code = []
         defs, uses, _ = self.info[k]
@@ -261,7 +269,7 @@ class _Staging:
             loop_var = header.split()[1]
             hoisted: dict = {}
 
-            def hoist(mt, loop_var, hoisted=hoisted):
+            def hoist(mt: re.Match, loop_var: str, hoisted: dict = hoisted) -> str:
                 if mt.group(2) != loop_var:
                     return mt.group(0)
                 key = (mt.group(1), mt.group(3))
@@ -274,7 +282,7 @@ class _Staging:
                 # a loop over a row list (pruning): the row index is the same for all points
                 loop_var = row.group(1)
                 stmts = stmts[1:]
-            stmts = [_TABLE_READ.sub(lambda mt, lv=loop_var: hoist(mt, lv), st) for st in stmts]
+            stmts = [_TABLE_READ.sub(lambda mt: hoist(mt, loop_var), st) for st in stmts]
             defs, uses, _ = _defs_uses(stmts)
             code.append(f"    {header}")
             if row:
@@ -295,7 +303,7 @@ class _Staging:
         return code
 
 
-def _fold_layout(fold_sizes):
+def _fold_layout(fold_sizes: Sequence[int]) -> tuple[dict, list, dict, Callable]:
     """Scratch rows of a block: ``x``, ``y``, then each loop group's stored values.
 
     Returns ``(slots, fbase, fold_loop, fold_store)``: the row of every name, each group's first
@@ -303,12 +311,13 @@ def _fold_layout(fold_sizes):
     ``re.sub`` callback that turns a group's store into a store into its scratch row.
     """
     slots: dict = {"x": 0, "y": 1}
-    fbase, fold_loop = [], {}
+    fbase: list[int] = []
+    fold_loop: dict[int, tuple] = {}
     for g, count in enumerate(fold_sizes):
         fbase.append(len(slots))
         slots.update((f"#F{g}.{q}", len(slots)) for q in range(count))
 
-    def fold_store(mt):
+    def fold_store(mt: re.Match) -> str:
         g, loop_var, size, slot = int(mt.group(1)), mt.group(2), int(mt.group(3)), mt.group(4)
         fold_loop[g] = (loop_var, size)
         return f"S[fo_{g} + {int(slot or 0) * BLOCK} + i]"
@@ -317,14 +326,16 @@ def _fold_layout(fold_sizes):
 
 
 def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
-                 lanes: int | None = None, binds: tuple = (), fold_sizes: tuple = ()) -> str:
+                 lanes: int | None = None, binds: tuple = (), fold_sizes: Sequence[int] = ()
+                 ) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
-    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter` (reading ``x``,
-    ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
-    of the two gradient components for ``kind='vg'``). The kernels are plain Python functions
-    that hand the block function to the scene-independent kernels of :mod:`fastsdf.backends.kernel.drive`.
+    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter`
+    (reading ``x``, ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the
+    value (and of the two gradient components for ``kind='vg'``). The kernels are plain Python
+    functions that hand the block function to the scene-independent kernels of
+    :mod:`fastsdf.backends.kernel.drive`.
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
     replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
@@ -351,7 +362,7 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
     gflat = "grad.reshape(-1), " if grad else ""
-    body = []
+    body: list[str] = []
 
     slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
@@ -368,7 +379,8 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
                "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
                "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0",
+               f"        S[{BLOCK} + i] = 0.0"]
     # The loops that fill the _F arrays open the body; they go to a function of their own
     # (_fold_<kind>), called before the block function: in one function with the rest, LLVM
     # stops inlining the exp/log calls of the long straight-line loop, which then stays scalar.
@@ -448,7 +460,7 @@ def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
-'''
+'''  # noqa: E501 - generated source, kept as written
     if rows != "_NOROWS, _NOROWS":
         src += f'''
 
@@ -457,7 +469,7 @@ def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
     blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.backends.prune`)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
     _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
-'''
+'''  # noqa: E501 - generated source, kept as written
     return src
 
 
@@ -465,13 +477,14 @@ _PROG_OPS = {"init": 0, "min": 1, "max": 2, "smin": 3, "smax": 4, "fin_smin": 5,
              "out": 7, "smin2": 8, "smax2": 9, "neg": 10, "qmin": 11, "cmin": 12}
 
 
-def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_rows: int) -> str:
+def program_source(lines: list, kind: str, fold_sizes: Sequence[int], steps: list,
+                   acc_rows: int) -> tuple[str, str]:
     """Source of ``_fold_<kind>`` (the loops over same-shape subexpressions, as in
     :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
     (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
     ``batch_<kind>_ser``, which run both through the installation's kernels
-    (:func:`fastsdf.backends.kernel.drive.run_prog_vg_par`). The scene's compiled code is the fold function
-    alone: it grows with the number of distinct shapes, not with the primitives."""
+    (:func:`fastsdf.backends.kernel.drive.run_prog_vg_par`). The scene's compiled code is the fold
+    function alone: it grows with the number of distinct shapes, not with the primitives."""
     grad = kind == "vg"
     segs = _split(lines)
     assert segs and all(seg[0] == "loop" for seg in segs)
@@ -483,8 +496,8 @@ def program_source(lines: list, kind: str, fold_sizes: tuple, steps: list, acc_r
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
     # With gradients, only the block's first nv points (its n rounded up to whole vectors, as
-    # the program in fastsdf.backends.kernel.drive._lanes): a call on a few points does not pay for a whole
-    # block. Not for the value alone: there LLVM vectorizes the loops worse without their
+    # the program in fastsdf.backends.kernel.drive._lanes): a call on a few points does not pay for
+    # a whole block. Not for the value alone: there LLVM vectorizes the loops worse without their
     # constant trip count (a whole block measured 1.6x slower), so they keep it.
     whole = f"        for i in range({BLOCK}):"
     assert whole in body
@@ -544,7 +557,7 @@ def point_{kind}(x, y):
     F = np.empty({first + acc_rows})
 {nl.join(plines)}
     return _combine_point_{kind}(F, _PROG_{kind.upper()})
-'''
+'''  # noqa: E501 - generated source, kept as written
     return point, f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -578,7 +591,7 @@ def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
-'''
+'''  # noqa: E501 - generated source, kept as written
 
 
 def drive_import() -> str:
@@ -590,7 +603,8 @@ def drive_import() -> str:
              "run_prog_v_ser as _run_prog_v_ser", "run_prog_vg_par as _run_prog_vg_par",
              "run_prog_vg_ser as _run_prog_vg_ser", "combine_point_v as _combine_point_v",
              "combine_point_vg as _combine_point_vg", "scratch as _drive_scratch"]
-    return "from numba import carray\n" + hashed_import("fastsdf.backends.kernel.drive", names) + "\n"
+    drive = hashed_import("fastsdf.backends.kernel.drive", names)
+    return "from numba import carray\n" + drive + "\n"
 
 
 def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
@@ -598,12 +612,12 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     """:func:`block_source` for scenes with parameters: the block function takes arrays and the
     parameters, and the kernels that call it are compiled with the scene.
 
-    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter` (reading ``x``,
-    ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the value (and
-    of the two gradient components for ``kind='vg'``). ``extra_args`` are names of further
-    arguments passed unchanged from the kernels to the block function (e.g. parameter arrays),
-    ``binds`` statements run once at the top of the block function (e.g. ``_p0 = prm[0]``, the
-    runtime parameters read from their tuple). ``kind='vgt'`` also writes ``dt`` (a fourth
+    ``lines`` are the per-point statements of :class:`fastsdf.backends.kernel.codegen._Emitter`
+    (reading ``x``, ``y``; top-level ``for`` loops over tables), ``results`` the expressions of the
+    value (and of the two gradient components for ``kind='vg'``). ``extra_args`` are names of
+    further arguments passed unchanged from the kernels to the block function (e.g. parameter
+    arrays), ``binds`` statements run once at the top of the block function (e.g. ``_p0 = prm[0]``,
+    the runtime parameters read from their tuple). ``kind='vgt'`` also writes ``dt`` (a fourth
     result, the time derivative).
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
@@ -632,7 +646,8 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
              "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
              "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-             f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0", f"        S[{BLOCK} + i] = 0.0"]
+             f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0",
+             f"        S[{BLOCK} + i] = 0.0"]
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
     res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
@@ -680,7 +695,7 @@ def batch_{kind}_ser({sig}):
     S = np.empty({size})
     for s in range(0, n, {BLOCK}):
         _block_{kind}({sig}, s, min(s + {BLOCK}, n), S, 0)
-'''
+'''  # noqa: E501 - generated source, kept as written
     return src
 
 

@@ -99,7 +99,7 @@ def _int_to_f64(k):
 
 
 @njit(nogil=True, error_model="numpy")
-def vexp(x):
+def vexp(x: float) -> float:
     """``e**x`` for a float64, branch-free (within 2 ulp of ``math.exp``; see the module)."""
     xc = select(x > _EXP_HI, _EXP_HI, x)
     xc = select(xc < _EXP_LO, _EXP_LO, xc)          # nan passes both selects unchanged
@@ -138,7 +138,7 @@ def _log1p_kernel(f, kf, c):
 
 
 @njit(nogil=True, error_model="numpy")
-def vlog(x):
+def vlog(x: float) -> float:
     """Natural logarithm of a float64, branch-free (within 2 ulp of ``math.log``)."""
     sub = x < _MIN_NORMAL                            # subnormal (or <= 0: replaced below)
     xs = select(sub, x * _TWO54, x)
@@ -155,7 +155,7 @@ def vlog(x):
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
-def vlog1p(x):
+def vlog1p(x: float) -> float:
     """``log(1 + x)`` of a float64, branch-free (within 2 ulp of ``math.log1p``)."""
     u = 1.0 + x
     bits = f64_bits(u) & _ABS
@@ -183,7 +183,7 @@ _UP = 2.0 ** 600
 
 
 @njit(nogil=True, error_model="numpy")  # no contraction: same bits as a*a+b*b
-def vlength(a, b):
+def vlength(a: float, b: float) -> float:
     """``sqrt(a*a + b*b)`` for float64, branch-free, without overflow or underflow."""
     m = max(abs(a), abs(b))
     s = select(m > _BIG, _DOWN, select(m < _SMALL, _UP, 1.0))
@@ -194,7 +194,7 @@ def vlength(a, b):
 
 
 @njit(nogil=True, error_model="numpy")
-def vlength_grad(a, b):
+def vlength_grad(a: float, b: float) -> tuple[float, float, float]:
     """``(r, a/r, b/r)`` with ``r = sqrt(a*a + b*b)``, branch-free, without overflow or
     underflow (also for subnormal ``r``); ``(0, 1, 0)`` at ``a = b = 0``. Bit-identical to
     ``r``, ``a * (1/r)``, ``b * (1/r)`` where ``max(|a|, |b|)`` is in ``[1e-150, 1e150]``."""
