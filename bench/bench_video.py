@@ -68,7 +68,7 @@ def _new_writer(f, states, r, frames: int, path: str, vmax: float, preset: str) 
 
 
 def _save_animation(f, states, r, frames: int, path: str) -> dict:
-    from fastsdf.viz.render import world_figure, animate, save_animation
+    from fastsdf.viz.render import animate, save_animation, world_figure
 
     t0, c0 = time.perf_counter(), _cpu()
     fake = SimpleNamespace(p={"x": states[0][0], "r": r}, t=states[0][1], dt=1 / 30)

@@ -13,12 +13,12 @@ import sys
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-import fastsdf as sdf  # noqa: E402
-from fastsdf.geometry import SvgPath, Text, contours, from_image  # noqa: E402
-from fastsdf.particles import Gravity, ParticleSimulation  # noqa: E402
+import fastsdf as sdf
+from fastsdf.geometry import SvgPath, Text, contours, from_image
+from fastsdf.particles import Gravity, ParticleSimulation
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "..", "docs", "geometry_gallery.png")

@@ -225,8 +225,8 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
 
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
     for name, value, low in (("particles", particles, 1), ("steps", steps, 1), ("grid", grid, 2),

@@ -1,5 +1,7 @@
 """Coordinates as every evaluator takes them: validated, flat, contiguous float64."""
 
+import contextlib
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -51,10 +53,8 @@ def point_arrays(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, 
         return xa[..., 0], xa[..., 1]
     xa, ya = np.asarray(x), np.asarray(y)
     if xa.shape != ya.shape and xa.dtype.kind in "iuf" and ya.dtype.kind in "iuf":
-        try:
+        with contextlib.suppress(ValueError):  # as_points reports the shapes
             xa, ya = np.broadcast_arrays(xa, ya)
-        except ValueError:
-            pass  # as_points reports the shapes
     return xa, ya
 
 

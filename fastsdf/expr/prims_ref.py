@@ -150,7 +150,7 @@ def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)
 
 
-def outline(u, v, table, chunk=64):
+def outline(u: np.ndarray, v: np.ndarray, table: np.ndarray, chunk: int = 64) -> tuple:
     """Signed distance to the region bounded by the outline ``table`` (the layout of
     :func:`fastsdf.backends.kernel.prims.outline_vg`) and its gradient."""
     shape = u.shape

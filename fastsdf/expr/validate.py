@@ -10,8 +10,6 @@ import numbers
 from collections.abc import Sequence
 from typing import TypeAlias, TypeGuard
 
-from typing import Any
-
 import numpy as np
 from numpy.typing import ArrayLike
 

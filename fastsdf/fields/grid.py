@@ -520,7 +520,7 @@ class GridSDF:
         self.mode = _check_choice(mode, "mode", _MODES)
         self.gradient = _check_choice(gradient, "gradient", _GRADIENTS)
         self.dtype = _check_dtype(dtype)
-        self.exact = f
+        self.exact: Function | None = f
         (x0, x1), (y0, y1) = self.bounds
         nx, ny = self.shape
         self.spacing = ((x1 - x0) / (nx - 1), (y1 - y0) / (ny - 1))
@@ -588,6 +588,7 @@ class GridSDF:
         ax, ay = self.axes
         stored = self.gradient == "stored"
         grid = np.empty((nx, ny, 3) if stored else (nx, ny), dtype=self.dtype)
+        assert self.exact is not None  # sampled from an SDF (from_samples grids are not)
         comp = self.exact.compiled
         rows = max(1, _BUILD_BLOCK // ny)
         # Pruning: one plan over the whole grid, used by every block (None where it does not pay).

@@ -15,7 +15,7 @@ Conventions: ``mask[i, j]`` is pixel ``(i, j)``; spacing ``(hi, hj)`` along the 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -122,7 +122,7 @@ def _envelope_pass(f, h, phase, want, vp, vx, va, z, out, arg, want_arg):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
-def edt_kernel(mask, spacing, signed, out, feat_i, feat_j):
+def edt_kernel(mask, spacing, signed, out, feat_i, feat_j):  # noqa: ANN201 (numba kernel)
     """Squared Euclidean distances of a boolean ``mask`` (n, m) into ``out`` (n, m).
 
     ``signed=False``: the distance of every True pixel to the nearest False pixel (0 on False
@@ -192,7 +192,7 @@ def _check_mask(mask: ArrayLike, name: str = "mask") -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def _check_spacing(sampling) -> EdtSpacing:
+def _check_spacing(sampling: ArrayLike | None) -> EdtSpacing:
     if sampling is None:
         return EdtSpacing(1.0, 1.0)
     s = np.broadcast_to(np.asarray(sampling, dtype=np.float64), (2,))
@@ -202,7 +202,7 @@ def _check_spacing(sampling) -> EdtSpacing:
 
 
 def distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
-                       return_indices: bool = False):
+                       return_indices: bool = False) -> Any:
     """Distance of each True (non-zero) pixel to the nearest False pixel; 0 on False pixels.
 
     The same numbers as ``scipy.ndimage.distance_transform_edt(mask, sampling)`` (exact
@@ -227,7 +227,7 @@ def distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
 
 
 def signed_distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
-                              return_indices: bool = False):
+                              return_indices: bool = False) -> Any:
     """Signed distance of each pixel centre to the boundary of the True pixels.
 
     Half-pixel convention: the boundary lies halfway between the centres of two neighbouring

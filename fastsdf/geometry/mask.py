@@ -4,7 +4,8 @@ Pixel layout follows images (and ``matplotlib.pyplot.imshow``): ``mask[row, col]
 along x, rows along y, row 0 at the top (``origin='upper'``, the default) or at the bottom
 (``origin='lower'``). ``bounds = [(x0, x1), (y0, y1)]`` is the image's extent, the outer edges
 of its pixels, so a pixel is ``(x1 - x0) / ncols`` wide and ``(y1 - y0) / nrows`` high. The
-distances are sampled at the pixel centres: the :class:`fastsdf.fields.grid.GridSDF` returned has its
+distances are sampled at the pixel centres: the :class:`fastsdf.fields.grid.GridSDF` returned has
+its
 nodes there, so its own bounds are the extent inset by half a pixel on every side.
 
 Binary masks (:func:`from_mask`): the boundary runs halfway between neighbouring pixels of
@@ -32,8 +33,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.function import Function
 from fastsdf.fields.grid import GridSDF
+from fastsdf.function import Function
 from fastsdf.geometry.edt import distance_transform, signed_distance_transform
 
 __all__ = ["from_mask", "from_image", "pixel_grid", "edge_offset"]
@@ -84,7 +85,8 @@ def from_mask(mask: ArrayLike, bounds: ArrayLike, origin: str = "upper",
 
     ``mask[row, col]`` with row 0 at the top (``origin='upper'``) or bottom (``'lower'``);
     ``bounds = [(x0, x1), (y0, y1)]`` the image's extent (outer pixel edges). Returns a
-    :class:`fastsdf.fields.grid.GridSDF` with a node at every pixel centre (values only, gradients by
+    :class:`fastsdf.fields.grid.GridSDF` with a node at every pixel centre (values only, gradients
+    by
     finite differences), usable wherever a GridSDF is: calls, plots, particle simulations.
     Points outside the nodes' rectangle get the nearest edge's value (``mode='nearest'``)
     unless an ``exact`` SDF for the world beyond the image is given with ``mode='exact'``.
@@ -141,7 +143,7 @@ def _sobel(a: np.ndarray) -> tuple:
     return gr, gc
 
 
-def _levels(image: np.ndarray, levels) -> np.ndarray:
+def _levels(image: np.ndarray, levels: Any) -> np.ndarray:
     if levels is None:
         if image.dtype.kind in "iu":
             info = np.iinfo(image.dtype)

@@ -243,7 +243,7 @@ def text_segments(text: str, size: float = 1.0, position: ArrayLike = (0.0, 0.0)
     return _group_loops(loops)
 
 
-def _closed(rows: list, current, start) -> list:
+def _closed(rows: list, current: Any, start: Any) -> list:
     if current is not None and start is not None and current != start:
         rows = rows + [[0.0, *current, 0.0, 0.0, *start]]
     return rows

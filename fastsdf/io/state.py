@@ -62,7 +62,7 @@ def _check_forces(sim: Any) -> list:
         name = _force_name(gen)
         try:
             pickle.dumps(gen, protocol=pickle.HIGHEST_PROTOCOL)
-        except Exception as exc:  # noqa: BLE001 - pickling raises many kinds
+        except Exception as exc:
             raise ValueError(
                 f"force_generators[{i}] ({name}) cannot be saved: {exc}. Define it at module "
                 f"level (a function or a class instance), or as a numba @njit force, or remove "

@@ -223,7 +223,7 @@ class TrajectoryRecorder:
             self._file = None
         return self.path
 
-    def __enter__(self) -> "TrajectoryRecorder":
+    def __enter__(self) -> TrajectoryRecorder:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -233,7 +233,7 @@ class TrajectoryRecorder:
 def _login() -> str:
     try:
         return getpass.getuser()
-    except Exception:  # noqa: BLE001 - no login name on this system
+    except Exception:
         return "unknown"
 
 

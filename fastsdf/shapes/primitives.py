@@ -946,7 +946,8 @@ def _split_quadratic_y(row):
 
 
 def outline_table(segments: ArrayLike, fill_rule: str = "nonzero") -> np.ndarray:
-    """The table of the compiled ``outline`` primitive (:func:`fastsdf.backends.kernel.prims.outline_vg`)
+    """The table of the compiled ``outline`` primitive
+    (:func:`fastsdf.backends.kernel.prims.outline_vg`)
     from segment rows ``[kind, x0, y0, x1, y1, x2, y2]`` (kind 0: the line from ``(x0, y0)``
     to ``(x2, y2)``; kind 1: the quadratic Bezier with control ``(x1, y1)``): quadratics split
     into y-monotone pieces, a bounding box per row, a header row with the fill rule."""

@@ -412,7 +412,7 @@ class VideoWriter:
         fd, self._tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".partial{ext}",
                                          dir=folder or ".")
         os.close(fd)
-        self._log = tempfile.TemporaryFile()
+        self._log = tempfile.TemporaryFile()  # noqa: SIM115 (closed in close())
         cmd = [self._exe, "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",
                "-s", f"{width}x{height}", "-r", f"{self.fps:g}", "-i", "-", "-an",
                "-c:v", "libx264", "-preset", self.preset, "-crf", str(self.crf),
@@ -590,7 +590,7 @@ class VideoWriter:
                 self._log = None
         return self.path
 
-    def __enter__(self) -> "VideoWriter":
+    def __enter__(self) -> VideoWriter:
         return self
 
     def __exit__(self, kind: Any, value: Any, tb: Any) -> None:

@@ -38,7 +38,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cache_dir", "source_key", "hashed_import", "load_module", "guard_module", "guard_dispatcher"]
+__all__ = ["cache_dir", "source_key", "hashed_import", "load_module", "guard_module",
+           "guard_dispatcher"]
 
 _MODULES: dict = {}
 _LOCK = threading.Lock()

@@ -18,8 +18,6 @@ import math
 import sys
 from typing import Any
 
-from typing import Any
-
 import numba
 import numpy as np
 from llvmlite import ir

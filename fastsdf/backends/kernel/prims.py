@@ -303,7 +303,7 @@ def _cbrt(x):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def quad_closest(u, v, x0, y0, x1, y1, x2, y2):
+def quad_closest(u, v, x0, y0, x1, y1, x2, y2):  # noqa: ANN201 (numba-typed kernel)
     """Parameter ``t`` in [0, 1] and squared distance of the point of the quadratic Bezier
     ``(x0, y0), (x1, y1), (x2, y2)`` closest to ``(u, v)``: the stationary points solve a cubic
     (Inigo Quilez's closed form, sdBezier), each root polished by Newton steps, compared with
@@ -372,7 +372,7 @@ def _quad_root_y(v, y0, y1, y2):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def outline_vg(u, v, table):
+def outline_vg(u, v, table):  # noqa: ANN201 (numba-typed kernel)
     """``(d, dd/du, dd/dv)`` of the region bounded by the outline ``table`` (line and
     quadratic Bezier segments, see ``OUTLINE_COLUMNS``), filled by the table's rule.
 
@@ -446,6 +446,6 @@ def outline_vg(u, v, table):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def outline_v(u, v, table):
+def outline_v(u, v, table):  # noqa: ANN201 (numba-typed kernel)
     """Signed distance to the region bounded by the outline ``table``."""
     return outline_vg(u, v, table)[0]
