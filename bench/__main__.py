@@ -38,6 +38,8 @@ SECTIONS = [
      "tape interpreter: cost per point against the kernels, first answer of a new scene"),
     ("simd", "bench.bench_simd",
      "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
+    ("geometry", "bench.bench_geometry",
+     "distance transform of a mask against scipy; mask and image grids' error tables"),
 ]
 
 HEADER = """# fastsdf benchmark results
