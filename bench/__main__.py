@@ -42,6 +42,8 @@ SECTIONS = [
      "video frames of 1e6 particles at 720p: the compiled frame writer vs save_animation"),
     ("io", "bench.bench_io",
      "trajectory files: recording 1e6 positions every 10 steps against the run alone"),
+    ("geometry", "bench.bench_geometry",
+     "distance transform of a mask against scipy; mask and image grids' error tables"),
 ]
 
 HEADER = """# fastsdf benchmark results
