@@ -9,13 +9,12 @@ sees a half-written file.
 from __future__ import annotations
 
 import os
-import tempfile
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fastsdf.files import atomic_write
 from fastsdf.geometry.contours import Contour, contours
 
 __all__ = ["svg_path_data", "to_dxf", "to_svg"]
@@ -46,21 +45,6 @@ def _as_contours(shape: Any, bounds: ArrayLike | None, resolution: Any,
         pad = 0.02 * max(float((hi - lo).max()), 1e-12)
         bounds = ((lo[0] - pad, hi[0] + pad), (lo[1] - pad, hi[1] + pad))
     return out, bounds
-
-
-def _atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
-    """Call ``write(temporary path)`` and move the result onto ``path`` in one step."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def svg_path_data(contour: Contour) -> str:
@@ -108,7 +92,7 @@ def to_svg(path: str | os.PathLike, shape: Any, bounds: ArrayLike | None = None,
         with open(tmp, "w", encoding="utf-8") as fh:
             fh.write(text)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
     return items
 
 
@@ -129,5 +113,5 @@ def to_dxf(path: str | os.PathLike, shape: Any, bounds: ArrayLike | None = None,
     for c in items:
         msp.add_lwpolyline(c.points.tolist(), format="xy", close=c.closed,
                            dxfattribs={"layer": layer})
-    _atomic_write(path, doc.saveas)
+    atomic_write(path, doc.saveas)
     return items

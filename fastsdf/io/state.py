@@ -35,11 +35,12 @@ import io
 import json
 import os
 import pickle
-import tempfile
 import zipfile
 from typing import Any
 
 import numpy as np
+
+from fastsdf.files import atomic_write
 
 __all__ = ["save_simulation", "load_simulation", "FORMAT", "FORMAT_VERSION"]
 
@@ -100,21 +101,16 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
             "t": float(sim.t), "timestep": float(sim.dt), "forces": forces}
     blob = pickle.dumps((type(sim), state), protocol=pickle.HIGHEST_PROTOCOL)
     path = os.path.abspath(os.fspath(path))
-    folder = os.path.dirname(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".partial",
-                               dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
             np.savez(fh, **arrays, t=np.float64(sim.t),
                      meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
                      simulation=np.frombuffer(blob, dtype=np.uint8))
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+
+    atomic_write(path, write)
     return path
 
 

@@ -40,6 +40,8 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from fastsdf.files import commit, temporary_sibling
+
 __all__ = ["VideoWriter", "record_video", "splat_counts", "splat_discs", "composite",
            "ffmpeg_exe", "color_table", "DEFAULT_SIZE", "MODES"]
 
@@ -407,11 +409,7 @@ class VideoWriter:
 
     def _start(self) -> None:
         width, height = self.size
-        folder, name = os.path.split(self.path)
-        stem, ext = os.path.splitext(name)
-        fd, self._tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".partial{ext}",
-                                         dir=folder or ".")
-        os.close(fd)
+        self._tmp = temporary_sibling(self.path)
         self._log = tempfile.TemporaryFile()  # noqa: SIM115 (closed in close())
         cmd = [self._exe, "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",
                "-s", f"{width}x{height}", "-r", f"{self.fps:g}", "-i", "-", "-an",
@@ -577,7 +575,7 @@ class VideoWriter:
                 raise RuntimeError(f"ffmpeg failed (exit {code}) writing {self.path}: "
                                    f"{self._ffmpeg_log()}")
             assert self._tmp is not None
-            os.replace(self._tmp, self.path)
+            commit(self._tmp, self.path)
             self._tmp = None
             self._proc = None
         except BaseException:
