@@ -2,6 +2,7 @@
 
 import os
 import stat
+from pathlib import Path
 
 import pytest
 
@@ -16,7 +17,7 @@ def test_written_file_has_the_permissions_of_a_new_file(tmp_path):
     old = os.umask(0o022)
     try:
         target = tmp_path / "out.txt"
-        atomic_write(target, lambda tmp: open(tmp, "w").write("data"))
+        atomic_write(target, lambda tmp: Path(tmp).write_text("data"))
         assert target.read_text() == "data"
         assert _mode(target) == 0o644  # not mkstemp's 0o600
         assert os.listdir(tmp_path) == ["out.txt"]
