@@ -103,7 +103,7 @@ def from_mask(mask: ArrayLike, bounds: ArrayLike, origin: str = "upper",
     if a.all() or not a.any():
         raise ValueError("mask must hold pixels of both phases (inside and outside); got "
                          f"{'all inside' if a.any() else 'all outside'}")
-    d = signed_distance_transform(a, sampling=(py, px))
+    d = np.asarray(signed_distance_transform(a, sampling=(py, px)))
     nodes, gb = pixel_grid(d, bounds, origin)
     return GridSDF.from_samples(nodes, gb, exact=exact, mode=mode, dtype=dtype,
                                 exactness="exact" if _square(px, py) else "none")
