@@ -260,7 +260,8 @@ def _subpixel_distance(cov: np.ndarray, inside: np.ndarray, partial: np.ndarray)
     the outward normal (minus the Sobel gradient of the coverage) and ``offset`` from
     :func:`edge_offset`. A pixel within two pixels of its nearest edge pixel takes its distance
     to the edge's tangent line there (exact for straight edges); farther pixels their distance
-    to the nearest edge point (:func:`_nearest_edge_point`). The sign is the pixel's phase (the offset's own sign on edge pixels)."""
+    to the nearest edge point (:func:`_nearest_edge_point`). The sign is the pixel's phase
+    (the offset's own sign on edge pixels)."""
     hard = np.zeros_like(inside)
     solid = ~partial
     for axis in (0, 1):
