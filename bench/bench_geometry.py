@@ -109,10 +109,10 @@ def _error_section(sizes) -> str:
                      "anti-aliased near (abs)"], rows)
             + "\n\nThe binary grid's error stays below half a pixel diagonal (0.71 px): first "
             "order in the pixel size. The anti-aliased grid places straight and gently curved "
-            "edges to about a tenth of a pixel near the boundary; at the box's corners (where "
-            "the straight-edge model fails) and far from the boundary (where the nearest edge "
-            "point is found among the nearest edge pixel's neighbours only) it is no better "
-            "than the binary grid.\n")
+            "edges to about a tenth of a pixel near the boundary, and finds the nearest edge "
+            "point farther out by vector propagation (a few tenths of a pixel at worst on the "
+            "circle); at the box's corners, where the straight-edge model fails, it is no "
+            "better than the binary grid.\n")
 
 
 def _contour_section(sizes) -> str:

@@ -162,7 +162,8 @@ def test_anti_aliased_image_places_edges_within_a_tenth_of_a_pixel(name):
     binary = np.abs(from_mask(cov > 0.5, [(-1, 1), (-1, 1)]).values - exact)
     assert err[near].max() < 0.12 * px
     assert err[near].max() < 0.5 * binary[near].max()
-    assert err.max() < px            # farther out: never worse than a pixel
+    # farther out: the nearest edge point found by propagation (corners aside)
+    assert err.max() < (0.3 if name == "circle" else 1.0) * px
 
 
 def test_dark_inside_and_levels():

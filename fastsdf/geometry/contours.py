@@ -5,7 +5,7 @@ crossings connect; each crossing is then moved onto the level set of the functio
 bracketing root finder along its edge (Illinois: regula falsi with the stale end's value
 halved, and a step of at least a tolerance from the ends), so a vertex lies within ``tol`` of
 the true level set wherever the function is exact, not at the linear interpolation's accuracy
-(``scikit-image``'s ``find_contours``; compared in docs/geometry.md).
+(``scikit-image``'s ``find_contours``; compared in bench/RESULTS.md).
 
 Orientation: every polyline keeps the region below the level (the inside, for ``level=0``) on
 its left, so closed loops around solid regions run counter-clockwise and loops around holes

@@ -202,7 +202,7 @@ def _check_spacing(sampling: ArrayLike | None) -> EdtSpacing:
 
 
 def distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
-                       return_indices: bool = False) -> Any:
+                       return_indices: bool = False) -> np.ndarray | tuple:
     """Distance of each True (non-zero) pixel to the nearest False pixel; 0 on False pixels.
 
     The same numbers as ``scipy.ndimage.distance_transform_edt(mask, sampling)`` (exact
@@ -227,7 +227,7 @@ def distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
 
 
 def signed_distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
-                              return_indices: bool = False) -> Any:
+                              return_indices: bool = False) -> np.ndarray | tuple:
     """Signed distance of each pixel centre to the boundary of the True pixels.
 
     Half-pixel convention: the boundary lies halfway between the centres of two neighbouring

@@ -13,7 +13,7 @@ different phase; a pixel's value is the exact Euclidean distance from its centre
 pixel centre of the other phase, less half a pixel, negative on True pixels (see
 :func:`fastsdf.geometry.edt.signed_distance_transform`). For a shape rasterised by its pixel
 centres that puts every node within about a pixel of its true distance (first order in the
-pixel size; the table in docs/geometry.md).
+pixel size; the table in bench/RESULTS.md).
 
 Grey-level images (:func:`from_image`): a pixel is inside where its level exceeds
 ``threshold``. Where the image is anti-aliased (levels strictly between 0 and 1, read as the
@@ -21,8 +21,9 @@ fraction of the pixel covered), the edge is placed inside the pixel from its lev
 Gustavson and Strand's anti-aliased distance transform (2011): the distance from a pixel centre
 to an edge crossing a pixel ``q`` is its distance to ``q``'s centre plus the offset of the edge
 in ``q``, which a straight edge of the given coverage and direction determines exactly. The
-nearest edge pixel is found by an exact distance transform; the result is exact for straight
-edges near the boundary and a close approximation elsewhere (measured in docs/geometry.md).
+nearest edge pixel is found by an exact distance transform and the nearest edge point by
+vector propagation from there; the result is exact for straight edges near the boundary and a
+close approximation elsewhere, except near corners (measured in bench/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike
 
 from fastsdf.fields.grid import GridSDF
@@ -105,7 +107,7 @@ def from_mask(mask: ArrayLike, bounds: ArrayLike, origin: str = "upper",
     if a.all() or not a.any():
         raise ValueError("mask must hold pixels of both phases (inside and outside); got "
                          f"{'all inside' if a.any() else 'all outside'}")
-    d = signed_distance_transform(a, sampling=(py, px))
+    d = np.asarray(signed_distance_transform(a, sampling=(py, px)))
     nodes, gb = pixel_grid(d, bounds, origin)
     return GridSDF.from_samples(nodes, gb, exact=exact, mode=mode, dtype=dtype,
                                 exactness="exact" if _square(px, py) else "none")
@@ -216,6 +218,42 @@ def from_image(image: ArrayLike, bounds: ArrayLike, threshold: float = 0.5,
                                 exactness="none")
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _nearest_edge_point(er, ec, qi, qj):
+    """Distance from each pixel centre to the nearest edge point ``(er, ec)[q]`` (``inf`` off
+    edge pixels), starting from the nearest edge pixel ``(qi, qj)`` and improved by vector
+    propagation (Danielsson's raster passes, as in Gustavson and Strand's transform): each
+    pixel tries its nearest edge pixel's eight neighbours and its own neighbours' choices."""
+    n, m = er.shape
+    best = np.empty((n, m))
+    for i in range(n):
+        for j in range(m):
+            a, b = qi[i, j], qj[i, j]
+            d = math.hypot(i - er[a, b], j - ec[a, b])
+            for da in range(-1, 2):
+                for db in range(-1, 2):
+                    r, c = a + da, b + db
+                    if 0 <= r < n and 0 <= c < m and er[r, c] != np.inf:
+                        e = math.hypot(i - er[r, c], j - ec[r, c])
+                        if e < d:
+                            d, qi[i, j], qj[i, j] = e, r, c
+            best[i, j] = d
+    for sweep in range(2):
+        step = 1 if sweep == 0 else -1
+        i0, i1 = (0, n) if step == 1 else (n - 1, -1)
+        j0, j1 = (0, m) if step == 1 else (m - 1, -1)
+        for i in range(i0, i1, step):
+            for j in range(j0, j1, step):
+                for di, dj in ((-step, -step), (-step, 0), (-step, step), (0, -step)):
+                    r, c = i + di, j + dj
+                    if 0 <= r < n and 0 <= c < m:
+                        a, b = qi[r, c], qj[r, c]
+                        e = math.hypot(i - er[a, b], j - ec[a, b])
+                        if e < best[i, j]:
+                            best[i, j], qi[i, j], qj[i, j] = e, a, b
+    return best
+
+
 def _subpixel_distance(cov: np.ndarray, inside: np.ndarray, partial: np.ndarray) -> np.ndarray:
     """Signed distance in pixels from every pixel centre to the anti-aliased edge.
 
@@ -224,7 +262,8 @@ def _subpixel_distance(cov: np.ndarray, inside: np.ndarray, partial: np.ndarray)
     the outward normal (minus the Sobel gradient of the coverage) and ``offset`` from
     :func:`edge_offset`. A pixel within two pixels of its nearest edge pixel takes its distance
     to the edge's tangent line there (exact for straight edges); farther pixels their distance
-    to the edge point. The sign is the pixel's phase (the offset's own sign on edge pixels)."""
+    to the nearest edge point (:func:`_nearest_edge_point`). The sign is the pixel's phase
+    (the offset's own sign on edge pixels)."""
     hard = np.zeros_like(inside)
     solid = ~partial
     for axis in (0, 1):
@@ -250,17 +289,9 @@ def _subpixel_distance(cov: np.ndarray, inside: np.ndarray, partial: np.ndarray)
     ec = np.where(edge, cols - off * uc, np.inf)
     vr, vc = rows - er[qi, qj], cols - ec[qi, qj]
     line = np.abs(vr * ur[qi, qj] + vc * uc[qi, qj])
-    # Far pixels: the nearest edge point among the nearest edge pixel q and its eight
-    # neighbours (q's centre need not carry the nearest edge point: a barely covered pixel's
-    # edge lies up to 0.7 pixel behind its centre).
-    point = np.hypot(vr, vc)
-    for sr in (-1, 0, 1):
-        for sc in (-1, 0, 1):
-            if sr or sc:
-                ri = np.clip(qi + sr, 0, n - 1)
-                ci = np.clip(qj + sc, 0, m - 1)
-                with np.errstate(invalid="ignore"):
-                    point = np.fmin(point, np.hypot(rows - er[ri, ci], cols - ec[ri, ci]))
+    # Far pixels: the nearest edge point (q's centre need not carry it: a barely covered
+    # pixel's edge lies up to 0.7 pixel behind its centre), by propagation.
+    point = _nearest_edge_point(er, ec, qi.astype(np.int64), qj.astype(np.int64))
     ok = ok[qi, qj]
     off = off[qi, qj]
     dist = np.where((di <= 2.0) & ok, line, point)

@@ -305,9 +305,8 @@ def Text(text: str, size: float = 1.0, position: ArrayLike = (0.0, 0.0),
 
     By default one :class:`fastsdf.shapes.Outline` holds every glyph (one loop over all
     segments per point, with bounding-box skips). ``split_glyphs=True`` builds a hard union of
-    one outline per glyph group instead: slower per point for short texts (each glyph solves
-    at least one closest point), but a union that the tile pruning of long scenes can cut
-    down to the glyphs near each tile."""
+    one outline per glyph group instead (each glyph solves at least one closest point per
+    point, so it is slower for a word; tile pruning of long texts gives identical values)."""
     groups = text_segments(text, size, position, family, tol)
     if not groups:
         raise ValueError(f"text={text!r} has no visible glyphs")
