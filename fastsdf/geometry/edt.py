@@ -15,7 +15,7 @@ Conventions: ``mask[i, j]`` is pixel ``(i, j)``; spacing ``(hi, hj)`` along the 
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
