@@ -1,4 +1,4 @@
-"""Direct tests of the step kernel module ``fastsdf._step`` (its own test world: half-planes and
+"""Direct tests of the step kernel module ``fastsdf.particles.kernels`` (its own test world: half-planes and
 discs), of the kernels generated from it, of fused user forces and of the clock/state rules.
 
 Every test checks a property against an independent computation (analytic geometry, a NumPy
@@ -13,7 +13,8 @@ from numba import njit
 
 import fastsdf as sdf
 import fastsdf.particles as phys
-from fastsdf import GridSDF, _step
+from fastsdf import GridSDF
+from fastsdf.particles import kernels as _step
 from fastsdf.scenes import seed_world
 
 
@@ -112,7 +113,7 @@ def test_borrow_all_keeps_values():
 def kernel_args(n, x, v, r=0.05, m=1.0, cr=0.5, cf=0.2):
     X = np.array(x, dtype=np.float64).reshape(n, 2).copy()
     V = np.array(v, dtype=np.float64).reshape(n, 2).copy()
-    full = lambda val: np.full(n, val, dtype=np.float64)   # noqa: E731
+    full = lambda val: np.full(n, val, dtype=np.float64)
     return X, V, full(m), full(r), full(cr), full(cf)
 
 
