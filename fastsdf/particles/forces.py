@@ -4,11 +4,14 @@ generators ``(p, t) -> (n, 2)`` (evaluated with NumPy before each step)."""
 
 from __future__ import annotations
 
+import inspect
 import math
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
+from numba.core.dispatcher import Dispatcher
 from numpy.typing import ArrayLike
 
 from .. import __version__
@@ -17,7 +20,7 @@ from .._validate import vec2 as _vec2
 from ..graph import Function
 from .state import Particles, _real
 
-__all__ = ["Gravity", "Drag", "FieldForce"]
+__all__ = ["Gravity", "Drag", "FieldForce", "FusedForces", "fuse"]
 
 
 def _gen_name(gen) -> str:
@@ -130,7 +133,7 @@ def force(x, y, vx, vy, m, t):
 ''')
             self._dispatcher = load_module(source, prefix="fastsdf_force").force
             # A compiled field is usually long-latency arithmetic (square roots, divisions):
-            # the step evaluates it for a batch of particles ahead (see fastsdf._step).
+            # the step evaluates it for a batch of particles ahead (see fastsdf.particles.kernels).
             self._dispatcher._fastsdf_batched = True
         return self._dispatcher
 
@@ -162,3 +165,99 @@ def _field_function(value, name: str) -> Function:
                         f"{name}={value!r}") from None
     return Function(expr, [Symbol("x"), Symbol("y")])
 
+
+# ---------------------------------------------------------------------------------------------
+# Sorting a simulation's force generators into what the step fuses and what runs in Python.
+
+_WHAT = ("a force is Gravity(...), Drag(...), FieldForce(...), a numba @njit function "
+         "(x, y, vx, vy, m, t) -> (fx, fy) or a Python callable (p, t) -> (n, 2) array")
+_NJIT_ARGS = ("x", "y", "vx", "vy", "m", "t")
+
+
+class FusedForces(NamedTuple):
+    """The forces of a step: the uniform acceleration ``(ax, ay)`` of the :class:`Gravity`
+    generators, the :class:`Drag` coefficients' sum ``drag``, the Python generators
+    ``python`` (evaluated with NumPy before each step) and the numba forces ``user`` fused
+    into the compiled step (a :class:`FieldForce`'s compiled dispatcher among them)."""
+
+    ax: float
+    ay: float
+    drag: float
+    python: list
+    user: tuple
+
+
+def _takes(fn: Any, count: int) -> bool | None:
+    """Whether ``fn`` can be called with ``count`` positional arguments (None: unknown)."""
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return None
+    try:
+        sig.bind(*range(count))
+    except TypeError:
+        return False
+    return True
+
+
+def fuse(force_generators: Sequence) -> FusedForces:
+    """Sort ``force_generators`` (see :class:`FusedForces`); a TypeError names an entry that
+    is not a force and says what a force must look like (a class given without its
+    parentheses, a callable of the wrong arity)."""
+    ax = ay = drag = 0.0
+    python, user = [], []
+    for k, gen in enumerate(force_generators):
+        where = f"force_generators[{k}]"
+        if isinstance(gen, type):
+            name = gen.__name__
+            hint = f"; add an instance: {name}()" if gen in (Gravity, Drag, FieldForce) else ""
+            raise TypeError(f"{where} is the class {name}, not a force{hint} ({_WHAT})")
+        if isinstance(gen, Gravity):
+            ax += float(gen.acceleration[0])
+            ay += float(gen.acceleration[1])
+        elif isinstance(gen, Drag):
+            drag += gen.coefficient
+        elif isinstance(gen, Dispatcher):
+            if _takes(gen.py_func, len(_NJIT_ARGS)) is False:
+                raise TypeError(f"{where}: the numba force {_gen_name(gen)} must take "
+                                f"(x, y, vx, vy, m, t) and return (fx, fy); its signature is "
+                                f"{inspect.signature(gen.py_func)}")
+            user.append(gen)
+        elif isinstance(gen, FieldForce):
+            user.append(gen.dispatcher)
+        elif callable(gen):
+            if _takes(gen, 2) is False:
+                raise TypeError(f"{where}: the force generator {_gen_name(gen)} must take "
+                                f"(p, t) and return an (n, 2) array of forces; its signature "
+                                f"is {inspect.signature(gen)}")
+            python.append(gen)
+        else:
+            raise TypeError(f"{where} is not a force: got {gen!r} ({_WHAT})")
+    return FusedForces(ax, ay, drag, python, tuple(user))
+
+
+def python_forces(gens: Sequence, p: Particles, t: float, out: np.ndarray) -> np.ndarray:
+    """The sum of the Python generators' forces ``gen(p, t)`` into ``out`` ((n, 2)); checks
+    what each returns (an (n, 2) array of finite real numbers)."""
+    n = out.shape[0]
+    out.fill(0.0)
+    for gen in gens:
+        name = _gen_name(gen)
+        res = gen(p, t)
+        try:
+            arr = np.asarray(res)
+        except Exception:
+            raise TypeError(f"force generator {name} must return an (n, 2) array of forces, "
+                            f"got {type(res).__name__}") from None
+        if arr.dtype.kind not in "iuf":
+            raise TypeError(f"force generator {name} must return real forces, got an array "
+                            f"of dtype {arr.dtype}")
+        if arr.shape != (n, 2):
+            raise ValueError(f"force generator {name} must return forces of shape ({n}, 2), "
+                             f"got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            bad = int(np.flatnonzero(~np.isfinite(arr).all(axis=1))[0])
+            raise ValueError(f"force generator {name} returned a non-finite force for "
+                             f"particle {bad}: {arr[bad].tolist()}")
+        out += arr
+    return out

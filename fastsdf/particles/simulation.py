@@ -12,13 +12,13 @@ from typing import Any
 
 import numba
 import numpy as np
-from numba.core.dispatcher import Dispatcher
 from numpy.typing import ArrayLike
 
 from .. import prune as _prune
 from ..graph import Function
 from . import kernels as _kernels
-from .forces import Drag, FieldForce, Gravity, _gen_name
+from .forces import Gravity, fuse, python_forces
+from .kernels import NO_EXT, Budget, Physics, State
 from .state import Particles, _invalid_state_error, _real, _unit_interval
 from .world import (
     _NO_PARAMS,
@@ -298,25 +298,7 @@ class ParticleSimulation:
 
     # -- the compiled loop -------------------------------------------------------------------
     def _fused_params(self):
-        ax = ay = drag = 0.0
-        python, user = [], []
-        for gen in self.force_generators:
-            if isinstance(gen, Gravity):
-                ax += float(gen.acceleration[0])
-                ay += float(gen.acceleration[1])
-            elif isinstance(gen, Drag):
-                drag += gen.coefficient
-            elif isinstance(gen, Dispatcher):
-                user.append(gen)
-            elif isinstance(gen, FieldForce):
-                user.append(gen.dispatcher)
-            elif callable(gen):
-                python.append(gen)
-            else:
-                raise TypeError(f"force_generators must hold Gravity, Drag, numba @njit forces "
-                                f"(x, y, vx, vy, m, t) -> (fx, fy) or callables "
-                                f"(p, t) -> (n, 2) forces, got {gen!r}")
-        return ax, ay, drag, python, tuple(user)
+        return fuse(self.force_generators)
 
     def _kernel(self, user):
         """The compiled step for these fused user forces (generated on first use)."""
@@ -367,31 +349,9 @@ class ParticleSimulation:
             self._hdr_plan = plan
 
     def _python_forces(self, gens) -> np.ndarray:
-        n = self.n
-        if self._ext is None or self._ext.shape != (n, 2):
-            self._ext = np.empty((n, 2))
-        ext = self._ext
-        ext.fill(0.0)
-        for gen in gens:
-            name = _gen_name(gen)
-            out = gen(self.p, self.t)
-            try:
-                arr = np.asarray(out)
-            except Exception:
-                raise TypeError(f"force generator {name} must return an (n, 2) array of forces, "
-                                f"got {type(out).__name__}") from None
-            if arr.dtype.kind not in "iuf":
-                raise TypeError(f"force generator {name} must return real forces, got an array "
-                                f"of dtype {arr.dtype}")
-            if arr.shape != (n, 2):
-                raise ValueError(f"force generator {name} must return forces of shape ({n}, 2), "
-                                 f"got shape {arr.shape}")
-            if not np.all(np.isfinite(arr)):
-                bad = int(np.flatnonzero(~np.isfinite(arr).all(axis=1))[0])
-                raise ValueError(f"force generator {name} returned a non-finite force for "
-                                 f"particle {bad}: {arr[bad].tolist()}")
-            ext += arr
-        return ext
+        if self._ext is None or self._ext.shape != (self.n, 2):
+            self._ext = np.empty((self.n, 2))
+        return python_forces(gens, self.p, self.t, self._ext)
 
     def run(self, steps: int = 1) -> None:
         """Advance ``steps`` steps (``steps * timestep`` seconds) in compiled code.
@@ -454,51 +414,48 @@ class ParticleSimulation:
         n = self.n
         use_ext = ext is not None
         if ext is None:
-            ext = _NO_EXT
-        use_m = use_ext or drag != 0.0
+            ext = NO_EXT
         if self._flags is None or self._flags.shape[0] != n:
             self._flags = np.zeros(n, dtype=np.int32)
         if self._parametric:
             data = self._scene_data(steps)
         a = p._arrays
         check_all = p._dirty
-        args = (ext, self._flags, self.dt, self.t, ax, ay, drag, use_m, use_ext,
-                self.integrator == "euler", self.collision == "notebook",
-                self.prevent_tunnelling, self.lipschitz, self._margin,
-                float(np.finfo(self.dtype).eps), self._skip, float(self.rest_speed))
+        state = State(*(a[k] for k in Particles.FIELDS), ext, self._flags, check_all)
+        physics = Physics(dt=self.dt, t0=self.t, ax=ax, ay=ay, drag=drag,
+                          use_m=use_ext or drag != 0.0, use_ext=use_ext,
+                          explicit=self.integrator == "euler",
+                          always=self.collision == "notebook", rest=float(self.rest_speed))
+        budget = Budget(trace=self.prevent_tunnelling, lip=self.lipschitz, margin=self._margin,
+                        eps=float(np.finfo(self.dtype).eps), skip=self._skip)
         self._update_plan(a["x"], steps)
-        bad = self._call(module, data, steps, [a[k] for k in Particles.FIELDS], args, check_all)
+        bad = self._call(module, data, steps, state, physics, budget)
         if bad and self._exact_ptr is None:
-            bad = self._resume(module, steps, args, bad)
+            bad = self._resume(module, steps, state, physics, budget, bad)
         if check_all and not bad:
             p._dirty = False
         return bad
 
-    def _call(self, module, data, steps, arrays, args, check_all):
-        n = arrays[0].shape[0]
-        parallel = n >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
-        kernel = self._pick_kernel(module, arrays, args, parallel)
-        return kernel(data, steps, self.block or DEFAULT_BLOCK, *arrays, *args, check_all)
+    def _call(self, module, data, steps, state, physics, budget):
+        parallel = state.X.shape[0] >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
+        kernel = self._pick_kernel(module, state, physics, budget, parallel)
+        return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
 
-    def _pick_kernel(self, module, arrays, args, parallel):
+    def _pick_kernel(self, module, state, physics, budget, parallel):
         """The kernel of ``module`` for a call: the block kernel of a static grid world
         (``simd_*``: float64 state, no resting contact, no Python forces), else the
         particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
         the general one (``run_*``). All give the same results."""
-        # args: (ext, flags, dt, t, ax, ay, drag, use_m, use_ext, explicit, always, trace,
-        #        lip, margin, eps, skip, rest); bench/step_ab.py builds older step sources
-        simd = getattr(self, "_simd", True) and getattr(module, "GRID_SIMD", False) and \
-            hasattr(module, "simd_par") and not module.MOVING and args[16] == 0.0 and \
-            not args[8] and arrays[0].dtype == np.float64
-        plain = not (args[11] or args[15] or args[16] > 0.0 or module.MOVING) and \
-            hasattr(module, "plain_par")
+        simd = getattr(self, "_simd", True) and module.GRID_SIMD and not module.MOVING and \
+            physics.rest == 0.0 and not physics.use_ext and state.X.dtype == np.float64
+        plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
         if simd:
             return module.simd_par if parallel else module.simd_ser
         if plain:
             return module.plain_par if parallel else module.plain_ser
         return module.run_par if parallel else module.run_ser
 
-    def _resume(self, module, steps, args, bad):
+    def _resume(self, module, steps, state, physics, budget, bad):
         """Particles that stopped near the grid's edge before its exact fallback was bound
         (FLAG_RESUME + step): bind it, run each the rest of its steps from where it stopped
         (particles are independent, so the result is that of an uninterrupted call)."""
@@ -512,18 +469,18 @@ class ParticleSimulation:
         at = flags[idx] - _kernels.FLAG_RESUME
         flags[idx] = 0
         bad -= idx.size
-        ext, fl, dt, t0 = args[:4]
+        ext = state.EXT
         arrays = self.p._arrays
         for j in np.unique(at):
             sel = idx[at == j]
-            sub = [np.ascontiguousarray(arrays[k][sel]) for k in Particles.FIELDS]
-            sub_flags = np.zeros(sel.size, dtype=np.int32)
-            sub_ext = ext[sel] if ext.shape[0] else ext
-            sub_args = (sub_ext, sub_flags, dt, t0 + int(j) * dt) + args[4:]
-            bad += self._call(module, data, steps - int(j), sub, sub_args, False)
-            arrays["x"][sel] = sub[0]
-            arrays["v"][sel] = sub[1]
-            flags[sel] = sub_flags
+            sub = State(*(np.ascontiguousarray(arrays[k][sel]) for k in Particles.FIELDS),
+                        ext[sel] if ext.shape[0] else ext, np.zeros(sel.size, dtype=np.int32),
+                        False)
+            sub_physics = physics._replace(t0=physics.t0 + int(j) * physics.dt)
+            bad += self._call(module, data, steps - int(j), sub, sub_physics, budget)
+            arrays["x"][sel] = sub.X
+            arrays["v"][sel] = sub.V
+            flags[sel] = sub.FLAGS
         return bad
 
     def _frozen_error(self, count: int, steps: int) -> ValueError:
@@ -681,8 +638,6 @@ class ParticleSimulation:
                 f"integrator={self.integrator!r}, collision={self.collision!r}, "
                 f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})")
 
-
-_NO_EXT = np.zeros((0, 2))
 
 
 def create_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: bool = True,

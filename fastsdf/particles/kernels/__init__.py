@@ -132,6 +132,13 @@ result is checked finite. With ``check_all`` (the caller's dirty flag: the state
 the rest of the call and flagged in ``FLAGS`` (1: invalid input, 2: a step produced a
 non-finite state, 3: invalid ``cr``/``cf`` at a contact); the kernels return how many were
 frozen.
+
+Entry points
+------------
+Every entry point is ``kernel(data, state, physics, budget, steps, block) -> frozen count``:
+the world's query data, the particles' arrays (:class:`.config.State`), the physics of the
+call (:class:`.config.Physics`), the safety and skipping settings (:class:`.config.Budget`),
+the number of steps and the particles per block.
 """
 
 from __future__ import annotations
@@ -140,8 +147,9 @@ import hashlib
 import inspect
 from types import ModuleType
 
-from . import block, constants, contact, intrinsics, step
+from . import block, config, constants, contact, intrinsics, step
 from .block import LANES, simd_par, simd_ser
+from .config import NO_EXT, Budget, Physics, State
 from .constants import (
     ASLEEP,
     CONTACT_TOL,
@@ -159,7 +167,8 @@ from .contact import _march, _march_t, _respond, _rests, _sweep, _sweep_t
 from .intrinsics import borrow_all, call_vg
 from .step import PLAIN_BATCH, force_many, plain_par, plain_ser, query_many, run_par, run_ser
 
-__all__ = ["kernel_source", "PARTS", "LANES", "PLAIN_BATCH", "TRACE_FRACTION", "MIN_STEP",
+__all__ = ["kernel_source", "PARTS", "State", "Physics", "Budget", "NO_EXT", "LANES",
+           "PLAIN_BATCH", "TRACE_FRACTION", "MIN_STEP",
            "CONTACT_TOL", "MAX_MARCH", "MAX_BOUNCES", "FORCE_BATCH", "ASLEEP", "FLAG_INPUT",
            "FLAG_NONFINITE", "FLAG_COEFF", "FLAG_RESUME", "borrow_all", "call_vg", "run_par",
            "run_ser", "plain_par", "plain_ser", "simd_par", "simd_ser", "query_many",
@@ -183,6 +192,8 @@ def _shared_imports() -> str:
                    if getattr(obj, "__module__", "") == intrinsics.__name__
                    and not inspect.isfunction(obj))
     return (f"from {constants.__name__} import *  # noqa: F403  sha256 {_digest(constants)}\n"
+            f"from {config.__name__} import Budget, Physics, State  # noqa: F401  sha256 "
+            f"{_digest(config)}\n"
             f"from {intrinsics.__name__} import (  # noqa: F401  sha256 {_digest(intrinsics)}\n"
             + "".join(f"    {n},\n" for n in names) + ")\n")
 

@@ -6,6 +6,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .config import Physics
 from .constants import (
     CONTACT_TOL,
     FLAG_COEFF,
@@ -83,10 +84,13 @@ def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_load(S, Xf, Vf, M, R, CR, CF, FLAGS, b0, nb, use_m, check_all):
+def _simd_load(S, state, b0, nb, use_m):
     """A block's state into the scratch rows (lanes past ``nb`` idle), with the checks of
     :func:`_check_block` (a particle that fails is flagged and idle). Returns how many
     failed."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    Xf = X.reshape(X.size)
+    Vf = V.reshape(V.size)
     L = LANES
     W = _STRIDE
     bad = 0
@@ -126,7 +130,6 @@ def _simd_load(S, Xf, Vf, M, R, CR, CF, FLAGS, b0, nb, use_m, check_all):
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_store(S, Xf, Vf, b0, nb):
     """The block's state back from the scratch rows."""
-    L = LANES
     W = _STRIDE
     for k in range(nb):
         ix = np.uint64(2) * np.uint64(b0 + k)
@@ -137,17 +140,20 @@ def _simd_store(S, Xf, Vf, b0, nb):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, budget,
-               skipping):
+def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
     """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
     whose budget covers the step moves here and needs no query), the check for a grid
     fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
     operations of ``fastsdf.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
     ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
     Returns how many particles need a query, how many were frozen, and how many of those
-    that query end outside the grid. ``budget``, ``skipping``: constants in the compiled
-    versions; ``budget`` False when neither budgets nor the fallback check (``fbchk``) are
-    used, ``skipping`` False without budgets (``skip``)."""
+    that query end outside the grid. ``budgets``, ``skipping``: constants in the compiled
+    versions; ``budgets`` False when neither budgets nor the fallback check (``fbchk``) are
+    used, ``skipping`` False without budgets (``budget.skip``)."""
+    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
+    lip = budget.lip
+    eps = budget.eps
+    t = t0 + step * dt
     L = LANES
     W = _STRIDE
     bx0, bx1, by0, by1 = b
@@ -178,7 +184,7 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
         dx = _sel(explicit, vx, nvx) * dt
         dy = _sel(explicit, vy, nvy) * dt
         # the step's length (a square root: only for budgets and the fallback check)
-        ln = math.sqrt(dx * dx + dy * dy) if budget else 0.0
+        ln = math.sqrt(dx * dx + dy * dy) if budgets else 0.0
         c = S[_CLR * W + q] if skipping else 0.0
         c2 = c - (ln * tol + eps * (abs(x) + abs(y) + 1.0))
         skip = (c > 0.0) & (c2 > 0.0)
@@ -228,18 +234,16 @@ def _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+def _simd_move_budget(S, step, physics, budget, fbchk, b, g):
     """:func:`_simd_move` with budgets (``skip``) or the fallback check (without budgets
     their row stays 0)."""
-    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g, True,
-                      True)
+    return _simd_move(S, step, physics, budget, fbchk, b, g, True, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, fbchk, b, g):
+def _simd_move_plain(S, step, physics, budget, fbchk, b, g):
     """:func:`_simd_move` without budgets or the fallback check (``skip``, ``fbchk`` False)."""
-    return _simd_move(S, step, t, dt, ax, ay, drag, use_m, explicit, lip, eps, False, b, g,
-                      False, False)
+    return _simd_move(S, step, physics, budget, False, b, g, False, False)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -476,8 +480,7 @@ def _simd_commit(S):
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_flags(S, FLAGS, b0, nb):
-    """Freeze the particles whose step set a code (see the module docstring's checks)."""
-    L = LANES
+    """Freeze the particles whose step set a code (see the package docs' checks)."""
     W = _STRIDE
     bad = 0
     for q in range(nb):
@@ -490,15 +493,16 @@ def _simd_flags(S, FLAGS, b0, nb):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, drag, use_m,
-                explicit, always, trace, lip, margin, eps, skip, check_all):
+def _block_simd(data, lo, hi, steps, state, physics, budget):
     """:func:`_block` for a static grid world (``GRID_SIMD``) without resting contact or
     Python forces, the same results: ``LANES`` particles at a time through all steps, each
     step in passes over the block (:func:`_simd_move`, :func:`_simd_gather`,
     :func:`_simd_blend`, :func:`_simd_fix`, :func:`_simd_respond`); a step in which no
     particle of the block needs a query is the first pass alone."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
+    trace, lip, margin, eps, skip = budget
     data = borrow_all(data)
-    M = borrow_all(M)
     grid, x0, x1, y0, y1, ihx, ihy, nx, ny = data[5:14]
     b = (float(data[1]), float(data[2]), float(data[3]), float(data[4]))
     g = (float(x0), float(x1), float(y0), float(y1), float(ihx), float(ihy), float(nx - 2),
@@ -506,21 +510,19 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
     row = np.uint64(3 * ny)
     fbchk = GRID_EXACT and data[0] == 0
     use_m = use_m or USE_FORCE
+    own = Physics(dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
     S = np.zeros(_ROWS * _STRIDE)
     bad = 0
     for b0 in range(lo, hi, LANES):
         nb = min(hi, b0 + LANES) - b0
-        bad += _simd_load(S, Xf, Vf, M, R, CR, CF, FLAGS, b0, nb, use_m, check_all)
+        bad += _simd_load(S, state, b0, nb, use_m)
         for step in range(steps):
-            t = t0 + step * dt
             if skip or fbchk:
-                nneed, nfrz, nout = _simd_move_budget(S, step, t, dt, ax, ay, drag, use_m,
-                                                      explicit, lip, eps, fbchk, b, g)
+                nneed, nfrz, nout = _simd_move_budget(S, step, own, budget, fbchk, b, g)
             else:
-                nneed, nfrz, nout = _simd_move_plain(S, step, t, dt, ax, ay, drag, use_m,
-                                                     explicit, lip, eps, fbchk, b, g)
+                nneed, nfrz, nout = _simd_move_plain(S, step, own, budget, fbchk, b, g)
             if nneed > 0:
                 if skip or trace:
                     ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
@@ -549,32 +551,27 @@ def _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay, 
 
 
 @njit(cache=_CACHE, parallel=True, error_model="numpy")
-def simd_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-             use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+def simd_par(data, state, physics, budget, steps, block):
     """:func:`run_par` for a static grid world (``GRID_SIMD``), float64 state, without
-    resting contact (``rest`` 0) or Python forces (``use_ext`` False): the same results
-    through :func:`_block_simd`. A separate entry point, compiled only when first used."""
-    n = X.shape[0]
+    resting contact (``physics.rest`` 0) or Python forces (``physics.use_ext`` False): the
+    same results through :func:`_block_simd`. A separate entry point, compiled only when
+    first used."""
+    n = state.X.shape[0]
     nblocks = (n + block - 1) // block
     bad = 0
     for c in prange(nblocks):
         lo = c * block
         hi = min(n, lo + block)
-        bad += _block_simd(data, lo, hi, steps, X, V, M, R, CR, CF, FLAGS, dt, t0, ax, ay,
-                           drag, use_m, explicit, always, trace, lip, margin, eps, skip,
-                           check_all)
+        bad += _block_simd(data, lo, hi, steps, state, physics, budget)
     return bad
 
 
 @njit(cache=_CACHE, error_model="numpy")
-def simd_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-             use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+def simd_ser(data, state, physics, budget, steps, block):
     """Serial :func:`simd_par`."""
-    n = X.shape[0]
+    n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
-        bad += _block_simd(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, FLAGS, dt,
-                           t0, ax, ay, drag, use_m, explicit, always, trace, lip, margin, eps,
-                           skip, check_all)
+        bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget)
     return bad
 

@@ -6,6 +6,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .config import Physics, State
 from .constants import (
     ASLEEP,
     CONTACT_TOL,
@@ -30,7 +31,8 @@ from .scene import (
     _wall_speed_at,
 )
 
-__all__ = ["PLAIN_BATCH", "run_par", "run_ser", "plain_par", "plain_ser", "query_many", "force_many"]
+__all__ = ["PLAIN_BATCH", "run_par", "run_ser", "plain_par", "plain_ser", "query_many",
+           "force_many"]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -76,9 +78,10 @@ def _coeffs(CR, CF, i):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all):
+def _check_block(lo, hi, state, clear, inv_mass, use_m):
     """A block's first pass: ``1 / m`` into ``inv_mass`` (when ``use_m``) and the checks of
-    the module docstring; freezes a failing particle and returns how many failed."""
+    the package docs; freezes a failing particle and returns how many failed."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
     bad = 0
     for i in range(lo, hi):
         m = float(M[i]) if use_m or check_all else 1.0
@@ -170,9 +173,9 @@ def _integrate(vx, vy, bx, by, dt, explicit):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-           use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
-    """All steps for particles lo..hi-1; returns the number of particles frozen (flagged).
+def _block(data, lo, hi, steps, state, physics, budget):
+    """All steps for particles lo..hi-1 (:class:`.config.State`, :class:`.config.Physics`,
+    :class:`.config.Budget`); returns the number of particles frozen (flagged).
 
     The only compiled call that touches the arrays: helpers that take arrays are inlined and the
     others take scalars, so no reference counting happens per particle.
@@ -184,6 +187,9 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     the exact SDF at its bounds; ``eps`` is the relative rounding of stored coordinates.
     ``clear[k] < 0`` marks a frozen particle.
     """
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
+    trace, lip, margin, eps, skip = budget
     data = borrow_all(data)
     M, EXT = borrow_all((M, EXT))       # see _accel
     clear = np.zeros(hi - lo)
@@ -194,7 +200,7 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
     # 1 / m of the block, computed once per call rather than divided every step
     inv_mass = np.empty(hi - lo if use_m else 0)
     fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
-    bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
+    bad = _check_block(lo, hi, state, clear, inv_mass, use_m)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
     for step in range(steps):
@@ -309,9 +315,12 @@ def _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, 
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _plain_straight(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear, inv_mass,
-                    fbuf, dt, ax, ay, drag, use_m, use_ext, explicit, always):
-    """One step of a block for :func:`_block_plain`, particle after particle."""
+def _plain_straight(data, lo, hi, step, t, state, physics, work):
+    """One step of a block for :func:`_block_plain`, particle after particle (``work``: the
+    block's flat state views and scratch, see :func:`_block_plain`)."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
+    Xf, Vf, clear, inv_mass, fbuf, sb = work
     bad = 0
     touching = 0
     for i in range(lo, hi):
@@ -352,13 +361,15 @@ PLAIN_BATCH = 16
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear, inv_mass,
-                  fbuf, sb, dt, ax, ay, drag, use_m, use_ext, explicit, always):
+def _plain_staged(data, lo, hi, step, t, state, physics, work):
     """One step of a block for :func:`_block_plain`, ``PLAIN_BATCH`` particles at a time in
     two passes: integrate and query all of them (independent iterations without
     data-dependent branches, so their dependent chains overlap), then respond (the contact
     branch mispredicts often while particles rest; there a mispredict no longer discards the
-    next particles' queries). ``sb``: scratch of shape (7, PLAIN_BATCH)."""
+    next particles' queries). ``sb`` in ``work``: scratch of shape (7, PLAIN_BATCH)."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
+    Xf, Vf, clear, inv_mass, fbuf, sb = work
     bad = 0
     touching = 0
     for b0 in range(lo, hi, PLAIN_BATCH):
@@ -413,114 +424,108 @@ def _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _plain_steps(data, lo, hi, steps, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear, inv_mass, fbuf,
-                 sb, dt, t0, ax, ay, drag, use_m, use_ext, explicit, always):
+def _plain_steps(data, lo, hi, steps, state, physics, work):
     """The steps of :func:`_block_plain`: a step in batches (:func:`_plain_staged`) after a
     step where at least a quarter of the block touched a surface, else particle after
     particle (:func:`_plain_straight`); the two give the same results."""
+    dt = physics.dt
+    t0 = physics.t0
     bad = 0
     touching = 0
     for step in range(steps):
         t = t0 + step * dt
         if 4 * touching >= hi - lo:
-            b, touching = _plain_staged(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT, FLAGS,
-                                        clear, inv_mass, fbuf, sb, dt, ax, ay, drag, use_m,
-                                        use_ext, explicit, always)
+            b, touching = _plain_staged(data, lo, hi, step, t, state, physics, work)
         else:
-            b, touching = _plain_straight(data, lo, hi, step, t, Xf, Vf, M, R, CR, CF, EXT,
-                                          FLAGS, clear, inv_mass, fbuf, dt, ax, ay, drag, use_m,
-                                          use_ext, explicit, always)
+            b, touching = _plain_straight(data, lo, hi, step, t, state, physics, work)
         bad += b
     return bad
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _block_plain(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag,
-                 use_m, use_ext, explicit, always, check_all):
+def _block_plain(data, lo, hi, steps, state, physics):
     """:func:`_block` without query skipping, tunnelling check, moving world or resting
     contact: every step is integrate, query, respond, as in the peers' kernels. Same results
     as :func:`_block` with those off, in fewer instructions per particle-step (flat unsigned
     indexing, the common flags constant), so that out-of-order execution overlaps more
     particles' dependent chains.
     """
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
     data = borrow_all(data)
     M, EXT = borrow_all((M, EXT))       # see _accel
     clear = np.zeros(hi - lo)
     use_m = use_m or USE_FORCE
     inv_mass = np.empty(hi - lo if use_m else 0)
     fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
-    bad = _check_block(lo, hi, X, V, M, R, CR, CF, FLAGS, clear, inv_mass, use_m, check_all)
+    bad = _check_block(lo, hi, state, clear, inv_mass, use_m)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
     sb = np.empty((7, PLAIN_BATCH))
+    # (the helpers are inlined: arrays borrowed here stay borrowed there)
+    own = State(X, V, M, R, CR, CF, EXT, FLAGS, check_all)
+    work = (Xf, Vf, clear, borrow_all(inv_mass), fbuf, sb)
     if not use_m and not explicit and not always:
-        bad += _plain_steps(data, lo, hi, steps, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear,
-                            inv_mass, fbuf, sb, dt, t0, ax, ay, drag, False, False, False,
-                            False)
+        # the common flags as constants
+        bad += _plain_steps(data, lo, hi, steps, own,
+                            Physics(dt, t0, ax, ay, drag, False, False, False, False, rest),
+                            work)
     else:
-        bad += _plain_steps(data, lo, hi, steps, Xf, Vf, M, R, CR, CF, EXT, FLAGS, clear,
-                            inv_mass, fbuf, sb, dt, t0, ax, ay, drag, use_m, use_ext, explicit,
-                            always)
+        bad += _plain_steps(data, lo, hi, steps, own,
+                            Physics(dt, t0, ax, ay, drag, use_m, use_ext, explicit, always,
+                                    rest), work)
     return bad
 
 
 @njit(cache=_CACHE, parallel=True, error_model="numpy")
-def run_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-            use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
-    """Parallel kernel: blocks of particles over threads. Returns the frozen count."""
-    n = X.shape[0]
+def run_par(data, state, physics, budget, steps, block):
+    """Parallel kernel: ``steps`` steps of the particles of ``state`` (:class:`.config.State`)
+    with ``physics`` and ``budget`` (:class:`.config.Physics`, :class:`.config.Budget`) in the
+    world ``data``, blocks of ``block`` particles over threads. Returns the frozen count."""
+    n = state.X.shape[0]
     nblocks = (n + block - 1) // block
     bad = 0
     for c in prange(nblocks):
         lo = c * block
         hi = min(n, lo + block)
-        bad += _block(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay,
-                      drag, use_m, use_ext, explicit, always, trace, lip, margin, eps, skip,
-                      rest, check_all)
+        bad += _block(data, lo, hi, steps, state, physics, budget)
     return bad
 
 
 @njit(cache=_CACHE, error_model="numpy")
-def run_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-            use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+def run_ser(data, state, physics, budget, steps, block):
     """Serial kernel (small n). Returns the frozen count."""
-    n = X.shape[0]
+    n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
-        bad += _block(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT, FLAGS, dt,
-                      t0, ax, ay, drag, use_m, use_ext, explicit, always, trace, lip, margin,
-                      eps, skip, rest, check_all)
+        bad += _block(data, lo, min(n, lo + block), steps, state, physics, budget)
     return bad
 
 
 @njit(cache=_CACHE, parallel=True, error_model="numpy")
-def plain_par(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-              use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+def plain_par(data, state, physics, budget, steps, block):
     """:func:`run_par` for calls without query skipping, tunnelling check, moving world or
-    resting contact (``skip``, ``trace`` False, ``rest`` 0; the others are unused): the same
+    resting contact (``budget.skip``, ``budget.trace`` False, ``physics.rest`` 0; the rest of
+    ``budget`` is unused): the same
     results through :func:`_block_plain`. A separate entry point, compiled only when first
     used."""
-    n = X.shape[0]
+    n = state.X.shape[0]
     nblocks = (n + block - 1) // block
     bad = 0
     for c in prange(nblocks):
         lo = c * block
         hi = min(n, lo + block)
-        bad += _block_plain(data, lo, hi, steps, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax,
-                            ay, drag, use_m, use_ext, explicit, always, check_all)
+        bad += _block_plain(data, lo, hi, steps, state, physics)
     return bad
 
 
 @njit(cache=_CACHE, error_model="numpy")
-def plain_ser(data, steps, block, X, V, M, R, CR, CF, EXT, FLAGS, dt, t0, ax, ay, drag, use_m,
-              use_ext, explicit, always, trace, lip, margin, eps, skip, rest, check_all):
+def plain_ser(data, state, physics, budget, steps, block):
     """Serial :func:`plain_par`."""
-    n = X.shape[0]
+    n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
-        bad += _block_plain(data, lo, min(n, lo + block), steps, X, V, M, R, CR, CF, EXT,
-                            FLAGS, dt, t0, ax, ay, drag, use_m, use_ext, explicit, always,
-                            check_all)
+        bad += _block_plain(data, lo, min(n, lo + block), steps, state, physics)
     return bad
 
 
