@@ -55,7 +55,7 @@ the outward normal), the relative normal velocity ``v_n - w`` reflects with ``cr
 tangential velocity keeps ``(1 - cf)`` of itself (an SDF does not say how a surface slides
 along itself, so the wall's tangential velocity is taken as zero). Distance budgets and the
 tunnelling sweep use the wall speed bound ``W``: in one step the distance to a surface can
-shrink by ``lip |D| + W dt``, so the sweep marches in space-time (:func:`_march_t`) with that
+shrink by ``lip |D| + W dt``, so the sweep marches in space-time (:func:`march`) with that
 rate, and a particle at rest is swept when the walls move more than ``TRACE_FRACTION r`` in a
 step.
 
@@ -163,7 +163,7 @@ from .constants import (
     MIN_STEP,
     TRACE_FRACTION,
 )
-from .contact import _march, _march_t, _respond, _rests, _sweep, _sweep_t
+from .contact import _march, _respond, _rests, _sweep, march, sweep
 from .intrinsics import borrow_all, call_vg
 from .step import PLAIN_BATCH, force_many, plain_par, plain_ser, query_many, run_par, run_ser
 
@@ -172,7 +172,7 @@ __all__ = ["kernel_source", "PARTS", "State", "Physics", "Budget", "NO_EXT", "LA
            "CONTACT_TOL", "MAX_MARCH", "MAX_BOUNCES", "FORCE_BATCH", "ASLEEP", "FLAG_INPUT",
            "FLAG_NONFINITE", "FLAG_COEFF", "FLAG_RESUME", "borrow_all", "call_vg", "run_par",
            "run_ser", "plain_par", "plain_ser", "simd_par", "simd_ser", "query_many",
-           "force_many", "_respond", "_march", "_sweep", "_march_t", "_sweep_t", "_rests"]
+           "force_many", "march", "sweep", "_respond", "_march", "_sweep", "_rests"]
 
 #: The kernels' modules whose bodies a generated module holds, in order.
 PARTS: tuple = (contact, step, block)

@@ -17,7 +17,7 @@ from .constants import (
     FORCE_BATCH,
     TRACE_FRACTION,
 )
-from .contact import _respond, _rests, _sweep, _sweep_t
+from .contact import _respond, _rests, sweep
 from .intrinsics import borrow_all
 from .scene import (
     _CACHE,
@@ -241,11 +241,8 @@ def _block(data, lo, hi, steps, state, physics, budget):
             if _fallback_missing(data, x, y, dx, dy):
                 bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
                 continue
-            gt = 0.0
-            if MOVING:
-                d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
-            else:
-                d, gx, gy = _query(data, x + dx, y + dy)
+            # (a static world's dd/dt is the constant 0)
+            d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
             s = d - r
             bounced = False
             if trace:
@@ -256,11 +253,11 @@ def _block(data, lo, hi, steps, state, physics, budget):
                 # a moving world the length includes how far the walls move (wd / lip).
                 if MOVING:
                     ln = math.sqrt(dd) + wd / lip
-                    sweep = ln > TRACE_FRACTION * r and not (s >= lip * ln and s > 0.0)
+                    crosses = ln > TRACE_FRACTION * r and not (s >= lip * ln and s > 0.0)
                 else:
-                    sweep = dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
+                    crosses = dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
                         s * s >= lip * lip * dd and s > 0.0)
-                if sweep:
+                if crosses:
                     cr, cf, ok = _coeffs(CR, CF, u)
                     if not ok:
                         bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
@@ -268,21 +265,14 @@ def _block(data, lo, hi, steps, state, physics, budget):
                     # The part within s / L of the end is known to be free. (The start's
                     # budget is not used: results must not depend on how steps are grouped
                     # into calls.)
-                    if MOVING:
-                        t1 = 1.0 - s / (lip * ln) if s > 0.0 else 1.0
-                        x, y, dx, dy, vx, vy, bounced = _sweep_t(
-                            data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, 0.0, t1, t, dt,
-                            wd)
-                        if bounced:
-                            d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
-                            s = d - r
-                    else:
-                        t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
-                        x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, vx, vy, r,
-                                                               cr, cf, lip, always, 0.0, t1)
-                        if bounced:
-                            d, gx, gy = _query(data, x + dx, y + dy)
-                            s = d - r
+                    t1 = 1.0
+                    if s > 0.0:
+                        t1 = 1.0 - s / (lip * (ln if MOVING else math.sqrt(dd)))
+                    x, y, dx, dy, vx, vy, bounced = sweep(data, x, y, dx, dy, vx, vy, r, cr, cf,
+                                                          lip, always, 0.0, t1, t, dt, wd)
+                    if bounced:
+                        d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
+                        s = d - r
             x += dx
             y += dy
             if s <= 0.0:
