@@ -41,7 +41,7 @@ class Gravity:
     def __init__(self, acceleration: ArrayLike = (0.0, -1.0)):
         self.acceleration = _vec2(acceleration, "acceleration")
 
-    def __call__(self, p, t):
+    def __call__(self, p: Any, t: float) -> np.ndarray:
         return np.asarray(p["m"], dtype=np.float64)[:, None] * self.acceleration
 
     def potential(self, p: Particles) -> np.ndarray:
@@ -49,7 +49,7 @@ class Gravity:
         x = np.asarray(p["x"], dtype=np.float64)
         return -np.asarray(p["m"], dtype=np.float64) * (x @ self.acceleration)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"Gravity(acceleration={self.acceleration.tolist()})"
 
 
@@ -67,10 +67,10 @@ class Drag:
                              f"coefficient={coefficient!r}")
         self.coefficient = c
 
-    def __call__(self, p, t):
+    def __call__(self, p: Any, t: float) -> np.ndarray:
         return -self.coefficient * np.asarray(p["v"], dtype=np.float64)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"Drag(coefficient={self.coefficient!r})"
 
 
@@ -137,7 +137,7 @@ def force(x, y, vx, vy, m, t):
             self._dispatcher._fastsdf_batched = True
         return self._dispatcher
 
-    def __call__(self, p, t):
+    def __call__(self, p: Any, t: float) -> np.ndarray:
         x = np.asarray(p["x"], dtype=np.float64)
         m = np.asarray(p["m"], dtype=np.float64) if self.per_mass else 1.0
         if self.potential:
@@ -147,7 +147,7 @@ def force(x, y, vx, vy, m, t):
             f = np.stack([self.parts[0](x[:, 0], x[:, 1]), self.parts[1](x[:, 0], x[:, 1])], 1)
         return f * (m[:, None] if self.per_mass else 1.0)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         what = f"potential={self.parts[0]!r}" if self.potential else \
             f"fx={self.parts[0]!r}, fy={self.parts[1]!r}"
         return f"FieldForce({what}, per_mass={self.per_mass})"

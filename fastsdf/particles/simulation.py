@@ -615,7 +615,7 @@ class ParticleSimulation:
         from ..render import notebook_draw
         return notebook_draw(self, ax, new)
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict:
         # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
         # kernel module and scratch buffers stay behind and are rebuilt on unpickling (the
         # simulation holds no drawing: that lives in fastsdf.render).
@@ -626,14 +626,14 @@ class ParticleSimulation:
             state.pop(key, None)
         return state
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self._ext = self._wall = self._flags = None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
             self.sdf = state["_sdf"]
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
                 f"integrator={self.integrator!r}, collision={self.collision!r}, "
                 f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})")

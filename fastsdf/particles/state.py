@@ -63,7 +63,7 @@ class Particles:
     #: place) marks the state for a full check at the next step.
     _CHECKED_ON_ACCESS = ("m", "cr", "cf")
 
-    def __getitem__(self, name):
+    def __getitem__(self, name: str) -> np.ndarray:
         try:
             arr = self._arrays[name]
         except (KeyError, TypeError):
@@ -72,7 +72,7 @@ class Particles:
             self._dirty = True
         return arr
 
-    def __setitem__(self, name, value):
+    def __setitem__(self, name: str, value: Any) -> None:
         arr = self[name]
         try:
             value = np.asarray(value)
@@ -87,7 +87,7 @@ class Particles:
             raise ValueError(f"p[{name!r}] has shape {arr.shape}; cannot assign a value of "
                              f"shape {value.shape}") from None
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> np.ndarray:
         arrays = self.__dict__.get("_arrays")
         if arrays is not None and name in arrays:
             if name in self._CHECKED_ON_ACCESS:
@@ -95,10 +95,10 @@ class Particles:
             return arrays[name]
         raise AttributeError(name)
 
-    def __len__(self):
+    def __len__(self) -> int:
         return self._n
 
-    def __contains__(self, name):
+    def __contains__(self, name: object) -> bool:
         return name in self._arrays
 
     def keys(self) -> list:
@@ -130,7 +130,7 @@ class Particles:
             rec[name] = self._arrays[name]
         return rec
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"Particles(n={self._n}, dtype={self._dtype.name})"
 
 

@@ -125,7 +125,7 @@ def _prunes(f) -> bool:
 def _plan_import() -> str:
     with open(_prune.__file__, "rb") as fh:
         digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-    return f"from fastsdf.prune import _call_vg_plan  # prune.py sha256 {digest}"
+    return f"from {_prune.__name__} import _call_vg_plan  # prune.py sha256 {digest}"
 
 
 _PLAN_IMPORT = _plan_import()
