@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import inspect
+import math
 import sys
 from typing import Any
 
@@ -21,7 +22,7 @@ from .._validate import real
 from ..graph import Function
 from . import kernels as _kernels
 
-__all__ = ["SimulationParams", "WALL_TABLE_CELLS"]
+__all__ = ["SimulationParams", "WALL_TABLE_CELLS", "wall_speed_table"]
 
 
 def _is_grid(f) -> bool:
@@ -348,3 +349,73 @@ class _NoParams:
 
 
 _NO_PARAMS = _NoParams()
+
+
+def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, steps: int,
+                     prm: tuple) -> tuple:
+    """The global bound W and the per-region table of wall speeds for one call.
+
+    ``|dd/dt|`` is sampled on the nodes of a grid over the bounding box of a sample of the
+    particles (at most ``WALL_TABLE_CELLS`` cells a side) at the call's first and last step
+    times (and up to 6 times between), each cell gets 1.5 times the largest sample at its
+    corners, and the
+    table is widened by one cell plus the distance a wall moving at W travels during the
+    call: a particle whose surroundings do not move (far from every moving wall) gets 0
+    and skips its queries as in a static scene. W is the largest value of the table and of
+    the samples at the particles (the estimate used where the table does not reach:
+    steps longer than a cell, particles outside the box).
+
+    ``f``: the moving world (a time-dependent Function), ``x``: the particles' positions,
+    ``r_max``: their largest radius, ``t``, ``dt``, ``steps``: the call's start time, timestep
+    and number of steps, ``prm``: the values of the world's parameters. Returns ``(W, (x0, y0,
+    1/h, table))``.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    # The table's box from a sample of the particles (one outside it uses W) and the
+    # samples for W: both cheap next to a step of every particle.
+    box = x[::max(1, x.shape[0] // 16384)]
+    box = box[np.isfinite(box).all(axis=1)]
+    sample = x[::max(1, x.shape[0] // 4096)]
+    sample = sample[np.isfinite(sample).all(axis=1)]
+    if not box.size:
+        box = np.zeros((1, 2))
+    lo, hi = box.min(axis=0), box.max(axis=0)
+    size = float(max(hi - lo))
+    if not size > 0:
+        size = float(r_max) * 4 or 1.0
+    n = WALL_TABLE_CELLS
+    h = size / (n - 4)
+    x0, y0 = lo - 2 * h          # two cells of room on each side
+    gx = x0 + h * np.arange(n + 1)
+    gy = y0 + h * np.arange(n + 1)
+    X, Y = (a.ravel() for a in np.meshgrid(gx, gy, indexing="ij"))
+    X = np.ascontiguousarray(np.concatenate([X, sample[:, 0]]))
+    Y = np.ascontiguousarray(np.concatenate([Y, sample[:, 1]]))
+    m, nodes = X.shape[0], (n + 1) * (n + 1)
+    # the serial kernel: a few thousand points are not worth waking the threads
+    kernel = f.compiled.kernel("vgt", parallel=False)
+    out, grad, gt = np.empty(m), np.empty((m, 2)), np.empty(m)
+    count = min(steps, 8)
+    times = t + dt * np.unique(np.round(np.linspace(1, steps, count)))
+    top = np.zeros(m)
+    for at in times:
+        kernel(X, Y, out, grad, gt, float(at), prm)
+        top = np.maximum(top, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
+    node = top[:nodes]
+    at_particles = top[nodes:]
+    top = 1.5 * float(at_particles[np.isfinite(at_particles)].max(initial=0.0))
+    node = node.reshape(n + 1, n + 1)
+    cell = 1.5 * np.maximum(np.maximum(node[:-1, :-1], node[1:, :-1]),
+                            np.maximum(node[:-1, 1:], node[1:, 1:]))
+    wall = max(top, float(cell[np.isfinite(cell)].max(initial=0.0)))
+    cell = np.where(np.isfinite(cell), cell, wall)  # unknown there (a non-finite dd/dt)
+    # walls at the sample times move up to W (t_gap) between them and W dt in a step
+    gap = max(float(np.max(np.diff(times))) if len(times) > 1 else 0.0, dt)
+    reach = 1 + int(math.ceil(wall * gap / h))
+    wide = cell
+    for _ in range(min(reach, n)):
+        pad = np.pad(wide, 1, mode="edge")
+        wide = np.maximum.reduce([pad[1:-1, 1:-1], pad[:-2, 1:-1], pad[2:, 1:-1],
+                                  pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, :-2], pad[2:, 2:],
+                                  pad[:-2, 2:], pad[2:, :-2]])
+    return wall, (float(x0), float(y0), 1.0 / h, np.ascontiguousarray(wide))
