@@ -1,5 +1,6 @@
-"""Direct tests of the step kernel module ``fastsdf._step`` (its own test world: half-planes and
-discs), of the kernels generated from it, of fused user forces and of the clock/state rules.
+"""Direct tests of the step kernels ``fastsdf.particles.kernels`` (their own test world:
+half-planes and discs), of the kernels generated from them, of fused user forces and of the
+clock/state rules.
 
 Every test checks a property against an independent computation (analytic geometry, a NumPy
 step, the slow Python-force path).
@@ -13,8 +14,9 @@ from numba import njit
 
 import fastsdf as sdf
 import fastsdf.particles as phys
-from fastsdf import GridSDF, _step
-from fastsdf.shapes.scenes import seed_world
+from fastsdf import GridSDF
+from fastsdf.particles import kernels as _step
+from fastsdf.scenes import seed_world
 
 
 def world(planes=(), discs=()):
@@ -119,9 +121,11 @@ def kernel_args(n, x, v, r=0.05, m=1.0, cr=0.5, cf=0.2):
 def run_kernel(data, steps, X, V, M, R, CR, CF, dt=0.01, g=(0.0, -1.0), trace=True, skip=True,
                block=7, explicit=False, always=False):
     flags = np.zeros(X.shape[0], np.uint8)
-    bad = _step.run_ser(data, steps, block, X, V, M, R, CR, CF, np.zeros((0, 2)), flags, dt, 0.0,
-                        g[0], g[1], 0.0, False, False, explicit, always, trace, 1.0, 0.0,
-                        2.2e-16, skip, 0.0, True)
+    state = _step.State(X, V, M, R, CR, CF, np.zeros((0, 2)), flags, True)
+    physics = _step.Physics(dt=dt, t0=0.0, ax=g[0], ay=g[1], drag=0.0, use_m=False,
+                            use_ext=False, explicit=explicit, always=always, rest=0.0)
+    budget = _step.Budget(trace=trace, lip=1.0, margin=0.0, eps=2.2e-16, skip=skip)
+    bad = _step.run_ser(data, state, physics, budget, steps, block)
     return bad, flags
 
 
@@ -213,9 +217,13 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
     for kernel in (_step.run_ser, _step.plain_ser, _step.run_par, _step.plain_par):
         X, V, M, R, CR, CF = [a.copy() for a in base]
         flags = np.zeros(n, np.int32)
-        bad = kernel(data, 40, block, X, V, M, R, CR, CF, E, flags, 0.01, 0.0, 0.0, -1.0, drag,
-                     drag != 0.0 or ext, ext, explicit, always, False, 1.0, 0.0, 2.2e-16, False,
-                     0.0, False)       # check_all off: cr, cf are checked at contacts
+        # check_all off: cr, cf are checked at contacts
+        state = _step.State(X, V, M, R, CR, CF, E, flags, False)
+        physics = _step.Physics(dt=0.01, t0=0.0, ax=0.0, ay=-1.0, drag=drag,
+                                use_m=drag != 0.0 or ext, use_ext=ext, explicit=explicit,
+                                always=always, rest=0.0)
+        budget = _step.Budget(trace=False, lip=1.0, margin=0.0, eps=2.2e-16, skip=False)
+        bad = kernel(data, state, physics, budget, 40, block)
         out.append((X, V, flags, bad))
     ref = out[0]
     assert ref[2][5] == _step.FLAG_INPUT and ref[2][7] == _step.FLAG_COEFF
@@ -247,10 +255,13 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
     flags = np.zeros(300, np.int32)
     ax, ay, drag, _, _ = ref._fused_params()
     ref._bind_fallback()                                   # no particle stops to bind it
-    ref._module.run_ser(ref._bind(ref._data), 60, 512, *[a[k] for k in phys.Particles.FIELDS],
-                        np.zeros((0, 2)), flags, ref.dt, 0.0, ax, ay, drag, False, False,
-                        ref.integrator == "euler", ref.collision == "notebook", False,
-                        ref.lipschitz, ref._margin, 2.2e-16, False, 0.0, True)
+    state = _step.State(*[a[k] for k in phys.Particles.FIELDS], np.zeros((0, 2)), flags, True)
+    physics = _step.Physics(dt=ref.dt, t0=0.0, ax=ax, ay=ay, drag=drag, use_m=False,
+                            use_ext=False, explicit=ref.integrator == "euler",
+                            always=ref.collision == "notebook", rest=0.0)
+    budget = _step.Budget(trace=False, lip=ref.lipschitz, margin=ref._margin, eps=2.2e-16,
+                          skip=False)
+    ref._module.run_ser(ref._bind(ref._data), state, physics, budget, 60, 512)
     assert not flags.any()
     np.testing.assert_array_equal(sims[0].p["x"], ref.p["x"])
     np.testing.assert_array_equal(sims[0].p["v"], ref.p["v"])

@@ -38,7 +38,7 @@ from fastsdf.viz.plotting import check_bounds
 
 __all__ = ["density_image", "draw_particles", "ParticleLayer", "render_frame", "animate",
            "save_animation", "PARTICLE_COLOR", "PARTICLE_CMAP_COLORS", "DEFAULT_MAX_CIRCLES",
-           "VIDEO_FORMATS", "sim_title", "notebook_draw"]
+           "VIDEO_FORMATS", "sim_title", "notebook_draw", "notebook_animation"]
 
 #: Face colour of particles drawn as circles.
 PARTICLE_COLOR = "#e6550d"
@@ -652,3 +652,45 @@ def notebook_draw(sim: Any, ax: Any, new: bool) -> tuple:
         _VIEWS[sim] = layer
         return (layer.artist,)
     return layer.update(x, y, r)
+
+
+def notebook_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: bool = True,
+                     use_wall_time: bool = False, interval: float | None = None) -> Any:
+    """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's ``create_animation``).
+
+    Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
+    calls ``sim.reset(ax)``, which redraws a fresh random state. ``interval`` is the delay
+    between frames in milliseconds (default: the simulation's timestep). Returns the animation
+    (keep a reference to it; ``anim.to_html5_video()`` renders it in a notebook: an MP4 when
+    ffmpeg is installed, matplotlib's JavaScript player (``to_jshtml``) otherwise).
+    """
+    from matplotlib.animation import FuncAnimation
+
+    if interval is None:
+        interval = 1000.0 * getattr(sim, "dt", 1 / 30)
+
+    def artists(returned):
+        # Any simulation object with reset(ax) / update(ax, use_wall_time) works (the
+        # notebook's own SimpleParticleSimulation returns nothing from reset): blitting needs
+        # the artists, so fall back on sim.drawable.
+        if returned is None:
+            drawable = getattr(sim, "drawable", None)
+            return (drawable,) if drawable is not None else ()
+        return returned
+
+    class _Animation(FuncAnimation):
+        """``to_html5_video`` needs ffmpeg; without it, fall back to matplotlib's JavaScript
+        player (``to_jshtml``) so the notebook's ``HTML(anim.to_html5_video())`` still works."""
+
+        def to_html5_video(self, embed_limit=None):
+            from matplotlib import animation, rcParams
+
+            from fastsdf.viz.video import ffmpeg_available
+            ffmpeg_available()  # points matplotlib at imageio-ffmpeg's binary when installed
+            if animation.writers.is_available(rcParams["animation.writer"]):
+                return super().to_html5_video(embed_limit=embed_limit)
+            return self.to_jshtml(default_mode="loop" if repeat else "once")
+
+    return _Animation(fig, lambda i: artists(sim.update(ax, use_wall_time=use_wall_time)),
+                      init_func=lambda: artists(sim.reset(ax)), frames=frames,
+                      interval=interval, blit=True, repeat=repeat)

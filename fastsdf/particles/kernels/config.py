@@ -1,0 +1,70 @@
+"""The named structures a step kernel takes: the particles' arrays (:class:`State`), the physics
+of a call (:class:`Physics`) and the safety and skipping settings (:class:`Budget`).
+
+They are ``typing.NamedTuple`` classes, which numba compiles as structs: a kernel reads
+``physics.dt`` as it read a positional argument, and a new value never recompiles. Generated
+kernel modules import them from here, so the caller and every kernel share one class each.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["State", "Physics", "Budget", "NO_EXT"]
+
+#: ``State.EXT`` of a call without Python forces.
+NO_EXT = np.zeros((0, 2))
+
+
+class State(NamedTuple):
+    """The arrays of the particles a call steps (structure of arrays, one float dtype).
+
+    ``X``, ``V``: (n, 2) positions and velocities (read and written); ``M``, ``R``, ``CR``,
+    ``CF``: (n,) mass, radius, restitution, friction (read); ``EXT``: (n, 2) Python forces of
+    this step, or (0, 2) without; ``FLAGS``: (n,) int freeze codes written by the kernel
+    (``FLAG_*`` of :mod:`.constants`); ``check_all``: check ``m``, ``cr``, ``cf`` of every
+    particle in the first pass (they may have been written since the last call).
+    """
+
+    X: np.ndarray
+    V: np.ndarray
+    M: np.ndarray
+    R: np.ndarray
+    CR: np.ndarray
+    CF: np.ndarray
+    EXT: np.ndarray
+    FLAGS: np.ndarray
+    check_all: bool
+
+
+class Physics(NamedTuple):
+    """The physics of a call: timestep ``dt`` (s), time of the first step ``t0``, uniform
+    acceleration ``(ax, ay)``, linear ``drag`` (mass/s), whether the mass is read (``use_m``:
+    drag or Python forces) and Python forces are added (``use_ext``), explicit Euler
+    (``explicit``; else semi-implicit), velocity response whenever in contact (``always``;
+    else only while approaching), and resting contact below the speed ``rest`` (0: off)."""
+
+    dt: float
+    t0: float
+    ax: float
+    ay: float
+    drag: float
+    use_m: bool
+    use_ext: bool
+    explicit: bool
+    always: bool
+    rest: float
+
+
+class Budget(NamedTuple):
+    """Safety and query skipping: the tunnelling sweep (``trace``), the world's Lipschitz bound
+    ``lip``, the ``margin`` a grid may jump at its bounds, the relative rounding ``eps`` of
+    stored coordinates, and free-flight query skipping (``skip``)."""
+
+    trace: bool
+    lip: float
+    margin: float
+    eps: float
+    skip: bool
