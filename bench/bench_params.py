@@ -72,7 +72,7 @@ t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
 import fastsdf.particles as phys
-from fastsdf import _cache
+from fastsdf.backends.kernel import cache as _cache
 import importlib.util, sys
 spec = importlib.util.spec_from_file_location("mw", "EXAMPLE")
 mw = importlib.util.module_from_spec(spec); spec.loader.exec_module(mw)

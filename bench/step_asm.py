@@ -8,7 +8,8 @@ code loaded from its cache) and counts:
 * in the particle-by-particle step (``_block`` and the functions it calls out of line): the
   instructions, branches, calls, scalar (``sd``) and packed (``pd``) double arithmetic, and
   whether any vector register or gather is used;
-* in the block kernel's passes (``_simd_*`` of ``simd_ser``, see :mod:`fastsdf.particles.kernels`): each
+* in the block kernel's passes (``_simd_*`` of ``simd_ser``, see
+  :mod:`fastsdf.particles.kernels`): each
   pass's innermost loop, its instructions per particle (a loop iteration handles 4 particles
   where it is vectorized), its ymm (256-bit) instructions and square roots/divisions, and the
   masked stores (``vmaskmovpd``, microcoded and slow on AMD Zen 2) of the whole function.

@@ -260,7 +260,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
 
     sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
     # (fastsdf.particles is excluded from type checking while it becomes a package)
-    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))  # type: ignore[has-type]
+    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
     respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
 
     timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}

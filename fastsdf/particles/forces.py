@@ -14,16 +14,16 @@ import numpy as np
 from numba.core.dispatcher import Dispatcher
 from numpy.typing import ArrayLike
 
-from fastsdf.version import __version__
 from fastsdf.backends.kernel.cache import load_module
 from fastsdf.expr.validate import vec2 as _vec2
 from fastsdf.function import Function
 from fastsdf.particles.state import Particles, _real
+from fastsdf.version import __version__
 
 __all__ = ["Gravity", "Drag", "FieldForce", "FusedForces", "fuse"]
 
 
-def _gen_name(gen) -> str:
+def _gen_name(gen: Any) -> str:
     name = getattr(gen, "__qualname__", None) or getattr(gen, "__name__", None)
     return name if isinstance(name, str) else repr(gen)
 
@@ -89,11 +89,12 @@ class FieldForce:
     """
 
     def __init__(self, fx: Any = None, fy: Any = None, *, potential: Any = None,
-                 per_mass: bool = False):
+                 per_mass: bool = False) -> None:
         if potential is None:
             if fx is None or fy is None:
                 raise TypeError("FieldForce needs fx and fy, or potential=")
-            self.parts = (_field_function(fx, "fx"), _field_function(fy, "fy"))
+            self.parts: tuple[Function, ...] = (_field_function(fx, "fx"),
+                                                _field_function(fy, "fy"))
         else:
             if fx is not None or fy is not None:
                 raise TypeError("FieldForce takes fx and fy, or potential=, not both")
@@ -131,21 +132,23 @@ from numba import njit
 def force(x, y, vx, vy, m, t):
 {body}
 ''')
-            self._dispatcher = load_module(source, prefix="fastsdf_force").force
+            dispatcher = load_module(source, prefix="fastsdf_force").force
             # A compiled field is usually long-latency arithmetic (square roots, divisions):
             # the step evaluates it for a batch of particles ahead (see fastsdf.particles.kernels).
-            self._dispatcher._fastsdf_batched = True
+            dispatcher._fastsdf_batched = True
+            self._dispatcher = dispatcher
         return self._dispatcher
 
     def __call__(self, p: Any, t: float) -> np.ndarray:
         x = np.asarray(p["x"], dtype=np.float64)
-        m = np.asarray(p["m"], dtype=np.float64) if self.per_mass else 1.0
         if self.potential:
             _, g = self.parts[0](x[:, 0], x[:, 1], compute_gradient=True)
             f = -g
         else:
             f = np.stack([self.parts[0](x[:, 0], x[:, 1]), self.parts[1](x[:, 0], x[:, 1])], 1)
-        return f * (m[:, None] if self.per_mass else 1.0)
+        if self.per_mass:
+            f = f * np.asarray(p["m"], dtype=np.float64)[:, None]
+        return f
 
     def __repr__(self) -> str:
         what = f"potential={self.parts[0]!r}" if self.potential else \
@@ -153,7 +156,7 @@ def force(x, y, vx, vy, m, t):
         return f"FieldForce({what}, per_mass={self.per_mass})"
 
 
-def _field_function(value, name: str) -> Function:
+def _field_function(value: Any, name: str) -> Function:
     """A Function of (x, y) from a Function or an expression of symbols named x and y."""
     if isinstance(value, Function):
         return value

@@ -143,11 +143,27 @@ class ParticleSimulation:
         ``(p, t) -> (n, 2)`` forces (evaluated with NumPy before each step: the slow path).
     """
 
+    # Attributes set in __init__ (declared for the type checker: reset() reads them).
+    n: int
+    seed: Any
+    integrator: str
+    collision: str
+    prevent_tunnelling: bool
+    dtype: Any
+    cr: float
+    cf: float
+    block: int | None
+    force_generators: list
+    t: float
+    _ext: Any
+    _flags: Any
+    _wall: Any
+
     def __init__(self, f: Any, n: int = 100, timestep: float = 1 / 30, *, seed: Any = None,
                  integrator: str = "symplectic", collision: str = "approaching",
                  prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
                  cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
-                 wall_speed: float | None = None, rest_speed: float = 0.0):
+                 wall_speed: float | None = None, rest_speed: float = 0.0) -> None:
         rest = _real(rest_speed, "rest_speed")
         if not (math.isfinite(rest) and rest >= 0.0):
             raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
@@ -178,10 +194,9 @@ class ParticleSimulation:
             lip = _real(lipschitz, "lipschitz")
             if not (math.isfinite(lip) and lip > 0.0):
                 raise ValueError(f"lipschitz must be finite and > 0, got lipschitz={lipschitz!r}")
-        if block is not None:
-            if isinstance(block, (bool, np.bool_)) or not isinstance(block, numbers.Integral) \
-                    or block <= 0:
-                raise ValueError(f"block must be a positive integer or None, got block={block!r}")
+        if block is not None and (isinstance(block, (bool, np.bool_))
+                                  or not isinstance(block, numbers.Integral) or block <= 0):
+            raise ValueError(f"block must be a positive integer or None, got block={block!r}")
         self.n = int(n)
         self.dt = dt
         self._lipschitz_arg = lipschitz
@@ -337,7 +352,7 @@ class ParticleSimulation:
             _prune.plan_header(plan, self._hdr)
             self._hdr_plan = plan
 
-    def _python_forces(self, gens) -> np.ndarray:
+    def _python_forces(self, gens: Any) -> np.ndarray:
         if self._ext is None or self._ext.shape != (self.n, 2):
             self._ext = np.empty((self.n, 2))
         return python_forces(gens, self.p, self.t, self._ext)
@@ -498,11 +513,13 @@ class ParticleSimulation:
         """Query data of a parametric world: (t, wall speed bound, table geometry and the
         per-region table, *parameters); see ``_PARAMS_AT``."""
         prm = self.params.as_tuple()
-        wall, table = 0.0, (0.0, 0.0, 1.0, _NO_TABLE)
+        wall = 0.0
+        table = (0.0, 0.0, 1.0, _NO_TABLE)
         if self._moving and steps:
-            wall = self._wall_speed_arg
-            if wall is None:
+            if self._wall_speed_arg is None:
                 wall, table = self._wall_speed_table(steps, prm)
+            else:
+                wall = self._wall_speed_arg
         self._wall_table = table  # kept alive: the kernel borrows the array
         return (float(self.t), float(wall)) + table + prm
 

@@ -12,12 +12,12 @@ from fastsdf.expr.validate import real
 __all__ = ["Particles"]
 
 
-def _real(value, name: str) -> float:
+def _real(value: Any, name: str) -> float:
     """A real number, possibly non-finite: callers check the range with their own message."""
     return real(value, name, finite=False)
 
 
-def _unit_interval(value, name: str) -> float:
+def _unit_interval(value: Any, name: str) -> float:
     v = _real(value, name)
     if not 0.0 <= v <= 1.0:
         raise ValueError(f"{name} must be in [0, 1], got {name}={value!r}")
@@ -101,7 +101,7 @@ class Particles:
     def __contains__(self, name: object) -> bool:
         return name in self._arrays
 
-    def keys(self) -> list:
+    def keys(self) -> tuple[str, ...]:
         """The field names."""
         return self.FIELDS
 

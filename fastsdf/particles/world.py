@@ -14,18 +14,18 @@ from typing import Any
 import numba
 import numpy as np
 
-from fastsdf.version import __version__
-from fastsdf.fields import grid as _grid
 from fastsdf.backends import prune as _prune
 from fastsdf.backends.kernel.cache import load_module
 from fastsdf.expr.validate import real
+from fastsdf.fields import grid as _grid
 from fastsdf.function import Function
 from fastsdf.particles import kernels as _kernels
+from fastsdf.version import __version__
 
 __all__ = ["SimulationParams", "WALL_TABLE_CELLS", "wall_speed_table"]
 
 
-def _is_grid(f) -> bool:
+def _is_grid(f: Any) -> bool:
     return all(hasattr(f, a) for a in ("sampler", "sampler_data", "exact", "mode"))
 
 
@@ -52,19 +52,19 @@ def _module_hash(mod_name: str) -> str:
     return hashlib.sha256(src.encode()).hexdigest()[:16]
 
 
-def _exactness(f) -> str:
+def _exactness(f: Any) -> str:
     """``'exact'``, ``'bound'`` or ``'none'`` (see :attr:`fastsdf.SDF.exactness`) of the world
     (of a grid's exact SDF); ``'unknown'`` for a bare :class:`fastsdf.function.Function`."""
     g = f.exact if _is_grid(f) and f.exact is not None else f
     return getattr(g, "exactness", "unknown")
 
 
-def _is_distance_bound(f) -> bool:
+def _is_distance_bound(f: Any) -> bool:
     """Whether the world is known to be 1-Lipschitz (so that a grid of it is sqrt(2))."""
     return _exactness(f) in ("exact", "bound")
 
 
-def _grid_margin(f) -> float:
+def _grid_margin(f: Any) -> float:
     """How far a grid in mode 'exact' may jump where it hands over to the exact SDF at its
     bounds: one node spacing bounds the bilinear error of an exact SDF (0 for SDFs and for
     grids in mode 'nearest', which are continuous)."""
@@ -93,9 +93,10 @@ def _step_source() -> tuple:
     return _kernels.HEAD, _kernels.TAIL
 
 
-def _exact_address(exact) -> tuple:
+def _exact_address(exact: Any) -> tuple:
     """A C function ``void(double x, double y, double *out, double *h)`` evaluating the exact
-    SDF (``h``: a plan header of :mod:`fastsdf.backends.prune`; a scene with loops over tables evaluates
+    SDF (``h``: a plan header of :mod:`fastsdf.backends.prune`; a scene with loops over tables
+    evaluates
     only the rows of the point's tile): the grid kernel's fallback outside the grid and the
     pruned particle step, bound at run time through its address so that the kernel does not
     depend on the scene. Returns ``(address, keepalive)``."""
@@ -109,7 +110,7 @@ def _exact_address(exact) -> tuple:
     return entry
 
 
-def _prunes(f) -> bool:
+def _prunes(f: Any) -> bool:
     """Whether the particle step on the SDF ``f`` evaluates per-tile row lists (a scene with
     at least ``PRUNE_MIN_OPERANDS`` operands in loops over tables, without parameters, and not
     only exponential blends with ``f.prune_tol`` unset), decided when the step is built."""
@@ -132,7 +133,7 @@ def _plan_import() -> str:
 _PLAN_IMPORT = _plan_import()
 
 
-def _force_parts(forces) -> tuple:
+def _force_parts(forces: Any) -> tuple:
     """Scene-block lines binding the fused user forces and the ``_force`` function; names of
     forces that must be bound after import (not importable: no disk cache)."""
     lines, deps, late = [], [], []
@@ -403,11 +404,11 @@ def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, s
         top = np.maximum(top, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
     node = top[:nodes]
     at_particles = top[nodes:]
-    top = 1.5 * float(at_particles[np.isfinite(at_particles)].max(initial=0.0))
+    top_speed = 1.5 * float(at_particles[np.isfinite(at_particles)].max(initial=0.0))
     node = node.reshape(n + 1, n + 1)
     cell = 1.5 * np.maximum(np.maximum(node[:-1, :-1], node[1:, :-1]),
                             np.maximum(node[:-1, 1:], node[1:, 1:]))
-    wall = max(top, float(cell[np.isfinite(cell)].max(initial=0.0)))
+    wall = max(top_speed, float(cell[np.isfinite(cell)].max(initial=0.0)))
     cell = np.where(np.isfinite(cell), cell, wall)  # unknown there (a non-finite dd/dt)
     # walls at the sample times move up to W (t_gap) between them and W dt in a step
     gap = max(float(np.max(np.diff(times))) if len(times) > 1 else 0.0, dt)

@@ -13,7 +13,8 @@ small analytic world of :mod:`.scene`, the *scene block* they import. A simulati
 call them from there: :mod:`fastsdf.particles.world` writes a scene block of its own (the
 world's query and the fused forces), :func:`kernel_source` puts it in front of the kernels'
 bodies (each part's text below its ``KERNEL BODY`` marker), and the result is written to a
-content-hashed file in the kernel cache (:mod:`fastsdf.backends.kernel.cache`) and imported. Because the
+content-hashed file in the kernel cache (:mod:`fastsdf.backends.kernel.cache`) and imported.
+Because the
 kernels' whole source is in the generated file (and the import lines of the shared modules
 carry their files' hashes), editing any part changes the hash, so a stale compiled kernel is
 never loaded (numba's ``cache=True`` does not notice changes in other modules a cached function

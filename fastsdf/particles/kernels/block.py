@@ -136,7 +136,8 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
     """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
     whose budget covers the step moves here and needs no query), the check for a grid
     fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
-    operations of ``fastsdf.fields.grid``'s sampler). ``b``: the bounds of :func:`_fallback_missing`;
+    operations of ``fastsdf.fields.grid``'s sampler). ``b``: the bounds of
+    :func:`_fallback_missing`;
     ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
     Returns how many particles need a query, how many were frozen, and how many of those
     that query end outside the grid. ``budgets``, ``skipping``: constants in the compiled

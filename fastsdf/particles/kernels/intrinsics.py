@@ -5,6 +5,8 @@ casts, and the dense grid's vector cell gathers used by the block step.
 Generated kernel modules import these by name (the import line carries this file's hash, so an
 edit here invalidates every cached kernel)."""
 
+from typing import Any
+
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -31,7 +33,7 @@ def _borrowed_codegen(context, builder, ty, val):
     return val
 
 
-def _borrowable(ty) -> bool:
+def _borrowable(ty: Any) -> bool:
     if isinstance(ty, types.BaseTuple):
         return all(_borrowable(t) for t in ty.types)
     return isinstance(ty, (types.Array, types.Number, types.Boolean))
