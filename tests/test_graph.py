@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from conftest import central_gradient
 
+import fastsdf.expr.graph as G
 import fastsdf.graph as cg
 from fastsdf.expr.graph import evaluate_numpy
 
@@ -226,12 +227,12 @@ def test_interned_nodes_are_unique_and_forgotten_when_unused():
     p = cg.Param("pp_intern", 0.5)
     assert (e + p).prms == {("pp_intern", 0.5)} and (e + p).syms == {"x", "y"}
     gc.collect()
-    before = len(cg._INTERN)
+    before = len(G._INTERN)
     nodes = [x * (1.0 + i / 7) - i for i in range(500)]
-    assert len(cg._INTERN) >= before + 1000
+    assert len(G._INTERN) >= before + 1000
     del nodes
     gc.collect()
-    assert len(cg._INTERN) <= before  # the table holds its nodes weakly
+    assert len(G._INTERN) <= before  # the table holds its nodes weakly
     # a node rebuilt after its twin was collected is interned again
     a = x * 123.0
     assert x * 123.0 is a
@@ -249,6 +250,6 @@ def test_printing_with_a_limit_is_the_prefix_of_the_full_text(limit):
         cg.sym_smin(cg.sym_select(x, y ** 3, cg.sym_length(x, y)), -x, 4.0),
     ]
     for e in exprs:
-        full = cg.expr_to_str(e)
+        full = G.expr_to_str(e)
         want = full if len(full) <= limit else full[:limit - 3] + "..."
-        assert cg.expr_to_str(e, limit=limit) == want
+        assert G.expr_to_str(e, limit=limit) == want

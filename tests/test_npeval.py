@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from test_tape import _points, assert_agree
 
 import fastsdf as sdf
+import fastsdf.graph as cg
 from fastsdf.backends.npeval import GROUP_MIN, _Program, compile_numpy
 from fastsdf.expr.graph import Symbol, sym_length
 
@@ -106,7 +107,7 @@ def test_pruning_keeps_few_operands():
 
 def test_parameters_and_symbol_names():
     """Runtime parameters are read per call; any two symbol names (in the given order)."""
-    a = sdf.graph.Param("angle", 0.3)
+    a = cg.Param("angle", 0.3)
     with sdf.transform(angle=a, offset=[0.1, 0.2]):
         bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
     f = bar | sdf.Circle([0.5, 0.4], 0.3).translate([0.0, 0.5 * sdf.t])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import fastsdf as sdf
+import fastsdf.graph as cg
 from fastsdf.backends.kernel import cache as _cache
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy, sym_cos, sym_sin
 from fastsdf.function import Function
@@ -66,7 +67,7 @@ def test_values_equal_the_constant_baked_scene():
     f = Function(_moving_scene(Param("px", 0.3), Param("w", 2.0), sdf.t), [X, Y])
     x, y = PX[:50], PY[:50]     # baked scenes evaluated serially (compile only point_vg)
     for px, w, t in [(-0.7, 1.3, 0.4), (1.1, -3.0, 2.5)]:
-        baked = Function(_moving_scene(px, w, sdf.graph.Constant(t)), [X, Y])
+        baked = Function(_moving_scene(px, w, cg.Constant(t)), [X, Y])
         assert not baked.params
         d0, g0 = baked(x, y, compute_gradient=True)
         d1, g1 = f(PX, PY, compute_gradient=True, px=px, w=w, t=t)            # parallel

@@ -10,13 +10,13 @@ import math
 
 import numpy as np
 import pytest
-from fastsdf.shapes.scenes import seed_world
 from numba import njit
 
 import fastsdf as sdf
 import fastsdf.particles as phys
 from fastsdf import GridSDF
 from fastsdf.particles import kernels as _step
+from fastsdf.shapes.scenes import seed_world
 
 
 def world(planes=(), discs=()):

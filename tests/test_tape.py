@@ -18,6 +18,7 @@ from test_codegen import (
 )
 
 import fastsdf as sdf
+import fastsdf.graph as cg
 from fastsdf.backends.vm import BLOCK, compile_tape
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy
 from fastsdf.shapes.scenes import box_world, seed_world
@@ -147,8 +148,8 @@ def test_elementary_operations_against_numpy():
     the NumPy reference of the op table."""
     e = (sdf.sym_exp(-X * X) * sdf.sym_sin(3 * Y) + sdf.sym_log(1.5 + sdf.sym_cos(X * Y))
          + (X * X + 2.0) ** (0.5 + 0.1 * Y) / (3.0 + sdf.sym_abs(Y)) + X ** 3
-         + 1.0 / (2.0 + X * X) + sdf.graph.sym_floor(X) * 0.1
-         + sdf.graph.sym_select(X - Y, X * Y, sdf.sym_sqrt(X * X + 1.0)))
+         + 1.0 / (2.0 + X * X) + cg.sym_floor(X) * 0.1
+         + cg.sym_select(X - Y, X * Y, sdf.sym_sqrt(X * X + 1.0)))
     f = sdf.Function(e, [X, Y])
     p = _points(900, 1)
     d, g = assert_agree(f, p)

@@ -78,7 +78,12 @@ queries), :mod:`.simulation`, :mod:`.reference` (the notebook's step in NumPy) a
 from fastsdf.particles.forces import Drag, FieldForce, Gravity
 from fastsdf.particles.kernels import TRACE_FRACTION
 from fastsdf.particles.reference import reference_step
-from fastsdf.particles.simulation import DEFAULT_BLOCK, PARALLEL_MIN_PARTICLES, ParticleSimulation, create_animation
+from fastsdf.particles.simulation import (
+           DEFAULT_BLOCK,
+           PARALLEL_MIN_PARTICLES,
+           ParticleSimulation,
+           create_animation,
+)
 from fastsdf.particles.state import Particles
 from fastsdf.particles.world import SimulationParams, _step_source
 

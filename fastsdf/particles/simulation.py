@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import time
 import warnings
 from typing import Any
@@ -17,10 +18,22 @@ from numpy.typing import ArrayLike
 from fastsdf.backends import prune as _prune
 from fastsdf.function import Function
 from fastsdf.particles import kernels as _kernels
+from fastsdf.particles.checkpoint import load_simulation, save_simulation
 from fastsdf.particles.forces import Gravity, fuse, python_forces
 from fastsdf.particles.kernels import NO_EXT, Budget, Physics, State
 from fastsdf.particles.state import Particles, _invalid_state_error, _real, _unit_interval
-from fastsdf.particles.world import _NO_PARAMS, _NO_TABLE, SimulationParams, _exact_address, _exactness, _grid_margin, _is_distance_bound, _is_grid, _kernel_module, wall_speed_table
+from fastsdf.particles.world import (
+    _NO_PARAMS,
+    _NO_TABLE,
+    SimulationParams,
+    _exact_address,
+    _exactness,
+    _grid_margin,
+    _is_distance_bound,
+    _is_grid,
+    _kernel_module,
+    wall_speed_table,
+)
 
 __all__ = ["ParticleSimulation", "create_animation", "PARALLEL_MIN_PARTICLES", "DEFAULT_BLOCK"]
 
@@ -175,6 +188,8 @@ class ParticleSimulation:
                 raise ValueError(f"wall_speed must be finite and >= 0, got "
                                  f"wall_speed={wall_speed!r}")
         self._wall_speed_arg = wall_speed
+        if isinstance(n, float) and math.isfinite(n) and n == int(n):
+            n = int(n)  # n=1e5, as the command line accepts it
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
             raise TypeError(f"n must be an integer, got n={n!r}")
         if n <= 0:
@@ -357,8 +372,12 @@ class ParticleSimulation:
             self._ext = np.empty((self.n, 2))
         return python_forces(gens, self.p, self.t, self._ext)
 
-    def run(self, steps: int = 1) -> None:
+    def run(self, steps: int = 1, record: Any = None) -> None:
         """Advance ``steps`` steps (``steps * timestep`` seconds) in compiled code.
+
+        ``record``: a recorder such as :class:`fastsdf.io.TrajectoryRecorder`, which then runs
+        the steps in blocks and writes a frame every ``record.every`` steps (its ``run(sim,
+        steps)``).
 
         With only fused forces (:class:`Gravity`, :class:`Drag`, numba ``@njit`` forces) this
         is one compiled call for all steps; with Python force generators, one generator
@@ -376,6 +395,12 @@ class ParticleSimulation:
             raise TypeError(f"steps must be an integer, got steps={steps!r}")
         if steps < 0:
             raise ValueError(f"steps must be >= 0, got steps={steps!r}")
+        if record is not None:
+            if not callable(getattr(record, "run", None)):
+                raise TypeError(f"record must be a recorder with a run(sim, steps) method, such as "
+                                f"fastsdf.io.TrajectoryRecorder, got record={record!r}")
+            record.run(self, int(steps))
+            return
         if steps == 0:
             return
         self._check_state_shape()
@@ -392,6 +417,19 @@ class ParticleSimulation:
                 self.t += self.dt
         if bad:
             raise self._frozen_error(bad, int(steps))
+
+    def save(self, path: str | os.PathLike) -> str:
+        """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
+        bit; see :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path."""
+        return save_simulation(self, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> ParticleSimulation:
+        """The simulation saved by :meth:`save` at ``path``."""
+        sim = load_simulation(path)
+        if not isinstance(sim, cls):
+            raise TypeError(f"{path!r} holds a {type(sim).__name__}, not a {cls.__name__}")
+        return sim
 
     @property
     def dt(self) -> float:
@@ -580,6 +618,10 @@ class ParticleSimulation:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
             self.sdf = state["_sdf"]
+        # Assigning the world resets its parameters to their defaults: set the saved values.
+        saved = state.get("params")
+        if saved:
+            self.params.update(dict(saved))
 
     def __repr__(self) -> str:
         return (f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "

@@ -214,6 +214,18 @@ class SimulationParams(dict):
         """The values in the order the compiled step takes them (sorted names)."""
         return tuple(dict.__getitem__(self, n) for n in self._names)
 
+    def __reduce__(self) -> tuple:
+        # pickle restores a dict subclass's items through __setitem__ before its attributes,
+        # which the name check would refuse: rebuild from the values and names instead.
+        return _rebuild_params, (dict(self), self._names)
+
+
+def _rebuild_params(values: dict, names: tuple) -> SimulationParams:
+    params = SimulationParams.__new__(SimulationParams)
+    dict.update(params, values)
+    params._names = names
+    return params
+
 
 def _kernel_module(f, forces=()):
     """The generated kernel module for the world ``f`` (an SDF or a grid, see the sampler

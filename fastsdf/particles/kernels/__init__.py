@@ -151,10 +151,30 @@ from types import ModuleType
 from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
 from fastsdf.particles.kernels.block import LANES, simd_par, simd_ser
 from fastsdf.particles.kernels.config import NO_EXT, Budget, Physics, State
-from fastsdf.particles.kernels.constants import ASLEEP, CONTACT_TOL, FLAG_COEFF, FLAG_INPUT, FLAG_NONFINITE, FLAG_RESUME, FORCE_BATCH, MAX_BOUNCES, MAX_MARCH, MIN_STEP, TRACE_FRACTION
+from fastsdf.particles.kernels.constants import (
+    ASLEEP,
+    CONTACT_TOL,
+    FLAG_COEFF,
+    FLAG_INPUT,
+    FLAG_NONFINITE,
+    FLAG_RESUME,
+    FORCE_BATCH,
+    MAX_BOUNCES,
+    MAX_MARCH,
+    MIN_STEP,
+    TRACE_FRACTION,
+)
 from fastsdf.particles.kernels.contact import _march, _respond, _rests, _sweep, march, sweep
 from fastsdf.particles.kernels.intrinsics import borrow_all, call_vg
-from fastsdf.particles.kernels.step import PLAIN_BATCH, force_many, plain_par, plain_ser, query_many, run_par, run_ser
+from fastsdf.particles.kernels.step import (
+    PLAIN_BATCH,
+    force_many,
+    plain_par,
+    plain_ser,
+    query_many,
+    run_par,
+    run_ser,
+)
 
 __all__ = ["kernel_source", "PARTS", "State", "Physics", "Budget", "NO_EXT", "LANES",
            "PLAIN_BATCH", "TRACE_FRACTION", "MIN_STEP",

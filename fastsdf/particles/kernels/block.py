@@ -7,9 +7,24 @@ import numpy as np
 from numba import njit, prange
 
 from fastsdf.particles.kernels.config import Physics
-from fastsdf.particles.kernels.constants import CONTACT_TOL, FLAG_COEFF, FLAG_INPUT, FLAG_NONFINITE, FLAG_RESUME, MAX_BOUNCES, TRACE_FRACTION
+from fastsdf.particles.kernels.constants import (
+    CONTACT_TOL,
+    FLAG_COEFF,
+    FLAG_INPUT,
+    FLAG_NONFINITE,
+    FLAG_RESUME,
+    MAX_BOUNCES,
+    TRACE_FRACTION,
+)
 from fastsdf.particles.kernels.contact import _sweep
-from fastsdf.particles.kernels.intrinsics import _cell_vg, _f64_as_i64, _gather4, _i64_as_f64, _sel, borrow_all
+from fastsdf.particles.kernels.intrinsics import (
+    _cell_vg,
+    _f64_as_i64,
+    _gather4,
+    _i64_as_f64,
+    _sel,
+    borrow_all,
+)
 from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
 from fastsdf.particles.kernels.step import _coeffs, _finite4, _valid_input
 

@@ -5,7 +5,13 @@ import math
 
 from numba import njit
 
-from fastsdf.particles.kernels.constants import CONTACT_TOL, MAX_BOUNCES, MAX_MARCH, MIN_STEP, TRACE_FRACTION
+from fastsdf.particles.kernels.constants import (
+    CONTACT_TOL,
+    MAX_BOUNCES,
+    MAX_MARCH,
+    MIN_STEP,
+    TRACE_FRACTION,
+)
 from fastsdf.particles.kernels.scene import _CACHE, MOVING, _query_t
 
 __all__ = ["march", "sweep"]

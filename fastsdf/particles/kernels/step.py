@@ -7,10 +7,29 @@ import numpy as np
 from numba import njit, prange
 
 from fastsdf.particles.kernels.config import Physics, State
-from fastsdf.particles.kernels.constants import ASLEEP, CONTACT_TOL, FLAG_COEFF, FLAG_INPUT, FLAG_NONFINITE, FLAG_RESUME, FORCE_BATCH, TRACE_FRACTION
+from fastsdf.particles.kernels.constants import (
+    ASLEEP,
+    CONTACT_TOL,
+    FLAG_COEFF,
+    FLAG_INPUT,
+    FLAG_NONFINITE,
+    FLAG_RESUME,
+    FORCE_BATCH,
+    TRACE_FRACTION,
+)
 from fastsdf.particles.kernels.contact import _respond, _rests, sweep
 from fastsdf.particles.kernels.intrinsics import borrow_all
-from fastsdf.particles.kernels.scene import _CACHE, FORCE_AHEAD, MOVING, USE_FORCE, _fallback_missing, _force, _query, _query_t, _wall_speed_at
+from fastsdf.particles.kernels.scene import (
+    _CACHE,
+    FORCE_AHEAD,
+    MOVING,
+    USE_FORCE,
+    _fallback_missing,
+    _force,
+    _query,
+    _query_t,
+    _wall_speed_at,
+)
 
 __all__ = ["PLAIN_BATCH", "run_par", "run_ser", "plain_par", "plain_ser", "query_many",
            "force_many"]

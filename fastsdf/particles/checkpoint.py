@@ -23,9 +23,7 @@ are; a lambda or a function defined inside another function is not, and
 
 Pickling: a :class:`fastsdf.particles.ParticleSimulation` also pickles as it is
 (``pickle.dumps(sim)``, ``copy.deepcopy(sim)``, sending it to another process); the unpickled
-copy continues bit for bit too. The exception is a world with runtime parameters
-(:func:`fastsdf.Param`): its ``sim.params`` table does not unpickle (``KeyError``), while
-:func:`save_simulation` stores the values apart and restores them. Loading a file, like
+copy continues bit for bit too, parameters of the world included. Loading a file, like
 unpickling, runs code named in it: load only files you trust.
 """
 
@@ -145,7 +143,7 @@ def load_simulation(path: str | os.PathLike) -> Any:
                              f"this fastsdf reads up to {FORMAT_VERSION}: upgrade fastsdf")
         arrays = {name: np.array(data[name]) for name in _FIELDS}
         cls, state = pickle.load(io.BytesIO(bytes(data["simulation"])))
-    from fastsdf.particles import Particles
+    from fastsdf.particles.state import Particles
 
     p = Particles(len(arrays["r"]), arrays["x"].dtype)
     for name, arr in arrays.items():

@@ -156,3 +156,53 @@ def test_parameters_and_moving_walls_resume_bit_exactly(tmp_path):
     resumed.run(40)
     assert_same(resumed, straight)
     assert np.ptp(straight.p["x"][:, 0]) > 0 and straight.t > 1.0
+    # Pickling carries the parameter table too (its values and its name check).
+    copied = pickle.loads(pickle.dumps(first))
+    assert copied.params == {"u": 0.8, "x0": -1.5}
+    with pytest.raises(KeyError, match="unknown parameter"):
+        copied.params["v"] = 1.0
+    copied.run(40)
+    assert_same(copied, straight)
+
+
+def test_methods_save_and_load(tmp_path):
+    sim, straight = make(WORLD), make(WORLD)
+    sim.run(10)
+    straight.run(10)
+    straight.run(15)
+    path = sim.save(tmp_path / "sim.npz")
+    resumed = ParticleSimulation.load(path)
+    resumed.run(15)
+    assert_same(resumed, straight)
+
+
+def test_run_records_through_a_recorder():
+    class Frames:
+        """A recorder in the shape ParticleSimulation.run expects (run(sim, steps))."""
+
+        every = 4
+
+        def __init__(self):
+            self.clock = []
+
+        def run(self, sim, steps):
+            for _ in range(steps // self.every):
+                sim.run(self.every)
+                self.clock.append(sim.t)
+
+    sim, straight = make(WORLD), make(WORLD)
+    frames = Frames()
+    sim.run(12, record=frames)
+    straight.run(12)
+    for name in ("x", "v"):  # the same steps, grouped differently: the same bits
+        np.testing.assert_array_equal(sim.p[name], straight.p[name])
+    assert sim.t == pytest.approx(straight.t, rel=1e-15)
+    np.testing.assert_allclose(frames.clock, np.arange(1, 4) * 4 / 30)
+    with pytest.raises(TypeError, match="record must be a recorder"):
+        sim.run(2, record="frames.h5")
+
+
+def test_integral_float_particle_count_is_accepted():
+    assert ParticleSimulation(WORLD, n=1e3).n == 1000
+    with pytest.raises(TypeError, match="n must be an integer"):
+        ParticleSimulation(WORLD, n=1.5)
