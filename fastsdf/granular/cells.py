@@ -1,0 +1,224 @@
+"""Neighbour search on the CPU without atomics: a cell list built by a parallel counting sort
+(per-thread counts and a prefix sum), the grains reordered by cell (so neighbours in space are
+neighbours in memory), and a Verlet list with a skin (compressed rows: each grain lists all its
+neighbours, so each can gather its own forces).
+
+A pair is listed when its centres are closer than ``R_i + R_j + skin``; the list stays valid
+(every pair in contact is listed) while no grain has moved farther than ``skin / 2`` since it
+was built. The cells are at least ``2 max(R) + skin`` wide, so listed pairs lie in adjacent cells.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "CellGrid",
+    "brute_force_pairs",
+    "build_verlet",
+    "cell_keys",
+    "counting_sort",
+    "list_pairs",
+    "make_grid",
+    "permute",
+]
+
+
+class CellGrid(NamedTuple):
+    """Square-ish cells over a rectangle: cell ``(cx, cy)`` covers ``[x0 + cx w, x0 + (cx+1) w)
+    x [y0 + cy h, ...)`` with ``w = 1 / inv_w``, ``h = 1 / inv_h``; key ``cy * ncx + cx``.
+    ``period > 0``: x is periodic with that period (``ncx * w == period``, ``ncx >= 3``)."""
+
+    x0: float
+    y0: float
+    inv_w: float
+    inv_h: float
+    ncx: int
+    ncy: int
+    period: float
+
+
+def make_grid(x: np.ndarray, y: np.ndarray, cutoff: float, period_x0: float = 0.0,
+              period: float = 0.0, max_cells: int | None = None) -> CellGrid:
+    """The cell grid over the grains' bounding box with cells at least ``cutoff`` wide (wider
+    when the box would need more than ``max_cells`` cells; default ``4 n + 64``)."""
+    n = x.shape[0]
+    max_cells = 4 * n + 64 if max_cells is None else max_cells
+    ylo, yhi = float(y.min()), float(y.max())
+    if period > 0:
+        xlo, xhi = period_x0, period_x0 + period
+    else:
+        xlo, xhi = float(x.min()), float(x.max())
+    if not all(math.isfinite(v) for v in (xlo, xhi, ylo, yhi)):
+        raise FloatingPointError("grain positions are not finite (the simulation blew up: "
+                                 "is the substep short enough for the stiffness?)")
+    cell = cutoff
+    while True:
+        if period > 0:
+            ncx = max(int(period // cell), 1)
+            w = period / ncx
+        else:
+            ncx = int((xhi - xlo) // cell) + 1
+            w = cell
+        ncy = int((yhi - ylo) // cell) + 1
+        if ncx * ncy <= max_cells or (period > 0 and ncx < 3):
+            break
+        cell *= math.sqrt(ncx * ncy / max_cells) * 1.01
+    if period > 0 and ncx < 3:
+        raise ValueError(f"the period must be at least 3 cells ({3 * cutoff}) wide for the "
+                         f"neighbour search, got period={period!r}")
+    return CellGrid(xlo, ylo, 1.0 / w, 1.0 / cell, ncx, ncy, float(period))
+
+
+@njit(cache=True, parallel=True)
+def cell_keys(x, y, grid, keys):
+    """Each grain's cell key into ``keys`` (int32); with x periodic, x is first wrapped into
+    the period (in place)."""
+    for i in prange(x.shape[0]):
+        xi = x[i]
+        if grid.period > 0.0:
+            xi = grid.x0 + (xi - grid.x0) % grid.period
+            x[i] = xi
+        cx = min(max(int((xi - grid.x0) * grid.inv_w), 0), grid.ncx - 1)
+        cy = min(max(int((y[i] - grid.y0) * grid.inv_h), 0), grid.ncy - 1)
+        keys[i] = cy * grid.ncx + cx
+
+
+@njit(cache=True, parallel=True)
+def counting_sort(keys, ncells, counts, perm, cell_start):
+    """Stable sort of the grains by cell key, in parallel without atomics: chunk ``t`` of the
+    grains (``counts.shape[0]`` chunks) counts its keys into its own row ``counts[t]``; a
+    prefix sum over (cell, chunk) turns the counts into each chunk's write offsets; each chunk
+    then scatters its grains. ``perm[p]`` is the grain at sorted position ``p``; cell ``c``
+    holds positions ``cell_start[c]:cell_start[c + 1]``."""
+    n = keys.shape[0]
+    chunks = counts.shape[0]
+    for t in prange(chunks):
+        row = counts[t]
+        for c in range(ncells):
+            row[c] = 0
+        for i in range(t * n // chunks, (t + 1) * n // chunks):
+            row[keys[i]] += 1
+    run = 0
+    for c in range(ncells):
+        cell_start[c] = run
+        for t in range(chunks):
+            k = counts[t, c]
+            counts[t, c] = run
+            run += k
+    cell_start[ncells] = run
+    for t in prange(chunks):
+        row = counts[t]
+        for i in range(t * n // chunks, (t + 1) * n // chunks):
+            k = keys[i]
+            perm[row[k]] = i
+            row[k] += 1
+
+
+@njit(cache=True, parallel=True)
+def _gather(a, perm, scratch):
+    for p in prange(perm.shape[0]):
+        scratch[p] = a[perm[p]]
+    for p in prange(perm.shape[0]):
+        a[p] = scratch[p]
+
+
+def permute(arrays: tuple, perm: np.ndarray, scratch: np.ndarray) -> None:
+    """Reorder every array in place, ``a[:] = a[perm]``, through one scratch array of
+    ``perm``'s length and each array's dtype kind (float64 scratch serves int64 arrays through
+    a view)."""
+    for a in arrays:
+        _gather(a, perm, scratch.view(a.dtype) if a.dtype.itemsize == 8 else scratch)
+
+
+@njit(cache=True, inline="always")
+def _scan(i, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
+    """Neighbours of grain ``i`` (grains sorted by cell): their count, written from
+    ``out[at]`` when ``fill``."""
+    c = keys[i]
+    cx = c % grid.ncx
+    cy = c // grid.ncx
+    xi = x[i]
+    yi = y[i]
+    ri = radius[i] + skin
+    count = 0
+    for oy in range(-1, 2):
+        ky = cy + oy
+        if ky < 0 or ky >= grid.ncy:
+            continue
+        for ox in range(-1, 2):
+            kx = cx + ox
+            if grid.period > 0.0:
+                kx = (kx + grid.ncx) % grid.ncx
+            elif kx < 0 or kx >= grid.ncx:
+                continue
+            cell = ky * grid.ncx + kx
+            for j in range(cell_start[cell], cell_start[cell + 1]):
+                if j == i:
+                    continue
+                dx = xi - x[j]
+                if grid.period > 0.0:
+                    dx -= grid.period * np.rint(dx / grid.period)
+                dy = yi - y[j]
+                cut = ri + radius[j]
+                if dx * dx + dy * dy < cut * cut:
+                    if fill:
+                        out[at + count] = j
+                    count += 1
+    return count
+
+
+@njit(cache=True, parallel=True)
+def _count_neighbours(x, y, radius, keys, cell_start, grid, skin, counts):
+    for i in prange(x.shape[0]):
+        counts[i] = _scan(i, x, y, radius, keys, cell_start, grid, skin, counts, 0, False)
+
+
+@njit(cache=True, parallel=True)
+def _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, nbr_start, nbr):
+    for i in prange(x.shape[0]):
+        _scan(i, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i], True)
+
+
+def build_verlet(x: np.ndarray, y: np.ndarray, radius: np.ndarray, keys: np.ndarray,
+                 cell_start: np.ndarray, grid: CellGrid, skin: float,
+                 nbr_start: np.ndarray, nbr: np.ndarray | None) -> np.ndarray:
+    """The Verlet list of grains sorted by cell: ``nbr_start`` (int64, n + 1; filled here) and
+    the neighbour indices (int32), reusing ``nbr`` when it is large enough (grown by a quarter
+    otherwise). Two passes (count, prefix sum, fill), both parallel over grains."""
+    n = x.shape[0]
+    counts = nbr_start[1:]
+    _count_neighbours(x, y, radius, keys, cell_start, grid, skin, counts)
+    nbr_start[0] = 0
+    np.cumsum(counts, out=counts)
+    total = int(nbr_start[n])
+    if nbr is None or nbr.shape[0] < total:
+        nbr = np.empty(total + total // 4 + 16, np.int32)
+    _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, nbr_start, nbr)
+    return nbr
+
+
+def list_pairs(nbr_start: np.ndarray, nbr: np.ndarray) -> np.ndarray:
+    """The pairs ``(i, j)``, ``i < j``, of a Verlet list, as an (m, 2) array sorted by rows."""
+    n = nbr_start.shape[0] - 1
+    i = np.repeat(np.arange(n), np.diff(nbr_start))
+    j = nbr[:nbr_start[n]].astype(np.int64)
+    keep = i < j
+    pairs = np.stack([i[keep], j[keep]], axis=1)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))] if len(pairs) else pairs.reshape(0, 2)
+
+
+def brute_force_pairs(x: np.ndarray, y: np.ndarray, radius: np.ndarray, skin: float,
+                      period: float = 0.0) -> np.ndarray:
+    """Every pair ``(i, j)``, ``i < j``, closer than ``R_i + R_j + skin`` (all pairs tested;
+    a reference for small n), sorted by rows."""
+    dx = x[:, None] - x[None, :]
+    if period > 0:
+        dx -= period * np.rint(dx / period)
+    dy = y[:, None] - y[None, :]
+    cut = radius[:, None] + radius[None, :] + skin
+    close = np.triu(dx * dx + dy * dy < cut * cut, 1)
+    return np.argwhere(close)
