@@ -3,6 +3,11 @@
 neighbours in memory), and a Verlet list with a skin (compressed rows: each grain lists all its
 neighbours, so each can gather its own forces).
 
+A list entry is a uint32: the neighbour's index in the low 30 bits (:data:`INDEX_MASK`) and, in
+the top two, the periodic image it is seen through (0: none, 1: ``x_j + period``, 2: ``x_j -
+period``), fixed at the build (positions are wrapped into the period then, and the period is at
+least three cells wide), so the force pass needs no rounding per pair.
+
 A pair is listed when its centres are closer than ``R_i + R_j + skin``; the list stays valid
 (every pair in contact is listed) while no grain has moved farther than ``skin / 2`` since it
 was built. The cells are at least ``2 max(R) + skin`` wide, so listed pairs lie in adjacent cells.
@@ -15,7 +20,10 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-__all__ = [
+#: The bits of a list entry that hold the neighbour's index (at most 2**30 grains).
+INDEX_MASK = (1 << 30) - 1
+
+__all__ = ["INDEX_MASK", 
     "CellGrid",
     "brute_force_pairs",
     "build_verlet",
@@ -73,7 +81,7 @@ def make_grid(x: np.ndarray, y: np.ndarray, cutoff: float, period_x0: float = 0.
     return CellGrid(xlo, ylo, 1.0 / w, 1.0 / cell, ncx, ncy, float(period))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def cell_keys(x, y, grid, keys):
     """Each grain's cell key into ``keys`` (int32); with x periodic, x is first wrapped into
     the period (in place)."""
@@ -87,7 +95,7 @@ def cell_keys(x, y, grid, keys):
         keys[i] = cy * grid.ncx + cx
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def counting_sort(keys, ncells, counts, perm, cell_start):
     """Stable sort of the grains by cell key, in parallel without atomics: chunk ``t`` of the
     grains (``counts.shape[0]`` chunks) counts its keys into its own row ``counts[t]``; a
@@ -118,7 +126,7 @@ def counting_sort(keys, ncells, counts, perm, cell_start):
             row[k] += 1
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _gather(a, perm, scratch):
     for p in prange(perm.shape[0]):
         scratch[p] = a[perm[p]]
@@ -134,7 +142,7 @@ def permute(arrays: tuple, perm: np.ndarray, scratch: np.ndarray) -> None:
         _gather(a, perm, scratch.view(a.dtype) if a.dtype.itemsize == 8 else scratch)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _scan(i, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
     """Neighbours of grain ``i`` (grains sorted by cell): their count, written from
     ``out[at]`` when ``fill``."""
@@ -160,24 +168,27 @@ def _scan(i, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
                 if j == i:
                     continue
                 dx = xi - x[j]
+                image = 0
                 if grid.period > 0.0:
-                    dx -= grid.period * np.rint(dx / grid.period)
+                    s = np.rint(dx / grid.period)
+                    dx -= grid.period * s
+                    image = 1 if s > 0 else (2 if s < 0 else 0)  # 1: seen at x_j + period
                 dy = yi - y[j]
                 cut = ri + radius[j]
                 if dx * dx + dy * dy < cut * cut:
                     if fill:
-                        out[at + count] = j
+                        out[at + count] = np.uint32(j | (image << 30))
                     count += 1
     return count
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _count_neighbours(x, y, radius, keys, cell_start, grid, skin, counts):
     for i in prange(x.shape[0]):
         counts[i] = _scan(i, x, y, radius, keys, cell_start, grid, skin, counts, 0, False)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, nbr_start, nbr):
     for i in prange(x.shape[0]):
         _scan(i, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i], True)
@@ -187,7 +198,7 @@ def build_verlet(x: np.ndarray, y: np.ndarray, radius: np.ndarray, keys: np.ndar
                  cell_start: np.ndarray, grid: CellGrid, skin: float,
                  nbr_start: np.ndarray, nbr: np.ndarray | None) -> np.ndarray:
     """The Verlet list of grains sorted by cell: ``nbr_start`` (int64, n + 1; filled here) and
-    the neighbour indices (int32), reusing ``nbr`` when it is large enough (grown by a quarter
+    the entries (uint32, see the module docs), reusing ``nbr`` when it is large enough (grown by a quarter
     otherwise). Two passes (count, prefix sum, fill), both parallel over grains."""
     n = x.shape[0]
     counts = nbr_start[1:]
@@ -196,7 +207,7 @@ def build_verlet(x: np.ndarray, y: np.ndarray, radius: np.ndarray, keys: np.ndar
     np.cumsum(counts, out=counts)
     total = int(nbr_start[n])
     if nbr is None or nbr.shape[0] < total:
-        nbr = np.empty(total + total // 4 + 16, np.int32)
+        nbr = np.empty(total + total // 4 + 16, np.uint32)
     _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, nbr_start, nbr)
     return nbr
 
@@ -205,7 +216,7 @@ def list_pairs(nbr_start: np.ndarray, nbr: np.ndarray) -> np.ndarray:
     """The pairs ``(i, j)``, ``i < j``, of a Verlet list, as an (m, 2) array sorted by rows."""
     n = nbr_start.shape[0] - 1
     i = np.repeat(np.arange(n), np.diff(nbr_start))
-    j = nbr[:nbr_start[n]].astype(np.int64)
+    j = (nbr[:nbr_start[n]] & INDEX_MASK).astype(np.int64)
     keep = i < j
     pairs = np.stack([i[keep], j[keep]], axis=1)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))] if len(pairs) else pairs.reshape(0, 2)

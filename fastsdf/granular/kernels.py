@@ -69,13 +69,13 @@ class Bulk(NamedTuple):
     period: float
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def grain_mass(radius, density):
     """Mass of a disc."""
     return density * math.pi * radius * radius
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _zeta(restitution):
     if restitution <= 0.0:
         return 1.0
@@ -83,7 +83,7 @@ def _zeta(restitution):
     return -le / math.sqrt(math.pi * math.pi + le * le)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
     """Force on the first body and the tangential force, for overlap ``delta`` along the unit
     normal ``n`` (pointing to the first body), relative velocity ``vr`` and ``wr = R_i w_i +
@@ -115,7 +115,7 @@ def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
     return fn * nx + ftx, fn * ny + fty, ftx, fty
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def pair_forces(g, nbr_start, nbr, law, bulk, dt, dt_half):
     """The force pass of a substep: each grain ``i`` gathers gravity plus the contact forces of
     its listed neighbours (``nbr[nbr_start[i]:nbr_start[i + 1]]``) at the drifted positions and
@@ -150,11 +150,11 @@ def pair_forces(g, nbr_start, nbr, law, bulk, dt, dt_half):
         fy = mi * bulk.gravity_y
         tq = 0.0
         for k in range(nbr_start[i], nbr_start[i + 1]):
-            j = nbr[k]
-            dx = xi - x[j]
+            entry = nbr[k]
+            j = entry & 0x3FFFFFFF
+            image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
+            dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
             dy = yi - y[j]
-            if period > 0.0:
-                dx -= period * np.rint(dx / period)
             rsum = ri + rad[j]
             d2 = dx * dx + dy * dy
             if d2 >= rsum * rsum:
@@ -184,7 +184,7 @@ def pair_forces(g, nbr_start, nbr, law, bulk, dt, dt_half):
         gtq[i] = tq
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def wall_forces(g, idx, d, gx, gy, wall_vn, law, bulk, dt):
     """Add the world's contact forces to the grains ``idx`` (distinct indices) at distance
     ``d`` with gradient ``(gx, gy)`` and wall normal speed ``wall_vn`` (the velocity of the
@@ -225,7 +225,7 @@ def wall_forces(g, idx, d, gx, gy, wall_vn, law, bulk, dt):
     return sx, sy
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def kick_drift(g, dt_kick, dt, density, x_ref, y_ref, chunk_max):
     """The elementwise pass of a velocity-Verlet substep of length ``dt``, from force ``F``:
     complete the velocity, ``v += F/m dt_kick`` (``dt / 2`` after a force pass, 0 at the
@@ -279,7 +279,7 @@ def kick_drift(g, dt_kick, dt, density, x_ref, y_ref, chunk_max):
         chunk_max[c] = big
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def pair_energy(g, nbr_start, nbr, law, bulk):
     """Elastic energy ``k_n delta**2 / 2`` stored in the grain-grain contacts (each pair once)
     and the number of contacts (pairs in overlap)."""
@@ -288,12 +288,12 @@ def pair_energy(g, nbr_start, nbr, law, bulk):
     period = bulk.period
     for i in prange(g.x.shape[0]):
         for k in range(nbr_start[i], nbr_start[i + 1]):
-            j = nbr[k]
+            entry = nbr[k]
+            j = entry & 0x3FFFFFFF
             if j <= i:
                 continue
-            dx = g.x[i] - g.x[j]
-            if period > 0.0:
-                dx -= period * np.rint(dx / period)
+            image = entry >> 30
+            dx = g.x[i] - g.x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
             dy = g.y[i] - g.y[j]
             delta = g.radius[i] + g.radius[j] - math.sqrt(dx * dx + dy * dy)
             if delta > 0.0:
@@ -302,7 +302,7 @@ def pair_energy(g, nbr_start, nbr, law, bulk):
     return e, count
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def wall_energy(g, idx, d, law):
     """Elastic energy stored in the grain-wall contacts of the grains ``idx`` at distances
     ``d``, and their number."""
@@ -316,7 +316,7 @@ def wall_energy(g, idx, d, law):
     return e, count
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def kinetic_energy(g, bulk):
     """Translational and rotational kinetic energy and the gravitational potential energy
     ``-m g . x`` of all grains: ``(translational, rotational, potential)``."""
