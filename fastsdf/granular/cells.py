@@ -1,7 +1,10 @@
 """Neighbour search on the CPU without atomics: a cell list built by a parallel counting sort
 (per-thread counts and a prefix sum), the grains reordered by cell (so neighbours in space are
-neighbours in memory), and a Verlet list with a skin (compressed rows: each grain lists all its
-neighbours, so each can gather its own forces).
+neighbours in memory), and a Verlet list with a skin (compressed rows). The force pass runs over
+contiguous chunks of grains in parallel; a pair inside a chunk is listed once and its force
+applied to both grains by that chunk, a pair across chunks is listed at both grains, each side
+computing it (bit for bit the same, with opposite signs) for its own grain: no two chunks write
+the same grain, without atomics.
 
 A list entry is a uint32: the neighbour's index in the low 30 bits (:data:`INDEX_MASK`) and, in
 the top two, the periodic image it is seen through (0: none, 1: ``x_j + period``, 2: ``x_j -
@@ -143,9 +146,10 @@ def permute(arrays: tuple, perm: np.ndarray, scratch: np.ndarray) -> None:
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _scan(i, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
-    """Neighbours of grain ``i`` (grains sorted by cell): their count, written from
-    ``out[at]`` when ``fill``."""
+def _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
+    """Neighbours of grain ``i`` (grains sorted by cell) in its chunk ``lo:hi`` with a larger
+    index, and all those outside its chunk: their count, written from ``out[at]`` when
+    ``fill``."""
     c = keys[i]
     cx = c % grid.ncx
     cy = c // grid.ncx
@@ -165,7 +169,7 @@ def _scan(i, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
                 continue
             cell = ky * grid.ncx + kx
             for j in range(cell_start[cell], cell_start[cell + 1]):
-                if j == i:
+                if j <= i and j >= lo:  # (j < hi: cells ahead of i may hold later chunks)
                     continue
                 dx = xi - x[j]
                 image = 0
@@ -183,32 +187,47 @@ def _scan(i, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _count_neighbours(x, y, radius, keys, cell_start, grid, skin, counts):
-    for i in prange(x.shape[0]):
-        counts[i] = _scan(i, x, y, radius, keys, cell_start, grid, skin, counts, 0, False)
+def _count_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, counts):
+    n = x.shape[0]
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        for i in range(lo, hi):
+            counts[i] = _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, counts, 0,
+                              False)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, nbr_start, nbr):
-    for i in prange(x.shape[0]):
-        _scan(i, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i], True)
+def _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, nbr_start, nbr):
+    n = x.shape[0]
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        for i in range(lo, hi):
+            _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i],
+                  True)
 
 
 def build_verlet(x: np.ndarray, y: np.ndarray, radius: np.ndarray, keys: np.ndarray,
-                 cell_start: np.ndarray, grid: CellGrid, skin: float,
+                 cell_start: np.ndarray, grid: CellGrid, skin: float, chunks: int,
                  nbr_start: np.ndarray, nbr: np.ndarray | None) -> np.ndarray:
-    """The Verlet list of grains sorted by cell: ``nbr_start`` (int64, n + 1; filled here) and
-    the entries (uint32, see the module docs), reusing ``nbr`` when it is large enough (grown by a quarter
-    otherwise). Two passes (count, prefix sum, fill), both parallel over grains."""
+    """The Verlet list of grains sorted by cell, for a force pass split into ``chunks``
+    contiguous chunks of grains (chunk ``c`` holds ``c n // chunks`` to ``(c + 1) n // chunks
+    - 1``): a pair inside one chunk is listed once, at its lower index (the chunk's pass
+    applies the force to both grains: Newton's third law, half the work), a pair across two
+    chunks at both grains (each chunk writes only its own grains: no races). ``nbr_start``
+    (int64, n + 1; filled here) and the entries (uint32, see the module docs), reusing ``nbr``
+    when it is large enough (grown by a quarter otherwise). Two passes (count, prefix sum,
+    fill), both parallel over chunks."""
     n = x.shape[0]
     counts = nbr_start[1:]
-    _count_neighbours(x, y, radius, keys, cell_start, grid, skin, counts)
+    _count_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, counts)
     nbr_start[0] = 0
     np.cumsum(counts, out=counts)
     total = int(nbr_start[n])
     if nbr is None or nbr.shape[0] < total:
         nbr = np.empty(total + total // 4 + 16, np.uint32)
-    _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, nbr_start, nbr)
+    _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, nbr_start, nbr)
     return nbr
 
 

@@ -116,19 +116,22 @@ def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def pair_forces(g, nbr_start, nbr, law, bulk, dt, dt_half):
-    """The force pass of a substep: each grain ``i`` gathers gravity plus the contact forces of
-    its listed neighbours (``nbr[nbr_start[i]:nbr_start[i + 1]]``) at the drifted positions and
-    the predicted velocities ``px, py, pomega``, then, in its own slots only, half-kicks its
-    velocity with the previous force (``v += F_old dt_half / m``) and stores the new force and
-    torque. Neighbours read only positions and predicted velocities, which no one writes here,
-    so the parallel loop has no races. ``dt`` is the substep (for the dashpot's first and last
-    step of contact, see :func:`_contact`)."""
+def pair_forces(g, nbr_start, nbr, chunks, law, bulk, dt, dt_half):
+    """The force pass of a substep, over ``chunks`` contiguous chunks of grains in parallel
+    (the chunks the list was built for, see :func:`fastsdf.granular.cells.build_verlet`).
+    Each chunk first half-kicks its grains' velocities with their previous force (``v +=
+    F_old dt_half / m``) and resets their forces to gravity; then for each listed pair at the
+    drifted positions and predicted velocities ``px, py, pomega`` it adds the contact force to
+    its grain and, when the neighbour is in the same chunk, the opposite force to the
+    neighbour. A chunk writes only its own grains and reads only positions and predicted
+    velocities, which nothing writes here: no races. ``dt`` is the substep (for the dashpot's
+    first and last step of contact, see :func:`_contact`)."""
     kn = law.stiffness
     zeta = _zeta(law.restitution)
     mu = law.friction
     tdamp = law.tangential_damping
     period = bulk.period
+    density = bulk.density
     x = g.x
     y = g.y
     rad = g.radius
@@ -141,47 +144,64 @@ def pair_forces(g, nbr_start, nbr, law, bulk, dt, dt_half):
     vx = g.px
     vy = g.py
     w = g.pomega
-    for i in prange(x.shape[0]):
-        xi = x[i]
-        yi = y[i]
-        ri = rad[i]
-        mi = grain_mass(ri, bulk.density)
-        fx = mi * bulk.gravity_x
-        fy = mi * bulk.gravity_y
-        tq = 0.0
-        for k in range(nbr_start[i], nbr_start[i + 1]):
-            entry = nbr[k]
-            j = entry & 0x3FFFFFFF
-            image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
-            dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
-            dy = yi - y[j]
-            rsum = ri + rad[j]
-            d2 = dx * dx + dy * dy
-            if d2 >= rsum * rsum:
-                continue
-            if d2 > 0.0:
-                dist = math.sqrt(d2)
-                nx = dx / dist
-                ny = dy / dist
-            else:  # coincident centres: push apart along x, in opposite senses
-                dist = 0.0
-                nx = 1.0 if i < j else -1.0
-                ny = 0.0
-            mj = grain_mass(rad[j], bulk.density)
-            meff = mi * mj / (mi + mj)
-            cfx, cfy, ftx, fty = _contact(rsum - dist, nx, ny, vx[i] - vx[j], vy[i] - vy[j],
-                                          ri * w[i] + rad[j] * w[j], meff, kn, zeta, mu, tdamp,
-                                          dt)
-            fx += cfx
-            fy += cfy
-            tq -= ri * (nx * fty - ny * ftx)
-        a = dt_half / mi
-        gvx[i] += gfx[i] * a
-        gvy[i] += gfy[i] * a
-        gw[i] += gtq[i] * a * 2.0 / (ri * ri)
-        gfx[i] = fx
-        gfy[i] = fy
-        gtq[i] = tq
+    n = x.shape[0]
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        for i in range(lo, hi):
+            ri = rad[i]
+            mi = grain_mass(ri, density)
+            a = dt_half / mi
+            gvx[i] += gfx[i] * a
+            gvy[i] += gfy[i] * a
+            gw[i] += gtq[i] * a * 2.0 / (ri * ri)
+            gfx[i] = mi * bulk.gravity_x
+            gfy[i] = mi * bulk.gravity_y
+            gtq[i] = 0.0
+        for i in range(lo, hi):
+            xi = x[i]
+            yi = y[i]
+            ri = rad[i]
+            mi = grain_mass(ri, density)
+            fx = 0.0
+            fy = 0.0
+            tq = 0.0
+            for k in range(nbr_start[i], nbr_start[i + 1]):
+                entry = nbr[k]
+                j = entry & 0x3FFFFFFF
+                image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
+                dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
+                dy = yi - y[j]
+                rj = rad[j]
+                rsum = ri + rj
+                d2 = dx * dx + dy * dy
+                if d2 >= rsum * rsum:
+                    continue
+                if d2 > 0.0:
+                    dist = math.sqrt(d2)
+                    inv = 1.0 / dist
+                    nx = dx * inv
+                    ny = dy * inv
+                else:  # coincident centres: push apart along x, in opposite senses
+                    dist = 0.0
+                    nx = 1.0 if i < j else -1.0
+                    ny = 0.0
+                mj = grain_mass(rj, density)
+                meff = mi * mj / (mi + mj)
+                cfx, cfy, ftx, fty = _contact(rsum - dist, nx, ny, vx[i] - vx[j], vy[i] - vy[j],
+                                              ri * w[i] + rj * w[j], meff, kn, zeta, mu, tdamp,
+                                              dt)
+                cross = nx * fty - ny * ftx
+                fx += cfx
+                fy += cfy
+                tq -= ri * cross
+                if j >= lo and j < hi:  # same chunk: Newton's third law here
+                    gfx[j] -= cfx
+                    gfy[j] -= cfy
+                    gtq[j] -= rj * cross
+            gfx[i] += fx
+            gfy[i] += fy
+            gtq[i] += tq
 
 
 @njit(cache=True, parallel=True, error_model="numpy")

@@ -103,6 +103,10 @@ class GranularSimulation:
         ``skin / 2``. ``None``: a fifth of the mean diameter.
     periodic_x : (x0, x1) or None
         Make x periodic with period ``x1 - x0`` (grains leaving one side enter the other).
+    chunks : int or None
+        Contiguous chunks of grains the force pass runs over in parallel (tuning; the results
+        do not depend on it beyond rounding). ``None``: four per thread, at least 256 grains
+        each.
     """
 
     def __init__(self, positions: ArrayLike, radius: ArrayLike | float, *, world: Any = None,
@@ -111,7 +115,8 @@ class GranularSimulation:
                  gravity: ArrayLike = (0.0, -9.81), timestep: float = 1 / 30,
                  substep: float | None = None,
                  substeps_per_contact: float = DEFAULT_SUBSTEPS_PER_CONTACT,
-                 skin: float | None = None, periodic_x: ArrayLike | None = None) -> None:
+                 skin: float | None = None, periodic_x: ArrayLike | None = None,
+                 chunks: int | None = None) -> None:
         p = _points(positions, "positions")
         n = p.shape[0]
         if n < 1:
@@ -185,6 +190,13 @@ class GranularSimulation:
         self._nbr_start = np.zeros(n + 1, np.int64)
         self._nbr: np.ndarray | None = None
         self._chunk_max = np.zeros(max(4 * numba.get_num_threads(), 1))
+        # chunks of the force pass: a few per thread (balance), few enough that the pairs
+        # listed twice (across chunk boundaries) stay a small share
+        if chunks is None:
+            chunks = max(1, min(4 * numba.get_num_threads(), n // 256))
+        if isinstance(chunks, bool) or not isinstance(chunks, (int, np.integer)) or chunks < 1:
+            raise ValueError(f"chunks must be an int >= 1, got chunks={chunks!r}")
+        self._chunks = int(min(chunks, n))
         self._counts = np.empty((0, 0), np.int32)
         self._cell_start = np.empty(0, np.int64)
         self.grid: CellGrid | None = None
@@ -215,7 +227,7 @@ class GranularSimulation:
         counting_sort(self._keys, ncells, self._counts, self._perm, self._cell_start)
         permute((*g, self.ids, self._keys), self._perm, self._scratch)
         self._nbr = build_verlet(g.x, g.y, g.radius, self._keys, self._cell_start, grid,
-                                 self.skin, self._nbr_start, self._nbr)
+                                 self.skin, self._chunks, self._nbr_start, self._nbr)
         self.grid = grid
         np.copyto(self._x_ref, g.x)
         np.copyto(self._y_ref, g.y)
@@ -247,8 +259,8 @@ class GranularSimulation:
 
     def _forces(self, wall_sum: np.ndarray, dt: float) -> None:
         t0 = _time.perf_counter()
-        pair_forces(self.grains, self._nbr_start, self._nbr, self.contact, self.bulk, dt,
-                    0.5 * dt)
+        pair_forces(self.grains, self._nbr_start, self._nbr, self._chunks, self.contact,
+                    self.bulk, dt, 0.5 * dt)
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
