@@ -23,6 +23,11 @@ from numba import njit, prange
 # numba (0.68) drops stores made inside prange through ``g.x[i] = ...`` or through names bound
 # by unpacking (``x, y = g.x, g.y`` included): one plain assignment per array.
 
+# Floating-point liberties of the force pass: fused multiply-adds, reciprocals and signed
+# zeros only (no reassociation: the two sides of a pair across chunks must compute the same
+# bits; no "no-NaN" assumption: NaN must still propagate).
+_FAST = {"contract", "arcp", "nsz"}
+
 __all__ = [
     "Bulk",
     "Grains",
@@ -83,7 +88,7 @@ def _zeta(restitution):
     return -le / math.sqrt(math.pi * math.pi + le * le)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
 def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
     """Force on the first body and the tangential force, for overlap ``delta`` along the unit
     normal ``n`` (pointing to the first body), relative velocity ``vr`` and ``wr = R_i w_i +
@@ -115,7 +120,7 @@ def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
     return fn * nx + ftx, fn * ny + fty, ftx, fty
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
 def pair_forces(g, nbr_start, nbr, chunks, law, bulk, dt, dt_half):
     """The force pass of a substep, over ``chunks`` contiguous chunks of grains in parallel
     (the chunks the list was built for, see :func:`fastsdf.granular.cells.build_verlet`).
