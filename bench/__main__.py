@@ -38,6 +38,8 @@ SECTIONS = [
      "tape interpreter: cost per point against the kernels, first answer of a new scene"),
     ("simd", "bench.bench_simd",
      "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
+    ("granular", "bench.bench_granular",
+     "granular DEM: a dense bed in full contact against LAMMPS gran/hooke, same run"),
 ]
 
 HEADER = """# fastsdf benchmark results

@@ -223,3 +223,16 @@ def test_chunking_changes_only_rounding():
     assert a.energy()["contacts"] > 0
     np.testing.assert_allclose(a.positions, b.positions, rtol=0, atol=1e-9)
     np.testing.assert_allclose(a.angular_velocities, b.angular_velocities, rtol=0, atol=1e-6)
+
+
+def test_moving_floor_lifts_a_disc():
+    """A floor rising at u (a world built with time): a disc resting on it rides at u, with
+    the overlap of its weight, m g / k_n (the dashpot sees the velocity relative to the wall:
+    it would drag otherwise)."""
+    u, g, law = 0.3, 9.81, ContactLaw(stiffness=1e4)
+    sim = GranularSimulation([[0.0, 0.5]], 0.5, world=fs.Halfspace((0.0, 1.0), fs.t * u),
+                             contact=law, gravity=(0.0, -g), timestep=0.05)
+    sim.run(20)
+    assert sim.velocities[0] == pytest.approx([0.0, u], abs=1e-6)
+    overlap = 0.5 + u * sim.time - sim.positions[0, 1]
+    assert overlap == pytest.approx(sim.masses[0] * g / law.stiffness, rel=0.01)

@@ -55,9 +55,10 @@ class CellGrid(NamedTuple):
 def make_grid(x: np.ndarray, y: np.ndarray, cutoff: float, period_x0: float = 0.0,
               period: float = 0.0, max_cells: int | None = None) -> CellGrid:
     """The cell grid over the grains' bounding box with cells at least ``cutoff`` wide (wider
-    when the box would need more than ``max_cells`` cells; default ``4 n + 64``)."""
+    when the box would need more than ``max_cells`` cells; default ``2 n + 64``, which bounds
+    the memory of the cell arrays per grain)."""
     n = x.shape[0]
-    max_cells = 4 * n + 64 if max_cells is None else max_cells
+    max_cells = 2 * n + 64 if max_cells is None else max_cells
     ylo, yhi = float(y.min()), float(y.max())
     if period > 0:
         xlo, xhi = period_x0, period_x0 + period
