@@ -195,13 +195,13 @@ def _cell(rates) -> str:
     return f"{np.median(rates) / 1e6:.2f} M ({max(rates) / 1e6:.2f})"
 
 
-def run(quick: bool = False, sizes=None) -> str:
+def run(quick: bool = False, sizes=None, blocks: int | None = None) -> str:
     sizes = sizes or ([10_000] if quick else [10_000, 100_000])
     load0 = os.getloadavg()
     results = []
     for n in sizes:
         steps = max(20, int(2e6 // n)) if not quick else 20
-        results.append(measure(n, steps, blocks=3 if quick else 5, warmup=steps))
+        results.append(measure(n, steps, blocks=blocks or (3 if quick else 5), warmup=steps))
         print(results[-1], file=sys.stderr)
     load1 = os.getloadavg()
     rows = []
@@ -231,5 +231,6 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", nargs="+", type=float, default=None)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--blocks", type=int, default=None)
     a = ap.parse_args()
-    print(run(a.quick, [int(s) for s in a.sizes] if a.sizes else None))
+    print(run(a.quick, [int(s) for s in a.sizes] if a.sizes else None, a.blocks))

@@ -236,3 +236,20 @@ def test_moving_floor_lifts_a_disc():
     assert sim.velocities[0] == pytest.approx([0.0, u], abs=1e-6)
     overlap = 0.5 + u * sim.time - sim.positions[0, 1]
     assert overlap == pytest.approx(sim.masses[0] * g / law.stiffness, rel=0.01)
+
+
+def test_grid_world_matches_exact_world():
+    """The same column against a GridSDF of the world and the world itself (a floor and two
+    walls: bilinear interpolation is exact for planes inside the grid's cells)."""
+    walls = union([fs.Halfspace((0.0, 1.0), 0.0), fs.Halfspace((1.0, 0.0), 0.0),
+                   fs.Halfspace((-1.0, 0.0), -3.0)])
+    grid = fs.GridSDF(walls, bounds=[(-1.0, 4.0), (-1.0, 6.0)], samples=[101, 141])
+    rng = np.random.default_rng(5)
+    pos = np.stack([rng.uniform(0.6, 2.4, 8), 0.52 + 1.2 * np.arange(8)], 1)
+    runs = []
+    for world in (walls, grid):
+        sim = GranularSimulation(pos, 0.5, world=world, gravity=(0.0, -9.81), timestep=1 / 30)
+        sim.run(6)
+        runs.append(sim)
+    assert runs[0].energy()["wall_contacts"] > 0
+    np.testing.assert_allclose(runs[1].positions, runs[0].positions, atol=1e-6)
