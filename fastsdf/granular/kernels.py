@@ -89,10 +89,12 @@ def _zeta(restitution):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
-def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
+def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
     """Force on the first body and the tangential force, for overlap ``delta`` along the unit
-    normal ``n`` (pointing to the first body), relative velocity ``vr`` and ``wr = R_i w_i +
-    R_j w_j``. Returns ``(fx, fy, ftx, fty)``.
+    normal ``n`` (pointing to the first body), relative velocity ``vr``, ``wr = R_i w_i +
+    R_j w_j`` and dashpot ``gamma_n = 2 zeta sqrt(m_eff k_n)``. Returns ``(fx, fy, ftx,
+    fty)``. The tangential force is ``-gamma_t v_t`` unless that exceeds ``mu |F_n|``
+    (compared squared: the common, viscous case needs no square root).
 
     The dashpot switches on at full strength the moment two grains touch, so a step that
     contains the first touch (or the last) would apply it for the whole step: a first-order
@@ -102,7 +104,6 @@ def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
     touched ``delta / |v_n|`` before it, so the dashpot is scaled by the fraction of that
     step spent in contact, ``1/2 + delta / (|v_n| dt)`` when below 1, which restores second
     order (``dt = 0``: no scaling)."""
-    gamma_n = 2.0 * zeta * math.sqrt(meff * kn)
     vn = vrx * nx + vry * ny
     reach = abs(vn) * dt
     if reach > 2.0 * delta:
@@ -110,11 +111,14 @@ def _contact(delta, nx, ny, vrx, vry, wr, meff, kn, zeta, mu, tdamp, dt):
     fn = kn * delta - gamma_n * vn
     vtx = vrx - vn * nx + wr * ny
     vty = vry - vn * ny - wr * nx
-    vt = math.sqrt(vtx * vtx + vty * vty)
-    ftx = 0.0
-    fty = 0.0
-    if vt > 0.0:
-        ft = min(mu * abs(fn), tdamp * gamma_n * vt) / vt
+    gamma_t = tdamp * gamma_n
+    cap = mu * fn
+    vt2 = vtx * vtx + vty * vty
+    if gamma_t * gamma_t * vt2 <= cap * cap:
+        ftx = -gamma_t * vtx
+        fty = -gamma_t * vty
+    else:  # sliding: Coulomb's cap (vt2 > 0 here)
+        ft = abs(cap) / math.sqrt(vt2)
         ftx = -ft * vtx
         fty = -ft * vty
     return fn * nx + ftx, fn * ny + fty, ftx, fty
@@ -132,7 +136,7 @@ def pair_forces(g, nbr_start, nbr, chunks, law, bulk, dt, dt_half):
     velocities, which nothing writes here: no races. ``dt`` is the substep (for the dashpot's
     first and last step of contact, see :func:`_contact`)."""
     kn = law.stiffness
-    zeta = _zeta(law.restitution)
+    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)  # gamma_n = damp sqrt(m_eff)
     mu = law.friction
     tdamp = law.tangential_damping
     period = bulk.period
@@ -168,6 +172,7 @@ def pair_forces(g, nbr_start, nbr, chunks, law, bulk, dt, dt_half):
             yi = y[i]
             ri = rad[i]
             mi = grain_mass(ri, density)
+            gamma_equal = damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
             fx = 0.0
             fy = 0.0
             tq = 0.0
@@ -191,11 +196,13 @@ def pair_forces(g, nbr_start, nbr, chunks, law, bulk, dt, dt_half):
                     dist = 0.0
                     nx = 1.0 if i < j else -1.0
                     ny = 0.0
-                mj = grain_mass(rj, density)
-                meff = mi * mj / (mi + mj)
+                if rj == ri:
+                    gamma_n = gamma_equal
+                else:
+                    mj = grain_mass(rj, density)
+                    gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
                 cfx, cfy, ftx, fty = _contact(rsum - dist, nx, ny, vx[i] - vx[j], vy[i] - vy[j],
-                                              ri * w[i] + rj * w[j], meff, kn, zeta, mu, tdamp,
-                                              dt)
+                                              ri * w[i] + rj * w[j], gamma_n, kn, mu, tdamp, dt)
                 cross = nx * fty - ny * ftx
                 fx += cfx
                 fy += cfy
@@ -240,8 +247,8 @@ def wall_forces(g, idx, d, gx, gy, wall_vn, law, bulk, dt):
         ny = gy[k] / gn
         mi = grain_mass(ri, bulk.density)
         cfx, cfy, ftx, fty = _contact(delta, nx, ny, vx[i] - wall_vn[k] * nx,
-                                      vy[i] - wall_vn[k] * ny, ri * w[i], mi, kn, zeta, mu,
-                                      tdamp, dt)
+                                      vy[i] - wall_vn[k] * ny, ri * w[i],
+                                      2.0 * zeta * math.sqrt(mi * kn), kn, mu, tdamp, dt)
         gfx[i] += cfx
         gfy[i] += cfy
         gtq[i] -= ri * (nx * fty - ny * ftx)
@@ -282,9 +289,10 @@ def kick_drift(g, dt_kick, dt, density, x_ref, y_ref, chunk_max):
         for i in range(lo, hi):
             r = rad[i]
             m = grain_mass(r, density)
-            ax = gfx[i] / m
-            ay = gfy[i] / m
-            alpha = gtq[i] * 2.0 / (m * r * r)
+            inv_m = 1.0 / m
+            ax = gfx[i] * inv_m
+            ay = gfy[i] * inv_m
+            alpha = gtq[i] * (2.0 * inv_m) / (r * r)
             vx = gvx[i] + ax * dt_kick
             vy = gvy[i] + ay * dt_kick
             w = gw[i] + alpha * dt_kick
