@@ -14,9 +14,10 @@ substep, receives the positions and predicted velocities of the grains within on
 (about 1.15 per unit area, side about 9,300) and a cutoff of 1.2, a border of length ``L``
 carries about ``1.4 L`` halo grains per side: cut into N strips, each machine receives about
 26,000 grains (1.2 MB at 48 bytes each) per substep whatever N; cut into ``p x p`` tiles,
-about ``51,000 / p`` grains (2.5 MB / p). At 1e4 substeps per simulated second that is 12 GB/s
-per machine for strips: halos are exchanged every substep, so the network, not the arithmetic,
-sets the speed unless each machine holds a large, compact domain.
+about ``51,000 / p`` grains (2.5 MB / p). A machine holding ``1e8 / N`` grains at 10 M
+particle-steps/s spends ``10 / N`` s per substep, so strips need about ``0.12 N`` MB/s: bandwidth
+is no limit; the two messages per substep (their latency) are, once ``10 / N`` s shrinks toward
+a network round trip (N in the thousands).
 """
 from .cells import CellGrid, brute_force_pairs, list_pairs
 from .kernels import Bulk, Grains
