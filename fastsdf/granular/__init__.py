@@ -22,25 +22,14 @@ a network round trip (N in the thousands).
 from .cells import CellGrid, brute_force_pairs, list_pairs
 from .kernels import Bulk, Grains
 from .params import (
-                     ContactLaw,
-                     check_contact_law,
-                     contact_time,
-                     damping_ratio,
-                     restitution_from_damping,
+    ContactLaw,
+    check_contact_law,
+    contact_time,
+    damping_ratio,
+    restitution_from_damping,
 )
 from .simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
 
-__all__ = [
-                     "DEFAULT_SUBSTEPS_PER_CONTACT",
-                     "Bulk",
-                     "CellGrid",
-                     "ContactLaw",
-                     "Grains",
-                     "GranularSimulation",
-                     "brute_force_pairs",
-                     "check_contact_law",
-                     "contact_time",
-                     "damping_ratio",
-                     "list_pairs",
-                     "restitution_from_damping",
-]
+__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "Bulk", "CellGrid", "ContactLaw", "Grains",
+           "GranularSimulation", "brute_force_pairs", "check_contact_law", "contact_time",
+           "damping_ratio", "list_pairs", "restitution_from_damping"]

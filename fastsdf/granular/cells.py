@@ -26,7 +26,8 @@ from numba import njit, prange
 #: The bits of a list entry that hold the neighbour's index (at most 2**30 grains).
 INDEX_MASK = (1 << 30) - 1
 
-__all__ = ["INDEX_MASK", 
+__all__ = [
+    "INDEX_MASK",
     "CellGrid",
     "brute_force_pairs",
     "build_verlet",
