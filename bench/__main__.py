@@ -44,6 +44,8 @@ SECTIONS = [
      "trajectory files: recording 1e6 positions every 10 steps against the run alone"),
     ("geometry", "bench.bench_geometry",
      "distance transform of a mask against scipy; mask and image grids' error tables"),
+    ("granular", "bench.bench_granular",
+     "granular DEM: a dense bed in full contact against LAMMPS gran/hooke, same run"),
 ]
 
 HEADER = """# fastsdf benchmark results

@@ -1,0 +1,369 @@
+"""Compiled kernels of the granular step: contact forces (gathered per grain, race-free) and
+the velocity-Verlet kicks and drift. Plain ``@njit`` functions on named structures, tested
+directly (``tests/test_granular.py``).
+
+The contact law is LAMMPS's ``gran/hooke`` (history-free): for a pair ``i, j`` with centres
+``del = x_i - x_j`` at distance ``r < R_i + R_j``, ``n = del / r``, overlap ``delta = R_i + R_j -
+r``, relative velocity ``v = v_i - v_j`` and its normal part ``v_n = v . n``, the force on ``i``
+is ``(k_n delta - gamma_n v_n) n + f_t`` with ``gamma_n = 2 zeta sqrt(m_eff k_n)``; the
+tangential force opposes the sliding velocity of the contact point ``v_t = v - v_n n + (R_i w_i
++ R_j w_j) (n_y, -n_x)`` with magnitude ``min(mu |F_n|, gamma_t |v_t|)``, and turns ``i`` by
+``-R_i (n x f_t)``. A wall is the SDF world: ``delta = R - d``, ``n = grad d / |grad d|``, the
+wall's velocity is its normal speed along ``n``, and ``m_eff = m_i``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import numpy as np
+from numba import njit, prange
+
+# The kernels take the arrays out of a Grains tuple by attribute before their parallel loop:
+# numba (0.68) drops stores made inside prange through ``g.x[i] = ...`` or through names bound
+# by unpacking (``x, y = g.x, g.y`` included): one plain assignment per array.
+
+# Floating-point liberties of the force pass: fused multiply-adds, reciprocals and signed
+# zeros only (no reassociation: the two sides of a pair across chunks must compute the same
+# bits; no "no-NaN" assumption: NaN must still propagate).
+_FAST = {"contract", "arcp", "nsz"}
+
+__all__ = [
+    "Bulk",
+    "Grains",
+    "grain_mass",
+    "kick_drift",
+    "kinetic_energy",
+    "pair_energy",
+    "pair_forces",
+    "wall_energy",
+    "wall_forces",
+]
+
+
+class Grains(NamedTuple):
+    """Structure of arrays of ``n`` discs (float64, shape (n,) each): position ``x, y``,
+    velocity ``vx, vy``, angular velocity ``omega`` (rad/s, counter-clockwise), ``radius``, and
+    the force ``fx, fy`` and torque ``torque`` of the last force evaluation, and the velocities
+    predicted for the force evaluation ``px, py, pomega`` (see :func:`kick_drift`)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    vx: np.ndarray
+    vy: np.ndarray
+    omega: np.ndarray
+    radius: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    torque: np.ndarray
+    px: np.ndarray
+    py: np.ndarray
+    pomega: np.ndarray
+
+
+class Bulk(NamedTuple):
+    """What every grain shares: ``density`` (mass per area; a disc of radius R weighs
+    ``density pi R**2`` and has moment of inertia ``m R**2 / 2``), gravity ``(gravity_x,
+    gravity_y)`` (length / s**2), and x periodicity: ``period > 0`` wraps x into
+    ``[period_x0, period_x0 + period)`` (0: not periodic)."""
+
+    density: float
+    gravity_x: float
+    gravity_y: float
+    period_x0: float
+    period: float
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def grain_mass(radius: float, density: float) -> float:
+    """Mass of a disc."""
+    return density * math.pi * radius * radius
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _zeta(restitution):
+    if restitution <= 0.0:
+        return 1.0
+    le = math.log(restitution)
+    return -le / math.sqrt(math.pi * math.pi + le * le)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
+def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
+    """Force on the first body and the tangential force, for overlap ``delta`` along the unit
+    normal ``n`` (pointing to the first body), relative velocity ``vr``, ``wr = R_i w_i +
+    R_j w_j`` and dashpot ``gamma_n = 2 zeta sqrt(m_eff k_n)``. Returns ``(fx, fy, ftx,
+    fty)``. The tangential force is ``-gamma_t v_t`` unless that exceeds ``mu |F_n|``
+    (compared squared: the common, viscous case needs no square root).
+
+    The dashpot switches on at full strength the moment two grains touch, so a step that
+    contains the first touch (or the last) would apply it for the whole step: a first-order
+    error that changes the restitution of a strongly damped contact by several percent,
+    depending on where between two steps the touch falls. A force evaluated at one instant
+    acts from half a step before to half a step after it (velocity Verlet), and the grains
+    touched ``delta / |v_n|`` before it, so the dashpot is scaled by the fraction of that
+    step spent in contact, ``1/2 + delta / (|v_n| dt)`` when below 1, which restores second
+    order (``dt = 0``: no scaling)."""
+    vn = vrx * nx + vry * ny
+    reach = abs(vn) * dt
+    if reach > 2.0 * delta:
+        gamma_n *= 0.5 + delta / reach
+    fn = kn * delta - gamma_n * vn
+    vtx = vrx - vn * nx + wr * ny
+    vty = vry - vn * ny - wr * nx
+    gamma_t = tdamp * gamma_n
+    cap = mu * fn
+    vt2 = vtx * vtx + vty * vty
+    if gamma_t * gamma_t * vt2 <= cap * cap:
+        ftx = -gamma_t * vtx
+        fty = -gamma_t * vty
+    else:  # sliding: Coulomb's cap (vt2 > 0 here)
+        ft = abs(cap) / math.sqrt(vt2)
+        ftx = -ft * vtx
+        fty = -ft * vty
+    return fn * nx + ftx, fn * ny + fty, ftx, fty
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
+def pair_forces(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, chunks: int, law: Any,
+                bulk: Bulk, dt: float, dt_half: float) -> None:
+    """The force pass of a substep, over ``chunks`` contiguous chunks of grains in parallel
+    (the chunks the list was built for, see :func:`fastsdf.granular.cells.build_verlet`).
+    Each chunk first half-kicks its grains' velocities with their previous force (``v +=
+    F_old dt_half / m``) and resets their forces to gravity; then for each listed pair at the
+    drifted positions and predicted velocities ``px, py, pomega`` it adds the contact force to
+    its grain and, when the neighbour is in the same chunk, the opposite force to the
+    neighbour. A chunk writes only its own grains and reads only positions and predicted
+    velocities, which nothing writes here: no races. ``dt`` is the substep (for the dashpot's
+    first and last step of contact, see :func:`_contact`)."""
+    kn = law.stiffness
+    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)  # gamma_n = damp sqrt(m_eff)
+    mu = law.friction
+    tdamp = law.tangential_damping
+    period = bulk.period
+    density = bulk.density
+    x = g.x
+    y = g.y
+    rad = g.radius
+    gvx = g.vx
+    gvy = g.vy
+    gw = g.omega
+    gfx = g.fx
+    gfy = g.fy
+    gtq = g.torque
+    vx = g.px
+    vy = g.py
+    w = g.pomega
+    n = x.shape[0]
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        for i in range(lo, hi):
+            ri = rad[i]
+            mi = grain_mass(ri, density)
+            a = dt_half / mi
+            gvx[i] += gfx[i] * a
+            gvy[i] += gfy[i] * a
+            gw[i] += gtq[i] * a * 2.0 / (ri * ri)
+            gfx[i] = mi * bulk.gravity_x
+            gfy[i] = mi * bulk.gravity_y
+            gtq[i] = 0.0
+        for i in range(lo, hi):
+            xi = x[i]
+            yi = y[i]
+            ri = rad[i]
+            mi = grain_mass(ri, density)
+            gamma_equal = damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
+            fx = 0.0
+            fy = 0.0
+            tq = 0.0
+            for k in range(nbr_start[i], nbr_start[i + 1]):
+                entry = nbr[k]
+                j = entry & 0x3FFFFFFF
+                image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
+                dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
+                dy = yi - y[j]
+                rj = rad[j]
+                rsum = ri + rj
+                d2 = dx * dx + dy * dy
+                if d2 >= rsum * rsum:
+                    continue
+                if d2 > 0.0:
+                    dist = math.sqrt(d2)
+                    inv = 1.0 / dist
+                    nx = dx * inv
+                    ny = dy * inv
+                else:  # coincident centres: push apart along x, in opposite senses
+                    dist = 0.0
+                    nx = 1.0 if i < j else -1.0
+                    ny = 0.0
+                if rj == ri:
+                    gamma_n = gamma_equal
+                else:
+                    mj = grain_mass(rj, density)
+                    gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
+                cfx, cfy, ftx, fty = _contact(rsum - dist, nx, ny, vx[i] - vx[j], vy[i] - vy[j],
+                                              ri * w[i] + rj * w[j], gamma_n, kn, mu, tdamp, dt)
+                cross = nx * fty - ny * ftx
+                fx += cfx
+                fy += cfy
+                tq -= ri * cross
+                if j >= lo and j < hi:  # same chunk: Newton's third law here
+                    gfx[j] -= cfx
+                    gfy[j] -= cfy
+                    gtq[j] -= rj * cross
+            gfx[i] += fx
+            gfy[i] += fy
+            gtq[i] += tq
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def wall_forces(g: Grains, idx: np.ndarray, d: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                wall_vn: np.ndarray, law: Any, bulk: Bulk, dt: float) -> tuple:
+    """Add the world's contact forces to the grains ``idx`` (distinct indices) at distance
+    ``d`` with gradient ``(gx, gy)`` and wall normal speed ``wall_vn`` (the velocity of the
+    surface along ``grad d``; 0 for a static world), with the predicted velocities (run it
+    after :func:`pair_forces`, which resets the forces). Returns the total force the world exerts
+    on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel nothing."""
+    kn = law.stiffness
+    zeta = _zeta(law.restitution)
+    mu = law.friction
+    tdamp = law.tangential_damping
+    vx = g.px
+    vy = g.py
+    w = g.pomega
+    rad = g.radius
+    gfx = g.fx
+    gfy = g.fy
+    gtq = g.torque
+    sx = 0.0
+    sy = 0.0
+    for k in prange(idx.shape[0]):
+        i = idx[k]
+        ri = rad[i]
+        delta = ri - d[k]
+        gn = math.sqrt(gx[k] * gx[k] + gy[k] * gy[k])
+        if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
+            continue
+        nx = gx[k] / gn
+        ny = gy[k] / gn
+        mi = grain_mass(ri, bulk.density)
+        cfx, cfy, ftx, fty = _contact(delta, nx, ny, vx[i] - wall_vn[k] * nx,
+                                      vy[i] - wall_vn[k] * ny, ri * w[i],
+                                      2.0 * zeta * math.sqrt(mi * kn), kn, mu, tdamp, dt)
+        gfx[i] += cfx
+        gfy[i] += cfy
+        gtq[i] -= ri * (nx * fty - ny * ftx)
+        sx += cfx
+        sy += cfy
+    return sx, sy
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def kick_drift(g: Grains, dt_kick: float, dt: float, density: float, x_ref: np.ndarray,
+               y_ref: np.ndarray, chunk_max: np.ndarray) -> None:
+    """The elementwise pass of a velocity-Verlet substep of length ``dt``, from force ``F``:
+    complete the velocity, ``v += F/m dt_kick`` (``dt / 2`` after a force pass, 0 at the
+    start of a frame when ``v`` is already synchronized), drift ``x += (v + F/m dt/2) dt``, and
+    predict the velocity at the end of the substep, ``p = v + F/m dt``, for the dashpots of the
+    next force pass (a second-order estimate: the half-step velocity LAMMPS uses there lags by
+    half a step, which biases the restitution of strongly damped contacts by several percent).
+    ``dt = 0`` only completes the kick. Writes into ``chunk_max[c]`` the largest squared
+    displacement from ``(x_ref, y_ref)`` among the grains of chunk ``c`` (the
+    ``len(chunk_max)`` chunks split the grains evenly; per-chunk slots, no shared writes)."""
+    gx = g.x
+    gy = g.y
+    gvx = g.vx
+    gvy = g.vy
+    gw = g.omega
+    rad = g.radius
+    gfx = g.fx
+    gfy = g.fy
+    gtq = g.torque
+    gpx = g.px
+    gpy = g.py
+    gpw = g.pomega
+    n = gx.shape[0]
+    chunks = chunk_max.shape[0]
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        big = 0.0
+        for i in range(lo, hi):
+            r = rad[i]
+            m = grain_mass(r, density)
+            inv_m = 1.0 / m
+            ax = gfx[i] * inv_m
+            ay = gfy[i] * inv_m
+            alpha = gtq[i] * (2.0 * inv_m) / (r * r)
+            vx = gvx[i] + ax * dt_kick
+            vy = gvy[i] + ay * dt_kick
+            w = gw[i] + alpha * dt_kick
+            gvx[i] = vx
+            gvy[i] = vy
+            gw[i] = w
+            gpx[i] = vx + ax * dt
+            gpy[i] = vy + ay * dt
+            gpw[i] = w + alpha * dt
+            x = gx[i] + (vx + 0.5 * ax * dt) * dt
+            y = gy[i] + (vy + 0.5 * ay * dt) * dt
+            gx[i] = x
+            gy[i] = y
+            ex = x - x_ref[i]
+            ey = y - y_ref[i]
+            big = max(big, ex * ex + ey * ey)
+        chunk_max[c] = big
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def pair_energy(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, law: Any,
+                bulk: Bulk) -> tuple:
+    """Elastic energy ``k_n delta**2 / 2`` stored in the grain-grain contacts (each pair once)
+    and the number of contacts (pairs in overlap)."""
+    e = 0.0
+    count = 0
+    period = bulk.period
+    for i in prange(g.x.shape[0]):
+        for k in range(nbr_start[i], nbr_start[i + 1]):
+            entry = nbr[k]
+            j = entry & 0x3FFFFFFF
+            if j <= i:
+                continue
+            image = entry >> 30
+            dx = g.x[i] - g.x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
+            dy = g.y[i] - g.y[j]
+            delta = g.radius[i] + g.radius[j] - math.sqrt(dx * dx + dy * dy)
+            if delta > 0.0:
+                e += 0.5 * law.stiffness * delta * delta
+                count += 1
+    return e, count
+
+
+@njit(cache=True, error_model="numpy")
+def wall_energy(g: Grains, idx: np.ndarray, d: np.ndarray, law: Any) -> tuple:
+    """Elastic energy stored in the grain-wall contacts of the grains ``idx`` at distances
+    ``d``, and their number."""
+    e = 0.0
+    count = 0
+    for k in range(idx.shape[0]):
+        delta = g.radius[idx[k]] - d[k]
+        if delta > 0.0:
+            e += 0.5 * law.stiffness * delta * delta
+            count += 1
+    return e, count
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def kinetic_energy(g: Grains, bulk: Bulk) -> tuple:
+    """Translational and rotational kinetic energy and the gravitational potential energy
+    ``-m g . x`` of all grains: ``(translational, rotational, potential)``."""
+    et = 0.0
+    er = 0.0
+    ep = 0.0
+    for i in prange(g.x.shape[0]):
+        r = g.radius[i]
+        m = grain_mass(r, bulk.density)
+        et += 0.5 * m * (g.vx[i] * g.vx[i] + g.vy[i] * g.vy[i])
+        er += 0.25 * m * r * r * g.omega[i] * g.omega[i]
+        ep -= m * (bulk.gravity_x * g.x[i] + bulk.gravity_y * g.y[i])
+    return et, er, ep

@@ -1,0 +1,108 @@
+"""Named, validated parameters of the granular contact model (soft-sphere DEM).
+
+Units are those of the world: lengths in the SDF's coordinate units, time in seconds, mass in
+any consistent unit (``density`` is mass per unit *area*: the grains are discs).
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = [
+    "ContactLaw",
+    "check_contact_law",
+    "contact_time",
+    "damping_ratio",
+    "restitution_from_damping",
+]
+
+
+class ContactLaw(NamedTuple):
+    """A linear spring-dashpot contact with Coulomb-capped viscous friction (LAMMPS
+    ``gran/hooke``), passed as it is to the compiled kernels.
+
+    stiffness : float, > 0
+        Normal spring constant ``k_n`` (force / length, i.e. mass / s**2). A grain pressed by
+        a load ``F`` overlaps its neighbour by ``F / k_n``: keep ``F / (k_n d)`` (the overlap
+        relative to the diameter ``d``) well under 1%. The default suits grains of diameter
+        about 1 and density about 1 under gravity about 1 (columns up to thousands of grains).
+    restitution : float in [0, 1]
+        Coefficient of restitution ``e`` of a head-on impact; the dashpot of each contact is
+        ``gamma_n = 2 zeta sqrt(m_eff k_n)`` with ``zeta = -ln e / sqrt(pi**2 + ln(e)**2)``
+        (equivalently ``gamma_n = -2 ln(e) sqrt(m_eff k_n) / sqrt(pi**2 + ln(e)**2)``), so
+        every pair rebounds with ``e`` whatever the sizes of its grains (``e = 0``: critical
+        damping, ``e = 1``: no dissipation).
+    friction : float, >= 0
+        Coulomb coefficient ``mu``: the tangential force is at most ``mu |F_n|``.
+    tangential_damping : float, >= 0
+        Tangential dashpot relative to the normal one, ``gamma_t = tangential_damping *
+        gamma_n`` (force / velocity of sliding at the contact point); 0.5 is LAMMPS's default
+        (``gamma_t = NULL``).
+    """
+
+    stiffness: float = 2.0e5
+    restitution: float = 0.5
+    friction: float = 0.5
+    tangential_damping: float = 0.5
+
+
+def _real(value: object, name: str) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+        raise TypeError(f"{name} must be a real number, got {name}={value!r}")
+    out = float(value)
+    if not math.isfinite(out):
+        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+    return out
+
+
+def check_contact_law(law: object, name: str = "contact") -> ContactLaw:
+    """``law`` as a :class:`ContactLaw` of Python floats, or a clear ValueError/TypeError
+    naming ``name`` and the offending field and value."""
+    if not isinstance(law, ContactLaw):
+        raise TypeError(f"{name} must be a fastsdf.granular.ContactLaw, got {name}={law!r}")
+    k = _real(law.stiffness, f"{name}.stiffness")
+    e = _real(law.restitution, f"{name}.restitution")
+    mu = _real(law.friction, f"{name}.friction")
+    gt = _real(law.tangential_damping, f"{name}.tangential_damping")
+    if not k > 0:
+        raise ValueError(f"{name}.stiffness must be > 0, got {name}.stiffness={k!r}")
+    if not 0.0 <= e <= 1.0:
+        raise ValueError(f"{name}.restitution must be in [0, 1], got {name}.restitution={e!r}")
+    if mu < 0:
+        raise ValueError(f"{name}.friction must be >= 0, got {name}.friction={mu!r}")
+    if gt < 0:
+        raise ValueError(f"{name}.tangential_damping must be >= 0, "
+                         f"got {name}.tangential_damping={gt!r}")
+    return ContactLaw(k, e, mu, gt)
+
+
+def damping_ratio(restitution: float) -> float:
+    """The dashpot's damping ratio ``zeta = gamma_n / (2 sqrt(m_eff k_n))`` that gives the
+    coefficient of restitution ``e``: ``-ln e / sqrt(pi**2 + ln(e)**2)`` (1 at ``e = 0``)."""
+    if restitution <= 0.0:
+        return 1.0
+    le = math.log(restitution)
+    return -le / math.sqrt(math.pi * math.pi + le * le)
+
+
+def contact_time(m_eff: float, law: ContactLaw, damped: bool = False) -> float:
+    """Duration of a binary contact (s): ``t_c = pi sqrt(m_eff / k_n)`` (undamped); with
+    ``damped=True`` the exact duration of the damped linear contact,
+    ``t_c / sqrt(1 - zeta**2)`` (infinite at critical damping, ``e = 0``)."""
+    tc = math.pi * math.sqrt(m_eff / law.stiffness)
+    if not damped:
+        return tc
+    z = damping_ratio(law.restitution)
+    return math.inf if z >= 1.0 else tc / math.sqrt(1.0 - z * z)
+
+
+def restitution_from_damping(gamma_per_mass: float, stiffness: float, m_eff: float) -> float:
+    """The restitution of a pair of effective mass ``m_eff`` whose dashpot is ``m_eff *
+    gamma_per_mass`` (LAMMPS's ``gamma_n``, in 1/s): to state a LAMMPS ``gran/hooke`` model
+    as a :class:`ContactLaw` (exactly, for grains of one size)."""
+    z = m_eff * gamma_per_mass / (2.0 * math.sqrt(m_eff * stiffness))
+    if z >= 1.0:
+        return 0.0
+    return math.exp(-z * math.pi / math.sqrt(1.0 - z * z))
