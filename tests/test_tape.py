@@ -1,7 +1,8 @@
-"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: two independent evaluators
-of one scene must agree to rounding (values 1e-12 relative, gradients 1e-9) on random scenes,
-every primitive kind, smooth blends, transforms, parameters and non-finite points; and the
-``backend`` switch of Function (``'auto'`` answers through the tape, then the kernel)."""
+"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: the tape computes the
+kernel's bits (value and gradient, bit for bit) on the bench scenes, random scenes, every
+primitive kind, smooth and polynomial blends, transforms, parameters and non-finite points; the
+NumPy path agrees to rounding (values 1e-12 relative, gradients 1e-9); and the ``backend``
+switch of Function (``'auto'`` answers through the tape, then the kernel)."""
 
 import math
 
@@ -18,6 +19,8 @@ from fastsdf.backends.vm import BLOCK, compile_tape
 from test_codegen import (_long_straight_line_scene, _unstructured_scene, build_scene, operation,
                           placed)
 
+import fastsdf.graph  # sdf.graph
+
 X, Y = Symbol("x"), Symbol("y")
 
 
@@ -30,20 +33,34 @@ def _points(n, seed, bad=True):
     return p
 
 
+def assert_same_bits(a, b):
+    """Equal bit patterns (any NaN equals any NaN: the payload is not a result)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    assert a.shape == b.shape
+    same = (a.view(np.int64) == b.view(np.int64)) | (np.isnan(a) & np.isnan(b))
+    bad = np.argwhere(~same)
+    assert same.all(), (f"{len(bad)} of {a.size} differ, e.g. at {bad[:3].tolist()}: "
+                        f"{a[~same][:3].tolist()} vs {b[~same][:3].tolist()}")
+
+
 def assert_agree(f, p, backends=("tape", "numpy"), **params):
-    """Tape and NumPy path each agree with the kernel, value (also value-only calls) and
-    gradient; non-finite points give NaN for those points only."""
+    """The tape gives the kernel's bits, the NumPy path agrees with it to rounding, value (also
+    value-only calls) and gradient; non-finite points give NaN for those points only."""
     dk, gk = f(*p.T, compute_gradient=True, **params)
     ok = np.isfinite(p).all(axis=1)
     for backend in backends:
         dt, gt = f(*p.T, compute_gradient=True, backend=backend, **params)
         assert np.all(np.isnan(dt[~ok])) and np.all(np.isnan(gt[~ok]))
         assert np.array_equal(np.isnan(dt), np.isnan(dk))
-        scale = max(1.0, float(np.nanmax(np.abs(dk[ok])))) if ok.any() else 1.0
-        np.testing.assert_allclose(dt[ok], dk[ok], rtol=1e-12, atol=1e-12 * scale)
+        if backend == "tape":
+            assert_same_bits(dt, dk)
+            assert_same_bits(gt, gk)
+        fin = ok & np.isfinite(dk)
+        scale = max(1.0, float(np.max(np.abs(dk[fin])))) if fin.any() else 1.0
+        np.testing.assert_allclose(dt[fin], dk[fin], rtol=1e-12, atol=1e-12 * scale)
         np.testing.assert_allclose(gt[ok], gk[ok], rtol=1e-9, atol=1e-9)
         vt = f(*p.T, backend=backend, **params)
-        np.testing.assert_array_equal(vt, dt)  # the value does not depend on the gradient's mode
+        assert_same_bits(vt, dt)  # the value does not depend on the gradient's mode
         if backend == backends[0]:
             out = dt, gt
     return out
@@ -112,6 +129,81 @@ def test_random_scenes(prims, ops):
     unions, intersections and differences (the scene builder of test_codegen)."""
     f = build_scene(prims, ops)
     assert_agree(f, _points(400, len(prims)))
+
+
+def _circles(n, seed=3):
+    rng = np.random.default_rng(seed)
+    f = sdf.Circle(rng.uniform(-2, 2, 2), 0.1)
+    for _ in range(n - 1):
+        f = f | sdf.Circle(rng.uniform(-2, 2, 2), rng.uniform(0.05, 0.2))
+    return f
+
+
+@pytest.mark.parametrize("scene", [seed_world, lambda: box_world(20), lambda: _circles(200)],
+                         ids=["seed world", "20-box world", "200 circles"])
+def test_bench_scenes_give_the_kernels_bits(scene):
+    """The bench scenes (a hard union of 200 primitives is a combine program in the kernel) on
+    points spread over the scene, several blocks: the tape's bits are the kernel's."""
+    f = scene()
+    p = _points(3 * BLOCK + 17, 23)
+    assert_agree(f, p, backends=("tape",))
+
+
+def _blend(a, b, op, kind, k):
+    if op == "|":
+        return a.union(b, k=k, kind=kind)
+    if op == "&":
+        return a.intersection(b, k=k, kind=kind)
+    return a.difference(b, k=k, kind=kind)
+
+
+@settings(max_examples=6, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(prims=st.lists(placed, min_size=2, max_size=24),
+       ops=st.lists(st.tuples(st.sampled_from(["|", "&", "-"]),
+                              st.sampled_from(["exponential", "quadratic", "cubic"]),
+                              st.floats(0.02, 0.5), st.integers(0, 10 ** 6)), max_size=24),
+       chain=st.sampled_from(["quadratic", "cubic", "exponential"]))
+def test_random_blend_scenes_give_the_kernels_bits(prims, ops, chain):
+    """Random scenes of every blend kind (exponential, quadratic, cubic) between random pairs,
+    the rest joined by one left fold of blends (folded into loops where four neighbours share
+    a shape): the tape's bits are the kernel's."""
+    shapes = [build_scene([pr], []) for pr in prims]
+    for op, kind, k, pick in ops:
+        if len(shapes) == 2:
+            break
+        a = shapes.pop(pick % len(shapes))
+        b = shapes.pop(pick // 7 % len(shapes))
+        shapes.append(_blend(a, b, op, kind, k))
+    f = shapes[0]
+    for s in shapes[1:]:
+        f = f.union(s, k=0.1, kind=chain)
+    assert_agree(f, _points(300, len(prims)), backends=("tape",))
+
+
+def test_loop_members_with_nested_chains_and_zero_gradient_components():
+    """Corners where the generated code's form decides the last bits: loop members whose
+    nested chains the loop evaluates pairwise (the straight-line code would flatten them), a
+    left fold of blends that opens with a loop, and chains whose gradient components are known
+    zero (the kernel still carries them: at x = 0, 1/x makes them NaN, not dropped terms)."""
+    rng = np.random.default_rng(4)
+    members = []
+    for _ in range(6):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness(6.0):
+            members.append(sdf.Circle([0, 0], 0.2) | sdf.Box([-0.2, -0.1], [0.1, 0.2])
+                           | sdf.Circle([0.2, 0], 0.1))
+    hard = members[0]
+    for m in members[1:]:
+        hard = hard | m
+    fold = members[0]
+    for m in members[1:]:
+        fold = fold.union(m, k=0.2, kind="cubic")
+    flat = sdf.Function(sdf.graph.sym_min(Y - 1.0, -Y - 1.0) / X + X * Y, [X, Y])
+    p = _points(600, 5)
+    p[:40, 0] = np.repeat([0.0, -0.0, 5e-324, -5e-324], 10)
+    for f in (hard, fold, flat, hard.union(fold, k=0.3, kind="quadratic")):
+        assert_agree(f, p, backends=("tape",))
 
 
 @settings(max_examples=3, deadline=None, derandomize=True)
