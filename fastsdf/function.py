@@ -32,13 +32,14 @@ __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN
            "BACKENDS"]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.backends.vm`, NumPy (:mod:`fastsdf.backends.npeval`: no numba at all), or ``'auto'``: the
-#: cheaper of NumPy and the tape while the kernel compiles in a background thread, then the
-#: kernel.
+#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:mod:`fastsdf.backends.npeval`: no
+#: numba at all, the kernel's results to rounding), or ``'auto'`` (the default): the tape while
+#: the kernel compiles in a background thread, then the kernel.
 BACKENDS = ("kernel", "tape", "numpy", "auto")
 
-#: The cost model of ``backend='auto'`` before the kernel is ready (seconds; measured by
-#: ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's one-time setup in a process
+#: The cost model of :meth:`CompiledSDF.first_path`, NumPy against the tape before the kernel is
+#: ready (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's
+#: one-time setup in a process
 #: (the first call of any compiled function, the tape interpreter included), building a tape per
 #: node, and running it per instruction and point (2 threads).
 NUMBA_SETUP_S = 0.4
@@ -75,6 +76,7 @@ class CompiledSDF:
         self._module = None
         self._plans: dict = {}
         self._tape = None
+        self._tape_error: str | None = None
         self._numpy = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
@@ -141,9 +143,15 @@ class CompiledSDF:
         """The :class:`fastsdf.backends.vm.Tape` of the expression (built on first use; raises
         ``ValueError`` for an expression the tape does not evaluate)."""
         if self._tape is None:
+            if self._tape_error is not None:  # known already: not walked again per call
+                raise ValueError(self._tape_error)
             from fastsdf.backends.vm import compile_tape
-            with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
-                self._tape = compile_tape(self.expr, self.symbol_names)
+            try:
+                with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
+                    self._tape = compile_tape(self.expr, self.symbol_names)
+            except ValueError as exc:
+                self._tape_error = str(exc)
+                raise
         return self._tape
 
     @property
@@ -367,24 +375,20 @@ class Function:
     compiled on first use and cached on disk; ``source()`` shows the generated Python code and
     ``point_fn`` is the compiled per-point function for use inside your own ``@njit`` code.
 
-    Backends: ``f(x, y, backend='kernel')`` (the default, :attr:`backend`) runs the compiled
-    kernel; ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no numba, no
-    wait for a new scene; hard unions of many shapes pruned per tile); ``backend='tape'`` runs
-    the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
-    installation; the first numba call of a process pays numba's one-time setup, about 0.4 s);
-    ``backend='auto'`` answers with the cheaper of NumPy and the tape (a cost model:
-    :meth:`CompiledSDF.first_path`) while the scene's kernel compiles in a background thread
-    started after the first answer, and through the kernel once it is ready
-    (``f.compiled.kernel_ready``). All agree with the kernel to rounding (values 1e-12
-    relative, gradients 1e-9), not bit for bit. The tape and NumPy have no time derivative:
-    such calls always use the kernel.
-
-    The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
-    in the last bits depending on whether the background compilation has finished (a program's
-    output would depend on timing), and calls made while it compiles share the GIL and the
-    cores with it (measured by ``python -m bench.bench_tape``: up to 3x slower meanwhile).
-    For interactive work, where the first answer matters most, set ``Function.backend =
-    'auto'`` (or on one function).
+    Backends: by default (``backend='auto'``, :attr:`backend`) a new scene is answered at once
+    by the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
+    installation; the first numba call of a process pays numba's one-time setup), while the
+    scene's kernel compiles in a background thread started after that first answer; once it
+    is ready (``f.compiled.kernel_ready``) calls run the kernel. The tape computes the kernel's
+    bits, so a call returns the same bits whichever of the two answers it.
+    ``backend='kernel'`` waits for the compiled kernel, ``backend='tape'`` always runs the tape,
+    ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no numba at
+    all, hard unions of many shapes pruned per tile; the kernel's results to rounding, values
+    1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy have no time
+    derivative: such calls use the kernel, as do calls on expressions the tape does not
+    evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
+    :attr:`prune_tol` (pruned exponential blends are the kernel's own approximation). Calls
+    made while the kernel compiles share the cores with the compilation.
 
     Pruning (:mod:`fastsdf.backends.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with many
     operands folded into loops, the points are sorted into tiles and each tile evaluates only
@@ -497,9 +501,9 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    #: The default backend of calls: ``'kernel'``, ``'numpy'``, ``'tape'`` or ``'auto'`` (see
-    #: the class docstring for why it is ``'kernel'``).
-    backend = "kernel"
+    #: The default backend of calls: ``'auto'``, ``'kernel'``, ``'numpy'`` or ``'tape'`` (see the
+    #: class docstring).
+    backend = "auto"
 
     def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
                  prune: bool | None = None, time_derivative: bool = False,
@@ -515,7 +519,7 @@ class Function:
                 kw = {"t": vals.get("t", 0.0),
                       "params": tuple(vals[n] for n in self.param_names)}
         if backend != "kernel" and not time_derivative:
-            path = self._path_for(backend, x)
+            path = self._path_for(backend, x, prune)
             if path is not None:
                 c = self.compiled
                 ev = c.tape if path == "tape" else c.numpy_scene
@@ -537,23 +541,20 @@ class Function:
         return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
                                       tol=self.prune_tol, **kw)
 
-    def _path_for(self, backend: str, x: Any):
+    def _path_for(self, backend: str, x: Any, prune: bool | None = None):
         """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
         c = self.compiled
         if backend == "numpy":
             return "numpy"
         if backend == "auto":
-            if c.kernel_ready:
+            if c.kernel_ready or prune or self.prune_tol is not None:
                 return None
-            path = c.first_path(int(np.size(x)))
-            if path == "numpy":
-                return path
-        try:
-            c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
-        except ValueError:
-            if backend == "tape":
-                raise
-            return "numpy"
+            try:
+                c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
+            except ValueError:
+                return None  # the kernel evaluates it (or says why not)
+            return "tape"
+        c.tape  # noqa: B018 - raises for an expression the tape does not evaluate
         return "tape"
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of

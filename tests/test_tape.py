@@ -281,6 +281,7 @@ def test_instructions_are_deduplicated_and_registers_reused():
     assert_agree(f, _points(300, 2))
 
 
+@pytest.mark.default_backend
 def test_backend_switch_and_errors():
     f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
     p = _points(300, 3)
@@ -288,15 +289,46 @@ def test_backend_switch_and_errors():
         f(*p.T, backend="jit")
     with pytest.raises(ValueError, match="got symbol .z."):
         compile_tape(X + Symbol("z"), ["x", "y"])
-    assert sdf.Function.backend == "kernel"  # nothing changes for users who don't opt in
-    d = f(*p.T)
-    assert f.compiled._tape is None  # the default path never builds a tape
+    assert sdf.Function.backend == "auto"  # the shipped default: the tape, then the kernel
+    f(*p.T, backend="kernel")
+    assert f.compiled._tape is None  # the kernel path never builds a tape
+    # a call that asks for pruning goes to the kernel: pruned blends are its own approximation
+    g = sdf.Circle([0.1, 0], 0.5) | sdf.Circle([0.5, 0.2], 0.3)
+    g(*p.T, prune=True)
+    assert g.compiled._tape is None and g.compiled._warm is None
+
+
+@pytest.mark.default_backend
+def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bits():
+    """The default call on a new scene answers through the tape and starts the kernel's
+    compilation in a background thread; once it is done, calls run the kernel and return the
+    same bits (value-only and value + gradient, with parameters, non-finite points too)."""
+    rng = np.random.default_rng()  # a scene of its own (not in the kernel cache already)
+    a = Param("a", 0.3)
+    f = sdf.Halfspace([0, 1], -1.8 + rng.uniform(-1e-3, 1e-3))
+    for _ in range(7):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness(float(rng.uniform(1, 9))):
+            f = f | sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
+    f = f.union(sdf.Circle([a, 0.2], 0.3), k=0.2, kind="quadratic")
+    p = _points(5000, 4)
+    d0, g0 = f(*p.T, compute_gradient=True, a=0.7)
+    c = f.compiled
+    assert c._tape is not None and c._numpy is None and c._warm is not None
+    v0 = f(*p.T)
+    assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
+    assert f._path_for("auto", p[:, 0]) is None  # the kernel answers from now on
+    d1, g1 = f(*p.T, compute_gradient=True, a=0.7)
+    assert_same_bits(d1, d0)
+    assert_same_bits(g1, g0)
+    assert_same_bits(f(*p.T), v0)
+    assert math.isnan(d1[0]) and math.isnan(d0[0])
 
 
 def test_auto_backend_answers_then_switches_to_the_kernel():
-    """``backend='auto'``: the first call answers through the tape or NumPy (whichever the cost
-    model says is cheaper) and starts the compilation
-    in a background thread; once it is done, calls run the kernel (same answers)."""
+    """``backend='auto'`` named on a call, with the kernel as the class default: the first call
+    answers through the tape and starts the compilation in a background thread; once it is
+    done, calls run the kernel (the same bits)."""
     rng = np.random.default_rng(11)
     f = sdf.Halfspace([0, 1], -1.8)
     for _ in range(7):  # a scene of its own (not in the kernel cache of an earlier test)
@@ -306,11 +338,10 @@ def test_auto_backend_answers_then_switches_to_the_kernel():
     p = _points(5000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, backend="auto")
     c = f.compiled
-    assert (c._tape is not None or c._numpy is not None) and c._warm is not None
+    assert c._tape is not None and c._warm is not None
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
     d1, g1 = f(*p.T, compute_gradient=True, backend="auto")
-    ok = np.isfinite(p).all(axis=1)
-    np.testing.assert_allclose(d1[ok], d0[ok], rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(g1[ok], g0[ok], rtol=1e-9, atol=1e-9)
-    np.testing.assert_array_equal(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
+    assert_same_bits(d1, d0)
+    assert_same_bits(g1, g0)
+    assert_same_bits(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
     assert math.isnan(d1[0]) and math.isnan(d0[0])
