@@ -45,6 +45,11 @@ BACKENDS = ("kernel", "tape", "numpy", "auto")
 NUMBA_SETUP_S = 0.4
 TAPE_BUILD_PER_NODE_S = 8e-6
 TAPE_PER_NODE_POINT_S = 1.0e-9
+#: ``backend='auto'`` answers through the tape where that is estimated (by the figures above) to
+#: take less than this (seconds), and otherwise waits for the kernel, whose first answer on a
+#: warm installation takes about 1.3 to 1.8 s: the tape evaluates every node at every point
+#: (never pruned), so a union of thousands of shapes on many points is faster compiled.
+AUTO_TAPE_MAX_S = 1.0
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 #: Automatic pruning: inputs of at least this many points, scenes with at least this many
@@ -379,8 +384,11 @@ class Function:
     by the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
     installation; the first numba call of a process pays numba's one-time setup), while the
     scene's kernel compiles in a background thread started after that first answer; once it
-    is ready (``f.compiled.kernel_ready``) calls run the kernel. The tape computes the kernel's
-    bits, so a call returns the same bits whichever of the two answers it.
+    is ready (``f.compiled.kernel_ready``) calls run the kernel. A call the tape would take
+    longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes on
+    many points; the tape evaluates every node at every point) waits for the kernel instead.
+    The tape computes the kernel's bits, so a call returns the same bits whichever of the two
+    answers it.
     ``backend='kernel'`` waits for the compiled kernel, ``backend='tape'`` always runs the tape,
     ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no numba at
     all, hard unions of many shapes pruned per tile; the kernel's results to rounding, values
@@ -538,8 +546,13 @@ class Function:
                 return d, g, np.zeros_like(d)
             return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True,
                                           **kw)
-        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
-                                      tol=self.prune_tol, **kw)
+        res = self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
+                                     tol=self.prune_tol, **kw)
+        if backend == "auto" and self.compiled._warm is None:
+            # the other kinds (value only, value and gradient) compile meanwhile; until then
+            # calls may still take the tape (the same bits)
+            self.compiled.compile_in_background()
+        return res
 
     def _path_for(self, backend: str, x: Any, prune: bool | None = None):
         """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
@@ -548,6 +561,12 @@ class Function:
             return "numpy"
         if backend == "auto":
             if c.kernel_ready or prune or self.prune_tol is not None:
+                return None
+            per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + \
+                (0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S)
+            budget = int(AUTO_TAPE_MAX_S / per_node)
+            size = len(c._tape) if c._tape is not None else _dag_size(c.expr, budget)
+            if size > budget:
                 return None
             try:
                 c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
@@ -580,6 +599,17 @@ class Function:
 
     def __repr__(self):
         return f"Function({expr_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
+
+
+def _dag_size(root: Expr, limit: int) -> int:
+    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
+    seen, stack = set(), [root]
+    while stack and len(seen) <= limit:
+        node = stack.pop()
+        if id(node) not in seen:
+            seen.add(id(node))
+            stack.extend(node.args)
+    return len(seen)
 
 
 def _numba_warm() -> bool:

@@ -282,7 +282,8 @@ def test_instructions_are_deduplicated_and_registers_reused():
 
 
 @pytest.mark.default_backend
-def test_backend_switch_and_errors():
+def test_backend_switch_and_errors(monkeypatch):
+    from fastsdf import function
     f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
     p = _points(300, 3)
     with pytest.raises(ValueError, match="backend"):
@@ -295,7 +296,13 @@ def test_backend_switch_and_errors():
     # a call that asks for pruning goes to the kernel: pruned blends are its own approximation
     g = sdf.Circle([0.1, 0], 0.5) | sdf.Circle([0.5, 0.2], 0.3)
     g(*p.T, prune=True)
-    assert g.compiled._tape is None and g.compiled._warm is None
+    assert g.compiled._tape is None
+    # a call the tape would take longer for than the kernel's first answer waits for the kernel
+    h = sdf.Circle([0, 0], 0.5) | sdf.Box([0.1, 0.1], [0.6, 0.4])
+    monkeypatch.setattr(function, "AUTO_TAPE_MAX_S", 1e-6)
+    assert h._path_for("auto", p[:, 0]) is None and h.compiled._tape is None
+    monkeypatch.setattr(function, "AUTO_TAPE_MAX_S", 1.0)
+    assert h._path_for("auto", p[:, 0]) == "tape"
 
 
 @pytest.mark.default_backend

@@ -27,12 +27,10 @@ Runtime parameters (:func:`fastsdf.expr.graph.Param`, time ``t``) are inputs of 
 an array per call); the time derivative (``time_derivative=True``) is not offered by the tape.
 
 Per point the tape costs several times the compiled kernel (``python -m bench.bench_tape``), so
-it is for the first calls of a new scene: :class:`fastsdf.function.Function` uses it with
-``backend='tape'`` (always) or ``backend='auto'`` (while the scene's kernel compiles in a
-background thread, where the cost model prefers it to the NumPy path of
-:mod:`fastsdf.backends.npeval`, which needs no numba at all: scenes of thousands of nodes per point,
-once numba's one-time setup in the process is paid or worth paying; see
-:class:`fastsdf.function.Function`).
+it is for the first calls of a new scene: :class:`fastsdf.function.Function` answers through it
+by default (``backend='auto'``) while the scene's kernel compiles in a background thread, and
+with ``backend='tape'`` always. Since its bits are the kernel's, a call returns the same bits
+before and after the kernel takes over.
 """
 
 from __future__ import annotations
