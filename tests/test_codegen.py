@@ -175,7 +175,7 @@ import numpy as np
 from fastsdf.shapes.scenes import box_world
 f = box_world({n})
 p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
-d, g = f(p[:, 0], p[:, 1], compute_gradient=True)
+d, g = f(p[:, 0], p[:, 1], compute_gradient=True, backend="kernel")
 k = f.compiled.module._block_vg  # the scene's compiled code (the batch kernels are shared)
 print(k.stats.cache_hits.__len__() if hasattr(k.stats.cache_hits, '__len__') else 0,
       sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), repr(float(d.sum())))
