@@ -37,7 +37,7 @@ def test_value_only_call_compiles_no_gradient_code():
     unique = 0.3 + (os.getpid() * 7919 + time.time_ns()) % 10 ** 9 * 1e-12
     with sdf.transform(angle=0.123, offset=[0.2, 0.1]):
         f = sdf.Circle([0.31, 0.2], unique) | sdf.Box([-0.1, -0.2], [0.3, 0.4])
-    f(np.zeros(10), np.zeros(10))
+    f(np.zeros(10), np.zeros(10), backend="kernel")  # the default would compile both kinds
     mod = f.compiled.module
     assert mod._block_v.signatures and not mod._block_vg.signatures
     assert not mod.point_vg.signatures and not hasattr(mod, "lanes_vg")  # block kernels only
