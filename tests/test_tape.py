@@ -157,12 +157,12 @@ def _blend(a, b, op, kind, k):
     return a.difference(b, k=k, kind=kind)
 
 
-@settings(max_examples=6, deadline=None, derandomize=True,
+@settings(max_examples=3, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(prims=st.lists(placed, min_size=2, max_size=24),
+@given(prims=st.lists(placed, min_size=2, max_size=16),
        ops=st.lists(st.tuples(st.sampled_from(["|", "&", "-"]),
                               st.sampled_from(["exponential", "quadratic", "cubic"]),
-                              st.floats(0.02, 0.5), st.integers(0, 10 ** 6)), max_size=24),
+                              st.floats(0.02, 0.5), st.integers(0, 10 ** 6)), max_size=16),
        chain=st.sampled_from(["quadratic", "cubic", "exponential"]))
 def test_random_blend_scenes_give_the_kernels_bits(prims, ops, chain):
     """Random scenes of every blend kind (exponential, quadratic, cubic) between random pairs,
