@@ -36,6 +36,8 @@ SECTIONS = [
      "building scenes: the modelling DSL, code generation, tape and pruning plan per size"),
     ("tape", "bench.bench_tape",
      "tape interpreter: cost per point against the kernels, first answer of a new scene"),
+    ("instant", "bench.bench_instant",
+     "a new scene's first answer through each instant path (tape, NumPy) and the default call"),
     ("simd", "bench.bench_simd",
      "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
     ("video", "bench.bench_video",

@@ -34,18 +34,24 @@ __all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN
            "BACKENDS"]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.backends.vm`, NumPy (:mod:`fastsdf.backends.npeval`: no numba at all), or
-#: ``'auto'``: the cheaper of NumPy and the tape while the kernel compiles in a background thread,
-#: then the kernel.
+#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:mod:`fastsdf.backends.npeval`: no
+#: numba at all, the kernel's results to rounding), or ``'auto'`` (the default): the tape while
+#: the kernel compiles in a background thread, then the kernel.
 BACKENDS = ("kernel", "tape", "numpy", "auto")
 
-#: The cost model of ``backend='auto'`` before the kernel is ready (seconds; measured by
-#: ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's one-time setup in a process
+#: The cost model of :meth:`CompiledSDF.first_path`, NumPy against the tape before the kernel is
+#: ready (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's
+#: one-time setup in a process
 #: (the first call of any compiled function, the tape interpreter included), building a tape per
 #: node, and running it per instruction and point (2 threads).
 NUMBA_SETUP_S = 0.4
 TAPE_BUILD_PER_NODE_S = 8e-6
 TAPE_PER_NODE_POINT_S = 1.0e-9
+#: ``backend='auto'`` answers through the tape where that is estimated (by the figures above) to
+#: take less than this (seconds), and otherwise waits for the kernel, whose first answer on a
+#: warm installation takes about 1.3 to 1.8 s: the tape evaluates every node at every point
+#: (never pruned), so a union of thousands of shapes on many points is faster compiled.
+AUTO_TAPE_MAX_S = 1.0
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 #: Automatic pruning: inputs of at least this many points, scenes with at least this many
@@ -75,6 +81,7 @@ class CompiledSDF:
         self._module: ModuleType | None = None
         self._plans: dict = {}
         self._tape: Any = None
+        self._tape_error: str | None = None
         self._numpy: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
@@ -143,9 +150,15 @@ class CompiledSDF:
         """The :class:`fastsdf.backends.vm.Tape` of the expression (built on first use; raises
         ``ValueError`` for an expression the tape does not evaluate)."""
         if self._tape is None:
+            if self._tape_error is not None:  # known already: not walked again per call
+                raise ValueError(self._tape_error)
             from fastsdf.backends.vm import compile_tape
-            with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
-                self._tape = compile_tape(self.expr, self.symbol_names)
+            try:
+                with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
+                    self._tape = compile_tape(self.expr, self.symbol_names)
+            except ValueError as exc:
+                self._tape_error = str(exc)
+                raise
         return self._tape
 
     @property
@@ -374,24 +387,23 @@ class Function:
     shows the generated Python code and ``point_fn`` is the compiled per-point function for use
     inside your own ``@njit`` code.
 
-    Backends: ``f(x, y, backend='kernel')`` (the default, :attr:`backend`) runs the compiled
-    kernel; ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no
-    numba, no wait for a new scene; hard unions of many shapes pruned per tile); ``backend='tape'``
-    runs the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
-    installation; the first numba call of a process pays numba's one-time setup, about 0.4 s);
-    ``backend='auto'`` answers with the cheaper of NumPy and the tape (a cost model:
-    :meth:`CompiledSDF.first_path`) while the scene's kernel compiles in a background thread
-    started after the first answer, and through the kernel once it is ready
-    (``f.compiled.kernel_ready``). All agree with the kernel to rounding (values 1e-12
-    relative, gradients 1e-9), not bit for bit. The tape and NumPy have no time derivative:
-    such calls always use the kernel.
-
-    The default stays ``'kernel'``: with ``'auto'`` the same call can give results that differ
-    in the last bits depending on whether the background compilation has finished (a program's
-    output would depend on timing), and calls made while it compiles share the GIL and the
-    cores with it (measured by ``python -m bench.bench_tape``: up to 3x slower meanwhile).
-    For interactive work, where the first answer matters most, set ``Function.backend =
-    'auto'`` (or on one function).
+    Backends: by default (``backend='auto'``, :attr:`backend`) a new scene is answered at once
+    by the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
+    installation; the first numba call of a process pays numba's one-time setup), while the
+    scene's kernel compiles in a background thread started after that first answer; once it
+    is ready (``f.compiled.kernel_ready``) calls run the kernel. A call the tape would take
+    longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes on
+    many points; the tape evaluates every node at every point) waits for the kernel instead.
+    The tape computes the kernel's bits, so a call returns the same bits whichever of the two
+    answers it.
+    ``backend='kernel'`` waits for the compiled kernel, ``backend='tape'`` always runs the tape,
+    ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no numba at
+    all, hard unions of many shapes pruned per tile; the kernel's results to rounding, values
+    1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy have no time
+    derivative: such calls use the kernel, as do calls on expressions the tape does not
+    evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
+    :attr:`prune_tol` (pruned exponential blends are the kernel's own approximation). Calls
+    made while the kernel compiles share the cores with the compilation.
 
     Pruning (:mod:`fastsdf.backends.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with
     many operands folded into loops, the points are sorted into tiles and each tile evaluates only
@@ -504,9 +516,9 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    #: The default backend of calls: ``'kernel'``, ``'numpy'``, ``'tape'`` or ``'auto'`` (see
-    #: the class docstring for why it is ``'kernel'``).
-    backend = "kernel"
+    #: The default backend of calls: ``'auto'``, ``'kernel'``, ``'numpy'`` or ``'tape'`` (see the
+    #: class docstring).
+    backend = "auto"
 
     @overload
     def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
@@ -551,7 +563,7 @@ class Function:
                 kw = {"t": vals.get("t", 0.0),
                       "params": tuple(vals[n] for n in self.param_names)}
         if backend != "kernel" and not time_derivative:
-            path = self._path_for(backend, x)
+            path = self._path_for(backend, x, prune)
             if path is not None:
                 c = self.compiled
                 ev = c.tape if path == "tape" else c.numpy_scene
@@ -570,26 +582,34 @@ class Function:
                 return d, g, np.zeros_like(d)
             return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True,
                                           **kw)
-        return self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
-                                      tol=self.prune_tol, **kw)
+        res = self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
+                                     tol=self.prune_tol, **kw)
+        if backend == "auto" and self.compiled._warm is None:
+            # the other kinds (value only, value and gradient) compile meanwhile; until then
+            # calls may still take the tape (the same bits)
+            self.compiled.compile_in_background()
+        return res
 
-    def _path_for(self, backend: str, x: Any) -> str | None:
+    def _path_for(self, backend: str, x: Any, prune: bool | None = None) -> str | None:
         """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
         c = self.compiled
         if backend == "numpy":
             return "numpy"
         if backend == "auto":
-            if c.kernel_ready:
+            if c.kernel_ready or prune or self.prune_tol is not None:
                 return None
-            path = c.first_path(int(np.size(x)))
-            if path == "numpy":
-                return path
-        try:
-            c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
-        except ValueError:
-            if backend == "tape":
-                raise
-            return "numpy"
+            per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + \
+                (0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S)
+            budget = int(AUTO_TAPE_MAX_S / per_node)
+            size = len(c._tape) if c._tape is not None else _dag_size(c.expr, budget)
+            if size > budget:
+                return None
+            try:
+                c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
+            except ValueError:
+                return None  # the kernel evaluates it (or says why not)
+            return "tape"
+        c.tape  # noqa: B018 - raises for an expression the tape does not evaluate
         return "tape"
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
@@ -615,6 +635,18 @@ class Function:
 
     def __repr__(self) -> str:
         return f"Function({expr_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
+
+
+def _dag_size(root: Expr, limit: int) -> int:
+    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
+    seen: set[int] = set()
+    stack = [root]
+    while stack and len(seen) <= limit:
+        node = stack.pop()
+        if id(node) not in seen:
+            seen.add(id(node))
+            stack.extend(node.args)
+    return len(seen)
 
 
 def _numba_warm() -> bool:

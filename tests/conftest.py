@@ -12,6 +12,19 @@ os.environ.setdefault("FASTSDF_CACHE_DIR",
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
+@pytest.fixture(autouse=True)
+def _kernel_backend(request, monkeypatch):
+    """Tests call the compiled kernel unless they name a backend or take the marker
+    ``default_backend``: under the shipped default (``'auto'``) which evaluator answers a call
+    depends on a background compilation's progress (the bits do not), and every new scene
+    would compile in a background thread beside the test. ``FASTSDF_TEST_DEFAULT_BACKEND=1``
+    runs every test with the shipped default."""
+    if "default_backend" in request.keywords or os.environ.get("FASTSDF_TEST_DEFAULT_BACKEND"):
+        return
+    from fastsdf.function import Function
+    monkeypatch.setattr(Function, "backend", "kernel")
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

@@ -36,7 +36,7 @@ def test_value_only_call_compiles_no_gradient_code():
     unique = 0.3 + (os.getpid() * 7919 + time.time_ns()) % 10 ** 9 * 1e-12
     with sdf.transform(angle=0.123, offset=[0.2, 0.1]):
         f = sdf.Circle([0.31, 0.2], unique) | sdf.Box([-0.1, -0.2], [0.3, 0.4])
-    f(np.zeros(10), np.zeros(10))
+    f(np.zeros(10), np.zeros(10), backend="kernel")  # the default would compile both kinds
     mod = f.compiled.module
     assert mod._block_v.signatures and not mod._block_vg.signatures
     assert not mod.point_vg.signatures and not hasattr(mod, "lanes_vg")  # block kernels only
@@ -175,7 +175,7 @@ import numpy as np
 from fastsdf.shapes.scenes import box_world
 f = box_world({n})
 p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
-d, g = f(p[:, 0], p[:, 1], compute_gradient=True)
+d, g = f(p[:, 0], p[:, 1], compute_gradient=True, backend="kernel")
 k = f.compiled.module._block_vg  # the scene's compiled code (the batch kernels are shared)
 print(k.stats.cache_hits.__len__() if hasattr(k.stats.cache_hits, '__len__') else 0,
       sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), repr(float(d.sum())))

@@ -23,7 +23,7 @@ _CACHE_SCRIPT = textwrap.dedent("""
     warnings.simplefilter("always")
     import fastsdf as sdf
     f = sdf.Circle([0.1, 0.0], 0.5) | sdf.Box([0.0, 0.0], [1.0, 1.0])
-    d, g = f(np.array([0.3]), np.array([0.2]), compute_gradient=True)
+    d, g = f(np.array([0.3]), np.array([0.2]), compute_gradient=True, backend="kernel")
     k = f.compiled.module._block_vg
     f.point_fn(0.3, 0.2)  # a second cached function of the scene
     print("RESULT", repr(float(d[0])), repr(float(g[0, 0])), repr(float(g[0, 1])),

@@ -138,22 +138,22 @@ x, y = np.random.default_rng(0).uniform(-2, 2, (2, 100_000))
 d, g = f(x, y, compute_gradient=True, backend="numpy")
 out["numba_setup"] = "numba.np.arraymath" in sys.modules or _numba_warm()
 s = seed_world()
-d, g = s(x, y, compute_gradient=True, backend="auto")  # then compiles in a daemon thread
-out["auto_numpy"] = s.compiled._numpy is not None and s.compiled._tape is None
+d, g = s(x, y, compute_gradient=True)  # the tape; then compiles in a daemon thread
+out["default_tape"] = s.compiled._tape is not None and s.compiled._numpy is None
 print(json.dumps(out))
 """
 
 
 def test_first_answer_needs_no_numba(tmp_path):
     """In a fresh process, a new scene answers through NumPy without numba's one-time setup
-    (which would import numba's registries: numba.np.arraymath), and ``'auto'`` chooses NumPy
-    there for 1e5 points."""
+    (which would import numba's registries: numba.np.arraymath), where the cost model prefers
+    it for 1e5 points; the default call answers through the tape (the kernel's bits)."""
     env = dict(os.environ, FASTSDF_CACHE_DIR=str(tmp_path))
     res = subprocess.run([sys.executable, "-c", _FRESH], env=env, capture_output=True,
                          text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
-    assert out == {"path": "numpy", "auto_numpy": True, "numba_setup": False}
+    assert out == {"path": "numpy", "default_tape": True, "numba_setup": False}
 
 
 def test_operands_that_differ_in_sharing_or_attributes():

@@ -1,7 +1,8 @@
-"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: two independent
-evaluators of one scene must agree to rounding (values 1e-12 relative, gradients 1e-9) on random
-scenes, every primitive kind, smooth blends, transforms, parameters and non-finite points; and the
-``backend`` switch of Function (``'auto'`` answers through the tape, then the kernel)."""
+"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: the tape computes the
+kernel's bits (value and gradient, bit for bit) on the bench scenes, random scenes, every
+primitive kind, smooth and polynomial blends, transforms, parameters and non-finite points; the
+NumPy path agrees to rounding (values 1e-12 relative, gradients 1e-9); and the ``backend``
+switch of Function (``'auto'`` answers through the tape, then the kernel)."""
 
 import math
 
@@ -18,6 +19,7 @@ from test_codegen import (
 )
 
 import fastsdf as sdf
+import fastsdf.expr.graph  # sdf.graph
 import fastsdf.graph as cg
 from fastsdf.backends.vm import BLOCK, compile_tape
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy
@@ -35,20 +37,34 @@ def _points(n, seed, bad=True):
     return p
 
 
+def assert_same_bits(a, b):
+    """Equal bit patterns (any NaN equals any NaN: the payload is not a result)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    assert a.shape == b.shape
+    same = (a.view(np.int64) == b.view(np.int64)) | (np.isnan(a) & np.isnan(b))
+    bad = np.argwhere(~same)
+    assert same.all(), (f"{len(bad)} of {a.size} differ, e.g. at {bad[:3].tolist()}: "
+                        f"{a[~same][:3].tolist()} vs {b[~same][:3].tolist()}")
+
+
 def assert_agree(f, p, backends=("tape", "numpy"), **params):
-    """Tape and NumPy path each agree with the kernel, value (also value-only calls) and
-    gradient; non-finite points give NaN for those points only."""
+    """The tape gives the kernel's bits, the NumPy path agrees with it to rounding, value (also
+    value-only calls) and gradient; non-finite points give NaN for those points only."""
     dk, gk = f(*p.T, compute_gradient=True, **params)
     ok = np.isfinite(p).all(axis=1)
     for backend in backends:
         dt, gt = f(*p.T, compute_gradient=True, backend=backend, **params)
         assert np.all(np.isnan(dt[~ok])) and np.all(np.isnan(gt[~ok]))
         assert np.array_equal(np.isnan(dt), np.isnan(dk))
-        scale = max(1.0, float(np.nanmax(np.abs(dk[ok])))) if ok.any() else 1.0
-        np.testing.assert_allclose(dt[ok], dk[ok], rtol=1e-12, atol=1e-12 * scale)
+        if backend == "tape":
+            assert_same_bits(dt, dk)
+            assert_same_bits(gt, gk)
+        fin = ok & np.isfinite(dk)
+        scale = max(1.0, float(np.max(np.abs(dk[fin])))) if fin.any() else 1.0
+        np.testing.assert_allclose(dt[fin], dk[fin], rtol=1e-12, atol=1e-12 * scale)
         np.testing.assert_allclose(gt[ok], gk[ok], rtol=1e-9, atol=1e-9)
         vt = f(*p.T, backend=backend, **params)
-        np.testing.assert_array_equal(vt, dt)  # the value does not depend on the gradient's mode
+        assert_same_bits(vt, dt)  # the value does not depend on the gradient's mode
         if backend == backends[0]:
             out = dt, gt
     return out
@@ -117,6 +133,81 @@ def test_random_scenes(prims, ops):
     unions, intersections and differences (the scene builder of test_codegen)."""
     f = build_scene(prims, ops)
     assert_agree(f, _points(400, len(prims)))
+
+
+def _circles(n, seed=3):
+    rng = np.random.default_rng(seed)
+    f = sdf.Circle(rng.uniform(-2, 2, 2), 0.1)
+    for _ in range(n - 1):
+        f = f | sdf.Circle(rng.uniform(-2, 2, 2), rng.uniform(0.05, 0.2))
+    return f
+
+
+@pytest.mark.parametrize("scene", [seed_world, lambda: box_world(20), lambda: _circles(200)],
+                         ids=["seed world", "20-box world", "200 circles"])
+def test_bench_scenes_give_the_kernels_bits(scene):
+    """The bench scenes (a hard union of 200 primitives is a combine program in the kernel) on
+    points spread over the scene, several blocks: the tape's bits are the kernel's."""
+    f = scene()
+    p = _points(3 * BLOCK + 17, 23)
+    assert_agree(f, p, backends=("tape",))
+
+
+def _blend(a, b, op, kind, k):
+    if op == "|":
+        return a.union(b, k=k, kind=kind)
+    if op == "&":
+        return a.intersection(b, k=k, kind=kind)
+    return a.difference(b, k=k, kind=kind)
+
+
+@settings(max_examples=3, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(prims=st.lists(placed, min_size=2, max_size=16),
+       ops=st.lists(st.tuples(st.sampled_from(["|", "&", "-"]),
+                              st.sampled_from(["exponential", "quadratic", "cubic"]),
+                              st.floats(0.02, 0.5), st.integers(0, 10 ** 6)), max_size=16),
+       chain=st.sampled_from(["quadratic", "cubic", "exponential"]))
+def test_random_blend_scenes_give_the_kernels_bits(prims, ops, chain):
+    """Random scenes of every blend kind (exponential, quadratic, cubic) between random pairs,
+    the rest joined by one left fold of blends (folded into loops where four neighbours share
+    a shape): the tape's bits are the kernel's."""
+    shapes = [build_scene([pr], []) for pr in prims]
+    for op, kind, k, pick in ops:
+        if len(shapes) == 2:
+            break
+        a = shapes.pop(pick % len(shapes))
+        b = shapes.pop(pick // 7 % len(shapes))
+        shapes.append(_blend(a, b, op, kind, k))
+    f = shapes[0]
+    for s in shapes[1:]:
+        f = f.union(s, k=0.1, kind=chain)
+    assert_agree(f, _points(300, len(prims)), backends=("tape",))
+
+
+def test_loop_members_with_nested_chains_and_zero_gradient_components():
+    """Corners where the generated code's form decides the last bits: loop members whose
+    nested chains the loop evaluates pairwise (the straight-line code would flatten them), a
+    left fold of blends that opens with a loop, and chains whose gradient components are known
+    zero (the kernel still carries them: at x = 0, 1/x makes them NaN, not dropped terms)."""
+    rng = np.random.default_rng(4)
+    members = []
+    for _ in range(6):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness(6.0):
+            members.append(sdf.Circle([0, 0], 0.2) | sdf.Box([-0.2, -0.1], [0.1, 0.2])
+                           | sdf.Circle([0.2, 0], 0.1))
+    hard = members[0]
+    for m in members[1:]:
+        hard = hard | m
+    fold = members[0]
+    for m in members[1:]:
+        fold = fold.union(m, k=0.2, kind="cubic")
+    flat = sdf.Function(sdf.graph.sym_min(Y - 1.0, -Y - 1.0) / X + X * Y, [X, Y])
+    p = _points(600, 5)
+    p[:40, 0] = np.repeat([0.0, -0.0, 5e-324, -5e-324], 10)
+    for f in (hard, fold, flat, hard.union(fold, k=0.3, kind="quadratic")):
+        assert_agree(f, p, backends=("tape",))
 
 
 @settings(max_examples=3, deadline=None, derandomize=True)
@@ -194,22 +285,61 @@ def test_instructions_are_deduplicated_and_registers_reused():
     assert_agree(f, _points(300, 2))
 
 
-def test_backend_switch_and_errors():
+@pytest.mark.default_backend
+def test_backend_switch_and_errors(monkeypatch):
+    from fastsdf import function
     f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
     p = _points(300, 3)
     with pytest.raises(ValueError, match="backend"):
         f(*p.T, backend="jit")
     with pytest.raises(ValueError, match="got symbol .z."):
         compile_tape(X + Symbol("z"), ["x", "y"])
-    assert sdf.Function.backend == "kernel"  # nothing changes for users who don't opt in
-    f(*p.T)
-    assert f.compiled._tape is None  # the default path never builds a tape
+    assert sdf.Function.backend == "auto"  # the shipped default: the tape, then the kernel
+    f(*p.T, backend="kernel")
+    assert f.compiled._tape is None  # the kernel path never builds a tape
+    # a call that asks for pruning goes to the kernel: pruned blends are its own approximation
+    g = sdf.Circle([0.1, 0], 0.5) | sdf.Circle([0.5, 0.2], 0.3)
+    g(*p.T, prune=True)
+    assert g.compiled._tape is None
+    # a call the tape would take longer for than the kernel's first answer waits for the kernel
+    h = sdf.Circle([0, 0], 0.5) | sdf.Box([0.1, 0.1], [0.6, 0.4])
+    monkeypatch.setattr(function, "AUTO_TAPE_MAX_S", 1e-6)
+    assert h._path_for("auto", p[:, 0]) is None and h.compiled._tape is None
+    monkeypatch.setattr(function, "AUTO_TAPE_MAX_S", 1.0)
+    assert h._path_for("auto", p[:, 0]) == "tape"
+
+
+@pytest.mark.default_backend
+def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bits():
+    """The default call on a new scene answers through the tape and starts the kernel's
+    compilation in a background thread; once it is done, calls run the kernel and return the
+    same bits (value-only and value + gradient, with parameters, non-finite points too)."""
+    rng = np.random.default_rng(12)
+    a = Param("a", 0.3)
+    f = sdf.Halfspace([0, 1], -1.8)
+    for _ in range(3):
+        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
+                sdf.smoothness(float(rng.uniform(1, 9))):
+            f = f | sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
+    f = f.union(sdf.Circle([a, 0.2], 0.3), k=0.2, kind="quadratic")
+    p = _points(3000, 4)
+    d0, g0 = f(*p.T, compute_gradient=True, a=0.7)
+    c = f.compiled
+    assert c._tape is not None and c._numpy is None and c._warm is not None
+    v0 = f(*p.T)
+    assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
+    assert f._path_for("auto", p[:, 0]) is None  # the kernel answers from now on
+    d1, g1 = f(*p.T, compute_gradient=True, a=0.7)
+    assert_same_bits(d1, d0)
+    assert_same_bits(g1, g0)
+    assert_same_bits(f(*p.T), v0)
+    assert math.isnan(d1[0]) and math.isnan(d0[0])
 
 
 def test_auto_backend_answers_then_switches_to_the_kernel():
-    """``backend='auto'``: the first call answers through the tape or NumPy (whichever the cost
-    model says is cheaper) and starts the compilation
-    in a background thread; once it is done, calls run the kernel (same answers)."""
+    """``backend='auto'`` named on a call, with the kernel as the class default: the first call
+    answers through the tape and starts the compilation in a background thread; once it is
+    done, calls run the kernel (the same bits)."""
     rng = np.random.default_rng(11)
     f = sdf.Halfspace([0, 1], -1.8)
     for _ in range(7):  # a scene of its own (not in the kernel cache of an earlier test)
@@ -219,11 +349,10 @@ def test_auto_backend_answers_then_switches_to_the_kernel():
     p = _points(5000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, backend="auto")
     c = f.compiled
-    assert (c._tape is not None or c._numpy is not None) and c._warm is not None
+    assert c._tape is not None and c._warm is not None
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
     d1, g1 = f(*p.T, compute_gradient=True, backend="auto")
-    ok = np.isfinite(p).all(axis=1)
-    np.testing.assert_allclose(d1[ok], d0[ok], rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(g1[ok], g0[ok], rtol=1e-9, atol=1e-9)
-    np.testing.assert_array_equal(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
+    assert_same_bits(d1, d0)
+    assert_same_bits(g1, g0)
+    assert_same_bits(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
     assert math.isnan(d1[0]) and math.isnan(d0[0])

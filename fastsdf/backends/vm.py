@@ -9,27 +9,28 @@ the whole block (the dispatch costs once per block, not per point), with a regis
 ``BLOCK`` values (and two gradient rows) per live value. Registers are reused once their value
 is dead (linear scan), so the register file follows the scene's width, not its size.
 
-The tape follows the compiled code (:mod:`fastsdf.backends.kernel.codegen`) operation by operation:
-the same formulas for values and partial derivatives (the table of :mod:`fastsdf.expr.ops`), chains
-of ``min``/``max``/``smin``/``smax`` flattened and streamed operand by operand in the generated
-code's order with its tie rule (the earlier operand wins), smooth chains as the same online
-log-sum-exp, the same branch-free ``exp``/``log``/``length`` of
-:mod:`fastsdf.backends.kernel.vmath`, the same compiled primitives of
-:mod:`fastsdf.backends.kernel.prims`. Gradients are forward mode with the same one-sided conventions
-at kinks; a gradient component known to be zero is never multiplied by a partial (as the generated
-code omits it). Results agree with the compiled kernels to rounding (tested: values to 1e-12
-relative, gradients to 1e-9). Non-finite input points give NaN for those points only.
+The tape computes the compiled kernel's bits (:mod:`fastsdf.backends.kernel.codegen`; tested bit
+for bit, value and gradient): the same formulas for values and partial derivatives (the table
+of :mod:`fastsdf.expr.ops`) in the same order; chains of ``min``/``max``/``smin``/``smax``
+flattened and streamed operand by operand in the generated code's order with its tie rule (the
+earlier operand wins), smooth chains as the same online log-sum-exp, loop members evaluated as
+the loop does (nested chains pairwise), left folds of polynomial blends from +huge where they
+open with a loop; the same branch-free ``exp``/``log``/``length`` of
+:mod:`fastsdf.backends.kernel.vmath` and compiled primitives of
+:mod:`fastsdf.backends.kernel.prims`; constant powers as LLVM rewrites them in the kernel.
+Gradients are forward mode with the same one-sided conventions at kinks; a gradient component
+is left out of a sum exactly where the generated code leaves it out (known zero), and carried
+where the generated code carries it (a chain's components, even when zero). Non-finite input
+points give NaN for those points only.
 
 Runtime parameters (:func:`fastsdf.expr.graph.Param`, time ``t``) are inputs of the tape (read from
 an array per call); the time derivative (``time_derivative=True``) is not offered by the tape.
 
 Per point the tape costs several times the compiled kernel (``python -m bench.bench_tape``), so
-it is for the first calls of a new scene: :class:`fastsdf.function.Function` uses it with
-``backend='tape'`` (always) or ``backend='auto'`` (while the scene's kernel compiles in a
-background thread, where the cost model prefers it to the NumPy path of
-:mod:`fastsdf.backends.npeval`, which needs no numba at all: scenes of thousands of nodes per point,
-once numba's one-time setup in the process is paid or worth paying; see
-:class:`fastsdf.function.Function`).
+it is for the first calls of a new scene: :class:`fastsdf.function.Function` answers through it
+by default (``backend='auto'``) while the scene's kernel compiles in a background thread, and
+with ``backend='tape'`` always. Since its bits are the kernel's, a call returns the same bits
+before and after the kernel takes over.
 """
 
 from __future__ import annotations
@@ -152,24 +153,34 @@ class _Builder:
         self.params: dict = {}    # name -> index
         self.defaults: dict = {}
         self.deps: list = []      # per instruction: bit 1 = depends on x, bit 2 = on y
+        # per instruction: which gradient components the generated code carries (bit 1: x,
+        # bit 2: y); a component it knows to be zero is left out of every sum, as there.
+        self.live: list = []
 
-    def emit(self, op, args=(), k=0.0, c=0, d=0, used=None, deps=None):
+    def emit(self, op, args=(), k=0.0, c=0, d=0, used=None, deps=None, live=None,
+             args_live=None):
         """One instruction; returns its virtual register (the instruction's index). ``mask``
-        bit ``2 j + comp`` says that argument j's gradient component comp may be nonzero."""
+        bit ``2 j + comp`` says that argument j's gradient component comp is carried (may be
+        nonzero); ``args_live`` overrides that per argument, ``live`` the result's."""
         args = list(args)
         mask = 0
         for j, a in enumerate(args[:3]):
-            mask |= self.deps[a] << (2 * j)
+            mask |= (self.live[a] if args_live is None else args_live[j]) << (2 * j)
         used = args if used is None else used
         if deps is None:
             deps = 0
             for a in used:
                 deps |= self.deps[a]
+        if live is None:
+            live = deps if not used else 0
+            for a in used:
+                live |= self.live[a]
         idx = len(self.rows)
         full = args + [0] * (3 - len(args))
         self.rows.append([op, idx, full[0], full[1], full[2] if len(args) > 2 else c, d, mask])
         self.consts.append(float(k))
         self.deps.append(deps)
+        self.live.append(live)
         self.used.append(list(used))
         return idx
 
@@ -184,7 +195,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
     planner = _Emitter(names, False, {})
     b = _Builder(names)
     reg: dict = {}
-    chains: dict = {}  # id(chain node) -> [operands, next operand, acc, s, starts at +-huge]
+    chains: dict = {}  # id(chain node) -> _Chain
     # Depth first: each operand is emitted right before it is used (a chain's step follows its
     # operand), so values die young and few registers are live at once.
     stack = [expr]
@@ -194,17 +205,17 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
         if id(node) in reg:
             stack.pop()
             continue
-        if node.op in _CHAINS:
-            st = chains.get(id(node))
-            if st is None:
-                operands, huge = _plan(planner, node)
-                st = chains[id(node)] = [operands, 0, None, None, huge]
-            operands, j = st[0], st[1]
-            if j < len(operands) and id(operands[j]) not in reg and operands[j].op != "const":
-                stack.append(operands[j])
+        ch = chains.get(id(node))
+        if ch is None and (node.op in _CHAINS or node.op in _ORDERED):
+            ch = chains[id(node)] = _Chain(planner, node)
+            if ch.operands is None:  # a left fold without loops: its binary nodes
+                ch = chains[id(node)] = False
+        if ch:
+            nxt = ch.next_operand()
+            if nxt is not None and id(nxt) not in reg:
+                stack.append(nxt)
                 continue
-            stack_done = _chain_step(b, node, st, reg)
-            if stack_done:
+            if ch.step(b, reg):
                 stack.pop()
                 nodes += 1
             continue
@@ -222,53 +233,136 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
                 sorted(b.params, key=lambda name: b.params[name]), b.defaults, nodes)
 
 
-def _plan(planner, node):
-    """A chain's operands in the generated code's order (loops over tables placed where their
-    first member stood) and whether it starts from +-huge (as the generated code does when its
-    first item is a loop)."""
-    from fastsdf.backends.kernel.codegen import _flatten_chain
-    operands = _flatten_chain(node)
-    if len(operands) <= 2:  # the generated code's order is the written one
-        return operands, False
-    _, items = planner._plan(node)
-    operands = []
-    for item in items:
-        if item[0] == "node":
-            operands.append(item[1])
-        else:
-            operands.extend(item[3])
-    return operands, items[0][0] != "node"
+_ORDERED = {"qmin": _QMIN, "cmin": _CMIN}
+#: The generated code carries both gradient components (as variables, possibly zero).
+_LIVE = 3
 
 
-def _chain_step(b: _Builder, node: Expr, st: list, reg: dict) -> bool:
-    """Emit the next instruction of a chain whose next operand is ready; True when done."""
-    operands, j, acc, s, huge = st
-    op = node.op
-    smooth = op in ("smin", "smax")
-    less = op in ("min", "smin")
-    if acc is None:  # start: from the first operand, or from +-huge before a loop's members
-        if huge:
-            acc = b.emit(_CINIT, (), _HUGE if less else -_HUGE, d=1, deps=0)
-        else:
-            first = _arg(b, operands[0], reg)
-            acc = b.emit(_CINIT, (first,), d=0)
-            j = 1
+class _Chain:
+    """One n-ary chain in the generated code's form (see ``codegen._Emitter._plan``): its
+    operands in that order, whether it starts from +-huge (a chain that opens with a loop over
+    a table), which operands are members of such loops, and the emission state.
+
+    A loop member whose subexpression holds chains that the straight-line code would flatten
+    (``codegen._foldable`` false) is evaluated as the loop does, by its template: node by node,
+    each chain binary. Min/max/smin/smax chains: the generated code's streamed accumulator;
+    left folds of polynomial blends (qmin, cmin) with loops: their binary steps, with the
+    accumulator's gradient carried from the first loop on. ``operands`` is None for a left fold
+    without loops (it is evaluated as its binary nodes)."""
+
+    def __init__(self, planner: Any, node: Expr) -> None:
+        from fastsdf.backends.kernel.codegen import _flatten_chain, _foldable
+        self.node, self.planner = node, planner
+        self.ordered = node.op in _ORDERED
+        operands = _flatten_chain(node)
+        self.looped: list = [False] * len(operands)
+        self.huge = False
+        if len(operands) > 2 or self.ordered:
+            _, items = planner._plan(node)
+            if self.ordered and all(item[0] == "node" for item in items):
+                self.operands: Any = None  # a left fold without loops: its binary nodes
+                return
+            operands, self.looped = [], []
+            for item in items:
+                members = [item[1]] if item[0] == "node" else item[3]
+                operands.extend(members)
+                self.looped.extend([item[0] != "node"] * len(members))
+            self.huge = items[0][0] != "node"
+        self.operands = operands
+        memo = planner.memo.setdefault("foldable", {})
+        self.templated = [lp and not _foldable(m, memo)
+                          for lp, m in zip(self.looped, operands, strict=True)]
+        self.j = 0
+        self.acc: int | None = None
+        self.s: int | None = None
+
+    def next_operand(self):
+        """The operand to evaluate (through the graph) before the next step, or None."""
+        j = self.j if self.acc is not None or self.huge else 0
+        if j >= len(self.operands) or self.templated[j] or self.operands[j].op == "const":
+            return None
+        return self.operands[j]
+
+    def _value(self, b: _Builder, j: int, reg: dict) -> int:
+        if self.templated[j]:
+            return _emit_template(b, self.planner, self.operands[j], reg)
+        return _arg(b, self.operands[j], reg)
+
+    def step(self, b: _Builder, reg: dict) -> bool:
+        """Emit the chain's next instruction (its next operand is ready); True when done."""
+        if self.ordered:
+            return self._ordered_step(b, reg)
+        node, op = self.node, self.node.op
+        smooth = op in ("smin", "smax")
+        less = op in ("min", "smin")
+        if self.acc is None:  # start: the first operand, or +-huge before a loop's members
+            if self.huge:
+                self.acc = b.emit(_CINIT, (), _HUGE if less else -_HUGE, d=1, deps=0)
+            else:
+                first = self._value(b, 0, reg)
+                self.acc = b.emit(_CINIT, (first,), d=0)
+                self.j = 1
+            if smooth:
+                self.s = b.emit(_SINIT, (), 0.0 if self.huge else 1.0, deps=0)
+            return False
+        acc, s = self.acc, self.s
+        if self.j < len(self.operands):
+            v = self._value(b, self.j, reg)
+            used = [acc, v] + ([s] if smooth else [])
+            self.acc = b.emit(_CHAINS[op], (), node.attr if smooth else 0.0, used=used)
+            b.rows[-1][2:5] = [acc, v, s if smooth else 0]
+            self.j += 1
+            return False
         if smooth:
-            s = b.emit(_SINIT, (), 0.0 if huge else 1.0, deps=0)
-        st[1:4] = j, acc, s
-        return False
-    if j < len(operands):
-        v = _arg(b, operands[j], reg)
-        used = [acc, v] + ([s] if smooth else [])
-        st[2] = b.emit(_CHAINS[op], (), node.attr if smooth else 0.0, used=used)
-        b.rows[-1][2:5] = [acc, v, s if smooth else 0]
-        st[1] = j + 1
-        return False
-    if smooth:
-        acc = b.emit(_SEND, (), node.attr, d=int(less), used=[acc, s])
-        b.rows[-1][2], b.rows[-1][4] = st[2], s
-    reg[id(node)] = acc
-    return True
+            acc = b.emit(_SEND, (), node.attr, d=int(less), used=[acc, s])
+            b.rows[-1][2], b.rows[-1][4] = self.acc, s
+        b.live[acc] = _LIVE
+        reg[id(node)] = acc
+        return True
+
+    def _ordered_step(self, b: _Builder, reg: dict) -> bool:
+        node = self.node
+        if self.acc is None:
+            if self.huge:  # the blend of +huge and a is a
+                self.acc = b.emit(_CONST, (), float(_HUGE), deps=0)
+            else:
+                self.acc = self._value(b, 0, reg)
+                self.j = 1
+            return False
+        if self.j < len(self.operands):
+            v = self._value(b, self.j, reg)
+            looped = self.looped[self.j]
+            acc_live = _LIVE if looped else b.live[self.acc]
+            self.acc = b.emit(_ORDERED[node.op], (self.acc, v), node.attr,
+                              args_live=(acc_live, b.live[v]),
+                              live=_LIVE if looped else None)
+            self.j += 1
+            return False
+        reg[id(node)] = self.acc
+        return True
+
+
+def _emit_template(b: _Builder, planner: Any, member: Expr, reg: dict) -> int:
+    """A loop member as the generated loop evaluates it: its template's nodes in order, each
+    chain binary (the straight-line code would flatten nested chains)."""
+    _, steps, _ = planner._template(member)
+    local: dict = {}
+    for node, _refs in steps:
+        if node.op in ("sym", "param"):
+            if id(node) not in reg:
+                reg[id(node)] = _emit_node(b, node, reg)
+            local[id(node)] = reg[id(node)]
+        elif node.op in _CHAINS:
+            ch = _Chain.__new__(_Chain)
+            ch.node, ch.planner, ch.ordered, ch.huge = node, planner, False, False
+            ch.operands = list(node.args)
+            ch.looped = ch.templated = [False] * len(ch.operands)
+            ch.j, ch.acc, ch.s = 0, None, None
+            while not ch.step(b, local):
+                pass
+        else:
+            local[id(node)] = _emit_node(b, node, local)
+    return local[id(member)]
 
 
 def _arg(b: _Builder, node: Expr, reg: dict) -> int:
@@ -307,11 +401,12 @@ def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
     args = [_arg(b, a, reg) for a in node.args]
     if op in _UNARY:
         return b.emit(_UNARY[op], args, node.attr if op == "powc" else 0.0,
-                      deps=0 if op == "floor" else None)
+                      deps=0 if op == "floor" else None, live=0 if op == "floor" else None)
     if op in _BINARY:
         return b.emit(_BINARY[op], args, node.attr if op in ("qmin", "cmin") else 0.0)
     if op == "select":
-        return b.emit(_SELECT, args, used=args, deps=b.deps[args[1]] | b.deps[args[2]])
+        return b.emit(_SELECT, args, used=args, deps=b.deps[args[1]] | b.deps[args[2]],
+                      live=b.live[args[1]] | b.live[args[2]])
     if op == "prim":
         kind, data = node.attr
         if any(b.deps[a] for a in args[2:]):
@@ -492,8 +587,11 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                     PA[i] = -r * r
             else:
                 for i in range(n):
-                    V[d, i] = V[a, i] ** k
-                    PA[i] = k * V[a, i] ** (k - 1.0)
+                    V[d, i] = _powc(V[a, i], k)
+                if grad:
+                    k1 = k - 1.0
+                    for i in range(n):
+                        PA[i] = k * _powc(V[a, i], k1)
             lin = 1
         elif op == _POW:
             for i in range(n):
@@ -501,7 +599,7 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                 V[d, i] = r
                 if grad:
                     PA[i] = V[b, i] * V[a, i] ** (V[b, i] - 1.0)
-                    PB[i] = r * math.log(V[a, i])
+                    PB[i] = r * vlog(V[a, i])
             lin = 2
         elif op == _SQRT:
             for i in range(n):
@@ -567,10 +665,11 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                 else:
                     V[d, i] = m - h * h * h * kq
                     o = h * h * 0.5
-                wa = _sel(w, 1.0 - o, o)
-                PA[i] = wa
-                PB[i] = 1.0 - wa
-            lin = 2
+                PA[i] = _sel(w, 1.0 - o, o)
+                PB[i] = h
+            if grad:  # inside the blend the weighted sum, outside the smaller one's gradient
+                _blend_grad(GX, V, d, a, b, PA, PB, mask & 1, mask & 4, n)
+                _blend_grad(GY, V, d, a, b, PA, PB, mask & 2, mask & 8, n)
         elif op == _SELECT:
             for i in range(n):
                 V[d, i] = _sel(V[a, i] > 0.0, V[b, i], V[c, i])
@@ -683,6 +782,40 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
             # the generated code's sum: terms of known-zero components are left out
             _lin2(GX, d, a, PA, mask & 1, b, PB, mask & 4, n)
             _lin2(GY, d, a, PA, mask & 2, b, PB, mask & 8, n)
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _powc(x, e):
+    """``x ** e`` as the generated code's ``x ** <literal e>`` computes it: LLVM rewrites a
+    power with the constant exponent 2 into ``x * x`` and 0.5 into a square root (with the
+    power's results at -0 and -inf)."""
+    if e == 2.0:
+        return x * x
+    if e == 0.5:
+        return _sel(x == -math.inf, math.inf, abs(math.sqrt(x)))
+    return x ** e
+
+
+@njit(nogil=True, error_model="numpy", inline="always")
+def _blend_grad(G, V, d, a, b, wa, h, ua, ub, n):
+    """A polynomial blend's gradient component (weights ``wa``, ``1 - wa`` where ``h > 0``;
+    else the smaller operand's), leaving out the terms of components known to be zero."""
+    if ua and ub:
+        for i in range(n):
+            w = V[a, i] <= V[b, i]
+            G[d, i] = _sel(h[i] > 0.0, G[a, i] * wa[i] + G[b, i] * (1.0 - wa[i]),
+                           _sel(w, G[a, i], G[b, i]))
+    elif ua:
+        for i in range(n):
+            w = V[a, i] <= V[b, i]
+            G[d, i] = _sel(h[i] > 0.0, G[a, i] * wa[i], _sel(w, G[a, i], 0.0))
+    elif ub:
+        for i in range(n):
+            w = V[a, i] <= V[b, i]
+            G[d, i] = _sel(h[i] > 0.0, G[b, i] * (1.0 - wa[i]), _sel(w, 0.0, G[b, i]))
+    else:
+        for i in range(n):
+            G[d, i] = 0.0
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
