@@ -57,7 +57,7 @@ def test_console_script_is_declared():
     cfg = configparser.ConfigParser()
     cfg.read(os.path.join(REPO, "setup.cfg"))
     scripts = cfg["options.entry_points"]["console_scripts"]
-    assert "fastsdf = fastsdf.__main__:main" in scripts
+    assert "fastsdf = fastsdf.apps.cli:main" in scripts
 
 
 

@@ -36,6 +36,8 @@ def evaluate(kind: str, data: Any, u: ArrayLike, v: ArrayLike, constants: Sequen
         return ellipse(ub, vb, a, b)
     if kind == "polygon":
         return polygon(ub, vb, np.asarray(data, dtype=np.float64))
+    if kind == "outline":
+        return outline(ub, vb, np.asarray(data, dtype=np.float64))
     raise NotImplementedError(kind)
 
 
