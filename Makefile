@@ -48,6 +48,7 @@ docs: $(VENV)/.docs
 # package (pyproject [tool.mypy]) and the layer contract (pyproject [tool.importlinter]).
 lint: $(VENV)/.test
 	$(VENV)/bin/ruff check fastsdf tests bench examples
+	$(VENV)/bin/ruff format --check fastsdf tests bench examples
 	$(VENV)/bin/mypy fastsdf
 	$(VENV)/bin/lint-imports
 

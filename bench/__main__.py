@@ -22,32 +22,71 @@ from .common import HERE, machine_info
 SECTIONS = [
     ("core", "bench.bench_core", "exact compiled SDFs: throughput and compile time"),
     ("grid", "bench.bench_grid", "GridSDF: build, memory, query speed and error vs resolution"),
-    ("particles", "bench.bench_particles",
-     "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32"),
-    ("params", "bench.bench_params",
-     "runtime parameters: cost against constants; a 300-frame moving scene, compiles and speed"),
-    ("prune", "bench.bench_prune",
-     "pruning per tile: hard unions of many shapes, exponential box worlds (tol), seed world"),
-    ("band", "bench.bench_band",
-     "narrow-band grids: memory, error, query speed; particles' speed against error"),
-    ("distributed", "bench.bench_distributed",
-     "particles sharded over Dask workers: 1 vs 2 processes, per-call overhead, client memory"),
-    ("build", "bench.bench_build",
-     "building scenes: the modelling DSL, code generation, tape and pruning plan per size"),
-    ("tape", "bench.bench_tape",
-     "tape interpreter: cost per point against the kernels, first answer of a new scene"),
-    ("instant", "bench.bench_instant",
-     "a new scene's first answer through each instant path (tape, NumPy) and the default call"),
-    ("simd", "bench.bench_simd",
-     "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi"),
-    ("video", "bench.bench_video",
-     "video frames of 1e6 particles at 720p: the compiled frame writer vs save_animation"),
-    ("io", "bench.bench_io",
-     "trajectory files: recording 1e6 positions every 10 steps against the run alone"),
-    ("geometry", "bench.bench_geometry",
-     "distance transform of a mask against scipy; mask and image grids' error tables"),
-    ("granular", "bench.bench_granular",
-     "granular DEM: a dense bed in full contact against LAMMPS gran/hooke, same run"),
+    (
+        "particles",
+        "bench.bench_particles",
+        "fused particle step vs the notebook's NumPy step, memory floor, tunnelling check, float32",
+    ),
+    (
+        "params",
+        "bench.bench_params",
+        "runtime parameters: cost against constants; a 300-frame moving scene, compiles and speed",
+    ),
+    (
+        "prune",
+        "bench.bench_prune",
+        "pruning per tile: hard unions of many shapes, exponential box worlds (tol), seed world",
+    ),
+    (
+        "band",
+        "bench.bench_band",
+        "narrow-band grids: memory, error, query speed; particles' speed against error",
+    ),
+    (
+        "distributed",
+        "bench.bench_distributed",
+        "particles sharded over Dask workers: 1 vs 2 processes, per-call overhead, client memory",
+    ),
+    (
+        "build",
+        "bench.bench_build",
+        "building scenes: the modelling DSL, code generation, tape and pruning plan per size",
+    ),
+    (
+        "tape",
+        "bench.bench_tape",
+        "tape interpreter: cost per point against the kernels, first answer of a new scene",
+    ),
+    (
+        "instant",
+        "bench.bench_instant",
+        "a new scene's first answer through each instant path (tape, NumPy) and the default call",
+    ),
+    (
+        "simd",
+        "bench.bench_simd",
+        "SIMD block kernels and vectorizable exp/log vs the kernels before, math.*, Taichi",
+    ),
+    (
+        "video",
+        "bench.bench_video",
+        "video frames of 1e6 particles at 720p: the compiled frame writer vs save_animation",
+    ),
+    (
+        "io",
+        "bench.bench_io",
+        "trajectory files: recording 1e6 positions every 10 steps against the run alone",
+    ),
+    (
+        "geometry",
+        "bench.bench_geometry",
+        "distance transform of a mask against scipy; mask and image grids' error tables",
+    ),
+    (
+        "granular",
+        "bench.bench_granular",
+        "granular DEM: a dense bed in full contact against LAMMPS gran/hooke, same run",
+    ),
 ]
 
 HEADER = """# fastsdf benchmark results
@@ -71,16 +110,22 @@ def assemble() -> str:
 
 def main(argv=None) -> int:
     names = [s[0] for s in SECTIONS]
-    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--quick", action="store_true", help="reduced sizes (a smoke run)")
     parser.add_argument("--only", nargs="+", choices=names, help="run only these sections")
     parser.add_argument("--no-write", action="store_true", help="print, do not write RESULTS.md")
     args = parser.parse_args(argv)
     chosen = [s for s in SECTIONS if not args.only or s[0] in args.only]
     info = machine_info()
-    print(f"fastsdf bench: {info['cores']} cores ({info['cpu']}), numba {info['numba']}, "
-          f"{info['numba_threads']} threads{' (quick)' if args.quick else ''}", file=sys.stderr)
+    print(
+        f"fastsdf bench: {info['cores']} cores ({info['cpu']}), numba {info['numba']}, "
+        f"{info['numba_threads']} threads{' (quick)' if args.quick else ''}",
+        file=sys.stderr,
+    )
     os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
     for name, module, what in chosen:
         t0 = time.perf_counter()

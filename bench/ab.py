@@ -44,21 +44,35 @@ def best(fn, repeats=5):
 """
 
 WORKLOADS = {
-    "seed": ("exact seed world, value + gradient, 1e6 points", "M points/s", """
+    "seed": (
+        "exact seed world, value + gradient, 1e6 points",
+        "M points/s",
+        """
 f = seed_world(); x, y = np.random.default_rng(0).uniform(-2, 2, (2, 1_000_000))
 print(json.dumps({"rate": 1.0 / best(lambda: f(x, y, compute_gradient=True))}))
-"""),
-    "box20": ("exact 20-box world, value + gradient, 1e6 points", "M points/s", """
+""",
+    ),
+    "box20": (
+        "exact 20-box world, value + gradient, 1e6 points",
+        "M points/s",
+        """
 f = box_world(20); x, y = np.random.default_rng(0).uniform(-2, 2, (2, 1_000_000))
 print(json.dumps({"rate": 1.0 / best(lambda: f(x, y, compute_gradient=True))}))
-"""),
-    "grid": ("GridSDF 400x400 of the seed world, value + gradient, 1e6 points", "M points/s", """
+""",
+    ),
+    "grid": (
+        "GridSDF 400x400 of the seed world, value + gradient, 1e6 points",
+        "M points/s",
+        """
 g = sdf.GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
 x, y = np.random.default_rng(0).uniform(-2, 2, (2, 1_000_000))
 print(json.dumps({"rate": 1.0 / best(lambda: g(x, y, compute_gradient=True))}))
-"""),
-    "particles": ("1e6 particles on the seed world's 400x400 grid, gravity, 60 steps after 240",
-                  "M particle-steps/s", """
+""",
+    ),
+    "particles": (
+        "1e6 particles on the seed world's 400x400 grid, gravity, 60 steps after 240",
+        "M particle-steps/s",
+        """
 import fastsdf.particles as phys
 g = sdf.GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
 np.random.seed(0)
@@ -67,14 +81,18 @@ sim.force_generators.append(phys.Gravity())
 sim.run(240)
 t0 = time.perf_counter(); sim.run(60); dt = time.perf_counter() - t0
 print(json.dumps({"rate": 60 / dt}))
-"""),
-    "first": ("first answer of a new 20-box world (fresh process, warm cache), 1e5 points",
-              "s (lower is better)", """
+""",
+    ),
+    "first": (
+        "first answer of a new 20-box world (fresh process, warm cache), 1e5 points",
+        "s (lower is better)",
+        """
 t0 = time.perf_counter()
 f = box_world(20); x, y = np.random.default_rng(1).uniform(-2, 2, (2, 100_000))
 f(x, y, compute_gradient=True)
 print(json.dumps({"rate": time.perf_counter() - t0}))
-"""),
+""",
+    ),
 }
 
 
@@ -89,16 +107,25 @@ def _export(rev: str, dest: str) -> str:
 
 def _run(tree: str, cache: str, code: str) -> float:
     env = dict(os.environ, PYTHONPATH=tree, FASTSDF_CACHE_DIR=cache, MPLBACKEND="Agg")
-    res = subprocess.run([sys.executable, "-c", PREAMBLE + code], env=env, cwd=tree,
-                         capture_output=True, text=True, timeout=1800)
+    res = subprocess.run(
+        [sys.executable, "-c", PREAMBLE + code],
+        env=env,
+        cwd=tree,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     if res.returncode:
         raise RuntimeError(f"workload failed in {tree}:\n{res.stderr[-2000:]}")
     return float(json.loads(res.stdout.strip().splitlines()[-1])["rate"])
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.ab", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.ab",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--rev", required=True, help="git revision of the baseline")
     parser.add_argument("--only", nargs="+", choices=list(WORKLOADS), default=list(WORKLOADS))
     parser.add_argument("--rounds", type=int, default=3)
@@ -107,8 +134,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--rounds must be at least 1, got {args.rounds}")
     with tempfile.TemporaryDirectory(prefix="fastsdf_ab_") as tmp:
         base = _export(args.rev, tmp)
-        sides = {"baseline": (base, os.path.join(tmp, "cache_base")),
-                 "this": (REPO, os.path.join(tmp, "cache_this"))}
+        sides = {
+            "baseline": (base, os.path.join(tmp, "cache_base")),
+            "this": (REPO, os.path.join(tmp, "cache_this")),
+        }
         rates: dict = {(w, s): [] for w in args.only for s in sides}
         for rnd in range(args.rounds + 1):
             for w in args.only:

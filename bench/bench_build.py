@@ -32,6 +32,7 @@ COMMAND = "python -m bench.bench_build"
 def boxes_loop(n: int, seed: int = 0):
     """A hard union of ``n`` small boxes, written ``f = f | Box(...)`` in a loop."""
     import fastsdf as sdf
+
     c = np.random.default_rng(seed).uniform(-2, 2, (n, 2))
     f = sdf.Box(c[0] - 0.05, c[0] + 0.05)
     for p in c[1:]:
@@ -42,10 +43,12 @@ def boxes_loop(n: int, seed: int = 0):
 def boxes_list(n: int, seed: int = 0):
     """The same union from a list comprehension, united at once (``fastsdf.union``)."""
     import fastsdf as sdf
+
     c = np.random.default_rng(seed).uniform(-2, 2, (n, 2))
     shapes = [sdf.Box(p - 0.05, p + 0.05) for p in c]
     if not hasattr(sdf, "union"):  # an older fastsdf (to compare): a left fold
         import functools
+
         return functools.reduce(lambda a, b: a | b, shapes)
     return sdf.union(shapes)
 
@@ -53,24 +56,34 @@ def boxes_list(n: int, seed: int = 0):
 def polygons_list(n: int, seed: int = 0):
     """A union of ``n`` small rotated stars and triangles (compiled polygon primitives)."""
     import fastsdf as sdf
+
     rng = np.random.default_rng(seed)
     shapes = []
     for i, p in enumerate(rng.uniform(-2, 2, (n, 2))):
         with sdf.transform(angle=float(rng.uniform(-3, 3)), offset=p):
-            shapes.append(sdf.Star([0, 0], 0.08, 5) if i % 2 else
-                          sdf.Polygon([[0, 0], [0.1, 0], [0.05, 0.07]]))
+            shapes.append(
+                sdf.Star([0, 0], 0.08, 5)
+                if i % 2
+                else sdf.Polygon([[0, 0], [0.1, 0], [0.05, 0.07]])
+            )
     return sdf.union(shapes)
 
 
 def _scenes(quick: bool):
     from fastsdf.shapes import scenes
+
     out = [("seed world", 1, lambda seed: scenes.seed_world())]
     sizes = (200, 1000) if quick else (200, 1000, 5000)
     for n in sizes:
         out.append((f"{n} boxes, `f = f \\| Box` loop", n, lambda seed, n=n: boxes_loop(n, seed)))
         out.append((f"{n} boxes, `union([...])`", n, lambda seed, n=n: boxes_list(n, seed)))
-    out.append(("1000 polygons (stars, triangles), `union([...])`", 1000,
-                lambda seed: polygons_list(1000, seed)))
+    out.append(
+        (
+            "1000 polygons (stars, triangles), `union([...])`",
+            1000,
+            lambda seed: polygons_list(1000, seed),
+        )
+    )
     for n in (200, 1000):
         out.append((f"mixed_scene({n})", n, lambda seed, n=n: scenes.mixed_scene(n, seed + 1)))
     return out
@@ -109,6 +122,7 @@ def _ms(s):
 def run(quick: bool = False) -> str:
     import fastsdf  # noqa: F401 - import cost is not part of the table
     from fastsdf.shapes import scenes
+
     scenes.mixed_scene(20)  # warm-up: first-call costs of the modelling layer
     boxes_list(20)
     load = os.getloadavg()[0]
@@ -116,30 +130,52 @@ def run(quick: bool = False) -> str:
     for name, n, build in _scenes(quick):
         r = measure(build, repeats=2 if quick else 3)
         total = sum(v for v in r.values() if v is not None)
-        rows.append([name, n, _ms(r["build"]), f"{r['build'] / n * 1e6:.0f}", _ms(r["codegen"]),
-                     _ms(r["tape"]), _ms(r["plan"]), _ms(total)])
-    head = ["scene", "primitives", "build (ms)", "build per primitive (us)", "codegen (ms)",
-            "tape (ms)", "plan 32x32 (ms)", "total (ms)"]
-    return "\n".join([
-        "## Building scenes: the modelling DSL and the passes before the first evaluation",
-        "",
-        stamp(COMMAND) + f" Load average at start: {load:.1f}.",
-        "",
-        "CPU time of this process (single-threaded steps: the wall time on an idle machine), "
-        "median over 3 scenes of each kind (other random constants each time), in one process "
-        "after a warm-up; pure Python and NumPy, no numba compilation. 'codegen': the generated "
-        "module's source (`f.compiled.module_source`); 'tape': `f.compiled.tape`; "
-        "'plan': the pruning plan over [-3, 3]^2 in 32 x 32 tiles (scenes with loops over "
-        "tables only).",
-        "",
-        table(head, rows),
-        "",
-    ])
+        rows.append(
+            [
+                name,
+                n,
+                _ms(r["build"]),
+                f"{r['build'] / n * 1e6:.0f}",
+                _ms(r["codegen"]),
+                _ms(r["tape"]),
+                _ms(r["plan"]),
+                _ms(total),
+            ]
+        )
+    head = [
+        "scene",
+        "primitives",
+        "build (ms)",
+        "build per primitive (us)",
+        "codegen (ms)",
+        "tape (ms)",
+        "plan 32x32 (ms)",
+        "total (ms)",
+    ]
+    return "\n".join(
+        [
+            "## Building scenes: the modelling DSL and the passes before the first evaluation",
+            "",
+            stamp(COMMAND) + f" Load average at start: {load:.1f}.",
+            "",
+            "CPU time of this process (single-threaded steps: the wall time on an idle machine), "
+            "median over 3 scenes of each kind (other random constants each time), in one process "
+            "after a warm-up; pure Python and NumPy, no numba compilation. "
+            "'codegen': the generated "
+            "module's source (`f.compiled.module_source`); 'tape': `f.compiled.tape`; "
+            "'plan': the pruning plan over [-3, 3]^2 in 32 x 32 tiles (scenes with loops over "
+            "tables only).",
+            "",
+            table(head, rows),
+            "",
+        ]
+    )
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog=COMMAND, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="smaller scenes")
     args = parser.parse_args(argv)
     print(run(quick=args.quick))

@@ -59,9 +59,19 @@ def ours(n: int) -> GranularSimulation:
     m = math.pi / 4
     law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5)
     wall = law._replace(restitution=restitution_from_damping(GAMMA_N, KN, m))
-    return GranularSimulation(pos, 0.5, world=fs.Halfspace((0.0, 1.0), 0.0), contact=law,
-                              wall_contact=wall, density=1.0, gravity=(0.0, -1.0),
-                              substep=DT, timestep=DT, skin=SKIN, periodic_x=(0.0, period))
+    return GranularSimulation(
+        pos,
+        0.5,
+        world=fs.Halfspace((0.0, 1.0), 0.0),
+        contact=law,
+        wall_contact=wall,
+        density=1.0,
+        gravity=(0.0, -1.0),
+        substep=DT,
+        timestep=DT,
+        skin=SKIN,
+        periodic_x=(0.0, period),
+    )
 
 
 LAMMPS_WORKER = r'''
@@ -139,9 +149,20 @@ def measure(n: int, steps: int, blocks: int, warmup: int) -> dict:
     if env is not None:
         with tempfile.NamedTemporaryFile(suffix=".npy", delete=False) as fh:
             np.save(fh, pos)
-        child = subprocess.Popen([sys.executable, "-c", LAMMPS_WORKER, fh.name, str(period),
-                                  str(numba.get_num_threads())], env=env, text=True,
-                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        child = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                LAMMPS_WORKER,
+                fh.name,
+                str(period),
+                str(numba.get_num_threads()),
+            ],
+            env=env,
+            text=True,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )
         json.loads(child.stdout.readline())
 
     def lammps_block(k):
@@ -181,12 +202,18 @@ def measure(n: int, steps: int, blocks: int, warmup: int) -> dict:
         child.stdin.close()
         child.wait(timeout=60)
         os.unlink(fh.name)
-    return {"n": n, "ours": rows["ours"], "lammps": rows["lammps"],
-            "rebuild_share": float(np.median(rows["rebuild_share"])),
-            "rebuilds_per_step": sum(rows["rebuilds"]) / (blocks * steps),
-            "rebuild_over_step": one_rebuild / one_step,
-            "contacts": sim.contacts_per_grain(), "lammps_contacts": lammps_contacts,
-            "bytes": sim.memory_per_grain(), "substep": sim.substep}
+    return {
+        "n": n,
+        "ours": rows["ours"],
+        "lammps": rows["lammps"],
+        "rebuild_share": float(np.median(rows["rebuild_share"])),
+        "rebuilds_per_step": sum(rows["rebuilds"]) / (blocks * steps),
+        "rebuild_over_step": one_rebuild / one_step,
+        "contacts": sim.contacts_per_grain(),
+        "lammps_contacts": lammps_contacts,
+        "bytes": sim.memory_per_grain(),
+        "substep": sim.substep,
+    }
 
 
 def _cell(rates) -> str:
@@ -206,24 +233,46 @@ def run(quick: bool = False, sizes=None, blocks: int | None = None) -> str:
     load1 = os.getloadavg()
     rows = []
     for r in results:
-        ratio = (float(np.median(r["ours"]) / np.median(r["lammps"])) if r["lammps"]
-                 else math.nan)
-        rows.append([f"{r['n']:,}", _cell(r["ours"]), _cell(r["lammps"]), f"{ratio:.2f}x",
-                     f"{r['contacts']:.2f} / {r['lammps_contacts']:.2f}",
-                     f"{100 * r['rebuild_share']:.1f}% ({r['rebuilds_per_step']:.3f}/step)",
-                     f"{r['rebuild_over_step']:.2f}", f"{r['bytes']:.0f}"])
+        ratio = float(np.median(r["ours"]) / np.median(r["lammps"])) if r["lammps"] else math.nan
+        rows.append(
+            [
+                f"{r['n']:,}",
+                _cell(r["ours"]),
+                _cell(r["lammps"]),
+                f"{ratio:.2f}x",
+                f"{r['contacts']:.2f} / {r['lammps_contacts']:.2f}",
+                f"{100 * r['rebuild_share']:.1f}% ({r['rebuilds_per_step']:.3f}/step)",
+                f"{r['rebuild_over_step']:.2f}",
+                f"{r['bytes']:.0f}",
+            ]
+        )
     text = "## Granular: dense bed in full contact, fastsdf against LAMMPS\n\n"
     text += stamp(COMMAND) + "\n\n"
-    text += (f"{numba.get_num_threads()} threads each (LAMMPS `-sf omp -pk omp "
-             f"{numba.get_num_threads()}`); load average before {load0[0]:.1f}, after "
-             f"{load1[0]:.1f} (2 cores shared with other work: only the ratio, measured in "
-             "turns, counts). Particle-steps/s, median over blocks (best).\n\n")
-    text += table(["discs", "fastsdf", "LAMMPS", "ratio", "contacts per disc (ours / LAMMPS)",
-                   "rebuild share of time", "one rebuild / one step", "bytes per disc"], rows)
-    text += ("\n\nContact model: `gran/hooke` (history-free tangential force: viscous, capped "
-             "by Coulomb), restitution-set dashpot equal to LAMMPS's gamma_n = 300; velocity "
-             "Verlet, dt = 1e-4 (t_c / 44). Verlet list with skin 0.2, rebuilt when a disc has "
-             "moved farther than skin / 2 (LAMMPS: checked every step, same rule).\n")
+    text += (
+        f"{numba.get_num_threads()} threads each (LAMMPS `-sf omp -pk omp "
+        f"{numba.get_num_threads()}`); load average before {load0[0]:.1f}, after "
+        f"{load1[0]:.1f} (2 cores shared with other work: only the ratio, measured in "
+        "turns, counts). Particle-steps/s, median over blocks (best).\n\n"
+    )
+    text += table(
+        [
+            "discs",
+            "fastsdf",
+            "LAMMPS",
+            "ratio",
+            "contacts per disc (ours / LAMMPS)",
+            "rebuild share of time",
+            "one rebuild / one step",
+            "bytes per disc",
+        ],
+        rows,
+    )
+    text += (
+        "\n\nContact model: `gran/hooke` (history-free tangential force: viscous, capped "
+        "by Coulomb), restitution-set dashpot equal to LAMMPS's gamma_n = 300; velocity "
+        "Verlet, dt = 1e-4 (t_c / 44). Verlet list with skin 0.2, rebuilt when a disc has "
+        "moved farther than skin / 2 (LAMMPS: checked every step, same rule).\n"
+    )
     return text
 
 

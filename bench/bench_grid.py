@@ -103,13 +103,32 @@ def _convergence(quick: bool) -> tuple[str, list]:
             p = prev.get(gradient)
             order_v = math.log2(p.band_value_max / e.band_value_max) if p else math.nan
             order_a = math.log2(p.band_angle_rms_deg / e.band_angle_rms_deg) if p else math.nan
-            rows.append([gradient, n, f"{e.spacing[0]:.4g}", _fmt_err(e.band_value_max),
-                         _fmt_err(e.spacing[0] ** 2 / (8 * 0.9)),
-                         "" if p is None else f"{order_v:.2f}", _fmt_err(e.band_angle_rms_deg),
-                         "" if p is None else f"{order_a:.2f}"])
+            rows.append(
+                [
+                    gradient,
+                    n,
+                    f"{e.spacing[0]:.4g}",
+                    _fmt_err(e.band_value_max),
+                    _fmt_err(e.spacing[0] ** 2 / (8 * 0.9)),
+                    "" if p is None else f"{order_v:.2f}",
+                    _fmt_err(e.band_angle_rms_deg),
+                    "" if p is None else f"{order_a:.2f}",
+                ]
+            )
             prev[gradient] = e
-    text = table(["gradient", "nodes per axis", "h", "band value max", "bound h^2/(8 r_min)",
-                  "order", "band angle RMS (deg)", "order"], rows)
+    text = table(
+        [
+            "gradient",
+            "nodes per axis",
+            "h",
+            "band value max",
+            "bound h^2/(8 r_min)",
+            "order",
+            "band angle RMS (deg)",
+            "order",
+        ],
+        rows,
+    )
     return text, rows
 
 
@@ -125,7 +144,7 @@ def run(quick: bool = False) -> str:
     threads = numba.get_num_threads()
     command = "python -m bench --only grid" + (" --quick" if quick else "")
 
-    results = []     # dicts, one per measured configuration (for the plot)
+    results = []  # dicts, one per measured configuration (for the plot)
     rows = []
     headline = {}
     n_cfg = len(WORLDS) * len(resolutions) * len(gradients) * len(dtypes)
@@ -139,25 +158,47 @@ def run(quick: bool = False) -> str:
                     w = GridSDF(f, bounds=BOUNDS, samples=[8, 8], gradient=gradient, dtype=dt)
                     w(xs, ys, compute_gradient=True)
                     w(xs[:8], ys[:8], compute_gradient=True)
-            t_exact, b_exact = _timed(lambda: f(xs, ys, compute_gradient=True),
-                                      repeats=max(3, repeats // 2))
+            t_exact, b_exact = _timed(
+                lambda: f(xs, ys, compute_gradient=True), repeats=max(3, repeats // 2)
+            )
             exact_rate = N_POINTS / t_exact
-            rows.append([wname, "exact SDF (compiled)", "", "", "", "", "",
-                         _rates(t_exact, b_exact), "", "0", "0", "0", "0"])
-            results.append(dict(world=wname, kind="exact", rate=exact_rate,
-                                best=N_POINTS / b_exact))
+            rows.append(
+                [
+                    wname,
+                    "exact SDF (compiled)",
+                    "",
+                    "",
+                    "",
+                    "",
+                    "",
+                    _rates(t_exact, b_exact),
+                    "",
+                    "0",
+                    "0",
+                    "0",
+                    "0",
+                ]
+            )
+            results.append(
+                dict(world=wname, kind="exact", rate=exact_rate, best=N_POINTS / b_exact)
+            )
             for res in resolutions:
                 seed_rate = None
                 for gradient in gradients:
                     for dt in dtypes:
-                        kw = dict(bounds=BOUNDS, samples=[res * 1j, res * 1j],
-                                  gradient=gradient, dtype=dt)
+                        kw = dict(
+                            bounds=BOUNDS, samples=[res * 1j, res * 1j], gradient=gradient, dtype=dt
+                        )
                         nodes = res * res
-                        t_build, _ = timeit(lambda: GridSDF(f, **kw), warmup=0,
-                                            repeats=3 if nodes <= 250_000 else 1)
+                        t_build, _ = timeit(
+                            lambda: GridSDF(f, **kw), warmup=0, repeats=3 if nodes <= 250_000 else 1
+                        )
                         g = GridSDF(f, **kw)
-                        t_q, b_q = _timed(lambda: g(xs, ys, compute_gradient=True),
-                                          repeats=repeats, min_time=min_time)
+                        t_q, b_q = _timed(
+                            lambda: g(xs, ys, compute_gradient=True),
+                            repeats=repeats,
+                            min_time=min_time,
+                        )
                         rate = N_POINTS / t_q
                         err = measure_error(g, points=(xs, ys), band=0.1)
                         dname = np.dtype(dt).name
@@ -165,44 +206,91 @@ def run(quick: bool = False) -> str:
                             seed = SeedGridSDF.from_grid(g)
                             d_seed, g_seed = seed(xs, ys, compute_gradient=True)
                             d_ours, g_ours = g(xs, ys, compute_gradient=True)
-                            agree = max(np.abs(d_seed - d_ours).max(),
-                                        np.abs(g_seed - g_ours).max())
-                            t_s, b_s = _timed(lambda: seed(xs, ys, compute_gradient=True),
-                                              repeats=seed_repeats)
+                            agree = max(
+                                np.abs(d_seed - d_ours).max(), np.abs(g_seed - g_ours).max()
+                            )
+                            t_s, b_s = _timed(
+                                lambda: seed(xs, ys, compute_gradient=True), repeats=seed_repeats
+                            )
                             seed_rate = N_POINTS / t_s
                             prog.step(f"{wname} {res} map_coordinates")
-                            rows.append([wname, "seed: map_coordinates x3", res,
-                                         "float64", "stored", "",
-                                         f"{res * res * 24 / 1e6:.3g}",
-                                         _rates(t_s, b_s), "1",
-                                         _fmt_err(err.value_max), _fmt_err(err.band_value_max),
-                                         _fmt_err(err.angle_rms_deg),
-                                         _fmt_err(err.band_angle_rms_deg)])
-                            results.append(dict(world=wname, kind="seed", res=res, rate=seed_rate,
-                                                best=N_POINTS / b_s,
-                                                band_value_max=err.band_value_max,
-                                                band_angle_rms=err.band_angle_rms_deg,
-                                                agree=agree))
+                            rows.append(
+                                [
+                                    wname,
+                                    "seed: map_coordinates x3",
+                                    res,
+                                    "float64",
+                                    "stored",
+                                    "",
+                                    f"{res * res * 24 / 1e6:.3g}",
+                                    _rates(t_s, b_s),
+                                    "1",
+                                    _fmt_err(err.value_max),
+                                    _fmt_err(err.band_value_max),
+                                    _fmt_err(err.angle_rms_deg),
+                                    _fmt_err(err.band_angle_rms_deg),
+                                ]
+                            )
+                            results.append(
+                                dict(
+                                    world=wname,
+                                    kind="seed",
+                                    res=res,
+                                    rate=seed_rate,
+                                    best=N_POINTS / b_s,
+                                    band_value_max=err.band_value_max,
+                                    band_angle_rms=err.band_angle_rms_deg,
+                                    agree=agree,
+                                )
+                            )
                             if res == TARGET_RES:
-                                t_1, b_1 = _one_thread(lambda: g(xs, ys, compute_gradient=True),
-                                                       repeats, min_time)
-                                headline[wname] = dict(rate=rate, best=N_POINTS / b_q,
-                                                       seed=seed_rate, seed_best=N_POINTS / b_s,
-                                                       exact=exact_rate, agree=agree,
-                                                       one=N_POINTS / t_1, one_best=N_POINTS / b_1)
+                                t_1, b_1 = _one_thread(
+                                    lambda: g(xs, ys, compute_gradient=True), repeats, min_time
+                                )
+                                headline[wname] = dict(
+                                    rate=rate,
+                                    best=N_POINTS / b_q,
+                                    seed=seed_rate,
+                                    seed_best=N_POINTS / b_s,
+                                    exact=exact_rate,
+                                    agree=agree,
+                                    one=N_POINTS / t_1,
+                                    one_best=N_POINTS / b_1,
+                                )
                         ratio = f"{rate / seed_rate:.0f}x" if seed_rate else ""
-                        rows.append([wname, "GridSDF", res, dname, gradient,
-                                     f"{t_build * 1e3:.3g}", f"{g.nbytes / 1e6:.3g}",
-                                     _rates(t_q, b_q), ratio,
-                                     _fmt_err(err.value_max), _fmt_err(err.band_value_max),
-                                     _fmt_err(err.angle_rms_deg),
-                                     _fmt_err(err.band_angle_rms_deg)])
-                        results.append(dict(world=wname, kind="grid", res=res, dtype=dname,
-                                            gradient=gradient, rate=rate, best=N_POINTS / b_q,
-                                            build=t_build,
-                                            nbytes=g.nbytes, band_value_max=err.band_value_max,
-                                            band_angle_rms=err.band_angle_rms_deg,
-                                            value_max=err.value_max))
+                        rows.append(
+                            [
+                                wname,
+                                "GridSDF",
+                                res,
+                                dname,
+                                gradient,
+                                f"{t_build * 1e3:.3g}",
+                                f"{g.nbytes / 1e6:.3g}",
+                                _rates(t_q, b_q),
+                                ratio,
+                                _fmt_err(err.value_max),
+                                _fmt_err(err.band_value_max),
+                                _fmt_err(err.angle_rms_deg),
+                                _fmt_err(err.band_angle_rms_deg),
+                            ]
+                        )
+                        results.append(
+                            dict(
+                                world=wname,
+                                kind="grid",
+                                res=res,
+                                dtype=dname,
+                                gradient=gradient,
+                                rate=rate,
+                                best=N_POINTS / b_q,
+                                build=t_build,
+                                nbytes=g.nbytes,
+                                band_value_max=err.band_value_max,
+                                band_angle_rms=err.band_angle_rms_deg,
+                                value_max=err.value_max,
+                            )
+                        )
                         prog.step(f"{wname} {res} {dname} {gradient}")
                         g = None  # the grid's memory is freed before the next one is built
                 prog.step(f"{wname} {res}")
@@ -212,46 +300,73 @@ def run(quick: bool = False) -> str:
     plot_path = _plot(results, quick)
 
     out = ["## GridSDF: sampled SDFs, bilinear queries", "", stamp(command), ""]
-    out.append(f"Queries: value + gradient at {N_POINTS:,} uniform random points in "
-               f"{BOUNDS}, {threads} numba threads; speeds are medians over repeats, the best "
-               f"run in brackets; 'vs seed' is the ratio of medians to the notebook's GridSDF "
-               f"(three scipy `map_coordinates` passes, order=1) on the same grid and points, "
-               f"timed in the same run. Errors are against the exact SDF on the same points: "
-               f"value error (max) in coordinate units, gradient error as the RMS angle in "
-               f"degrees; 'band' restricts to |d| < 0.1.")
+    out.append(
+        f"Queries: value + gradient at {N_POINTS:,} uniform random points in "
+        f"{BOUNDS}, {threads} numba threads; speeds are medians over repeats, the best "
+        f"run in brackets; 'vs seed' is the ratio of medians to the notebook's GridSDF "
+        f"(three scipy `map_coordinates` passes, order=1) on the same grid and points, "
+        f"timed in the same run. Errors are against the exact SDF on the same points: "
+        f"value error (max) in coordinate units, gradient error as the RMS angle in "
+        f"degrees; 'band' restricts to |d| < 0.1."
+    )
     out.append("")
     load_after = os.getloadavg()
-    out.append(f"Machine load (1-minute load average, from other processes too) at the start and "
-               f"end of this section: {load_before[0]:.2f} and {load_after[0]:.2f} on "
-               f"{os.cpu_count()} cores. Parallel kernels suffer most when other processes "
-               f"compete for the cores (a call must wait until every thread has been scheduled), "
-               f"so medians of 2-thread runs vary by several times between runs here; best runs "
-               f"and 1-thread figures are the steadier ones.")
+    out.append(
+        f"Machine load (1-minute load average, from other processes too) at the start and "
+        f"end of this section: {load_before[0]:.2f} and {load_after[0]:.2f} on "
+        f"{os.cpu_count()} cores. Parallel kernels suffer most when other processes "
+        f"compete for the cores (a call must wait until every thread has been scheduled), "
+        f"so medians of 2-thread runs vary by several times between runs here; best runs "
+        f"and 1-thread figures are the steadier ones."
+    )
     out.append("")
     for wname, h in headline.items():
-        out.append(f"- **{wname}, {TARGET_RES}x{TARGET_RES}, float64, stored gradients**: "
-                   f"{fmt_rate(h['rate'])} points/s median, {fmt_rate(h['best'])} best "
-                   f"({fmt_rate(h['one'])} median, {fmt_rate(h['one_best'])} best on 1 thread); "
-                   f"{h['rate'] / h['seed']:.0f}x the seed's map_coordinates grid by medians, "
-                   f"{h['best'] / h['seed_best']:.0f}x by best runs ({fmt_rate(h['seed'])} and "
-                   f"{fmt_rate(h['seed_best'])} points/s; answers agree to {h['agree']:.1g}); "
-                   f"{h['rate'] / h['exact']:.1f}x the exact compiled SDF "
-                   f"({fmt_rate(h['exact'])} points/s).")
+        out.append(
+            f"- **{wname}, {TARGET_RES}x{TARGET_RES}, float64, stored gradients**: "
+            f"{fmt_rate(h['rate'])} points/s median, {fmt_rate(h['best'])} best "
+            f"({fmt_rate(h['one'])} median, {fmt_rate(h['one_best'])} best on 1 thread); "
+            f"{h['rate'] / h['seed']:.0f}x the seed's map_coordinates grid by medians, "
+            f"{h['best'] / h['seed_best']:.0f}x by best runs ({fmt_rate(h['seed'])} and "
+            f"{fmt_rate(h['seed_best'])} points/s; answers agree to {h['agree']:.1g}); "
+            f"{h['rate'] / h['exact']:.1f}x the exact compiled SDF "
+            f"({fmt_rate(h['exact'])} points/s)."
+        )
     out.append("")
-    out.append(table(["world", "method", "nodes per axis", "storage", "gradient", "build (ms)",
-                      "memory (MB)", "points/s median (best)", "vs seed", "value err max",
-                      "band value max", "angle RMS (deg)", "band angle RMS (deg)"], rows))
+    out.append(
+        table(
+            [
+                "world",
+                "method",
+                "nodes per axis",
+                "storage",
+                "gradient",
+                "build (ms)",
+                "memory (MB)",
+                "points/s median (best)",
+                "vs seed",
+                "value err max",
+                "band value max",
+                "angle RMS (deg)",
+                "band angle RMS (deg)",
+            ],
+            rows,
+        )
+    )
     out.append("")
-    out.append("Access pattern: random points miss the cache once the grid outgrows it; "
-               "coherent queries (here the same points sorted by cell, as particles that move "
-               "a little per step would be) stay fast at any resolution. Seed world, float64, "
-               "stored gradients:")
+    out.append(
+        "Access pattern: random points miss the cache once the grid outgrows it; "
+        "coherent queries (here the same points sorted by cell, as particles that move "
+        "a little per step would be) stay fast at any resolution. Seed world, float64, "
+        "stored gradients:"
+    )
     out.append("")
     out.append(access)
     out.append("")
-    out.append("Convergence on a circle (radius 1, off-centre; band |d| < 0.1, where the SDF is "
-               "smooth): 'order' is log2 of the error ratio between successive resolutions; "
-               "bilinear interpolation is second order, so it should be about 2.")
+    out.append(
+        "Convergence on a circle (radius 1, off-centre; band |d| < 0.1, where the SDF is "
+        "smooth): 'order' is log2 of the error ratio between successive resolutions; "
+        "bilinear interpolation is second order, so it should be about 2."
+    )
     out.append("")
     out.append(conv_text)
     out.append("")
@@ -275,7 +390,7 @@ def _one_thread(fn, repeats, min_time):
 def _access_pattern(xs, ys, quick: bool) -> str:
     f = seed_world()
     rows = []
-    for res in ([TARGET_RES] if quick else [TARGET_RES, 1600, 3200]):
+    for res in [TARGET_RES] if quick else [TARGET_RES, 1600, 3200]:
         g = GridSDF(f, bounds=BOUNDS, samples=[res, res])
         i = np.floor((xs - BOUNDS[0][0]) / g.spacing[0]).astype(np.int64)
         j = np.floor((ys - BOUNDS[1][0]) / g.spacing[1]).astype(np.int64)
@@ -284,18 +399,29 @@ def _access_pattern(xs, ys, quick: bool) -> str:
         t_r, b_r = _timed(lambda: g(xs, ys, compute_gradient=True), repeats=7, min_time=0.2)
         t_s, b_s = _timed(lambda: g(sx, sy, compute_gradient=True), repeats=7, min_time=0.2)
         rows.append([res, f"{g.nbytes / 1e6:.3g}", _rates(t_r, b_r), _rates(t_s, b_s)])
-    return table(["nodes per axis", "memory (MB)", "random order, points/s median (best)",
-                  "sorted by cell, points/s median (best)"], rows)
+    return table(
+        [
+            "nodes per axis",
+            "memory (MB)",
+            "random order, points/s median (best)",
+            "sorted by cell, points/s median (best)",
+        ],
+        rows,
+    )
 
 
 def _plot(results, quick: bool):
     from .plots import grid_speed_vs_error
 
     # A quick run must not overwrite the committed figure: it goes to the temp directory.
-    path = (os.path.join(tempfile.gettempdir(), "grid_speed_vs_error_quick.png") if quick
-            else os.path.join(HERE, "grid_speed_vs_error.png"))
-    return grid_speed_vs_error(results, path, N_POINTS, numba.get_num_threads(),
-                               " [quick]" if quick else "")
+    path = (
+        os.path.join(tempfile.gettempdir(), "grid_speed_vs_error_quick.png")
+        if quick
+        else os.path.join(HERE, "grid_speed_vs_error.png")
+    )
+    return grid_speed_vs_error(
+        results, path, N_POINTS, numba.get_num_threads(), " [quick]" if quick else ""
+    )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -76,16 +76,20 @@ print(json.dumps(out))
 """
 
 #: (kind, label) of the scenes; the first two are the quick set.
-SCENES = [("seed", "seed world"), ("box20", "20-box world"),
-          ("circles200", "hard union of 200 circles"), ("mixed", "mixed ops, 200 primitives"),
-          ("hard1000", "hard union of 1000 boxes"), ("hard5000", "hard union of 5000 boxes")]
+SCENES = [
+    ("seed", "seed world"),
+    ("box20", "20-box world"),
+    ("circles200", "hard union of 200 circles"),
+    ("mixed", "mixed ops, 200 primitives"),
+    ("hard1000", "hard union of 1000 boxes"),
+    ("hard5000", "hard union of 5000 boxes"),
+]
 PATHS = ("tape", "numpy", "kernel", "default")
 
 
 def _fresh(kind: str, backend: str, seed: int, cache: str) -> dict:
     shutil.rmtree(cache, ignore_errors=True)  # an empty kernel cache
-    code = (_SCRIPT.replace("KIND_", kind).replace("BACKEND_", backend)
-            .replace("SEED_", str(seed)))
+    code = _SCRIPT.replace("KIND_", kind).replace("BACKEND_", backend).replace("SEED_", str(seed))
     return json.loads(run_fresh_process(code, env={"FASTSDF_CACHE_DIR": cache}).split("\n")[-2])
 
 
@@ -107,25 +111,51 @@ def run(quick: bool = False) -> str:
                 res[backend] = _fresh(kind, backend, seed, cache)
             d = res["default"]
             kernel = f"{res['kernel']['first_s']:.2f}" + (
-                " (program)" if res["kernel"].get("program") else "")
-            rows.append([label, f"{d['import_s']:.2f}", f"{d['build_s']:.3f}",
-                         f"{res['tape']['first_s']:.3f}", f"{res['numpy']['first_s']:.3f}",
-                         kernel, f"**{d['first_s']:.3f}** ({d['default']})",
-                         f"{d['build_s'] + d['first_s']:.2f}"])
+                " (program)" if res["kernel"].get("program") else ""
+            )
+            rows.append(
+                [
+                    label,
+                    f"{d['import_s']:.2f}",
+                    f"{d['build_s']:.3f}",
+                    f"{res['tape']['first_s']:.3f}",
+                    f"{res['numpy']['first_s']:.3f}",
+                    kernel,
+                    f"**{d['first_s']:.3f}** ({d['default']})",
+                    f"{d['build_s'] + d['first_s']:.2f}",
+                ]
+            )
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     load2 = os.getloadavg()
-    text = "\n".join([
-        "## The instant paths: a new scene's first answer", "",
-        stamp(COMMAND) + f" Load average (1, 5, 15 min) before: {load[0]:.2f}, {load[1]:.2f}, "
-        f"{load[2]:.2f}; after: {load2[0]:.2f}, {load2[1]:.2f}, {load2[2]:.2f}.", "",
-        "One fresh process per scene and path, empty kernel cache, warm installation cache, "
-        "fresh random constants; seconds from the built scene to the answer of 1e5 random "
-        "points in [-2, 2]^2, value + gradient. *Default*: no backend named "
-        "(`Function.backend` in brackets); *from import*: construction + default answer.", "",
-        table(["new scene", "import fastsdf (s)", "construction (s)", "tape (s)",
-               "NumPy (s)", "kernel, cold (s)", "default call (s)", "from import (s)"], rows),
-        ""])
+    text = "\n".join(
+        [
+            "## The instant paths: a new scene's first answer",
+            "",
+            stamp(COMMAND) + f" Load average (1, 5, 15 min) before: {load[0]:.2f}, {load[1]:.2f}, "
+            f"{load[2]:.2f}; after: {load2[0]:.2f}, {load2[1]:.2f}, {load2[2]:.2f}.",
+            "",
+            "One fresh process per scene and path, empty kernel cache, warm installation cache, "
+            "fresh random constants; seconds from the built scene to the answer of 1e5 random "
+            "points in [-2, 2]^2, value + gradient. *Default*: no backend named "
+            "(`Function.backend` in brackets); *from import*: construction + default answer.",
+            "",
+            table(
+                [
+                    "new scene",
+                    "import fastsdf (s)",
+                    "construction (s)",
+                    "tape (s)",
+                    "NumPy (s)",
+                    "kernel, cold (s)",
+                    "default call (s)",
+                    "from import (s)",
+                ],
+                rows,
+            ),
+            "",
+        ]
+    )
     path = os.path.join(HERE, "results", "instant.md")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:

@@ -79,34 +79,55 @@ def run(quick: bool = False) -> str:
             frames = rec.frames
             size = os.path.getsize(path)
         assert (plain.p["x"] == recorded.p["x"]).all()  # the recorder changes no bit
-        rows.append([dtype_name, where, frames, f"{t_plain:.2f}", f"{t_blocks:.2f}",
-                     f"{t_rec:.2f}", f"{100 * (t_rec - t_plain) / t_plain:+.0f}%",
-                     f"{100 * (t_rec - t_blocks) / t_blocks:+.0f}%",
-                     f"{100 * inside['record'] / inside['run']:.1f}%",
-                     f"{inside['record'] / (frames - 1) * 1e3:.0f}",
-                     f"{size / frames / 1e6:.1f}"])
+        rows.append(
+            [
+                dtype_name,
+                where,
+                frames,
+                f"{t_plain:.2f}",
+                f"{t_blocks:.2f}",
+                f"{t_rec:.2f}",
+                f"{100 * (t_rec - t_plain) / t_plain:+.0f}%",
+                f"{100 * (t_rec - t_blocks) / t_blocks:+.0f}%",
+                f"{100 * inside['record'] / inside['run']:.1f}%",
+                f"{inside['record'] / (frames - 1) * 1e3:.0f}",
+                f"{size / frames / 1e6:.1f}",
+            ]
+        )
     load1 = os.getloadavg()[0]
-    head = ["stored as", "file in", "frames", "alone, one call (s)",
-            f"alone, calls of {every} (s)", "recorded (s)", "cost vs one call",
-            f"cost vs calls of {every}", "in record() / in sim.run", "record() per frame (ms)",
-            "MB per frame"]
-    return "\n".join([
-        "## Trajectories",
-        "",
-        stamp(COMMAND) + f" Load average {load0:.1f} at start, {load1:.1f} at the end "
-        f"(2 cores, shared).",
-        "",
-        f"{n:,} particles (the demo's simulation), {rounds} x {steps} steps, positions recorded "
-        f"every {every} steps by `fastsdf.io.TrajectoryRecorder.run` (H5MD, HDF5 SWMR mode, "
-        "one flush per frame, uncompressed), against identical simulations without recording, "
-        f"alternated in one process: one `sim.run({steps})` call, and calls of {every} steps "
-        "(what recording every 10 steps needs: the block kernel keeps particles in cache "
-        "through the steps of one call, so shorter calls cost more). The recorded simulation "
-        "ends in the same state, bit for bit (checked). 'in record() / in sim.run': the "
-        "recorded simulation's time inside `record` (writing and flushing frames) over its "
-        "time inside `sim.run`, both measured in the same loop: the direct measure of the "
-        "recording's cost, less exposed to the machine's load than differences of runs.",
-        "",
-        table(head, rows),
-        "",
-    ])
+    head = [
+        "stored as",
+        "file in",
+        "frames",
+        "alone, one call (s)",
+        f"alone, calls of {every} (s)",
+        "recorded (s)",
+        "cost vs one call",
+        f"cost vs calls of {every}",
+        "in record() / in sim.run",
+        "record() per frame (ms)",
+        "MB per frame",
+    ]
+    return "\n".join(
+        [
+            "## Trajectories",
+            "",
+            stamp(COMMAND) + f" Load average {load0:.1f} at start, {load1:.1f} at the end "
+            f"(2 cores, shared).",
+            "",
+            f"{n:,} particles (the demo's simulation), {rounds} x {steps} steps, "
+            "positions recorded "
+            f"every {every} steps by `fastsdf.io.TrajectoryRecorder.run` (H5MD, HDF5 SWMR mode, "
+            "one flush per frame, uncompressed), against identical simulations without recording, "
+            f"alternated in one process: one `sim.run({steps})` call, and calls of {every} steps "
+            "(what recording every 10 steps needs: the block kernel keeps particles in cache "
+            "through the steps of one call, so shorter calls cost more). The recorded simulation "
+            "ends in the same state, bit for bit (checked). 'in record() / in sim.run': the "
+            "recorded simulation's time inside `record` (writing and flushing frames) over its "
+            "time inside `sim.run`, both measured in the same loop: the direct measure of the "
+            "recording's cost, less exposed to the machine's load than differences of runs.",
+            "",
+            table(head, rows),
+            "",
+        ]
+    )

@@ -45,24 +45,37 @@ def _evaluation(quick: bool) -> str:
     rounds = 3 if quick else 9
     with Progress(2 * rounds, "params: evaluation") as bar:
         for label, grad in (("value + gradient", True), ("value", False)):
-            param(x, y, compute_gradient=grad, cx=0.1)          # compile, warm
+            param(x, y, compute_gradient=grad, cx=0.1)  # compile, warm
             baked(x, y, compute_gradient=grad)
             tp, tb = [], []
             for r in range(rounds):
                 # A new centre every call: the parameter path as an animation uses it.
-                tp.append(timeit(lambda: param(x, y, compute_gradient=grad, cx=0.01 * r),
-                                 repeats=3)[0])
+                tp.append(
+                    timeit(lambda: param(x, y, compute_gradient=grad, cx=0.01 * r), repeats=3)[0]
+                )
                 tb.append(timeit(lambda: baked(x, y, compute_gradient=grad), repeats=3)[0])
                 bar.step()
             mp, mb = float(np.median(tp)), float(np.median(tb))
             rows.append([label, fmt_rate(n / mb), fmt_rate(n / mp), f"{mp / mb - 1:+.1%}"])
-    out = ["### Parameters as kernel data: the seed world's circle centre", "",
-           stamp(COMMAND), "",
-           table(["path", "centre baked in (constants)", "centre as parameters, new value "
-                  "every call", "parameter overhead"], rows), "",
-           f"{n} points, medians of {rounds} alternating rounds (3 timed calls each). The "
-           "parameter is read once per call from a tuple argument (passed by value, no "
-           "reference counting); the target is at most +5%."]
+    out = [
+        "### Parameters as kernel data: the seed world's circle centre",
+        "",
+        stamp(COMMAND),
+        "",
+        table(
+            [
+                "path",
+                "centre baked in (constants)",
+                "centre as parameters, new value every call",
+                "parameter overhead",
+            ],
+            rows,
+        ),
+        "",
+        f"{n} points, medians of {rounds} alternating rounds (3 timed calls each). The "
+        "parameter is read once per call from a tuple argument (passed by value, no "
+        "reference counting); the target is at most +5%.",
+    ]
     return "\n".join(out)
 
 
@@ -115,45 +128,80 @@ print(json.dumps(dict(moving=moving, static=static, baked_each_s=baked_each)))
 
 def _animation(quick: bool) -> str:
     frames, n = (30, 100_000) if quick else (300, 1_000_000)
-    example = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                           "examples", "moving_walls.py")
-    code = (_ANIMATION.replace("EXAMPLE", example).replace("FRAMES", str(frames))
-            .replace("N)", f"{n})"))
+    example = os.path.join(
+        os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples", "moving_walls.py"
+    )
+    code = (
+        _ANIMATION.replace("EXAMPLE", example).replace("FRAMES", str(frames)).replace("N)", f"{n})")
+    )
     cache = tempfile.mkdtemp(prefix="fastsdf-bench-cache-")
     try:
         with Progress(1, "params: animation (fresh process)") as bar:
-            res = json.loads(run_fresh_process(code, {"FASTSDF_CACHE_DIR": cache},
-                                               timeout=1800).strip().splitlines()[-1])
+            res = json.loads(
+                run_fresh_process(code, {"FASTSDF_CACHE_DIR": cache}, timeout=1800)
+                .strip()
+                .splitlines()[-1]
+            )
             bar.step()
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     mv, st = res["moving"], res["static"]
     rows = [
-        ["rotating stirrer (the angle is 0.8 t, evaluated at each step's time)",
-         f"{mv['first_s']:.2f} s", str(mv["kernels_after_all"] - mv["kernels_after_first"]),
-         f"{mv['rest_s']:.2f} s", fmt_rate(mv["rate"])],
-        ["the same scene held still (stirrer frozen at t = 0, its own kernel)",
-         f"{st['first_s']:.2f} s", str(st["kernels_after_all"] - st["kernels_after_first"]),
-         f"{st['rest_s']:.2f} s", fmt_rate(st["rate"])],
+        [
+            "rotating stirrer (the angle is 0.8 t, evaluated at each step's time)",
+            f"{mv['first_s']:.2f} s",
+            str(mv["kernels_after_all"] - mv["kernels_after_first"]),
+            f"{mv['rest_s']:.2f} s",
+            fmt_rate(mv["rate"]),
+        ],
+        [
+            "the same scene held still (stirrer frozen at t = 0, its own kernel)",
+            f"{st['first_s']:.2f} s",
+            str(st["kernels_after_all"] - st["kernels_after_first"]),
+            f"{st['rest_s']:.2f} s",
+            fmt_rate(st["rate"]),
+        ],
     ]
-    out = ["### A 300-frame animated scene (a stirrer in a box)", "", stamp(COMMAND), "",
-           table(["scene", "first frame (cold cache: code generation and compile)",
-                  "compiles after the first frame", f"frames 2-{frames}",
-                  "particle-steps/s (frames 2 on)"], rows), "",
-           f"{n} particles, one step per frame (`sim.run(1)`), fresh process, empty kernel "
-           f"cache. Moving / static speed: {mv['rate'] / st['rate']:.2f}. Baking each "
-           f"frame's angle into constants instead would compile a new scene and particle "
-           f"kernel every frame: {res['baked_each_s']:.2f} s each (measured on two), about "
-           f"{frames * res['baked_each_s'] / 60:.0f} minutes for {frames} frames."]
+    out = [
+        "### A 300-frame animated scene (a stirrer in a box)",
+        "",
+        stamp(COMMAND),
+        "",
+        table(
+            [
+                "scene",
+                "first frame (cold cache: code generation and compile)",
+                "compiles after the first frame",
+                f"frames 2-{frames}",
+                "particle-steps/s (frames 2 on)",
+            ],
+            rows,
+        ),
+        "",
+        f"{n} particles, one step per frame (`sim.run(1)`), fresh process, empty kernel "
+        f"cache. Moving / static speed: {mv['rate'] / st['rate']:.2f}. Baking each "
+        f"frame's angle into constants instead would compile a new scene and particle "
+        f"kernel every frame: {res['baked_each_s']:.2f} s each (measured on two), about "
+        f"{frames * res['baked_each_s'] / 60:.0f} minutes for {frames} frames.",
+    ]
     return "\n".join(out)
 
 
 def run(quick: bool = False) -> str:
     before = os.getloadavg()
-    parts = ["## Runtime parameters and moving scenes", "", _evaluation(quick), "",
-             _animation(quick), ""]
+    parts = [
+        "## Runtime parameters and moving scenes",
+        "",
+        _evaluation(quick),
+        "",
+        _animation(quick),
+        "",
+    ]
     after = os.getloadavg()
-    parts += [f"Machine load (1, 5, 15 min load averages, other work included) at the start: "
-              f"{before[0]:.1f} {before[1]:.1f} {before[2]:.1f}; at the end: {after[0]:.1f} "
-              f"{after[1]:.1f} {after[2]:.1f}.", ""]
+    parts += [
+        f"Machine load (1, 5, 15 min load averages, other work included) at the start: "
+        f"{before[0]:.1f} {before[1]:.1f} {before[2]:.1f}; at the end: {after[0]:.1f} "
+        f"{after[1]:.1f} {after[2]:.1f}.",
+        "",
+    ]
     return "\n".join(parts)

@@ -68,7 +68,7 @@ class Fused:
 
     def __init__(self, f, state, steps, per_step=False, skip=True, forces=(), **kw):
         self.sim = _sim(f, len(state), **kw)
-        self.sim._skip = self.sim._skip and skip   # skip=False: every step queries (peers' work)
+        self.sim._skip = self.sim._skip and skip  # skip=False: every step queries (peers' work)
         self.sim.force_generators += list(forces)
         self.state, self.steps, self.per_step = state, steps, per_step
         self.work = len(state) * steps
@@ -113,8 +113,9 @@ def compare(variants, repeats):
             t0 = time.perf_counter()
             v()
             times[k].append(time.perf_counter() - t0)
-    return [(v.work / float(np.median(t)), v.work / float(np.min(t)))
-            for v, t in zip(variants, times)]
+    return [
+        (v.work / float(np.median(t)), v.work / float(np.min(t))) for v, t in zip(variants, times)
+    ]
 
 
 def cell(rate) -> str:
@@ -123,6 +124,7 @@ def cell(rate) -> str:
 
 # ---------------------------------------------------------------------------------------------
 # Memory floor: kernels that move the same bytes with no work, in the same process.
+
 
 @njit(parallel=True, cache=True)
 def _copy(src, dst, chunks):
@@ -158,14 +160,20 @@ class Kernel:
 
 # ---------------------------------------------------------------------------------------------
 
+
 def run(quick: bool = False) -> str:
     n = 100_000 if quick else 1_000_000
     threads = numba.get_num_threads()
     reps = 3 if quick else 5
-    out = [f"## Particles: fused compiled step ({n:,} particles, {threads} threads)", "",
-           stamp(COMMAND + (" --quick" if quick else "")), "",
-           "Median rate of side-by-side repeats, best in parentheses (see the module docstring "
-           "of `bench/bench_particles.py`). Rates are particle-steps per second.", ""]
+    out = [
+        f"## Particles: fused compiled step ({n:,} particles, {threads} threads)",
+        "",
+        stamp(COMMAND + (" --quick" if quick else "")),
+        "",
+        "Median rate of side-by-side repeats, best in parentheses (see the module docstring "
+        "of `bench/bench_particles.py`). Rates are particle-steps per second.",
+        "",
+    ]
     world = seed_world()
     grid = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
     with Progress(8, "particles") as bar:
@@ -178,18 +186,35 @@ def run(quick: bool = False) -> str:
         for name, _ in PHASES:
             st = states[name]
             fused, per_call, ref_seed, ref = compare(
-                [Fused(grid, st, 20), Fused(grid, st, 3, per_step=True),
-                 NumpyStep(seed_grid, st), NumpyStep(grid, st)], reps)
+                [
+                    Fused(grid, st, 20),
+                    Fused(grid, st, 3, per_step=True),
+                    NumpyStep(seed_grid, st),
+                    NumpyStep(grid, st),
+                ],
+                reps,
+            )
             headline[name] = (fused[0], ref_seed[0])
-            rows.append([name, cell(fused), cell(per_call), cell(ref_seed), cell(ref),
-                         f"{fused[0] / ref_seed[0]:.0f}x", f"{per_call[0] / ref_seed[0]:.0f}x",
-                         f"{fused[0] / ref[0]:.1f}x", f"{per_call[0] / ref[0]:.1f}x"])
+            rows.append(
+                [
+                    name,
+                    cell(fused),
+                    cell(per_call),
+                    cell(ref_seed),
+                    cell(ref),
+                    f"{fused[0] / ref_seed[0]:.0f}x",
+                    f"{per_call[0] / ref_seed[0]:.0f}x",
+                    f"{fused[0] / ref[0]:.1f}x",
+                    f"{per_call[0] / ref[0]:.1f}x",
+                ]
+            )
         whole_steps = 100 if quick else 300
         (whole,) = compare([Fused(grid, states["fall"], whole_steps)], 1 if quick else 2)
         rows.append([f"whole run (steps 0-{whole_steps})", cell(whole)] + [""] * 7)
         bar.step("headline")
         out += [
-            "### Fused step vs the notebook's NumPy step (GridSDF 400x400 of the seed world)", "",
+            "### Fused step vs the notebook's NumPy step (GridSDF 400x400 of the seed world)",
+            "",
             "`run(20)`: 20 steps in one compiled call (blocks of particles stay in cache across "
             "steps; a particle whose last query proves it clear of every surface skips its "
             "next queries); `advance()`: one compiled call per step (the notebook's per-frame "
@@ -198,21 +223,39 @@ def run(quick: bool = False) -> str:
             "explicit Euler, one batch grid query, vectorized response), with the seed's grid "
             "query (three passes of `scipy.ndimage.map_coordinates`, as py-cgraph's GridSDF) "
             "and with fastsdf's compiled `GridSDF` query. The fused step uses the defaults "
-            "(semi-implicit Euler, tunnelling check on). Ratios are of medians.", "",
-            table(["phase", "fused run(20)", "fused advance()", "NumPy, seed grid",
-                   "NumPy, fastsdf grid", "run / seed", "advance / seed", "run / NumPy+grid",
-                   "advance / NumPy+grid"], rows), "",
+            "(semi-implicit Euler, tunnelling check on). Ratios are of medians.",
+            "",
+            table(
+                [
+                    "phase",
+                    "fused run(20)",
+                    "fused advance()",
+                    "NumPy, seed grid",
+                    "NumPy, fastsdf grid",
+                    "run / seed",
+                    "advance / seed",
+                    "run / NumPy+grid",
+                    "advance / NumPy+grid",
+                ],
+                rows,
+            ),
+            "",
             "Targets (reported, not asserted): at least 150 M particle-steps/s and 25 times the "
-            "NumPy approach (the seed's). " + "; ".join(
+            "NumPy approach (the seed's). "
+            + "; ".join(
                 f"{name}: {fmt_rate(r)} ({'met' if r >= 150e6 else 'missed'}), "
                 f"{r / b:.0f}x ({'met' if r / b >= 25 else 'missed'})"
-                for name, (r, b) in headline.items()) + f"; whole run: {fmt_rate(whole[0])}. "
+                for name, (r, b) in headline.items()
+            )
+            + f"; whole run: {fmt_rate(whole[0])}. "
             "Where particles touch surfaces every step, one grid query (about 16 ns per query "
             "and thread, measured while developing this: the grid's own batch kernel does 60-70 M "
             "queries/s per thread) plus the response and its unpredictable branches set the "
             "pace, so those phases stay below the target; in free flight queries are skipped "
             "and the step runs at cache speed. A swept step costs about 90-115 ns (about two "
-            "dependent queries, latency-bound), which is the check's cost at impact.", ""]
+            "dependent queries, latency-bound), which is the check's cost at impact.",
+            "",
+        ]
 
         # 2. Memory floor.
         chunks = 8 * threads
@@ -220,26 +263,48 @@ def run(quick: bool = False) -> str:
         dst = np.empty_like(src)
         X, V, R = np.ones((n, 2)), np.ones((n, 2)), np.ones(n)
         copy, touch, stream_fall, stream, per_call = compare(
-            [Kernel(_copy, (src, dst, chunks), n), Kernel(_touch, (X, V, R, 1e-3, chunks), n),
-             Fused(grid, states["fall"], 10, block=10 ** 9),
-             Fused(grid, states["settled"], 10, block=10 ** 9),
-             Fused(grid, states["settled"], 3, per_step=True)], reps)
+            [
+                Kernel(_copy, (src, dst, chunks), n),
+                Kernel(_touch, (X, V, R, 1e-3, chunks), n),
+                Fused(grid, states["fall"], 10, block=10**9),
+                Fused(grid, states["settled"], 10, block=10**9),
+                Fused(grid, states["settled"], 3, per_step=True),
+            ],
+            reps,
+        )
         floor = copy[0]
         rows = [
-            ["stream copy, 72 B/particle (numba)", cell(copy), "1.00",
-             f"{72 * copy[0] / 1e9:.1f} GB/s"],
-            ["the step's access pattern without physics (72 B)", cell(touch),
-             f"{touch[0] / floor:.2f}", f"{72 * touch[0] / 1e9:.1f} GB/s"],
-            ["fused, streaming (one pass per step), fall", cell(stream_fall),
-             f"{stream_fall[0] / floor:.2f}", ""],
-            ["fused, streaming (one pass per step), settled", cell(stream),
-             f"{stream[0] / floor:.2f}", ""],
+            [
+                "stream copy, 72 B/particle (numba)",
+                cell(copy),
+                "1.00",
+                f"{72 * copy[0] / 1e9:.1f} GB/s",
+            ],
+            [
+                "the step's access pattern without physics (72 B)",
+                cell(touch),
+                f"{touch[0] / floor:.2f}",
+                f"{72 * touch[0] / 1e9:.1f} GB/s",
+            ],
+            [
+                "fused, streaming (one pass per step), fall",
+                cell(stream_fall),
+                f"{stream_fall[0] / floor:.2f}",
+                "",
+            ],
+            [
+                "fused, streaming (one pass per step), settled",
+                cell(stream),
+                f"{stream[0] / floor:.2f}",
+                "",
+            ],
             ["fused `advance()`, settled", cell(per_call), f"{per_call[0] / floor:.2f}", ""],
         ]
         del src, dst, X, V, R
         bar.step("memory floor")
         out += [
-            "### Against the memory floor", "",
+            "### Against the memory floor",
+            "",
             "A step must read position, velocity and radius and write position and velocity: "
             "72 bytes per particle in float64 (36 in float32). The floor is a numba stream copy "
             "moving the same 72 bytes per particle (36 read, 36 written), timed side by side; "
@@ -250,9 +315,11 @@ def run(quick: bool = False) -> str:
             "once per call). With the default blocking, `run(k)` crosses main memory about once "
             "per call rather than once per step; its rates above beat this floor in the fall "
             "phase. Where contacts dominate, the step is bound by the grid queries and the "
-            "collision branches, not by memory.", "",
-            table(["kernel", "particle-steps/s", "fraction of floor (medians)", "bandwidth"],
-                  rows), ""]
+            "collision branches, not by memory.",
+            "",
+            table(["kernel", "particle-steps/s", "fraction of floor (medians)", "bandwidth"], rows),
+            "",
+        ]
 
         # 3. Scenes and paths.
         small = n // 10
@@ -262,66 +329,106 @@ def run(quick: bool = False) -> str:
         seed_small = {k: _copy_state(v, small) for k, v in states.items()}
         rows = []
         for name, _ in PHASES:
-            rates = compare([Fused(grid, seed_small[name], 20), Fused(world, seed_small[name], 5),
-                             Fused(box_grid, box_states[name], 20),
-                             Fused(box, box_states[name], 3)], 3)
+            rates = compare(
+                [
+                    Fused(grid, seed_small[name], 20),
+                    Fused(world, seed_small[name], 5),
+                    Fused(box_grid, box_states[name], 20),
+                    Fused(box, box_states[name], 3),
+                ],
+                3,
+            )
             rows.append([name] + [cell(r) for r in rates])
         bar.step("scenes")
         out += [
-            f"### Scenes: GridSDF vs the exact SDF inline ({small:,} particles, `run()`)", "",
+            f"### Scenes: GridSDF vs the exact SDF inline ({small:,} particles, `run()`)",
+            "",
             "The exact path calls the scene's compiled per-point function inside the loop (no "
             "separate pass); its cost per query is the scene's (the 20-box world's smooth "
             "blends cost about 3 M queries/s). The box world's states come from a run on its "
             "grid. In the box world most particles stay near a surface (little skipping), and "
             "the 1-17% that bounce out of the grid's bounds are answered by the exact SDF "
             "(`mode='exact'`), which then dominates; with `mode='nearest'` the box-world grid "
-            "ran about twice as fast in development.", "",
-            table(["phase", "seed world, grid", "seed world, exact", "20-box world, grid",
-                   "20-box world, exact"], rows), ""]
+            "ran about twice as fast in development.",
+            "",
+            table(
+                [
+                    "phase",
+                    "seed world, grid",
+                    "seed world, exact",
+                    "20-box world, grid",
+                    "20-box world, exact",
+                ],
+                rows,
+            ),
+            "",
+        ]
 
         # 4. Tunnelling check on/off.
         rows = []
         for name, _ in PHASES:
-            on, off = compare([Fused(grid, states[name], 20),
-                               Fused(grid, states[name], 20, prevent_tunnelling=False)], reps)
+            on, off = compare(
+                [
+                    Fused(grid, states[name], 20),
+                    Fused(grid, states[name], 20, prevent_tunnelling=False),
+                ],
+                reps,
+            )
             rows.append([name, cell(on), cell(off), f"{off[0] / on[0] - 1:+.0%}"])
         bar.step("tunnelling")
         out += [
-            "### Tunnelling check on vs off (`prevent_tunnelling`)", "",
+            "### Tunnelling check on vs off (`prevent_tunnelling`)",
+            "",
             "On: a particle whose step is longer than half its radius and whose end point is "
             "not clear by the step's length is swept along the step (conservative advancement "
             "with the grid's Lipschitz bound sqrt(2)); off: the notebook's end-point test only "
             "(the trajectories then differ: particles that would tunnel or bounce early do "
-            "not). \"Extra time\" is the check's cost, from the medians.", "",
-            table(["phase", "check on", "check off", "extra time of the check"], rows), ""]
+            'not). "Extra time" is the check\'s cost, from the medians.',
+            "",
+            table(["phase", "check on", "check off", "extra time of the check"], rows),
+            "",
+        ]
 
         # 5. float32 vs float64.
         rows = []
         for name, _ in PHASES:
             st = states[name]
-            r64, r32 = compare([Fused(grid, st, 20),
-                                Fused(grid, _copy_state(st, len(st), np.float32), 20,
-                                      dtype=np.float32)], reps)
+            r64, r32 = compare(
+                [
+                    Fused(grid, st, 20),
+                    Fused(grid, _copy_state(st, len(st), np.float32), 20, dtype=np.float32),
+                ],
+                reps,
+            )
             rows.append([name, cell(r64), cell(r32), f"{r32[0] / r64[0]:.2f}"])
         bar.step("float32")
         err_rows = _float32_error(grid, min(n, 100_000))
         out += [
-            "### float32 state vs float64", "",
+            "### float32 state vs float64",
+            "",
             "float32 stores the state in 32 bytes per particle instead of 64 (36 bytes moved per "
             "streaming step instead of 72); the arithmetic is float64 in both. With blocking "
-            "the step is not memory-bound, so the speed is about the same.", "",
-            table(["phase", "float64 run(20)", "float32 run(20)", "ratio"], rows), "",
+            "the step is not memory-bound, so the speed is about the same.",
+            "",
+            table(["phase", "float64 run(20)", "float32 run(20)", "ratio"], rows),
+            "",
             "Error of float32 against float64 from the same initial state (distance between "
             f"positions, {min(n, 100_000):,} particles; the world is 4 units across, radii "
             "0.01-0.1). Before the first contact it is rounding; contacts are chaotic (a tiny "
             "difference picks another bounce), so after many bounces single particles diverge "
-            "while the distribution stays the same:", "",
-            table(["after", "median", "99th percentile", "max", "mean height f64",
-                   "mean height f32"], err_rows), ""]
+            "while the distribution stays the same:",
+            "",
+            table(
+                ["after", "median", "99th percentile", "max", "mean height f64", "mean height f32"],
+                err_rows,
+            ),
+            "",
+        ]
 
         # 6. Scaling.
-        sizes = [1_000, 10_000, 100_000] if quick else [1_000, 10_000, 100_000, 1_000_000,
-                                                        4_000_000]
+        sizes = (
+            [1_000, 10_000, 100_000] if quick else [1_000, 10_000, 100_000, 1_000_000, 4_000_000]
+        )
         rows, curve = [], {threads: [], 1: []}
         for m in sizes:
             sim = _sim(grid, m)
@@ -333,17 +440,39 @@ def run(quick: bool = False) -> str:
                 numba.set_num_threads(threads)
             curve[threads].append(rate[0])
             curve[1].append(rate1[0])
-            rows.append([f"{m:,}", cell(rate), cell(rate1), f"{rate[0] / rate1[0]:.2f}x",
-                         f"{m * 64 / 2**20:,.1f} MiB", f"{m * 32 / 2**20:,.1f} MiB"])
+            rows.append(
+                [
+                    f"{m:,}",
+                    cell(rate),
+                    cell(rate1),
+                    f"{rate[0] / rate1[0]:.2f}x",
+                    f"{m * 64 / 2**20:,.1f} MiB",
+                    f"{m * 32 / 2**20:,.1f} MiB",
+                ]
+            )
         bar.step("scaling")
         plot = _scaling_plot(sizes, curve, quick)
         out += [
-            "### Particle count (steps 0-100 of the notebook scenario, `run(100)`)", "",
+            "### Particle count (steps 0-100 of the notebook scenario, `run(100)`)",
+            "",
             "Below 4096 particles the kernel runs on one thread. State memory: 64 bytes per "
-            "particle in float64 (x, v: 16 each; m, r, cr, cf: 8 each), 32 in float32.", "",
-            table(["particles", f"particle-steps/s, {threads} threads", "1 thread",
-                   "parallel speed-up", "state (float64)", "state (float32)"], rows),
-            "", plot, ""]
+            "particle in float64 (x, v: 16 each; m, r, cr, cf: 8 each), 32 in float32.",
+            "",
+            table(
+                [
+                    "particles",
+                    f"particle-steps/s, {threads} threads",
+                    "1 thread",
+                    "parallel speed-up",
+                    "state (float64)",
+                    "state (float32)",
+                ],
+                rows,
+            ),
+            "",
+            plot,
+            "",
+        ]
         out += peers_section(grid, states, reps=reps)
     return "\n".join(out)
 
@@ -351,13 +480,14 @@ def run(quick: bool = False) -> str:
 # ---------------------------------------------------------------------------------------------
 # Peers, fused user forces, first call.
 
+
 class Peer:
     """``steps`` steps of a peer's fused kernel (see ``bench/peers.py``) from ``state``."""
 
     def __init__(self, fn, state, steps):
         self.fn, self.state, self.steps = fn, state, steps
         self.work = len(state) * steps
-        fn(state.copy(), 1, 1 / 30, -1.0)   # compile
+        fn(state.copy(), 1, 1 / 30, -1.0)  # compile
 
     def prepare(self):
         self.p = self.state.copy()
@@ -374,9 +504,11 @@ def wind(x, y, vx, vy, m, t):
 
 def _attractor():
     from fastsdf.expr.graph import Symbol, sym_sqrt
+
     x, y = Symbol("x"), Symbol("y")
-    return phys.FieldForce(potential=-0.05 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1),
-                           per_mass=True)
+    return phys.FieldForce(
+        potential=-0.05 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1), per_mass=True
+    )
 
 
 def _numpy_wind(p, t):
@@ -387,6 +519,7 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
     """Markdown lines: fastsdf against Taichi and Warp particle kernels, fused user forces,
     first-call times."""
     from . import peers
+
     threads = numba.get_num_threads()
     if grid is None:
         grid = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j])
@@ -394,15 +527,21 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
         states = _states(grid, n)
     n = len(states["fall"])
     load = os.getloadavg()[0]
-    out = [f"### Peers: Taichi and Warp fused particle kernels ({n:,} particles, {threads} "
-           f"threads; load average {load:.1f} at the start)", ""]
+    out = [
+        f"### Peers: Taichi and Warp fused particle kernels ({n:,} particles, {threads} "
+        f"threads; load average {load:.1f} at the start)",
+        "",
+    ]
     ti_fn, ti_err = peers.taichi_particles(grid, threads)
     wp_fn, wp_err = peers.warp_particles(grid)
     rows = []
     for name in ("settled", "fall"):
         st = states[name]
-        variants = [Fused(grid, st, 20), Fused(grid, st, 3, per_step=True),
-                    Fused(grid, st, 20, skip=False, prevent_tunnelling=False)]
+        variants = [
+            Fused(grid, st, 20),
+            Fused(grid, st, 3, per_step=True),
+            Fused(grid, st, 20, skip=False, prevent_tunnelling=False),
+        ]
         if ti_fn is not None:
             variants.append(Peer(ti_fn, st, 20))
         if wp_fn is not None:
@@ -422,25 +561,48 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
         "count; Warp's CPU kernels run on one thread. fastsdf: defaults (`run(20)` and one "
         "`advance()` per step), and with skipping and the tunnelling check off (the peers' "
         "work). The last column divides the three fastsdf medians by Taichi's."
-        + ("" if ti_fn else f" Taichi skipped: {ti_err}.") + ("" if wp_fn else
-                                                             f" Warp skipped: {wp_err}."), "",
-        table(["phase", "fastsdf run(20)", "fastsdf advance()", "fastsdf, skip and sweep off",
-               "Taichi", "Warp (1 thread)", "fastsdf / Taichi (the three)"], rows), ""]
+        + ("" if ti_fn else f" Taichi skipped: {ti_err}.")
+        + ("" if wp_fn else f" Warp skipped: {wp_err}."),
+        "",
+        table(
+            [
+                "phase",
+                "fastsdf run(20)",
+                "fastsdf advance()",
+                "fastsdf, skip and sweep off",
+                "Taichi",
+                "Warp (1 thread)",
+                "fastsdf / Taichi (the three)",
+            ],
+            rows,
+        ),
+        "",
+    ]
 
     rows = []
     alone = [_force_alone_ns(grid, states["fall"], f) for f in (wind, _attractor())]
     for name in ("settled", "fall"):
         st = states[name]
-        rates = compare([Fused(grid, st, 20), Fused(grid, st, 20, forces=[wind]),
-                         Fused(grid, st, 20, forces=[_attractor()]),
-                         Fused(grid, st, 3, forces=[_numpy_wind])], reps)
+        rates = compare(
+            [
+                Fused(grid, st, 20),
+                Fused(grid, st, 20, forces=[wind]),
+                Fused(grid, st, 20, forces=[_attractor()]),
+                Fused(grid, st, 3, forces=[_numpy_wind]),
+            ],
+            reps,
+        )
         g = rates[0][0]
-        step_ns = threads / g * 1e9         # one gravity step, per thread
-        rows.append([name] + [cell(r) for r in rates] +
-                     [" / ".join(f"{g / r[0] - 1:+.0%}" for r in rates[1:])] +
-                     [f"{step_ns:.1f} ns; " + " / ".join(f"{a / step_ns:+.0%}" for a in alone)])
+        step_ns = threads / g * 1e9  # one gravity step, per thread
+        rows.append(
+            [name]
+            + [cell(r) for r in rates]
+            + [" / ".join(f"{g / r[0] - 1:+.0%}" for r in rates[1:])]
+            + [f"{step_ns:.1f} ns; " + " / ".join(f"{a / step_ns:+.0%}" for a in alone)]
+        )
     out += [
-        "### Fused user forces (`run(20)`, gravity plus one force)", "",
+        "### Fused user forces (`run(20)`, gravity plus one force)",
+        "",
         "A numba `@njit` force `wind(x, y, vx, vy, m, t)` (drag towards a wind that grows "
         "with height) and a "
         "`FieldForce(potential=...)` attractor (an expression compiled like an SDF, its analytic "
@@ -450,10 +612,22 @@ def peers_section(grid=None, states=None, n=1_000_000, reps=5) -> list:
         "forces' arithmetic alone (the kernel's `force_many` over 8,192 particles in cache, one "
         f"thread: wind {alone[0]:.2f} ns, attractor {alone[1]:.2f} ns per evaluation) against "
         "the time of one gravity step per thread: what the force would add if its evaluation "
-        "overlapped nothing.", "",
-        table(["phase", "gravity", "+ @njit wind", "+ FieldForce attractor",
-               "+ NumPy wind (run(3))", "extra time (njit / field / NumPy)",
-               "gravity step per thread; arithmetic alone (wind / field)"], rows), ""]
+        "overlapped nothing.",
+        "",
+        table(
+            [
+                "phase",
+                "gravity",
+                "+ @njit wind",
+                "+ FieldForce attractor",
+                "+ NumPy wind (run(3))",
+                "extra time (njit / field / NumPy)",
+                "gravity step per thread; arithmetic alone (wind / field)",
+            ],
+            rows,
+        ),
+        "",
+    ]
     out += LIMIT.splitlines() + [""]
     out += _first_call_rows()
     return out
@@ -467,8 +641,15 @@ def _force_alone_ns(grid, state, force, m=8192, reps=5, calls=200) -> float:
     module = sim._kernel(sim._fused_params()[4])[0]
     x = np.array(state["x"][:m], dtype=np.float64)
     v = np.array(state["v"][:m], dtype=np.float64)
-    args = (x[:, 0].copy(), x[:, 1].copy(), v[:, 0].copy(), v[:, 1].copy(),
-            np.array(state["m"][:m], dtype=np.float64), 0.0, np.empty((m, 2)))
+    args = (
+        x[:, 0].copy(),
+        x[:, 1].copy(),
+        v[:, 0].copy(),
+        v[:, 1].copy(),
+        np.array(state["m"][:m], dtype=np.float64),
+        0.0,
+        np.empty((m, 2)),
+    )
     module.force_many(*args)
     best = math.inf
     for _ in range(reps):
@@ -663,19 +844,23 @@ def _first_call_rows() -> list:
     import tempfile
 
     from .common import run_fresh_process
+
     cache = tempfile.mkdtemp(prefix="fastsdf_first_")
     env = {"FASTSDF_CACHE_DIR": cache}
     seed = int(time.time())
+
     def fresh(seed, half=2):
         code = _FIRST_CALL.format(seed=seed, half=half)
         return [f"{float(v):.2f} s" for v in run_fresh_process(code, env).split()]
 
-    rows = [["empty kernel cache (a fresh installation)"] + fresh(seed),
-            ["new scene, kernels of the installation cached; particles reach the grid's edge"]
-            + fresh(seed + 1),
-            ["new scene, kernels cached; grid bounds +-3 (no particle near the edge)"]
-            + fresh(seed + 2, half=3),
-            ["same scene again (everything cached)"] + fresh(seed + 1)]
+    rows = [
+        ["empty kernel cache (a fresh installation)"] + fresh(seed),
+        ["new scene, kernels of the installation cached; particles reach the grid's edge"]
+        + fresh(seed + 1),
+        ["new scene, kernels cached; grid bounds +-3 (no particle near the edge)"]
+        + fresh(seed + 2, half=3),
+        ["same scene again (everything cached)"] + fresh(seed + 1),
+    ]
     peers_rows = []
     for label, flag in (("cold (offline cache off)", False), ("warm (offline cache)", True)):
         try:
@@ -684,7 +869,8 @@ def _first_call_rows() -> list:
         except Exception as exc:  # optional peer
             peers_rows.append([f"Taichi, {label}", "", "", f"skipped ({str(exc)[-80:]})"])
     return [
-        "### First call of a grid-world simulation (fresh processes)", "",
+        "### First call of a grid-world simulation (fresh processes)",
+        "",
         "A new scene each time (a floor and a random circle), a 400x400 GridSDF, 100,000 "
         "particles: the time to import, to build the grid (it compiles the scene), and from "
         "constructing the simulation to the end of its first `run(1)`. The grid kernel does "
@@ -696,7 +882,9 @@ def _first_call_rows() -> list:
         "+-2 grid at once, so the second row pays that compilation in its first call; with "
         "+-3 bounds it does not. Taichi: its fused kernel's first call (`ti.init` included).",
         "",
-        table(["case", "import", "grid build", "first run(1)"], rows + peers_rows), ""]
+        table(["case", "import", "grid build", "first run(1)"], rows + peers_rows),
+        "",
+    ]
 
 
 def _scaling_plot(sizes, curve, quick) -> str:
@@ -705,8 +893,11 @@ def _scaling_plot(sizes, curve, quick) -> str:
 
     if quick:
         return ""
-    particles_scaling(sizes, curve, os.path.join(os.path.dirname(os.path.abspath(__file__)),
-                                                 "particles_scaling.png"))
+    particles_scaling(
+        sizes,
+        curve,
+        os.path.join(os.path.dirname(os.path.abspath(__file__)), "particles_scaling.png"),
+    )
     return "![particle scaling](particles_scaling.png)"
 
 
@@ -726,9 +917,16 @@ def _float32_error(f, n):
         b.run(k - done)
         done = k
         dist = np.linalg.norm(a.p["x"] - b.p["x"].astype(np.float64), axis=1)
-        rows.append([f"{k} steps", f"{np.median(dist):.1e}", f"{np.percentile(dist, 99):.1e}",
-                     f"{dist.max():.1e}", f"{a.p['x'][:, 1].mean():.4f}",
-                     f"{b.p['x'][:, 1].astype(np.float64).mean():.4f}"])
+        rows.append(
+            [
+                f"{k} steps",
+                f"{np.median(dist):.1e}",
+                f"{np.percentile(dist, 99):.1e}",
+                f"{dist.max():.1e}",
+                f"{a.p['x'][:, 1].mean():.4f}",
+                f"{b.p['x'][:, 1].astype(np.float64).mean():.4f}",
+            ]
+        )
     return rows
 
 
@@ -744,27 +942,36 @@ def _splice_peers(n: int, reps: int) -> str:
     head = old.split("### Peers: Taichi and Warp", 1)[0].rstrip()
     stamp_line = stamp("python -m bench.bench_particles --peers")
     with open(path, "w", encoding="utf-8") as fh:
-        fh.write(head + "\n\n" + text.replace("\n\n", "\n\n" + stamp_line + "\n\n", 1)
-                 + "\n")
+        fh.write(head + "\n\n" + text.replace("\n\n", "\n\n" + stamp_line + "\n\n", 1) + "\n")
     return text
 
 
 if __name__ == "__main__":  # pragma: no cover
     import sys
+
     if "--first-call" in sys.argv:
         # Re-run only the first-call table and put it in place of the one in particles.md.
-        path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                            "particles.md")
+        path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "particles.md")
         with open(path, encoding="utf-8") as fh:
             text = fh.read()
         head = text.split("### First call of a grid-world simulation", 1)[0]
         new_rows = "\n".join(_first_call_rows())
         with open(path, "w", encoding="utf-8") as fh:
-            fh.write(head + new_rows.replace("\n\n", "\n\n" + stamp(
-                "python -m bench.bench_particles --first-call") + "\n\n", 1) + "\n")
+            fh.write(
+                head
+                + new_rows.replace(
+                    "\n\n",
+                    "\n\n" + stamp("python -m bench.bench_particles --first-call") + "\n\n",
+                    1,
+                )
+                + "\n"
+            )
         print(new_rows)
     elif "--peers" in sys.argv:
-        print(_splice_peers(int(os.environ.get("BENCH_N", 1_000_000)),
-                            int(os.environ.get("BENCH_REPS", 5))))
+        print(
+            _splice_peers(
+                int(os.environ.get("BENCH_N", 1_000_000)), int(os.environ.get("BENCH_REPS", 5))
+            )
+        )
     else:
         print(run(quick=True))

@@ -32,22 +32,34 @@ def silo(slot: float):
     """Walls at x = 0 and 20, a floor at y = 0 with a slot of width ``slot``, a catch floor
     far below."""
     half = slot / 2
-    return union([fs.Halfspace((1.0, 0.0), 0.0), fs.Halfspace((-1.0, 0.0), -WIDTH),
-                  fs.Box((-1.0, -1.0), (WIDTH / 2 - half, 0.0)),
-                  fs.Box((WIDTH / 2 + half, -1.0), (WIDTH + 1.0, 0.0)),
-                  fs.Halfspace((0.0, 1.0), -40.0)])
+    return union(
+        [
+            fs.Halfspace((1.0, 0.0), 0.0),
+            fs.Halfspace((-1.0, 0.0), -WIDTH),
+            fs.Box((-1.0, -1.0), (WIDTH / 2 - half, 0.0)),
+            fs.Box((WIDTH / 2 + half, -1.0), (WIDTH + 1.0, 0.0)),
+            fs.Halfspace((0.0, 1.0), -40.0),
+        ]
+    )
 
 
 def discharge(slot: float, grains: int, seed: int = 0) -> float:
     rng = np.random.default_rng(seed)
     per_row = int(WIDTH // 1.3)
     i = np.arange(grains)
-    pos = np.stack([0.8 + (i % per_row) * 1.3 + rng.uniform(-0.05, 0.05, grains),
-                    1.0 + (i // per_row) * 1.3], 1)
+    pos = np.stack(
+        [0.8 + (i % per_row) * 1.3 + rng.uniform(-0.05, 0.05, grains), 1.0 + (i // per_row) * 1.3],
+        1,
+    )
     radius = rng.uniform(0.4, 0.6, grains)
-    sim = GranularSimulation(pos, radius, world=silo(slot), gravity=(0.0, -G),
-                             contact=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5),
-                             timestep=0.5)
+    sim = GranularSimulation(
+        pos,
+        radius,
+        world=silo(slot),
+        gravity=(0.0, -G),
+        contact=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5),
+        timestep=0.5,
+    )
     times, out = [], []
     while True:
         sim.run(1)

@@ -38,8 +38,10 @@ COMMAND = "python -m bench.bench_tape"
 def _scenes(quick: bool = False):
     scenes = [("seed world", seed_world()), ("20-box world", box_world(20))]
     if not quick:  # the 200-primitive scenes compile for a minute and more
-        scenes += [("mixed ops, 200 primitives", mixed_scene(200)),
-                   ("hard union of 1000 boxes", hard_union(1000))]
+        scenes += [
+            ("mixed ops, 200 primitives", mixed_scene(200)),
+            ("hard union of 1000 boxes", hard_union(1000)),
+        ]
     return scenes
 
 
@@ -59,18 +61,36 @@ def _per_point(quick: bool) -> str:
         for _ in range(3):  # alternating rounds
             for backend in times:
                 q = p if backend == "kernel" else p[:, :m]
-                t, sp = timeit(lambda: f(q[0], q[1], compute_gradient=True, backend=backend),
-                               repeats=3 if backend == "kernel" else 1)
+                t, sp = timeit(
+                    lambda: f(q[0], q[1], compute_gradient=True, backend=backend),
+                    repeats=3 if backend == "kernel" else 1,
+                )
                 times[backend].append(t / q.shape[1])
                 spread[backend].append(sp)
         k, t, u = (float(np.median(times[b])) for b in ("kernel", "tape", "numpy"))
-        rows.append([name, f"{len(tape)} / {f.compiled.numpy_scene.nodes}",
-                     fmt_rate(1 / k), fmt_rate(1 / t), fmt_rate(1 / u),
-                     f"{k * 1e9:.0f} / {t * 1e9:.0f} / {u * 1e9:.0f}",
-                     f"{max(spread['kernel']):.0%}"])
-    return table(["scene", "instructions: tape / NumPy program", "kernel points/s",
-                  "tape points/s", "NumPy points/s", "ns per point (kernel / tape / NumPy)",
-                  "kernel spread"], rows)
+        rows.append(
+            [
+                name,
+                f"{len(tape)} / {f.compiled.numpy_scene.nodes}",
+                fmt_rate(1 / k),
+                fmt_rate(1 / t),
+                fmt_rate(1 / u),
+                f"{k * 1e9:.0f} / {t * 1e9:.0f} / {u * 1e9:.0f}",
+                f"{max(spread['kernel']):.0%}",
+            ]
+        )
+    return table(
+        [
+            "scene",
+            "instructions: tape / NumPy program",
+            "kernel points/s",
+            "tape points/s",
+            "NumPy points/s",
+            "ns per point (kernel / tape / NumPy)",
+            "kernel spread",
+        ],
+        rows,
+    )
 
 
 _FIRST = r"""
@@ -150,15 +170,23 @@ print(json.dumps(out))
 #: one more ``'auto'`` process measures the calls made while the kernel compiles).
 REPEATS = 2
 
-_SCENES = [("seed", "seed world"), ("box20", "20-box world"),
-           ("mixed", "mixed ops, 200 primitives"), ("hard1000", "hard union of 1000 boxes"),
-           ("hard5000", "hard union of 5000 boxes")]
+_SCENES = [
+    ("seed", "seed world"),
+    ("box20", "20-box world"),
+    ("mixed", "mixed ops, 200 primitives"),
+    ("hard1000", "hard union of 1000 boxes"),
+    ("hard5000", "hard union of 5000 boxes"),
+]
 
 
 def _fresh(kind, backend, seed, cache, hide_scipy=False):
     shutil.rmtree(cache, ignore_errors=True)  # an empty kernel cache
-    code = (_FIRST.replace("KIND_", kind).replace("BACKEND_", backend)
-            .replace("SEED_", str(seed)).replace("HIDE_SCIPY_", "1" if hide_scipy else "0"))
+    code = (
+        _FIRST.replace("KIND_", kind)
+        .replace("BACKEND_", backend)
+        .replace("SEED_", str(seed))
+        .replace("HIDE_SCIPY_", "1" if hide_scipy else "0")
+    )
     return json.loads(run_fresh_process(code, env={"FASTSDF_CACHE_DIR": cache}).split("\n")[-2])
 
 
@@ -174,8 +202,10 @@ def _first_answer(quick: bool) -> tuple:
         for kind, _ in scenes:
             _fresh(kind, "kernel", 999, cache)
         seed = int.from_bytes(os.urandom(3), "little")
-        setup = [_fresh("seed", "setup", seed + i, cache, hide)["setup_s"]
-                 for i, hide in enumerate((False, True, False, True))]
+        setup = [
+            _fresh("seed", "setup", seed + i, cache, hide)["setup_s"]
+            for i, hide in enumerate((False, True, False, True))
+        ]
         for kind, label in scenes:
             res = {}
             for backend in ("auto", "tape", "kernel", "autofirst"):
@@ -189,20 +219,38 @@ def _first_answer(quick: bool) -> tuple:
             # the first answer: best of the fresh processes (the machine is shared)
             if "autofirst" in res:
                 a["first_s"] = min(a["first_s"], res["autofirst"]["first_s"])
-            rows.append([label, f"{a['import_s']:.2f}", f"{a['build_s']:.3f}",
-                         f"**{a['first_s']:.3f}** ({a['path']})",
-                         f"{a['import_s'] + a['build_s'] + a['first_s']:.2f}",
-                         f"{res['tape']['first_s']:.2f}", f"{res['kernel']['first_s']:.2f}",
-                         f"{a['alone_s'] * 1e3:.0f} / {a['call_s'] * 1e3:.0f} "
-                         f"({a['calls_during']} calls)",
-                         f"{a['ready_s']:.1f}", f"{a.get('after_s', float('nan')) * 1e3:.1f}"])
+            rows.append(
+                [
+                    label,
+                    f"{a['import_s']:.2f}",
+                    f"{a['build_s']:.3f}",
+                    f"**{a['first_s']:.3f}** ({a['path']})",
+                    f"{a['import_s'] + a['build_s'] + a['first_s']:.2f}",
+                    f"{res['tape']['first_s']:.2f}",
+                    f"{res['kernel']['first_s']:.2f}",
+                    f"{a['alone_s'] * 1e3:.0f} / {a['call_s'] * 1e3:.0f} "
+                    f"({a['calls_during']} calls)",
+                    f"{a['ready_s']:.1f}",
+                    f"{a.get('after_s', float('nan')) * 1e3:.1f}",
+                ]
+            )
     finally:
         shutil.rmtree(cache, ignore_errors=True)
-    first = table(["new scene", "import fastsdf (s)", "scene construction (s)",
-                   "first answer, auto (s) (path)", "total (s)", "first answer, tape (s)",
-                   "first answer, kernel, cold (s)",
-                   "auto: 1e5-point call alone / while the kernel compiles (ms)",
-                   "auto: kernel ready after (s)", "auto: call after the switch (ms)"], rows)
+    first = table(
+        [
+            "new scene",
+            "import fastsdf (s)",
+            "scene construction (s)",
+            "first answer, auto (s) (path)",
+            "total (s)",
+            "first answer, tape (s)",
+            "first answer, kernel, cold (s)",
+            "auto: 1e5-point call alone / while the kernel compiles (ms)",
+            "auto: kernel ready after (s)",
+            "auto: call after the switch (ms)",
+        ],
+        rows,
+    )
     return first, setup
 
 
@@ -212,31 +260,43 @@ def run(quick: bool = False) -> str:
     per = _per_point(quick)
     load2 = os.getloadavg()
     with_scipy, without = min(setup[0::2]), min(setup[1::2])
-    text = "\n".join([
-        "## A new scene's first answer: NumPy, the tape interpreter, the kernel", "",
-        stamp(COMMAND) + f" Load average (1, 5, 15 min) before: {load[0]:.2f}, {load[1]:.2f}, "
-        f"{load[2]:.2f}; after: {load2[0]:.2f}, {load2[1]:.2f}, {load2[2]:.2f}.", "",
-        "Fresh processes, empty kernel cache, warm installation cache (the tape "
-        "interpreter and the scene-independent kernels compiled once before), fresh random "
-        f"constants; each first answer is the best of {REPEATS} fresh processes (for 'auto' "
-        "one of them also measures the calls made while the kernel compiles; import and "
-        "construction are from that one). *First answer*: from the built scene to the answer of "
-        "1e5 random points in "
-        "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
-        "(`fastsdf.backends.npeval`, no numba: hard unions of many shapes pruned per tile) and "
-        "the tape "
-        "(which first pays numba's one-time setup in the process), then compiles the kernel in "
-        "a background thread; *total* = import + construction + first answer.", "",
-        first, "",
-        f"numba's one-time setup in a process (one point through the tape, best of two): "
-        f"{with_scipy:.2f} s with SciPy installed (as in this environment: SciPy is in the "
-        f"`test` and `bench` extras), {without:.2f} s with SciPy hidden by an import hook; "
-        f"numba imports scipy.linalg during its setup when it can. The NumPy path never pays "
-        f"it; the tape and the kernel always do, once per process.", "",
-        "Cost per point, value + gradient, 2 threads for the kernel and the tape (NumPy runs in "
-        "the calling thread): the kernel on 1e6 points (pruning as it decides), the tape and "
-        "NumPy on 1e5, in alternating rounds:", "",
-        per, ""])
+    text = "\n".join(
+        [
+            "## A new scene's first answer: NumPy, the tape interpreter, the kernel",
+            "",
+            stamp(COMMAND) + f" Load average (1, 5, 15 min) before: {load[0]:.2f}, {load[1]:.2f}, "
+            f"{load[2]:.2f}; after: {load2[0]:.2f}, {load2[1]:.2f}, {load2[2]:.2f}.",
+            "",
+            "Fresh processes, empty kernel cache, warm installation cache (the tape "
+            "interpreter and the scene-independent kernels compiled once before), fresh random "
+            f"constants; each first answer is the best of {REPEATS} fresh processes (for 'auto' "
+            "one of them also measures the calls made while the kernel compiles; import and "
+            "construction are from that one). *First answer*: from the built scene to "
+            "the answer of "
+            "1e5 random points in "
+            "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
+            "(`fastsdf.backends.npeval`, no numba: hard unions of many shapes pruned per tile) and "
+            "the tape "
+            "(which first pays numba's one-time setup in the process), then compiles the kernel in "
+            "a background thread; *total* = import + construction + first answer.",
+            "",
+            first,
+            "",
+            f"numba's one-time setup in a process (one point through the tape, best of two): "
+            f"{with_scipy:.2f} s with SciPy installed (as in this environment: SciPy is in the "
+            f"`test` and `bench` extras), {without:.2f} s with SciPy hidden by an import hook; "
+            f"numba imports scipy.linalg during its setup when it can. The NumPy path never pays "
+            f"it; the tape and the kernel always do, once per process.",
+            "",
+            "Cost per point, value + gradient, 2 threads for the kernel and the tape "
+            "(NumPy runs in "
+            "the calling thread): the kernel on 1e6 points (pruning as it decides), the tape and "
+            "NumPy on 1e5, in alternating rounds:",
+            "",
+            per,
+            "",
+        ]
+    )
     path = os.path.join(HERE, "results", "tape.md")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:

@@ -79,8 +79,10 @@ def machine_info() -> dict:
 def stamp(command: str) -> str:
     """A line saying how and where a table was produced."""
     m = machine_info()
-    return (f"_Command: `{command}`; {m['date']}; {m['cores']} cores ({m['cpu']}); "
-            f"Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}._")
+    return (
+        f"_Command: `{command}`; {m['date']}; {m['cores']} cores ({m['cpu']}); "
+        f"Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}._"
+    )
 
 
 def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) -> str:
@@ -89,8 +91,9 @@ def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) 
     full_env.update(env or {})
     repo = os.path.dirname(HERE)
     full_env["PYTHONPATH"] = repo + os.pathsep + full_env.get("PYTHONPATH", "")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env=full_env, timeout=timeout)
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=full_env, timeout=timeout
+    )
     if res.returncode != 0:
         raise RuntimeError(f"fresh process failed:\n{res.stderr[-3000:]}")
     return res.stdout

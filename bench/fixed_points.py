@@ -25,13 +25,20 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.fixed_points", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.fixed_points",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--particles", type=int, default=100_000)
     parser.add_argument("--start", type=int, default=200)
     parser.add_argument("--steps", type=int, default=60)
-    parser.add_argument("--rest-speed", type=float, default=0.0,
-                        help="also measure resting contact with this rest_speed")
+    parser.add_argument(
+        "--rest-speed",
+        type=float,
+        default=0.0,
+        help="also measure resting contact with this rest_speed",
+    )
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
 
@@ -61,14 +68,20 @@ def main(argv=None) -> int:
     speed = np.hypot(*last["v"].T)
     resting = np.abs(speed - bounce) < 1e-3 * bounce
     creep = np.hypot(*(hist[-1]["x"] - hist[-2]["x"]).T)[resting]
-    print(f"{n:,} particles, steps {args.start}-{args.start + args.steps} of the notebook "
-          f"scenario (load average {os.getloadavg()[0]:.1f})")
-    print(f"  most particles with a state repeated after 1 step: {fixed:,} "
-          f"({fixed / n:.2%}); after 2 steps: {cyc2:,}; after 4 steps: {cyc4:,}")
-    print(f"  resting in the micro-bounce (|v| within 0.1% of cr g dt / (1 + cr) = "
-          f"{bounce:.4g}): {resting.sum():,} ({resting.mean():.1%}); their position still "
-          f"changes by a median {np.median(creep):.2g} per step (creep on the grid's tilt), "
-          f"max {creep.max():.2g}, min {creep.min():.2g}")
+    print(
+        f"{n:,} particles, steps {args.start}-{args.start + args.steps} of the notebook "
+        f"scenario (load average {os.getloadavg()[0]:.1f})"
+    )
+    print(
+        f"  most particles with a state repeated after 1 step: {fixed:,} "
+        f"({fixed / n:.2%}); after 2 steps: {cyc2:,}; after 4 steps: {cyc4:,}"
+    )
+    print(
+        f"  resting in the micro-bounce (|v| within 0.1% of cr g dt / (1 + cr) = "
+        f"{bounce:.4g}): {resting.sum():,} ({resting.mean():.1%}); their position still "
+        f"changes by a median {np.median(creep):.2g} per step (creep on the grid's tilt), "
+        f"max {creep.max():.2g}, min {creep.min():.2g}"
+    )
     q = np.percentile(speed, [10, 25, 50, 75, 90])
     print("  speed percentiles 10/25/50/75/90: " + " / ".join(f"{v:.3g}" for v in q))
     if args.rest_speed > 0:
@@ -88,13 +101,17 @@ def _resting(grid, n, rest_speed, repeats):
     import fastsdf.particles as phys
 
     from . import peers
-    sims = {rs: phys.ParticleSimulation(grid, n=n, seed=0, rest_speed=rs)
-            for rs in (0.0, rest_speed)}
+
+    sims = {
+        rs: phys.ParticleSimulation(grid, n=n, seed=0, rest_speed=rs) for rs in (0.0, rest_speed)
+    }
     for s in sims.values():
         s.force_generators.append(phys.Gravity())
     ti, ti_err = peers.taichi_particles(grid, numba.get_num_threads())
-    print(f"\nresting contact, rest_speed={rest_speed} (run(20), medians of {repeats}; "
-          f"load average {os.getloadavg()[0]:.1f})" + ("" if ti else f"; Taichi: {ti_err}"))
+    print(
+        f"\nresting contact, rest_speed={rest_speed} (run(20), medians of {repeats}; "
+        f"load average {os.getloadavg()[0]:.1f})" + ("" if ti else f"; Taichi: {ti_err}")
+    )
     done = 0
     for upto in (200, 300, 450):
         for s in sims.values():
@@ -117,13 +134,17 @@ def _resting(grid, n, rest_speed, repeats):
             s.p = states[rs]
         rate = {k: n * 20 / float(np.median(v)) / 1e6 for k, v in times.items() if v}
         at_rest = np.mean(np.all(states[rest_speed]["v"] == 0.0, axis=1))
-        line = (f"  from step {upto}: {at_rest:.1%} at rest; default {rate[0.0]:.1f} M/s, "
-                f"resting contact {rate[rest_speed]:.1f} M/s "
-                f"({rate[rest_speed] / rate[0.0]:.2f}x)")
+        line = (
+            f"  from step {upto}: {at_rest:.1%} at rest; default {rate[0.0]:.1f} M/s, "
+            f"resting contact {rate[rest_speed]:.1f} M/s "
+            f"({rate[rest_speed] / rate[0.0]:.2f}x)"
+        )
         if "taichi" in rate:
-            line += (f", Taichi {rate['taichi']:.1f} M/s (resting contact / Taichi "
-                     f"{rate[rest_speed] / rate['taichi']:.2f}x, default / Taichi "
-                     f"{rate[0.0] / rate['taichi']:.2f}x)")
+            line += (
+                f", Taichi {rate['taichi']:.1f} M/s (resting contact / Taichi "
+                f"{rate[rest_speed] / rate['taichi']:.2f}x, default / Taichi "
+                f"{rate[0.0] / rate['taichi']:.2f}x)"
+            )
         print(line)
 
 

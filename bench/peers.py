@@ -1,7 +1,6 @@
 """Peer implementations for side-by-side comparisons (optional: each is skipped with a note
 when its package is not installed)."""
 
-
 import time
 
 from fastsdf.expr.graph import topological_order
@@ -90,6 +89,7 @@ def time_first_call(fn, *args):
 # only while approaching). No tunnelling check and no query skipping: the work fastsdf does
 # with ``prevent_tunnelling=False`` and skipping off.
 
+
 def taichi_particles(grid, threads, offline_cache=True):
     """A Taichi (CPU, float64) fused particle step on ``grid``'s storage; returns
     ``(step, error)`` with ``step(p, steps, dt, ay)`` advancing the Particles ``p`` in place."""
@@ -97,8 +97,13 @@ def taichi_particles(grid, threads, offline_cache=True):
         import taichi as ti
     except ImportError as exc:  # optional peer
         return None, str(exc)
-    ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=threads, log_level=ti.WARN,
-            offline_cache=offline_cache)
+    ti.init(
+        arch=ti.cpu,
+        default_fp=ti.f64,
+        cpu_max_num_threads=threads,
+        log_level=ti.WARN,
+        offline_cache=offline_cache,
+    )
     q, x0, x1, y0, y1, ihx, ihy, nx, ny = grid.sampler_data
     nx, ny = int(nx), int(ny)
 
@@ -109,10 +114,16 @@ def taichi_particles(grid, threads, offline_cache=True):
         return lo + tx * (hi - lo)
 
     @ti.kernel
-    def step(X: ti.types.ndarray(dtype=ti.f64, ndim=2), V: ti.types.ndarray(dtype=ti.f64, ndim=2),
-             R: ti.types.ndarray(dtype=ti.f64, ndim=1), CR: ti.types.ndarray(dtype=ti.f64, ndim=1),
-             CF: ti.types.ndarray(dtype=ti.f64, ndim=1), Q: ti.types.ndarray(dtype=ti.f64, ndim=1),
-             dt: ti.f64, ay: ti.f64):
+    def step(
+        X: ti.types.ndarray(dtype=ti.f64, ndim=2),
+        V: ti.types.ndarray(dtype=ti.f64, ndim=2),
+        R: ti.types.ndarray(dtype=ti.f64, ndim=1),
+        CR: ti.types.ndarray(dtype=ti.f64, ndim=1),
+        CF: ti.types.ndarray(dtype=ti.f64, ndim=1),
+        Q: ti.types.ndarray(dtype=ti.f64, ndim=1),
+        dt: ti.f64,
+        ay: ti.f64,
+    ):
         for i in range(X.shape[0]):
             vx = V[i, 0]
             vy = V[i, 1] + ay * dt
@@ -178,10 +189,24 @@ def warp_particles(grid):
         return lo + tx * (hi - lo)
 
     @wp.kernel
-    def step(X: wp.array2d(dtype=f64), V: wp.array2d(dtype=f64), R: wp.array(dtype=f64),
-             CR: wp.array(dtype=f64), CF: wp.array(dtype=f64), Q: wp.array(dtype=f64),
-             dt: f64, ay: f64, x0: f64, x1: f64, y0: f64, y1: f64, ihx: f64, ihy: f64,
-             nx: int, ny: int):
+    def step(
+        X: wp.array2d(dtype=f64),
+        V: wp.array2d(dtype=f64),
+        R: wp.array(dtype=f64),
+        CR: wp.array(dtype=f64),
+        CF: wp.array(dtype=f64),
+        Q: wp.array(dtype=f64),
+        dt: f64,
+        ay: f64,
+        x0: f64,
+        x1: f64,
+        y0: f64,
+        y1: f64,
+        ihx: f64,
+        ihy: f64,
+        nx: int,
+        ny: int,
+    ):
         i = wp.tid()
         zero = f64(0.0)
         one = f64(1.0)
@@ -223,11 +248,16 @@ def warp_particles(grid):
     qa = wp.array(np.asarray(q), dtype=f64, device="cpu", copy=False)
 
     def run(p, steps, dt, ay):
-        arrs = [wp.array(p[k], dtype=f64, device="cpu", copy=False)
-                for k in ("x", "v", "r", "cr", "cf")]
+        arrs = [
+            wp.array(p[k], dtype=f64, device="cpu", copy=False) for k in ("x", "v", "r", "cr", "cf")
+        ]
         for _ in range(steps):
-            wp.launch(step, dim=len(p), inputs=arrs + [qa, f64(dt), f64(ay)] + consts
-                      + [int(nx), int(ny)], device="cpu")
+            wp.launch(
+                step,
+                dim=len(p),
+                inputs=arrs + [qa, f64(dt), f64(ay)] + consts + [int(nx), int(ny)],
+                device="cpu",
+            )
         wp.synchronize()
 
     return run, None

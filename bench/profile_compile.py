@@ -31,6 +31,7 @@ SCENES = {
 def _mixed(sdf, n):
     """bench_core's scene without repeated structure next to each other (the same draws)."""
     from fastsdf.shapes.scenes import mixed_scene
+
     return mixed_scene(n)
 
 
@@ -74,24 +75,43 @@ def profile(key: str):
         if hasattr(mod, fn):
             for key, value in _timers(getattr(mod, fn)).items():
                 tm[key] += value
-    return dict(name=name, lines=len(f.source().splitlines()), module_bytes=len(src),
-                build=t_build, codegen=t_codegen, import_=t_import, first=t_first,
-                numba=tm["compiler_lock"] - tm["llvm_lock"], llvm=tm["llvm_lock"])
+    return dict(
+        name=name,
+        lines=len(f.source().splitlines()),
+        module_bytes=len(src),
+        build=t_build,
+        codegen=t_codegen,
+        import_=t_import,
+        first=t_first,
+        numba=tm["compiler_lock"] - tm["llvm_lock"],
+        llvm=tm["llvm_lock"],
+    )
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.profile_compile", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", choices=sorted(SCENES), action="append",
-                        help="scene(s) to profile (default: all but box1000 and mixed2000)")
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.profile_compile",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--scene",
+        choices=sorted(SCENES),
+        action="append",
+        help="scene(s) to profile (default: all but box1000 and mixed2000)",
+    )
     parser.add_argument("--source", choices=sorted(SCENES), help="print a scene's generated code")
-    parser.add_argument("--module", action="store_true",
-                        help="with --source: print the whole module (tables, kernels)")
+    parser.add_argument(
+        "--module",
+        action="store_true",
+        help="with --source: print the whole module (tables, kernels)",
+    )
     args = parser.parse_args(argv)
     os.environ["FASTSDF_CACHE_DIR"] = tempfile.mkdtemp(prefix="fastsdf-profile-")
     if args.source:
         import fastsdf as sdf
         from fastsdf.shapes import scenes
+
         f = SCENES[args.source][1](sdf, scenes)
         print(f.compiled.module_source if args.module else f.source())
         return 0
@@ -99,20 +119,33 @@ def main(argv=None) -> int:
     import numba  # noqa: F401 - import cost shown separately
 
     import fastsdf.backends.kernel.codegen  # noqa: F401
+
     print(f"import numba + fastsdf: {time.perf_counter() - t0:.2f} s (once per process)")
     keys = args.scene or ["circle", "seed", "box20", "box200", "mixed50", "mixed200"]
-    header = ("scene", "lines", "build graph", "codegen", "import module", "first call",
-              "of which numba", "of which LLVM")
+    header = (
+        "scene",
+        "lines",
+        "build graph",
+        "codegen",
+        "import module",
+        "first call",
+        "of which numba",
+        "of which LLVM",
+    )
     print(" | ".join(header))
     for key in keys:
         r = profile(key)
-        print(f"{r['name']} | {r['lines']} | {r['build']:.3f} s | {r['codegen']:.3f} s | "
-              f"{r['import_']:.3f} s | {r['first']:.2f} s | {r['numba']:.2f} s | {r['llvm']:.2f} s")
-    print("\n'first call' compiles the scene's value+gradient block functions and their callees "
-          "(the parallel kernel that calls them is compiled once per installation); the first "
-          "scene also pays numba's one-time initialisation (~0.4 s). 'lines': the per-point "
-          "function (long scenes' block kernels fold its same-shape parts into loops; scenes "
-          "run as combine programs: their loops over tables, the blends being data).")
+        print(
+            f"{r['name']} | {r['lines']} | {r['build']:.3f} s | {r['codegen']:.3f} s | "
+            f"{r['import_']:.3f} s | {r['first']:.2f} s | {r['numba']:.2f} s | {r['llvm']:.2f} s"
+        )
+    print(
+        "\n'first call' compiles the scene's value+gradient block functions and their callees "
+        "(the parallel kernel that calls them is compiled once per installation); the first "
+        "scene also pays numba's one-time initialisation (~0.4 s). 'lines': the per-point "
+        "function (long scenes' block kernels fold its same-shape parts into loops; scenes "
+        "run as combine programs: their loops over tables, the blends being data)."
+    )
     return 0
 
 

@@ -52,8 +52,11 @@ def _median_ms(fn, repeats):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.profile_particles", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.profile_particles",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--particles", type=int, default=1_000_000)
     parser.add_argument("--world", choices=["seed", "box20"], default="seed")
     parser.add_argument("--exact", action="store_true", help="query the exact SDF, not a grid")
@@ -67,8 +70,11 @@ def main(argv=None) -> int:
     from fastsdf.shapes.scenes import box_world, seed_world
 
     world = seed_world() if args.world == "seed" else box_world(20)
-    f = world if args.exact else sdf.GridSDF(world, bounds=[(-2, 2), (-2, 2)],
-                                             samples=[args.grid * 1j, args.grid * 1j])
+    f = (
+        world
+        if args.exact
+        else sdf.GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[args.grid * 1j, args.grid * 1j])
+    )
     n, dt = args.particles, 1 / 30
     sim = phys.ParticleSimulation(f, n=n, timestep=dt, seed=0)
     sim.force_generators.append(phys.Gravity())
@@ -85,6 +91,7 @@ def main(argv=None) -> int:
             fresh()
             sim.prevent_tunnelling = tunnelling
             sim.run(steps)
+
         return go
 
     out = np.empty(n)
@@ -116,19 +123,25 @@ def main(argv=None) -> int:
     swept = _median_ms(fused(True), args.repeats) - copy_all
     ten = (_median_ms(fused(True, 10), max(2, args.repeats // 2)) - copy_all) / 10
     kind = "exact SDF" if args.exact else f"GridSDF {args.grid}x{args.grid}"
-    print(f"{n:,} particles, {args.world} world via {kind}, after {args.settle} steps, "
-          f"{numba.get_num_threads()} threads (ms per step, medians of {args.repeats}; the "
-          f"copy of the starting state is subtracted)")
-    for name, ms in (("forces + integration (separate pass)", integ),
-                     ("... + SDF query, value and gradient", query),
-                     ("fused step, no tunnelling sweep: run(1)", plain),
-                     ("fused step with the sweep (default): run(1)", swept),
-                     ("fused step, run(10), per step", ten)):
+    print(
+        f"{n:,} particles, {args.world} world via {kind}, after {args.settle} steps, "
+        f"{numba.get_num_threads()} threads (ms per step, medians of {args.repeats}; the "
+        f"copy of the starting state is subtracted)"
+    )
+    for name, ms in (
+        ("forces + integration (separate pass)", integ),
+        ("... + SDF query, value and gradient", query),
+        ("fused step, no tunnelling sweep: run(1)", plain),
+        ("fused step with the sweep (default): run(1)", swept),
+        ("fused step, run(10), per step", ten),
+    ):
         print(f"  {name:<46} {ms:8.2f} ms  {n / ms / 1e3:8.1f} M particle-steps/s")
-    print(f"\nestimated stages: integration {integ:.2f} ms, SDF query {query - integ:.2f} ms, "
-          f"collision response and loop {plain - query:.2f} ms, tunnelling sweep "
-          f"{swept - plain:.2f} ms; run(10) saves {swept - ten:.2f} ms per step (skipped "
-          f"queries of particles proven clear, block kept in cache).")
+    print(
+        f"\nestimated stages: integration {integ:.2f} ms, SDF query {query - integ:.2f} ms, "
+        f"collision response and loop {plain - query:.2f} ms, tunnelling sweep "
+        f"{swept - plain:.2f} ms; run(10) saves {swept - ten:.2f} ms per step (skipped "
+        f"queries of particles proven clear, block kept in cache)."
+    )
     return 0
 
 

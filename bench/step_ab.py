@@ -27,12 +27,17 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.step_ab", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rev", required=True, help="git revision whose particle engine is "
-                        "the baseline")
-    parser.add_argument("--phase", nargs="+", default=["settled"],
-                        choices=["fall", "impact", "settled"])
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.step_ab",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--rev", required=True, help="git revision whose particle engine is the baseline"
+    )
+    parser.add_argument(
+        "--phase", nargs="+", default=["settled"], choices=["fall", "impact", "settled"]
+    )
     parser.add_argument("--particles", type=int, default=1_000_000)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--peer-work", action="store_true")
@@ -53,22 +58,27 @@ def main(argv=None) -> int:
     ti, ti_err = peers.taichi_particles(grid, numba.get_num_threads())
     for phase in args.phase:
         state = states[phase]
-        variants = [_BaseFused(base, grid, state, 20, forces, **kw),
-                    Fused(grid, state, 20, forces=forces, **kw)]
+        variants = [
+            _BaseFused(base, grid, state, 20, forces, **kw),
+            Fused(grid, state, 20, forces=forces, **kw),
+        ]
         for v in variants:
             v.prepare()
             v()
-        same = all(np.array_equal(variants[0].sim.p[f], variants[1].sim.p[f])
-                   for f in ("x", "v"))
+        same = all(np.array_equal(variants[0].sim.p[f], variants[1].sim.p[f]) for f in ("x", "v"))
         if ti is not None:
             variants.append(Peer(ti, state, 20))
         load = os.getloadavg()[0]
         r = compare(variants, args.repeats)
-        line = (f"{phase}: baseline {cell(r[0])}, current {cell(r[1])}, current / baseline "
-                f"{r[1][0] / r[0][0]:.3f}, bit-identical: {same}")
+        line = (
+            f"{phase}: baseline {cell(r[0])}, current {cell(r[1])}, current / baseline "
+            f"{r[1][0] / r[0][0]:.3f}, bit-identical: {same}"
+        )
         if ti is not None:
-            line += (f"; Taichi {cell(r[2])}, baseline / Taichi {r[0][0] / r[2][0]:.2f}, "
-                     f"current / Taichi {r[1][0] / r[2][0]:.2f}")
+            line += (
+                f"; Taichi {cell(r[2])}, baseline / Taichi {r[0][0] / r[2][0]:.2f}, "
+                f"current / Taichi {r[1][0] / r[2][0]:.2f}"
+            )
         else:
             line += f"; Taichi skipped ({ti_err})"
         print(line + f" (load average {load:.1f})")
@@ -96,8 +106,10 @@ def _load_base(rev: str):
         src = _git("show", f"{rev}:fastsdf/particles.py")
         src = src.replace("from . import _step\n", "from . import _ab_base_step as _step\n")
         src = src.replace("from ._step import", "from ._ab_base_step import")
-        paths = {"fastsdf._ab_base_step": os.path.join(root, "_ab_base_step.py"),
-                 name: os.path.join(root, "_ab_base.py")}
+        paths = {
+            "fastsdf._ab_base_step": os.path.join(root, "_ab_base_step.py"),
+            name: os.path.join(root, "_ab_base.py"),
+        }
         for mod, text in (("fastsdf._ab_base_step", step), (name, src)):
             with open(paths[mod], "w") as fh:
                 fh.write(text)
@@ -109,12 +121,13 @@ def _load_base(rev: str):
     pkg = os.path.join(root, "_ab_base")
     for path in files:
         if path.startswith("fastsdf/particles/") and path.endswith(".py"):
-            out = os.path.join(pkg, path[len("fastsdf/particles/"):])
+            out = os.path.join(pkg, path[len("fastsdf/particles/") :])
             os.makedirs(os.path.dirname(out), exist_ok=True)
             with open(out, "w") as fh:
                 fh.write(_git("show", f"{rev}:{path}"))
-    spec = importlib.util.spec_from_file_location(name, os.path.join(pkg, "__init__.py"),
-                                                  submodule_search_locations=[pkg])
+    spec = importlib.util.spec_from_file_location(
+        name, os.path.join(pkg, "__init__.py"), submodule_search_locations=[pkg]
+    )
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     fastsdf._ab_base = module

@@ -38,16 +38,24 @@ def _hot_loops(asm: str) -> list:
     """(instructions, ymm instructions, square roots and divisions, particles per iteration)
     of each backward-jumping loop of the first function in ``asm``, longest first."""
     lines = asm.split(".Lfunc_end0")[0].splitlines()
-    labels = {m.group(1): i for i, l in enumerate(lines)
-              if (m := re.match(r"^(\.LBB\S+):", l))}
+    labels = {m.group(1): i for i, l in enumerate(lines) if (m := re.match(r"^(\.LBB\S+):", l))}
     out = []
     for i, line in enumerate(lines):
         m = re.match(r"^\s+j\w+\s+(\.LBB\S+)", line)
         if m and labels.get(m.group(1), i) < i:
-            body = [x.strip() for x in lines[labels[m.group(1)]:i + 1]
-                    if x.startswith("\t") and not x.startswith("\t.")]
-            out.append((len(body), sum("ymm" in x for x in body),
-                        sum(x.startswith(("vsqrt", "vdiv")) for x in body), _per_iteration(body)))
+            body = [
+                x.strip()
+                for x in lines[labels[m.group(1)] : i + 1]
+                if x.startswith("\t") and not x.startswith("\t.")
+            ]
+            out.append(
+                (
+                    len(body),
+                    sum("ymm" in x for x in body),
+                    sum(x.startswith(("vsqrt", "vdiv")) for x in body),
+                    _per_iteration(body),
+                )
+            )
     return sorted(out, reverse=True)
 
 
@@ -61,7 +69,7 @@ def main() -> None:
     sim = phys.ParticleSimulation(g, n=100, seed=0)
     sim.force_generators.append(phys.Gravity())
     sim._simd = False
-    sim.run(1)                                  # serial path: n < PARALLEL_MIN_PARTICLES
+    sim.run(1)  # serial path: n < PARALLEL_MIN_PARTICLES
     kernel = sim._module.run_ser
     asm = kernel.inspect_asm(kernel.signatures[0])
     funcs, cur = {}, None
@@ -73,19 +81,23 @@ def main() -> None:
         elif cur and line.startswith("\t") and not line.startswith("\t."):
             funcs[cur].append(line.split()[0])
     print("particle-by-particle step (run_ser)")
-    print(f"{'function':12s} {'instr':>6s} {'branches':>8s} {'calls':>6s} {'mul/add sd':>10s} "
-          f"{'div sd':>6s} {'sqrt sd':>7s} {'pd ops':>6s} {'gathers':>7s}")
+    print(
+        f"{'function':12s} {'instr':>6s} {'branches':>8s} {'calls':>6s} {'mul/add sd':>10s} "
+        f"{'div sd':>6s} {'sqrt sd':>7s} {'pd ops':>6s} {'gathers':>7s}"
+    )
     for name, ops in funcs.items():
         short = next((k for k in ("_block", "_sweep", "_march") if k in name), None)
         if short is None:
             continue
         c = collections.Counter(ops)
         text = " ".join(ops)
-        print(f"{short:12s} {len(ops):6d} {sum(v for k, v in c.items() if k.startswith('j')):8d} "
-              f"{c['call'] + c['callq']:6d} "
-              f"{sum(c[k] for k in ('vmulsd', 'vaddsd', 'vsubsd')):10d} {c['vdivsd']:6d} "
-              f"{c['vsqrtsd']:7d} {sum(v for k, v in c.items() if k.endswith('pd')):6d} "
-              f"{text.count('gather'):7d}")
+        print(
+            f"{short:12s} {len(ops):6d} {sum(v for k, v in c.items() if k.startswith('j')):8d} "
+            f"{c['call'] + c['callq']:6d} "
+            f"{sum(c[k] for k in ('vmulsd', 'vaddsd', 'vsubsd')):10d} {c['vdivsd']:6d} "
+            f"{c['vsqrtsd']:7d} {sum(v for k, v in c.items() if k.endswith('pd')):6d} "
+            f"{text.count('gather'):7d}"
+        )
 
     # The block kernel, in the peers' configuration and with the defaults.
     for kw in ({"prevent_tunnelling": False}, {}):
@@ -95,11 +107,21 @@ def main() -> None:
         s.run(1)
     mod = sim._module
     print("\nblock kernel (simd_ser): innermost loop of each pass")
-    print(f"{'pass':26s} {'instr/particle':>14s} {'ymm':>5s} {'sqrt+div':>8s} {'masked st':>9s}"
-          "   (ymm, sqrt+div: per loop iteration)")
-    for name in ("_simd_move_plain", "_simd_move_budget", "_simd_gather_all", "_simd_gather_some",
-                 "_simd_respond_all_plain", "_simd_respond_none_plain", "_simd_respond_all",
-                 "_simd_respond_none", "_simd_commit"):
+    print(
+        f"{'pass':26s} {'instr/particle':>14s} {'ymm':>5s} {'sqrt+div':>8s} {'masked st':>9s}"
+        "   (ymm, sqrt+div: per loop iteration)"
+    )
+    for name in (
+        "_simd_move_plain",
+        "_simd_move_budget",
+        "_simd_gather_all",
+        "_simd_gather_some",
+        "_simd_respond_all_plain",
+        "_simd_respond_none_plain",
+        "_simd_respond_all",
+        "_simd_respond_none",
+        "_simd_commit",
+    ):
         d = getattr(mod, name)
         if not d.signatures:
             continue

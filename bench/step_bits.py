@@ -27,12 +27,20 @@ def worlds() -> dict:
     lift = sdf.Param("y0", -1.1) + sdf.Param("u", 1.0) * sdf.t
     with sdf.transform(offset=[0.0, lift]):
         bar = sdf.Box(minc=[-1.15, -0.01], maxc=[1.15, 0.01])
-    box = (sdf.Halfspace(normal=[0, 1], d=-1.2) | sdf.Halfspace(normal=[0, -1], d=-1.2)
-           | sdf.Halfspace(normal=[1, 0], d=-1.2) | sdf.Halfspace(normal=[-1, 0], d=-1.2))
-    piston = sdf.Halfspace(normal=[1, 0], d=-1.0 + sdf.Param("speed", 0.5) * sdf.t) | \
-        sdf.Circle(center=[0.5, 0.0], radius=0.2)
-    return {"moving bar": (box | bar, {"u": 6.0, "y0": -1.1}), "piston": (piston, {}),
-            "seed world (exact SDF)": (seed_world(), {})}
+    box = (
+        sdf.Halfspace(normal=[0, 1], d=-1.2)
+        | sdf.Halfspace(normal=[0, -1], d=-1.2)
+        | sdf.Halfspace(normal=[1, 0], d=-1.2)
+        | sdf.Halfspace(normal=[-1, 0], d=-1.2)
+    )
+    piston = sdf.Halfspace(normal=[1, 0], d=-1.0 + sdf.Param("speed", 0.5) * sdf.t) | sdf.Circle(
+        center=[0.5, 0.0], radius=0.2
+    )
+    return {
+        "moving bar": (box | bar, {"u": 6.0, "y0": -1.1}),
+        "piston": (piston, {}),
+        "seed world (exact SDF)": (seed_world(), {}),
+    }
 
 
 def run(engine, world, params: dict, n: int) -> tuple:
@@ -50,8 +58,11 @@ def run(engine, world, params: dict, n: int) -> tuple:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.step_bits", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.step_bits",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--rev", required=True, help="git revision of the baseline")
     parser.add_argument("--particles", type=int, default=3000)
     args = parser.parse_args(argv)
@@ -65,11 +76,14 @@ def main(argv=None) -> int:
     for name, (world, params) in worlds().items():
         a = run(base, world, params, args.particles)
         b = run(phys, world, params, args.particles)
-        same = a[2] == b[2] and all(np.array_equal(p.view(np.int64), q.view(np.int64))
-                                    for p, q in zip(a[:2], b[:2], strict=True))
+        same = a[2] == b[2] and all(
+            np.array_equal(p.view(np.int64), q.view(np.int64))
+            for p, q in zip(a[:2], b[:2], strict=True)
+        )
         same_all &= same
-        print(f"{name}: {args.particles} particles, 60 steps in 4 calls: same bits {same}",
-              flush=True)
+        print(
+            f"{name}: {args.particles} particles, 60 steps in 4 calls: same bits {same}", flush=True
+        )
     print("all bit-identical" if same_all else "DIFFERENCES")
     return 0 if same_all else 1
 

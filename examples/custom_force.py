@@ -42,7 +42,7 @@ def updraft(p, t):
     """A column of rising air around x = 0 below y = -0.5, gusting with a 2 s period."""
     x = p["x"]
     strength = 3.0 * (0.5 + 0.5 * np.sin(np.pi * t))
-    column = np.exp(-(x[:, 0] / 0.3) ** 2) * (x[:, 1] < -0.5)
+    column = np.exp(-((x[:, 0] / 0.3) ** 2)) * (x[:, 1] < -0.5)
     force = np.zeros_like(x)
     force[:, 1] = p["m"] * strength * column
     force[:, 0] = -0.2 * p["m"] * x[:, 0] * column  # and a pull towards its centre
@@ -60,14 +60,22 @@ def main(out: str = "examples-out", n: int = 20_000, steps: int = 240) -> str:
             sim.run(1)  # one step at a time: the Python updraft is evaluated before each
             bar.update(1)
     took = time.perf_counter() - t0
-    print(f"{n:,} particles x {steps - 1} steps in {took:.2f} s "
-          f"({(steps - 1) * n / took / 1e6:.1f} M particle-steps/s with a Python force in the "
-          f"loop; without it, run(k) stays in compiled code)")
+    print(
+        f"{n:,} particles x {steps - 1} steps in {took:.2f} s "
+        f"({(steps - 1) * n / took / 1e6:.1f} M particle-steps/s with a Python force in the "
+        f"loop; without it, run(k) stays in compiled code)"
+    )
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, "custom_force.png")
     x = sim.p["x"]
-    render_frame(world, x[:, 0], x[:, 1], r=sim.p["r"], out_png=path,
-                 title=sim_title(sim, f"{n:,} particles, vortex + updraft, "))
+    render_frame(
+        world,
+        x[:, 0],
+        x[:, 1],
+        r=sim.p["r"],
+        out_png=path,
+        title=sim_title(sim, f"{n:,} particles, vortex + updraft, "),
+    )
     print(f"wrote {os.path.abspath(path)}")
     return path
 

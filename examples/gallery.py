@@ -54,16 +54,24 @@ def panels():
         ("tri.scale(0.5)", tri.scale(0.5)),
         ("tri.rotate(.5).translate", tri.scale(0.7).rotate(0.5).translate([0.3, 0.1])),
         ("Circle.mirror('x')", sdf.Circle([0.6, 0.3], 0.45).mirror("x")),
-        ("hexagon.repeat(0.7, 4)", sdf.RegularPolygon([0, 0], 0.3, 6).repeat(0.7, 4)
-         .translate([-1.05, -1.05])),
+        (
+            "hexagon.repeat(0.7, 4)",
+            sdf.RegularPolygon([0, 0], 0.3, 6).repeat(0.7, 4).translate([-1.05, -1.05]),
+        ),
         ("union (hard)", a | b),
         ("union exponential k=8", a.union(b, k=8.0)),
         ("union quadratic k=0.4", a.union(b, k=0.4, kind="quadratic")),
         ("union cubic k=0.4", a.union(b, k=0.4, kind="cubic")),
-        ("intersection quadratic", sdf.Circle([-0.3, -0.1], 0.9).intersection(
-            b, k=0.4, kind="quadratic")),
-        ("difference cubic", sdf.Box([-1.1, -0.7], [1.1, 0.7]).difference(
-            sdf.Circle([0.6, 0.4], 0.6), k=0.3, kind="cubic")),
+        (
+            "intersection quadratic",
+            sdf.Circle([-0.3, -0.1], 0.9).intersection(b, k=0.4, kind="quadratic"),
+        ),
+        (
+            "difference cubic",
+            sdf.Box([-1.1, -0.7], [1.1, 0.7]).difference(
+                sdf.Circle([0.6, 0.4], 0.6), k=0.3, kind="cubic"
+            ),
+        ),
     ]
 
 
@@ -76,19 +84,37 @@ def main(out=OUT):
     levels = np.arange(-1.5, 2.26, 0.25)
     with progress(len(items), "gallery") as bar:
         for ax, (name, f) in zip(axes.flat, items):
-            sdf.plot_sdf(fig, ax, f, bounds=bounds, samples=160, filled=True, show_quiver=False,
-                         show_isolines=None)
+            sdf.plot_sdf(
+                fig,
+                ax,
+                f,
+                bounds=bounds,
+                samples=160,
+                filled=True,
+                show_quiver=False,
+                show_isolines=None,
+            )
             xs, ys, d = sdf_grid(f, bounds, 160)
             ax.contour(xs, ys, d, levels=levels[levels > 0], colors="#8a6f3a", linewidths=0.6)
-            ax.contour(xs, ys, d, levels=levels[levels < 0], colors="#c9d6e3", linewidths=0.6,
-                       linestyles="--")
+            ax.contour(
+                xs,
+                ys,
+                d,
+                levels=levels[levels < 0],
+                colors="#c9d6e3",
+                linewidths=0.6,
+                linestyles="--",
+            )
             ax.contour(xs, ys, d, levels=[0.0], colors="#1b1b1b", linewidths=1.4)
             ax.set_title(f"{name}\n{f.exactness}", fontsize=8)
             bar.update(1)
-    for ax in list(axes.flat)[len(items):]:
+    for ax in list(axes.flat)[len(items) :]:
         ax.axis("off")
-    fig.suptitle("fastsdf primitives, modifiers and blends: solid (d < 0) dark, isolines of d "
-                 "every 0.25 (dashed inside), surface in black; title: exactness", fontsize=10)
+    fig.suptitle(
+        "fastsdf primitives, modifiers and blends: solid (d < 0) dark, isolines of d "
+        "every 0.25 (dashed inside), surface in black; title: exactness",
+        fontsize=10,
+    )
     fig.tight_layout(rect=(0, 0, 1, 0.975))
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=80)

@@ -36,11 +36,16 @@ def stirrer_world(omega=OMEGA):
     """A box (inside [-1.9, 1.9]^2) with a four-bladed stirrer turning at ``omega`` rad/s
     around (0, -0.75), its blades sweeping just into the floor: negative inside the walls and
     the blades."""
-    box = (sdf.Halfspace(normal=[0, 1], d=-1.9) | sdf.Halfspace(normal=[0, -1], d=-1.9)
-           | sdf.Halfspace(normal=[1, 0], d=-1.9) | sdf.Halfspace(normal=[-1, 0], d=-1.9))
+    box = (
+        sdf.Halfspace(normal=[0, 1], d=-1.9)
+        | sdf.Halfspace(normal=[0, -1], d=-1.9)
+        | sdf.Halfspace(normal=[1, 0], d=-1.9)
+        | sdf.Halfspace(normal=[-1, 0], d=-1.9)
+    )
     with sdf.transform(angle=omega * sdf.t, offset=[0.0, -0.75]):
-        blades = sdf.Box(minc=[-1.2, -0.06], maxc=[1.2, 0.06]) | \
-            sdf.Box(minc=[-0.06, -1.2], maxc=[0.06, 1.2])
+        blades = sdf.Box(minc=[-1.2, -0.06], maxc=[1.2, 0.06]) | sdf.Box(
+            minc=[-0.06, -1.2], maxc=[0.06, 1.2]
+        )
         hub = sdf.Circle(center=[0.0, 0.0], radius=0.2)
     return box | blades | hub
 
@@ -85,8 +90,10 @@ def main(out="examples-out", n=1_000_000, frames=300):
         draw_particles(ax, x[:, 0], x[:, 1], bounds=BOUNDS)
         ax.set_title(f"t = {sim.t:.1f} s (step {k})")
     steps_s = time.perf_counter() - t0
-    fig.suptitle(f"{n:,} particles and a stirrer turning at {OMEGA} rad/s "
-                 f"(the scene compiled once; {frames} steps)")
+    fig.suptitle(
+        f"{n:,} particles and a stirrer turning at {OMEGA} rad/s "
+        f"(the scene compiled once; {frames} steps)"
+    )
     png = os.path.join(out, "moving_walls.png")
     fig.savefig(png, dpi=80)
     plt.close(fig)

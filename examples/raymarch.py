@@ -24,8 +24,8 @@ from fastsdf.shapes.scenes import box_world
 
 
 def make_kernel(f):
-    dist = f.point_value_fn     # (x, y) -> d
-    dist_grad = f.point_fn      # (x, y) -> (d, dd/dx, dd/dy)
+    dist = f.point_value_fn  # (x, y) -> d
+    dist_grad = f.point_fn  # (x, y) -> (d, dd/dx, dd/dy)
 
     @njit(parallel=True)
     def shade(xs, ys, lx, ly, k, out):
@@ -48,6 +48,7 @@ def make_kernel(f):
                     light = min(light, k * d / t)
                     t += d
                 out[i, j] = light / (1.0 + 0.3 * total * total)
+
     return shade
 
 
@@ -59,12 +60,10 @@ def main(out: str = "examples-out", size: int = 400) -> str:
     make_kernel(f)(xs, ys, light[0], light[1], 8.0, img)
     os.makedirs(out, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6.2, 5.2), layout="constrained")
-    shown = ax.imshow(img, origin="lower", extent=(-2, 2, -2, 2), cmap="magma",
-                      vmin=-0.5, vmax=1.0)
+    shown = ax.imshow(img, origin="lower", extent=(-2, 2, -2, 2), cmap="magma", vmin=-0.5, vmax=1.0)
     ax.plot(*light, marker="*", color="white", markersize=12)
     fig.colorbar(shown, ax=ax, label="light reaching the point (solid: < 0)")
-    ax.set(xlabel="x", ylabel="y",
-           title="soft shadows: f.point_value_fn in @njit code")
+    ax.set(xlabel="x", ylabel="y", title="soft shadows: f.point_value_fn in @njit code")
     path = os.path.join(out, "raymarch.png")
     fig.savefig(path, dpi=90)
     plt.close(fig)

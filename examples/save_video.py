@@ -35,15 +35,23 @@ def main(out: str = "examples-out", n: int = 200_000, frames: int = 90) -> str:
     os.makedirs(out, exist_ok=True)
     if ffmpeg_available():
         # one colour scale for the whole video, with room for the pile on the floor
-        path = record_video(sim, os.path.join(out, "particles.mp4"), frames=frames,
-                            steps_per_frame=2, world=seed_world(), size=(640, 560), fps=30,
-                            title=f"{n:,} particles", vmax=max(10.0, n / 1000))
+        path = record_video(
+            sim,
+            os.path.join(out, "particles.mp4"),
+            frames=frames,
+            steps_per_frame=2,
+            world=seed_world(),
+            size=(640, 560),
+            fps=30,
+            title=f"{n:,} particles",
+            vmax=max(10.0, n / 1000),
+        )
     else:
         fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
-        sdf.plot_sdf(world, ax=ax, filled=True, show_quiver=False, show_isolines="zero",
-                     ticks=True)
-        anim = animate(sim, ax, frames=frames, steps_per_frame=2, colorbar=True,
-                       title=f"{n:,} particles, ")
+        sdf.plot_sdf(world, ax=ax, filled=True, show_quiver=False, show_isolines="zero", ticks=True)
+        anim = animate(
+            sim, ax, frames=frames, steps_per_frame=2, colorbar=True, title=f"{n:,} particles, "
+        )
         path = save_animation(anim, os.path.join(out, "particles.gif"), fps=30)
         plt.close(fig)
     print(f"wrote {path}")

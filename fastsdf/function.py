@@ -30,8 +30,14 @@ from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
 from fastsdf.expr.graph import Expr, as_expr, expr_to_str, gc_paused, parameters, substitute_params
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 
-__all__ = ["Function", "CompiledSDF", "compile_expr", "as_points", "PARALLEL_MIN_POINTS",
-           "BACKENDS"]
+__all__ = [
+    "Function",
+    "CompiledSDF",
+    "compile_expr",
+    "as_points",
+    "PARALLEL_MIN_POINTS",
+    "BACKENDS",
+]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
 #: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:mod:`fastsdf.backends.npeval`: no
@@ -103,8 +109,10 @@ class CompiledSDF:
     def _kind(self, kind: str) -> str:
         kind = _check_kind(kind)
         if kind == "vgt" and not self.parametric:
-            raise ValueError("kind='vgt' (with dd/dt) exists only for scenes with parameters "
-                             "or time; a static scene's dd/dt is 0")
+            raise ValueError(
+                "kind='vgt' (with dd/dt) exists only for scenes with parameters "
+                "or time; a static scene's dd/dt is 0"
+            )
         return kind
 
     def _generate(self) -> tuple[str, dict, list]:
@@ -153,6 +161,7 @@ class CompiledSDF:
             if self._tape_error is not None:  # known already: not walked again per call
                 raise ValueError(self._tape_error)
             from fastsdf.backends.vm import compile_tape
+
             try:
                 with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
                     self._tape = compile_tape(self.expr, self.symbol_names)
@@ -167,6 +176,7 @@ class CompiledSDF:
         use)."""
         if self._numpy is None:
             from fastsdf.backends.npeval import compile_numpy
+
             with gc_paused():
                 self._numpy = compile_numpy(self.expr, self.symbol_names)
         return self._numpy
@@ -183,8 +193,11 @@ class CompiledSDF:
         if not warm and self._warm is not None and not self._warm.is_set():
             return "numpy"
         size = scene.size
-        t_tape = (0.0 if warm else NUMBA_SETUP_S) + TAPE_PER_NODE_POINT_S * size * n \
+        t_tape = (
+            (0.0 if warm else NUMBA_SETUP_S)
+            + TAPE_PER_NODE_POINT_S * size * n
             + (0.0 if self._tape is not None else TAPE_BUILD_PER_NODE_S * size)
+        )
         return "numpy" if t_numpy <= t_tape else "tape"
 
     @property
@@ -193,8 +206,9 @@ class CompiledSDF:
         done (False if it never started)."""
         return self._warm is not None and self._warm.is_set()
 
-    def compile_in_background(self, xs: np.ndarray | None = None, ys: np.ndarray | None = None,
-                              tol: float | None = None) -> threading.Event:
+    def compile_in_background(
+        self, xs: np.ndarray | None = None, ys: np.ndarray | None = None, tol: float | None = None
+    ) -> threading.Event:
         """Compile (or load from the disk cache) the kernels a call needs, in a daemon thread;
         returns an event set when done (also on failure: see :attr:`warm_error`). Started once.
 
@@ -207,11 +221,16 @@ class CompiledSDF:
             if self._warm is None:
                 self._warm = threading.Event()
                 job = None
-                if xs is not None and ys is not None and not self.parametric \
-                        and len(xs) >= PRUNE_MIN_POINTS:
+                if (
+                    xs is not None
+                    and ys is not None
+                    and not self.parametric
+                    and len(xs) >= PRUNE_MIN_POINTS
+                ):
                     job = (snap_bounds(xs, ys), len(xs), tol)
-                threading.Thread(target=self._compile_now, args=(job,), name="fastsdf-compile",
-                                 daemon=True).start()
+                threading.Thread(
+                    target=self._compile_now, args=(job,), name="fastsdf-compile", daemon=True
+                ).start()
         return self._warm
 
     def _compile_now(self, job: tuple | None = None) -> None:
@@ -231,8 +250,12 @@ class CompiledSDF:
             assert self._warm is not None  # (created before the thread starts)
             self._warm.set()
 
-    def plan(self, bounds: Sequence[Sequence[float]], tiles: Sequence[int] | None = None,
-             tol: float | None = None) -> PrunePlan:
+    def plan(
+        self,
+        bounds: Sequence[Sequence[float]],
+        tiles: Sequence[int] | None = None,
+        tol: float | None = None,
+    ) -> PrunePlan:
         """The pruning plan over ``bounds = ((x0, x1), (y0, y1))`` with ``tiles = (nx, ny)``
         (default 32 x 32), cached per arguments."""
         nx, ny = (PRUNE_TILES, PRUNE_TILES) if tiles is None else (int(tiles[0]), int(tiles[1]))
@@ -244,9 +267,15 @@ class CompiledSDF:
             plan = self._plans[key] = make_plan(self.groups, key[0], nx, ny, tol)
         return plan
 
-    def pruned_plan(self, xs: np.ndarray, ys: np.ndarray, prune: bool | None = None,
-                    tol: float | None = None, bounds: Any = None,
-                    count: int | None = None) -> PrunePlan | None:
+    def pruned_plan(
+        self,
+        xs: np.ndarray,
+        ys: np.ndarray,
+        prune: bool | None = None,
+        tol: float | None = None,
+        bounds: Any = None,
+        count: int | None = None,
+    ) -> PrunePlan | None:
         """The plan a call on points ``xs, ys`` should use (over ``bounds`` if given, which must
         hold every finite point), or None for the unpruned kernels. ``prune``: None decides
         (large inputs, enough operands, and only where most of them are dropped), True
@@ -258,8 +287,9 @@ class CompiledSDF:
         if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
             return None
         operands = sum(len(g["members"]) for g in self.groups or ())
-        if not operands or (not prune and (operands < PRUNE_MIN_OPERANDS
-                                           or operands * count < PRUNE_MIN_WORK)):
+        if not operands or (
+            not prune and (operands < PRUNE_MIN_OPERANDS or operands * count < PRUNE_MIN_WORK)
+        ):
             return None
         if not prune and tol is None and all(g["op"] in ("smin", "smax") for g in self.groups):
             return None  # exponential chains at half an ulp: next to nothing to drop
@@ -291,8 +321,14 @@ class CompiledSDF:
             buf = self._scratch.buf = scratch(need)
         return {"S": buf}
 
-    def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, grad: np.ndarray | None = None,
-            plan: PrunePlan | None = None) -> None:
+    def run(
+        self,
+        xs: np.ndarray,
+        ys: np.ndarray,
+        out: np.ndarray,
+        grad: np.ndarray | None = None,
+        plan: PrunePlan | None = None,
+    ) -> None:
         """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2), if given),
         with the tile kernels of ``plan`` if given (see :meth:`pruned_plan`)."""
         n = xs.shape[0]
@@ -302,18 +338,33 @@ class CompiledSDF:
         arrays = (out,) if grad is None else (out, grad)
         if plan is not None:
             order, starts = bin_points(xs, ys, plan)
-            getattr(self.module, f"tiles_{kind}_par")(xs, ys, *arrays, order, starts,
-                                                      plan.act, plan.offs,
-                                                      64 * numba.get_num_threads(),
-                                                      **self.scratch(kind, True))
+            getattr(self.module, f"tiles_{kind}_par")(
+                xs,
+                ys,
+                *arrays,
+                order,
+                starts,
+                plan.act,
+                plan.offs,
+                64 * numba.get_num_threads(),
+                **self.scratch(kind, True),
+            )
             return
         parallel = n >= PARALLEL_MIN_POINTS
         extra = (64 * numba.get_num_threads(),) if parallel else ()
         self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
 
-    def evaluate(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
-                 prune: bool | None = None, tol: float | None = None, t: float = 0.0,
-                 params: tuple | None = None, time_derivative: bool = False) -> Any:
+    def evaluate(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        compute_gradient: bool = False,
+        prune: bool | None = None,
+        tol: float | None = None,
+        t: float = 0.0,
+        params: tuple | None = None,
+        time_derivative: bool = False,
+    ) -> Any:
         """Evaluate at points; see :class:`fastsdf.function.Function` for the conventions.
 
         For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other
@@ -325,8 +376,10 @@ class CompiledSDF:
         if self.param_names is not None:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
-                raise ValueError(f"params must hold {len(self.param_names)} values (for "
-                                 f"{list(self.param_names)}), got {params!r}")
+                raise ValueError(
+                    f"params must hold {len(self.param_names)} values (for "
+                    f"{list(self.param_names)}), got {params!r}"
+                )
             parallel = n >= PARALLEL_MIN_POINTS
             extra = (float(t), prm) + ((64 * numba.get_num_threads(),) if parallel else ())
             kind = "vgt" if time_derivative else "vg" if compute_gradient else "v"
@@ -425,8 +478,10 @@ class Function:
             raise ValueError(f"symbols must be two distinct Symbols, got {symbols[0]} twice")
         unknown = f.syms - {s.attr for s in symbols}
         if unknown:
-            raise ValueError(f"expression depends on symbols {sorted(unknown)} that are not "
-                             f"among symbols={[s.attr for s in symbols]}")
+            raise ValueError(
+                f"expression depends on symbols {sorted(unknown)} that are not "
+                f"among symbols={[s.attr for s in symbols]}"
+            )
         self.f = f
         self.symbols = symbols
         self._compiled: CompiledSDF | None = None
@@ -453,8 +508,10 @@ class Function:
         values = dict(self._params)
         for name, value in overrides.items():
             if name not in values and name != "t":
-                raise TypeError(f"unknown parameter {name!r}; this scene's parameters are "
-                                f"{sorted(values) or 'none'}")
+                raise TypeError(
+                    f"unknown parameter {name!r}; this scene's parameters are "
+                    f"{sorted(values) or 'none'}"
+                )
             if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
                 raise TypeError(f"parameter {name} must be a real number, got {name}={value!r}")
             value = float(value)
@@ -521,36 +578,65 @@ class Function:
     backend = "auto"
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: Literal[False] = False,
-                 prune: bool | None = None, time_derivative: Literal[False] = False,
-                 backend: str | None = None, **params: float) -> np.ndarray: ...
+    def __call__(
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: Literal[False] = False,
+        prune: bool | None = None,
+        time_derivative: Literal[False] = False,
+        backend: str | None = None,
+        **params: float,
+    ) -> np.ndarray: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None, *,
-                 compute_gradient: Literal[True],
-                 prune: bool | None = None, time_derivative: Literal[False] = False,
-                 backend: str | None = None, **params: float) -> tuple[np.ndarray, np.ndarray]: ...
+    def __call__(
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        *,
+        compute_gradient: Literal[True],
+        prune: bool | None = None,
+        time_derivative: Literal[False] = False,
+        backend: str | None = None,
+        **params: float,
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False,
-                 prune: bool | None = None, *, time_derivative: Literal[True],
-                 backend: str | None = None, **params: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def __call__(
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: bool = False,
+        prune: bool | None = None,
+        *,
+        time_derivative: Literal[True],
+        backend: str | None = None,
+        **params: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False,
-                 prune: bool | None = None, time_derivative: bool = False,
-                 backend: str | None = None, **params: float
-                 ) -> np.ndarray | tuple[np.ndarray, ...]: ...
+    def __call__(
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: bool = False,
+        prune: bool | None = None,
+        time_derivative: bool = False,
+        backend: str | None = None,
+        **params: float,
+    ) -> np.ndarray | tuple[np.ndarray, ...]: ...
 
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False,
-                 prune: bool | None = None, time_derivative: bool = False,
-                 backend: str | None = None, **params: float
-                 ) -> np.ndarray | tuple[np.ndarray, ...]:
+    def __call__(
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: bool = False,
+        prune: bool | None = None,
+        time_derivative: bool = False,
+        backend: str | None = None,
+        **params: float,
+    ) -> np.ndarray | tuple[np.ndarray, ...]:
         x, y = point_arrays(x, y)
         backend = self.backend if backend is None else backend
         if backend not in BACKENDS:
@@ -560,8 +646,7 @@ class Function:
         if self._params or params:
             vals = self._values(params)
             if self._params:
-                kw = {"t": vals.get("t", 0.0),
-                      "params": tuple(vals[n] for n in self.param_names)}
+                kw = {"t": vals.get("t", 0.0), "params": tuple(vals[n] for n in self.param_names)}
         if backend != "kernel" and not time_derivative:
             path = self._path_for(backend, x, prune)
             if path is not None:
@@ -577,13 +662,14 @@ class Function:
                 return res
         if time_derivative:
             if not kw:  # no parameters: nothing moves
-                d, g = self.compiled.evaluate(x, y, compute_gradient=True, prune=prune,
-                                              tol=self.prune_tol)
+                d, g = self.compiled.evaluate(
+                    x, y, compute_gradient=True, prune=prune, tol=self.prune_tol
+                )
                 return d, g, np.zeros_like(d)
-            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True,
-                                          **kw)
-        res = self.compiled.evaluate(x, y, compute_gradient=bool(compute_gradient), prune=prune,
-                                     tol=self.prune_tol, **kw)
+            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True, **kw)
+        res = self.compiled.evaluate(
+            x, y, compute_gradient=bool(compute_gradient), prune=prune, tol=self.prune_tol, **kw
+        )
         if backend == "auto" and self.compiled._warm is None:
             # the other kinds (value only, value and gradient) compile meanwhile; until then
             # calls may still take the tape (the same bits)
@@ -598,8 +684,9 @@ class Function:
         if backend == "auto":
             if c.kernel_ready or prune or self.prune_tol is not None:
                 return None
-            per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + \
-                (0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S)
+            per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + (
+                0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S
+            )
             budget = int(AUTO_TAPE_MAX_S / per_node)
             size = len(c._tape) if c._tape is not None else _dag_size(c.expr, budget)
             if size > budget:
@@ -616,14 +703,16 @@ class Function:
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.
     prune_tol = None
 
-    def pruning_report(self, bounds: Sequence, tiles: Sequence | None = None,
-                       tol: float | None = None) -> dict:
+    def pruning_report(
+        self, bounds: Sequence, tiles: Sequence | None = None, tol: float | None = None
+    ) -> dict:
         """How pruning does over ``bounds = [(x0, x1), (y0, y1)]`` cut into ``tiles = (nx,
         ny)`` tiles: operands in loops over tables, survivors per tile (mean, max), the
         fraction evaluated and the time to build the plan (s). Empty plan if the generated
         code has no such loops (then nothing is pruned)."""
-        plan = self.compiled.plan([tuple(map(float, b)) for b in bounds], tiles,
-                                  self.prune_tol if tol is None else tol)
+        plan = self.compiled.plan(
+            [tuple(map(float, b)) for b in bounds], tiles, self.prune_tol if tol is None else tol
+        )
         return plan.report()
 
     def __getstate__(self) -> dict:

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 # Tests must never depend on a user's kernel cache: use the Makefile's (or a private) directory.
-os.environ.setdefault("FASTSDF_CACHE_DIR",
-                      os.path.join(tempfile.gettempdir(), "fastsdf-test-cache"))
+os.environ.setdefault(
+    "FASTSDF_CACHE_DIR", os.path.join(tempfile.gettempdir(), "fastsdf-test-cache")
+)
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
@@ -22,6 +23,7 @@ def _kernel_backend(request, monkeypatch):
     if "default_backend" in request.keywords or os.environ.get("FASTSDF_TEST_DEFAULT_BACKEND"):
         return
     from fastsdf.function import Function
+
     monkeypatch.setattr(Function, "backend", "kernel")
 
 
@@ -41,8 +43,8 @@ def brute_distance(points, boundary):
     """Unsigned distance from each point to the nearest of the densely sampled ``boundary``."""
     out = np.empty(len(points))
     for start in range(0, len(points), 256):
-        p = points[start:start + 256, None, :]
-        out[start:start + 256] = np.sqrt(((p - boundary[None]) ** 2).sum(-1)).min(axis=1)
+        p = points[start : start + 256, None, :]
+        out[start : start + 256] = np.sqrt(((p - boundary[None]) ** 2).sum(-1)).min(axis=1)
     return out
 
 

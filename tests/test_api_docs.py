@@ -19,8 +19,11 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def public_modules():
-    names = ["fastsdf"] + [m.name for m in pkgutil.walk_packages(fastsdf.__path__, "fastsdf.")
-                           if not any(p.startswith("_") for p in m.name.split(".")[1:])]
+    names = ["fastsdf"] + [
+        m.name
+        for m in pkgutil.walk_packages(fastsdf.__path__, "fastsdf.")
+        if not any(p.startswith("_") for p in m.name.split(".")[1:])
+    ]
     return [importlib.import_module(n) for n in names]
 
 
@@ -51,8 +54,11 @@ def test_every_public_module_has_a_docstring_and_all():
 
 
 def test_every_public_name_has_a_docstring():
-    missing = [name for name, obj in public_objects()
-               if not name.endswith(".__init__") and not inspect.getdoc(obj)]
+    missing = [
+        name
+        for name, obj in public_objects()
+        if not name.endswith(".__init__") and not inspect.getdoc(obj)
+    ]
     assert not missing, missing
 
 
@@ -63,11 +69,16 @@ def test_every_public_function_is_annotated():
         if not inspect.isfunction(fn):
             continue
         sig = inspect.signature(fn)
-        params = [p.name for p in sig.parameters.values()
-                  if p.name not in ("self", "cls") and p.annotation is inspect.Parameter.empty
-                  and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
-        no_return = sig.return_annotation is inspect.Signature.empty \
-            and not name.endswith(".__init__")
+        params = [
+            p.name
+            for p in sig.parameters.values()
+            if p.name not in ("self", "cls")
+            and p.annotation is inspect.Parameter.empty
+            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        ]
+        no_return = sig.return_annotation is inspect.Signature.empty and not name.endswith(
+            ".__init__"
+        )
         if params or no_return:
             missing.append(f"{name}({', '.join(params)}){' -> ?' if no_return else ''}")
     assert not missing, "\n".join(missing)
@@ -84,12 +95,29 @@ def test_pdoc_builds_the_api_reference(tmp_path):
     pytest.importorskip("pdoc")
     env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg")
     modules = [m.__name__ for m in public_modules()]
-    res = subprocess.run([sys.executable, "-m", "pdoc", "--docformat", "restructuredtext",
-                          "-o", str(tmp_path), *modules], capture_output=True, text=True,
-                         env=env, timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pdoc",
+            "--docformat",
+            "restructuredtext",
+            "-o",
+            str(tmp_path),
+            *modules,
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
-    for page in ("fastsdf.html", "fastsdf/viz/render.html", "fastsdf/particles.html",
-                 "fastsdf/fields/grid.html"):
+    for page in (
+        "fastsdf.html",
+        "fastsdf/viz/render.html",
+        "fastsdf/particles.html",
+        "fastsdf/fields/grid.html",
+    ):
         assert (tmp_path / page).exists(), page
     text = (tmp_path / "fastsdf" / "viz" / "render.html").read_text()
     assert "save_animation" in text and "animate" in text

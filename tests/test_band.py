@@ -74,7 +74,7 @@ def test_band_values_equal_a_dense_grid_of_the_same_spacing(world, samples):
     for k in range(0, nf, max(1, nf // 40)):
         i0, j0 = ti[k] * 8, tj[k] * 8
         i1, j1 = min(i0 + 9, nx), min(j0 + 9, ny)
-        np.testing.assert_array_equal(g._q[k, :i1 - i0, :j1 - j0], dense.data[i0:i1, j0:j1])
+        np.testing.assert_array_equal(g._q[k, : i1 - i0, : j1 - j0], dense.data[i0:i1, j0:j1])
     # Queries in the band agree to rounding.
     xs, ys = band_points(g, 50_000, seed=1)
     inb = np.abs(world(xs, ys)) <= band
@@ -85,8 +85,9 @@ def test_band_values_equal_a_dense_grid_of_the_same_spacing(world, samples):
     np.testing.assert_allclose(gr, dg, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("band, lo, hi", [(0.03, -0.03, 0.03), ((-0.01, 0.06), -0.01, 0.06),
-                                          ((0.0, 0.04), 0.0, 0.04)])
+@pytest.mark.parametrize(
+    "band, lo, hi", [(0.03, -0.03, 0.03), ((-0.01, 0.06), -0.01, 0.06), ((0.0, 0.04), 0.0, 0.04)]
+)
 def test_every_band_point_lies_in_a_fine_tile(world, band, lo, hi):
     g = NarrowBandGridSDF(world, bounds=BOUNDS, band=band, samples=[257j, 257j])
     assert g.band_range == (lo, hi)
@@ -132,14 +133,15 @@ def test_far_answers_are_lower_bounds_with_the_right_sign(dtype):
     far = ~g.is_fine(pts[:, 0], pts[:, 1])
     assert far.sum() > 2000
     pts = pts[far]
-    truth = brute_distance(pts, boundary)            # unsigned distance to the union's boundary
-    inside = (np.hypot(pts[:, 0] + 0.4, pts[:, 1] - 0.1) < 0.7) | \
-        (np.hypot(pts[:, 0] - 0.5, pts[:, 1] + 0.2) < 0.6)
+    truth = brute_distance(pts, boundary)  # unsigned distance to the union's boundary
+    inside = (np.hypot(pts[:, 0] + 0.4, pts[:, 1] - 0.1) < 0.7) | (
+        np.hypot(pts[:, 0] - 0.5, pts[:, 1] + 0.2) < 0.6
+    )
     d, grad = g(pts[:, 0], pts[:, 1], compute_gradient=True)
     # The boundary is sampled at spacing < 2.2e-4, so the true distance is at least the brute
     # one less 1.1e-4: this checks |d| <= true distance.
     assert np.all(np.abs(d) <= truth - 1.2e-4)
-    assert np.all(np.abs(d) > 0.05 - g.spacing[0])   # far tiles lie beyond the band
+    assert np.all(np.abs(d) > 0.05 - g.spacing[0])  # far tiles lie beyond the band
     assert np.all((d < 0) == inside)
     # Far tiles answer the direction of the exact gradient at their centre (4096 directions).
     hx, hy = g.spacing
@@ -179,7 +181,7 @@ def test_tolerance_builds_meet_their_tolerance(seed):
 
 
 def test_tolerance_build_marks_kinks_exact_and_uses_the_exact_sdf_there():
-    f = sdf.Box(minc=[-0.5, -0.5], maxc=[0.5, 0.5])     # kinks on the diagonals inside
+    f = sdf.Box(minc=[-0.5, -0.5], maxc=[0.5, 0.5])  # kinks on the diagonals inside
     g = NarrowBandGridSDF(f, bounds=BOUNDS, band=0.05, tolerance=1e-5)
     assert g.n_exact_cells > 0
     # Points on the box's inner diagonals, in the band: answered exactly.
@@ -190,8 +192,7 @@ def test_tolerance_build_marks_kinks_exact_and_uses_the_exact_sdf_there():
 
 
 def test_sampler_contract_from_njit_code(world):
-    g = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.05, samples=[129j, 129j],
-                          tolerance=1e-4)
+    g = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.05, samples=[129j, 129j], tolerance=1e-4)
 
     @njit
     def run(data, xs, ys):
@@ -229,7 +230,7 @@ def test_serial_and_parallel_paths_and_value_only_agree(world):
     xs, ys = rng.uniform(-2.2, 2.2, (2, 20_000))
     d, grad = g(xs, ys, compute_gradient=True)
     np.testing.assert_array_equal(g(xs, ys), d)
-    d2, g2 = g(xs[:1000], ys[:1000], compute_gradient=True)   # serial kernel
+    d2, g2 = g(xs[:1000], ys[:1000], compute_gradient=True)  # serial kernel
     np.testing.assert_array_equal(d2, d[:1000])
     np.testing.assert_array_equal(g2, grad[:1000])
     assert g(xs.reshape(100, 200), ys.reshape(100, 200)).shape == (100, 200)
@@ -237,8 +238,7 @@ def test_serial_and_parallel_paths_and_value_only_agree(world):
 
 def test_float32_storage_error_and_memory(world):
     a = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.05, samples=[129j, 129j])
-    b = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.05, samples=[129j, 129j],
-                          dtype=np.float32)
+    b = NarrowBandGridSDF(world, bounds=BOUNDS, band=0.05, samples=[129j, 129j], dtype=np.float32)
     assert b.n_fine == a.n_fine
     assert a.memory["nodes"] == a.n_fine * 81 * 3 * 8 == 2 * b.memory["nodes"]
     assert a.nbytes == sum(a.memory.values())
@@ -246,27 +246,30 @@ def test_float32_storage_error_and_memory(world):
     xs, ys = band_points(a, 20_000, seed=7)
     fine = a.is_fine(xs, ys)
     da, db = a(xs[fine], ys[fine]), b(xs[fine], ys[fine])
-    assert np.max(np.abs(da - db)) <= 2.0 ** -24 * np.max(np.abs(a._q[..., 0])) * 1.01
+    assert np.max(np.abs(da - db)) <= 2.0**-24 * np.max(np.abs(a._q[..., 0])) * 1.01
 
 
-@pytest.mark.parametrize("kwargs, exc, match", [
-    (dict(band=0), ValueError, "band"),
-    (dict(band=-1), ValueError, "band"),
-    (dict(band="x"), TypeError, "band"),
-    (dict(band=(0.01, 0.2)), ValueError, "band=.*lo <= 0 <= hi"),
-    (dict(band=(-0.1, -0.01)), ValueError, "band=.*lo <= 0 <= hi"),
-    (dict(band=(0.0, 0.0)), ValueError, "band=.*lo < hi"),
-    (dict(band=(-0.1, math.inf)), ValueError, "band"),
-    (dict(band=(0.1,)), TypeError, "band must be"),
-    (dict(band=(-0.1, "a")), TypeError, "band=.*two real numbers"),
-    (dict(samples=None), ValueError, "samples= .* or tolerance="),
-    (dict(tolerance=0), ValueError, "tolerance"),
-    (dict(samples=[1, 5]), ValueError, "samples"),
-    (dict(bounds=[(1, 0), (0, 1)]), ValueError, "bounds"),
-    (dict(dtype=np.int32), ValueError, "dtype"),
-    (dict(lipschitz=0), ValueError, "lipschitz"),
-    (dict(lipschitz=math.inf), ValueError, "lipschitz"),
-])
+@pytest.mark.parametrize(
+    "kwargs, exc, match",
+    [
+        (dict(band=0), ValueError, "band"),
+        (dict(band=-1), ValueError, "band"),
+        (dict(band="x"), TypeError, "band"),
+        (dict(band=(0.01, 0.2)), ValueError, "band=.*lo <= 0 <= hi"),
+        (dict(band=(-0.1, -0.01)), ValueError, "band=.*lo <= 0 <= hi"),
+        (dict(band=(0.0, 0.0)), ValueError, "band=.*lo < hi"),
+        (dict(band=(-0.1, math.inf)), ValueError, "band"),
+        (dict(band=(0.1,)), TypeError, "band must be"),
+        (dict(band=(-0.1, "a")), TypeError, "band=.*two real numbers"),
+        (dict(samples=None), ValueError, "samples= .* or tolerance="),
+        (dict(tolerance=0), ValueError, "tolerance"),
+        (dict(samples=[1, 5]), ValueError, "samples"),
+        (dict(bounds=[(1, 0), (0, 1)]), ValueError, "bounds"),
+        (dict(dtype=np.int32), ValueError, "dtype"),
+        (dict(lipschitz=0), ValueError, "lipschitz"),
+        (dict(lipschitz=math.inf), ValueError, "lipschitz"),
+    ],
+)
 def test_bad_parameters_are_rejected(world, kwargs, exc, match):
     args = dict(bounds=BOUNDS, band=0.05, samples=[65j, 65j])
     args.update(kwargs)
@@ -278,12 +281,14 @@ def test_f_must_be_an_sdf_and_unknown_lipschitz_uses_interval_bounds():
     with pytest.raises(TypeError, match="f must be"):
         NarrowBandGridSDF(lambda x, y: x, band=0.1, samples=[10, 10])
     import fastsdf.graph as cg
+
     x, y = cg.Symbol("x"), cg.Symbol("y")
     bare = cg.Function(x * x + y - 1.0, [x, y])
     # Without a known Lipschitz bound, tiles are classified by interval bounds.
     for lip in (3.0, None):
-        g = NarrowBandGridSDF(bare, bounds=[(-1, 1), (-1, 1)], band=0.1, samples=[33, 33],
-                              lipschitz=lip)
+        g = NarrowBandGridSDF(
+            bare, bounds=[(-1, 1), (-1, 1)], band=0.1, samples=[33, 33], lipschitz=lip
+        )
         assert g.lipschitz == lip
         xs, ys = np.random.default_rng(8).uniform(-1, 1, (2, 5000))
         d = g(xs, ys)

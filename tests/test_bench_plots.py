@@ -19,8 +19,7 @@ def test_pareto_front_is_exactly_the_non_dominated_points(points):
     front = pareto_front(points)
 
     def dominated(p):
-        return any((q[0] <= p[0] and q[1] > p[1]) or (q[0] < p[0] and q[1] >= p[1])
-                   for q in points)
+        return any((q[0] <= p[0] and q[1] > p[1]) or (q[0] < p[0] and q[1] >= p[1]) for q in points)
 
     expected = {p for p in points if not dominated(p)}
     assert set(front) == expected

@@ -29,8 +29,7 @@ def wind(p, t):
 
 
 def make(world, python_force=False):
-    sim = ParticleSimulation(world, n=300, timestep=1 / 30, seed=np.random.default_rng(7),
-                             cr=0.7)
+    sim = ParticleSimulation(world, n=300, timestep=1 / 30, seed=np.random.default_rng(7), cr=0.7)
     sim.force_generators += [Gravity((0.1, -1.0)), Drag(0.05)]
     if not isinstance(world, GridSDF):  # (a grid world's kernel without it is shared, cached)
         sim.force_generators.append(swirl)
@@ -47,8 +46,9 @@ def assert_same(a, b):
 
 @pytest.mark.parametrize("kind", ["grid", "exact", "exact+python"])
 def test_resume_is_bit_exact(tmp_path, kind):
-    world = GridSDF(WORLD, bounds=[(-2, 2), (-2, 2)], samples=[64j, 64j]) if kind == "grid" \
-        else WORLD
+    world = (
+        GridSDF(WORLD, bounds=[(-2, 2), (-2, 2)], samples=[64j, 64j]) if kind == "grid" else WORLD
+    )
     python = kind.endswith("python")
     straight = make(world, python)  # the same calls, without saving between them
     straight.run(15)
@@ -58,8 +58,7 @@ def test_resume_is_bit_exact(tmp_path, kind):
     path = save_simulation(first, tmp_path / "sim.npz")
     resumed = load_simulation(path)
     assert type(resumed.sdf) is type(world) and resumed.dt == first.dt
-    assert [type(g) for g in resumed.force_generators] == \
-        [type(g) for g in first.force_generators]
+    assert [type(g) for g in resumed.force_generators] == [type(g) for g in first.force_generators]
     resumed.run(25)
     assert_same(resumed, straight)
     # one call of 40 steps gives the same state (the clock differs by the rounding of its sum)

@@ -33,7 +33,7 @@ def test_source_is_inspectable_python():
 def test_value_only_call_compiles_no_gradient_code():
     # A scene no earlier run has cached: a kernel loaded from disk registers no callee
     # signatures, and this test inspects what gets compiled.
-    unique = 0.3 + (os.getpid() * 7919 + time.time_ns()) % 10 ** 9 * 1e-12
+    unique = 0.3 + (os.getpid() * 7919 + time.time_ns()) % 10**9 * 1e-12
     with sdf.transform(angle=0.123, offset=[0.2, 0.1]):
         f = sdf.Circle([0.31, 0.2], unique) | sdf.Box([-0.1, -0.2], [0.3, 0.4])
     f(np.zeros(10), np.zeros(10), backend="kernel")  # the default would compile both kinds
@@ -49,8 +49,9 @@ def test_same_shape_operands_become_one_loop():
     assert len(src20.splitlines()) == len(src60.splitlines())
     f = box_world(60)
     p = np.random.default_rng(0).uniform(-2, 2, (5000, 2))
-    np.testing.assert_allclose(f(*p.T), evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        f(*p.T), evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}), rtol=1e-12, atol=1e-12
+    )
 
 
 def _long_straight_line_scene():
@@ -58,8 +59,10 @@ def _long_straight_line_scene():
     rng = np.random.default_rng(5)
     f = sdf.Halfspace([0, 1], -1.8)
     for i in range(9):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness([0, 5, 10][i % 3]):
+        with (
+            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            sdf.smoothness([0, 5, 10][i % 3]),
+        ):
             s = sdf.Circle([0, 0], 0.2) if i % 2 else sdf.Box([-0.2, -0.1], [0.1, 0.2])
             f = [f | s, f & (sdf.Circle([0, 0], 3.0) - s), f | s][i % 3]
     return f
@@ -72,15 +75,19 @@ def _unstructured_scene(seed, n=24):
     rng = np.random.default_rng(seed)
     f = sdf.Halfspace([0, 1], -1.8)
     for _ in range(n):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness(float(rng.choice([0, 4, 8]))):
+        with (
+            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            sdf.smoothness(float(rng.choice([0, 4, 8]))),
+        ):
             kind = rng.integers(4)
-            s = [lambda: sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2)),
-                 lambda: sdf.Circle(rng.uniform(-0.1, 0.1, 2), rng.uniform(0.1, 0.3)),
-                 lambda: sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2)),
-                 lambda: sdf.Triangle([-0.2, -0.1], [0.2, -0.1],
-                                      rng.uniform(-0.1, 0.1, 2) + [0, 0.2]),
-                 ][kind]()
+            s = [
+                lambda: sdf.Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2)),
+                lambda: sdf.Circle(rng.uniform(-0.1, 0.1, 2), rng.uniform(0.1, 0.3)),
+                lambda: sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2)),
+                lambda: sdf.Triangle(
+                    [-0.2, -0.1], [0.2, -0.1], rng.uniform(-0.1, 0.1, 2) + [0, 0.2]
+                ),
+            ][kind]()
             op = rng.integers(3)
             f = f | s if op == 0 else f & (sdf.Circle([0, 0], 3.0) - s) if op == 1 else f - s
     return f
@@ -95,6 +102,7 @@ def test_folded_block_kernels_match_the_straight_line_code(seed, cap, monkeypatc
     NumPy reference and with central differences. ``cap``: a small budget of stored values per
     point, so that only some groups are folded."""
     from fastsdf.backends.kernel import codegen
+
     monkeypatch.setattr(codegen, "COMBINE_PROGRAMS", False)  # see test_combine.py for those
     if cap is not None:
         monkeypatch.setattr(codegen, "MAX_FOLD_ROWS", cap)
@@ -115,8 +123,9 @@ def test_folded_block_kernels_match_the_straight_line_code(seed, cap, monkeypatc
     np.testing.assert_array_equal(g[:600], ref[:, 1:])
     ok = np.isfinite(p[:, 0])
     assert np.all(np.isnan(d[~ok])) and np.all(np.isnan(g[~ok]))
-    np.testing.assert_allclose(d[ok], evaluate_numpy(f.f, {"x": p[ok, 0], "y": p[ok, 1]}),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        d[ok], evaluate_numpy(f.f, {"x": p[ok, 0], "y": p[ok, 1]}), rtol=1e-12, atol=1e-12
+    )
     q = p[ok][:400]
     fd = central_gradient(lambda x, y: f(x, y), q[:, 0], q[:, 1])
     close = np.all(np.abs(fd - g[ok][:400]) < 1e-4, axis=1)
@@ -162,10 +171,16 @@ def test_point_fn_is_callable_from_user_njit_code():
 # ---------------------------------------------------------------------------------------------
 # The disk cache.
 
+
 def _run(code, cache_dir):
     env = dict(os.environ, FASTSDF_CACHE_DIR=str(cache_dir), PYTHONPATH=REPO)
-    res = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
-                         text=True, env=env, timeout=600)
+    res = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr
     return res.stdout.strip().splitlines()[-1]
 
@@ -200,8 +215,10 @@ def test_changed_scene_never_reuses_a_stale_kernel(tmp_path):
     assert a[3] != b[3]
     f = box_world(6)
     p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
-    assert repr(float(f(p[:, 0], p[:, 1]).sum())) == b[3] or \
-        abs(float(f(p[:, 0], p[:, 1]).sum()) - float(b[3])) < 1e-9
+    assert (
+        repr(float(f(p[:, 0], p[:, 1]).sum())) == b[3]
+        or abs(float(f(p[:, 0], p[:, 1]).sum()) - float(b[3])) < 1e-9
+    )
 
 
 def test_corrupted_cache_file_is_not_used(tmp_path, monkeypatch):
@@ -220,8 +237,16 @@ def test_corrupted_cache_file_is_not_used(tmp_path, monkeypatch):
 def test_concurrent_processes_share_an_empty_cache(tmp_path):
     env = dict(os.environ, FASTSDF_CACHE_DIR=str(tmp_path), PYTHONPATH=REPO)
     code = textwrap.dedent(_CACHE_PROBE.format(n=4))
-    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env=env) for _ in range(3)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        for _ in range(3)
+    ]
     outs = [p.communicate(timeout=600) for p in procs]
     assert all(p.returncode == 0 for p in procs), [o[1] for o in outs]
     sums = {o[0].split()[3] for o in outs}
@@ -236,18 +261,40 @@ def test_concurrent_processes_share_an_empty_cache(tmp_path):
 
 finite = dict(allow_nan=False, allow_infinity=False)
 primitive = st.one_of(
-    st.tuples(st.just("circle"), st.floats(-1.5, 1.5, **finite), st.floats(-1.5, 1.5, **finite),
-              st.floats(0.05, 1.0, **finite)),
-    st.tuples(st.just("halfspace"), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite),
-              st.floats(-1.5, 1.5, **finite)).filter(lambda t: abs(t[1]) + abs(t[2]) > 0.1),
-    st.tuples(st.just("box"), st.floats(-1.5, 1.0, **finite), st.floats(-1.5, 1.0, **finite),
-              st.floats(0.05, 1.0, **finite), st.floats(0.05, 1.0, **finite)),
+    st.tuples(
+        st.just("circle"),
+        st.floats(-1.5, 1.5, **finite),
+        st.floats(-1.5, 1.5, **finite),
+        st.floats(0.05, 1.0, **finite),
+    ),
+    st.tuples(
+        st.just("halfspace"),
+        st.floats(-1, 1, **finite),
+        st.floats(-1, 1, **finite),
+        st.floats(-1.5, 1.5, **finite),
+    ).filter(lambda t: abs(t[1]) + abs(t[2]) > 0.1),
+    st.tuples(
+        st.just("box"),
+        st.floats(-1.5, 1.0, **finite),
+        st.floats(-1.5, 1.0, **finite),
+        st.floats(0.05, 1.0, **finite),
+        st.floats(0.05, 1.0, **finite),
+    ),
 )
-placed = st.tuples(primitive, st.one_of(st.none(), st.tuples(
-    st.floats(-3.2, 3.2, **finite), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite))))
-operation = st.tuples(st.sampled_from(["|", "&", "-"]),
-                      st.one_of(st.just(0.0), st.floats(0.5, 40.0, **finite)),
-                      st.integers(0, 10 ** 6))
+placed = st.tuples(
+    primitive,
+    st.one_of(
+        st.none(),
+        st.tuples(
+            st.floats(-3.2, 3.2, **finite), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite)
+        ),
+    ),
+)
+operation = st.tuples(
+    st.sampled_from(["|", "&", "-"]),
+    st.one_of(st.just(0.0), st.floats(0.5, 40.0, **finite)),
+    st.integers(0, 10**6),
+)
 
 
 def _make(prim):
@@ -281,10 +328,16 @@ def build_scene(prims, ops):
     return f
 
 
-@settings(max_examples=25, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(prims=st.lists(placed, min_size=1, max_size=30),
-       ops=st.lists(operation, min_size=0, max_size=30))
+@settings(
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(
+    prims=st.lists(placed, min_size=1, max_size=30),
+    ops=st.lists(operation, min_size=0, max_size=30),
+)
 def test_random_scenes_match_numpy_reference(prims, ops):
     f = build_scene(prims, ops)
     p = np.random.default_rng(len(prims)).uniform(-2.5, 2.5, (300, 2))
@@ -303,19 +356,27 @@ def test_random_scenes_match_numpy_reference(prims, ops):
 
 
 @settings(max_examples=8, deadline=None, derandomize=True)
-@given(n=st.integers(8, 40), k=st.one_of(st.just(0.0), st.floats(0.5, 50.0, **finite)),
-       union=st.booleans(), seed=st.integers(0, 1000))
+@given(
+    n=st.integers(8, 40),
+    k=st.one_of(st.just(0.0), st.floats(0.5, 50.0, **finite)),
+    union=st.booleans(),
+    seed=st.integers(0, 1000),
+)
 def test_looped_chains_match_numpy_reference(n, k, union, seed):
     """Chains long enough to be folded into loops over tables (and, for k > 0, evaluated as an
     online log-sum-exp): boxes and circles in random order, one operation, one k."""
     rng = np.random.default_rng(seed)
     f = sdf.Halfspace([0, 1], -1.8) if union else sdf.Circle([0, 0], 2.4)
     for _ in range(n):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness(k):
-            shape = sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2)) \
-                if rng.random() < 0.5 \
+        with (
+            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            sdf.smoothness(k),
+        ):
+            shape = (
+                sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2))
+                if rng.random() < 0.5
                 else sdf.Circle(rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.3))
+            )
             f = f | shape if union else f & sdf.Circle([0, 0], 2.5) - shape
     assert "for i" in f.source()  # 8+ operands of two kinds: one kind has at least 4
     p = rng.uniform(-2.5, 2.5, (400, 2))

@@ -16,8 +16,12 @@ from fastsdf.function import compile_expr
 from fastsdf.shapes.scenes import mixed_scene
 
 # One step of a random scene: (primitive kind, operation, smoothness, operand order).
-_STEP = st.tuples(st.integers(0, 3), st.sampled_from(["|", "&", "-", "cut", "q|", "c&", "q-"]),
-                  st.sampled_from([0.0, 0.0, 5.0, 10.0, 1e-3]), st.booleans())
+_STEP = st.tuples(
+    st.integers(0, 3),
+    st.sampled_from(["|", "&", "-", "cut", "q|", "c&", "q-"]),
+    st.sampled_from([0.0, 0.0, 5.0, 10.0, 1e-3]),
+    st.booleans(),
+)
 
 
 def _scene(steps, seed):
@@ -81,9 +85,13 @@ def _check(f, p):
         assert "_PROG_V" not in line.module_source
     pv = line.point_fn("vg")
     ref = np.array([pv(x, y) for x, y in p])
-    same = lambda a, b: np.array_equal(a.view(np.int64), b.view(np.int64)) or \
-        (np.array_equal(np.isnan(a), np.isnan(b))
-         and np.array_equal(a[~np.isnan(a)].view(np.int64), b[~np.isnan(b)].view(np.int64)))
+    same = lambda a, b: (
+        np.array_equal(a.view(np.int64), b.view(np.int64))
+        or (
+            np.array_equal(np.isnan(a), np.isnan(b))
+            and np.array_equal(a[~np.isnan(a)].view(np.int64), b[~np.isnan(b)].view(np.int64))
+        )
+    )
     assert same(d, ref[:, 0]) and same(g[:, 0], ref[:, 1]) and same(g[:, 1], ref[:, 2])
     assert same(ds, d[:200]) and same(gs.ravel(), g[:200].ravel())
     p1 = line.point_fn("v")
@@ -97,12 +105,13 @@ def _check(f, p):
     bad = ~np.isfinite(p).all(axis=1)
     assert np.isnan(d[bad]).all() and np.isnan(g[bad]).all() and np.isfinite(d[~bad]).all()
     ok = ~bad
-    np.testing.assert_allclose(d[ok], evaluate_numpy(f.f, {"x": p[ok, 0], "y": p[ok, 1]}),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        d[ok], evaluate_numpy(f.f, {"x": p[ok, 0], "y": p[ok, 1]}), rtol=1e-12, atol=1e-12
+    )
 
 
 @settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.lists(_STEP, min_size=3, max_size=7), st.integers(0, 2 ** 16))
+@given(st.lists(_STEP, min_size=3, max_size=7), st.integers(0, 2**16))
 def test_combine_program_matches_the_straight_line_code(steps, seed):
     with pytest.MonkeyPatch.context() as mp:  # short scenes take the long-scene path
         mp.setattr(codegen, "FOLD_MIN_LINES", 10)
@@ -116,11 +125,22 @@ def test_combine_program_every_blend_kind_and_order(monkeypatch):
     orders, an operand equal to the accumulator (ties), and a shared subexpression used by two
     blends."""
     monkeypatch.setattr(codegen, "FOLD_MIN_LINES", 10)
-    steps = [(0, "|", 0.0, False), (1, "&", 0.0, True), (3, "|", 5.0, False),
-             (2, "-", 5.0, True), (0, "|", 4.0, False), (1, "|", 4.0, False),
-             (2, "|", 4.0, False), (3, "cut", 10.0, True), (1, "&", 7.0, False),
-             (0, "|", 0.0, True), (1, "q|", 0.3, False), (2, "q|", 0.3, False),
-             (3, "c&", 0.2, True), (0, "q-", 0.25, False)]
+    steps = [
+        (0, "|", 0.0, False),
+        (1, "&", 0.0, True),
+        (3, "|", 5.0, False),
+        (2, "-", 5.0, True),
+        (0, "|", 4.0, False),
+        (1, "|", 4.0, False),
+        (2, "|", 4.0, False),
+        (3, "cut", 10.0, True),
+        (1, "&", 7.0, False),
+        (0, "|", 0.0, True),
+        (1, "q|", 0.3, False),
+        (2, "q|", 0.3, False),
+        (3, "c&", 0.2, True),
+        (0, "q-", 0.25, False),
+    ]
     f = _scene(steps, 7)
     shared = f | sdf.Circle([0.3, 0.1], 0.5)
     g = (shared - sdf.Box([-0.1, -0.1], [0.2, 0.2])).union(shared & sdf.Circle([0, 0], 1.5), 3.0)
@@ -128,8 +148,9 @@ def test_combine_program_every_blend_kind_and_order(monkeypatch):
         prog = h.compiled.module._PROG_VG
         ops = set(prog[:, 0].astype(int))
         _check(h, _points(3))
-    assert {0, 1, 2, 3, 5, 7, 8, 9, 10, 11, 12} <= \
-        ops | set(f.compiled.module._PROG_VG[:, 0].astype(int))
+    assert {0, 1, 2, 3, 5, 7, 8, 9, 10, 11, 12} <= ops | set(
+        f.compiled.module._PROG_VG[:, 0].astype(int)
+    )
 
 
 def test_mixed_scene_uses_the_program_without_monkeypatching():

@@ -12,25 +12,34 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def _cli(*args, cwd=None, env_extra=None):
     env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", **(env_extra or {}))
-    return subprocess.run([sys.executable, "-m", "fastsdf", *args], capture_output=True,
-                          text=True, env=env, cwd=cwd, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "fastsdf", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=cwd,
+        timeout=600,
+    )
 
 
-@pytest.mark.parametrize("args,needle", [
-    ([], "fastsdf: error: the following arguments are required: COMMAND"),
-    (["demo", "--particles", "0"], "fastsdf demo: error: argument --particles"),
-    (["demo", "--particles", "abc"], "fastsdf demo: error: argument --particles"),
-    (["demo", "--steps", "-3"], "fastsdf demo: error: argument --steps"),
-    (["demo", "--grid", "1"], "fastsdf demo: error: argument --grid"),
-    (["demo", "--frames", "2.5"], "fastsdf demo: error: argument --frames"),
-    (["demo", "--fps", "0"], "fastsdf demo: error: argument --fps"),
-    (["demo", "--world", "moon"], "fastsdf demo: error: argument --world"),
-    (["demo", "--mode", "linear"], "fastsdf demo: error: argument --mode"),
-    (["demo", "--frames", "5", "--steps", "2"], "fastsdf demo: error: --frames 5 is more than"),
-    (["demo", "--out", "/proc/nope", "--particles", "10"], "fastsdf demo: error: --out"),
-    (["demo", "--bogus"], "unrecognized"),
-    (["nonsense"], "fastsdf: error: argument COMMAND: invalid choice"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        ([], "fastsdf: error: the following arguments are required: COMMAND"),
+        (["demo", "--particles", "0"], "fastsdf demo: error: argument --particles"),
+        (["demo", "--particles", "abc"], "fastsdf demo: error: argument --particles"),
+        (["demo", "--steps", "-3"], "fastsdf demo: error: argument --steps"),
+        (["demo", "--grid", "1"], "fastsdf demo: error: argument --grid"),
+        (["demo", "--frames", "2.5"], "fastsdf demo: error: argument --frames"),
+        (["demo", "--fps", "0"], "fastsdf demo: error: argument --fps"),
+        (["demo", "--world", "moon"], "fastsdf demo: error: argument --world"),
+        (["demo", "--mode", "linear"], "fastsdf demo: error: argument --mode"),
+        (["demo", "--frames", "5", "--steps", "2"], "fastsdf demo: error: --frames 5 is more than"),
+        (["demo", "--out", "/proc/nope", "--particles", "10"], "fastsdf demo: error: --out"),
+        (["demo", "--bogus"], "unrecognized"),
+        (["nonsense"], "fastsdf: error: argument COMMAND: invalid choice"),
+    ],
+)
 def test_cli_errors_are_one_line_with_exit_code_2(args, needle):
     res = _cli(*args)
     assert res.returncode == 2
@@ -44,8 +53,18 @@ def test_cli_help_and_version():
 
     res = _cli("demo", "--help")
     assert res.returncode == 0
-    for flag in ("--particles", "--steps", "--grid", "--exact", "--seed", "--out", "--world",
-                 "--mode", "--fps", "--frames"):
+    for flag in (
+        "--particles",
+        "--steps",
+        "--grid",
+        "--exact",
+        "--seed",
+        "--out",
+        "--world",
+        "--mode",
+        "--fps",
+        "--frames",
+    ):
         assert flag in res.stdout
     res = _cli("--version")
     assert res.returncode == 0 and res.stdout.strip() == f"fastsdf {__version__}"
@@ -58,7 +77,6 @@ def test_console_script_is_declared():
     cfg.read(os.path.join(REPO, "setup.cfg"))
     scripts = cfg["options.entry_points"]["console_scripts"]
     assert "fastsdf = fastsdf.apps.cli:main" in scripts
-
 
 
 def test_main_returns_through_systemexit_for_version(capsys):
@@ -97,6 +115,7 @@ def test_frame_schedule_ends_at_the_last_step():
 
 def _hex(color):
     from matplotlib.colors import to_rgb
+
     return np.array(to_rgb(color))
 
 
@@ -110,8 +129,16 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     from fastsdf.viz.plotting import SOLID_COLOR
     from fastsdf.viz.render import PARTICLE_COLOR, render_frame
 
-    res = run_demo(particles=3000, steps=45, grid=120, exact=exact, seed=3, out=str(tmp_path),
-                   frames=3, world="boxes")
+    res = run_demo(
+        particles=3000,
+        steps=45,
+        grid=120,
+        exact=exact,
+        seed=3,
+        out=str(tmp_path),
+        frames=3,
+        world="boxes",
+    )
     assert res.particle_steps_per_second > 0 and res.steps == 45
     assert os.path.exists(res.last_frame) and res.animation.endswith(".mp4")
     assert os.path.getsize(res.animation) > 1000
@@ -120,8 +147,14 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     assert res.inside_fraction < 0.01
     assert res.respawned > 0  # the notebook's blob overlaps this world's boxes
     text = summary(res)
-    for needle in ("world: boxes", "45 steps", "1.50 s of simulated time", "M particle-steps/s",
-                   "for comparison", "--world seed"):
+    for needle in (
+        "world: boxes",
+        "45 steps",
+        "1.50 s of simulated time",
+        "M particle-steps/s",
+        "for comparison",
+        "--world seed",
+    ):
         assert needle in text, needle
     assert ("were inside the grid (bilinear queries)" in text) != exact
     img = imread(res.last_frame)[..., :3]
@@ -151,13 +184,24 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
 @pytest.mark.slow
 def test_notebook_example_runs_every_cell(tmp_path):
     env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")
-    res = subprocess.run([sys.executable, os.path.join(REPO, "examples", "seed_notebook.py"),
-                          str(tmp_path)], capture_output=True, text=True, env=env, timeout=900)
+    res = subprocess.run(
+        [sys.executable, os.path.join(REPO, "examples", "seed_notebook.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     assert "[-1.] [0.] [140.42135624]" in res.stdout  # cell 2's printed output
     assert "(length(x, y) - 1)" in res.stdout  # cell 3: the expression
-    for name in ("cell_04.png", "cell_09.png", "cell_13.png", "cell_18.mp4", "cell_21.mp4",
-                 "cell_22.mp4"):
+    for name in (
+        "cell_04.png",
+        "cell_09.png",
+        "cell_13.png",
+        "cell_18.mp4",
+        "cell_21.mp4",
+        "cell_22.mp4",
+    ):
         assert (tmp_path / name).stat().st_size > 1000, name
     for name in ("cell_18", "cell_21", "cell_22"):  # a small page that plays the video file
         page = (tmp_path / f"{name}.html").read_text()
@@ -165,6 +209,7 @@ def test_notebook_example_runs_every_cell(tmp_path):
     # Every animation draws its particles: its last frame differs from the world drawn alone in
     # more pixels than a few anti-aliasing differences (at 10 to 50 particles, hundreds).
     import matplotlib.image as mpimg
+
     for name in ("cell_18", "cell_20", "cell_21", "cell_22"):
         world = mpimg.imread(tmp_path / f"{name}_world.png")[..., :3]
         last = mpimg.imread(tmp_path / f"{name}_last.png")[..., :3]
@@ -173,17 +218,25 @@ def test_notebook_example_runs_every_cell(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name,outputs", [
-    ("custom_scene", ["custom_scene.png"]),
-    ("raymarch", ["raymarch.png"]),
-    ("custom_force", ["custom_force.png"]),
-    ("save_video", ["particles.mp4"]),
-    ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
-])
+@pytest.mark.parametrize(
+    "name,outputs",
+    [
+        ("custom_scene", ["custom_scene.png"]),
+        ("raymarch", ["raymarch.png"]),
+        ("custom_force", ["custom_force.png"]),
+        ("save_video", ["particles.mp4"]),
+        ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
+    ],
+)
 def test_examples_run_at_small_size(tmp_path, name, outputs):
     env = dict(os.environ, PYTHONPATH=REPO, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")
-    res = subprocess.run([sys.executable, os.path.join(REPO, "examples", f"{name}.py"),
-                          str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    res = subprocess.run(
+        [sys.executable, os.path.join(REPO, "examples", f"{name}.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     for out in outputs:
         assert (tmp_path / out).stat().st_size > 1000, out
@@ -192,12 +245,26 @@ def test_examples_run_at_small_size(tmp_path, name, outputs):
 def test_summary_counts_in_words_and_explains_the_rate():
     from fastsdf.apps.demo import DemoResult, summary
 
-    base = dict(world="seed", particles=1, steps=1, timestep=1 / 30, sdf="a 50x50 GridSDF",
-                mode="exact", sim_seconds=0.0, first_step_seconds=0.5,
-                particle_steps_per_second=float("nan"), outside_grid_fraction=0.25,
-                exact_query_cost=12.0, grid_band_value_max=1e-3, grid_band_angle_rms_deg=0.5,
-                respawned=1, inside_fraction=0.0, animation=None, last_frame="x.png",
-                load=(99.0, 98.0))
+    base = dict(
+        world="seed",
+        particles=1,
+        steps=1,
+        timestep=1 / 30,
+        sdf="a 50x50 GridSDF",
+        mode="exact",
+        sim_seconds=0.0,
+        first_step_seconds=0.5,
+        particle_steps_per_second=float("nan"),
+        outside_grid_fraction=0.25,
+        exact_query_cost=12.0,
+        grid_band_value_max=1e-3,
+        grid_band_angle_rms_deg=0.5,
+        respawned=1,
+        inside_fraction=0.0,
+        animation=None,
+        last_frame="x.png",
+        load=(99.0, 98.0),
+    )
     text = summary(DemoResult(**base))
     assert "1 step of" in text and "1 steps" not in text and "1 particle in" in text
     assert "run more steps to measure a rate" in text
@@ -206,12 +273,28 @@ def test_summary_counts_in_words_and_explains_the_rate():
     assert "12x one grid query" in text
     assert "load (1-minute average) 99.0 before and 98.0 after" in text
     assert "competing for the cores" in text
-    text = summary(DemoResult(**dict(base, steps=3, particles=2000, respawned=0, mode="nearest",
-                                     particle_steps_per_second=4e6, sim_seconds=0.001)))
+    text = summary(
+        DemoResult(
+            **dict(
+                base,
+                steps=3,
+                particles=2000,
+                respawned=0,
+                mode="nearest",
+                particle_steps_per_second=4e6,
+                sim_seconds=0.001,
+            )
+        )
+    )
     assert "3 steps" in text and "2,000 particles" in text and "0 particles redrawn" in text
     assert "4.0 M particle-steps/s over 2 steps" in text
     assert "clamped to the grid's edge" in text
-    boxes = summary(DemoResult(**dict(base, world="boxes", outside_grid_fraction=None,
-                                      mode=None, exact_query_cost=None)))
+    boxes = summary(
+        DemoResult(
+            **dict(
+                base, world="boxes", outside_grid_fraction=None, mode=None, exact_query_cost=None
+            )
+        )
+    )
     assert "every query evaluates the exact compiled SDF" in boxes
     assert "fastsdf demo --world seed" in boxes

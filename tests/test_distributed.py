@@ -24,12 +24,13 @@ def _same(a, b):
 # ---------------------------------------------------------------------------------------------
 # Pickling (no cluster).
 
+
 def test_sdf_pickle_is_the_graph_and_gives_the_same_bits(rng):
     f = seed_world()
     before = pickle.dumps(f)
     x, y = rng.uniform(-2.5, 2.5, (2, 5000))
     x[7] = np.nan
-    d, g = f(x, y, compute_gradient=True)     # compiles: the pickle must not grow
+    d, g = f(x, y, compute_gradient=True)  # compiles: the pickle must not grow
     after = pickle.dumps(f)
     assert len(after) == len(before) < 20_000
     assert b"numba" not in after and b"fastsdf_scene" not in after
@@ -48,6 +49,7 @@ def test_deep_graph_pickles_without_recursion():
     assert h.f is g.f
     # In a process that never saw the graph the nodes are rebuilt: same text, same structure.
     from fastsdf.expr.graph import _from_flat, _to_flat
+
     flat = _to_flat(g.f)
     assert len(flat) > 3000 and _from_flat(flat) is g.f
 
@@ -160,9 +162,10 @@ def test_sharded_simulation_equals_shards_run_in_one_process(client, grid):
     gens = [Gravity(), Drag(0.05)]
     runs = (1, 7, 12)
     ref = _reference(grid, n, shards, seed, gens, runs, cr=0.7)
-    with DistributedSimulation(grid, n, client=client, shards=shards, seed=seed,
-                               force_generators=gens, cr=0.7) as sim:
-        assert len(set(sim.workers)) == 2          # both workers hold shards
+    with DistributedSimulation(
+        grid, n, client=client, shards=shards, seed=seed, force_generators=gens, cr=0.7
+    ) as sim:
+        assert len(set(sim.workers)) == 2  # both workers hold shards
         for k in runs:
             sim.run(k)
         assert sim.t == ref[0].t and sim.steps == sum(runs)
@@ -190,8 +193,15 @@ def test_python_force_generators_init_hook_and_changes_between_runs(client):
     world = seed_world()
     n, shards, seed = 3000, 2, 5
     ref = _reference(world, n, shards, seed, [Gravity(), _wind], (4,), init=_lift)
-    with DistributedSimulation(world, n, client=client, shards=shards, seed=seed,
-                               force_generators=[Gravity(), _wind], init=_lift) as sim:
+    with DistributedSimulation(
+        world,
+        n,
+        client=client,
+        shards=shards,
+        seed=seed,
+        force_generators=[Gravity(), _wind],
+        init=_lift,
+    ) as sim:
         assert sim.init_results == [0, 10]
         sim.run(4)
         sim.force_generators[:] = [Gravity(acceleration=(0.5, -2.0))]
@@ -223,11 +233,20 @@ def test_bad_parameters_are_named_at_construction(client, grid):
 def test_demo_on_the_cluster(client, tmp_path):
     from fastsdf.apps.cli import build_parser
     from fastsdf.apps.distributed import run_demo
+
     assert build_parser().parse_args(["demo", "--workers", "2"]).workers == 2
     # The single-process demo test's scenario and bound (particles spawned inside boxes
     # have been pushed out by step 45).
-    res = run_demo(particles=3000, steps=45, grid=120, seed=3, frames=3, animate=False,
-                   out=str(tmp_path), client=client)
+    res = run_demo(
+        particles=3000,
+        steps=45,
+        grid=120,
+        seed=3,
+        frames=3,
+        animate=False,
+        out=str(tmp_path),
+        client=client,
+    )
     assert res.steps == 45 and res.particles == 3000 and "2 Dask worker" in res.sdf
     assert os.path.getsize(res.last_frame) > 10_000
     assert res.inside_fraction < 0.01
@@ -236,8 +255,9 @@ def test_demo_on_the_cluster(client, tmp_path):
 @pytest.mark.slow
 def test_a_dead_worker_raises_naming_its_shards(client, grid):
     # Last in the module: it kills a worker (the nanny starts a fresh one).
-    sim = DistributedSimulation(grid, 4000, client=client, shards=4, seed=1,
-                                force_generators=[Gravity()])
+    sim = DistributedSimulation(
+        grid, 4000, client=client, shards=4, seed=1, force_generators=[Gravity()]
+    )
     try:
         sim.run(2)
         victim = sim.workers[1]

@@ -23,8 +23,10 @@ def _reference(f, x, y):
 
 def _kernel_serial(f, x, y):
     # Calls below PARALLEL_MIN_POINTS run the serial kernel.
-    parts = [f(x[i:i + 1000], y[i:i + 1000], compute_gradient=True, prune=False, backend="kernel")
-             for i in range(0, x.size, 1000)]
+    parts = [
+        f(x[i : i + 1000], y[i : i + 1000], compute_gradient=True, prune=False, backend="kernel")
+        for i in range(0, x.size, 1000)
+    ]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
@@ -45,20 +47,33 @@ def _numpy(f, x, y):
     return f(x, y, compute_gradient=True, backend="numpy")
 
 
-PATHS = {"reference": _reference, "kernel_serial": _kernel_serial,
-         "kernel_parallel": _kernel_parallel, "kernel_pruned": _kernel_pruned, "tape": _tape,
-         "numpy": _numpy}
+PATHS = {
+    "reference": _reference,
+    "kernel_serial": _kernel_serial,
+    "kernel_parallel": _kernel_parallel,
+    "kernel_pruned": _kernel_pruned,
+    "tape": _tape,
+    "numpy": _numpy,
+}
 
 
 def _every_kind():
     f = sdf.Halfspace([0, 1], -1.8)
-    shapes = [sdf.Circle([0.1, 0.2], 0.5), sdf.Box([-0.4, -0.2], [0.3, 0.5]),
-              sdf.Segment([0, 0], [1, 0.5]), sdf.Capsule([0, 0], [1, 0.3], 0.2),
-              sdf.RoundedBox([-1, -0.5], [0.5, 0.2], 0.1), sdf.OrientedBox([-1, 0], [1, 0.4], 0.3),
-              sdf.Triangle(), sdf.RegularPolygon([0.2, 0], 0.8, 7),
-              sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]]),
-              sdf.Star([0.1, 0], 1.0, 5), sdf.Ellipse([0.1, 0.2], [0.9, 0.3]),
-              sdf.Ring([0.3, 0], 0.5, 0.1), sdf.Arc()]
+    shapes = [
+        sdf.Circle([0.1, 0.2], 0.5),
+        sdf.Box([-0.4, -0.2], [0.3, 0.5]),
+        sdf.Segment([0, 0], [1, 0.5]),
+        sdf.Capsule([0, 0], [1, 0.3], 0.2),
+        sdf.RoundedBox([-1, -0.5], [0.5, 0.2], 0.1),
+        sdf.OrientedBox([-1, 0], [1, 0.4], 0.3),
+        sdf.Triangle(),
+        sdf.RegularPolygon([0.2, 0], 0.8, 7),
+        sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]]),
+        sdf.Star([0.1, 0], 1.0, 5),
+        sdf.Ellipse([0.1, 0.2], [0.9, 0.3]),
+        sdf.Ring([0.3, 0], 0.5, 0.1),
+        sdf.Arc(),
+    ]
     for j, s in enumerate(shapes):
         with sdf.transform(angle=0.3 * j, offset=[0.2 * (j % 3) - 0.2, 0.1 * (j % 4) - 0.15]):
             s = s.rotate(0.1 * j)
@@ -66,10 +81,14 @@ def _every_kind():
     return f
 
 
-SCENES = {"seed world": seed_world, "20-box world": lambda: box_world(20),
-          "every primitive kind, blended": _every_kind,
-          "200-circle union": lambda: sdf.union([sdf.Circle([np.cos(k), np.sin(2 * k)], 0.05)
-                                                 for k in range(200)])}
+SCENES = {
+    "seed world": seed_world,
+    "20-box world": lambda: box_world(20),
+    "every primitive kind, blended": _every_kind,
+    "200-circle union": lambda: sdf.union(
+        [sdf.Circle([np.cos(k), np.sin(2 * k)], 0.05) for k in range(200)]
+    ),
+}
 
 
 @pytest.fixture(scope="module", params=list(SCENES))
@@ -93,16 +112,19 @@ def test_every_path_agrees_with_the_reference(scene, path):
     np.testing.assert_allclose(g[ok], g_ref[ok], rtol=1e-9, atol=1e-9)
     # The value does not depend on whether the gradient was asked for.
     if path != "kernel_serial":
-        kw = {"kernel_parallel": {"prune": False, "backend": "kernel"},
-              "kernel_pruned": {"prune": True, "backend": "kernel"}}.get(path, {"backend": path})
+        kw = {
+            "kernel_parallel": {"prune": False, "backend": "kernel"},
+            "kernel_pruned": {"prune": True, "backend": "kernel"},
+        }.get(path, {"backend": path})
         np.testing.assert_array_equal(f(x, y, **kw), d)
 
 
 def test_kernel_paths_give_the_same_bits(scene):
     """Serial, parallel and pruned kernels run the same arithmetic per point."""
     f, x, y, _ = scene
-    serial, parallel, pruned = (PATHS[p](f, x, y)
-                                for p in ("kernel_serial", "kernel_parallel", "kernel_pruned"))
+    serial, parallel, pruned = (
+        PATHS[p](f, x, y) for p in ("kernel_serial", "kernel_parallel", "kernel_pruned")
+    )
     for a, b in ((serial, parallel), (parallel, pruned)):
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_array_equal(a[1], b[1])
@@ -115,8 +137,13 @@ def test_reference_gradient_matches_finite_differences(scene):
     h = 1e-6
     ok = np.isfinite(x) & np.isfinite(y)
     xs, ys = x[ok][:2000], y[ok][:2000]
-    fd = np.stack([(_reference(f, xs + h, ys)[0] - _reference(f, xs - h, ys)[0]) / (2 * h),
-                   (_reference(f, xs, ys + h)[0] - _reference(f, xs, ys - h)[0]) / (2 * h)], -1)
+    fd = np.stack(
+        [
+            (_reference(f, xs + h, ys)[0] - _reference(f, xs - h, ys)[0]) / (2 * h),
+            (_reference(f, xs, ys + h)[0] - _reference(f, xs, ys - h)[0]) / (2 * h),
+        ],
+        -1,
+    )
     err = np.abs(fd - g[ok][:2000]).max(axis=1)
     assert np.median(err) < 1e-6
     assert (err < 1e-5).mean() > 0.97  # the rest straddle a kink within h

@@ -61,7 +61,7 @@ def test_splat_discs_matches_brute_force(rng):
     y = rng.uniform(-0.5, 4.5, n)
     r = rng.uniform(0.0, 0.6, n)
     r[:5] = 0.01  # smaller than a pixel: the centre pixel only
-    r[5] = -1.0   # negative: treated as 0
+    r[5] = -1.0  # negative: treated as 0
     x[6] = np.nan
     r[7] = np.inf
     counts = np.zeros((h, w), dtype=np.uint16)
@@ -108,8 +108,9 @@ def cluster(rng, cx, cy, n=3000, sd=0.03):
 def test_video_frames_positions_and_fixed_scale(tmp_path, rng):
     path = str(tmp_path / "clip.mp4")
     centres = [(-1.0, 1.0), (0.0, 0.5), (1.0, 0.0), (1.5, 1.5)]
-    with VideoWriter(path, None, BOUNDS, mode="density", scale_frames=2, title="test",
-                     **SMALL) as writer:
+    with VideoWriter(
+        path, None, BOUNDS, mode="density", scale_frames=2, title="test", **SMALL
+    ) as writer:
         for k, (cx, cy) in enumerate(centres):
             # frame k: one cluster, of growing size; the scale comes from frames 0 and 1
             x, y = cluster(rng, cx, cy, n=1000 * (k + 1))
@@ -122,7 +123,7 @@ def test_video_frames_positions_and_fixed_scale(tmp_path, rng):
     for k, (cx, cy) in enumerate(centres):
         row, col = writer.pixel(cx, cy)
         far_row, far_col = writer.pixel(*centres[(k + 2) % 4])  # empty in frame k
-        here = frames[k][row - 1:row + 2, col - 1:col + 2].astype(float).mean((0, 1))
+        here = frames[k][row - 1 : row + 2, col - 1 : col + 2].astype(float).mean((0, 1))
         there = frames[k][far_row, far_col].astype(float)
         # the particles' dark orange, against the light free-space colour
         assert here[2] < 120 and there.min() > 200, (k, here, there)
@@ -135,8 +136,7 @@ def test_video_frames_positions_and_fixed_scale(tmp_path, rng):
 
 
 def test_colour_of_a_count_does_not_change_between_frames(tmp_path, rng):
-    writer = VideoWriter(str(tmp_path / "a.mp4"), None, BOUNDS, mode="density", vmax=100,
-                         **SMALL)
+    writer = VideoWriter(str(tmp_path / "a.mp4"), None, BOUNDS, mode="density", vmax=100, **SMALL)
     x, y = np.array([-1.0]), np.array([1.0])
     few = writer.render(x, y).copy()
     many_x = np.concatenate([x, np.full(500, 1.0)])
@@ -169,8 +169,15 @@ def test_discs_video_of_a_simulation(tmp_path):
     sim = ParticleSimulation(floor, n=20, timestep=1 / 30, seed=1)
     sim.force_generators.append(Gravity())
     sim.p["r"] = 0.1
-    path = record_video(sim, str(tmp_path / "sim.mp4"), frames=3, steps_per_frame=5,
-                        bounds=BOUNDS, title="20 particles", **SMALL)
+    path = record_video(
+        sim,
+        str(tmp_path / "sim.mp4"),
+        frames=3,
+        steps_per_frame=5,
+        bounds=BOUNDS,
+        title="20 particles",
+        **SMALL,
+    )
     _, frames = read_video(path)
     assert len(frames) == 3 and abs(sim.t - 10 / 30) < 1e-12
     # the last frame shows a disc at each particle's place
@@ -187,16 +194,25 @@ def test_discs_video_of_a_simulation(tmp_path):
 def test_failed_video_leaves_nothing(tmp_path, rng):
     path = tmp_path / "keep.mp4"
     path.write_bytes(b"old")
-    with pytest.raises(ZeroDivisionError), \
-            VideoWriter(str(path), None, BOUNDS, mode="density", vmax=10, **SMALL) as w:
+    with (
+        pytest.raises(ZeroDivisionError),
+        VideoWriter(str(path), None, BOUNDS, mode="density", vmax=10, **SMALL) as w,
+    ):
         w.add(*cluster(rng, 0, 0))
         raise ZeroDivisionError("a failure while frames are written")
     assert path.read_bytes() == b"old" and sorted(os.listdir(tmp_path)) == ["keep.mp4"]
 
 
-@pytest.mark.parametrize("kw, word", [({"mode": "dots"}, "mode"), ({"size": (321, 240)}, "size"),
-                                      ({"vmax": 1.0}, "vmax"), ({"fps": 0}, "fps"),
-                                      ({"scale_frames": 0}, "scale_frames")])
+@pytest.mark.parametrize(
+    "kw, word",
+    [
+        ({"mode": "dots"}, "mode"),
+        ({"size": (321, 240)}, "size"),
+        ({"vmax": 1.0}, "vmax"),
+        ({"fps": 0}, "fps"),
+        ({"scale_frames": 0}, "scale_frames"),
+    ],
+)
 def test_bad_parameters_are_named(tmp_path, kw, word):
     with pytest.raises(ValueError, match=word):
         VideoWriter(str(tmp_path / "x.mp4"), None, **kw)

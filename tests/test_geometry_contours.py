@@ -45,7 +45,7 @@ def test_vertices_lie_on_the_zero_set(name):
     p = cs[0].points
     # an exact SDF's |value| is the distance to the zero set
     assert np.abs(f(p[:, 0], p[:, 1])).max() <= 1e-12
-    assert _area(p) > 0                       # counter-clockwise around the solid
+    assert _area(p) > 0  # counter-clockwise around the solid
     # the unrefined (linear interpolation) vertices are visibly off where the set curves
     raw = contours(f, bounds=BOUNDS, resolution=(61, 47), refine=False)[0].points
     if name != "box":
@@ -59,7 +59,7 @@ def test_circle_polygon_area_converges():
         np.testing.assert_allclose(np.hypot(p[:, 0], p[:, 1]), r, atol=1e-12)
         # an inscribed polygon: area below pi r^2 by at most the chord sagittas
         h = 4.0 / (n - 1)
-        assert 0 < np.pi * r * r - _area(p) < 2 * np.pi * r * h ** 2
+        assert 0 < np.pi * r * r - _area(p) < 2 * np.pi * r * h**2
 
 
 def test_topology_disjoint_shapes_and_holes():
@@ -68,7 +68,7 @@ def test_topology_disjoint_shapes_and_holes():
     cs = contours(world, bounds=BOUNDS, resolution=120)
     assert len(cs) == 4 and all(c.closed for c in cs)
     areas = sorted(_area(c.points) for c in cs)
-    assert areas[0] < 0 and all(a > 0 for a in areas[1:])   # one hole, clockwise
+    assert areas[0] < 0 and all(a > 0 for a in areas[1:])  # one hole, clockwise
     assert areas[0] == pytest.approx(-np.pi * 0.16, rel=5e-3)
 
 
@@ -85,13 +85,15 @@ def test_level_and_plain_callables_and_grids():
     p = contours(circle, level=0.25, bounds=BOUNDS, resolution=40)[0].points
     np.testing.assert_allclose(np.hypot(*p.T), 0.75, atol=1e-12)
     # any callable on arrays
-    p = contours(lambda x, y: x * x / 4 + y * y - 1, bounds=[(-3, 3), (-2, 2)],
-                 resolution=50)[0].points
+    p = contours(lambda x, y: x * x / 4 + y * y - 1, bounds=[(-3, 3), (-2, 2)], resolution=50)[
+        0
+    ].points
     np.testing.assert_allclose(p[:, 0] ** 2 / 4 + p[:, 1] ** 2, 1, atol=1e-11)
     # a grid: its bilinear interpolant is linear along edges, so its own zero set is hit
     from fastsdf.geometry import from_mask
+
     X, Y = np.meshgrid(np.linspace(-2, 2, 40), np.linspace(2, -2, 40))
-    g = from_mask(X ** 2 + Y ** 2 < 0.25, BOUNDS)
+    g = from_mask(X**2 + Y**2 < 0.25, BOUNDS)
     p = contours(g, bounds=g.bounds, resolution=g.shape)[0].points
     assert np.abs(g(p[:, 0], p[:, 1])).max() <= 1e-12
 
@@ -101,7 +103,7 @@ def test_saddles_follow_the_centre_value():
     def f(x, y):
         return x * y + 0.01
 
-    cs = contours(f, bounds=[(-1, 1), (-1, 1)], resolution=2)   # one saddle cell
+    cs = contours(f, bounds=[(-1, 1), (-1, 1)], resolution=2)  # one saddle cell
     assert len(cs) == 2 and not any(c.closed for c in cs)
     for c in cs:
         assert np.abs(f(*c.points.T)).max() <= 1e-12
@@ -123,14 +125,15 @@ def _svg_points(path):
 
 
 def test_svg_reads_back_to_the_same_points(tmp_path):
-    world = _numpy((sdf.Circle([0, 0], 0.8) - sdf.Circle([0, 0], 0.4))
-                   | sdf.Box([1.2, -0.5], [1.8, 0.5]))
+    world = _numpy(
+        (sdf.Circle([0, 0], 0.8) - sdf.Circle([0, 0], 0.4)) | sdf.Box([1.2, -0.5], [1.8, 0.5])
+    )
     target = tmp_path / "world.svg"
     cs = to_svg(target, world, bounds=BOUNDS, resolution=80)
     back = _svg_points(target)
     assert len(back) == len(cs) == 3
     for c, (pts, closed) in zip(cs, back, strict=True):
-        np.testing.assert_array_equal(pts, c.points)        # repr: exact round trip
+        np.testing.assert_array_equal(pts, c.points)  # repr: exact round trip
         assert closed == c.closed
     # filled: one path (even-odd) holding every loop
     to_svg(target, cs, fill="black")
@@ -140,8 +143,10 @@ def test_svg_reads_back_to_the_same_points(tmp_path):
 
 def test_dxf_reads_back(tmp_path):
     import ezdxf
-    cs = contours(_numpy(sdf.Circle([0, 0], 1.0) - sdf.Circle([0, 0], 0.5)), bounds=BOUNDS,
-                  resolution=40)
+
+    cs = contours(
+        _numpy(sdf.Circle([0, 0], 1.0) - sdf.Circle([0, 0], 0.5)), bounds=BOUNDS, resolution=40
+    )
     target = tmp_path / "ring.dxf"
     to_dxf(target, cs)
     polys = list(ezdxf.readfile(target).modelspace().query("LWPOLYLINE"))
@@ -160,10 +165,15 @@ def test_failed_write_leaves_the_old_file(tmp_path):
     assert target.read_text() == "old"
 
 
-@pytest.mark.parametrize("kw, err", [
-    ({"resolution": 1}, ValueError), ({"bounds": [(1, 0), (0, 1)]}, ValueError),
-    ({"level": float("nan")}, ValueError), ({"resolution": "many"}, TypeError),
-])
+@pytest.mark.parametrize(
+    "kw, err",
+    [
+        ({"resolution": 1}, ValueError),
+        ({"bounds": [(1, 0), (0, 1)]}, ValueError),
+        ({"level": float("nan")}, ValueError),
+        ({"resolution": "many"}, TypeError),
+    ],
+)
 def test_bad_input(kw, err):
     args = {"bounds": BOUNDS}
     args.update(kw)

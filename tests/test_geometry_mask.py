@@ -28,15 +28,17 @@ def _same(d, ref, sampling):
 @given(masks, st.one_of(st.none(), spacings))
 def test_distance_transform_equals_scipy(mask, sampling):
     d, ind = distance_transform(mask, sampling, return_indices=True)
-    ref = ndimage.distance_transform_edt(mask, sampling=sampling) if (~mask).any() else \
-        np.full(mask.shape, np.inf)
+    ref = (
+        ndimage.distance_transform_edt(mask, sampling=sampling)
+        if (~mask).any()
+        else np.full(mask.shape, np.inf)
+    )
     _same(d, ref, sampling)
     if (~mask).any():
-        assert not mask[ind[0], ind[1]].any()      # the features are False pixels
+        assert not mask[ind[0], ind[1]].any()  # the features are False pixels
         hi, hj = (1.0, 1.0) if sampling is None else sampling
         ii, jj = np.indices(mask.shape)
-        np.testing.assert_allclose(np.hypot((ii - ind[0]) * hi, (jj - ind[1]) * hj), d,
-                                   rtol=1e-14)
+        np.testing.assert_allclose(np.hypot((ii - ind[0]) * hi, (jj - ind[1]) * hj), d, rtol=1e-14)
 
 
 @settings(max_examples=60, deadline=None)
@@ -46,10 +48,13 @@ def test_signed_transform_is_the_two_scipy_transforms(mask, sampling):
         return
     s, ind = signed_distance_transform(mask, sampling, return_indices=True)
     half = 0.5 * (1.0 if sampling is None else min(sampling))
-    ref = np.where(mask, half - ndimage.distance_transform_edt(mask, sampling=sampling),
-                   ndimage.distance_transform_edt(~mask, sampling=sampling) - half)
+    ref = np.where(
+        mask,
+        half - ndimage.distance_transform_edt(mask, sampling=sampling),
+        ndimage.distance_transform_edt(~mask, sampling=sampling) - half,
+    )
     _same(s, ref, sampling)
-    assert (mask[ind[0], ind[1]] != mask).all()   # the nearest pixel of the other phase
+    assert (mask[ind[0], ind[1]] != mask).all()  # the nearest pixel of the other phase
 
 
 def test_brute_force_on_a_small_mask(rng):
@@ -74,7 +79,7 @@ def _raster(f, n, supersample=1):
     for dy in sub:
         for dx in sub:
             cov += f(X + dx * px, Y + dy * px) < 0
-    return cov / supersample ** 2
+    return cov / supersample**2
 
 
 SHAPES = {"circle": sdf.Circle([0.1, -0.2], 0.6), "box": sdf.Box([-0.7, -0.5], [0.5, 0.3])}
@@ -100,10 +105,10 @@ def test_mask_of_analytic_shape_is_within_a_pixel(name):
 
 def test_origin_and_orientation():
     mask = np.zeros((4, 6), bool)
-    mask[0, 0] = True                                # top-left pixel
+    mask[0, 0] = True  # top-left pixel
     g = from_mask(mask, [(0, 6), (0, 4)])
     assert g.shape == (6, 4)
-    assert g(0.5, 3.5)[0] == pytest.approx(-0.5)     # its centre, top left in (x, y)
+    assert g(0.5, 3.5)[0] == pytest.approx(-0.5)  # its centre, top left in (x, y)
     assert g(0.5, 0.5)[0] > 2.0
     low = from_mask(mask, [(0, 6), (0, 4)], origin="lower")
     assert low(0.5, 0.5)[0] == pytest.approx(-0.5)
@@ -111,8 +116,7 @@ def test_origin_and_orientation():
 
 def test_edge_offset_of_straight_edges():
     # axis-aligned edge: offset is 0.5 - coverage
-    np.testing.assert_allclose(edge_offset(1.0, 0.0, [0.0, 0.25, 0.5, 1.0]),
-                               [0.5, 0.25, 0.0, -0.5])
+    np.testing.assert_allclose(edge_offset(1.0, 0.0, [0.0, 0.25, 0.5, 1.0]), [0.5, 0.25, 0.0, -0.5])
     # a diagonal edge through the centre covers half; one through a corner covers nothing
     assert edge_offset(1.0, 1.0, 0.5) == pytest.approx(0.0)
     assert edge_offset(1.0, 1.0, 0.0) == pytest.approx(np.sqrt(0.5))
@@ -154,7 +158,7 @@ def test_anti_aliased_image_places_edges_within_a_tenth_of_a_pixel(name):
     X, Y = np.meshgrid(*g.axes, indexing="ij")
     exact = f(X, Y)
     near = np.abs(exact) < 2 * px
-    if name == "box":   # the straight-edge model does not hold at corners: leave them out
+    if name == "box":  # the straight-edge model does not hold at corners: leave them out
         corners = np.array([[-0.7, -0.5], [-0.7, 0.3], [0.5, -0.5], [0.5, 0.3]])
         to_corner = np.hypot(X[..., None] - corners[:, 0], Y[..., None] - corners[:, 1])
         near &= to_corner.min(-1) > 3 * px
@@ -167,7 +171,7 @@ def test_anti_aliased_image_places_edges_within_a_tenth_of_a_pixel(name):
 
 
 def test_dark_inside_and_levels():
-    img = np.full((8, 8), 255.0)       # a hard black and white image: no sub-pixel edges
+    img = np.full((8, 8), 255.0)  # a hard black and white image: no sub-pixel edges
     img[2:5, 2:6] = 0.0
     a = from_image(img, [(0, 8), (0, 8)], levels=(0, 255), dark_inside=True)
     b = from_mask(img < 100, [(0, 8), (0, 8)])
@@ -176,10 +180,11 @@ def test_dark_inside_and_levels():
 
 def test_particles_accept_a_mask_world():
     import fastsdf.particles as phys
+
     n = 48
     mask = np.zeros((n, n), bool)
-    mask[-8:] = True                                  # a floor along the bottom rows
-    mask[-20:, :6] = True                             # and a wall on the left
+    mask[-8:] = True  # a floor along the bottom rows
+    mask[-20:, :6] = True  # and a wall on the left
     g = from_mask(mask, [(-1, 1), (-1, 1)])
     sim = phys.ParticleSimulation(g, n=40, seed=0)
     sim.force_generators += [phys.Gravity()]
@@ -191,16 +196,19 @@ def test_particles_accept_a_mask_world():
     sim.run(90)
     x = sim.p["x"]
     assert np.isfinite(x).all()
-    assert (g(x[:, 0], x[:, 1]) - sim.p["r"] > -0.02).all()   # none sank into the floor
+    assert (g(x[:, 0], x[:, 1]) - sim.p["r"] > -0.02).all()  # none sank into the floor
 
 
-@pytest.mark.parametrize("bad, err", [
-    (dict(mask=np.zeros((3, 3, 3))), ValueError),
-    (dict(mask=np.zeros((5, 5), bool)), ValueError),
-    (dict(mask=np.array([["a", "b"], ["c", "d"]])), TypeError),
-    (dict(bounds=[(1, 0), (0, 1)]), ValueError),
-    (dict(origin="middle"), ValueError),
-])
+@pytest.mark.parametrize(
+    "bad, err",
+    [
+        (dict(mask=np.zeros((3, 3, 3))), ValueError),
+        (dict(mask=np.zeros((5, 5), bool)), ValueError),
+        (dict(mask=np.array([["a", "b"], ["c", "d"]])), TypeError),
+        (dict(bounds=[(1, 0), (0, 1)]), ValueError),
+        (dict(origin="middle"), ValueError),
+    ],
+)
 def test_bad_input(bad, err):
     args = dict(mask=np.eye(5, dtype=bool), bounds=[(0, 1), (0, 1)])
     args.update(bad)

@@ -11,10 +11,16 @@ from fastsdf.shapes import Outline
 from fastsdf.shapes.primitives import outline_table
 
 # A square with a quadratic bulge on top and a square hole (clockwise).
-SEGMENTS = [(0, -1, -1, 0, 0, 1, -1), (0, 1, -1, 0, 0, 1, 1), (1, 1, 1, 0, 2, -1, 1),
-            (0, -1, 1, 0, 0, -1, -1),
-            (0, -.3, -.3, 0, 0, -.3, .3), (0, -.3, .3, 0, 0, .3, .3), (0, .3, .3, 0, 0, .3, -.3),
-            (0, .3, -.3, 0, 0, -.3, -.3)]
+SEGMENTS = [
+    (0, -1, -1, 0, 0, 1, -1),
+    (0, 1, -1, 0, 0, 1, 1),
+    (1, 1, 1, 0, 2, -1, 1),
+    (0, -1, 1, 0, 0, -1, -1),
+    (0, -0.3, -0.3, 0, 0, -0.3, 0.3),
+    (0, -0.3, 0.3, 0, 0, 0.3, 0.3),
+    (0, 0.3, 0.3, 0, 0, 0.3, -0.3),
+    (0, 0.3, -0.3, 0, 0, -0.3, -0.3),
+]
 
 
 def _kernel(table, x, y):
@@ -38,9 +44,13 @@ def test_compiled_outline_matches_the_reference(rule):
 
 
 def test_fill_rules_differ_on_a_doubly_wound_loop():
-    inner_ccw = [(0, -.3, -.3, 0, 0, .3, -.3), (0, .3, -.3, 0, 0, .3, .3),
-                 (0, .3, .3, 0, 0, -.3, .3), (0, -.3, .3, 0, 0, -.3, -.3)]
-    segs = SEGMENTS[:4] + inner_ccw      # the inner square wound the same way as the outer
+    inner_ccw = [
+        (0, -0.3, -0.3, 0, 0, 0.3, -0.3),
+        (0, 0.3, -0.3, 0, 0, 0.3, 0.3),
+        (0, 0.3, 0.3, 0, 0, -0.3, 0.3),
+        (0, -0.3, 0.3, 0, 0, -0.3, -0.3),
+    ]
+    segs = SEGMENTS[:4] + inner_ccw  # the inner square wound the same way as the outer
     nz = _kernel(outline_table(segs, "nonzero"), [0.0], [0.0])[0][0]
     eo = _kernel(outline_table(segs, "evenodd"), [0.0], [0.0])[0][0]
     assert nz == pytest.approx(-0.3) and eo == pytest.approx(0.3)
@@ -52,8 +62,9 @@ def test_quadratic_closest_point_against_brute_force():
     for _ in range(30):
         p0, p1, p2 = rng.uniform(-1, 1, (3, 2))
         u, v = rng.uniform(-1.5, 1.5, 2)
-        curve = ((1 - t) ** 2)[:, None] * p0 + (2 * t * (1 - t))[:, None] * p1 \
-            + (t ** 2)[:, None] * p2
+        curve = (
+            ((1 - t) ** 2)[:, None] * p0 + (2 * t * (1 - t))[:, None] * p1 + (t**2)[:, None] * p2
+        )
         brute = np.hypot(curve[:, 0] - u, curve[:, 1] - v).min()
         _, dd = P.quad_closest(u, v, *p0, *p1, *p2)
         # the brute force overestimates by at most (step * speed)^2 / (8 d): tiny here
@@ -67,9 +78,10 @@ def test_outline_gradient_is_the_finite_difference():
     x, y = np.random.default_rng(3).uniform(-1.5, 1.8, (2, 200))
     d, g = f(x, y, compute_gradient=True)
     h = 1e-6
-    fd = np.stack([(f(x + h, y) - f(x - h, y)) / (2 * h),
-                   (f(x, y + h) - f(x, y - h)) / (2 * h)], -1)
-    smooth = np.abs(np.linalg.norm(fd, axis=1) - 1) < 1e-4    # off the medial axis
+    fd = np.stack(
+        [(f(x + h, y) - f(x - h, y)) / (2 * h), (f(x, y + h) - f(x, y - h)) / (2 * h)], -1
+    )
+    smooth = np.abs(np.linalg.norm(fd, axis=1) - 1) < 1e-4  # off the medial axis
     assert smooth.mean() > 0.9
     np.testing.assert_allclose(g[smooth], fd[smooth], atol=1e-5)
 
@@ -81,8 +93,12 @@ def test_cubic_to_quadratics_within_the_bound():
         for _ in range(4):
             P4 = rng.uniform(-1, 1, (4, 2))
             rows = cubic_to_quadratics(*P4, tol=tol)
-            cubic = ((1 - t) ** 3)[:, None] * P4[0] + (3 * (1 - t) ** 2 * t)[:, None] * P4[1] \
-                + (3 * (1 - t) * t ** 2)[:, None] * P4[2] + (t ** 3)[:, None] * P4[3]
+            cubic = (
+                ((1 - t) ** 3)[:, None] * P4[0]
+                + (3 * (1 - t) ** 2 * t)[:, None] * P4[1]
+                + (3 * (1 - t) * t**2)[:, None] * P4[2]
+                + (t**3)[:, None] * P4[3]
+            )
             # every point of the cubic is within tol/2 of the quadratics (and the bound is
             # not vacuous: it is met with n pieces, not far below it)
             dist = np.full(len(t), np.inf)
@@ -97,6 +113,7 @@ def _dense_path(d, n=400):
     """Points densely along every segment of SVG path data (svgelements' own evaluation,
     y flipped) and the subpaths as polygons."""
     from svgelements import Move, Path
+
     pts, polys = [], []
     for seg in Path(d):
         if isinstance(seg, Move):
@@ -120,8 +137,8 @@ def _agrees_with_samples(dist, brute, dense, tol):
 
 def test_svg_path_against_shapely_and_brute_force():
     import shapely
-    d = ("M 10 10 C 20 0 40 0 50 10 A 20 20 0 0 1 10 10 Z "
-         "M 25 8 Q 30 4 35 8 L 30 12 Z")
+
+    d = "M 10 10 C 20 0 40 0 50 10 A 20 20 0 0 1 10 10 Z M 25 8 Q 30 4 35 8 L 30 12 Z"
     tol = 1e-6
     f = SvgPath(d, fill_rule="evenodd", tol=tol)
     f.backend = "numpy"
@@ -129,6 +146,7 @@ def test_svg_path_against_shapely_and_brute_force():
     x, y = np.random.default_rng(5).uniform([5, -32], [55, 2], (150, 2)).T
     dist = f(x, y)
     from tests.conftest import brute_distance
+
     brute = brute_distance(np.stack([x, y], 1), np.concatenate(dense))
     _agrees_with_samples(np.abs(dist), brute, dense, tol)
     region = shapely.Polygon(polys[0]).symmetric_difference(shapely.Polygon(polys[1]))
@@ -138,7 +156,7 @@ def test_svg_path_against_shapely_and_brute_force():
 
 
 def test_svg_open_subpaths_are_closed_and_bad_data_is_refused():
-    rows = path_segments("M 0 0 L 1 0 L 1 1")          # closed by a line back to the start
+    rows = path_segments("M 0 0 L 1 0 L 1 1")  # closed by a line back to the start
     assert len(rows) == 3 and np.allclose(rows[-1, 5:7], [0, 0])
     with pytest.raises(ValueError):
         SvgPath("M 0 0 L", tol=1e-3)
@@ -151,20 +169,22 @@ def test_svg_open_subpaths_are_closed_and_bad_data_is_refused():
 def test_text_is_an_exact_sdf_like_any_other():
     import shapely
     from matplotlib.textpath import TextPath
+
     word = Text("fastsdf", size=1.0)
     x, y = np.random.default_rng(6).uniform([-0.1, -0.3], [4.0, 1.0], (200, 2)).T
-    d = word(x, y)                                     # the compiled kernel
+    d = word(x, y)  # the compiled kernel
     np.testing.assert_allclose(d, word(x, y, backend="numpy"), atol=1e-12)
     np.testing.assert_allclose(d, word(x, y, backend="tape"), atol=1e-12)
     g = sdf.GridSDF(word, bounds=[(-0.1, 4.0), (-0.3, 1.0)], samples=[120j, 40j])
-    assert np.abs(g(x, y) - d).max() < 0.05           # it grids like any SDF
-    split = Text("fastsdf", size=1.0, split_glyphs=True)   # a union of glyph outlines
+    assert np.abs(g(x, y) - d).max() < 0.05  # it grids like any SDF
+    split = Text("fastsdf", size=1.0, split_glyphs=True)  # a union of glyph outlines
     np.testing.assert_allclose(split(x[:40], y[:40], backend="numpy"), d[:40], atol=1e-12)
     # brute force against matplotlib's own evaluation of the glyphs' Bezier segments
     tp = TextPath((0, 0), "fastsdf", size=1.0)
     tt = np.linspace(0, 1, 100)
     dense = [seg(tt) for seg, _ in tp.iter_bezier() if seg.degree > 0]
     from tests.conftest import brute_distance
+
     brute = brute_distance(np.stack([x, y], 1), np.concatenate(dense))
     _agrees_with_samples(np.abs(d), brute, dense, 1e-12)
     # sign: shapely, the flattened glyph rings combined by the even-odd rule (holes included;
@@ -180,8 +200,8 @@ def test_text_is_an_exact_sdf_like_any_other():
     with sdf.smoothness(0.1, kind="quadratic"):
         blended = word | sdf.Circle([2.0, 0.35], 0.2)
     disc = np.hypot(x - 2.0, y - 0.35) - 0.2
-    apart = np.abs(d - disc) >= 0.1          # the quadratic blend is the minimum there
-    near = np.abs(d - disc) < 0.05           # and below it, by up to k / 4, where they meet
+    apart = np.abs(d - disc) >= 0.1  # the quadratic blend is the minimum there
+    near = np.abs(d - disc) < 0.05  # and below it, by up to k / 4, where they meet
     got = blended(x, y, backend="numpy")
     np.testing.assert_allclose(got[apart], np.minimum(d, disc)[apart], atol=1e-12)
     assert np.all(got[near] < np.minimum(d, disc)[near])

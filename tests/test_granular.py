@@ -1,6 +1,7 @@
 """Granular matter (soft-sphere DEM): the contact law against the analytic damped oscillator,
 conservation laws, a settled column, a disc rolling down an incline, and the neighbour search
 against brute force."""
+
 import math
 
 import numpy as np
@@ -24,10 +25,15 @@ def head_on(e, gap, substeps_per_contact):
     """Two equal discs (radius 0.5, density 1) meeting at relative speed 2 after closing a
     ``gap``; returns (measured restitution, contact duration, substep, law)."""
     law = ContactLaw(stiffness=1e4, restitution=e, friction=0.0)
-    sim = GranularSimulation([[-0.5 - gap / 2, 0.0], [0.5 + gap / 2, 0.0]], 0.5,
-                             velocities=[[1.0, 0.0], [-1.0, 0.0]], contact=law,
-                             gravity=(0.0, 0.0), timestep=1.0,
-                             substeps_per_contact=substeps_per_contact)
+    sim = GranularSimulation(
+        [[-0.5 - gap / 2, 0.0], [0.5 + gap / 2, 0.0]],
+        0.5,
+        velocities=[[1.0, 0.0], [-1.0, 0.0]],
+        contact=law,
+        gravity=(0.0, 0.0),
+        timestep=1.0,
+        substeps_per_contact=substeps_per_contact,
+    )
     dt = sim.substep
     first = last = None
     k = 0
@@ -62,12 +68,23 @@ def gas(n, law, seed=0, walls=None, wall_law=None, chunks=None):
     rng = np.random.default_rng(seed)
     side = math.ceil(math.sqrt(n))
     i = np.arange(n)
-    pos = np.stack([i % side * 1.6 + 0.8, i // side * 1.6 + 0.8], 1) + rng.uniform(-.1, .1, (n, 2))
+    pos = np.stack([i % side * 1.6 + 0.8, i // side * 1.6 + 0.8], 1) + rng.uniform(
+        -0.1, 0.1, (n, 2)
+    )
     radius = rng.uniform(0.25, 0.75, n)  # 1:3
     vel = rng.normal(0.0, 1.0, (n, 2))
-    return GranularSimulation(pos, radius, velocities=vel, contact=law, gravity=(0.0, 0.0),
-                              timestep=0.1, world=walls, wall_contact=wall_law,
-                              periodic_x=(0.0, side * 1.6), chunks=chunks)
+    return GranularSimulation(
+        pos,
+        radius,
+        velocities=vel,
+        contact=law,
+        gravity=(0.0, 0.0),
+        timestep=0.1,
+        world=walls,
+        wall_contact=wall_law,
+        periodic_x=(0.0, side * 1.6),
+        chunks=chunks,
+    )
 
 
 def test_momentum_conserved_without_walls():
@@ -104,17 +121,28 @@ def test_settled_column_floor_carries_weight():
     The floor carries the whole weight, each overlap is load / stiffness (Hooke), and all
     overlaps stay under 1% of the diameter at the default stiffness."""
     n, width, g = 12, 1.05, 9.81
-    walls = union([fs.Halfspace((0.0, 1.0), 0.0), fs.Halfspace((1.0, 0.0), 0.0),
-                   fs.Halfspace((-1.0, 0.0), -width)])
+    walls = union(
+        [
+            fs.Halfspace((0.0, 1.0), 0.0),
+            fs.Halfspace((1.0, 0.0), 0.0),
+            fs.Halfspace((-1.0, 0.0), -width),
+        ]
+    )
     radius = np.where(np.arange(n) % 2, 0.5, 0.4)
     law = ContactLaw()
-    weight = np.pi * radius ** 2 * g  # density 1
+    weight = np.pi * radius**2 * g  # density 1
     load = np.cumsum(weight[::-1])[::-1]  # carried by the contact under each disc
     gaps = np.concatenate([[radius[0]], radius[1:] + radius[:-1]]) - load / law.stiffness
     centres = np.cumsum(gaps)
-    sim = GranularSimulation(np.stack([np.full(n, width / 2), centres], 1), radius,
-                             world=walls, contact=law, wall_contact=law._replace(friction=0.0),
-                             gravity=(0.0, -g), timestep=1 / 30)
+    sim = GranularSimulation(
+        np.stack([np.full(n, width / 2), centres], 1),
+        radius,
+        world=walls,
+        contact=law,
+        wall_contact=law._replace(friction=0.0),
+        gravity=(0.0, -g),
+        timestep=1 / 30,
+    )
     sim.run(3)
     assert sim.wall_force[1] == pytest.approx(weight.sum(), rel=0.01)
     assert abs(sim.wall_force[0]) < 1e-9 * weight.sum()
@@ -127,8 +155,14 @@ def test_settled_column_floor_carries_weight():
 def roll(friction, h=0.5, theta=math.pi / 6):
     n = np.array([-math.sin(theta), math.cos(theta)])
     law = ContactLaw(stiffness=1e4, restitution=0.5, friction=friction)
-    sim = GranularSimulation([n * 0.5 * (1 - 1e-4)], 0.5, world=fs.Halfspace(n, 0.0),
-                             contact=law, gravity=(0.0, -1.0), timestep=0.01)
+    sim = GranularSimulation(
+        [n * 0.5 * (1 - 1e-4)],
+        0.5,
+        world=fs.Halfspace(n, 0.0),
+        contact=law,
+        gravity=(0.0, -1.0),
+        timestep=0.01,
+    )
     y0 = sim.positions[0, 1]
     while y0 - sim.positions[0, 1] < h:
         sim.advance(1)
@@ -146,16 +180,27 @@ def test_disc_rolls_down_incline():
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(2, 60), st.integers(0, 2**31), st.booleans(),
-       st.floats(0.05, 0.5), st.integers(1, 7))
+@given(
+    st.integers(2, 60),
+    st.integers(0, 2**31),
+    st.booleans(),
+    st.floats(0.05, 0.5),
+    st.integers(1, 7),
+)
 def test_cell_list_matches_brute_force(n, seed, periodic, skin, chunks):
     rng = np.random.default_rng(seed)
     span = math.sqrt(n) * 1.5
     pos = rng.uniform(0, span, (n, 2))
     radius = rng.uniform(0.2, 0.6, n)  # 1:3
     period = span + 4.0 if periodic else 0.0
-    sim = GranularSimulation(pos, radius, gravity=(0.0, 0.0), skin=skin, chunks=chunks,
-                             periodic_x=(0.0, period) if periodic else None)
+    sim = GranularSimulation(
+        pos,
+        radius,
+        gravity=(0.0, 0.0),
+        skin=skin,
+        chunks=chunks,
+        periodic_x=(0.0, period) if periodic else None,
+    )
     expected = brute_force_pairs(pos[:, 0], pos[:, 1], radius, skin, period)
     np.testing.assert_array_equal(sim.neighbour_pairs(), expected)
 
@@ -177,26 +222,30 @@ def test_lammps_damping_conversion_round_trips():
     e = restitution_from_damping(300.0, 2e5, m_eff)
     law = ContactLaw(stiffness=2e5, restitution=e)
     from fastsdf.granular import damping_ratio
+
     gamma = 2 * damping_ratio(e) * math.sqrt(m_eff * 2e5)
     assert gamma == pytest.approx(300.0 * m_eff, rel=1e-12)
     assert 0 < law.restitution < 1
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"contact": ContactLaw(stiffness=-1.0)}, r"contact\.stiffness.*-1\.0"),
-    ({"contact": ContactLaw(restitution=1.5)}, r"contact\.restitution.*1\.5"),
-    ({"contact": ContactLaw(friction=float("nan"))}, r"contact\.friction.*nan"),
-    ({"wall_contact": ContactLaw(tangential_damping=-2)}, r"wall_contact\.tangential_damping"),
-    ({"density": 0.0}, r"density.*0\.0"),
-    ({"timestep": -1.0}, r"timestep.*-1\.0"),
-    ({"substep": 0.0}, r"substep.*0\.0"),
-    ({"skin": -0.1}, r"skin.*-0\.1"),
-    ({"gravity": (0.0, float("inf"))}, r"gravity"),
-    ({"periodic_x": (1.0, 0.0)}, r"periodic_x"),
-    ({"radius": 0.0}, r"radius\[0\]=0\.0"),
-    ({"positions": [[0.0, float("nan")]]}, r"positions.*row 0"),
-    ({"velocities": [[0.0, 0.0], [1.0, 1.0]]}, r"velocities.*\(1, 2\)"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"contact": ContactLaw(stiffness=-1.0)}, r"contact\.stiffness.*-1\.0"),
+        ({"contact": ContactLaw(restitution=1.5)}, r"contact\.restitution.*1\.5"),
+        ({"contact": ContactLaw(friction=float("nan"))}, r"contact\.friction.*nan"),
+        ({"wall_contact": ContactLaw(tangential_damping=-2)}, r"wall_contact\.tangential_damping"),
+        ({"density": 0.0}, r"density.*0\.0"),
+        ({"timestep": -1.0}, r"timestep.*-1\.0"),
+        ({"substep": 0.0}, r"substep.*0\.0"),
+        ({"skin": -0.1}, r"skin.*-0\.1"),
+        ({"gravity": (0.0, float("inf"))}, r"gravity"),
+        ({"periodic_x": (1.0, 0.0)}, r"periodic_x"),
+        ({"radius": 0.0}, r"radius\[0\]=0\.0"),
+        ({"positions": [[0.0, float("nan")]]}, r"positions.*row 0"),
+        ({"velocities": [[0.0, 0.0], [1.0, 1.0]]}, r"velocities.*\(1, 2\)"),
+    ],
+)
 def test_bad_parameters_are_named(kwargs, match):
     args = {"positions": [[0.0, 0.0]], "radius": 0.5}
     args.update(kwargs)
@@ -231,8 +280,14 @@ def test_moving_floor_lifts_a_disc():
     the overlap of its weight, m g / k_n (the dashpot sees the velocity relative to the wall:
     it would drag otherwise)."""
     u, g, law = 0.3, 9.81, ContactLaw(stiffness=1e4)
-    sim = GranularSimulation([[0.0, 0.5]], 0.5, world=fs.Halfspace((0.0, 1.0), fs.t * u),
-                             contact=law, gravity=(0.0, -g), timestep=0.05)
+    sim = GranularSimulation(
+        [[0.0, 0.5]],
+        0.5,
+        world=fs.Halfspace((0.0, 1.0), fs.t * u),
+        contact=law,
+        gravity=(0.0, -g),
+        timestep=0.05,
+    )
     sim.run(20)
     assert sim.velocities[0] == pytest.approx([0.0, u], abs=1e-6)
     overlap = 0.5 + u * sim.time - sim.positions[0, 1]
@@ -242,8 +297,13 @@ def test_moving_floor_lifts_a_disc():
 def test_grid_world_matches_exact_world():
     """The same column against a GridSDF of the world and the world itself (a floor and two
     walls: bilinear interpolation is exact for planes inside the grid's cells)."""
-    walls = union([fs.Halfspace((0.0, 1.0), 0.0), fs.Halfspace((1.0, 0.0), 0.0),
-                   fs.Halfspace((-1.0, 0.0), -3.0)])
+    walls = union(
+        [
+            fs.Halfspace((0.0, 1.0), 0.0),
+            fs.Halfspace((1.0, 0.0), 0.0),
+            fs.Halfspace((-1.0, 0.0), -3.0),
+        ]
+    )
     grid = fs.GridSDF(walls, bounds=[(-1.0, 4.0), (-1.0, 6.0)], samples=[101, 141])
     rng = np.random.default_rng(5)
     pos = np.stack([rng.uniform(0.6, 2.4, 8), 0.52 + 1.2 * np.arange(8)], 1)
@@ -262,9 +322,14 @@ def test_oblique_collision_turns_discs_and_keeps_angular_momentum():
     being the radius, not the distance to the contact point (as in LAMMPS): a change of the
     order of overlap / radius, far smaller than the spin created. A wrong torque sign would
     break it by twice the spin."""
-    sim = GranularSimulation([[-0.6, 0.3], [0.6, -0.2]], [0.5, 0.4],
-                             velocities=[[1.0, 0.0], [-1.0, 0.1]], gravity=(0.0, 0.0),
-                             contact=ContactLaw(stiffness=1e4, friction=0.5), timestep=1.0)
+    sim = GranularSimulation(
+        [[-0.6, 0.3], [0.6, -0.2]],
+        [0.5, 0.4],
+        velocities=[[1.0, 0.0], [-1.0, 0.1]],
+        gravity=(0.0, 0.0),
+        contact=ContactLaw(stiffness=1e4, friction=0.5),
+        timestep=1.0,
+    )
 
     def angular_momentum():
         x, v, m, r = sim.positions, sim.velocities, sim.masses, sim.radius

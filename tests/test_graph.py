@@ -113,8 +113,12 @@ OPS = [
     ("powc_frac", (x * x + 1) ** 1.5, lambda X, Y: (X * X + 1) ** 1.5, (-3, 3)),
     ("pow_inv", (x * x + 1) ** -1, lambda X, Y: 1 / (X * X + 1), (-3, 3)),
     ("pow_general", (x * x + 1) ** (y * y), lambda X, Y: (X * X + 1) ** (Y * Y), (-1.5, 1.5)),
-    ("sqrt", cg.sym_sqrt(x * x + 2 * y * y + 1), lambda X, Y: np.sqrt(X * X + 2 * Y * Y + 1),
-     (-3, 3)),
+    (
+        "sqrt",
+        cg.sym_sqrt(x * x + 2 * y * y + 1),
+        lambda X, Y: np.sqrt(X * X + 2 * Y * Y + 1),
+        (-3, 3),
+    ),
     ("exp", cg.sym_exp(x - y), lambda X, Y: np.exp(X - Y), (-3, 3)),
     ("log", cg.sym_log(x * x + y * y + 0.5), lambda X, Y: np.log(X * X + Y * Y + 0.5), (-3, 3)),
     ("sin", cg.sym_sin(x * y), lambda X, Y: np.sin(X * Y), (-3, 3)),
@@ -123,10 +127,18 @@ OPS = [
     ("min", cg.sym_min(x, y * y), lambda X, Y: np.minimum(X, Y * Y), (-3, 3)),
     ("max", cg.sym_max(x, y * y), lambda X, Y: np.maximum(X, Y * Y), (-3, 3)),
     ("length", cg.sym_length(x - 1, y + 2), lambda X, Y: np.hypot(X - 1, Y + 2), (-3, 3)),
-    ("smin", cg.sym_smin(x, y, 3.0),
-     lambda X, Y: -np.log(np.exp(-3 * X) + np.exp(-3 * Y)) / 3, (-3, 3)),
-    ("smax", cg.sym_smax(x, y, 3.0),
-     lambda X, Y: np.log(np.exp(3 * X) + np.exp(3 * Y)) / 3, (-3, 3)),
+    (
+        "smin",
+        cg.sym_smin(x, y, 3.0),
+        lambda X, Y: -np.log(np.exp(-3 * X) + np.exp(-3 * Y)) / 3,
+        (-3, 3),
+    ),
+    (
+        "smax",
+        cg.sym_smax(x, y, 3.0),
+        lambda X, Y: np.log(np.exp(3 * X) + np.exp(3 * Y)) / 3,
+        (-3, 3),
+    ),
 ]
 
 
@@ -216,6 +228,7 @@ def test_input_shapes_and_types():
 
 def test_interned_nodes_are_unique_and_forgotten_when_unused():
     import gc
+
     x, y = cg.Symbol("x"), cg.Symbol("y")
     # constants are told apart by their bits: 0.0 and -0.0 are two nodes, NaN is one
     assert cg.Constant(-0.0) is not cg.Constant(0.0)
@@ -238,18 +251,19 @@ def test_interned_nodes_are_unique_and_forgotten_when_unused():
     assert x * 123.0 is a
 
 
-@pytest.mark.parametrize("limit", [3, 20, 200, 300, 10 ** 6])
+@pytest.mark.parametrize("limit", [3, 20, 200, 300, 10**6])
 def test_printing_with_a_limit_is_the_prefix_of_the_full_text(limit):
     # a limited print walks only the nodes near the root: the same text as cutting the full one
     import functools
+
     x, y = cg.Symbol("x"), cg.Symbol("y")
     exprs = [
         ((((x * 2 + 1) ** 2 + 1) ** 3) ** 2 + y) ** 2,  # powers print their base first
         functools.reduce(cg.sym_min, [x * float(i) + y for i in range(1, 300)]),
         functools.reduce(lambda a, b: b + a, [cg.sym_abs(x - float(i)) for i in range(300)]),
-        cg.sym_smin(cg.sym_select(x, y ** 3, cg.sym_length(x, y)), -x, 4.0),
+        cg.sym_smin(cg.sym_select(x, y**3, cg.sym_length(x, y)), -x, 4.0),
     ]
     for e in exprs:
         full = G.expr_to_str(e)
-        want = full if len(full) <= limit else full[:limit - 3] + "..."
+        want = full if len(full) <= limit else full[: limit - 3] + "..."
         assert G.expr_to_str(e, limit=limit) == want

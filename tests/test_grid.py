@@ -13,7 +13,7 @@ import fastsdf.graph as cg
 from fastsdf.expr.points import PARALLEL_MIN_POINTS
 from fastsdf.fields.grid import BYTES_PER_NODE, GridError, GridSDF, measure_error
 
-EPS32 = 2.0 ** -24
+EPS32 = 2.0**-24
 MODES = ("exact", "nearest")
 GRADIENTS = ("stored", "fd")
 DTYPES = (np.float64, np.float32)
@@ -90,15 +90,20 @@ def test_affine_function_is_reproduced_to_roundoff(plane, gradient, n):
 def test_error_falls_at_second_order_on_a_circle(circle, gradient):
     # In the band |d| < 0.1 around a circle (far from its centre, the one kink) the SDF is
     # smooth: bilinear error <= h^2/8 (|d_xx| + |d_yy|) = h^2 / (8 r), second order in h.
-    errs = [measure_error(GridSDF(circle, samples=[n, n], gradient=gradient), n=40_000,
-                          band=0.1, seed=7) for n in (41, 81)]
+    errs = [
+        measure_error(
+            GridSDF(circle, samples=[n, n], gradient=gradient), n=40_000, band=0.1, seed=7
+        )
+        for n in (41, 81)
+    ]
     for e in errs:
         h = e.spacing[0]
         assert e.band_n > 1000
         assert e.band_value_max <= h * h / (8 * 0.9) * 1.001
-    order = {k: math.log2(getattr(errs[0], k) / getattr(errs[1], k))
-             for k in ("band_value_max", "band_value_rms", "band_angle_rms_deg",
-                       "band_angle_max_deg")}
+    order = {
+        k: math.log2(getattr(errs[0], k) / getattr(errs[1], k))
+        for k in ("band_value_max", "band_value_rms", "band_angle_rms_deg", "band_angle_max_deg")
+    }
     for k, p in order.items():
         assert 1.8 < p < 2.2, (k, p, order)
 
@@ -130,8 +135,9 @@ def test_outside_bounds_exact_mode_uses_the_exact_sdf(circle, gradient):
 
 @pytest.mark.parametrize("gradient", GRADIENTS)
 def test_outside_bounds_nearest_mode_clamps(circle, gradient):
-    g = GridSDF(circle, bounds=[(-1, 1), (-0.5, 1)], samples=[21, 16], mode="nearest",
-                gradient=gradient)
+    g = GridSDF(
+        circle, bounds=[(-1, 1), (-0.5, 1)], samples=[21, 16], mode="nearest", gradient=gradient
+    )
     rng = _rng(3)
     x, y = rng.uniform(-4, 4, 500), rng.uniform(-4, 4, 500)
     d, grad = g(x, y, compute_gradient=True)
@@ -149,8 +155,12 @@ def test_nearest_mode_matches_the_notebooks_map_coordinates(circle):
     x, y = rng.uniform(-3, 3, 2000), rng.uniform(-2.5, 3.5, 2000)
     u = (x - -2) / g.spacing[0]
     v = (y - -1.5) / g.spacing[1]
-    ref = [ndimage.map_coordinates(np.ascontiguousarray(g.data[:, :, c]), [u, v], order=1,
-                                   mode="nearest") for c in range(3)]
+    ref = [
+        ndimage.map_coordinates(
+            np.ascontiguousarray(g.data[:, :, c]), [u, v], order=1, mode="nearest"
+        )
+        for c in range(3)
+    ]
     d, grad = g(x, y, compute_gradient=True)
     np.testing.assert_allclose(d, ref[0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(grad, np.stack(ref[1:], axis=1), rtol=0, atol=1e-12)
@@ -213,7 +223,7 @@ def test_serial_and_parallel_paths_agree(circle):
     n = 3 * PARALLEL_MIN_POINTS
     x, y = rng.uniform(-2.5, 2.5, n), rng.uniform(-2.5, 2.5, n)
     d, grad = g(x, y, compute_gradient=True)
-    parts = [g(x[i:i + 1000], y[i:i + 1000], compute_gradient=True) for i in range(0, n, 1000)]
+    parts = [g(x[i : i + 1000], y[i : i + 1000], compute_gradient=True) for i in range(0, n, 1000)]
     np.testing.assert_array_equal(d, np.concatenate([p[0] for p in parts]))
     np.testing.assert_array_equal(grad, np.concatenate([p[1] for p in parts]))
 
@@ -223,8 +233,13 @@ def test_serial_and_parallel_paths_agree(circle):
 def test_memory_per_node(circle, gradient, dtype):
     g = GridSDF(circle, samples=[13, 7], gradient=gradient, dtype=dtype)
     per = BYTES_PER_NODE[(gradient, np.dtype(dtype).name)]
-    assert g.bytes_per_node == per == {("stored", 8): 24, ("stored", 4): 12, ("fd", 8): 8,
-                                       ("fd", 4): 4}[(gradient, np.dtype(dtype).itemsize)]
+    assert (
+        g.bytes_per_node
+        == per
+        == {("stored", 8): 24, ("stored", 4): 12, ("fd", 8): 8, ("fd", 4): 4}[
+            (gradient, np.dtype(dtype).itemsize)
+        ]
+    )
     assert g.nbytes == 13 * 7 * per == g.data.nbytes
     assert g.data.flags.c_contiguous
     assert g.data.shape == ((13, 7, 3) if gradient == "stored" else (13, 7))
@@ -247,6 +262,7 @@ def test_interpolant_is_sqrt2_lipschitz(circle):
 
 
 # -- the numba sampler contract (used by compiled particle loops) -----------------------------
+
 
 @njit
 def _sample_all(sampler, data, xs, ys):
@@ -278,16 +294,23 @@ def test_sampler_contract_from_njit_code(circle, gradient, dtype):
     rng = _rng(9)
     x, y = rng.uniform(-3, 3, 400), rng.uniform(-3, 3, 400)
     x[0], y[1] = np.nan, np.inf
-    near = GridSDF(circle, bounds=[(-2, 2), (-2, 2)], samples=[21, 21], mode="nearest",
-                   gradient=gradient, dtype=dtype)
+    near = GridSDF(
+        circle,
+        bounds=[(-2, 2), (-2, 2)],
+        samples=[21, 21],
+        mode="nearest",
+        gradient=gradient,
+        dtype=dtype,
+    )
     vals, inside = _sample_all(near.sampler, near.sampler_data, x, y)
     np.testing.assert_array_equal(inside, near.contains(x, y))
     d, grad = near(x, y, compute_gradient=True)
     np.testing.assert_array_equal(vals[:, 0], d)
     np.testing.assert_array_equal(vals[:, 1:], grad)
     # mode='exact': fall back to the exact per-point function where the sampler says outside.
-    ex = GridSDF(circle, bounds=[(-2, 2), (-2, 2)], samples=[21, 21], gradient=gradient,
-                 dtype=dtype)
+    ex = GridSDF(
+        circle, bounds=[(-2, 2), (-2, 2)], samples=[21, 21], gradient=gradient, dtype=dtype
+    )
     vals = _sample_with_fallback(ex.sampler, ex.sampler_data, ex.exact.point_fn, x, y)
     d, grad = ex(x, y, compute_gradient=True)
     np.testing.assert_array_equal(vals[:, 0], d)
@@ -295,6 +318,7 @@ def test_sampler_contract_from_njit_code(circle, gradient, dtype):
 
 
 # -- measure_error ----------------------------------------------------------------------------
+
 
 def test_measure_error_fields(circle):
     g = GridSDF(circle, samples=[21, 21])
@@ -317,31 +341,39 @@ def test_measure_error_fields(circle):
 
 # -- bad input --------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("kwargs, exc, match", [
-    (dict(bounds=[(2, -2), (-2, 2)]), ValueError, r"bounds.*x range \(2.0, -2.0\)"),
-    (dict(bounds=[(-2, 2), (1, 1)]), ValueError, r"bounds.*y range \(1.0, 1.0\)"),
-    (dict(bounds=[(-2, np.inf), (-2, 2)]), ValueError, "bounds must be finite"),
-    (dict(bounds=[(-2, np.nan), (-2, 2)]), ValueError, "bounds must be finite"),
-    (dict(bounds=[(-2, 2)]), ValueError, "bounds must be two"),
-    (dict(bounds=[(-2, 2, 3), (-2, 2)]), ValueError, "bounds must be two"),
-    (dict(bounds=5), TypeError, "bounds"),
-    (dict(bounds=[("a", 2), (-2, 2)]), TypeError, "bounds must hold real numbers"),
-    (dict(samples=[1, 10]), ValueError, r"at least 2.*samples=\[1, 10\]"),
-    (dict(samples=[10j, 1j]), ValueError, "at least 2"),
-    (dict(samples=[10, 10, 10]), ValueError, "2 entries"),
-    (dict(samples=10), TypeError, "samples"),
-    (dict(samples="ab"), TypeError, "samples"),
-    (dict(samples=[10.0, 10]), TypeError, "samples entries"),
-    (dict(samples=[True, 10]), TypeError, "samples entries"),
-    (dict(samples=[10.5j, 10j]), ValueError, "whole node count"),
-    (dict(samples=[1 + 10j, 10j]), ValueError, "whole node count"),
-    (dict(mode="clamp"), ValueError, r"mode must be one of 'exact', 'nearest', got mode='clamp'"),
-    (dict(mode=None), ValueError, "mode must be"),
-    (dict(gradient="central"), ValueError, r"gradient must be one of .*gradient='central'"),
-    (dict(dtype=np.int32), ValueError, "dtype must be np.float64 or np.float32"),
-    (dict(dtype=np.float16), ValueError, "dtype must be"),
-    (dict(dtype="nonsense"), ValueError, "dtype must be"),
-])
+
+@pytest.mark.parametrize(
+    "kwargs, exc, match",
+    [
+        (dict(bounds=[(2, -2), (-2, 2)]), ValueError, r"bounds.*x range \(2.0, -2.0\)"),
+        (dict(bounds=[(-2, 2), (1, 1)]), ValueError, r"bounds.*y range \(1.0, 1.0\)"),
+        (dict(bounds=[(-2, np.inf), (-2, 2)]), ValueError, "bounds must be finite"),
+        (dict(bounds=[(-2, np.nan), (-2, 2)]), ValueError, "bounds must be finite"),
+        (dict(bounds=[(-2, 2)]), ValueError, "bounds must be two"),
+        (dict(bounds=[(-2, 2, 3), (-2, 2)]), ValueError, "bounds must be two"),
+        (dict(bounds=5), TypeError, "bounds"),
+        (dict(bounds=[("a", 2), (-2, 2)]), TypeError, "bounds must hold real numbers"),
+        (dict(samples=[1, 10]), ValueError, r"at least 2.*samples=\[1, 10\]"),
+        (dict(samples=[10j, 1j]), ValueError, "at least 2"),
+        (dict(samples=[10, 10, 10]), ValueError, "2 entries"),
+        (dict(samples=10), TypeError, "samples"),
+        (dict(samples="ab"), TypeError, "samples"),
+        (dict(samples=[10.0, 10]), TypeError, "samples entries"),
+        (dict(samples=[True, 10]), TypeError, "samples entries"),
+        (dict(samples=[10.5j, 10j]), ValueError, "whole node count"),
+        (dict(samples=[1 + 10j, 10j]), ValueError, "whole node count"),
+        (
+            dict(mode="clamp"),
+            ValueError,
+            r"mode must be one of 'exact', 'nearest', got mode='clamp'",
+        ),
+        (dict(mode=None), ValueError, "mode must be"),
+        (dict(gradient="central"), ValueError, r"gradient must be one of .*gradient='central'"),
+        (dict(dtype=np.int32), ValueError, "dtype must be np.float64 or np.float32"),
+        (dict(dtype=np.float16), ValueError, "dtype must be"),
+        (dict(dtype="nonsense"), ValueError, "dtype must be"),
+    ],
+)
 def test_bad_parameters_are_rejected(circle, kwargs, exc, match):
     with pytest.raises(exc, match=match):
         GridSDF(circle, **kwargs)

@@ -32,12 +32,12 @@ _CACHE_SCRIPT = textwrap.dedent("""
 
 
 def _run_cache_script(cache, background=False):
-    env = dict(os.environ, FASTSDF_CACHE_DIR=str(cache), PYTHONPATH=ROOT,
-               PYTHONWARNINGS="always")
+    env = dict(os.environ, FASTSDF_CACHE_DIR=str(cache), PYTHONPATH=ROOT, PYTHONWARNINGS="always")
     args = [sys.executable, "-c", _CACHE_SCRIPT]
     if background:
-        return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True)
+        return subprocess.Popen(
+            args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
     return subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -45,20 +45,25 @@ def _parse(proc):
     out, err = proc.stdout, proc.stderr
     assert proc.returncode == 0, err[-3000:]
     line = [s for s in out.splitlines() if s.startswith("RESULT")][-1].split()
-    return (tuple(float(v) for v in line[1:4]), int(line[4]), int(line[5]),
-            err.count("fastsdf: kernel cache:"))
+    return (
+        tuple(float(v) for v in line[1:4]),
+        int(line[4]),
+        int(line[5]),
+        err.count("fastsdf: kernel cache:"),
+    )
 
 
 def _cache_files(cache):
-    files = sorted(p for p in cache.rglob("*") if p.is_file() and p.suffix in (".py", ".nbi",
-                                                                                ".nbc"))
+    files = sorted(
+        p for p in cache.rglob("*") if p.is_file() and p.suffix in (".py", ".nbi", ".nbc")
+    )
     assert any(p.suffix == ".nbi" for p in files) and any(p.suffix == ".nbc" for p in files)
     return files
 
 
 def _truncate(p):
     data = p.read_bytes()
-    p.write_bytes(data[:len(data) // 2])
+    p.write_bytes(data[: len(data) // 2])
 
 
 def _flip(p):
@@ -107,6 +112,7 @@ def test_damaged_cache_files_are_repaired_once(tmp_path):
 # A catalogue of every primitive, each with samplers of its boundary (points and the analytic
 # outward normal) and of its spine (centre, medial axis), in local coordinates of size ~1.
 
+
 def _on_edges(vertices, rng, k=12, closed=True, margin=0.02):
     """Random points on each edge (away from the vertices) and the outward normals of a
     counter-clockwise polygon (for a polyline: the left normals)."""
@@ -146,73 +152,125 @@ def _catalogue(s):
         p, n = pts_normals
         return p * s, n
 
-    add("circle", lambda: sdf.Circle([0.3 * s, -0.2 * s], 0.7 * s),
+    add(
+        "circle",
+        lambda: sdf.Circle([0.3 * s, -0.2 * s], 0.7 * s),
         lambda rng: scaled(_on_circle([0.3, -0.2], 0.7, rng)),
-        lambda rng: np.array([[0.3, -0.2]]) * s)
+        lambda rng: np.array([[0.3, -0.2]]) * s,
+    )
     box = [(-1.0, -0.5), (1.5, -0.5), (1.5, 1.0), (-1.0, 1.0)]
 
     def box_spine(rng):
         u = rng.uniform(0.0, 0.7, 8)
         c = np.array([0.25, 0.25])
-        return np.concatenate([c[None], np.stack([1.5 - u, 1.0 - u], -1),
-                               np.stack([-1.0 + u, -0.5 + u], -1)]) * s
-    add("box", lambda: sdf.Box([-1 * s, -0.5 * s], [1.5 * s, 1 * s]),
-        lambda rng: scaled(_on_edges(box, rng)), box_spine)
+        return (
+            np.concatenate(
+                [c[None], np.stack([1.5 - u, 1.0 - u], -1), np.stack([-1.0 + u, -0.5 + u], -1)]
+            )
+            * s
+        )
+
+    add(
+        "box",
+        lambda: sdf.Box([-1 * s, -0.5 * s], [1.5 * s, 1 * s]),
+        lambda rng: scaled(_on_edges(box, rng)),
+        box_spine,
+    )
 
     def rbox_boundary(rng):
-        p, n = _on_edges([(-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)], rng,
-                         margin=0.35)
+        p, n = _on_edges([(-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)], rng, margin=0.35)
         q, m = _on_circle([0.3, 0.3], 0.2, rng, 8, 0.05, math.pi / 2 - 0.05)
         return np.concatenate([p, q]) * s, np.concatenate([n, m])
-    add("rounded_box", lambda: sdf.RoundedBox([-0.5 * s, -0.5 * s], [0.5 * s, 0.5 * s],
-                                              [0.2 * s, 0.1 * s, 0.0, 0.15 * s]),
-        rbox_boundary, lambda rng: np.zeros((1, 2)))
+
+    add(
+        "rounded_box",
+        lambda: sdf.RoundedBox(
+            [-0.5 * s, -0.5 * s], [0.5 * s, 0.5 * s], [0.2 * s, 0.1 * s, 0.0, 0.15 * s]
+        ),
+        rbox_boundary,
+        lambda rng: np.zeros((1, 2)),
+    )
     a, b, th = np.array([-0.5, 0.2]), np.array([0.8, 0.6]), 0.4
     d = (b - a) / np.hypot(*(b - a))
     nn = np.array([-d[1], d[0]]) * th / 2
     obox = [a - nn, b - nn, b + nn, a + nn]
-    add("oriented_box", lambda: sdf.OrientedBox(a * s, b * s, th * s),
+    add(
+        "oriented_box",
+        lambda: sdf.OrientedBox(a * s, b * s, th * s),
         lambda rng: scaled(_on_edges(obox, rng)),
-        lambda rng: (a + th / 2 * d + rng.uniform(0, 1, (6, 1)) * (b - a - th * d)) * s)
+        lambda rng: (a + th / 2 * d + rng.uniform(0, 1, (6, 1)) * (b - a - th * d)) * s,
+    )
     tri = [(-0.5, -0.4), (1.0, 0.1), (0.1, 0.9)]
     t = np.array(tri)
     sides = np.hypot(*(np.roll(t, -1, 0) - np.roll(t, 1, 0)).T)
-    add("triangle", lambda: sdf.Triangle(*(np.array(tri) * s)),
+    add(
+        "triangle",
+        lambda: sdf.Triangle(*(np.array(tri) * s)),
         lambda rng: scaled(_on_edges(_ccw(tri), rng)),
-        lambda rng: (sides @ t / sides.sum())[None] * s)
-    hexv = np.stack([0.8 * np.cos(math.pi / 2 + np.arange(6) * math.pi / 3),
-                     0.8 * np.sin(math.pi / 2 + np.arange(6) * math.pi / 3)], -1)
-    add("regular_polygon", lambda: sdf.RegularPolygon([0, 0], 0.8 * s, 6),
-        lambda rng: scaled(_on_edges(hexv, rng)), lambda rng: np.zeros((1, 2)))
-    tri3 = np.stack([0.8 * np.cos(math.pi / 2 + np.arange(3) * 2 * math.pi / 3),
-                     0.8 * np.sin(math.pi / 2 + np.arange(3) * 2 * math.pi / 3)], -1)
-    add("equilateral_triangle", lambda: sdf.EquilateralTriangle([0, 0], 0.8 * s),
-        lambda rng: scaled(_on_edges(tri3, rng)), lambda rng: np.zeros((1, 2)))
+        lambda rng: (sides @ t / sides.sum())[None] * s,
+    )
+    hexv = np.stack(
+        [
+            0.8 * np.cos(math.pi / 2 + np.arange(6) * math.pi / 3),
+            0.8 * np.sin(math.pi / 2 + np.arange(6) * math.pi / 3),
+        ],
+        -1,
+    )
+    add(
+        "regular_polygon",
+        lambda: sdf.RegularPolygon([0, 0], 0.8 * s, 6),
+        lambda rng: scaled(_on_edges(hexv, rng)),
+        lambda rng: np.zeros((1, 2)),
+    )
+    tri3 = np.stack(
+        [
+            0.8 * np.cos(math.pi / 2 + np.arange(3) * 2 * math.pi / 3),
+            0.8 * np.sin(math.pi / 2 + np.arange(3) * 2 * math.pi / 3),
+        ],
+        -1,
+    )
+    add(
+        "equilateral_triangle",
+        lambda: sdf.EquilateralTriangle([0, 0], 0.8 * s),
+        lambda rng: scaled(_on_edges(tri3, rng)),
+        lambda rng: np.zeros((1, 2)),
+    )
     poly = [(-1.0, -0.6), (1.0, -0.6), (1.0, 0.9), (0.0, 0.1), (-1.0, 0.9)]
-    add("polygon", lambda: sdf.Polygon(np.array(poly) * s),
+    add(
+        "polygon",
+        lambda: sdf.Polygon(np.array(poly) * s),
         lambda rng: scaled(_on_edges(_ccw(poly), rng)),
-        lambda rng: np.array([[-0.6, -0.2], [0.6, -0.2]]) * s)
+        lambda rng: np.array([[-0.6, -0.2], [0.6, -0.2]]) * s,
+    )
     tt = math.pi / 2 + math.pi * np.arange(10) / 5
     rr = np.where(np.arange(10) % 2 == 0, 1.0, 0.45)
     star = np.stack([rr * np.cos(tt), rr * np.sin(tt)], -1)
-    add("star", lambda: sdf.Star([0, 0], 1.0 * s, 5, 0.45 * s),
-        lambda rng: scaled(_on_edges(star, rng)), lambda rng: np.zeros((1, 2)))
+    add(
+        "star",
+        lambda: sdf.Star([0, 0], 1.0 * s, 5, 0.45 * s),
+        lambda rng: scaled(_on_edges(star, rng)),
+        lambda rng: np.zeros((1, 2)),
+    )
     sa, sb = np.array([-0.3, 0.1]), np.array([0.6, 0.5])
     e = (sb - sa) / np.hypot(*(sb - sa))
     left = np.array([-e[1], e[0]])
 
     def on_spine(rng):
         return (sa + rng.uniform(0.02, 0.98, (12, 1)) * (sb - sa)) * s
-    add("segment", lambda: sdf.Segment(sa * s, sb * s),
-        lambda rng: (on_spine(rng), np.repeat(left[None], 12, 0)))
+
+    add(
+        "segment",
+        lambda: sdf.Segment(sa * s, sb * s),
+        lambda rng: (on_spine(rng), np.repeat(left[None], 12, 0)),
+    )
 
     def capsule_boundary(rng):
         p = sa + rng.uniform(0.02, 0.98, (12, 1)) * (sb - sa)
         side = np.where(rng.uniform(size=(12, 1)) < 0.5, -1.0, 1.0)
         ang = math.atan2(e[1], e[0])  # the cap at b faces along e
         q, m = _on_circle(sb, 0.25, rng, 8, ang - math.pi / 2 + 0.05, ang + math.pi / 2 - 0.05)
-        return np.concatenate([p + 0.25 * side * left, q]) * s, \
-            np.concatenate([side * left, m])
+        return np.concatenate([p + 0.25 * side * left, q]) * s, np.concatenate([side * left, m])
+
     add("capsule", lambda: sdf.Capsule(sa * s, sb * s, 0.25 * s), capsule_boundary, on_spine)
     ea, eb = 1.0, 0.4
 
@@ -221,28 +279,52 @@ def _catalogue(s):
         p = np.stack([ea * np.cos(t), eb * np.sin(t)], -1)
         n = np.stack([np.cos(t) / ea, np.sin(t) / eb], -1)
         return p * s, n / np.hypot(*n.T)[:, None]
-    add("ellipse", lambda: sdf.Ellipse([0, 0], [ea * s, eb * s]), ellipse_boundary,
-        lambda rng: np.concatenate([np.zeros((1, 2)), np.stack(
-            [rng.uniform(-0.8, 0.8, 6) * (ea - eb * eb / ea), np.zeros(6)], -1)]) * s)
+
+    add(
+        "ellipse",
+        lambda: sdf.Ellipse([0, 0], [ea * s, eb * s]),
+        ellipse_boundary,
+        lambda rng: (
+            np.concatenate(
+                [
+                    np.zeros((1, 2)),
+                    np.stack([rng.uniform(-0.8, 0.8, 6) * (ea - eb * eb / ea), np.zeros(6)], -1),
+                ]
+            )
+            * s
+        ),
+    )
 
     def ring_boundary(rng):
         p, n = _on_circle([0, 0], 0.8, rng, 12)
         q, m = _on_circle([0, 0], 0.6, rng, 12, outward=-1.0)
         return np.concatenate([p, q]) * s, np.concatenate([n, m])
-    add("ring", lambda: sdf.Ring([0, 0], 0.7 * s, 0.2 * s), ring_boundary,
-        lambda rng: np.concatenate([np.zeros((1, 2)), _on_circle([0, 0], 0.7, rng, 8)[0]]) * s)
+
+    add(
+        "ring",
+        lambda: sdf.Ring([0, 0], 0.7 * s, 0.2 * s),
+        ring_boundary,
+        lambda rng: np.concatenate([np.zeros((1, 2)), _on_circle([0, 0], 0.7, rng, 8)[0]]) * s,
+    )
 
     def arc_boundary(rng):  # aperture pi about +y: the upper half circle
         p, n = _on_circle([0, 0], 0.8, rng, 12, 0.05, math.pi - 0.05)
         q, m = _on_circle([0, 0], 0.6, rng, 12, 0.05, math.pi - 0.05, outward=-1.0)
         return np.concatenate([p, q]) * s, np.concatenate([n, m])
-    add("arc", lambda: sdf.Arc([0, 0], 0.7 * s, math.pi, 0.2 * s), arc_boundary,
-        lambda rng: _on_circle([0, 0], 0.7, rng, 8, 0.0, math.pi)[0] * s)
+
+    add(
+        "arc",
+        lambda: sdf.Arc([0, 0], 0.7 * s, math.pi, 0.2 * s),
+        arc_boundary,
+        lambda rng: _on_circle([0, 0], 0.7, rng, 8, 0.0, math.pi)[0] * s,
+    )
 
     def half_boundary(rng):
         n = np.array([0.3, -1.0]) / np.hypot(0.3, 1.0)
-        return (n * -20.0 + rng.uniform(-3, 3, (12, 1)) * np.array([-n[1], n[0]])) * s, \
-            np.repeat(n[None], 12, 0)
+        return (n * -20.0 + rng.uniform(-3, 3, (12, 1)) * np.array([-n[1], n[0]])) * s, np.repeat(
+            n[None], 12, 0
+        )
+
     add("halfspace", lambda: sdf.Halfspace([0.3, -1.0], -20.0 * s), half_boundary)
     return out
 
@@ -276,8 +358,11 @@ def _world(s, tf=None):
 
         def to_world(p, place=place):
             return (p + place * s) @ rot.T + np.asarray(offset) * s
-        with sdf.transform(angle=angle, offset=tuple(np.asarray(offset) * s)), \
-                sdf.transform(offset=tuple(place * s)):
+
+        with (
+            sdf.transform(angle=angle, offset=tuple(np.asarray(offset) * s)),
+            sdf.transform(offset=tuple(place * s)),
+        ):
             g = build()
         f = g if f is None else f | g
         pts, nrm = boundary(rng)
@@ -286,8 +371,9 @@ def _world(s, tf=None):
     return f, samples
 
 
-@pytest.mark.parametrize("s,tf", [(1.0, None), (1.0, (0.7, (0.3, -0.2))),
-                                  (1e-149, None), (4e148, (-2.1, (1.0, 2.0)))])
+@pytest.mark.parametrize(
+    "s,tf", [(1.0, None), (1.0, (0.7, (0.3, -0.2))), (1e-149, None), (4e148, (-2.1, (1.0, 2.0)))]
+)
 def test_unit_normals_on_every_boundary_and_spine(s, tf):
     """Every primitive, on random points of each edge (within rounding of it, or exactly on
     it where the coordinates are representable) and on its spine and centre: the gradient
@@ -308,7 +394,7 @@ def test_unit_normals_on_every_boundary_and_spine(s, tf):
             assert np.all(unit <= 1e-12), (name, unit.max(), spine[np.argmax(unit)])
 
 
-@pytest.mark.parametrize("s", [2.0 ** -494, 2.0 ** 493])
+@pytest.mark.parametrize("s", [2.0**-494, 2.0**493])
 def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s):
     """The whole catalogue at a power-of-two scale near each end of the supported range: at
     random points around every primitive, value / s and gradient equal the unit-scale ones to
@@ -316,8 +402,9 @@ def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s):
     f1, samples = _world(1.0)
     fs, _ = _world(s)
     rng = np.random.default_rng(3)
-    pts = np.concatenate([np.asarray(cell) + rng.uniform(-2.0, 2.0, (60, 2))
-                          for cell in _cells(len(samples))])
+    pts = np.concatenate(
+        [np.asarray(cell) + rng.uniform(-2.0, 2.0, (60, 2)) for cell in _cells(len(samples))]
+    )
     d1, g1 = f1(pts[:, 0], pts[:, 1], compute_gradient=True)
     ds, gs = fs(pts[:, 0] * s, pts[:, 1] * s, compute_gradient=True)
     np.testing.assert_allclose(ds / s, d1, rtol=1e-12, atol=1e-13)
@@ -331,38 +418,41 @@ def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s):
     assert near_kink.mean() < 0.02
 
 
-@pytest.mark.parametrize("make,words", [
-    (lambda: sdf.Circle([0, 0], 1e-151), "radius"),
-    (lambda: sdf.Circle([0, 0], 1e151), "radius"),
-    (lambda: sdf.Circle([2e150, 0], 1.0), "center"),
-    (lambda: sdf.Halfspace([0, 1], 1e151), "d"),
-    (lambda: sdf.Box([0, 0], [1e-151, 1]), "maxc - minc"),
-    (lambda: sdf.Box([-1e151, 0], [1, 1]), "minc"),
-    (lambda: sdf.Segment([0, 0], [1e-151, 0]), "segment length"),
-    (lambda: sdf.Capsule([0, 0], [1, 0], 1e-160), "radius"),
-    (lambda: sdf.OrientedBox([0, 0], [1, 0], 1e-151), "thickness"),
-    (lambda: sdf.RoundedBox([0, 0], [1, 1], 1e-200), "radii"),
-    (lambda: sdf.Triangle([0, 0], [1e-151, 0], [0, 1e-151]), "triangle"),
-    (lambda: sdf.Polygon(np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * 1e160), "vertices"),
-    (lambda: sdf.Polygon(np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * 1e-160), "polygon"),
-    (lambda: sdf.RegularPolygon([0, 0], 1e-160, 5), "radius"),
-    (lambda: sdf.Star([0, 0], 1.0, 5, 1e-160), "inner_radius"),
-    (lambda: sdf.Ellipse([0, 0], [1e-160, 1]), "axes"),
-    (lambda: sdf.Ellipse([0, 0], [1e-60, 1e60]), "axes"),
-    (lambda: sdf.Ring([0, 0], 1.0, 1e-160), "thickness"),
-    (lambda: sdf.Arc([0, 0], 1e151, 1.0, 1.0), "radius"),
-    (lambda: sdf.Circle().round(1e-160), "r"),
-    (lambda: sdf.Circle().shell(1e160), "thickness"),
-    (lambda: sdf.Circle().scale(1e-151), "s"),
-    (lambda: sdf.Circle().translate([0, 1e151]), "offset"),
-    (lambda: sdf.Circle().repeat(1e-151, 3), "spacing"),
-    (lambda: sdf.transform(offset=[1e151, 0]), "offset"),
-    (lambda: sdf.smoothness(1e-151), "smoothness k"),
-    (lambda: sdf.smoothness(1e151, kind="quadratic"), "smoothness k"),
-    (lambda: sdf.Circle().union(sdf.Box(), 1e-310, "quadratic"), "k"),
-    (lambda: sdf.Circle().intersection(sdf.Box(), 1e-310, "cubic"), "k"),
-    (lambda: sdf.Circle().union(sdf.Box(), 1e-310), "k"),
-])
+@pytest.mark.parametrize(
+    "make,words",
+    [
+        (lambda: sdf.Circle([0, 0], 1e-151), "radius"),
+        (lambda: sdf.Circle([0, 0], 1e151), "radius"),
+        (lambda: sdf.Circle([2e150, 0], 1.0), "center"),
+        (lambda: sdf.Halfspace([0, 1], 1e151), "d"),
+        (lambda: sdf.Box([0, 0], [1e-151, 1]), "maxc - minc"),
+        (lambda: sdf.Box([-1e151, 0], [1, 1]), "minc"),
+        (lambda: sdf.Segment([0, 0], [1e-151, 0]), "segment length"),
+        (lambda: sdf.Capsule([0, 0], [1, 0], 1e-160), "radius"),
+        (lambda: sdf.OrientedBox([0, 0], [1, 0], 1e-151), "thickness"),
+        (lambda: sdf.RoundedBox([0, 0], [1, 1], 1e-200), "radii"),
+        (lambda: sdf.Triangle([0, 0], [1e-151, 0], [0, 1e-151]), "triangle"),
+        (lambda: sdf.Polygon(np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * 1e160), "vertices"),
+        (lambda: sdf.Polygon(np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * 1e-160), "polygon"),
+        (lambda: sdf.RegularPolygon([0, 0], 1e-160, 5), "radius"),
+        (lambda: sdf.Star([0, 0], 1.0, 5, 1e-160), "inner_radius"),
+        (lambda: sdf.Ellipse([0, 0], [1e-160, 1]), "axes"),
+        (lambda: sdf.Ellipse([0, 0], [1e-60, 1e60]), "axes"),
+        (lambda: sdf.Ring([0, 0], 1.0, 1e-160), "thickness"),
+        (lambda: sdf.Arc([0, 0], 1e151, 1.0, 1.0), "radius"),
+        (lambda: sdf.Circle().round(1e-160), "r"),
+        (lambda: sdf.Circle().shell(1e160), "thickness"),
+        (lambda: sdf.Circle().scale(1e-151), "s"),
+        (lambda: sdf.Circle().translate([0, 1e151]), "offset"),
+        (lambda: sdf.Circle().repeat(1e-151, 3), "spacing"),
+        (lambda: sdf.transform(offset=[1e151, 0]), "offset"),
+        (lambda: sdf.smoothness(1e-151), "smoothness k"),
+        (lambda: sdf.smoothness(1e151, kind="quadratic"), "smoothness k"),
+        (lambda: sdf.Circle().union(sdf.Box(), 1e-310, "quadratic"), "k"),
+        (lambda: sdf.Circle().intersection(sdf.Box(), 1e-310, "cubic"), "k"),
+        (lambda: sdf.Circle().union(sdf.Box(), 1e-310), "k"),
+    ],
+)
 def test_outside_the_supported_range_is_a_clear_error(make, words):
     with pytest.raises(ValueError, match="1e-150 to 1e150|too small|factor") as info:
         make()
@@ -371,6 +461,7 @@ def test_outside_the_supported_range_is_a_clear_error(make, words):
 
 def test_graph_blends_reject_widths_whose_inverse_overflows():
     from fastsdf.expr.graph import Symbol, sym_cmin, sym_qmin, sym_smin
+
     x = Symbol("x")
     for op in (sym_qmin, sym_cmin, sym_smin):
         with pytest.raises(ValueError, match="too small"):
@@ -384,23 +475,37 @@ def test_subnormal_and_zero_radius_gradients():
     """1/r overflowed for subnormal r: unit gradients, compiled and in the NumPy reference,
     at subnormal offsets from every centre (circle, ring, arc, ellipse, polygon vertex)."""
     from fastsdf.expr.graph import evaluate_numpy
-    tiny = np.array([[5e-324, 0.0], [0.0, -5e-324], [1e-323, 1.5e-323], [-4e-320, 2e-321],
-                     [1e-310, -1e-310], [0.0, 0.0], [3e-200, 4e-200]])
-    fs = [sdf.Circle([0, 0], 1.0), sdf.Ring([0, 0], 1.0, 0.2), sdf.Arc([0, 0], 1.0),
-          sdf.Ellipse([0, 0], [1.0, 1.0]), sdf.Capsule([0, 0], [0, 0], 0.5),
-          sdf.Polygon([[0, 0], [1, 0], [0, 1]])]
+
+    tiny = np.array(
+        [
+            [5e-324, 0.0],
+            [0.0, -5e-324],
+            [1e-323, 1.5e-323],
+            [-4e-320, 2e-321],
+            [1e-310, -1e-310],
+            [0.0, 0.0],
+            [3e-200, 4e-200],
+        ]
+    )
+    fs = [
+        sdf.Circle([0, 0], 1.0),
+        sdf.Ring([0, 0], 1.0, 0.2),
+        sdf.Arc([0, 0], 1.0),
+        sdf.Ellipse([0, 0], [1.0, 1.0]),
+        sdf.Capsule([0, 0], [0, 0], 0.5),
+        sdf.Polygon([[0, 0], [1, 0], [0, 1]]),
+    ]
     for f in fs:
         d, g = f(tiny[:, 0], tiny[:, 1], compute_gradient=True)
         assert np.all(np.isfinite(d)) and np.all(np.isfinite(g)), (f, g)
         np.testing.assert_allclose(np.hypot(g[:, 0], g[:, 1]), 1.0, atol=1e-12)
         if type(f).__name__ in ("Circle", "Ellipse", "Capsule"):
             nz = np.any(tiny != 0, axis=1)  # away from the centre: the exact radial direction
-            scaled = np.hypot(tiny[nz, 0] * 2.0 ** 600, tiny[nz, 1] * 2.0 ** 600)
-            want = tiny[nz] / scaled[:, None] * 2.0 ** 600
+            scaled = np.hypot(tiny[nz, 0] * 2.0**600, tiny[nz, 1] * 2.0**600)
+            want = tiny[nz] / scaled[:, None] * 2.0**600
             np.testing.assert_allclose(g[nz], want, atol=1e-15)
         if type(f).__name__ not in ("Polygon", "Ellipse"):  # graph-built: the NumPy reference
-            dr, gr = evaluate_numpy(f.f, {"x": tiny[:, 0], "y": tiny[:, 1]},
-                                    compute_gradient=True)
+            dr, gr = evaluate_numpy(f.f, {"x": tiny[:, 0], "y": tiny[:, 1]}, compute_gradient=True)
             np.testing.assert_array_equal(dr, d)
             np.testing.assert_array_equal(np.stack(gr, -1), g)
 
@@ -415,17 +520,33 @@ def _ellipse_far_reference(p, a, b):
 
 def test_ellipse_subnormal_near_axis_and_far_away():
     e = sdf.Ellipse([0, 0], [1.0, 0.5])
-    pts = np.array([[0.1, 1e-320], [0.1, 0.0], [0.1, -1e-320], [1e-310, 1e-310], [0.0, 0.0],
-                    [2.0, 1e-300], [2.0, 0.0], [1e-320, 0.3], [0.0, 0.3]])
+    pts = np.array(
+        [
+            [0.1, 1e-320],
+            [0.1, 0.0],
+            [0.1, -1e-320],
+            [1e-310, 1e-310],
+            [0.0, 0.0],
+            [2.0, 1e-300],
+            [2.0, 0.0],
+            [1e-320, 0.3],
+            [0.0, 0.3],
+        ]
+    )
     d, g = e(pts[:, 0], pts[:, 1], compute_gradient=True)
     assert d[0] == d[1] == d[2]  # a subnormal y changes nothing (it is below rounding)
     assert g[0, 1] == -g[2, 1] and np.all(g[[0, 1, 2], 0] == g[1, 0])
     assert d[3] == pytest.approx(-0.5, abs=1e-15) and d[4] == -0.5
     assert d[5] == d[6] == 1.0 and d[7] == d[8] == pytest.approx(-0.2, abs=1e-15)
     np.testing.assert_allclose(np.hypot(g[:, 0], g[:, 1]), 1.0, atol=1e-12)
-    far = [((1.0, 1e-9), (1e290, 1.0)), ((1e9, 1.0), (1e300, 1e300)),
-           ((1.0, 0.5), (3e307, -3e307)), ((1.0, 0.5), (1e12, 3e11)),
-           ((1.0, 0.5), (-7e20, 2e21)), ((2.0, 3.0), (1e150, -1e150))]
+    far = [
+        ((1.0, 1e-9), (1e290, 1.0)),
+        ((1e9, 1.0), (1e300, 1e300)),
+        ((1.0, 0.5), (3e307, -3e307)),
+        ((1.0, 0.5), (1e12, 3e11)),
+        ((1.0, 0.5), (-7e20, 2e21)),
+        ((2.0, 3.0), (1e150, -1e150)),
+    ]
     for axes, p in far:
         f = sdf.Ellipse([0, 0], axes)
         d, g = f(np.array([p[0]]), np.array([p[1]]), compute_gradient=True)
@@ -434,10 +555,14 @@ def test_ellipse_subnormal_near_axis_and_far_away():
         np.testing.assert_allclose(g[0], np.array(p) / math.hypot(*p), atol=1e-12)
     # just inside the far-field switch and just outside it: the two formulas agree
     f = sdf.Ellipse([0, 0], [1.0, 0.25])
-    r0 = 2.0 ** 30 * 4.0
+    r0 = 2.0**30 * 4.0
     t = np.linspace(0.1, 1.4, 7)
-    pts = np.concatenate([np.stack([r0 * 0.999 * np.cos(t), r0 * 0.999 * np.sin(t)], -1),
-                          np.stack([r0 * 1.001 * np.cos(t), r0 * 1.001 * np.sin(t)], -1)])
+    pts = np.concatenate(
+        [
+            np.stack([r0 * 0.999 * np.cos(t), r0 * 0.999 * np.sin(t)], -1),
+            np.stack([r0 * 1.001 * np.cos(t), r0 * 1.001 * np.sin(t)], -1),
+        ]
+    )
     d, g = f(pts[:, 0], pts[:, 1], compute_gradient=True)
     want = [_ellipse_far_reference(p, 1.0, 0.25) for p in pts]
     np.testing.assert_allclose(d, want, rtol=1e-15)
@@ -448,6 +573,7 @@ def test_particles_started_on_boundaries_and_spines_are_out_after_one_step():
     pushed out of the solid by the first step (before, a box's face or a capsule's spine gave a
     zero gradient and the particle stayed inside for good)."""
     import fastsdf.particles as phys
+
     f, samples = _world(1.0, (0.7, (0.3, -0.2)))
     pts = np.concatenate([np.concatenate([p, s]) for _, p, _, s in samples])
     names = np.concatenate([[name] * (len(p) + len(s)) for name, p, _, s in samples])

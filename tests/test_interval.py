@@ -19,24 +19,61 @@ finite = dict(allow_nan=False, allow_infinity=False)
 X, Y = cg.Symbol("x"), cg.Symbol("y")
 
 primitive = st.one_of(
-    st.tuples(st.just("circle"), st.floats(-1.5, 1.5, **finite), st.floats(-1.5, 1.5, **finite),
-              st.floats(0.05, 1.0, **finite)),
-    st.tuples(st.just("halfspace"), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite),
-              st.floats(-1.5, 1.5, **finite)).filter(lambda t: abs(t[1]) + abs(t[2]) > 0.1),
-    st.tuples(st.just("box"), st.floats(-1.5, 1.0, **finite), st.floats(-1.5, 1.0, **finite),
-              st.floats(0.05, 1.0, **finite), st.floats(0.05, 1.0, **finite)),
-    st.tuples(st.just("polygon"), st.floats(-1.0, 1.0, **finite), st.floats(-1.0, 1.0, **finite),
-              st.floats(0.1, 1.0, **finite), st.floats(0.1, 1.0, **finite)),
-    st.tuples(st.just("ellipse"), st.floats(-1.0, 1.0, **finite), st.floats(-1.0, 1.0, **finite),
-              st.floats(0.1, 1.0, **finite), st.floats(0.1, 1.0, **finite)),
-    st.tuples(st.just("capsule"), st.floats(-1.0, 1.0, **finite), st.floats(-1.0, 1.0, **finite),
-              st.floats(0.1, 1.0, **finite), st.floats(0.05, 0.5, **finite)),
+    st.tuples(
+        st.just("circle"),
+        st.floats(-1.5, 1.5, **finite),
+        st.floats(-1.5, 1.5, **finite),
+        st.floats(0.05, 1.0, **finite),
+    ),
+    st.tuples(
+        st.just("halfspace"),
+        st.floats(-1, 1, **finite),
+        st.floats(-1, 1, **finite),
+        st.floats(-1.5, 1.5, **finite),
+    ).filter(lambda t: abs(t[1]) + abs(t[2]) > 0.1),
+    st.tuples(
+        st.just("box"),
+        st.floats(-1.5, 1.0, **finite),
+        st.floats(-1.5, 1.0, **finite),
+        st.floats(0.05, 1.0, **finite),
+        st.floats(0.05, 1.0, **finite),
+    ),
+    st.tuples(
+        st.just("polygon"),
+        st.floats(-1.0, 1.0, **finite),
+        st.floats(-1.0, 1.0, **finite),
+        st.floats(0.1, 1.0, **finite),
+        st.floats(0.1, 1.0, **finite),
+    ),
+    st.tuples(
+        st.just("ellipse"),
+        st.floats(-1.0, 1.0, **finite),
+        st.floats(-1.0, 1.0, **finite),
+        st.floats(0.1, 1.0, **finite),
+        st.floats(0.1, 1.0, **finite),
+    ),
+    st.tuples(
+        st.just("capsule"),
+        st.floats(-1.0, 1.0, **finite),
+        st.floats(-1.0, 1.0, **finite),
+        st.floats(0.1, 1.0, **finite),
+        st.floats(0.05, 0.5, **finite),
+    ),
 )
-placed = st.tuples(primitive, st.one_of(st.none(), st.tuples(
-    st.floats(-3.2, 3.2, **finite), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite))))
-operation = st.tuples(st.sampled_from(["|", "&", "-", "q|", "c&", "round"]),
-                      st.one_of(st.just(0.0), st.floats(0.5, 40.0, **finite)),
-                      st.integers(0, 10 ** 6))
+placed = st.tuples(
+    primitive,
+    st.one_of(
+        st.none(),
+        st.tuples(
+            st.floats(-3.2, 3.2, **finite), st.floats(-1, 1, **finite), st.floats(-1, 1, **finite)
+        ),
+    ),
+)
+operation = st.tuples(
+    st.sampled_from(["|", "&", "-", "q|", "c&", "round"]),
+    st.one_of(st.just(0.0), st.floats(0.5, 40.0, **finite)),
+    st.integers(0, 10**6),
+)
 
 
 def _make(prim):
@@ -85,17 +122,30 @@ def build_scene(prims, ops):
 
 # Every operation of the table, each as a function of two operands and a parameter in [0, 1).
 _EXPR_OPS = [
-    lambda a, b, c: a + b, lambda a, b, c: a - b * c, lambda a, b, c: a * b,
-    lambda a, b, c: a / (b * b + 0.5), lambda a, b, c: -a, lambda a, b, c: a ** 2,
-    lambda a, b, c: cg.sym_abs(a) ** 1.5, lambda a, b, c: a ** 3,
-    lambda a, b, c: 1.0 / (cg.sym_abs(a) + 0.1), lambda a, b, c: (cg.sym_abs(b) + 0.5) ** a,
-    lambda a, b, c: cg.sym_sqrt(cg.sym_abs(a)), lambda a, b, c: cg.sym_exp(a * 0.5),
-    lambda a, b, c: cg.sym_log(a * a + 0.01), lambda a, b, c: cg.sym_sin(a * (1 + 5 * c)),
-    lambda a, b, c: cg.sym_cos(a), lambda a, b, c: cg.sym_abs(a - c),
-    lambda a, b, c: cg.sym_min(a, b), lambda a, b, c: cg.sym_max(a, b),
-    lambda a, b, c: cg.sym_length(a, b), lambda a, b, c: cg.sym_smin(a, b, 1 + 10 * c),
-    lambda a, b, c: cg.sym_smax(a, b, 0.5 + c), lambda a, b, c: cg.sym_floor(a * 2.0),
-    lambda a, b, c: cg.sym_select(a - c, a, b), lambda a, b, c: cg.sym_qmin(a, b, 0.1 + c),
+    lambda a, b, c: a + b,
+    lambda a, b, c: a - b * c,
+    lambda a, b, c: a * b,
+    lambda a, b, c: a / (b * b + 0.5),
+    lambda a, b, c: -a,
+    lambda a, b, c: a**2,
+    lambda a, b, c: cg.sym_abs(a) ** 1.5,
+    lambda a, b, c: a**3,
+    lambda a, b, c: 1.0 / (cg.sym_abs(a) + 0.1),
+    lambda a, b, c: (cg.sym_abs(b) + 0.5) ** a,
+    lambda a, b, c: cg.sym_sqrt(cg.sym_abs(a)),
+    lambda a, b, c: cg.sym_exp(a * 0.5),
+    lambda a, b, c: cg.sym_log(a * a + 0.01),
+    lambda a, b, c: cg.sym_sin(a * (1 + 5 * c)),
+    lambda a, b, c: cg.sym_cos(a),
+    lambda a, b, c: cg.sym_abs(a - c),
+    lambda a, b, c: cg.sym_min(a, b),
+    lambda a, b, c: cg.sym_max(a, b),
+    lambda a, b, c: cg.sym_length(a, b),
+    lambda a, b, c: cg.sym_smin(a, b, 1 + 10 * c),
+    lambda a, b, c: cg.sym_smax(a, b, 0.5 + c),
+    lambda a, b, c: cg.sym_floor(a * 2.0),
+    lambda a, b, c: cg.sym_select(a - c, a, b),
+    lambda a, b, c: cg.sym_qmin(a, b, 0.1 + c),
     lambda a, b, c: cg.sym_cmin(a, b, 0.1 + c),
 ]
 
@@ -133,12 +183,20 @@ def _boxes(rng, n, size):
     return cx - w, cx + w, cy - h, cy + h
 
 
-@settings(max_examples=40, deadline=None, derandomize=True, phases=_NO_SHRINK,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(prims=st.lists(placed, min_size=1, max_size=12),
-       ops=st.lists(operation, min_size=0, max_size=14),
-       size=st.sampled_from([1e-6, 0.01, 0.2, 1.5]), seed=st.integers(0, 1000),
-       lipschitz=st.booleans())
+@settings(
+    max_examples=40,
+    deadline=None,
+    derandomize=True,
+    phases=_NO_SHRINK,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(
+    prims=st.lists(placed, min_size=1, max_size=12),
+    ops=st.lists(operation, min_size=0, max_size=14),
+    size=st.sampled_from([1e-6, 0.01, 0.2, 1.5]),
+    seed=st.integers(0, 1000),
+    lipschitz=st.booleans(),
+)
 def test_random_scene_bounds_hold_at_every_node(prims, ops, size, seed, lipschitz):
     f = build_scene(prims, ops)
     rng = np.random.default_rng(seed)
@@ -146,10 +204,14 @@ def test_random_scene_bounds_hold_at_every_node(prims, ops, size, seed, lipschit
 
 
 @settings(max_examples=60, deadline=None, derandomize=True, phases=_NO_SHRINK)
-@given(draw=st.lists(st.tuples(st.integers(0, 24), st.floats(0.0, 1.0, **finite)),
-                     min_size=1, max_size=10),
-       size=st.sampled_from([1e-9, 1e-3, 0.3, 3.0]), seed=st.integers(0, 1000),
-       lipschitz=st.booleans())
+@given(
+    draw=st.lists(
+        st.tuples(st.integers(0, 24), st.floats(0.0, 1.0, **finite)), min_size=1, max_size=10
+    ),
+    size=st.sampled_from([1e-9, 1e-3, 0.3, 3.0]),
+    seed=st.integers(0, 1000),
+    lipschitz=st.booleans(),
+)
 def test_random_expression_bounds_hold_at_every_node(draw, size, seed, lipschitz):
     """Every operation of the table, including the non-SDF ones (exp, log, pow, floor, select)."""
     root = _expr(draw)

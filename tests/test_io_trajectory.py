@@ -18,8 +18,12 @@ class FakeSim:
     """The attributes a recorder reads (p, t, dt) and a run that moves particles predictably."""
 
     def __init__(self, n=50, dt=0.1):
-        self.p = {"x": np.zeros((n, 2)), "v": np.ones((n, 2)), "m": np.full(n, 2.0),
-                  "r": np.full(n, 0.01)}
+        self.p = {
+            "x": np.zeros((n, 2)),
+            "v": np.ones((n, 2)),
+            "m": np.full(n, 2.0),
+            "r": np.full(n, 0.01),
+        }
         self.p["x"][:, 0] = np.arange(n)
         self.t, self.dt, self.calls = 0.0, dt, []
 
@@ -33,8 +37,7 @@ class FakeSim:
 def test_layout_is_h5md_and_reads_back(tmp_path):
     sim = FakeSim()
     path = tmp_path / "traj.h5"
-    with TrajectoryRecorder(path, every=4, fields=("position", "velocity"),
-                            author="Ada") as rec:
+    with TrajectoryRecorder(path, every=4, fields=("position", "velocity"), author="Ada") as rec:
         rec.run(sim, 10)
     assert sim.calls == [4, 4, 2]
     with h5py.File(path, "r") as f:
@@ -95,8 +98,12 @@ def test_float32_storage_and_bad_arguments(tmp_path):
     with TrajectoryRecorder(tmp_path / "t.h5", dtype="float32") as rec:
         rec.record(sim)
     assert read_trajectory(tmp_path / "t.h5")["position"].dtype == np.float32
-    for kw, word in (({"every": 0}, "every"), ({"fields": ("pos",)}, "fields"),
-                     ({"group": "a/b"}, "group"), ({"dtype": "int32"}, "dtype")):
+    for kw, word in (
+        ({"every": 0}, "every"),
+        ({"fields": ("pos",)}, "fields"),
+        ({"group": "a/b"}, "group"),
+        ({"dtype": "int32"}, "dtype"),
+    ):
         with pytest.raises(ValueError, match=word):
             TrajectoryRecorder(tmp_path / "x.h5", **kw)
     rec = TrajectoryRecorder(tmp_path / "y.h5")
@@ -129,8 +136,9 @@ WRITER = textwrap.dedent("""
 def test_frames_flushed_before_a_kill_survive(tmp_path):
     path = str(tmp_path / "killed.h5")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
-    proc = subprocess.Popen([sys.executable, "-c", WRITER, path], stdout=subprocess.PIPE,
-                            text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, path], stdout=subprocess.PIPE, text=True, env=env
+    )
     flushed = -1
     for line in proc.stdout:
         flushed = int(line)

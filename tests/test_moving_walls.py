@@ -34,13 +34,13 @@ def test_piston_pushes_a_resting_particle_at_its_speed(cr, factor):
     x = np.array([[-1.0 + r + 0.1, 0.0], [-1.0 + r + 0.3, 0.5]])
     sim = _sim(PISTON, x, np.zeros((2, 2)), r, cr, params={"u": u, "x0": -1.0})
     assert sim._moving and sim.params == {"u": u, "x0": -1.0}
-    sim.run(120)          # 2 s: the piston has moved 1.2, past both starting points
+    sim.run(120)  # 2 s: the piston has moved 1.2, past both starting points
     v = np.asarray(sim.p["v"])
     np.testing.assert_allclose(v[:, 0], factor * u, rtol=1e-9)
     np.testing.assert_allclose(v[:, 1], 0.0, atol=1e-12)
     d, _ = sim.query(sim.p["x"][:, 0], sim.p["x"][:, 1])
     assert np.all(d - r >= -1e-9)
-    if cr == 0.0:   # riding on the piston's face
+    if cr == 0.0:  # riding on the piston's face
         np.testing.assert_allclose(sim.p["x"][:, 0], -1.0 + u * sim.t + r, atol=1e-9)
 
 
@@ -50,8 +50,16 @@ def test_rising_floor_lifts_a_resting_particle_without_penetrating(u, n):
     # parallel kernel.
     r, dt = 0.01, 1 / 60
     x = np.stack([np.linspace(-1, 1, n), np.full(n, -1.0 + r)], axis=1)
-    sim = _sim(FLOOR, x, np.zeros((n, 2)), r, cr=np.linspace(0, 1, n), cf=0.3, dt=dt,
-               params={"u": u, "y0": -1.0})
+    sim = _sim(
+        FLOOR,
+        x,
+        np.zeros((n, 2)),
+        r,
+        cr=np.linspace(0, 1, n),
+        cf=0.3,
+        dt=dt,
+        params={"u": u, "y0": -1.0},
+    )
     sim.force_generators.append(phys.Gravity((0.0, -9.81)))
     worst = 0.0
     for _ in range(90):
@@ -71,22 +79,22 @@ def test_energy_bookkeeping_against_a_wall_moving_into_particles():
     # (1 - cr^2) m vr^2 / 2, with J = m (v' - v) the impulse and vr the relative speed.
     rng = np.random.default_rng(3)
     n, u, r = 400, 0.8, 0.02
-    w = rng.uniform(0.1, 30.0, n)                # up to 1.5 radii ... 25 radii per step
+    w = rng.uniform(0.1, 30.0, n)  # up to 1.5 radii ... 25 radii per step
     cr = rng.uniform(0.2, 1.0, n)
     dt = 1 / 30
-    gap = rng.uniform(0.0, 0.95, n) * (w + u) * dt      # contact during the first step
+    gap = rng.uniform(0.0, 0.95, n) * (w + u) * dt  # contact during the first step
     x = np.stack([-1.0 + r + gap, rng.uniform(-1, 1, n)], axis=1)
     v = np.stack([-w, np.zeros(n)], axis=1)
     m = rng.uniform(1, 5, n)
     sim = _sim(PISTON, x, v, r, cr, dt=dt, params={"u": u, "x0": -1.0})
     sim.p["m"] = m
-    sim.run(3)     # everyone has hit the wall once and left it faster than it moves
+    sim.run(3)  # everyone has hit the wall once and left it faster than it moves
     v1 = np.asarray(sim.p["v"])[:, 0]
     vr = -w - u
     np.testing.assert_allclose(v1, u - cr * vr, rtol=1e-9)
-    gained = 0.5 * m * (v1 ** 2 - w ** 2)
+    gained = 0.5 * m * (v1**2 - w**2)
     work = m * (v1 + w) * u
-    loss = 0.5 * (1 - cr ** 2) * m * vr ** 2
+    loss = 0.5 * (1 - cr**2) * m * vr**2
     np.testing.assert_allclose(gained, work - loss, rtol=1e-9, atol=1e-9)
     assert np.all(v1 > u)
 
@@ -94,8 +102,9 @@ def test_energy_bookkeeping_against_a_wall_moving_into_particles():
 def test_parameters_in_the_simulation_never_recompile():
     # A piston whose speed is a parameter: sim.params changes it between calls.
     speed = sdf.Param("speed", 0.5)
-    world = sdf.Halfspace(normal=[1, 0], d=-1.0 + speed * sdf.t) | \
-        sdf.Circle(center=[sdf.Param("cx", 0.5), 0.0], radius=0.2)
+    world = sdf.Halfspace(normal=[1, 0], d=-1.0 + speed * sdf.t) | sdf.Circle(
+        center=[sdf.Param("cx", 0.5), 0.0], radius=0.2
+    )
     r = 0.05
     x = np.array([[-1.0 + r + 0.01, 0.0], [0.5 + 0.2 + r + 0.3, 0.0]])
     sim = _sim(world, x, np.array([[0.0, 0.0], [-1.0, 0.0]]), r, 0.0, dt=1 / 60)
@@ -104,11 +113,11 @@ def test_parameters_in_the_simulation_never_recompile():
     mod = sim._module
     count = sum(len(getattr(mod, k).overloads) for k in ("run_ser", "run_par", "_block"))
     sim.params["speed"] = 1.5
-    sim.params["cx"] = -5.0              # the circle leaves
+    sim.params["cx"] = -5.0  # the circle leaves
     sim.run(30)
     np.testing.assert_allclose(sim.p["v"][0, 0], 1.5, rtol=1e-9)
     d, _ = sim.query(sim.p["x"][:, 0], sim.p["x"][:, 1])
-    np.testing.assert_allclose(d[0], r, atol=1e-9)              # riding on the piston
+    np.testing.assert_allclose(d[0], r, atol=1e-9)  # riding on the piston
     # the circle has gone: only the piston is left
     np.testing.assert_allclose(d[1], sim.p["x"][1, 0] - (-1.0 + 1.5 * sim.t), atol=1e-12)
     assert sum(len(getattr(mod, k).overloads) for k in ("run_ser", "run_par", "_block")) == count
@@ -127,19 +136,30 @@ def test_fast_wall_never_tunnels_through_particles(calls):
     # the bar comes near), yet every one ends above the bar. calls = 20: one step per call (a
     # new wall-speed table each step); 1: all 20 steps in one call (the table covers them).
     u, r, dt = 6.0, 0.01, 1 / 60
-    box = (sdf.Halfspace(normal=[0, 1], d=-1.2) | sdf.Halfspace(normal=[0, -1], d=-1.2)
-           | sdf.Halfspace(normal=[1, 0], d=-1.2) | sdf.Halfspace(normal=[-1, 0], d=-1.2))
+    box = (
+        sdf.Halfspace(normal=[0, 1], d=-1.2)
+        | sdf.Halfspace(normal=[0, -1], d=-1.2)
+        | sdf.Halfspace(normal=[1, 0], d=-1.2)
+        | sdf.Halfspace(normal=[-1, 0], d=-1.2)
+    )
     lift = sdf.Param("y0", -1.1) + sdf.Param("u", 1.0) * sdf.t
     with sdf.transform(offset=[0.0, lift]):
         bar = sdf.Box(minc=[-1.15, -r], maxc=[1.15, r])
     gx, gy = np.meshgrid(np.linspace(-1.1, 1.1, 45), np.linspace(-0.9, 0.8, 24))
     x = np.stack([gx.ravel(), gy.ravel()], axis=1)
     n = len(x)
-    sim = _sim(box | bar, x, np.zeros((n, 2)), r, cr=np.linspace(0, 1, n) ** 2, dt=dt,
-               params={"u": u, "y0": -1.1})
+    sim = _sim(
+        box | bar,
+        x,
+        np.zeros((n, 2)),
+        r,
+        cr=np.linspace(0, 1, n) ** 2,
+        dt=dt,
+        params={"u": u, "y0": -1.1},
+    )
     for _ in range(calls):
         sim.run(20 // calls)
-    top = -1.1 + u * sim.t + r                # the bar's upper face, now at y = 0.91
+    top = -1.1 + u * sim.t + r  # the bar's upper face, now at y = 0.91
     y = np.asarray(sim.p["x"])[:, 1]
     assert np.all(y - r >= top - 0.01 * r), np.min(y - r - top)
     d, _ = sim.query(sim.p["x"][:, 0], sim.p["x"][:, 1])

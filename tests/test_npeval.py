@@ -52,10 +52,10 @@ def _union(kinds, seed, intersect=False, raw=False):
 
 def _clouds(seed):
     rng = np.random.default_rng(seed)
-    yield _points(3000, seed)                                    # uniform, non-finite ones
-    yield rng.normal([0.3, -0.2], 0.05, (2000, 2))               # clustered
+    yield _points(3000, seed)  # uniform, non-finite ones
+    yield rng.normal([0.3, -0.2], 0.05, (2000, 2))  # clustered
     yield np.stack([rng.uniform(-2, 2, 3000), rng.uniform(0.1, 0.12, 3000)], 1)  # a strip
-    yield np.array([[0.1, 0.2]])                                 # a single point
+    yield np.array([[0.1, 0.2]])  # a single point
     yield np.concatenate([rng.uniform(-50, 50, (500, 2)), [[1e200, 0.0], [0.0, -1e200]]])
 
 
@@ -69,11 +69,15 @@ def test_pruned_chains_agree_with_the_kernel():
         assert_agree(f, _points(4000, 5), backends=("numpy",))
 
 
-@settings(max_examples=12, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(kinds=st.lists(st.sampled_from(["box", "circle", "capsule"]), min_size=GROUP_MIN,
-                      max_size=120),
-       seed=st.integers(0, 10_000), intersect=st.booleans(), raw=st.booleans())
+@settings(
+    max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
+)
+@given(
+    kinds=st.lists(st.sampled_from(["box", "circle", "capsule"]), min_size=GROUP_MIN, max_size=120),
+    seed=st.integers(0, 10_000),
+    intersect=st.booleans(),
+    raw=st.booleans(),
+)
 def test_pruning_changes_no_bit(kinds, seed, intersect, raw):
     """Pruned, unpruned and the general path (every operand streamed in chain order) give the
     same bits, value and gradient, for random hard chains and point clouds (uniform, clustered, a
@@ -97,6 +101,7 @@ def test_pruning_changes_no_bit(kinds, seed, intersect, raw):
 def test_pruning_keeps_few_operands():
     """Pruning does prune: 1000 small boxes, each point evaluates a handful of them."""
     from fastsdf.backends.npeval import _prune, _snap, _splits
+
     f = _union(["box"] * 1000, 3)
     group = f.compiled.numpy_scene.chain.groups[0]
     x, y = np.random.default_rng(0).uniform(-2, 2, (2, 50_000))
@@ -149,8 +154,9 @@ def test_first_answer_needs_no_numba(tmp_path):
     (which would import numba's registries: numba.np.arraymath), where the cost model prefers
     it for 1e5 points; the default call answers through the tape (the kernel's bits)."""
     env = dict(os.environ, FASTSDF_CACHE_DIR=str(tmp_path))
-    res = subprocess.run([sys.executable, "-c", _FRESH], env=env, capture_output=True,
-                         text=True, timeout=300)
+    res = subprocess.run(
+        [sys.executable, "-c", _FRESH], env=env, capture_output=True, text=True, timeout=300
+    )
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out == {"path": "numpy", "default_tape": True, "numba_setup": False}
@@ -167,9 +173,12 @@ def test_operands_that_differ_in_sharing_or_attributes():
         c = rng.uniform(-2, 2, 4)
         u = (X - float(c[0])) * 0.7 + (Y - float(c[1]))
         v = (X - float(c[2])) * 0.7 + (Y - float(c[3]))
-        s = [u * u + u * u - 0.01, u * u + v * v - 0.01,
-             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 2.0) - 0.05,
-             sdf.sym_smin(sym_length(u, v), sym_length(v, u), 3.0) - 0.05][i % 4]
+        s = [
+            u * u + u * u - 0.01,
+            u * u + v * v - 0.01,
+            sdf.sym_smin(sym_length(u, v), sym_length(v, u), 2.0) - 0.05,
+            sdf.sym_smin(sym_length(u, v), sym_length(v, u), 3.0) - 0.05,
+        ][i % 4]
         e = s if e is None else sdf.sym_min(e, s)
     scene = compile_numpy(e, ["x", "y"])
     assert scene.pruned and sorted(len(g.pos) for g in scene.chain.groups) == [30] * 4

@@ -16,53 +16,85 @@ PX, PY = rng.uniform(-2.5, 2.5, (2, 300))
 # name -> (builder taking a dict of numbers or parameters, {parameter: (low, high)}): every
 # draw from the ranges gives a valid shape.
 CASES = {
-    "Halfspace": (lambda v: sdf.Halfspace(normal=[v["nx"], 1.0], d=v["d"]),
-                  dict(nx=(-2, 2), d=(-1, 1))),
-    "Segment": (lambda v: sdf.Segment(a=[v["ax"], -0.3], b=[0.8, v["by"]]),
-                dict(ax=(-1.5, 0), by=(-1, 1))),
-    "Capsule": (lambda v: sdf.Capsule(a=[v["ax"], -0.3], b=[0.8, 0.2], radius=v["r"]),
-                dict(ax=(-1.5, 0), r=(0.05, 0.6))),
-    "RoundedBox": (lambda v: sdf.RoundedBox(minc=[v["x0"], -0.5], maxc=[1.0, v["y1"]],
-                                            radii=[v["r"], 0.1, 0.2, v["r"]]),
-                   dict(x0=(-1.5, -0.2), y1=(0.3, 1.2), r=(0.0, 0.35))),
-    "RoundedBox1": (lambda v: sdf.RoundedBox(minc=[-1, -0.5], maxc=[1.0, 0.6], radii=v["r"]),
-                    dict(r=(0.0, 0.5))),
-    "OrientedBox": (lambda v: sdf.OrientedBox(a=[v["ax"], -0.5], b=[1, 0.6], thickness=v["w"]),
-                    dict(ax=(-1.5, 0), w=(0.1, 1))),
-    "Triangle": (lambda v: sdf.Triangle(p0=[v["x0"], -0.5], p1=[1, v["y1"]], p2=[0, 1]),
-                 dict(x0=(-1.5, -0.5), y1=(-0.8, 0.5))),
-    "RegularPolygon": (lambda v: sdf.RegularPolygon(center=[v["cx"], 0.1], radius=v["r"], n=6),
-                       dict(cx=(-0.5, 0.5), r=(0.3, 1.5))),
-    "EquilateralTriangle": (lambda v: sdf.EquilateralTriangle(center=[0.2, v["cy"]],
-                                                              radius=v["r"]),
-                            dict(cy=(-0.5, 0.5), r=(0.3, 1.5))),
-    "Polygon": (lambda v: sdf.Polygon([[v["x0"], -1], [1, -1], [1, 1], [0, v["yn"]], [-1, 1]]),
-                dict(x0=(-1.5, -0.5), yn=(-0.5, 0.8))),
-    "Star": (lambda v: sdf.Star(center=[v["cx"], 0], radius=1.2, inner_radius=v["ri"], n=4),
-             dict(cx=(-0.5, 0.5), ri=(0.2, 1.0))),
-    "Ellipse": (lambda v: sdf.Ellipse(center=[v["cx"], 0.1], axes=[v["a"], v["b"]]),
-                dict(cx=(-0.5, 0.5), a=(0.3, 1.5), b=(0.2, 1.2))),
-    "Ring": (lambda v: sdf.Ring(center=[v["cx"], 0.1], radius=v["r"], thickness=v["w"]),
-             dict(cx=(-0.5, 0.5), r=(0.6, 1.2), w=(0.05, 1.0))),
-    "Arc": (lambda v: sdf.Arc(center=[0.1, v["cy"]], radius=v["r"], aperture=v["ap"],
-                              thickness=0.2),
-            dict(cy=(-0.5, 0.5), r=(0.5, 1.2), ap=(0.3, 2 * math.pi))),
+    "Halfspace": (
+        lambda v: sdf.Halfspace(normal=[v["nx"], 1.0], d=v["d"]),
+        dict(nx=(-2, 2), d=(-1, 1)),
+    ),
+    "Segment": (
+        lambda v: sdf.Segment(a=[v["ax"], -0.3], b=[0.8, v["by"]]),
+        dict(ax=(-1.5, 0), by=(-1, 1)),
+    ),
+    "Capsule": (
+        lambda v: sdf.Capsule(a=[v["ax"], -0.3], b=[0.8, 0.2], radius=v["r"]),
+        dict(ax=(-1.5, 0), r=(0.05, 0.6)),
+    ),
+    "RoundedBox": (
+        lambda v: sdf.RoundedBox(
+            minc=[v["x0"], -0.5], maxc=[1.0, v["y1"]], radii=[v["r"], 0.1, 0.2, v["r"]]
+        ),
+        dict(x0=(-1.5, -0.2), y1=(0.3, 1.2), r=(0.0, 0.35)),
+    ),
+    "RoundedBox1": (
+        lambda v: sdf.RoundedBox(minc=[-1, -0.5], maxc=[1.0, 0.6], radii=v["r"]),
+        dict(r=(0.0, 0.5)),
+    ),
+    "OrientedBox": (
+        lambda v: sdf.OrientedBox(a=[v["ax"], -0.5], b=[1, 0.6], thickness=v["w"]),
+        dict(ax=(-1.5, 0), w=(0.1, 1)),
+    ),
+    "Triangle": (
+        lambda v: sdf.Triangle(p0=[v["x0"], -0.5], p1=[1, v["y1"]], p2=[0, 1]),
+        dict(x0=(-1.5, -0.5), y1=(-0.8, 0.5)),
+    ),
+    "RegularPolygon": (
+        lambda v: sdf.RegularPolygon(center=[v["cx"], 0.1], radius=v["r"], n=6),
+        dict(cx=(-0.5, 0.5), r=(0.3, 1.5)),
+    ),
+    "EquilateralTriangle": (
+        lambda v: sdf.EquilateralTriangle(center=[0.2, v["cy"]], radius=v["r"]),
+        dict(cy=(-0.5, 0.5), r=(0.3, 1.5)),
+    ),
+    "Polygon": (
+        lambda v: sdf.Polygon([[v["x0"], -1], [1, -1], [1, 1], [0, v["yn"]], [-1, 1]]),
+        dict(x0=(-1.5, -0.5), yn=(-0.5, 0.8)),
+    ),
+    "Star": (
+        lambda v: sdf.Star(center=[v["cx"], 0], radius=1.2, inner_radius=v["ri"], n=4),
+        dict(cx=(-0.5, 0.5), ri=(0.2, 1.0)),
+    ),
+    "Ellipse": (
+        lambda v: sdf.Ellipse(center=[v["cx"], 0.1], axes=[v["a"], v["b"]]),
+        dict(cx=(-0.5, 0.5), a=(0.3, 1.5), b=(0.2, 1.2)),
+    ),
+    "Ring": (
+        lambda v: sdf.Ring(center=[v["cx"], 0.1], radius=v["r"], thickness=v["w"]),
+        dict(cx=(-0.5, 0.5), r=(0.6, 1.2), w=(0.05, 1.0)),
+    ),
+    "Arc": (
+        lambda v: sdf.Arc(center=[0.1, v["cy"]], radius=v["r"], aperture=v["ap"], thickness=0.2),
+        dict(cy=(-0.5, 0.5), r=(0.5, 1.2), ap=(0.3, 2 * math.pi)),
+    ),
     "shell": (lambda v: sdf.Box().shell(v["w"]), dict(w=(0.05, 0.8))),
     "scale": (lambda v: sdf.Triangle().scale(v["s"]), dict(s=(0.3, 2.0))),
-    "repeat": (lambda v: sdf.Circle(radius=0.2).repeat([v["sx"], 0.6], 3),
-               dict(sx=(0.5, 0.9))),
-    "repeat_count": (lambda v: sdf.Circle(radius=0.2).repeat(
-        0.5, int(v["n"]) if isinstance(v["n"], float) else v["n"]),
-                     dict(n=(1, 5))),
-    "smooth_union": (lambda v: sdf.Circle(radius=0.5).union(sdf.Box(maxc=[1.5, 0.3]),
-                                                            k=v["k"], kind="cubic"),
-                     dict(k=(0.05, 1.0))),
+    "repeat": (lambda v: sdf.Circle(radius=0.2).repeat([v["sx"], 0.6], 3), dict(sx=(0.5, 0.9))),
+    "repeat_count": (
+        lambda v: sdf.Circle(radius=0.2).repeat(
+            0.5, int(v["n"]) if isinstance(v["n"], float) else v["n"]
+        ),
+        dict(n=(1, 5)),
+    ),
+    "smooth_union": (
+        lambda v: sdf.Circle(radius=0.5).union(sdf.Box(maxc=[1.5, 0.3]), k=v["k"], kind="cubic"),
+        dict(k=(0.05, 1.0)),
+    ),
 }
 
 
 def _draw(ranges, r):
-    return {k: float(r.integers(lo, hi + 1)) if k == "n" else float(r.uniform(lo, hi))
-            for k, (lo, hi) in ranges.items()}
+    return {
+        k: float(r.integers(lo, hi + 1)) if k == "n" else float(r.uniform(lo, hi))
+        for k, (lo, hi) in ranges.items()
+    }
 
 
 def _numpy(f, values=None):
@@ -88,8 +120,11 @@ def test_parametric_shape_equals_the_shape_built_with_constants(name):
 
 def _kernel_count(f):
     mod = f.compiled.module
-    return sum(len(getattr(mod, n).overloads) for n in dir(mod)
-               if n.startswith(("batch_", "point_", "lanes_", "_batch_")))
+    return sum(
+        len(getattr(mod, n).overloads)
+        for n in dir(mod)
+        if n.startswith(("batch_", "point_", "lanes_", "_batch_"))
+    )
 
 
 @pytest.mark.slow
@@ -112,8 +147,7 @@ def test_compiled_parametric_shape_never_recompiles(name):
 t = sdf.t
 MOVING = {
     "ellipse axes": sdf.Ellipse(center=[0.2 * t, 0.1], axes=[1.0 + 0.3 * t, 0.5 - 0.1 * t]),
-    "polygon vertices": sdf.Polygon([[-1 + 0.2 * t, -1], [1, -1], [1, 1], [0, 0.2 + t],
-                                     [-1, 1]]),
+    "polygon vertices": sdf.Polygon([[-1 + 0.2 * t, -1], [1, -1], [1, 1], [0, 0.2 + t], [-1, 1]]),
     "triangle": sdf.Triangle(p0=[-1 + 0.5 * t, -0.5], p1=[1, -0.5], p2=[0, 1 + t]),
     "arc aperture": sdf.Arc(radius=1.0 + 0.1 * t, aperture=2.0 + t, thickness=0.2),
     "regular polygon": sdf.RegularPolygon(radius=1.0 + 0.2 * t, n=4),
@@ -141,8 +175,9 @@ def test_graph_blends_take_a_parameter_k():
         e = op(a, b, Param("k", 0.5))
         for k in (0.2, 0.9):
             got = evaluate_numpy(e, {"x": PX, "y": PY}, params={"k": k})
-            np.testing.assert_allclose(got, evaluate_numpy(op(a, b, k), {"x": PX, "y": PY}),
-                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose(
+                got, evaluate_numpy(op(a, b, k), {"x": PX, "y": PY}), rtol=0, atol=1e-12
+            )
     with pytest.raises(ValueError, match="k given by parameters must be finite and > 0"):
         sym_smin(a, b, Param("k", -1.0))
 

@@ -13,17 +13,18 @@ from fastsdf.function import Function
 
 X, Y = Symbol("x"), Symbol("y")
 rng = np.random.default_rng(7)
-PX, PY = rng.uniform(-2, 2, (2, 5000))      # above the parallel threshold
-SX, SY = rng.uniform(-2, 2, (2, 50))        # the serial kernels
+PX, PY = rng.uniform(-2, 2, (2, 5000))  # above the parallel threshold
+SX, SY = rng.uniform(-2, 2, (2, 50))  # the serial kernels
 
 
 def _moving_scene(px, w, t, k=8.0):
     """A circle whose centre is a parameter, a box rotating at angular speed w (rad/s) and a
     circle rising at 0.5 per second, joined by an exponential blend."""
     c, s = sym_cos(w * t), sym_sin(w * t)
-    u, v = X * c + Y * s, Y * c - X * s                  # rotated by w t
-    box = sdf.sym_length(sdf.sym_max(abs_(u) - 1.0, 0.0), sdf.sym_max(abs_(v) - 0.2, 0.0)) \
-        + sdf.sym_min(0.0, sdf.sym_max(abs_(u) - 1.0, abs_(v) - 0.2))
+    u, v = X * c + Y * s, Y * c - X * s  # rotated by w t
+    box = sdf.sym_length(
+        sdf.sym_max(abs_(u) - 1.0, 0.0), sdf.sym_max(abs_(v) - 0.2, 0.0)
+    ) + sdf.sym_min(0.0, sdf.sym_max(abs_(u) - 1.0, abs_(v) - 0.2))
     circle = sdf.sym_length(X - px, Y - 1.0) - 0.4
     rising = sdf.sym_length(X + 1.0, Y - 0.5 * t) - 0.3
     return sdf.sym_smin(sdf.sym_min(box, circle), rising, k)
@@ -35,8 +36,11 @@ def abs_(e):
 
 def _kernel_count(f):
     mod = f.compiled.module
-    return sum(len(getattr(mod, name).overloads) for name in dir(mod)
-               if name.startswith(("batch_", "point_", "lanes_", "_batch_")))
+    return sum(
+        len(getattr(mod, name).overloads)
+        for name in dir(mod)
+        if name.startswith(("batch_", "point_", "lanes_", "_batch_"))
+    )
 
 
 def test_parameter_changes_never_recompile():
@@ -65,12 +69,12 @@ def test_parameter_changes_never_recompile():
 
 def test_values_equal_the_constant_baked_scene():
     f = Function(_moving_scene(Param("px", 0.3), Param("w", 2.0), sdf.t), [X, Y])
-    x, y = PX[:50], PY[:50]     # baked scenes evaluated serially (compile only point_vg)
+    x, y = PX[:50], PY[:50]  # baked scenes evaluated serially (compile only point_vg)
     for px, w, t in [(-0.7, 1.3, 0.4), (1.1, -3.0, 2.5)]:
         baked = Function(_moving_scene(px, w, cg.Constant(t)), [X, Y])
         assert not baked.params
         d0, g0 = baked(x, y, compute_gradient=True)
-        d1, g1 = f(PX, PY, compute_gradient=True, px=px, w=w, t=t)            # parallel
+        d1, g1 = f(PX, PY, compute_gradient=True, px=px, w=w, t=t)  # parallel
         d2, g2, _ = f.with_params(px=px, w=w, t=t)(x, y, time_derivative=True)  # serial
         d3, g3 = f(x, y, compute_gradient=True, px=px, w=w, t=t)
         for d, g in ((d1[:50], g1[:50]), (d2, g2), (d3, g3)):
@@ -90,8 +94,9 @@ def test_time_derivative_against_finite_differences_and_reference():
     # Away from kinks (ties of min/max, box corners) the central difference is O(h^2).
     ok = np.abs(fd - dt) < 1e-5
     assert ok.mean() > 0.99
-    ref, (rx, ry, rt) = evaluate_numpy(f.f, {"x": PX, "y": PY, "t": np.full_like(PX, t)}, True,
-                                       params={"px": 0.3, "w": 2.0})
+    ref, (rx, ry, rt) = evaluate_numpy(
+        f.f, {"x": PX, "y": PY, "t": np.full_like(PX, t)}, True, params={"px": 0.3, "w": 2.0}
+    )
     np.testing.assert_allclose(d, ref, atol=1e-12)
     np.testing.assert_allclose(grad[:, 0], rx, atol=1e-10)
     np.testing.assert_allclose(dt, rt, atol=1e-10)
@@ -150,8 +155,9 @@ def test_shapes_take_parameters_wherever_a_number_is():
         with sdf.transform(angle=angle, offset=[0.1, 0.2]):
             bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
         ball = sdf.Circle(center=[cx, 0.4], radius=radius).translate([0.0, lift])
-        return bar.union(ball, k=blend, kind="quadratic").round(0.05) | \
-            sdf.Halfspace(normal=[0, 1], d=-1.5).union(bar.rotate(angle), k=10 * blend)
+        return bar.union(ball, k=blend, kind="quadratic").round(0.05) | sdf.Halfspace(
+            normal=[0, 1], d=-1.5
+        ).union(bar.rotate(angle), k=10 * blend)
 
     f = scene(a, px, r, k, 0.5 * sdf.t)
     assert f.params == {"angle": 0.3, "px": 0.5, "r": 0.3, "k": 0.2, "t": 0.0}
@@ -159,8 +165,10 @@ def test_shapes_take_parameters_wherever_a_number_is():
     assert sdf.Circle(center=[px, 0], radius=r).exactness == "exact"
     f(SX, SY, compute_gradient=True)
     before = _kernel_count(f)
-    for vals in [dict(angle=-0.4, px=0.1, r=0.5, k=0.05, t=0.3), dict(angle=1.2, px=-0.3, r=0.2,
-                                                                       k=0.3, t=-1.0)]:
+    for vals in [
+        dict(angle=-0.4, px=0.1, r=0.5, k=0.05, t=0.3),
+        dict(angle=1.2, px=-0.3, r=0.2, k=0.3, t=-1.0),
+    ]:
         baked = scene(vals["angle"], vals["px"], vals["r"], vals["k"], 0.5 * vals["t"])
         d0, g0 = baked(SX, SY, compute_gradient=True)
         d1, g1 = f(SX, SY, compute_gradient=True, **vals)
@@ -183,8 +191,7 @@ def test_shape_parameter_errors():
 def test_grid_of_a_parametric_scene_is_a_snapshot():
     f = sdf.Circle(center=[Param("px", 0.25), 0.0], radius=0.5)
     g = sdf.GridSDF(f.with_params(px=-0.25), bounds=[(-1, 1), (-1, 1)], samples=[41, 41])
-    np.testing.assert_allclose(g(SX / 2, SY / 2), np.hypot(SX / 2 + 0.25, SY / 2) - 0.5,
-                               atol=0.02)
+    np.testing.assert_allclose(g(SX / 2, SY / 2), np.hypot(SX / 2 + 0.25, SY / 2) - 0.5, atol=0.02)
     with pytest.raises(ValueError, match="depends on time"):
         sdf.GridSDF(sdf.Circle(center=[0.0, sdf.t], radius=0.5))
 
@@ -195,6 +202,7 @@ def test_parametric_block_kernels_at_block_edges(n):
     # read once per block): every kind, any length, non-finite points NaN, the same numbers as
     # the one-point function.
     from fastsdf.backends.kernel.simd import BLOCK
+
     assert BLOCK == 512
     f = Function(_moving_scene(Param("px", 0.3), Param("w", 2.0), sdf.t), [X, Y])
     assert "def _block_vgt(" in f.compiled.module_source

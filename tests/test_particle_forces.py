@@ -26,8 +26,17 @@ def _py_force(p, t):
 
 def test_fuse_sums_gravity_and_drag_and_sorts_the_rest():
     field = phys.FieldForce(1.0, 0.0)
-    forces = fuse([phys.Gravity((0.5, -2.0)), phys.Gravity((0.25, 0.0)), phys.Drag(0.3),
-                   phys.Drag(0.2), _push, field, _py_force])
+    forces = fuse(
+        [
+            phys.Gravity((0.5, -2.0)),
+            phys.Gravity((0.25, 0.0)),
+            phys.Drag(0.3),
+            phys.Drag(0.2),
+            _push,
+            field,
+            _py_force,
+        ]
+    )
     assert (forces.ax, forces.ay, forces.drag) == (0.75, -2.0, 0.5)
     assert forces.user == (_push, field.dispatcher)
     assert forces.python == [_py_force]
@@ -36,14 +45,20 @@ def test_fuse_sums_gravity_and_drag_and_sorts_the_rest():
 @pytest.mark.parametrize("cls", [phys.Gravity, phys.Drag, phys.FieldForce])
 def test_a_force_class_without_parentheses_is_refused(cls):
     name = cls.__name__
-    with pytest.raises(TypeError, match=rf"force_generators\[1\] is the class {name}, not a "
-                                        rf"force; add an instance: {name}\(\)"):
+    with pytest.raises(
+        TypeError,
+        match=rf"force_generators\[1\] is the class {name}, not a "
+        rf"force; add an instance: {name}\(\)",
+    ):
         fuse([phys.Gravity(), cls])
 
 
 def test_callables_of_the_wrong_arity_are_refused():
-    with pytest.raises(TypeError, match=r"force_generators\[0\]: the force generator "
-                                        r".*<lambda> must take \(p, t\).*\(p\)"):
+    with pytest.raises(
+        TypeError,
+        match=r"force_generators\[0\]: the force generator "
+        r".*<lambda> must take \(p, t\).*\(p\)",
+    ):
         fuse([lambda p: p["m"]])
     with pytest.raises(TypeError, match=r"numba force _three must take \(x, y, vx, vy, m, t\)"):
         fuse([_three])

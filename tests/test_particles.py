@@ -42,8 +42,13 @@ def world_grid(world):
 
 def apexes(ys, floor_gap=1e-3):
     """Heights of the local maxima of a bouncing trajectory."""
-    return np.array([ys[i] for i in range(1, len(ys) - 1)
-                     if ys[i] >= ys[i - 1] and ys[i] > ys[i + 1] and ys[i] > floor_gap])
+    return np.array(
+        [
+            ys[i]
+            for i in range(1, len(ys) - 1)
+            if ys[i] >= ys[i - 1] and ys[i] > ys[i + 1] and ys[i] > floor_gap
+        ]
+    )
 
 
 def drop(f, dt, cr, integrator="symplectic", h=1.0, r=0.05, seconds=8.0, **kw):
@@ -65,14 +70,15 @@ def drop(f, dt, cr, integrator="symplectic", h=1.0, r=0.05, seconds=8.0, **kw):
 # ---------------------------------------------------------------------------------------------
 # Bounces, friction, resting contact, energy.
 
+
 @pytest.mark.parametrize("integrator", ["symplectic", "euler"])
 def test_bounce_apex_falls_by_cr_squared(floor, integrator):
     cr = 0.8
     a = apexes(drop(floor, 1e-3, cr, integrator))[:4]
     assert len(a) == 4
     # The rebound speed is cr times the impact speed, so each apex is cr**2 of the previous one.
-    np.testing.assert_allclose(a[1:] / a[:-1], cr ** 2, rtol=0.02)
-    np.testing.assert_allclose(a[0], cr ** 2 * 1.0, rtol=0.02)
+    np.testing.assert_allclose(a[1:] / a[:-1], cr**2, rtol=0.02)
+    np.testing.assert_allclose(a[0], cr**2 * 1.0, rtol=0.02)
 
 
 def test_bounce_apex_at_notebook_timestep_with_sweep(floor):
@@ -81,7 +87,7 @@ def test_bounce_apex_at_notebook_timestep_with_sweep(floor):
     cr = 0.8
     a = apexes(drop(floor, 1 / 30, cr))[:4]
     assert len(a) == 4
-    np.testing.assert_allclose(a[1:] / a[:-1], cr ** 2, rtol=0.1)
+    np.testing.assert_allclose(a[1:] / a[:-1], cr**2, rtol=0.1)
 
 
 @pytest.mark.parametrize("sweep", [False, True])
@@ -91,10 +97,10 @@ def test_friction_and_restitution_follow_the_formula(sweep):
     nrm = np.array([-math.sin(angle), math.cos(angle)])
     slope = sdf.Halfspace(normal=nrm, d=0.0)
     cr, cf, r = 0.7, 0.25, 0.05
-    dt = 0.02 if not sweep else 0.2          # step 0.036 < r/2, or 0.36 > r/2 (swept)
+    dt = 0.02 if not sweep else 0.2  # step 0.036 < r/2, or 0.36 > r/2 (swept)
     tangent = np.array([nrm[1], -nrm[0]])
-    v0 = 1.5 * tangent - 1.0 * nrm          # approaching the slope
-    sim = phys.ParticleSimulation(slope, n=1, timestep=dt, seed=0)   # no gravity
+    v0 = 1.5 * tangent - 1.0 * nrm  # approaching the slope
+    sim = phys.ParticleSimulation(slope, n=1, timestep=dt, seed=0)  # no gravity
     p = sim.p
     p["x"] = [(r + 0.01) * nrm]
     p["v"] = [v0]
@@ -150,13 +156,13 @@ def test_resting_particles_neither_sink_nor_climb(floor, integrator):
         lowest = min(lowest, float(np.min(gap / r)))
         highest.append(float(gap.max()))
     highest = np.array(highest)
-    assert lowest > -0.01                                  # penetration < 1% of the radius
+    assert lowest > -0.01  # penetration < 1% of the radius
     # Micro-bounces: at most cr g dt^2 with semi-implicit Euler; explicit Euler's are larger
     # (up to about 5 g dt^2 for cr <= 0.5; for cr near 1 they grow without bound).
     bound = 1.0 if integrator == "symplectic" else 5.0
     assert highest.max() <= bound * G * dt * dt
-    assert highest[-1000:].max() <= highest[:1000].max() + 1e-12   # and do not grow
-    np.testing.assert_array_equal(p["v"][:, 0], 0.0)       # nothing drifts sideways
+    assert highest[-1000:].max() <= highest[:1000].max() + 1e-12  # and do not grow
+    np.testing.assert_array_equal(p["v"][:, 0], 0.0)  # nothing drifts sideways
 
 
 @pytest.mark.parametrize("use_grid", [False, True])
@@ -192,11 +198,12 @@ def test_energy_never_grows_beyond_one_step_of_gravity_work(world, world_grid, u
         total_worst = max(total_worst, e.sum() - e0.sum())
     assert np.all(worst <= bound), float(np.max(worst / bound))
     assert total_worst <= bound.sum()
-    assert energies().sum() < e0.sum()                    # and it did dissipate
+    assert energies().sum() < e0.sum()  # and it did dissipate
 
 
 # ---------------------------------------------------------------------------------------------
 # Tunnelling.
+
 
 def thin_wall():
     """A vertical wall 0.02 thick, from y = -1 to 1, at x = 0 (exact box SDF)."""
@@ -211,7 +218,7 @@ def shoot(f, n=400, seed=0, steps=12, **kw):
     p["r"] = r
     p["x"][:, 0] = rng.uniform(-0.8, -0.1, n)
     p["x"][:, 1] = rng.uniform(-0.5, 0.5, n)
-    speed = rng.uniform(1.0, 60.0, n)                     # up to 2 length units per step
+    speed = rng.uniform(1.0, 60.0, n)  # up to 2 length units per step
     ang = rng.uniform(-0.5, 0.5, n)
     p["v"][:, 0] = speed * np.cos(ang)
     p["v"][:, 1] = speed * np.sin(ang)
@@ -229,20 +236,20 @@ def shoot(f, n=400, seed=0, steps=12, **kw):
 def test_thin_wall_stops_fast_particles(world):
     wall = thin_wall()
     sim, max_x, r = shoot(wall)
-    assert np.all(max_x <= -0.01 - r + 1e-9)              # never touched the far side
-    assert np.all(sim.p["v"][sim.would_cross, 0] <= 0)    # all bounced back
+    assert np.all(max_x <= -0.01 - r + 1e-9)  # never touched the far side
+    assert np.all(sim.p["v"][sim.would_cross, 0] <= 0)  # all bounced back
 
 
 def test_thin_wall_without_the_check_is_crossed():
     sim, max_x, _ = shoot(thin_wall(), prevent_tunnelling=False)
-    assert np.mean(max_x[sim.would_cross] > 0.01) > 0.5   # the notebook's step tunnels
+    assert np.mean(max_x[sim.would_cross] > 0.01) > 0.5  # the notebook's step tunnels
 
 
 def test_thin_wall_grid():
     wall = GridSDF(thin_wall(), bounds=[(-2, 2), (-2, 2)], samples=[400j, 400j], mode="exact")
     sim, max_x, r = shoot(wall, seed=1)
     h = 4 / 399
-    assert np.all(max_x <= -0.01 - r + h)                 # within the grid's resolution
+    assert np.all(max_x <= -0.01 - r + h)  # within the grid's resolution
     assert np.all(sim.p["v"][sim.would_cross, 0] <= 0)
 
 
@@ -273,6 +280,7 @@ def test_point_particles_do_not_cross_a_zero_thickness_wall():
 # ---------------------------------------------------------------------------------------------
 # Reproducibility, paths that must agree.
 
+
 def test_same_seed_same_trajectory(world_grid):
     runs = []
     for _ in range(2):
@@ -285,8 +293,9 @@ def test_same_seed_same_trajectory(world_grid):
     assert not np.array_equal(other.p["x"], runs[0]["x"])
 
 
-@pytest.mark.parametrize("use_grid, dtype", [(False, np.float64), (True, np.float64),
-                                             (True, np.float32)])
+@pytest.mark.parametrize(
+    "use_grid, dtype", [(False, np.float64), (True, np.float64), (True, np.float32)]
+)
 def test_blocking_and_skipping_do_not_change_results(world, world_grid, use_grid, dtype):
     """run(steps) processes blocks of particles for all steps at once, and skips the SDF
     query of a particle while its distance budget proves it cannot touch anything; particles
@@ -294,7 +303,7 @@ def test_blocking_and_skipping_do_not_change_results(world, world_grid, use_grid
     step-by-step advancing (which never skips) give identical bits."""
     f = world_grid if use_grid else world
     a = make_sim(f, 5000, seed=9, dtype=dtype)
-    b = make_sim(f, 5000, seed=9, dtype=dtype, block=10 ** 9)
+    b = make_sim(f, 5000, seed=9, dtype=dtype, block=10**9)
     c = make_sim(f, 5000, seed=9, dtype=dtype, block=7)
     a.run(150)
     for _ in range(150):
@@ -308,8 +317,9 @@ def test_blocking_and_skipping_do_not_change_results(world, world_grid, use_grid
 def test_notebook_parity(world, world_grid):
     """integrator='euler', collision='notebook', no sweep: the notebook's advance() to rounding."""
     for f in (world, world_grid):
-        sim = make_sim(f, 500, seed=2, integrator="euler", collision="notebook",
-                       prevent_tunnelling=False)
+        sim = make_sim(
+            f, 500, seed=2, integrator="euler", collision="notebook", prevent_tunnelling=False
+        )
         ref = sim.p.copy()
         for _ in range(100):
             sim.advance()
@@ -337,7 +347,7 @@ def test_exact_and_grid_paths_agree(world, world_grid):
 
 def test_kernel_query_matches_the_sdf(world, world_grid):
     rng = np.random.default_rng(0)
-    xs, ys = rng.uniform(-2.5, 2.5, (2, 500))             # some outside the grid's bounds
+    xs, ys = rng.uniform(-2.5, 2.5, (2, 500))  # some outside the grid's bounds
     sim = phys.ParticleSimulation(world, n=1)
     d, g = sim.query(xs, ys)
     d0, g0 = world(xs, ys, compute_gradient=True)
@@ -348,13 +358,13 @@ def test_kernel_query_matches_the_sdf(world, world_grid):
     d1, g1 = world_grid(xs, ys, compute_gradient=True)
     np.testing.assert_allclose(d, d1, atol=1e-12)
     outside = (np.abs(xs) > 2) | (np.abs(ys) > 2)
-    np.testing.assert_array_equal(d[outside], d0[outside])   # mode 'exact': the exact SDF
+    np.testing.assert_array_equal(d[outside], d0[outside])  # mode 'exact': the exact SDF
     nearest = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[100j, 100j], mode="nearest")
     simn = make_sim(nearest, 300, seed=0)
     d, g = simn.query(xs, ys)
     d2, g2 = nearest(xs, ys, compute_gradient=True)
     np.testing.assert_allclose(d, d2, atol=1e-12)
-    simn.p["v"] *= 30                                     # many leave the grid's bounds
+    simn.p["v"] *= 30  # many leave the grid's bounds
     simn.run(100)
     assert np.all(np.isfinite(simn.p["x"]))
 
@@ -370,6 +380,7 @@ def test_grid_with_a_sampler_that_cannot_be_imported(world, world_grid):
         @njit
         def sampler(data, x, y):
             return real(data, x, y)
+
         return sampler
 
     class Wrapped:
@@ -412,11 +423,11 @@ def test_python_generator_agrees_with_fused_gravity_and_drag(world):
 
 
 def test_drag_reaches_terminal_velocity():
-    free = sdf.Halfspace(normal=[0, 1], d=-1e6)            # nothing to hit
+    free = sdf.Halfspace(normal=[0, 1], d=-1e6)  # nothing to hit
     sim = phys.ParticleSimulation(free, n=50, timestep=1 / 100, seed=0)
     c = 2.0
     sim.force_generators += [phys.Gravity(), phys.Drag(c)]
-    sim.run(10_000)                                       # 20 time constants m / c
+    sim.run(10_000)  # 20 time constants m / c
     # m dv/dt = -m g - c v  ->  v_terminal = -m g / c
     np.testing.assert_allclose(sim.p["v"][:, 1], -sim.p["m"] * G / c, rtol=1e-6)
 
@@ -426,7 +437,7 @@ def test_float32_state_tracks_float64(world):
     b = make_sim(world, 1000, seed=11, dtype=np.float32)
     assert b.p["x"].dtype == np.float32 and b.p.nbytes == 32 * 1000
     assert a.p.nbytes == 64 * 1000
-    a.run(30)                                             # free fall: no collisions yet
+    a.run(30)  # free fall: no collisions yet
     b.run(30)
     np.testing.assert_allclose(b.p["x"], a.p["x"], atol=1e-5)
 
@@ -434,8 +445,10 @@ def test_float32_state_tracks_float64(world):
 # ---------------------------------------------------------------------------------------------
 # The notebook's interface.
 
+
 def test_notebook_interface(world):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -445,8 +458,14 @@ def test_notebook_interface(world):
     ps = phys.ParticleSimulation(world, n=100, timestep=1 / 30, seed=0)
     ps.force_generators += [gravity]
     p = ps.p
-    for name, shape in (("x", (100, 2)), ("v", (100, 2)), ("m", (100,)), ("r", (100,)),
-                        ("cr", (100,)), ("cf", (100,))):
+    for name, shape in (
+        ("x", (100, 2)),
+        ("v", (100, 2)),
+        ("m", (100,)),
+        ("r", (100,)),
+        ("cr", (100,)),
+        ("cf", (100,)),
+    ):
         assert p[name].shape == shape
     np.testing.assert_allclose(p["r"], 0.01 * p["m"])
     assert np.all((p["m"] >= 1) & (p["m"] <= 10))
@@ -464,6 +483,7 @@ def test_notebook_interface(world):
     (drawable,) = ps.update(ax, use_wall_time=True)
     np.testing.assert_allclose(drawable.get_offsets(), ps.p["x"])
     plt.close(fig)
+
     # the notebook's own SimpleParticleSimulation: reset returns nothing, update its drawable
     class Simple:
         def __init__(self):
@@ -475,7 +495,7 @@ def test_notebook_interface(world):
         def update(self, ax, use_wall_time):
             self.frames += 1
             self.drawable.set_offsets([[0.0, -0.1 * self.frames]])
-            return self.drawable,
+            return (self.drawable,)
 
     fig, ax = plt.subplots()
     simple = Simple()
@@ -500,9 +520,9 @@ def test_assigning_another_world_rebinds_the_step(floor):
     sim.p["r"] = 0.05
     sim.advance()
     assert sim.p["x"][0, 1] == 0.5
-    sim.sdf = sdf.Halfspace(normal=[0, 1], d=1.0)         # the floor rises to y = 1
+    sim.sdf = sdf.Halfspace(normal=[0, 1], d=1.0)  # the floor rises to y = 1
     sim.advance()
-    assert sim.p["x"][0, 1] >= 1.05 - 1e-12                # pushed out of the new floor
+    assert sim.p["x"][0, 1] >= 1.05 - 1e-12  # pushed out of the new floor
     with pytest.raises(TypeError, match="f must be a fastsdf SDF"):
         sim.sdf = "floor"
 
@@ -510,8 +530,8 @@ def test_assigning_another_world_rebinds_the_step(floor):
 def test_user_writes_state_before_stepping(floor):
     sim = phys.ParticleSimulation(floor, n=3, timestep=0.1, seed=0)
     sim.p["x"] = [[0, 1], [1, 1], [2, 1]]
-    sim.p["v"] = [1.0, 0.0]                                # broadcast
-    sim.p.m[:] = 2.0                                       # in place, attribute access
+    sim.p["v"] = [1.0, 0.0]  # broadcast
+    sim.p.m[:] = 2.0  # in place, attribute access
     sim.advance()
     np.testing.assert_allclose(sim.p["x"], [[0.1, 1], [1.1, 1], [2.1, 1]])
 
@@ -519,24 +539,28 @@ def test_user_writes_state_before_stepping(floor):
 # ---------------------------------------------------------------------------------------------
 # Bad input: clear errors naming the parameter, no corruption of valid particles.
 
-@pytest.mark.parametrize("kw, exc, words", [
-    ({"n": 0}, ValueError, "n must be > 0"),
-    ({"n": -5}, ValueError, "n=-5"),
-    ({"n": 2.5}, TypeError, "n must be an integer"),
-    ({"n": True}, TypeError, "n must be an integer"),
-    ({"timestep": 0}, ValueError, "timestep"),
-    ({"timestep": -0.1}, ValueError, "timestep=-0.1"),
-    ({"timestep": float("nan")}, ValueError, "timestep=nan"),
-    ({"timestep": float("inf")}, ValueError, "timestep=inf"),
-    ({"timestep": "fast"}, TypeError, "timestep"),
-    ({"cr": 1.5}, ValueError, "cr=1.5"),
-    ({"cf": -0.1}, ValueError, "cf=-0.1"),
-    ({"integrator": "rk4"}, ValueError, "integrator='rk4'"),
-    ({"collision": "elastic"}, ValueError, "collision='elastic'"),
-    ({"dtype": np.int32}, ValueError, "dtype"),
-    ({"lipschitz": 0}, ValueError, "lipschitz=0"),
-    ({"block": 0}, ValueError, "block=0"),
-])
+
+@pytest.mark.parametrize(
+    "kw, exc, words",
+    [
+        ({"n": 0}, ValueError, "n must be > 0"),
+        ({"n": -5}, ValueError, "n=-5"),
+        ({"n": 2.5}, TypeError, "n must be an integer"),
+        ({"n": True}, TypeError, "n must be an integer"),
+        ({"timestep": 0}, ValueError, "timestep"),
+        ({"timestep": -0.1}, ValueError, "timestep=-0.1"),
+        ({"timestep": float("nan")}, ValueError, "timestep=nan"),
+        ({"timestep": float("inf")}, ValueError, "timestep=inf"),
+        ({"timestep": "fast"}, TypeError, "timestep"),
+        ({"cr": 1.5}, ValueError, "cr=1.5"),
+        ({"cf": -0.1}, ValueError, "cf=-0.1"),
+        ({"integrator": "rk4"}, ValueError, "integrator='rk4'"),
+        ({"collision": "elastic"}, ValueError, "collision='elastic'"),
+        ({"dtype": np.int32}, ValueError, "dtype"),
+        ({"lipschitz": 0}, ValueError, "lipschitz=0"),
+        ({"block": 0}, ValueError, "block=0"),
+    ],
+)
 def test_bad_parameters(floor, kw, exc, words):
     args = {"n": 10, **kw}
     with pytest.raises(exc, match=words.replace("(", r"\(").replace(")", r"\)")):
@@ -549,11 +573,12 @@ def test_world_without_a_known_lipschitz_bound_warns():
     with pytest.warns(RuntimeWarning, match="not known to be a distance bound"):
         sim = phys.ParticleSimulation(bare, n=10)
     assert not sim._skip
-    rough = sdf.SDF(sym_abs(x) * 3.0 - 0.1)               # steeper than a distance
+    rough = sdf.SDF(sym_abs(x) * 3.0 - 0.1)  # steeper than a distance
     assert rough.exactness == "none"
     with pytest.warns(RuntimeWarning, match="exactness 'none'"):
         phys.ParticleSimulation(rough, n=10)
     import warnings
+
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         sim = phys.ParticleSimulation(rough, n=10, lipschitz=3.0)
@@ -589,7 +614,7 @@ def test_bad_force_generator_names_the_generator(floor):
     sim.force_generators = [42]
     with pytest.raises(TypeError, match="force_generators"):
         sim.advance()
-    np.testing.assert_array_equal(sim.p["x"], before["x"])   # nothing moved
+    np.testing.assert_array_equal(sim.p["x"], before["x"])  # nothing moved
     assert sim.t == 0
     with pytest.raises(ValueError, match="coefficient"):
         phys.Drag(-1)
@@ -597,16 +622,19 @@ def test_bad_force_generator_names_the_generator(floor):
         phys.Gravity([0, np.inf])
 
 
-@pytest.mark.parametrize("field, index, value, words", [
-    ("x", 3, [np.nan, 0.0], r"p\['x'\]\[3\] = \[nan, 0.0\] must be finite"),
-    ("v", 1, [0.0, np.inf], r"p\['v'\]\[1\].*must be finite"),
-    ("m", 4, -2.0, r"p\['m'\]\[4\] = -2.0 must be finite and > 0"),
-    ("m", 0, 0.0, r"p\['m'\]\[0\] = 0.0"),
-    ("r", 2, -0.1, r"p\['r'\]\[2\] = -0.1 must be finite and >= 0"),
-    ("cr", 5, 1.2, r"p\['cr'\]\[5\] = 1.2 must be in \[0, 1\]"),
-    ("cf", 6, -0.5, r"p\['cf'\]\[6\] = -0.5 must be in \[0, 1\]"),
-])
-@pytest.mark.parametrize("n", [10, 5000])                  # serial and parallel kernels
+@pytest.mark.parametrize(
+    "field, index, value, words",
+    [
+        ("x", 3, [np.nan, 0.0], r"p\['x'\]\[3\] = \[nan, 0.0\] must be finite"),
+        ("v", 1, [0.0, np.inf], r"p\['v'\]\[1\].*must be finite"),
+        ("m", 4, -2.0, r"p\['m'\]\[4\] = -2.0 must be finite and > 0"),
+        ("m", 0, 0.0, r"p\['m'\]\[0\] = 0.0"),
+        ("r", 2, -0.1, r"p\['r'\]\[2\] = -0.1 must be finite and >= 0"),
+        ("cr", 5, 1.2, r"p\['cr'\]\[5\] = 1.2 must be in \[0, 1\]"),
+        ("cf", 6, -0.5, r"p\['cf'\]\[6\] = -0.5 must be in \[0, 1\]"),
+    ],
+)
+@pytest.mark.parametrize("n", [10, 5000])  # serial and parallel kernels
 def test_invalid_state_is_reported_and_isolated(world, field, index, value, words, n):
     good = make_sim(world, n, seed=12)
     bad = make_sim(world, n, seed=12)
@@ -616,10 +644,11 @@ def test_invalid_state_is_reported_and_isolated(world, field, index, value, word
     good.run(5)
     keep = np.ones(n, bool)
     keep[index] = False
-    for name in ("x", "v"):   # the other particles advanced exactly as without the bad one
+    for name in ("x", "v"):  # the other particles advanced exactly as without the bad one
         np.testing.assert_array_equal(bad.p[name][keep], good.p[name][keep])
-    assert np.array_equal(bad.p["x"][index], make_sim(world, n, seed=12).p["x"][index]) \
-        or field == "x"                                    # the bad one was left unchanged
+    assert (
+        np.array_equal(bad.p["x"][index], make_sim(world, n, seed=12).p["x"][index]) or field == "x"
+    )  # the bad one was left unchanged
 
 
 def test_state_assignment_errors(floor):

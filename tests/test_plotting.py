@@ -58,12 +58,26 @@ class NumpyCircle:
 # ---------------------------------------------------------------------------------------------
 # plot_sdf
 
-@pytest.mark.parametrize("isolines,quiver,labels,filled", list(itertools.product(
-    ["all", "zero", None, False], [True, False], [True, False], [True, False])))
+
+@pytest.mark.parametrize(
+    "isolines,quiver,labels,filled",
+    list(
+        itertools.product(["all", "zero", None, False], [True, False], [True, False], [True, False])
+    ),
+)
 def test_plot_sdf_every_option_creates_expected_artists(circle, isolines, quiver, labels, filled):
     fig, ax = new_axes()
-    out = plot_sdf(fig, ax, circle, bounds=BOUNDS, samples=40, show_quiver=quiver,
-                   show_isolines=isolines, show_isolabels=labels, filled=filled)
+    out = plot_sdf(
+        fig,
+        ax,
+        circle,
+        bounds=BOUNDS,
+        samples=40,
+        show_quiver=quiver,
+        show_isolines=isolines,
+        show_isolabels=labels,
+        filled=filled,
+    )
     expected = {"ax"}
     assert out["ax"] is ax
     if isolines:
@@ -99,8 +113,9 @@ def test_zero_contour_lies_on_the_surface(circle):
     fig, ax = new_axes()
     samples = 200
     spacing = 4.0 / (samples - 1)
-    cs = plot_sdf(fig, ax, circle, samples=samples, show_quiver=False,
-                  show_isolines="zero")["contour"]
+    cs = plot_sdf(fig, ax, circle, samples=samples, show_quiver=False, show_isolines="zero")[
+        "contour"
+    ]
     verts = np.concatenate([p.vertices for p in cs.get_paths() if len(p.vertices)])
     assert len(verts) > 100
     d = circle(verts[:, 0], verts[:, 1])
@@ -145,6 +160,7 @@ def test_plot_sdf_with_nan_values_does_not_fail():
         d = np.hypot(x, y) - 1.0
         d = np.where(x > 1.5, np.nan, d)
         return (d, np.stack([np.ones_like(d), np.zeros_like(d)], -1)) if compute_gradient else d
+
     fig, ax = new_axes()
     out = plot_sdf(fig, ax, holey, samples=30, filled=True)
     assert set(out) == {"ax", "contour", "quiver", "fill"}
@@ -154,27 +170,31 @@ def test_plot_sdf_with_nan_values_does_not_fail():
 def test_plot_sdf_nothing_to_show_does_not_evaluate():
     def boom(x, y, compute_gradient=False):
         raise AssertionError("evaluated")
+
     fig, ax = new_axes()
     assert plot_sdf(fig, ax, boom, show_quiver=False, show_isolines=None) == {"ax": ax}
     assert ax.get_xlim() == (-2, 2)
 
 
-@pytest.mark.parametrize("kwargs,name", [
-    (dict(show_isolines="some"), "show_isolines"),
-    (dict(show_isolines=True), "show_isolines"),
-    (dict(show_isolines=0.0), "show_isolines"),
-    (dict(bounds=[(2, -2), (-2, 2)]), "bounds"),
-    (dict(bounds=[(-2, 2), (1, 1)]), "bounds"),
-    (dict(bounds=[(-2, 2)]), "bounds"),
-    (dict(bounds=[(-2, np.nan), (-2, 2)]), "bounds"),
-    (dict(bounds="big"), "bounds"),
-    (dict(samples=1), "samples"),
-    (dict(samples=0), "samples"),
-    (dict(samples=2.5), "samples"),
-    (dict(samples=True), "samples"),
-    (dict(samples=(10, 1)), "samples"),
-    (dict(samples=(10, 10, 10)), "samples"),
-])
+@pytest.mark.parametrize(
+    "kwargs,name",
+    [
+        (dict(show_isolines="some"), "show_isolines"),
+        (dict(show_isolines=True), "show_isolines"),
+        (dict(show_isolines=0.0), "show_isolines"),
+        (dict(bounds=[(2, -2), (-2, 2)]), "bounds"),
+        (dict(bounds=[(-2, 2), (1, 1)]), "bounds"),
+        (dict(bounds=[(-2, 2)]), "bounds"),
+        (dict(bounds=[(-2, np.nan), (-2, 2)]), "bounds"),
+        (dict(bounds="big"), "bounds"),
+        (dict(samples=1), "samples"),
+        (dict(samples=0), "samples"),
+        (dict(samples=2.5), "samples"),
+        (dict(samples=True), "samples"),
+        (dict(samples=(10, 1)), "samples"),
+        (dict(samples=(10, 10, 10)), "samples"),
+    ],
+)
 def test_plot_sdf_rejects_bad_arguments(kwargs, name):
     fig, ax = new_axes()
     with pytest.raises(ValueError, match=name) as info:
@@ -188,8 +208,9 @@ def test_plot_sdf_call_forms_agree(circle):
     import matplotlib.pyplot as plt
 
     def levels_and_quiver(out):
-        return np.asarray(out["contour"].levels), np.column_stack([out["quiver"].U,
-                                                                   out["quiver"].V])
+        return np.asarray(out["contour"].levels), np.column_stack(
+            [out["quiver"].U, out["quiver"].V]
+        )
 
     fig, ax = new_axes()
     ref = levels_and_quiver(plot_sdf(fig, ax, circle, samples=40))
@@ -201,10 +222,12 @@ def test_plot_sdf_call_forms_agree(circle):
         plt.close("all")
     np.testing.assert_array_equal(got[0], ref[0])
     np.testing.assert_allclose(got[1], ref[1])
-    for call in (lambda a: plot_sdf(circle, ax=a, samples=40),
-                 lambda a: plot_sdf(None, a, circle, samples=40),
-                 lambda a: plot_sdf(lambda x, y: circle(x, y), ax=a, samples=40),
-                 lambda a: plot_sdf(lambda p: circle(p[:, 0], p[:, 1]), ax=a, samples=40)):
+    for call in (
+        lambda a: plot_sdf(circle, ax=a, samples=40),
+        lambda a: plot_sdf(None, a, circle, samples=40),
+        lambda a: plot_sdf(lambda x, y: circle(x, y), ax=a, samples=40),
+        lambda a: plot_sdf(lambda p: circle(p[:, 0], p[:, 1]), ax=a, samples=40),
+    ):
         fig, ax = new_axes()
         got = levels_and_quiver(call(ax))
         np.testing.assert_array_equal(got[0], ref[0])
@@ -251,10 +274,19 @@ def test_plot_sdf_is_exported():
 # ---------------------------------------------------------------------------------------------
 # density_image
 
+
 def test_density_image_known_pixels_and_edges():
     bounds = [(0, 4), (0, 2)]  # unit pixels: 4 columns along x, 2 rows along y
-    pts = {(0.0, 0.0): (0, 0), (4.0, 2.0): (1, 3), (1.0, 0.5): (0, 1), (0.999, 0.999): (0, 0),
-           (3.999, 1.999): (1, 3), (0.5, 1.5): (1, 0), (2.0, 1.0): (1, 2), (4.0, 0.0): (0, 3)}
+    pts = {
+        (0.0, 0.0): (0, 0),
+        (4.0, 2.0): (1, 3),
+        (1.0, 0.5): (0, 1),
+        (0.999, 0.999): (0, 0),
+        (3.999, 1.999): (1, 3),
+        (0.5, 1.5): (1, 0),
+        (2.0, 1.0): (1, 2),
+        (4.0, 0.0): (0, 3),
+    }
     for (x, y), (i, j) in pts.items():
         img = density_image([x], [y], bounds, shape=(2, 4))
         expected = np.zeros((2, 4))
@@ -306,8 +338,11 @@ def test_density_image_accepts_strided_views():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.floats(-3, 3), st.floats(-3, 3)), max_size=40),
-       st.integers(1, 9), st.integers(1, 9))
+@given(
+    st.lists(st.tuples(st.floats(-3, 3), st.floats(-3, 3)), max_size=40),
+    st.integers(1, 9),
+    st.integers(1, 9),
+)
 def test_density_image_is_histogram2d(points, h, w):
     xy = np.array(points, dtype=float).reshape(-1, 2)
     img = density_image(xy[:, 0], xy[:, 1], [(-1, 2), (-2, 1.5)], shape=(h, w))
@@ -315,10 +350,16 @@ def test_density_image_is_histogram2d(points, h, w):
     assert np.array_equal(img, ref.T)
 
 
-@pytest.mark.parametrize("kwargs,name", [
-    (dict(shape=(0, 4)), "shape"), (dict(shape=4), "shape"), (dict(shape=(2.0, 4)), "shape"),
-    (dict(bounds=[(0, 0), (0, 1)]), "bounds"), (dict(weights=[1.0]), "weights"),
-])
+@pytest.mark.parametrize(
+    "kwargs,name",
+    [
+        (dict(shape=(0, 4)), "shape"),
+        (dict(shape=4), "shape"),
+        (dict(shape=(2.0, 4)), "shape"),
+        (dict(bounds=[(0, 0), (0, 1)]), "bounds"),
+        (dict(weights=[1.0]), "weights"),
+    ],
+)
 def test_density_image_rejects_bad_arguments(kwargs, name):
     args = dict(bounds=BOUNDS, shape=(4, 4))
     args.update(kwargs)
@@ -330,6 +371,7 @@ def test_density_image_rejects_bad_arguments(kwargs, name):
 
 # ---------------------------------------------------------------------------------------------
 # draw_particles
+
 
 def test_draw_particles_circles_then_update():
     fig, ax = new_axes()
@@ -370,16 +412,18 @@ def test_draw_particles_density_image_and_mode_switch():
     image = layer.artist
     layer.update(x + 0.5, y)
     assert layer.artist is image  # updated in place
-    assert np.array_equal(layer.artist.get_array().filled(0),
-                          density_image(x + 0.5, y, BOUNDS, (40, 40)))
+    assert np.array_equal(
+        layer.artist.get_array().filled(0), density_image(x + 0.5, y, BOUNDS, (40, 40))
+    )
     assert layer.artist.norm.vmax == layer.image.max()
     fig.canvas.draw()
     # Fewer particles than max_circles: the image goes, circles come.
     layer.update(x[:10], y[:10], r=0.05)
     assert layer.mode == "circles" and len(ax.images) == 0 and layer.artist in ax.collections
     layer.remove()
-    assert layer.artist is None and not any(isinstance(c, EllipseCollection)
-                                            for c in ax.collections)
+    assert layer.artist is None and not any(
+        isinstance(c, EllipseCollection) for c in ax.collections
+    )
 
 
 def test_draw_particles_default_shape_follows_axes_pixels():
@@ -393,6 +437,7 @@ def test_draw_particles_default_shape_follows_axes_pixels():
 # ---------------------------------------------------------------------------------------------
 # render_frame
 
+
 def pixel(fig, img, x, y):
     """The PNG pixel (RGB) that shows data point (x, y) of the figure's axes."""
     px, py = fig.axes[0].transData.transform((x, y))
@@ -404,8 +449,19 @@ def test_render_frame_png_shows_solid_and_particles(world, tmp_path, n, max_circ
     rng = np.random.default_rng(4)
     x, y = rng.normal(-0.5, 0.15, n), rng.normal(0.5, 0.15, n)
     out = tmp_path / "frame.png"
-    fig = render_frame(world, x, y, r=0.03, bounds=BOUNDS, out_png=str(out), title="frame",
-                       samples=120, max_circles=max_circles, figsize=(4, 4), dpi=80)
+    fig = render_frame(
+        world,
+        x,
+        y,
+        r=0.03,
+        bounds=BOUNDS,
+        out_png=str(out),
+        title="frame",
+        samples=120,
+        max_circles=max_circles,
+        figsize=(4, 4),
+        dpi=80,
+    )
     assert fig.particle_layer.mode == ("density" if n > 5000 else "circles")
     img = mpimg.imread(str(out))
     assert img.shape[:2] == (320, 320)

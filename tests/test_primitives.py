@@ -21,6 +21,7 @@ TF = (0.4, (0.3, -0.2))  # a transform every primitive is also built under
 # ---------------------------------------------------------------------------------------------
 # Boundary samplers and inside tests, in the primitive's local frame.
 
+
 def _polyline(vertices, closed=True, step=2e-4):
     v = np.asarray(vertices, dtype=float)
     if closed:
@@ -55,11 +56,16 @@ def _rounded_box_outline(minc, maxc, r):
     (x0, y0), (x1, y1) = minc, maxc
     ur, ul, ll, lr = r
     parts = []
-    for rad, (cx, cy), (sx, sy), t0 in [(ur, (x1, y1), (-1, -1), 0.0), (ul, (x0, y1), (1, -1), 0.5),
-                                        (ll, (x0, y0), (1, 1), 1.0), (lr, (x1, y0), (-1, 1), 1.5)]:
+    for rad, (cx, cy), (sx, sy), t0 in [
+        (ur, (x1, y1), (-1, -1), 0.0),
+        (ul, (x0, y1), (1, -1), 0.5),
+        (ll, (x0, y0), (1, 1), 1.0),
+        (lr, (x1, y0), (-1, 1), 1.5),
+    ]:
         if rad:
-            parts.append(_arc_points((cx + sx * rad, cy + sy * rad), rad, t0 * np.pi,
-                                     (t0 + 0.5) * np.pi))
+            parts.append(
+                _arc_points((cx + sx * rad, cy + sy * rad), rad, t0 * np.pi, (t0 + 0.5) * np.pi)
+            )
         else:
             parts.append(np.array([[cx, cy]]))
     return _polyline(np.concatenate(parts))
@@ -69,16 +75,26 @@ def _case(name):
     """(builder, boundary in local frame, inside test in local frame, local extent)."""
     if name == "segment":
         a, b = (-0.5, -0.2), (0.7, 0.4)
-        return (lambda: sdf.Segment(a, b), _polyline([a, b], closed=False),
-                lambda p: np.zeros(len(p), bool), 1.0)
+        return (
+            lambda: sdf.Segment(a, b),
+            _polyline([a, b], closed=False),
+            lambda p: np.zeros(len(p), bool),
+            1.0,
+        )
     if name == "segment_zero_length":
         a = (0.3, -0.1)
         return (lambda: sdf.Segment(a, a), np.array([a]), lambda p: np.zeros(len(p), bool), 0.5)
     if name == "capsule":
         a, b, r = np.array([-0.5, -0.2]), np.array([0.7, 0.4]), 0.25
         n = np.array([-(b - a)[1], (b - a)[0]]) / np.hypot(*(b - a)) * r
-        cand = np.concatenate([_arc_points(a, r, 0, 2 * np.pi), _arc_points(b, r, 0, 2 * np.pi),
-                               _polyline([a + n, b + n], False), _polyline([a - n, b - n], False)])
+        cand = np.concatenate(
+            [
+                _arc_points(a, r, 0, 2 * np.pi),
+                _arc_points(b, r, 0, 2 * np.pi),
+                _polyline([a + n, b + n], False),
+                _polyline([a - n, b - n], False),
+            ]
+        )
         boundary = cand[_seg_dist(cand, a, b) > r - 1e-9]
         return (lambda: sdf.Capsule(a, b, r), boundary, lambda p: _seg_dist(p, a, b) < r, 1.0)
     if name == "rounded_box":
@@ -117,23 +133,32 @@ def _case(name):
         outline = _polyline(np.stack([c[0] + rr * np.cos(t), c[1] + rr * np.sin(t)], -1))
         return (lambda: sdf.Star(c, r, n, ri), outline, _path_inside(outline), 1.0)
     if name.startswith("ellipse"):
-        c, ax = {"ellipse": ((0.1, -0.1), (1.0, 0.4)), "ellipse_circle": ((0.1, -0.1), (0.7, 0.7)),
-                 "ellipse_thin": ((0.0, 0.1), (1.0, 1e-3)),
-                 "ellipse_thin_y": ((0.0, 0.1), (1e-3, 1.0))}[name]
+        c, ax = {
+            "ellipse": ((0.1, -0.1), (1.0, 0.4)),
+            "ellipse_circle": ((0.1, -0.1), (0.7, 0.7)),
+            "ellipse_thin": ((0.0, 0.1), (1.0, 1e-3)),
+            "ellipse_thin_y": ((0.0, 0.1), (1e-3, 1.0)),
+        }[name]
         t = np.linspace(0, 2 * np.pi, 100001)
         pts = np.stack([c[0] + ax[0] * np.cos(t), c[1] + ax[1] * np.sin(t)], -1)
+
         def inside(p):
             return ((p[:, 0] - c[0]) / ax[0]) ** 2 + ((p[:, 1] - c[1]) / ax[1]) ** 2 < 1
+
         return (lambda: sdf.Ellipse(c, ax), pts, inside, max(ax))
     if name == "ring":
         c, r, t = (0.1, 0.0), 0.7, 0.3
-        outline = np.concatenate([_arc_points(c, r - t / 2, 0, 2 * np.pi),
-                                  _arc_points(c, r + t / 2, 0, 2 * np.pi)])
+        outline = np.concatenate(
+            [_arc_points(c, r - t / 2, 0, 2 * np.pi), _arc_points(c, r + t / 2, 0, 2 * np.pi)]
+        )
         inside = lambda p: np.abs(np.hypot(*(p - c).T) - r) < t / 2
         return (lambda: sdf.Ring(c, r, t), outline, inside, 1.0)
     if name.startswith("arc"):
-        c, r, ap, t = {"arc": ((0.1, 0.0), 0.8, 2.0, 0.2), "arc_wide": ((0.0, 0.0), 0.8, 5.5, 0.3),
-                       "arc_full": ((0.0, 0.1), 0.8, 2 * np.pi, 0.3)}[name]
+        c, r, ap, t = {
+            "arc": ((0.1, 0.0), 0.8, 2.0, 0.2),
+            "arc_wide": ((0.0, 0.0), 0.8, 5.5, 0.3),
+            "arc_full": ((0.0, 0.1), 0.8, 2 * np.pi, 0.3),
+        }[name]
         lo, hi = np.pi / 2 - ap / 2, np.pi / 2 + ap / 2
         ends = [np.array([c[0] + r * np.cos(e), c[1] + r * np.sin(e)]) for e in (lo, hi)]
 
@@ -143,18 +168,40 @@ def _case(name):
             to_ends = np.minimum(np.hypot(*(p - ends[0]).T), np.hypot(*(p - ends[1]).T))
             return np.where(within, np.abs(np.hypot(*q.T) - r), to_ends)
 
-        cand = np.concatenate([_arc_points(c, r + t / 2, lo, hi), _arc_points(c, r - t / 2, lo, hi),
-                               _arc_points(ends[0], t / 2, 0, 2 * np.pi),
-                               _arc_points(ends[1], t / 2, 0, 2 * np.pi)])
+        cand = np.concatenate(
+            [
+                _arc_points(c, r + t / 2, lo, hi),
+                _arc_points(c, r - t / 2, lo, hi),
+                _arc_points(ends[0], t / 2, 0, 2 * np.pi),
+                _arc_points(ends[1], t / 2, 0, 2 * np.pi),
+            ]
+        )
         keep = to_center_line(cand) > t / 2 - 1e-12
         return (lambda: sdf.Arc(c, r, ap, t), cand[keep], lambda p: to_center_line(p) < t / 2, 1.0)
     raise KeyError(name)
 
 
-CASES = ["segment", "segment_zero_length", "capsule", "rounded_box", "oriented_box", "triangle",
-         "triangle_cw", "equilateral_triangle", "regular_polygon", "polygon_concave_collinear",
-         "star", "ellipse", "ellipse_circle", "ellipse_thin", "ellipse_thin_y", "ring", "arc",
-         "arc_wide", "arc_full"]
+CASES = [
+    "segment",
+    "segment_zero_length",
+    "capsule",
+    "rounded_box",
+    "oriented_box",
+    "triangle",
+    "triangle_cw",
+    "equilateral_triangle",
+    "regular_polygon",
+    "polygon_concave_collinear",
+    "star",
+    "ellipse",
+    "ellipse_circle",
+    "ellipse_thin",
+    "ellipse_thin_y",
+    "ring",
+    "arc",
+    "arc_wide",
+    "arc_full",
+]
 
 
 def _spacing(boundary):
@@ -170,11 +217,13 @@ def test_primitive_is_exact_against_sampled_boundary(name):
     build, boundary, inside_fn, extent = _case(name)
     rng = np.random.default_rng(sum(map(ord, name)))
     idx = rng.integers(0, len(boundary), 300)
-    local = np.concatenate([
-        rng.uniform(-1.5, 1.5, (300, 2)) * extent,                        # around and inside
-        boundary[idx] + rng.normal(0, 0.02, (300, 2)) * min(extent, 0.1),  # near the boundary
-        rng.normal(0, 1, (30, 2)) * 50,                                    # far away
-    ])
+    local = np.concatenate(
+        [
+            rng.uniform(-1.5, 1.5, (300, 2)) * extent,  # around and inside
+            boundary[idx] + rng.normal(0, 0.02, (300, 2)) * min(extent, 0.1),  # near the boundary
+            rng.normal(0, 1, (30, 2)) * 50,  # far away
+        ]
+    )
     with sdf.transform(angle=TF[0], offset=TF[1]):
         f = build()
     assert f.exactness == "exact"
@@ -202,8 +251,9 @@ def test_primitive_is_exact_against_sampled_boundary(name):
     np.testing.assert_allclose(np.hypot(*g.T), 1.0, atol=1e-12)
     # value-only kernel and the NumPy reference of the same graph
     np.testing.assert_array_equal(f(*world.T), d)
-    ref, (rgx, rgy) = evaluate_numpy(f.f, {"x": world[:, 0], "y": world[:, 1]},
-                                     compute_gradient=True)
+    ref, (rgx, rgy) = evaluate_numpy(
+        f.f, {"x": world[:, 0], "y": world[:, 1]}, compute_gradient=True
+    )
     np.testing.assert_allclose(d, ref, rtol=1e-12, atol=1e-12)
     grad_ok = np.hypot(g[:, 0] - rgx, g[:, 1] - rgy) < 1e-6
     assert grad_ok.mean() > 0.99  # (medial-axis ties may pick different closest points)
@@ -212,21 +262,28 @@ def test_primitive_is_exact_against_sampled_boundary(name):
 # ---------------------------------------------------------------------------------------------
 # The compiled primitives (graph op "prim") against their NumPy references on hard points.
 
-@pytest.mark.parametrize("axes", [(1.0, 0.4), (0.4, 1.0), (1.0, 1e-3), (1e-6, 1.0), (1.0, 1.0),
-                                  (2.0, 1.999999)])
+
+@pytest.mark.parametrize(
+    "axes", [(1.0, 0.4), (0.4, 1.0), (1.0, 1e-3), (1e-6, 1.0), (1.0, 1.0), (2.0, 1.999999)]
+)
 def test_ellipse_hard_points_match_reference(axes):
     a, b = axes
     rng = np.random.default_rng(7)
     n = 200
     t = rng.uniform(0, 2 * np.pi, n)
     on = np.stack([a * np.cos(t), b * np.sin(t)], -1)
-    p = np.concatenate([
-        on, on + rng.normal(0, 1e-9, (n, 2)),                               # on / next to it
-        np.stack([rng.uniform(-2, 2, n) * a, np.zeros(n)], -1),              # on the axes
-        np.stack([np.zeros(n), rng.uniform(-2, 2, n) * b], -1),
-        np.stack([rng.uniform(-1.2, 1.2, n) * a, rng.normal(0, 1e-13, n)], -1),  # just off them
-        rng.uniform(-1, 1, (n, 2)) * 1e-4 * np.array([a, b]),                # near the centre
-        rng.uniform(-3, 3, (n, 2)), [[0.0, 0.0], [1e6, -1e6], [a, 0.0], [0.0, -b]]])
+    p = np.concatenate(
+        [
+            on,
+            on + rng.normal(0, 1e-9, (n, 2)),  # on / next to it
+            np.stack([rng.uniform(-2, 2, n) * a, np.zeros(n)], -1),  # on the axes
+            np.stack([np.zeros(n), rng.uniform(-2, 2, n) * b], -1),
+            np.stack([rng.uniform(-1.2, 1.2, n) * a, rng.normal(0, 1e-13, n)], -1),  # just off them
+            rng.uniform(-1, 1, (n, 2)) * 1e-4 * np.array([a, b]),  # near the centre
+            rng.uniform(-3, 3, (n, 2)),
+            [[0.0, 0.0], [1e6, -1e6], [a, 0.0], [0.0, -b]],
+        ]
+    )
     f = sdf.Ellipse((0, 0), axes)
     d, g = f(*p.T, compute_gradient=True)
     ref, (rgx, rgy) = evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}, compute_gradient=True)
@@ -255,7 +312,7 @@ def test_polygon_with_many_vertices_matches_reference():
     assert np.mean(np.hypot(g[:2000, 0] - rgx[:2000], g[:2000, 1] - rgy[:2000]) < 1e-9) > 0.99
     np.testing.assert_allclose(np.hypot(*g.T), 1.0, atol=1e-12)
     assert np.all((d[:2000] < 0) == Path(v).contains_points(p[:2000]))
-    assert np.all(d[2000:2000 + n] == 0)
+    assert np.all(d[2000 : 2000 + n] == 0)
 
 
 def test_same_kind_prims_fold_into_a_loop_and_polynomial_blends_fold_in_order():
@@ -282,10 +339,13 @@ def test_same_kind_prims_fold_into_a_loop_and_polynomial_blends_fold_in_order():
 def test_parallel_multi_lane_kernels_with_the_new_operations():
     """Inputs of 4096+ points run the parallel block kernels: every new operation
     (prim calls, select, floor, polynomial blends) in one scene, against the NumPy reference."""
-    f = (sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]])
-         .union(sdf.Ellipse([-0.5, 0.2], [0.6, 0.2]), k=0.2, kind="cubic")
-         .intersection(sdf.RoundedBox([-1.5, -1], [1.5, 1.2], [0.1, 0.2, 0.3, 0.4]), k=0.1,
-                       kind="quadratic")) | sdf.Circle([0, 0], 0.1).repeat(0.5, (3, 2))
+    f = (
+        sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]])
+        .union(sdf.Ellipse([-0.5, 0.2], [0.6, 0.2]), k=0.2, kind="cubic")
+        .intersection(
+            sdf.RoundedBox([-1.5, -1], [1.5, 1.2], [0.1, 0.2, 0.3, 0.4]), k=0.1, kind="quadratic"
+        )
+    ) | sdf.Circle([0, 0], 0.1).repeat(0.5, (3, 2))
     p = np.random.default_rng(8).uniform(-2, 2, (4099, 2))
     p[5] = np.nan
     d, g = f(*p.T, compute_gradient=True)
@@ -300,12 +360,16 @@ def test_parallel_multi_lane_kernels_with_the_new_operations():
 # ---------------------------------------------------------------------------------------------
 # Polynomial blends.
 
+
 @pytest.mark.parametrize("kind", ["quadratic", "cubic"])
 def test_polynomial_blends_are_hard_outside_width_and_smooth_inside(kind):
     k = 0.3
     a, b = sdf.Circle([-0.4, 0], 0.5), sdf.Box([-0.1, -0.4], [0.8, 0.3])
-    ops = [a.union(b, k=k, kind=kind), a.intersection(b, k=k, kind=kind),
-           a.difference(b, k=k, kind=kind)]
+    ops = [
+        a.union(b, k=k, kind=kind),
+        a.intersection(b, k=k, kind=kind),
+        a.difference(b, k=k, kind=kind),
+    ]
     with sdf.smoothness(k, kind=kind):
         assert str((a | b).f) == str(ops[0].f) and str((a & b).f) == str(ops[1].f)
         assert str((a - b).f) == str((a.difference(b)).f)  # '-' stays hard
@@ -319,7 +383,7 @@ def test_polynomial_blends_are_hard_outside_width_and_smooth_inside(kind):
         assert f.exactness == "bound"
         d, g = f(*p.T, compute_gradient=True)
         far = s >= k
-        np.testing.assert_array_equal(d[far], h[far])                     # exactly min/max
+        np.testing.assert_array_equal(d[far], h[far])  # exactly min/max
         assert np.all(np.abs(d - h) <= depth * (1 + 1e-12))
         # analytic gradient = central differences (the blend is C1: no kink at |a - b| = k),
         # and a convex combination of unit gradients: |g| <= 1
@@ -347,8 +411,9 @@ def test_polynomial_blends_are_hard_outside_width_and_smooth_inside(kind):
     # at a = b the blends sit k/4 (quadratic) or k/6 (cubic) below
     x = Symbol("x")
     e = (sym_qmin if kind == "quadratic" else sym_cmin)(x, x, k)
-    assert evaluate_numpy(e, {"x": np.array([0.5]), "y": np.array([0.0])})[0] == \
-        pytest.approx(0.5 - depth)
+    assert evaluate_numpy(e, {"x": np.array([0.5]), "y": np.array([0.0])})[0] == pytest.approx(
+        0.5 - depth
+    )
 
 
 def test_blends_are_bounds_lipschitz():
@@ -358,8 +423,11 @@ def test_blends_are_bounds_lipschitz():
     rng = np.random.default_rng(2)
     p = rng.uniform(-1.5, 1.5, (4000, 2))
     q = p + rng.normal(0, 0.05, p.shape)
-    for f in (a.union(b, 0.4, "quadratic"), a.intersection(b, 0.4, "cubic"),
-              a.difference(b, 5.0, "exponential")):
+    for f in (
+        a.union(b, 0.4, "quadratic"),
+        a.intersection(b, 0.4, "cubic"),
+        a.difference(b, 5.0, "exponential"),
+    ):
         lhs = np.abs(f(*p.T) - f(*q.T))
         assert np.all(lhs <= np.hypot(*(p - q).T) * (1 + 1e-9))
 
@@ -367,22 +435,47 @@ def test_blends_are_bounds_lipschitz():
 # ---------------------------------------------------------------------------------------------
 # Exactness flags.
 
+
 def test_exactness_flags():
     c, b = sdf.Circle([0, 0], 0.5), sdf.Box([-0.3, -0.2], [0.3, 0.2])
     star = sdf.Star([0, 0], 1, 5)
     off = sdf.Circle([0.6, 0.2], 0.2)
     user = sdf.SDF(sdf.Circle([0, 0], 1).f * 2)  # an arbitrary expression: no guarantee
     expect = {
-        "exact": [c, b, sdf.Halfspace(), sdf.Segment(), star, sdf.Ellipse(), b.round(0.1),
-                  sdf.Segment().round(0.2), c.rotate(0.3).translate([1, 2]), b.scale(2.0),
-                  off.mirror("x"), b.mirror("xy"), c.repeat(1.2, (3, 2)),
-                  sdf.Arc(aperture=math.pi, thickness=0.2), sdf.Polygon([[0, 0], [1, 0], [0, 1]])],
-        "bound": [c | b, c & b, c - b, c.union(b, 0.2, "quadratic"), c.union(b, 5.0),
-                  c.intersection(b, 0.1, "cubic"), c.difference(b, 0.1, "quadratic"),
-                  star.round(0.1), star.round(-0.1), b.shell(0.1),
-                  sdf.Circle([0.1, 0], 0.3).mirror("x"),
-                  sdf.Circle([0, 0], 0.7).repeat(1.0, 3),
-                  sdf.Arc(aperture=6.0, thickness=0.6), c | b.shell(0.1), c.shell(0.1)],
+        "exact": [
+            c,
+            b,
+            sdf.Halfspace(),
+            sdf.Segment(),
+            star,
+            sdf.Ellipse(),
+            b.round(0.1),
+            sdf.Segment().round(0.2),
+            c.rotate(0.3).translate([1, 2]),
+            b.scale(2.0),
+            off.mirror("x"),
+            b.mirror("xy"),
+            c.repeat(1.2, (3, 2)),
+            sdf.Arc(aperture=math.pi, thickness=0.2),
+            sdf.Polygon([[0, 0], [1, 0], [0, 1]]),
+        ],
+        "bound": [
+            c | b,
+            c & b,
+            c - b,
+            c.union(b, 0.2, "quadratic"),
+            c.union(b, 5.0),
+            c.intersection(b, 0.1, "cubic"),
+            c.difference(b, 0.1, "quadratic"),
+            star.round(0.1),
+            star.round(-0.1),
+            b.shell(0.1),
+            sdf.Circle([0.1, 0], 0.3).mirror("x"),
+            sdf.Circle([0, 0], 0.7).repeat(1.0, 3),
+            sdf.Arc(aperture=6.0, thickness=0.6),
+            c | b.shell(0.1),
+            c.shell(0.1),
+        ],
         "none": [user, off.repeat(1.0, 3), user | c, user.scale(2)],
     }
     for want, shapes in expect.items():
@@ -407,8 +500,13 @@ def test_union_of_exact_is_exact_outside_but_not_inside():
     ring = lambda c: np.stack([c[0] + 0.5 * np.cos(t), c[1] + 0.5 * np.sin(t)], -1)
     boundary = np.concatenate([ring((-0.3, 0)), ring((0.3, 0))])
     boundary = boundary[np.minimum(a(*boundary.T), b(*boundary.T)) >= -1e-12]
-    boundary = boundary[np.minimum(np.hypot(boundary[:, 0] + 0.3, boundary[:, 1]),
-                                   np.hypot(boundary[:, 0] - 0.3, boundary[:, 1])) >= 0.5 - 1e-9]
+    boundary = boundary[
+        np.minimum(
+            np.hypot(boundary[:, 0] + 0.3, boundary[:, 1]),
+            np.hypot(boundary[:, 0] - 0.3, boundary[:, 1]),
+        )
+        >= 0.5 - 1e-9
+    ]
     p = np.random.default_rng(0).uniform(-1.2, 1.2, (800, 2))
     d = u(*p.T)
     brute = brute_distance(p, boundary)
@@ -421,6 +519,7 @@ def test_union_of_exact_is_exact_outside_but_not_inside():
 # ---------------------------------------------------------------------------------------------
 # Modifiers.
 
+
 def test_modifiers_match_analytic_shapes():
     rng = np.random.default_rng(4)
     p = rng.uniform(-2.5, 2.5, (2000, 2))
@@ -428,12 +527,16 @@ def test_modifiers_match_analytic_shapes():
     box = sdf.Box([-0.5, -0.3], [0.4, 0.6])
     checks = [
         (box.round(0.1), sdf.RoundedBox([-0.6, -0.4], [0.5, 0.7], 0.1)),
-        (sdf.Segment([-0.5, 0.1], [0.4, 0.3]).round(0.2),
-         sdf.Capsule([-0.5, 0.1], [0.4, 0.3], 0.2)),
+        (
+            sdf.Segment([-0.5, 0.1], [0.4, 0.3]).round(0.2),
+            sdf.Capsule([-0.5, 0.1], [0.4, 0.3], 0.2),
+        ),
         (sdf.Circle([0.5, 0.1], 0.3).shell(0.1), sdf.Ring([0.5, 0.1], 0.3, 0.1)),
         (sdf.Circle([0.5, 0.1], 0.3).scale(2.0), sdf.Circle([1.0, 0.2], 0.6)),
-        (sdf.Circle([0.5, 0.0], 0.3).mirror("x"),
-         sdf.Circle([0.5, 0.0], 0.3) | sdf.Circle([-0.5, 0.0], 0.3)),
+        (
+            sdf.Circle([0.5, 0.0], 0.3).mirror("x"),
+            sdf.Circle([0.5, 0.0], 0.3) | sdf.Circle([-0.5, 0.0], 0.3),
+        ),
     ]
     for got, want in checks:
         np.testing.assert_allclose(got(X, Y), want(X, Y), atol=1e-12)
@@ -487,48 +590,52 @@ def test_substitute_is_iterative_and_shares_untouched_nodes():
 # ---------------------------------------------------------------------------------------------
 # Bad input.
 
-@pytest.mark.parametrize("make,match", [
-    (lambda: sdf.Segment(a=[0, 0, 0]), "a"),
-    (lambda: sdf.Capsule(radius=0), "radius"),
-    (lambda: sdf.Capsule(b=[np.nan, 0]), "b"),
-    (lambda: sdf.RoundedBox(radii=[0.1, 0.2]), "radii"),
-    (lambda: sdf.RoundedBox([-1, -0.2], [1, 0.2], radii=0.3), "radii"),
-    (lambda: sdf.RoundedBox(radii=-0.1), "radii"),
-    (lambda: sdf.OrientedBox([0, 0], [0, 0]), "a and b"),
-    (lambda: sdf.OrientedBox(thickness=0), "thickness"),
-    (lambda: sdf.Triangle([0, 0], [1, 1], [2, 2]), "collinear"),
-    (lambda: sdf.EquilateralTriangle(radius=-1), "radius"),
-    (lambda: sdf.RegularPolygon(n=2), "n"),
-    (lambda: sdf.RegularPolygon(n=5.0), "n"),
-    (lambda: sdf.Polygon([[0, 0], [1, 0]]), "vertices"),
-    (lambda: sdf.Polygon([[0, 0], [1, 0], [2, 0]]), "area"),
-    (lambda: sdf.Polygon([[0, 0], [1, 1], [1, 0], [0, 1]]), "not simple"),
-    (lambda: sdf.Polygon([[0, 0], [2, 0], [1, 0], [1, 1]]), "not simple"),
-    (lambda: sdf.Polygon([[0, 0], [2, 0], [2, 2], [1, 0], [0, 2]]), "not simple"),
-    (lambda: sdf.Polygon("abc"), "vertices"),
-    (lambda: sdf.Polygon([[0, 0], [1, np.inf], [0, 1]]), "vertices"),
-    (lambda: sdf.Star(inner_radius=2.0), "inner_radius"),
-    (lambda: sdf.Ellipse(axes=[1, 0]), "axes"),
-    (lambda: sdf.Ellipse(axes=1.0), "axes"),
-    (lambda: sdf.Ring(radius=0.5, thickness=1.0), "thickness"),
-    (lambda: sdf.Arc(aperture=7.0), "aperture"),
-    (lambda: sdf.Arc(aperture=0), "aperture"),
-    (lambda: sdf.Arc(radius=0.5, thickness=1.2), "thickness"),
-    (lambda: sdf.Circle().round("1"), "r"),
-    (lambda: sdf.Circle().shell(0), "thickness"),
-    (lambda: sdf.Circle().scale(-1), "s"),
-    (lambda: sdf.Circle().translate([1]), "offset"),
-    (lambda: sdf.Circle().rotate(np.nan), "angle"),
-    (lambda: sdf.Circle().mirror("z"), "axis"),
-    (lambda: sdf.Circle().repeat(0, 3), "spacing"),
-    (lambda: sdf.Circle().repeat(1.0, 0), "count"),
-    (lambda: sdf.Circle().repeat(1.0, 2.5), "count"),
-    (lambda: sdf.Circle().union(sdf.Box(), k=0.1, kind="gaussian"), "kind"),
-    (lambda: sdf.Circle().union(sdf.Box(), k=-0.1, kind="quadratic"), "k"),
-    (lambda: sdf.Circle().union(3), "SDF"),
-    (lambda: sdf.smoothness(0.1, kind="linear"), "kind"),
-    (lambda: sdf.repeat("circle", 1.0, 2), "f"),
-])
+
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: sdf.Segment(a=[0, 0, 0]), "a"),
+        (lambda: sdf.Capsule(radius=0), "radius"),
+        (lambda: sdf.Capsule(b=[np.nan, 0]), "b"),
+        (lambda: sdf.RoundedBox(radii=[0.1, 0.2]), "radii"),
+        (lambda: sdf.RoundedBox([-1, -0.2], [1, 0.2], radii=0.3), "radii"),
+        (lambda: sdf.RoundedBox(radii=-0.1), "radii"),
+        (lambda: sdf.OrientedBox([0, 0], [0, 0]), "a and b"),
+        (lambda: sdf.OrientedBox(thickness=0), "thickness"),
+        (lambda: sdf.Triangle([0, 0], [1, 1], [2, 2]), "collinear"),
+        (lambda: sdf.EquilateralTriangle(radius=-1), "radius"),
+        (lambda: sdf.RegularPolygon(n=2), "n"),
+        (lambda: sdf.RegularPolygon(n=5.0), "n"),
+        (lambda: sdf.Polygon([[0, 0], [1, 0]]), "vertices"),
+        (lambda: sdf.Polygon([[0, 0], [1, 0], [2, 0]]), "area"),
+        (lambda: sdf.Polygon([[0, 0], [1, 1], [1, 0], [0, 1]]), "not simple"),
+        (lambda: sdf.Polygon([[0, 0], [2, 0], [1, 0], [1, 1]]), "not simple"),
+        (lambda: sdf.Polygon([[0, 0], [2, 0], [2, 2], [1, 0], [0, 2]]), "not simple"),
+        (lambda: sdf.Polygon("abc"), "vertices"),
+        (lambda: sdf.Polygon([[0, 0], [1, np.inf], [0, 1]]), "vertices"),
+        (lambda: sdf.Star(inner_radius=2.0), "inner_radius"),
+        (lambda: sdf.Ellipse(axes=[1, 0]), "axes"),
+        (lambda: sdf.Ellipse(axes=1.0), "axes"),
+        (lambda: sdf.Ring(radius=0.5, thickness=1.0), "thickness"),
+        (lambda: sdf.Arc(aperture=7.0), "aperture"),
+        (lambda: sdf.Arc(aperture=0), "aperture"),
+        (lambda: sdf.Arc(radius=0.5, thickness=1.2), "thickness"),
+        (lambda: sdf.Circle().round("1"), "r"),
+        (lambda: sdf.Circle().shell(0), "thickness"),
+        (lambda: sdf.Circle().scale(-1), "s"),
+        (lambda: sdf.Circle().translate([1]), "offset"),
+        (lambda: sdf.Circle().rotate(np.nan), "angle"),
+        (lambda: sdf.Circle().mirror("z"), "axis"),
+        (lambda: sdf.Circle().repeat(0, 3), "spacing"),
+        (lambda: sdf.Circle().repeat(1.0, 0), "count"),
+        (lambda: sdf.Circle().repeat(1.0, 2.5), "count"),
+        (lambda: sdf.Circle().union(sdf.Box(), k=0.1, kind="gaussian"), "kind"),
+        (lambda: sdf.Circle().union(sdf.Box(), k=-0.1, kind="quadratic"), "k"),
+        (lambda: sdf.Circle().union(3), "SDF"),
+        (lambda: sdf.smoothness(0.1, kind="linear"), "kind"),
+        (lambda: sdf.repeat("circle", 1.0, 2), "f"),
+    ],
+)
 def test_bad_input_names_the_parameter(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
         make()

@@ -26,8 +26,11 @@ def _scene(seed, n, k=0.0, kinds=("box", "circle"), op="|", extra=True):
     for i in range(n):
         kind = kinds[i % len(kinds)]
         with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
-            s = sdf.Box([-0.05, -0.03], [0.04, 0.06]) if kind == "box" else \
-                sdf.Circle([0.01, 0.0], 0.04)
+            s = (
+                sdf.Box([-0.05, -0.03], [0.04, 0.06])
+                if kind == "box"
+                else sdf.Circle([0.01, 0.0], 0.04)
+            )
         if f is None:
             f = s
         elif op == "|":
@@ -40,10 +43,20 @@ def _scene(seed, n, k=0.0, kinds=("box", "circle"), op="|", extra=True):
 
 
 @pytest.mark.slow
-@settings(max_examples=3, deadline=None, derandomize=True, phases=_NO_SHRINK,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10 ** 6), n=st.integers(8, 40), op=st.sampled_from(["|", "&"]),
-       extra=st.booleans(), tiles=st.integers(1, 12))
+@settings(
+    max_examples=3,
+    deadline=None,
+    derandomize=True,
+    phases=_NO_SHRINK,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    seed=st.integers(0, 10**6),
+    n=st.integers(8, 40),
+    op=st.sampled_from(["|", "&"]),
+    extra=st.booleans(),
+    tiles=st.integers(1, 12),
+)
 def test_pruned_hard_chains_are_bit_identical(seed, n, op, extra, tiles):
     f = _scene(seed, n, op=op, extra=extra)
     rng = np.random.default_rng(seed)
@@ -72,9 +85,12 @@ def test_pruned_call_is_automatic_for_large_inputs_and_matches():
     assert rep["operands"] == 60 and rep["survivors_max"] <= 60
     assert 0 < rep["survivors_mean"] < 30 and rep["build_s"] >= 0
     # The reference for the same points (independent implementation).
-    np.testing.assert_allclose(d_auto[:500], evaluate_numpy(f.f, {"x": p[0, :500],
-                                                                   "y": p[1, :500]}),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        d_auto[:500],
+        evaluate_numpy(f.f, {"x": p[0, :500], "y": p[1, :500]}),
+        rtol=1e-12,
+        atol=1e-12,
+    )
 
 
 @pytest.mark.parametrize("k", [40.0])
@@ -95,12 +111,13 @@ def test_pruned_exponential_chains_stay_within_tol(k):
 
 def test_grid_construction_uses_pruning_and_matches():
     import fastsdf.function as F
+
     f = _scene(11, 80, kinds=("box",), extra=True)
     g = sdf.GridSDF(f, bounds=[(-2, 2), (-2, 2)], samples=[300j, 300j])
     assert f.compiled._plans
     old = F.PRUNE_MIN_POINTS
     try:
-        F.PRUNE_MIN_POINTS = 10 ** 15
+        F.PRUNE_MIN_POINTS = 10**15
         g2 = sdf.GridSDF(f, bounds=[(-2, 2), (-2, 2)], samples=[300j, 300j])
     finally:
         F.PRUNE_MIN_POINTS = old
@@ -112,6 +129,7 @@ def test_grid_construction_uses_pruning_and_matches():
 def test_tile_blocks_cover_every_point_once_with_the_union_of_their_tiles_rows(counts, seed):
     from fastsdf.backends.kernel.drive import _merge_rows, _tile_work
     from fastsdf.backends.kernel.simd import BLOCK
+
     rng = np.random.default_rng(seed)
     T, sizes = len(counts), [7, 3]
     starts = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
@@ -134,15 +152,16 @@ def test_tile_blocks_cover_every_point_once_with_the_union_of_their_tiles_rows(c
     actb, offb = np.empty(sum(sizes), np.int64), np.empty(len(sizes) + 1, np.int64)
     cur = np.empty(T, np.int64)
     for s, m, t0, t1 in work:
-        tiles = tile_of[seq[s:s + m]]
+        tiles = tile_of[seq[s : s + m]]
         assert t0 <= tiles.min() and tiles.max() <= t1
         if t0 == t1:
             continue
         _merge_rows(act, offs, t0, t1, starts, actb, offb, cur)
         for g in range(len(sizes)):
-            want = sorted(set().union(*[set(lists[t][g].tolist()) for t in range(t0, t1 + 1)
-                                        if counts[t]]))
-            assert actb[offb[g]:offb[g + 1]].tolist() == want
+            want = sorted(
+                set().union(*[set(lists[t][g].tolist()) for t in range(t0, t1 + 1) if counts[t]])
+            )
+            assert actb[offb[g] : offb[g + 1]].tolist() == want
 
 
 def _initial_velocities(n):
@@ -155,9 +174,10 @@ def _particle_run(world, prune, n=3000, steps=30):
     row) and never builds a plan."""
     import fastsdf.function as F
     import fastsdf.particles as phys
+
     old = F.PRUNE_MIN_OPERANDS, F.PRUNE_MIN_POINTS
     if not prune:
-        F.PRUNE_MIN_OPERANDS = F.PRUNE_MIN_POINTS = 10 ** 15
+        F.PRUNE_MIN_OPERANDS = F.PRUNE_MIN_POINTS = 10**15
     try:
         sim = phys.ParticleSimulation(world, n=n, timestep=1 / 30, seed=3)
         sim.force_generators += [phys.Gravity()]
@@ -199,18 +219,31 @@ def test_grid_exact_fallback_pruned_gives_identical_trajectories():
 
 
 @pytest.mark.slow
-@settings(max_examples=3, deadline=None, derandomize=True, phases=_NO_SHRINK,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10 ** 6), n=st.integers(10, 40), kind=st.sampled_from(
-    ["quadratic", "cubic"]), k=st.sampled_from([0.02, 0.1, 0.4]), tiles=st.integers(1, 12))
+@settings(
+    max_examples=3,
+    deadline=None,
+    derandomize=True,
+    phases=_NO_SHRINK,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    seed=st.integers(0, 10**6),
+    n=st.integers(10, 40),
+    kind=st.sampled_from(["quadratic", "cubic"]),
+    k=st.sampled_from([0.02, 0.1, 0.4]),
+    tiles=st.integers(1, 12),
+)
 def test_pruned_polynomial_chains_are_bit_identical(seed, n, kind, k, tiles):
     # runs of boxes (folded into loops) between circles, blended left to right with one k
     rng = np.random.default_rng(seed)
     f = sdf.Halfspace([0.2, 1], -1.7)
     for i in range(n):
         with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
-            s = sdf.Circle([0.01, 0.0], 0.04) if i % 9 == 4 else \
-                sdf.Box([-0.05, -0.03], [0.04, 0.06])
+            s = (
+                sdf.Circle([0.01, 0.0], 0.04)
+                if i % 9 == 4
+                else sdf.Box([-0.05, -0.03], [0.04, 0.06])
+            )
         f = f.union(s, k=k, kind=kind)
     comp = f.compiled
     assert comp.groups and all(g["op"] in ("qmin", "cmin") for g in comp.groups)
@@ -234,18 +267,29 @@ def _mixed_chain(seed, n, k, op):
     shapes = []
     for i in range(n):
         with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
-            shapes.append([sdf.Box([-0.05, -0.03], [0.04, 0.06]), sdf.Ellipse([0, 0], [0.06, 0.03]),
-                           sdf.Star([0, 0], 0.07, 5)][i % 3])
+            shapes.append(
+                [
+                    sdf.Box([-0.05, -0.03], [0.04, 0.06]),
+                    sdf.Ellipse([0, 0], [0.06, 0.03]),
+                    sdf.Star([0, 0], 0.07, 5),
+                ][i % 3]
+            )
     shapes.append(sdf.Halfspace([0.2, 1], -1.7))
     return sdf.union(shapes, k=k) if op == "|" else sdf.intersection(shapes, k=k)
 
 
 @settings(max_examples=8, deadline=None, derandomize=True, phases=_NO_SHRINK)
-@given(seed=st.integers(0, 10 ** 6), n=st.integers(12, 45), op=st.sampled_from(["|", "&"]),
-       k=st.sampled_from([0.0, 5.0, 40.0]), tol=st.sampled_from([None, 1e-6]),
-       tiles=st.sampled_from([(8, 8), (32, 32), (20, 7), (3, 40)]))
-def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(seed, n, op, k, tol,
-                                                                          tiles):
+@given(
+    seed=st.integers(0, 10**6),
+    n=st.integers(12, 45),
+    op=st.sampled_from(["|", "&"]),
+    k=st.sampled_from([0.0, 5.0, 40.0]),
+    tol=st.sampled_from([None, 1e-6]),
+    tiles=st.sampled_from([(8, 8), (32, 32), (20, 7), (3, 40)]),
+)
+def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(
+    seed, n, op, k, tol, tiles
+):
     # Plans over many tiles bound each chain's members coarse to fine: a member that cannot
     # matter anywhere in a coarse tile is dropped in all its tiles. Checked against the values
     # of every operand (NumPy reference) at random points: each tile keeps the operands that
@@ -254,13 +298,14 @@ def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(seed, 
     # the dense rule (every member bounded over every tile: its Lipschitz bounds around a small
     # tile's centre can be looser than the coarse tile's).
     from fastsdf.backends import prune
+
     f = _mixed_chain(seed, n, k, op)
     groups = f.compiled.groups
     assert len(groups) == 3 and any(g["steps"][-1][0].op == "prim" for g in groups)
     bounds = ((-2.5, 2.5), (-2.4, 2.6))
     plan = prune.make_plan(groups, bounds, *tiles, tol)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(prune, "_COARSE_MIN_TILES", 10 ** 9)
+        mp.setattr(prune, "_COARSE_MIN_TILES", 10**9)
         dense = prune.make_plan(groups, bounds, *tiles, tol)
     assert plan.act.size <= dense.act.size
     rng = np.random.default_rng(seed)
@@ -268,15 +313,17 @@ def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(seed, 
     order, starts = prune.bin_points(p[0], p[1], plan)
     tile = np.empty(p.shape[1], dtype=np.int64)
     for t in range(len(starts) - 1):
-        tile[order[starts[t]:starts[t + 1]]] = t
+        tile[order[starts[t] : starts[t + 1]]] = t
     pts = {"x": p[0], "y": p[1]}
     sign = 1.0 if op == "|" else -1.0  # a max is the min of the negated operands
     vals, kept = [], []
     for gi, g in enumerate(groups):
         for j, m in enumerate(g["members"]):
             vals.append(sign * evaluate_numpy(m, pts))
-            rows = [set(plan.act[plan.offs[t, gi]:plan.offs[t, gi + 1]].tolist())
-                    for t in range(plan.nx * plan.ny)]
+            rows = [
+                set(plan.act[plan.offs[t, gi] : plan.offs[t, gi + 1]].tolist())
+                for t in range(plan.nx * plan.ny)
+            ]
             kept.append(np.array([j in rows[t] for t in tile]))
     vals += [sign * evaluate_numpy(o, pts) for o in groups[0]["others"]]
     kept += [np.ones(p.shape[1], dtype=bool)] * len(groups[0]["others"])

@@ -30,8 +30,10 @@ def scale_down(source):
 
 
 def test_block_extraction_and_scaling():
-    text = ("intro\n```python\nx = 1_000_000\n```\n\n```bash\nmake demo\n```\n"
-            "```py\ny = f(n=200_000, k=3_000)  # 1_000 and 12_345.5 and a_1_000\n```\n")
+    text = (
+        "intro\n```python\nx = 1_000_000\n```\n\n```bash\nmake demo\n```\n"
+        "```py\ny = f(n=200_000, k=3_000)  # 1_000 and 12_345.5 and a_1_000\n```\n"
+    )
     blocks = python_blocks(text)
     assert [line for line, _ in blocks] == [3, 10]
     assert scale_down(blocks[0][1]) == "x = 1000\n"
@@ -47,6 +49,7 @@ def test_readme_has_python_blocks():
 @pytest.mark.slow
 def test_every_readme_python_block_runs(tmp_path, monkeypatch):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -60,7 +63,8 @@ def test_every_readme_python_block_runs(tmp_path, monkeypatch):
             try:
                 exec(code, namespace)
             except Exception as exc:  # name the block that failed
-                raise AssertionError(f"README.md block at line {line} failed: "
-                                     f"{type(exc).__name__}: {exc}\n{source}") from exc
+                raise AssertionError(
+                    f"README.md block at line {line} failed: {type(exc).__name__}: {exc}\n{source}"
+                ) from exc
     finally:
         plt.close("all")

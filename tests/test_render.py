@@ -90,14 +90,14 @@ def test_save_animation_writes_each_format(floor, tmp_path, ext):
     assert abs(sim.t - 2 * sim.dt) < 1e-12  # frames 1 and 2 advanced one step each
 
 
-def test_save_animation_rejects_unknown_extension_and_missing_ffmpeg(floor, tmp_path,
-                                                                      monkeypatch):
+def test_save_animation_rejects_unknown_extension_and_missing_ffmpeg(floor, tmp_path, monkeypatch):
     sim = phys.ParticleSimulation(floor, n=5, seed=0)
     fig, ax = new_axes()
     anim = animate(sim, ax, frames=2)
     with pytest.raises(ValueError, match=r"path must end in one of .*\.mp4.*got path="):
         save_animation(anim, str(tmp_path / "clip.avi"))
     import fastsdf.viz.video as video
+
     monkeypatch.setattr(video, "ffmpeg_available", lambda: False)
     with pytest.raises(RuntimeError, match=r"fastsdf\[video\]"):
         save_animation(anim, str(tmp_path / "clip.mp4"))
@@ -146,7 +146,8 @@ def test_render_module_layering():
 
     for module, banned in ((plotting, "render"),):
         tree = ast.parse(inspect.getsource(module))
-        mods = {getattr(n, "module", "") or "" for n in ast.walk(tree)
-                if isinstance(n, ast.ImportFrom)}
+        mods = {
+            getattr(n, "module", "") or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+        }
         assert not any(banned in m for m in mods)
     assert "render_frame" in render.__all__ and "animate" in render.__all__

@@ -21,18 +21,24 @@ def _boundary_circle(center, radius, n=20000):
 def _boundary_box(minc, maxc, n=5000):
     (x0, y0), (x1, y1) = minc, maxc
     s = np.linspace(0, 1, n)
-    edges = [np.stack([x0 + (x1 - x0) * s, np.full(n, y0)], -1),
-             np.stack([x0 + (x1 - x0) * s, np.full(n, y1)], -1),
-             np.stack([np.full(n, x0), y0 + (y1 - y0) * s], -1),
-             np.stack([np.full(n, x1), y0 + (y1 - y0) * s], -1)]
+    edges = [
+        np.stack([x0 + (x1 - x0) * s, np.full(n, y0)], -1),
+        np.stack([x0 + (x1 - x0) * s, np.full(n, y1)], -1),
+        np.stack([np.full(n, x0), y0 + (y1 - y0) * s], -1),
+        np.stack([np.full(n, x1), y0 + (y1 - y0) * s], -1),
+    ]
     return np.concatenate(edges)
 
 
 def test_circle_is_exact_against_sampled_boundary(rng):
     center, radius = np.array([0.3, -0.2]), 0.7
     f = sdf.Circle(center=center, radius=radius)
-    pts = np.concatenate([rng.uniform(-2, 2, (300, 2)),                       # far and inside
-                          center + rng.normal(0, 0.05, (100, 2)) + [radius, 0]])  # near boundary
+    pts = np.concatenate(
+        [
+            rng.uniform(-2, 2, (300, 2)),  # far and inside
+            center + rng.normal(0, 0.05, (100, 2)) + [radius, 0],
+        ]
+    )  # near boundary
     d = f(pts[:, 0], pts[:, 1])
     inside = np.hypot(*(pts - center).T) < radius
     assert np.all((d < 0) == inside)
@@ -42,8 +48,9 @@ def test_circle_is_exact_against_sampled_boundary(rng):
     np.testing.assert_allclose(np.abs(d), brute, atol=spacing / 2)
 
 
-@pytest.mark.parametrize("angle,offset",
-                         [(0.0, (0.0, 0.0)), (0.4, (0.5, -0.3)), (-2.0, (1.0, 1.0))])
+@pytest.mark.parametrize(
+    "angle,offset", [(0.0, (0.0, 0.0)), (0.4, (0.5, -0.3)), (-2.0, (1.0, 1.0))]
+)
 def test_box_is_exact_against_sampled_boundary(rng, angle, offset):
     minc, maxc = np.array([-0.5, -0.2]), np.array([0.3, 0.6])
     with sdf.transform(angle=angle, offset=offset):
@@ -66,8 +73,12 @@ def test_box_matches_notebook_box_inside_and_bounds_it_outside(rng):
     faces; outside the corners it is a lower bound (the L-infinity distance)."""
     minc, maxc = [-0.4, -0.3], [0.4, 0.3]
     exact = sdf.Box(minc=minc, maxc=maxc)
-    seed = (sdf.Halfspace([0, -1], -minc[1]) & sdf.Halfspace([1, 0], maxc[0])
-            & sdf.Halfspace([0, 1], maxc[1]) & sdf.Halfspace([-1, 0], -minc[0]))
+    seed = (
+        sdf.Halfspace([0, -1], -minc[1])
+        & sdf.Halfspace([1, 0], maxc[0])
+        & sdf.Halfspace([0, 1], maxc[1])
+        & sdf.Halfspace([-1, 0], -minc[0])
+    )
     p = rng.uniform(-1.5, 1.5, (2000, 2))
     de, ds = exact(p[:, 0], p[:, 1]), seed(p[:, 0], p[:, 1])
     corner = (np.abs(p[:, 0]) > 0.4) & (np.abs(p[:, 1]) > 0.3)
@@ -107,8 +118,10 @@ def test_smooth_blends_reproduce_the_notebook_formula(rng, k):
     notebook_i = np.log(np.exp(k * da) + np.exp(k * db)) / k
     np.testing.assert_allclose(u(*p.T), notebook_u, rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(i(*p.T), notebook_i, rtol=1e-12, atol=1e-13)
-    for f, ref in ((u, lambda X, Y: -np.log(np.exp(-k * a(X, Y)) + np.exp(-k * b(X, Y))) / k),
-                   (i, lambda X, Y: np.log(np.exp(k * a(X, Y)) + np.exp(k * b(X, Y))) / k)):
+    for f, ref in (
+        (u, lambda X, Y: -np.log(np.exp(-k * a(X, Y)) + np.exp(-k * b(X, Y))) / k),
+        (i, lambda X, Y: np.log(np.exp(k * a(X, Y)) + np.exp(k * b(X, Y))) / k),
+    ):
         _, g = f(*p.T, compute_gradient=True)
         np.testing.assert_allclose(g, central_gradient(ref, *p.T), rtol=1e-5, atol=1e-6)
 
@@ -116,15 +129,19 @@ def test_smooth_blends_reproduce_the_notebook_formula(rng, k):
 def test_seed_world_value_matches_notebook_construction(rng):
     """Notebook cell 21's world, built through the DSL, against the literal notebook formulas."""
     from fastsdf.shapes.scenes import seed_world
+
     f = seed_world()
     p = rng.uniform(-2, 2, (1000, 2))
     X, Y = p.T
     n2 = np.array([1, 1]) / math.sqrt(2)
-    floor = np.minimum(np.minimum(Y + 1.8, n2[0] * X + n2[1] * Y + 1.8),
-                       -n2[0] * X + n2[1] * Y + 1.8)
+    floor = np.minimum(
+        np.minimum(Y + 1.8, n2[0] * X + n2[1] * Y + 1.8), -n2[0] * X + n2[1] * Y + 1.8
+    )
     n4 = np.array([0.1, 1]) / np.hypot(0.1, 1)
-    disc = np.log(np.exp(10 * (np.hypot(X, Y) - 0.5))
-                  + np.exp(10 * (n4[0] * X + n4[1] * Y - 0.3))) / 10
+    disc = (
+        np.log(np.exp(10 * (np.hypot(X, Y) - 0.5)) + np.exp(10 * (n4[0] * X + n4[1] * Y - 0.3)))
+        / 10
+    )
     ref = -np.log(np.exp(-10 * floor) + np.exp(-10 * disc)) / 10
     np.testing.assert_allclose(f(X, Y), ref, rtol=1e-12, atol=1e-12)
 
@@ -174,9 +191,14 @@ def _unit_gradient_scenes():
     with sdf.transform(angle=0.3, offset=[0.2, -0.1]):
         box = sdf.Box([-0.5, -0.3], [0.4, 0.2])
         circ = sdf.Circle([0.9, 0.4], 0.35)
-    return {"circle": circ, "box": box, "halfspace": sdf.Halfspace([1, -2], 0.3),
-            "union": box | circ, "intersection": box & sdf.Halfspace([1, 1], 0.1),
-            "difference": box - circ}
+    return {
+        "circle": circ,
+        "box": box,
+        "halfspace": sdf.Halfspace([1, -2], 0.3),
+        "union": box | circ,
+        "intersection": box & sdf.Halfspace([1, 1], 0.1),
+        "difference": box - circ,
+    }
 
 
 @pytest.mark.parametrize("name", list(_unit_gradient_scenes()))
@@ -203,8 +225,9 @@ def test_non_finite_points_give_nan_for_those_points_only():
         assert np.all(np.isfinite(d[~bad])) and np.all(np.isfinite(g[~bad]))
         np.testing.assert_array_equal(f(Xr, Yr), d)
         ok = ~bad
-        np.testing.assert_allclose(d[ok], evaluate_numpy(f.f, {"x": Xr[ok], "y": Yr[ok]}),
-                                   rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            d[ok], evaluate_numpy(f.f, {"x": Xr[ok], "y": Yr[ok]}), rtol=1e-12, atol=1e-12
+        )
 
 
 def test_huge_coordinates_stay_finite_and_exact():
@@ -296,28 +319,31 @@ def test_transform_composes_where_it_is_entered():
     assert evaluate_numpy(c.f, {"x": np.array([1.0]), "y": np.array([2.0])})[0] == -0.5
 
 
-@pytest.mark.parametrize("make,match", [
-    (lambda: sdf.Halfspace(normal=[0, 0]), "normal"),
-    (lambda: sdf.Halfspace(normal=[1, 0, 0]), "normal"),
-    (lambda: sdf.Halfspace(normal="ab"), "normal"),
-    (lambda: sdf.Halfspace(d=float("nan")), "d"),
-    (lambda: sdf.Circle(radius=0), "radius"),
-    (lambda: sdf.Circle(radius=-1), "radius"),
-    (lambda: sdf.Circle(radius="1"), "radius"),
-    (lambda: sdf.Circle(center=[np.inf, 0]), "center"),
-    (lambda: sdf.Box(minc=[0, 0], maxc=[1, 0]), "minc"),
-    (lambda: sdf.Box(minc=[1, 1], maxc=[0, 2]), "minc"),
-    (lambda: sdf.smoothness(-1), "k"),
-    (lambda: sdf.smoothness(float("inf")), "k"),
-    (lambda: sdf.smoothness("10"), "k"),
-    (lambda: sdf.transform(angle=float("nan")), "angle"),
-    (lambda: sdf.transform(offset=[0, np.nan]), "offset"),
-    (lambda: sdf.transform(offset=[0, 1, 2]), "offset"),
-    (lambda: sdf.Circle() | 3, "SDF"),
-    (lambda: box_world(-1), "n_boxes"),
-    (lambda: mixed_scene(0), "n"),
-    (lambda: mixed_scene(2.5), "n"),
-])
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: sdf.Halfspace(normal=[0, 0]), "normal"),
+        (lambda: sdf.Halfspace(normal=[1, 0, 0]), "normal"),
+        (lambda: sdf.Halfspace(normal="ab"), "normal"),
+        (lambda: sdf.Halfspace(d=float("nan")), "d"),
+        (lambda: sdf.Circle(radius=0), "radius"),
+        (lambda: sdf.Circle(radius=-1), "radius"),
+        (lambda: sdf.Circle(radius="1"), "radius"),
+        (lambda: sdf.Circle(center=[np.inf, 0]), "center"),
+        (lambda: sdf.Box(minc=[0, 0], maxc=[1, 0]), "minc"),
+        (lambda: sdf.Box(minc=[1, 1], maxc=[0, 2]), "minc"),
+        (lambda: sdf.smoothness(-1), "k"),
+        (lambda: sdf.smoothness(float("inf")), "k"),
+        (lambda: sdf.smoothness("10"), "k"),
+        (lambda: sdf.transform(angle=float("nan")), "angle"),
+        (lambda: sdf.transform(offset=[0, np.nan]), "offset"),
+        (lambda: sdf.transform(offset=[0, 1, 2]), "offset"),
+        (lambda: sdf.Circle() | 3, "SDF"),
+        (lambda: box_world(-1), "n_boxes"),
+        (lambda: mixed_scene(0), "n"),
+        (lambda: mixed_scene(2.5), "n"),
+    ],
+)
 def test_bad_input_names_the_parameter(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
         make()
@@ -333,12 +359,14 @@ def test_mixed_scene_is_its_floor_cut_by_seeded_shapes():
     assert np.any(a != c) and np.any(a != y + 1.8)
 
 
-@pytest.mark.parametrize("k, kind", [(0.0, "exponential"), (5.0, "exponential"),
-                                     (0.1, "quadratic"), (0.1, "cubic")])
+@pytest.mark.parametrize(
+    "k, kind", [(0.0, "exponential"), (5.0, "exponential"), (0.1, "quadratic"), (0.1, "cubic")]
+)
 def test_nary_union_and_intersection_are_the_left_folds(k, kind):
     # fastsdf.union / intersection of a list: the same expression (same node, so the same
     # kernels) and the same exactness bookkeeping as the left fold of the binary operations
     import functools
+
     rng = np.random.default_rng(3)
     shapes = []
     for i, c in enumerate(rng.uniform(-2, 2, (12, 2))):

@@ -19,15 +19,19 @@ def _points(n, seed, nan_every=0):
     p = np.random.default_rng(seed).uniform(-2, 2, (n, 2))
     if nan_every:
         p[::nan_every, seed % 2] = np.nan
-        p[1::nan_every * 3, 0] = np.inf
+        p[1 :: nan_every * 3, 0] = np.inf
     return p
 
 
 def _user_exp_log_scene():
     """exp and log as graph operations (not only inside smooth blends)."""
     x, y = Symbol("x"), Symbol("y")
-    return Function(sym_log(sym_exp(x) + sym_exp(y * 0.5) + 1.0) - 1.5
-                    + sym_max(x * 0.01, sym_exp(-30.0 * (x * x))), [x, y])
+    return Function(
+        sym_log(sym_exp(x) + sym_exp(y * 0.5) + 1.0)
+        - 1.5
+        + sym_max(x * 0.01, sym_exp(-30.0 * (x * x))),
+        [x, y],
+    )
 
 
 SCENES = {"seed": seed_world, "box6": lambda: box_world(6), "explog": _user_exp_log_scene}
@@ -87,7 +91,7 @@ def test_table_loop_becomes_the_outer_loop():
     assert re.search(r"^    " + loop + "$", src, re.M)
     block = box_world(20).compiled.module_source
     start = block.index("def _block_vg")
-    block = block[start:block.index("def batch_vg_par", start)]
+    block = block[start : block.index("def batch_vg_par", start)]
     outer = re.search(r"^    " + loop + r"\n((?:        .*\n)+)", block, re.M)
     assert outer, block
     body = outer.group(2)
@@ -96,7 +100,7 @@ def test_table_loop_becomes_the_outer_loop():
     assert re.search(r"^        h\w+ = _T0\[" + row + r", \d+\]$", body, re.M)
     inner = re.search(r"^        for i in range\((\d+)\):$", body, re.M)
     assert inner and int(inner.group(1)) == BLOCK  # one lane: a constant trip count per block
-    assert "_T0[" not in body[inner.start():]
+    assert "_T0[" not in body[inner.start() :]
 
 
 def test_loop_free_bodies_interleave_two_lanes():
@@ -105,7 +109,7 @@ def test_loop_free_bodies_interleave_two_lanes():
     comp = seed_world().compiled
     src = comp.module_source
     start = src.index("def _block_vg")
-    block = src[start:src.index("def batch_vg_par", start)]
+    block = src[start : src.index("def batch_vg_par", start)]
     lanes = choose_lanes(comp.function_source("vg").splitlines()[4:])
     assert lanes == 2
     assert f"    for i in range({BLOCK // 2}):" in block
@@ -120,8 +124,11 @@ def _fresh_block(comp, kind="vg"):
     return "\n".join(fn.inspect_asm().values())
 
 
-@pytest.mark.skipif(not _has_avx2(), reason="host CPU without AVX2: LLVM's cost model may "
-                    "keep the block loops scalar on older SIMD, which is not a regression")
+@pytest.mark.skipif(
+    not _has_avx2(),
+    reason="host CPU without AVX2: LLVM's cost model may "
+    "keep the block loops scalar on older SIMD, which is not a regression",
+)
 @pytest.mark.parametrize("scene", ["seed", "box6"])
 def test_block_loops_compile_to_packed_vector_code(scene):
     """The per-point statements, exp and log included, become packed float64 arithmetic (any
@@ -138,6 +145,7 @@ def test_batch_kernels_are_compiled_once_for_all_scenes():
     value: two scenes (different block functions and scratch sizes) share one compiled kernel,
     and each gives exactly what its per-point function gives."""
     from fastsdf.backends.kernel import drive as _drive
+
     for f in (box_world(3), seed_world()):
         for n in (4099, 37):  # parallel, serial
             p = np.random.default_rng(n).uniform(-2, 2, (n, 2))

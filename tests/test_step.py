@@ -21,15 +21,18 @@ from fastsdf.shapes.scenes import seed_world
 
 def world(planes=(), discs=()):
     """Query data of _step's test world."""
-    return (np.array(planes, dtype=np.float64).reshape(-1, 3),
-            np.array(discs, dtype=np.float64).reshape(-1, 3))
+    return (
+        np.array(planes, dtype=np.float64).reshape(-1, 3),
+        np.array(discs, dtype=np.float64).reshape(-1, 3),
+    )
 
 
-FLOOR = world(planes=[(0.0, 1.0, 0.0)])               # solid where y <= 0
+FLOOR = world(planes=[(0.0, 1.0, 0.0)])  # solid where y <= 0
 
 
 # ---------------------------------------------------------------------------------------------
 # The parts, called directly.
+
 
 def test_query_of_the_test_world_is_the_analytic_distance():
     data = world(planes=[(0.0, 1.0, -1.0)], discs=[(0.0, 0.0, 0.5)])
@@ -65,8 +68,12 @@ def test_respond_matches_house_keyser(always):
 
 @pytest.mark.parametrize("g", [(0.0, 0.0), (math.nan, 1.0), (math.inf, 0.0)])
 def test_respond_without_a_direction_leaves_the_state(g):
-    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, g[0], g[1], 0.5, 0.5, True) == \
-        (0.1, 0.2, -0.3, 0.4)
+    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, g[0], g[1], 0.5, 0.5, True) == (
+        0.1,
+        0.2,
+        -0.3,
+        0.4,
+    )
 
 
 def test_march_stops_at_the_first_contact_along_the_segment():
@@ -74,7 +81,7 @@ def test_march_stops_at_the_first_contact_along_the_segment():
     data = world(planes=[(-1.0, 0.0, -1.0)])
     t, hit, s, nx, ny = _step._march(data, 0.0, 0.0, 2.0, 0.0, 0.1, 1.0, 0.0, 1.0)
     assert hit == 1
-    contact = 0.9 / 2.0                                     # x + r = 1
+    contact = 0.9 / 2.0  # x + r = 1
     assert contact - 1e-3 <= t <= contact + 1e-9
     assert abs(s) <= _step.CONTACT_TOL * 2.0
     assert (nx, ny) == (-1.0, 0.0)
@@ -91,11 +98,12 @@ def test_march_free_path_and_known_free_part():
 def test_sweep_reflects_off_a_thin_disc():
     # A point-sized particle flying through a small disc would cross it in one step.
     data = world(discs=[(1.0, 0.0, 0.05)])
-    x, y, dx, dy, vx, vy, bounced = _step._sweep(data, 0.0, 0.0, 2.0, 0.0, 60.0, 0.0, 0.01,
-                                                 1.0, 0.0, 1.0, False, 0.0, 1.0)
+    x, y, dx, dy, vx, vy, bounced = _step._sweep(
+        data, 0.0, 0.0, 2.0, 0.0, 60.0, 0.0, 0.01, 1.0, 0.0, 1.0, False, 0.0, 1.0
+    )
     assert bounced
-    assert vx < 0.0                               # reflected (cr = 1: elastic)
-    assert x + dx < 1.0 - 0.05                    # the end point is back in front of the disc
+    assert vx < 0.0  # reflected (cr = 1: elastic)
+    assert x + dx < 1.0 - 0.05  # the end point is back in front of the disc
 
 
 def test_borrow_all_keeps_values():
@@ -111,6 +119,7 @@ def test_borrow_all_keeps_values():
 # ---------------------------------------------------------------------------------------------
 # The whole kernel on the test world.
 
+
 def kernel_args(n, x, v, r=0.05, m=1.0, cr=0.5, cf=0.2):
     X = np.array(x, dtype=np.float64).reshape(n, 2).copy()
     V = np.array(v, dtype=np.float64).reshape(n, 2).copy()
@@ -118,12 +127,37 @@ def kernel_args(n, x, v, r=0.05, m=1.0, cr=0.5, cf=0.2):
     return X, V, full(m), full(r), full(cr), full(cf)
 
 
-def run_kernel(data, steps, X, V, M, R, CR, CF, dt=0.01, g=(0.0, -1.0), trace=True, skip=True,
-               block=7, explicit=False, always=False):
+def run_kernel(
+    data,
+    steps,
+    X,
+    V,
+    M,
+    R,
+    CR,
+    CF,
+    dt=0.01,
+    g=(0.0, -1.0),
+    trace=True,
+    skip=True,
+    block=7,
+    explicit=False,
+    always=False,
+):
     flags = np.zeros(X.shape[0], np.uint8)
     state = _step.State(X, V, M, R, CR, CF, np.zeros((0, 2)), flags, True)
-    physics = _step.Physics(dt=dt, t0=0.0, ax=g[0], ay=g[1], drag=0.0, use_m=False,
-                            use_ext=False, explicit=explicit, always=always, rest=0.0)
+    physics = _step.Physics(
+        dt=dt,
+        t0=0.0,
+        ax=g[0],
+        ay=g[1],
+        drag=0.0,
+        use_m=False,
+        use_ext=False,
+        explicit=explicit,
+        always=always,
+        rest=0.0,
+    )
     budget = _step.Budget(trace=trace, lip=1.0, margin=0.0, eps=2.2e-16, skip=skip)
     bad = _step.run_ser(data, state, physics, budget, steps, block)
     return bad, flags
@@ -145,21 +179,29 @@ def test_free_fall_is_semi_implicit_euler():
 def test_particles_come_to_rest_on_the_floor_of_the_test_world():
     n = 40
     rng = np.random.default_rng(3)
-    X, V, M, R, CR, CF = kernel_args(n, np.c_[rng.uniform(-1, 1, n), rng.uniform(0.2, 1, n)],
-                                     rng.normal(size=(n, 2)), cr=0.3, cf=0.5)
+    X, V, M, R, CR, CF = kernel_args(
+        n,
+        np.c_[rng.uniform(-1, 1, n), rng.uniform(0.2, 1, n)],
+        rng.normal(size=(n, 2)),
+        cr=0.3,
+        cf=0.5,
+    )
     run_kernel(FLOOR, 3000, X, V, M, R, CR, CF)
-    assert np.all(X[:, 1] - R >= -1e-4)                     # out of the floor
-    assert np.all(X[:, 1] - R <= 2e-3)                      # and resting on it
+    assert np.all(X[:, 1] - R >= -1e-4)  # out of the floor
+    assert np.all(X[:, 1] - R <= 2e-3)  # and resting on it
     assert np.all(np.abs(V[:, 1]) < 0.02)
 
 
 def test_grouping_of_steps_and_blocks_does_not_change_results():
     n = 30
     rng = np.random.default_rng(4)
-    data = world(planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
-                 discs=[(0.3, 0.4, 0.2)])
-    args = kernel_args(n, np.c_[rng.uniform(-1, 1, n), rng.uniform(0.5, 1.5, n)],
-                       rng.normal(size=(n, 2)))
+    data = world(
+        planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
+        discs=[(0.3, 0.4, 0.2)],
+    )
+    args = kernel_args(
+        n, np.c_[rng.uniform(-1, 1, n), rng.uniform(0.5, 1.5, n)], rng.normal(size=(n, 2))
+    )
     a = [arr.copy() for arr in args]
     b = [arr.copy() for arr in args]
     run_kernel(data, 60, *a, block=3)
@@ -188,28 +230,34 @@ def _mixed_state(seed, n=96):
     and bouncing among the test world's walls (the rest), with some invalid ones."""
     rng = np.random.default_rng(seed)
     k = n // 3
-    x = np.c_[rng.uniform(-1, 1, n), np.r_[rng.uniform(0.049, 0.051, k), rng.uniform(5, 6, k),
-                                           rng.uniform(0.1, 1.5, n - 2 * k)]]
+    x = np.c_[
+        rng.uniform(-1, 1, n),
+        np.r_[rng.uniform(0.049, 0.051, k), rng.uniform(5, 6, k), rng.uniform(0.1, 1.5, n - 2 * k)],
+    ]
     v = np.r_[rng.normal(scale=0.01, size=(k, 2)), rng.normal(size=(n - k, 2))]
     X, V, M, R, CR, CF = kernel_args(n, x, v)
     M[:] = rng.uniform(0.5, 2.0, n)
     R[:] = rng.uniform(0.02, 0.08, n)
     CR[:] = rng.uniform(0.0, 1.0, n)
     CF[:] = rng.uniform(0.0, 1.0, n)
-    X[5, 1] = math.nan                  # invalid input
-    CR[7] = 1.5                         # invalid cr, found at its first contact
+    X[5, 1] = math.nan  # invalid input
+    CR[7] = 1.5  # invalid cr, found at its first contact
     CF[n - 3] = -0.1
     return X, V, M, R, CR, CF
 
 
-@pytest.mark.parametrize("explicit, always, drag, ext", [
-    (False, False, 0.0, False), (True, True, 0.3, False), (False, False, 0.0, True)])
+@pytest.mark.parametrize(
+    "explicit, always, drag, ext",
+    [(False, False, 0.0, False), (True, True, 0.3, False), (False, False, 0.0, True)],
+)
 @pytest.mark.parametrize("block", [5, 64])
 def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, ext, block):
     # Without skipping and the tunnelling check, calls go to plain_ser/plain_par (a straight
     # and a batched step chosen by the contact count): bit-identical states, flags and counts.
-    data = world(planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
-                 discs=[(0.3, 0.4, 0.2)])
+    data = world(
+        planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
+        discs=[(0.3, 0.4, 0.2)],
+    )
     base = _mixed_state(11)
     n = base[0].shape[0]
     E = np.random.default_rng(2).normal(size=(n, 2)) if ext else np.zeros((0, 2))
@@ -219,16 +267,25 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
         flags = np.zeros(n, np.int32)
         # check_all off: cr, cf are checked at contacts
         state = _step.State(X, V, M, R, CR, CF, E, flags, False)
-        physics = _step.Physics(dt=0.01, t0=0.0, ax=0.0, ay=-1.0, drag=drag,
-                                use_m=drag != 0.0 or ext, use_ext=ext, explicit=explicit,
-                                always=always, rest=0.0)
+        physics = _step.Physics(
+            dt=0.01,
+            t0=0.0,
+            ax=0.0,
+            ay=-1.0,
+            drag=drag,
+            use_m=drag != 0.0 or ext,
+            use_ext=ext,
+            explicit=explicit,
+            always=always,
+            rest=0.0,
+        )
         budget = _step.Budget(trace=False, lip=1.0, margin=0.0, eps=2.2e-16, skip=False)
         bad = kernel(data, state, physics, budget, 40, block)
         out.append((X, V, flags, bad))
     ref = out[0]
     assert ref[2][5] == _step.FLAG_INPUT and ref[2][7] == _step.FLAG_COEFF
     assert ref[3] == np.count_nonzero(ref[2])
-    assert np.all(ref[1][: n // 3 - 1, 1] ** 2 < 1.0)      # the resting third stays in contact
+    assert np.all(ref[1][: n // 3 - 1, 1] ** 2 < 1.0)  # the resting third stays in contact
     for X, V, flags, bad in out[1:]:
         np.testing.assert_array_equal(X, ref[0])
         np.testing.assert_array_equal(V, ref[1])
@@ -243,10 +300,10 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
         sim = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=tunnelling)
         sim.force_generators.append(phys.Gravity())
         sim._skip = False
-        sim._simd = False          # (a grid world would take the block kernel, tested below)
+        sim._simd = False  # (a grid world would take the block kernel, tested below)
         sims.append(sim)
     sims[0].run(60)
-    assert sims[0]._module.plain_ser.signatures          # compiled and called
+    assert sims[0]._module.plain_ser.signatures  # compiled and called
     assert not sims[1]._module.plain_ser.signatures or sims[1]._module is sims[0]._module
     # the general kernel with the same switches gives the same state
     ref = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=False)
@@ -254,13 +311,23 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
     a = ref.p._arrays
     flags = np.zeros(300, np.int32)
     ax, ay, drag, _, _ = ref._fused_params()
-    ref._bind_fallback()                                   # no particle stops to bind it
+    ref._bind_fallback()  # no particle stops to bind it
     state = _step.State(*[a[k] for k in phys.Particles.FIELDS], np.zeros((0, 2)), flags, True)
-    physics = _step.Physics(dt=ref.dt, t0=0.0, ax=ax, ay=ay, drag=drag, use_m=False,
-                            use_ext=False, explicit=ref.integrator == "euler",
-                            always=ref.collision == "notebook", rest=0.0)
-    budget = _step.Budget(trace=False, lip=ref.lipschitz, margin=ref._margin, eps=2.2e-16,
-                          skip=False)
+    physics = _step.Physics(
+        dt=ref.dt,
+        t0=0.0,
+        ax=ax,
+        ay=ay,
+        drag=drag,
+        use_m=False,
+        use_ext=False,
+        explicit=ref.integrator == "euler",
+        always=ref.collision == "notebook",
+        rest=0.0,
+    )
+    budget = _step.Budget(
+        trace=False, lip=ref.lipschitz, margin=ref._margin, eps=2.2e-16, skip=False
+    )
     ref._module.run_ser(ref._bind(ref._data), state, physics, budget, 60, 512)
     assert not flags.any()
     np.testing.assert_array_equal(sims[0].p["x"], ref.p["x"])
@@ -269,6 +336,7 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
 
 # ---------------------------------------------------------------------------------------------
 # Generated kernels.
+
 
 def test_generated_kernel_is_the_step_module_with_one_scene_block():
     head, tail = phys._step_source()
@@ -290,15 +358,16 @@ def test_grid_kernel_does_not_depend_on_the_scene():
     for sim, grid in ((sa, a), (sb, b)):
         d, g = sim.query(pts[:, 0], pts[:, 1])
         de, ge = grid.exact(pts[2:, 0], pts[2:, 1], compute_gradient=True)
-        np.testing.assert_allclose(d[2:], de, rtol=1e-14)      # outside: the exact SDF
+        np.testing.assert_allclose(d[2:], de, rtol=1e-14)  # outside: the exact SDF
         np.testing.assert_allclose(g[2:], ge, rtol=1e-14)
-        dg, gg = grid(pts[:, 0], pts[:, 1], compute_gradient=True)   # the grid's own query
+        dg, gg = grid(pts[:, 0], pts[:, 1], compute_gradient=True)  # the grid's own query
         np.testing.assert_allclose(d, dg, rtol=1e-14)
         np.testing.assert_allclose(g, gg, rtol=1e-14)
 
 
 # ---------------------------------------------------------------------------------------------
 # Fused user forces.
+
 
 @njit
 def _wind(x, y, vx, vy, m, t):
@@ -346,6 +415,7 @@ def test_force_many_sums_the_fused_forces():
 # ---------------------------------------------------------------------------------------------
 # Clock and state.
 
+
 def test_clock_and_state_agree_after_an_invalid_particle():
     w = seed_world()
     good = phys.ParticleSimulation(w, n=20, seed=7)
@@ -362,8 +432,9 @@ def test_clock_and_state_agree_after_an_invalid_particle():
 
 
 def test_a_step_that_overflows_is_reported_and_not_carried():
-    sim = phys.ParticleSimulation(sdf.Halfspace([0, 1], -1.0), n=10, seed=0,
-                                  prevent_tunnelling=False)
+    sim = phys.ParticleSimulation(
+        sdf.Halfspace([0, 1], -1.0), n=10, seed=0, prevent_tunnelling=False
+    )
     sim.force_generators.append(phys.Gravity())
     x0 = sim.p["x"].copy()
     sim.dt = 1e300
@@ -385,9 +456,10 @@ def test_timestep_is_validated_on_assignment(dt):
 
 def test_field_forces_from_expressions_equal_their_numpy_forms():
     from fastsdf.expr.graph import Symbol, sym_sqrt
+
     x, y = Symbol("x"), Symbol("y")
     rr = sym_sqrt(x * x + y * y + 0.01)
-    attractor = phys.FieldForce(potential=-0.5 / rr, per_mass=True)     # -grad U = -0.5 p / rr^3
+    attractor = phys.FieldForce(potential=-0.5 / rr, per_mass=True)  # -grad U = -0.5 p / rr^3
     swirl = phys.FieldForce(-y * 0.3, x * 0.3)
     w = sdf.Halfspace([0, 1], -1.8)
     fused = phys.ParticleSimulation(w, n=300, seed=8)
@@ -435,7 +507,7 @@ def test_lazy_exact_fallback_gives_the_same_trajectories(n):
         s.force_generators.append(phys.Gravity())
         s.p["x"] = x
         s.p["v"] = 0.0
-    lazy.run(3)                    # nobody comes near the edge yet: nothing compiled
+    lazy.run(3)  # nobody comes near the edge yet: nothing compiled
     eager.run(3)
     assert lazy._exact_ptr is None
     for s in (lazy, eager):
@@ -443,7 +515,7 @@ def test_lazy_exact_fallback_gives_the_same_trajectories(n):
     lazy.run(40)
     eager.run(40)
     assert lazy._exact_ptr is not None
-    assert np.any(np.abs(eager.p["x"]) > 1.0)            # some did leave the grid
+    assert np.any(np.abs(eager.p["x"]) > 1.0)  # some did leave the grid
     np.testing.assert_array_equal(lazy.p["x"], eager.p["x"])
     np.testing.assert_array_equal(lazy.p["v"], eager.p["v"])
     assert lazy.t == eager.t
@@ -455,9 +527,11 @@ def test_fields_evaluated_ahead_give_the_results_of_inline_forces():
     # The two orders of work must give bit-identical trajectories (with contacts, a particle
     # count that is not a multiple of the batch, and the parallel kernel).
     from fastsdf.expr.graph import Symbol, sym_sqrt
+
     x, y = Symbol("x"), Symbol("y")
-    field = phys.FieldForce(potential=-0.02 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1),
-                            per_mass=True)
+    field = phys.FieldForce(
+        potential=-0.02 / sym_sqrt(x * x + (y + 1.0) * (y + 1.0) + 0.1), per_mass=True
+    )
     dispatch = field.dispatcher
 
     @njit
@@ -488,11 +562,14 @@ def test_a_users_force_keeps_numbas_own_cache_format(tmp_path, monkeypatch):
     import types
 
     from fastsdf.backends.kernel import cache as _cache
+
     (tmp_path / "user_force_mod.py").write_text(
         "from numba import njit\n\n\n@njit(cache=True)\n"
-        "def push(x, y, vx, vy, m, t):\n    return 0.1 * m, 0.0\n")
+        "def push(x, y, vx, vy, m, t):\n    return 0.1 * m, 0.0\n"
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     import user_force_mod
+
     own = sdf.GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[10j, 10j]).sampler
     fake = types.ModuleType("fastsdf_particles_fake")
     fake._uf0 = user_force_mod.push
@@ -505,6 +582,7 @@ def test_a_users_force_keeps_numbas_own_cache_format(tmp_path, monkeypatch):
 
 # ---------------------------------------------------------------------------------------------
 # Resting contact and sleeping.
+
 
 def _tilted_floor(angle):
     """Solid below a plane through the origin tilted by ``angle`` (radians)."""
@@ -525,15 +603,15 @@ def test_resting_contact_holds_below_the_friction_angle(angle, rests):
     speed = np.hypot(*sim.p["v"].T)
     if rests:
         assert np.all(speed == 0.0)
-        np.testing.assert_array_equal(sim.p["x"], before["x"])   # an exact fixed point
+        np.testing.assert_array_equal(sim.p["x"], before["x"])  # an exact fixed point
         # resting on the plane, within rest_speed dt + g dt**2 of touching it
         n = np.array([-math.sin(angle), math.cos(angle)])
         gap = sim.p["x"] @ n - sim.p["r"]
-        assert np.all(gap > -1e-9) and np.all(gap <= 0.1 * sim.dt + sim.dt ** 2 + 1e-9)
+        assert np.all(gap > -1e-9) and np.all(gap <= 0.1 * sim.dt + sim.dt**2 + 1e-9)
     else:
         # sliding down at the contact model's terminal speed ((1 - cf) g_t dt / cf, 0.03)
         assert np.all(speed > 0.02)
-        assert np.all(sim.p["x"][:, 0] < before["x"][:, 0])   # down the slope, towards -x
+        assert np.all(sim.p["x"][:, 0] < before["x"][:, 0])  # down the slope, towards -x
 
 
 def test_sleeping_particles_give_the_results_of_single_steps():
@@ -552,7 +630,7 @@ def test_sleeping_particles_give_the_results_of_single_steps():
         other.advance()
     np.testing.assert_array_equal(sim.p["x"], other.p["x"])
     np.testing.assert_array_equal(sim.p["v"], other.p["v"])
-    assert np.mean(np.all(sim.p["v"] == 0.0, axis=1)) > 0.3     # many did sleep
+    assert np.mean(np.all(sim.p["v"] == 0.0, axis=1)) > 0.3  # many did sleep
 
 
 @pytest.mark.parametrize("bad", [-0.1, math.nan, math.inf])
@@ -563,6 +641,7 @@ def test_rest_speed_is_validated(bad):
 
 # ---------------------------------------------------------------------------------------------
 # The block kernel of grid worlds (simd_ser/simd_par) against the particle-by-particle kernels.
+
 
 @njit(cache=True)
 def _gust(x, y, vx, vy, m, t):
@@ -583,10 +662,12 @@ def _block_pair(grid, n, seed, block, forces=(), **kw):
     k = n // 4
     # resting on the floor of the seed world's funnel, falling, fast across the scene, and
     # beyond the grid's bounds (the exact fallback, or the clamped answer for 'nearest')
-    x = np.r_[np.c_[rng.uniform(-0.3, 0.3, k), rng.uniform(-1.0, -0.5, k)],
-              np.c_[rng.normal(0, 0.3, k), rng.uniform(0.5, 1.8, k)],
-              np.c_[rng.uniform(-1.8, 1.8, k), rng.uniform(-1.8, 1.8, k)],
-              np.c_[rng.uniform(1.9, 2.6, n - 3 * k), rng.uniform(-2.5, 2.5, n - 3 * k)]]
+    x = np.r_[
+        np.c_[rng.uniform(-0.3, 0.3, k), rng.uniform(-1.0, -0.5, k)],
+        np.c_[rng.normal(0, 0.3, k), rng.uniform(0.5, 1.8, k)],
+        np.c_[rng.uniform(-1.8, 1.8, k), rng.uniform(-1.8, 1.8, k)],
+        np.c_[rng.uniform(1.9, 2.6, n - 3 * k), rng.uniform(-2.5, 2.5, n - 3 * k)],
+    ]
     v = np.r_[rng.normal(scale=0.05, size=(2 * k, 2)), rng.normal(scale=4.0, size=(n - 2 * k, 2))]
     for sim in sims:
         sim.p["x"] = x
@@ -614,20 +695,24 @@ def _run_pair(sims, calls, steps):
         assert sims[0].t == sims[1].t
 
 
-@pytest.mark.parametrize("tunnelling, skip, extra", [
-    (False, False, {}),                                     # the peers' work
-    (True, True, {}),                                       # the defaults
-    (True, False, {"integrator": "euler", "collision": "notebook"}),
-    (False, True, {})])
+@pytest.mark.parametrize(
+    "tunnelling, skip, extra",
+    [
+        (False, False, {}),  # the peers' work
+        (True, True, {}),  # the defaults
+        (True, False, {"integrator": "euler", "collision": "notebook"}),
+        (False, True, {}),
+    ],
+)
 @pytest.mark.parametrize("block", [100, 300])
 def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra, block):
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
     sims = _block_pair(g, 1000, 3, block, prevent_tunnelling=tunnelling, **extra)
     for sim in sims:
         sim._skip = skip
-        sim.p["x"][7] = math.nan            # invalid input: frozen, flagged, left as it is
+        sim.p["x"][7] = math.nan  # invalid input: frozen, flagged, left as it is
         sim.p["v"][8] = math.inf
-        sim.p["cr"][:40] = 1.5              # invalid cr, found at a contact
+        sim.p["cr"][:40] = 1.5  # invalid cr, found at a contact
     sims[0].force_generators.append(phys.Drag(0.2))
     sims[1].force_generators.append(phys.Drag(0.2))
     _run_pair(sims, 3, 30)
@@ -662,16 +747,20 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
         return kernel
 
     monkeypatch.setattr(phys.ParticleSimulation, "_pick_kernel", spy)
-    cases = [({}, "simd_ser"), ({"prevent_tunnelling": False}, "simd_ser"),
-             ({"rest_speed": 0.1}, "run_ser"), ({"dtype": np.float32}, "run_ser")]
+    cases = [
+        ({}, "simd_ser"),
+        ({"prevent_tunnelling": False}, "simd_ser"),
+        ({"rest_speed": 0.1}, "run_ser"),
+        ({"dtype": np.float32}, "run_ser"),
+    ]
     for kw, name in cases:
         picked.clear()
         sim = phys.ParticleSimulation(g, n=200, seed=2, **kw)
         sim.force_generators.append(phys.Gravity())
         sim.run(2)
-        assert set(picked) == {name}      # (twice where particles resume at the edge)
+        assert set(picked) == {name}  # (twice where particles resume at the edge)
     picked.clear()
-    sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))   # a Python force
+    sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))  # a Python force
     sim.run(1)
     assert set(picked) == {"run_ser"}
     # an exact-SDF world has no block kernel

@@ -43,8 +43,10 @@ def assert_same_bits(a, b):
     assert a.shape == b.shape
     same = (a.view(np.int64) == b.view(np.int64)) | (np.isnan(a) & np.isnan(b))
     bad = np.argwhere(~same)
-    assert same.all(), (f"{len(bad)} of {a.size} differ, e.g. at {bad[:3].tolist()}: "
-                        f"{a[~same][:3].tolist()} vs {b[~same][:3].tolist()}")
+    assert same.all(), (
+        f"{len(bad)} of {a.size} differ, e.g. at {bad[:3].tolist()}: "
+        f"{a[~same][:3].tolist()} vs {b[~same][:3].tolist()}"
+    )
 
 
 def assert_agree(f, p, backends=("tape", "numpy"), **params):
@@ -72,14 +74,23 @@ def assert_agree(f, p, backends=("tape", "numpy"), **params):
 
 def _every_primitive():
     with sdf.transform(angle=0.4, offset=[0.3, -0.2]):
-        shapes = [sdf.Circle([0.1, 0.2], 0.5), sdf.Halfspace([0.3, 1], -1.5),
-                  sdf.Box([-0.4, -0.2], [0.3, 0.5]), sdf.Segment([0, 0], [1, 0.5]),
-                  sdf.Capsule([0, 0], [1, 0.3], 0.2), sdf.RoundedBox([-1, -0.5], [0.5, 0.2], 0.1),
-                  sdf.OrientedBox([-1, 0], [1, 0.4], 0.3), sdf.Triangle(),
-                  sdf.RegularPolygon([0.2, 0], 0.8, 7), sdf.EquilateralTriangle([0, 0.1], 0.6),
-                  sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]]),
-                  sdf.Star([0.1, 0], 1.0, 5), sdf.Ellipse([0.1, 0.2], [0.9, 0.3]),
-                  sdf.Ring([0.3, 0], 0.5, 0.1), sdf.Arc()]
+        shapes = [
+            sdf.Circle([0.1, 0.2], 0.5),
+            sdf.Halfspace([0.3, 1], -1.5),
+            sdf.Box([-0.4, -0.2], [0.3, 0.5]),
+            sdf.Segment([0, 0], [1, 0.5]),
+            sdf.Capsule([0, 0], [1, 0.3], 0.2),
+            sdf.RoundedBox([-1, -0.5], [0.5, 0.2], 0.1),
+            sdf.OrientedBox([-1, 0], [1, 0.4], 0.3),
+            sdf.Triangle(),
+            sdf.RegularPolygon([0.2, 0], 0.8, 7),
+            sdf.EquilateralTriangle([0, 0.1], 0.6),
+            sdf.Polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.3], [0, 1]]),
+            sdf.Star([0.1, 0], 1.0, 5),
+            sdf.Ellipse([0.1, 0.2], [0.9, 0.3]),
+            sdf.Ring([0.3, 0], 0.5, 0.1),
+            sdf.Arc(),
+        ]
     return shapes
 
 
@@ -100,8 +111,9 @@ def test_every_primitive_kind(i):
     p = _points(700, i)
     assert_matches_reference(s, p)
     with sdf.smoothness(6):
-        assert_matches_reference((s.round(0.05) | sdf.Circle([1, 1], 0.3))
-                                 - s.shell(0.02).rotate(0.3), p)
+        assert_matches_reference(
+            (s.round(0.05) | sdf.Circle([1, 1], 0.3)) - s.shell(0.02).rotate(0.3), p
+        )
 
 
 def test_every_primitive_kind_against_the_kernel():
@@ -114,8 +126,10 @@ def test_every_primitive_kind_against_the_kernel():
     assert_agree(f, _points(3000, 99))
 
 
-@pytest.mark.parametrize("scene", [seed_world, lambda: box_world(20), _long_straight_line_scene,
-                                   lambda: _unstructured_scene(3)])
+@pytest.mark.parametrize(
+    "scene",
+    [seed_world, lambda: box_world(20), _long_straight_line_scene, lambda: _unstructured_scene(3)],
+)
 def test_worlds(scene):
     """Folded loops over tables (box worlds), long straight-line scenes, block kernels with
     folded primitives: several blocks and a ragged last one."""
@@ -124,10 +138,16 @@ def test_worlds(scene):
         assert_agree(f, _points(n, n))
 
 
-@settings(max_examples=6, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(prims=st.lists(placed, min_size=1, max_size=30),
-       ops=st.lists(operation, min_size=0, max_size=30))
+@settings(
+    max_examples=6,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(
+    prims=st.lists(placed, min_size=1, max_size=30),
+    ops=st.lists(operation, min_size=0, max_size=30),
+)
 def test_random_scenes(prims, ops):
     """Random circles, half-spaces and boxes, transformed, combined by hard and exponential
     unions, intersections and differences (the scene builder of test_codegen)."""
@@ -143,8 +163,11 @@ def _circles(n, seed=3):
     return f
 
 
-@pytest.mark.parametrize("scene", [seed_world, lambda: box_world(20), lambda: _circles(200)],
-                         ids=["seed world", "20-box world", "200 circles"])
+@pytest.mark.parametrize(
+    "scene",
+    [seed_world, lambda: box_world(20), lambda: _circles(200)],
+    ids=["seed world", "20-box world", "200 circles"],
+)
 def test_bench_scenes_give_the_kernels_bits(scene):
     """The bench scenes (a hard union of 200 primitives is a combine program in the kernel) on
     points spread over the scene, several blocks: the tape's bits are the kernel's."""
@@ -161,13 +184,25 @@ def _blend(a, b, op, kind, k):
     return a.difference(b, k=k, kind=kind)
 
 
-@settings(max_examples=3, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(prims=st.lists(placed, min_size=2, max_size=16),
-       ops=st.lists(st.tuples(st.sampled_from(["|", "&", "-"]),
-                              st.sampled_from(["exponential", "quadratic", "cubic"]),
-                              st.floats(0.02, 0.5), st.integers(0, 10 ** 6)), max_size=16),
-       chain=st.sampled_from(["quadratic", "cubic", "exponential"]))
+@settings(
+    max_examples=3,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(
+    prims=st.lists(placed, min_size=2, max_size=16),
+    ops=st.lists(
+        st.tuples(
+            st.sampled_from(["|", "&", "-"]),
+            st.sampled_from(["exponential", "quadratic", "cubic"]),
+            st.floats(0.02, 0.5),
+            st.integers(0, 10**6),
+        ),
+        max_size=16,
+    ),
+    chain=st.sampled_from(["quadratic", "cubic", "exponential"]),
+)
 def test_random_blend_scenes_give_the_kernels_bits(prims, ops, chain):
     """Random scenes of every blend kind (exponential, quadratic, cubic) between random pairs,
     the rest joined by one left fold of blends (folded into loops where four neighbours share
@@ -193,10 +228,15 @@ def test_loop_members_with_nested_chains_and_zero_gradient_components():
     rng = np.random.default_rng(4)
     members = []
     for _ in range(6):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness(6.0):
-            members.append(sdf.Circle([0, 0], 0.2) | sdf.Box([-0.2, -0.1], [0.1, 0.2])
-                           | sdf.Circle([0.2, 0], 0.1))
+        with (
+            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            sdf.smoothness(6.0),
+        ):
+            members.append(
+                sdf.Circle([0, 0], 0.2)
+                | sdf.Box([-0.2, -0.1], [0.1, 0.2])
+                | sdf.Circle([0.2, 0], 0.1)
+            )
     hard = members[0]
     for m in members[1:]:
         hard = hard | m
@@ -211,8 +251,12 @@ def test_loop_members_with_nested_chains_and_zero_gradient_components():
 
 
 @settings(max_examples=3, deadline=None, derandomize=True)
-@given(n=st.integers(8, 30), kind=st.sampled_from(["exponential", "quadratic", "cubic", "hard"]),
-       union=st.booleans(), seed=st.integers(0, 1000))
+@given(
+    n=st.integers(8, 30),
+    kind=st.sampled_from(["exponential", "quadratic", "cubic", "hard"]),
+    union=st.booleans(),
+    seed=st.integers(0, 1000),
+)
 def test_chains_and_polynomial_blends(n, kind, union, seed):
     """Long chains (folded into loops in the kernel: the tape follows its operand order and
     start), polynomial blends between random primitive kinds."""
@@ -220,27 +264,37 @@ def test_chains_and_polynomial_blends(n, kind, union, seed):
     f = sdf.Halfspace([0, 1], -1.8) if union else sdf.Circle([0, 0], 2.4)
     for _ in range(n):
         with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)):
-            shape = sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2)) \
-                if rng.random() < 0.5 else sdf.Circle(rng.uniform(-0.2, 0.2, 2),
-                                                      rng.uniform(0.05, 0.3))
+            shape = (
+                sdf.Box(-rng.uniform(0.05, 0.3, 2), rng.uniform(0.05, 0.3, 2))
+                if rng.random() < 0.5
+                else sdf.Circle(rng.uniform(-0.2, 0.2, 2), rng.uniform(0.05, 0.3))
+            )
         if kind == "hard":
             f = f | shape if union else f & sdf.Circle([0, 0], 2.5) - shape
         elif kind == "exponential":
             with sdf.smoothness(float(rng.uniform(2, 30))):
                 f = f | shape if union else f - shape
         else:
-            f = f.union(shape, k=0.1, kind=kind) if union else \
-                f.intersection(shape.rotate(0.2), k=0.05, kind=kind)
+            f = (
+                f.union(shape, k=0.1, kind=kind)
+                if union
+                else f.intersection(shape.rotate(0.2), k=0.05, kind=kind)
+            )
     assert_agree(f, _points(600, seed))
 
 
 def test_elementary_operations_against_numpy():
     """Operations the shapes rarely produce (pow, exp, log, sin, floor, select, division), by
     the NumPy reference of the op table."""
-    e = (sdf.sym_exp(-X * X) * sdf.sym_sin(3 * Y) + sdf.sym_log(1.5 + sdf.sym_cos(X * Y))
-         + (X * X + 2.0) ** (0.5 + 0.1 * Y) / (3.0 + sdf.sym_abs(Y)) + X ** 3
-         + 1.0 / (2.0 + X * X) + cg.sym_floor(X) * 0.1
-         + cg.sym_select(X - Y, X * Y, sdf.sym_sqrt(X * X + 1.0)))
+    e = (
+        sdf.sym_exp(-X * X) * sdf.sym_sin(3 * Y)
+        + sdf.sym_log(1.5 + sdf.sym_cos(X * Y))
+        + (X * X + 2.0) ** (0.5 + 0.1 * Y) / (3.0 + sdf.sym_abs(Y))
+        + X**3
+        + 1.0 / (2.0 + X * X)
+        + cg.sym_floor(X) * 0.1
+        + cg.sym_select(X - Y, X * Y, sdf.sym_sqrt(X * X + 1.0))
+    )
     f = sdf.Function(e, [X, Y])
     p = _points(900, 1)
     d, g = assert_agree(f, p)
@@ -256,9 +310,11 @@ def test_runtime_parameters_are_inputs():
     with sdf.transform(angle=a, offset=[0.1, 0.2]):
         bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
     ball = sdf.Circle(center=[px, 0.4], radius=r).translate([0.0, 0.5 * sdf.t])
-    f = bar.union(ball, k=k, kind="quadratic").round(0.05) | \
-        sdf.Halfspace(normal=[0, 1], d=-1.5).union(bar.rotate(a), k=10 * k) | \
-        sdf.Ellipse([0, 0], [r + 0.5, 0.2])
+    f = (
+        bar.union(ball, k=k, kind="quadratic").round(0.05)
+        | sdf.Halfspace(normal=[0, 1], d=-1.5).union(bar.rotate(a), k=10 * k)
+        | sdf.Ellipse([0, 0], [r + 0.5, 0.2])
+    )
     p = _points(500, 7)
     assert_agree(f, p)
     tape = f.compiled.tape
@@ -288,6 +344,7 @@ def test_instructions_are_deduplicated_and_registers_reused():
 @pytest.mark.default_backend
 def test_backend_switch_and_errors(monkeypatch):
     from fastsdf import function
+
     f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
     p = _points(300, 3)
     with pytest.raises(ValueError, match="backend"):
@@ -318,8 +375,10 @@ def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bit
     a = Param("a", 0.3)
     f = sdf.Halfspace([0, 1], -1.8)
     for _ in range(3):
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness(float(rng.uniform(1, 9))):
+        with (
+            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            sdf.smoothness(float(rng.uniform(1, 9))),
+        ):
             f = f | sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
     f = f.union(sdf.Circle([a, 0.2], 0.3), k=0.2, kind="quadratic")
     p = _points(3000, 4)
@@ -343,8 +402,10 @@ def test_auto_backend_answers_then_switches_to_the_kernel():
     rng = np.random.default_rng(11)
     f = sdf.Halfspace([0, 1], -1.8)
     for _ in range(7):  # a scene of its own (not in the kernel cache of an earlier test)
-        with sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                sdf.smoothness(float(rng.uniform(1, 9))):
+        with (
+            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            sdf.smoothness(float(rng.uniform(1, 9))),
+        ):
             f = f | sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
     p = _points(5000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, backend="auto")

@@ -50,44 +50,75 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="fastsdf",
         description="fastsdf: 2D signed distance functions compiled to parallel machine code, "
-                    "and particles colliding with them.")
+        "and particles colliding with them.",
+    )
     parser.add_argument("--version", action="version", version=f"fastsdf {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
-                                parser_class=_Parser)
+    sub = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", parser_class=_Parser
+    )
     demo = sub.add_parser(
-        "demo", help="simulate particles in one of the notebook's worlds; write a video and a PNG",
+        "demo",
+        help="simulate particles in one of the notebook's worlds; write a video and a PNG",
         description="Build one of the notebook's worlds, sample it into a GridSDF (or query it "
-                    "exactly), spawn particles in free space, let them fall under gravity with "
-                    "the fused compiled step, and write a video and a PNG of the last frame. "
-                    "Prints what it simulated, the rate, and why the rate is what it is.")
-    demo.add_argument("--world", choices=sorted(WORLDS), default="seed",
-                      help="'seed': the funnel and a cut disc (cell 21), the scene of the "
-                           "README's headline figures; 'boxes': the notebook's final world, the "
-                           "funnel and 20 random boxes (cell 13), slower: its exact SDF, which "
-                           "answers queries outside the grid, costs over 100 grid queries "
-                           "(default: seed)")
-    demo.add_argument("--mode", choices=("exact", "nearest"), default="exact",
-                      help="what the grid answers outside its bounds: 'exact' asks the exact "
-                           "compiled SDF (right distances, slower), 'nearest' clamps to the "
-                           "grid's edge like the notebook (default: exact)")
-    demo.add_argument("--particles", type=_positive_int, default=1_000_000,
-                      help="number of particles (default 1000000; 1e6 is accepted)")
-    demo.add_argument("--steps", type=_positive_int, default=300,
-                      help="time steps of 1/30 s (default 300)")
-    demo.add_argument("--grid", type=_grid_size, default=400,
-                      help="GridSDF samples per axis, >= 2 (default 400)")
-    demo.add_argument("--exact", action="store_true",
-                      help="query the exact compiled SDF instead of a GridSDF")
+        "exactly), spawn particles in free space, let them fall under gravity with "
+        "the fused compiled step, and write a video and a PNG of the last frame. "
+        "Prints what it simulated, the rate, and why the rate is what it is.",
+    )
+    demo.add_argument(
+        "--world",
+        choices=sorted(WORLDS),
+        default="seed",
+        help="'seed': the funnel and a cut disc (cell 21), the scene of the "
+        "README's headline figures; 'boxes': the notebook's final world, the "
+        "funnel and 20 random boxes (cell 13), slower: its exact SDF, which "
+        "answers queries outside the grid, costs over 100 grid queries "
+        "(default: seed)",
+    )
+    demo.add_argument(
+        "--mode",
+        choices=("exact", "nearest"),
+        default="exact",
+        help="what the grid answers outside its bounds: 'exact' asks the exact "
+        "compiled SDF (right distances, slower), 'nearest' clamps to the "
+        "grid's edge like the notebook (default: exact)",
+    )
+    demo.add_argument(
+        "--particles",
+        type=_positive_int,
+        default=1_000_000,
+        help="number of particles (default 1000000; 1e6 is accepted)",
+    )
+    demo.add_argument(
+        "--steps", type=_positive_int, default=300, help="time steps of 1/30 s (default 300)"
+    )
+    demo.add_argument(
+        "--grid", type=_grid_size, default=400, help="GridSDF samples per axis, >= 2 (default 400)"
+    )
+    demo.add_argument(
+        "--exact", action="store_true", help="query the exact compiled SDF instead of a GridSDF"
+    )
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    demo.add_argument("--frames", type=_positive_int, default=DEFAULT_FRAMES,
-                      help=f"video frames, at most --steps (default {DEFAULT_FRAMES})")
-    demo.add_argument("--fps", type=_positive_int, default=DEFAULT_FPS,
-                      help=f"video frames per second (default {DEFAULT_FPS})")
+    demo.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=DEFAULT_FRAMES,
+        help=f"video frames, at most --steps (default {DEFAULT_FRAMES})",
+    )
+    demo.add_argument(
+        "--fps",
+        type=_positive_int,
+        default=DEFAULT_FPS,
+        help=f"video frames per second (default {DEFAULT_FPS})",
+    )
     demo.add_argument("--no-animation", action="store_true", help="write only the last frame")
     demo.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
-    demo.add_argument("--workers", type=_positive_int, default=None,
-                      help="run the particles on a local Dask cluster of this many worker "
-                           "processes (needs the 'distributed' extra)")
+    demo.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=None,
+        help="run the particles on a local Dask cluster of this many worker "
+        "processes (needs the 'distributed' extra)",
+    )
     parser._demo = demo  # for errors found after parsing (they name the demo's usage)
     return parser
 
@@ -100,25 +131,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "demo":
         demo = parser._demo
         if args.frames > args.steps and not args.no_animation:
-            demo.error(f"--frames {args.frames} is more than --steps {args.steps} (every frame "
-                       f"advances at least one step)")
+            demo.error(
+                f"--frames {args.frames} is more than --steps {args.steps} (every frame "
+                f"advances at least one step)"
+            )
         from fastsdf.apps.demo import check_output_dir, run_demo, summary
+
         extra = {}
         runner: Callable[..., Any] = run_demo
         if args.workers:
             from fastsdf.apps.distributed import run_demo as run_distributed_demo
+
             runner = run_distributed_demo
             extra["workers"] = args.workers
         try:
             check_output_dir(args.out)
         except OSError as exc:
-            demo.error(f"--out {args.out!r} is not a writable folder: "
-                       f"{exc.strerror or exc}")
+            demo.error(f"--out {args.out!r} is not a writable folder: {exc.strerror or exc}")
         try:
-            res = runner(particles=args.particles, steps=args.steps, grid=args.grid,
-                         exact=args.exact, seed=args.seed, out=args.out, frames=args.frames,
-                         fps=args.fps, world=args.world, mode=args.mode,
-                         animate=not args.no_animation, **extra)
+            res = runner(
+                particles=args.particles,
+                steps=args.steps,
+                grid=args.grid,
+                exact=args.exact,
+                seed=args.seed,
+                out=args.out,
+                frames=args.frames,
+                fps=args.fps,
+                world=args.world,
+                mode=args.mode,
+                animate=not args.no_animation,
+                **extra,
+            )
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))

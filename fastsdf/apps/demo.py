@@ -23,8 +23,17 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["DemoResult", "run_demo", "summary", "check_output_dir", "spawn_in_free_space",
-           "WORLDS", "BOUNDS", "DEFAULT_FRAMES", "DEFAULT_FPS"]
+__all__ = [
+    "DemoResult",
+    "run_demo",
+    "summary",
+    "check_output_dir",
+    "spawn_in_free_space",
+    "WORLDS",
+    "BOUNDS",
+    "DEFAULT_FRAMES",
+    "DEFAULT_FPS",
+]
 
 #: The region the grid samples and the pictures show (data units).
 BOUNDS = ((-2.0, 2.0), (-2.0, 2.0))
@@ -37,20 +46,28 @@ VIDEO_SIZE = (640, 560)
 
 def _boxes() -> Any:
     from fastsdf.shapes.scenes import box_world
+
     return box_world(20, seed=0)
 
 
 def _seed() -> Any:
     from fastsdf.shapes.scenes import seed_world
+
     return seed_world()
 
 
 #: The demo's worlds: name -> (builder, description).
 WORLDS: dict[str, tuple[Callable[[], Any], str]] = {
-    "boxes": (_boxes, "the notebook's final world (cell 13): the funnel and 20 random rotated "
-                      "boxes, smoothness 5"),
-    "seed": (_seed, "the seed world (cell 21): the funnel and a cut disc, smoothness 10; the "
-                    "scene of the README's headline figures"),
+    "boxes": (
+        _boxes,
+        "the notebook's final world (cell 13): the funnel and 20 random rotated "
+        "boxes, smoothness 5",
+    ),
+    "seed": (
+        _seed,
+        "the seed world (cell 21): the funnel and a cut disc, smoothness 10; the "
+        "scene of the README's headline figures",
+    ),
 }
 
 
@@ -143,10 +160,13 @@ def _frame_schedule(steps: int, frames: int) -> list[int]:
 
 def _video_writer_ext(err: IO[str]) -> str:
     from fastsdf.viz.video import ffmpeg_available
+
     if ffmpeg_available():
         return ".mp4"
-    err.write("note: no ffmpeg found (pip install 'fastsdf[video]' provides one): writing a GIF "
-              "instead of an MP4\n")
+    err.write(
+        "note: no ffmpeg found (pip install 'fastsdf[video]' provides one): writing a GIF "
+        "instead of an MP4\n"
+    )
     return ".gif"
 
 
@@ -162,8 +182,9 @@ def _load() -> float | None:
         return None
 
 
-def _timed_advance(sim: Any, k: int, timing: dict[str, Any], outside_share: Callable[[], float]
-                   ) -> None:
+def _timed_advance(
+    sim: Any, k: int, timing: dict[str, Any], outside_share: Callable[[], float]
+) -> None:
     """Advance ``sim`` by ``k`` steps, keeping the demo's timing record: the first call, which
     compiles (or loads) the kernel, is timed apart from the rest; ``outside_share()`` is the
     share of particles outside the grid now, standing for the steps before it."""
@@ -183,6 +204,7 @@ def _timed_advance(sim: Any, k: int, timing: dict[str, Any], outside_share: Call
         timing["rest"] += time.perf_counter() - t0
         timing["outside"] += k * outside_share()
         timing["steps"] += k
+
 
 def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
     """Time of one exact query over one grid query (value and gradient, same points)."""
@@ -204,10 +226,20 @@ def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
     return exact / sampled if sampled > 0 else float("nan")
 
 
-def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exact: bool = False,
-             seed: int = 0, out: str = "demo-out", frames: int = DEFAULT_FRAMES,
-             fps: int = DEFAULT_FPS, animate: bool = True, world: str = "seed",
-             mode: str = "exact", stream: IO[str] | None = None) -> DemoResult:
+def run_demo(
+    particles: int = 1_000_000,
+    steps: int = 300,
+    grid: int = 400,
+    exact: bool = False,
+    seed: int = 0,
+    out: str = "demo-out",
+    frames: int = DEFAULT_FRAMES,
+    fps: int = DEFAULT_FPS,
+    animate: bool = True,
+    world: str = "seed",
+    mode: str = "exact",
+    stream: IO[str] | None = None,
+) -> DemoResult:
     """Simulate ``particles`` particles for ``steps`` steps (1/30 s each) in a notebook world.
 
     ``world``: a key of :data:`WORLDS` (``'seed'``, the default, or ``'boxes'``). ``grid``: the
@@ -221,6 +253,7 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
     Raises ``ValueError`` naming a bad parameter, ``OSError`` if ``out`` cannot be written.
     """
     import matplotlib
+
     matplotlib.use("Agg")
 
     from fastsdf.fields.grid import GridSDF, measure_error
@@ -229,8 +262,13 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
     from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
-    for name, value, low in (("particles", particles, 1), ("steps", steps, 1), ("grid", grid, 2),
-                             ("frames", frames, 1), ("fps", fps, 1)):
+    for name, value, low in (
+        ("particles", particles, 1),
+        ("steps", steps, 1),
+        ("grid", grid, 2),
+        ("frames", frames, 1),
+        ("fps", fps, 1),
+    ):
         if isinstance(value, bool) or int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
     if world not in WORLDS:
@@ -239,8 +277,10 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
         raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
     particles, steps, frames = int(particles), int(steps), int(frames)
     if animate and frames > steps:
-        raise ValueError(f"frames must be at most steps (every frame advances at least one step), "
-                         f"got frames={frames}, steps={steps}")
+        raise ValueError(
+            f"frames must be at most steps (every frame advances at least one step), "
+            f"got frames={frames}, steps={steps}"
+        )
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
 
@@ -284,36 +324,55 @@ def run_demo(particles: int = 1_000_000, steps: int = 300, grid: int = 400, exac
             # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames).
             # One colour scale for the whole video: the pile on the funnel's floor reaches
             # about a thousandth of the particles in one pixel by the end.
-            with VideoWriter(animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps,
-                             vmax=max(10.0, particles / 1000), title=label.rstrip(", ")) \
-                    as writer:
+            with VideoWriter(
+                animation_path,
+                f,
+                BOUNDS,
+                size=VIDEO_SIZE,
+                fps=fps,
+                vmax=max(10.0, particles / 1000),
+                title=label.rstrip(", "),
+            ) as writer:
                 for k in schedule:
                     advance(k)
                     writer.add_simulation(sim)
         else:
             fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
-            anim = _animate(sim, ax, frames, schedule, advance=advance, title=label,
-                            colorbar=cax, bounds=BOUNDS)
+            anim = _animate(
+                sim, ax, frames, schedule, advance=advance, title=label, colorbar=cax, bounds=BOUNDS
+            )
             save_animation(anim, animation_path, fps=fps)
     advance(steps - timing["steps"])
     x = sim.p["x"]
     last = os.path.join(out, "last_frame.png")
-    render_frame(f, x[:, 0], x[:, 1], r=sim.p["r"], bounds=BOUNDS, out_png=last,
-                 title=sim_title(sim, label))
+    render_frame(
+        f, x[:, 0], x[:, 1], r=sim.p["r"], bounds=BOUNDS, out_png=last, title=sim_title(sim, label)
+    )
     # Penetration against the SDF the particles actually collided with (the grid's own error
     # against the exact world is reported separately).
     d = sdf(x[:, 0], x[:, 1]) - sim.p["r"]
     timed = steps - 1
     rate = timed * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
     return DemoResult(
-        world=world, particles=particles, steps=timing["steps"], timestep=sim.dt, sdf=sdf_name,
-        mode=grid_mode, sim_seconds=timing["rest"], first_step_seconds=timing["first"] or 0.0,
+        world=world,
+        particles=particles,
+        steps=timing["steps"],
+        timestep=sim.dt,
+        sdf=sdf_name,
+        mode=grid_mode,
+        sim_seconds=timing["rest"],
+        first_step_seconds=timing["first"] or 0.0,
         particle_steps_per_second=rate,
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
-        exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
-        respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
+        exact_query_cost=cost,
+        grid_band_value_max=band_max,
+        grid_band_angle_rms_deg=band_angle,
+        respawned=respawned,
+        inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
         load=_load_pair(timing.get("load0"), _load()),
-        animation=animation_path, last_frame=last)
+        animation=animation_path,
+        last_frame=last,
+    )
 
 
 def _plural(n: int, word: str) -> str:
@@ -322,56 +381,82 @@ def _plural(n: int, word: str) -> str:
 
 def summary(res: DemoResult) -> str:
     """Human-readable lines for the demo's result: what was simulated, the rate, and why."""
-    lines = [f"world: {res.world}, {WORLDS[res.world][1]}",
-             f"queried through {res.sdf}"
-             + (f", mode={res.mode!r} outside [-2, 2]^2" if res.mode else ""),
-             f"spawned {_plural(res.particles, 'particle')} in free space ("
-             f"{_plural(res.respawned, 'particle')} redrawn that would have started inside "
-             f"matter)",
-             f"simulated {_plural(res.steps, 'step')} of {res.timestep:.4g} s "
-             f"({res.steps * res.timestep:.2f} s of simulated time)"]
+    lines = [
+        f"world: {res.world}, {WORLDS[res.world][1]}",
+        f"queried through {res.sdf}"
+        + (f", mode={res.mode!r} outside [-2, 2]^2" if res.mode else ""),
+        f"spawned {_plural(res.particles, 'particle')} in free space ("
+        f"{_plural(res.respawned, 'particle')} redrawn that would have started inside "
+        f"matter)",
+        f"simulated {_plural(res.steps, 'step')} of {res.timestep:.4g} s "
+        f"({res.steps * res.timestep:.2f} s of simulated time)",
+    ]
     if res.steps > 1:
-        lines.append(f"rate: {res.particle_steps_per_second / 1e6:.1f} M particle-steps/s over "
-                     f"{_plural(res.steps - 1, 'step')} in {res.sim_seconds:.2f} s (the first "
-                     f"step, {res.first_step_seconds:.2f} s, compiles or loads the kernel and is "
-                     f"not counted)")
+        lines.append(
+            f"rate: {res.particle_steps_per_second / 1e6:.1f} M particle-steps/s over "
+            f"{_plural(res.steps - 1, 'step')} in {res.sim_seconds:.2f} s (the first "
+            f"step, {res.first_step_seconds:.2f} s, compiles or loads the kernel and is "
+            f"not counted)"
+        )
     else:
-        lines.append(f"the only step took {res.first_step_seconds:.2f} s, compiling or loading "
-                     f"the kernel included (run more steps to measure a rate)")
+        lines.append(
+            f"the only step took {res.first_step_seconds:.2f} s, compiling or loading "
+            f"the kernel included (run more steps to measure a rate)"
+        )
     if res.outside_grid_fraction is not None:
-        where = ("answered by the exact SDF" if res.mode == "exact"
-                 else "clamped to the grid's edge (cheap, approximate)")
-        lines.append(f"why this rate: {1 - res.outside_grid_fraction:.1%} of particle positions "
-                     f"were inside the grid (bilinear queries); {res.outside_grid_fraction:.1%} "
-                     f"were outside, {where}")
+        where = (
+            "answered by the exact SDF"
+            if res.mode == "exact"
+            else "clamped to the grid's edge (cheap, approximate)"
+        )
+        lines.append(
+            f"why this rate: {1 - res.outside_grid_fraction:.1%} of particle positions "
+            f"were inside the grid (bilinear queries); {res.outside_grid_fraction:.1%} "
+            f"were outside, {where}"
+        )
         if res.exact_query_cost is not None:
-            lines.append(f"  one exact query costs {res.exact_query_cost:.2g}x one grid query "
-                         f"in this world (value + gradient, measured here)")
-        lines.append("  particles resting on surfaces query every step; falling ones skip "
-                     "queries while provably clear, so the rate also depends on how many rest")
+            lines.append(
+                f"  one exact query costs {res.exact_query_cost:.2g}x one grid query "
+                f"in this world (value + gradient, measured here)"
+            )
+        lines.append(
+            "  particles resting on surfaces query every step; falling ones skip "
+            "queries while provably clear, so the rate also depends on how many rest"
+        )
     else:
         lines.append("why this rate: every query evaluates the exact compiled SDF (no grid)")
     if res.load is not None:
         cores = os.cpu_count() or 1
-        busy = " (other processes were competing for the cores)" if max(res.load) > 0.5 * cores \
-            else ""
-        lines.append(f"machine load (1-minute average) {res.load[0]:.1f} before and "
-                     f"{res.load[1]:.1f} after the steps, on {cores} cores{busy}")
+        busy = (
+            " (other processes were competing for the cores)" if max(res.load) > 0.5 * cores else ""
+        )
+        lines.append(
+            f"machine load (1-minute average) {res.load[0]:.1f} before and "
+            f"{res.load[1]:.1f} after the steps, on {cores} cores{busy}"
+        )
     if res.world == "seed":
-        lines.append("for comparison: this is the scene of the README's headline particle "
-                     "figure (1e6 particles, 400x400 grid; python -m bench --only particles "
-                     "measures it beside its baselines, on a quiet machine); the notebook's final "
-                     "world is: fastsdf demo --world boxes")
+        lines.append(
+            "for comparison: this is the scene of the README's headline particle "
+            "figure (1e6 particles, 400x400 grid; python -m bench --only particles "
+            "measures it beside its baselines, on a quiet machine); the notebook's final "
+            "world is: fastsdf demo --world boxes"
+        )
     else:
-        lines.append("for comparison: the README's headline particle figure is the seed world on "
-                     "a 400x400 grid, where particles stay inside the grid (python -m bench "
-                     "--only particles); run it here with: fastsdf demo --world seed")
+        lines.append(
+            "for comparison: the README's headline particle figure is the seed world on "
+            "a 400x400 grid, where particles stay inside the grid (python -m bench "
+            "--only particles); run it here with: fastsdf demo --world seed"
+        )
     if res.grid_band_value_max is not None:
-        lines.append(f"grid error in the collision band |d| < 0.1: value max "
-                     f"{res.grid_band_value_max:.2e}, gradient angle RMS "
-                     f"{res.grid_band_angle_rms_deg:.3f} deg")
-    lines.append(f"particles more than 1% of their radius inside the simulated SDF at the end: "
-                 f"{res.inside_fraction:.3%}")
+        lines.append(
+            f"grid error in the collision band |d| < 0.1: value max "
+            f"{res.grid_band_value_max:.2e}, gradient angle RMS "
+            f"{res.grid_band_angle_rms_deg:.3f} deg"
+        )
+    lines.append(
+        f"particles more than 1% of their radius inside the simulated SDF at the end: "
+        f"{res.inside_fraction:.3%}"
+    )
     if res.animation:
         lines.append(f"video: {res.animation}")
     lines.append(f"last frame: {res.last_frame}")

@@ -62,8 +62,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["evaluate", "DistributedSimulation", "ShardLostError", "shard_sizes", "shard_seed",
-           "local_cluster", "SimulationStats", "run_demo"]
+__all__ = [
+    "evaluate",
+    "DistributedSimulation",
+    "ShardLostError",
+    "shard_sizes",
+    "shard_seed",
+    "local_cluster",
+    "SimulationStats",
+    "run_demo",
+]
 
 #: How long (seconds) to wait on a shard before checking that its worker is still alive.
 POLL_SECONDS = 0.5
@@ -74,8 +82,9 @@ def _require_dask():
         import dask  # noqa: F401  (only whether it imports)
         import distributed  # noqa: F401
     except ImportError as exc:  # pragma: no cover - the extra is installed in CI
-        raise ImportError("fastsdf.apps.distributed needs dask.distributed: pip install "
-                          "'fastsdf[distributed]'") from exc
+        raise ImportError(
+            "fastsdf.apps.distributed needs dask.distributed: pip install 'fastsdf[distributed]'"
+        ) from exc
 
 
 def _digest(obj: object) -> str:
@@ -85,14 +94,18 @@ def _digest(obj: object) -> str:
 def _check_world(f: Any, name: str = "f") -> Any:
     from fastsdf.fields.grid import GridSDF
     from fastsdf.function import Function
+
     if not isinstance(f, (Function, GridSDF)):
-        raise TypeError(f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
-                        f"of type {type(f).__name__}")
+        raise TypeError(
+            f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
+            f"of type {type(f).__name__}"
+        )
     return f
 
 
 # ---------------------------------------------------------------------------------------------
 # Point sets.
+
 
 def _evaluate_block(xb: np.ndarray, yb: np.ndarray, f: Any, gradient: bool) -> np.ndarray:
     if gradient:
@@ -131,19 +144,34 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
     world = dask.delayed(f, name="fastsdf-world-" + _digest(f), pure=True)
     gradient = bool(compute_gradient)
     if not gradient:
-        return da.map_blocks(_evaluate_block, xd, yd, world, gradient, dtype=np.float64,
-                             meta=np.empty((0,) * xd.ndim), name="fastsdf-evaluate-"
-                             + dask.base.tokenize(world.key, xd.name, yd.name, False))
-    out = da.map_blocks(_evaluate_block, xd, yd, world, gradient, dtype=np.float64,
-                        new_axis=xd.ndim, chunks=xd.chunks + ((3,),),
-                        meta=np.empty((0,) * (xd.ndim + 1)),
-                        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, xd.name,
-                                                                          yd.name, True))
+        return da.map_blocks(
+            _evaluate_block,
+            xd,
+            yd,
+            world,
+            gradient,
+            dtype=np.float64,
+            meta=np.empty((0,) * xd.ndim),
+            name="fastsdf-evaluate-" + dask.base.tokenize(world.key, xd.name, yd.name, False),
+        )
+    out = da.map_blocks(
+        _evaluate_block,
+        xd,
+        yd,
+        world,
+        gradient,
+        dtype=np.float64,
+        new_axis=xd.ndim,
+        chunks=xd.chunks + ((3,),),
+        meta=np.empty((0,) * (xd.ndim + 1)),
+        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, xd.name, yd.name, True),
+    )
     return out[..., 0], out[..., 1:]
 
 
 # ---------------------------------------------------------------------------------------------
 # Sharded simulation.
+
 
 class ShardLostError(RuntimeError):
     """A shard of a :class:`DistributedSimulation` is gone (its worker died or was restarted).
@@ -156,9 +184,11 @@ class ShardLostError(RuntimeError):
         self.shards = tuple(int(s) for s in shards)
         self.workers = tuple(workers)
         where = ", ".join(f"shard {s} on {w}" for s, w in zip(self.shards, self.workers))
-        super().__init__(f"lost {len(self.shards)} shard(s): {where}; their particles are gone "
-                         f"(no checkpoints): build a new DistributedSimulation"
-                         + (f" ({detail})" if detail else ""))
+        super().__init__(
+            f"lost {len(self.shards)} shard(s): {where}; their particles are gone "
+            f"(no checkpoints): build a new DistributedSimulation"
+            + (f" ({detail})" if detail else "")
+        )
 
 
 def shard_sizes(n: int, shards: int) -> list:
@@ -171,8 +201,17 @@ def shard_seed(seed: Any, shards: int, i: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed).spawn(shards)[i])
 
 
-_PARAMETERS = ("timestep", "integrator", "collision", "prevent_tunnelling", "dtype", "cr", "cf",
-               "lipschitz", "block")
+_PARAMETERS = (
+    "timestep",
+    "integrator",
+    "collision",
+    "prevent_tunnelling",
+    "dtype",
+    "cr",
+    "cf",
+    "lipschitz",
+    "block",
+)
 
 
 @dataclass(frozen=True)
@@ -189,9 +228,14 @@ class _Config:
     def build(self, i: int) -> tuple[Any, Any]:
         """Shard ``i`` and what ``init(sim, i)`` returned (None without ``init``)."""
         from fastsdf.particles import ParticleSimulation
+
         sizes = shard_sizes(self.n, self.shards)
-        sim = ParticleSimulation(self.world, n=sizes[i], seed=shard_seed(self.seed, self.shards, i),
-                                 **dict(self.parameters))
+        sim = ParticleSimulation(
+            self.world,
+            n=sizes[i],
+            seed=shard_seed(self.seed, self.shards, i),
+            **dict(self.parameters),
+        )
         return sim, (self.init(sim, i) if self.init is not None else None)
 
 
@@ -204,6 +248,7 @@ def _workers(client: Any) -> dict:
 
 def _set_threads(threads: int) -> None:
     import numba
+
     numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
 
 
@@ -238,13 +283,15 @@ class _Group:
             x = np.asarray(sim.p["x"], dtype=np.float64)
             with np.errstate(invalid="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: NaN box
-                bbox = np.array([np.nanmin(x[:, 0]), np.nanmin(x[:, 1]), np.nanmax(x[:, 0]),
-                                 np.nanmax(x[:, 1])])
+                bbox = np.array(
+                    [np.nanmin(x[:, 0]), np.nanmin(x[:, 1]), np.nanmax(x[:, 0]), np.nanmax(x[:, 1])]
+                )
             out[i] = (sim.n, sim.kinetic_energy(), sim.potential_energy(), bbox)
         return dict(self.steps), out
 
     def density(self, bounds: tuple, shape: tuple) -> tuple[dict, np.ndarray]:
         from fastsdf.viz.render import density_image
+
         _set_threads(self.threads)
         total = np.zeros(shape)
         for sim in self.sims.values():
@@ -347,12 +394,27 @@ class DistributedSimulation:
     _config_future: Any
     _actors: dict[str, Any] | None
 
-    def __init__(self, world: Any, n: int, *, client: Any, shards: int | None = None,
-                 seed: Any = None, force_generators: Sequence = (), timestep: float = 1 / 30,
-                 integrator: str = "symplectic", collision: str = "approaching",
-                 prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
-                 cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
-                 threads: int | None = None, init: Any = None):
+    def __init__(
+        self,
+        world: Any,
+        n: int,
+        *,
+        client: Any,
+        shards: int | None = None,
+        seed: Any = None,
+        force_generators: Sequence = (),
+        timestep: float = 1 / 30,
+        integrator: str = "symplectic",
+        collision: str = "approaching",
+        prevent_tunnelling: bool = True,
+        dtype: Any = np.float64,
+        cr: float = 0.6,
+        cf: float = 0.3,
+        lipschitz: float | None = None,
+        block: int | None = None,
+        threads: int | None = None,
+        init: Any = None,
+    ):
         _require_dask()
         from distributed import Client
 
@@ -369,27 +431,45 @@ class DistributedSimulation:
         addresses = sorted(info)
         if shards is None:
             shards = len(addresses)
-        if isinstance(shards, (bool, np.bool_)) or not isinstance(shards, numbers.Integral) \
-                or shards <= 0:
+        if (
+            isinstance(shards, (bool, np.bool_))
+            or not isinstance(shards, numbers.Integral)
+            or shards <= 0
+        ):
             raise ValueError(f"shards must be a positive integer or None, got shards={shards!r}")
         if n < shards:
-            raise ValueError(f"n must be >= shards (every shard holds a particle), got n={n!r}, "
-                             f"shards={shards!r}")
-        if threads is not None and (isinstance(threads, (bool, np.bool_))
-                                    or not isinstance(threads, numbers.Integral) or threads <= 0):
+            raise ValueError(
+                f"n must be >= shards (every shard holds a particle), got n={n!r}, "
+                f"shards={shards!r}"
+            )
+        if threads is not None and (
+            isinstance(threads, (bool, np.bool_))
+            or not isinstance(threads, numbers.Integral)
+            or threads <= 0
+        ):
             raise ValueError(f"threads must be a positive integer or None, got threads={threads!r}")
         if seed is None:
             seed = np.random.SeedSequence().entropy
-        parameters = dict(timestep=timestep, integrator=integrator, collision=collision,
-                          prevent_tunnelling=prevent_tunnelling, dtype=np.dtype(dtype), cr=cr,
-                          cf=cf, lipschitz=lipschitz, block=block)
+        parameters = dict(
+            timestep=timestep,
+            integrator=integrator,
+            collision=collision,
+            prevent_tunnelling=prevent_tunnelling,
+            dtype=np.dtype(dtype),
+            cr=cr,
+            cf=cf,
+            lipschitz=lipschitz,
+            block=block,
+        )
         # Validate every parameter here, on one particle, so that errors name the parameter
         # at construction instead of arriving as a remote traceback.
         probe = ParticleSimulation(world, n=1, seed=0, **parameters)
         for gen in force_generators:
             if not callable(gen):
-                raise TypeError(f"force_generators must hold Gravity, Drag or callables "
-                                f"(p, t) -> (n, 2) forces, got {gen!r}")
+                raise TypeError(
+                    f"force_generators must hold Gravity, Drag or callables "
+                    f"(p, t) -> (n, 2) forces, got {gen!r}"
+                )
         self.client = client
         self.world = world
         self.n = int(n)
@@ -412,12 +492,23 @@ class DistributedSimulation:
         for i, w in enumerate(self.workers):
             self._groups.setdefault(w, []).append(i)
         self._futures = [
-            client.submit(_Group, self._config_future, indices,
-                          threads or info[w].get("nthreads", 1), actor=True, workers=[w],
-                          allow_other_workers=False, pure=False, key=f"fastsdf-shards-{tag}-{k}")
-            for k, (w, indices) in enumerate(self._groups.items())]
-        actors = self._gather([(indices[0], f) for indices, f
-                               in zip(self._groups.values(), self._futures)], check_steps=False)
+            client.submit(
+                _Group,
+                self._config_future,
+                indices,
+                threads or info[w].get("nthreads", 1),
+                actor=True,
+                workers=[w],
+                allow_other_workers=False,
+                pure=False,
+                key=f"fastsdf-shards-{tag}-{k}",
+            )
+            for k, (w, indices) in enumerate(self._groups.items())
+        ]
+        actors = self._gather(
+            [(indices[0], f) for indices, f in zip(self._groups.values(), self._futures)],
+            check_steps=False,
+        )
         self._actors = dict(zip(self._groups, actors))
         #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
         self.init_results = [None] * self.shards
@@ -460,8 +551,9 @@ class DistributedSimulation:
                     except TimeoutError:
                         dead = self._dead_shards()
                         if dead:
-                            raise self._lost_error(dead, "worker no longer in the cluster") \
-                                from None
+                            raise self._lost_error(
+                                dead, "worker no longer in the cluster"
+                            ) from None
                     except Exception as exc:
                         self._raise_if_lost(i, exc)
                         raise
@@ -470,8 +562,9 @@ class DistributedSimulation:
             # A shard re-created behind our back would report fewer steps: never accept it.
             wrong = [i for steps, _ in out for i, k in steps.items() if k != self.steps]
             if wrong:
-                raise self._lost_error(wrong, "a shard reported a step count other than the "
-                                              f"simulation's {self.steps}")
+                raise self._lost_error(
+                    wrong, f"a shard reported a step count other than the simulation's {self.steps}"
+                )
         return out
 
     async def _gather_async(self, pending: list) -> dict:
@@ -484,8 +577,9 @@ class DistributedSimulation:
         results = {}
         try:
             while tasks:
-                done, _ = await asyncio.wait(list(tasks), timeout=POLL_SECONDS,
-                                             return_when=asyncio.FIRST_EXCEPTION)
+                done, _ = await asyncio.wait(
+                    list(tasks), timeout=POLL_SECONDS, return_when=asyncio.FIRST_EXCEPTION
+                )
                 for task in done:
                     i = tasks.pop(task)
                     exc = task.exception()
@@ -507,11 +601,14 @@ class DistributedSimulation:
     def _raise_if_lost(self, i: int, exc: BaseException) -> None:
         """Raise :class:`ShardLostError` if ``exc`` says that shard ``i``'s worker is gone."""
         from distributed.comm.core import CommClosedError
+
         name = type(exc).__name__
         text = str(exc).lower()
-        if isinstance(exc, (OSError, CommClosedError)) or name in (
-                "CancelledError", "FutureCancelledError", "KilledWorker") or (
-                isinstance(exc, RuntimeError) and ("lost" in text or "released" in text)):
+        if (
+            isinstance(exc, (OSError, CommClosedError))
+            or name in ("CancelledError", "FutureCancelledError", "KilledWorker")
+            or (isinstance(exc, RuntimeError) and ("lost" in text or "released" in text))
+        ):
             raise self._lost_error([i], f"{name}: {exc}") from None
 
     def _call(self, method: str, *args: Any, workers: dict | None = None) -> list:
@@ -523,8 +620,9 @@ class DistributedSimulation:
             raise RuntimeError("this DistributedSimulation is closed")
         if workers is None:
             workers = {w: args for w in self._actors}
-        pending = [(self._groups[w][0], getattr(self._actors[w], method)(*a))
-                   for w, a in workers.items()]
+        pending = [
+            (self._groups[w][0], getattr(self._actors[w], method)(*a)) for w, a in workers.items()
+        ]
         return self._gather(pending)
 
     # -- stepping -----------------------------------------------------------------------------
@@ -556,12 +654,19 @@ class DistributedSimulation:
         bboxes = np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 4)
         with np.errstate(invalid="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            bbox = (float(np.nanmin(bboxes[:, 0])), float(np.nanmin(bboxes[:, 1])),
-                    float(np.nanmax(bboxes[:, 2])), float(np.nanmax(bboxes[:, 3])))
-        return SimulationStats(counts=tuple(int(r[0]) for r in rows),
-                               kinetic=float(sum(r[1] for r in rows)),
-                               potential=float(sum(r[2] for r in rows)), bboxes=bboxes,
-                               bbox=bbox)
+            bbox = (
+                float(np.nanmin(bboxes[:, 0])),
+                float(np.nanmin(bboxes[:, 1])),
+                float(np.nanmax(bboxes[:, 2])),
+                float(np.nanmax(bboxes[:, 3])),
+            )
+        return SimulationStats(
+            counts=tuple(int(r[0]) for r in rows),
+            kinetic=float(sum(r[1] for r in rows)),
+            potential=float(sum(r[2] for r in rows)),
+            bboxes=bboxes,
+            bbox=bbox,
+        )
 
     def energy(self) -> float:
         """Total kinetic plus gravitational potential energy (sum over shards, shard order)."""
@@ -571,14 +676,16 @@ class DistributedSimulation:
         """``(xmin, ymin, xmax, ymax)`` of all particle centres (length units)."""
         return self.stats().bbox
 
-    def density(self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)),
-                shape: tuple = (400, 400)) -> np.ndarray:
+    def density(
+        self, bounds: ArrayLike = ((-2.0, 2.0), (-2.0, 2.0)), shape: tuple = (400, 400)
+    ) -> np.ndarray:
         """Particle counts per pixel: the sum of the shards'
         :func:`fastsdf.viz.render.density_image` (float64, ``shape=(H, W)``, row 0 at the bottom,
         covering ``bounds``; exact integer counts, so the order of summation does not matter). Each
         worker sends one summed image: the client holds O(workers * H * W), not O(n)."""
         from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import check_shape
+
         bounds = check_bounds(bounds)
         shape = check_shape(shape)
         total = np.zeros(shape)
@@ -593,10 +700,14 @@ class DistributedSimulation:
         ``index`` (their global indices, sorted; shard ``i`` holds the indices from
         ``sum(sizes[:i])``). Only the ``k`` rows travel.
         """
-        if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Integral) \
-                or not 0 <= k <= self.n:
+        if (
+            isinstance(k, (bool, np.bool_))
+            or not isinstance(k, numbers.Integral)
+            or not 0 <= k <= self.n
+        ):
             raise ValueError(f"k must be an integer in [0, n={self.n}], got k={k!r}")
         from fastsdf.particles import Particles
+
         rng = np.random.default_rng(seed)
         index = np.sort(rng.choice(self.n, size=int(k), replace=False))
         starts = np.concatenate([[0], np.cumsum(self.sizes)])
@@ -612,14 +723,18 @@ class DistributedSimulation:
         out = {"index": index}
         for name in Particles.FIELDS:
             arrays = [parts[i][name] for i in sorted(parts)]
-            out[name] = np.concatenate(arrays) if arrays else \
-                np.zeros((0, 2) if name in ("x", "v") else (0,), self.dtype)
+            out[name] = (
+                np.concatenate(arrays)
+                if arrays
+                else np.zeros((0, 2) if name in ("x", "v") else (0,), self.dtype)
+            )
         return out
 
     def gather(self) -> Any:
         """All particles on the client as one :class:`fastsdf.particles.Particles`, shards in
         order: O(n) memory, for tests and small runs only."""
         from fastsdf.particles import Particles
+
         parts = {}
         for _, payload in self._call("particles"):
             parts.update(payload)
@@ -628,7 +743,7 @@ class DistributedSimulation:
         for i in range(self.shards):
             part = parts[i]
             for name in Particles.FIELDS:
-                p[name][start:start + len(part)] = part[name]
+                p[name][start : start + len(part)] = part[name]
             start += len(part)
         return p
 
@@ -650,30 +765,41 @@ class DistributedSimulation:
         self.close()
 
     def __repr__(self) -> str:
-        return (f"DistributedSimulation(n={self.n}, shards={self.shards}, "
-                f"workers={len(set(self.workers))}, t={self.t:.4g}, steps={self.steps})")
+        return (
+            f"DistributedSimulation(n={self.n}, shards={self.shards}, "
+            f"workers={len(set(self.workers))}, t={self.t:.4g}, steps={self.steps})"
+        )
 
 
-def local_cluster(workers: int = 2, threads_per_worker: int | None = None,
-                  **kwargs: Any) -> Any:
+def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwargs: Any) -> Any:
     """A ``dask.distributed.LocalCluster`` of ``workers`` processes on the loopback interface
     (127.0.0.1, no dashboard), ``threads_per_worker`` threads each (default: the machine's
     cores divided among the workers, at least 1). Close it (``with`` or ``.close()``)."""
     _require_dask()
     from distributed import LocalCluster
-    if isinstance(workers, (bool, np.bool_)) or not isinstance(workers, numbers.Integral) \
-            or workers <= 0:
+
+    if (
+        isinstance(workers, (bool, np.bool_))
+        or not isinstance(workers, numbers.Integral)
+        or workers <= 0
+    ):
         raise ValueError(f"workers must be a positive integer, got workers={workers!r}")
     if threads_per_worker is None:
         threads_per_worker = max(1, (os.cpu_count() or 1) // int(workers))
-    options = dict(n_workers=int(workers), threads_per_worker=int(threads_per_worker),
-                   processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
+    options = dict(
+        n_workers=int(workers),
+        threads_per_worker=int(threads_per_worker),
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    )
     options.update(kwargs)
     return LocalCluster(**options)
 
 
 # ---------------------------------------------------------------------------------------------
 # The demo on a LocalCluster (``python -m fastsdf demo --workers N``).
+
 
 def _draw_density(ax: Any, image: np.ndarray, bounds: tuple, cax: Any = None) -> Any:
     """Show a density image (counts per pixel) as :func:`fastsdf.viz.render.draw_particles` does:
@@ -682,15 +808,24 @@ def _draw_density(ax: Any, image: np.ndarray, bounds: tuple, cax: Any = None) ->
     from matplotlib.colors import LinearSegmentedColormap, LogNorm
 
     from fastsdf.viz.render import PARTICLE_CMAP_COLORS
+
     base = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
     cmap = base.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
     (x0, x1), (y0, y1) = bounds
-    shown = ax.imshow(np.ma.masked_less_equal(image, 0.0), origin="lower",
-                      extent=(x0, x1, y0, y1), cmap=cmap,
-                      norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
-                      interpolation="nearest", alpha=0.8, zorder=4, aspect=ax.get_aspect())
+    shown = ax.imshow(
+        np.ma.masked_less_equal(image, 0.0),
+        origin="lower",
+        extent=(x0, x1, y0, y1),
+        cmap=cmap,
+        norm=LogNorm(1.0, max(float(image.max()), 1.0 + 1e-9)),
+        interpolation="nearest",
+        alpha=0.8,
+        zorder=4,
+        aspect=ax.get_aspect(),
+    )
     if cax is not None:
         from fastsdf.viz.render import plain_log_ticks
+
         cax.set_visible(True)
         plain_log_ticks(ax.figure.colorbar(shown, cax=cax, label="particles per pixel"))
     return shown
@@ -705,13 +840,26 @@ class _Spawn:
 
     def __call__(self, sim: Any, i: int) -> int:
         from fastsdf.apps.demo import spawn_in_free_space
+
         return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
 
 
-def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, grid: int = 400,
-             exact: bool = False, seed: int = 0, out: str = "demo-out", frames: int | None = None,
-             fps: int | None = None, animate: bool = True, world: str = "boxes",
-             mode: str = "exact", stream: Any = None, client: Any = None) -> Any:
+def run_demo(
+    workers: int = 2,
+    particles: int = 1_000_000,
+    steps: int = 300,
+    grid: int = 400,
+    exact: bool = False,
+    seed: int = 0,
+    out: str = "demo-out",
+    frames: int | None = None,
+    fps: int | None = None,
+    animate: bool = True,
+    world: str = "boxes",
+    mode: str = "exact",
+    stream: Any = None,
+    client: Any = None,
+) -> Any:
     """:func:`fastsdf.apps.demo.run_demo` with the particles on a :func:`local_cluster` of
     ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
 
@@ -725,6 +873,7 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     import sys
 
     import matplotlib
+
     matplotlib.use("Agg")
     from distributed import Client
     from matplotlib.animation import FuncAnimation
@@ -736,9 +885,14 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
-    for name, value, low in (("workers", workers, 1), ("particles", particles, 1),
-                             ("steps", steps, 1), ("grid", grid, 2), ("frames", frames, 1),
-                             ("fps", fps, 1)):
+    for name, value, low in (
+        ("workers", workers, 1),
+        ("particles", particles, 1),
+        ("steps", steps, 1),
+        ("grid", grid, 2),
+        ("frames", frames, 1),
+        ("fps", fps, 1),
+    ):
         if isinstance(value, bool) or int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
     if world not in _demo.WORLDS:
@@ -747,8 +901,10 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
         raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
     particles, steps, frames = int(particles), int(steps), int(frames)
     if animate and frames > steps:
-        raise ValueError(f"frames must be at most steps (every frame advances at least one "
-                         f"step), got frames={frames}, steps={steps}")
+        raise ValueError(
+            f"frames must be at most steps (every frame advances at least one "
+            f"step), got frames={frames}, steps={steps}"
+        )
     err = stream if stream is not None else sys.stderr
     out = _demo.check_output_dir(out)
     bounds = _demo.BOUNDS
@@ -769,9 +925,17 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
             cluster = stack.enter_context(local_cluster(int(workers)))
             client = stack.enter_context(Client(cluster))
         workers = len(_workers(client))
-        sim = stack.enter_context(DistributedSimulation(
-            sdf, particles, client=client, seed=seed, timestep=1 / 30,
-            force_generators=[Gravity(acceleration=(0.0, -1.0))], init=_Spawn(f, seed)))
+        sim = stack.enter_context(
+            DistributedSimulation(
+                sdf,
+                particles,
+                client=client,
+                seed=seed,
+                timestep=1 / 30,
+                force_generators=[Gravity(acceleration=(0.0, -1.0))],
+                init=_Spawn(f, seed),
+            )
+        )
         sdf_name += f", particles on {workers} Dask worker processes"
         timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
@@ -815,11 +979,22 @@ def run_demo(workers: int = 2, particles: int = 1_000_000, steps: int = 300, gri
     d = sdf(x[:, 0], x[:, 1]) - r
     rate = (steps - 1) * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
     return _demo.DemoResult(
-        world=world, particles=particles, steps=timing["steps"], timestep=dt, sdf=sdf_name,
-        mode=grid_mode, sim_seconds=timing["rest"], first_step_seconds=timing["first"] or 0.0,
+        world=world,
+        particles=particles,
+        steps=timing["steps"],
+        timestep=dt,
+        sdf=sdf_name,
+        mode=grid_mode,
+        sim_seconds=timing["rest"],
+        first_step_seconds=timing["first"] or 0.0,
         particle_steps_per_second=rate,
         outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
-        exact_query_cost=cost, grid_band_value_max=band_max, grid_band_angle_rms_deg=band_angle,
-        respawned=respawned, inside_fraction=float(np.mean(d < -0.01 * r)),
+        exact_query_cost=cost,
+        grid_band_value_max=band_max,
+        grid_band_angle_rms_deg=band_angle,
+        respawned=respawned,
+        inside_fraction=float(np.mean(d < -0.01 * r)),
         load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
-        animation=animation_path, last_frame=last)
+        animation=animation_path,
+        last_frame=last,
+    )

@@ -59,6 +59,7 @@ MAX_SHAPE_NODES = 400
 # ---------------------------------------------------------------------------------------------
 # Linear programs: the nodes of an expression in evaluation order, chains flattened.
 
+
 def _flatten(node: Expr) -> list:
     """Operands of the maximal chain of ``node``'s operation (same op and k), left to right."""
     out, stack = [], [node]
@@ -76,8 +77,7 @@ def _kids(node: Expr) -> Sequence[Expr]:
     return _flatten(node) if node.op in _CHAINS else node.args
 
 
-def _linearize(root: Expr, slots: bool = False, leaf: Callable | None = None
-               ) -> tuple[list, list]:
+def _linearize(root: Expr, slots: bool = False, leaf: Callable | None = None) -> tuple[list, list]:
     """``(steps, consts)``: ``steps[i] = (node, refs)`` in evaluation order, each ref
     ``('n', i)`` (the value of step i) or ``('c', j)`` (constant j: ``consts[j]``, one per
     occurrence when ``slots``, else one per distinct constant node). ``leaf(node, kids)``, if
@@ -158,16 +158,24 @@ class _Program:
             if i < len(steps):
                 self.free[i].append(j)
         self.has_prim = any(n.op == "prim" for n in self.nodes)
-        self.ellipse = any(n.op == "prim" and n.attr[0] != "polygon" for n in self.nodes) or \
-            any(c.ellipse for c in self.chains.values())
+        self.ellipse = any(n.op == "prim" and n.attr[0] != "polygon" for n in self.nodes) or any(
+            c.ellipse for c in self.chains.values()
+        )
 
     @property
     def size(self) -> int:
         """Nodes evaluated per point without pruning."""
         return len(self.steps) - len(self.chains) + sum(c.size for c in self.chains.values())
 
-    def run(self, x: Any, y: Any, consts: Sequence, grad: bool, params: dict | None = None,
-            prune: bool = True) -> tuple[Any, Any]:
+    def run(
+        self,
+        x: Any,
+        y: Any,
+        consts: Sequence,
+        grad: bool,
+        params: dict | None = None,
+        prune: bool = True,
+    ) -> tuple[Any, Any]:
         """Value (and gradient ``[gx, gy]``, each an array, a float or None for zero) at the
         points ``x, y`` (arrays of equal shape, or anything that broadcasts); ``consts[j]`` is
         constant j (a float, or an array over the points)."""
@@ -322,7 +330,7 @@ def _op_smooth(node, av, ag, x, y, ctx):
     return v, (_sc(gx, si), _sc(gy, si))
 
 
-_UP = 2.0 ** 600
+_UP = 2.0**600
 
 
 def _op_length(node, av, ag, x, y, ctx):
@@ -382,9 +390,16 @@ def _generic(node, av, ag, x, y, ctx):
             if all(gi is None for gi in gs):
                 comps.append(None)
                 continue
-            comps.append(rule([np.zeros(shape) if gi is None else
-                               np.broadcast_to(np.asarray(gi, dtype=np.float64), shape)
-                               for gi in gs]))
+            comps.append(
+                rule(
+                    [
+                        np.zeros(shape)
+                        if gi is None
+                        else np.broadcast_to(np.asarray(gi, dtype=np.float64), shape)
+                        for gi in gs
+                    ]
+                )
+            )
             continue
         acc = None
         for p, gi in zip(rule, gs):
@@ -394,18 +409,31 @@ def _generic(node, av, ag, x, y, ctx):
     return v, tuple(comps)
 
 
-_OPS = {"sym": _op_sym, "add": _op_add, "sub": _op_sub, "mul": _op_mul, "div": _op_div,
-        "neg": _op_neg, "abs": _op_abs, "min": _op_hard, "max": _op_hard, "smin": _op_smooth,
-        "smax": _op_smooth, "length": _op_length, "select": _op_select, "param": _op_param}
+_OPS = {
+    "sym": _op_sym,
+    "add": _op_add,
+    "sub": _op_sub,
+    "mul": _op_mul,
+    "div": _op_div,
+    "neg": _op_neg,
+    "abs": _op_abs,
+    "min": _op_hard,
+    "max": _op_hard,
+    "smin": _op_smooth,
+    "smax": _op_smooth,
+    "length": _op_length,
+    "select": _op_select,
+    "param": _op_param,
+}
 
 
 def _full(v, n):
-    return np.broadcast_to(np.asarray(v if v is not None else 0.0, dtype=np.float64),
-                           (n,))
+    return np.broadcast_to(np.asarray(v if v is not None else 0.0, dtype=np.float64), (n,))
 
 
 # ---------------------------------------------------------------------------------------------
 # Pruned evaluation of a root chain with many operands of one shape.
+
 
 class _Group:
     """Operands of one shape: the shape's program (constants as slots) and their constants as
@@ -455,10 +483,12 @@ def _matcher(prog: _Program) -> Callable:
         body.append(f"if n{i}.op != {node.op!r} or n{i}.attr {same}: return None")
         body.append(f"k = n{i}.args")
         if node.op in _CHAINS:  # a chain nested in its own kind flattens as the program did
-            body += ["for a in k:",
-                     f"    if a.op == {node.op!r} and a.attr == A[{i}]:",
-                     f"        k = F(n{i})",
-                     "        break"]
+            body += [
+                "for a in k:",
+                f"    if a.op == {node.op!r} and a.attr == A[{i}]:",
+                f"        k = F(n{i})",
+                "        break",
+            ]
         body.append(f"if len(k) != {len(refs)}: return None")
         for pos, (kind, j) in enumerate(refs):
             if kind == "c":
@@ -484,6 +514,7 @@ def _matcher(prog: _Program) -> Callable:
             return fn(operand)
         except (ValueError, TypeError):  # attributes that do not compare (array data)
             return None
+
     return match
 
 
@@ -493,6 +524,7 @@ class _Chain:
 
     def __init__(self, root: Expr, operands: list, xname: str):
         from fastsdf.expr.interval import LIPSCHITZ_RULES
+
         self.op = root.op
         self.n = len(operands)
         groups: list = []  # [prog, match, pos, rows, lips]
@@ -535,29 +567,34 @@ class _Chain:
             else:
                 others.extend((p, operands[p]) for p in pos)
         others.sort(key=lambda t: t[0])
-        self.others = [(p, _Program(o, xname, prune=True)) if o.op != "const"
-                       else (p, float(o.attr)) for p, o in others]
+        self.others = [
+            (p, _Program(o, xname, prune=True)) if o.op != "const" else (p, float(o.attr))
+            for p, o in others
+        ]
         self.ellipse = any(not isinstance(q, float) and q.ellipse for _, q in self.others)
 
     @property
     def size(self) -> int:
         """Nodes evaluated per point without pruning."""
-        return sum(len(g.prog.steps) * len(g.pos) for g in self.groups) + \
-            sum(1 if isinstance(q, float) else q.size for _, q in self.others)
+        return sum(len(g.prog.steps) * len(g.pos) for g in self.groups) + sum(
+            1 if isinstance(q, float) else q.size for _, q in self.others
+        )
 
     def cost(self, n: int) -> float:
         """Estimated seconds for ``n`` points (see :meth:`NumpyScene.cost`)."""
-        return sum(len(g.prog.steps) * (PER_PRUNED_NODE_POINT * n + 2e-6 * len(g.pos))
-                   for g in self.groups) + \
-            sum(_general_cost(q, n) for _, q in self.others if not isinstance(q, float))
+        return sum(
+            len(g.prog.steps) * (PER_PRUNED_NODE_POINT * n + 2e-6 * len(g.pos)) for g in self.groups
+        ) + sum(_general_cost(q, n) for _, q in self.others if not isinstance(q, float))
 
-    def evaluate(self, xs: Any, ys: Any, grad: bool, params: dict | None, prune: bool = True
-                 ) -> tuple[Any, Any]:
+    def evaluate(
+        self, xs: Any, ys: Any, grad: bool, params: dict | None, prune: bool = True
+    ) -> tuple[Any, Any]:
         """Value and gradient (components: arrays, floats or None) at the points: each group's
         extremum (pruned), then every operand in chain order, streamed with the kernels' tie
         rule (the earlier operand wins)."""
-        xs, ys = np.broadcast_arrays(np.asarray(xs, dtype=np.float64),
-                                     np.asarray(ys, dtype=np.float64))
+        xs, ys = np.broadcast_arrays(
+            np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+        )
         sign = 1.0 if self.op == "min" else -1.0
         parts = []  # (chain position, value, gradient)
         for grp in self.groups:
@@ -590,9 +627,15 @@ class _Chain:
         return bool(self.groups)
 
 
-def _group_bounds(group: _Group, members: np.ndarray | None, cx: np.ndarray, cy: np.ndarray,
-                  hx: np.ndarray, hy: np.ndarray, scale: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _group_bounds(
+    group: _Group,
+    members: np.ndarray | None,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    hx: np.ndarray,
+    hy: np.ndarray,
+    scale: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Sound bounds ``(lo, hi)`` of the members ``members`` over the tiles of centres ``cx,
     cy`` (arrays over the pairs) and half-sizes ``hx, hy``."""
     half = math.hypot(hx, hy)
@@ -610,9 +653,14 @@ def _group_bounds(group: _Group, members: np.ndarray | None, cx: np.ndarray, cy:
     return _interval_bounds(group, members, cx, cy, hx, hy)
 
 
-def _interval_bounds(group: _Group, members: np.ndarray | None, cx: np.ndarray,
-                     cy: np.ndarray, hx: np.ndarray, hy: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _interval_bounds(
+    group: _Group,
+    members: np.ndarray | None,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    hx: np.ndarray,
+    hy: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Interval arithmetic over the shape's program (the rules of :mod:`fastsdf.expr.ops`) for the
     tiles ``[cx - hx, cx + hx] x [cy - hy, cy + hy]`` (``hx, hy`` include a sliver)."""
     consts = group.consts(members)
@@ -662,8 +710,9 @@ def _runs(codes):
     return np.flatnonzero(np.concatenate(([True], codes[1:] != codes[:-1])))
 
 
-def _prune(group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, bounds: tuple,
-           splits: Sequence[int]) -> tuple:
+def _prune(
+    group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, bounds: tuple, splits: Sequence[int]
+) -> tuple:
     """Leaf tiles of the points and the surviving members per leaf: ``(leaf of each point,
     offsets, act)``: leaf ``t``'s members are ``act[offs[t]:offs[t + 1]]``, in chain order.
 
@@ -681,7 +730,7 @@ def _prune(group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, bounds: t
     # 16-bit codes (nx <= 256) sort by radix
     order = np.argsort(code.astype(np.uint16) if nx <= 256 else code, kind="stable")
     sc = code[order]
-    first = _runs(sc)                       # the occupied leaves, in Morton order
+    first = _runs(sc)  # the occupied leaves, in Morton order
     leaf_of_sorted = np.cumsum(np.concatenate(([0], sc[1:] != sc[:-1])))
     leaf = np.empty(len(xs), dtype=np.int64)
     leaf[order] = leaf_of_sorted
@@ -694,10 +743,10 @@ def _prune(group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, bounds: t
     prev_codes = np.zeros(1, dtype=np.int64)
     for f in splits:
         n *= f
-        shift = nx // n                     # leaves per tile side at this level
+        shift = nx // n  # leaves per tile side at this level
         bits = 2 * (shift.bit_length() - 1)
         lc = leaves >> bits
-        heads = _runs(lc)                   # this level's occupied tiles
+        heads = _runs(lc)  # this level's occupied tiles
         codes = lc[heads]
         pbits = 2 * (f.bit_length() - 1)
         parent_codes = codes >> pbits
@@ -758,8 +807,9 @@ def _snap(xs, ys):
     return tuple(out)
 
 
-def _eval_group(group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, grad: bool,
-                prune: bool) -> tuple:
+def _eval_group(
+    group: _Group, sign: float, xs: np.ndarray, ys: np.ndarray, grad: bool, prune: bool
+) -> tuple:
     """The extremum over the group's members at finite points: value, gradient and the chain
     position of the winner per point."""
     n = len(xs)
@@ -797,11 +847,13 @@ def _general_cost(prog: _Program, n: int) -> float:
     """Estimated seconds of ``prog`` on ``n`` points (see :meth:`NumpyScene.cost`)."""
     steps = len(prog.steps) - len(prog.chains)
     per = PER_NODE_POINT + (5e-6 if prog.ellipse else 0.0)
-    return steps * (PER_NODE_CALL * (n // BLOCK + 1) + per * n) + \
-        sum(c.cost(n) for c in prog.chains.values())
+    return steps * (PER_NODE_CALL * (n // BLOCK + 1) + per * n) + sum(
+        c.cost(n) for c in prog.chains.values()
+    )
 
 
 # ---------------------------------------------------------------------------------------------
+
 
 class NumpyScene:
     """The NumPy evaluator of one expression of two coordinates (see the module docstring).
@@ -836,11 +888,18 @@ class NumpyScene:
     @property
     def nodes(self) -> int:
         """Nodes of the programs evaluated per point (a pruned chain's shapes counted once)."""
+
         def count(prog):
-            return len(prog.steps) - len(prog.chains) + sum(
-                sum(len(g.prog.steps) for g in c.groups)
-                + sum(1 if isinstance(q, float) else count(q) for _, q in c.others)
-                for c in prog.chains.values())
+            return (
+                len(prog.steps)
+                - len(prog.chains)
+                + sum(
+                    sum(len(g.prog.steps) for g in c.groups)
+                    + sum(1 if isinstance(q, float) else count(q) for _, q in c.others)
+                    for c in prog.chains.values()
+                )
+            )
+
         return count(self._prog)
 
     @property
@@ -860,9 +919,15 @@ class NumpyScene:
         point, with a few survivors per point)."""
         return _general_cost(self._prog, n)
 
-    def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-            grad: np.ndarray | None = None, params: dict | None = None,
-            prune: bool = True) -> None:
+    def run(
+        self,
+        xs: np.ndarray,
+        ys: np.ndarray,
+        out: np.ndarray,
+        grad: np.ndarray | None = None,
+        params: dict | None = None,
+        prune: bool = True,
+    ) -> None:
         """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2))."""
         ok = np.isfinite(xs) & np.isfinite(ys)
         allok = bool(ok.all())
@@ -894,10 +959,16 @@ class NumpyScene:
             grad[:] = np.nan
             grad[ok] = g
 
-    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
-                 params: dict | None = None, prune: bool = True
-                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        compute_gradient: bool = False,
+        params: dict | None = None,
+        prune: bool = True,
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         from fastsdf.expr.points import as_points
+
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)

@@ -55,8 +55,18 @@ class PrunePlan:
     tile, ``sizes[g]`` the group's size, ``build_s`` the time to build the plan.
     """
 
-    def __init__(self, bounds: tuple, nx: int, ny: int, act: np.ndarray, offs: np.ndarray,
-                 kept: list, sizes: list, build_s: float, tol: float | None):
+    def __init__(
+        self,
+        bounds: tuple,
+        nx: int,
+        ny: int,
+        act: np.ndarray,
+        offs: np.ndarray,
+        kept: list,
+        sizes: list,
+        build_s: float,
+        tol: float | None,
+    ):
         self.bounds, self.nx, self.ny = bounds, nx, ny
         self.act, self.offs, self.kept, self.sizes = act, offs, kept, sizes
         self.build_s, self.tol = build_s, tol
@@ -73,10 +83,16 @@ class PrunePlan:
         """A summary: tiles, bounds, operands, survivors per tile (mean, max), the fraction
         kept, build time (s) and tolerance."""
         per_tile = np.sum(self.kept, axis=0) if self.kept else np.zeros(self.nx * self.ny)
-        return {"tiles": (self.nx, self.ny), "bounds": self.bounds,
-                "operands": int(sum(self.sizes)),
-                "survivors_mean": float(per_tile.mean()), "survivors_max": int(per_tile.max()),
-                "fraction": self.fraction, "build_s": self.build_s, "tol": self.tol}
+        return {
+            "tiles": (self.nx, self.ny),
+            "bounds": self.bounds,
+            "operands": int(sum(self.sizes)),
+            "survivors_mean": float(per_tile.mean()),
+            "survivors_max": int(per_tile.max()),
+            "fraction": self.fraction,
+            "build_s": self.build_s,
+            "tol": self.tol,
+        }
 
 
 def _tile_ranges(bounds, nx, ny):
@@ -86,8 +102,10 @@ def _tile_ranges(bounds, nx, ny):
     ix, iy = ix.ravel().astype(np.float64), iy.ravel().astype(np.float64)
     # Tiles overlap by a sliver so that a point binned across a rounding edge is still inside.
     ex, ey = 1e-9 * (wx + abs(x0) + abs(x1)), 1e-9 * (wy + abs(y0) + abs(y1))
-    return {"x": (x0 + ix * wx - ex, x0 + (ix + 1) * wx + ex),
-            "y": (y0 + iy * wy - ey, y0 + (iy + 1) * wy + ey)}
+    return {
+        "x": (x0 + ix * wx - ex, x0 + (ix + 1) * wx + ex),
+        "y": (y0 + iy * wy - ey, y0 + (iy + 1) * wy + ey),
+    }
 
 
 #: Members bounded together (memory: about 100 arrays of members x tiles floats at once).
@@ -99,9 +117,17 @@ def _steps_bounds(group, ranges):
     M = len(group["members"])
     if M <= _MEMBER_CHUNK:
         return _steps_bounds_chunk(group, ranges)
-    parts = [_steps_bounds_chunk(dict(group, members=group["members"][i:i + _MEMBER_CHUNK],
-                                      rows=group["rows"][i:i + _MEMBER_CHUNK]), ranges)
-             for i in range(0, M, _MEMBER_CHUNK)]
+    parts = [
+        _steps_bounds_chunk(
+            dict(
+                group,
+                members=group["members"][i : i + _MEMBER_CHUNK],
+                rows=group["rows"][i : i + _MEMBER_CHUNK],
+            ),
+            ranges,
+        )
+        for i in range(0, M, _MEMBER_CHUNK)
+    ]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
@@ -119,14 +145,20 @@ def _steps_bounds_chunk(group, ranges):
     steps, rows, members = group["steps"], group["rows"], group["members"]
     if _per_member(steps):  # per-member constants in the reference
         out = [node_bounds(m, ranges) for m in members]
-        return (np.stack([o[id(m)][0] for o, m in zip(out, members)]),
-                np.stack([o[id(m)][1] for o, m in zip(out, members)]))
+        return (
+            np.stack([o[id(m)][0] for o, m in zip(out, members)]),
+            np.stack([o[id(m)][1] for o, m in zip(out, members)]),
+        )
     T = len(next(iter(ranges.values()))[0])
     hints = [LIPSCHITZ_RULES.get(m) for m in members]
     hint = max(hints) if all(h is not None for h in hints) else None
-    lo, hi = _template_bounds(steps, [rows[:, j][:, None] for j in range(rows.shape[1])],
-                              {k: (lo[None, :], hi[None, :]) for k, (lo, hi) in ranges.items()},
-                              (1, T), hint)
+    lo, hi = _template_bounds(
+        steps,
+        [rows[:, j][:, None] for j in range(rows.shape[1])],
+        {k: (lo[None, :], hi[None, :]) for k, (lo, hi) in ranges.items()},
+        (1, T),
+        hint,
+    )
     M = len(members)
     return (np.broadcast_to(lo, (M, T)), np.broadcast_to(hi, (M, T)))
 
@@ -161,8 +193,11 @@ def _template_bounds(steps, cols, ranges, shape, hint):
                 lo = np.where(np.isnan(lo), -np.inf, lo)
                 hi = np.where(np.isnan(hi), np.inf, hi)
                 c = spec.np(node, ac, False)[0]
-                L = spec.lipschitz(node, aL, alo, ahi) if spec.lipschitz is not None \
+                L = (
+                    spec.lipschitz(node, aL, alo, ahi)
+                    if spec.lipschitz is not None
                     else np.full(np.broadcast(lo, hi).shape, np.inf)
+                )
                 L = np.where(np.isnan(L), np.inf, L)
                 if i == len(steps) - 1 and hint is not None:
                     L = np.minimum(L, hint)
@@ -214,8 +249,12 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
             for gi in gis:
                 keep[gi] = _keep_ordered(groups, gi, member_bounds, ranges, T)
             continue
-        others = [node_bounds(o, ranges)[id(o)] if o.op != "const"
-                  else (np.full(T, o.attr), np.full(T, o.attr)) for o in g0["others"]]
+        others = [
+            node_bounds(o, ranges)[id(o)]
+            if o.op != "const"
+            else (np.full(T, o.attr), np.full(T, o.attr))
+            for o in g0["others"]
+        ]
         n_ops = len(others) + sum(len(groups[gi]["members"]) for gi in gis)
         lows = [member_bounds[gi][0] for gi in gis]
         highs = [member_bounds[gi][1] for gi in gis]
@@ -254,7 +293,7 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
     for gi, kk in enumerate(keep):
         for t in range(T):
             rows = np.flatnonzero(kk[:, t])
-            act[offs[t, gi]:offs[t, gi + 1]] = rows
+            act[offs[t, gi] : offs[t, gi + 1]] = rows
     return PrunePlan(bounds, nx, ny, act, offs, kept, sizes, time.perf_counter() - t0, tol)
 
 
@@ -268,8 +307,8 @@ def _levels(ranges, nx, ny):
     """Tile levels from the fine tiles (``s = 1``) up, each tile of level ``s`` covering
     ``s x s`` fine tiles (fewer at the far edges): ``[(s, lnx, lny, ranges)]``, coarsest first.
     A level tile's box is the smallest holding its fine tiles' boxes."""
-    fx = (ranges["x"][0][:nx], ranges["x"][1][:nx])        # per column of fine tiles
-    fy = (ranges["y"][0][::nx], ranges["y"][1][::nx])      # per row
+    fx = (ranges["x"][0][:nx], ranges["x"][1][:nx])  # per column of fine tiles
+    fy = (ranges["y"][0][::nx], ranges["y"][1][::nx])  # per row
     out = [(1, nx, ny, ranges)]
     s = 1
     while out[-1][1] * out[-1][2] > _COARSE_TOP_TILES:
@@ -278,8 +317,17 @@ def _levels(ranges, nx, ny):
         cx, cy = np.arange(0, nx, s), np.arange(0, ny, s)
         xlo, xhi = np.minimum.reduceat(fx[0], cx), np.maximum.reduceat(fx[1], cx)
         ylo, yhi = np.minimum.reduceat(fy[0], cy), np.maximum.reduceat(fy[1], cy)
-        out.append((s, lnx, lny, {"x": (np.tile(xlo, lny), np.tile(xhi, lny)),
-                                  "y": (np.repeat(ylo, lnx), np.repeat(yhi, lnx))}))
+        out.append(
+            (
+                s,
+                lnx,
+                lny,
+                {
+                    "x": (np.tile(xlo, lny), np.tile(xhi, lny)),
+                    "y": (np.repeat(ylo, lnx), np.repeat(yhi, lnx)),
+                },
+            )
+        )
     return out[::-1]
 
 
@@ -288,9 +336,9 @@ def _member_hints(members):
     members) apply: the chunk's largest if every member of the chunk has one, else inf."""
     out = np.full(len(members), np.inf)
     for i in range(0, len(members), _MEMBER_CHUNK):
-        hints = [LIPSCHITZ_RULES.get(m) for m in members[i:i + _MEMBER_CHUNK]]
+        hints = [LIPSCHITZ_RULES.get(m) for m in members[i : i + _MEMBER_CHUNK]]
         if all(h is not None for h in hints):
-            out[i:i + _MEMBER_CHUNK] = max(hints)
+            out[i : i + _MEMBER_CHUNK] = max(hints)
     return out
 
 
@@ -334,15 +382,26 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
     levels = _levels(ranges, nx, ny)
     hints = [_member_hints(groups[gi]["members"]) for gi in gis]
     T0 = levels[0][1] * levels[0][2]
-    pairs = [(np.repeat(np.arange(len(groups[gi]["members"])), T0),
-              np.tile(np.arange(T0), len(groups[gi]["members"]))) for gi in gis]
+    pairs = [
+        (
+            np.repeat(np.arange(len(groups[gi]["members"])), T0),
+            np.tile(np.arange(T0), len(groups[gi]["members"])),
+        )
+        for gi in gis
+    ]
     for li, (_s, lnx, lny, lranges) in enumerate(levels):
         fine = li == len(levels) - 1
         Tl = lnx * lny
-        bounds = [_pair_bounds(groups[gi], h, mem, til, lranges)
-                  for gi, h, (mem, til) in zip(gis, hints, pairs)]
-        others = [node_bounds(o, lranges)[id(o)] if o.op != "const"
-                  else (np.full(Tl, o.attr), np.full(Tl, o.attr)) for o in g0["others"]]
+        bounds = [
+            _pair_bounds(groups[gi], h, mem, til, lranges)
+            for gi, h, (mem, til) in zip(gis, hints, pairs)
+        ]
+        others = [
+            node_bounds(o, lranges)[id(o)]
+            if o.op != "const"
+            else (np.full(Tl, o.attr), np.full(Tl, o.attr))
+            for o in g0["others"]
+        ]
         # H: the smallest upper bound (min, smin), or the largest lower bound (max, smax); F:
         # the other end over all operands (for the magnitude of the fine tiles' H)
         H = np.full(Tl, np.inf if lower else -np.inf)
@@ -361,8 +420,11 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
                 elif fine:
                     t = 0.5 * np.spacing(np.abs(H))
                 else:  # the fine tiles' H lies between F and H: its smallest magnitude
-                    mag = np.where(F > 0, F, np.where(H < 0, -H, 0.0)) if lower else \
-                        np.where(F < 0, -F, np.where(H > 0, H, 0.0))
+                    mag = (
+                        np.where(F > 0, F, np.where(H < 0, -H, 0.0))
+                        if lower
+                        else np.where(F < 0, -F, np.where(H > 0, H, 0.0))
+                    )
                     t = 0.5 * np.spacing(mag)
                 budget = np.expm1(k * t)
                 margin = np.where(budget > 0, np.log(n_ops / budget) / k, np.inf)
@@ -428,8 +490,10 @@ def _keep_ordered(groups, gi, member_bounds, ranges, T):
     lo, hi = member_bounds[gi]
     hi = np.where(np.isnan(hi), np.inf, hi)
     # the smallest upper bound before each member: the chain's before, then earlier members
-    before = np.minimum(prefix[None, :], np.vstack([np.full((1, T), np.inf),
-                                                    np.minimum.accumulate(hi, axis=0)[:-1]]))
+    before = np.minimum(
+        prefix[None, :],
+        np.vstack([np.full((1, T), np.inf), np.minimum.accumulate(hi, axis=0)[:-1]]),
+    )
     with np.errstate(all="ignore"):
         limit = before + k
         limit = limit + 1e-12 * (np.abs(limit) + k) + 1e-300
@@ -537,8 +601,7 @@ def _call_vg_plan(typingctx, address, x, y, header):
         fp = builder.inttoptr(a, fnty.as_pointer())
         out = cgutils.alloca_once(builder, dbl, size=3)
         builder.call(fp, [xv, yv, out, builder.inttoptr(hv, dbl.as_pointer())])
-        vals = [builder.load(builder.gep(out, [ir.Constant(ir.IntType(32), k)]))
-                for k in range(3)]
+        vals = [builder.load(builder.gep(out, [ir.Constant(ir.IntType(32), k)])) for k in range(3)]
         return context.make_tuple(builder, signature.return_type, vals)
 
     return sig, codegen
@@ -551,17 +614,21 @@ def exact_source(scene: str, rows: bool, version: str) -> str:
     body = ["    d, gx, gy = _exact(x, y)"]
     imports = [f"from {scene} import point_vg as _exact"]
     if rows:
-        imports += [f"from {scene} import rows_vg as _rows",
-                    hashed_import("fastsdf.backends.prune", ["_iptr"])]
-        body = ["    if h[7] != 0.0 and h[0] <= x <= h[1] and h[2] <= y <= h[3]:",
-                "        nx, ny = int(h[4]), int(h[5])",
-                "        tx = min(int((x - h[0]) * (nx / (h[1] - h[0]))), nx - 1)",
-                "        ty = min(int((y - h[2]) * (ny / (h[3] - h[2]))), ny - 1)",
-                "        t = ty * nx + tx",
-                "        d, gx, gy = _rows(x, y, _iptr(int(h[7])), "
-                "_iptr(int(h[8]) + 8 * t * int(h[6])))",
-                "    else:",
-                "        d, gx, gy = _exact(x, y)"]
+        imports += [
+            f"from {scene} import rows_vg as _rows",
+            hashed_import("fastsdf.backends.prune", ["_iptr"]),
+        ]
+        body = [
+            "    if h[7] != 0.0 and h[0] <= x <= h[1] and h[2] <= y <= h[3]:",
+            "        nx, ny = int(h[4]), int(h[5])",
+            "        tx = min(int((x - h[0]) * (nx / (h[1] - h[0]))), nx - 1)",
+            "        ty = min(int((y - h[2]) * (ny / (h[3] - h[2]))), ny - 1)",
+            "        t = ty * nx + tx",
+            "        d, gx, gy = _rows(x, y, _iptr(int(h[7])), "
+            "_iptr(int(h[8]) + 8 * t * int(h[6])))",
+            "    else:",
+            "        d, gx, gy = _exact(x, y)",
+        ]
     return f'''"""Generated by fastsdf {version}: the exact SDF of a scene as a C function for
 per-point callers (a grid's exact fallback, the particle step). Dependencies: {scene}."""
 from numba import cfunc, types

@@ -59,20 +59,72 @@ BLOCK = 256
 # streamed as the generated code does: _CINIT (the first operand, or +-huge), one step per
 # operand updating the accumulator in place (and, for smooth chains, the sum of weights in a
 # register of its own made by _SINIT), and _SEND (smooth chains: m -+ log(s) / k).
-(_CONST, _SYMX, _SYMY, _PARAM, _ADD, _SUB, _MUL, _DIV, _NEG, _POWC, _POW, _SQRT, _EXP, _LOG,
- _SIN, _COS, _ABS, _FLOOR, _LENGTH, _QMIN, _CMIN, _SELECT, _ELLIPSE, _POLYGON, _OUTLINE,
- _CINIT, _SINIT, _SEND, _MINSTEP, _MAXSTEP, _SMINSTEP, _SMAXSTEP,
- _ADDK, _SUBK, _KSUB, _MULK, _DIVK) = range(37)
+(
+    _CONST,
+    _SYMX,
+    _SYMY,
+    _PARAM,
+    _ADD,
+    _SUB,
+    _MUL,
+    _DIV,
+    _NEG,
+    _POWC,
+    _POW,
+    _SQRT,
+    _EXP,
+    _LOG,
+    _SIN,
+    _COS,
+    _ABS,
+    _FLOOR,
+    _LENGTH,
+    _QMIN,
+    _CMIN,
+    _SELECT,
+    _ELLIPSE,
+    _POLYGON,
+    _OUTLINE,
+    _CINIT,
+    _SINIT,
+    _SEND,
+    _MINSTEP,
+    _MAXSTEP,
+    _SMINSTEP,
+    _SMAXSTEP,
+    _ADDK,
+    _SUBK,
+    _KSUB,
+    _MULK,
+    _DIVK,
+) = range(37)
 # The last five take their constant as an immediate (a + k, a - k, k - a, a * k, a / k): most
 # constants of a scene (transforms, sizes) then cost no instruction and no register.
 
-_UNARY = {"neg": _NEG, "powc": _POWC, "sqrt": _SQRT, "exp": _EXP, "log": _LOG, "sin": _SIN,
-          "cos": _COS, "abs": _ABS, "floor": _FLOOR}
-_BINARY = {"add": _ADD, "sub": _SUB, "mul": _MUL, "div": _DIV, "pow": _POW, "length": _LENGTH,
-           "qmin": _QMIN, "cmin": _CMIN}
+_UNARY = {
+    "neg": _NEG,
+    "powc": _POWC,
+    "sqrt": _SQRT,
+    "exp": _EXP,
+    "log": _LOG,
+    "sin": _SIN,
+    "cos": _COS,
+    "abs": _ABS,
+    "floor": _FLOOR,
+}
+_BINARY = {
+    "add": _ADD,
+    "sub": _SUB,
+    "mul": _MUL,
+    "div": _DIV,
+    "pow": _POW,
+    "length": _LENGTH,
+    "qmin": _QMIN,
+    "cmin": _CMIN,
+}
 _CHAINS = {"min": _MINSTEP, "max": _MAXSTEP, "smin": _SMINSTEP, "smax": _SMAXSTEP}
 _STEPS = (_MINSTEP, _MAXSTEP, _SMINSTEP, _SMAXSTEP)
-_HUGE = 1.7976931348623157e+308
+_HUGE = 1.7976931348623157e308
 
 
 class Tape:
@@ -89,8 +141,17 @@ class Tape:
     order of the parameter array), ``nodes`` (expression nodes evaluated).
     """
 
-    def __init__(self, code: np.ndarray, consts: np.ndarray, table: np.ndarray, nreg: int,
-                 root: int, param_names: Sequence[str], defaults: dict, nodes: int):
+    def __init__(
+        self,
+        code: np.ndarray,
+        consts: np.ndarray,
+        table: np.ndarray,
+        nreg: int,
+        root: int,
+        param_names: Sequence[str],
+        defaults: dict,
+        nodes: int,
+    ):
         self.code = code
         self.consts = consts
         self.table = table
@@ -112,8 +173,14 @@ class Tape:
         vals.update(params or {})
         return np.array([float(vals.get(n, 0.0)) for n in self.param_names], dtype=np.float64)
 
-    def run(self, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-            grad: np.ndarray | None = None, prm: np.ndarray | None = None) -> None:
+    def run(
+        self,
+        xs: np.ndarray,
+        ys: np.ndarray,
+        out: np.ndarray,
+        grad: np.ndarray | None = None,
+        prm: np.ndarray | None = None,
+    ) -> None:
         """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2))."""
         n = xs.shape[0]
         if not n:
@@ -123,12 +190,26 @@ class Tape:
         gout = grad if g else np.empty((0, 2))
         blocks = (n + BLOCK - 1) // BLOCK
         chunks = min(blocks, 8 * numba.get_num_threads()) if n >= 4096 else 1
-        _eval_par(self.code, self.consts, self.table, self.nreg, self.root, xs, ys, prm, out,
-                  gout, g, chunks)
+        _eval_par(
+            self.code,
+            self.consts,
+            self.table,
+            self.nreg,
+            self.root,
+            xs,
+            ys,
+            prm,
+            out,
+            gout,
+            g,
+            chunks,
+        )
 
-    def __call__(self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False,
-                 params: dict | None = None) -> Any:
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False, params: dict | None = None
+    ) -> Any:
         from fastsdf.expr.points import as_points
+
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
@@ -146,19 +227,18 @@ class _Builder:
 
     def __init__(self, symbol_names: Sequence[str]) -> None:
         self.names = tuple(symbol_names)
-        self.rows: list = []      # [op, dst(virtual), a, b, c, d, mask]
+        self.rows: list = []  # [op, dst(virtual), a, b, c, d, mask]
         self.consts: list = []
-        self.used: list = []      # per instruction: the virtual registers it reads
+        self.used: list = []  # per instruction: the virtual registers it reads
         self.table: list = []
-        self.params: dict = {}    # name -> index
+        self.params: dict = {}  # name -> index
         self.defaults: dict = {}
-        self.deps: list = []      # per instruction: bit 1 = depends on x, bit 2 = on y
+        self.deps: list = []  # per instruction: bit 1 = depends on x, bit 2 = on y
         # per instruction: which gradient components the generated code carries (bit 1: x,
         # bit 2: y); a component it knows to be zero is left out of every sum, as there.
         self.live: list = []
 
-    def emit(self, op, args=(), k=0.0, c=0, d=0, used=None, deps=None, live=None,
-             args_live=None):
+    def emit(self, op, args=(), k=0.0, c=0, d=0, used=None, deps=None, live=None, args_live=None):
         """One instruction; returns its virtual register (the instruction's index). ``mask``
         bit ``2 j + comp`` says that argument j's gradient component comp is carried (may be
         nonzero); ``args_live`` overrides that per argument, ``live`` the result's."""
@@ -191,6 +271,7 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
     Raises ``ValueError`` for what the tape does not evaluate (a symbol other than the two
     coordinates, a primitive whose constants depend on the coordinates)."""
     from fastsdf.backends.kernel.codegen import _Emitter
+
     names = tuple(symbol_names)
     planner = _Emitter(names, False, {})
     b = _Builder(names)
@@ -228,9 +309,16 @@ def compile_tape(expr: Expr, symbol_names: Sequence[str]) -> Tape:
         reg[id(node)] = _emit_node(b, node, reg)
     root = reg[id(expr)]
     code, nreg = _allocate(b, root)
-    return Tape(code, np.asarray(b.consts, dtype=np.float64),
-                np.asarray(b.table, dtype=np.float64).reshape(-1, 2), nreg, int(code[root, 1]),
-                sorted(b.params, key=lambda name: b.params[name]), b.defaults, nodes)
+    return Tape(
+        code,
+        np.asarray(b.consts, dtype=np.float64),
+        np.asarray(b.table, dtype=np.float64).reshape(-1, 2),
+        nreg,
+        int(code[root, 1]),
+        sorted(b.params, key=lambda name: b.params[name]),
+        b.defaults,
+        nodes,
+    )
 
 
 _ORDERED = {"qmin": _QMIN, "cmin": _CMIN}
@@ -252,6 +340,7 @@ class _Chain:
 
     def __init__(self, planner: Any, node: Expr) -> None:
         from fastsdf.backends.kernel.codegen import _flatten_chain, _foldable
+
         self.node, self.planner = node, planner
         self.ordered = node.op in _ORDERED
         operands = _flatten_chain(node)
@@ -270,8 +359,9 @@ class _Chain:
             self.huge = items[0][0] != "node"
         self.operands = operands
         memo = planner.memo.setdefault("foldable", {})
-        self.templated = [lp and not _foldable(m, memo)
-                          for lp, m in zip(self.looped, operands, strict=True)]
+        self.templated = [
+            lp and not _foldable(m, memo) for lp, m in zip(self.looped, operands, strict=True)
+        ]
         self.j = 0
         self.acc: int | None = None
         self.s: int | None = None
@@ -333,9 +423,13 @@ class _Chain:
             v = self._value(b, self.j, reg)
             looped = self.looped[self.j]
             acc_live = _LIVE if looped else b.live[self.acc]
-            self.acc = b.emit(_ORDERED[node.op], (self.acc, v), node.attr,
-                              args_live=(acc_live, b.live[v]),
-                              live=_LIVE if looped else None)
+            self.acc = b.emit(
+                _ORDERED[node.op],
+                (self.acc, v),
+                node.attr,
+                args_live=(acc_live, b.live[v]),
+                live=_LIVE if looped else None,
+            )
             self.j += 1
             return False
         reg[id(node)] = self.acc
@@ -373,8 +467,15 @@ def _arg(b: _Builder, node: Expr, reg: dict) -> int:
     return reg[id(node)]
 
 
-_IMMEDIATE = {("add", 1): _ADDK, ("add", 0): _ADDK, ("sub", 1): _SUBK, ("sub", 0): _KSUB,
-              ("mul", 1): _MULK, ("mul", 0): _MULK, ("div", 1): _DIVK}
+_IMMEDIATE = {
+    ("add", 1): _ADDK,
+    ("add", 0): _ADDK,
+    ("sub", 1): _SUBK,
+    ("sub", 0): _KSUB,
+    ("mul", 1): _MULK,
+    ("mul", 0): _MULK,
+    ("div", 1): _DIVK,
+}
 
 
 def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
@@ -388,8 +489,9 @@ def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
         return b.emit(_CONST, (), node.attr, deps=0)
     if op == "sym":
         if node.attr not in b.names:
-            raise ValueError(f"the tape evaluates expressions of {list(b.names)}, got symbol "
-                             f"{node.attr!r}")
+            raise ValueError(
+                f"the tape evaluates expressions of {list(b.names)}, got symbol {node.attr!r}"
+            )
         x = node.attr == b.names[0]
         return b.emit(_SYMX if x else _SYMY, (), deps=1 if x else 2)
     if op == "param":
@@ -400,18 +502,29 @@ def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
         return b.emit(_PARAM, (), float(b.params[name]), deps=0)
     args = [_arg(b, a, reg) for a in node.args]
     if op in _UNARY:
-        return b.emit(_UNARY[op], args, node.attr if op == "powc" else 0.0,
-                      deps=0 if op == "floor" else None, live=0 if op == "floor" else None)
+        return b.emit(
+            _UNARY[op],
+            args,
+            node.attr if op == "powc" else 0.0,
+            deps=0 if op == "floor" else None,
+            live=0 if op == "floor" else None,
+        )
     if op in _BINARY:
         return b.emit(_BINARY[op], args, node.attr if op in ("qmin", "cmin") else 0.0)
     if op == "select":
-        return b.emit(_SELECT, args, used=args, deps=b.deps[args[1]] | b.deps[args[2]],
-                      live=b.live[args[1]] | b.live[args[2]])
+        return b.emit(
+            _SELECT,
+            args,
+            used=args,
+            deps=b.deps[args[1]] | b.deps[args[2]],
+            live=b.live[args[1]] | b.live[args[2]],
+        )
     if op == "prim":
         kind, data = node.attr
         if any(b.deps[a] for a in args[2:]):
-            raise ValueError("the tape evaluates primitives whose constants do not depend on "
-                             "the coordinates")
+            raise ValueError(
+                "the tape evaluates primitives whose constants do not depend on the coordinates"
+            )
         if kind == "ellipse":
             return b.emit(_ELLIPSE, args[:3], d=args[3], used=args[:4])
         if kind == "polygon":
@@ -419,14 +532,16 @@ def _emit_node(b: _Builder, node: Expr, reg: dict) -> int:
             off = len(b.table)
             b.table.extend(map(tuple, verts))
             return b.emit(_POLYGON, args[:2], c=off, d=len(verts))
-        if kind == "outline":   # rows of 11 numbers, padded to 12: 6 table rows each
+        if kind == "outline":  # rows of 11 numbers, padded to 12: 6 table rows each
             rows = np.asarray(data, dtype=np.float64)
             rows = np.concatenate([rows, np.zeros((len(rows), 1))], axis=1).reshape(-1, 2)
             off = len(b.table)
             b.table.extend(map(tuple, rows))
             return b.emit(_OUTLINE, args[:2], c=off, d=len(rows) // 6)
-    raise ValueError(f"the tape has no instruction for operation {op!r}"
-                     + (f" (primitive {node.attr[0]!r})" if op == "prim" else ""))
+    raise ValueError(
+        f"the tape has no instruction for operation {op!r}"
+        + (f" (primitive {node.attr[0]!r})" if op == "prim" else "")
+    )
 
 
 # Columns of code that hold registers, per opcode (the others hold data).
@@ -492,6 +607,7 @@ def _allocate(b: _Builder, root: int) -> tuple[np.ndarray, int]:
 
 # ---------------------------------------------------------------------------------------------
 # The interpreter (compiled once per installation).
+
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
@@ -676,10 +792,12 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
             if grad:
                 for i in range(n):
                     pick = V[a, i] > 0.0
-                    GX[d, i] = _sel(pick, GX[b, i] if mask & 4 else 0.0,
-                                    GX[c, i] if mask & 16 else 0.0)
-                    GY[d, i] = _sel(pick, GY[b, i] if mask & 8 else 0.0,
-                                    GY[c, i] if mask & 32 else 0.0)
+                    GX[d, i] = _sel(
+                        pick, GX[b, i] if mask & 4 else 0.0, GX[c, i] if mask & 16 else 0.0
+                    )
+                    GY[d, i] = _sel(
+                        pick, GY[b, i] if mask & 8 else 0.0, GY[c, i] if mask & 32 else 0.0
+                    )
         elif op == _ELLIPSE:
             e = code[ins, 5]
             for i in range(n):
@@ -689,7 +807,7 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                 PB[i] = q
             lin = 2
         elif op == _POLYGON:
-            verts = table[c:c + code[ins, 5]]
+            verts = table[c : c + code[ins, 5]]
             for i in range(n):
                 r, p, q = _P.polygon_vg(V[a, i], V[b, i], verts)
                 V[d, i] = r
@@ -697,7 +815,7 @@ def _block(code, consts, table, V, GX, GY, PA, PB, bx, by, prm, n, grad):
                 PB[i] = q
             lin = 2
         elif op == _OUTLINE:
-            rows = table[c:c + 6 * code[ins, 5]].reshape(code[ins, 5], 12)
+            rows = table[c : c + 6 * code[ins, 5]].reshape(code[ins, 5], 12)
             for i in range(n):
                 r, p, q = _P.outline_vg(V[a, i], V[b, i], rows)
                 V[d, i] = r
@@ -793,7 +911,7 @@ def _powc(x, e):
         return x * x
     if e == 0.5:
         return _sel(x == -math.inf, math.inf, abs(math.sqrt(x)))
-    return x ** e
+    return x**e
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
@@ -803,8 +921,9 @@ def _blend_grad(G, V, d, a, b, wa, h, ua, ub, n):
     if ua and ub:
         for i in range(n):
             w = V[a, i] <= V[b, i]
-            G[d, i] = _sel(h[i] > 0.0, G[a, i] * wa[i] + G[b, i] * (1.0 - wa[i]),
-                           _sel(w, G[a, i], G[b, i]))
+            G[d, i] = _sel(
+                h[i] > 0.0, G[a, i] * wa[i] + G[b, i] * (1.0 - wa[i]), _sel(w, G[a, i], G[b, i])
+            )
     elif ua:
         for i in range(n):
             w = V[a, i] <= V[b, i]
@@ -884,6 +1003,7 @@ def _guard():
     import sys
 
     from fastsdf.backends.kernel.cache import guard_module
+
     guard_module(sys.modules[__name__])
 
 

@@ -42,12 +42,33 @@ import numpy as np
 from fastsdf.expr.ops import OPS, chain_rule_numpy, fmt_const
 
 __all__ = [
-    "Expr", "Symbol", "Constant", "as_expr",
-    "sym_sqrt", "sym_exp", "sym_log", "sym_sin", "sym_cos", "sym_abs",
-    "sym_min", "sym_max", "sym_smin", "sym_smax", "sym_length",
-    "sym_floor", "sym_select", "sym_qmin", "sym_cmin", "sym_prim", "substitute",
-    "evaluate_numpy", "topological_order",
-    "Param", "t", "parameters", "substitute_params",
+    "Expr",
+    "Symbol",
+    "Constant",
+    "as_expr",
+    "sym_sqrt",
+    "sym_exp",
+    "sym_log",
+    "sym_sin",
+    "sym_cos",
+    "sym_abs",
+    "sym_min",
+    "sym_max",
+    "sym_smin",
+    "sym_smax",
+    "sym_length",
+    "sym_floor",
+    "sym_select",
+    "sym_qmin",
+    "sym_cmin",
+    "sym_prim",
+    "substitute",
+    "evaluate_numpy",
+    "topological_order",
+    "Param",
+    "t",
+    "parameters",
+    "substitute_params",
 ]
 
 # Operations grouped by arity; attributes (symbol name, constant exponent, smoothness k) are part
@@ -72,8 +93,7 @@ class _Ref(weakref.ref):
     key: tuple
 
 
-def _forget(ref: _Ref, _remove: Callable = _remove_dead_weakref,
-            _intern: dict = _INTERN) -> None:
+def _forget(ref: _Ref, _remove: Callable = _remove_dead_weakref, _intern: dict = _INTERN) -> None:
     # Atomic: removes the entry only if it still is this (dead) reference.
     _remove(_intern, ref.key)
 
@@ -220,8 +240,9 @@ class Expr:
         return self
 
     def __bool__(self) -> bool:
-        raise TypeError("a symbolic expression has no truth value; use sym_min/sym_max "
-                        "instead of comparisons")
+        raise TypeError(
+            "a symbolic expression has no truth value; use sym_min/sym_max instead of comparisons"
+        )
 
     @property
     def value(self) -> float:
@@ -330,8 +351,9 @@ def Param(name: str, default: float = 0.0) -> Expr:
     sets it to its own clock.
     """
     if not isinstance(name, str) or not name.isidentifier() or name.startswith("_"):
-        raise ValueError(f"Param name must be a Python identifier not starting with '_', got "
-                         f"name={name!r}")
+        raise ValueError(
+            f"Param name must be a Python identifier not starting with '_', got name={name!r}"
+        )
     if name in ("x", "y"):
         raise ValueError(f"Param name must not be a coordinate ('x' or 'y'), got name={name!r}")
     if isinstance(default, (bool, np.bool_)) or not isinstance(default, numbers.Real):
@@ -354,8 +376,10 @@ def parameters(root: Expr) -> dict:
     out: dict = {}
     for name, default in sorted(root.prms, key=lambda p: (p[0], _float_key(p[1]))):
         if name in out and _float_key(out[name]) != _float_key(default):
-            raise ValueError(f"parameter {name!r} is given two defaults in one scene: "
-                             f"{out[name]!r} and {default!r}")
+            raise ValueError(
+                f"parameter {name!r} is given two defaults in one scene: "
+                f"{out[name]!r} and {default!r}"
+            )
         out[name] = default
     return out
 
@@ -371,8 +395,9 @@ def substitute_params(root: Expr, values: dict) -> Expr:
             new[id(node)] = node
         else:
             args = tuple(new[id(a)] for a in node.args)
-            new[id(node)] = node if all(x is y for x, y in zip(args, node.args)) \
-                else _rebuild(node, args)
+            new[id(node)] = (
+                node if all(x is y for x, y in zip(args, node.args)) else _rebuild(node, args)
+            )
     return new[id(root)]
 
 
@@ -388,17 +413,23 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
     if isinstance(value, float):  # np.float64 (a subclass of float)
         return _intern("const", (), float(value))
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        if isinstance(value, np.ndarray) and value.shape == () \
-                and np.issubdtype(value.dtype, np.number) \
-                and not np.issubdtype(value.dtype, np.complexfloating):
+        if (
+            isinstance(value, np.ndarray)
+            and value.shape == ()
+            and np.issubdtype(value.dtype, np.number)
+            and not np.issubdtype(value.dtype, np.complexfloating)
+        ):
             return _intern("const", (), float(value))
-        raise TypeError(f"{name} must be a real number or an expression, got {value!r} "
-                        f"of type {type(value).__name__}")
+        raise TypeError(
+            f"{name} must be a real number or an expression, got {value!r} "
+            f"of type {type(value).__name__}"
+        )
     return _intern("const", (), float(value))
 
 
 # ---------------------------------------------------------------------------------------------
 # Constructors with constant folding and light, IEEE-safe simplification (for finite values).
+
 
 def _both_const(a: Expr, b: Expr) -> bool:
     return a.op == "const" and b.op == "const"
@@ -617,8 +648,10 @@ def _param_blend(a: Expr | float, b: Expr | float, k: Expr, kind: str, sign: flo
     checked > 0 at the parameters' defaults."""
     number = float(evaluate_numpy(k, {"_": np.zeros(1)})[0]) if not k.syms else math.nan
     if not number > 0 or not math.isfinite(1.0 / number):
-        raise ValueError(f"k given by parameters must be finite and > 0 (at their defaults, "
-                         f"and not depend on x or y), got k={k} = {number!r}")
+        raise ValueError(
+            f"k given by parameters must be finite and > 0 (at their defaults, "
+            f"and not depend on x or y), got k={k} = {number!r}"
+        )
     ea, eb = as_expr(a, "a") * sign, as_expr(b, "b") * sign
     m, gap = sym_min(ea, eb), sym_abs(ea - eb)
     if kind == "exponential":
@@ -640,8 +673,9 @@ def _check_k(k: object, name: str = "k") -> float:
     if not math.isfinite(k) or k <= 0.0:
         raise ValueError(f"{name} must be finite and > 0 for a smooth blend, got {name}={k!r}")
     if not math.isfinite(1.0 / k):  # the blend divides by k: a subnormal k gives inf and NaN
-        raise ValueError(f"{name} is too small for a smooth blend (1/k overflows), got "
-                         f"{name}={k!r}")
+        raise ValueError(
+            f"{name} is too small for a smooth blend (1/k overflows), got {name}={k!r}"
+        )
     return k
 
 
@@ -710,8 +744,7 @@ def _check_width(k: object, name: str = "k") -> float:
     if not math.isfinite(k) or k <= 0.0:
         raise ValueError(f"{name} (the blend width) must be finite and > 0, got {name}={k!r}")
     if not math.isfinite(1.0 / k):  # the blend divides by k: a subnormal k gives inf and NaN
-        raise ValueError(f"{name} (the blend width) is too small (1/k overflows), got "
-                         f"{name}={k!r}")
+        raise ValueError(f"{name} (the blend width) is too small (1/k overflows), got {name}={k!r}")
     return k
 
 
@@ -749,8 +782,9 @@ def sym_cmin(a: Expr | float, b: Expr | float, k: Expr | float) -> Expr:
     return _intern("cmin", (a, b), k)
 
 
-def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants: Any,
-             data: Any = None) -> Expr:
+def sym_prim(
+    kind: str, u: Expr | float, v: Expr | float, *constants: Any, data: Any = None
+) -> Expr:
     """A primitive evaluated by a fixed compiled function: ``kind`` (one of ``PRIM_KINDS``) at
     local coordinates ``(u, v)`` (expressions), with numeric ``constants`` (become table columns
     when same-kind primitives are folded into a loop) and hashable structural ``data`` (e.g. a
@@ -759,8 +793,12 @@ def sym_prim(kind: str, u: Expr | float, v: Expr | float, *constants: Any,
     if kind not in PRIM_KINDS:
         raise ValueError(f"kind must be one of {PRIM_KINDS}, got kind={kind!r}")
     # A constant may also be an expression of runtime parameters (an ellipse's axes).
-    consts = tuple(c if isinstance(c, Expr) and c.op != "const" and not c.syms
-                   else as_expr(float(c), "constant") for c in constants)
+    consts = tuple(
+        c
+        if isinstance(c, Expr) and c.op != "const" and not c.syms
+        else as_expr(float(c), "constant")
+        for c in constants
+    )
     return _intern("prim", (as_expr(u, "u"), as_expr(v, "v")) + consts, (kind, data))
 
 
@@ -768,16 +806,33 @@ def _rebuild(node: Expr, args: tuple) -> Expr:
     """``node``'s operation applied to new arguments, through the folding constructors."""
     op = node.op
     if op in ("neg", "sqrt", "exp", "log", "sin", "cos", "abs", "floor"):
-        return {"neg": _neg, "sqrt": sym_sqrt, "exp": sym_exp, "log": sym_log, "sin": sym_sin,
-                "cos": sym_cos, "abs": sym_abs, "floor": sym_floor}[op](args[0])
+        return {
+            "neg": _neg,
+            "sqrt": sym_sqrt,
+            "exp": sym_exp,
+            "log": sym_log,
+            "sin": sym_sin,
+            "cos": sym_cos,
+            "abs": sym_abs,
+            "floor": sym_floor,
+        }[op](args[0])
     if op == "powc":
         return _pow(args[0], _intern("const", (), node.attr))
     if op in ("add", "sub", "mul", "div", "pow", "min", "max", "length"):
-        return {"add": _add, "sub": _sub, "mul": _mul, "div": _div, "pow": _pow,
-                "min": sym_min, "max": sym_max, "length": sym_length}[op](*args)
+        return {
+            "add": _add,
+            "sub": _sub,
+            "mul": _mul,
+            "div": _div,
+            "pow": _pow,
+            "min": sym_min,
+            "max": sym_max,
+            "length": sym_length,
+        }[op](*args)
     if op in ("smin", "smax", "qmin", "cmin"):
         return {"smin": sym_smin, "smax": sym_smax, "qmin": sym_qmin, "cmin": sym_cmin}[op](
-            args[0], args[1], node.attr)
+            args[0], args[1], node.attr
+        )
     if op == "select":
         return sym_select(*args)
     return Expr(op, args, node.attr)  # prim (constant arguments stay constants)
@@ -799,14 +854,15 @@ def substitute(root: Expr, mapping: dict) -> Expr:
             new[id(node)] = node
         else:
             args = tuple(new[id(a)] for a in node.args)
-            new[id(node)] = node if all(x is y for x, y in zip(args, node.args)) \
-                else _rebuild(node, args)
+            new[id(node)] = (
+                node if all(x is y for x, y in zip(args, node.args)) else _rebuild(node, args)
+            )
     return new[id(root)]
-
 
 
 # ---------------------------------------------------------------------------------------------
 # Traversal and printing (iterative: no recursion-depth limit).
+
 
 def topological_order(root: Expr) -> list:
     """All nodes reachable from ``root``, each once, children before parents."""
@@ -869,10 +925,10 @@ def expr_to_str(root: Expr, limit: int | None = None) -> str:
             s = OPS[op].fmt(node, [text.get(a, "") for a in node.args])
         # With a limit only the first `limit` characters are kept: cutting every part keeps that
         # prefix exact and makes printing a deep chain linear, not quadratic, in its depth.
-        text[node] = s if limit is None else s[:limit + 1]
+        text[node] = s if limit is None else s[: limit + 1]
     out = text[root]
     if limit is not None and len(out) > limit:
-        out = out[:limit - 3] + "..."
+        out = out[: limit - 3] + "..."
     return out
 
 
@@ -921,8 +977,10 @@ def _near_root(root: Expr, depth: int) -> list:
 # ---------------------------------------------------------------------------------------------
 # Reference evaluation with NumPy (the seed's approach: one array operation per node).
 
-def evaluate_numpy(root: Expr, symbols: dict, compute_gradient: bool = False,
-                   params: dict | None = None) -> Any:
+
+def evaluate_numpy(
+    root: Expr, symbols: dict, compute_gradient: bool = False, params: dict | None = None
+) -> Any:
     """Evaluate ``root`` with NumPy, one whole-array operation per node.
 
     ``symbols`` maps symbol names to arrays of equal shape. With ``compute_gradient`` the result

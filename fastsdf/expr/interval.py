@@ -26,6 +26,7 @@ from fastsdf.expr.ops import OPS
 
 __all__ = ["node_bounds", "bounds", "note_lipschitz", "node_values"]
 
+
 class _Hints:
     """Lipschitz constants noted for expressions (exact and 'bound' SDFs, noted by the
     modelling layer): ``LIPSCHITZ_RULES.get(node)`` is the constant or None. Kept on the node itself
@@ -67,14 +68,17 @@ def node_values(root: Expr, symbols: dict) -> dict:
 def _as_ranges(boxes: dict) -> tuple[dict, tuple]:
     out = {}
     for name, (lo, hi) in boxes.items():
-        lo, hi = np.atleast_1d(np.asarray(lo, dtype=np.float64)), \
-            np.atleast_1d(np.asarray(hi, dtype=np.float64))
+        lo, hi = (
+            np.atleast_1d(np.asarray(lo, dtype=np.float64)),
+            np.atleast_1d(np.asarray(hi, dtype=np.float64)),
+        )
         if np.any(lo > hi):
             raise ValueError(f"box of {name!r} has lo > hi")
         out[name] = (lo, hi)
     shape = np.broadcast(*[r[0] for r in out.values()], *[r[1] for r in out.values()]).shape
-    return {k: (np.broadcast_to(lo, shape), np.broadcast_to(hi, shape))
-            for k, (lo, hi) in out.items()}, shape
+    return {
+        k: (np.broadcast_to(lo, shape), np.broadcast_to(hi, shape)) for k, (lo, hi) in out.items()
+    }, shape
 
 
 def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
@@ -86,8 +90,11 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
     """
     ranges, shape = _as_ranges(boxes)
     # Runtime parameters (and time) need ranges like symbols: their values are not constants.
-    missing = {n.attr if n.op == "sym" else n.attr[0] for n in topological_order(root)
-               if n.op in ("sym", "param")} - set(ranges)
+    missing = {
+        n.attr if n.op == "sym" else n.attr[0]
+        for n in topological_order(root)
+        if n.op in ("sym", "param")
+    } - set(ranges)
     if missing:
         raise ValueError(f"no range given for symbols or parameters {sorted(missing)}")
     order = topological_order(root)
@@ -115,8 +122,11 @@ def node_bounds(root: Expr, boxes: dict, lipschitz: bool = True) -> dict:
                 lo = np.where(np.isnan(lo), -np.inf, lo)
                 hi = np.where(np.isnan(hi), np.inf, hi)
                 if lipschitz:
-                    L = spec.lipschitz(node, [lip[id(a)] for a in node.args], alo, ahi) \
-                        if spec.lipschitz is not None else np.full(shape, np.inf)
+                    L = (
+                        spec.lipschitz(node, [lip[id(a)] for a in node.args], alo, ahi)
+                        if spec.lipschitz is not None
+                        else np.full(shape, np.inf)
+                    )
                     L = np.where(np.isnan(L), np.inf, L)
                     hint = LIPSCHITZ_RULES.get(node)
                     if hint is not None:

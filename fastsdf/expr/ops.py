@@ -176,6 +176,7 @@ def _monotone(fn, lo, hi, ulps=4.0):
 # ---------------------------------------------------------------------------------------------
 # Code-generation helpers (source strings; None is a known zero, "1.0" a literal one).
 
+
 def _g(a):
     return a.g
 
@@ -194,6 +195,7 @@ def _infix(sym):
 
 # -- add, sub, mul, div, neg ----------------------------------------------------------------
 
+
 def fmt_const(value: float) -> str:
     """How a constant prints (negative ones in parentheses)."""
     s = repr(value) if not value.is_integer() or abs(value) >= 1e16 else str(int(value))
@@ -209,21 +211,35 @@ def _fmt_add(node, s):
     return f"({s[0]} + {s[1]})"
 
 
-_register(Op(
-    "add", 2, _fmt_add,
-    np=lambda node, av, g: (av[0] + av[1], [1.0, 1.0] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"{a[0].v} + {a[1].v}"),
-                                      ["1.0", "1.0"])[1],
-    interval=lambda node, lo, hi: (lo[0] + lo[1], hi[0] + hi[1]),
-    lipschitz=lambda node, L, lo, hi: L[0] + L[1]))
+_register(
+    Op(
+        "add",
+        2,
+        _fmt_add,
+        np=lambda node, av, g: (av[0] + av[1], [1.0, 1.0] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"{a[0].v} + {a[1].v}"),
+            ["1.0", "1.0"],
+        )[1],
+        interval=lambda node, lo, hi: (lo[0] + lo[1], hi[0] + hi[1]),
+        lipschitz=lambda node, L, lo, hi: L[0] + L[1],
+    )
+)
 
-_register(Op(
-    "sub", 2, _infix("-"),
-    np=lambda node, av, g: (av[0] - av[1], [1.0, -1.0] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"{a[0].v} - {a[1].v}"),
-                                      ["1.0", "-1.0"])[1],
-    interval=lambda node, lo, hi: (lo[0] - hi[1], hi[0] - lo[1]),
-    lipschitz=lambda node, L, lo, hi: L[0] + L[1]))
+_register(
+    Op(
+        "sub",
+        2,
+        _infix("-"),
+        np=lambda node, av, g: (av[0] - av[1], [1.0, -1.0] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"{a[0].v} - {a[1].v}"),
+            ["1.0", "-1.0"],
+        )[1],
+        interval=lambda node, lo, hi: (lo[0] - hi[1], hi[0] - lo[1]),
+        lipschitz=lambda node, L, lo, hi: L[0] + L[1],
+    )
+)
 
 
 def _iv_mul(node, lo, hi):
@@ -237,12 +253,20 @@ def _lip_mul(node, L, lo, hi):
         return np.where(L[0] == 0, 0.0, mb * L[0]) + np.where(L[1] == 0, 0.0, ma * L[1])
 
 
-_register(Op(
-    "mul", 2, _infix("*"),
-    np=lambda node, av, g: (av[0] * av[1], [av[1], av[0]] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"{a[0].v} * {a[1].v}"),
-                                      [a[1].v, a[0].v])[1],
-    interval=_iv_mul, lipschitz=_lip_mul))
+_register(
+    Op(
+        "mul",
+        2,
+        _infix("*"),
+        np=lambda node, av, g: (av[0] * av[1], [av[1], av[0]] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"{a[0].v} * {a[1].v}"),
+            [a[1].v, a[0].v],
+        )[1],
+        interval=_iv_mul,
+        lipschitz=_lip_mul,
+    )
+)
 
 
 def _emit_div(em, out, node, a, r):
@@ -268,21 +292,36 @@ def _lip_div(node, L, lo, hi):
     return np.where(mb_lo > 0, out, np.inf)
 
 
-_register(Op(
-    "div", 2, _infix("/"),
-    np=lambda node, av, g: (av[0] / av[1],
-                            [1.0 / av[1], -av[0] / (av[1] * av[1])] if g else None),
-    emit=_emit_div, interval=_iv_div, lipschitz=_lip_div))
+_register(
+    Op(
+        "div",
+        2,
+        _infix("/"),
+        np=lambda node, av, g: (
+            av[0] / av[1],
+            [1.0 / av[1], -av[0] / (av[1] * av[1])] if g else None,
+        ),
+        emit=_emit_div,
+        interval=_iv_div,
+        lipschitz=_lip_div,
+    )
+)
 
-_register(Op(
-    "neg", 1, lambda node, s: f"(-{s[0]})",
-    np=lambda node, av, g: (-av[0], [-1.0] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"-{a[0].v}"), ["-1.0"])[1],
-    interval=lambda node, lo, hi: (-hi[0], -lo[0]),
-    lipschitz=lambda node, L, lo, hi: L[0]))
+_register(
+    Op(
+        "neg",
+        1,
+        lambda node, s: f"(-{s[0]})",
+        np=lambda node, av, g: (-av[0], [-1.0] if g else None),
+        emit=lambda em, out, node, a, r: (em.assign(out, r, f"-{a[0].v}"), ["-1.0"])[1],
+        interval=lambda node, lo, hi: (-hi[0], -lo[0]),
+        lipschitz=lambda node, L, lo, hi: L[0],
+    )
+)
 
 
 # -- powers -----------------------------------------------------------------------------------
+
 
 def _fmt_powc(node, s):
     p = node.attr
@@ -316,18 +355,18 @@ def _iv_powc(node, lo, hi):
         if p.is_integer():
             if p % 2 == 0:
                 mlo, mhi = _abs_iv(alo, ahi)
-                cands = (mlo ** p, mhi ** p)
+                cands = (mlo**p, mhi**p)
                 rlo, rhi = np.minimum(*cands), np.maximum(*cands)
                 if p < 0:
                     rhi = np.where(mlo == 0, np.inf, rhi)
             else:
-                rlo, rhi = np.minimum(alo ** p, ahi ** p), np.maximum(alo ** p, ahi ** p)
+                rlo, rhi = np.minimum(alo**p, ahi**p), np.maximum(alo**p, ahi**p)
                 if p < 0:
                     zero = (alo <= 0) & (ahi >= 0)
                     rlo, rhi = np.where(zero, -np.inf, rlo), np.where(zero, np.inf, rhi)
         else:  # NaN below 0: bound the values at a >= 0
             clo, chi = np.maximum(alo, 0.0), np.maximum(ahi, 0.0)
-            cands = (clo ** p, chi ** p)
+            cands = (clo**p, chi**p)
             rlo, rhi = np.minimum(*cands), np.maximum(*cands)
     rlo, rhi = np.where(np.isnan(rlo), -np.inf, rlo), np.where(np.isnan(rhi), np.inf, rhi)
     return _widen(rlo, rhi, _mag(rlo, rhi), 4.0)
@@ -342,16 +381,25 @@ def _lip_powc(node, L, lo, hi):
         return np.where(m[0] > 0, abs(p) * m[0] ** (p - 1.0) * L[0], np.inf)
 
 
-_register(Op(
-    "powc", 1, _fmt_powc,
-    np=lambda node, av, g: (av[0] ** node.attr,
-                            [node.attr * av[0] ** (node.attr - 1.0)] if g else None),
-    emit=_emit_powc, interval=_iv_powc, lipschitz=_lip_powc))
+_register(
+    Op(
+        "powc",
+        1,
+        _fmt_powc,
+        np=lambda node, av, g: (
+            av[0] ** node.attr,
+            [node.attr * av[0] ** (node.attr - 1.0)] if g else None,
+        ),
+        emit=_emit_powc,
+        interval=_iv_powc,
+        lipschitz=_lip_powc,
+    )
+)
 
 
 def _np_pow(node, av, g):
     x, y = av
-    v = x ** y
+    v = x**y
     return v, ([y * x ** (y - 1.0), v * np.log(x)] if g else None)
 
 
@@ -363,15 +411,23 @@ def _iv_pow(node, lo, hi):
     return _widen(rlo, rhi, _mag(rlo, rhi), 8.0)
 
 
-_register(Op(
-    "pow", 2, _infix("**"), np=_np_pow,
-    emit=lambda em, out, node, a, r: (
-        em.assign(out, r, f"{a[0].v} ** {a[1].v}"),
-        [f"({a[1].v} * {a[0].v} ** ({a[1].v} - 1.0))", f"({r} * math.log({a[0].v}))"])[1],
-    interval=_iv_pow))
+_register(
+    Op(
+        "pow",
+        2,
+        _infix("**"),
+        np=_np_pow,
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"{a[0].v} ** {a[1].v}"),
+            [f"({a[1].v} * {a[0].v} ** ({a[1].v} - 1.0))", f"({r} * math.log({a[0].v}))"],
+        )[1],
+        interval=_iv_pow,
+    )
+)
 
 
 # -- elementary functions ---------------------------------------------------------------------
+
 
 def _np_sqrt(node, av, g):
     v = np.sqrt(av[0])
@@ -383,13 +439,23 @@ def _lip_sqrt(node, L, lo, hi):
         return np.where(lo[0] > 0, L[0] / (2.0 * np.sqrt(np.maximum(lo[0], 0.0))), np.inf)
 
 
-_register(Op(
-    "sqrt", 1, _call("sqrt"), np=_np_sqrt,
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.sqrt({a[0].v})"),
-                                      [f"_sel({r} > 0.0, 0.5 / {r}, 0.0)"])[1],
-    interval=lambda node, lo, hi: (np.sqrt(np.maximum(lo[0], 0.0)),
-                                   np.sqrt(np.maximum(hi[0], 0.0))),
-    lipschitz=_lip_sqrt))
+_register(
+    Op(
+        "sqrt",
+        1,
+        _call("sqrt"),
+        np=_np_sqrt,
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"math.sqrt({a[0].v})"),
+            [f"_sel({r} > 0.0, 0.5 / {r}, 0.0)"],
+        )[1],
+        interval=lambda node, lo, hi: (
+            np.sqrt(np.maximum(lo[0], 0.0)),
+            np.sqrt(np.maximum(hi[0], 0.0)),
+        ),
+        lipschitz=_lip_sqrt,
+    )
+)
 
 
 def _np_exp(node, av, g):
@@ -402,11 +468,17 @@ def _iv_exp(node, lo, hi):
     return np.maximum(rlo, 0.0), rhi
 
 
-_register(Op(
-    "exp", 1, _call("exp"), np=_np_exp,
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.exp({a[0].v})"), [r])[1],
-    interval=_iv_exp,
-    lipschitz=lambda node, L, lo, hi: np.exp(hi[0]) * L[0]))
+_register(
+    Op(
+        "exp",
+        1,
+        _call("exp"),
+        np=_np_exp,
+        emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.exp({a[0].v})"), [r])[1],
+        interval=_iv_exp,
+        lipschitz=lambda node, L, lo, hi: np.exp(hi[0]) * L[0],
+    )
+)
 
 
 def _iv_log(node, lo, hi):
@@ -415,47 +487,82 @@ def _iv_log(node, lo, hi):
     return np.where(lo[0] > 0, rlo, -np.inf), np.where(np.isnan(rhi), np.inf, rhi)
 
 
-_register(Op(
-    "log", 1, _call("log"),
-    np=lambda node, av, g: (np.log(av[0]), [1.0 / av[0]] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.log({a[0].v})"),
-                                      [f"(1.0 / {a[0].v})"])[1],
-    interval=_iv_log,
-    lipschitz=lambda node, L, lo, hi: np.where(lo[0] > 0, L[0] / np.where(lo[0] > 0, lo[0], 1.0),
-                                               np.inf)))
+_register(
+    Op(
+        "log",
+        1,
+        _call("log"),
+        np=lambda node, av, g: (np.log(av[0]), [1.0 / av[0]] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"math.log({a[0].v})"),
+            [f"(1.0 / {a[0].v})"],
+        )[1],
+        interval=_iv_log,
+        lipschitz=lambda node, L, lo, hi: np.where(
+            lo[0] > 0, L[0] / np.where(lo[0] > 0, lo[0], 1.0), np.inf
+        ),
+    )
+)
 
-_register(Op(
-    "sin", 1, _call("sin"),
-    np=lambda node, av, g: (np.sin(av[0]), [np.cos(av[0])] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.sin({a[0].v})"),
-                                      [f"math.cos({a[0].v})"])[1],
-    interval=lambda node, lo, hi: _trig_iv(lo[0], hi[0], 0.0),
-    lipschitz=lambda node, L, lo, hi: L[0]))
+_register(
+    Op(
+        "sin",
+        1,
+        _call("sin"),
+        np=lambda node, av, g: (np.sin(av[0]), [np.cos(av[0])] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"math.sin({a[0].v})"),
+            [f"math.cos({a[0].v})"],
+        )[1],
+        interval=lambda node, lo, hi: _trig_iv(lo[0], hi[0], 0.0),
+        lipschitz=lambda node, L, lo, hi: L[0],
+    )
+)
 
-_register(Op(
-    "cos", 1, _call("cos"),
-    np=lambda node, av, g: (np.cos(av[0]), [-np.sin(av[0])] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.cos({a[0].v})"),
-                                      [f"(-math.sin({a[0].v}))"])[1],
-    interval=lambda node, lo, hi: _trig_iv(lo[0], hi[0], np.pi / 2),
-    lipschitz=lambda node, L, lo, hi: L[0]))
+_register(
+    Op(
+        "cos",
+        1,
+        _call("cos"),
+        np=lambda node, av, g: (np.cos(av[0]), [-np.sin(av[0])] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"math.cos({a[0].v})"),
+            [f"(-math.sin({a[0].v}))"],
+        )[1],
+        interval=lambda node, lo, hi: _trig_iv(lo[0], hi[0], np.pi / 2),
+        lipschitz=lambda node, L, lo, hi: L[0],
+    )
+)
 
-_register(Op(
-    "abs", 1, _call("abs"),
-    np=lambda node, av, g: (np.abs(av[0]), [np.where(av[0] >= 0, 1.0, -1.0)] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"abs({a[0].v})"),
-                                      [f"_sel({a[0].v} >= 0.0, 1.0, -1.0)"])[1],
-    interval=lambda node, lo, hi: _abs_iv(lo[0], hi[0]),
-    lipschitz=lambda node, L, lo, hi: L[0]))
+_register(
+    Op(
+        "abs",
+        1,
+        _call("abs"),
+        np=lambda node, av, g: (np.abs(av[0]), [np.where(av[0] >= 0, 1.0, -1.0)] if g else None),
+        emit=lambda em, out, node, a, r: (
+            em.assign(out, r, f"abs({a[0].v})"),
+            [f"_sel({a[0].v} >= 0.0, 1.0, -1.0)"],
+        )[1],
+        interval=lambda node, lo, hi: _abs_iv(lo[0], hi[0]),
+        lipschitz=lambda node, L, lo, hi: L[0],
+    )
+)
 
-_register(Op(
-    "floor", 1, _call("floor"),
-    np=lambda node, av, g: (np.floor(av[0]), [None] if g else None),
-    emit=lambda em, out, node, a, r: (em.assign(out, r, f"np.floor({a[0].v})"), [None])[1],
-    interval=lambda node, lo, hi: (np.floor(lo[0]), np.floor(hi[0]))))
+_register(
+    Op(
+        "floor",
+        1,
+        _call("floor"),
+        np=lambda node, av, g: (np.floor(av[0]), [None] if g else None),
+        emit=lambda em, out, node, a, r: (em.assign(out, r, f"np.floor({a[0].v})"), [None])[1],
+        interval=lambda node, lo, hi: (np.floor(lo[0]), np.floor(hi[0])),
+    )
+)
 
 
 # -- min, max, length -------------------------------------------------------------------------
+
 
 def _np_minmax(node, av, g):
     x, y = av
@@ -464,18 +571,34 @@ def _np_minmax(node, av, g):
     return v, ([pick_a * 1.0, 1.0 - pick_a] if g else None)
 
 
-_register(Op(
-    "min", 2, _call("min"), np=_np_minmax, emit=None,
-    interval=lambda node, lo, hi: (np.minimum(lo[0], lo[1]), np.minimum(hi[0], hi[1])),
-    lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]), chain=True))
+_register(
+    Op(
+        "min",
+        2,
+        _call("min"),
+        np=_np_minmax,
+        emit=None,
+        interval=lambda node, lo, hi: (np.minimum(lo[0], lo[1]), np.minimum(hi[0], hi[1])),
+        lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]),
+        chain=True,
+    )
+)
 
-_register(Op(
-    "max", 2, _call("max"), np=_np_minmax, emit=None,
-    interval=lambda node, lo, hi: (np.maximum(lo[0], lo[1]), np.maximum(hi[0], hi[1])),
-    lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]), chain=True))
+_register(
+    Op(
+        "max",
+        2,
+        _call("max"),
+        np=_np_minmax,
+        emit=None,
+        interval=lambda node, lo, hi: (np.maximum(lo[0], lo[1]), np.maximum(hi[0], hi[1])),
+        lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]),
+        chain=True,
+    )
+)
 
 
-_UP = 2.0 ** 600  # rescales tiny and subnormal lengths into the normal range, exactly
+_UP = 2.0**600  # rescales tiny and subnormal lengths into the normal range, exactly
 
 
 def _np_length(node, av, g):
@@ -525,12 +648,21 @@ def _iv_length(node, lo, hi):
     return _widen(rlo, rhi, _mag(rlo, rhi), 4.0)
 
 
-_register(Op(
-    "length", 2, _call("length"), np=_np_length, emit=_emit_length, interval=_iv_length,
-    lipschitz=lambda node, L, lo, hi: np.hypot(L[0], L[1])))
+_register(
+    Op(
+        "length",
+        2,
+        _call("length"),
+        np=_np_length,
+        emit=_emit_length,
+        interval=_iv_length,
+        lipschitz=lambda node, L, lo, hi: np.hypot(L[0], L[1]),
+    )
+)
 
 
 # -- smooth minima ----------------------------------------------------------------------------
+
 
 def _fmt_blend(node, s):
     return f"{node.op}({s[0]}, {s[1]}; k={node.attr:g})"
@@ -568,10 +700,30 @@ def _iv_smooth(node, lo, hi):
     return _widen(rlo, rhi, _mag(lo[0], lo[1], hi[0], hi[1]) + 1.0 / k, 16.0)
 
 
-_register(Op("smin", 2, _fmt_blend, np=_np_smooth, emit=None, interval=_iv_smooth,
-             lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]), chain=True))
-_register(Op("smax", 2, _fmt_blend, np=_np_smooth, emit=None, interval=_iv_smooth,
-             lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]), chain=True))
+_register(
+    Op(
+        "smin",
+        2,
+        _fmt_blend,
+        np=_np_smooth,
+        emit=None,
+        interval=_iv_smooth,
+        lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]),
+        chain=True,
+    )
+)
+_register(
+    Op(
+        "smax",
+        2,
+        _fmt_blend,
+        np=_np_smooth,
+        emit=None,
+        interval=_iv_smooth,
+        lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]),
+        chain=True,
+    )
+)
 
 
 def _np_poly(node, av, g):
@@ -614,12 +766,18 @@ def _emit_poly(em, out, node, a, r):
         # (not g_a + 0 * g_b, which turns -0.0 into 0.0): pruning a chain of blends drops
         # operands only there and keeps the same bits.
         ga, gb = gs
-        terms = [t for t in ((None if g is None else wt if g == "1.0" else f"{g} * {wt}")
-                             for g, wt in ((ga, wa), (gb, wb))) if t is not None]
+        terms = [
+            t
+            for t in (
+                (None if g is None else wt if g == "1.0" else f"{g} * {wt}")
+                for g, wt in ((ga, wa), (gb, wb))
+            )
+            if t is not None
+        ]
         if not terms:
             return None
-        return (f"_sel({h} > 0.0, {' + '.join(terms)}, "
-                f"_sel({w}, {ga or '0.0'}, {gb or '0.0'}))")
+        return f"_sel({h} > 0.0, {' + '.join(terms)}, _sel({w}, {ga or '0.0'}, {gb or '0.0'}))"
+
     return rule
 
 
@@ -640,11 +798,21 @@ def _iv_poly(node, lo, hi):
 
 
 for _name in ("qmin", "cmin"):
-    _register(Op(_name, 2, _fmt_blend, np=_np_poly, emit=_emit_poly, interval=_iv_poly,
-                 lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1])))
+    _register(
+        Op(
+            _name,
+            2,
+            _fmt_blend,
+            np=_np_poly,
+            emit=_emit_poly,
+            interval=_iv_poly,
+            lipschitz=lambda node, L, lo, hi: np.maximum(L[0], L[1]),
+        )
+    )
 
 
 # -- select and compiled primitives -----------------------------------------------------------
+
 
 def _np_select(node, av, g):
     pick = av[0] > 0
@@ -663,6 +831,7 @@ def _emit_select(em, out, node, a, r):
         if gs[1] is None and gs[2] is None:
             return None
         return f"_sel({cond}, {_zero(gs[1])}, {_zero(gs[2])})"
+
     return combine
 
 
@@ -673,9 +842,16 @@ def _iv_select(node, lo, hi):
     return rlo, rhi
 
 
-_register(Op(
-    "select", 3, lambda node, s: f"select({s[0]} > 0, {s[1]}, {s[2]})",
-    np=_np_select, emit=_emit_select, interval=_iv_select))
+_register(
+    Op(
+        "select",
+        3,
+        lambda node, s: f"select({s[0]} > 0, {s[1]}, {s[2]})",
+        np=_np_select,
+        emit=_emit_select,
+        interval=_iv_select,
+    )
+)
 
 
 def _fmt_prim(node, s):
@@ -687,23 +863,32 @@ def _fmt_prim(node, s):
 def _prim_constants(node, av):
     """The constants of a prim node from its argument values: runtime parameters are one
     number per evaluation, but ``t`` given as a symbol may vary over the points."""
-    return [np.array([c.attr]) if c.op == "const" else np.unique(v)
-            for c, v in zip(node.args[2:], av[2:])]
+    return [
+        np.array([c.attr]) if c.op == "const" else np.unique(v)
+        for c, v in zip(node.args[2:], av[2:])
+    ]
 
 
 def _np_prim(node, av, g):
     from fastsdf.expr.prims_ref import evaluate as _prim_reference
+
     consts = _prim_constants(node, av)
     if all(len(c) <= 1 for c in consts):
-        d, du, dv = _prim_reference(node.attr[0], node.attr[1], av[0], av[1],
-                                    [float(c[0]) if len(c) else 0.0 for c in consts])
+        d, du, dv = _prim_reference(
+            node.attr[0],
+            node.attr[1],
+            av[0],
+            av[1],
+            [float(c[0]) if len(c) else 0.0 for c in consts],
+        )
     else:  # constants that vary over the points: one evaluation per distinct row
         rows = np.stack(av[2:], -1)
         d, du, dv = (np.empty(np.shape(av[0])) for _ in range(3))
         for row in np.unique(rows.reshape(-1, rows.shape[-1]), axis=0):
             sel = np.all(rows == row, axis=-1)
-            d[sel], du[sel], dv[sel] = _prim_reference(node.attr[0], node.attr[1], av[0][sel],
-                                                       av[1][sel], list(row))
+            d[sel], du[sel], dv[sel] = _prim_reference(
+                node.attr[0], node.attr[1], av[0][sel], av[1][sel], list(row)
+            )
     if not g:
         return d, None
     return d, [du, dv] + _prim_constant_partials(node, av, d, du, dv, np)
@@ -717,8 +902,10 @@ def _prim_constant_partials(node, a, d, du, dv, lib):
     if node.attr[0] != "ellipse":
         return [None] * (len(a) - 2)
     if lib is None:
-        return [f"(-{du} * ({a[0]} - {d} * {du}) / {a[2]})",
-                f"(-{dv} * ({a[1]} - {d} * {dv}) / {a[3]})"]
+        return [
+            f"(-{du} * ({a[0]} - {d} * {du}) / {a[2]})",
+            f"(-{dv} * ({a[1]} - {d} * {dv}) / {a[3]})",
+        ]
     return [-du * (a[0] - d * du) / a[2], -dv * (a[1] - d * dv) / a[3]]
 
 
@@ -738,13 +925,15 @@ def _emit_prim(em, out, node, a, r):
         return [f"{r}u", f"{r}v"] + [None] * (len(a) - 2)
     # constants that depend on time (an ellipse's axes given by sdf.t)
     return [f"{r}u", f"{r}v"] + _prim_constant_partials(
-        node, [c.v for c in a], r, f"{r}u", f"{r}v", None)
+        node, [c.v for c in a], r, f"{r}u", f"{r}v", None
+    )
 
 
 def _iv_prim(node, lo, hi):
     # Primitives are exact distances of (u, v), hence 1-Lipschitz there: the value over a box of
     # (u, v) is within its half-diagonal of the value at the box's centre.
     from fastsdf.expr.prims_ref import evaluate as _prim_reference
+
     # Constants given by parameters (an ellipse's axes) have ranges: the distance changes by at
     # most the change of each axis (|dd/da| = |n_u q_u / a| <= 1), so their half-widths add.
     cu, cv = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])
@@ -760,14 +949,29 @@ def _iv_prim(node, lo, hi):
     good = bool(np.all(np.isfinite(consts)) and all(c > 0 for c in consts))
     ok = np.isfinite(cu) & np.isfinite(cv) & np.isfinite(rad) & good
     with np.errstate(all="ignore"):
-        d = _prim_reference(node.attr[0], node.attr[1], np.where(ok, cu, 0.0),
-                            np.where(ok, cv, 0.0), consts if good
-                            else [1.0] * len(consts))[0]
+        d = _prim_reference(
+            node.attr[0],
+            node.attr[1],
+            np.where(ok, cu, 0.0),
+            np.where(ok, cv, 0.0),
+            consts if good else [1.0] * len(consts),
+        )[0]
     # The NumPy reference and the compiled primitive agree to far better than this margin.
-    m = 1e-9 * (np.abs(d) + rad + np.abs(np.where(ok, cu, 0.0)) + np.abs(np.where(ok, cv, 0.0))) \
+    m = (
+        1e-9 * (np.abs(d) + rad + np.abs(np.where(ok, cu, 0.0)) + np.abs(np.where(ok, cv, 0.0)))
         + _TINY
+    )
     return np.where(ok, d - rad - m, -np.inf), np.where(ok, d + rad + m, np.inf)
 
 
-_register(Op("prim", None, _fmt_prim, np=_np_prim, emit=_emit_prim, interval=_iv_prim,
-             lipschitz=lambda node, L, lo, hi: np.hypot(L[0], L[1])))
+_register(
+    Op(
+        "prim",
+        None,
+        _fmt_prim,
+        np=_np_prim,
+        emit=_emit_prim,
+        interval=_iv_prim,
+        lipschitz=lambda node, L, lo, hi: np.hypot(L[0], L[1]),
+    )
+)

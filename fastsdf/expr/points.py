@@ -21,21 +21,26 @@ def as_points(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, np.
     xa = np.asarray(x)
     if y is None:
         if xa.ndim == 0 or xa.shape[-1] != 2:
-            raise ValueError(f"points given without y must have a last axis of length 2 (x, y), "
-                             f"got an array of shape {xa.shape}")
+            raise ValueError(
+                f"points given without y must have a last axis of length 2 (x, y), "
+                f"got an array of shape {xa.shape}"
+            )
         xa, ya = xa[..., 0], xa[..., 1]
     else:
         ya = np.asarray(y)
     for name, arr in (("x", xa), ("y", ya)):
         if arr.dtype.kind not in "iuf":
-            raise TypeError(f"{name} must hold real numbers, got dtype {arr.dtype} "
-                            f"(value {_preview(arr)})")
+            raise TypeError(
+                f"{name} must hold real numbers, got dtype {arr.dtype} (value {_preview(arr)})"
+            )
     if xa.shape != ya.shape:
         try:
             xa, ya = np.broadcast_arrays(xa, ya)
         except ValueError:
-            raise ValueError(f"x and y must have the same shape (or shapes that broadcast), got "
-                             f"x.shape={xa.shape} and y.shape={ya.shape}") from None
+            raise ValueError(
+                f"x and y must have the same shape (or shapes that broadcast), got "
+                f"x.shape={xa.shape} and y.shape={ya.shape}"
+            ) from None
     shape = xa.shape if xa.ndim else (1,)
     xs = np.ascontiguousarray(xa, dtype=np.float64).reshape(-1)
     ys = np.ascontiguousarray(ya, dtype=np.float64).reshape(-1)
@@ -48,8 +53,10 @@ def point_arrays(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, 
     if y is None:
         xa = np.asarray(x)
         if xa.ndim == 0 or xa.shape[-1] != 2:
-            raise ValueError(f"points given without y must have a last axis of length 2 (x, y), "
-                             f"got an array of shape {xa.shape}")
+            raise ValueError(
+                f"points given without y must have a last axis of length 2 (x, y), "
+                f"got an array of shape {xa.shape}"
+            )
         return xa[..., 0], xa[..., 1]
     xa, ya = np.asarray(x), np.asarray(y)
     if xa.shape != ya.shape and xa.dtype.kind in "iuf" and ya.dtype.kind in "iuf":

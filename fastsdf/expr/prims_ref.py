@@ -26,8 +26,9 @@ __all__ = ["evaluate", "ellipse", "outline", "polygon"]
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 
 
-def evaluate(kind: str, data: Any, u: ArrayLike, v: ArrayLike, constants: Sequence[float]
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def evaluate(
+    kind: str, data: Any, u: ArrayLike, v: ArrayLike, constants: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(d, dd/du, dd/dv)`` of the primitive ``kind`` (with its ``data`` and ``constants``, as in
     a ``prim`` node) at local coordinates ``(u, v)``."""
     ub, vb = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
@@ -41,8 +42,9 @@ def evaluate(kind: str, data: Any, u: ArrayLike, v: ArrayLike, constants: Sequen
     raise NotImplementedError(kind)
 
 
-def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 4097,
-            chunk: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ellipse(
+    u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 4097, chunk: int = 256
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed distance to the ellipse ``(u/a)**2 + (v/b)**2 = 1`` and its gradient (the outward
     unit normal at the closest point) by search over the angle ``t`` of ``(a cos t, b sin t)``."""
     shape = u.shape
@@ -53,7 +55,7 @@ def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 409
     step = grid[1]
     cg, sg = a * np.cos(grid), b * np.sin(grid)
     for s in range(0, y0.size, chunk):
-        p0, p1 = y0[s:s + chunk, None], y1[s:s + chunk, None]
+        p0, p1 = y0[s : s + chunk, None], y1[s : s + chunk, None]
         i = np.argmin((p0 - cg) ** 2 + (p1 - sg) ** 2, axis=1)
         lo = np.clip(grid[i] - step, 0.0, np.pi / 2)
         hi = np.clip(grid[i] + step, 0.0, np.pi / 2)
@@ -84,8 +86,8 @@ def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 409
         cands = np.stack([t, np.zeros_like(t), np.full_like(t, np.pi / 2)])
         dc = np.stack([dist2(c) for c in cands])
         k = np.argmin(dc, axis=0)
-        t_best[s:s + chunk] = cands[k, np.arange(t.size)]
-        d[s:s + chunk] = np.sqrt(dc[k, np.arange(t.size)])
+        t_best[s : s + chunk] = cands[k, np.arange(t.size)]
+        d[s : s + chunk] = np.sqrt(dc[k, np.arange(t.size)])
     inside = (y0 / a) ** 2 + (y1 / b) ** 2 < 1.0
     d = np.where(inside, -d, d)
     # Gradient: the unit vector from the closest point q (away from it outside, towards it
@@ -103,8 +105,9 @@ def ellipse(u: np.ndarray, v: np.ndarray, a: float, b: float, samples: int = 409
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)
 
 
-def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def polygon(
+    u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Signed distance to the polygon with vertices ``verts`` (either orientation) and its
     gradient, as the minimum of vertex and edge-interior distances, signed by winding number."""
     shape = u.shape
@@ -120,11 +123,11 @@ def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256
     gu = np.empty(pu.size)
     gv = np.empty(pu.size)
     for s in range(0, pu.size, chunk):
-        x, y = pu[s:s + chunk, None], pv[s:s + chunk, None]
-        rx, ry = x - a[:, 0], y - a[:, 1]                      # from each vertex
+        x, y = pu[s : s + chunk, None], pv[s : s + chunk, None]
+        rx, ry = x - a[:, 0], y - a[:, 1]  # from each vertex
         vdist = np.hypot(rx, ry)
-        along = (rx * e[:, 0] + ry * e[:, 1]) / elen           # foot position along the edge
-        perp = (rx * out_n[:, 0] + ry * out_n[:, 1])           # signed, + outside the edge
+        along = (rx * e[:, 0] + ry * e[:, 1]) / elen  # foot position along the edge
+        perp = rx * out_n[:, 0] + ry * out_n[:, 1]  # signed, + outside the edge
         on_edge = (along >= 0) & (along <= elen)
         edist = np.where(on_edge, np.abs(perp), np.inf)
         # winding number: sum of the signed angles subtended by the edges
@@ -146,9 +149,9 @@ def polygon(u: np.ndarray, v: np.ndarray, verts: np.ndarray, chunk: int = 256
         zero = dist == 0
         gx = np.where(zero, out_n[ie, 0], gx)
         gy = np.where(zero, out_n[ie, 1], gy)
-        d[s:s + chunk] = sign * dist
-        gu[s:s + chunk] = gx
-        gv[s:s + chunk] = gy
+        d[s : s + chunk] = sign * dist
+        gu[s : s + chunk] = gx
+        gv[s : s + chunk] = gy
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)
 
 
@@ -160,7 +163,7 @@ def outline(u: np.ndarray, v: np.ndarray, table: np.ndarray, chunk: int = 64) ->
     rows = table[1:]
     kind = rows[:, 0]
     p0, p1, p2 = rows[:, 1:3], rows[:, 3:5], rows[:, 5:7]
-    p1 = np.where(kind[:, None] == 0, 0.5 * (p0 + p2), p1)   # a line as a flat quadratic
+    p1 = np.where(kind[:, None] == 0, 0.5 * (p0 + p2), p1)  # a line as a flat quadratic
     a, b = p1 - p0, p0 - 2 * p1 + p2
     nonzero = table[0, 0] == 2.0
     d = np.empty(pu.size)
@@ -168,8 +171,8 @@ def outline(u: np.ndarray, v: np.ndarray, table: np.ndarray, chunk: int = 64) ->
     gv = np.empty(pu.size)
     ts = np.linspace(0.0, 1.0, 3)
     for s in range(0, pu.size, chunk):
-        x, y = pu[s:s + chunk, None], pv[s:s + chunk, None]
-        dx, dy = p0[:, 0] - x, p0[:, 1] - y                    # (points, segments)
+        x, y = pu[s : s + chunk, None], pv[s : s + chunk, None]
+        dx, dy = p0[:, 0] - x, p0[:, 1] - y  # (points, segments)
         bb = np.broadcast_to(b[:, 0] ** 2 + b[:, 1] ** 2, dx.shape)
         ab = np.broadcast_to(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1], dx.shape)
         aa = np.broadcast_to(a[:, 0] ** 2 + a[:, 1] ** 2, dx.shape)
@@ -188,11 +191,13 @@ def outline(u: np.ndarray, v: np.ndarray, table: np.ndarray, chunk: int = 64) ->
         comp[..., 1, 0] = comp[..., 2, 1] = 1.0
         roots = np.linalg.eigvals(comp).real
         cands += [np.clip(roots[..., k], 0, 1) for k in range(3)]
-        T = np.stack(cands, -1)                                # (points, segments, 6)
-        qx = (1 - T) ** 2 * p0[:, 0, None] + 2 * T * (1 - T) * p1[:, 0, None] \
-            + T ** 2 * p2[:, 0, None]
-        qy = (1 - T) ** 2 * p0[:, 1, None] + 2 * T * (1 - T) * p1[:, 1, None] \
-            + T ** 2 * p2[:, 1, None]
+        T = np.stack(cands, -1)  # (points, segments, 6)
+        qx = (
+            (1 - T) ** 2 * p0[:, 0, None] + 2 * T * (1 - T) * p1[:, 0, None] + T**2 * p2[:, 0, None]
+        )
+        qy = (
+            (1 - T) ** 2 * p0[:, 1, None] + 2 * T * (1 - T) * p1[:, 1, None] + T**2 * p2[:, 1, None]
+        )
         dist2 = (x[..., None] - qx) ** 2 + (y[..., None] - qy) ** 2
         flat_idx = dist2.reshape(dist2.shape[0], -1).argmin(1)
         r = np.arange(dist2.shape[0])
@@ -210,16 +215,16 @@ def outline(u: np.ndarray, v: np.ndarray, table: np.ndarray, chunk: int = 64) ->
             for sg in (1.0, -1.0):
                 t = np.where(lin, -C / B, (-B + sg * disc) / (2 * A))
                 if sg < 0:
-                    t = np.where(lin | (disc == 0), np.nan, t)   # a double or single root
+                    t = np.where(lin | (disc == 0), np.nan, t)  # a double or single root
                 ok = (t >= 0) & (t < 1)
-                xt = (1 - t) ** 2 * p0[:, 0] + 2 * t * (1 - t) * p1[:, 0] + t ** 2 * p2[:, 0]
+                xt = (1 - t) ** 2 * p0[:, 0] + 2 * t * (1 - t) * p1[:, 0] + t**2 * p2[:, 0]
                 slope = 2 * A * t + B
                 hit = ok & (xt > x) & (slope != 0)
                 wind += np.sum(np.where(hit, np.sign(slope), 0.0), axis=1)
         inside = (wind != 0) if nonzero else (np.abs(wind) % 2 == 1)
         sign = np.where(inside, -1.0, 1.0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            d[s:s + chunk] = sign * dist
-            gu[s:s + chunk] = sign * (x[:, 0] - bx) / dist
-            gv[s:s + chunk] = sign * (y[:, 0] - by) / dist
+            d[s : s + chunk] = sign * dist
+            gu[s : s + chunk] = sign * (x[:, 0] - bx) / dist
+            gv[s : s + chunk] = sign * (y[:, 0] - by) / dist
     return d.reshape(shape), gu.reshape(shape), gv.reshape(shape)

@@ -15,8 +15,20 @@ from numpy.typing import ArrayLike
 
 from fastsdf.expr.graph import Expr
 
-__all__ = ["MAX_COORD", "MIN_LENGTH", "real", "vec2", "coord", "coord2", "length", "check_length",
-           "is_param", "real_or_param", "vec2_or_param", "coord2_or_param"]
+__all__ = [
+    "MAX_COORD",
+    "MIN_LENGTH",
+    "real",
+    "vec2",
+    "coord",
+    "coord2",
+    "length",
+    "check_length",
+    "is_param",
+    "real_or_param",
+    "vec2_or_param",
+    "coord2_or_param",
+]
 
 #: A number, or an expression of runtime parameters (:func:`fastsdf.expr.graph.Param`, time
 #: ``t``), wherever a scene takes a number.
@@ -98,8 +110,9 @@ def coord(value: object, name: str) -> float:
     """A real coordinate (or signed offset) with ``|value| <= MAX_COORD``."""
     number = real(value, name)
     if abs(number) > MAX_COORD:
-        raise ValueError(f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got "
-                         f"{name}={number!r}")
+        raise ValueError(
+            f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got {name}={number!r}"
+        )
     return number
 
 
@@ -110,8 +123,10 @@ def coord2(value: object, name: str) -> np.ndarray:
         return np.array(fast)  # (NaN fails the comparisons: the general checks report it)
     arr = vec2(value, name)
     if np.any(np.abs(arr) > MAX_COORD):
-        raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
-                         f"({_RANGE}), got {name}={arr.tolist()!r}")
+        raise ValueError(
+            f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
+            f"({_RANGE}), got {name}={arr.tolist()!r}"
+        )
     return arr
 
 
@@ -129,21 +144,27 @@ def check_length(size: float, name: str, shown: object = None) -> None:
     """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
     if not (MIN_LENGTH <= size <= MAX_COORD):
         shown = size if shown is None else shown
-        raise ValueError(f"{name} must be between {MIN_LENGTH:g} and {MAX_COORD:g} in "
-                         f"magnitude ({_RANGE}), got {name}={shown!r}")
+        raise ValueError(
+            f"{name} must be between {MIN_LENGTH:g} and {MAX_COORD:g} in "
+            f"magnitude ({_RANGE}), got {name}={shown!r}"
+        )
 
 
 # Runtime parameters (fastsdf.expr.graph.Param) are accepted wherever a scene takes a number: the
 # checks run on the value the expression has at the parameters' defaults (values set later are
 # the caller's responsibility), and the shape bookkeeping treats such a number as unknown.
 
+
 def _param_value(expr: Expr, name: str) -> float:
     """The value of a parameter expression at its parameters' defaults (it must not depend on
     the coordinates)."""
     from fastsdf.expr.graph import evaluate_numpy
+
     if expr.syms:
-        raise ValueError(f"{name} must be a number or an expression of parameters, got one of "
-                         f"the coordinates {sorted(expr.syms)}: {name}={expr}")
+        raise ValueError(
+            f"{name} must be a number or an expression of parameters, got one of "
+            f"the coordinates {sorted(expr.syms)}: {name}={expr}"
+        )
     return float(evaluate_numpy(expr, {"_": np.zeros(1)})[0])
 
 
@@ -163,8 +184,10 @@ def real_or_param(value: object, name: str) -> tuple[float | Expr, float]:
             return v, v
         number = _param_value(value, name)
         if not math.isfinite(number):
-            raise ValueError(f"{name} must be finite, got {name}={value} = {number!r} at the "
-                             f"parameters' defaults")
+            raise ValueError(
+                f"{name} must be finite, got {name}={value} = {number!r} at the "
+                f"parameters' defaults"
+            )
         return value, number
     v = real(value, name)
     return v, v
@@ -195,6 +218,8 @@ def coord2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
         return arr, arr
     pair, numbers_ = vec2_or_param(value, name)
     if np.any(np.abs(numbers_) > MAX_COORD):
-        raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
-                         f"({_RANGE}), got {name}={numbers_.tolist()!r}")
+        raise ValueError(
+            f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
+            f"({_RANGE}), got {name}={numbers_.tolist()!r}"
+        )
     return pair, numbers_

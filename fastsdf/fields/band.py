@@ -76,17 +76,19 @@ from fastsdf.function import Function
 
 __all__ = ["NarrowBandGridSDF", "sample_band", "measure_band_error"]
 
-_TILE = 8                    # cells per tile side: 64 cells, one 64-bit mask of exact cells
-_SHIFT = 3                   # log2(_TILE); the samplers use these as compile-time constants
-_N1 = _TILE + 1              # nodes per tile side (edge nodes are shared with the neighbours)
-_TRIAL_CELLS = 256           # cells along the longer side of a tolerance build's trial grid
-_EXACT_FRACTION = 0.01       # tolerance builds refine until about this share of cells is exact
-_SAFETY = 0.5                # cells whose estimated error exceeds safety * tolerance are exact
-_DIR_BITS = 12               # far tiles: gradient direction in 4096 steps (0.09 degrees)
+_TILE = 8  # cells per tile side: 64 cells, one 64-bit mask of exact cells
+_SHIFT = 3  # log2(_TILE); the samplers use these as compile-time constants
+_N1 = _TILE + 1  # nodes per tile side (edge nodes are shared with the neighbours)
+_TRIAL_CELLS = 256  # cells along the longer side of a tolerance build's trial grid
+_EXACT_FRACTION = 0.01  # tolerance builds refine until about this share of cells is exact
+_SAFETY = 0.5  # cells whose estimated error exceeds safety * tolerance are exact
+_DIR_BITS = 12  # far tiles: gradient direction in 4096 steps (0.09 degrees)
 _NDIR = 1 << _DIR_BITS
 _M_MAX = 1 << (30 - _DIR_BITS)  # far tiles: lower bound in at most this many quanta
-_DIRS = np.stack([np.cos(2 * np.pi * np.arange(_NDIR) / _NDIR),
-                  np.sin(2 * np.pi * np.arange(_NDIR) / _NDIR)], axis=1).reshape(-1)
+_DIRS = np.stack(
+    [np.cos(2 * np.pi * np.arange(_NDIR) / _NDIR), np.sin(2 * np.pi * np.arange(_NDIR) / _NDIR)],
+    axis=1,
+).reshape(-1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -101,6 +103,7 @@ _DIRS = np.stack([np.cos(2 * np.pi * np.arange(_NDIR) / _NDIR),
 # ``masks[k]`` has bit ``a * T + b`` set where cell (a, b) of the tile answers with the exact SDF.
 # nx, ny count cells inside bounds; T = 8 cells per tile side.
 
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _band_locate(data, x, y):
     """(k, a, b, tx, ty, far, status): status 0 = fine cell, 1 = far tile (far holds the
@@ -111,7 +114,7 @@ def _band_locate(data, x, y):
         return 0, 0, 0, 0.0, 0.0, 0.0, 2
     u = (x - x0) * ihx
     v = (y - y0) * ihy
-    i = min(int(u), nx - 1)     # u >= 0: int() is floor; the last node belongs to the last cell
+    i = min(int(u), nx - 1)  # u >= 0: int() is floor; the last node belongs to the last cell
     j = min(int(v), ny - 1)
     ti = i >> _SHIFT
     tj = j >> _SHIFT
@@ -159,12 +162,30 @@ def sample_band(data: tuple, x: float, y: float) -> tuple[float, float, float, b
     c = base + np.uint64(3 * _N1)
     u1, u3 = np.uint64(1), np.uint64(3)
     u2, u4, u5 = np.uint64(2), np.uint64(4), np.uint64(5)
-    d = _lerp2(tx, ty, np.float64(q[base]), np.float64(q[base + u3]), np.float64(q[c]),
-               np.float64(q[c + u3]))
-    gx = _lerp2(tx, ty, np.float64(q[base + u1]), np.float64(q[base + u4]),
-                np.float64(q[c + u1]), np.float64(q[c + u4]))
-    gy = _lerp2(tx, ty, np.float64(q[base + u2]), np.float64(q[base + u5]),
-                np.float64(q[c + u2]), np.float64(q[c + u5]))
+    d = _lerp2(
+        tx,
+        ty,
+        np.float64(q[base]),
+        np.float64(q[base + u3]),
+        np.float64(q[c]),
+        np.float64(q[c + u3]),
+    )
+    gx = _lerp2(
+        tx,
+        ty,
+        np.float64(q[base + u1]),
+        np.float64(q[base + u4]),
+        np.float64(q[c + u1]),
+        np.float64(q[c + u4]),
+    )
+    gy = _lerp2(
+        tx,
+        ty,
+        np.float64(q[base + u2]),
+        np.float64(q[base + u5]),
+        np.float64(q[c + u2]),
+        np.float64(q[c + u5]),
+    )
     return d, gx, gy, True
 
 
@@ -179,8 +200,14 @@ def _sample_band_value(data, x, y):
     base = np.uint64(3 * ((k * _N1 + a) * _N1 + b))
     c = base + np.uint64(3 * _N1)
     u3 = np.uint64(3)
-    return _lerp2(tx, ty, np.float64(q[base]), np.float64(q[base + u3]), np.float64(q[c]),
-                  np.float64(q[c + u3]))
+    return _lerp2(
+        tx,
+        ty,
+        np.float64(q[base]),
+        np.float64(q[base + u3]),
+        np.float64(q[c]),
+        np.float64(q[c + u3]),
+    )
 
 
 @intrinsic
@@ -207,8 +234,9 @@ def _borrow(data):
     """The sampler data with its arrays as views without reference counts: binding an array
     to a variable inside the inlined sampler otherwise costs an atomic increment and decrement
     per point (the caller keeps the arrays alive)."""
-    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2]),
-            _borrowed(data[3])) + data[4:]
+    return (_borrowed(data[0]), _borrowed(data[1]), _borrowed(data[2]), _borrowed(data[3])) + data[
+        4:
+    ]
 
 
 # Batch kernels. They return the number of points that need the exact SDF (NaN answers).
@@ -275,6 +303,7 @@ def _v_par(data, xs, ys, out, chunks, workers):
 # ---------------------------------------------------------------------------------------------
 # Parameter checks.
 
+
 def _positive(value, name):
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a positive real number, got {name}={value!r}")
@@ -292,15 +321,19 @@ def _band_range(band):
     try:
         lo, hi = band
     except (TypeError, ValueError):
-        raise TypeError(f"band must be a positive number or a pair (lo, hi) of signed "
-                        f"distances, got band={band!r}") from None
+        raise TypeError(
+            f"band must be a positive number or a pair (lo, hi) of signed "
+            f"distances, got band={band!r}"
+        ) from None
     for v in (lo, hi):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
             raise TypeError(f"band=(lo, hi) must hold two real numbers, got band={band!r}")
     lo, hi = float(lo), float(hi)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= 0.0 <= hi and lo < hi):
-        raise ValueError(f"band=(lo, hi) needs finite lo <= 0 <= hi with lo < hi (the band "
-                         f"must contain the surface), got band={band!r}")
+        raise ValueError(
+            f"band=(lo, hi) needs finite lo <= 0 <= hi with lo < hi (the band "
+            f"must contain the surface), got band={band!r}"
+        )
     return (lo, hi)
 
 
@@ -310,10 +343,11 @@ def _lipschitz_of(f, lipschitz):
     exactness = getattr(f, "exactness", "unknown")
     if exactness in ("exact", "bound"):
         return 1.0
-    return None     # unknown: tiles are classified with interval bounds
+    return None  # unknown: tiles are classified with interval bounds
 
 
 # ---------------------------------------------------------------------------------------------
+
 
 class NarrowBandGridSDF:
     """An SDF sampled finely only in the band ``|d| <= band``, bilinear there, a lower bound
@@ -366,17 +400,28 @@ class NarrowBandGridSDF:
 
     mode = "exact"
 
-    def __init__(self, f: Any, bounds: ArrayLike = ((-2, 2), (-2, 2)), band: float = 0.05,
-                 samples: Any = None, tolerance: float | None = None, dtype: Any = np.float64,
-                 lipschitz: float | None = None):
+    def __init__(
+        self,
+        f: Any,
+        bounds: ArrayLike = ((-2, 2), (-2, 2)),
+        band: float = 0.05,
+        samples: Any = None,
+        tolerance: float | None = None,
+        dtype: Any = np.float64,
+        lipschitz: float | None = None,
+    ):
         t0 = time.perf_counter()
         if not isinstance(f, Function):
-            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.function.Function such as "
-                            f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
-        if f.time_dependent:   # as GridSDF: a sampled scene does not move
-            raise ValueError("f depends on time (sdf.t): a narrow band samples a scene that "
-                             "does not move; give a moving scene to the simulation as it is, "
-                             "or sample a snapshot f.frozen(t=...)")
+            raise TypeError(
+                f"f must be a fastsdf SDF (a fastsdf.function.Function such as "
+                f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}"
+            )
+        if f.time_dependent:  # as GridSDF: a sampled scene does not move
+            raise ValueError(
+                "f depends on time (sdf.t): a narrow band samples a scene that "
+                "does not move; give a moving scene to the simulation as it is, "
+                "or sample a snapshot f.frozen(t=...)"
+            )
         if f.params:
             f = f.frozen()  # a snapshot at the current parameter values
         self.exact = f
@@ -388,8 +433,9 @@ class NarrowBandGridSDF:
         self.lipschitz = _lipschitz_of(f, lipschitz)
         self.tolerance = None if tolerance is None else _positive(tolerance, "tolerance")
         if samples is None and tolerance is None:
-            raise ValueError("give samples= (the fine node counts) or tolerance= (a target "
-                             "error), got neither")
+            raise ValueError(
+                "give samples= (the fine node counts) or tolerance= (a target error), got neither"
+            )
         if samples is not None:
             self._build(_check_samples(samples))
         else:
@@ -399,10 +445,10 @@ class NarrowBandGridSDF:
     # -- construction -------------------------------------------------------------------------
     def _build(self, shape):
         (x0, x1), (y0, y1) = self.bounds
-        nx, ny = shape[0] - 1, shape[1] - 1          # cells inside bounds
+        nx, ny = shape[0] - 1, shape[1] - 1  # cells inside bounds
         T = self.tile
         ntx, nty = -(-nx // T), -(-ny // T)
-        if ntx * nty >= 2 ** 31 - 1:
+        if ntx * nty >= 2**31 - 1:
             raise ValueError(f"samples={list(shape)!r} gives too many tiles ({ntx} x {nty})")
         hx, hy = (x1 - x0) / nx, (y1 - y0) / ny
         self.shape = tuple(shape)
@@ -416,13 +462,13 @@ class NarrowBandGridSDF:
         dc, gc = self.exact(CX.ravel(), CY.ravel(), compute_gradient=True)
         rt = 0.5 * T * math.hypot(hx, hy)
         with np.errstate(invalid="ignore"):
-            if lip is not None:                       # dlo <= f <= dhi over the tile
+            if lip is not None:  # dlo <= f <= dhi over the tile
                 dlo, dhi = dc - lip * rt, dc + lip * rt
             else:
                 dlo, dhi = self._interval_range(cx, cy, T * hx, T * hy)
-            low = np.where(dlo > 0, dlo, np.where(dhi < 0, -dhi, 0.0))   # |f| >= low
+            low = np.where(dlo > 0, dlo, np.where(dhi < 0, -dhi, 0.0))  # |f| >= low
             blo, bhi = self.band_range
-            fine = ~((dlo > bhi) | (dhi < blo))       # NaN centres are fine (checked below)
+            fine = ~((dlo > bhi) | (dhi < blo))  # NaN centres are fine (checked below)
         fidx = np.flatnonzero(fine)
         nf = fidx.size
         # Far tiles: a lower bound of |f| over the tile, less half a cell diagonal (so that the
@@ -445,8 +491,8 @@ class NarrowBandGridSDF:
         n1 = T + 1
         ti, tj = fidx // nty, fidx % nty
         a = np.arange(n1)
-        I = (ti[:, None] * T + a[None, :])            # (nf, n1)
-        J = (tj[:, None] * T + a[None, :])
+        I = ti[:, None] * T + a[None, :]  # (nf, n1)
+        J = tj[:, None] * T + a[None, :]
         xs_t = np.where(nx == I, x1, I * hx + x0)
         ys_t = np.where(ny == J, y1, J * hy + y0)
         X = np.broadcast_to(xs_t[:, :, None], (nf, n1, n1)).ravel()
@@ -456,9 +502,11 @@ class NarrowBandGridSDF:
             d, g = self.exact(X, Y, compute_gradient=True)
             if not (np.all(np.isfinite(d)) and np.all(np.isfinite(g))):
                 k = int(np.flatnonzero(~(np.isfinite(d) & np.all(np.isfinite(g), axis=1)))[0])
-                raise ValueError(f"f returned a non-finite value or gradient at the fine node "
-                                 f"({float(X[k])!r}, {float(Y[k])!r}): choose bounds where f "
-                                 f"is defined, got bounds={[list(b) for b in self.bounds]!r}")
+                raise ValueError(
+                    f"f returned a non-finite value or gradient at the fine node "
+                    f"({float(X[k])!r}, {float(Y[k])!r}): choose bounds where f "
+                    f"is defined, got bounds={[list(b) for b in self.bounds]!r}"
+                )
             with np.errstate(over="ignore"):
                 q[..., 0] = d.reshape(nf, n1, n1)
                 q[..., 1:] = g.reshape(nf, n1, n1, 2)
@@ -477,8 +525,10 @@ class NarrowBandGridSDF:
 
         CX, CY = np.meshgrid(cx, cy, indexing="ij")
         sx, sy = (s.attr for s in self.exact.symbols)
-        boxes = {sx: (CX.ravel() - 0.5 * wx, CX.ravel() + 0.5 * wx),
-                 sy: (CY.ravel() - 0.5 * wy, CY.ravel() + 0.5 * wy)}
+        boxes = {
+            sx: (CX.ravel() - 0.5 * wx, CX.ravel() + 0.5 * wx),
+            sy: (CY.ravel() - 0.5 * wy, CY.ravel() + 0.5 * wy),
+        }
         lo, hi = interval_bounds(self.exact.f, boxes)
         return np.broadcast_to(lo, CX.size), np.broadcast_to(hi, CX.size)
 
@@ -496,15 +546,21 @@ class NarrowBandGridSDF:
         dm = self.exact(mx.ravel(), my.ravel()).reshape(mx.shape)
         bil = 0.25 * (v[:, :-1, :-1] + v[:, 1:, :-1] + v[:, :-1, 1:] + v[:, 1:, 1:])
         e_mid = np.abs(bil - dm)
-        jx = np.maximum(np.linalg.norm(g[:, 1:, :-1] - g[:, :-1, :-1], axis=-1),
-                        np.linalg.norm(g[:, 1:, 1:] - g[:, :-1, 1:], axis=-1))
-        jy = np.maximum(np.linalg.norm(g[:, :-1, 1:] - g[:, :-1, :-1], axis=-1),
-                        np.linalg.norm(g[:, 1:, 1:] - g[:, 1:, :-1], axis=-1))
+        jx = np.maximum(
+            np.linalg.norm(g[:, 1:, :-1] - g[:, :-1, :-1], axis=-1),
+            np.linalg.norm(g[:, 1:, 1:] - g[:, :-1, 1:], axis=-1),
+        )
+        jy = np.maximum(
+            np.linalg.norm(g[:, :-1, 1:] - g[:, :-1, :-1], axis=-1),
+            np.linalg.norm(g[:, 1:, 1:] - g[:, 1:, :-1], axis=-1),
+        )
         est = np.maximum(e_mid, (hx * jx + hy * jy) / 8.0)
-        corner_min = np.minimum(np.minimum(v[:, :-1, :-1], v[:, 1:, :-1]),
-                                np.minimum(v[:, :-1, 1:], v[:, 1:, 1:]))
-        corner_max = np.maximum(np.maximum(v[:, :-1, :-1], v[:, 1:, :-1]),
-                                np.maximum(v[:, :-1, 1:], v[:, 1:, 1:]))
+        corner_min = np.minimum(
+            np.minimum(v[:, :-1, :-1], v[:, 1:, :-1]), np.minimum(v[:, :-1, 1:], v[:, 1:, 1:])
+        )
+        corner_max = np.maximum(
+            np.maximum(v[:, :-1, :-1], v[:, 1:, :-1]), np.maximum(v[:, :-1, 1:], v[:, 1:, 1:])
+        )
         lip = self.lipschitz if self.lipschitz is not None else math.inf
         reach = lip * 0.5 * math.hypot(hx, hy)
         blo, bhi = self.band_range
@@ -516,10 +572,12 @@ class NarrowBandGridSDF:
         est, in_band = self._cell_estimates(X, Y, q)
         T = self.tile
         over = (est > _SAFETY * self.tolerance) & in_band
-        bits = np.left_shift(np.uint64(1), (np.arange(T)[:, None] * T
-                                            + np.arange(T)[None, :]).astype(np.uint64))
-        self._masks = np.bitwise_or.reduce(np.where(over, bits[None], np.uint64(0))
-                                           .reshape(over.shape[0], -1), axis=1).astype(np.uint64)
+        bits = np.left_shift(
+            np.uint64(1), (np.arange(T)[:, None] * T + np.arange(T)[None, :]).astype(np.uint64)
+        )
+        self._masks = np.bitwise_or.reduce(
+            np.where(over, bits[None], np.uint64(0)).reshape(over.shape[0], -1), axis=1
+        ).astype(np.uint64)
         self._cell_error = (est, in_band)
         fine = self._table >= 0
         self._table[fine] |= (self._masks != 0).astype(np.int32)
@@ -551,32 +609,48 @@ class NarrowBandGridSDF:
         ntx, nty = self.tiles
         self.n_fine = int(self._q.shape[0])
         self.n_exact_cells = int(sum(bin(int(m)).count("1") for m in self._masks))
-        self.memory = {"table": int(self._table.nbytes), "nodes": int(self._q.nbytes),
-                       "masks": int(self._masks.nbytes)}
+        self.memory = {
+            "table": int(self._table.nbytes),
+            "nodes": int(self._q.nbytes),
+            "masks": int(self._masks.nbytes),
+        }
         self.nbytes = sum(self.memory.values())
-        self.sampler_data = (self._table, self._q.reshape(-1), self._masks, _DIRS, x0, x1, y0,
-                             y1, 1.0 / hx, 1.0 / hy, self.shape[0] - 1, self.shape[1] - 1, nty,
-                             self._quantum)
+        self.sampler_data = (
+            self._table,
+            self._q.reshape(-1),
+            self._masks,
+            _DIRS,
+            x0,
+            x1,
+            y0,
+            y1,
+            1.0 / hx,
+            1.0 / hy,
+            self.shape[0] - 1,
+            self.shape[1] - 1,
+            nty,
+            self._quantum,
+        )
 
     # -- queries ------------------------------------------------------------------------------
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: Literal[False] = False
-                 ) -> np.ndarray: ...
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: Literal[False] = False
+    ) -> np.ndarray: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None, *,
-                 compute_gradient: Literal[True]
-                 ) -> tuple[np.ndarray, np.ndarray]: ...
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, *, compute_gradient: Literal[True]
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False
-                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
 
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False
-                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         x, y = point_arrays(x, y)
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
         (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
@@ -633,16 +707,24 @@ class NarrowBandGridSDF:
 
     def __repr__(self) -> str:
         tol = "" if self.tolerance is None else f", tolerance={self.tolerance:g}"
-        return (f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band!r}, "
-                f"samples={list(self.shape)}{tol}, tile={self.tile}, dtype={self.dtype.name}, "
-                f"fine tiles={self.n_fine}/{self.tiles[0] * self.tiles[1]}, "
-                f"exact cells={self.n_exact_cells}, nbytes={self.nbytes})")
+        return (
+            f"NarrowBandGridSDF(bounds={[list(b) for b in self.bounds]}, band={self.band!r}, "
+            f"samples={list(self.shape)}{tol}, tile={self.tile}, dtype={self.dtype.name}, "
+            f"fine tiles={self.n_fine}/{self.tiles[0] * self.tiles[1]}, "
+            f"exact cells={self.n_exact_cells}, nbytes={self.nbytes})"
+        )
 
 
 # ---------------------------------------------------------------------------------------------
 
-def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
-                       band: float | None = None, points: tuple | None = None) -> GridError:
+
+def measure_band_error(
+    g: NarrowBandGridSDF,
+    n: int = 200_000,
+    seed: int = 0,
+    band: float | None = None,
+    points: tuple | None = None,
+) -> GridError:
     """Errors of a grid against its exact SDF on ``n`` random points in the band.
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;
@@ -670,14 +752,25 @@ def measure_band_error(g: NarrowBandGridSDF, n: int = 200_000, seed: int = 0,
     aerr = np.degrees(np.arctan2(np.abs(cross), dot))
     vmax, vrms = _stats(verr)
     amax, arms = _stats(aerr)
-    return GridError(n=int(xs.size), band=float(max(-blo, bhi)), band_n=int(inb.sum()),
-                     spacing=tuple(g.spacing), value_max=vmax, value_rms=vrms,
-                     angle_max_deg=amax, angle_rms_deg=arms, band_value_max=vmax,
-                     band_value_rms=vrms, band_angle_max_deg=amax, band_angle_rms_deg=arms)
+    return GridError(
+        n=int(xs.size),
+        band=float(max(-blo, bhi)),
+        band_n=int(inb.sum()),
+        spacing=tuple(g.spacing),
+        value_max=vmax,
+        value_rms=vrms,
+        angle_max_deg=amax,
+        angle_rms_deg=arms,
+        band_value_max=vmax,
+        band_value_rms=vrms,
+        band_angle_max_deg=amax,
+        band_angle_rms_deg=arms,
+    )
 
 
-def band_points(g: NarrowBandGridSDF, n: int = 200_000, seed: int | np.random.Generator | None = 0
-                ) -> tuple[np.ndarray, np.ndarray]:
+def band_points(
+    g: NarrowBandGridSDF, n: int = 200_000, seed: int | np.random.Generator | None = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """``n`` points drawn uniformly from the fine tiles of ``g`` inside its bounds: (x, y)."""
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n < 1:
         raise ValueError(f"n must be a positive integer, got n={n!r}")

@@ -46,12 +46,15 @@ from numpy.typing import ArrayLike
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 from fastsdf.function import Function
 
-__all__ = ["GridSDF", "GridError", "measure_error", "sample_stored", "sample_fd",
-           "BYTES_PER_NODE"]
+__all__ = ["GridSDF", "GridError", "measure_error", "sample_stored", "sample_fd", "BYTES_PER_NODE"]
 
 #: Bytes stored per grid node, by ``(gradient, dtype name)``.
-BYTES_PER_NODE = {("stored", "float64"): 24, ("stored", "float32"): 12,
-                  ("fd", "float64"): 8, ("fd", "float32"): 4}
+BYTES_PER_NODE = {
+    ("stored", "float64"): 24,
+    ("stored", "float32"): 12,
+    ("fd", "float64"): 8,
+    ("fd", "float32"): 4,
+}
 
 _MODES = ("exact", "nearest")
 _GRADIENTS = ("stored", "fd")
@@ -153,13 +156,14 @@ def _dnode(q, k, n, at, step, ih):
     if k > 0 and k < n - 1:
         return (_ld(q, at + step) - _ld(q, at - step)) * (0.5 * ih)
     if n == 2:
-        return (_ld(q, at + step) - _ld(q, at)) * ih if k == 0 else \
-            (_ld(q, at) - _ld(q, at - step)) * ih
+        return (
+            (_ld(q, at + step) - _ld(q, at)) * ih
+            if k == 0
+            else (_ld(q, at) - _ld(q, at - step)) * ih
+        )
     if k == 0:
-        return (-3.0 * _ld(q, at) + 4.0 * _ld(q, at + step) - _ld(q, at + step + step)) \
-            * (0.5 * ih)
-    return (3.0 * _ld(q, at) - 4.0 * _ld(q, at - step) + _ld(q, at - step - step)) \
-        * (0.5 * ih)
+        return (-3.0 * _ld(q, at) + 4.0 * _ld(q, at + step) - _ld(q, at + step + step)) * (0.5 * ih)
+    return (3.0 * _ld(q, at) - 4.0 * _ld(q, at - step) + _ld(q, at - step - step)) * (0.5 * ih)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -180,10 +184,22 @@ def sample_fd(data: tuple, x: float, y: float) -> tuple[float, float, float, boo
     a = np.uint64(i * ny + j)
     c = a + row
     d = _lerp2(tx, ty, _ld(q, a), _ld(q, a + _U1), _ld(q, c), _ld(q, c + _U1))
-    gx = _lerp2(tx, ty, _dnode(q, i, nx, a, row, ihx), _dnode(q, i, nx, a + _U1, row, ihx),
-                _dnode(q, i + 1, nx, c, row, ihx), _dnode(q, i + 1, nx, c + _U1, row, ihx))
-    gy = _lerp2(tx, ty, _dnode(q, j, ny, a, _U1, ihy), _dnode(q, j + 1, ny, a + _U1, _U1, ihy),
-                _dnode(q, j, ny, c, _U1, ihy), _dnode(q, j + 1, ny, c + _U1, _U1, ihy))
+    gx = _lerp2(
+        tx,
+        ty,
+        _dnode(q, i, nx, a, row, ihx),
+        _dnode(q, i, nx, a + _U1, row, ihx),
+        _dnode(q, i + 1, nx, c, row, ihx),
+        _dnode(q, i + 1, nx, c + _U1, row, ihx),
+    )
+    gy = _lerp2(
+        tx,
+        ty,
+        _dnode(q, j, ny, a, _U1, ihy),
+        _dnode(q, j + 1, ny, a + _U1, _U1, ihy),
+        _dnode(q, j, ny, c, _U1, ihy),
+        _dnode(q, j + 1, ny, c + _U1, _U1, ihy),
+    )
     return d, gx, gy, inside
 
 
@@ -285,11 +301,16 @@ def _v_range(data, ch, xs, ys, out, start, stop):
 # serial); with dynamic claiming the other thread takes over its share. ``workers`` is the
 # number of numba threads (passed in: numba.get_num_threads() inside a kernel defeats caching).
 
+
 @intrinsic
 def _fetch_add(typingctx, arr, idx, val):
     """Atomically ``arr[idx] += val``, returning the old value (int64 arrays)."""
-    if not (isinstance(arr, types.Array) and arr.dtype == types.int64
-            and isinstance(idx, types.Integer) and isinstance(val, types.Integer)):
+    if not (
+        isinstance(arr, types.Array)
+        and arr.dtype == types.int64
+        and isinstance(idx, types.Integer)
+        and isinstance(val, types.Integer)
+    ):
         return None
 
     def codegen(context, builder, sig, args):
@@ -320,8 +341,9 @@ def _vg_stored_par(data, xs, ys, out, grad, chunks, workers):
         total = 0
         c = _fetch_add(counter, 0, 1)
         while c < chunks:
-            total += _vg_stored_range(data, xs, ys, out, grad, c * n // chunks,
-                                      (c + 1) * n // chunks)
+            total += _vg_stored_range(
+                data, xs, ys, out, grad, c * n // chunks, (c + 1) * n // chunks
+            )
             c = _fetch_add(counter, 0, 1)
         counts[w] = total
     return counts.sum()
@@ -362,14 +384,16 @@ def _v_par(data, ch, xs, ys, out, chunks, workers):
 # ---------------------------------------------------------------------------------------------
 # Parameter validation: errors name the parameter and the value.
 
+
 def _check_bounds(bounds):
     try:
         pairs = [tuple(b) for b in bounds]
     except TypeError:
         raise TypeError(f"bounds must be two (min, max) pairs, got bounds={bounds!r}") from None
     if len(pairs) != 2 or any(len(p) != 2 for p in pairs):
-        raise ValueError(f"bounds must be two (min, max) pairs, e.g. [(-2, 2), (-2, 2)], got "
-                         f"bounds={bounds!r}")
+        raise ValueError(
+            f"bounds must be two (min, max) pairs, e.g. [(-2, 2), (-2, 2)], got bounds={bounds!r}"
+        )
     out = []
     for axis, (lo, hi) in zip("xy", pairs):
         for v in (lo, hi):
@@ -377,11 +401,14 @@ def _check_bounds(bounds):
                 raise TypeError(f"bounds must hold real numbers, got bounds={bounds!r}")
         lo, hi = float(lo), float(hi)
         if not (math.isfinite(lo) and math.isfinite(hi)):
-            raise ValueError(f"bounds must be finite, got {axis} range ({lo!r}, {hi!r}) in "
-                             f"bounds={bounds!r}")
+            raise ValueError(
+                f"bounds must be finite, got {axis} range ({lo!r}, {hi!r}) in bounds={bounds!r}"
+            )
         if not lo < hi:
-            raise ValueError(f"bounds must have min < max on each axis (non-empty, not "
-                             f"reversed), got {axis} range ({lo!r}, {hi!r}) in bounds={bounds!r}")
+            raise ValueError(
+                f"bounds must have min < max on each axis (non-empty, not "
+                f"reversed), got {axis} range ({lo!r}, {hi!r}) in bounds={bounds!r}"
+            )
         if not math.isfinite(hi - lo):
             raise ValueError(f"bounds {axis} range ({lo!r}, {hi!r}) is too wide to grid")
         out.append((lo, hi))
@@ -390,32 +417,42 @@ def _check_bounds(bounds):
 
 def _check_samples(samples):
     if isinstance(samples, (str, bytes)):
-        raise TypeError(f"samples must be a pair of node counts such as [400j, 400j] or "
-                        f"[400, 400], got samples={samples!r}")
+        raise TypeError(
+            f"samples must be a pair of node counts such as [400j, 400j] or "
+            f"[400, 400], got samples={samples!r}"
+        )
     try:
         items = list(samples)
     except TypeError:
-        raise TypeError(f"samples must be a pair of node counts such as [400j, 400j] or "
-                        f"[400, 400], got samples={samples!r}") from None
+        raise TypeError(
+            f"samples must be a pair of node counts such as [400j, 400j] or "
+            f"[400, 400], got samples={samples!r}"
+        ) from None
     if len(items) != 2:
-        raise ValueError(f"samples must give a node count per axis (2 entries), got "
-                         f"samples={samples!r}")
+        raise ValueError(
+            f"samples must give a node count per axis (2 entries), got samples={samples!r}"
+        )
     counts = []
     for s in items:
         if isinstance(s, (bool, np.bool_)):
-            raise TypeError(f"samples entries must be ints or complex counts like 400j, got "
-                            f"samples={samples!r}")
+            raise TypeError(
+                f"samples entries must be ints or complex counts like 400j, got samples={samples!r}"
+            )
         if isinstance(s, numbers.Integral):
             n = int(s)
         elif isinstance(s, numbers.Complex) and not isinstance(s, numbers.Real):
             c = complex(s)
             if c.real != 0 or not math.isfinite(c.imag) or c.imag != int(c.imag):
-                raise ValueError(f"complex samples must be a whole node count like 400j (as in "
-                                 f"np.mgrid), got samples={samples!r}")
+                raise ValueError(
+                    f"complex samples must be a whole node count like 400j (as in "
+                    f"np.mgrid), got samples={samples!r}"
+                )
             n = int(c.imag)
         else:
-            raise TypeError(f"samples entries must be ints or complex counts like 400j (a real "
-                            f"number would be a step in np.mgrid), got samples={samples!r}")
+            raise TypeError(
+                f"samples entries must be ints or complex counts like 400j (a real "
+                f"number would be a step in np.mgrid), got samples={samples!r}"
+            )
         if n < 2:
             raise ValueError(f"samples must be at least 2 nodes per axis, got samples={samples!r}")
         counts.append(n)
@@ -424,8 +461,9 @@ def _check_samples(samples):
 
 def _check_choice(value, name, choices):
     if not isinstance(value, str) or value not in choices:
-        raise ValueError(f"{name} must be one of {', '.join(repr(c) for c in choices)}, got "
-                         f"{name}={value!r}")
+        raise ValueError(
+            f"{name} must be one of {', '.join(repr(c) for c in choices)}, got {name}={value!r}"
+        )
     return value
 
 
@@ -440,6 +478,7 @@ def _check_dtype(dtype):
 
 
 # ---------------------------------------------------------------------------------------------
+
 
 class GridSDF:
     """An SDF sampled on a regular grid, queried by bilinear interpolation.
@@ -502,17 +541,27 @@ class GridSDF:
     #: Set by :meth:`from_samples` only (a grid built from an SDF reads ``exact.exactness``).
     exactness: str
 
-    def __init__(self, f: Function, bounds: ArrayLike = ((-2, 2), (-2, 2)),
-                 samples: ArrayLike = (400j, 400j), mode: str = "exact", dtype: Any = np.float64,
-                 gradient: str = "stored"):
+    def __init__(
+        self,
+        f: Function,
+        bounds: ArrayLike = ((-2, 2), (-2, 2)),
+        samples: ArrayLike = (400j, 400j),
+        mode: str = "exact",
+        dtype: Any = np.float64,
+        gradient: str = "stored",
+    ):
         if not isinstance(f, Function):
-            raise TypeError(f"f must be a fastsdf SDF (a fastsdf.function.Function such as "
-                            f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}")
+            raise TypeError(
+                f"f must be a fastsdf SDF (a fastsdf.function.Function such as "
+                f"sdf.Circle(...)), got f={f!r} of type {type(f).__name__}"
+            )
         if f.time_dependent:
-            raise ValueError("f depends on time (sdf.t): a grid samples a scene that does not "
-                             "move. Give a moving scene to the simulation as it is (the exact "
-                             "SDF is evaluated at the simulation's time), or grid a snapshot "
-                             "f.frozen(t=...)")
+            raise ValueError(
+                "f depends on time (sdf.t): a grid samples a scene that does not "
+                "move. Give a moving scene to the simulation as it is (the exact "
+                "SDF is evaluated at the simulation's time), or grid a snapshot "
+                "f.frozen(t=...)"
+            )
         if f.params:
             f = f.frozen()  # a snapshot at the current parameter values (its own kernel)
         self.bounds = _check_bounds(bounds)
@@ -532,9 +581,15 @@ class GridSDF:
         self._channels = 3 if self.gradient == "stored" else 1
 
     @classmethod
-    def from_samples(cls, values: ArrayLike, bounds: ArrayLike, exact: Function | None = None,
-                     mode: str = "nearest", dtype: Any = np.float64,
-                     exactness: str = "none") -> GridSDF:
+    def from_samples(
+        cls,
+        values: ArrayLike,
+        bounds: ArrayLike,
+        exact: Function | None = None,
+        mode: str = "nearest",
+        dtype: Any = np.float64,
+        exactness: str = "none",
+    ) -> GridSDF:
         """A grid from node values already computed (e.g. a distance transform of an image).
 
         ``values[i, j]`` is the signed distance at ``(x0 + i * hx, y0 + j * hy)`` (x along the
@@ -547,8 +602,10 @@ class GridSDF:
         """
         v = np.asarray(values)
         if v.ndim != 2 or v.shape[0] < 2 or v.shape[1] < 2 or v.dtype.kind not in "iuf":
-            raise ValueError(f"values must be a real 2-d array with at least 2 nodes per axis, "
-                             f"got shape {v.shape} and dtype {v.dtype}")
+            raise ValueError(
+                f"values must be a real 2-d array with at least 2 nodes per axis, "
+                f"got shape {v.shape} and dtype {v.dtype}"
+            )
         if not np.isfinite(v).all():
             raise ValueError("values must be finite at every node")
         if exact is not None and not isinstance(exact, Function):
@@ -557,8 +614,10 @@ class GridSDF:
         g.bounds = _check_bounds(bounds)
         g.mode = _check_choice(mode, "mode", _MODES)
         if g.mode == "exact" and exact is None:
-            raise ValueError("mode='exact' needs the exact SDF (exact=...) to answer points "
-                             "outside bounds; pass one or use mode='nearest'")
+            raise ValueError(
+                "mode='exact' needs the exact SDF (exact=...) to answer points "
+                "outside bounds; pass one or use mode='nearest'"
+            )
         g.exactness = _check_choice(exactness, "exactness", ("exact", "bound", "none"))
         g.gradient = "fd"
         g.dtype = _check_dtype(dtype)
@@ -570,8 +629,17 @@ class GridSDF:
         g.bytes_per_node = BYTES_PER_NODE[(g.gradient, g.dtype.name)]
         g.data = np.ascontiguousarray(v, dtype=g.dtype)
         g.nbytes = int(g.data.nbytes)
-        g.sampler_data = (g.data.reshape(-1), x0, x1, y0, y1, 1.0 / g.spacing[0],
-                          1.0 / g.spacing[1], nx, ny)
+        g.sampler_data = (
+            g.data.reshape(-1),
+            x0,
+            x1,
+            y0,
+            y1,
+            1.0 / g.spacing[0],
+            1.0 / g.spacing[1],
+            nx,
+            ny,
+        )
         g._channels = 1
         return g
 
@@ -625,33 +693,37 @@ class GridSDF:
         i, j = np.argwhere(bad)[0]
         what = ("value", "gradient dd/dx", "gradient dd/dy")[channel]
         raw = out.reshape(block.shape[:2])[i, j]
-        note = (f" (the float64 value {raw!r} overflows {self.dtype.name})"
-                if channel == 0 and math.isfinite(raw) else "")
+        note = (
+            f" (the float64 value {raw!r} overflows {self.dtype.name})"
+            if channel == 0 and math.isfinite(raw)
+            else ""
+        )
         raise ValueError(
             f"f returned a non-finite {what} at grid node ({r0 + i}, {j}) = "
             f"({float(ax[r0 + i])!r}, {float(ay[j])!r}){note}; {int(bad.sum())} node(s) of this "
             f"block are affected. A GridSDF needs finite values at every node: choose bounds "
-            f"where f is defined, got bounds={[list(b) for b in self.bounds]!r}")
+            f"where f is defined, got bounds={[list(b) for b in self.bounds]!r}"
+        )
 
     # -- queries ------------------------------------------------------------------------------
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: Literal[False] = False
-                 ) -> np.ndarray: ...
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: Literal[False] = False
+    ) -> np.ndarray: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None, *,
-                 compute_gradient: Literal[True]
-                 ) -> tuple[np.ndarray, np.ndarray]: ...
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, *, compute_gradient: Literal[True]
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
     @overload
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False
-                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
 
-    def __call__(self, x: ArrayLike, y: ArrayLike | None = None,
-                 compute_gradient: bool = False
-                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         x, y = point_arrays(x, y)
         """Interpolated distance (and gradient) at points; see the class docstring."""
         xs, ys, shape = as_points(x, y)
@@ -671,8 +743,7 @@ class GridSDF:
                     kern = _vg_stored_range if stored else _vg_fd_range
                     outside = kern(self.sampler_data, xs, ys, out, grad, 0, n)
             elif par:
-                outside = _v_par(self.sampler_data, self._channels, xs, ys, out, chunks,
-                                 workers)
+                outside = _v_par(self.sampler_data, self._channels, xs, ys, out, chunks, workers)
             else:
                 outside = _v_range(self.sampler_data, self._channels, xs, ys, out, 0, n)
             if outside and self.mode == "exact":
@@ -736,17 +807,29 @@ class GridSDF:
         self.__dict__.update(state)
         (x0, x1), (y0, y1) = self.bounds
         nx, ny = self.shape
-        self.sampler_data = (self.data.reshape(-1), x0, x1, y0, y1,
-                             1.0 / self.spacing[0], 1.0 / self.spacing[1], nx, ny)
+        self.sampler_data = (
+            self.data.reshape(-1),
+            x0,
+            x1,
+            y0,
+            y1,
+            1.0 / self.spacing[0],
+            1.0 / self.spacing[1],
+            nx,
+            ny,
+        )
 
     def __repr__(self) -> str:
-        return (f"GridSDF(bounds={[list(b) for b in self.bounds]}, samples={list(self.shape)}, "
-                f"mode={self.mode!r}, dtype={self.dtype.name}, gradient={self.gradient!r}, "
-                f"nbytes={self.nbytes})")
+        return (
+            f"GridSDF(bounds={[list(b) for b in self.bounds]}, samples={list(self.shape)}, "
+            f"mode={self.mode!r}, dtype={self.dtype.name}, gradient={self.gradient!r}, "
+            f"nbytes={self.nbytes})"
+        )
 
 
 # ---------------------------------------------------------------------------------------------
 # Accuracy.
+
 
 @dataclass(frozen=True)
 class GridError:
@@ -782,8 +865,9 @@ def _stats(a):
     return float(np.max(a)), float(np.sqrt(np.mean(a * a)))
 
 
-def measure_error(g: GridSDF, n: int = 200_000, band: float = 0.1, seed: int = 0,
-                  points: tuple | None = None) -> Any:
+def measure_error(
+    g: GridSDF, n: int = 200_000, band: float = 0.1, seed: int = 0, points: tuple | None = None
+) -> Any:
     """Measure ``g`` against ``g.exact`` on ``n`` uniform random points inside ``g.bounds``.
 
     Returns a :class:`GridError`: max and RMS of the value error ``|d_grid - d_exact|``, and of
@@ -817,7 +901,17 @@ def measure_error(g: GridSDF, n: int = 200_000, band: float = 0.1, seed: int = 0
     amax, arms = _stats(aerr)
     bvmax, bvrms = _stats(verr[inb])
     bamax, barms = _stats(aerr[inb])
-    return GridError(n=int(dg.size), band=float(band), band_n=int(inb.sum()),
-                     spacing=tuple(g.spacing), value_max=vmax, value_rms=vrms,
-                     angle_max_deg=amax, angle_rms_deg=arms, band_value_max=bvmax,
-                     band_value_rms=bvrms, band_angle_max_deg=bamax, band_angle_rms_deg=barms)
+    return GridError(
+        n=int(dg.size),
+        band=float(band),
+        band_n=int(inb.sum()),
+        spacing=tuple(g.spacing),
+        value_max=vmax,
+        value_rms=vrms,
+        angle_max_deg=amax,
+        angle_rms_deg=arms,
+        band_value_max=bvmax,
+        band_value_rms=bvrms,
+        band_angle_max_deg=bamax,
+        band_angle_rms_deg=barms,
+    )

@@ -15,5 +15,15 @@ from fastsdf.geometry.mask import from_image, from_mask
 from fastsdf.geometry.outline import SvgPath, Text
 from fastsdf.geometry.vector import to_dxf, to_svg
 
-__all__ = ["Contour", "SvgPath", "Text", "contours", "distance_transform", "from_image",
-           "from_mask", "signed_distance_transform", "to_dxf", "to_svg"]
+__all__ = [
+    "Contour",
+    "SvgPath",
+    "Text",
+    "contours",
+    "distance_transform",
+    "from_image",
+    "from_mask",
+    "signed_distance_transform",
+    "to_dxf",
+    "to_svg",
+]

@@ -37,9 +37,18 @@ def _evaluate(f: Callable, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.asarray(f(x, y), dtype=np.float64).reshape(x.shape)
 
 
-def refine_crossings(f: Callable, fixed: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                     glo: np.ndarray, ghi: np.ndarray, axis: np.ndarray, level: float = 0.0,
-                     tol: float = 1e-12, max_iter: int = 200) -> np.ndarray:
+def refine_crossings(
+    f: Callable,
+    fixed: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    glo: np.ndarray,
+    ghi: np.ndarray,
+    axis: np.ndarray,
+    level: float = 0.0,
+    tol: float = 1e-12,
+    max_iter: int = 200,
+) -> np.ndarray:
     """Roots of ``f - level`` on axis-aligned edges, all edges at once (vectorised Illinois).
 
     Edge ``k`` runs along x (``axis[k] == 0``) or y (``1``) from coordinate ``lo[k]`` to
@@ -50,7 +59,7 @@ def refine_crossings(f: Callable, fixed: np.ndarray, lo: np.ndarray, hi: np.ndar
     """
     a, b = lo.astype(np.float64).copy(), hi.astype(np.float64).copy()
     fa, fb = glo.astype(np.float64).copy(), ghi.astype(np.float64).copy()
-    side = np.zeros(a.shape, dtype=np.int8)   # which end was kept last time (Illinois)
+    side = np.zeros(a.shape, dtype=np.int8)  # which end was kept last time (Illinois)
     active = (np.abs(b - a) > tol) & (fa != 0) & (fb != 0)
     for _ in range(max_iter):
         idx = np.flatnonzero(active)
@@ -71,9 +80,11 @@ def refine_crossings(f: Callable, fixed: np.ndarray, lo: np.ndarray, hi: np.ndar
         fc = _evaluate(f, np.where(ax == 0, c, fx), np.where(ax == 0, fx, c)) - level
         bad = ~np.isfinite(fc)
         if bad.any():
-            raise ValueError(f"the function is not finite at {int(bad.sum())} point(s) on "
-                             f"cell edges crossing the level set (e.g. at "
-                             f"{float(c[bad][0])!r} along axis {int(ax[bad][0])})")
+            raise ValueError(
+                f"the function is not finite at {int(bad.sum())} point(s) on "
+                f"cell edges crossing the level set (e.g. at "
+                f"{float(c[bad][0])!r} along axis {int(ax[bad][0])})"
+            )
         same_as_b = np.sign(fc) == np.sign(FB)
         # c replaces b where it has b's sign, else a; halve the other end's value if that end
         # was kept the previous time too (Illinois).
@@ -98,14 +109,15 @@ def _check_resolution(resolution: Any) -> tuple:
     if isinstance(resolution, (int, np.integer)) and not isinstance(resolution, bool):
         resolution = (resolution, resolution)
     try:
-        nx, ny = (int(abs(complex(r))) if isinstance(r, complex) else int(r)
-                  for r in resolution)
+        nx, ny = (int(abs(complex(r))) if isinstance(r, complex) else int(r) for r in resolution)
     except (TypeError, ValueError):
-        raise TypeError(f"resolution must be a node count or a pair of them, got "
-                        f"resolution={resolution!r}") from None
+        raise TypeError(
+            f"resolution must be a node count or a pair of them, got resolution={resolution!r}"
+        ) from None
     if nx < 2 or ny < 2:
-        raise ValueError(f"resolution needs at least 2 nodes per axis, got "
-                         f"resolution={resolution!r}")
+        raise ValueError(
+            f"resolution needs at least 2 nodes per axis, got resolution={resolution!r}"
+        )
     return nx, ny
 
 
@@ -113,17 +125,24 @@ def _check_bounds(bounds: ArrayLike) -> tuple:
     try:
         (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
     except (TypeError, ValueError):
-        raise TypeError(f"bounds must be two (min, max) pairs of numbers, got "
-                        f"bounds={bounds!r}") from None
+        raise TypeError(
+            f"bounds must be two (min, max) pairs of numbers, got bounds={bounds!r}"
+        ) from None
     if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
-        raise ValueError(f"bounds must be finite with min < max on each axis, got "
-                         f"bounds={bounds!r}")
+        raise ValueError(
+            f"bounds must be finite with min < max on each axis, got bounds={bounds!r}"
+        )
     return (x0, x1), (y0, y1)
 
 
-def contours(f: Callable, level: float = 0.0, bounds: ArrayLike = ((-2, 2), (-2, 2)),
-             resolution: Any = (256, 256), tol: float = 1e-12,
-             refine: bool = True) -> list[Contour]:
+def contours(
+    f: Callable,
+    level: float = 0.0,
+    bounds: ArrayLike = ((-2, 2), (-2, 2)),
+    resolution: Any = (256, 256),
+    tol: float = 1e-12,
+    refine: bool = True,
+) -> list[Contour]:
     """The level set ``f = level`` inside ``bounds`` as polylines.
 
     ``f`` is any fastsdf SDF, a :class:`fastsdf.fields.grid.GridSDF`, or a callable ``f(x, y)`` on
@@ -175,10 +194,11 @@ def contours(f: Callable, level: float = 0.0, bounds: ArrayLike = ((-2, 2), (-2,
         lo = np.concatenate([xs[hi_], ys[vj_]])
         hi = np.concatenate([xs[hi_ + 1], ys[vj_ + 1]])
         axis = np.concatenate([np.zeros(h_ids.size, np.int8), np.ones(v_ids.size, np.int8)])
-        roots = refine_crossings(f, fixed, lo, hi, np.concatenate([ga, ga2]),
-                                 np.concatenate([gb, gb2]), axis, level, tol)
-        px[h_ids] = roots[:h_ids.size]
-        py[v_ids] = roots[h_ids.size:]
+        roots = refine_crossings(
+            f, fixed, lo, hi, np.concatenate([ga, ga2]), np.concatenate([gb, gb2]), axis, level, tol
+        )
+        px[h_ids] = roots[: h_ids.size]
+        py[v_ids] = roots[h_ids.size :]
 
     # Cells with crossings; their four corners' phases in CCW order (0: (i, j), 1: (i+1, j),
     # 2: (i+1, j+1), 3: (i, j+1)) and the ids of their edges e0..e3 (bottom, right, top,
@@ -187,8 +207,10 @@ def contours(f: Callable, level: float = 0.0, bounds: ArrayLike = ((-2, 2), (-2,
     mixed = ~((c[0] == c[1]) & (c[1] == c[2]) & (c[2] == c[3]))
     ci, cj = np.nonzero(mixed)
     corners = np.stack([cc[ci, cj] for cc in c], axis=1)
-    edges = np.stack([ci * ny + cj, H + (ci + 1) * (ny - 1) + cj,
-                      ci * ny + cj + 1, H + ci * (ny - 1) + cj], axis=1)
+    edges = np.stack(
+        [ci * ny + cj, H + (ci + 1) * (ny - 1) + cj, ci * ny + cj + 1, H + ci * (ny - 1) + cj],
+        axis=1,
+    )
     saddle = (corners[:, 0] == corners[:, 2]) & (corners[:, 1] == corners[:, 3])
     centre_inside = np.zeros(ci.size, dtype=bool)
     if saddle.any():

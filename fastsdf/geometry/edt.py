@@ -42,8 +42,8 @@ def _column_tile(mask, j0, w, h, signed, g, near, want_near):
     ``near``. The target of a pixel is the other phase when ``signed``, else the False pixels
     (False pixels get 0). Two sweeps, walking the rows so that each row's tile is contiguous."""
     n = mask.shape[0]
-    last_t = np.full(w, -1, dtype=np.int64)   # last True pixel seen, per column
-    last_f = np.full(w, -1, dtype=np.int64)   # last False pixel seen
+    last_t = np.full(w, -1, dtype=np.int64)  # last True pixel seen, per column
+    last_f = np.full(w, -1, dtype=np.int64)  # last False pixel seen
     for i in range(n):
         for b in range(w):
             if mask[i, j0 + b]:
@@ -175,9 +175,9 @@ def edt_kernel(mask, spacing, signed, out, feat_i, feat_j):  # noqa: ANN201 (num
                 if p < 0:
                     feat_i[i, j] = -1
                 elif row[p] != row[j] or not (signed or row[j]):
-                    feat_i[i, j] = i        # the envelope's own pixel is the feature
+                    feat_i[i, j] = i  # the envelope's own pixel is the feature
                 else:
-                    feat_i[i, j] = near[i, p]   # reached along column p
+                    feat_i[i, j] = near[i, p]  # reached along column p
     return out
 
 
@@ -201,8 +201,9 @@ def _check_spacing(sampling: ArrayLike | None) -> EdtSpacing:
     return EdtSpacing(float(s[0]), float(s[1]))
 
 
-def distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
-                       return_indices: bool = False) -> np.ndarray | tuple:
+def distance_transform(
+    mask: ArrayLike, sampling: ArrayLike | None = None, return_indices: bool = False
+) -> np.ndarray | tuple:
     """Distance of each True (non-zero) pixel to the nearest False pixel; 0 on False pixels.
 
     The same numbers as ``scipy.ndimage.distance_transform_edt(mask, sampling)`` (exact
@@ -226,8 +227,9 @@ def distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
     return out
 
 
-def signed_distance_transform(mask: ArrayLike, sampling: ArrayLike | None = None,
-                              return_indices: bool = False) -> np.ndarray | tuple:
+def signed_distance_transform(
+    mask: ArrayLike, sampling: ArrayLike | None = None, return_indices: bool = False
+) -> np.ndarray | tuple:
     """Signed distance of each pixel centre to the boundary of the True pixels.
 
     Half-pixel convention: the boundary lies halfway between the centres of two neighbouring

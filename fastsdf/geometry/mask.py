@@ -55,11 +55,13 @@ def _extent(bounds: ArrayLike, shape: tuple) -> tuple:
     try:
         (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
     except (TypeError, ValueError):
-        raise TypeError(f"bounds must be two (min, max) pairs of numbers, got "
-                        f"bounds={bounds!r}") from None
+        raise TypeError(
+            f"bounds must be two (min, max) pairs of numbers, got bounds={bounds!r}"
+        ) from None
     if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
-        raise ValueError(f"bounds must be finite with min < max on each axis, got "
-                         f"bounds={bounds!r}")
+        raise ValueError(
+            f"bounds must be finite with min < max on each axis, got bounds={bounds!r}"
+        )
     rows, cols = shape
     if rows < 2 or cols < 2:
         raise ValueError(f"the image needs at least 2 pixels along each axis, got shape {shape}")
@@ -80,9 +82,14 @@ def _square(px: float, py: float) -> bool:
     return abs(px - py) <= 1e-9 * max(px, py)
 
 
-def from_mask(mask: ArrayLike, bounds: ArrayLike, origin: str = "upper",
-              exact: Function | None = None, mode: str = "nearest",
-              dtype: Any = np.float64) -> GridSDF:
+def from_mask(
+    mask: ArrayLike,
+    bounds: ArrayLike,
+    origin: str = "upper",
+    exact: Function | None = None,
+    mode: str = "nearest",
+    dtype: Any = np.float64,
+) -> GridSDF:
     """A signed distance grid from a binary mask: True (non-zero) pixels are inside.
 
     ``mask[row, col]`` with row 0 at the top (``origin='upper'``) or bottom (``'lower'``);
@@ -105,12 +112,20 @@ def from_mask(mask: ArrayLike, bounds: ArrayLike, origin: str = "upper",
     _check_origin(origin)
     _, (px, py) = _extent(bounds, a.shape)
     if a.all() or not a.any():
-        raise ValueError("mask must hold pixels of both phases (inside and outside); got "
-                         f"{'all inside' if a.any() else 'all outside'}")
+        raise ValueError(
+            "mask must hold pixels of both phases (inside and outside); got "
+            f"{'all inside' if a.any() else 'all outside'}"
+        )
     d = np.asarray(signed_distance_transform(a, sampling=(py, px)))
     nodes, gb = pixel_grid(d, bounds, origin)
-    return GridSDF.from_samples(nodes, gb, exact=exact, mode=mode, dtype=dtype,
-                                exactness="exact" if _square(px, py) else "none")
+    return GridSDF.from_samples(
+        nodes,
+        gb,
+        exact=exact,
+        mode=mode,
+        dtype=dtype,
+        exactness="exact" if _square(px, py) else "none",
+    )
 
 
 def edge_offset(gx: np.ndarray, gy: np.ndarray, coverage: np.ndarray) -> np.ndarray:
@@ -126,11 +141,14 @@ def edge_offset(gx: np.ndarray, gy: np.ndarray, coverage: np.ndarray) -> np.ndar
     with np.errstate(invalid="ignore", divide="ignore"):
         ux = np.where(length > 0, gx / length, 1.0)
         uy = np.where(length > 0, gy / length, 0.0)
-    big, small = np.maximum(ux, uy), np.minimum(ux, uy)   # fold into the first octant
+    big, small = np.maximum(ux, uy), np.minimum(ux, uy)  # fold into the first octant
     a1 = 0.5 * small / big
     corner = np.sqrt(2.0 * big * small * np.minimum(a, 1.0 - a))
-    out = np.where(a < a1, 0.5 * (big + small) - corner,
-                   np.where(a < 1.0 - a1, (0.5 - a) * big, -0.5 * (big + small) + corner))
+    out = np.where(
+        a < a1,
+        0.5 * (big + small) - corner,
+        np.where(a < 1.0 - a1, (0.5 - a) * big, -0.5 * (big + small) + corner),
+    )
     return np.where(small == 0.0, 0.5 - a, out)
 
 
@@ -138,10 +156,12 @@ def _sobel(a: np.ndarray) -> tuple:
     """Isotropic Sobel gradient (weights 1, sqrt 2, 1) along rows and columns, edges padded."""
     p = np.pad(a, 1, mode="edge")
     r2 = math.sqrt(2.0)
-    gr = (p[2:, :-2] + r2 * p[2:, 1:-1] + p[2:, 2:]) - (p[:-2, :-2] + r2 * p[:-2, 1:-1]
-                                                        + p[:-2, 2:])
-    gc = (p[:-2, 2:] + r2 * p[1:-1, 2:] + p[2:, 2:]) - (p[:-2, :-2] + r2 * p[1:-1, :-2]
-                                                        + p[2:, :-2])
+    gr = (p[2:, :-2] + r2 * p[2:, 1:-1] + p[2:, 2:]) - (
+        p[:-2, :-2] + r2 * p[:-2, 1:-1] + p[:-2, 2:]
+    )
+    gc = (p[:-2, 2:] + r2 * p[1:-1, 2:] + p[2:, 2:]) - (
+        p[:-2, :-2] + r2 * p[1:-1, :-2] + p[2:, :-2]
+    )
     return gr, gc
 
 
@@ -149,27 +169,37 @@ def _levels(image: np.ndarray, levels: Any) -> np.ndarray:
     if levels is None:
         if image.dtype.kind in "iu":
             info = np.iinfo(image.dtype)
-            lo, hi = (0.0, float(info.max)) if image.dtype.kind == "u" else \
-                (float(info.min), float(info.max))
+            lo, hi = (
+                (0.0, float(info.max))
+                if image.dtype.kind == "u"
+                else (float(info.min), float(info.max))
+            )
         else:
             lo, hi = 0.0, 1.0
     else:
         try:
             lo, hi = (float(v) for v in levels)
         except (TypeError, ValueError):
-            raise TypeError(f"levels must be a (black, white) pair, got levels={levels!r}") \
-                from None
+            raise TypeError(
+                f"levels must be a (black, white) pair, got levels={levels!r}"
+            ) from None
         if not (math.isfinite(lo) and math.isfinite(hi) and lo != hi):
-            raise ValueError(f"levels must be two different finite numbers, got "
-                             f"levels={levels!r}")
+            raise ValueError(f"levels must be two different finite numbers, got levels={levels!r}")
     return (image.astype(np.float64) - lo) / (hi - lo)
 
 
-def from_image(image: ArrayLike, bounds: ArrayLike, threshold: float = 0.5,
-               origin: str = "upper", levels: ArrayLike | None = None,
-               dark_inside: bool = False, subpixel: bool = True,
-               exact: Function | None = None, mode: str = "nearest",
-               dtype: Any = np.float64) -> GridSDF:
+def from_image(
+    image: ArrayLike,
+    bounds: ArrayLike,
+    threshold: float = 0.5,
+    origin: str = "upper",
+    levels: ArrayLike | None = None,
+    dark_inside: bool = False,
+    subpixel: bool = True,
+    exact: Function | None = None,
+    mode: str = "nearest",
+    dtype: Any = np.float64,
+) -> GridSDF:
     """A signed distance grid from a grey-level image: pixels brighter than ``threshold`` are
     inside (darker ones with ``dark_inside=True``).
 
@@ -184,23 +214,28 @@ def from_image(image: ArrayLike, bounds: ArrayLike, threshold: float = 0.5,
     """
     img = np.asarray(image)
     if img.ndim != 2:
-        raise ValueError(f"image must be a 2-d grey-level array (rows, cols), got shape "
-                         f"{img.shape} (convert colour images first, e.g. image.mean(axis=-1))")
+        raise ValueError(
+            f"image must be a 2-d grey-level array (rows, cols), got shape "
+            f"{img.shape} (convert colour images first, e.g. image.mean(axis=-1))"
+        )
     if img.dtype == np.bool_:
         img = img.astype(np.float64)
     if img.dtype.kind not in "iuf":
         raise TypeError(f"image must hold real numbers, got dtype {img.dtype}")
-    if not isinstance(threshold, (int, float, np.floating, np.integer)) or \
-            not 0.0 < float(threshold) < 1.0:
-        raise ValueError(f"threshold must be a level strictly between 0 and 1, got "
-                         f"threshold={threshold!r}")
+    if (
+        not isinstance(threshold, (int, float, np.floating, np.integer))
+        or not 0.0 < float(threshold) < 1.0
+    ):
+        raise ValueError(
+            f"threshold must be a level strictly between 0 and 1, got threshold={threshold!r}"
+        )
     g = _levels(img, levels)
     if not np.isfinite(g).all():
         raise ValueError("image must be finite at every pixel")
     if dark_inside:
         g = 1.0 - g
     t = float(threshold)
-    cov = np.clip(g - t + 0.5, 0.0, 1.0)     # coverage whose half level is the threshold
+    cov = np.clip(g - t + 0.5, 0.0, 1.0)  # coverage whose half level is the threshold
     inside = cov > 0.5
     _check_origin(origin)
     _, (px, py) = _extent(bounds, img.shape)
@@ -208,14 +243,15 @@ def from_image(image: ArrayLike, bounds: ArrayLike, threshold: float = 0.5,
     if not subpixel or not partial.any():
         return from_mask(inside, bounds, origin=origin, exact=exact, mode=mode, dtype=dtype)
     if not _square(px, py):
-        raise ValueError(f"sub-pixel edges need square pixels, got {px!r} x {py!r} (choose "
-                         f"bounds in the image's aspect ratio, or subpixel=False)")
+        raise ValueError(
+            f"sub-pixel edges need square pixels, got {px!r} x {py!r} (choose "
+            f"bounds in the image's aspect ratio, or subpixel=False)"
+        )
     if inside.all() or not inside.any():
         raise ValueError("image must hold pixels on both sides of the threshold")
     d = _subpixel_distance(cov, inside, partial) * px
     nodes, gb = pixel_grid(d, bounds, origin)
-    return GridSDF.from_samples(nodes, gb, exact=exact, mode=mode, dtype=dtype,
-                                exactness="none")
+    return GridSDF.from_samples(nodes, gb, exact=exact, mode=mode, dtype=dtype, exactness="none")
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -282,10 +318,10 @@ def _subpixel_distance(cov: np.ndarray, inside: np.ndarray, partial: np.ndarray)
     length = np.hypot(gr, gc)
     ok = length > 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        ur = np.where(ok, -gr / length, 0.0)      # outward unit normal per pixel
+        ur = np.where(ok, -gr / length, 0.0)  # outward unit normal per pixel
         uc = np.where(ok, -gc / length, 0.0)
     off = edge_offset(gr, gc, cov)
-    er = np.where(edge, rows - off * ur, np.inf)   # edge points (index units) of edge pixels
+    er = np.where(edge, rows - off * ur, np.inf)  # edge points (index units) of edge pixels
     ec = np.where(edge, cols - off * uc, np.inf)
     vr, vc = rows - er[qi, qj], cols - ec[qi, qj]
     line = np.abs(vr * ur[qi, qj] + vc * uc[qi, qj])

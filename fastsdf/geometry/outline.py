@@ -40,14 +40,19 @@ _QUARTER_ARC_ERROR = 2.73e-4
 
 
 def _check_tol(tol: Any) -> float:
-    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol > 0 or \
-            not math.isfinite(tol):
+    if (
+        isinstance(tol, bool)
+        or not isinstance(tol, (int, float))
+        or not tol > 0
+        or not math.isfinite(tol)
+    ):
         raise ValueError(f"tol must be a positive finite number, got tol={tol!r}")
     return float(tol)
 
 
-def cubic_to_quadratics(p0: ArrayLike, p1: ArrayLike, p2: ArrayLike, p3: ArrayLike,
-                        tol: float) -> np.ndarray:
+def cubic_to_quadratics(
+    p0: ArrayLike, p1: ArrayLike, p2: ArrayLike, p3: ArrayLike, tol: float
+) -> np.ndarray:
     """Quadratic segment rows ``[1, x0, y0, cx, cy, x1, y1]`` within ``tol / 2`` of the cubic
     Bezier ``p0, p1, p2, p3`` (see the module docstring for the bound)."""
     P = np.array([p0, p1, p2, p3], dtype=np.float64)
@@ -65,14 +70,16 @@ def cubic_to_quadratics(p0: ArrayLike, p1: ArrayLike, p2: ArrayLike, p3: ArrayLi
 
 def _cubic_point(P: np.ndarray, t: float) -> np.ndarray:
     s = 1.0 - t
-    return s ** 3 * P[0] + 3 * s * s * t * P[1] + 3 * s * t * t * P[2] + t ** 3 * P[3]
+    return s**3 * P[0] + 3 * s * s * t * P[1] + 3 * s * t * t * P[2] + t**3 * P[3]
 
 
 def _cubic_piece(P: np.ndarray, t0: float, t1: float) -> np.ndarray:
     """Control points of the cubic restricted to ``[t0, t1]`` (ends evaluated directly)."""
+
     def deriv(t):
         s = 1.0 - t
         return 3 * (s * s * (P[1] - P[0]) + 2 * s * t * (P[2] - P[1]) + t * t * (P[3] - P[2]))
+
     a, b = _cubic_point(P, t0), _cubic_point(P, t1)
     h = t1 - t0
     return np.array([a, a + deriv(t0) * h / 3.0, b - deriv(t1) * h / 3.0, b])
@@ -88,8 +95,9 @@ def path_segments(d: str, tol: float = 1e-4, flip_y: bool = True) -> np.ndarray:
     try:
         from svgelements import Arc, Close, CubicBezier, Line, Move, Path, QuadraticBezier
     except ImportError:
-        raise ImportError("SVG paths need the svgelements package: pip install svgelements "
-                          "(or fastsdf[geometry])") from None
+        raise ImportError(
+            "SVG paths need the svgelements package: pip install svgelements (or fastsdf[geometry])"
+        ) from None
     tol = _check_tol(tol)
     if not isinstance(d, str):
         raise TypeError(f"d must be SVG path data (a string), got {type(d).__name__}")
@@ -106,8 +114,11 @@ def path_segments(d: str, tol: float = 1e-4, flip_y: bool = True) -> np.ndarray:
         return (float(p.x), sy * float(p.y))
 
     def close_subpath():
-        if start is not None and current is not None and \
-                np.hypot(current[0] - start[0], current[1] - start[1]) > 0:
+        if (
+            start is not None
+            and current is not None
+            and np.hypot(current[0] - start[0], current[1] - start[1]) > 0
+        ):
             rows.append([0.0, *current, 0.0, 0.0, *start])
 
     for seg in path:
@@ -124,13 +135,14 @@ def path_segments(d: str, tol: float = 1e-4, flip_y: bool = True) -> np.ndarray:
         elif isinstance(seg, QuadraticBezier):
             rows.append([1.0, *current, *pt(seg.control), *end])
         elif isinstance(seg, CubicBezier):
-            rows.extend(cubic_to_quadratics(current, pt(seg.control1), pt(seg.control2), end,
-                                            tol).tolist())
+            rows.extend(
+                cubic_to_quadratics(current, pt(seg.control1), pt(seg.control2), end, tol).tolist()
+            )
         elif isinstance(seg, Arc):
             for c in _arc_cubics(seg, tol):
                 p0, p1, p2, p3 = ((x, sy * y) for x, y in c)
                 rows.extend(cubic_to_quadratics(p0, p1, p2, p3, tol).tolist())
-            rows[-1][5:7] = end     # the arc's exact end (the pieces' rounding aside)
+            rows[-1][5:7] = end  # the arc's exact end (the pieces' rounding aside)
         else:
             raise ValueError(f"unsupported SVG path segment {type(seg).__name__}")
         current = end
@@ -159,7 +171,7 @@ def _arc_cubics(seg: Any, tol: float) -> list:
         return (cx + co * ex - si * ey, cy + si * ex + co * ey)
 
     sx, sy = float(seg.start.x) - cx, float(seg.start.y) - cy
-    ux, uy = co * sx + si * sy, -si * sx + co * sy          # unrotated start
+    ux, uy = co * sx + si * sy, -si * sx + co * sy  # unrotated start
     th0 = math.atan2(uy / ry, ux / rx) if rx > 0 and ry > 0 else 0.0
     r = max(rx, ry)
     piece = 0.5 * math.pi * (0.5 * tol / max(r * _QUARTER_ARC_ERROR, 1e-300)) ** (1 / 6)
@@ -173,8 +185,14 @@ def _arc_cubics(seg: Any, tol: float) -> list:
     return out
 
 
-def SvgPath(d: str, fill_rule: str = "nonzero", tol: float = 1e-4, flip_y: bool = True,
-            scale: float = 1.0, offset: ArrayLike = (0.0, 0.0)) -> SDF:
+def SvgPath(
+    d: str,
+    fill_rule: str = "nonzero",
+    tol: float = 1e-4,
+    flip_y: bool = True,
+    scale: float = 1.0,
+    offset: ArrayLike = (0.0, 0.0),
+) -> SDF:
     """The region an SVG path's data ``d`` fills, as an exact SDF (an
     :class:`fastsdf.shapes.Outline`): ``fill_rule`` as SVG's ``fill-rule`` (``'nonzero'``, its
     default, or ``'evenodd'``); coordinates multiplied by ``scale`` then moved by ``offset``
@@ -190,8 +208,13 @@ def SvgPath(d: str, fill_rule: str = "nonzero", tol: float = 1e-4, flip_y: bool 
     return Outline(rows, fill_rule)
 
 
-def text_segments(text: str, size: float = 1.0, position: ArrayLike = (0.0, 0.0),
-                  family: str | None = None, tol: float = 1e-4) -> list[np.ndarray]:
+def text_segments(
+    text: str,
+    size: float = 1.0,
+    position: ArrayLike = (0.0, 0.0),
+    family: str | None = None,
+    tol: float = 1e-4,
+) -> list[np.ndarray]:
     """Segment rows of ``text`` set by matplotlib's ``TextPath`` (baseline starting at
     ``position``, em size ``size``), one array per glyph group: each outermost loop with the
     loops inside it (holes), so that groups do not overlap."""
@@ -295,8 +318,14 @@ def _group_loops(loops: list) -> list:
     return [np.concatenate(g) for g in groups.values()]
 
 
-def Text(text: str, size: float = 1.0, position: ArrayLike = (0.0, 0.0),
-         family: str | None = None, tol: float = 1e-4, split_glyphs: bool = False) -> SDF:
+def Text(
+    text: str,
+    size: float = 1.0,
+    position: ArrayLike = (0.0, 0.0),
+    family: str | None = None,
+    tol: float = 1e-4,
+    split_glyphs: bool = False,
+) -> SDF:
     """``text`` as an exact SDF: glyph outlines from matplotlib's ``TextPath`` (font
     ``family``, default matplotlib's), baseline from ``position``, em size ``size``, filled by
     the non-zero rule; it compiles and blends like any SDF. TrueType glyphs are exact; cubic

@@ -20,24 +20,26 @@ from fastsdf.geometry.contours import Contour, contours
 __all__ = ["svg_path_data", "to_dxf", "to_svg"]
 
 
-def _as_contours(shape: Any, bounds: ArrayLike | None, resolution: Any,
-                 level: float) -> tuple:
+def _as_contours(shape: Any, bounds: ArrayLike | None, resolution: Any, level: float) -> tuple:
     """``(list of Contour, bounds)`` from contours or an SDF."""
     if callable(shape):
         if bounds is None:
-            raise ValueError("bounds are needed to contour an SDF: pass bounds=[(x0, x1), "
-                             "(y0, y1)]")
+            raise ValueError(
+                "bounds are needed to contour an SDF: pass bounds=[(x0, x1), (y0, y1)]"
+            )
         return contours(shape, level=level, bounds=bounds, resolution=resolution), bounds
     try:
         items = list(shape)
     except TypeError:
-        raise TypeError(f"expected an SDF or a list of Contour, got {type(shape).__name__}") \
-            from None
+        raise TypeError(
+            f"expected an SDF or a list of Contour, got {type(shape).__name__}"
+        ) from None
     out = []
     for c in items:
         if not isinstance(c, Contour):
-            raise TypeError(f"expected Contour items (from fastsdf.geometry.contours), got "
-                            f"{type(c).__name__}")
+            raise TypeError(
+                f"expected Contour items (from fastsdf.geometry.contours), got {type(c).__name__}"
+            )
         out.append(c)
     if bounds is None:
         pts = np.concatenate([c.points for c in out]) if out else np.zeros((1, 2))
@@ -58,10 +60,17 @@ def svg_path_data(contour: Contour) -> str:
     return " ".join(words)
 
 
-def to_svg(path: str | os.PathLike, shape: Any, bounds: ArrayLike | None = None,
-           resolution: Any = (512, 512), level: float = 0.0, stroke: str = "black",
-           stroke_width: float | None = None, fill: str = "none",
-           width_px: int = 800) -> list[Contour]:
+def to_svg(
+    path: str | os.PathLike,
+    shape: Any,
+    bounds: ArrayLike | None = None,
+    resolution: Any = (512, 512),
+    level: float = 0.0,
+    stroke: str = "black",
+    stroke_width: float | None = None,
+    fill: str = "none",
+    width_px: int = 800,
+) -> list[Contour]:
     """Write contours (or an SDF's zero contours) to an SVG file; returns the contours.
 
     Coordinates are kept as they are (y up) inside a group flipped by
@@ -75,13 +84,15 @@ def to_svg(path: str | os.PathLike, shape: Any, bounds: ArrayLike | None = None,
     w, h = x1 - x0, y1 - y0
     sw = w / 500.0 if stroke_width is None else float(stroke_width)
     height_px = max(1, int(round(width_px * h / w)))
-    lines = ['<?xml version="1.0" encoding="UTF-8"?>',
-             f'<svg xmlns="http://www.w3.org/2000/svg" width="{width_px}" '
-             f'height="{height_px}" viewBox="{x0!r} {y0!r} {w!r} {h!r}">',
-             f'<g transform="matrix(1 0 0 -1 0 {y0 + y1!r})" fill="{fill}" '
-             f'fill-rule="evenodd" stroke="{stroke}" stroke-width="{sw!r}" '
-             f'stroke-linejoin="round">']
-    if fill != "none":   # one path, so that the even-odd rule sees holes inside solids
+    lines = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width_px}" '
+        f'height="{height_px}" viewBox="{x0!r} {y0!r} {w!r} {h!r}">',
+        f'<g transform="matrix(1 0 0 -1 0 {y0 + y1!r})" fill="{fill}" '
+        f'fill-rule="evenodd" stroke="{stroke}" stroke-width="{sw!r}" '
+        f'stroke-linejoin="round">',
+    ]
+    if fill != "none":  # one path, so that the even-odd rule sees holes inside solids
         lines.append(f'<path d="{" ".join(svg_path_data(c) for c in items)}"/>')
     else:
         lines += [f'<path d="{svg_path_data(c)}"/>' for c in items]
@@ -96,22 +107,29 @@ def to_svg(path: str | os.PathLike, shape: Any, bounds: ArrayLike | None = None,
     return items
 
 
-def to_dxf(path: str | os.PathLike, shape: Any, bounds: ArrayLike | None = None,
-           resolution: Any = (512, 512), level: float = 0.0,
-           layer: str = "CONTOURS") -> list[Contour]:
+def to_dxf(
+    path: str | os.PathLike,
+    shape: Any,
+    bounds: ArrayLike | None = None,
+    resolution: Any = (512, 512),
+    level: float = 0.0,
+    layer: str = "CONTOURS",
+) -> list[Contour]:
     """Write contours (or an SDF's zero contours) to a DXF file as lightweight polylines
     (closed ones flagged closed) on ``layer``; needs the optional ``ezdxf`` package
     (``pip install fastsdf[geometry]``). Returns the contours."""
     try:
         import ezdxf
     except ImportError:
-        raise ImportError("to_dxf needs the ezdxf package: pip install ezdxf (or "
-                          "fastsdf[geometry])") from None
+        raise ImportError(
+            "to_dxf needs the ezdxf package: pip install ezdxf (or fastsdf[geometry])"
+        ) from None
     items, _ = _as_contours(shape, bounds, resolution, level)
     doc = ezdxf.new()
     msp = doc.modelspace()
     for c in items:
-        msp.add_lwpolyline(c.points.tolist(), format="xy", close=c.closed,
-                           dxfattribs={"layer": layer})
+        msp.add_lwpolyline(
+            c.points.tolist(), format="xy", close=c.closed, dxfattribs={"layer": layer}
+        )
     atomic_write(path, doc.saveas)
     return items

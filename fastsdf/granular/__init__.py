@@ -19,17 +19,29 @@ particle-steps/s spends ``10 / N`` s per substep, so strips need about ``0.12 N`
 is no limit; the two messages per substep (their latency) are, once ``10 / N`` s shrinks toward
 a network round trip (N in the thousands).
 """
+
 from fastsdf.granular.cells import CellGrid, brute_force_pairs, list_pairs
 from fastsdf.granular.kernels import Bulk, Grains
 from fastsdf.granular.params import (
-           ContactLaw,
-           check_contact_law,
-           contact_time,
-           damping_ratio,
-           restitution_from_damping,
+    ContactLaw,
+    check_contact_law,
+    contact_time,
+    damping_ratio,
+    restitution_from_damping,
 )
 from fastsdf.granular.simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
 
-__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "Bulk", "CellGrid", "ContactLaw", "Grains",
-           "GranularSimulation", "brute_force_pairs", "check_contact_law", "contact_time",
-           "damping_ratio", "list_pairs", "restitution_from_damping"]
+__all__ = [
+    "DEFAULT_SUBSTEPS_PER_CONTACT",
+    "Bulk",
+    "CellGrid",
+    "ContactLaw",
+    "Grains",
+    "GranularSimulation",
+    "brute_force_pairs",
+    "check_contact_law",
+    "contact_time",
+    "damping_ratio",
+    "list_pairs",
+    "restitution_from_damping",
+]

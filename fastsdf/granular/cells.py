@@ -15,6 +15,7 @@ A pair is listed when its centres are closer than ``R_i + R_j + skin``; the list
 (every pair in contact is listed) while no grain has moved farther than ``skin / 2`` since it
 was built. The cells are at least ``2 max(R) + skin`` wide, so listed pairs lie in adjacent cells.
 """
+
 from __future__ import annotations
 
 import math
@@ -53,8 +54,14 @@ class CellGrid(NamedTuple):
     period: float
 
 
-def make_grid(x: np.ndarray, y: np.ndarray, cutoff: float, period_x0: float = 0.0,
-              period: float = 0.0, max_cells: int | None = None) -> CellGrid:
+def make_grid(
+    x: np.ndarray,
+    y: np.ndarray,
+    cutoff: float,
+    period_x0: float = 0.0,
+    period: float = 0.0,
+    max_cells: int | None = None,
+) -> CellGrid:
     """The cell grid over the grains' bounding box with cells at least ``cutoff`` wide (wider
     when the box would need more than ``max_cells`` cells; default ``2 n + 64``, which bounds
     the memory of the cell arrays per grain)."""
@@ -66,8 +73,10 @@ def make_grid(x: np.ndarray, y: np.ndarray, cutoff: float, period_x0: float = 0.
     else:
         xlo, xhi = float(x.min()), float(x.max())
     if not all(math.isfinite(v) for v in (xlo, xhi, ylo, yhi)):
-        raise FloatingPointError("grain positions are not finite (the simulation blew up: "
-                                 "is the substep short enough for the stiffness?)")
+        raise FloatingPointError(
+            "grain positions are not finite (the simulation blew up: "
+            "is the substep short enough for the stiffness?)"
+        )
     cell = cutoff
     while True:
         if period > 0:
@@ -81,8 +90,10 @@ def make_grid(x: np.ndarray, y: np.ndarray, cutoff: float, period_x0: float = 0.
             break
         cell *= math.sqrt(ncx * ncy / max_cells) * 1.01
     if period > 0 and ncx < 3:
-        raise ValueError(f"the period must be at least 3 cells ({3 * cutoff}) wide for the "
-                         f"neighbour search, got period={period!r}")
+        raise ValueError(
+            f"the period must be at least 3 cells ({3 * cutoff}) wide for the "
+            f"neighbour search, got period={period!r}"
+        )
     return CellGrid(xlo, ylo, 1.0 / w, 1.0 / cell, ncx, ncy, float(period))
 
 
@@ -101,8 +112,9 @@ def cell_keys(x: np.ndarray, y: np.ndarray, grid: CellGrid, keys: np.ndarray) ->
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def counting_sort(keys: np.ndarray, ncells: int, counts: np.ndarray, perm: np.ndarray,
-                  cell_start: np.ndarray) -> None:
+def counting_sort(
+    keys: np.ndarray, ncells: int, counts: np.ndarray, perm: np.ndarray, cell_start: np.ndarray
+) -> None:
     """Stable sort of the grains by cell key, in parallel without atomics: chunk ``t`` of the
     grains (``counts.shape[0]`` chunks) counts its keys into its own row ``counts[t]``; a
     prefix sum over (cell, chunk) turns the counts into each chunk's write offsets; each chunk
@@ -196,8 +208,9 @@ def _count_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, counts
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
         for i in range(lo, hi):
-            counts[i] = _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, counts, 0,
-                              False)
+            counts[i] = _scan(
+                i, lo, hi, x, y, radius, keys, cell_start, grid, skin, counts, 0, False
+            )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -207,13 +220,21 @@ def _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, nbr_sta
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
         for i in range(lo, hi):
-            _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i],
-                  True)
+            _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i], True)
 
 
-def build_verlet(x: np.ndarray, y: np.ndarray, radius: np.ndarray, keys: np.ndarray,
-                 cell_start: np.ndarray, grid: CellGrid, skin: float, chunks: int,
-                 nbr_start: np.ndarray, nbr: np.ndarray | None) -> np.ndarray:
+def build_verlet(
+    x: np.ndarray,
+    y: np.ndarray,
+    radius: np.ndarray,
+    keys: np.ndarray,
+    cell_start: np.ndarray,
+    grid: CellGrid,
+    skin: float,
+    chunks: int,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray | None,
+) -> np.ndarray:
     """The Verlet list of grains sorted by cell, for a force pass split into ``chunks``
     contiguous chunks of grains (chunk ``c`` holds ``c n // chunks`` to ``(c + 1) n // chunks
     - 1``): a pair inside one chunk is listed once, at its lower index (the chunk's pass
@@ -238,14 +259,15 @@ def list_pairs(nbr_start: np.ndarray, nbr: np.ndarray) -> np.ndarray:
     """The pairs ``(i, j)``, ``i < j``, of a Verlet list, as an (m, 2) array sorted by rows."""
     n = nbr_start.shape[0] - 1
     i = np.repeat(np.arange(n), np.diff(nbr_start))
-    j = (nbr[:nbr_start[n]] & INDEX_MASK).astype(np.int64)
+    j = (nbr[: nbr_start[n]] & INDEX_MASK).astype(np.int64)
     keep = i < j
     pairs = np.stack([i[keep], j[keep]], axis=1)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))] if len(pairs) else pairs.reshape(0, 2)
 
 
-def brute_force_pairs(x: np.ndarray, y: np.ndarray, radius: np.ndarray, skin: float,
-                      period: float = 0.0) -> np.ndarray:
+def brute_force_pairs(
+    x: np.ndarray, y: np.ndarray, radius: np.ndarray, skin: float, period: float = 0.0
+) -> np.ndarray:
     """Every pair ``(i, j)``, ``i < j``, closer than ``R_i + R_j + skin`` (all pairs tested;
     a reference for small n), sorted by rows."""
     dx = x[:, None] - x[None, :]

@@ -11,6 +11,7 @@ tangential force opposes the sliding velocity of the contact point ``v_t = v - v
 ``-R_i (n x f_t)``. A wall is the SDF world: ``delta = R - d``, ``n = grad d / |grad d|``, the
 wall's velocity is its normal speed along ``n``, and ``m_eff = m_i``.
 """
+
 from __future__ import annotations
 
 import math
@@ -125,8 +126,16 @@ def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
-def pair_forces(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, chunks: int, law: Any,
-                bulk: Bulk, dt: float, dt_half: float) -> None:
+def pair_forces(
+    g: Grains,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    chunks: int,
+    law: Any,
+    bulk: Bulk,
+    dt: float,
+    dt_half: float,
+) -> None:
     """The force pass of a substep, over ``chunks`` contiguous chunks of grains in parallel
     (the chunks the list was built for, see :func:`fastsdf.granular.cells.build_verlet`).
     Each chunk first half-kicks its grains' velocities with their previous force (``v +=
@@ -202,8 +211,19 @@ def pair_forces(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, chunks: int, 
                 else:
                     mj = grain_mass(rj, density)
                     gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
-                cfx, cfy, ftx, fty = _contact(rsum - dist, nx, ny, vx[i] - vx[j], vy[i] - vy[j],
-                                              ri * w[i] + rj * w[j], gamma_n, kn, mu, tdamp, dt)
+                cfx, cfy, ftx, fty = _contact(
+                    rsum - dist,
+                    nx,
+                    ny,
+                    vx[i] - vx[j],
+                    vy[i] - vy[j],
+                    ri * w[i] + rj * w[j],
+                    gamma_n,
+                    kn,
+                    mu,
+                    tdamp,
+                    dt,
+                )
                 cross = nx * fty - ny * ftx
                 fx += cfx
                 fy += cfy
@@ -218,8 +238,17 @@ def pair_forces(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, chunks: int, 
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def wall_forces(g: Grains, idx: np.ndarray, d: np.ndarray, gx: np.ndarray, gy: np.ndarray,
-                wall_vn: np.ndarray, law: Any, bulk: Bulk, dt: float) -> tuple:
+def wall_forces(
+    g: Grains,
+    idx: np.ndarray,
+    d: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    wall_vn: np.ndarray,
+    law: Any,
+    bulk: Bulk,
+    dt: float,
+) -> tuple:
     """Add the world's contact forces to the grains ``idx`` (distinct indices) at distance
     ``d`` with gradient ``(gx, gy)`` and wall normal speed ``wall_vn`` (the velocity of the
     surface along ``grad d``; 0 for a static world), with the predicted velocities (run it
@@ -248,9 +277,19 @@ def wall_forces(g: Grains, idx: np.ndarray, d: np.ndarray, gx: np.ndarray, gy: n
         nx = gx[k] / gn
         ny = gy[k] / gn
         mi = grain_mass(ri, bulk.density)
-        cfx, cfy, ftx, fty = _contact(delta, nx, ny, vx[i] - wall_vn[k] * nx,
-                                      vy[i] - wall_vn[k] * ny, ri * w[i],
-                                      2.0 * zeta * math.sqrt(mi * kn), kn, mu, tdamp, dt)
+        cfx, cfy, ftx, fty = _contact(
+            delta,
+            nx,
+            ny,
+            vx[i] - wall_vn[k] * nx,
+            vy[i] - wall_vn[k] * ny,
+            ri * w[i],
+            2.0 * zeta * math.sqrt(mi * kn),
+            kn,
+            mu,
+            tdamp,
+            dt,
+        )
         gfx[i] += cfx
         gfy[i] += cfy
         gtq[i] -= ri * (nx * fty - ny * ftx)
@@ -260,8 +299,15 @@ def wall_forces(g: Grains, idx: np.ndarray, d: np.ndarray, gx: np.ndarray, gy: n
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def kick_drift(g: Grains, dt_kick: float, dt: float, density: float, x_ref: np.ndarray,
-               y_ref: np.ndarray, chunk_max: np.ndarray) -> None:
+def kick_drift(
+    g: Grains,
+    dt_kick: float,
+    dt: float,
+    density: float,
+    x_ref: np.ndarray,
+    y_ref: np.ndarray,
+    chunk_max: np.ndarray,
+) -> None:
     """The elementwise pass of a velocity-Verlet substep of length ``dt``, from force ``F``:
     complete the velocity, ``v += F/m dt_kick`` (``dt / 2`` after a force pass, 0 at the
     start of a frame when ``v`` is already synchronized), drift ``x += (v + F/m dt/2) dt``, and
@@ -316,8 +362,7 @@ def kick_drift(g: Grains, dt_kick: float, dt: float, density: float, x_ref: np.n
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def pair_energy(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, law: Any,
-                bulk: Bulk) -> tuple:
+def pair_energy(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, law: Any, bulk: Bulk) -> tuple:
     """Elastic energy ``k_n delta**2 / 2`` stored in the grain-grain contacts (each pair once)
     and the number of contacts (pairs in overlap)."""
     e = 0.0

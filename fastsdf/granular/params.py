@@ -3,6 +3,7 @@
 Units are those of the world: lengths in the SDF's coordinate units, time in seconds, mass in
 any consistent unit (``density`` is mass per unit *area*: the grains are discs).
 """
+
 from __future__ import annotations
 
 import math
@@ -73,8 +74,9 @@ def check_contact_law(law: object, name: str = "contact") -> ContactLaw:
     if mu < 0:
         raise ValueError(f"{name}.friction must be >= 0, got {name}.friction={mu!r}")
     if gt < 0:
-        raise ValueError(f"{name}.tangential_damping must be >= 0, "
-                         f"got {name}.tangential_damping={gt!r}")
+        raise ValueError(
+            f"{name}.tangential_damping must be >= 0, got {name}.tangential_damping={gt!r}"
+        )
     return ContactLaw(k, e, mu, gt)
 
 

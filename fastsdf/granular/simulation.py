@@ -40,6 +40,7 @@ Ordering: grains are reordered by cell at every list rebuild (the cell list is a
 cell key), so neighbours in space are neighbours in memory; :attr:`GranularSimulation.ids`
 maps the storage slots back to the grains' given numbering, which every public accessor uses.
 """
+
 from __future__ import annotations
 
 import math
@@ -83,8 +84,10 @@ def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
         want = "(n, 2)" if n is None else f"({n}, 2)"
         raise ValueError(f"{name} must have shape {want}, got {name} of shape {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite, got a non-finite value at row "
-                         f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])}")
+        raise ValueError(
+            f"{name} must be finite, got a non-finite value at row "
+            f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])}"
+        )
     return a
 
 
@@ -133,14 +136,24 @@ class GranularSimulation:
         each.
     """
 
-    def __init__(self, positions: ArrayLike, radius: ArrayLike | float, *, world: Any = None,
-                 velocities: ArrayLike | None = None, contact: ContactLaw | None = None,
-                 wall_contact: ContactLaw | None = None, density: float = 1.0,
-                 gravity: ArrayLike = (0.0, -9.81), timestep: float = 1 / 30,
-                 substep: float | None = None,
-                 substeps_per_contact: float = DEFAULT_SUBSTEPS_PER_CONTACT,
-                 skin: float | None = None, periodic_x: ArrayLike | None = None,
-                 chunks: int | None = None) -> None:
+    def __init__(
+        self,
+        positions: ArrayLike,
+        radius: ArrayLike | float,
+        *,
+        world: Any = None,
+        velocities: ArrayLike | None = None,
+        contact: ContactLaw | None = None,
+        wall_contact: ContactLaw | None = None,
+        density: float = 1.0,
+        gravity: ArrayLike = (0.0, -9.81),
+        timestep: float = 1 / 30,
+        substep: float | None = None,
+        substeps_per_contact: float = DEFAULT_SUBSTEPS_PER_CONTACT,
+        skin: float | None = None,
+        periodic_x: ArrayLike | None = None,
+        chunks: int | None = None,
+    ) -> None:
         p = _points(positions, "positions")
         n = p.shape[0]
         if n < 1:
@@ -150,10 +163,10 @@ class GranularSimulation:
             bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
             raise ValueError(f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}")
         v = np.zeros((n, 2)) if velocities is None else _points(velocities, "velocities", n)
-        self.contact = check_contact_law(ContactLaw() if contact is None else contact,
-                                         "contact")
-        self.wall_contact = check_contact_law(self.contact if wall_contact is None
-                                              else wall_contact, "wall_contact")
+        self.contact = check_contact_law(ContactLaw() if contact is None else contact, "contact")
+        self.wall_contact = check_contact_law(
+            self.contact if wall_contact is None else wall_contact, "wall_contact"
+        )
         self.density = _real(density, "density")
         if not self.density > 0:
             raise ValueError(f"density must be > 0, got density={density!r}")
@@ -165,27 +178,32 @@ class GranularSimulation:
             raise ValueError(f"timestep must be > 0, got timestep={timestep!r}")
         spc = _real(substeps_per_contact, "substeps_per_contact")
         if not spc >= 10:
-            raise ValueError(f"substeps_per_contact must be >= 10, "
-                             f"got substeps_per_contact={substeps_per_contact!r}")
+            raise ValueError(
+                f"substeps_per_contact must be >= 10, "
+                f"got substeps_per_contact={substeps_per_contact!r}"
+            )
         if world is not None and not callable(world):
-            raise TypeError(f"world must be a fastsdf Function or GridSDF (or None), "
-                            f"got world={world!r}")
+            raise TypeError(
+                f"world must be a fastsdf Function or GridSDF (or None), got world={world!r}"
+            )
         self.world = world
         self.moving = bool(getattr(world, "time_dependent", False))
         period_x0, period = 0.0, 0.0
         if periodic_x is not None:
             px = np.asarray(periodic_x, dtype=np.float64)
             if px.shape != (2,) or not np.all(np.isfinite(px)) or not px[1] > px[0]:
-                raise ValueError(f"periodic_x must be (x0, x1) with x0 < x1, "
-                                 f"got periodic_x={periodic_x!r}")
+                raise ValueError(
+                    f"periodic_x must be (x0, x1) with x0 < x1, got periodic_x={periodic_x!r}"
+                )
             period_x0, period = float(px[0]), float(px[1] - px[0])
         self.bulk = Bulk(self.density, float(gxy[0]), float(gxy[1]), period_x0, period)
 
         # The lightest contact sets the substep.
         m_min = self.density * math.pi * float(r.min()) ** 2
-        self.contact_time = min(contact_time(m_min / 2, self.contact),
-                                contact_time(m_min, self.wall_contact) if world is not None
-                                else math.inf)
+        self.contact_time = min(
+            contact_time(m_min / 2, self.contact),
+            contact_time(m_min, self.wall_contact) if world is not None else math.inf,
+        )
         if substep is None:
             target = self.contact_time / spc
         else:
@@ -203,8 +221,15 @@ class GranularSimulation:
         self._cutoff = 2 * float(r.max()) + self.skin
 
         f64 = np.float64
-        self.grains = Grains(p[:, 0].copy(), p[:, 1].copy(), v[:, 0].copy(), v[:, 1].copy(),
-                             np.zeros(n), r, *(np.zeros(n) for _ in range(6)))
+        self.grains = Grains(
+            p[:, 0].copy(),
+            p[:, 1].copy(),
+            v[:, 0].copy(),
+            v[:, 1].copy(),
+            np.zeros(n),
+            r,
+            *(np.zeros(n) for _ in range(6)),
+        )
         self.ids = np.arange(n, dtype=np.int64)  # ids[slot]: the grain's index as given
         self._x_ref = np.empty(n, np.float32)  # float32 suffices for the skin test (below)
         self._y_ref = np.empty(n, np.float32)
@@ -250,8 +275,18 @@ class GranularSimulation:
         cell_keys(g.x, g.y, grid, self._keys)
         counting_sort(self._keys, ncells, self._counts, self._perm, self._cell_start)
         permute((*g, self.ids, self._keys), self._perm, self._scratch)
-        self._nbr = build_verlet(g.x, g.y, g.radius, self._keys, self._cell_start, grid,
-                                 self.skin, self._chunks, self._nbr_start, self._nbr)
+        self._nbr = build_verlet(
+            g.x,
+            g.y,
+            g.radius,
+            self._keys,
+            self._cell_start,
+            grid,
+            self.skin,
+            self._chunks,
+            self._nbr_start,
+            self._nbr,
+        )
         self.grid = grid
         np.copyto(self._x_ref, g.x)
         np.copyto(self._y_ref, g.y)
@@ -268,8 +303,9 @@ class GranularSimulation:
         g = self.grains
         if self.moving:
             idx = np.arange(g.x.shape[0])
-            d, grad, dddt = self.world(g.x, g.y, compute_gradient=True, time_derivative=True,
-                                       t=self.time)
+            d, grad, dddt = self.world(
+                g.x, g.y, compute_gradient=True, time_derivative=True, t=self.time
+            )
             gn = np.hypot(grad[:, 0], grad[:, 1])
             with np.errstate(divide="ignore", invalid="ignore"):
                 vn = np.where(gn > 0, -dddt / gn, 0.0)
@@ -283,15 +319,24 @@ class GranularSimulation:
 
     def _forces(self, wall_sum: np.ndarray, dt: float) -> None:
         t0 = _time.perf_counter()
-        pair_forces(self.grains, self._nbr_start, self._nbr, self._chunks, self.contact,
-                    self.bulk, dt, 0.5 * dt)
+        pair_forces(
+            self.grains,
+            self._nbr_start,
+            self._nbr,
+            self._chunks,
+            self.contact,
+            self.bulk,
+            dt,
+            0.5 * dt,
+        )
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
             idx, d, gx, gy, vn = self._query_world()
             if idx.shape[0]:
-                fx, fy = wall_forces(self.grains, idx, d, gx, gy, vn, self.wall_contact,
-                                     self.bulk, dt)
+                fx, fy = wall_forces(
+                    self.grains, idx, d, gx, gy, vn, self.wall_contact, self.bulk, dt
+                )
                 wall_sum[0] += fx
                 wall_sum[1] += fy
             self._wall_d = d
@@ -318,8 +363,15 @@ class GranularSimulation:
         wall_sum = np.zeros(2)
         for s in range(substeps):
             t0 = _time.perf_counter()
-            kick_drift(g, 0.0 if s == 0 else 0.5 * dt, dt, self.density, self._x_ref,
-                       self._y_ref, self._chunk_max)
+            kick_drift(
+                g,
+                0.0 if s == 0 else 0.5 * dt,
+                dt,
+                self.density,
+                self._x_ref,
+                self._y_ref,
+                self._chunk_max,
+            )
             self.timings["integrate"] += _time.perf_counter() - t0
             self.time += dt
             big = self._chunk_max.max()
@@ -329,8 +381,7 @@ class GranularSimulation:
             self._forces(wall_sum, dt)
         if substeps:
             t0 = _time.perf_counter()
-            kick_drift(g, 0.5 * dt, 0.0, self.density, self._x_ref, self._y_ref,
-                       self._chunk_max)
+            kick_drift(g, 0.5 * dt, 0.0, self.density, self._x_ref, self._y_ref, self._chunk_max)
             self.timings["integrate"] += _time.perf_counter() - t0
             self.wall_force = wall_sum / substeps
 
@@ -364,7 +415,7 @@ class GranularSimulation:
     @property
     def masses(self) -> np.ndarray:
         """Masses (n,), in the given order."""
-        return self.density * np.pi * self.radius ** 2
+        return self.density * np.pi * self.radius**2
 
     def energy(self) -> dict:
         """Energies at the current time: ``translational``, ``rotational``, ``gravitational``
@@ -377,9 +428,15 @@ class GranularSimulation:
         if self.world is not None:
             idx, d, _, _, _ = self._query_world()
             ew, nw = wall_energy(g, idx, d, self.wall_contact)
-        return {"translational": et, "rotational": er, "gravitational": ep,
-                "elastic": ee + ew, "total": et + er + ep + ee + ew,
-                "contacts": int(nc), "wall_contacts": int(nw)}
+        return {
+            "translational": et,
+            "rotational": er,
+            "gravitational": ep,
+            "elastic": ee + ew,
+            "total": et + er + ep + ee + ew,
+            "contacts": int(nc),
+            "wall_contacts": int(nw),
+        }
 
     def neighbour_pairs(self) -> np.ndarray:
         """The pairs ``(i, j)``, ``i < j``, of the current Verlet list, in the grains' given
@@ -396,11 +453,23 @@ class GranularSimulation:
 
     def memory_per_grain(self) -> float:
         """Bytes held per grain: state, neighbour list, sort and cell arrays, scratch."""
-        arrays = [*self.grains, self.ids, self._x_ref, self._y_ref, self._keys, self._perm,
-                  self._scratch, self._nbr_start, self._counts, self._cell_start]
+        arrays = [
+            *self.grains,
+            self.ids,
+            self._x_ref,
+            self._y_ref,
+            self._keys,
+            self._perm,
+            self._scratch,
+            self._nbr_start,
+            self._counts,
+            self._cell_start,
+        ]
         total = sum(a.nbytes for a in arrays) + (0 if self._nbr is None else self._nbr.nbytes)
         return total / self.grains.x.shape[0]
 
     def __repr__(self) -> str:
-        return (f"GranularSimulation(n={self.grains.x.shape[0]}, substep={self.substep:.3g}, "
-                f"substeps_per_frame={self.substeps_per_frame}, time={self.time:.6g})")
+        return (
+            f"GranularSimulation(n={self.grains.x.shape[0]}, substep={self.substep:.3g}, "
+            f"substeps_per_frame={self.substeps_per_frame}, time={self.time:.6g})"
+        )

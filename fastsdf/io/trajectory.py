@@ -89,20 +89,31 @@ class TrajectoryRecorder:
     written.
     """
 
-    def __init__(self, path: str | os.PathLike, every: int = 10,
-                 fields: tuple | list = ("position",), group: str = "all", *,
-                 dtype: Any = None, compression: str | None = None,
-                 author: str | None = None) -> None:
-        if isinstance(every, (bool, np.bool_)) or not isinstance(every, numbers.Integral) \
-                or every < 1:
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        every: int = 10,
+        fields: tuple | list = ("position",),
+        group: str = "all",
+        *,
+        dtype: Any = None,
+        compression: str | None = None,
+        author: str | None = None,
+    ) -> None:
+        if (
+            isinstance(every, (bool, np.bool_))
+            or not isinstance(every, numbers.Integral)
+            or every < 1
+        ):
             raise ValueError(f"every must be an integer >= 1, got every={every!r}")
         if isinstance(fields, str):
             fields = (fields,)
         fields = tuple(fields)
         bad = [f for f in fields if f not in FIELDS]
         if bad or not fields:
-            raise ValueError(f"fields must be a non-empty selection of {tuple(FIELDS)}, got "
-                             f"fields={fields!r}")
+            raise ValueError(
+                f"fields must be a non-empty selection of {tuple(FIELDS)}, got fields={fields!r}"
+            )
         if len(set(fields)) != len(fields):
             raise ValueError(f"fields must not repeat a name, got fields={fields!r}")
         if not isinstance(group, str) or not group or "/" in group:
@@ -152,13 +163,20 @@ class TrajectoryRecorder:
                 chunk = (1, max(1, min(n, _CHUNK_PARTICLES))) + tail
                 g = particles.create_group(name)
                 self._values[name] = g.create_dataset(
-                    "value", shape=(0, n) + tail, maxshape=(None, n) + tail, dtype=dtype,
-                    chunks=chunk, compression=self.compression)
+                    "value",
+                    shape=(0, n) + tail,
+                    maxshape=(None, n) + tail,
+                    dtype=dtype,
+                    chunks=chunk,
+                    compression=self.compression,
+                )
                 if k == 0:
-                    self._step = g.create_dataset("step", shape=(0,), maxshape=(None,),
-                                                  dtype=np.int64, chunks=(4096,))
-                    self._time = g.create_dataset("time", shape=(0,), maxshape=(None,),
-                                                  dtype=np.float64, chunks=(4096,))
+                    self._step = g.create_dataset(
+                        "step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(4096,)
+                    )
+                    self._time = g.create_dataset(
+                        "time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(4096,)
+                    )
                 else:  # H5MD: step and time may be hard links to those of another element
                     g["step"] = self._step
                     g["time"] = self._time
@@ -185,8 +203,10 @@ class TrajectoryRecorder:
         for name, ds in self._values.items():
             arr = np.asarray(p[FIELDS[name]])
             if arr.shape != ds.shape[1:]:
-                raise ValueError(f"p[{FIELDS[name]!r}] has shape {arr.shape}; this trajectory "
-                                 f"holds {ds.shape[1:]} per frame")
+                raise ValueError(
+                    f"p[{FIELDS[name]!r}] has shape {arr.shape}; this trajectory "
+                    f"holds {ds.shape[1:]} per frame"
+                )
             ds.resize(k + 1, axis=0)
             ds[k] = arr
         step = _step_of(sim)
@@ -202,8 +222,11 @@ class TrajectoryRecorder:
         """Advance ``sim`` by ``steps`` steps with ``sim.run`` in blocks of at most ``every``
         steps, recording the state before the first block (unless that step is already the
         last frame) and after every block that ends on a multiple of ``every`` or at the end."""
-        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral) \
-                or steps < 0:
+        if (
+            isinstance(steps, (bool, np.bool_))
+            or not isinstance(steps, numbers.Integral)
+            or steps < 0
+        ):
             raise ValueError(f"steps must be an integer >= 0, got steps={steps!r}")
         if self._last_step != _step_of(sim):
             self.record(sim)
@@ -237,8 +260,9 @@ def _login() -> str:
         return "unknown"
 
 
-def read_trajectory(path: str | os.PathLike, group: str = "all",
-                    fields: tuple | list | None = None) -> dict:
+def read_trajectory(
+    path: str | os.PathLike, group: str = "all", fields: tuple | list | None = None
+) -> dict:
     """The frames of an H5MD file as NumPy arrays: ``{'step': (F,), 'time': (F,), field:
     (F, N, ...) ...}`` for each time-dependent element of ``/particles/<group>`` (or the
     ``fields`` named). Opens files left by a writer that died (SWMR read mode) and keeps only
@@ -255,14 +279,17 @@ def read_trajectory(path: str | os.PathLike, group: str = "all",
             particles = f["particles"][group]
         except KeyError:
             raise ValueError(f"{os.fspath(path)!r} has no particles group {group!r}") from None
-        names = [n for n in particles if n != "box" and "value" in particles[n]] \
-            if fields is None else list(fields)
+        names = (
+            [n for n in particles if n != "box" and "value" in particles[n]]
+            if fields is None
+            else list(fields)
+        )
         out: dict = {}
         for name in names:
             g = particles[name]
             if "step" not in out:
                 out["step"] = np.asarray(g["step"][()])
                 out["time"] = np.asarray(g["time"][()])
-            out[name] = np.asarray(g["value"][:len(out["step"])])
+            out[name] = np.asarray(g["value"][: len(out["step"])])
         frames = min((len(v) for v in out.values()), default=0)
         return {k: v[:frames] for k, v in out.items()}

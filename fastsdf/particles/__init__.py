@@ -79,14 +79,25 @@ from fastsdf.particles.forces import Drag, FieldForce, Gravity
 from fastsdf.particles.kernels import TRACE_FRACTION
 from fastsdf.particles.reference import reference_step
 from fastsdf.particles.simulation import (
-           DEFAULT_BLOCK,
-           PARALLEL_MIN_PARTICLES,
-           ParticleSimulation,
-           create_animation,
+    DEFAULT_BLOCK,
+    PARALLEL_MIN_PARTICLES,
+    ParticleSimulation,
+    create_animation,
 )
 from fastsdf.particles.state import Particles
 from fastsdf.particles.world import SimulationParams, _step_source
 
-__all__ = ["SimulationParams", "ParticleSimulation", "Particles", "Gravity", "Drag", "FieldForce",
-           "create_animation", "reference_step", "TRACE_FRACTION", "PARALLEL_MIN_PARTICLES",
-           "DEFAULT_BLOCK", "_step_source"]
+__all__ = [
+    "SimulationParams",
+    "ParticleSimulation",
+    "Particles",
+    "Gravity",
+    "Drag",
+    "FieldForce",
+    "create_animation",
+    "reference_step",
+    "TRACE_FRACTION",
+    "PARALLEL_MIN_PARTICLES",
+    "DEFAULT_BLOCK",
+    "_step_source",
+]

@@ -65,7 +65,8 @@ def _check_forces(sim: Any) -> list:
             raise ValueError(
                 f"force_generators[{i}] ({name}) cannot be saved: {exc}. Define it at module "
                 f"level (a function or a class instance), or as a numba @njit force, or remove "
-                f"it before saving and add it again after loading") from None
+                f"it before saving and add it again after loading"
+            ) from None
         names.append(name)
     return names
 
@@ -93,18 +94,29 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
     params = state.pop("params", None)
     state["_saved_params"] = dict(params) if params is not None else {}
     arrays: dict[str, Any] = {name: np.ascontiguousarray(p[name]) for name in _FIELDS}
-    meta = {"format": FORMAT, "version": FORMAT_VERSION,
-            "fastsdf": _version(), "class": f"{type(sim).__module__}.{type(sim).__qualname__}",
-            "n": int(len(arrays["r"])), "dtype": str(arrays["x"].dtype),
-            "t": float(sim.t), "timestep": float(sim.dt), "forces": forces}
+    meta = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "fastsdf": _version(),
+        "class": f"{type(sim).__module__}.{type(sim).__qualname__}",
+        "n": int(len(arrays["r"])),
+        "dtype": str(arrays["x"].dtype),
+        "t": float(sim.t),
+        "timestep": float(sim.dt),
+        "forces": forces,
+    }
     blob = pickle.dumps((type(sim), state), protocol=pickle.HIGHEST_PROTOCOL)
     path = os.path.abspath(os.fspath(path))
 
     def write(tmp: str) -> None:
         with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays, t=np.float64(sim.t),
-                     meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-                     simulation=np.frombuffer(blob, dtype=np.uint8))
+            np.savez(
+                fh,
+                **arrays,
+                t=np.float64(sim.t),
+                meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+                simulation=np.frombuffer(blob, dtype=np.uint8),
+            )
             fh.flush()
             os.fsync(fh.fileno())
 
@@ -114,6 +126,7 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
 
 def _version() -> str:
     from fastsdf.version import __version__
+
     return str(__version__)
 
 
@@ -131,16 +144,18 @@ def load_simulation(path: str | os.PathLike) -> Any:
             if "meta.npy" not in names or "simulation.npy" not in names:
                 raise ValueError(f"{path!r} is not a saved fastsdf simulation (no meta)")
     except zipfile.BadZipFile:
-        raise ValueError(f"{path!r} is not a saved fastsdf simulation (not an .npz file)") \
-            from None
+        raise ValueError(f"{path!r} is not a saved fastsdf simulation (not an .npz file)") from None
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(bytes(data["meta"]).decode())
         if meta.get("format") != FORMAT:
-            raise ValueError(f"{path!r} is not a saved fastsdf simulation "
-                             f"(format {meta.get('format')!r})")
+            raise ValueError(
+                f"{path!r} is not a saved fastsdf simulation (format {meta.get('format')!r})"
+            )
         if int(meta.get("version", 0)) > FORMAT_VERSION:
-            raise ValueError(f"{path!r} was written in format version {meta['version']}; "
-                             f"this fastsdf reads up to {FORMAT_VERSION}: upgrade fastsdf")
+            raise ValueError(
+                f"{path!r} was written in format version {meta['version']}; "
+                f"this fastsdf reads up to {FORMAT_VERSION}: upgrade fastsdf"
+            )
         arrays = {name: np.array(data[name]) for name in _FIELDS}
         cls, state = pickle.load(io.BytesIO(bytes(data["simulation"])))
     from fastsdf.particles.state import Particles

@@ -10,8 +10,9 @@ import numpy as np
 __all__ = ["reference_step"]
 
 
-def reference_step(p: Any, f: Any, dt: float, force_generators: Sequence = (),
-                   t: float = 0.0) -> None:
+def reference_step(
+    p: Any, f: Any, dt: float, force_generators: Sequence = (), t: float = 0.0
+) -> None:
     """One step of the notebook's ``ParticleSimulation.advance()``, in NumPy, in place.
 
     ``p`` is a :class:`Particles` (or a structured array with the same fields), ``f`` any SDF
@@ -42,4 +43,3 @@ def reference_step(p: Any, f: Any, dt: float, force_generators: Sequence = (),
         cf = np.asarray(p["cf"])[c][:, None]
         x[c] -= (1.0 + cr) * d[c][:, None] * n
         v[c] = -cr * vn + (1.0 - cf) * vt
-

@@ -56,9 +56,9 @@ _INTEGRATORS = ("symplectic", "euler")
 _COLLISIONS = ("approaching", "notebook")
 
 
-
 # ---------------------------------------------------------------------------------------------
 # The simulation.
+
 
 class ParticleSimulation:
     """Particles moving under forces and colliding with an SDF (the notebook's interface).
@@ -172,11 +172,24 @@ class ParticleSimulation:
     _flags: Any
     _wall: Any
 
-    def __init__(self, f: Any, n: int = 100, timestep: float = 1 / 30, *, seed: Any = None,
-                 integrator: str = "symplectic", collision: str = "approaching",
-                 prevent_tunnelling: bool = True, dtype: Any = np.float64, cr: float = 0.6,
-                 cf: float = 0.3, lipschitz: float | None = None, block: int | None = None,
-                 wall_speed: float | None = None, rest_speed: float = 0.0) -> None:
+    def __init__(
+        self,
+        f: Any,
+        n: int = 100,
+        timestep: float = 1 / 30,
+        *,
+        seed: Any = None,
+        integrator: str = "symplectic",
+        collision: str = "approaching",
+        prevent_tunnelling: bool = True,
+        dtype: Any = np.float64,
+        cr: float = 0.6,
+        cf: float = 0.3,
+        lipschitz: float | None = None,
+        block: int | None = None,
+        wall_speed: float | None = None,
+        rest_speed: float = 0.0,
+    ) -> None:
         rest = _real(rest_speed, "rest_speed")
         if not (math.isfinite(rest) and rest >= 0.0):
             raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
@@ -185,8 +198,9 @@ class ParticleSimulation:
         if wall_speed is not None:
             w = _real(wall_speed, "wall_speed")
             if not (math.isfinite(w) and w >= 0.0):
-                raise ValueError(f"wall_speed must be finite and >= 0, got "
-                                 f"wall_speed={wall_speed!r}")
+                raise ValueError(
+                    f"wall_speed must be finite and >= 0, got wall_speed={wall_speed!r}"
+                )
         self._wall_speed_arg = wall_speed
         if isinstance(n, float) and math.isfinite(n) and n == int(n):
             n = int(n)  # n=1e5, as the command line accepts it
@@ -198,8 +212,9 @@ class ParticleSimulation:
         if not (math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"timestep must be finite and > 0, got timestep={timestep!r}")
         if integrator not in _INTEGRATORS:
-            raise ValueError(f"integrator must be one of {_INTEGRATORS}, got "
-                             f"integrator={integrator!r}")
+            raise ValueError(
+                f"integrator must be one of {_INTEGRATORS}, got integrator={integrator!r}"
+            )
         if collision not in _COLLISIONS:
             raise ValueError(f"collision must be one of {_COLLISIONS}, got collision={collision!r}")
         dtype = np.dtype(dtype)
@@ -209,8 +224,11 @@ class ParticleSimulation:
             lip = _real(lipschitz, "lipschitz")
             if not (math.isfinite(lip) and lip > 0.0):
                 raise ValueError(f"lipschitz must be finite and > 0, got lipschitz={lipschitz!r}")
-        if block is not None and (isinstance(block, (bool, np.bool_))
-                                  or not isinstance(block, numbers.Integral) or block <= 0):
+        if block is not None and (
+            isinstance(block, (bool, np.bool_))
+            or not isinstance(block, numbers.Integral)
+            or block <= 0
+        ):
             raise ValueError(f"block must be a positive integer or None, got block={block!r}")
         self.n = int(n)
         self.dt = dt
@@ -238,7 +256,7 @@ class ParticleSimulation:
 
     @sdf.setter
     def sdf(self, f):
-        module, data, keep = _kernel_module(f)   # raises TypeError for anything else
+        module, data, keep = _kernel_module(f)  # raises TypeError for anything else
         self._sdf = f
         self._module, self._data, self._keep = module, data, keep
         self._kernels = {(): (module, data, keep, ())}
@@ -250,15 +268,17 @@ class ParticleSimulation:
         self._exact_ptr = None if (_is_grid(f) and f.mode == "exact") or pruned else 0
         if self._exact_ptr is None and (pruned or getattr(f, "bounds", None) is None):
             self._bind_fallback()
-        self._parametric = isinstance(f, Function) and not _is_grid(f) and \
-            f.compiled.parametric
+        self._parametric = isinstance(f, Function) and not _is_grid(f) and f.compiled.parametric
         self._moving = self._parametric and f.time_dependent
         #: Values of the world's runtime parameters (see :class:`SimulationParams`).
         self.params = SimulationParams(f) if self._parametric else SimulationParams(_NO_PARAMS)
         self._margin = _grid_margin(f)
         #: The Lipschitz bound the tunnelling check and the free-flight budget use.
-        self.lipschitz = float(self._lipschitz_arg) if self._lipschitz_arg is not None \
+        self.lipschitz = (
+            float(self._lipschitz_arg)
+            if self._lipschitz_arg is not None
             else (math.sqrt(2.0) if _is_grid(f) else 1.0)
+        )
         # Skipping queries is exact only if the bound holds; without a known bound (an SDF
         # whose exactness is 'none', or a bare expression) every step queries.
         known = self._lipschitz_arg is not None or _is_distance_bound(f)
@@ -268,7 +288,9 @@ class ParticleSimulation:
                 f"the world's value is not known to be a distance bound (exactness "
                 f"{_exactness(f)!r}): the tunnelling check assumes |grad d| <= "
                 f"{self.lipschitz:g}; pass lipschitz= (a bound on |grad d|) if that is wrong",
-                RuntimeWarning, stacklevel=3)
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
     # -- notebook interface ----------------------------------------------------------------
     def reset(self, ax: Any = None) -> tuple:
@@ -281,8 +303,11 @@ class ParticleSimulation:
         the drawn artists (for matplotlib's blitting). To animate a simulation without resetting
         it, use :func:`fastsdf.viz.render.animate`.
         """
-        rng = self.seed if isinstance(self.seed, np.random.Generator) \
+        rng = (
+            self.seed
+            if isinstance(self.seed, np.random.Generator)
             else np.random.default_rng(self.seed)
+        )
         p = Particles(self.n, self.dtype)
         p["x"] = rng.normal([0.0, 1.5], math.sqrt(0.05), size=(self.n, 2))
         p["v"] = rng.normal([0.0, 0.0], math.sqrt(0.1), size=(self.n, 2))
@@ -361,8 +386,9 @@ class ParticleSimulation:
             if not out.any():
                 return  # nobody outside now: keep the header as it is
             xs, ys = xs[out], ys[out]
-        plan = exact.compiled.pruned_plan(xs, ys, None, getattr(exact, "prune_tol", None),
-                                          count=xs.shape[0] * max(1, int(steps)))
+        plan = exact.compiled.pruned_plan(
+            xs, ys, None, getattr(exact, "prune_tol", None), count=xs.shape[0] * max(1, int(steps))
+        )
         if plan is not self._hdr_plan:
             _prune.plan_header(plan, self._hdr)
             self._hdr_plan = plan
@@ -397,8 +423,10 @@ class ParticleSimulation:
             raise ValueError(f"steps must be >= 0, got steps={steps!r}")
         if record is not None:
             if not callable(getattr(record, "run", None)):
-                raise TypeError(f"record must be a recorder with a run(sim, steps) method, such as "
-                                f"fastsdf.io.TrajectoryRecorder, got record={record!r}")
+                raise TypeError(
+                    f"record must be a recorder with a run(sim, steps) method, such as "
+                    f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
+                )
             record.run(self, int(steps))
             return
         if steps == 0:
@@ -448,8 +476,10 @@ class ParticleSimulation:
         if not isinstance(p, Particles):
             raise TypeError(f"sim.p must be a Particles object, got {type(p).__name__}")
         if len(p) != self.n or p.dtype != self.dtype:
-            raise ValueError(f"sim.p holds {len(p)} particles of {p.dtype}; this simulation "
-                             f"has n={self.n} of {self.dtype}")
+            raise ValueError(
+                f"sim.p holds {len(p)} particles of {p.dtype}; this simulation "
+                f"has n={self.n} of {self.dtype}"
+            )
 
     def _launch(self, module, data, steps, ax, ay, drag, ext):
         p = self.p
@@ -464,12 +494,25 @@ class ParticleSimulation:
         a = p._arrays
         check_all = p._dirty
         state = State(*(a[k] for k in Particles.FIELDS), ext, self._flags, check_all)
-        physics = Physics(dt=self.dt, t0=self.t, ax=ax, ay=ay, drag=drag,
-                          use_m=use_ext or drag != 0.0, use_ext=use_ext,
-                          explicit=self.integrator == "euler",
-                          always=self.collision == "notebook", rest=float(self.rest_speed))
-        budget = Budget(trace=self.prevent_tunnelling, lip=self.lipschitz, margin=self._margin,
-                        eps=float(np.finfo(self.dtype).eps), skip=self._skip)
+        physics = Physics(
+            dt=self.dt,
+            t0=self.t,
+            ax=ax,
+            ay=ay,
+            drag=drag,
+            use_m=use_ext or drag != 0.0,
+            use_ext=use_ext,
+            explicit=self.integrator == "euler",
+            always=self.collision == "notebook",
+            rest=float(self.rest_speed),
+        )
+        budget = Budget(
+            trace=self.prevent_tunnelling,
+            lip=self.lipschitz,
+            margin=self._margin,
+            eps=float(np.finfo(self.dtype).eps),
+            skip=self._skip,
+        )
         self._update_plan(a["x"], steps)
         bad = self._call(module, data, steps, state, physics, budget)
         if bad and self._exact_ptr is None:
@@ -488,8 +531,14 @@ class ParticleSimulation:
         (``simd_*``: float64 state, no resting contact, no Python forces), else the
         particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
         the general one (``run_*``). All give the same results."""
-        simd = getattr(self, "_simd", True) and module.GRID_SIMD and not module.MOVING and \
-            physics.rest == 0.0 and not physics.use_ext and state.X.dtype == np.float64
+        simd = (
+            getattr(self, "_simd", True)
+            and module.GRID_SIMD
+            and not module.MOVING
+            and physics.rest == 0.0
+            and not physics.use_ext
+            and state.X.dtype == np.float64
+        )
         plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
         if simd:
             return module.simd_par if parallel else module.simd_ser
@@ -515,9 +564,12 @@ class ParticleSimulation:
         arrays = self.p._arrays
         for j in np.unique(at):
             sel = idx[at == j]
-            sub = State(*(np.ascontiguousarray(arrays[k][sel]) for k in Particles.FIELDS),
-                        ext[sel] if ext.shape[0] else ext, np.zeros(sel.size, dtype=np.int32),
-                        False)
+            sub = State(
+                *(np.ascontiguousarray(arrays[k][sel]) for k in Particles.FIELDS),
+                ext[sel] if ext.shape[0] else ext,
+                np.zeros(sel.size, dtype=np.int32),
+                False,
+            )
             sub_physics = physics._replace(t0=physics.t0 + int(j) * physics.dt)
             bad += self._call(module, data, steps - int(j), sub, sub_physics, budget)
             arrays["x"][sel] = sub.X
@@ -535,17 +587,23 @@ class ParticleSimulation:
         if why == _kernels.FLAG_NONFINITE:
             x = np.asarray(p["x"][first], np.float64).tolist()
             v = np.asarray(p["v"][first], np.float64).tolist()
-            what = (f"a step of particle {first} produced a non-finite state (timestep="
-                    f"{self.dt!r}; last finite state x={x}, v={v}); it was frozen there")
+            what = (
+                f"a step of particle {first} produced a non-finite state (timestep="
+                f"{self.dt!r}; last finite state x={x}, v={v}); it was frozen there"
+            )
         elif why == _kernels.FLAG_COEFF:
-            what = (f"invalid particle state: p['cr'][{first}] = {float(p['cr'][first])!r} or "
-                    f"p['cf'][{first}] = {float(p['cf'][first])!r} is not in [0, 1] (found at "
-                    f"a contact); the particle was frozen there")
+            what = (
+                f"invalid particle state: p['cr'][{first}] = {float(p['cr'][first])!r} or "
+                f"p['cf'][{first}] = {float(p['cf'][first])!r} is not in [0, 1] (found at "
+                f"a contact); the particle was frozen there"
+            )
         else:
             err = _invalid_state_error(p, count)
             what = str(err).split(" (", 1)[0] + "; the particle was left unchanged"
-        return ValueError(f"{what}. {len(idx)} particle(s) frozen in all; the others completed "
-                          f"the {steps} step(s) and sim.t = {self.t!r} includes them")
+        return ValueError(
+            f"{what}. {len(idx)} particle(s) frozen in all; the others completed "
+            f"the {steps} step(s) and sim.t = {self.t!r} includes them"
+        )
 
     def _scene_data(self, steps: int) -> tuple:
         """Query data of a parametric world: (t, wall speed bound, table geometry and the
@@ -563,8 +621,9 @@ class ParticleSimulation:
 
     def _wall_speed_table(self, steps: int, prm: tuple) -> tuple:
         """See :func:`fastsdf.particles.world.wall_speed_table`."""
-        return wall_speed_table(self._sdf, self.p["x"], float(np.max(self.p["r"])), self.t,
-                                self.dt, steps, prm)
+        return wall_speed_table(
+            self._sdf, self.p["x"], float(np.max(self.p["r"])), self.t, self.dt, steps, prm
+        )
 
     # -- diagnostics -------------------------------------------------------------------------
     def kinetic_energy(self) -> float:
@@ -575,8 +634,11 @@ class ParticleSimulation:
     def potential_energy(self) -> float:
         """Total potential energy of the :class:`Gravity` generators (zero at the origin);
         other forces have no potential here."""
-        return float(sum(np.sum(g.potential(self.p)) for g in self.force_generators
-                         if isinstance(g, Gravity)))
+        return float(
+            sum(
+                np.sum(g.potential(self.p)) for g in self.force_generators if isinstance(g, Gravity)
+            )
+        )
 
     def energy(self) -> float:
         """Kinetic plus gravitational potential energy."""
@@ -590,8 +652,9 @@ class ParticleSimulation:
         out = np.empty((xs.shape[0], 3))
         self._bind_fallback()
         self._update_plan(np.stack([xs, ys], axis=1), 1)
-        self._module.query_many(self._scene_data(0) if self._parametric else self._data, xs, ys,
-                                out)
+        self._module.query_many(
+            self._scene_data(0) if self._parametric else self._data, xs, ys, out
+        )
         return out[:, 0], out[:, 1:]
 
     def _draw(self, ax, new):
@@ -599,6 +662,7 @@ class ParticleSimulation:
         if ax is None:
             return ()
         from fastsdf.viz.render import notebook_draw
+
         return notebook_draw(self, ax, new)
 
     def __getstate__(self) -> dict:
@@ -607,8 +671,19 @@ class ParticleSimulation:
         # simulation holds no drawing: that lives in fastsdf.viz.render).
         # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
         state = self.__dict__.copy()
-        for key in ("_module", "_data", "_keep", "_kernels", "_ext", "_wall", "_wall_table",
-                    "_exact_ptr", "_flags", "_hdr", "_hdr_plan"):
+        for key in (
+            "_module",
+            "_data",
+            "_keep",
+            "_kernels",
+            "_ext",
+            "_wall",
+            "_wall_table",
+            "_exact_ptr",
+            "_flags",
+            "_hdr",
+            "_hdr_plan",
+        ):
             state.pop(key, None)
         return state
 
@@ -624,14 +699,22 @@ class ParticleSimulation:
             self.params.update(dict(saved))
 
     def __repr__(self) -> str:
-        return (f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
-                f"integrator={self.integrator!r}, collision={self.collision!r}, "
-                f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})")
+        return (
+            f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
+            f"integrator={self.integrator!r}, collision={self.collision!r}, "
+            f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})"
+        )
 
 
-
-def create_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: bool = True,
-                     use_wall_time: bool = False, interval: float | None = None) -> Any:
+def create_animation(
+    fig: Any,
+    ax: Any,
+    sim: Any,
+    frames: int = 300,
+    repeat: bool = True,
+    use_wall_time: bool = False,
+    interval: float | None = None,
+) -> Any:
     """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's helper).
 
     Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
@@ -642,5 +725,7 @@ def create_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: boo
     drawing is :func:`fastsdf.viz.render.notebook_animation`'s.
     """
     from fastsdf.viz.render import notebook_animation
-    return notebook_animation(fig, ax, sim, frames=frames, repeat=repeat,
-                              use_wall_time=use_wall_time, interval=interval)
+
+    return notebook_animation(
+        fig, ax, sim, frames=frames, repeat=repeat, use_wall_time=use_wall_time, interval=interval
+    )

@@ -24,7 +24,6 @@ def _unit_interval(value: Any, name: str) -> float:
     return v
 
 
-
 class Particles:
     """Particle state, structure-of-arrays, indexable like the notebook's structured array.
 
@@ -77,15 +76,17 @@ class Particles:
         try:
             value = np.asarray(value)
         except Exception:
-            raise TypeError(f"p[{name!r}] must be an array of real numbers, "
-                            f"got {value!r}") from None
+            raise TypeError(
+                f"p[{name!r}] must be an array of real numbers, got {value!r}"
+            ) from None
         if value.dtype.kind not in "iuf":
             raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {value.dtype}")
         try:
             np.copyto(arr, np.broadcast_to(value, arr.shape), casting="unsafe")
         except ValueError:
-            raise ValueError(f"p[{name!r}] has shape {arr.shape}; cannot assign a value of "
-                             f"shape {value.shape}") from None
+            raise ValueError(
+                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {value.shape}"
+            ) from None
 
     def __getattr__(self, name: str) -> np.ndarray:
         arrays = self.__dict__.get("_arrays")
@@ -124,15 +125,17 @@ class Particles:
 
     def as_structured(self) -> np.ndarray:
         """A copy as a NumPy structured array with the same fields (the notebook's layout)."""
-        rec = np.zeros(self._n, dtype=[("x", self._dtype, 2), ("v", self._dtype, 2)]
-                       + [(f, self._dtype) for f in ("m", "r", "cr", "cf")])
+        rec = np.zeros(
+            self._n,
+            dtype=[("x", self._dtype, 2), ("v", self._dtype, 2)]
+            + [(f, self._dtype) for f in ("m", "r", "cr", "cf")],
+        )
         for name in self.FIELDS:
             rec[name] = self._arrays[name]
         return rec
 
     def __repr__(self) -> str:
         return f"Particles(n={self._n}, dtype={self._dtype.name})"
-
 
 
 def _invalid_state_error(p: Particles, count: int) -> ValueError:
@@ -153,8 +156,9 @@ def _invalid_state_error(p: Particles, count: int) -> ValueError:
             i = int(idx[0])
             val = p[name][i]
             val = val.tolist() if np.ndim(val) else float(val)
-            return ValueError(f"invalid particle state: p[{name!r}][{i}] = {val!r} {rule} "
-                              f"({count} invalid particle(s) in all; they were left unchanged, "
-                              f"the others were advanced)")
+            return ValueError(
+                f"invalid particle state: p[{name!r}][{i}] = {val!r} {rule} "
+                f"({count} invalid particle(s) in all; they were left unchanged, "
+                f"the others were advanced)"
+            )
     return ValueError(f"{count} particle(s) had an invalid state during the step")
-

@@ -115,6 +115,7 @@ def _prunes(f: Any) -> bool:
     at least ``PRUNE_MIN_OPERANDS`` operands in loops over tables, without parameters, and not
     only exponential blends with ``f.prune_tol`` unset), decided when the step is built."""
     from fastsdf import function as _function
+
     comp = f.compiled
     if comp.parametric:
         return False
@@ -165,11 +166,27 @@ def _force_parts(forces: Any) -> tuple:
 
 
 # A world that does not move: no time derivative, no wall speed.
-_STATIC_TIME_LINES = ["", "", "MOVING = False", "", "", _DECORATOR,
-                      "def _query_t(data, x, y, t):", "    d, gx, gy = _query(data, x, y)",
-                      "    return d, gx, gy, 0.0", "", "", _DECORATOR, "def _wall_speed(data):",
-                      "    return 0.0", "", "", _DECORATOR,
-                      "def _wall_speed_at(data, x, y, dx, dy):", "    return 0.0"]
+_STATIC_TIME_LINES = [
+    "",
+    "",
+    "MOVING = False",
+    "",
+    "",
+    _DECORATOR,
+    "def _query_t(data, x, y, t):",
+    "    d, gx, gy = _query(data, x, y)",
+    "    return d, gx, gy, 0.0",
+    "",
+    "",
+    _DECORATOR,
+    "def _wall_speed(data):",
+    "    return 0.0",
+    "",
+    "",
+    _DECORATOR,
+    "def _wall_speed_at(data, x, y, dx, dy):",
+    "    return 0.0",
+]
 
 # Query data of a parametric world: (t, W, x0, y0, 1/h, table, *parameters). ``W`` bounds the
 # walls' speed |dd/dt| everywhere; ``table[i, j]`` bounds it over the cell of side h at
@@ -184,7 +201,8 @@ _WALL_SPEED_AT_LINES = [
     "    if (u >= 0.0 and v >= 0.0 and u < tab.shape[0] and v < tab.shape[1]",
     "            and (dx * dx + dy * dy) * (data[4] * data[4]) <= 1.0):",
     "        return tab[int(u), int(v)]",
-    "    return data[1]"]
+    "    return data[1]",
+]
 _NO_TABLE = np.zeros((0, 0))
 # The table's resolution: at most this many cells a side over the particles' bounding box.
 WALL_TABLE_CELLS = 64
@@ -201,8 +219,10 @@ class SimulationParams(dict):
 
     def __setitem__(self, name: str, value: float) -> None:
         if name not in self:
-            raise KeyError(f"unknown parameter {name!r}; the world's parameters are "
-                           f"{sorted(self) or 'none'} (time is sim.t)")
+            raise KeyError(
+                f"unknown parameter {name!r}; the world's parameters are "
+                f"{sorted(self) or 'none'} (time is sim.t)"
+            )
         super().__setitem__(name, real(value, f"params[{name!r}]"))
 
     def update(self, *args: Any, **kwargs: float) -> None:
@@ -262,31 +282,42 @@ def _kernel_module(f, forces=()):
         # data: (fallback address, bounds x4, *sampler_data, plan header address); the
         # sampler's data length is fixed by its kind (dense grid, band grid), as is the kernel.
         hdr = 5 + len(f.sampler_data)
-        lines += ["", "", _DECORATOR, "def _query(data, x, y):",
-                  f"    d, gx, gy, inside = _sampler(data[5:{hdr}], x, y)"]
+        lines += [
+            "",
+            "",
+            _DECORATOR,
+            "def _query(data, x, y):",
+            f"    d, gx, gy, inside = _sampler(data[5:{hdr}], x, y)",
+        ]
         if mode == "exact":
             lines = [_PLAN_IMPORT] + lines
-            lines += ["    if not inside:",
-                      "        if data[0] == 0:  # never reached: see _fallback_missing",
-                      "            return math.nan, math.nan, math.nan",
-                      f"        return _call_vg_plan(data[0], x, y, data[{hdr}])"]
+            lines += [
+                "    if not inside:",
+                "        if data[0] == 0:  # never reached: see _fallback_missing",
+                "            return math.nan, math.nan, math.nan",
+                f"        return _call_vg_plan(data[0], x, y, data[{hdr}])",
+            ]
         lines.append("    return d, gx, gy")
         lines += ["", "", _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):"]
         if mode == "exact":
             # Every query of a step (its sweep and bounces included) lies within
             # 2 (MAX_BOUNCES + 1) |D| of its start.
-            lines += ["    if data[0] != 0:", "        return False",
-                      "    reach = 2.0 * (MAX_BOUNCES + 1) * math.sqrt(dx * dx + dy * dy) + 1e-9",
-                      "    return not (x - reach >= data[1] and x + reach <= data[2]",
-                      "                and y - reach >= data[3] and y + reach <= data[4])"]
+            lines += [
+                "    if data[0] != 0:",
+                "        return False",
+                "    reach = 2.0 * (MAX_BOUNCES + 1) * math.sqrt(dx * dx + dy * dy) + 1e-9",
+                "    return not (x - reach >= data[1] and x + reach <= data[2]",
+                "                and y - reach >= data[3] and y + reach <= data[4])",
+            ]
         else:
             lines.append("    return False")
         address = 0
         # Without bounds (optional in the protocol) the fallback is bound at once.
         (bx0, bx1), (by0, by1) = getattr(f, "bounds", None) or ((0.0, 0.0), (0.0, 0.0))
         # the last entry: the address of the fallback's plan header (bound with the fallback)
-        data = (address, float(bx0), float(bx1), float(by0), float(by1)) + \
-            tuple(f.sampler_data) + (0,)
+        data = (
+            (address, float(bx0), float(bx1), float(by0), float(by1)) + tuple(f.sampler_data) + (0,)
+        )
         desc = f"a grid world (mode {mode!r}); the scene is bound at run time"
         key = ("grid", id(sampler), mode)
     elif isinstance(f, Function) and f.compiled.parametric:
@@ -294,14 +325,40 @@ def _kernel_module(f, forces=()):
         # flat tuple of floats (the parallel kernel cannot take nested tuples).
         scene = f.compiled.module.__name__
         k = _PARAMS_AT
-        lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
-                 "def _query(data, x, y):", f"    return _exact(x, y, data[0], data[{k}:])", "",
-                 "", _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
+        lines = [
+            f"from {scene} import point_vg as _exact",
+            "",
+            "",
+            _DECORATOR,
+            "def _query(data, x, y):",
+            f"    return _exact(x, y, data[0], data[{k}:])",
+            "",
+            "",
+            _DECORATOR,
+            "def _fallback_missing(data, x, y, dx, dy):",
+            "    return False",
+        ]
         if f.time_dependent:
-            lines += [f"from {scene} import point_vgt as _exact_t", "", "", _DECORATOR,
-                      "def _query_t(data, x, y, t):", f"    return _exact_t(x, y, t, data[{k}:])",
-                      "", "", _DECORATOR, "def _wall_speed(data):", "    return data[1]", "",
-                      "", _DECORATOR] + _WALL_SPEED_AT_LINES + ["", "", "MOVING = True"]
+            lines += (
+                [
+                    f"from {scene} import point_vgt as _exact_t",
+                    "",
+                    "",
+                    _DECORATOR,
+                    "def _query_t(data, x, y, t):",
+                    f"    return _exact_t(x, y, t, data[{k}:])",
+                    "",
+                    "",
+                    _DECORATOR,
+                    "def _wall_speed(data):",
+                    "    return data[1]",
+                    "",
+                    "",
+                    _DECORATOR,
+                ]
+                + _WALL_SPEED_AT_LINES
+                + ["", "", "MOVING = True"]
+            )
         deps = [scene]
         data = (0.0, 0.0, 0.0, 0.0, 1.0, _NO_TABLE) + f.param_tuple()
         desc = repr(f)[:300]
@@ -310,35 +367,66 @@ def _kernel_module(f, forces=()):
         # Many operands in loops over tables: the step calls the scene's C function with the
         # plan header (data[1]), which evaluates only the rows of the query point's tile.
         scene = f.compiled.module.__name__
-        lines = [_PLAN_IMPORT, "", "", _DECORATOR, "def _query(data, x, y):",
-                 "    return _call_vg_plan(data[0], x, y, data[1])", "", "", _DECORATOR,
-                 "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
+        lines = [
+            _PLAN_IMPORT,
+            "",
+            "",
+            _DECORATOR,
+            "def _query(data, x, y):",
+            "    return _call_vg_plan(data[0], x, y, data[1])",
+            "",
+            "",
+            _DECORATOR,
+            "def _fallback_missing(data, x, y, dx, dy):",
+            "    return False",
+        ]
         deps = [scene]
         data = (0, 0)  # (address of the C function, of the plan header): bound at once
         desc = repr(f)[:300] + " (pruned)"
         key = ("sdf-pruned", id(f.compiled.module))
     elif isinstance(f, Function):
         scene = f.compiled.module.__name__
-        lines = [f"from {scene} import point_vg as _exact", "", "", _DECORATOR,
-                 "def _query(data, x, y):", "    return _exact(x, y)", "", "", _DECORATOR,
-                 "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
+        lines = [
+            f"from {scene} import point_vg as _exact",
+            "",
+            "",
+            _DECORATOR,
+            "def _query(data, x, y):",
+            "    return _exact(x, y)",
+            "",
+            "",
+            _DECORATOR,
+            "def _fallback_missing(data, x, y, dx, dy):",
+            "    return False",
+        ]
         deps = [scene]
         data = (0.0,)
         desc = repr(f)[:300]
         key = ("sdf", id(f.compiled.module))
     else:
-        raise TypeError(f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type "
-                        f"{type(f).__name__}")
+        raise TypeError(
+            f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type {type(f).__name__}"
+        )
     if "MOVING = True" not in lines:
         lines += _STATIC_TIME_LINES
     force_lines, force_deps, force_late = _force_parts(forces)
     late += force_late
     deps += force_deps
     desc = desc.replace("\n", " ")
-    block = [f"# Scene block generated by fastsdf {__version__} (numba {numba.__version__}).",
-             f"# World: {desc}", f"# Dependencies: {'; '.join(deps) or 'none'}",
-             f"_CACHE = {not late}", f"GRID_SIMD = {grid_simd}", f"GRID_EXACT = {grid_exact}",
-             ""] + lines + [""] + force_lines
+    block = (
+        [
+            f"# Scene block generated by fastsdf {__version__} (numba {numba.__version__}).",
+            f"# World: {desc}",
+            f"# Dependencies: {'; '.join(deps) or 'none'}",
+            f"_CACHE = {not late}",
+            f"GRID_SIMD = {grid_simd}",
+            f"GRID_EXACT = {grid_exact}",
+            "",
+        ]
+        + lines
+        + [""]
+        + force_lines
+    )
     source = _kernels.kernel_source("\n".join(block) + "\n")
     if late:
         # One module per set of objects; the entry keeps them alive, so their ids are not
@@ -346,14 +434,14 @@ def _kernel_module(f, forces=()):
         key = key + tuple(id(obj) for _, obj in late)
         entry = _KERNELS.get(key)
         if entry is None:
-            mod = load_module(source + f"\n# uncached instance {len(_KERNELS)}\n",
-                              prefix="fastsdf_particles")
+            mod = load_module(
+                source + f"\n# uncached instance {len(_KERNELS)}\n", prefix="fastsdf_particles"
+            )
             for name, obj in late:
                 setattr(mod, name, obj)
             entry = _KERNELS[key] = (mod, [obj for _, obj in late])
         return entry[0], data, (keep, entry[1])
     return load_module(source, prefix="fastsdf_particles"), data, keep
-
 
 
 class _NoParams:
@@ -364,8 +452,9 @@ class _NoParams:
 _NO_PARAMS = _NoParams()
 
 
-def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, steps: int,
-                     prm: tuple) -> tuple:
+def wall_speed_table(
+    f: Any, x: np.ndarray, r_max: float, t: float, dt: float, steps: int, prm: tuple
+) -> tuple:
     """The global bound W and the per-region table of wall speeds for one call.
 
     ``|dd/dt|`` is sampled on the nodes of a grid over the bounding box of a sample of the
@@ -386,9 +475,9 @@ def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, s
     x = np.asarray(x, dtype=np.float64)
     # The table's box from a sample of the particles (one outside it uses W) and the
     # samples for W: both cheap next to a step of every particle.
-    box = x[::max(1, x.shape[0] // 16384)]
+    box = x[:: max(1, x.shape[0] // 16384)]
     box = box[np.isfinite(box).all(axis=1)]
-    sample = x[::max(1, x.shape[0] // 4096)]
+    sample = x[:: max(1, x.shape[0] // 4096)]
     sample = sample[np.isfinite(sample).all(axis=1)]
     if not box.size:
         box = np.zeros((1, 2))
@@ -398,7 +487,7 @@ def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, s
         size = float(r_max) * 4 or 1.0
     n = WALL_TABLE_CELLS
     h = size / (n - 4)
-    x0, y0 = lo - 2 * h          # two cells of room on each side
+    x0, y0 = lo - 2 * h  # two cells of room on each side
     gx = x0 + h * np.arange(n + 1)
     gy = y0 + h * np.arange(n + 1)
     X, Y = (a.ravel() for a in np.meshgrid(gx, gy, indexing="ij"))
@@ -418,8 +507,9 @@ def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, s
     at_particles = top[nodes:]
     top_speed = 1.5 * float(at_particles[np.isfinite(at_particles)].max(initial=0.0))
     node = node.reshape(n + 1, n + 1)
-    cell = 1.5 * np.maximum(np.maximum(node[:-1, :-1], node[1:, :-1]),
-                            np.maximum(node[:-1, 1:], node[1:, 1:]))
+    cell = 1.5 * np.maximum(
+        np.maximum(node[:-1, :-1], node[1:, :-1]), np.maximum(node[:-1, 1:], node[1:, 1:])
+    )
     wall = max(top_speed, float(cell[np.isfinite(cell)].max(initial=0.0)))
     cell = np.where(np.isfinite(cell), cell, wall)  # unknown there (a non-finite dd/dt)
     # walls at the sample times move up to W (t_gap) between them and W dt in a step
@@ -428,7 +518,17 @@ def wall_speed_table(f: Any, x: np.ndarray, r_max: float, t: float, dt: float, s
     wide = cell
     for _ in range(min(reach, n)):
         pad = np.pad(wide, 1, mode="edge")
-        wide = np.maximum.reduce([pad[1:-1, 1:-1], pad[:-2, 1:-1], pad[2:, 1:-1],
-                                  pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, :-2], pad[2:, 2:],
-                                  pad[:-2, 2:], pad[2:, :-2]])
+        wide = np.maximum.reduce(
+            [
+                pad[1:-1, 1:-1],
+                pad[:-2, 1:-1],
+                pad[2:, 1:-1],
+                pad[1:-1, :-2],
+                pad[1:-1, 2:],
+                pad[:-2, :-2],
+                pad[2:, 2:],
+                pad[:-2, 2:],
+                pad[2:, :-2],
+            ]
+        )
     return wall, (float(x0), float(y0), 1.0 / h, np.ascontiguousarray(wide))

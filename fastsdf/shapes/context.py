@@ -44,6 +44,7 @@ class _State(NamedTuple):
     """The modelling state: the coordinate expressions new primitives are built in, their
     frame, and the smoothness (and blend kind) of ``|`` and ``&``. (Immutable; a named tuple:
     entering a context costs a ``_replace``, cheaper than a frozen dataclass's.)"""
+
     x: Expr = _X
     y: Expr = _Y
     smoothness: FloatOrParam = 0.0
@@ -54,7 +55,9 @@ class _State(NamedTuple):
 # Immutable states in a context variable: context managers set a new one and reset on exit (the
 # default is a NamedTuple, immutable).
 _context: contextvars.ContextVar[_State] = contextvars.ContextVar(
-    "fastsdf_modelling_state", default=_State())  # noqa: B039
+    "fastsdf_modelling_state",
+    default=_State(),  # noqa: B039 - an immutable NamedTuple
+)
 
 
 def _coords() -> tuple[Expr, Expr]:
@@ -71,6 +74,7 @@ def _frame() -> tuple | None:
 # ---------------------------------------------------------------------------------------------
 # Parameter validation: errors name the parameter and the value.
 
+
 def _smoothness_value(k: object) -> FloatOrParam:
     if k is None:
         return 0.0
@@ -79,15 +83,18 @@ def _smoothness_value(k: object) -> FloatOrParam:
     if is_param(k):  # a runtime parameter: checked > 0 at the parameters' defaults
         _, number = real_or_param(k, "k")
         if not number > 0:
-            raise ValueError(f"a blend k given by parameters must be > 0 (at their defaults), "
-                             f"got k={k} = {number!r}")
+            raise ValueError(
+                f"a blend k given by parameters must be > 0 (at their defaults), "
+                f"got k={k} = {number!r}"
+            )
         return k
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
         raise TypeError(f"smoothness k must be a real number, got k={k!r}")
     number = float(k)
     if not math.isfinite(number) or number < 0:
-        raise ValueError(f"smoothness k must be finite and >= 0 (0 means a hard min/max), "
-                         f"got k={number!r}")
+        raise ValueError(
+            f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={number!r}"
+        )
     if number > 0:
         # a blend width (or, for the exponential blend, its inverse) is a length
         _check_length(number, "smoothness k")
@@ -105,6 +112,7 @@ def _blend_kind(kind: object) -> str:
 # ---------------------------------------------------------------------------------------------
 # The modelling context.
 
+
 @contextmanager
 def _properties(**props: Any) -> Iterator[None]:
     token = _context.set(_context.get()._replace(**props))
@@ -114,8 +122,7 @@ def _properties(**props: Any) -> Iterator[None]:
         _context.reset(token)
 
 
-def smoothness(k: FloatOrParam | None, kind: str = "exponential"
-               ) -> AbstractContextManager[None]:
+def smoothness(k: FloatOrParam | None, kind: str = "exponential") -> AbstractContextManager[None]:
     """Context manager: ``|`` and ``&`` created inside blend with parameter ``k``.
 
     ``kind='exponential'`` (the default, the notebook's blend): ``k`` is the sharpness in
@@ -140,8 +147,9 @@ def current_blend() -> tuple:
     return s.smoothness, s.blend
 
 
-def transform(angle: FloatOrParam = 0.0, offset: PairOrParam = (0.0, 0.0)
-              ) -> AbstractContextManager[None]:
+def transform(
+    angle: FloatOrParam = 0.0, offset: PairOrParam = (0.0, 0.0)
+) -> AbstractContextManager[None]:
     """Context manager: primitives created inside are rotated by ``angle`` (radians,
     counter-clockwise) about their own origin, then translated by ``offset``.
 
@@ -170,7 +178,13 @@ def _transformed(c: FloatOrParam, s: FloatOrParam, offset: tuple) -> Iterator[No
         frame = None  # moved by runtime parameters: unknown to the exactness bookkeeping
     else:
         m00, m01, m10, m11, tx, ty = outer  # compose: outer frame o (R, offset)
-        frame = (m00 * c + m01 * s, -m00 * s + m01 * c, m10 * c + m11 * s, -m10 * s + m11 * c,
-                 m00 * offset[0] + m01 * offset[1] + tx, m10 * offset[0] + m11 * offset[1] + ty)
+        frame = (
+            m00 * c + m01 * s,
+            -m00 * s + m01 * c,
+            m10 * c + m11 * s,
+            -m10 * s + m11 * c,
+            m00 * offset[0] + m01 * offset[1] + tx,
+            m10 * offset[0] + m11 * offset[1] + ty,
+        )
     with _properties(x=local_x, y=local_y, frame=frame):
         yield

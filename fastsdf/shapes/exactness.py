@@ -25,12 +25,13 @@ EXACTNESS = ("exact", "bound", "none")
 # to keep exactness: convexity, a bounding box, mirror symmetries about the coordinate axes.
 # Unknown means False / None / empty: the flags are conservative.
 
+
 class _Info(NamedTuple):  # (a named tuple: cheaper to build than a frozen dataclass)
-    outside: bool = False       # exact where f > 0
-    inside: bool = False        # exact where f < 0
-    bound: bool = False         # 1-Lipschitz (implies |f| <= true distance, sign correct)
-    convex: bool = False        # the shape {f <= 0} is convex
-    bbox: tuple | None = None   # (xmin, ymin, xmax, ymax) containing the shape
+    outside: bool = False  # exact where f > 0
+    inside: bool = False  # exact where f < 0
+    bound: bool = False  # 1-Lipschitz (implies |f| <= true distance, sign correct)
+    convex: bool = False  # the shape {f <= 0} is convex
+    bbox: tuple | None = None  # (xmin, ymin, xmax, ymax) containing the shape
     sym: frozenset = frozenset()  # 'x': f(-x, y) = f(x, y); 'y': f(x, -y) = f(x, y)
 
 
@@ -40,7 +41,7 @@ _NONE = _Info()
 def _frame_bbox(bbox: tuple | None, frame: tuple | None = None) -> tuple | None:
     """World bounding box of a local bounding box under the current (or given) frame."""
     frame = _frame() if frame is None else frame
-    if bbox is None or frame is None:   # no frame: the primitive moves with parameters
+    if bbox is None or frame is None:  # no frame: the primitive moves with parameters
         return None
     m00, m01, m10, m11, tx, ty = frame
     xs, ys = (bbox[0], bbox[2]), (bbox[1], bbox[3])
@@ -55,19 +56,31 @@ def _grow(bbox: tuple | None, r: float) -> tuple | None:
     return (bbox[0] - r, bbox[1] - r, bbox[2] + r, bbox[3] + r)
 
 
-def _primitive_info(bbox: tuple | None, sym: Iterable[str] = (), convex: bool = False,
-                    exact: bool = True) -> _Info:
+def _primitive_info(
+    bbox: tuple | None, sym: Iterable[str] = (), convex: bool = False, exact: bool = True
+) -> _Info:
     """Info of a primitive built now, from its local bounding box and symmetries."""
     world_sym = frozenset(sym) if _frame() == _IDENTITY else frozenset()
-    return _Info(outside=exact, inside=exact, bound=True, convex=convex,
-                 bbox=_frame_bbox(bbox), sym=world_sym)
+    return _Info(
+        outside=exact,
+        inside=exact,
+        bound=True,
+        convex=convex,
+        bbox=_frame_bbox(bbox),
+        sym=world_sym,
+    )
 
 
-def _points_bbox(points: Sequence[Any] | np.ndarray, r: float = 0.0
-                 ) -> tuple[float, float, float, float]:
+def _points_bbox(
+    points: Sequence[Any] | np.ndarray, r: float = 0.0
+) -> tuple[float, float, float, float]:
     p = np.asarray(points, dtype=np.float64)
-    return (float(p[:, 0].min() - r), float(p[:, 1].min() - r),
-            float(p[:, 0].max() + r), float(p[:, 1].max() + r))
+    return (
+        float(p[:, 0].min() - r),
+        float(p[:, 1].min() - r),
+        float(p[:, 0].max() + r),
+        float(p[:, 1].max() + r),
+    )
 
 
 def _edges_symmetry(points: ArrayLike, closed: bool = True) -> frozenset:

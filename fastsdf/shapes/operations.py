@@ -48,12 +48,26 @@ from fastsdf.shapes.exactness import (
     _Info,
 )
 
-__all__ = ["SDF", "Union", "Intersection", "Difference", "union", "intersection",
-           "offset", "shell", "scale", "translate", "rotate", "mirror", "repeat"]
+__all__ = [
+    "SDF",
+    "Union",
+    "Intersection",
+    "Difference",
+    "union",
+    "intersection",
+    "offset",
+    "shell",
+    "scale",
+    "translate",
+    "rotate",
+    "mirror",
+    "repeat",
+]
 
 
 # ---------------------------------------------------------------------------------------------
 # Blends: the hard operations, the notebook's exponential blends, the polynomial ones.
+
 
 def _param_blend_min(a: Expr, b: Expr, k: Expr, kind: str) -> Expr:
     """A blend whose ``k`` is an expression of runtime parameters, from generic operations
@@ -88,13 +102,15 @@ def _blend_max(a: Expr, b: Expr, k: FloatOrParam, kind: str) -> Expr:
 
 def _check_sdf(value: object, name: str) -> SDF:
     if not isinstance(value, SDF):
-        raise TypeError(f"{name} must be a fastsdf SDF, got {name}={value!r} of type "
-                        f"{type(value).__name__}")
+        raise TypeError(
+            f"{name} must be a fastsdf SDF, got {name}={value!r} of type {type(value).__name__}"
+        )
     return value
 
 
 # ---------------------------------------------------------------------------------------------
 # Shapes.
+
 
 class SDF(Function):
     """A signed distance function of the plane: negative inside, positive outside.
@@ -146,8 +162,10 @@ class SDF(Function):
     # -- set operations ------------------------------------------------------------------------
     def _other(self, other: object, op: str) -> SDF:
         if not isinstance(other, SDF):
-            raise TypeError(f"cannot {op} an SDF with {other!r} of type {type(other).__name__}; "
-                            "both operands must be fastsdf SDF objects")
+            raise TypeError(
+                f"cannot {op} an SDF with {other!r} of type {type(other).__name__}; "
+                "both operands must be fastsdf SDF objects"
+            )
         return other
 
     def __or__(self, other: SDF) -> Union:
@@ -167,13 +185,11 @@ class SDF(Function):
         or ``'cubic'`` (``k`` = blend width, distance). See :class:`Union`."""
         return Union(self, self._other(other, "unite"), k=k, kind=kind)
 
-    def intersection(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"
-                     ) -> SDF:
+    def intersection(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
         """``self & other`` with an explicit blend (see :meth:`union`, :class:`Intersection`)."""
         return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
 
-    def difference(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"
-                   ) -> SDF:
+    def difference(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
         """``self - other``, smooth for ``k > 0`` (see :meth:`union`, :class:`Difference`)."""
         return Difference(self, self._other(other, "subtract"), k=k, kind=kind)
 
@@ -213,8 +229,13 @@ class SDF(Function):
             raise ValueError(f"thickness must be > 0, got thickness={thickness!r}")
         _check_length(tv, "thickness")
         i = self._info
-        info = _Info(outside=i.outside and i.inside, inside=False, bound=i.bound,
-                     bbox=None if is_param(t) else _grow(i.bbox, tv / 2), sym=i.sym)
+        info = _Info(
+            outside=i.outside and i.inside,
+            inside=False,
+            bound=i.bound,
+            bbox=None if is_param(t) else _grow(i.bbox, tv / 2),
+            sym=i.sym,
+        )
         return SDF(sym_abs(self.f) - t / 2, info)
 
     def scale(self, s: FloatOrParam) -> SDF:
@@ -227,8 +248,9 @@ class SDF(Function):
         inv = 1.0 / factor
         i = self._info
         bbox = None if i.bbox is None or is_param(factor) else tuple(v * sv for v in i.bbox)
-        return SDF(substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * factor,
-                   i._replace(bbox=bbox))
+        return SDF(
+            substitute(self.f, {"x": _X * inv, "y": _Y * inv}) * factor, i._replace(bbox=bbox)
+        )
 
     def translate(self, offset: PairOrParam) -> SDF:
         """The shape moved by ``offset``: ``f(p - offset)``, in the coordinates of ``f`` (an
@@ -240,8 +262,11 @@ class SDF(Function):
             expr = substitute(self.f, {"x": _X - o[0], "y": _Y - o[1]})
             return SDF(expr, i._replace(bbox=None, sym=frozenset()))
         o = numbers_  # (the same array: no parameters)
-        bbox = None if i.bbox is None else (i.bbox[0] + o[0], i.bbox[1] + o[1],
-                                             i.bbox[2] + o[0], i.bbox[3] + o[1])
+        bbox = (
+            None
+            if i.bbox is None
+            else (i.bbox[0] + o[0], i.bbox[1] + o[1], i.bbox[2] + o[0], i.bbox[3] + o[1])
+        )
         sym = frozenset(a for a, ov in zip("xy", o) if a in i.sym and ov == 0.0)
         expr = substitute(self.f, {"x": _X - float(o[0]), "y": _Y - float(o[1])})
         return SDF(expr, i._replace(bbox=bbox, sym=sym))
@@ -288,13 +313,17 @@ class SDF(Function):
                 top = max(hi[j], 0.0)
                 lo[j], hi[j] = -top, top
                 bbox = (lo[0], lo[1], hi[0], hi[1])
-            info = _Info(outside=i.outside and disjoint, inside=i.inside and disjoint,
-                         bound=i.bound, bbox=bbox, sym=i.sym | {ax})
+            info = _Info(
+                outside=i.outside and disjoint,
+                inside=i.inside and disjoint,
+                bound=i.bound,
+                bbox=bbox,
+                sym=i.sym | {ax},
+            )
             f = SDF(substitute(f.f, sub), info)
         return f
 
-    def repeat(self, spacing: FloatOrParam | PairOrParam, count: FloatOrParam | PairOrParam
-               ) -> SDF:
+    def repeat(self, spacing: FloatOrParam | PairOrParam, count: FloatOrParam | PairOrParam) -> SDF:
         """Finite repetition (IQ's opRepLim): copies of the shape at
         ``(i * spacing_x, j * spacing_y)`` for ``0 <= i < count_x``, ``0 <= j < count_y``.
         ``spacing`` and ``count`` are numbers or pairs; a count of 1 leaves that axis alone.
@@ -334,10 +363,12 @@ class SDF(Function):
                 hi[j] += (n - 1) * s
         if not sub:
             return self
-        info = _Info(outside=symmetric and i.outside,
-                     inside=symmetric and contained and i.inside,
-                     bound=symmetric and i.bound,
-                     bbox=None if lo is None or hi is None else (lo[0], lo[1], hi[0], hi[1]))
+        info = _Info(
+            outside=symmetric and i.outside,
+            inside=symmetric and contained and i.inside,
+            bound=symmetric and i.bound,
+            bbox=None if lo is None or hi is None else (lo[0], lo[1], hi[0], hi[1]),
+        )
         return SDF(substitute(self.f, sub), info)
 
     def __repr__(self) -> str:
@@ -359,8 +390,10 @@ def _count(value: object, name: str) -> Expr | int:
     if is_param(value):
         expr, number = real_or_param(value, name)
         if number < 1 or number != int(number):
-            raise ValueError(f"{name} must be an integer >= 1, got {name}={expr} = {number!r} "
-                             f"at the parameters' defaults")
+            raise ValueError(
+                f"{name} must be an integer >= 1, got {name}={expr} = {number!r} "
+                f"at the parameters' defaults"
+            )
         return sym_floor(expr)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise TypeError(f"{name} must be an integer, got {name}={value!r}")
@@ -370,6 +403,7 @@ def _count(value: object, name: str) -> Expr | int:
 
 
 # Modifiers as functions (the methods of SDF).
+
 
 def offset(f: SDF, r: FloatOrParam) -> SDF:
     """``f.round(r)``: the shape offset by ``r`` (see :meth:`SDF.round`)."""
@@ -401,14 +435,14 @@ def mirror(f: SDF, axis: str = "x") -> SDF:
     return _check_sdf(f, "f").mirror(axis)
 
 
-def repeat(f: SDF, spacing: FloatOrParam | PairOrParam,
-           count: FloatOrParam | PairOrParam) -> SDF:
+def repeat(f: SDF, spacing: FloatOrParam | PairOrParam, count: FloatOrParam | PairOrParam) -> SDF:
     """``f.repeat(spacing, count)`` (see :meth:`SDF.repeat`)."""
     return _check_sdf(f, "f").repeat(spacing, count)
 
 
 # ---------------------------------------------------------------------------------------------
 # Set operations.
+
 
 def _k_and_kind(k: object, kind: object) -> tuple[FloatOrParam, str]:
     return _smoothness_value(k), _blend_kind(kind)
@@ -431,9 +465,12 @@ class Union(SDF):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
-        info = _Info(outside=k == 0 and ia.outside and ib.outside, bound=ia.bound and ib.bound,
-                     bbox=_bbox_union(ia.bbox, ib.bbox, _blend_depth(k, kind)),
-                     sym=ia.sym & ib.sym)
+        info = _Info(
+            outside=k == 0 and ia.outside and ib.outside,
+            bound=ia.bound and ib.bound,
+            bbox=_bbox_union(ia.bbox, ib.bbox, _blend_depth(k, kind)),
+            sym=ia.sym & ib.sym,
+        )
         super().__init__(_blend_min(a.f, b.f, k, kind), info)
 
 
@@ -449,9 +486,13 @@ class Intersection(SDF):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
-        info = _Info(inside=k == 0 and ia.inside and ib.inside, bound=ia.bound and ib.bound,
-                     convex=k == 0 and ia.convex and ib.convex, bbox=_bbox_meet(ia.bbox, ib.bbox),
-                     sym=ia.sym & ib.sym)
+        info = _Info(
+            inside=k == 0 and ia.inside and ib.inside,
+            bound=ia.bound and ib.bound,
+            convex=k == 0 and ia.convex and ib.convex,
+            bbox=_bbox_meet(ia.bbox, ib.bbox),
+            sym=ia.sym & ib.sym,
+        )
         super().__init__(_blend_max(a.f, b.f, k, kind), info)
 
 
@@ -467,23 +508,32 @@ class Difference(SDF):
         a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
         k, kind = _k_and_kind(k, kind)
         ia, ib = a._info, b._info
-        info = _Info(inside=k == 0 and ia.inside and ib.outside, bound=ia.bound and ib.bound,
-                     bbox=ia.bbox, sym=ia.sym & ib.sym)
+        info = _Info(
+            inside=k == 0 and ia.inside and ib.outside,
+            bound=ia.bound and ib.bound,
+            bbox=ia.bbox,
+            sym=ia.sym & ib.sym,
+        )
         super().__init__(_blend_max(a.f, -b.f, k, kind), info)
 
 
 # ---------------------------------------------------------------------------------------------
 # Many shapes at once.
 
+
 def _shapes_list(shapes: Iterable[SDF], name: str) -> list[SDF]:
     if isinstance(shapes, SDF):
-        raise TypeError(f"{name} takes an iterable of SDFs (a list, a generator), got one SDF; "
-                        f"write {name}([a, b, ...])")
+        raise TypeError(
+            f"{name} takes an iterable of SDFs (a list, a generator), got one SDF; "
+            f"write {name}([a, b, ...])"
+        )
     try:
         out = list(shapes)
     except TypeError:
-        raise TypeError(f"shapes must be an iterable of fastsdf SDF objects, got "
-                        f"{shapes!r} of type {type(shapes).__name__}") from None
+        raise TypeError(
+            f"shapes must be an iterable of fastsdf SDF objects, got "
+            f"{shapes!r} of type {type(shapes).__name__}"
+        ) from None
     if not out:
         raise ValueError(f"{name} needs at least one shape, got an empty iterable")
     for i, f in enumerate(out):
@@ -524,8 +574,7 @@ def _union(out: list, k: FloatOrParam, kind: str) -> SDF:
     return SDF(e, _Info(outside=outside, bound=bound, bbox=bbox, sym=sym))
 
 
-def intersection(shapes: Iterable[SDF], k: FloatOrParam = 0.0, kind: str = "exponential"
-                 ) -> SDF:
+def intersection(shapes: Iterable[SDF], k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
     """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
     :func:`union` and :class:`Intersection`), built in one step."""
     out = _shapes_list(shapes, "intersection")

@@ -70,8 +70,9 @@ def _positive_p(value: object, name: str, size: bool = True) -> tuple[FloatOrPar
     if is_param(value):
         expr, number = real_or_param(value, name)
         if not number > 0:
-            raise ValueError(f"{name} must be > 0, got {name}={expr} = {number!r} at the "
-                             f"parameters' defaults")
+            raise ValueError(
+                f"{name} must be > 0, got {name}={expr} = {number!r} at the parameters' defaults"
+            )
         if size:
             _check_length(number, name)
         return expr, number
@@ -108,8 +109,9 @@ def _segment_expr_p(x: Expr, y: Expr, a: Pair, b: Pair, normal: tuple | None = N
     return sym_select(beside, sym_abs(h), sym_length(ux, uy))
 
 
-def _convex_polygon_expr_p(x: Expr, y: Expr, vertices: Sequence[Pair],
-                           orientation: FloatOrParam = 1.0) -> Expr:
+def _convex_polygon_expr_p(
+    x: Expr, y: Expr, vertices: Sequence[Pair], orientation: FloatOrParam = 1.0
+) -> Expr:
     """:func:`_convex_polygon_expr` for vertices that may be expressions of parameters, in
     counter-clockwise order when ``orientation`` is 1 and clockwise when it is -1 (a number,
     or an expression that is +-1 at run time)."""
@@ -142,8 +144,8 @@ def _polygon_expr_p(x: Expr, y: Expr, vertices: Sequence[Pair]) -> Expr:
         dist = seg if dist is None else sym_min(dist, seg)
         ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
         wx, wy = x - a[0], y - a[1]
-        c1 = sym_select(a[1] - y, -1.0, 1.0)          # y >= a.y
-        c2 = sym_select(b[1] - y, 1.0, -1.0)          # y < b.y
+        c1 = sym_select(a[1] - y, -1.0, 1.0)  # y >= a.y
+        c2 = sym_select(b[1] - y, 1.0, -1.0)  # y < b.y
         c3 = sym_select(ex * wy - ey * wx, 1.0, -1.0)  # the point left of the edge
         flip = sym_select(sym_abs(c1 + c2 + c3) - 2.0, -1.0, 1.0)  # all three or none
         sign = flip if sign is None else sign * flip
@@ -151,13 +153,29 @@ def _polygon_expr_p(x: Expr, y: Expr, vertices: Sequence[Pair]) -> Expr:
     return sign * dist
 
 
-__all__ = ["Circle", "Halfspace", "Box",
-           "Segment", "Capsule", "RoundedBox", "OrientedBox", "EquilateralTriangle", "Triangle",
-           "RegularPolygon", "Polygon", "Star", "Ellipse", "Arc", "Ring", "Outline"]
+__all__ = [
+    "Circle",
+    "Halfspace",
+    "Box",
+    "Segment",
+    "Capsule",
+    "RoundedBox",
+    "OrientedBox",
+    "EquilateralTriangle",
+    "Triangle",
+    "RegularPolygon",
+    "Polygon",
+    "Star",
+    "Ellipse",
+    "Arc",
+    "Ring",
+    "Outline",
+]
 
 
 # ---------------------------------------------------------------------------------------------
 # The notebook's primitives.
+
 
 class Circle(SDF):
     """Disc of ``radius`` around ``center`` (exact distance).
@@ -181,15 +199,21 @@ class Circle(SDF):
             c0, c1 = center.tolist()
             x, y = _coords()
             # (numbers: the general path's bounding box and symmetries, in Python floats)
-            info = _primitive_info((c0 - radius, c1 - radius, c0 + radius, c1 + radius),
-                                   _center_sym((c0, c1)), convex=True)
+            info = _primitive_info(
+                (c0 - radius, c1 - radius, c0 + radius, c1 + radius),
+                _center_sym((c0, c1)),
+                convex=True,
+            )
             SDF.__init__(self, sym_length(x - c0, y - c1) - radius, info)
             return
         self.center, self.radius = center, radius
         x, y = _coords()
         moving = is_param(radius) or any(is_param(v) for v in center)
-        info = _primitive_info(None if moving else _points_bbox([center], r0),
-                               () if moving else _center_sym(center), convex=True)
+        info = _primitive_info(
+            None if moving else _points_bbox([center], r0),
+            () if moving else _center_sym(center),
+            convex=True,
+        )
         super().__init__(sym_length(x - center[0], y - center[1]) - radius, info)
 
 
@@ -205,13 +229,16 @@ class Halfspace(SDF):
         if _has_param(normal):  # turned by parameters: normalized in the kernel
             normal, nv = vec2_or_param(normal, "normal")
             if not float(np.hypot(*nv)) > 0:
-                raise ValueError(f"normal must have non-zero length, got normal={nv.tolist()!r} "
-                                 f"at the parameters' defaults")
+                raise ValueError(
+                    f"normal must have non-zero length, got normal={nv.tolist()!r} "
+                    f"at the parameters' defaults"
+                )
             length = sym_length(*normal)
             self.normal, self.d = (normal[0] / length, normal[1] / length), d
             x, y = _coords()
-            super().__init__(x * self.normal[0] + y * self.normal[1] - d,
-                             _primitive_info(None, convex=True))
+            super().__init__(
+                x * self.normal[0] + y * self.normal[1] - d, _primitive_info(None, convex=True)
+            )
             return
         normal = _vec2(normal, "normal")
         big = float(np.abs(normal).max())
@@ -249,8 +276,10 @@ class Box(SDF):
             self._init_numbers(_point(minc, "minc"), _point(maxc, "maxc"))
             return
         if not np.all(lo < hi):
-            raise ValueError(f"minc must be below maxc in both coordinates, got "
-                             f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
+            raise ValueError(
+                f"minc must be below maxc in both coordinates, got "
+                f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}"
+            )
         _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
         self.minc, self.maxc = minc, maxc
         moving = any(is_param(v) for v in (*minc, *maxc))
@@ -269,8 +298,10 @@ class Box(SDF):
         cost on two-element arrays otherwise)."""
         (l0, l1), (h0, h1) = minc.tolist(), maxc.tolist()
         if not (l0 < h0 and l1 < h1):
-            raise ValueError(f"minc must be below maxc in both coordinates, got "
-                             f"minc={[l0, l1]!r}, maxc={[h0, h1]!r}")
+            raise ValueError(
+                f"minc must be below maxc in both coordinates, got "
+                f"minc={[l0, l1]!r}, maxc={[h0, h1]!r}"
+            )
         _check_length(min(h0 - l0, h1 - l1), "the smaller side maxc - minc")
         self.minc, self.maxc = minc, maxc
         x, y = _coords()
@@ -286,8 +317,9 @@ class Box(SDF):
 # Segments, boxes, polygons, ellipses, rings and arcs, and the geometry helpers they share.
 
 
-def _segment_expr(x: Expr, y: Expr, a: np.ndarray, b: np.ndarray,
-                  normal: tuple | None = None) -> Expr:
+def _segment_expr(
+    x: Expr, y: Expr, a: np.ndarray, b: np.ndarray, normal: tuple | None = None
+) -> Expr:
     """Unsigned distance from (x, y) to the segment a-b (a point if a == b).
 
     Beside the segment (its foot between ``a`` and ``b``) the distance is ``|h|``, the distance
@@ -351,21 +383,26 @@ def _vertices(value: object, name: str, minimum: int = 3) -> np.ndarray:
     try:
         arr = np.asarray(value)
     except Exception:
-        raise TypeError(f"{name} must be a sequence of (x, y) pairs, got {name}={value!r}") \
-            from None
+        raise TypeError(
+            f"{name} must be a sequence of (x, y) pairs, got {name}={value!r}"
+        ) from None
     if arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be a sequence of (x, y) pairs of real numbers, got "
-                        f"{name}={value!r}")
+        raise TypeError(
+            f"{name} must be a sequence of (x, y) pairs of real numbers, got {name}={value!r}"
+        )
     if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{name} must have shape (n, 2), got shape {arr.shape} for "
-                         f"{name}={value!r}")
+        raise ValueError(
+            f"{name} must have shape (n, 2), got shape {arr.shape} for {name}={value!r}"
+        )
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite, got {name}={value!r}")
     if np.any(np.abs(arr) > MAX_COORD):
-        raise ValueError(f"{name} must have coordinates at most {MAX_COORD:g} in magnitude (the "
-                         f"supported range of fastsdf geometry is 1e-150 to 1e150), got "
-                         f"{name}={value!r}")
+        raise ValueError(
+            f"{name} must have coordinates at most {MAX_COORD:g} in magnitude (the "
+            f"supported range of fastsdf geometry is 1e-150 to 1e150), got "
+            f"{name}={value!r}"
+        )
     if len(arr) < minimum:
         raise ValueError(f"{name} needs at least {minimum} vertices, got {len(arr)}")
     return arr
@@ -388,20 +425,25 @@ def _check_simple(v: np.ndarray, name: str) -> None:
     w = v - v[0]
     far = w[np.argmax(np.hypot(w[:, 0], w[:, 1]))]
     if np.all(np.abs(w[:, 0] * far[1] - w[:, 1] * far[0]) <= 1e-12 * scale * scale):
-        raise ValueError(f"{name} must enclose a non-zero area (got collinear or coincident "
-                         f"vertices: {v.tolist()!r})")
+        raise ValueError(
+            f"{name} must enclose a non-zero area (got collinear or coincident "
+            f"vertices: {v.tolist()!r})"
+        )
 
     def orient(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - \
-            (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
+            r[..., 0] - p[..., 0]
+        )
 
     tol = 1e-12 * scale * scale
     for i in range(n):
         # adjacent edge i -> i+1: folds back if collinear and pointing backwards
         e1, e2 = b[i] - a[i], b[(i + 1) % n] - a[(i + 1) % n]
         if abs(e1[0] * e2[1] - e1[1] * e2[0]) <= tol and e1 @ e2 < 0:
-            raise ValueError(f"{name} is not simple: edges {i} and {(i + 1) % n} overlap "
-                             f"(the polygon folds back at vertex {(i + 1) % n})")
+            raise ValueError(
+                f"{name} is not simple: edges {i} and {(i + 1) % n} overlap "
+                f"(the polygon folds back at vertex {(i + 1) % n})"
+            )
         j = np.arange(i + 2, n)
         if i == 0:
             j = j[j != n - 1]
@@ -421,19 +463,26 @@ def _check_simple(v: np.ndarray, name: str) -> None:
                 ok = ok & (lo_c <= r[..., c] + eps) & (r[..., c] <= hi_c + eps)
             return ok
 
-        touch = on_seg(p1, p2, q1, o1) | on_seg(p1, p2, q2, o2) | \
-            on_seg(q1, q2, np.broadcast_to(p1, q1.shape), o3) | \
-            on_seg(q1, q2, np.broadcast_to(p2, q1.shape), o4)
+        touch = (
+            on_seg(p1, p2, q1, o1)
+            | on_seg(p1, p2, q2, o2)
+            | on_seg(q1, q2, np.broadcast_to(p1, q1.shape), o3)
+            | on_seg(q1, q2, np.broadcast_to(p2, q1.shape), o4)
+        )
         bad = proper | touch
         if np.any(bad):
             k = int(j[np.argmax(bad)])
-            raise ValueError(f"{name} is not simple: edge {i} ({a[i].tolist()} -> "
-                             f"{b[i].tolist()}) meets edge {k} ({a[k].tolist()} -> "
-                             f"{b[k].tolist()})")
+            raise ValueError(
+                f"{name} is not simple: edge {i} ({a[i].tolist()} -> "
+                f"{b[i].tolist()}) meets edge {k} ({a[k].tolist()} -> "
+                f"{b[k].tolist()})"
+            )
     area2 = float(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]))
     if abs(area2) <= 1e-12 * scale * scale:
-        raise ValueError(f"{name} must enclose a non-zero area (got collinear or coincident "
-                         f"vertices: {v.tolist()!r})")
+        raise ValueError(
+            f"{name} must enclose a non-zero area (got collinear or coincident "
+            f"vertices: {v.tolist()!r})"
+        )
 
 
 class Segment(SDF):
@@ -457,8 +506,9 @@ class Segment(SDF):
         a, b = _point(a, "a"), _point(b, "b")
         _segment_length(a, b)
         self.a, self.b = a, b
-        info = _primitive_info(_points_bbox([a, b]), _edges_symmetry([a, b], closed=False),
-                               convex=True)
+        info = _primitive_info(
+            _points_bbox([a, b]), _edges_symmetry([a, b], closed=False), convex=True
+        )
         super().__init__(_segment_expr(*_coords(), a, b), info)
 
 
@@ -468,22 +518,25 @@ class Capsule(SDF):
     On the spine (the segment ``a``-``b``) the gradient is the unit normal to the left of
     ``b - a``, as for :class:`Segment`."""
 
-    def __init__(self, a: PairOrParam = (0.0, 0.0), b: PairOrParam = (1.0, 0.0),
-                 radius: FloatOrParam = 0.25):
+    def __init__(
+        self, a: PairOrParam = (0.0, 0.0), b: PairOrParam = (1.0, 0.0), radius: FloatOrParam = 0.25
+    ):
         if _any_param(a, b, radius):
             (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
             radius, _ = _positive_p(radius, "radius")
             _segment_length(av, bv)
             self.a, self.b, self.radius = a, b, radius
-            super().__init__(_segment_expr_p(*_coords(), a, b) - radius,
-                             _primitive_info(None, convex=True))
+            super().__init__(
+                _segment_expr_p(*_coords(), a, b) - radius, _primitive_info(None, convex=True)
+            )
             return
         a, b = _point(a, "a"), _point(b, "b")
         radius = _positive(radius, "radius")
         _segment_length(a, b)
         self.a, self.b, self.radius = a, b, radius
-        info = _primitive_info(_points_bbox([a, b], radius),
-                               _edges_symmetry([a, b], closed=False), convex=True)
+        info = _primitive_info(
+            _points_bbox([a, b], radius), _edges_symmetry([a, b], closed=False), convex=True
+        )
         super().__init__(_segment_expr(*_coords(), a, b) - radius, info)
 
 
@@ -495,14 +548,20 @@ class RoundedBox(SDF):
     ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
     """
 
-    def __init__(self, minc: PairOrParam = (-1.0, -1.0), maxc: PairOrParam = (1.0, 1.0),
-                 radii: FloatOrParam | PairOrParam = 0.25):
+    def __init__(
+        self,
+        minc: PairOrParam = (-1.0, -1.0),
+        maxc: PairOrParam = (1.0, 1.0),
+        radii: FloatOrParam | PairOrParam = 0.25,
+    ):
         # Any of the numbers may be an expression of parameters: the checks run at the
         # parameters' defaults, the formulas are the same.
         (minc, lo), (maxc, hi) = _point_p(minc, "minc"), _point_p(maxc, "maxc")
         if not np.all(lo < hi):
-            raise ValueError(f"minc must be below maxc in both coordinates, got "
-                             f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}")
+            raise ValueError(
+                f"minc must be below maxc in both coordinates, got "
+                f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}"
+            )
         _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
 
         def radius(v):
@@ -512,17 +571,21 @@ class RoundedBox(SDF):
                 return v, number
             v = _length(v, "radii", zero=True)
             return v, v
+
         if isinstance(radii, (tuple, list, np.ndarray)):
             if len(radii) != 4:
-                raise ValueError(f"radii must be one number or four (upper-right, upper-left, "
-                                 f"lower-left, lower-right), got radii={radii!r}")
+                raise ValueError(
+                    f"radii must be one number or four (upper-right, upper-left, "
+                    f"lower-left, lower-right), got radii={radii!r}"
+                )
             r, rv = zip(*[radius(v) for v in radii])
         else:
             r, rv = zip(*[radius(radii)] * 4)
         limit = float(min((hi - lo) / 2))
         if not all(0.0 <= v <= limit for v in rv):
-            raise ValueError(f"radii must be in [0, {limit!r}] (half the smaller side), got "
-                             f"radii={radii!r}")
+            raise ValueError(
+                f"radii must be in [0, {limit!r}] (half the smaller side), got radii={radii!r}"
+            )
         moving = _any_param(minc, maxc, *r)
         self.minc, self.maxc, self.radii = minc, maxc, tuple(r)
         center = [(minc[j] + maxc[j]) / 2 for j in (0, 1)]
@@ -549,14 +612,20 @@ class OrientedBox(SDF):
     """Rectangle along the segment ``a``-``b``: length ``|b - a|``, total width ``thickness``
     (IQ's oriented box; the ends are flat, at ``a`` and ``b``)."""
 
-    def __init__(self, a: PairOrParam = (-1.0, 0.0), b: PairOrParam = (1.0, 0.0),
-                 thickness: FloatOrParam = 0.5):
+    def __init__(
+        self,
+        a: PairOrParam = (-1.0, 0.0),
+        b: PairOrParam = (1.0, 0.0),
+        thickness: FloatOrParam = 0.5,
+    ):
         if _any_param(a, b, thickness):
             (a, av), (b, bv) = _point_p(a, "a"), _point_p(b, "b")
             thickness, _ = _positive_p(thickness, "thickness")
             if not _segment_length(av, bv) > 0:
-                raise ValueError(f"a and b must differ, got a={av.tolist()!r}, "
-                                 f"b={bv.tolist()!r} at the parameters' defaults")
+                raise ValueError(
+                    f"a and b must differ, got a={av.tolist()!r}, "
+                    f"b={bv.tolist()!r} at the parameters' defaults"
+                )
             self.a, self.b, self.thickness = a, b, thickness
             ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
             span = sym_length(ex, ey)
@@ -593,8 +662,12 @@ class Triangle(SDF):
 
     vertices: np.ndarray | tuple
 
-    def __init__(self, p0: PairOrParam = (-1.0, -0.5), p1: PairOrParam = (1.0, -0.5),
-                 p2: PairOrParam = (0.0, 1.0)):
+    def __init__(
+        self,
+        p0: PairOrParam = (-1.0, -0.5),
+        p1: PairOrParam = (1.0, -0.5),
+        p2: PairOrParam = (0.0, 1.0),
+    ):
         pts = [_point_p(p, name) for p, name in ((p0, "p0"), (p1, "p1"), (p2, "p2"))]
         v = np.array([p[1] for p in pts])
         size = float(np.abs(v - v[0]).max())
@@ -604,15 +677,16 @@ class Triangle(SDF):
         area2 = e1[0] * e2[1] - e1[1] * e2[0]
         scale = float(max(np.hypot(*e1), np.hypot(*e2), np.hypot(*(w[2] - w[1]))))
         if not abs(area2) > 1e-12 * scale * scale:
-            raise ValueError(f"p0, p1, p2 must not be collinear, got p0={v[0].tolist()!r}, "
-                             f"p1={v[1].tolist()!r}, p2={v[2].tolist()!r}")
+            raise ValueError(
+                f"p0, p1, p2 must not be collinear, got p0={v[0].tolist()!r}, "
+                f"p1={v[1].tolist()!r}, p2={v[2].tolist()!r}"
+            )
         if _any_param(p0, p1, p2):
             # Either orientation at run time: the sign of the (doubled) area picks the normals.
             (a, b, c) = [p[0] for p in pts]
             area2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
             self.vertices = (a, b, c)
-            expr = _convex_polygon_expr_p(*_coords(), self.vertices,
-                                          sym_select(area2, 1.0, -1.0))
+            expr = _convex_polygon_expr_p(*_coords(), self.vertices, sym_select(area2, 1.0, -1.0))
             super().__init__(expr, _primitive_info(None, convex=True))
             return
         ccw = _ccw(v)
@@ -621,8 +695,9 @@ class Triangle(SDF):
         super().__init__(_convex_polygon_expr(*_coords(), ccw), info)
 
 
-def _regular_vertices(center: np.ndarray, radius: float, n: int, phase: float = math.pi / 2
-                      ) -> np.ndarray:
+def _regular_vertices(
+    center: np.ndarray, radius: float, n: int, phase: float = math.pi / 2
+) -> np.ndarray:
     t = phase + 2 * math.pi * np.arange(n) / n
     return np.stack([center[0] + radius * np.cos(t), center[1] + radius * np.sin(t)], -1)
 
@@ -662,8 +737,7 @@ class RegularPolygon(SDF):
 
     vertices: np.ndarray | list
 
-    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0,
-                 n: int = 6):
+    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0, n: int = 6):
         _not_param(n, "n", "the number of vertices sets the structure of the generated code")
         n = _check_n(n)
         if _any_param(center, radius):
@@ -671,10 +745,14 @@ class RegularPolygon(SDF):
             radius, _ = _positive_p(radius, "radius")
             self.center, self.radius, self.n = center, radius, n
             ang = math.pi / 2 + 2 * math.pi * np.arange(n) / n
-            self.vertices = [(center[0] + radius * float(math.cos(a)),
-                              center[1] + radius * float(math.sin(a))) for a in ang]
-            super().__init__(_convex_polygon_expr_p(*_coords(), self.vertices),
-                             _primitive_info(None, convex=True))
+            self.vertices = [
+                (center[0] + radius * float(math.cos(a)), center[1] + radius * float(math.sin(a)))
+                for a in ang
+            ]
+            super().__init__(
+                _convex_polygon_expr_p(*_coords(), self.vertices),
+                _primitive_info(None, convex=True),
+            )
             return
         center = _point(center, "center")
         radius = _positive(radius, "radius")
@@ -736,8 +814,10 @@ class Polygon(SDF):
         keep = np.any(v != np.roll(v, 1, axis=0), axis=1)  # drop consecutive duplicates
         v = v[keep] if np.any(keep) else v[:1]
         if len(v) < 3:
-            raise ValueError(f"vertices needs at least 3 distinct vertices, got "
-                             f"{np.asarray(vertices).tolist()!r}")
+            raise ValueError(
+                f"vertices needs at least 3 distinct vertices, got "
+                f"{np.asarray(vertices).tolist()!r}"
+            )
         w, unit, data, bbox, sym, convex = _polygon_local(v.tobytes(), len(v))
         self.vertices = w / unit
         x, y = _coords()
@@ -771,21 +851,35 @@ class Star(Polygon):
     """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
     pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``."""
 
-    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0, n: int = 5,
-                 inner_radius: FloatOrParam | None = None):
+    def __init__(
+        self,
+        center: PairOrParam = (0.0, 0.0),
+        radius: FloatOrParam = 1.0,
+        n: int = 5,
+        inner_radius: FloatOrParam | None = None,
+    ):
         _not_param(n, "n", "the number of points sets the structure of the generated code")
         if _any_param(center, radius, inner_radius):
             (center, _), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
-            inner, iv = (radius / 2, rv / 2) if inner_radius is None else \
-                _positive_p(inner_radius, "inner_radius")
+            inner, iv = (
+                (radius / 2, rv / 2)
+                if inner_radius is None
+                else _positive_p(inner_radius, "inner_radius")
+            )
             n = _check_n(n, minimum=2)
             if not iv < rv:
-                raise ValueError(f"inner_radius must be < radius, got inner_radius={inner!r}, "
-                                 f"radius={radius!r} (at the parameters' defaults)")
+                raise ValueError(
+                    f"inner_radius must be < radius, got inner_radius={inner!r}, "
+                    f"radius={radius!r} (at the parameters' defaults)"
+                )
             ang = math.pi / 2 + math.pi * np.arange(2 * n) / n
-            pts = [(center[0] + (radius if k % 2 == 0 else inner) * float(math.cos(a)),
-                    center[1] + (radius if k % 2 == 0 else inner) * float(math.sin(a)))
-                   for k, a in enumerate(ang)]
+            pts = [
+                (
+                    center[0] + (radius if k % 2 == 0 else inner) * float(math.cos(a)),
+                    center[1] + (radius if k % 2 == 0 else inner) * float(math.sin(a)),
+                )
+                for k, a in enumerate(ang)
+            ]
             super().__init__(pts)
             self.center, self.radius, self.n, self.inner_radius = center, radius, n, inner
             return
@@ -794,8 +888,9 @@ class Star(Polygon):
         n = _check_n(n, minimum=2)
         inner = radius / 2 if inner_radius is None else _positive(inner_radius, "inner_radius")
         if not inner < radius:
-            raise ValueError(f"inner_radius must be < radius, got inner_radius={inner!r}, "
-                             f"radius={radius!r}")
+            raise ValueError(
+                f"inner_radius must be < radius, got inner_radius={inner!r}, radius={radius!r}"
+            )
         t = math.pi / 2 + math.pi * np.arange(2 * n) / n
         rr = np.where(np.arange(2 * n) % 2 == 0, radius, inner)
         v = np.stack([center[0] + rr * np.cos(t), center[1] + rr * np.sin(t)], -1)
@@ -804,8 +899,9 @@ class Star(Polygon):
         sym = {"x"} if center[0] == 0 else set()
         if center[1] == 0 and n % 2 == 0:
             sym.add("y")
-        self._info = self._info._replace(sym=frozenset(sym) if _frame() == _IDENTITY
-                             else frozenset())
+        self._info = self._info._replace(
+            sym=frozenset(sym) if _frame() == _IDENTITY else frozenset()
+        )
 
 
 # Beyond this axis ratio the closest-point solve's variables (which grow like the ratio
@@ -840,10 +936,12 @@ class Ellipse(SDF):
         self._check_axes(axes)
         self.center, self.axes = center, axes
         x, y = _coords()
-        expr = sym_prim("ellipse", x - float(center[0]), y - float(center[1]),
-                        float(axes[0]), float(axes[1]))
-        info = _primitive_info(_points_bbox([center - axes, center + axes]), _center_sym(center),
-                               convex=True)
+        expr = sym_prim(
+            "ellipse", x - float(center[0]), y - float(center[1]), float(axes[0]), float(axes[1])
+        )
+        info = _primitive_info(
+            _points_bbox([center - axes, center + axes]), _center_sym(center), convex=True
+        )
         super().__init__(expr, info)
 
     @staticmethod
@@ -853,27 +951,36 @@ class Ellipse(SDF):
         for v in axes:
             _check_length(float(v), "axes", axes.tolist())
         if axes.max() / axes.min() > _MAX_ECCENTRICITY:
-            raise ValueError(f"axes must not differ by more than a factor "
-                             f"{_MAX_ECCENTRICITY:g}, got axes={axes.tolist()!r}")
+            raise ValueError(
+                f"axes must not differ by more than a factor "
+                f"{_MAX_ECCENTRICITY:g}, got axes={axes.tolist()!r}"
+            )
 
 
 class Ring(SDF):
     """Annulus: the circle of ``radius`` around ``center`` thickened to total width
     ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
 
-    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0,
-                 thickness: FloatOrParam = 0.2):
+    def __init__(
+        self,
+        center: PairOrParam = (0.0, 0.0),
+        radius: FloatOrParam = 1.0,
+        thickness: FloatOrParam = 0.2,
+    ):
         (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
         thickness, tv = _positive_p(thickness, "thickness")
         if not tv < 2 * rv:
-            raise ValueError(f"thickness must be < 2 * radius (the hole would close), got "
-                             f"thickness={thickness!r}, radius={radius!r}")
+            raise ValueError(
+                f"thickness must be < 2 * radius (the hole would close), got "
+                f"thickness={thickness!r}, radius={radius!r}"
+            )
         self.center, self.radius, self.thickness = center, radius, thickness
         x, y = _coords()
         expr = sym_abs(sym_length(x - center[0], y - center[1]) - radius) - thickness / 2
         moving = _any_param(center, radius, thickness)
-        info = _primitive_info(None if moving else _points_bbox([cv], rv + tv / 2),
-                               () if moving else _center_sym(cv))
+        info = _primitive_info(
+            None if moving else _points_bbox([cv], rv + tv / 2), () if moving else _center_sym(cv)
+        )
         super().__init__(expr, info)
 
 
@@ -887,16 +994,22 @@ class Arc(SDF):
     a bound inside (reported as ``'bound'``).
     """
 
-    def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0,
-                 aperture: FloatOrParam = math.pi, thickness: FloatOrParam = 0.2):
+    def __init__(
+        self,
+        center: PairOrParam = (0.0, 0.0),
+        radius: FloatOrParam = 1.0,
+        aperture: FloatOrParam = math.pi,
+        thickness: FloatOrParam = 0.2,
+    ):
         (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
         aperture, apv = _positive_p(aperture, "aperture", size=False)
         if apv > 2 * math.pi:
             raise ValueError(f"aperture must be <= 2 pi, got aperture={aperture!r}")
         thickness, tv = _positive_p(thickness, "thickness")
         if not tv < 2 * rv:
-            raise ValueError(f"thickness must be < 2 * radius, got thickness={thickness!r}, "
-                             f"radius={radius!r}")
+            raise ValueError(
+                f"thickness must be < 2 * radius, got thickness={thickness!r}, radius={radius!r}"
+            )
         moving = _any_param(center, radius, aperture, thickness)
         self.center, self.radius = center, radius
         self.aperture, self.thickness = aperture, thickness
@@ -908,15 +1021,20 @@ class Arc(SDF):
         else:
             # (at a full circle given by parameters, the end point's branch is the circle's
             # own value: the formula is continuous there)
-            s, c = (sym_sin(aperture / 2), sym_cos(aperture / 2)) if is_param(aperture) else \
-                (math.sin(apv / 2), math.cos(apv / 2))  # (apv = aperture: a number)
+            s, c = (
+                (sym_sin(aperture / 2), sym_cos(aperture / 2))
+                if is_param(aperture)
+                else (math.sin(apv / 2), math.cos(apv / 2))
+            )  # (apv = aperture: a number)
             ax = sym_abs(px)
             # beyond the end's ray the end point is nearest, else the circle
             dist = sym_select(ax * c - py * s, sym_length(ax - s * radius, py - c * radius), ring)
         gap = 2 * rv * math.sin(math.pi - apv / 2)  # distance between the ends
         exact = not _any_param(radius, aperture, thickness) and (apv == 2 * math.pi or gap >= tv)
-        info = _primitive_info(None if moving else _points_bbox([cv], rv + tv / 2),
-                               set() if moving else _center_sym(cv) & {"x"})
+        info = _primitive_info(
+            None if moving else _points_bbox([cv], rv + tv / 2),
+            set() if moving else _center_sym(cv) & {"x"},
+        )
         if not exact:
             info = info._replace(inside=False)
         super().__init__(dist - thickness / 2, info)
@@ -955,25 +1073,28 @@ def outline_table(segments: ArrayLike, fill_rule: str = "nonzero") -> np.ndarray
         raise ValueError(f"fill_rule must be one of {FILL_RULES}, got fill_rule={fill_rule!r}")
     seg = np.asarray(segments, dtype=np.float64)
     if seg.ndim != 2 or seg.shape[1] != 7 or len(seg) == 0:
-        raise ValueError(f"segments must be rows [kind, x0, y0, x1, y1, x2, y2], got an array "
-                         f"of shape {seg.shape}")
+        raise ValueError(
+            f"segments must be rows [kind, x0, y0, x1, y1, x2, y2], got an array "
+            f"of shape {seg.shape}"
+        )
     if not np.isfinite(seg).all():
         raise ValueError("segments must hold finite numbers")
     if not np.isin(seg[:, 0], (0.0, 1.0)).all():
-        raise ValueError(f"segment kinds must be 0 (line) or 1 (quadratic), got "
-                         f"{sorted(set(seg[:, 0].tolist()))}")
+        raise ValueError(
+            f"segment kinds must be 0 (line) or 1 (quadratic), got "
+            f"{sorted(set(seg[:, 0].tolist()))}"
+        )
     # Every end must be the start of another segment: closed loops (to a relative 1e-9).
     scale = float(np.abs(seg[:, 1:]).max()) or 1.0
     starts = np.round(seg[:, 1:3] / (1e-9 * scale))
     ends = np.round(seg[:, 5:7] / (1e-9 * scale))
     if not np.array_equal(starts[np.lexsort(starts.T)], ends[np.lexsort(ends.T)]):
-        raise ValueError("segments must form closed loops (every segment's end is another's "
-                         "start)")
+        raise ValueError("segments must form closed loops (every segment's end is another's start)")
     rows = [r for row in seg.tolist() for r in _split_quadratic_y(tuple(row))]
     body = np.array(rows)
     pts = body[:, 1:7].reshape(-1, 3, 2)
     lines = body[:, 0] == 0.0
-    pts[lines, 1] = pts[lines, 0]            # a line's unused control: not in its box
+    pts[lines, 1] = pts[lines, 0]  # a line's unused control: not in its box
     lo, hi = pts.min(axis=1), pts.max(axis=1)
     table = np.zeros((len(body) + 1, 11))
     table[0, 0] = 1.0 if fill_rule == "evenodd" else 2.0
@@ -1002,6 +1123,10 @@ class Outline(SDF):
         data = tuple(map(tuple, table.tolist()))
         x, y = _coords()
         expr = sym_prim("outline", x, y, data=data)
-        bbox = (float(table[1:, 7].min()), float(table[1:, 8].min()),
-                float(table[1:, 9].max()), float(table[1:, 10].max()))
+        bbox = (
+            float(table[1:, 7].min()),
+            float(table[1:, 8].min()),
+            float(table[1:, 9].max()),
+            float(table[1:, 10].max()),
+        )
         super().__init__(expr, _primitive_info(bbox))

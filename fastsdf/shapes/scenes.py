@@ -12,8 +12,11 @@ __all__ = ["funnel", "seed_world", "box_world", "mixed_scene"]
 
 def funnel() -> SDF:
     """The notebook's floor: three half-spaces forming a funnel (cells 13, 18 and 21)."""
-    return (Halfspace(normal=[0, 1], d=-1.8) | Halfspace(normal=[1, 1], d=-1.8)
-            | Halfspace(normal=[-1, 1], d=-1.8))
+    return (
+        Halfspace(normal=[0, 1], d=-1.8)
+        | Halfspace(normal=[1, 1], d=-1.8)
+        | Halfspace(normal=[-1, 1], d=-1.8)
+    )
 
 
 def seed_world() -> SDF:
@@ -39,8 +42,10 @@ def _box_world(n_boxes: int, seed: int) -> SDF:
     rng = np.random.default_rng(seed)
     f = funnel()
     for _ in range(n_boxes):
-        with transform(angle=rng.uniform(-0.8, 0.8), offset=rng.uniform(-2, 2, size=2)), \
-                smoothness(5):
+        with (
+            transform(angle=rng.uniform(-0.8, 0.8), offset=rng.uniform(-2, 2, size=2)),
+            smoothness(5),
+        ):
             f |= Box(minc=rng.uniform(-0.3, -0.1, size=2), maxc=rng.uniform(0.1, 0.3, size=2))
     return f
 
@@ -61,10 +66,15 @@ def _mixed_scene(n: int, seed: int) -> SDF:
     rng = np.random.default_rng(seed)
     f: SDF = Halfspace([0, 1], -1.8)
     for i in range(int(n) - 1):
-        with transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)), \
-                smoothness([0, 5, 10][i % 3]):
-            s = Circle([0, 0], rng.uniform(0.1, 0.3)) if i % 2 else \
-                Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
+        with (
+            transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
+            smoothness([0, 5, 10][i % 3]),
+        ):
+            s = (
+                Circle([0, 0], rng.uniform(0.1, 0.3))
+                if i % 2
+                else Box(-rng.uniform(0.1, 0.3, 2), rng.uniform(0.1, 0.3, 2))
+            )
             # (only the operation used is built: the same scene as building all three)
             f = f & (Circle([0, 0], 3.0) - s) if i % 3 == 1 else f | s
     return f

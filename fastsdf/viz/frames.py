@@ -42,8 +42,17 @@ from numba import njit
 
 from fastsdf.files import commit, temporary_sibling
 
-__all__ = ["VideoWriter", "record_video", "splat_counts", "splat_discs", "composite",
-           "ffmpeg_exe", "color_table", "DEFAULT_SIZE", "MODES"]
+__all__ = [
+    "VideoWriter",
+    "record_video",
+    "splat_counts",
+    "splat_discs",
+    "composite",
+    "ffmpeg_exe",
+    "color_table",
+    "DEFAULT_SIZE",
+    "MODES",
+]
 
 #: Frame size ``(width, height)`` in pixels by default (720p).
 DEFAULT_SIZE = (1280, 720)
@@ -55,9 +64,11 @@ _TIME_CHARS = "0123456789.-+e tsp=()inaf"
 # ---------------------------------------------------------------------------------------------
 # Kernels (plain @njit functions; the NumPy references are in the tests).
 
+
 @njit(cache=True, nogil=True)
-def splat_counts(xs: np.ndarray, ys: np.ndarray, x0: float, y1: float, sx: float, sy: float,
-                 counts: np.ndarray) -> None:
+def splat_counts(
+    xs: np.ndarray, ys: np.ndarray, x0: float, y1: float, sx: float, sy: float, counts: np.ndarray
+) -> None:
     """Add one to ``counts[i, j]`` for each point ``(xs[p], ys[p])`` in pixel ``(i, j)``.
 
     ``counts`` is an ``(H, W)`` integer image whose row 0 is at the top: pixel ``(i, j)`` covers
@@ -79,8 +90,16 @@ def splat_counts(xs: np.ndarray, ys: np.ndarray, x0: float, y1: float, sx: float
 
 
 @njit(cache=True, nogil=True)
-def splat_discs(xs: np.ndarray, ys: np.ndarray, rs: np.ndarray, x0: float, y1: float, sx: float,
-                sy: float, counts: np.ndarray) -> None:
+def splat_discs(
+    xs: np.ndarray,
+    ys: np.ndarray,
+    rs: np.ndarray,
+    x0: float,
+    y1: float,
+    sx: float,
+    sy: float,
+    counts: np.ndarray,
+) -> None:
     """Mark (set to 1) the pixels of ``counts`` covered by the discs ``(xs, ys, rs)``.
 
     A pixel is covered when its centre lies in the disc (in data units, so a disc stays round
@@ -121,8 +140,9 @@ def splat_discs(xs: np.ndarray, ys: np.ndarray, rs: np.ndarray, x0: float, y1: f
 
 
 @njit(cache=True, nogil=True)
-def composite(counts: np.ndarray, table: np.ndarray, keep: int, frame: np.ndarray, row0: int,
-              col0: int) -> None:
+def composite(
+    counts: np.ndarray, table: np.ndarray, keep: int, frame: np.ndarray, row0: int, col0: int
+) -> None:
     """Blend the colours of ``counts`` into ``frame[row0:, col0:]`` (an RGB uint8 image).
 
     A pixel with count ``c > 0`` becomes ``(frame * keep + table[min(c, len(table) - 1)]) >> 8``
@@ -153,24 +173,31 @@ def color_table(colors: np.ndarray, alpha: float) -> tuple:
 # ---------------------------------------------------------------------------------------------
 # ffmpeg and parameter checks.
 
+
 def ffmpeg_exe() -> str:
     """The ffmpeg binary: that of ``imageio-ffmpeg`` (``pip install 'fastsdf[video]'``), else
     the system's. Raises ``RuntimeError`` saying what to install when there is none."""
     try:
         import imageio_ffmpeg
+
         return str(imageio_ffmpeg.get_ffmpeg_exe())
     except (ImportError, RuntimeError):
         pass
     exe = shutil.which("ffmpeg")
     if exe is None:
-        raise RuntimeError("writing a video needs ffmpeg: pip install 'fastsdf[video]' (it "
-                           "installs imageio-ffmpeg, which ships one), or install ffmpeg")
+        raise RuntimeError(
+            "writing a video needs ffmpeg: pip install 'fastsdf[video]' (it "
+            "installs imageio-ffmpeg, which ships one), or install ffmpeg"
+        )
     return exe
 
 
 def _positive_int(value: Any, name: str, minimum: int = 1) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) \
-            or value < minimum:
+    if (
+        isinstance(value, (bool, np.bool_))
+        or not isinstance(value, numbers.Integral)
+        or value < minimum
+    ):
         raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
     return int(value)
 
@@ -189,8 +216,9 @@ def _coords(v: Any, name: str) -> np.ndarray:
     try:
         arr = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an array of real numbers, got {name} of type "
-                         f"{type(v).__name__}") from None
+        raise ValueError(
+            f"{name} must be an array of real numbers, got {name} of type {type(v).__name__}"
+        ) from None
     return arr.reshape(-1)
 
 
@@ -207,6 +235,7 @@ def time_label(t: float | None, step: int | None) -> str:
 # ---------------------------------------------------------------------------------------------
 # The glyph atlas.
 
+
 class _GlyphAtlas:
     """Coverage masks of a few characters in a monospaced font, rendered once by Matplotlib
     (every glyph in a cell of the same width, so strings are laid out by index)."""
@@ -222,13 +251,23 @@ class _GlyphAtlas:
         canvas = FigureCanvasAgg(fig)
         baseline = 0.3  # fraction of the cell below the baseline (descenders)
         for k, ch in enumerate(chars):
-            fig.text(k / len(chars), baseline, ch, family="DejaVu Sans Mono", fontsize=fontsize,
-                     color="black", ha="left", va="baseline")
+            fig.text(
+                k / len(chars),
+                baseline,
+                ch,
+                family="DejaVu Sans Mono",
+                fontsize=fontsize,
+                color="black",
+                ha="left",
+                va="baseline",
+            )
         canvas.draw()
         rgba = np.asarray(canvas.buffer_rgba())
         ink = 255 - rgba[..., :3].min(axis=2)  # black on white: coverage
-        self.glyphs = {ch: np.ascontiguousarray(ink[:, k * self.cell_w:(k + 1) * self.cell_w])
-                       for k, ch in enumerate(chars)}
+        self.glyphs = {
+            ch: np.ascontiguousarray(ink[:, k * self.cell_w : (k + 1) * self.cell_w])
+            for k, ch in enumerate(chars)
+        }
         self.height = ink.shape[0]
 
     def draw(self, frame: np.ndarray, text: str, right: int, top: int) -> None:
@@ -241,7 +280,7 @@ class _GlyphAtlas:
                 r0, c0 = max(0, top), max(0, x)
                 r1, c1 = min(frame.shape[0], top + h), min(frame.shape[1], x + w)
                 if r1 > r0 and c1 > c0:
-                    a = g[r0 - top:r1 - top, c0 - x:c1 - x, None].astype(np.uint16)
+                    a = g[r0 - top : r1 - top, c0 - x : c1 - x, None].astype(np.uint16)
                     region = frame[r0:r1, c0:c1]
                     region[...] = (region * (255 - a) // 255).astype(np.uint8)
             x += self.cell_w
@@ -249,6 +288,7 @@ class _GlyphAtlas:
 
 # ---------------------------------------------------------------------------------------------
 # The writer.
+
 
 class VideoWriter:
     """Write particle frames over a static picture of the world to a video file (MP4 etc.).
@@ -272,12 +312,24 @@ class VideoWriter:
     quality (lower is better) and speed settings. ``alpha``: opacity of the particle layer.
     """
 
-    def __init__(self, path: str | os.PathLike, world: Any = None,
-                 bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)), size: tuple = DEFAULT_SIZE,
-                 fps: float = 30, mode: str = "auto", max_discs: int | None = None,
-                 vmax: float | None = None, scale_frames: int = 1, title: str | None = None,
-                 samples: int = 400, crf: int = 20, preset: str = "veryfast",
-                 alpha: float = 0.8, dpi: float = 100) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        world: Any = None,
+        bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
+        size: tuple = DEFAULT_SIZE,
+        fps: float = 30,
+        mode: str = "auto",
+        max_discs: int | None = None,
+        vmax: float | None = None,
+        scale_frames: int = 1,
+        title: str | None = None,
+        samples: int = 400,
+        crf: int = 20,
+        preset: str = "veryfast",
+        alpha: float = 0.8,
+        dpi: float = 100,
+    ) -> None:
         from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import DEFAULT_MAX_CIRCLES
 
@@ -286,23 +338,23 @@ class VideoWriter:
         try:
             width, height = (int(v) for v in size)
         except (TypeError, ValueError):
-            raise ValueError(f"size must be (width, height) in pixels, got size={size!r}") \
-                from None
+            raise ValueError(f"size must be (width, height) in pixels, got size={size!r}") from None
         if width < 64 or height < 64 or width % 2 or height % 2:
-            raise ValueError(f"size must be (width, height), both even and >= 64, got "
-                             f"size={size!r}")
+            raise ValueError(
+                f"size must be (width, height), both even and >= 64, got size={size!r}"
+            )
         self.size = (width, height)
         self.fps = _positive_real(fps, "fps")
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got mode={mode!r}")
         self.mode = mode
-        self.max_discs = DEFAULT_MAX_CIRCLES if max_discs is None else \
-            _positive_int(max_discs, "max_discs", 0)
+        self.max_discs = (
+            DEFAULT_MAX_CIRCLES if max_discs is None else _positive_int(max_discs, "max_discs", 0)
+        )
         if vmax is not None:
             v = _positive_real(vmax, "vmax")
             if v <= 1.0 or v > 1e8:
-                raise ValueError(f"vmax must be in (1, 1e8] particles per pixel, got "
-                                 f"vmax={vmax!r}")
+                raise ValueError(f"vmax must be in (1, 1e8] particles per pixel, got vmax={vmax!r}")
             vmax = v
         self.vmax = vmax
         self.scale_frames = _positive_int(scale_frames, "scale_frames")
@@ -388,8 +440,13 @@ class VideoWriter:
             assert self.vmax is not None
             norm = LogNorm(1.0, self.vmax)
             cax.set_visible(True)
-            bar = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, extend="max",
-                               label="particles per pixel", alpha=self.alpha)
+            bar = fig.colorbar(
+                ScalarMappable(norm=norm, cmap=cmap),
+                cax=cax,
+                extend="max",
+                label="particles per pixel",
+                alpha=self.alpha,
+            )
             plain_log_ticks(bar)
             top = int(math.ceil(self.vmax))
             colors = cmap(norm(np.arange(top + 1, dtype=np.float64).clip(1.0, None)))
@@ -402,8 +459,10 @@ class VideoWriter:
         canvas.draw()
         rgba = np.asarray(canvas.buffer_rgba())
         if rgba.shape[:2] != (height, width):
-            raise RuntimeError(f"the background came out {rgba.shape[1]}x{rgba.shape[0]} "
-                               f"pixels, not {width}x{height} (dpi={self.dpi})")
+            raise RuntimeError(
+                f"the background came out {rgba.shape[1]}x{rgba.shape[0]} "
+                f"pixels, not {width}x{height} (dpi={self.dpi})"
+            )
         self._background = np.ascontiguousarray(rgba[..., :3])
         self._fig = self._ax = self._cax = None  # the figure is not needed any more
 
@@ -411,16 +470,42 @@ class VideoWriter:
         width, height = self.size
         self._tmp = temporary_sibling(self.path)
         self._log = tempfile.TemporaryFile()  # noqa: SIM115 (closed in close())
-        cmd = [self._exe, "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",
-               "-s", f"{width}x{height}", "-r", f"{self.fps:g}", "-i", "-", "-an",
-               "-c:v", "libx264", "-preset", self.preset, "-crf", str(self.crf),
-               "-pix_fmt", "yuv420p", "-movflags", "+faststart", self._tmp]
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                      stderr=self._log)
+        cmd = [
+            self._exe,
+            "-y",
+            "-loglevel",
+            "error",
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "rgb24",
+            "-s",
+            f"{width}x{height}",
+            "-r",
+            f"{self.fps:g}",
+            "-i",
+            "-",
+            "-an",
+            "-c:v",
+            "libx264",
+            "-preset",
+            self.preset,
+            "-crf",
+            str(self.crf),
+            "-pix_fmt",
+            "yuv420p",
+            "-movflags",
+            "+faststart",
+            self._tmp,
+        ]
+        self._proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._log
+        )
 
     # -- frames ----------------------------------------------------------------------------
-    def render(self, x: Any, y: Any, r: Any = None, t: float | None = None,
-               step: int | None = None) -> np.ndarray:
+    def render(
+        self, x: Any, y: Any, r: Any = None, t: float | None = None, step: int | None = None
+    ) -> np.ndarray:
         """The frame for particles at ``(x, y)`` (radii ``r``, data units, scalar or one per
         particle; needed for discs) at simulated time ``t`` / ``step``, as an ``(H, W, 3)``
         uint8 array (a buffer reused by the next call: copy it to keep it). Nothing is
@@ -436,14 +521,17 @@ class VideoWriter:
         if self._counts is None:
             raise RuntimeError("the layout is fixed by the first frame: add or render one first")
         (x0, _), (_, y1) = self.bounds
-        return (self._row0 + int(math.floor((y1 - y) * self._sy)),
-                self._col0 + int(math.floor((x - x0) * self._sx)))
+        return (
+            self._row0 + int(math.floor((y1 - y) * self._sy)),
+            self._col0 + int(math.floor((x - x0) * self._sx)),
+        )
 
     def _splat(self, x: Any, y: Any, r: Any) -> np.ndarray:
         xs, ys = _coords(x, "x"), _coords(y, "y")
         if xs.shape != ys.shape:
-            raise ValueError(f"x and y must have the same number of points, got {xs.size} and "
-                             f"{ys.size}")
+            raise ValueError(
+                f"x and y must have the same number of points, got {xs.size} and {ys.size}"
+            )
         if self._counts is None:
             self._layout(xs.size)
         if self._background is None and (self.mode == "discs" or self.vmax is not None):
@@ -460,8 +548,10 @@ class VideoWriter:
                 raise ValueError("r (the particles' radii) is needed to draw discs")
             rs = _coords(r, "r")
             if rs.size not in (1, xs.size):
-                raise ValueError(f"r must be a scalar or one radius per particle ({xs.size}), "
-                                 f"got {rs.size} radii")
+                raise ValueError(
+                    f"r must be a scalar or one radius per particle ({xs.size}), "
+                    f"got {rs.size} radii"
+                )
             splat_discs(xs, ys, rs, x0, y1, self._sx, self._sy, counts)
         return counts
 
@@ -473,8 +563,9 @@ class VideoWriter:
             self._atlas.draw(frame, label, self._text_right, self._text_top)
         return frame
 
-    def add(self, x: Any, y: Any, r: Any = None, t: float | None = None,
-            step: int | None = None) -> None:
+    def add(
+        self, x: Any, y: Any, r: Any = None, t: float | None = None, step: int | None = None
+    ) -> None:
         """Append the frame of particles at ``(x, y)`` (see :meth:`render`)."""
         if self._closed:
             raise RuntimeError("this VideoWriter is closed")
@@ -494,8 +585,7 @@ class VideoWriter:
         x = np.asarray(sim.p["x"])
         t = float(sim.t)
         dt = float(getattr(sim, "dt", 0.0) or 0.0)
-        self.add(x[:, 0], x[:, 1], sim.p["r"], t=t,
-                 step=int(round(t / dt)) if dt > 0 else None)
+        self.add(x[:, 0], x[:, 1], sim.p["r"], t=t, step=int(round(t / dt)) if dt > 0 else None)
 
     def _fix_scale(self) -> None:
         top = max(int(c.max()) for c, _ in self._pending)
@@ -515,8 +605,7 @@ class VideoWriter:
             self._pool = ThreadPoolExecutor(1, thread_name_prefix="fastsdf-video")
         assert self._proc is not None and self._proc.stdin is not None
         self._wait_write()
-        self._pending_write = self._pool.submit(self._proc.stdin.write,
-                                                frame.reshape(-1).data)
+        self._pending_write = self._pool.submit(self._proc.stdin.write, frame.reshape(-1).data)
         self._frame = self._frames[1] if frame is self._frames[0] else self._frames[0]
         self.frames_written += 1
 
@@ -528,8 +617,9 @@ class VideoWriter:
             job.result()
         except (BrokenPipeError, OSError):
             self._abort()
-            raise RuntimeError(f"ffmpeg stopped while writing {self.path}: "
-                               f"{self._ffmpeg_log()}") from None
+            raise RuntimeError(
+                f"ffmpeg stopped while writing {self.path}: {self._ffmpeg_log()}"
+            ) from None
 
     # -- closing ---------------------------------------------------------------------------
     def _ffmpeg_log(self) -> str:
@@ -572,8 +662,9 @@ class VideoWriter:
             self._proc.stdin.close()
             code = self._proc.wait()
             if code != 0:
-                raise RuntimeError(f"ffmpeg failed (exit {code}) writing {self.path}: "
-                                   f"{self._ffmpeg_log()}")
+                raise RuntimeError(
+                    f"ffmpeg failed (exit {code}) writing {self.path}: {self._ffmpeg_log()}"
+                )
             assert self._tmp is not None
             commit(self._tmp, self.path)
             self._tmp = None
@@ -603,8 +694,15 @@ class VideoWriter:
             self._abort()
 
 
-def record_video(sim: Any, path: str | os.PathLike, frames: int, steps_per_frame: int = 1,
-                 world: Any = None, advance: Any = None, **writer_options: Any) -> str:
+def record_video(
+    sim: Any,
+    path: str | os.PathLike,
+    frames: int,
+    steps_per_frame: int = 1,
+    world: Any = None,
+    advance: Any = None,
+    **writer_options: Any,
+) -> str:
     """Run ``sim`` and write a video of it: frame 0 is its current state, each later frame
     follows ``steps_per_frame`` more steps (``sim.run``, or ``advance(k)`` if given).
 

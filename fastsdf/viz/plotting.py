@@ -29,8 +29,15 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_sdf", "sdf_grid", "check_bounds",
-           "SOLID_COLOR", "BACKGROUND_COLOR", "ISOLINE_OPTIONS", "QUIVER_ARROWS"]
+__all__ = [
+    "plot_sdf",
+    "sdf_grid",
+    "check_bounds",
+    "SOLID_COLOR",
+    "BACKGROUND_COLOR",
+    "ISOLINE_OPTIONS",
+    "QUIVER_ARROWS",
+]
 
 #: Colour of the solid region (``d < 0``) in the filled view (``plot_sdf(..., filled=True)``).
 SOLID_COLOR = "#4a5a6a"
@@ -51,8 +58,9 @@ def check_bounds(bounds: Any, name: str = "bounds") -> tuple:
     try:
         arr = np.asarray(bounds, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}") \
-            from None
+        raise ValueError(
+            f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}"
+        ) from None
     if arr.shape != (2, 2):
         raise ValueError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}")
     if not np.all(np.isfinite(arr)):
@@ -66,10 +74,12 @@ def _check_samples(samples: Any) -> tuple:
     """``samples`` (an int, or a pair for x and y) as ``(nx, ny)``, each an integer >= 2."""
     pair = samples if isinstance(samples, (tuple, list, np.ndarray)) else (samples, samples)
     if len(pair) != 2 or not all(
-            isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 2
-            for v in pair):
-        raise ValueError(f"samples must be an integer >= 2 or a pair of them (x, y), got "
-                         f"samples={samples!r}")
+        isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 2
+        for v in pair
+    ):
+        raise ValueError(
+            f"samples must be an integer >= 2 or a pair of them (x, y), got samples={samples!r}"
+        )
     return int(pair[0]), int(pair[1])
 
 
@@ -77,8 +87,9 @@ def _calling_convention(f: Callable) -> str:
     """``'gradient'`` (``f(x, y, compute_gradient=...)``), ``'xy'`` (``f(x, y)``) or ``'points'``
     (``f(p)``, ``p`` of shape ``(n, 2)``)."""
     if not callable(f):
-        raise TypeError(f"f must be a callable SDF (f(x, y) or f(p)), got f of type "
-                        f"{type(f).__name__}")
+        raise TypeError(
+            f"f must be a callable SDF (f(x, y) or f(p)), got f of type {type(f).__name__}"
+        )
     try:
         params = list(inspect.signature(f).parameters.values())
     except (TypeError, ValueError):  # builtins and some extension callables have no signature
@@ -86,8 +97,11 @@ def _calling_convention(f: Callable) -> str:
     kinds = {p.kind for p in params}
     if any(p.name == "compute_gradient" for p in params) or inspect.Parameter.VAR_KEYWORD in kinds:
         return "gradient"
-    positional = [p for p in params if p.kind in (inspect.Parameter.POSITIONAL_ONLY,
-                                                  inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    positional = [
+        p
+        for p in params
+        if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    ]
     if inspect.Parameter.VAR_POSITIONAL in kinds or len(positional) >= 2:
         return "xy"
     return "points"
@@ -104,8 +118,12 @@ def _values(f: Callable, kind: str, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return np.reshape(np.asarray(d, dtype=np.float64), X.shape)
 
 
-def sdf_grid(f: Callable, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)), samples: Any = 200,
-             compute_gradient: bool = False) -> tuple:
+def sdf_grid(
+    f: Callable,
+    bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
+    samples: Any = 200,
+    compute_gradient: bool = False,
+) -> tuple:
     """Evaluate the SDF ``f`` on a regular grid over ``bounds``.
 
     ``f``: any of the callables of the module docstring. ``samples`` points along each axis (an
@@ -124,11 +142,20 @@ def sdf_grid(f: Callable, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)), samples: Any
         return xs, ys, _values(f, kind, X, Y)
     if kind == "gradient":
         d, grad = f(X, Y, compute_gradient=True)
-        return xs, ys, np.reshape(np.asarray(d, dtype=np.float64), X.shape), \
-            np.reshape(np.asarray(grad, dtype=np.float64), X.shape + (2,))
+        return (
+            xs,
+            ys,
+            np.reshape(np.asarray(d, dtype=np.float64), X.shape),
+            np.reshape(np.asarray(grad, dtype=np.float64), X.shape + (2,)),
+        )
     h = 1e-6 * max(x1 - x0, y1 - y0)
-    grad = np.stack([(_values(f, kind, X + h, Y) - _values(f, kind, X - h, Y)) / (2 * h),
-                     (_values(f, kind, X, Y + h) - _values(f, kind, X, Y - h)) / (2 * h)], -1)
+    grad = np.stack(
+        [
+            (_values(f, kind, X + h, Y) - _values(f, kind, X - h, Y)) / (2 * h),
+            (_values(f, kind, X, Y + h) - _values(f, kind, X, Y - h)) / (2 * h),
+        ],
+        -1,
+    )
     return xs, ys, _values(f, kind, X, Y), grad
 
 
@@ -140,20 +167,39 @@ def _setup_axes(ax: Any, bounds: tuple, ticks: bool = False) -> None:
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
     if ticks:
-        ax.tick_params(axis="both", which="both", bottom=True, left=True, labelbottom=True,
-                       labelleft=True)
+        ax.tick_params(
+            axis="both", which="both", bottom=True, left=True, labelbottom=True, labelleft=True
+        )
         ax.set_xlabel("x")
         ax.set_ylabel("y")
     else:
-        ax.tick_params(axis="both", which="both", bottom=False, top=False, left=False,
-                       right=False, labelbottom=False, labeltop=False, labelleft=False,
-                       labelright=False)
+        ax.tick_params(
+            axis="both",
+            which="both",
+            bottom=False,
+            top=False,
+            left=False,
+            right=False,
+            labelbottom=False,
+            labeltop=False,
+            labelleft=False,
+            labelright=False,
+        )
 
 
-def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
-             bounds: Any = ((-2, 2), (-2, 2)), samples: Any = 200, show_quiver: bool = True,
-             show_isolines: str | bool | None = 'all', show_isolabels: bool = False,
-             filled: bool = False, colorbar: bool = False, ticks: bool = False) -> dict:
+def plot_sdf(
+    f_or_fig: Any,
+    ax: Any = None,
+    f: Callable | None = None,
+    bounds: Any = ((-2, 2), (-2, 2)),
+    samples: Any = 200,
+    show_quiver: bool = True,
+    show_isolines: str | bool | None = "all",
+    show_isolabels: bool = False,
+    filled: bool = False,
+    colorbar: bool = False,
+    ticks: bool = False,
+) -> dict:
     """Plot the signed distance function ``f`` on a matplotlib axes.
 
     Call it as ``plot_sdf(f)`` (a new pyplot figure), ``plot_sdf(f, ax=ax)``, or with the
@@ -183,27 +229,34 @@ def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
     if f is None:
         f = f_or_fig
     if f is None or not callable(f):
-        raise TypeError(f"f must be a callable SDF, got f={f!r}: call plot_sdf(f), "
-                        f"plot_sdf(f, ax=ax) or plot_sdf(fig, ax, f)")
+        raise TypeError(
+            f"f must be a callable SDF, got f={f!r}: call plot_sdf(f), "
+            f"plot_sdf(f, ax=ax) or plot_sdf(fig, ax, f)"
+        )
     if isinstance(show_isolines, str) or show_isolines is None or show_isolines is False:
         ok = show_isolines in ISOLINE_OPTIONS
     else:
         ok = False
     if not ok:
-        raise ValueError(f"show_isolines must be 'all', 'zero', False or None, got "
-                         f"show_isolines={show_isolines!r}")
-    if colorbar and not (show_isolines == 'all' or show_quiver):
-        raise ValueError(f"colorbar=True needs something coloured by the distance "
-                         f"(show_isolines='all' or show_quiver=True), got "
-                         f"show_isolines={show_isolines!r}, show_quiver={show_quiver!r}")
+        raise ValueError(
+            f"show_isolines must be 'all', 'zero', False or None, got "
+            f"show_isolines={show_isolines!r}"
+        )
+    if colorbar and not (show_isolines == "all" or show_quiver):
+        raise ValueError(
+            f"colorbar=True needs something coloured by the distance "
+            f"(show_isolines='all' or show_quiver=True), got "
+            f"show_isolines={show_isolines!r}, show_quiver={show_quiver!r}"
+        )
     bounds = check_bounds(bounds)
     samples = _check_samples(samples)
     if ax is None:
         import matplotlib.pyplot as plt
+
         _, ax = plt.subplots()
 
     _setup_axes(ax, bounds, ticks)
-    ret = {'ax': ax}
+    ret = {"ax": ax}
     if not (show_quiver or show_isolines or filled):
         return ret
 
@@ -216,26 +269,35 @@ def plot_sdf(f_or_fig: Any, ax: Any = None, f: Callable | None = None,
     norm = None
     if colorbar:
         from matplotlib.colors import Normalize
+
         # One scale for lines and arrows, so the bar reads both.
         norm = Normalize(float(dm.min()), float(dm.max())) if dm.count() else None
 
     if filled:
-        ret['fill'] = ax.contourf(xs, ys, dm, levels=[-np.inf, 0.0, np.inf],
-                                  colors=[SOLID_COLOR, BACKGROUND_COLOR], zorder=0.5)
+        ret["fill"] = ax.contourf(
+            xs,
+            ys,
+            dm,
+            levels=[-np.inf, 0.0, np.inf],
+            colors=[SOLID_COLOR, BACKGROUND_COLOR],
+            zorder=0.5,
+        )
     if show_isolines:
-        levels = [0.0] if show_isolines == 'zero' else None
-        ret['contour'] = ax.contour(xs, ys, dm, levels=levels, zorder=2, norm=norm)
+        levels = [0.0] if show_isolines == "zero" else None
+        ret["contour"] = ax.contour(xs, ys, dm, levels=levels, zorder=2, norm=norm)
         if show_isolabels:
-            ret['labels'] = ax.clabel(ret['contour'], inline=True, fontsize=8, fmt="%g")
+            ret["labels"] = ax.clabel(ret["contour"], inline=True, fontsize=8, fmt="%g")
     if show_quiver:
         sx = max(1, round(samples[0] / QUIVER_ARROWS))
         sy = max(1, round(samples[1] / QUIVER_ARROWS))
         X, Y = np.meshgrid(xs[::sx], ys[::sy])
-        ret['quiver'] = ax.quiver(X, Y, grad[::sy, ::sx, 0], grad[::sy, ::sx, 1],
-                                  d[::sy, ::sx], zorder=3, norm=norm)
+        ret["quiver"] = ax.quiver(
+            X, Y, grad[::sy, ::sx, 0], grad[::sy, ::sx, 1], d[::sy, ::sx], zorder=3, norm=norm
+        )
     if colorbar:
-        mappable = ret['contour'] if show_isolines == 'all' else ret['quiver']
+        mappable = ret["contour"] if show_isolines == "all" else ret["quiver"]
         # fraction/pad: a bar as tall as a square axes beside it.
-        ret['colorbar'] = ax.figure.colorbar(mappable, ax=ax, fraction=0.046, pad=0.04,
-                                             label="distance d (negative inside)")
+        ret["colorbar"] = ax.figure.colorbar(
+            mappable, ax=ax, fraction=0.046, pad=0.04, label="distance d (negative inside)"
+        )
     return ret

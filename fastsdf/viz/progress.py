@@ -28,8 +28,9 @@ def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwarg
     """
     stream = stream if stream is not None else sys.stderr
     kwargs.setdefault("disable", not _is_terminal(stream))
-    return tqdm(total=max(1, int(total)), desc=label, file=stream, dynamic_ncols=True,
-                leave=True, **kwargs)
+    return tqdm(
+        total=max(1, int(total)), desc=label, file=stream, dynamic_ncols=True, leave=True, **kwargs
+    )
 
 
 class Progress:

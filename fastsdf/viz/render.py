@@ -36,9 +36,21 @@ from numpy.typing import ArrayLike
 
 from fastsdf.viz.plotting import check_bounds
 
-__all__ = ["density_image", "draw_particles", "ParticleLayer", "render_frame", "animate",
-           "save_animation", "PARTICLE_COLOR", "PARTICLE_CMAP_COLORS", "DEFAULT_MAX_CIRCLES",
-           "VIDEO_FORMATS", "sim_title", "notebook_draw", "notebook_animation"]
+__all__ = [
+    "density_image",
+    "draw_particles",
+    "ParticleLayer",
+    "render_frame",
+    "animate",
+    "save_animation",
+    "PARTICLE_COLOR",
+    "PARTICLE_CMAP_COLORS",
+    "DEFAULT_MAX_CIRCLES",
+    "VIDEO_FORMATS",
+    "sim_title",
+    "notebook_draw",
+    "notebook_animation",
+]
 
 #: Face colour of particles drawn as circles.
 PARTICLE_COLOR = "#e6550d"
@@ -59,6 +71,7 @@ _PAR_MIN_POINTS = 1 << 20
 
 # ---------------------------------------------------------------------------------------------
 # Kernels.
+
 
 @njit(cache=True, nogil=True)
 def _bin(v, lo, hi, scale, edges, n):
@@ -122,6 +135,7 @@ def _splat_parallel(xs, ys, ws, use_w, img, xe, ye, chunks):
 # ---------------------------------------------------------------------------------------------
 # Validation helpers (errors name the parameter and the value).
 
+
 def _check_count(value: object, name: str, minimum: int) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
@@ -134,10 +148,13 @@ def check_shape(shape: Any) -> tuple[int, int]:
     try:
         h, w = shape
     except (TypeError, ValueError):
-        raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}") \
-            from None
-    if not all(isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
-               and int(v) >= 1 for v in (h, w)):
+        raise ValueError(
+            f"shape must be a pair (H, W) of positive integers, got shape={shape!r}"
+        ) from None
+    if not all(
+        isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 1
+        for v in (h, w)
+    ):
         raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}")
     return int(h), int(w)
 
@@ -146,8 +163,9 @@ def _coords(v: ArrayLike, name: str) -> np.ndarray:
     try:
         arr = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an array of real numbers, got {name} of type "
-                         f"{type(v).__name__}") from None
+        raise ValueError(
+            f"{name} must be an array of real numbers, got {name} of type {type(v).__name__}"
+        ) from None
     # 1-d arrays (strided views such as sim.p['x'][:, 0] included) go to the kernel as they are.
     return arr if arr.ndim == 1 else arr.reshape(-1)
 
@@ -155,9 +173,15 @@ def _coords(v: ArrayLike, name: str) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Public API.
 
-def density_image(x: Any, y: Any, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
-                  shape: tuple = (400, 400), weights: Any = None,
-                  parallel: bool | None = None) -> np.ndarray:
+
+def density_image(
+    x: Any,
+    y: Any,
+    bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
+    shape: tuple = (400, 400),
+    weights: Any = None,
+    parallel: bool | None = None,
+) -> np.ndarray:
     """Count points per pixel: a ``(H, W)`` float64 image of the points ``(x, y)``.
 
     ``x``, ``y``: coordinates (data units), arrays of equal size and any shape (flattened).
@@ -182,14 +206,16 @@ def density_image(x: Any, y: Any, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
     h, w = check_shape(shape)
     xs, ys = _coords(x, "x"), _coords(y, "y")
     if xs.shape != ys.shape:
-        raise ValueError(f"x and y must have the same number of points, got {xs.size} and "
-                         f"{ys.size}")
+        raise ValueError(
+            f"x and y must have the same number of points, got {xs.size} and {ys.size}"
+        )
     use_w = weights is not None
     if use_w:
         ws = _coords(weights, "weights")
         if ws.shape != xs.shape:
-            raise ValueError(f"weights must have one value per point ({xs.size}), got "
-                             f"{ws.size} values")
+            raise ValueError(
+                f"weights must have one value per point ({xs.size}), got {ws.size} values"
+            )
     else:
         ws = np.empty(0)
     xe = np.linspace(x0, x1, w + 1)
@@ -214,6 +240,7 @@ def density_image(x: Any, y: Any, bounds: Any = ((-2.0, 2.0), (-2.0, 2.0)),
 
 def _particle_cmap():
     from matplotlib.colors import LinearSegmentedColormap
+
     cmap = LinearSegmentedColormap.from_list("fastsdf_particles", list(PARTICLE_CMAP_COLORS))
     return cmap.with_extremes(bad=(0.0, 0.0, 0.0, 0.0), under=(0.0, 0.0, 0.0, 0.0))
 
@@ -264,9 +291,20 @@ class ParticleLayer:
     layer switches representation if the count crosses ``max_circles``.
     """
 
-    def __init__(self, ax: Any, bounds: tuple, shape: tuple | None, max_circles: int,
-                 color: Any, cmap: Any, norm: Any, alpha: float, zorder: float,
-                 marker_points: float, colorbar: Any = False) -> None:
+    def __init__(
+        self,
+        ax: Any,
+        bounds: tuple,
+        shape: tuple | None,
+        max_circles: int,
+        color: Any,
+        cmap: Any,
+        norm: Any,
+        alpha: float,
+        zorder: float,
+        marker_points: float,
+        colorbar: Any = False,
+    ) -> None:
         # True: a colour bar beside ax; an Axes: the colour bar drawn into it.
         self.cax = colorbar if hasattr(colorbar, "figure") else None
         self.want_colorbar = self.cax is not None or bool(colorbar)
@@ -296,12 +334,14 @@ class ParticleLayer:
             return np.full(n, float(r))
         r = r.reshape(-1)
         if r.shape[0] != n:
-            raise ValueError(f"r must be a scalar or one radius per particle ({n}), got "
-                             f"{r.shape[0]} radii")
+            raise ValueError(
+                f"r must be a scalar or one radius per particle ({n}), got {r.shape[0]} radii"
+            )
         return r
 
     def _circles(self, xs, ys, r):
         from matplotlib.collections import EllipseCollection
+
         n = xs.shape[0]
         offsets = np.column_stack([xs, ys])
         radii = self._radii(r, n)
@@ -316,16 +356,25 @@ class ParticleLayer:
             return
         self._drop()
         self._units = units
-        self.artist = EllipseCollection(size, size, np.zeros(n), units=units, offsets=offsets,
-                                        offset_transform=self.ax.transData,
-                                        facecolors=self.color, edgecolors="none",
-                                        alpha=self.alpha, zorder=self.zorder + 1)
+        self.artist = EllipseCollection(
+            size,
+            size,
+            np.zeros(n),
+            units=units,
+            offsets=offsets,
+            offset_transform=self.ax.transData,
+            facecolors=self.color,
+            edgecolors="none",
+            alpha=self.alpha,
+            zorder=self.zorder + 1,
+        )
         self.ax.add_collection(self.artist, autolim=False)
         self.mode = "circles"
 
     # -- density image
     def _density(self, xs, ys):
         from matplotlib.colors import LogNorm
+
         if self.shape is None:
             self.shape = _axes_image_shape(self.ax, self.bounds)
         img = density_image(xs, ys, self.bounds, self.shape)
@@ -341,20 +390,28 @@ class ParticleLayer:
             self._drop()
             norm = self._fixed_norm if self._fixed_norm is not None else LogNorm(1.0, vmax)
             (x0, x1), (y0, y1) = self.bounds
-            self.artist = self.ax.imshow(shown, origin="lower", extent=(x0, x1, y0, y1),
-                                         cmap=self.cmap, norm=norm, interpolation="nearest",
-                                         alpha=self.alpha, zorder=self.zorder,
-                                         aspect=self.ax.get_aspect())
+            self.artist = self.ax.imshow(
+                shown,
+                origin="lower",
+                extent=(x0, x1, y0, y1),
+                cmap=self.cmap,
+                norm=norm,
+                interpolation="nearest",
+                alpha=self.alpha,
+                zorder=self.zorder,
+                aspect=self.ax.get_aspect(),
+            )
             self.mode = "density"
             if self.cax is not None:
                 self.cax.set_visible(True)
-                self.colorbar = self.ax.figure.colorbar(self.artist, cax=self.cax,
-                                                        label="particles per pixel")
+                self.colorbar = self.ax.figure.colorbar(
+                    self.artist, cax=self.cax, label="particles per pixel"
+                )
             elif self.want_colorbar:
                 # fraction/pad: a bar as tall as a square axes beside it.
-                self.colorbar = self.ax.figure.colorbar(self.artist, ax=self.ax,
-                                                        label="particles per pixel",
-                                                        fraction=0.046, pad=0.03)
+                self.colorbar = self.ax.figure.colorbar(
+                    self.artist, ax=self.ax, label="particles per pixel", fraction=0.046, pad=0.03
+                )
             if self.colorbar is not None:
                 plain_log_ticks(self.colorbar)
         self.image = img
@@ -382,8 +439,9 @@ class ParticleLayer:
         self._r = r
         xs, ys = _coords(x, "x"), _coords(y, "y")
         if xs.shape != ys.shape:
-            raise ValueError(f"x and y must have the same number of points, got {xs.size} and "
-                             f"{ys.size}")
+            raise ValueError(
+                f"x and y must have the same number of points, got {xs.size} and {ys.size}"
+            )
         if xs.shape[0] <= self.max_circles:
             self._circles(xs, ys, r)
         else:
@@ -395,11 +453,22 @@ class ParticleLayer:
         self._drop()
 
 
-def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
-                   max_circles: int = DEFAULT_MAX_CIRCLES, shape: tuple | None = None,
-                   color: Any = PARTICLE_COLOR, cmap: Any = None, norm: Any = None,
-                   alpha: float = 0.8, zorder: float = 4, marker_points: float = 4.0,
-                   colorbar: Any = False) -> ParticleLayer:
+def draw_particles(
+    ax: Any,
+    x: Any,
+    y: Any,
+    r: Any = None,
+    bounds: Any = None,
+    max_circles: int = DEFAULT_MAX_CIRCLES,
+    shape: tuple | None = None,
+    color: Any = PARTICLE_COLOR,
+    cmap: Any = None,
+    norm: Any = None,
+    alpha: float = 0.8,
+    zorder: float = 4,
+    marker_points: float = 4.0,
+    colorbar: Any = False,
+) -> ParticleLayer:
     """Draw particles on ``ax``: circles for up to ``max_circles`` particles, else a density image.
 
     ``x``, ``y``: particle centres (data units), arrays of equal size. ``r``: radii (data units,
@@ -426,9 +495,19 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
     max_circles = _check_count(max_circles, "max_circles", 0)
     if shape is not None:
         shape = check_shape(shape)
-    layer = ParticleLayer(ax, bounds, shape, max_circles, color,
-                          cmap if cmap is not None else _particle_cmap(), norm, alpha, zorder,
-                          marker_points, colorbar)
+    layer = ParticleLayer(
+        ax,
+        bounds,
+        shape,
+        max_circles,
+        color,
+        cmap if cmap is not None else _particle_cmap(),
+        norm,
+        alpha,
+        zorder,
+        marker_points,
+        colorbar,
+    )
     layer.update(x, y, r)
     return layer
 
@@ -436,8 +515,10 @@ def draw_particles(ax: Any, x: Any, y: Any, r: Any = None, bounds: Any = None,
 # ---------------------------------------------------------------------------------------------
 # A world with particles in one figure; animations of a running simulation; saving them.
 
-def world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
-                  ticks: bool = True) -> tuple:
+
+def world_figure(
+    f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float, ticks: bool = True
+) -> tuple:
     """``(fig, ax, cax)``: ``f``'s filled view on ``ax``, and a hidden axes ``cax`` for a colour
     bar beside it, laid out by hand so that nothing is cut and no margin is wasted (matplotlib's
     layout engines misplace a colour bar beside an equal-aspect axes)."""
@@ -456,15 +537,35 @@ def world_figure(f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float,
     ax = fig.add_axes((left / W, bottom / H, w / W, h / H))
     cax = fig.add_axes(((left + w + gap) / W, bottom / H, bar / W, h / H))
     cax.set_visible(False)
-    plot_sdf(fig, ax, f, bounds=bounds, samples=samples, show_quiver=False,
-             show_isolines='zero', filled=True, ticks=ticks)
+    plot_sdf(
+        fig,
+        ax,
+        f,
+        bounds=bounds,
+        samples=samples,
+        show_quiver=False,
+        show_isolines="zero",
+        filled=True,
+        ticks=ticks,
+    )
     return fig, ax, cax
 
 
-def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = ((-2, 2), (-2, 2)),
-                 out_png: str | None = None, title: str | None = None, samples: int = 400,
-                 max_circles: int | None = None, figsize: tuple = (6.4, 5.6),
-                 dpi: float = 100, colorbar: bool = True, ticks: bool = True) -> Any:
+def render_frame(
+    f: Any,
+    x: Any,
+    y: Any,
+    r: Any = None,
+    bounds: Any = ((-2, 2), (-2, 2)),
+    out_png: str | None = None,
+    title: str | None = None,
+    samples: int = 400,
+    max_circles: int | None = None,
+    figsize: tuple = (6.4, 5.6),
+    dpi: float = 100,
+    colorbar: bool = True,
+    ticks: bool = True,
+) -> Any:
     """Draw the SDF ``f`` and particles at ``(x, y)`` in one figure, and save it as a PNG.
 
     The figure shows ``f``'s filled view (solid in :data:`fastsdf.viz.plotting.SOLID_COLOR`, free
@@ -483,8 +584,15 @@ def render_frame(f: Any, x: Any, y: Any, r: Any = None, bounds: Any = ((-2, 2), 
     closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
     """
     fig, ax, cax = world_figure(f, bounds, samples, figsize, dpi, ticks)
-    layer = draw_particles(ax, x, y, r=r, bounds=bounds, colorbar=cax if colorbar else False,
-                           max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles)
+    layer = draw_particles(
+        ax,
+        x,
+        y,
+        r=r,
+        bounds=bounds,
+        colorbar=cax if colorbar else False,
+        max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles,
+    )
     fig.particle_layer = layer
     if title is not None:
         ax.set_title(title)
@@ -509,10 +617,21 @@ def sim_title(sim: Any, prefix: str = "") -> str:
     return f"{prefix}t = {t:.2f} s{steps}"
 
 
-def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
-            use_wall_time: bool = False, interval: float | None = None, repeat: bool = False,
-            title: str | None = "", colorbar: Any = False, advance: Any = None,
-            blit: bool = False, **draw_kwargs: Any) -> Any:
+def animate(
+    sim: Any,
+    ax: Any,
+    frames: int = 100,
+    steps_per_frame: Any = 1,
+    *,
+    use_wall_time: bool = False,
+    interval: float | None = None,
+    repeat: bool = False,
+    title: str | None = "",
+    colorbar: Any = False,
+    advance: Any = None,
+    blit: bool = False,
+    **draw_kwargs: Any,
+) -> Any:
     """A matplotlib animation of the running simulation ``sim`` on ``ax``, from its current state.
 
     Unlike the notebook's ``create_animation`` this never resets ``sim``: frame 0 shows the state
@@ -542,11 +661,14 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
         try:
             schedule = [_check_count(k, "steps_per_frame", 0) for k in steps_per_frame]
         except TypeError:
-            raise ValueError(f"steps_per_frame must be an integer >= 0 or one per frame, got "
-                             f"steps_per_frame={steps_per_frame!r}") from None
+            raise ValueError(
+                f"steps_per_frame must be an integer >= 0 or one per frame, got "
+                f"steps_per_frame={steps_per_frame!r}"
+            ) from None
         if len(schedule) != frames:
-            raise ValueError(f"steps_per_frame must have one count per frame ({frames}), got "
-                             f"{len(schedule)}")
+            raise ValueError(
+                f"steps_per_frame must have one count per frame ({frames}), got {len(schedule)}"
+            )
     run = advance if advance is not None else sim.run
     dt = float(getattr(sim, "dt", 1 / 30))
     if interval is None:
@@ -573,20 +695,34 @@ def animate(sim: Any, ax: Any, frames: int = 100, steps_per_frame: Any = 1, *,
             artists = artists + (text,)
         return artists
 
-    anim = FuncAnimation(ax.figure, frame, frames=frames,
-                         init_func=lambda: layer.update(*_state(sim)),
-                         interval=interval, blit=blit, repeat=repeat)
+    anim = FuncAnimation(
+        ax.figure,
+        frame,
+        frames=frames,
+        init_func=lambda: layer.update(*_state(sim)),
+        interval=interval,
+        blit=blit,
+        repeat=repeat,
+    )
     anim.particle_layer = layer  # type: ignore[attr-defined]  # the layer rides along
     return anim
 
 
 #: Extensions :func:`save_animation` writes, and the matplotlib writer for each.
-VIDEO_FORMATS = {".mp4": "ffmpeg", ".m4v": "ffmpeg", ".mov": "ffmpeg", ".mkv": "ffmpeg",
-                 ".webm": "ffmpeg", ".gif": "pillow", ".html": "html"}
+VIDEO_FORMATS = {
+    ".mp4": "ffmpeg",
+    ".m4v": "ffmpeg",
+    ".mov": "ffmpeg",
+    ".mkv": "ffmpeg",
+    ".webm": "ffmpeg",
+    ".gif": "pillow",
+    ".html": "html",
+}
 
 
-def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | None = None,
-                   progress: bool = True) -> str:
+def save_animation(
+    anim: Any, path: str, fps: float | None = None, dpi: float | None = None, progress: bool = True
+) -> str:
     """Write the matplotlib animation ``anim`` to ``path``; the writer follows the extension.
 
     ``.mp4`` (also ``.m4v``, ``.mov``, ``.mkv``, ``.webm``) uses ffmpeg: the system's, or the
@@ -608,19 +744,22 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
 
     ext = os.path.splitext(str(path))[1].lower()
     if ext not in VIDEO_FORMATS:
-        raise ValueError(f"path must end in one of {', '.join(VIDEO_FORMATS)}, got "
-                         f"path={path!r}")
+        raise ValueError(f"path must end in one of {', '.join(VIDEO_FORMATS)}, got path={path!r}")
     if fps is None:
         fps = 1000.0 / float(getattr(anim, "_interval", 50) or 50)
     kind = VIDEO_FORMATS[ext]
     if kind == "ffmpeg":
         if not ffmpeg_available():
-            raise RuntimeError(f"writing {ext} needs ffmpeg: pip install 'fastsdf[video]' (it "
-                               f"installs imageio-ffmpeg, which ships one), or install ffmpeg, "
-                               f"or save a .gif")
+            raise RuntimeError(
+                f"writing {ext} needs ffmpeg: pip install 'fastsdf[video]' (it "
+                f"installs imageio-ffmpeg, which ships one), or install ffmpeg, "
+                f"or save a .gif"
+            )
         # (matplotlib's stubs say int, its writers take any frame rate)
         writer: animation.AbstractMovieWriter = animation.FFMpegWriter(
-            fps=fps, bitrate=2400 if ext != ".webm" else -1)  # type: ignore[arg-type]
+            fps=fps,  # type: ignore[arg-type]
+            bitrate=2400 if ext != ".webm" else -1,
+        )
     elif kind == "pillow":
         writer = animation.PillowWriter(fps=fps)  # type: ignore[arg-type]
     else:
@@ -628,8 +767,7 @@ def save_animation(anim: Any, path: str, fps: float | None = None, dpi: float | 
     total = getattr(anim, "_save_count", None) or 0
     bar_options: dict[str, Any] = {} if progress else {"disable": True}
     with _bar(total, f"writing {os.path.basename(str(path))}", **bar_options) as bar:
-        anim.save(str(path), writer=writer, dpi=dpi,
-                  progress_callback=lambda i, n: bar.update(1))
+        anim.save(str(path), writer=writer, dpi=dpi, progress_callback=lambda i, n: bar.update(1))
     return os.path.abspath(str(path))
 
 
@@ -654,8 +792,15 @@ def notebook_draw(sim: Any, ax: Any, new: bool) -> tuple:
     return layer.update(x, y, r)
 
 
-def notebook_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: bool = True,
-                     use_wall_time: bool = False, interval: float | None = None) -> Any:
+def notebook_animation(
+    fig: Any,
+    ax: Any,
+    sim: Any,
+    frames: int = 300,
+    repeat: bool = True,
+    use_wall_time: bool = False,
+    interval: float | None = None,
+) -> Any:
     """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's ``create_animation``).
 
     Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
@@ -686,11 +831,18 @@ def notebook_animation(fig: Any, ax: Any, sim: Any, frames: int = 300, repeat: b
             from matplotlib import animation, rcParams
 
             from fastsdf.viz.video import ffmpeg_available
+
             ffmpeg_available()  # points matplotlib at imageio-ffmpeg's binary when installed
             if animation.writers.is_available(rcParams["animation.writer"]):
                 return super().to_html5_video(embed_limit=embed_limit)
             return self.to_jshtml(default_mode="loop" if repeat else "once")
 
-    return _Animation(fig, lambda i: artists(sim.update(ax, use_wall_time=use_wall_time)),
-                      init_func=lambda: artists(sim.reset(ax)), frames=frames,
-                      interval=interval, blit=True, repeat=repeat)
+    return _Animation(
+        fig,
+        lambda i: artists(sim.update(ax, use_wall_time=use_wall_time)),
+        init_func=lambda: artists(sim.reset(ax)),
+        frames=frames,
+        interval=interval,
+        blit=True,
+        repeat=repeat,
+    )

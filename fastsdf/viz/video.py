@@ -22,6 +22,7 @@ def ffmpeg_available() -> bool:
     if exe is None:
         try:
             import imageio_ffmpeg
+
             exe = imageio_ffmpeg.get_ffmpeg_exe()
         except (ImportError, RuntimeError):  # the extra is absent, or ships no binary here
             return False

@@ -38,8 +38,14 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cache_dir", "source_key", "hashed_import", "load_module", "guard_module",
-           "guard_dispatcher"]
+__all__ = [
+    "cache_dir",
+    "source_key",
+    "hashed_import",
+    "load_module",
+    "guard_module",
+    "guard_dispatcher",
+]
 
 _MODULES: dict = {}
 _LOCK = threading.Lock()
@@ -161,9 +167,12 @@ def load_module(source: str, prefix: str = "fastsdf_kernel") -> types.ModuleType
                 raise OSError(f"cached file {path} does not hold the expected source")
     except OSError as exc:
         # No usable cache directory: compile from a private temporary file instead.
-        warnings.warn(f"fastsdf: kernel cache unavailable ({exc}); compiling without the disk "
-                      f"cache. Set FASTSDF_CACHE_DIR to a writable directory.", RuntimeWarning,
-                      stacklevel=3)
+        warnings.warn(
+            f"fastsdf: kernel cache unavailable ({exc}); compiling without the disk "
+            f"cache. Set FASTSDF_CACHE_DIR to a writable directory.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         directory = Path(tempfile.mkdtemp(prefix="fastsdf_"))
         path = directory / f"{name}.py"
         path.write_bytes(data)
@@ -183,6 +192,7 @@ def load_module(source: str, prefix: str = "fastsdf_kernel") -> types.ModuleType
 
 # ---------------------------------------------------------------------------------------------
 # numba's cache files: sealed, checked, repaired.
+
 
 def guard_module(module: types.ModuleType) -> None:
     """Seal and check the numba cache files of every cached dispatcher of fastsdf's in
@@ -228,8 +238,11 @@ def guard_dispatcher(dispatcher: object) -> None:
             try:
                 save(sig, data)  # the damaged entry is gone: store a fresh one
             except Exception as again:
-                _report(index_path, f"could not store a compiled kernel ({again!r}); it will "
-                                    f"be compiled again in the next process")
+                _report(
+                    index_path,
+                    f"could not store a compiled kernel ({again!r}); it will "
+                    f"be compiled again in the next process",
+                )
 
     cache.load_overload = load_overload
     cache.save_overload = save_overload
@@ -239,7 +252,7 @@ def guard_dispatcher(dispatcher: object) -> None:
 def _discard(files: object, index_path: str, exc: BaseException) -> None:
     """Remove a function's damaged index and data files (they are rewritten on save)."""
     directory = os.path.dirname(index_path)
-    base = os.path.basename(index_path)[:-len(".nbi")]
+    base = os.path.basename(index_path)[: -len(".nbi")]
     removed = []
     try:
         names = os.listdir(directory)
@@ -255,8 +268,11 @@ def _discard(files: object, index_path: str, exc: BaseException) -> None:
             except OSError:
                 pass
     reason = str(exc) if isinstance(exc, _Corrupt) else repr(exc)
-    _report(index_path, f"damaged entry ({reason}); removed {len(removed)} file(s), "
-                        f"compiling afresh and storing a new copy")
+    _report(
+        index_path,
+        f"damaged entry ({reason}); removed {len(removed)} file(s), "
+        f"compiling afresh and storing a new copy",
+    )
 
 
 def _seal(payload: bytes) -> bytes:
@@ -267,8 +283,8 @@ def _unseal(raw: bytes, path: str) -> bytes:
     head = len(_MAGIC)
     if not raw.startswith(_MAGIC) or len(raw) < head + _DIGEST:
         raise _Corrupt(f"{os.path.basename(path)} is not a sealed fastsdf cache file")
-    payload = raw[head + _DIGEST:]
-    if hashlib.sha256(payload).digest() != raw[head:head + _DIGEST]:
+    payload = raw[head + _DIGEST :]
+    if hashlib.sha256(payload).digest() != raw[head : head + _DIGEST]:
         raise _Corrupt(f"{os.path.basename(path)} fails its checksum (truncated or altered)")
     return payload
 

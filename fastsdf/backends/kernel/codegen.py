@@ -155,8 +155,7 @@ def _chain_rule(rule, args, ncomp):
         return [None] * ncomp
     if callable(rule):
         return [rule([a.grads(ncomp)[c] for a in args]) for c in range(ncomp)]
-    return [_sum(*(_prod(a.grads(ncomp)[c], p) for a, p in zip(args, rule)))
-            for c in range(ncomp)]
+    return [_sum(*(_prod(a.grads(ncomp)[c], p) for a, p in zip(args, rule))) for c in range(ncomp)]
 
 
 def _zero(g):
@@ -165,6 +164,7 @@ def _zero(g):
 
 # ---------------------------------------------------------------------------------------------
 # Shapes of subexpressions (structure with constants abstracted).
+
 
 def _template(root: Expr) -> tuple[tuple, list, list]:
     """Linearize the sub-DAG of ``root`` with constants abstracted.
@@ -279,8 +279,10 @@ def _foldable(root: Expr, memo: dict | None = None) -> bool:
         stack.pop()
         ok = all(memo[a] for a in node.args)
         if ok and node.op in _CHAIN_OPS:
-            ok = not (len(node.args) >= MIN_LOOP or any(a.op == node.op and a.attr == node.attr
-                                                        for a in node.args))
+            ok = not (
+                len(node.args) >= MIN_LOOP
+                or any(a.op == node.op and a.attr == node.attr for a in node.args)
+            )
         memo[node] = ok
     return memo[root]
 
@@ -320,6 +322,7 @@ def _flatten_chain(node: Expr) -> list:
 # ---------------------------------------------------------------------------------------------
 # Emission.
 
+
 class _Emitter:
     """Emits the body of one per-point function (value only, or value and gradient).
 
@@ -332,9 +335,16 @@ class _Emitter:
     #: gradient variables (``v3x`` is dv3/dx).
     COMPONENTS: tuple[str, ...] = ("x", "y")
 
-    def __init__(self, symbol_names: Sequence[str], grad: bool, tables: dict,
-                 param_names: Sequence[str] = (), time: bool = False, fold: bool = False,
-                 memo: dict | None = None):
+    def __init__(
+        self,
+        symbol_names: Sequence[str],
+        grad: bool,
+        tables: dict,
+        param_names: Sequence[str] = (),
+        time: bool = False,
+        fold: bool = False,
+        memo: dict | None = None,
+    ):
         self.grad = grad
         # fold: evaluate same-shape subexpressions anywhere in the scene in loops first (into
         # the per-point arrays _F<g>); the straight-line code then only reads their entries.
@@ -345,8 +355,10 @@ class _Emitter:
         if time:  # also carry d/dt: a third forward-mode component, seeded by the time t
             self.COMPONENTS = self.COMPONENTS + ("t",)
         n = len(self.COMPONENTS)
-        self.syms = {name: _Val(var, tuple("1.0" if j == i else None for j in range(n)))
-                     for i, (name, var) in enumerate(zip(symbol_names, self.COMPONENTS))}
+        self.syms = {
+            name: _Val(var, tuple("1.0" if j == i else None for j in range(n)))
+            for i, (name, var) in enumerate(zip(symbol_names, self.COMPONENTS))
+        }
         # Parameters are read from the argument tuple prm once per call (bound to _p<i>); the
         # time is the argument t.
         self.params = {name: _Val(f"_p{i}") for i, name in enumerate(param_names)}
@@ -379,10 +391,14 @@ class _Emitter:
         """Assign gradient expressions to variables named after ``name`` (if nonzero)."""
         if not self.grad:
             return None
+
         def keep(expr):  # nothing to compute: no new variable needed
             return expr is None or expr == "1.0" or expr.isidentifier()
-        return tuple(e if keep(e) else self.assign(out, f"{name}{suffix}", e)
-                     for e, suffix in zip(comps, self.COMPONENTS))
+
+        return tuple(
+            e if keep(e) else self.assign(out, f"{name}{suffix}", e)
+            for e, suffix in zip(comps, self.COMPONENTS)
+        )
 
     # -- one operation ------------------------------------------------------------------------
     def op(self, out: list, node: Expr, a: list) -> _Val:
@@ -442,9 +458,10 @@ class _Emitter:
                 if g:
                     for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
                         comp, acc = _zero(comp), cur[suffix]
-                        blend = _prod(comp, e) if comp != '0.0' else '0.0'
+                        blend = _prod(comp, e) if comp != "0.0" else "0.0"
                         body.append(
-                            f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {blend})")
+                            f"{new[suffix]} = _sel({w}, {acc} * {e} + {comp}, {acc} + {blend})"
+                        )
             elif g:
                 for suffix, comp in zip(self.COMPONENTS, v.grads(len(self.COMPONENTS))):
                     body.append(f"{new[suffix]} = _sel({w}, {_zero(comp)}, {cur[suffix]})")
@@ -545,13 +562,18 @@ class _Emitter:
         would be flattened or folded) is left alone: the results are the same bits either way.
         ``singles``: also shapes with one member (a loop of one row), for combine programs.
         """
+
         def too_big(node):
             if self._size(node) <= MAX_TEMPLATE_NODES:
                 return False
             # For a program: a primitive larger as a tree than as a DAG (a transformed capsule
             # shares its subexpressions) is still one subexpression; blends never are.
-            return not singles or node.op in _CHAIN_OPS or node.op == "neg" or \
-                _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
+            return (
+                not singles
+                or node.op in _CHAIN_OPS
+                or node.op == "neg"
+                or _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
+            )
 
         # The candidates depend on the expression alone: found once per module (the value and
         # the gradient functions share them through the memo).
@@ -562,8 +584,10 @@ class _Emitter:
         ncomp = len(self.COMPONENTS)
         rows_left = MAX_PROGRAM_ROWS if singles else MAX_FOLD_ROWS
         for steps, members, rows in shapes.values():
-            if len(members) < (1 if singles else 2) or \
-                    len(members) * (1 + ncomp * self.grad) > rows_left:
+            if (
+                len(members) < (1 if singles else 2)
+                or len(members) * (1 + ncomp * self.grad) > rows_left
+            ):
                 continue
             rows_left -= len(members) * (1 + ncomp * self.grad)
             table, refs = _varying_columns(rows)
@@ -609,16 +633,21 @@ class _Emitter:
             # For a program: larger subexpressions (a transformed capsule counts more than
             # MAX_TEMPLATE_NODES as a tree), and the operands of the root, and of every
             # expression that is not a candidate, are candidates (also in a small scene).
-            big = too_big(node) or (singles and (
-                node is root or node.op in _CHAIN_OPS
-                and not _foldable(node, self._foldables)))
+            big = too_big(node) or (
+                singles
+                and (node is root or node.op in _CHAIN_OPS and not _foldable(node, self._foldables))
+            )
             if big:
                 under_big.update(plan[0])
             stack.extend(plan[0])
         shapes: dict = {}
         for node in order:
-            if (node not in under_big or node.op in ("const", "sym", "param")
-                    or too_big(node) or not _foldable(node, self._foldables)):
+            if (
+                node not in under_big
+                or node.op in ("const", "sym", "param")
+                or too_big(node)
+                or not _foldable(node, self._foldables)
+            ):
                 continue
             sig, steps, consts = self._template(node)
             shapes.setdefault(sig, (steps, [], []))
@@ -663,8 +692,12 @@ class _Emitter:
             if node.op == "neg":  # e.g. a - b = max(a, -b) with b a large subexpression
                 if deps[0].op == "const":
                     return None
-            elif node.op not in _PROGRAM_OPS or items is None or len(items) < 2 or \
-                    any(item[0] != "node" or item[1].op == "const" for item in items):
+            elif (
+                node.op not in _PROGRAM_OPS
+                or items is None
+                or len(items) < 2
+                or any(item[0] != "node" or item[1].op == "const" for item in items)
+            ):
                 return None
             stack.append((node, True))
             for dep in reversed(list({id(d): d for d in deps}.values())):
@@ -714,8 +747,11 @@ class _Emitter:
             operands = [item[1] for item in items]
             first = operands[0]
             acc = None
-            if id(first) not in self.fold_of and uses[id(first)] == 1 and \
-                    sum(o is first for o in operands) == 1:
+            if (
+                id(first) not in self.fold_of
+                and uses[id(first)] == 1
+                and sum(o is first for o in operands) == 1
+            ):
                 acc = result[id(first)]  # its last use: accumulate in place
             smooth = node.op in ("smin", "smax")
             pair = smooth and len(operands) == 2  # one fused step: blend and finish
@@ -862,18 +898,23 @@ class _Emitter:
                 cur = _Val(_HUGE, (None,) * n if self.grad else None)
             out.append(f"{base['m']} = {cur.v}")
             if self.grad:
-                out.extend(f"{base[sfx]} = {_zero(comp)}"
-                           for sfx, comp in zip(self.COMPONENTS, cur.grads(n)))
+                out.extend(
+                    f"{base[sfx]} = {_zero(comp)}"
+                    for sfx, comp in zip(self.COMPONENTS, cur.grads(n))
+                )
             loop = self._name("i")
             body: list[str] = [f"{loop} = _act[{loop}q]"]
             val = self.template(body, steps, [cc.format(row=loop) for cc in consts])
-            carried = _Val(base["m"], tuple(base[sfx] for sfx in self.COMPONENTS)
-                           if self.grad else None)
+            carried = _Val(
+                base["m"], tuple(base[sfx] for sfx in self.COMPONENTS) if self.grad else None
+            )
             new = self.op(body, node, [carried, val])
             body.append(f"{base['m']} = {new.v}")
             if self.grad:
-                body.extend(f"{base[sfx]} = {_zero(comp)}"
-                            for sfx, comp in zip(self.COMPONENTS, new.grads(n)))
+                body.extend(
+                    f"{base[sfx]} = {_zero(comp)}"
+                    for sfx, comp in zip(self.COMPONENTS, new.grads(n))
+                )
             out.append(f"for {loop}q in range(_off[{group}], _off[{group + 1}]):")
             out.extend("    " + line for line in body)
             cur = carried
@@ -889,8 +930,9 @@ class _Emitter:
             self.lines.append(f"{r} = _F{g}[{j * len(stored)}]")
             comps: list[str | None] = [None] * len(self.COMPONENTS)
             for slot, c in enumerate(stored[1:], 1):
-                comps[c] = self.assign(self.lines, f"{r}{self.COMPONENTS[c]}",
-                                       f"_F{g}[{j * len(stored) + slot}]")
+                comps[c] = self.assign(
+                    self.lines, f"{r}{self.COMPONENTS[c]}", f"_F{g}[{j * len(stored) + slot}]"
+                )
             return _Val(r, tuple(comps) if self.grad else None)
         if node.op == "const":
             return _Val(_lit(node.attr))
@@ -908,11 +950,23 @@ class _Emitter:
             else:
                 _, steps, (table, refs), members, rows = item
                 name = self.table(table) if table.shape[1] else None
-                consts = [_lit(v) if kind == "l" else f"{name}[{{row}}, {j}]" for kind, v in refs
-                          for j in [v if kind == "t" else None]]
-                self.groups.append(dict(op=node.op, k=node.attr, chain=node, members=members,
-                                        steps=steps, rows=np.asarray(rows, dtype=np.float64),
-                                        others=others, before=list(before)))
+                consts = [
+                    _lit(v) if kind == "l" else f"{name}[{{row}}, {j}]"
+                    for kind, v in refs
+                    for j in [v if kind == "t" else None]
+                ]
+                self.groups.append(
+                    dict(
+                        op=node.op,
+                        k=node.attr,
+                        chain=node,
+                        members=members,
+                        steps=steps,
+                        rows=np.asarray(rows, dtype=np.float64),
+                        others=others,
+                        before=list(before),
+                    )
+                )
                 chain_items.append(("loop", steps, consts, table.shape[0], len(self.groups) - 1))
                 before.append(("group", len(self.groups) - 1))
         if node.op in _ORDERED_OPS:
@@ -957,7 +1011,7 @@ def {name}({args}):
 # independent chains lets the CPU overlap them. Non-finite points are evaluated at the origin
 # and overwritten; the last group repeats the final point. The serial kernels (small inputs) use
 # the one-point function, which compiles in about half the time.
-_BATCH_TEMPLATE = '''
+_BATCH_TEMPLATE = """
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _batch_{kind}(xs, ys, out, {grad}{pa}start, stop, n):
@@ -982,7 +1036,7 @@ def batch_{kind}_ser(xs, ys, out, {grad}{pa}):
     for i in range(xs.shape[0]):
         {single} = point_{kind}(xs[i], ys[i]{pargs})
 {single_store}
-'''
+"""
 
 
 #: The outputs of each kind of function: value; value and gradient; value, gradient and dd/dt.
@@ -1003,38 +1057,59 @@ def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = Fal
         names = _RESULTS[kind]
         gather, args, scatter, results = [], [], [], []
         for k in range(lanes):
-            gather += [f"        j{k} = min(i + {k}, n - 1)",
-                       f"        x{k} = xs[j{k}]",
-                       f"        y{k} = ys[j{k}]",
-                       f"        ok{k} = math.isfinite(x{k}) and math.isfinite(y{k})",
-                       f"        if not ok{k}:",
-                       f"            x{k} = 0.0",
-                       f"            y{k} = 0.0"]
+            gather += [
+                f"        j{k} = min(i + {k}, n - 1)",
+                f"        x{k} = xs[j{k}]",
+                f"        y{k} = ys[j{k}]",
+                f"        ok{k} = math.isfinite(x{k}) and math.isfinite(y{k})",
+                f"        if not ok{k}:",
+                f"            x{k} = 0.0",
+                f"            y{k} = 0.0",
+            ]
             args.append(f"x{k}, y{k}")
             results += [f"{r}{k}" for r in names]
         for k in reversed(range(lanes)):  # lane 0 last: a repeated final point stays correct
             if kind == "v":
                 scatter.append(f"        out[j{k}] = d{k} if ok{k} else math.nan")
             else:
-                scatter += [f"        if not ok{k}:",
-                            f"            {' = '.join(r + str(k) for r in names)} = math.nan",
-                            f"        out[j{k}] = d{k}",
-                            f"        grad[j{k}, 0] = gx{k}",
-                            f"        grad[j{k}, 1] = gy{k}"]
+                scatter += [
+                    f"        if not ok{k}:",
+                    f"            {' = '.join(r + str(k) for r in names)} = math.nan",
+                    f"        out[j{k}] = d{k}",
+                    f"        grad[j{k}, 0] = gx{k}",
+                    f"        grad[j{k}, 1] = gy{k}",
+                ]
                 if kind == "vgt":
                     scatter.append(f"        dt[j{k}] = gt{k}")
         single = ", ".join(names)
-        stores = {"d": "out[i] = d", "gx": "grad[i, 0] = gx", "gy": "grad[i, 1] = gy",
-                  "gt": "dt[i] = gt"}
+        stores = {
+            "d": "out[i] = d",
+            "gx": "grad[i, 0] = gx",
+            "gy": "grad[i, 1] = gy",
+            "gt": "dt[i] = gt",
+        }
         single_store = "\n".join("        " + stores[r] for r in names)
         all_args = ", ".join(args + (["_ACTG, _OFFG"] if groups else [])) + pargs
         src = _BATCH_TEMPLATE.format(
-            kind=kind, grad=_OUTPUTS[kind], pa=pa, pargs=pargs, lanes=lanes,
-            lanes_minus_1=lanes - 1, gather="\n".join(gather), args=all_args,
-            results=", ".join(results), scatter="\n".join(scatter), single=single,
-            single_store=single_store)
-        parts.append(src.replace("out, grad, )", "out, grad)").replace("out, )", "out)")
-                     .replace("dt, )", "dt)").replace("prm, )", "prm)"))
+            kind=kind,
+            grad=_OUTPUTS[kind],
+            pa=pa,
+            pargs=pargs,
+            lanes=lanes,
+            lanes_minus_1=lanes - 1,
+            gather="\n".join(gather),
+            args=all_args,
+            results=", ".join(results),
+            scatter="\n".join(scatter),
+            single=single,
+            single_store=single_store,
+        )
+        parts.append(
+            src.replace("out, grad, )", "out, grad)")
+            .replace("out, )", "out)")
+            .replace("dt, )", "dt)")
+            .replace("prm, )", "prm)")
+        )
     return "".join(parts)
 
 
@@ -1072,7 +1147,7 @@ def _interleave(lines: list, lanes: int = 2) -> list:
         j = i + 1
         while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > indent:
             j += 1
-        block = lines[i + 1:j]
+        block = lines[i + 1 : j]
         if line.lstrip().startswith("for "):
             out.append(line)
             out.extend(_interleave(block, lanes))
@@ -1088,15 +1163,27 @@ def _as_float(expr: str) -> str:
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
 
 
-def _function_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables: dict,
-                     param_names: Sequence[str] | None = None, time: bool = False,
-                     vmath: bool = True, memo: dict | None = None) -> tuple[Any, str, int, list]:
+def _function_source(
+    root: Expr,
+    symbol_names: Sequence[str],
+    grad: bool,
+    tables: dict,
+    param_names: Sequence[str] | None = None,
+    time: bool = False,
+    vmath: bool = True,
+    memo: dict | None = None,
+) -> tuple[Any, str, int, list]:
     """Sources of the one-point function and of the multi-lane function for the batch kernels;
     also returns the number of lanes. ``param_names`` (None for a scene without parameters):
     the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
     ``time``: also return dd/dt (the ``vgt`` functions)."""
-    if param_names is None and not time and vmath and COMBINE_PROGRAMS and \
-            _dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2:
+    if (
+        param_names is None
+        and not time
+        and vmath
+        and COMBINE_PROGRAMS
+        and _dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2
+    ):
         # A large static scene: try the combine program first; it needs no straight-line code
         # (which is most of the code generation time of a large scene).
         prog = _program_source(root, symbol_names, grad, tables, memo)
@@ -1105,15 +1192,20 @@ def _function_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables
     em = _Emitter(symbol_names, grad or time, tables, param_names or (), time, memo=memo)
     res = em.emit(root)
     if grad or time:
-        results = [_as_float(res.v)] + [_as_float(_zero(c))
-                                        for c in res.grads(len(em.COMPONENTS))]
+        results = [_as_float(res.v)] + [_as_float(_zero(c)) for c in res.grads(len(em.COMPONENTS))]
     if time:
-        single = ("point_vgt", "Value, gradient and time derivative (d, dd/dx, dd/dy, dd/dt) "
-                  "at one point.", "math.nan, math.nan, math.nan, math.nan")
+        single = (
+            "point_vgt",
+            "Value, gradient and time derivative (d, dd/dx, dd/dy, dd/dt) at one point.",
+            "math.nan, math.nan, math.nan, math.nan",
+        )
         multi = ("lanes_vgt", "Value, gradient and time derivative")
     elif grad:
-        single = ("point_vg", "Value and gradient (d, dd/dx, dd/dy) at one point.",
-                  "math.nan, math.nan, math.nan")
+        single = (
+            "point_vg",
+            "Value and gradient (d, dd/dx, dd/dy) at one point.",
+            "math.nan, math.nan, math.nan",
+        )
         multi = ("lanes_vg", "Value and gradient")
     else:
         results = [_as_float(res.v)]
@@ -1134,33 +1226,53 @@ def _function_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables
     # row lists as arguments (all rows, or a tile's pruned lists).
     all_rows = ["_act = _ACTG", "_off = _OFFG"] if em.groups else []
     body = "\n".join("    " + line for line in all_rows + em.lines) or "    pass"
-    point = _POINT_TEMPLATE.format(name=single[0], doc=single[1], body=body, pargs=pargs,
-                                   ret=", ".join(results), nan_return=single[2])
+    point = _POINT_TEMPLATE.format(
+        name=single[0],
+        doc=single[1],
+        body=body,
+        pargs=pargs,
+        ret=", ".join(results),
+        nan_return=single[2],
+    )
     one: str | tuple[str, str] = point
-    bind, rest = em.lines[:len(binds)], em.lines[len(binds):]
+    bind, rest = em.lines[: len(binds)], em.lines[len(binds) :]
     if param_names is None and not time:
         # A static scene's batch kernels are its block kernels: no multi-lane function.
         many = ""
     elif lanes == 1:  # nothing to interleave: rename the whole body at once
-        body_n = "\n".join("    " + line for line in bind) + "\n" + \
-            _lane("\n".join("    " + line for line in rest), 0) if rest else \
-            "\n".join("    " + line for line in bind) or "    pass"
+        body_n = (
+            "\n".join("    " + line for line in bind)
+            + "\n"
+            + _lane("\n".join("    " + line for line in rest), 0)
+            if rest
+            else "\n".join("    " + line for line in bind) or "    pass"
+        )
     else:
         body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
     if param_names is not None or time:
         many = _LANES_TEMPLATE.format(
-            name=multi[0], doc=multi[1], lanes=lanes, body=body_n,
-            args=", ".join([f"x{k}, y{k}" for k in range(lanes)]
-                           + (["_act, _off"] if em.groups else [])) + pargs,
-            ret=", ".join(_lane(r, k) for k in range(lanes) for r in results))
+            name=multi[0],
+            doc=multi[1],
+            lanes=lanes,
+            body=body_n,
+            args=", ".join(
+                [f"x{k}, y{k}" for k in range(lanes)] + (["_act, _off"] if em.groups else [])
+            )
+            + pargs,
+            ret=", ".join(_lane(r, k) for k in range(lanes) for r in results),
+        )
     if em.groups and grad and param_names is None and not time:
         # The one-point function over given row lists (pointers to int64: a tile's pruned
         # lists), for per-point callers such as the particle step (see fastsdf.backends.prune).
         many += _POINT_TEMPLATE.format(
-            name="rows_vg", doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
+            name="rows_vg",
+            doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
             "pointers, see fastsdf.backends.prune).",
             body="\n".join("    " + line for line in em.lines),
-            pargs=", _act, _off", ret=", ".join(results), nan_return=single[2])
+            pargs=", _act, _off",
+            ret=", ".join(results),
+            nan_return=single[2],
+        )
     if param_names is None and not time:
         kind = "vg" if grad else "v"
         fold_sizes: Sequence[int] = ()
@@ -1177,23 +1289,34 @@ def _function_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables
             fe = _Emitter(symbol_names, grad, tables, fold=True, memo=memo)
             fres = fe.emit(root)
             if fe.fold_sizes:
-                assert [len(g["members"]) for g in fe.groups] == \
-                    [len(g["members"]) for g in em.groups]
+                assert [len(g["members"]) for g in fe.groups] == [
+                    len(g["members"]) for g in em.groups
+                ]
                 rest = vectorizable(fe.lines) if vmath else fe.lines
-                results = [_as_float(fres.v)] + ([_as_float(_zero(c)) for c in
-                                                  fres.grads(len(fe.COMPONENTS))] if grad else [])
+                results = [_as_float(fres.v)] + (
+                    [_as_float(_zero(c)) for c in fres.grads(len(fe.COMPONENTS))] if grad else []
+                )
                 fold_sizes = fe.fold_sizes
         if prog is None:
             one = (point, block_source(rest, results, kind, fold_sizes=fold_sizes))
     elif param_names is not None:  # parameters are data: read once per block from prm
         kind = "vgt" if time else "vg" if grad else "v"
-        one = (point, block_source(list(rest), results, kind, ("t", "prm"),
-                                 binds=tuple(ln for ln in bind if ln.startswith("_p"))))
+        one = (
+            point,
+            block_source(
+                list(rest),
+                results,
+                kind,
+                ("t", "prm"),
+                binds=tuple(ln for ln in bind if ln.startswith("_p")),
+            ),
+        )
     return one, many, lanes, em.groups
 
 
-def _program_source(root: Expr, symbol_names: Sequence[str], grad: bool, tables: dict,
-                    memo: dict | None) -> tuple[str, str] | None:
+def _program_source(
+    root: Expr, symbol_names: Sequence[str], grad: bool, tables: dict, memo: dict | None
+) -> tuple[str, str] | None:
     """``(point function, block kernels)`` of a combine program for ``root``, or None (see
     ``_Emitter.program``). The one-point function runs the program too: numba's time for the
     straight-line one grows faster than the scene (38 s at 200 mixed primitives)."""
@@ -1215,15 +1338,17 @@ def scene_parameters(root: Expr) -> tuple[str, ...] | None:
     return tuple(sorted(n for n in names if n != "t"))
 
 
-def generate_module_source(root: Expr, symbol_names: Sequence[str],
-                           vmath: bool = True) -> tuple[str, dict]:
+def generate_module_source(
+    root: Expr, symbol_names: Sequence[str], vmath: bool = True
+) -> tuple[str, dict]:
     """Full source of the kernel module for ``root``; also returns each function's source."""
     source, funcs, _ = generate_module(root, symbol_names, vmath=vmath)
     return source, funcs
 
 
-def generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool = True
-                    ) -> tuple[str, dict, list]:
+def generate_module(
+    root: Expr, symbol_names: Sequence[str], vmath: bool = True
+) -> tuple[str, dict, list]:
     """``(source, functions, groups)``: :func:`generate_module_source` plus the loop groups
     (one dict per loop over a table, in the order of the kernels' row lists: ``op``, ``k``,
     ``chain`` (the chain's node), ``members`` (the operands' expressions), ``steps`` and
@@ -1232,15 +1357,18 @@ def generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool = True
         return _generate_module(root, symbol_names, vmath)
 
 
-def _generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool
-                     ) -> tuple[str, dict, list]:
+def _generate_module(
+    root: Expr, symbol_names: Sequence[str], vmath: bool
+) -> tuple[str, dict, list]:
     tables: dict = {}
     pn = scene_parameters(root)
     memo: dict = {}
-    v_one, v_many, lanes_v, groups_v = _function_source(root, symbol_names, False, tables, pn,
-                                                        vmath=vmath, memo=memo)
-    vg_one, vg_many, lanes_vg, groups = _function_source(root, symbol_names, True, tables, pn,
-                                                         vmath=vmath, memo=memo)
+    v_one, v_many, lanes_v, groups_v = _function_source(
+        root, symbol_names, False, tables, pn, vmath=vmath, memo=memo
+    )
+    vg_one, vg_many, lanes_vg, groups = _function_source(
+        root, symbol_names, True, tables, pn, vmath=vmath, memo=memo
+    )
     # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last,
     # they replace the multi-lane batch kernels of the same name).
     blocks = []
@@ -1254,15 +1382,21 @@ def _generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool
         # A scene with parameters: functions (x, y, t, prm) and a third kind with dd/dt.
         # Parameter values never appear in the source: scenes that differ only in them share
         # one module.
-        vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(root, symbol_names, True,
-                                                                 tables, pn, time=True,
-                                                                 vmath=vmath, memo=memo)
+        vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(
+            root, symbol_names, True, tables, pn, time=True, vmath=vmath, memo=memo
+        )
         vgt_one, vgt_block = vgt_one
         blocks.append(vgt_block)
         funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
-    parts = [_HEADER.format(fastsdf=__version__, numba=numba.__version__, numpy=np.__version__,
-                            python=platform.python_version(),
-                            expr=_short(root).replace('"""', "\'\'\'").replace("\\", "\\\\"))]
+    parts = [
+        _HEADER.format(
+            fastsdf=__version__,
+            numba=numba.__version__,
+            numpy=np.__version__,
+            python=platform.python_version(),
+            expr=_short(root).replace('"""', "'''").replace("\\", "\\\\"),
+        )
+    ]
     if any("_P." in src for src in funcs.values()):
         parts.append(_prims_import())
     for (shape, data), name in tables.items():
@@ -1271,11 +1405,15 @@ def _generate_module(root: Expr, symbol_names: Sequence[str], vmath: bool
         parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
     if groups:
         sizes = [len(g["members"]) for g in groups]
-        parts.append("_ACTG = np.concatenate((" + "".join(
-            f"np.arange({n}), " for n in sizes) + ")).astype(np.int64)\n"
-            f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n")
-    parts.extend(funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt")
-                 if k in funcs)
+        parts.append(
+            "_ACTG = np.concatenate(("
+            + "".join(f"np.arange({n}), " for n in sizes)
+            + ")).astype(np.int64)\n"
+            f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n"
+        )
+    parts.extend(
+        funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt") if k in funcs
+    )
     if pn is not None:  # a static scene's batch kernels are its block kernels (below)
         parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
     if vmath:
@@ -1293,4 +1431,5 @@ def _prims_import() -> str:
 
 def _short(root: Expr) -> str:
     from fastsdf.expr.graph import expr_to_str
+
     return expr_to_str(root, limit=300)

@@ -29,10 +29,27 @@ from fastsdf.backends.kernel.layout import BLOCK
 from fastsdf.backends.kernel.vmath import vexp as _vexp
 from fastsdf.backends.kernel.vmath import vlog as _vlog
 
-__all__ = ["BLOCK_SIG", "BlockFn", "NOFOLD", "PROG_COLS", "max_threads", "run_v_par", "run_v_ser",
-           "run_vg_par", "run_vg_ser", "NOGRAD", "NOROWS", "tiles_par", "run_prog_v_par",
-           "run_prog_v_ser", "run_prog_vg_par", "run_prog_vg_ser", "combine_point_v",
-           "combine_point_vg", "scratch"]
+__all__ = [
+    "BLOCK_SIG",
+    "BlockFn",
+    "NOFOLD",
+    "PROG_COLS",
+    "max_threads",
+    "run_v_par",
+    "run_v_ser",
+    "run_vg_par",
+    "run_vg_ser",
+    "NOGRAD",
+    "NOROWS",
+    "tiles_par",
+    "run_prog_v_par",
+    "run_prog_v_ser",
+    "run_prog_vg_par",
+    "run_prog_vg_ser",
+    "combine_point_v",
+    "combine_point_vg",
+    "scratch",
+]
 
 _P = types.CPointer(types.float64)
 _I = types.CPointer(types.int64)
@@ -50,8 +67,9 @@ def _call(typingctx, address, xp, yp, op, gp, n, sp, ap, fp):
     sig = types.void(types.intp, _P, _P, _P, _P, types.intp, _P, _I, _I)
 
     def codegen(context, builder, signature, args):
-        fnty = ir.FunctionType(context.get_value_type(types.none),
-                               [context.get_value_type(t) for t in BLOCK_SIG.args])
+        fnty = ir.FunctionType(
+            context.get_value_type(types.none), [context.get_value_type(t) for t in BLOCK_SIG.args]
+        )
         fn = builder.inttoptr(args[0], fnty.as_pointer())
         builder.call(fn, args[1:])
         return context.get_dummy_value()
@@ -130,9 +148,20 @@ NOGRAD = np.empty((0, 2))
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-               grad: np.ndarray, S: np.ndarray, size: int, chunks: int, threads: int,
-               act: np.ndarray, off: np.ndarray) -> None:
+def run_vg_par(
+    pre: int,
+    fn: int,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    grad: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    chunks: int,
+    threads: int,
+    act: np.ndarray,
+    off: np.ndarray,
+) -> None:
     """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
     block, blocks in parallel chunks, each thread with ``size`` floats of the scratch space
     ``S`` (at least ``threads * size`` floats, ``threads``: :func:`max_threads`; see
@@ -147,30 +176,86 @@ def run_vg_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarra
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at),
-                  _at(act, 0), _at(off, 0))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at),
-                  _at(act, 0), _at(off, 0))
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(grad, 2 * s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
+            _call(
+                fn,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(grad, 2 * s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-               grad: np.ndarray, S: np.ndarray, size: int, act: np.ndarray,
-               off: np.ndarray) -> None:
+def run_vg_ser(
+    pre: int,
+    fn: int,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    grad: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    act: np.ndarray,
+    off: np.ndarray,
+) -> None:
     """:func:`run_vg_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act,
-              0), _at(off, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(act, 0),
-              _at(off, 0))
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(grad, 2 * s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
+        _call(
+            fn,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(grad, 2 * s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, S: np.ndarray,
-              size: int, chunks: int, threads: int, act: np.ndarray, off: np.ndarray) -> None:
+def run_v_par(
+    pre: int,
+    fn: int,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    chunks: int,
+    threads: int,
+    act: np.ndarray,
+    off: np.ndarray,
+) -> None:
     """Value at all points (the block functions' ``grad`` pointer is not used)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -181,24 +266,69 @@ def run_v_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act,
-                  0), _at(off, 0))
-            _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(act, 0),
-                  _at(off, 0))
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(out, s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
+            _call(
+                fn,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(out, s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, S: np.ndarray,
-              size: int, act: np.ndarray, off: np.ndarray) -> None:
+def run_v_ser(
+    pre: int,
+    fn: int,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    act: np.ndarray,
+    off: np.ndarray,
+) -> None:
     """:func:`run_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0),
-              _at(off, 0))
-        _call(fn, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(act, 0),
-              _at(off, 0))
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(out, s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
+        _call(
+            fn,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(out, s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -221,7 +351,7 @@ def _tile_work(order, starts):
     for t in range(T):
         s0 = starts[t]
         for s in range(s0, s0 + (starts[t + 1] - s0) // BLOCK * BLOCK, BLOCK):
-            seq[k:k + BLOCK] = order[s:s + BLOCK]
+            seq[k : k + BLOCK] = order[s : s + BLOCK]
             work[b, 0], work[b, 1], work[b, 2], work[b, 3] = k, BLOCK, t, t
             k += BLOCK
             b += 1
@@ -233,7 +363,7 @@ def _tile_work(order, starts):
             if m == 0:
                 first = t
             take = min(starts[t + 1] - s, BLOCK - m)
-            seq[k + m:k + m + take] = order[s:s + take]
+            seq[k + m : k + m + take] = order[s : s + take]
             s += take
             m += take
             if m == BLOCK:
@@ -276,9 +406,23 @@ def _merge_rows(act, offs, t0, t1, starts, actb, offb, cur):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def tiles_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray, grad: np.ndarray,
-              S: np.ndarray, size: int, chunks: int, threads: int, order: np.ndarray,
-              starts: np.ndarray, act: np.ndarray, offs: np.ndarray, rows: int) -> None:
+def tiles_par(
+    pre: int,
+    fn: int,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    grad: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    chunks: int,
+    threads: int,
+    order: np.ndarray,
+    starts: np.ndarray,
+    act: np.ndarray,
+    offs: np.ndarray,
+    rows: int,
+) -> None:
     """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
@@ -301,13 +445,13 @@ def tiles_par(pre: int, fn: int, xs: np.ndarray, ys: np.ndarray, out: np.ndarray
     for c in prange(chunks):
         tid = get_thread_id()
         at = tid * size
-        xb = B[tid * W:tid * W + BLOCK]
-        yb = B[tid * W + BLOCK:tid * W + 2 * BLOCK]
-        ob = B[tid * W + 2 * BLOCK:tid * W + 3 * BLOCK]
-        gb = B[tid * W + 3 * BLOCK:tid * W + 5 * BLOCK]
-        actb = A[tid * max(rows, 1):(tid + 1) * max(rows, 1)]
-        offb = F[tid * G:(tid + 1) * G]
-        cur = C[tid * T:(tid + 1) * T]
+        xb = B[tid * W : tid * W + BLOCK]
+        yb = B[tid * W + BLOCK : tid * W + 2 * BLOCK]
+        ob = B[tid * W + 2 * BLOCK : tid * W + 3 * BLOCK]
+        gb = B[tid * W + 3 * BLOCK : tid * W + 5 * BLOCK]
+        actb = A[tid * max(rows, 1) : (tid + 1) * max(rows, 1)]
+        offb = F[tid * G : (tid + 1) * G]
+        cur = C[tid * T : (tid + 1) * T]
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s, m, t0, t1 = work[b, 0], work[b, 1], work[b, 2], work[b, 3]
             for i in range(m):
@@ -355,8 +499,21 @@ PROG_COLS = 9
 #: first already in the accumulator (blend and finish in one pass, s never stored); the
 #: negated operand (a gradient component known to be zero stays +0, as in the straight-line
 #: code, where it is no variable at all).
-(OP_INIT, OP_MIN, OP_MAX, OP_SMIN, OP_SMAX, OP_FIN_SMIN, OP_FIN_SMAX, OP_OUT, OP_SMIN2,
- OP_SMAX2, OP_NEG, OP_QMIN, OP_CMIN) = range(13)
+(
+    OP_INIT,
+    OP_MIN,
+    OP_MAX,
+    OP_SMIN,
+    OP_SMAX,
+    OP_FIN_SMIN,
+    OP_FIN_SMAX,
+    OP_OUT,
+    OP_SMIN2,
+    OP_SMAX2,
+    OP_NEG,
+    OP_QMIN,
+    OP_CMIN,
+) = range(13)
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
@@ -530,11 +687,21 @@ def _combine(S, at, prog, grad, nv):
         op = int(prog[p, 0])
         a = at + int(prog[p, 1])
         m = at + int(prog[p, 2])
-        A = S[a:a + rows * BLOCK]
-        M = S[m:m + acc_rows * BLOCK]
+        A = S[a : a + rows * BLOCK]
+        M = S[m : m + acc_rows * BLOCK]
         if grad:
-            _step_vg(op, A, M, prog[p, 3], prog[p, 4], prog[p, 5] != 0.0, prog[p, 6] != 0.0,
-                     prog[p, 7] != 0.0, prog[p, 8] != 0.0, nv)
+            _step_vg(
+                op,
+                A,
+                M,
+                prog[p, 3],
+                prog[p, 4],
+                prog[p, 5] != 0.0,
+                prog[p, 6] != 0.0,
+                prog[p, 7] != 0.0,
+                prog[p, 8] != 0.0,
+                nv,
+            )
         else:
             _step_v(op, A, M, prog[p, 3], prog[p, 4], nv)
 
@@ -675,8 +842,18 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_vg_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-                    grad: np.ndarray, S: np.ndarray, size: int, chunks: int, threads: int) -> None:
+def run_prog_vg_par(
+    pre: int,
+    prog: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    grad: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    chunks: int,
+    threads: int,
+) -> None:
     """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
     filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
     n = xs.shape[0]
@@ -689,30 +866,65 @@ def run_prog_vg_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, 
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, at), _at(z,
-                  0), _at(z, 0))
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(grad, 2 * s),
+                m,
+                _at(S, at),
+                _at(z, 0),
+                _at(z, 0),
+            )
             _combine(S, at, prog, True, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_vg_ser(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-                    grad: np.ndarray, S: np.ndarray, size: int) -> None:
+def run_prog_vg_ser(
+    pre: int,
+    prog: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    grad: np.ndarray,
+    S: np.ndarray,
+    size: int,
+) -> None:
     """:func:`run_prog_vg_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(grad, 2 * s), m, _at(S, 0), _at(z, 0),
-              _at(z, 0))
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(grad, 2 * s),
+            m,
+            _at(S, 0),
+            _at(z, 0),
+            _at(z, 0),
+        )
         _combine(S, 0, prog, True, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_v_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-                   S: np.ndarray, size: int, chunks: int, threads: int) -> None:
+def run_prog_v_par(
+    pre: int,
+    prog: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    S: np.ndarray,
+    size: int,
+    chunks: int,
+    threads: int,
+) -> None:
     """Value at all points (see :func:`run_prog_vg_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
@@ -724,29 +936,55 @@ def run_prog_v_par(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, o
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
             s = b * BLOCK
             m = min(s + BLOCK, n) - s
-            _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, at), _at(z, 0),
-                  _at(z, 0))
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(out, s),
+                m,
+                _at(S, at),
+                _at(z, 0),
+                _at(z, 0),
+            )
             _combine(S, at, prog, False, _lanes(m))
             _outputs(S, at, prog, xs, ys, out, out, s, m, False)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_v_ser(pre: int, prog: np.ndarray, xs: np.ndarray, ys: np.ndarray, out: np.ndarray,
-                   S: np.ndarray, size: int) -> None:
+def run_prog_v_ser(
+    pre: int,
+    prog: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    out: np.ndarray,
+    S: np.ndarray,
+    size: int,
+) -> None:
     """:func:`run_prog_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
         m = min(s + BLOCK, n) - s
-        _call(pre, _at(xs, s), _at(ys, s), _at(out, s), _at(out, s), m, _at(S, 0), _at(z, 0),
-              _at(z, 0))
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(out, s),
+            m,
+            _at(S, 0),
+            _at(z, 0),
+            _at(z, 0),
+        )
         _combine(S, 0, prog, False, _lanes(m))
         _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 
 
 def _guard():
     from fastsdf.backends.kernel.cache import guard_module
+
     guard_module(sys.modules[__name__])
 
 

@@ -24,8 +24,9 @@ __all__ = ["select", "f64_bits", "bits_f64", "fmuladd"]
 
 
 @intrinsic
-def select(typingctx: object, cond: types.Type, a: types.Type, b: types.Type
-           ) -> tuple[Any, Callable] | None:
+def select(
+    typingctx: object, cond: types.Type, a: types.Type, b: types.Type
+) -> tuple[Any, Callable] | None:
     """``a if cond else b`` for float64 values, compiled without a branch."""
     if not isinstance(cond, types.Boolean):
         return None
@@ -69,8 +70,9 @@ def bits_f64(typingctx: object, i: types.Type) -> tuple[Any, Callable] | None:
 
 
 @intrinsic
-def fmuladd(typingctx: object, a: types.Type, b: types.Type, c: types.Type
-            ) -> tuple[Any, Callable] | None:
+def fmuladd(
+    typingctx: object, a: types.Type, b: types.Type, c: types.Type
+) -> tuple[Any, Callable] | None:
     """``a * b + c`` for float64, fused into one FMA instruction where the CPU has one (then
     rounded once, so the result may differ from ``a * b + c`` in the last bit); otherwise a
     multiplication and an addition. Vectorizes like plain arithmetic (LLVM's ``fmuladd``)."""
@@ -81,8 +83,9 @@ def fmuladd(typingctx: object, a: types.Type, b: types.Type, c: types.Type
     def codegen(context, builder, signature, args):
         vals = [context.cast(builder, v, t, types.float64) for v, t in zip(args, signature.args)]
         dbl = ir.DoubleType()
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(dbl, [dbl] * 3),
-                                            "llvm.fmuladd.f64")
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(dbl, [dbl] * 3), "llvm.fmuladd.f64"
+        )
         return builder.call(fn, vals)
 
     return sig, codegen

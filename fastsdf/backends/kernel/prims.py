@@ -29,11 +29,18 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["ellipse_v", "ellipse_vg", "outline_v", "outline_vg", "polygon_v", "polygon_vg",
-           "quad_closest"]
+__all__ = [
+    "ellipse_v",
+    "ellipse_vg",
+    "outline_v",
+    "outline_vg",
+    "polygon_v",
+    "polygon_vg",
+    "quad_closest",
+]
 
 _EPS = 2.220446049250313e-16
-_UP = 2.0 ** 600  # brings subnormal and tiny lengths into the normal range, exactly
+_UP = 2.0**600  # brings subnormal and tiny lengths into the normal range, exactly
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -119,8 +126,8 @@ def _ellipse_quadrant(y0, y1, e0, e1):
     return (s - 1.0) * nn, n0 / nn, n1 / nn
 
 
-_TINY_AXIS = 2.0 ** -60
-_FAR = 2.0 ** 30
+_TINY_AXIS = 2.0**-60
+_FAR = 2.0**30
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -245,6 +252,7 @@ def _guard():
     import sys
 
     from fastsdf.backends.kernel.cache import guard_module
+
     guard_module(sys.modules[__name__])
 
 
@@ -265,15 +273,14 @@ OUTLINE_COLUMNS = 11
 @njit(cache=True, nogil=True, error_model="numpy")
 def _quad_point(t, x0, y0, x1, y1, x2, y2):
     s = 1.0 - t
-    return (s * s * x0 + 2.0 * s * t * x1 + t * t * x2,
-            s * s * y0 + 2.0 * s * t * y1 + t * t * y2)
+    return (s * s * x0 + 2.0 * s * t * x1 + t * t * x2, s * s * y0 + 2.0 * s * t * y1 + t * t * y2)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _quad_polish(t, u, v, x0, y0, x1, y1, x2, y2):
     """Newton steps on ``(B(t) - p) . B'(t) = 0`` from ``t`` (kept in [0, 1]); returns the
     parameter and squared distance of the best point seen."""
-    ax, ay = x1 - x0, y1 - y0                  # B'(t) = 2 (a + b t)
+    ax, ay = x1 - x0, y1 - y0  # B'(t) = 2 (a + b t)
     bx, by = x0 - 2.0 * x1 + x2, y0 - 2.0 * y1 + y2
     bt = min(max(t, 0.0), 1.0)
     qx, qy = _quad_point(bt, x0, y0, x1, y1, x2, y2)
@@ -337,8 +344,9 @@ def quad_closest(u, v, x0, y0, x1, y1, x2, y2):  # noqa: ANN201 (numba-typed ker
     h = q * q + 4.0 * p * p * p
     if h >= 0.0:
         h = math.sqrt(h)
-        t, dd = _quad_polish(_cbrt(0.5 * (h - q)) + _cbrt(0.5 * (-h - q)) - kx,
-                             u, v, x0, y0, x1, y1, x2, y2)
+        t, dd = _quad_polish(
+            _cbrt(0.5 * (h - q)) + _cbrt(0.5 * (-h - q)) - kx, u, v, x0, y0, x1, y1, x2, y2
+        )
         if dd < best:
             best, best_t = dd, t
     else:
@@ -387,7 +395,7 @@ def outline_vg(u, v, table):  # noqa: ANN201 (numba-typed kernel)
     best = math.inf
     for i in range(1, table.shape[0]):
         best = min(best, (u - table[i, 1]) ** 2 + (v - table[i, 2]) ** 2)
-    best = best * (1.0 + 1e-12)   # a start is itself on a segment: keep it reachable below
+    best = best * (1.0 + 1e-12)  # a start is itself on a segment: keep it reachable below
     bkind = -1
     bi = 0
     bt = 0.0

@@ -27,8 +27,15 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Sequence
 
-__all__ = ["BLOCK", "block_source", "program_source", "choose_lanes", "drive_import",
-           "vectorizable", "vmath_import"]
+__all__ = [
+    "BLOCK",
+    "block_source",
+    "program_source",
+    "choose_lanes",
+    "drive_import",
+    "vectorizable",
+    "vmath_import",
+]
 
 from fastsdf.backends.kernel.cache import hashed_import
 from fastsdf.backends.kernel.layout import BLOCK
@@ -76,7 +83,7 @@ def vectorizable(lines: list) -> list:
     while i < len(lines):
         line = lines[i]
         stripped = line.lstrip()
-        indent = line[:len(line) - len(stripped)]
+        indent = line[: len(line) - len(stripped)]
         m = _LENGTH_IF.match(stripped)
         if m and i + 1 < len(lines):
             r = m.group(1)
@@ -87,7 +94,7 @@ def vectorizable(lines: list) -> list:
             back = sqrt_at.get(r)
             if h and h.group(1) == r and back is not None:
                 a, b = _split_args(h.group(2))
-                tail = out[back + 1:]
+                tail = out[back + 1 :]
                 del out[back:]
                 for name in [k for k, at in sqrt_at.items() if at >= back]:
                     del sqrt_at[name]
@@ -100,8 +107,11 @@ def vectorizable(lines: list) -> list:
                         push(t)
                 i = j
                 continue
-        line = (line.replace("math.exp(", "_vexp(").replace("math.log1p(", "_vlog1p(")
-                .replace("math.log(", "_vlog("))
+        line = (
+            line.replace("math.exp(", "_vexp(")
+            .replace("math.log1p(", "_vlog1p(")
+            .replace("math.log(", "_vlog(")
+        )
         push(line)
         i += 1
     return out
@@ -117,7 +127,7 @@ def _split(lines: list) -> list:
         j = i + 1
         while j < len(lines) and lines[j].startswith(" "):
             j += 1
-        block = [ln[4:] for ln in lines[i + 1:j]]
+        block = [ln[4:] for ln in lines[i + 1 : j]]
         if line.startswith("for "):
             segs.append(("loop", line, block))
         else:
@@ -198,8 +208,7 @@ def _units(stmts: list) -> list:
 def _lane(stmt: str, k: int) -> str:
     """One lane's copy of a statement: every per-point variable gets the suffix ``_k`` (loop
     indices ``iN`` and hoisted table values are shared)."""
-    return _VAR.sub(lambda mt: mt.group(0) if mt.group(0)[0] == "i" else f"{mt.group(0)}_{k}",
-                    stmt)
+    return _VAR.sub(lambda mt: mt.group(0) if mt.group(0)[0] == "i" else f"{mt.group(0)}_{k}", stmt)
 
 
 _FOLD_LOAD = re.compile(r"\b_F(\d+)\[(\d+)\]")
@@ -216,8 +225,15 @@ class _Staging:
     rows of folded subexpressions (see :func:`block_source`).
     """
 
-    def __init__(self, segs: list, result_names: list, lanes: int, slots: dict,
-                 fbase: Sequence[int] = (), fold_loop: dict | None = None):
+    def __init__(
+        self,
+        segs: list,
+        result_names: list,
+        lanes: int,
+        slots: dict,
+        fbase: Sequence[int] = (),
+        fold_loop: dict | None = None,
+    ):
         self.lanes, self.half = lanes, BLOCK // lanes
         self.slots, self.fbase = slots, fbase
         self.fold_loop = {} if fold_loop is None else fold_loop
@@ -237,12 +253,20 @@ class _Staging:
         return f"S[{self.slots[name] * BLOCK + k * self.half} + i]"
 
     def load(self, name, pad):
-        return [f"{pad}{name}_{k} = {self.at(name, k)} != 0.0" if name in self.bools else
-                f"{pad}{name}_{k} = {self.at(name, k)}" for k in range(self.lanes)]
+        return [
+            f"{pad}{name}_{k} = {self.at(name, k)} != 0.0"
+            if name in self.bools
+            else f"{pad}{name}_{k} = {self.at(name, k)}"
+            for k in range(self.lanes)
+        ]
 
     def store(self, name, pad):
-        return [f"{pad}{self.at(name, k)} = _sel({name}_{k}, 1.0, 0.0)" if name in self.bools
-                else f"{pad}{self.at(name, k)} = {name}_{k}" for k in range(self.lanes)]
+        return [
+            f"{pad}{self.at(name, k)} = _sel({name}_{k}, 1.0, 0.0)"
+            if name in self.bools
+            else f"{pad}{self.at(name, k)} = {name}_{k}"
+            for k in range(self.lanes)
+        ]
 
     def compute(self, stmts, pad):
         out = []
@@ -287,8 +311,10 @@ class _Staging:
             code.append(f"    {header}")
             if row:
                 code.append(f"        {row.group(0)}")
-            code += [f"        {name} = {t}[{loop_var}, {col}]"
-                     for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])]
+            code += [
+                f"        {name} = {t}[{loop_var}, {col}]"
+                for (t, col), name in sorted(hoisted.items(), key=lambda kv: kv[1])
+            ]
             for g in sorted({int(n) for n in re.findall(r"\bfo_(\d+)\b", "\n".join(stmts))}):
                 lv, size = self.fold_loop[g]
                 code.append(f"        fo_{g} = ({self.fbase[g]} + {lv} * {size}) * {BLOCK}")
@@ -325,9 +351,15 @@ def _fold_layout(fold_sizes: Sequence[int]) -> tuple[dict, list, dict, Callable]
     return slots, fbase, fold_loop, fold_store
 
 
-def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
-                 lanes: int | None = None, binds: tuple = (), fold_sizes: Sequence[int] = ()
-                 ) -> str:
+def block_source(
+    lines: list,
+    results: list,
+    kind: str,
+    extra_args: tuple = (),
+    lanes: int | None = None,
+    binds: tuple = (),
+    fold_sizes: Sequence[int] = (),
+) -> str:
     """Source of ``_block_<kind>`` (a block of points) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[, grad])``.
 
@@ -367,26 +399,41 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
     slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
 
     if fold_sizes:
+
         def fold_load(mt):
             return f"S[{(fbase[int(mt.group(1))] + int(mt.group(2))) * BLOCK} + i]"
-        segs = [("line", [_FOLD_LOAD.sub(fold_load, st) for st in seg[1]]) if seg[0] == "line" else
-                ("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]])
-                for seg in segs]
+
+        segs = [
+            ("line", [_FOLD_LOAD.sub(fold_load, st) for st in seg[1]])
+            if seg[0] == "line"
+            else ("loop", seg[1], [_FOLD_STORE.sub(fold_store, st) for st in seg[2]])
+            for seg in segs
+        ]
 
     st = _Staging(segs, result_names, lanes, slots, fbase, fold_loop)
     at = st.at
 
-    prelude = ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
-               "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
-               "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-               f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0",
-               f"        S[{BLOCK} + i] = 0.0"]
+    prelude = [
+        "    for i in range(n):",
+        "        x = xs[i]",
+        "        y = ys[i]",
+        "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+        "        S[i] = _sel(ok, x, 0.0)",
+        f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
+        f"    for i in range(n, {BLOCK}):",
+        "        S[i] = 0.0",
+        f"        S[{BLOCK} + i] = 0.0",
+    ]
     # The loops that fill the _F arrays open the body; they go to a function of their own
     # (_fold_<kind>), called before the block function: in one function with the rest, LLVM
     # stops inlining the exp/log calls of the long straight-line loop, which then stays scalar.
     fold_segs = 0
-    while fold_sizes and fold_segs < len(segs) and segs[fold_segs][0] == "loop" and \
-            "S[fo_" in "\n".join(segs[fold_segs][2]):
+    while (
+        fold_sizes
+        and fold_segs < len(segs)
+        and segs[fold_segs][0] == "loop"
+        and "S[fo_" in "\n".join(segs[fold_segs][2])
+    ):
         fold_segs += 1
     fold_body = None
     for k, seg in enumerate(segs):
@@ -395,10 +442,16 @@ def block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
         body += st.segment(k, seg)
     res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
     if grad:
-        res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
-                f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)"]
-    body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
-             "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)"] + res
+        res += [
+            f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
+            f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)",
+        ]
+    body += [
+        "    for i in range(n):",
+        "        x = xs[i]",
+        "        y = ys[i]",
+        "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+    ] + res
     nslots = len(slots)
     size = max(nslots, 1) * BLOCK
     views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))", "    out = carray(op, (n,))"]
@@ -431,12 +484,14 @@ def _fold_{kind}(xp, yp, op, gp, n, sp, ap, fp):
 
 _fold_{kind}_fn = _BlockFn(_fold_{kind})
 '''
-    src = fold_src + f'''
+    src = (
+        fold_src
+        + f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _block_{kind}(xp, yp, op, gp, n, sp, ap, fp):
-    """{'Value and gradient' if grad else 'Value'} at ``n`` (at most {BLOCK}) points from pointers
-    (:data:`fastsdf.backends.kernel.drive.BLOCK_SIG`){', ``grad`` flat (x, y pairs)' if grad else ' (``gp`` unused)'};
+    """{"Value and gradient" if grad else "Value"} at ``n`` (at most {BLOCK}) points from pointers
+    (:data:`fastsdf.backends.kernel.drive.BLOCK_SIG`){", ``grad`` flat (x, y pairs)" if grad else " (``gp`` unused)"};
     scratch ``sp[:{size}]``."""
 {head(body)}
 {chr(10).join(body)}
@@ -460,7 +515,8 @@ def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
-'''  # noqa: E501 - generated source, kept as written
+'''
+    )
     if rows != "_NOROWS, _NOROWS":
         src += f'''
 
@@ -469,16 +525,30 @@ def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
     blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.backends.prune`)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
     _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {"grad" if grad else "_NOGRAD"}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
-'''  # noqa: E501 - generated source, kept as written
+'''
     return src
 
 
-_PROG_OPS = {"init": 0, "min": 1, "max": 2, "smin": 3, "smax": 4, "fin_smin": 5, "fin_smax": 6,
-             "out": 7, "smin2": 8, "smax2": 9, "neg": 10, "qmin": 11, "cmin": 12}
+_PROG_OPS = {
+    "init": 0,
+    "min": 1,
+    "max": 2,
+    "smin": 3,
+    "smax": 4,
+    "fin_smin": 5,
+    "fin_smax": 6,
+    "out": 7,
+    "smin2": 8,
+    "smax2": 9,
+    "neg": 10,
+    "qmin": 11,
+    "cmin": 12,
+}
 
 
-def program_source(lines: list, kind: str, fold_sizes: Sequence[int], steps: list,
-                   acc_rows: int) -> tuple[str, str]:
+def program_source(
+    lines: list, kind: str, fold_sizes: Sequence[int], steps: list, acc_rows: int
+) -> tuple[str, str]:
     """Source of ``_fold_<kind>`` (the loops over same-shape subexpressions, as in
     :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
     (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
@@ -524,19 +594,27 @@ def program_source(lines: list, kind: str, fold_sizes: Sequence[int], steps: lis
         elif op in ("qmin", "cmin"):
             r[3], r[4] = float(k), 1.0 / float(k)
         if zeros and grad:
-            r[5:5 + len(zeros)] = [float(z) for z in zeros]
+            r[5 : 5 + len(zeros)] = [float(z) for z in zeros]
         table.append(r)
     prog = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in table)
     tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
-    views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))",
-             f"    S = carray(sp, ({size},))"]
+    views = [
+        "    xs = carray(xp, (n,))",
+        "    ys = carray(yp, (n,))",
+        f"    S = carray(sp, ({size},))",
+    ]
     used = [f"    {t} = {t}G" for t in tables]
     prelude = ([f"    nv = min({BLOCK}, (n + 7) // 8 * 8)"] if grad else []) + [
-               "    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
-               "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
-               "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-               f"    for i in range(n, {'nv' if grad else BLOCK}):", "        S[i] = 0.0",
-               f"        S[{BLOCK} + i] = 0.0"]
+        "    for i in range(n):",
+        "        x = xs[i]",
+        "        y = ys[i]",
+        "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+        "        S[i] = _sel(ok, x, 0.0)",
+        f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
+        f"    for i in range(n, {'nv' if grad else BLOCK}):",
+        "        S[i] = 0.0",
+        f"        S[{BLOCK} + i] = 0.0",
+    ]
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
     gflat = "grad.reshape(-1), " if grad else ""
@@ -544,25 +622,29 @@ def program_source(lines: list, kind: str, fold_sizes: Sequence[int], steps: lis
     # The one-point function: the same loops storing into a small array (one float per row,
     # the program's offsets divided by BLOCK), then the program at one point.
     rows_at = {g: base for g, base in enumerate(fbase)}
-    plines = ["    " + re.sub(r"\b_F(\d+)\[", lambda mt: f"F[{rows_at[int(mt.group(1))]} + ", ln)
-              for ln in lines]
+    plines = [
+        "    " + re.sub(r"\b_F(\d+)\[", lambda mt: f"F[{rows_at[int(mt.group(1))]} + ", ln)
+        for ln in lines
+    ]
     point = f'''
 @njit(cache=True, nogil=True, error_model="numpy")
 def point_{kind}(x, y):
-    """{'Value and gradient (d, dd/dx, dd/dy)' if grad else 'Value'} at one point: the scene's subexpressions in loops over
+    """{"Value and gradient (d, dd/dx, dd/dy)" if grad else "Value"} at one point: the scene's subexpressions in loops over
     tables, then its combine program (fastsdf.backends.kernel.drive.combine_point_{kind})."""
     if not (math.isfinite(x) and math.isfinite(y)):
-        return {'math.nan, math.nan, math.nan' if grad else 'math.nan'}
+        return {"math.nan, math.nan, math.nan" if grad else "math.nan"}
 {nl.join(used)}
     F = np.empty({first + acc_rows})
 {nl.join(plines)}
     return _combine_point_{kind}(F, _PROG_{kind.upper()})
-'''  # noqa: E501 - generated source, kept as written
-    return point, f'''
+'''
+    return (
+        point,
+        f'''
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _fold_{kind}(xp, yp, op, gp, n, sp, ap, fp):
-    """The scene's subexpressions, each in a loop over a table of its shape: {'values and gradients' if grad else 'values'}
+    """The scene's subexpressions, each in a loop over a table of its shape: {"values and gradients" if grad else "values"}
     into the scratch rows that the combine program reads."""
 {nl.join(views + used + prelude)}
 {nl.join(body)}
@@ -591,24 +673,43 @@ def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
-'''  # noqa: E501 - generated source, kept as written
+''',
+    )
 
 
 def drive_import() -> str:
     """Import of the scene-independent kernels of :mod:`fastsdf.backends.kernel.drive`."""
-    names = ["BlockFn as _BlockFn", "run_v_par as _run_v_par", "run_v_ser as _run_v_ser",
-             "run_vg_par as _run_vg_par", "run_vg_ser as _run_vg_ser",
-             "max_threads as _max_threads", "NOFOLD as _drive_nofold", "tiles_par as _tiles_par",
-             "NOROWS as _NOROWS", "NOGRAD as _NOGRAD", "run_prog_v_par as _run_prog_v_par",
-             "run_prog_v_ser as _run_prog_v_ser", "run_prog_vg_par as _run_prog_vg_par",
-             "run_prog_vg_ser as _run_prog_vg_ser", "combine_point_v as _combine_point_v",
-             "combine_point_vg as _combine_point_vg", "scratch as _drive_scratch"]
+    names = [
+        "BlockFn as _BlockFn",
+        "run_v_par as _run_v_par",
+        "run_v_ser as _run_v_ser",
+        "run_vg_par as _run_vg_par",
+        "run_vg_ser as _run_vg_ser",
+        "max_threads as _max_threads",
+        "NOFOLD as _drive_nofold",
+        "tiles_par as _tiles_par",
+        "NOROWS as _NOROWS",
+        "NOGRAD as _NOGRAD",
+        "run_prog_v_par as _run_prog_v_par",
+        "run_prog_v_ser as _run_prog_v_ser",
+        "run_prog_vg_par as _run_prog_vg_par",
+        "run_prog_vg_ser as _run_prog_vg_ser",
+        "combine_point_v as _combine_point_v",
+        "combine_point_vg as _combine_point_vg",
+        "scratch as _drive_scratch",
+    ]
     drive = hashed_import("fastsdf.backends.kernel.drive", names)
     return "from numba import carray\n" + drive + "\n"
 
 
-def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple = (),
-                        lanes: int | None = None, binds: tuple = ()) -> str:
+def _param_block_source(
+    lines: list,
+    results: list,
+    kind: str,
+    extra_args: tuple = (),
+    lanes: int | None = None,
+    binds: tuple = (),
+) -> str:
     """:func:`block_source` for scenes with parameters: the block function takes arrays and the
     parameters, and the kernels that call it are compiled with the scene.
 
@@ -643,21 +744,33 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
     st = _Staging(segs, result_names, lanes, slots)
     at = st.at
 
-    body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
-             "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
-             "        S[i] = _sel(ok, x, 0.0)", f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
-             f"    for i in range(n, {BLOCK}):", "        S[i] = 0.0",
-             f"        S[{BLOCK} + i] = 0.0"]
+    body += [
+        "    for i in range(n):",
+        "        x = xs[i]",
+        "        y = ys[i]",
+        "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+        "        S[i] = _sel(ok, x, 0.0)",
+        f"        S[{BLOCK} + i] = _sel(ok, y, 0.0)",
+        f"    for i in range(n, {BLOCK}):",
+        "        S[i] = 0.0",
+        f"        S[{BLOCK} + i] = 0.0",
+    ]
     for k, seg in enumerate(segs):
         body += st.segment(k, seg)
     res = [f"        out[i] = _sel(ok, {at(result_names[0], 0)}, math.nan)"]
     if grad:
-        res += [f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
-                f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)"]
+        res += [
+            f"        grad[2 * i] = _sel(ok, {at(result_names[1], 0)}, math.nan)",
+            f"        grad[2 * i + 1] = _sel(ok, {at(result_names[2], 0)}, math.nan)",
+        ]
     if timed:
         res.append(f"        dt[i] = _sel(ok, {at(result_names[3], 0)}, math.nan)")
-    body += ["    for i in range(n):", "        x = xs[i]", "        y = ys[i]",
-             "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)"] + res
+    body += [
+        "    for i in range(n):",
+        "        x = xs[i]",
+        "        y = ys[i]",
+        "        ok = (abs(x) < math.inf) & (abs(y) < math.inf)",
+    ] + res
     nslots = len(slots)
     sig = ", ".join(args)
     size = max(nslots, 1) * BLOCK
@@ -672,7 +785,7 @@ def _param_block_source(lines: list, results: list, kind: str, extra_args: tuple
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _block_{kind}({sig}, start, stop, S, at):
-    """{'Value, gradient and dd/dt' if timed else 'Value and gradient' if grad else 'Value'} at points start..stop-1 (at most {BLOCK}){', ``grad`` flat (x, y pairs)' if grad else ''};
+    """{"Value, gradient and dd/dt" if timed else "Value and gradient" if grad else "Value"} at points start..stop-1 (at most {BLOCK}){", ``grad`` flat (x, y pairs)" if grad else ""};
     scratch ``S[at:at + {size}]``."""
 {chr(10).join(views)}
 {chr(10).join(body)}
@@ -695,12 +808,17 @@ def batch_{kind}_ser({sig}):
     S = np.empty({size})
     for s in range(0, n, {BLOCK}):
         _block_{kind}({sig}, s, min(s + {BLOCK}, n), S, 0)
-'''  # noqa: E501 - generated source, kept as written
+'''
     return src
 
 
 def vmath_import() -> str:
     """Import of the vectorizable functions of :mod:`fastsdf.backends.kernel.vmath`."""
-    names = ["vexp as _vexp", "vlog as _vlog", "vlog1p as _vlog1p", "vlength as _vlength",
-             "vlength_grad as _vlength_grad"]
+    names = [
+        "vexp as _vexp",
+        "vlog as _vlog",
+        "vlog1p as _vlog1p",
+        "vlength as _vlength",
+        "vlength_grad as _vlength_grad",
+    ]
     return hashed_import("fastsdf.backends.kernel.vmath", names) + "\n"

@@ -72,8 +72,8 @@ _Q9 = 2.510038319586702e-08
 
 # -- log ---------------------------------------------------------------------------------------
 _ABS = 0x7FFFFFFFFFFFFFFF
-_OFF = 0x3FE6A09E667F3BCD            # bits of sqrt(2)/2: mantissas are reduced to [OFF, 2 OFF)
-_EXP_MASK = -4503599627370496        # 0xfff0000000000000 as int64: sign and exponent field
+_OFF = 0x3FE6A09E667F3BCD  # bits of sqrt(2)/2: mantissas are reduced to [OFF, 2 OFF)
+_EXP_MASK = -4503599627370496  # 0xfff0000000000000 as int64: sign and exponent field
 _TWO54 = 18014398509481984.0
 _MIN_NORMAL = 2.2250738585072014e-308
 # fdlibm e_log.c: log1p(f) = f - f^2/2 + s (f^2/2 + R(s^2)), s = f / (2 + f).
@@ -89,7 +89,7 @@ _NAN = float("nan")
 # log1p: 1 + x lies in [sqrt(2)/2, sqrt(2)) for x in [_SMALL_LO, _SMALL_HI): no reduction.
 _SMALL_LO = -0.2928932188134524
 _SMALL_HI = 0.41421356237309503
-_TINY = 1.1102230246251565e-16       # 2^-53: below it log1p(x) rounds to x
+_TINY = 1.1102230246251565e-16  # 2^-53: below it log1p(x) rounds to x
 
 
 @njit(nogil=True, error_model="numpy")
@@ -102,10 +102,10 @@ def _int_to_f64(k):
 def vexp(x: float) -> float:
     """``e**x`` for a float64, branch-free (within 2 ulp of ``math.exp``; see the module)."""
     xc = select(x > _EXP_HI, _EXP_HI, x)
-    xc = select(xc < _EXP_LO, _EXP_LO, xc)          # nan passes both selects unchanged
+    xc = select(xc < _EXP_LO, _EXP_LO, xc)  # nan passes both selects unchanged
     t = fma(xc, _LOG2E, _SHIFT)
-    kf = t - _SHIFT                                  # round(x / ln 2) as a float
-    k = f64_bits(t) - _SHIFT_BITS                    # the same integer, from the low bits
+    kf = t - _SHIFT  # round(x / ln 2) as a float
+    k = f64_bits(t) - _SHIFT_BITS  # the same integer, from the low bits
     r = fma(kf, -_LN2_LO, fma(kf, -_LN2_HI, xc))
     q = fma(r, _Q9, _Q8)
     q = fma(r, q, _Q7)
@@ -140,12 +140,12 @@ def _log1p_kernel(f, kf, c):
 @njit(nogil=True, error_model="numpy")
 def vlog(x: float) -> float:
     """Natural logarithm of a float64, branch-free (within 2 ulp of ``math.log``)."""
-    sub = x < _MIN_NORMAL                            # subnormal (or <= 0: replaced below)
+    sub = x < _MIN_NORMAL  # subnormal (or <= 0: replaced below)
     xs = select(sub, x * _TWO54, x)
-    bits = f64_bits(xs) & _ABS                       # no sign: negative x is replaced below
+    bits = f64_bits(xs) & _ABS  # no sign: negative x is replaced below
     tmp = bits - _OFF
-    k = tmp >> 52                                    # arithmetic shift: the exponent of x/OFF
-    z = bits_f64(bits - (tmp & _EXP_MASK))           # mantissa scaled into [OFF, 2 OFF)
+    k = tmp >> 52  # arithmetic shift: the exponent of x/OFF
+    z = bits_f64(bits - (tmp & _EXP_MASK))  # mantissa scaled into [OFF, 2 OFF)
     kf = _int_to_f64(k) - select(sub, 54.0, 0.0)
     res = _log1p_kernel(z - 1.0, kf, 0.0)
     res = select(x == 0.0, -_INF, res)
@@ -178,8 +178,8 @@ def vlog1p(x: float) -> float:
 
 _BIG = 1e150
 _SMALL = 1e-150
-_DOWN = 2.0 ** -600
-_UP = 2.0 ** 600
+_DOWN = 2.0**-600
+_UP = 2.0**600
 
 
 @njit(nogil=True, error_model="numpy")  # no contraction: same bits as a*a+b*b

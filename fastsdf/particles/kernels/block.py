@@ -284,8 +284,11 @@ def _simd_gather(S, grid, row, lip, trace, every, marks):
                 dx = S[_DX * W + q]
                 dy = S[_DY * W + q]
                 dd = dx * dx + dy * dy
-                sweep = trace & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
-                    not ((s * s >= lip * lip * dd) & (s > 0.0)))
+                sweep = (
+                    trace
+                    & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r))
+                    & (not ((s * s >= lip * lip * dd) & (s > 0.0)))
+                )
                 fix = (S[_NEED * W + q] != 0.0) & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
                 S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
                 S[_BNC * W + q] = 0.0
@@ -307,8 +310,9 @@ def _simd_gather_all(S, grid, row, lip):
     W = _STRIDE
     ncon = 0
     for q in range(0, LANES, 4):
-        ncon += _gather4(grid, S, q, row, _IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W,
-                         _R * W)
+        ncon += _gather4(
+            grid, S, q, row, _IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W, _R * W
+        )
     return ncon, 0
 
 
@@ -327,8 +331,11 @@ def _simd_blend(S, trace, lip):
         dx = S[_DX * W + q]
         dy = S[_DY * W + q]
         dd = dx * dx + dy * dy
-        sweep = trace & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)) & (
-            not ((s * s >= lip * lip * dd) & (s > 0.0)))
+        sweep = (
+            trace
+            & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r))
+            & (not ((s * s >= lip * lip * dd) & (s > 0.0)))
+        )
         fix = need & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
         S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
         S[_BNC * W + q] = 0.0
@@ -351,7 +358,7 @@ def _simd_fix(data, S, lip, always, trace):
     W = _STRIDE
     nfrz = 0
     for q in range(L):
-        if S[_FIX * W + q] == 0.0 or S[_NEED * W + q] == 0.0:   # (FIX is set for these only)
+        if S[_FIX * W + q] == 0.0 or S[_NEED * W + q] == 0.0:  # (FIX is set for these only)
             continue
         x = S[_X * W + q]
         y = S[_Y * W + q]
@@ -364,10 +371,13 @@ def _simd_fix(data, S, lip, always, trace):
             S[_D * W + q] = d
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
-            S[_OK * W + q] = 1.0          # these values stand as they are
+            S[_OK * W + q] = 1.0  # these values stand as they are
         s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
-        if not (trace and dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
-                s * s >= lip * lip * dd and s > 0.0)):
+        if not (
+            trace
+            and dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)
+            and not (s * s >= lip * lip * dd and s > 0.0)
+        ):
             continue
         cr = S[_CR * W + q]
         cf = S[_CF * W + q]
@@ -376,8 +386,9 @@ def _simd_fix(data, S, lip, always, trace):
             nfrz += 1
             continue
         t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
-        x, y, dx, dy, vx, vy, bounced = _sweep(data, x, y, dx, dy, S[_NVX * W + q],
-                                               S[_NVY * W + q], r, cr, cf, lip, always, 0.0, t1)
+        x, y, dx, dy, vx, vy, bounced = _sweep(
+            data, x, y, dx, dy, S[_NVX * W + q], S[_NVY * W + q], r, cr, cf, lip, always, 0.0, t1
+        )
         if bounced:
             d, gx, gy = _simd_query(data, x + dx, y + dy)
             S[_D * W + q] = d
@@ -417,22 +428,26 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         y = _sel(bounced, S[_YS * W + q], y1) + S[_DY * W + q]
         vx = S[_NVX * W + q]
         vy = S[_NVY * W + q]
-        ok = S[_OK * W + q] != 0.0     # False: a non-finite end point (the sampler's NaN)
+        ok = S[_OK * W + q] != 0.0  # False: a non-finite end point (the sampler's NaN)
         s = _sel(ok, S[_D * W + q], math.nan) - S[_R * W + q]
         cr = S[_CR * W + q]
         cf = S[_CF * W + q]
         cok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
         contact = (s <= 0.0) & contacts
         # (where not ok, s is NaN: no contact, so the gradient's value does not matter)
-        rx, ry, rvx, rvy = _respond_sel(x, y, vx, vy, s, S[_GX * W + q], S[_GY * W + q], cr,
-                                        cf, always & (not bounced))
+        rx, ry, rvx, rvy = _respond_sel(
+            x, y, vx, vy, s, S[_GX * W + q], S[_GY * W + q], cr, cf, always & (not bounced)
+        )
         x = _sel(contact, rx, x)
         y = _sel(contact, ry, y)
         vx = _sel(contact, rvx, vx)
         vy = _sel(contact, rvy, vy)
         code0 = S[_CODE1 * W + q]
-        code = _sel(code0 != 0.0, code0, _sel(contact & (not cok), coeff,
-                                              _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)))
+        code = _sel(
+            code0 != 0.0,
+            code0,
+            _sel(contact & (not cok), coeff, _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)),
+        )
         commit = need & (code == 0.0)
         S[_X * W + q] = _sel(commit, x, x1)
         S[_Y * W + q] = _sel(commit, y, y1)
@@ -440,8 +455,9 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         S[_VY * W + q] = _sel(commit, vy, S[_VY1 * W + q])
         if skip:
             refill = (not contact) & (s > margin)
-            S[_CLR * W + q] = _sel(need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0),
-                                   S[_CLR1 * W + q])
+            S[_CLR * W + q] = _sel(
+                need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0), S[_CLR1 * W + q]
+            )
         S[_CODE * W + q] = _sel(need, code, code0)
         nfrz += need & (code != 0.0)
     return nfrz
@@ -513,8 +529,17 @@ def _block_simd(data, lo, hi, steps, state, physics, budget):
     data = borrow_all(data)
     grid, x0, x1, y0, y1, ihx, ihy, nx, ny = data[5:14]
     b = (float(data[1]), float(data[2]), float(data[3]), float(data[4]))
-    g = (float(x0), float(x1), float(y0), float(y1), float(ihx), float(ihy), float(nx - 2),
-         float(ny - 2), float(ny))
+    g = (
+        float(x0),
+        float(x1),
+        float(y0),
+        float(y1),
+        float(ihx),
+        float(ihy),
+        float(nx - 2),
+        float(ny - 2),
+        float(ny),
+    )
     row = np.uint64(3 * ny)
     fbchk = GRID_EXACT and data[0] == 0
     use_m = use_m or USE_FORCE
@@ -582,4 +607,3 @@ def simd_ser(data, state, physics, budget, steps, block):
     for lo in range(0, n, block):
         bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget)
     return bad
-

@@ -1,8 +1,19 @@
 """Constants of the particle step: tuning (re-exported and documented by
 :mod:`fastsdf.particles`) and the freeze codes a kernel writes into ``FLAGS``."""
 
-__all__ = ["TRACE_FRACTION", "MIN_STEP", "CONTACT_TOL", "MAX_MARCH", "MAX_BOUNCES", "FORCE_BATCH",
-           "ASLEEP", "FLAG_INPUT", "FLAG_NONFINITE", "FLAG_COEFF", "FLAG_RESUME"]
+__all__ = [
+    "TRACE_FRACTION",
+    "MIN_STEP",
+    "CONTACT_TOL",
+    "MAX_MARCH",
+    "MAX_BOUNCES",
+    "FORCE_BATCH",
+    "ASLEEP",
+    "FLAG_INPUT",
+    "FLAG_NONFINITE",
+    "FLAG_COEFF",
+    "FLAG_RESUME",
+]
 
 # Tuning constants (documented in fastsdf.particles, which re-exports them).
 TRACE_FRACTION = 0.5

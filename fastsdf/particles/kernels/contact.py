@@ -44,11 +44,11 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
     x -= k * nx
     y -= k * ny
     vn = vx * nx + vy * ny
-    wn = -gt * inv                    # the wall's normal speed (0 for a static world)
+    wn = -gt * inv  # the wall's normal speed (0 for a static world)
     vr = vn - wn
     resp = ok and (vr < 0.0 or always)
-    w = 1.0 - cf if resp else 1.0     # tangential factor
-    c = cr if resp else -1.0          # relative normal velocity becomes -c vr (same for c = -1)
+    w = 1.0 - cf if resp else 1.0  # tangential factor
+    c = cr if resp else -1.0  # relative normal velocity becomes -c vr (same for c = -1)
     vx = w * (vx - vn * nx) + (wn - c * vr) * nx
     vy = w * (vy - vn * ny) + (wn - c * vr) * ny
     return x, y, vx, vy
@@ -71,13 +71,13 @@ def march(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
     """
     length = math.sqrt(dx * dx + dy * dy)
     if MOVING:
-        length += wd / lip                        # distance-equivalent length of the step
+        length += wd / lip  # distance-equivalent length of the step
     inv_len = 1.0 / length
     tol = CONTACT_TOL * length
     # A step no longer than TRACE_FRACTION * r cannot carry the disc across a wall unseen (the
     # same reason short steps skip this check), so the march never needs smaller steps.
-    short = TRACE_FRACTION * r * inv_len          # in units of t
-    far = inv_len / lip                           # t per unit of surface distance
+    short = TRACE_FRACTION * r * inv_len  # in units of t
+    far = inv_len / lip  # t per unit of surface distance
     leave = max(short, MIN_STEP)
     if t >= t_free:
         return 1.0, 0, 0.0, 0.0, 0.0, 0.0
@@ -85,14 +85,14 @@ def march(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
         d, gx, gy, gt = _query_t(data, x0 + t * dx, y0 + t * dy, ts + t * tdt)
         s = d - r
         if s > tol:
-            t += max(s * far, short)              # sphere tracing: free within s / L
+            t += max(s * far, short)  # sphere tracing: free within s / L
             if t >= t_free:
                 return 1.0, 0, 0.0, 0.0, 0.0, 0.0
             continue
         approach = gx * dx + gy * dy
         if MOVING:
             approach += gt * tdt
-        if approach < 0.0:                        # in contact and approaching
+        if approach < 0.0:  # in contact and approaching
             gl = math.sqrt(gx * gx + gy * gy)
             # (a zero gradient never approaches a static world)
             if gl < math.inf and (gl > 0.0 or not MOVING):
@@ -102,7 +102,7 @@ def march(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
             # touching but leaving (or sliding along) the surface: move on by a short step
             t += leave
         else:
-            return 1.0, 0, 0.0, 0.0, 0.0, 0.0     # non-finite SDF: nothing to trace against
+            return 1.0, 0, 0.0, 0.0, 0.0, 0.0  # non-finite SDF: nothing to trace against
         if t >= t_free:
             return 1.0, 0, 0.0, 0.0, 0.0, 0.0
     return t, 2, 0.0, 0.0, 0.0, 0.0
@@ -135,7 +135,7 @@ def sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt, w
             ts += t * tdt
             tdt *= 1.0 - t
             wd *= 1.0 - t
-        if hit == 2:                  # iteration limit: stay at the last safe point
+        if hit == 2:  # iteration limit: stay at the last safe point
             return x, y, 0.0, 0.0, vx, vy, True
         rx = (1.0 - t) * dx
         ry = (1.0 - t) * dy
@@ -161,7 +161,7 @@ def sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt, w
             vx = f * (vx - vn * nx) - cr * vn * nx
             vy = f * (vy - vn * ny) - cr * vn * ny
         bounced = True
-        if b == MAX_BOUNCES - 1:      # out of bounces: stop at this contact
+        if b == MAX_BOUNCES - 1:  # out of bounces: stop at this contact
             return x, y, 0.0, 0.0, vx, vy, bounced
         dx = rx
         dy = ry
@@ -211,5 +211,3 @@ def _rests(vx, vy, ax, ay, gx, gy, cf, rest):
     an = (ax * gx + ay * gy) * inv
     at2 = ax * ax + ay * ay - an * an
     return an < 0.0 and at2 <= cf * cf * an * an
-
-

@@ -27,8 +27,10 @@ def _borrowed_codegen(context, builder, ty, val):
         out.parent = cgutils.get_null_value(out.parent.type)
         return out._getvalue()
     if isinstance(ty, types.BaseTuple):
-        vals = [_borrowed_codegen(context, builder, t, builder.extract_value(val, k))
-                for k, t in enumerate(ty.types)]
+        vals = [
+            _borrowed_codegen(context, builder, t, builder.extract_value(val, k))
+            for k, t in enumerate(ty.types)
+        ]
         return context.make_tuple(builder, ty, vals)
     return val
 
@@ -74,8 +76,7 @@ def call_vg(typingctx, address, x, y):
         fp = builder.inttoptr(a, fnty.as_pointer())
         out = cgutils.alloca_once(builder, dbl, size=3)
         builder.call(fp, [xv, yv, out])
-        vals = [builder.load(builder.gep(out, [ir.Constant(ir.IntType(32), k)]))
-                for k in range(3)]
+        vals = [builder.load(builder.gep(out, [ir.Constant(ir.IntType(32), k)])) for k in range(3)]
         return context.make_tuple(builder, signature.return_type, vals)
 
     return sig, codegen
@@ -131,8 +132,12 @@ def _cell_vg(typingctx, grid, a, c, tx, ty):
     (i + 1, j + 1)), each ``[d, dd/dx, dd/dy]`` per node: the three channels in the lanes of
     one vector (two loads per run, the same operations per channel as the scalar blend, so the
     same bits). Reads only inside the runs."""
-    if not (isinstance(grid, types.Array) and grid.dtype in (types.float64, types.float32)
-            and isinstance(a, types.Integer) and isinstance(c, types.Integer)):
+    if not (
+        isinstance(grid, types.Array)
+        and grid.dtype in (types.float64, types.float32)
+        and isinstance(a, types.Integer)
+        and isinstance(c, types.Integer)
+    ):
         return None
     sig = types.UniTuple(types.float64, 3)(grid, a, c, tx, ty)
 
@@ -151,10 +156,10 @@ def _cell_vg(typingctx, grid, a, c, tx, ty):
 
         def runs(start):
             start = context.cast(builder, start, signature.args[1], types.intp)
-            lo = load4(start)                                      # n0.d, n0.gx, n0.gy, n1.d
-            hi = load4(builder.add(start, ir.Constant(intp, 2)))   # n0.gy, n1.d, n1.gx, n1.gy
+            lo = load4(start)  # n0.d, n0.gx, n0.gy, n1.d
+            hi = load4(builder.add(start, ir.Constant(intp, 2)))  # n0.gy, n1.d, n1.gx, n1.gy
             mask = ir.Constant(ir.VectorType(i32, 4), [1, 2, 3, 3])
-            return lo, builder.shuffle_vector(hi, hi, mask)        # n1.d, n1.gx, n1.gy, -
+            return lo, builder.shuffle_vector(hi, hi, mask)  # n1.d, n1.gx, n1.gy, -
 
         def splat(x, ty):
             x = context.cast(builder, x, ty, types.float64)
@@ -181,8 +186,12 @@ def _gather4(typingctx, grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_a
     gradients out as three vector stores into ``S[d_at + q:]``, ``gx_at``, ``gy_at`` (the
     four results transposed in registers; a scalar store per value would make the store
     port the bottleneck). Returns how many of the four have ``d <= S[r_at + q]``."""
-    if not (isinstance(grid, types.Array) and grid.dtype in (types.float64, types.float32)
-            and isinstance(S, types.Array) and S.dtype == types.float64):
+    if not (
+        isinstance(grid, types.Array)
+        and grid.dtype in (types.float64, types.float32)
+        and isinstance(S, types.Array)
+        and S.dtype == types.float64
+    ):
         return None
     sig = types.int64(grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_at, r_at)
 
@@ -244,12 +253,12 @@ def _gather4(typingctx, grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_a
         builder.store(dv, sptr(7), align=8)
         builder.store(builder.shuffle_vector(t2, t3, mask([0, 1, 4, 5])), sptr(8), align=8)
         builder.store(builder.shuffle_vector(t0, t1, mask([2, 3, 6, 7])), sptr(9), align=8)
-        le = builder.zext(builder.fcmp_ordered("<=", dv, builder.load(sptr(10), align=8)),
-                          ir.VectorType(i64, 4))
+        le = builder.zext(
+            builder.fcmp_ordered("<=", dv, builder.load(sptr(10), align=8)), ir.VectorType(i64, 4)
+        )
         n = builder.extract_element(le, ir.Constant(i32, 0))
         for k in range(1, 4):
             n = builder.add(n, builder.extract_element(le, ir.Constant(i32, k)))
         return n
 
     return sig, codegen
-

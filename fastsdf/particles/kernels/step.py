@@ -31,8 +31,15 @@ from fastsdf.particles.kernels.scene import (
     _wall_speed_at,
 )
 
-__all__ = ["PLAIN_BATCH", "run_par", "run_ser", "plain_par", "plain_ser", "query_many",
-           "force_many"]
+__all__ = [
+    "PLAIN_BATCH",
+    "run_par",
+    "run_ser",
+    "plain_par",
+    "plain_ser",
+    "query_many",
+    "force_many",
+]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -54,8 +61,14 @@ def _finite4(x, y, vx, vy):
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _valid_input(x, y, vx, vy, r, m, use_m):
     """Whether a particle's loaded state may be stepped (cr, cf are checked at contacts)."""
-    ok = (abs(x) < math.inf and abs(y) < math.inf and abs(vx) < math.inf
-          and abs(vy) < math.inf and r >= 0.0 and r < math.inf)
+    ok = (
+        abs(x) < math.inf
+        and abs(y) < math.inf
+        and abs(vx) < math.inf
+        and abs(vy) < math.inf
+        and r >= 0.0
+        and r < math.inf
+    )
     if use_m:
         ok = ok and m > 0.0 and m < math.inf
     return ok
@@ -87,8 +100,15 @@ def _check_block(lo, hi, state, clear, inv_mass, use_m):
         m = float(M[i]) if use_m or check_all else 1.0
         if use_m:
             inv_mass[i - lo] = 1.0 / m
-        ok = _valid_input(float(X[i, 0]), float(X[i, 1]), float(V[i, 0]), float(V[i, 1]),
-                          float(R[i]), m, use_m or check_all)
+        ok = _valid_input(
+            float(X[i, 0]),
+            float(X[i, 1]),
+            float(V[i, 0]),
+            float(V[i, 1]),
+            float(R[i]),
+            m,
+            use_m or check_all,
+        )
         if check_all:
             ok = ok and _coeffs(CR, CF, i)[2]
         if not ok:
@@ -191,7 +211,7 @@ def _block(data, lo, hi, steps, state, physics, budget):
     dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
     trace, lip, margin, eps, skip = budget
     data = borrow_all(data)
-    M, EXT = borrow_all((M, EXT))       # see _accel
+    M, EXT = borrow_all((M, EXT))  # see _accel
     clear = np.zeros(hi - lo)
     # A moving world: its surfaces move by at most wd per step near a particle (0 for a static
     # world, and far from every moving wall).
@@ -218,16 +238,36 @@ def _block(data, lo, hi, steps, state, physics, budget):
             y0 = y
             vx0 = vx
             vy0 = vy
-            bx, by = _accel(i, k, x, y, vx, vy, t, M, EXT, borrow_all(inv_mass), fbuf,
-                            k % FORCE_BATCH, ax, ay, drag, use_m, use_ext)
+            bx, by = _accel(
+                i,
+                k,
+                x,
+                y,
+                vx,
+                vy,
+                t,
+                M,
+                EXT,
+                borrow_all(inv_mass),
+                fbuf,
+                k % FORCE_BATCH,
+                ax,
+                ay,
+                drag,
+                use_m,
+                use_ext,
+            )
             dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
             if MOVING:
                 wd = _wall_speed_at(data, x + dx, y + dy, dx, dy) * dt
             if c > 0.0:
                 # (1 + CONTACT_TOL / lip): a skipped step must also be one whose sweep would
                 # not have stopped at a near-contact (s <= CONTACT_TOL |step|).
-                c -= (math.sqrt(dx * dx + dy * dy) * (1.0 + CONTACT_TOL / lip)
-                      + eps * (abs(x) + abs(y) + 1.0) + wd / lip)
+                c -= (
+                    math.sqrt(dx * dx + dy * dy) * (1.0 + CONTACT_TOL / lip)
+                    + eps * (abs(x) + abs(y) + 1.0)
+                    + wd / lip
+                )
                 if c > 0.0:
                     x += dx
                     y += dy
@@ -256,7 +296,8 @@ def _block(data, lo, hi, steps, state, physics, budget):
                     crosses = ln > TRACE_FRACTION * r and not (s >= lip * ln and s > 0.0)
                 else:
                     crosses = dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r) and not (
-                        s * s >= lip * lip * dd and s > 0.0)
+                        s * s >= lip * lip * dd and s > 0.0
+                    )
                 if crosses:
                     cr, cf, ok = _coeffs(CR, CF, u)
                     if not ok:
@@ -268,8 +309,9 @@ def _block(data, lo, hi, steps, state, physics, budget):
                     t1 = 1.0
                     if s > 0.0:
                         t1 = 1.0 - s / (lip * (ln if MOVING else math.sqrt(dd)))
-                    x, y, dx, dy, vx, vy, bounced = sweep(data, x, y, dx, dy, vx, vy, r, cr, cf,
-                                                          lip, always, 0.0, t1, t, dt, wd)
+                    x, y, dx, dy, vx, vy, bounced = sweep(
+                        data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, 0.0, t1, t, dt, wd
+                    )
                     if bounced:
                         d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
                         s = d - r
@@ -287,8 +329,9 @@ def _block(data, lo, hi, steps, state, physics, budget):
                     vx = 0.0
                     vy = 0.0
                 else:
-                    x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf,
-                                            always and not bounced, gt)
+                    x, y, vx, vy = _respond(
+                        x, y, vx, vy, s, gx, gy, cr, cf, always and not bounced, gt
+                    )
             elif skip and s > margin:
                 clear[k] = (s - margin) / lip * (1.0 - 1e-9)
             if not _finite4(x, y, vx, vy):
@@ -321,8 +364,25 @@ def _plain_straight(data, lo, hi, step, t, state, physics, work):
             continue
         u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
         r = float(R[u])
-        bx, by = _accel(i, k, x, y, vx, vy, t, M, EXT, borrow_all(inv_mass), fbuf,
-                        k % FORCE_BATCH, ax, ay, drag, use_m, use_ext)
+        bx, by = _accel(
+            i,
+            k,
+            x,
+            y,
+            vx,
+            vy,
+            t,
+            M,
+            EXT,
+            borrow_all(inv_mass),
+            fbuf,
+            k % FORCE_BATCH,
+            ax,
+            ay,
+            drag,
+            use_m,
+            use_ext,
+        )
         dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
         if _fallback_missing(data, x, y, dx, dy):
             bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
@@ -372,8 +432,25 @@ def _plain_staged(data, lo, hi, step, t, state, physics, work):
             if clear[k] < 0.0:
                 continue
             u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
-            bx, by = _accel(i, k, x, y, vx, vy, t, M, EXT, borrow_all(inv_mass), fbuf, q,
-                            ax, ay, drag, use_m, use_ext)
+            bx, by = _accel(
+                i,
+                k,
+                x,
+                y,
+                vx,
+                vy,
+                t,
+                M,
+                EXT,
+                borrow_all(inv_mass),
+                fbuf,
+                q,
+                ax,
+                ay,
+                drag,
+                use_m,
+                use_ext,
+            )
             dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
             if _fallback_missing(data, x, y, dx, dy):
                 bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
@@ -403,8 +480,7 @@ def _plain_staged(data, lo, hi, step, t, state, physics, work):
                 if not ok:
                     bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                     continue
-                x, y, vx, vy = _respond(x, y, vx, vy, s, sb[5, q], sb[6, q], cr, cf,
-                                        always, 0.0)
+                x, y, vx, vy = _respond(x, y, vx, vy, s, sb[5, q], sb[6, q], cr, cf, always, 0.0)
             if not _finite4(x, y, vx, vy):
                 bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
                 continue
@@ -443,7 +519,7 @@ def _block_plain(data, lo, hi, steps, state, physics):
     X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
     dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
     data = borrow_all(data)
-    M, EXT = borrow_all((M, EXT))       # see _accel
+    M, EXT = borrow_all((M, EXT))  # see _accel
     clear = np.zeros(hi - lo)
     use_m = use_m or USE_FORCE
     inv_mass = np.empty(hi - lo if use_m else 0)
@@ -457,13 +533,25 @@ def _block_plain(data, lo, hi, steps, state, physics):
     work = (Xf, Vf, clear, borrow_all(inv_mass), fbuf, sb)
     if not use_m and not explicit and not always:
         # the common flags as constants
-        bad += _plain_steps(data, lo, hi, steps, own,
-                            Physics(dt, t0, ax, ay, drag, False, False, False, False, rest),
-                            work)
+        bad += _plain_steps(
+            data,
+            lo,
+            hi,
+            steps,
+            own,
+            Physics(dt, t0, ax, ay, drag, False, False, False, False, rest),
+            work,
+        )
     else:
-        bad += _plain_steps(data, lo, hi, steps, own,
-                            Physics(dt, t0, ax, ay, drag, use_m, use_ext, explicit, always,
-                                    rest), work)
+        bad += _plain_steps(
+            data,
+            lo,
+            hi,
+            steps,
+            own,
+            Physics(dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest),
+            work,
+        )
     return bad
 
 
@@ -517,7 +605,6 @@ def plain_ser(data, state, physics, budget, steps, block):
     for lo in range(0, n, block):
         bad += _block_plain(data, lo, min(n, lo + block), steps, state, physics)
     return bad
-
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
