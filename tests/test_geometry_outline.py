@@ -6,7 +6,7 @@ import pytest
 import fastsdf as sdf
 from fastsdf.backends.kernel import prims as P
 from fastsdf.expr import prims_ref as R
-from fastsdf.geometry.outline import SvgPath, Text, cubic_to_quadratics, path_segments
+from fastsdf.geometry.outline import SvgFile, SvgPath, Text, cubic_to_quadratics, path_segments
 from fastsdf.shapes import Outline
 from fastsdf.shapes.primitives import outline_table
 
@@ -206,3 +206,28 @@ def test_text_is_an_exact_sdf_like_any_other():
     np.testing.assert_allclose(got[apart], np.minimum(d, disc)[apart], atol=1e-12)
     assert np.all(got[near] < np.minimum(d, disc)[near])
     assert np.all(got >= np.minimum(d, disc) - 0.025 - 1e-12)
+
+
+def test_svg_file_is_the_union_of_its_paths(tmp_path):
+    """Each <path> with its own fill rule and transform; the file's union equals the union of
+    the same paths given as data, with the transform applied by hand."""
+    square_with_hole = "M 0 0 L 4 0 L 4 4 L 0 4 Z M 1 1 L 3 1 L 3 3 L 1 3 Z"
+    triangle = "M 0 0 L 2 0 L 1 2 Z"
+    (tmp_path / "drawing.svg").write_text(
+        '<svg xmlns="http://www.w3.org/2000/svg" width="20" height="20">'
+        f'<path fill-rule="evenodd" d="{square_with_hole}"/>'
+        f'<path transform="translate(6 1)" d="{triangle}"/>'
+        '<rect x="0" y="0" width="1" height="1"/></svg>'
+    )
+    f = SvgFile(tmp_path / "drawing.svg")
+    moved = "M 6 1 L 8 1 L 7 3 Z"
+    g = SvgPath(square_with_hole, fill_rule="evenodd") | SvgPath(moved)
+    x, y = np.random.default_rng(3).uniform(-1, 9, (2, 500))
+    y = -y / 2.0  # y flipped: the drawing lies below the x axis
+    np.testing.assert_allclose(f(x, y), g(x, y), rtol=0, atol=1e-12)
+    assert f(2.0, -2.0)[0] > 0 and f(0.5, -0.5)[0] < 0  # the hole is free, the frame solid
+    with pytest.raises(ValueError, match="no <path>"):
+        (tmp_path / "empty.svg").write_text('<svg xmlns="http://www.w3.org/2000/svg"/>')
+        SvgFile(tmp_path / "empty.svg")
+    with pytest.raises(ValueError, match="existing SVG file"):
+        SvgFile(tmp_path / "missing.svg")

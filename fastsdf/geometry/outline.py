@@ -26,6 +26,7 @@ one outline per glyph group (a glyph's outer loop with its holes), joined by a h
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -33,7 +34,14 @@ from numpy.typing import ArrayLike
 
 from fastsdf.shapes import SDF, Outline, union
 
-__all__ = ["SvgPath", "Text", "cubic_to_quadratics", "path_segments", "text_segments"]
+__all__ = [
+    "SvgPath",
+    "SvgFile",
+    "Text",
+    "cubic_to_quadratics",
+    "path_segments",
+    "text_segments",
+]
 
 #: Maximum distance of the standard cubic from a quarter circle of radius 1 (2.7253e-4).
 _QUARTER_ARC_ERROR = 2.73e-4
@@ -206,6 +214,42 @@ def SvgPath(
     rows = path_segments(d, _check_tol(tol) / scale, flip_y)
     rows[:, 1:7] = rows[:, 1:7] * scale + np.tile(off, 3)
     return Outline(rows, fill_rule)
+
+
+def SvgFile(
+    path: str | os.PathLike,
+    tol: float = 1e-4,
+    flip_y: bool = True,
+    scale: float = 1.0,
+    offset: ArrayLike = (0.0, 0.0),
+) -> SDF:
+    """The region the ``<path>`` elements of an SVG file fill, as an exact SDF: the union of
+    each path's :func:`SvgPath` (its own ``fill-rule``, its transforms applied), in the file's
+    user units times ``scale``. Other elements (rectangles, circles, text) are not read: convert
+    them to paths in the drawing program. Raises ``ValueError`` if the file holds no path."""
+    try:
+        from svgelements import SVG
+        from svgelements import Path as SvgElementPath
+    except ImportError:
+        raise ImportError(
+            "SVG files need the svgelements package: pip install svgelements (or fastsdf[geometry])"
+        ) from None
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise ValueError(f"path must be an existing SVG file, got path={name!r}")
+    shapes = []
+    for element in SVG.parse(name).elements():
+        if isinstance(element, SvgElementPath) and len(element) > 0:
+            element.reify()  # apply its transform to the coordinates
+            rule = str(element.values.get("fill-rule", "nonzero")).strip() or "nonzero"
+            shapes.append(
+                SvgPath(
+                    element.d(), fill_rule=rule, tol=tol, flip_y=flip_y, scale=scale, offset=offset
+                )
+            )
+    if not shapes:
+        raise ValueError(f"the SVG file {name!r} holds no <path> element with data")
+    return shapes[0] if len(shapes) == 1 else union(shapes)
 
 
 def text_segments(
