@@ -100,7 +100,8 @@ same process; spreads are (max - min) / median over the repeats.
 
 def assemble() -> str:
     parts = [HEADER]
-    for name, _, _ in SECTIONS:
+    # The sections, then the A/B of whole workloads against an earlier revision (bench.ab).
+    for name in [s[0] for s in SECTIONS] + ["ab"]:
         path = os.path.join(HERE, "results", f"{name}.md")
         if os.path.exists(path):
             with open(path, encoding="utf-8") as fh:
