@@ -27,38 +27,20 @@ import os
 import shutil
 import tempfile
 
-from .common import HERE, run_fresh_process, stamp, table
+from .common import FRESH_SCENE, HERE, run_fresh_process, stamp, table
 
 COMMAND = "python -m bench.bench_instant"
 
-_SCRIPT = r"""
+_SCRIPT = (
+    r"""
 import json, sys, time
 t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
 t_import = time.perf_counter() - t0
-from fastsdf.shapes.scenes import box_world, mixed_scene
-from bench.bench_prune import hard_union
-KIND, BACKEND, SEED = "KIND_", "BACKEND_", SEED_
-def scene(kind, seed):
-    rng = np.random.default_rng(seed)
-    if kind == "seed":  # the seed world with fresh constants
-        f = sdf.Halfspace([0, 1], -1.8 + rng.uniform(-1e-3, 1e-3)) | sdf.Halfspace([1, 1], -1.8) \
-            | sdf.Halfspace([-1, 1], -1.8)
-        with sdf.smoothness(10):
-            f |= sdf.Circle([0, rng.uniform(-0.1, 0.1)], 0.5) & sdf.Halfspace([0.1, 1], 0.3)
-        return f
-    if kind == "box20":
-        return box_world(20, seed)
-    if kind == "circles200":
-        f = sdf.Circle(rng.uniform(-2, 2, 2), 0.1)
-        for _ in range(199):
-            f = f | sdf.Circle(rng.uniform(-2, 2, 2), rng.uniform(0.05, 0.2))
-        return f
-    if kind == "mixed":
-        return mixed_scene(200, seed)
-    return hard_union(int(kind[4:]), seed=seed)
-p = np.random.default_rng(1).uniform(-2, 2, (2, 100_000))
+"""
+    + FRESH_SCENE
+    + r"""p = np.random.default_rng(1).uniform(-2, 2, (2, 100_000))
 t0 = time.perf_counter()
 f = scene(KIND, SEED)
 t_build = time.perf_counter() - t0
@@ -74,6 +56,7 @@ if BACKEND == "kernel":
     out["program"] = "_PROG_VG" in f.compiled.module_source
 print(json.dumps(out))
 """
+)
 
 #: (kind, label) of the scenes; the first two are the quick set.
 SCENES = [

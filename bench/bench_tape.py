@@ -30,7 +30,7 @@ import numpy as np
 from fastsdf.shapes.scenes import box_world, mixed_scene, seed_world
 
 from .bench_prune import hard_union
-from .common import HERE, fmt_rate, run_fresh_process, stamp, table, timeit
+from .common import FRESH_SCENE, HERE, fmt_rate, run_fresh_process, stamp, table, timeit
 
 COMMAND = "python -m bench.bench_tape"
 
@@ -93,7 +93,8 @@ def _per_point(quick: bool) -> str:
     )
 
 
-_FIRST = r"""
+_FIRST = (
+    r"""
 import json, sys, time
 if "HIDE_SCIPY_" == "1":  # numba's setup as it is without SciPy installed
     class _Hide:
@@ -105,23 +106,9 @@ t0 = time.perf_counter()
 import numpy as np
 import fastsdf as sdf
 t_import = time.perf_counter() - t0
-from fastsdf.shapes.scenes import box_world, mixed_scene
-from bench.bench_prune import hard_union
-KIND, BACKEND, SEED = "KIND_", "BACKEND_", SEED_
-def scene(kind, seed):
-    rng = np.random.default_rng(seed)
-    if kind == "seed":  # the seed world with fresh constants
-        f = sdf.Halfspace([0, 1], -1.8 + rng.uniform(-1e-3, 1e-3)) | sdf.Halfspace([1, 1], -1.8) \
-            | sdf.Halfspace([-1, 1], -1.8)
-        with sdf.smoothness(10):
-            f |= sdf.Circle([0, rng.uniform(-0.1, 0.1)], 0.5) & sdf.Halfspace([0.1, 1], 0.3)
-        return f
-    if kind == "box20":
-        return box_world(20, seed)
-    if kind == "mixed":
-        return mixed_scene(200, seed)
-    return hard_union(int(kind[4:]), seed=seed)
-p = np.random.default_rng(1).uniform(-2, 2, (2, 100_000))
+"""
+    + FRESH_SCENE
+    + r"""p = np.random.default_rng(1).uniform(-2, 2, (2, 100_000))
 t0 = time.perf_counter()
 f = scene(KIND, SEED)
 t_build = time.perf_counter() - t0
@@ -165,6 +152,7 @@ if BACKEND == "auto":
     out["alone_s"] = float(np.median(calls))
 print(json.dumps(out))
 """
+)
 
 #: Fresh processes per backend and scene (the first answers reported are the best of them;
 #: one more ``'auto'`` process measures the calls made while the kernel compiles).

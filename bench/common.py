@@ -100,3 +100,29 @@ def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) 
 
 
 from fastsdf.viz.progress import Progress  # noqa: E402,F401 - re-exported for sections
+
+# The scenes of the first-answer benchmarks, built with fresh constants in a child process's
+# script (bench_tape, bench_instant): KIND_ and SEED_ are filled in by the caller.
+FRESH_SCENE = r"""
+from fastsdf.shapes.scenes import box_world, mixed_scene
+from bench.bench_prune import hard_union
+KIND, BACKEND, SEED = "KIND_", "BACKEND_", SEED_
+def scene(kind, seed):
+    rng = np.random.default_rng(seed)
+    if kind == "seed":  # the seed world with fresh constants
+        f = sdf.Halfspace([0, 1], -1.8 + rng.uniform(-1e-3, 1e-3)) | sdf.Halfspace([1, 1], -1.8) \
+            | sdf.Halfspace([-1, 1], -1.8)
+        with sdf.smoothness(10):
+            f |= sdf.Circle([0, rng.uniform(-0.1, 0.1)], 0.5) & sdf.Halfspace([0.1, 1], 0.3)
+        return f
+    if kind == "box20":
+        return box_world(20, seed)
+    if kind == "circles200":
+        f = sdf.Circle(rng.uniform(-2, 2, 2), 0.1)
+        for _ in range(199):
+            f = f | sdf.Circle(rng.uniform(-2, 2, 2), rng.uniform(0.05, 0.2))
+        return f
+    if kind == "mixed":
+        return mixed_scene(200, seed)
+    return hard_union(int(kind[4:]), seed=seed)
+"""
