@@ -3,8 +3,9 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-# Kernels compiled by tests, demos and benchmarks are cached here unless FASTSDF_CACHE_DIR is set.
-export FASTSDF_CACHE_DIR ?= $(CURDIR)/.cache/kernels
+# Kernels compiled by the demo, the tests, the benchmarks and the user's own scripts share one
+# cache (fastsdf's default, ~/.cache/fastsdf, or $FASTSDF_CACHE_DIR): its files are named by the
+# hash of their source, so a kernel compiled once serves every later run.
 export MPLBACKEND ?= Agg
 
 .PHONY: venv demo docs lint test bench bench-quick clean

@@ -1,15 +1,12 @@
 """Shared fixtures and reference helpers for the fastsdf tests."""
 
 import os
-import tempfile
 
 import numpy as np
 import pytest
 
-# Tests must never depend on a user's kernel cache: use the Makefile's (or a private) directory.
-os.environ.setdefault(
-    "FASTSDF_CACHE_DIR", os.path.join(tempfile.gettempdir(), "fastsdf-test-cache")
-)
+# The tests share the installation's kernel cache (its files are named by the hash of their
+# source, so a stale entry cannot be hit); tests of a fresh installation use their own folders.
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
