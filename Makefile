@@ -37,13 +37,12 @@ venv: $(VENV)/.base
 demo: $(VENV)/.video
 	$(VENV)/bin/fastsdf demo
 
-# The API reference, generated from the docstrings of every public module (pdoc follows
-# fastsdf.__all__, which names no modules, so they are listed).
-PUBLIC_MODULES = $(PY) -c "import pkgutil, fastsdf; print(' '.join(['fastsdf'] + [m.name for m in \
-	pkgutil.walk_packages(fastsdf.__path__, 'fastsdf.') if '._' not in m.name]))"
+# The documentation site (docs/, Sphinx + MyST + myst-nb + sphinx-gallery; docs/conf.py says
+# why): the guide, the notebook executed, the gallery executed from examples/ at small sizes and
+# the API reference of the public surface. Warnings are errors.
 docs: $(VENV)/.docs
-	$(PY) -m pdoc --docformat restructuredtext -o docs/api $$($(PUBLIC_MODULES))
-	@echo "API reference: docs/api/index.html"
+	$(PY) -m sphinx -b html -W --keep-going -q docs docs/_build/html
+	@echo "documentation: docs/_build/html/index.html"
 
 # The habits the tests do not check: ruff's lint rules (pyproject [tool.ruff]), mypy over the
 # package (pyproject [tool.mypy]) and the layer contract (pyproject [tool.importlinter]).

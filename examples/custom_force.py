@@ -1,4 +1,5 @@
 """Forces of your own: a fused force field, and a time-varying Python force.
+=========================================================================
 
     python examples/custom_force.py [OUT]        # writes OUT/custom_force.png
 

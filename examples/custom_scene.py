@@ -1,4 +1,5 @@
 """A scene of your own from primitives, blends and modifiers, drawn with plot_sdf.
+===============================================================================
 
     python examples/custom_scene.py [OUT]        # writes OUT/custom_scene.png (default
     ./examples-out)

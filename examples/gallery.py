@@ -1,4 +1,5 @@
 """Render one small picture per primitive, modifier and blend into docs/gallery.png.
+=================================================================================
 
     python examples/gallery.py [output.png]
 
@@ -22,9 +23,6 @@ import numpy as np
 import fastsdf as sdf
 from fastsdf.viz.plotting import sdf_grid
 from fastsdf.viz.progress import progress
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-OUT = os.path.join(HERE, "..", "docs", "gallery.png")
 
 
 def panels():
@@ -75,7 +73,13 @@ def panels():
     ]
 
 
-def main(out=OUT):
+def default_out() -> str:
+    """docs/gallery.png of this checkout."""
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "gallery.png")
+
+
+def main(out: str | None = None) -> str:
+    out = out or default_out()
     items = panels()
     cols = 6
     rows = math.ceil(len(items) / cols)
@@ -119,6 +123,7 @@ def main(out=OUT):
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=80)
     print(f"wrote {os.path.abspath(out)}")
+    return out
 
 
 if __name__ == "__main__":

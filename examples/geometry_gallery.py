@@ -1,4 +1,5 @@
 """Worlds from a grey-level image, an SVG drawing and a word, with particles poured over them.
+===========================================================================================
 
     python examples/geometry_gallery.py [output.png]     # default: docs/geometry_gallery.png
 
@@ -20,8 +21,6 @@ import fastsdf as sdf
 from fastsdf.geometry import SvgPath, Text, contours, from_image
 from fastsdf.particles import Gravity, ParticleSimulation
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-OUT = os.path.join(HERE, "..", "docs", "geometry_gallery.png")
 BOUNDS = [(-2.0, 2.0), (-2.0, 2.0)]
 
 # A heart drawn with cubic Beziers, a round window cut by two arcs (even-odd), a quadratic lid.
@@ -71,7 +70,15 @@ def pour(world, n=700, steps=360, seed=0):
     return sim.p["x"].copy()
 
 
-def main(out: str = OUT) -> str:
+def default_out() -> str:
+    """docs/geometry_gallery.png of this checkout."""
+    return os.path.join(
+        os.path.dirname(os.path.abspath(__file__)), "..", "docs", "geometry_gallery.png"
+    )
+
+
+def main(out: str | None = None) -> str:
+    out = out or default_out()
     panels = worlds()
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 5.6))
     floor = (
@@ -113,4 +120,4 @@ def _walls(n: int) -> np.ndarray:
 
 
 if __name__ == "__main__":
-    print(main(sys.argv[1] if len(sys.argv) > 1 else OUT))
+    print(main(*sys.argv[1:]))

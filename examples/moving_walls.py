@@ -1,4 +1,5 @@
 """A rotating stirrer in a box: a moving wall built with time ``sdf.t``, 1e6 particles.
+====================================================================================
 
     python examples/moving_walls.py [OUT]      # OUT/moving_walls.mp4 (.gif without ffmpeg),
                                                # OUT/moving_walls.png (four frames)

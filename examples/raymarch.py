@@ -1,4 +1,5 @@
 """Calling a compiled SDF from your own numba code: a 2D ray marcher casting soft shadows.
+=======================================================================================
 
     python examples/raymarch.py [OUT]            # writes OUT/raymarch.png (default ./examples-out)
 

@@ -1,4 +1,5 @@
 """Particles in the seed world, saved as a video.
+==============================================
 
     python examples/save_video.py [OUT]          # OUT/particles.mp4 (.gif without ffmpeg)
 
