@@ -7,9 +7,8 @@ during the build; sphinx-gallery runs ``examples/*.py`` at small sizes and shows
 writes (pictures, and videos with a frame as the thumbnail).
 """
 
-import base64
 import os
-import shutil
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -17,6 +16,7 @@ from pathlib import Path
 DOCS = Path(__file__).resolve().parent
 REPO = DOCS.parent
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(DOCS))
 # The examples read FASTSDF_EXAMPLE_SMALL: small particle counts and few frames, so the gallery
 # runs in about a minute on a 2-core machine (the test suite runs them the same way). The
 # notebook runs at its own sizes (half a minute): the variable is dropped once the gallery ran.
@@ -69,84 +69,15 @@ napoleon_google_docstring = False
 napoleon_use_rtype = False
 
 # --- the gallery ---------------------------------------------------------------------------------
-GALLERY_OUT = DOCS / "_build" / "gallery-files"
-MEDIA = (".png", ".mp4", ".gif")
-
-
-def example_argv(gallery_conf, script_vars):
-    """Each example writes into its own folder (the two gallery scripts take a file name)."""
-    name = Path(script_vars["src_file"]).stem
-    out = GALLERY_OUT / name
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
-    if name in ("gallery", "geometry_gallery"):
-        return [str(out / f"{name}.png")]
-    return [str(out)]
-
-
-def _video_frame(video: Path, png: Path) -> None:
-    """The last frame of a video as a PNG (the entry's picture and thumbnail)."""
-    import imageio_ffmpeg
-    import matplotlib.image as mpimg
-    import numpy as np
-
-    reader = imageio_ffmpeg.read_frames(str(video))
-    meta = next(reader)
-    width, height = meta["size"]
-    last = None
-    for frame in reader:
-        last = frame
-    assert last is not None, video
-    mpimg.imsave(png, np.frombuffer(last, np.uint8).reshape(height, width, 3))
-
-
-def files_scraper(block, block_vars, gallery_conf):
-    """Shows the pictures and videos an example wrote into its folder."""
-    from sphinx_gallery.scrapers import figure_rst
-
-    name = Path(block_vars["src_file"]).stem
-    out = GALLERY_OUT / name
-    if not out.is_dir():
-        return ""
-    images, videos = [], []
-    for path in sorted(out.iterdir()):
-        if path.suffix not in MEDIA:
-            continue
-        if path.suffix == ".mp4":
-            videos.append(path)
-            target = next(block_vars["image_path_iterator"])
-            _video_frame(path, Path(target))
-            images.append(target)
-        else:
-            target = next(block_vars["image_path_iterator"])
-            shutil.copyfile(path, target)
-            images.append(target)
-    rst = figure_rst(images, gallery_conf["src_dir"]) if images else ""
-    for video in videos:
-        data = base64.b64encode(video.read_bytes()).decode()
-        rst += (
-            f"\n\n.. raw:: html\n\n    <p>{video.name}:</p>\n"
-            f'    <video controls loop style="max-width: 100%" '
-            f'src="data:video/mp4;base64,{data}"></video>\n\n'
-        )
-    shutil.rmtree(out, ignore_errors=True)
-    return rst
-
-
-def close_figures(gallery_conf, fname):
-    import matplotlib.pyplot as plt
-
-    plt.close("all")
-
-
 sphinx_gallery_conf = {
     "examples_dirs": str(REPO / "examples"),
     "gallery_dirs": "gallery",
-    "filename_pattern": r"/(?!seed_notebook)\w+\.py$",
-    "ignore_pattern": r"seed_notebook\.py$",
-    "reset_argv": example_argv,
-    "image_scrapers": (files_scraper,),
-    "reset_modules": (close_figures,),
+    "filename_pattern": r"\.py$",  # run every example (the default runs only plot_*.py)
+    # the hooks live in a module (docs/gallery_hooks.py), named by strings: Sphinx caches the
+    # configuration between builds and cannot pickle functions defined here
+    "reset_argv": "gallery_hooks.example_argv",
+    "image_scrapers": ("gallery_hooks.files_scraper",),
+    "reset_modules": ("gallery_hooks.close_figures",),
     "download_all_examples": False,
     "remove_config_comments": True,
     "min_reported_time": 1,
@@ -156,11 +87,43 @@ sphinx_gallery_conf = {
 warnings.filterwarnings("ignore", message="Matplotlib is currently using agg")
 
 
-def _gallery_done(app):
+# Numpy-style docstrings here often end with a paragraph after the last parameter (how a class
+# behaves as a whole). Napoleon would read it as more parameters; numpy's convention puts such
+# prose under "Notes", so a "Notes" header is inserted where a field section is followed by a
+# paragraph at the left margin that is not a parameter line ("name" or "name : type").
+_FIELD_SECTIONS = {"Parameters", "Returns", "Yields", "Raises", "Attributes", "Other Parameters"}
+_PARAM_LINE = re.compile(r"^\*{0,2}\w+(\s*,\s*\*{0,2}\w+)*(\s+:.*)?$")
+
+
+def _prose_after_fields(
+    app: object, what: str, name: str, obj: object, options: object, lines: list[str]
+) -> None:
+    out, in_fields = [], False
+    for i, line in enumerate(lines):
+        if i + 1 < len(lines) and lines[i + 1].strip() and set(lines[i + 1].strip()) == {"-"}:
+            in_fields = line.strip() in _FIELD_SECTIONS
+        elif (
+            in_fields
+            and line
+            and not line[0].isspace()
+            and i > 0
+            and not lines[i - 1].strip()
+            and not set(line.strip()) <= {"-"}
+            and not _PARAM_LINE.match(line)
+        ):
+            out += ["Notes", "-----"]
+            in_fields = False
+        out.append(line)
+    lines[:] = out
+
+
+def _gallery_done(app: object) -> None:
     if _SET_SMALL:
         os.environ.pop("FASTSDF_EXAMPLE_SMALL", None)
 
 
-def setup(app):
+def setup(app: object) -> None:
     # after sphinx-gallery's own builder-inited handler, which runs the examples
     app.connect("builder-inited", _gallery_done, priority=900)
+    # before napoleon's own handler (priority 500)
+    app.connect("autodoc-process-docstring", _prose_after_fields, priority=400)

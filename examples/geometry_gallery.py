@@ -77,7 +77,7 @@ def default_out() -> str:
     )
 
 
-def main(out: str | None = None) -> str:
+def main(out: str | None = None, n: int = 700, steps: int = 360) -> str:
     out = out or default_out()
     panels = worlds()
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 5.6))
@@ -96,12 +96,12 @@ def main(out: str | None = None) -> str:
             )
         else:
             grid = from_image(np.maximum(micrograph(), _walls(240)), BOUNDS)
-        x = pour(grid)
+        x = pour(grid, n=n, steps=steps)
         ax.scatter(x[:, 0], x[:, 1], s=4, color="#2a9df4", lw=0)
         ax.set_title(title, fontsize=10)
     fig.suptitle(
         "fastsdf.geometry: worlds from pixels, SVG paths and text (orange: "
-        "contours refined on the SDF; blue: 700 particles poured over each)",
+        f"contours refined on the SDF; blue: {n} particles poured over each)",
         fontsize=11,
     )
     fig.tight_layout()
@@ -120,4 +120,5 @@ def _walls(n: int) -> np.ndarray:
 
 
 if __name__ == "__main__":
-    print(main(*sys.argv[1:]))
+    small = os.environ.get("FASTSDF_EXAMPLE_SMALL") == "1"
+    print(main(*sys.argv[1:], **({"n": 200, "steps": 150} if small else {})))
