@@ -23,6 +23,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from fastsdf.notice import compiling
+
 __all__ = [
     "DemoResult",
     "run_demo",
@@ -192,7 +194,8 @@ def _timed_advance(
         return
     if timing["first"] is None:
         t0 = time.perf_counter()
-        sim.run(1)
+        with compiling("the particle step for this world"):
+            sim.run(1)
         timing["first"] = time.perf_counter() - t0
         timing["load0"] = _load()
         timing["outside"] += outside_share()
@@ -259,6 +262,7 @@ def run_demo(
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity, ParticleSimulation
     from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
@@ -291,9 +295,10 @@ def run_demo(
         sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
     else:
         t0 = time.perf_counter()
-        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
-        built = time.perf_counter() - t0
-        error = measure_error(sdf, seed=seed)
+        with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
+            sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
+            built = time.perf_counter() - t0
+            error = measure_error(sdf, seed=seed)
         band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
         cost = _query_cost(sdf, seed=seed)
         sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
@@ -333,9 +338,19 @@ def run_demo(
                 vmax=max(10.0, particles / 1000),
                 title=label.rstrip(", "),
             ) as writer:
-                for k in schedule:
+                bar = None
+                for i, k in enumerate(schedule):
                     advance(k)
-                    writer.add_simulation(sim)
+                    with compiling("the video's drawing kernels"):
+                        writer.add_simulation(sim)
+                    # the bar starts once the first step has compiled (and said so)
+                    if bar is None and timing["first"] is not None:
+                        bar = Progress(len(schedule), "frames", stream=err)
+                        bar.step(count=i)
+                    if bar is not None:
+                        bar.step()
+                if bar is not None:
+                    bar.close()
         else:
             fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
             anim = _animate(

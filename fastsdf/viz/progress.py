@@ -49,5 +49,9 @@ class Progress:
             self._bar.set_postfix_str(note[:40], refresh=False)
         self._bar.update(count)
 
-    def __exit__(self, *exc: object) -> None:
+    def close(self) -> None:
+        """Finish the bar (leaving it on screen)."""
         self._bar.close()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
