@@ -297,8 +297,8 @@ def run_demo(
         t0 = time.perf_counter()
         with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
             sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
-            built = time.perf_counter() - t0
-            error = measure_error(sdf, seed=seed)
+        built = time.perf_counter() - t0
+        error = measure_error(sdf, seed=seed)
         band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
         cost = _query_cost(sdf, seed=seed)
         sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
@@ -329,28 +329,25 @@ def run_demo(
             # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames).
             # One colour scale for the whole video: the pile on the funnel's floor reaches
             # about a thousandth of the particles in one pixel by the end.
-            with VideoWriter(
-                animation_path,
-                f,
-                BOUNDS,
-                size=VIDEO_SIZE,
-                fps=fps,
-                vmax=max(10.0, particles / 1000),
-                title=label.rstrip(", "),
-            ) as writer:
-                bar = None
+            with (
+                VideoWriter(
+                    animation_path,
+                    f,
+                    BOUNDS,
+                    size=VIDEO_SIZE,
+                    fps=fps,
+                    vmax=max(10.0, particles / 1000),
+                    title=label.rstrip(", "),
+                ) as writer,
+                Progress(len(schedule), "frames", stream=err) as bar,
+            ):
                 for i, k in enumerate(schedule):
+                    if i < 2:  # these may compile: their notices get a line of their own
+                        bar.clear()
                     advance(k)
                     with compiling("the video's drawing kernels"):
                         writer.add_simulation(sim)
-                    # the bar starts once the first step has compiled (and said so)
-                    if bar is None and timing["first"] is not None:
-                        bar = Progress(len(schedule), "frames", stream=err)
-                        bar.step(count=i)
-                    if bar is not None:
-                        bar.step()
-                if bar is not None:
-                    bar.close()
+                    bar.step()
         else:
             fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
             anim = _animate(

@@ -49,6 +49,11 @@ class Progress:
             self._bar.set_postfix_str(note[:40], refresh=False)
         self._bar.update(count)
 
+    def clear(self) -> None:
+        """Erase the bar from its line (the next step draws it again), so that a line printed
+        in between stands on its own."""
+        self._bar.clear()
+
     def close(self) -> None:
         """Finish the bar (leaving it on screen)."""
         self._bar.close()
