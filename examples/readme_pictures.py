@@ -6,8 +6,9 @@ funnel, grains pouring and heaping, a word and an image turned into worlds.
 Writes ``readme_hero.png``, ``readme_sdf.png``, ``readme_particles.png``, ``readme_grains.png``
 and ``readme_geometry.png`` into ``DIR`` (default ``docs/images``). ``--small`` (or
 ``FASTSDF_EXAMPLE_SMALL=1``, as for the other examples) runs every simulation at a fraction of
-its size, as the test suite does; the committed pictures are the full size. Each picture is
-built from the same calls as the README block beside it.
+its size, as the test suite does; the committed pictures are the full size. Each picture shows
+the scene of the README block beside it, at the picture's own sizes (the grains through
+``fastsdf.granular.GranularSimulation``, the engine under ``ParticleSimulation(contacts=...)``).
 """
 
 from __future__ import annotations
