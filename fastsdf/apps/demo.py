@@ -194,7 +194,7 @@ def _timed_advance(
         return
     if timing["first"] is None:
         t0 = time.perf_counter()
-        with compiling("the particle step for this world"):
+        with compiling("the particle step"):
             sim.run(1)
         timing["first"] = time.perf_counter() - t0
         timing["load0"] = _load()

@@ -142,7 +142,7 @@ class SDF(Function):
         ``{f < 0}`` (negative inside) everywhere. ``'bound'``: ``|f|`` never exceeds that
         distance and the sign is right (``f`` is 1-Lipschitz), so sphere tracing and collision
         tests stay safe, but distances can be underestimated. ``'none'``: no guarantee. The
-        flags follow the rules in the README ("Primitives, modifiers, blends") and are
+        flags follow the rules of the documentation's modelling page (docs/modelling.md) and are
         conservative: a result reported ``'bound'`` may happen to be exact."""
         i = self._info
         if i.outside and i.inside:
