@@ -206,7 +206,7 @@ def picture_geometry(out: str, small: bool) -> None:
     sim.p["x"][:, 1] = rng.uniform(wb[1][1] + 0.1, wb[1][1] + 0.6, sim.p["x"].shape[0])
     sim.p["r"][:] = 0.01
     sim.force_generators += [Gravity(acceleration=(0.0, -2.0))]
-    sim.run(50 if small else 120)
+    sim.run(60 if small else 240)  # 4 s: they rest on the letters or fall between them
 
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.0, 5.6), dpi=DPI)
     wbounds = [(-2.0, 2.0), (-0.8, 0.8)]
@@ -225,7 +225,7 @@ def picture_geometry(out: str, small: bool) -> None:
     _world_axes(a2, logo, bounds=lb, isolines="zero", samples=(400, 160))
     x = sim.p["x"]
     draw_particles(a2, x[:, 0], x[:, 1], r=sim.p["r"], bounds=lb)
-    a2.set_title("from_image(matplotlib's logo), particles poured onto it")
+    a2.set_title("from_image(matplotlib's logo): particles poured on it rest on the letters")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "readme_geometry.png"))
     plt.close(fig)
