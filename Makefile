@@ -34,6 +34,8 @@ $(VENV)/.bench: $(VENV)/.base
 
 venv: $(VENV)/.base
 
+# The demo and the README's blocks need the video extra and nothing more (a block that imports
+# another extra's module names it: tests/test_readme.py checks that).
 demo: $(VENV)/.video
 	$(VENV)/bin/fastsdf demo
 
