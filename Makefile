@@ -34,7 +34,7 @@ $(VENV)/.bench: $(VENV)/.base
 
 venv: $(VENV)/.base
 
-# The demo and the README's blocks need the video extra and nothing more (a block that imports
+# The demo needs the video extra; the README's blocks need nothing more (a block that imports
 # another extra's module names it: tests/test_readme.py checks that).
 demo: $(VENV)/.video
 	$(VENV)/bin/fastsdf demo
