@@ -282,3 +282,22 @@ def test_text_placement_follows_the_fonts_metrics():
     # (the docstring's figures are rounded to its digits; the grid resolves one step)
     assert abs(xs[0, cols[0]] - 0.02) <= 1.01 * dx and abs(xs[0, cols[-1]] - 3.40) <= 1.01 * dx
     assert abs(ys[rows[0], 0] - -0.014) <= 1.01 * dy and abs(ys[rows[-1], 0] - 0.76) <= 1.01 * dy
+
+
+def test_text_sign_on_rays_through_vertices_agrees_with_the_kernel():
+    """A point level with a glyph's vertex (its ray towards +x passes through a shared segment
+    end, e.g. on the baseline) gets the same sign from the NumPy reference as from the kernel:
+    left of an 'H' on its baseline is outside."""
+    from fastsdf.geometry.outline import text_segments
+
+    h = Text("H", size=1.0)
+    left, right = np.array([-0.5, 2.0]), np.zeros(2)
+    np.testing.assert_array_equal(np.sign(h(left, right, backend="numpy")), [1.0, 1.0])
+    word = Text("fastsdf", size=1.0)
+    segments = np.concatenate(text_segments("fastsdf", 1.0))
+    heights = np.unique(np.concatenate([segments[:, 2], segments[:, 6]]))  # every vertex's y
+    x = np.random.default_rng(9).uniform(-0.2, 3.6, heights.size)
+    d_ref, d_kernel = word(x, heights, backend="numpy"), word(x, heights)
+    clear = np.abs(d_kernel) > 1e-9  # off the outline itself
+    np.testing.assert_array_equal(np.sign(d_ref[clear]), np.sign(d_kernel[clear]))
+    np.testing.assert_allclose(d_ref, d_kernel, atol=1e-12)
