@@ -170,3 +170,37 @@ def test_readme_pictures_script_runs_at_small_size(tmp_path):
 
         img = imread(tmp_path / name)[..., :3]
         assert img.std() > 0.05, name
+
+
+@pytest.mark.slow
+def test_readme_particle_block_queries_the_demos_world_and_grid():
+    """After ``make demo`` the README's particle block finds its kernels cached: it builds the
+    demo's world (the same generated scene module) and the demo's grid (same bounds, samples,
+    mode and storage, the same node values bit for bit), so the step it compiles is the one the
+    demo compiled."""
+    import inspect
+
+    import numpy as np
+
+    from fastsdf.apps import demo
+    from fastsdf.fields.grid import GridSDF
+
+    (line, source), *_ = [b for b in BLOCKS if "ParticleSimulation(grid" in b[1]]
+    # the block up to its grid (the world and the grid, not the simulation)
+    upto = source[: source.index("\n", source.index("grid = "))]
+    namespace: dict = {}
+    exec(compile(upto, f"README.md:{line}", "exec"), namespace)
+    grid = namespace["grid"]
+    defaults = inspect.signature(demo.run_demo).parameters
+    n, mode = defaults["grid"].default, defaults["mode"].default
+    world = demo.WORLDS[defaults["world"].default][0]()
+    theirs = GridSDF(world, bounds=demo.BOUNDS, samples=[n * 1j, n * 1j], mode=mode)
+    assert grid.exact.compiled.module.__name__ == world.compiled.module.__name__
+    assert (grid.bounds, grid.shape, grid.mode, grid.gradient, grid.dtype) == (
+        theirs.bounds,
+        theirs.shape,
+        theirs.mode,
+        theirs.gradient,
+        theirs.dtype,
+    )
+    np.testing.assert_array_equal(grid.data, theirs.data)
