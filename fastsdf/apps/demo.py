@@ -288,6 +288,10 @@ def run_demo(
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
 
+    # The steps before the first frame: the grid (which may compile: the bar is cleared so that
+    # the notice stands on its own line), its error and cost, the particles.
+    setup = Progress(3, "setting up", stream=err)
+    setup.clear()
     build, _ = WORLDS[world]
     f = build()
     band_max = band_angle = cost = None
@@ -298,15 +302,19 @@ def run_demo(
         with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
             sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
         built = time.perf_counter() - t0
+        setup.step("the grid's error")
         error = measure_error(sdf, seed=seed)
         band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
         cost = _query_cost(sdf, seed=seed)
         sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    setup.step("particles", count=2 if exact else 1)
 
     sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
     # (fastsdf.particles is excluded from type checking while it becomes a package)
     sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
     respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
+    setup.step()
+    setup.close()
 
     timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
@@ -330,6 +338,7 @@ def run_demo(
             # One colour scale for the whole video: the pile on the funnel's floor reaches
             # about a thousandth of the particles in one pixel by the end.
             with (
+                Progress(len(schedule), "frames", stream=err) as bar,
                 VideoWriter(
                     animation_path,
                     f,
@@ -339,7 +348,6 @@ def run_demo(
                     vmax=max(10.0, particles / 1000),
                     title=label.rstrip(", "),
                 ) as writer,
-                Progress(len(schedule), "frames", stream=err) as bar,
             ):
                 for i, k in enumerate(schedule):
                     if i < 2:  # these may compile: their notices get a line of their own
