@@ -34,6 +34,8 @@ $(VENV)/.bench: $(VENV)/.base
 
 venv: $(VENV)/.base
 
+# The demo needs the video extra; the README's blocks need nothing more (a block that imports
+# another extra's module names it: tests/test_readme.py checks that).
 demo: $(VENV)/.video
 	$(VENV)/bin/fastsdf demo
 

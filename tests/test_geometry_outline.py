@@ -231,3 +231,73 @@ def test_svg_file_is_the_union_of_its_paths(tmp_path):
         SvgFile(tmp_path / "empty.svg")
     with pytest.raises(ValueError, match="existing SVG file"):
         SvgFile(tmp_path / "missing.svg")
+
+
+def test_text_placement_follows_the_fonts_metrics():
+    """The documented placement: the baseline at y = position[1], the pen at x = position[0],
+    ``size`` the em size; checked against the default font's own glyph metrics (read with
+    FreeType, independently of the glyph outlines the SDF is built from)."""
+    from matplotlib.font_manager import FontProperties, findfont
+    from matplotlib.ft2font import FT2Font, LoadFlags
+
+    font = FT2Font(findfont(FontProperties()))
+    em = font.units_per_EM
+
+    def metrics(ch: str) -> tuple:
+        g = font.load_char(ord(ch), flags=LoadFlags.NO_SCALE)
+        return g.horiBearingX / em, g.horiBearingY / em, g.height / em
+
+    size, (px, py) = 2.0, (0.5, -0.25)
+    lsb, top, height = metrics("H")
+    h = Text("H", size=size, position=(px, py))
+    stem = px + size * (lsb + 0.02)  # inside the left stem of the H
+    mid = py + 0.5 * size * top
+    gap = 0.1  # straight below, above and left of the stem's flat ends and side
+    # matplotlib reads glyphs at 100 units per em in FreeType's 1/64 steps: the outline's
+    # points are the font's own to within size / 6400
+    quantum = size / 6400
+    values = h(
+        np.array([stem, stem, px + size * lsb - gap]),
+        np.array([py - gap, py + size * top + gap, mid]),
+        backend="numpy",
+    )
+    np.testing.assert_allclose(values, gap, atol=quantum)
+    assert values[0] == pytest.approx(gap, abs=1e-12)  # the baseline itself: exactly y = py
+    assert top == height and 0.72 < top < 0.74  # capitals stand on the baseline, 0.729 em tall
+    assert h(stem, py + 1e-6, backend="numpy") < 0 < h(stem, py - 1e-6, backend="numpy")
+    # a descender: the stem of 'p' ends size * (height - top) below the baseline
+    lsb, top, height = metrics("p")
+    p = Text("p", size=size, position=(px, py))
+    bottom = py - size * (height - top)
+    stem = px + size * (lsb + 0.02)
+    np.testing.assert_allclose(p(stem, bottom - gap, backend="numpy"), gap, atol=quantum)
+    np.testing.assert_allclose(height - top, 0.208, atol=1e-3)
+    # the extent stated in the docstring for Text("fastsdf", size=1.0), on a grid whose rows
+    # miss the glyphs' vertices (the compiled kernel, as the test above builds it)
+    word = Text("fastsdf", size=1.0)
+    xs, ys = np.meshgrid(np.linspace(-0.1, 3.6, 371), np.linspace(-0.1, 0.9, 101) + 1e-7)
+    ink = word(xs.ravel(), ys.ravel()).reshape(xs.shape) < 0
+    cols, rows = np.flatnonzero(ink.any(axis=0)), np.flatnonzero(ink.any(axis=1))
+    dx, dy = xs[0, 1] - xs[0, 0], ys[1, 0] - ys[0, 0]
+    # (the docstring's figures are rounded to its digits; the grid resolves one step)
+    assert abs(xs[0, cols[0]] - 0.02) <= 1.01 * dx and abs(xs[0, cols[-1]] - 3.40) <= 1.01 * dx
+    assert abs(ys[rows[0], 0] - -0.014) <= 1.01 * dy and abs(ys[rows[-1], 0] - 0.76) <= 1.01 * dy
+
+
+def test_text_sign_on_rays_through_vertices_agrees_with_the_kernel():
+    """A point level with a glyph's vertex (its ray towards +x passes through a shared segment
+    end, e.g. on the baseline) gets the same sign from the NumPy reference as from the kernel:
+    left of an 'H' on its baseline is outside."""
+    from fastsdf.geometry.outline import text_segments
+
+    h = Text("H", size=1.0)
+    left, right = np.array([-0.5, 2.0]), np.zeros(2)
+    np.testing.assert_array_equal(np.sign(h(left, right, backend="numpy")), [1.0, 1.0])
+    word = Text("fastsdf", size=1.0)
+    segments = np.concatenate(text_segments("fastsdf", 1.0))
+    heights = np.unique(np.concatenate([segments[:, 2], segments[:, 6]]))  # every vertex's y
+    x = np.random.default_rng(9).uniform(-0.2, 3.6, heights.size)
+    d_ref, d_kernel = word(x, heights, backend="numpy"), word(x, heights)
+    clear = np.abs(d_kernel) > 1e-9  # off the outline itself
+    np.testing.assert_array_equal(np.sign(d_ref[clear]), np.sign(d_kernel[clear]))
+    np.testing.assert_allclose(d_ref, d_kernel, atol=1e-12)

@@ -148,6 +148,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_output_dir(args.out)
         except OSError as exc:
             demo.error(f"--out {args.out!r} is not a writable folder: {exc.strerror or exc}")
+        # Said at once: the imports and the first compiles that follow take seconds.
+        sys.stderr.write(
+            f"fastsdf demo: {args.particles:,} particles, {args.steps} steps in the "
+            f"{args.world} world, writing to {args.out}/ ...\n"
+        )
+        sys.stderr.flush()
         try:
             res = runner(
                 particles=args.particles,

@@ -23,6 +23,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from fastsdf.notice import compiling
+
 __all__ = [
     "DemoResult",
     "run_demo",
@@ -192,7 +194,8 @@ def _timed_advance(
         return
     if timing["first"] is None:
         t0 = time.perf_counter()
-        sim.run(1)
+        with compiling("the particle step"):
+            sim.run(1)
         timing["first"] = time.perf_counter() - t0
         timing["load0"] = _load()
         timing["outside"] += outside_share()
@@ -259,6 +262,7 @@ def run_demo(
     from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity, ParticleSimulation
     from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
@@ -284,6 +288,10 @@ def run_demo(
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
 
+    # The steps before the first frame: the grid (which may compile: the bar is cleared so that
+    # the notice stands on its own line), its error and cost, the particles.
+    setup = Progress(3, "setting up", stream=err)
+    setup.clear()
     build, _ = WORLDS[world]
     f = build()
     band_max = band_angle = cost = None
@@ -291,17 +299,22 @@ def run_demo(
         sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
     else:
         t0 = time.perf_counter()
-        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
+        with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
+            sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
         built = time.perf_counter() - t0
+        setup.step("the grid's error")
         error = measure_error(sdf, seed=seed)
         band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
         cost = _query_cost(sdf, seed=seed)
         sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    setup.step("particles", count=2 if exact else 1)
 
     sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
     # (fastsdf.particles is excluded from type checking while it becomes a package)
     sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
     respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
+    setup.step()
+    setup.close()
 
     timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
@@ -324,18 +337,25 @@ def run_demo(
             # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames).
             # One colour scale for the whole video: the pile on the funnel's floor reaches
             # about a thousandth of the particles in one pixel by the end.
-            with VideoWriter(
-                animation_path,
-                f,
-                BOUNDS,
-                size=VIDEO_SIZE,
-                fps=fps,
-                vmax=max(10.0, particles / 1000),
-                title=label.rstrip(", "),
-            ) as writer:
-                for k in schedule:
+            with (
+                Progress(len(schedule), "frames", stream=err) as bar,
+                VideoWriter(
+                    animation_path,
+                    f,
+                    BOUNDS,
+                    size=VIDEO_SIZE,
+                    fps=fps,
+                    vmax=max(10.0, particles / 1000),
+                    title=label.rstrip(", "),
+                ) as writer,
+            ):
+                for i, k in enumerate(schedule):
+                    if i < 2:  # these may compile: their notices get a line of their own
+                        bar.clear()
                     advance(k)
-                    writer.add_simulation(sim)
+                    with compiling("the video's drawing kernels"):
+                        writer.add_simulation(sim)
+                    bar.step()
         else:
             fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
             anim = _animate(

@@ -204,23 +204,27 @@ def outline(u: np.ndarray, v: np.ndarray, table: np.ndarray, chunk: int = 64) ->
         bx = qx.reshape(qx.shape[0], -1)[r, flat_idx]
         by = qy.reshape(qy.shape[0], -1)[r, flat_idx]
         dist = np.hypot(x[:, 0] - bx, y[:, 0] - by)
-        # winding: roots of y(t) = v in [0, 1), direction from y'(t)
-        A = np.broadcast_to(b[:, 1], dx.shape)
-        B = np.broadcast_to(2 * a[:, 1], dx.shape)
-        C = p0[:, 1] - y
-        wind = np.zeros(x.shape[0])
+        # winding, by the kernel's rule (rows are y-monotone): a row whose ends lie on either
+        # side of the height v (half-open: an end at v counts as below, so a ray through a
+        # shared end counts it once) crosses the ray towards +x where x(t) > u, in the
+        # direction of y2 - y0
+        y0, y1, y2 = p0[:, 1], p1[:, 1], p2[:, 1]
+        cross = (y0 > y) != (y2 > y)  # (points, segments)
+        qa = np.broadcast_to(y0 - 2 * y1 + y2, dx.shape)
+        qb = np.broadcast_to(2 * (y1 - y0), dx.shape)
+        qc = y0 - y
         with np.errstate(all="ignore"):
-            disc = np.sqrt(np.maximum(B * B - 4 * A * C, 0.0))
-            lin = np.abs(A) < 1e-14 * (np.abs(B) + np.abs(C) + 1e-300)
-            for sg in (1.0, -1.0):
-                t = np.where(lin, -C / B, (-B + sg * disc) / (2 * A))
-                if sg < 0:
-                    t = np.where(lin | (disc == 0), np.nan, t)  # a double or single root
-                ok = (t >= 0) & (t < 1)
-                xt = (1 - t) ** 2 * p0[:, 0] + 2 * t * (1 - t) * p1[:, 0] + t**2 * p2[:, 0]
-                slope = 2 * A * t + B
-                hit = ok & (xt > x) & (slope != 0)
-                wind += np.sum(np.where(hit, np.sign(slope), 0.0), axis=1)
+            lin = np.abs(qa) <= 1e-14 * (np.abs(qb) + np.abs(qc))
+            disc = np.sqrt(np.maximum(qb * qb - 4 * qa * qc, 0.0))
+            qq = -0.5 * (qb + np.copysign(disc, qb))
+            t1 = qq / qa
+            t2 = np.where(qq != 0, qc / qq, t1)
+            t = np.where((t1 >= -1e-12) & (t1 <= 1 + 1e-12), t1, t2)
+            t = np.where(lin, np.where(qb != 0, -qc / qb, 0.0), t)
+        t = np.clip(np.nan_to_num(t), 0.0, 1.0)
+        xt = (1 - t) ** 2 * p0[:, 0] + 2 * t * (1 - t) * p1[:, 0] + t**2 * p2[:, 0]
+        hit = cross & (xt > x)
+        wind = np.sum(np.where(hit, np.sign(y2 - y0), 0.0), axis=1)
         inside = (wind != 0) if nonzero else (np.abs(wind) % 2 == 1)
         sign = np.where(inside, -1.0, 1.0)
         with np.errstate(invalid="ignore", divide="ignore"):

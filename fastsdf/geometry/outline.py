@@ -371,10 +371,22 @@ def Text(
     split_glyphs: bool = False,
 ) -> SDF:
     """``text`` as an exact SDF: glyph outlines from matplotlib's ``TextPath`` (font
-    ``family``, default matplotlib's), baseline from ``position``, em size ``size``, filled by
-    the non-zero rule; it compiles and blends like any SDF. TrueType glyphs are exact; cubic
-    (PostScript) glyphs are within ``tol``. Where glyphs overlap, the distance inside the
-    overlap is a bound, not exact.
+    ``family``, default matplotlib's), filled by the non-zero rule; it compiles and blends like
+    any SDF. TrueType glyphs are exact; cubic (PostScript) glyphs are within ``tol``. Where
+    glyphs overlap, the distance inside the overlap is a bound, not exact.
+
+    Placement and size, in the world's length units (as a font sets type):
+
+    - the baseline is the line ``y = position[1]``: letters without descenders stand on it
+      (round ones such as 'o' and 's' overshoot it by about 1% of ``size``), descenders
+      ('g', 'p', 'y') reach below it;
+    - the pen starts at ``x = position[0]``: the first glyph's ink begins one left side bearing
+      further right (a few hundredths of ``size``), and each glyph advances the pen by its
+      width (with the font's kerning);
+    - ``size`` is the em size (a font size in length units), not the height of the letters:
+      in matplotlib's default font, DejaVu Sans, capitals are 0.729 ``size`` tall, 'p'
+      descends 0.208 ``size`` below the baseline, and ``Text("fastsdf", size=1.0)`` spans
+      x from 0.02 to 3.40 and y from -0.014 to 0.76 beyond ``position``.
 
     By default one :class:`fastsdf.shapes.Outline` holds every glyph (one loop over all
     segments per point, with bounding-box skips). ``split_glyphs=True`` builds a hard union of

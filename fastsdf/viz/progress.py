@@ -49,5 +49,14 @@ class Progress:
             self._bar.set_postfix_str(note[:40], refresh=False)
         self._bar.update(count)
 
-    def __exit__(self, *exc: object) -> None:
+    def clear(self) -> None:
+        """Erase the bar from its line (the next step draws it again), so that a line printed
+        in between stands on its own."""
+        self._bar.clear()
+
+    def close(self) -> None:
+        """Finish the bar (leaving it on screen)."""
         self._bar.close()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
