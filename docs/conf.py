@@ -73,6 +73,8 @@ sphinx_gallery_conf = {
     "examples_dirs": str(REPO / "examples"),
     "gallery_dirs": "gallery",
     "filename_pattern": r"\.py$",  # run every example (the default runs only plot_*.py)
+    # the README's picture maker writes docs/images (committed): a tool, not a gallery entry
+    "ignore_pattern": r"readme_pictures\.py$",
     # the hooks live in a module (docs/gallery_hooks.py), named by strings: Sphinx caches the
     # configuration between builds and cannot pickle functions defined here
     "reset_argv": "gallery_hooks.example_argv",
