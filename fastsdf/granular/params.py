@@ -127,6 +127,8 @@ def contact_time(m_eff: float, law: ContactLaw, damped: bool = False) -> float:
     """Duration of a binary contact (s): ``t_c = pi sqrt(m_eff / k_n)`` (undamped); with
     ``damped=True`` the exact duration of the damped linear contact,
     ``t_c / sqrt(1 - zeta**2)`` (infinite at critical damping, ``e = 0``)."""
+    if law.stiffness is None:
+        raise ValueError("law.stiffness is None: resolve it first (see ContactLaw)")
     tc = math.pi * math.sqrt(m_eff / law.stiffness)
     if not damped:
         return tc
