@@ -80,10 +80,13 @@ from fastsdf.granular.params import (
 )
 from fastsdf.notice import compiling
 
-__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "GranularSimulation"]
+__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "PARALLEL_MIN_GRAINS", "GranularSimulation"]
 
 #: Substeps per (undamped) contact time of the lightest contact, by default.
 DEFAULT_SUBSTEPS_PER_CONTACT = 40
+#: Fewer grains than this step on one thread: waking the other threads for every pass of
+#: every substep costs more than it saves (and far more on a busy machine).
+PARALLEL_MIN_GRAINS = 4096
 
 
 def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
@@ -483,7 +486,19 @@ class GranularSimulation:
 
     def advance(self, substeps: int) -> None:
         """Advance ``substeps`` substeps of :attr:`substep` seconds (velocities end
-        synchronized with positions)."""
+        synchronized with positions). Fewer grains than :data:`PARALLEL_MIN_GRAINS` run on one
+        thread (the same results: the work is split into the same chunks)."""
+        threads = numba.get_num_threads()
+        serial = self.grains.x.shape[0] < PARALLEL_MIN_GRAINS and threads > 1
+        if serial:
+            numba.set_num_threads(1)
+        try:
+            self._advance(substeps)
+        finally:
+            if serial:
+                numba.set_num_threads(threads)
+
+    def _advance(self, substeps: int) -> None:
         g = self.grains
         dt = self.substep
         # The reference positions are float32: allow for their rounding in the skin test.
