@@ -253,3 +253,22 @@ def test_dask_refuses_grains_and_says_what_shards():
         DistributedSimulation(
             fs.Halfspace((0.0, 1.0), -1.8), 100, client=None, contacts=phys.ContactLaw()
         )
+
+
+def test_a_dense_bed_of_grains_holds_at_most_200_bytes_per_grain():
+    """Grains in a hexagonal packing, each touching six neighbours: the engine's arrays, its
+    neighbour list and the start kept for reset() (the state window empty while stepping)."""
+    r, side = 0.02, 40
+    i, j = np.meshgrid(np.arange(side), np.arange(side))
+    pos = np.stack([(2 * i + (j % 2)).ravel() * r, (j * math.sqrt(3) * r).ravel()], 1)
+    world = fs.GridSDF(
+        fs.Halfspace((0.0, 1.0), -r), bounds=[(-0.1, 1.7), (-0.1, 1.5)], samples=[21j, 21j]
+    )
+    sim = phys.ParticleSimulation(world, positions=pos, radius=r, contacts=phys.ContactLaw())
+    sim.run(1)
+    assert len(sim.engine.neighbour_pairs()) >= 2.9 * side * side  # about 3 pairs per grain
+    assert sim.memory_per_grain() <= 200
+    sim.p["x"]  # reading the state fills the window until the next step
+    assert sim.memory_per_grain() > 200
+    sim.run(1)
+    assert sim.memory_per_grain() <= 200
