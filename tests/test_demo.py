@@ -313,7 +313,7 @@ def test_sand_scene_pours_grains_and_draws_them(tmp_path):
     assert os.path.getsize(res.animation) > 1000 and res.animation.endswith("sand.mp4")
     # the stiffness derived for the 4-high world keeps the step count at the library's scale
     assert res.substeps_per_step <= 1500
-    assert res.max_overlap < 0.05
+    assert res.max_overlap < 0.05 and res.max_wall_overlap < 0.05
     text = sand_summary(res)
     for needle in ("96 grains", "substeps per 1/30 s step", "15 steps", "largest overlap"):
         assert needle in text, needle

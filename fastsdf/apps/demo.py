@@ -489,9 +489,11 @@ class SandResult:
     law's stiffness, ``stiffness``, derived from the grains by ``ContactLaw()``);
     ``first_step_seconds``: the first step (compiling or loading the kernels);
     ``grain_substeps_per_second``: the rate over the other steps; ``max_overlap``: the largest
-    overlap at the end (grain-grain and grain-world) over the diameter; ``heap_fraction``: the
-    share of grains below ``y = -1`` (in the funnel's heap) at the end; ``heap_top``: the
-    highest grain centre among them; ``load``: as in :class:`DemoResult`.
+    grain-grain overlap at the end over the diameter, ``max_wall_overlap`` the largest
+    grain-world one (a grain in a corner of the world feels only the nearer wall, the SDF's
+    nearest surface); ``heap_fraction``: the share of grains in the funnel (below the disc,
+    ``y < -0.5``) at the end; ``heap_top``: the highest centre among those at rest there
+    (slower than 0.05 length/s); ``load``: as in :class:`DemoResult`.
     """
 
     world: str
@@ -506,6 +508,7 @@ class SandResult:
     sim_seconds: float
     grain_substeps_per_second: float
     max_overlap: float
+    max_wall_overlap: float
     heap_fraction: float
     heap_top: float
     animation: str | None
@@ -531,9 +534,9 @@ def pouring_column(
     return pos + rng.uniform(-0.05 * radius, 0.05 * radius, pos.shape)
 
 
-def _max_overlap(sim: Any, world: Any) -> float:
-    """The largest overlap now, grain-grain (over the listed pairs) and grain-world, over the
-    diameter of the smaller grain."""
+def _max_overlaps(sim: Any, world: Any) -> tuple[float, float]:
+    """The largest overlaps now over the diameter (of the smaller grain): grain-grain (over
+    the listed pairs) and grain-world."""
     x = np.asarray(sim.p["x"])
     r = np.asarray(sim.p["r"])
     pairs = sim.engine.neighbour_pairs()
@@ -543,7 +546,7 @@ def _max_overlap(sim: Any, world: Any) -> float:
         gap = np.hypot(*(x[i] - x[j]).T)
         worst = float(np.max((r[i] + r[j] - gap) / (2 * np.minimum(r[i], r[j]))))
     wall = (r - np.asarray(world(x[:, 0], x[:, 1])).reshape(-1)) / (2 * r)
-    return max(worst, float(wall.max()), 0.0)
+    return max(worst, 0.0), max(float(wall.max()), 0.0)
 
 
 def run_sand_demo(
@@ -665,7 +668,9 @@ def run_sand_demo(
         title=sim_title(sim, label + ", "),
         colorbar=False,
     )
-    heap = x[:, 1] < -1.0
+    heap = x[:, 1] < -0.5
+    resting = heap & (np.hypot(*np.asarray(sim.p["v"]).T) < 0.05)
+    overlap, wall_overlap = _max_overlaps(sim, sdf)
     substeps = sim.substeps_per_frame
     rest = timing["rest"]
     rate = (timing["steps"] - 1) * substeps * grains / rest if rest > 0 else float("nan")
@@ -681,9 +686,10 @@ def run_sand_demo(
         first_step_seconds=timing["first"] or 0.0,
         sim_seconds=rest,
         grain_substeps_per_second=rate,
-        max_overlap=_max_overlap(sim, sdf),
+        max_overlap=overlap,
+        max_wall_overlap=wall_overlap,
         heap_fraction=float(np.mean(heap)),
-        heap_top=float(x[heap, 1].max()) if heap.any() else float("nan"),
+        heap_top=float(x[resting, 1].max()) if resting.any() else float("nan"),
         animation=animation_path,
         last_frame=last,
         load=_load_pair(timing.get("load0"), _load()),
@@ -711,8 +717,10 @@ def sand_summary(res: SandResult) -> str:
     else:
         lines.append(f"the only step took {res.first_step_seconds:.2f} s, compiling included")
     lines.append(
-        f"heap: {res.heap_fraction:.0%} of the grains in the funnel (below y = -1), its top at "
-        f"y = {res.heap_top:.2f}; largest overlap at the end {res.max_overlap:.2%} of a diameter"
+        f"heap: {res.heap_fraction:.0%} of the grains in the funnel (below the disc), the "
+        f"highest at rest at y = {res.heap_top:.2f}; largest overlap at the end "
+        f"{res.max_overlap:.2%} of a diameter between grains, {res.max_wall_overlap:.2%} "
+        f"against the world"
     )
     if res.load is not None:
         lines.append(
