@@ -63,6 +63,8 @@ def test_grains_are_a_member_of_the_family(small_box):
     assert sim.p["x"][:, 1].min() > -0.3
     # the engine is the granular one, with the same physics
     assert isinstance(sim.engine, GranularSimulation)
+    with pytest.raises(TypeError, match="cr= does not apply to grains"):
+        phys.ParticleSimulation(small_box, positions=[[0, 0]], contacts=phys.ContactLaw(), cr=0.5)
     with pytest.raises(ValueError, match="need positions"):
         phys.ParticleSimulation(small_box, n=10, contacts=phys.ContactLaw())
     with pytest.raises(ValueError, match="n=5 does not match positions"):

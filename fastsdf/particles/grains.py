@@ -260,7 +260,15 @@ class GrainSimulation(ParticleSimulation):
         periodic_x: ArrayLike | None = None,
         chunks: int | None = None,
         seed: Any = None,
+        **others: Any,
     ) -> None:
+        if others:
+            name = next(iter(others))
+            raise TypeError(
+                f"{name}= does not apply to grains (contacts=...): their restitution and "
+                f"friction are the contact law's (ContactLaw(restitution=..., friction=...)), "
+                f"and they step by the granular engine's substeps"
+            )
         if positions is None:
             raise ValueError(
                 "grains (contacts=...) need positions= (n, 2): the notebook's random "
