@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--steps",
         type=_positive_int,
         default=None,
-        help="time steps of 1/30 s (default 300, for --scene sand 120)",
+        help="time steps of 1/30 s (default 300, for --scene sand 60)",
     )
     demo.add_argument(
         "--grid", type=_grid_size, default=400, help="GridSDF samples per axis, >= 2 (default 400)"
@@ -112,8 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--frames",
         type=_positive_int,
-        default=DEFAULT_FRAMES,
-        help=f"video frames, at most --steps (default {DEFAULT_FRAMES})",
+        default=None,
+        help=f"video frames, at most --steps (default {DEFAULT_FRAMES}, or --steps if fewer)",
     )
     demo.add_argument(
         "--fps",
@@ -141,11 +141,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "demo":
         demo = parser._demo
+        from fastsdf.apps.demo import DEFAULT_FRAMES, SAND_STEPS
+
         sand = args.scene == "sand"
         if args.particles is None:
             args.particles = 2000 if sand else 1_000_000
         if args.steps is None:
-            args.steps = 120 if sand else 300
+            args.steps = SAND_STEPS if sand else 300
+        if args.frames is None:
+            args.frames = min(DEFAULT_FRAMES, args.steps)
         if sand and args.workers:
             demo.error(
                 "--workers shards non-interacting particles; grains that collide "

@@ -36,6 +36,8 @@ __all__ = [
     "run_sand_demo",
     "sand_summary",
     "pouring_column",
+    "SAND_GRAINS",
+    "SAND_STEPS",
     "summary",
     "check_output_dir",
     "spawn_in_free_space",
@@ -54,7 +56,7 @@ DEFAULT_FPS = 20
 VIDEO_SIZE = (640, 560)
 #: The sand scene's grains, steps (1/30 s) and grain radius by default.
 SAND_GRAINS = 2000
-SAND_STEPS = 120
+SAND_STEPS = 60
 SAND_RADIUS = 0.02
 
 
@@ -556,7 +558,7 @@ def run_sand_demo(
     exact: bool = False,
     seed: int = 0,
     out: str = "demo-out",
-    frames: int = DEFAULT_FRAMES,
+    frames: int = SAND_STEPS,
     fps: int = DEFAULT_FPS,
     animate: bool = True,
     world: str = "seed",
