@@ -150,7 +150,7 @@ def test_trajectory_video_and_notebook_drawing_take_grains(small_box, tmp_path):
     import matplotlib.pyplot as plt
 
     from fastsdf.io import TrajectoryRecorder, read_trajectory
-    from fastsdf.viz.frames import record_video
+    from fastsdf.viz import record_video
 
     sim = grains(small_box, nx=3, ny=2)
     with TrajectoryRecorder(tmp_path / "g.h5", every=1, fields=("position", "radius")) as rec:
