@@ -191,6 +191,7 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
         ("custom_force", ["custom_force.png"]),
         ("save_video", ["particles.mp4"]),
         ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
+        ("sand", ["sand.png", "sand.mp4"]),
     ],
 )
 def test_examples_run_at_small_size(tmp_path, name, outputs):
@@ -263,3 +264,31 @@ def test_summary_counts_in_words_and_explains_the_rate():
     )
     assert "every query evaluates the exact compiled SDF" in boxes
     assert "fastsdf demo --world seed" in boxes
+
+
+@pytest.mark.slow
+def test_sand_scene_pours_grains_and_draws_them(tmp_path):
+    from matplotlib.image import imread
+
+    from fastsdf.apps.demo import SAND_RADIUS, run_sand_demo, sand_summary
+    from fastsdf.viz.render import PARTICLE_COLOR
+
+    res = run_sand_demo(grains=96, steps=15, grid=100, out=str(tmp_path), frames=3)
+    assert res.steps == 15 and res.grains == 96 and res.radius == SAND_RADIUS
+    assert os.path.getsize(res.animation) > 1000 and res.animation.endswith("sand.mp4")
+    # the stiffness derived for the 4-high world keeps the step count at the library's scale
+    assert res.substeps_per_step <= 1500
+    assert res.max_overlap < 0.05 and res.max_wall_overlap < 0.05
+    text = sand_summary(res)
+    for needle in ("96 grains", "substeps per 1/30 s step", "15 steps", "largest overlap"):
+        assert needle in text, needle
+    # grains are drawn: orange discs (PARTICLE_COLOR at alpha 0.8 over the light background)
+    img = imread(res.last_frame)[..., :3]
+    orange = _hex(PARTICLE_COLOR) * 0.8 + img[5, 5] * 0.2  # a corner: background
+    assert np.all(np.abs(img - orange) < 0.1, axis=-1).sum() > 50
+
+
+def test_sand_scene_refuses_dask_workers_in_one_line():
+    res = _cli("demo", "--scene", "sand", "--workers", "2")
+    assert res.returncode == 2 and "halo exchange" in res.stderr
+    assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr

@@ -5,9 +5,6 @@ temporary working directory (files it writes land there), with matplotlib's Agg 
 sizes are written in the README as underscore literals (``1_000_000``, ``n=100_000``); the test
 scales each of those down by 1000 (at least 16), so the blocks run in seconds.
 
-A block whose first line is ``# readme-test: skip until <reason>`` is skipped and reported with
-its reason: a temporary marker for a block documenting an API that lands in another branch;
-whoever merges that branch removes the line.
 """
 
 import os
@@ -26,8 +23,6 @@ MAX_PICTURE_BYTES = 200_000
 _FENCE = re.compile(r"^```[ \t]*(python|py|python3)[ \t]*\n(.*?)^```[ \t]*$", re.M | re.S)
 # An integer literal with digit-group underscores: 1_000_000, 200_000, 4_096.
 _BIG = re.compile(r"(?<![\w.])(\d{1,3}(?:_\d{3})+)(?![\w.])")
-# The temporary skip marker (first line of a block).
-_SKIP = re.compile(r"\A[ \t]*# readme-test: skip until (.+)$", re.M)
 # Modules that only an extra installs, and the extra's name.
 EXTRA_OF_MODULE = {
     "h5py": "io",
@@ -50,12 +45,6 @@ def scale_down(source):
     return _BIG.sub(lambda m: str(max(16, int(m.group(1).replace("_", "")) // 1000)), source)
 
 
-def skip_reason(source):
-    """The reason of a block's temporary skip marker, or None."""
-    m = _SKIP.match(source)
-    return m.group(1).strip() if m else None
-
-
 def extras_needed(source):
     """The extras a block's imports need (sorted)."""
     mods = set(_IMPORT.findall(source))
@@ -72,7 +61,7 @@ def _readme():
         return fh.read()
 
 
-def test_block_extraction_scaling_and_markers():
+def test_block_extraction_scaling_and_extras():
     text = (
         "intro\n```python\nx = 1_000_000\n```\n\n```bash\nmake demo\n```\n"
         "```py\ny = f(n=200_000, k=3_000)  # 1_000 and 12_345.5 and a_1_000\n```\n"
@@ -81,8 +70,6 @@ def test_block_extraction_scaling_and_markers():
     assert [line for line, _ in blocks] == [3, 10]
     assert scale_down(blocks[0][1]) == "x = 1000\n"
     assert scale_down(blocks[1][1]) == "y = f(n=200, k=16)  # 16 and 12_345.5 and a_1_000\n"
-    assert skip_reason("# readme-test: skip until X lands\nimport os\n") == "X lands"
-    assert skip_reason("import os\n# readme-test: skip until X lands\n") is None
     block = "# pip install 'fastsdf[io,video]'\nimport h5py\nfrom dask import array\n"
     assert extras_needed(block) == ["distributed", "io"]
     assert extras_named(block) == ["io", "video"]
@@ -123,9 +110,6 @@ def test_readme_blocks_name_their_extras(line, source):
 @pytest.mark.slow
 @pytest.mark.parametrize("line,source", BLOCKS, ids=BLOCK_IDS)
 def test_readme_block_runs_pasted_alone(line, source, tmp_path):
-    reason = skip_reason(source)
-    if reason:
-        pytest.skip(f"README.md block at line {line}: skip until {reason}")
     script = tmp_path / "block.py"
     script.write_text(scale_down(source), encoding="utf-8")
     env = dict(os.environ, MPLBACKEND="Agg")

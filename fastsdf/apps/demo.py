@@ -9,6 +9,12 @@ the ``video`` extra or a system ffmpeg, GIF otherwise) and a PNG of the last fra
 what it simulated and why the rate is what it is: the world, the grid and its out-of-bounds mode,
 the share of particle positions outside the grid (whose queries fall back to the exact SDF in
 ``mode='exact'``) and the cost of one exact query against one grid query.
+
+``fastsdf demo --scene sand`` runs :func:`run_sand_demo` instead: grains that collide with each
+other (``ParticleSimulation(..., contacts=ContactLaw())``) pour from a column above the world
+onto its disc and into the funnel, where they heap up; it writes ``sand.mp4`` and
+``sand_last_frame.png`` and reports the derived contact law, the substeps per step, the rate,
+the heap and the largest overlap.
 """
 
 from __future__ import annotations
@@ -27,7 +33,13 @@ from fastsdf.notice import compiling
 
 __all__ = [
     "DemoResult",
+    "SandResult",
     "run_demo",
+    "run_sand_demo",
+    "sand_summary",
+    "pouring_column",
+    "SAND_GRAINS",
+    "SAND_STEPS",
     "summary",
     "check_output_dir",
     "spawn_in_free_space",
@@ -44,6 +56,10 @@ DEFAULT_FRAMES = 120
 DEFAULT_FPS = 20
 #: Pixels (width, height) of the demo's MP4.
 VIDEO_SIZE = (640, 560)
+#: The sand scene's grains, steps (1/30 s) and grain radius by default.
+SAND_GRAINS = 2000
+SAND_STEPS = 60
+SAND_RADIUS = 0.02
 
 
 def _boxes() -> Any:
@@ -477,6 +493,262 @@ def summary(res: DemoResult) -> str:
         f"particles more than 1% of their radius inside the simulated SDF at the end: "
         f"{res.inside_fraction:.3%}"
     )
+    if res.animation:
+        lines.append(f"video: {res.animation}")
+    lines.append(f"last frame: {res.last_frame}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# The sand scene: grains that collide with each other pour into the funnel and heap up.
+
+
+@dataclass
+class SandResult:
+    """What :func:`run_sand_demo` simulated, measured and wrote (paths are absolute).
+
+    ``substeps_per_step``: the granular engine's substeps per 1/30 s step (from the contact
+    law's stiffness, ``stiffness``, derived from the grains by ``ContactLaw()``);
+    ``first_step_seconds``: the first step (compiling or loading the kernels);
+    ``grain_substeps_per_second``: the rate over the other steps; ``max_overlap``: the largest
+    grain-grain overlap at the end over the diameter, ``max_wall_overlap`` the largest
+    grain-world one (a grain in a corner of the world feels only the nearer wall, the SDF's
+    nearest surface); ``heap_fraction``: the share of grains in the funnel (below the disc,
+    ``y < -0.5``) at the end; ``heap_top``: the highest centre among those at rest there
+    (slower than 0.05 length/s); ``load``: as in :class:`DemoResult`.
+    """
+
+    world: str
+    grains: int
+    radius: float
+    steps: int
+    timestep: float
+    sdf: str
+    stiffness: float
+    substeps_per_step: int
+    first_step_seconds: float
+    sim_seconds: float
+    grain_substeps_per_second: float
+    max_overlap: float
+    max_wall_overlap: float
+    heap_fraction: float
+    heap_top: float
+    animation: str | None
+    last_frame: str
+    load: tuple[float, float] | None = None
+
+    def as_dict(self) -> dict:
+        """The fields as a plain dict."""
+        return asdict(self)
+
+
+def pouring_column(
+    n: int, radius: float, rng: np.random.Generator, x: float = 0.0, bottom: float = 1.2
+) -> np.ndarray:
+    """Start positions (n, 2) of a stream of grains: a column eight grains wide centred at
+    ``x``, from ``bottom`` up, grains ``2.2 radius`` apart with a small random offset (so the
+    stream does not fall as a crystal). Under gravity its lower end reaches the world first
+    and the rest follows: the grains pour."""
+    cols = 8
+    i = np.arange(n)
+    pitch = 2.2 * radius
+    pos = np.stack([x + (i % cols - (cols - 1) / 2) * pitch, bottom + (i // cols) * pitch], 1)
+    return pos + rng.uniform(-0.05 * radius, 0.05 * radius, pos.shape)
+
+
+def _max_overlaps(sim: Any, world: Any) -> tuple[float, float]:
+    """The largest overlaps now over the diameter (of the smaller grain): grain-grain (over
+    the listed pairs) and grain-world."""
+    x = np.asarray(sim.p["x"])
+    r = np.asarray(sim.p["r"])
+    pairs = sim.engine.neighbour_pairs()
+    worst = 0.0
+    if pairs.size:
+        i, j = pairs[:, 0], pairs[:, 1]
+        gap = np.hypot(*(x[i] - x[j]).T)
+        worst = float(np.max((r[i] + r[j] - gap) / (2 * np.minimum(r[i], r[j]))))
+    wall = (r - np.asarray(world(x[:, 0], x[:, 1])).reshape(-1)) / (2 * r)
+    return max(worst, 0.0), max(float(wall.max()), 0.0)
+
+
+def run_sand_demo(
+    grains: int = SAND_GRAINS,
+    steps: int = SAND_STEPS,
+    grid: int = 400,
+    exact: bool = False,
+    seed: int = 0,
+    out: str = "demo-out",
+    frames: int = SAND_STEPS,
+    fps: int = DEFAULT_FPS,
+    animate: bool = True,
+    world: str = "seed",
+    radius: float = SAND_RADIUS,
+    stream: IO[str] | None = None,
+) -> SandResult:
+    """Pour ``grains`` grains of ``radius`` into a notebook world (``world``, a key of
+    :data:`WORLDS`) and let them heap up: ``steps`` steps of 1/30 s under g = 9.81, grains
+    colliding with each other and the world (``ParticleSimulation(..., contacts=ContactLaw())``,
+    the stiffness derived from the grains and the world's height, see
+    :class:`fastsdf.granular.ContactLaw`). The world is sampled into a ``grid`` x ``grid``
+    GridSDF over :data:`BOUNDS` (``exact=True``: queried exactly, with the stiffness the grid's
+    height would give). Writes ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without
+    ffmpeg; ``animate=False`` skips it) and ``out/sand_last_frame.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+    from fastsdf.fields.grid import GridSDF
+    from fastsdf.granular.params import ContactLaw, derived_stiffness
+    from fastsdf.particles import Gravity, ParticleSimulation
+    from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.render import render_frame, sim_title
+
+    for name, value, low in (
+        ("grains", grains, 1),
+        ("steps", steps, 1),
+        ("grid", grid, 2),
+        ("frames", frames, 1),
+        ("fps", fps, 1),
+    ):
+        if isinstance(value, bool) or int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+    if world not in WORLDS:
+        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
+    if not (np.isfinite(radius) and 0 < radius < 0.2):
+        raise ValueError(f"radius must be in (0, 0.2), got radius={radius!r}")
+    grains, steps, frames = int(grains), int(steps), int(frames)
+    if animate and frames > steps:
+        raise ValueError(
+            f"frames must be at most steps (every frame advances at least one step), "
+            f"got frames={frames}, steps={steps}"
+        )
+    err = stream if stream is not None else sys.stderr
+    out = check_output_dir(out)
+    f = WORLDS[world][0]()
+    g = 9.81
+    height = BOUNDS[1][1] - BOUNDS[1][0]
+    if exact:
+        sdf, sdf_name = f, "the exact compiled SDF (no grid)"
+        # The grains' extent would set the derived stiffness: take the pictured world's height.
+        law = ContactLaw(stiffness=derived_stiffness(1.0, g, height))
+    else:
+        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
+        sdf_name, law = f"a {grid}x{grid} GridSDF", ContactLaw()
+    rng = np.random.default_rng(seed)
+    sim: Any = ParticleSimulation(  # a GrainSimulation
+        sdf, positions=pouring_column(grains, radius, rng), radius=radius, contacts=law
+    )
+    sim.force_generators.append(Gravity((0.0, -g)))
+    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0}
+
+    def advance(k: int) -> None:
+        if k <= 0:
+            return
+        if timing["first"] is None:
+            t0 = time.perf_counter()
+            sim.run(1)
+            timing["first"] = time.perf_counter() - t0
+            timing["load0"] = _load()
+            timing["steps"] += 1
+            k -= 1
+        if k > 0:
+            t0 = time.perf_counter()
+            sim.run(k)
+            timing["rest"] += time.perf_counter() - t0
+            timing["steps"] += k
+
+    label = f"{grains:,} grains"
+    animation_path = None
+    if animate:
+        ext = _video_writer_ext(err)
+        animation_path = os.path.join(out, "sand" + ext)
+        schedule = _frame_schedule(steps, frames)
+        if ext == ".mp4":
+            with VideoWriter(
+                animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, title=label
+            ) as writer:
+                for k in schedule:
+                    advance(k)
+                    writer.add_simulation(sim)
+        else:
+            from fastsdf.viz.render import animate as _animate
+            from fastsdf.viz.render import save_animation, world_figure
+
+            fig, ax, _ = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+            anim = _animate(sim, ax, frames, schedule, advance=advance, title=label + ", ")
+            save_animation(anim, animation_path, fps=fps)
+    advance(steps - timing["steps"])
+    x = sim.p["x"]
+    last = os.path.join(out, "sand_last_frame.png")
+    render_frame(
+        f,
+        x[:, 0],
+        x[:, 1],
+        r=sim.p["r"],
+        bounds=BOUNDS,
+        out_png=last,
+        title=sim_title(sim, label + ", "),
+        colorbar=False,
+    )
+    heap = x[:, 1] < -0.5
+    resting = heap & (np.hypot(*np.asarray(sim.p["v"]).T) < 0.05)
+    overlap, wall_overlap = _max_overlaps(sim, sdf)
+    substeps = sim.substeps_per_frame
+    rest = timing["rest"]
+    rate = (timing["steps"] - 1) * substeps * grains / rest if rest > 0 else float("nan")
+    return SandResult(
+        world=world,
+        grains=grains,
+        radius=float(radius),
+        steps=timing["steps"],
+        timestep=sim.dt,
+        sdf=sdf_name,
+        stiffness=float(sim.contacts.stiffness),
+        substeps_per_step=int(substeps),
+        first_step_seconds=timing["first"] or 0.0,
+        sim_seconds=rest,
+        grain_substeps_per_second=rate,
+        max_overlap=overlap,
+        max_wall_overlap=wall_overlap,
+        heap_fraction=float(np.mean(heap)),
+        heap_top=float(x[resting, 1].max()) if resting.any() else float("nan"),
+        animation=animation_path,
+        last_frame=last,
+        load=_load_pair(timing.get("load0"), _load()),
+    )
+
+
+def sand_summary(res: SandResult) -> str:
+    """Human-readable lines for the sand scene's result."""
+    lines = [
+        f"world: {res.world}, {WORLDS[res.world][1]}; queried through {res.sdf}",
+        f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} (a column eight "
+        f"grains wide above the world) under g = 9.81",
+        f"contact law: ContactLaw() derived its stiffness {res.stiffness:.4g} from the grains "
+        f"(1% overlap under a column as tall as the world): "
+        f"{res.substeps_per_step:,} substeps per 1/30 s step",
+        f"simulated {_plural(res.steps, 'step')} of {res.timestep:.4g} s "
+        f"({res.steps * res.timestep:.2f} s of simulated time)",
+    ]
+    if res.steps > 1:
+        lines.append(
+            f"rate: {res.grain_substeps_per_second / 1e6:.2f} M grain-substeps/s over "
+            f"{_plural(res.steps - 1, 'step')} in {res.sim_seconds:.2f} s (the first step, "
+            f"{res.first_step_seconds:.2f} s, compiles or loads the kernels and is not counted)"
+        )
+    else:
+        lines.append(f"the only step took {res.first_step_seconds:.2f} s, compiling included")
+    lines.append(
+        f"heap: {res.heap_fraction:.0%} of the grains in the funnel (below the disc), the "
+        f"highest at rest at y = {res.heap_top:.2f}; largest overlap at the end "
+        f"{res.max_overlap:.2%} of a diameter between grains, {res.max_wall_overlap:.2%} "
+        f"against the world"
+    )
+    if res.load is not None:
+        lines.append(
+            f"machine load (1-minute average) {res.load[0]:.1f} before and {res.load[1]:.1f} "
+            f"after the steps, on {os.cpu_count() or 1} cores"
+        )
     if res.animation:
         lines.append(f"video: {res.animation}")
     lines.append(f"last frame: {res.last_frame}")

@@ -373,6 +373,10 @@ class DistributedSimulation:
         built (e.g. to place its particles); the shard is ``sim``, a ``ParticleSimulation``.
         Its return values are kept in :attr:`init_results` (small values only). For
         reproducible results it must depend only on ``sim`` and ``i``.
+    contacts : None
+        Only None: grains that collide with each other (``ContactLaw``) are refused with a
+        ValueError saying what works (non-interacting particles shard; grains would need a
+        halo exchange between shards every substep).
 
     Each worker holds its shards' state (64 bytes per particle in float64); the client holds
     only small results. Use as a context manager or call :meth:`close` to free the workers.
@@ -414,7 +418,17 @@ class DistributedSimulation:
         block: int | None = None,
         threads: int | None = None,
         init: Any = None,
+        contacts: Any = None,
     ):
+        if contacts is not None:
+            raise ValueError(
+                f"contacts={contacts!r}: grains that collide with each other cannot be "
+                f"sharded as independent batches (each shard would need the grains near its "
+                f"border from its neighbours every substep: a halo exchange, not implemented). "
+                f"What shards: non-interacting particles (contacts=None); grains run in one "
+                f"process: fastsdf.particles.ParticleSimulation(world, positions=..., "
+                f"contacts=ContactLaw())"
+            )
         _require_dask()
         from distributed import Client
 

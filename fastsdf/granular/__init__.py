@@ -1,5 +1,10 @@
 """Grains that collide with each other and with an SDF world: soft-sphere DEM in 2D.
 
+The engine of the particle family's grains: ``fastsdf.particles.ParticleSimulation(world,
+positions=..., radius=..., contacts=ContactLaw())`` steps with it under the family's names and
+tools. ``ContactLaw()`` without a stiffness derives one from the grains (see
+:class:`ContactLaw`).
+
 ``GranularSimulation(positions, radius, world=f, contact=ContactLaw(...))`` steps discs with
 the ``gran/hooke`` contact law (linear spring, restitution-set dashpot, Coulomb-capped viscous
 friction, rotation) by velocity Verlet, substepping each frame to resolve the contact time, with
@@ -27,6 +32,7 @@ from fastsdf.granular.params import (
     check_contact_law,
     contact_time,
     damping_ratio,
+    derived_stiffness,
     restitution_from_damping,
 )
 from fastsdf.granular.simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
@@ -42,6 +48,7 @@ __all__ = [
     "check_contact_law",
     "contact_time",
     "damping_ratio",
+    "derived_stiffness",
     "list_pairs",
     "restitution_from_damping",
 ]

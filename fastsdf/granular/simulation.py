@@ -70,12 +70,23 @@ from fastsdf.granular.kernels import (
     wall_energy,
     wall_forces,
 )
-from fastsdf.granular.params import ContactLaw, _real, check_contact_law, contact_time
+from fastsdf.granular.params import (
+    STANDARD_GRAVITY,
+    ContactLaw,
+    _real,
+    check_contact_law,
+    contact_time,
+    derived_stiffness,
+)
+from fastsdf.notice import compiling
 
-__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "GranularSimulation"]
+__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "PARALLEL_MIN_GRAINS", "GranularSimulation"]
 
 #: Substeps per (undamped) contact time of the lightest contact, by default.
 DEFAULT_SUBSTEPS_PER_CONTACT = 40
+#: Fewer grains than this step on one thread: waking the other threads for every pass of
+#: every substep costs more than it saves (and far more on a busy machine).
+PARALLEL_MIN_GRAINS = 4096
 
 
 def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
@@ -89,6 +100,26 @@ def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
             f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])}"
         )
     return a
+
+
+def world_height(world: Any, positions: np.ndarray, diameter: float, gravity: ArrayLike) -> float:
+    """The world's height along gravity for a derived stiffness (see :class:`ContactLaw`): the
+    extent of ``world.bounds`` (a grid's) along gravity, else the grains' extent at the start,
+    at least ``10 diameter``."""
+    g = np.asarray(gravity, dtype=np.float64)
+    norm = float(np.hypot(g[0], g[1]))
+    up = g / norm if norm > 0 else np.array([0.0, -1.0])
+    bounds = getattr(world, "bounds", None)
+    try:
+        (x0, x1), (y0, y1) = bounds  # type: ignore[misc]
+        corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]], dtype=np.float64)
+    except (TypeError, ValueError):
+        corners = positions
+    along = corners @ up
+    height = float(along.max() - along.min()) if corners.size else 0.0
+    if not math.isfinite(height):
+        height = 0.0
+    return max(height, 10.0 * diameter)
 
 
 class GranularSimulation:
@@ -163,10 +194,9 @@ class GranularSimulation:
             bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
             raise ValueError(f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}")
         v = np.zeros((n, 2)) if velocities is None else _points(velocities, "velocities", n)
-        self.contact = check_contact_law(ContactLaw() if contact is None else contact, "contact")
-        self.wall_contact = check_contact_law(
-            self.contact if wall_contact is None else wall_contact, "wall_contact"
-        )
+        for name, law in (("contact", contact), ("wall_contact", wall_contact)):
+            if law is not None and not isinstance(law, ContactLaw):
+                raise TypeError(f"{name} must be a fastsdf.granular.ContactLaw, got {name}={law!r}")
         self.density = _real(density, "density")
         if not self.density > 0:
             raise ValueError(f"density must be > 0, got density={density!r}")
@@ -182,6 +212,10 @@ class GranularSimulation:
                 f"substeps_per_contact must be >= 10, "
                 f"got substeps_per_contact={substeps_per_contact!r}"
             )
+        if substep is not None:
+            target = _real(substep, "substep")
+            if not target > 0:
+                raise ValueError(f"substep must be > 0, got substep={substep!r}")
         if world is not None and not callable(world):
             raise TypeError(
                 f"world must be a fastsdf Function or GridSDF (or None), got world={world!r}"
@@ -197,21 +231,14 @@ class GranularSimulation:
                 )
             period_x0, period = float(px[0]), float(px[1] - px[0])
         self.bulk = Bulk(self.density, float(gxy[0]), float(gxy[1]), period_x0, period)
-
-        # The lightest contact sets the substep.
-        m_min = self.density * math.pi * float(r.min()) ** 2
-        self.contact_time = min(
-            contact_time(m_min / 2, self.contact),
-            contact_time(m_min, self.wall_contact) if world is not None else math.inf,
-        )
-        if substep is None:
-            target = self.contact_time / spc
-        else:
-            target = _real(substep, "substep")
-            if not target > 0:
-                raise ValueError(f"substep must be > 0, got substep={substep!r}")
-        self.substeps_per_frame = max(1, math.ceil(self.timestep / target - 1e-9))
-        self.substep = self.timestep / self.substeps_per_frame
+        # The laws as given (a stiffness of None is derived, see ContactLaw) and what sets the
+        # substep: resolved now and again when gravity changes (set_gravity).
+        self._laws_given = (ContactLaw() if contact is None else contact, wall_contact)
+        self._substeps_per_contact = spc
+        self._substep_given = substep
+        self._r_min = float(r.min())
+        self._height = world_height(world, p, 2.0 * float(r.max()), gxy)
+        self._resolve_laws()
 
         if skin is None:
             skin = 0.4 * float(r.mean())
@@ -256,11 +283,113 @@ class GranularSimulation:
         self.timings = {"rebuild": 0.0, "forces": 0.0, "walls": 0.0, "integrate": 0.0}
         self.wall_force = np.zeros(2)
         self._wall_sum = np.zeros(2)
+        #: A compiled hook ``external(grains, density, t)`` adding forces to ``grains.fx,
+        #: fy`` after the contact forces of every force pass (at the drifted positions and
+        #: predicted velocities), or None.
+        self.external: Any = None
+        with compiling("the granular kernels"):
+            self._rebuild()
+            np.copyto(self.grains.px, self.grains.vx)
+            np.copyto(self.grains.py, self.grains.vy)
+            self._forces(self._wall_sum, 0.0)
+            # the first substep compiles the integration pass
+            kick_drift(
+                self.grains, 0.0, 0.0, self.density, self._x_ref, self._y_ref, self._chunk_max
+            )
+        self.wall_force = self._wall_sum.copy()
+
+    def _resolve_laws(self) -> None:
+        """The contact laws (a stiffness of None derived from the grains, gravity and the
+        world's height, see :class:`ContactLaw`), the lightest contact's duration and the
+        substep."""
+        gx, gy = self.bulk.gravity_x, self.bulk.gravity_y
+        g = math.hypot(gx, gy) or STANDARD_GRAVITY
+        contact, wall = self._laws_given
+
+        def resolved(law: ContactLaw, name: str) -> ContactLaw:
+            if law.stiffness is None:
+                law = law._replace(stiffness=derived_stiffness(self.density, g, self._height))
+            return check_contact_law(law, name)
+
+        self.contact = resolved(contact, "contact")
+        self.wall_contact = self.contact if wall is None else resolved(wall, "wall_contact")
+        m_min = self.density * math.pi * self._r_min**2
+        self.contact_time = min(
+            contact_time(m_min / 2, self.contact),
+            contact_time(m_min, self.wall_contact) if self.world is not None else math.inf,
+        )
+        if self._substep_given is None:
+            target = self.contact_time / self._substeps_per_contact
+        else:
+            target = float(self._substep_given)
+        self.substeps_per_frame = max(1, math.ceil(self.timestep / target - 1e-9))
+        self.substep = self.timestep / self.substeps_per_frame
+
+    def set_gravity(self, gravity: ArrayLike) -> None:
+        """Change gravity (length / s**2) from now on: a derived stiffness and the substep
+        follow it, and the forces are evaluated again at the current state."""
+        gxy = np.asarray(gravity, dtype=np.float64)
+        if gxy.shape != (2,) or not np.all(np.isfinite(gxy)):
+            raise ValueError(f"gravity must be two finite numbers, got gravity={gravity!r}")
+        self.bulk = self.bulk._replace(gravity_x=float(gxy[0]), gravity_y=float(gxy[1]))
+        self._resolve_laws()
+        self._restart()
+
+    def set_state(
+        self,
+        positions: ArrayLike | None = None,
+        velocities: ArrayLike | None = None,
+        angular_velocities: ArrayLike | None = None,
+        radius: ArrayLike | None = None,
+    ) -> None:
+        """Replace the given fields (in the grains' given numbering) and continue from there:
+        the neighbour list is rebuilt and the forces evaluated at the new state (a changed
+        radius also changes the lightest contact, hence the substep)."""
+        g = self.grains
+        n = self.ids.shape[0]
+        slots = self.ids
+        if positions is not None:
+            pos = _points(positions, "positions", n)
+            g.x[:] = pos[slots, 0]
+            g.y[:] = pos[slots, 1]
+        if velocities is not None:
+            vel = _points(velocities, "velocities", n)
+            g.vx[:] = vel[slots, 0]
+            g.vy[:] = vel[slots, 1]
+        if angular_velocities is not None:
+            w = np.asarray(angular_velocities, dtype=np.float64)
+            if w.shape != (n,) or not np.all(np.isfinite(w)):
+                raise ValueError(f"angular_velocities must be {n} finite numbers")
+            g.omega[:] = w[slots]
+        if radius is not None:
+            r = np.array(np.broadcast_to(np.asarray(radius, dtype=np.float64), (n,)))
+            if not np.all(np.isfinite(r) & (r > 0)):
+                bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
+                raise ValueError(
+                    f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}"
+                )
+            g.radius[:] = r[slots]
+            self._r_min = float(r.min())
+            self._cutoff = 2 * float(r.max()) + self.skin
+            self._resolve_laws()
+        self._restart()
+
+    def _restart(self) -> None:
+        """Continue from the current positions and velocities as from a fresh start: rebuild
+        the list, predict with the current velocities and evaluate the forces."""
         self._rebuild()
         np.copyto(self.grains.px, self.grains.vx)
         np.copyto(self.grains.py, self.grains.vy)
-        self._forces(self._wall_sum, 0.0)
-        self.wall_force = self._wall_sum.copy()
+        np.copyto(self.grains.pomega, self.grains.omega)
+        wall_sum = np.zeros(2)
+        self._forces(wall_sum, 0.0)
+        self.wall_force = wall_sum
+
+    def __getstate__(self) -> dict:
+        # The external force hook is rebound by its owner (it may live in a generated module).
+        state = self.__dict__.copy()
+        state["external"] = None
+        return state
 
     # -- neighbour search -----------------------------------------------------------------
     def _rebuild(self) -> None:
@@ -329,6 +458,8 @@ class GranularSimulation:
             dt,
             0.5 * dt,
         )
+        if self.external is not None:
+            self.external(self.grains, self.density, self.time)
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
@@ -355,7 +486,19 @@ class GranularSimulation:
 
     def advance(self, substeps: int) -> None:
         """Advance ``substeps`` substeps of :attr:`substep` seconds (velocities end
-        synchronized with positions)."""
+        synchronized with positions). Fewer grains than :data:`PARALLEL_MIN_GRAINS` run on one
+        thread (the same results: the work is split into the same chunks)."""
+        threads = numba.get_num_threads()
+        serial = self.grains.x.shape[0] < PARALLEL_MIN_GRAINS and threads > 1
+        if serial:
+            numba.set_num_threads(1)
+        try:
+            self._advance(substeps)
+        finally:
+            if serial:
+                numba.set_num_threads(threads)
+
+    def _advance(self, substeps: int) -> None:
         g = self.grains
         dt = self.substep
         # The reference positions are float32: allow for their rounding in the skin test.

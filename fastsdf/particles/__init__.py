@@ -70,12 +70,18 @@ with stored gradients and float64 state steps blocks of particles in vector pass
 kernel does not depend on the scene (its exact fallback is bound at run time), so it compiles
 once per installation.
 
-Modules: :mod:`.state` (the particles' arrays), :mod:`.forces`, :mod:`.world` (what a step
-queries), :mod:`.simulation`, :mod:`.reference` (the notebook's step in NumPy) and
-:mod:`.kernels`.
+Grains: ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactLaw())`` gives
+particles that also collide with each other (a :class:`GrainSimulation`, stepped by the
+granular engine :mod:`fastsdf.granular`); the names and tools above are the same.
+
+Modules: :mod:`.grains` (grains), :mod:`.state` (the particles' arrays), :mod:`.forces`,
+:mod:`.world` (what a step queries), :mod:`.simulation`, :mod:`.reference` (the notebook's
+step in NumPy) and :mod:`.kernels`.
 """
 
+from fastsdf.granular.params import ContactLaw
 from fastsdf.particles.forces import Drag, FieldForce, Gravity
+from fastsdf.particles.grains import GrainSimulation, GrainState
 from fastsdf.particles.kernels import TRACE_FRACTION
 from fastsdf.particles.reference import reference_step
 from fastsdf.particles.simulation import (
@@ -90,6 +96,9 @@ from fastsdf.particles.world import SimulationParams, _step_source
 __all__ = [
     "SimulationParams",
     "ParticleSimulation",
+    "GrainSimulation",
+    "GrainState",
+    "ContactLaw",
     "Particles",
     "Gravity",
     "Drag",

@@ -93,7 +93,11 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
     # simulation rebuilds its parameter table from the world when its SDF is assigned).
     params = state.pop("params", None)
     state["_saved_params"] = dict(params) if params is not None else {}
-    arrays: dict[str, Any] = {name: np.ascontiguousarray(p[name]) for name in _FIELDS}
+    fields = tuple(p.keys()) if p is not None else ()
+    if p is None:  # a member whose state travels in the pickled part only
+        p = sim.p
+        fields = tuple(p.keys())
+    arrays: dict[str, Any] = {name: np.ascontiguousarray(p[name]) for name in fields}
     meta = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
@@ -104,6 +108,7 @@ def save_simulation(sim: Any, path: str | os.PathLike) -> str:
         "t": float(sim.t),
         "timestep": float(sim.dt),
         "forces": forces,
+        "fields": list(fields),
     }
     blob = pickle.dumps((type(sim), state), protocol=pickle.HIGHEST_PROTOCOL)
     path = os.path.abspath(os.fspath(path))
@@ -156,14 +161,18 @@ def load_simulation(path: str | os.PathLike) -> Any:
                 f"{path!r} was written in format version {meta['version']}; "
                 f"this fastsdf reads up to {FORMAT_VERSION}: upgrade fastsdf"
             )
-        arrays = {name: np.array(data[name]) for name in _FIELDS}
+        fields = tuple(meta.get("fields", _FIELDS))
+        arrays = {name: np.array(data[name]) for name in fields}
         cls, state = pickle.load(io.BytesIO(bytes(data["simulation"])))
     from fastsdf.particles.state import Particles
 
-    p = Particles(len(arrays["r"]), arrays["x"].dtype)
-    for name, arr in arrays.items():
-        p[name] = arr
-    state["p"] = p
+    if fields == Particles.FIELDS:
+        p = Particles(len(arrays["r"]), arrays["x"].dtype)
+        for name, arr in arrays.items():
+            p[name] = arr
+        state["p"] = p
+    else:  # grains: the engine in the pickled part holds the state
+        state["p"] = arrays
     params = state.pop("_saved_params", {})
     sim = cls.__new__(cls)
     sim.__setstate__(state)

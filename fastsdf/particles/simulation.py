@@ -53,6 +53,14 @@ PARALLEL_MIN_PARTICLES = 4096
 DEFAULT_BLOCK = 512
 
 _INTEGRATORS = ("symplectic", "euler")
+
+
+class _DefaultCount(int):
+    """The default ``n`` (100), told apart from an ``n`` given: with ``positions`` the count
+    comes from them."""
+
+
+_DEFAULT_N = _DefaultCount(100)
 _COLLISIONS = ("approaching", "notebook")
 
 
@@ -72,9 +80,23 @@ class ParticleSimulation:
         :mod:`fastsdf.backends.prune`): each query evaluates only the rows of its tile's lists, with
         the same bits for hard unions and intersections.
     n : int, default 100
-        Number of particles (> 0).
+        Number of particles (> 0); with ``positions``, their count.
     timestep : float, default 1/30
         Seconds per step (finite, > 0).
+    positions, velocities, radius : array (n, 2), array (n, 2), float or array (n,)
+        The start, in place of the notebook's random blob (see :meth:`reset`): each one given
+        replaces that field of the blob; placed particles start at rest unless given
+        ``velocities``; with ``radius`` the masses are ``density pi r**2`` (without it, the
+        notebook's sizes: ``m ~ U(1, 10)``, ``r = 0.01 m``). :meth:`reset` returns to them.
+        None given: the blob, exactly as before.
+    contacts : :class:`fastsdf.granular.ContactLaw` or None
+        ``None`` (default): particles meet only the world. A contact law: the particles are
+        grains that also collide with each other (soft-sphere DEM): the simulation is then a
+        :class:`fastsdf.particles.grains.GrainSimulation` (same names and tools; its step is
+        the granular engine, see there); ``positions`` are required, ``radius`` defaults to
+        0.02, and ``ContactLaw()`` derives its stiffness from the grains.
+    density : float, default 1
+        Mass per unit area, for the masses of particles given a ``radius`` and of grains.
     seed : int, numpy Generator or None
         Seed of the random initial state; the same seed gives the same state and trajectory.
         ``None`` draws fresh randomness at every :meth:`reset`.
@@ -172,12 +194,25 @@ class ParticleSimulation:
     _flags: Any
     _wall: Any
 
+    def __new__(cls, *args: Any, **kwargs: Any) -> ParticleSimulation:
+        # Grains (contacts=ContactLaw(...)) are the member that steps with the granular engine.
+        if cls is ParticleSimulation and kwargs.get("contacts") is not None:
+            from fastsdf.particles.grains import GrainSimulation
+
+            return object.__new__(GrainSimulation)
+        return object.__new__(cls)
+
     def __init__(
         self,
         f: Any,
-        n: int = 100,
+        n: int = _DEFAULT_N,
         timestep: float = 1 / 30,
         *,
+        positions: ArrayLike | None = None,
+        velocities: ArrayLike | None = None,
+        radius: ArrayLike | float | None = None,
+        contacts: Any = None,
+        density: float = 1.0,
         seed: Any = None,
         integrator: str = "symplectic",
         collision: str = "approaching",
@@ -202,6 +237,9 @@ class ParticleSimulation:
                     f"wall_speed must be finite and >= 0, got wall_speed={wall_speed!r}"
                 )
         self._wall_speed_arg = wall_speed
+        self._given = _start_state(n, positions, velocities, radius, density)
+        if self._given is not None and self._given[0] is not None:
+            n = self._given[0].shape[0]
         if isinstance(n, float) and math.isfinite(n) and n == int(n):
             n = int(n)  # n=1e5, as the command line accepts it
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
@@ -292,12 +330,19 @@ class ParticleSimulation:
                 stacklevel=3,
             )
 
+    @property
+    def world(self) -> Any:
+        """The world (the same as :attr:`sdf`)."""
+        return self.sdf
+
     # -- notebook interface ----------------------------------------------------------------
     def reset(self, ax: Any = None) -> tuple:
         """Draw a fresh random state (the notebook's distribution) and set ``t = 0``.
 
         ``x ~ N([0, 1.5], 0.05 I)``, ``v ~ N(0, 0.1 I)``, ``m ~ U(1, 10)``, ``r = 0.01 m``,
-        ``cr``, ``cf`` from the constructor. With an ``ax`` (the notebook's interface), also
+        ``cr``, ``cf`` from the constructor; the fields given to the constructor
+        (``positions``, ``velocities``, ``radius``) replace their draws. With an ``ax`` (the
+        notebook's interface), also
         (re)draws the particles there with :func:`fastsdf.viz.render.draw_particles`: discs of the
         particles' radii in data units for up to 5000 particles, a density image above; returns
         the drawn artists (for matplotlib's blitting). To animate a simulation without resetting
@@ -315,6 +360,17 @@ class ParticleSimulation:
         p["r"] = p["m"] * 0.01
         p["cr"] = self.cr
         p["cf"] = self.cf
+        given = getattr(self, "_given", None)
+        if given is not None:
+            pos, vel, rad, density = given
+            if pos is not None:
+                p["x"] = pos
+                p["v"] = 0.0  # particles placed start at rest unless given velocities
+            if vel is not None:
+                p["v"] = vel
+            if rad is not None:
+                p["r"] = rad
+                p["m"] = density * math.pi * np.asarray(p["r"], dtype=np.float64) ** 2
         self.p = p
         self.t = 0.0
         self._wall = None
@@ -704,6 +760,42 @@ class ParticleSimulation:
             f"integrator={self.integrator!r}, collision={self.collision!r}, "
             f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})"
         )
+
+
+def _start_state(
+    n: Any, positions: Any, velocities: Any, radius: Any, density: Any
+) -> tuple | None:
+    """The start fields given in place of the notebook's blob, checked: ``(x, v, r,
+    density)`` (None where not given), or None when none is given."""
+    if positions is None and velocities is None and radius is None:
+        return None
+    pos = vel = rad = None
+    count = None if positions is None else np.asarray(positions).shape[0]
+    if positions is not None:
+        pos = np.array(positions, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 2 or pos.shape[0] < 1:
+            raise ValueError(f"positions must have shape (n, 2), n >= 1, got shape {pos.shape}")
+        if n is not _DEFAULT_N and n != pos.shape[0]:
+            raise ValueError(f"n={n!r} does not match positions, which hold {pos.shape[0]} rows")
+    if count is None:
+        count = int(n)
+    if not np.all(np.isfinite(pos if pos is not None else 0.0)):
+        raise ValueError("positions must be finite")
+    if velocities is not None:
+        vel = np.array(velocities, dtype=np.float64)
+        if vel.shape != (count, 2) or not np.all(np.isfinite(vel)):
+            raise ValueError(
+                f"velocities must be finite, of shape ({count}, 2), got shape {vel.shape}"
+            )
+    if radius is not None:
+        rad = np.array(np.broadcast_to(np.asarray(radius, dtype=np.float64), (count,)))
+        if not np.all(np.isfinite(rad) & (rad >= 0)):
+            bad = int(np.flatnonzero(~(np.isfinite(rad) & (rad >= 0)))[0])
+            raise ValueError(f"radius must be finite and >= 0, got radius[{bad}]={rad[bad]!r}")
+    dens = _real(density, "density")
+    if not (math.isfinite(dens) and dens > 0):
+        raise ValueError(f"density must be finite and > 0, got density={density!r}")
+    return pos, vel, rad, dens
 
 
 def create_animation(

@@ -1,0 +1,483 @@
+"""Grains: the member of the particle family whose particles also collide with each other.
+
+``ParticleSimulation(world, positions=..., radius=..., contacts=ContactLaw())`` builds a
+:class:`GrainSimulation`: a :class:`~fastsdf.particles.ParticleSimulation` (same names, same
+tools: ``sim.p``, ``sim.t``, ``sim.dt``, ``sim.world``, ``sim.force_generators``,
+``sim.run(steps, record=...)``, ``sim.save``/``load``, the notebook's ``reset(ax)``/``update(ax)``)
+whose step is the granular engine :class:`fastsdf.granular.GranularSimulation` (soft-sphere
+DEM, substepped within each step).
+
+Why delegation and not one kernel family: the non-interacting step is one fused pass per
+particle and step with no neighbours, the granular step a velocity-Verlet substep over a cell
+and Verlet list, reordered by cell; they share the state's names, the world, the forces and
+every tool, not a loop. Delegating keeps each engine's speed and verified physics as they are
+(the non-interacting step bit for bit) and gives the family one front door.
+
+The state: ``sim.p`` has the fields ``x``, ``v`` ((n, 2)), ``m``, ``r`` and ``omega`` ((n,)),
+in the order the grains were given. The engine keeps its own arrays (reordered in space for
+speed); ``sim.p`` is a window on them, filled when first read after a step and written back
+(the engine restarting from it) at the next step only if a value was changed. ``m`` follows
+from ``r`` and ``density`` (``density pi r**2``) and cannot be written. Between steps, the
+window costs 56 bytes per grain; while stepping, nothing.
+
+Forces: :class:`Gravity` sets the engine's gravity (and, for a derived stiffness, the contact
+law and the substep); :class:`Drag`, :class:`FieldForce` and numba ``@njit`` forces ``(x, y,
+vx, vy, m, t) -> (fx, fy)`` are fused into one compiled pass added to every force evaluation
+(at the substep's positions and predicted velocities). A Python force generator ``(p, t)``
+would run at every substep and is refused: write it with ``@njit``.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+from fastsdf.backends.kernel.cache import load_module
+from fastsdf.granular.params import ContactLaw
+from fastsdf.granular.simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
+from fastsdf.notice import compiling
+from fastsdf.particles.forces import Gravity, fuse
+from fastsdf.particles.simulation import _DEFAULT_N, ParticleSimulation
+from fastsdf.particles.world import _force_parts
+from fastsdf.version import __version__
+
+__all__ = ["GrainSimulation", "GrainState"]
+
+
+class GrainState:
+    """The grains' state in their given order: ``p['x']``, ``p['v']`` (n, 2), ``p['m']``,
+    ``p['r']``, ``p['omega']`` (n,) (angular velocity, rad/s, counter-clockwise), like
+    :class:`~fastsdf.particles.Particles`. Arrays read here may be written in place (``m``
+    excepted); the next step takes the changes."""
+
+    FIELDS = ("x", "v", "m", "r", "omega")
+
+    def __init__(self, engine: GranularSimulation) -> None:
+        self._engine = engine
+        self._arrays: dict | None = None
+
+    def _current(self) -> dict:
+        e = self._engine
+        return {
+            "x": e.positions,
+            "v": e.velocities,
+            "m": e.masses,
+            "r": e.radius,
+            "omega": e.angular_velocities,
+        }
+
+    def _fields(self) -> dict:
+        if self._arrays is None:
+            self._arrays = self._current()
+        return self._arrays
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self.FIELDS:
+            raise KeyError(f"no grain field {name!r}; fields are {self.FIELDS}")
+        return self._fields()[name]
+
+    def __setitem__(self, name: str, value: Any) -> None:
+        arr = self[name]
+        value = np.asarray(value)
+        if value.dtype.kind not in "iuf":
+            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {value.dtype}")
+        try:
+            np.copyto(arr, np.broadcast_to(value, arr.shape), casting="unsafe")
+        except ValueError:
+            raise ValueError(
+                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {value.shape}"
+            ) from None
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        if name in GrainState.FIELDS:
+            return self[name]
+        raise AttributeError(name)
+
+    def __len__(self) -> int:
+        return int(self._engine.ids.shape[0])
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.FIELDS
+
+    def keys(self) -> tuple[str, ...]:
+        """The field names."""
+        return self.FIELDS
+
+    @property
+    def dtype(self) -> np.dtype:
+        """float64 (the engine's)."""
+        return np.dtype(np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the window now (0 while it is not filled)."""
+        return 0 if self._arrays is None else sum(a.nbytes for a in self._arrays.values())
+
+    def sync(self) -> None:
+        """Hand the changes written into the window to the engine (which restarts from them)
+        and empty the window; called before every step."""
+        if self._arrays is None:
+            return
+        mine, now = self._arrays, self._current()
+        self._arrays = None
+        changed = {
+            k: mine[k] for k in self.FIELDS if not np.array_equal(mine[k], now[k], equal_nan=True)
+        }
+        if not changed:
+            return
+        e = self._engine
+        if "m" in changed:
+            expected = e.density * math.pi * np.asarray(changed.get("r", now["r"])) ** 2
+            if not np.array_equal(changed["m"], expected):
+                raise ValueError(
+                    "p['m'] of grains follows from their radius and the density "
+                    "(m = density pi r**2): write p['r'] or set density instead"
+                )
+        e.set_state(
+            positions=changed.get("x"),
+            velocities=changed.get("v"),
+            angular_velocities=changed.get("omega"),
+            radius=changed.get("r"),
+        )
+
+    def copy(self) -> dict:
+        """An independent copy of the fields, as a dict of arrays."""
+        return {k: v.copy() for k, v in self._fields().items()}
+
+    def __repr__(self) -> str:
+        return f"GrainState(n={len(self)})"
+
+
+# ---------------------------------------------------------------------------------------------
+# Forces beyond gravity: one compiled pass per set of fused forces.
+
+_FORCE_PASS = """
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def add_forces(g, density, t, drag):
+    x = g.x
+    y = g.y
+    vx = g.px
+    vy = g.py
+    rad = g.radius
+    fx = g.fx
+    fy = g.fy
+    for i in prange(x.shape[0]):
+        r = rad[i]
+        m = density * math.pi * r * r
+        ax, ay = _force(x[i], y[i], vx[i], vy[i], m, t)
+        fx[i] += ax - drag * vx[i]
+        fy[i] += ay - drag * vy[i]
+"""
+
+_PASSES: dict = {}
+
+
+def _force_pass(user: tuple) -> Any:
+    """The compiled pass adding the fused forces ``user`` and drag to the grains' forces."""
+    lines, deps, late = _force_parts(user)
+    head = [
+        f"# Grain force pass generated by fastsdf {__version__} (numba {numba.__version__}).",
+        f"# Dependencies: {'; '.join(deps) or 'none'}",
+        "import math",
+        "from numba import njit, prange",
+        f"_CACHE = {not late}",
+        "",
+    ]
+    source = "\n".join(head + lines) + "\n" + _FORCE_PASS
+    if not late:
+        return load_module(source, prefix="fastsdf_grainforce").add_forces
+    key = tuple(id(obj) for _, obj in late)
+    entry = _PASSES.get(key)
+    if entry is None:
+        mod = load_module(source + f"\n# uncached instance {len(_PASSES)}\n", "fastsdf_grainforce")
+        for name, obj in late:
+            setattr(mod, name, obj)
+        entry = _PASSES[key] = (mod.add_forces, [obj for _, obj in late])
+    return entry[0]
+
+
+class _External:
+    """The engine's hook: the compiled pass with the drag coefficient."""
+
+    def __init__(self, fn: Any, drag: float) -> None:
+        self.fn = fn
+        self.drag = drag
+
+    def __call__(self, grains: Any, density: float, t: float) -> None:
+        self.fn(grains, density, t, self.drag)
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulation.
+
+
+def _points(value: ArrayLike, name: str) -> np.ndarray:
+    a = np.array(value, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (n, 2), got {name} of shape {a.shape}")
+    return a
+
+
+class GrainSimulation(ParticleSimulation):
+    """Grains colliding with each other and with the world; built by
+    ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactLaw(...))``
+    (see :mod:`fastsdf.particles.grains`).
+
+    One step (``timestep`` seconds, ``sim.dt``) is ``sim.substeps_per_frame`` substeps of
+    the granular engine (``sim.engine``, a :class:`fastsdf.granular.GranularSimulation`).
+    ``contacts`` is the grain-grain law, ``wall_contacts`` the grain-world law (default:
+    ``contacts``); a law without a stiffness derives it (see
+    :class:`fastsdf.granular.ContactLaw`) from the grains, the density and the gravity of
+    ``force_generators`` when a run starts. ``density`` is mass per unit area.
+    ``substeps_per_contact``, ``substep``, ``skin``, ``periodic_x``, ``chunks``: the
+    engine's.
+    """
+
+    engine: GranularSimulation
+    _start: tuple
+    p: GrainState  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        f: Any,
+        n: int = _DEFAULT_N,
+        timestep: float = 1 / 30,
+        *,
+        positions: ArrayLike | None = None,
+        velocities: ArrayLike | None = None,
+        radius: ArrayLike | float | None = None,
+        contacts: ContactLaw | None = None,
+        wall_contacts: ContactLaw | None = None,
+        density: float = 1.0,
+        substeps_per_contact: float = DEFAULT_SUBSTEPS_PER_CONTACT,
+        substep: float | None = None,
+        skin: float | None = None,
+        periodic_x: ArrayLike | None = None,
+        chunks: int | None = None,
+        seed: Any = None,
+        **others: Any,
+    ) -> None:
+        if others:
+            name = next(iter(others))
+            raise TypeError(
+                f"{name}= does not apply to grains (contacts=...): their restitution and "
+                f"friction are the contact law's (ContactLaw(restitution=..., friction=...)), "
+                f"and they step by the granular engine's substeps"
+            )
+        if positions is None:
+            raise ValueError(
+                "grains (contacts=...) need positions= (n, 2): the notebook's random "
+                "blob would start them overlapping"
+            )
+        pos = _points(positions, "positions")
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
+            raise TypeError(f"n must be an integer, got n={n!r}")
+        if n is not _DEFAULT_N and int(n) != pos.shape[0]:
+            raise ValueError(f"n={n!r} does not match positions, which hold {pos.shape[0]} rows")
+        self.n = int(pos.shape[0])
+        self.seed = seed
+        self.engine = GranularSimulation(
+            pos,
+            DEFAULT_RADIUS if radius is None else radius,
+            world=f,
+            velocities=velocities,
+            contact=ContactLaw() if contacts is None else contacts,
+            wall_contact=wall_contacts,
+            density=density,
+            gravity=(0.0, 0.0),
+            timestep=timestep,
+            substep=substep,
+            substeps_per_contact=substeps_per_contact,
+            skin=skin,
+            periodic_x=periodic_x,
+            chunks=chunks,
+        )
+        self._dt = self.engine.timestep
+        self.force_generators: list = []
+        self._fused: tuple | None = None
+        self._wall = None
+        # The start, for reset(): positions and radii, velocities only if any is not 0.
+        g = self.engine
+        self._start = (
+            g.positions,
+            g.radius,
+            None if not np.any(g.velocities) else g.velocities,
+        )
+        self.p = GrainState(self.engine)
+
+    # -- the family's names ------------------------------------------------------------
+    @property
+    def sdf(self) -> Any:
+        """The world (SDF or GridSDF, or None); assigning another one continues the grains
+        in it."""
+        return self.engine.world
+
+    @sdf.setter
+    def sdf(self, f: Any) -> None:
+        if f is not None and not callable(f):
+            raise TypeError(f"the world must be a fastsdf SDF or GridSDF, got {f!r}")
+        self.p.sync()
+        self.engine.world = f
+        self.engine.moving = bool(getattr(f, "time_dependent", False))
+        self.engine.set_state()
+
+    @property
+    def t(self) -> float:
+        """Simulated time in seconds."""
+        return self.engine.time
+
+    @t.setter
+    def t(self, value: float) -> None:
+        self.engine.time = float(value)
+
+    @property
+    def dt(self) -> float:
+        """The step (frame) in seconds; assigning it keeps the substep's bound (the
+        substeps per step follow)."""
+        return self._dt
+
+    @dt.setter
+    def dt(self, value: float) -> None:
+        dt = float(value)
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"timestep must be finite and > 0, got timestep={value!r}")
+        self._dt = dt
+        self.engine.timestep = dt
+        self.engine.set_gravity((self.engine.bulk.gravity_x, self.engine.bulk.gravity_y))
+
+    @property
+    def contacts(self) -> ContactLaw:
+        """The grain-grain law in use (its stiffness resolved)."""
+        return self.engine.contact
+
+    @property
+    def density(self) -> float:
+        """Mass per unit area."""
+        return self.engine.density
+
+    @property
+    def substeps_per_frame(self) -> int:
+        """Engine substeps per step of ``dt`` (follows the contact law and gravity)."""
+        self._apply_forces()
+        return self.engine.substeps_per_frame
+
+    def memory_per_grain(self) -> float:
+        """Bytes held per grain: the engine's, the start kept for :meth:`reset` and the
+        state window when filled."""
+        start = sum(a.nbytes for a in self._start if a is not None)
+        return self.engine.memory_per_grain() + (start + self.p.nbytes) / self.n
+
+    # -- stepping ----------------------------------------------------------------------
+    def _apply_forces(self, restart: bool = True) -> None:
+        """Hand the force generators to the engine (gravity, and one compiled pass for
+        drag and fused forces) when they changed; the engine then evaluates its forces again
+        at the current state (``restart``; not when rebinding a loaded simulation's hook)."""
+        ax, ay, drag, python, user = fuse(self.force_generators)
+        if python:
+            raise TypeError(
+                f"grains take Gravity, Drag, FieldForce and numba @njit forces (x, y, "
+                f"vx, vy, m, t) -> (fx, fy); a Python force generator ({python[0]!r}) "
+                f"would run at every substep: write it with numba's @njit"
+            )
+        key = (ax, ay, drag, tuple(id(u) for u in user))
+        if self._fused is not None and self._fused[0] == key:
+            return
+        e = self.engine
+        if user or drag:
+            with compiling("the grains' force pass"):
+                fn = _force_pass(user)
+            e.external = _External(fn, drag)
+        else:
+            e.external = None
+        if (ax, ay) != (e.bulk.gravity_x, e.bulk.gravity_y):
+            e.set_gravity((ax, ay))
+        elif restart:
+            e.set_state()
+        self._fused = (key, user)
+
+    def run(self, steps: int = 1, record: Any = None) -> None:
+        """Advance ``steps`` steps of ``dt`` seconds (``substeps_per_frame`` substeps
+        each); ``record``: a recorder such as :class:`fastsdf.io.TrajectoryRecorder`."""
+        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
+            raise TypeError(f"steps must be an integer, got steps={steps!r}")
+        if steps < 0:
+            raise ValueError(f"steps must be >= 0, got steps={steps!r}")
+        if record is not None:
+            if not callable(getattr(record, "run", None)):
+                raise TypeError(
+                    f"record must be a recorder with a run(sim, steps) method, such as "
+                    f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
+                )
+            record.run(self, int(steps))
+            return
+        self.p.sync()
+        self._apply_forces()
+        self.engine.run(int(steps))
+
+    def reset(self, ax: Any = None) -> tuple:
+        """Back to the start (the positions, velocities and radii given), ``t = 0``; with
+        an ``ax``, (re)draw the grains there (the notebook's interface)."""
+        pos, r, v = self._start
+        self.p = GrainState(self.engine)
+        self.engine.set_state(
+            positions=pos,
+            velocities=np.zeros_like(pos) if v is None else v,
+            angular_velocities=np.zeros(self.n),
+            radius=r,
+        )
+        self.engine.time = 0.0
+        self._wall = None
+        return self._draw(ax, new=True)
+
+    def energy(self) -> float:
+        """Kinetic (translational and rotational), gravitational and elastic energy."""
+        self.p.sync()
+        self._apply_forces()
+        return float(self.engine.energy()["total"])
+
+    def potential_energy(self) -> float:
+        """Gravitational potential energy ``-m g . x`` (zero at the origin)."""
+        x = np.asarray(self.p["x"])
+        m = np.asarray(self.p["m"])
+        ax, ay, _, _, _ = fuse([g for g in self.force_generators if isinstance(g, Gravity)])
+        return float(-np.sum(m * (x[:, 0] * ax + x[:, 1] * ay)))
+
+    def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
+        """``(d, grad)`` of the world at points."""
+        d, grad = self.engine.world(
+            np.asarray(x, dtype=np.float64),
+            np.asarray(y, dtype=np.float64),
+            compute_gradient=True,
+        )
+        return d, grad
+
+    # -- pickling and files --------------------------------------------------------------
+    def __getstate__(self) -> dict:
+        self.p.sync()
+        state = self.__dict__.copy()
+        state["p"] = None
+        state["_fused"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        state.pop("p", None)
+        self.__dict__.update(state)
+        self.p = GrainState(self.engine)
+        self._apply_forces(restart=False)
+
+    def __repr__(self) -> str:
+        e = self.engine
+        return (
+            f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
+            f"contacts={e.contact!r}, substeps_per_frame={e.substeps_per_frame})"
+        )
+
+
+#: The radius of grains given without one (length units: the library's scenes span 4).
+DEFAULT_RADIUS = 0.02
