@@ -176,8 +176,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             demo.error(f"--out {args.out!r} is not a writable folder: {exc.strerror or exc}")
         # Said at once: the imports and the first compiles that follow take seconds.
         sys.stderr.write(
-            f"fastsdf demo: {args.particles:,} {'grains' if sand else 'particles'}, {args.steps} steps in the "
-            f"{args.world} world, writing to {args.out}/ ...\n"
+            f"fastsdf demo: {args.particles:,} {'grains' if sand else 'particles'}, "
+            f"{args.steps} steps in the {args.world} world, writing to {args.out}/ ...\n"
         )
         sys.stderr.flush()
         if sand:
