@@ -226,6 +226,8 @@ def test_notebook_example_runs_every_cell(tmp_path):
         ("custom_force", ["custom_force.png"]),
         ("save_video", ["particles.mp4"]),
         ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
+        ("heap", ["heap.png"]),
+        ("silo", ["silo.png"]),
     ],
 )
 def test_examples_run_at_small_size(tmp_path, name, outputs):

@@ -188,3 +188,42 @@ def test_tangential_force_never_exceeds_coulomb(delta, vn, vt, wr, s, mu, angle)
     assert ftx * tx + fty * ty == pytest.approx(spring_force, rel=1e-9, abs=1e-9)
     if ft < abs(mu * fn) * (1 - 1e-9):  # sticking: the spring took the whole sliding
         assert s_new == pytest.approx(s + vts * dt, rel=1e-12, abs=1e-15)
+
+
+def _example(name):
+    import importlib.util
+    import os
+
+    path = os.path.join(os.path.dirname(__file__), "..", "examples", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"_example_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
+    """250 discs poured through a hopper (``examples/heap.py``) onto a floor. With sliding
+    friction 0.5 and rolling resistance 0.3 the heap's flanks stand at 12-30 degrees on average
+    (measured here: 17-19 for three seeds; 2D disc heaps with rolling resistance, in the
+    studies cited at the top, stand at 15-30) and keep their slope over a further 20 time
+    units; frictionless discs spread flat (below 3 degrees)."""
+    import numba
+
+    heap = _example("heap")
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # a small scene: one thread is fastest
+    try:
+        law = ContactLaw(
+            stiffness=2e3, restitution=0.3, friction=0.5, history=True, rolling_friction=0.3
+        )
+        sim = heap.pour(250, law)
+        left, right, _ = heap.repose_angle(sim.positions, sim.radius)
+        assert 12.0 < (left + right) / 2 < 30.0 and min(left, right) > 8.0
+        sim.run(20)
+        left2, right2, _ = heap.repose_angle(sim.positions, sim.radius)
+        assert abs(left2 - left) < 0.5 and abs(right2 - right) < 0.5
+        flat = heap.pour(250, law._replace(friction=0.0, rolling_friction=0.0), time_limit=40)
+        angles = heap.repose_angle(flat.positions, flat.radius)[:2]
+        assert all(not (a >= 3.0) for a in angles)  # NaN: no flank at all
+    finally:
+        numba.set_num_threads(threads)

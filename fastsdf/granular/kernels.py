@@ -410,6 +410,7 @@ def pair_forces_history(
             yi = y[i]
             ri = rad[i]
             mi = grain_mass(ri, density)
+            gamma_equal = damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
             fx = 0.0
             fy = 0.0
             tq = 0.0
@@ -436,8 +437,11 @@ def pair_forces_history(
                     dist = 0.0
                     nx = 1.0 if i < j else -1.0
                     ny = 0.0
-                mj = grain_mass(rj, density)
-                gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
+                if rj == ri:
+                    gamma_n = gamma_equal
+                else:
+                    mj = grain_mass(rj, density)
+                    gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
                 # the same sum from both sides of a pair: the lower index first
                 if i < j:
                     wr = ri * w[i] + rj * w[j]
