@@ -66,6 +66,9 @@ def discharge(slot: float, grains: int, seed: int = 0, history: bool = False) ->
         contact=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5, history=history),
         timestep=0.5,
     )
+    print(
+        f"  slot {slot}, {grains} grains: {sim.substeps_per_frame} substeps per frame", flush=True
+    )
     times, out = [], []
     while True:
         sim.run(1)
@@ -74,6 +77,8 @@ def discharge(slot: float, grains: int, seed: int = 0, history: bool = False) ->
         out.append(n_out)
         if n_out > 0.5 * grains or sim.time > 2000:
             break
+        if len(out) > 100 and out[-1] == out[-100]:  # jammed: an arch over the slot
+            return float("nan")
     times, out = np.array(times), np.array(out)
     window = (out >= 0.1 * grains) & (out <= 0.5 * grains)
     slope = np.polyfit(times[window], out[window], 1)[0]
@@ -81,13 +86,16 @@ def discharge(slot: float, grains: int, seed: int = 0, history: bool = False) ->
 
 
 def main() -> None:
+    global WIDTH
     ap = argparse.ArgumentParser()
     ap.add_argument("--widths", nargs="+", type=float, default=[4.0, 5.0, 6.0, 8.0])
     ap.add_argument("--grains", type=int, default=1200)
     ap.add_argument("--history", action="store_true")
+    ap.add_argument("--width", type=float, default=WIDTH, help="width of the silo")
     ap.add_argument("--fills", nargs="*", type=int, default=[])
     a = ap.parse_args()
     numba.set_num_threads(1)
+    WIDTH = a.width
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     rates = []

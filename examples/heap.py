@@ -6,8 +6,9 @@ writes OUT/heap.png (OUT defaults to the current folder; ``FASTSDF_EXAMPLE_SMALL
 grains).
 
 Discs of diameter 0.8-1.2 (mean 1) under gravity 1 fall into a hopper whose outlet, eight
-diameters wide (narrower ones jam: grains with rolling resistance arch like sand), sits above the middle of a rough floor. The contact law keeps a tangential
-spring per contact (``history=True``: static friction, Cundall-Strack) and rolling resistance
+diameters wide (narrower ones jam: grains with rolling resistance arch like sand), sits above
+the middle of a rough floor. The contact law keeps a tangential spring per contact
+(``history=True``: static friction, Cundall-Strack) and rolling resistance
 (``rolling_friction``): without them discs roll away and the heap flattens. The angle of
 repose is measured by a straight-line fit to each flank of the heap's surface (the highest
 grain in each bin of one diameter, between 20% and 80% of the heap's height) and printed.

@@ -10,6 +10,14 @@ tangential force opposes the sliding velocity of the contact point ``v_t = v - v
 + R_j w_j) (n_y, -n_x)`` with magnitude ``min(mu |F_n|, gamma_t |v_t|)``, and turns ``i`` by
 ``-R_i (n x f_t)``. A wall is the SDF world: ``delta = R - d``, ``n = grad d / |grad d|``, the
 wall's velocity is its normal speed along ``n``, and ``m_eff = m_i``.
+
+With history (LAMMPS ``gran/hooke/history``, :func:`pair_forces_history`,
+:func:`wall_forces_history`) each contact keeps a tangential spring (Cundall-Strack): its stretch
+``xi`` along the tangent ``t = (-n_y, n_x)`` grows by the sliding ``v_t dt`` of the contact
+point, the force is ``-(k_t xi + gamma_t v_t) t``, and where that exceeds ``mu |F_n|`` it is
+set to the cap and ``xi`` truncated to match (:func:`_contact_history`); optionally a rolling
+spring per contact resists relative rotation (:func:`_rolling_spring`, model C of Ai, Chen,
+Rotter & Ooi 2011). Which model to choose: ``docs/granular_models.md``.
 """
 
 from __future__ import annotations
