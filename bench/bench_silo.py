@@ -103,14 +103,18 @@ def main() -> None:
         rates.append(discharge(w, a.grains, history=a.history))
         print(f"slot {w}: {rates[-1]:.3f} grains per unit time", flush=True)
     widths, rates = np.array(a.widths), np.array(rates)
+    flowing = np.isfinite(rates)  # NaN: the slot jammed (an arch)
+    widths, rates = widths[flowing], rates[flowing]
 
     def law(d, c, k, p):
         return c * np.sqrt(G) * np.clip(d - k, 1e-9, None) ** p
 
-    (c, k, p), _ = curve_fit(law, widths, rates, p0=(0.6, 1.5, 1.5), maxfev=20000)
-    (c15, k15), _ = curve_fit(lambda d, c, k: law(d, c, k, 1.5), widths, rates, p0=(0.6, 1.5))
-    print(f"free fit: C = {c:.3f}, k = {k:.2f}, exponent = {p:.2f}")
-    print(f"exponent 1.5: C = {c15:.3f}, k = {k15:.2f}")
+    if len(widths) >= 4:
+        (c, k, p), _ = curve_fit(law, widths, rates, p0=(0.6, 1.5, 1.5), maxfev=20000)
+        print(f"free fit: C = {c:.3f}, k = {k:.2f}, exponent = {p:.2f}")
+    if len(widths) >= 3:
+        (c15, k15), _ = curve_fit(lambda d, c, k: law(d, c, k, 1.5), widths, rates, p0=(0.6, 1.5))
+        print(f"exponent 1.5: C = {c15:.3f}, k = {k15:.2f}")
     for fill in a.fills:
         rate = discharge(a.widths[0], fill, history=a.history)
         print(f"fill {fill} grains, slot {a.widths[0]}: {rate:.3f} grains per unit time")
