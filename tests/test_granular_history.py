@@ -25,6 +25,18 @@ from fastsdf.granular import ContactLaw, GranularSimulation
 from fastsdf.granular.kernels import _contact_history
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Scenes of a few to a few hundred grains: one thread (waking workers three times a
+    substep costs more than it saves, most of all on a loaded machine)."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    yield
+    numba.set_num_threads(threads)
+
+
 def incline(theta_deg, law, offsets):
     """Discs of radius 0.5 resting (just touching) on a floor tilted by ``theta``, at
     ``offsets`` = (along the slope, above it); gravity 1 straight down."""
