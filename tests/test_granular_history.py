@@ -3,13 +3,12 @@ resistance: static friction on an incline against Coulomb's law and the rolling 
 springs carried across list rebuilds and the reorder of grains against a run that never
 rebuilds, the Coulomb cap of the kernel, and a heap that keeps its slope.
 
-Heaps of 2D discs: without rolling resistance discs roll, and a poured heap of discs with
-sliding friction alone stands at about 10-20 degrees; rolling resistance raises it toward the
-20-30 degrees of real sand (Zhou, Wright, Yang, Xu & Yu, Physica A 269 (1999) 536, "Rolling
-friction in the dynamic simulation of sandpile formation"; Ai, Chen, Rotter & Ooi, Powder
-Technology 206 (2011) 269, whose model C is the rolling spring here; the PFC2D
-rolling-resistance repose-angle verification of Itasca shows the same rise with ``mu_r``).
-A frictionless heap spreads flat.
+Heaps of 2D discs: without rolling resistance discs roll, and a poured heap flows away (the
+figures against ``mu_r`` are in ``bench/RESULTS.md``); the angle of repose rises with rolling
+resistance as in Zhou, Wright, Yang, Xu & Yu (Physica A 269 (1999) 536, "Rolling friction in
+the dynamic simulation of sandpile formation") and Itasca's PFC2D rolling-resistance
+repose-angle verification; Ai, Chen, Rotter & Ooi (Powder Technology 206 (2011) 269) assess the
+rolling models (model C is the rolling spring here). A frictionless heap spreads flat.
 """
 
 import math
@@ -216,9 +215,9 @@ def _example(name):
 def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
     """250 discs poured through a hopper (``examples/heap.py``) onto a floor. With sliding
     friction 0.5 and rolling resistance 0.3 the heap's flanks stand at 12-30 degrees on average
-    (measured here: 17-19 for three seeds; 2D disc heaps with rolling resistance, in the
-    studies cited at the top, stand at 15-30) and keep their slope over a further 20 time
-    units; frictionless discs spread flat (below 3 degrees)."""
+    (a loose bracket around the 20-30 degrees of sand, which a frictionless heap fails) and
+    keep their slope over a further 20 time units; frictionless discs spread flat (below 3
+    degrees)."""
     import numba
 
     heap = _example("heap")
