@@ -25,8 +25,10 @@ import numpy as np
 
 from .bench_granular import DT, GAMMA_N, KN, MU, hex_bed, ours
 
+SLOTS = 6  # contact springs kept per grain (pairs j > i): a dense bed of equal discs needs 3
 
-def taichi_bed(n: int, threads: int):
+
+def taichi_bed(n: int, threads: int, history: bool = False):
     import taichi as ti
 
     ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=threads, log_level=ti.WARN)
@@ -49,7 +51,12 @@ def taichi_bed(n: int, threads: int):
     start = ti.field(ti.i32, ncx * ncy + 1)
     fill = ti.field(ti.i32, ncx * ncy)
     ids = ti.field(ti.i32, n)
+    partner = ti.field(ti.i32, (n, SLOTS))  # history: the other grain of each spring, -1: free
+    spring = ti.field(ti.f64, (n, SLOTS))
+    wall_spring = ti.field(ti.f64, n)
+    partner.fill(-1)
     x.from_numpy(pos)
+    kt = KN * 2.0 / 7.0
     gn_pair = GAMMA_N * mass / 2  # LAMMPS's gamma_n times m_eff
     gn_wall = GAMMA_N * mass
     inertia = 0.5 * mass * rad * rad
@@ -69,6 +76,28 @@ def taichi_bed(n: int, threads: int):
         if ft.norm_sqr() > cap * cap:
             ft = -cap * vt / vt.norm()
         return fn * nrm + ft, ft
+
+    @ti.func
+    def contact_history(delta, nrm, vr, wr, gamma_n, sp):
+        """As fastsdf's ``_contact_history``: the stretch ``sp`` along t = (-n_y, n_x)."""
+        vn = vr.dot(nrm)
+        reach = abs(vn) * DT
+        g = gamma_n
+        if reach > 2.0 * delta:
+            g *= 0.5 + delta / reach
+        fn = KN * delta - g * vn
+        t = ti.Vector([-nrm[1], nrm[0]])
+        vts = vr.dot(t) - wr
+        sp += vts * DT
+        gt = 0.5 * g
+        ft = -(kt * sp + gt * vts)
+        cap = abs(MU * fn)
+        if abs(ft) > cap:
+            r = cap / abs(ft)
+            lag = gt * vts / kt
+            sp = r * (sp + lag) - lag
+            ft *= r
+        return fn * nrm + ft * t, ft * t, sp
 
     @ti.kernel
     def kick_drift(dt_kick: ti.f64, dt: ti.f64):
@@ -111,6 +140,7 @@ def taichi_bed(n: int, threads: int):
         for i in x:
             cx = ti.min(int(x[i][0] / cw), ncx - 1)
             cy = ti.max(ti.min(int(x[i][1] / cell), ncy - 1), 0)
+            seen = 0  # history: the slots whose pair is in contact this step (bits)
             for ox, oy in ti.static(ti.ndrange((-1, 2), (-1, 2))):
                 ky = cy + oy
                 if 0 <= ky < ncy:
@@ -125,19 +155,62 @@ def taichi_bed(n: int, threads: int):
                             if r2 < 4 * rad * rad:
                                 dist = ti.sqrt(r2)
                                 nrm = d / dist
-                                fc, ft = contact(
-                                    2 * rad - dist, nrm, p[i] - p[j], rad * (pw[i] + pw[j]), gn_pair
-                                )
+                                fc = ti.Vector([0.0, 0.0])
+                                ft = ti.Vector([0.0, 0.0])
+                                if ti.static(history):
+                                    slot = -1
+                                    free = -1
+                                    for q in range(SLOTS):
+                                        if partner[i, q] == j:
+                                            slot = q
+                                        elif partner[i, q] < 0 and free < 0:
+                                            free = q
+                                    if slot < 0:
+                                        slot = free
+                                        partner[i, slot] = j
+                                        spring[i, slot] = 0.0
+                                    seen |= 1 << slot
+                                    fc, ft, sp = contact_history(
+                                        2 * rad - dist,
+                                        nrm,
+                                        p[i] - p[j],
+                                        rad * (pw[i] + pw[j]),
+                                        gn_pair,
+                                        spring[i, slot],
+                                    )
+                                    spring[i, slot] = sp
+                                else:
+                                    fc, ft = contact(
+                                        2 * rad - dist,
+                                        nrm,
+                                        p[i] - p[j],
+                                        rad * (pw[i] + pw[j]),
+                                        gn_pair,
+                                    )
                                 cross = nrm[0] * ft[1] - nrm[1] * ft[0]
                                 f[i] += fc
                                 f[j] -= fc
                                 tq[i] -= rad * cross
                                 tq[j] -= rad * cross
+            if ti.static(history):
+                for q in range(SLOTS):  # pairs that parted forget their spring
+                    if (seen >> q) & 1 == 0:
+                        partner[i, q] = -1
             if x[i][1] < rad:  # the floor
                 nrm = ti.Vector([0.0, 1.0])
-                fc, ft = contact(rad - x[i][1], nrm, p[i], rad * pw[i], gn_wall)
+                fc = ti.Vector([0.0, 0.0])
+                ft = ti.Vector([0.0, 0.0])
+                if ti.static(history):
+                    fc, ft, sp = contact_history(
+                        rad - x[i][1], nrm, p[i], rad * pw[i], gn_wall, wall_spring[i]
+                    )
+                    wall_spring[i] = sp
+                else:
+                    fc, ft = contact(rad - x[i][1], nrm, p[i], rad * pw[i], gn_wall)
                 f[i] += fc
                 tq[i] -= rad * (nrm[0] * ft[1] - nrm[1] * ft[0])
+            elif ti.static(history):
+                wall_spring[i] = 0.0
 
     def step(k: int) -> None:
         for _ in range(k):
@@ -162,12 +235,13 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", nargs="+", type=float, default=[1e4, 1e5])
     ap.add_argument("--blocks", type=int, default=3)
+    ap.add_argument("--history", action="store_true", help="tangential springs on both sides")
     a = ap.parse_args()
     threads = numba.get_num_threads()
     load0 = os.getloadavg()[0]
     for n in (int(s) for s in a.sizes):
-        step, nt, height = taichi_bed(n, threads)
-        sim = ours(n)
+        step, nt, height = taichi_bed(n, threads, a.history)
+        sim = ours(n, a.history)
         steps = max(20, int(1e6 // n))
         step(steps)
         sim.advance(steps)
@@ -180,7 +254,8 @@ def main() -> None:
             sim.advance(steps)
             ro.append(nt * steps / (time.perf_counter() - t0))
         print(
-            f"{nt:,} discs, {threads} threads: fastsdf {np.median(ro) / 1e6:.2f} M "
+            f"{nt:,} discs, {threads} threads, {'history' if a.history else 'history-free'}: "
+            f"fastsdf {np.median(ro) / 1e6:.2f} M "
             f"({max(ro) / 1e6:.2f}), Taichi {np.median(rt) / 1e6:.2f} M ({max(rt) / 1e6:.2f}) "
             f"particle-steps/s; ratio {np.median(ro) / np.median(rt):.2f}x; mean height after "
             f"{sim.time / DT:.0f} steps: fastsdf {sim.grains.y.mean():.6f}, Taichi {height():.6f}",
