@@ -197,8 +197,11 @@ def test_tangential_force_never_exceeds_coulomb(delta, vn, vt, wr, s, mu, angle)
     gamma_t = tdamp * g_eff
     spring_force = -(kt * s_new + gamma_t * vts)
     assert ftx * tx + fty * ty == pytest.approx(spring_force, rel=1e-9, abs=1e-9)
-    if ft < abs(mu * fn) * (1 - 1e-9):  # sticking: the spring took the whole sliding
+    free = -(kt * (s + vts * dt) + gamma_t * vts)  # the force were the contact to stick
+    if abs(free) <= abs(mu * fn) * (1 - 1e-9):  # sticks: the spring took the whole sliding
         assert s_new == pytest.approx(s + vts * dt, rel=1e-12, abs=1e-15)
+    elif abs(free) > abs(mu * fn) * (1 + 1e-9):  # slides: at the cap
+        assert ft == pytest.approx(abs(mu * fn), rel=1e-9, abs=1e-12)
 
 
 def _example(name):
@@ -238,3 +241,17 @@ def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
         assert all(not (a >= 3.0) for a in angles)  # NaN: no flank at all
     finally:
         numba.set_num_threads(threads)
+
+
+@pytest.mark.parametrize(
+    "law,error,match",
+    [
+        (ContactLaw(history=True, tangential_stiffness=0.0), ValueError, "tangential_stiffness"),
+        (ContactLaw(history=True, rolling_friction=-0.1), ValueError, "rolling_friction"),
+        (ContactLaw(rolling_friction=0.1), ValueError, "history=True"),
+        (ContactLaw(history="yes"), TypeError, "contact.history"),
+    ],
+)
+def test_bad_history_parameters_are_named(law, error, match):
+    with pytest.raises(error, match=match):
+        GranularSimulation([[0.0, 0.0]], 0.5, contact=law)

@@ -53,7 +53,8 @@ class ContactLaw(NamedTuple):
         R_i R_j / (R_i + R_j)`` (``R_i`` against the world): the elastic-plastic spring of Ai,
         Chen, Rotter & Ooi (Powder Technology 206 (2011) 269, model C) in the ``epsd2`` form
         of Wensrich & Katterfeld (Powder Technology 217 (2012) 409). 0: none. Discs roll too
-        easily to hold a heap; ``mu_r`` about 0.05-0.3 stands for the shape of real grains.
+        easily to hold a heap; ``mu_r`` stands for the shape of real grains (usually
+        calibrated against a measured angle of repose).
     history : bool
         ``False``: the viscous friction above (``gran/hooke``, no memory, no static friction).
         ``True``: a tangential spring per contact (Cundall-Strack, LAMMPS
