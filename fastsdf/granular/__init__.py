@@ -7,9 +7,12 @@ tools. ``ContactLaw()`` without a stiffness derives one from the grains (see
 
 ``GranularSimulation(positions, radius, world=f, contact=ContactLaw(...))`` steps discs with
 the ``gran/hooke`` contact law (linear spring, restitution-set dashpot, Coulomb-capped viscous
-friction, rotation) by velocity Verlet, substepping each frame to resolve the contact time, with
+friction, rotation), or with ``ContactLaw(history=True)`` LAMMPS's ``gran/hooke/history`` (a
+Cundall-Strack tangential spring per contact: static friction; optional rolling resistance), by
+velocity Verlet, substepping each frame to resolve the contact time, with
 a parallel cell list and Verlet list (no atomics). The kernels live in :mod:`.kernels` and
-:mod:`.cells` and are usable on their own.
+:mod:`.cells` and are usable on their own. Which model to choose, their parameters and units:
+``docs/granular_models.md``.
 
 Distribution (not implemented): grains interact, so sharding them across machines as
 independent batches (as plain particles are) would be wrong. The way to distribute is by

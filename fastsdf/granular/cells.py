@@ -32,6 +32,7 @@ __all__ = [
     "CellGrid",
     "brute_force_pairs",
     "build_verlet",
+    "carry_springs",
     "cell_keys",
     "counting_sort",
     "list_pairs",
@@ -277,3 +278,50 @@ def brute_force_pairs(
     cut = radius[:, None] + radius[None, :] + skin
     close = np.triu(dx * dx + dy * dy < cut * cut, 1)
     return np.argwhere(close)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _find(start, nbr, row, want):
+    for k in range(start[row], start[row + 1]):
+        if (nbr[k] & INDEX_MASK) == want:
+            return k
+    return -1
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def carry_springs(
+    perm: np.ndarray,
+    old_start: np.ndarray,
+    old_nbr: np.ndarray,
+    old_memory: np.ndarray,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    memory: np.ndarray,
+) -> None:
+    """Carry the per-pair memory of an old Verlet list into a new one (the contacts' springs
+    across a rebuild): the grain now in slot ``p`` was in slot ``perm[p]`` when the old list
+    was built (the reorder by cell of the rebuild); for each new entry ``(p, q)`` the old pair
+    ``(perm[p], perm[q])`` is searched in the old row of ``perm[p]``, then (a pair inside one
+    chunk is listed at one grain only) in that of ``perm[q]``; a pair not found (new) starts
+    at 0. ``memory`` has one row per entry: column 0 is the same from either grain (the
+    tangential stretch), column 1 (when present: the rolling torque) changes sign with the
+    grain it is seen from. Rows of the list hold a few entries in a packing, so the search is
+    short; parallel over grains, each writing its own rows."""
+    n = perm.shape[0]
+    cols = memory.shape[1]
+    for p in prange(n):
+        op = perm[p]
+        for k in range(nbr_start[p], nbr_start[p + 1]):
+            oq = perm[nbr[k] & INDEX_MASK]
+            sign = 1.0
+            at = _find(old_start, old_nbr, op, oq)
+            if at < 0:
+                at = _find(old_start, old_nbr, oq, op)
+                sign = -1.0
+            if at < 0:
+                for c in range(cols):
+                    memory[k, c] = 0.0
+            else:
+                memory[k, 0] = old_memory[at, 0]
+                for c in range(1, cols):
+                    memory[k, c] = sign * old_memory[at, c]

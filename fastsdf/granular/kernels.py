@@ -10,6 +10,14 @@ tangential force opposes the sliding velocity of the contact point ``v_t = v - v
 + R_j w_j) (n_y, -n_x)`` with magnitude ``min(mu |F_n|, gamma_t |v_t|)``, and turns ``i`` by
 ``-R_i (n x f_t)``. A wall is the SDF world: ``delta = R - d``, ``n = grad d / |grad d|``, the
 wall's velocity is its normal speed along ``n``, and ``m_eff = m_i``.
+
+With history (LAMMPS ``gran/hooke/history``, :func:`pair_forces_history`,
+:func:`wall_forces_history`) each contact keeps a tangential spring (Cundall-Strack): its stretch
+``xi`` along the tangent ``t = (-n_y, n_x)`` grows by the sliding ``v_t dt`` of the contact
+point, the force is ``-(k_t xi + gamma_t v_t) t``, and where that exceeds ``mu |F_n|`` it is
+set to the cap and ``xi`` truncated to match (:func:`_contact_history`); optionally a rolling
+spring per contact resists relative rotation (:func:`_rolling_spring`, model C of Ai, Chen,
+Rotter & Ooi 2011). Which model to choose: ``docs/granular_models.md``.
 """
 
 from __future__ import annotations
@@ -37,8 +45,10 @@ __all__ = [
     "kinetic_energy",
     "pair_energy",
     "pair_forces",
+    "pair_forces_history",
     "wall_energy",
     "wall_forces",
+    "wall_forces_history",
 ]
 
 
@@ -293,6 +303,270 @@ def wall_forces(
         gfx[i] += cfx
         gfy[i] += cfy
         gtq[i] -= ri * (nx * fty - ny * ftx)
+        sx += cfx
+        sy += cfy
+    return sx, sy
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
+def _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s):
+    """:func:`_contact` with a tangential spring (Cundall-Strack, LAMMPS
+    ``gran/hooke/history``). ``s`` is the spring's stretch along the tangent ``t = (-n_y,
+    n_x)`` (a scalar: in 2D the tangent plane is a line, so carrying the spring along ``t``
+    is LAMMPS's rotation of the shear vector into the current tangent plane, magnitude kept).
+    The stretch grows by the sliding ``v_t dt`` of the contact point, ``v_t = v . t - wr``;
+    the tangential force is ``f_t = -(k_t s + gamma_t v_t) t``; where ``|f_t| > mu |F_n|``
+    the force is scaled to the cap and the spring shortened to match it, ``s = r (s + gamma_t
+    v_t / k_t) - gamma_t v_t / k_t`` with ``r = mu |F_n| / |f_t|`` (Coulomb's truncation).
+    Returns ``(fx, fy, ftx, fty, s, F_n)``. ``s`` is the same seen from either grain (both
+    ``t`` and the relative velocity change sign), so the two sides of a pair listed twice
+    carry the same spring."""
+    vn = vrx * nx + vry * ny
+    reach = abs(vn) * dt
+    if reach > 2.0 * delta:
+        gamma_n *= 0.5 + delta / reach
+    fn = kn * delta - gamma_n * vn
+    tx = -ny
+    ty = nx
+    vts = vrx * tx + vry * ty - wr
+    s += vts * dt
+    gamma_t = tdamp * gamma_n
+    ft = -(kt * s + gamma_t * vts)
+    cap = abs(mu * fn)
+    if abs(ft) > cap:
+        r = cap / abs(ft)
+        lag = gamma_t * vts / kt
+        s = r * (s + lag) - lag
+        ft *= r
+    ftx = ft * tx
+    fty = ft * ty
+    return fn * nx + ftx, fn * ny + fty, ftx, fty, s, fn
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _rolling_spring(m_old, kr, cap, w_rel, dt):
+    """Rolling resistance on the first body, an elastic-plastic spring (model C of Ai, Chen,
+    Rotter & Ooi, Powder Technology 206 (2011) 269, without its dashpot: the ``epsd2`` form
+    of Wensrich & Katterfeld, Powder Technology 217 (2012) 409): the torque ``M`` grows
+    against the relative rotation, ``M -= k_r (w_i - w_j) dt``, and is capped at
+    ``mu_r R_eff |F_n|``. Unlike a constant torque opposing the rotation (their model A),
+    it holds a grain at rest: the torque does not vanish, and flip, as the rotation stops."""
+    m = m_old - kr * w_rel * dt
+    if m > cap:
+        m = cap
+    elif m < -cap:
+        m = -cap
+    return m
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
+def pair_forces_history(
+    g: Grains,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    memory: np.ndarray,
+    chunks: int,
+    law: Any,
+    bulk: Bulk,
+    dt: float,
+) -> None:
+    """:func:`pair_forces` with the contacts' memory (``law.history``): for list entry ``k``,
+    ``memory[k, 0]`` is the tangential spring's stretch (see :func:`_contact_history`), and,
+    when ``law.rolling_friction > 0``, ``memory[k, 1]`` the rolling spring's torque on the
+    entry's grain (:func:`_rolling_spring`, ``k_r = 2.25 k_n mu_r**2 R_eff**2``). Both are
+    set to 0 where the pair is not in contact (as LAMMPS forgets a history when the grains
+    part). A pair listed at both grains (across chunks) updates both entries alike (the
+    stretch is the same number from both sides, the torque its negative)."""
+    kn = law.stiffness
+    kt = law.tangential_stiffness * kn
+    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)
+    mu = law.friction
+    mu_r = law.rolling_friction
+    tdamp = law.tangential_damping
+    roll = mu_r > 0.0
+    period = bulk.period
+    density = bulk.density
+    dt_half = 0.5 * dt
+    x = g.x
+    y = g.y
+    rad = g.radius
+    gvx = g.vx
+    gvy = g.vy
+    gw = g.omega
+    gfx = g.fx
+    gfy = g.fy
+    gtq = g.torque
+    vx = g.px
+    vy = g.py
+    w = g.pomega
+    n = x.shape[0]
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        for i in range(lo, hi):
+            ri = rad[i]
+            mi = grain_mass(ri, density)
+            a = dt_half / mi
+            gvx[i] += gfx[i] * a
+            gvy[i] += gfy[i] * a
+            gw[i] += gtq[i] * a * 2.0 / (ri * ri)
+            gfx[i] = mi * bulk.gravity_x
+            gfy[i] = mi * bulk.gravity_y
+            gtq[i] = 0.0
+        for i in range(lo, hi):
+            xi = x[i]
+            yi = y[i]
+            ri = rad[i]
+            mi = grain_mass(ri, density)
+            gamma_equal = damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
+            fx = 0.0
+            fy = 0.0
+            tq = 0.0
+            for k in range(nbr_start[i], nbr_start[i + 1]):
+                entry = nbr[k]
+                j = entry & 0x3FFFFFFF
+                image = entry >> 30
+                dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
+                dy = yi - y[j]
+                rj = rad[j]
+                rsum = ri + rj
+                d2 = dx * dx + dy * dy
+                if d2 >= rsum * rsum:
+                    memory[k, 0] = 0.0
+                    if roll:
+                        memory[k, 1] = 0.0
+                    continue
+                if d2 > 0.0:
+                    dist = math.sqrt(d2)
+                    inv = 1.0 / dist
+                    nx = dx * inv
+                    ny = dy * inv
+                else:
+                    dist = 0.0
+                    nx = 1.0 if i < j else -1.0
+                    ny = 0.0
+                if rj == ri:
+                    gamma_n = gamma_equal
+                else:
+                    mj = grain_mass(rj, density)
+                    gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
+                # the same sum from both sides of a pair: the lower index first
+                if i < j:
+                    wr = ri * w[i] + rj * w[j]
+                else:
+                    wr = rj * w[j] + ri * w[i]
+                cfx, cfy, ftx, fty, s, fn = _contact_history(
+                    rsum - dist,
+                    nx,
+                    ny,
+                    vx[i] - vx[j],
+                    vy[i] - vy[j],
+                    wr,
+                    gamma_n,
+                    kn,
+                    kt,
+                    mu,
+                    tdamp,
+                    dt,
+                    memory[k, 0],
+                )
+                memory[k, 0] = s
+                cross = nx * fty - ny * ftx
+                mr = 0.0
+                if roll:
+                    r_eff = ri * rj / rsum
+                    mr = _rolling_spring(
+                        memory[k, 1],
+                        2.25 * kn * mu_r * mu_r * r_eff * r_eff,
+                        mu_r * r_eff * abs(fn),
+                        w[i] - w[j],
+                        dt,
+                    )
+                    memory[k, 1] = mr
+                fx += cfx
+                fy += cfy
+                tq += mr - ri * cross
+                if j >= lo and j < hi:
+                    gfx[j] -= cfx
+                    gfy[j] -= cfy
+                    gtq[j] -= mr + rj * cross
+            gfx[i] += fx
+            gfy[i] += fy
+            gtq[i] += tq
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def wall_forces_history(
+    g: Grains,
+    idx: np.ndarray,
+    d: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    wall_vn: np.ndarray,
+    memory: np.ndarray,
+    law: Any,
+    bulk: Bulk,
+    dt: float,
+) -> tuple:
+    """:func:`wall_forces` with memory (``law.history``): one tangential spring per grain
+    against the world, ``memory[0, i]`` for grain ``i`` (the world is one surface: a grain
+    touches it at its nearest point, along ``grad d``), and its rolling spring
+    ``memory[1, i]`` when ``law.rolling_friction > 0`` (``R_eff = R_i``; the world does not
+    turn). Reset to 0 for a grain listed here but out of contact."""
+    kn = law.stiffness
+    kt = law.tangential_stiffness * kn
+    zeta = _zeta(law.restitution)
+    mu = law.friction
+    mu_r = law.rolling_friction
+    tdamp = law.tangential_damping
+    roll = mu_r > 0.0
+    vx = g.px
+    vy = g.py
+    w = g.pomega
+    rad = g.radius
+    gfx = g.fx
+    gfy = g.fy
+    gtq = g.torque
+    sx = 0.0
+    sy = 0.0
+    for k in prange(idx.shape[0]):
+        i = idx[k]
+        ri = rad[i]
+        delta = ri - d[k]
+        gn = math.sqrt(gx[k] * gx[k] + gy[k] * gy[k])
+        if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
+            memory[0, i] = 0.0
+            if roll:
+                memory[1, i] = 0.0
+            continue
+        nx = gx[k] / gn
+        ny = gy[k] / gn
+        mi = grain_mass(ri, bulk.density)
+        cfx, cfy, ftx, fty, s, fn = _contact_history(
+            delta,
+            nx,
+            ny,
+            vx[i] - wall_vn[k] * nx,
+            vy[i] - wall_vn[k] * ny,
+            ri * w[i],
+            2.0 * zeta * math.sqrt(mi * kn),
+            kn,
+            kt,
+            mu,
+            tdamp,
+            dt,
+            memory[0, i],
+        )
+        memory[0, i] = s
+        mr = 0.0
+        if roll:
+            mr = _rolling_spring(
+                memory[1, i], 2.25 * kn * mu_r * mu_r * ri * ri, mu_r * ri * abs(fn), w[i], dt
+            )
+            memory[1, i] = mr
+        gfx[i] += cfx
+        gfy[i] += cfy
+        gtq[i] += mr - ri * (nx * fty - ny * ftx)
         sx += cfx
         sy += cfy
     return sx, sy

@@ -29,8 +29,10 @@ DERIVED_OVERLAP = 0.01
 
 
 class ContactLaw(NamedTuple):
-    """A linear spring-dashpot contact with Coulomb-capped viscous friction (LAMMPS
-    ``gran/hooke``), passed as it is to the compiled kernels.
+    """A linear spring-dashpot contact with Coulomb friction, viscous (LAMMPS ``gran/hooke``,
+    the default) or with a tangential spring per contact (``history=True``, LAMMPS
+    ``gran/hooke/history``), and optional rolling resistance; passed as it is to the compiled
+    kernels.
 
     stiffness : float > 0, or None (the default: derived)
         Normal spring constant ``k_n`` (force / length, i.e. mass / s**2). A grain pressed by
@@ -58,12 +60,35 @@ class ContactLaw(NamedTuple):
         Tangential dashpot relative to the normal one, ``gamma_t = tangential_damping *
         gamma_n`` (force / velocity of sliding at the contact point); 0.5 is LAMMPS's default
         (``gamma_t = NULL``).
+    tangential_stiffness : float, > 0
+        With ``history``: the tangential spring ``k_t = tangential_stiffness * k_n``; 2/7 is
+        LAMMPS's default (``k_t = NULL``). Unused without history.
+    rolling_friction : float, >= 0
+        Rolling resistance ``mu_r`` (dimensionless; needs ``history``): a rolling spring per
+        contact, its torque growing against the contact's relative rotation with stiffness
+        ``k_r = 2.25 k_n mu_r**2 R_eff**2`` and capped at ``mu_r R_eff |F_n|``, ``R_eff =
+        R_i R_j / (R_i + R_j)`` (``R_i`` against the world): the elastic-plastic spring of Ai,
+        Chen, Rotter & Ooi (Powder Technology 206 (2011) 269, model C) in the ``epsd2`` form
+        of Wensrich & Katterfeld (Powder Technology 217 (2012) 409). 0: none. Discs roll too
+        easily to hold a heap; ``mu_r`` stands for the shape of real grains (usually
+        calibrated against a measured angle of repose).
+    history : bool
+        ``False``: the viscous friction above (``gran/hooke``, no memory, no static friction).
+        ``True``: a tangential spring per contact (Cundall-Strack, LAMMPS
+        ``gran/hooke/history``): the spring stretches with the sliding of the contact point,
+        turns with the contact, pulls back with ``k_t``, and slips where ``k_t |xi| >
+        mu |F_n|`` (its stretch truncated to the cap); grains then rest on slopes below
+        ``atan(mu)``. The spring is kept across neighbour-list rebuilds and the reordering of
+        grains, and against the world (one per grain).
     """
 
     stiffness: float | None = None
     restitution: float = 0.5
     friction: float = 0.5
     tangential_damping: float = 0.5
+    tangential_stiffness: float = 2.0 / 7.0
+    rolling_friction: float = 0.0
+    history: bool = False
 
 
 def derived_stiffness(density: float, gravity: float, height: float) -> float:
@@ -101,6 +126,23 @@ def check_contact_law(law: object, name: str = "contact") -> ContactLaw:
     e = _real(law.restitution, f"{name}.restitution")
     mu = _real(law.friction, f"{name}.friction")
     gt = _real(law.tangential_damping, f"{name}.tangential_damping")
+    kt = _real(law.tangential_stiffness, f"{name}.tangential_stiffness")
+    mu_r = _real(law.rolling_friction, f"{name}.rolling_friction")
+    if not isinstance(law.history, (bool, np.bool_)):
+        raise TypeError(f"{name}.history must be a bool, got {name}.history={law.history!r}")
+    if not kt > 0:
+        raise ValueError(
+            f"{name}.tangential_stiffness must be > 0, got {name}.tangential_stiffness={kt!r}"
+        )
+    if mu_r < 0:
+        raise ValueError(
+            f"{name}.rolling_friction must be >= 0, got {name}.rolling_friction={mu_r!r}"
+        )
+    if mu_r > 0 and not law.history:
+        raise ValueError(
+            f"{name}.rolling_friction needs {name}.history=True (the rolling spring is memory "
+            f"of the contact), got {name}.rolling_friction={mu_r!r} with history=False"
+        )
     if not k > 0:
         raise ValueError(f"{name}.stiffness must be > 0, got {name}.stiffness={k!r}")
     if not 0.0 <= e <= 1.0:
@@ -111,7 +153,7 @@ def check_contact_law(law: object, name: str = "contact") -> ContactLaw:
         raise ValueError(
             f"{name}.tangential_damping must be >= 0, got {name}.tangential_damping={gt!r}"
         )
-    return ContactLaw(k, e, mu, gt)
+    return ContactLaw(k, e, mu, gt, kt, mu_r, bool(law.history))
 
 
 def damping_ratio(restitution: float) -> float:

@@ -20,13 +20,18 @@ at 40 substeps and within 1% from about 100 (the dashpot's velocity is a predict
 second order; the tests use 160). The contact of a tangential force is at the grain's radius
 (as in LAMMPS), so angular momentum is kept up to a term of the order of overlap / radius.
 
-Tangential force: history-free (LAMMPS ``gran/hooke``): viscous in the sliding velocity of the
-contact point, capped by Coulomb. A tangential spring with history (``gran/hooke/history``)
-would hold two numbers per contact, kept across list rebuilds and the reordering of grains:
-about 2 x 16 bytes per listed pair (each pair is listed once, or at both grains across chunks),
-which the memory bound below leaves no room for, and it is not the model of the reference
-benchmark. Without history there is no static friction: a grain on a slope creeps (slowly,
-at the speed where the viscous force balances it), and heaps relax toward flat over time.
+Tangential force: by default history-free (LAMMPS ``gran/hooke``): viscous in the sliding
+velocity of the contact point, capped by Coulomb. Without history there is no static friction:
+a grain on a slope creeps (slowly, at the speed where the viscous force balances it), and heaps
+relax toward flat over time. ``ContactLaw(history=True)`` keeps a tangential spring per contact
+(Cundall-Strack, LAMMPS ``gran/hooke/history``; see
+:func:`fastsdf.granular.kernels.pair_forces_history`): one number per list entry (in 2D the
+tangent is a line, so the spring is its stretch along it), and one per grain against the world.
+At every rebuild the grains are reordered and the list rebuilt: the old list, its springs and
+the permutation are kept, and each new entry takes the spring of the same pair of grains from
+the old list (:func:`fastsdf.granular.cells.carry_springs`, a search over the grain's few old
+partners), so a contact never forgets its spring while it lasts. Rolling resistance
+(``rolling_friction > 0``) adds a rolling spring per entry beside it.
 
 Memory per grain (float64): the state and forces, 12 arrays, 96 bytes; the grain's index as
 given, float32 reference positions of the skin test, sort keys, permutation and one scratch
@@ -34,7 +39,10 @@ array, 32 bytes; the list's row starts, 8 bytes; the half list (4-byte entries, 
 slack), about 20 bytes in a dense packing of equal discs (3 pairs per grain); cell arrays
 (at most ``2 n + 64`` cells, counts for at most 4 chunks), about 11 bytes in a dense packing
 and at most 52. :meth:`GranularSimulation.memory_per_grain` reports the actual figure; about
-170 bytes in a dense bed.
+170 bytes in a dense bed. With history add, per list entry, 8 bytes of spring (16 with rolling
+resistance), twice over (the current list and the one before the last rebuild, whose entries,
+4 bytes each, and row starts, 8 bytes per grain, are kept too), and 8 (16) bytes per grain for
+the springs against the world.
 
 Ordering: grains are reordered by cell at every list rebuild (the cell list is a stable sort by
 cell key), so neighbours in space are neighbours in memory; :attr:`GranularSimulation.ids`
@@ -52,8 +60,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fastsdf.granular.cells import (
+    INDEX_MASK,
     CellGrid,
     build_verlet,
+    carry_springs,
     cell_keys,
     counting_sort,
     list_pairs,
@@ -67,8 +77,10 @@ from fastsdf.granular.kernels import (
     kinetic_energy,
     pair_energy,
     pair_forces,
+    pair_forces_history,
     wall_energy,
     wall_forces,
+    wall_forces_history,
 )
 from fastsdf.granular.params import (
     STANDARD_GRAVITY,
@@ -276,6 +288,17 @@ class GranularSimulation:
         self._counts = np.empty((0, 0), np.int32)
         self._cell_start = np.empty(0, np.int64)
         self.grid: CellGrid | None = None
+        # Contact memory (with history; see the module docs): springs per list entry (the
+        # tangential stretch, and the rolling torque with rolling resistance), the list before
+        # the last rebuild to carry them from, and the springs of each grain against the world.
+        self._history = self.contact.history
+        self._memory_cols = 2 if self.contact.rolling_friction > 0 else 1
+        self._spring = np.zeros((0, self._memory_cols))
+        self._old_spring = np.zeros((0, self._memory_cols))
+        self._old_start = np.zeros(n + 1 if self._history else 0, np.int64)
+        self._old_nbr: np.ndarray | None = None
+        wall_cols = 2 if self.wall_contact.rolling_friction > 0 else 1
+        self._wall_spring = np.zeros((wall_cols, n if self.wall_contact.history else 0))
         self._wall_idx = np.empty(0, np.int64)
         self._wall_d = np.empty(0)
         self.time = 0.0
@@ -403,7 +426,12 @@ class GranularSimulation:
             self._cell_start = np.empty(ncells + ncells // 4 + 1, np.int64)
         cell_keys(g.x, g.y, grid, self._keys)
         counting_sort(self._keys, ncells, self._counts, self._perm, self._cell_start)
-        permute((*g, self.ids, self._keys), self._perm, self._scratch)
+        carried = tuple(self._wall_spring) if self._wall_spring.shape[1] else ()
+        permute((*g, self.ids, self._keys, *carried), self._perm, self._scratch)
+        if self._history:  # the current list becomes the old one, the old one's memory reused
+            self._old_start, self._nbr_start = self._nbr_start, self._old_start
+            self._old_nbr, self._nbr = self._nbr, self._old_nbr
+            self._old_spring, self._spring = self._spring, self._old_spring
         self._nbr = build_verlet(
             g.x,
             g.y,
@@ -417,6 +445,21 @@ class GranularSimulation:
             self._nbr,
         )
         self.grid = grid
+        if self._history:
+            if self._spring.shape[0] < self._nbr.shape[0]:
+                self._spring = np.empty((self._nbr.shape[0], self._memory_cols))
+            if self._old_nbr is None:
+                self._spring[:] = 0.0
+            else:
+                carry_springs(
+                    self._perm,
+                    self._old_start,
+                    self._old_nbr,
+                    self._old_spring,
+                    self._nbr_start,
+                    self._nbr,
+                    self._spring,
+                )
         np.copyto(self._x_ref, g.x)
         np.copyto(self._y_ref, g.y)
         # float32 references round by up to 2**-24 of the largest coordinate, per axis
@@ -424,6 +467,10 @@ class GranularSimulation:
         if self.world is not None and not self.moving:
             d = np.asarray(self.world(g.x, g.y)).reshape(-1)
             self._wall_idx = np.flatnonzero(~(d - g.radius >= self.skin))  # NaN: keep
+            if self._wall_spring.shape[1]:  # grains far from the world forget their springs
+                listed = np.zeros(g.x.shape[0], np.bool_)
+                listed[self._wall_idx] = True
+                self._wall_spring[:, ~listed] = 0.0
         self.rebuilds += 1
         self.timings["rebuild"] += _time.perf_counter() - t0
 
@@ -448,23 +495,50 @@ class GranularSimulation:
 
     def _forces(self, wall_sum: np.ndarray, dt: float) -> None:
         t0 = _time.perf_counter()
-        pair_forces(
-            self.grains,
-            self._nbr_start,
-            self._nbr,
-            self._chunks,
-            self.contact,
-            self.bulk,
-            dt,
-            0.5 * dt,
-        )
+        if self._history:
+            pair_forces_history(
+                self.grains,
+                self._nbr_start,
+                self._nbr,
+                self._spring,
+                self._chunks,
+                self.contact,
+                self.bulk,
+                dt,
+            )
+        else:
+            pair_forces(
+                self.grains,
+                self._nbr_start,
+                self._nbr,
+                self._chunks,
+                self.contact,
+                self.bulk,
+                dt,
+                0.5 * dt,
+            )
         if self.external is not None:
             self.external(self.grains, self.density, self.time)
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
             idx, d, gx, gy, vn = self._query_world()
-            if idx.shape[0]:
+            if idx.shape[0] and self.wall_contact.history:
+                fx, fy = wall_forces_history(
+                    self.grains,
+                    idx,
+                    d,
+                    gx,
+                    gy,
+                    vn,
+                    self._wall_spring,
+                    self.wall_contact,
+                    self.bulk,
+                    dt,
+                )
+                wall_sum[0] += fx
+                wall_sum[1] += fy
+            elif idx.shape[0]:
                 fx, fy = wall_forces(
                     self.grains, idx, d, gx, gy, vn, self.wall_contact, self.bulk, dt
                 )
@@ -589,6 +663,32 @@ class GranularSimulation:
         pairs.sort(axis=1)
         return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
+    def tangential_springs(self) -> tuple:
+        """The contacts' tangential springs (``history=True``): ``(pairs, stretch)``, the
+        listed pairs ``(a, b)``, ``a < b``, in the grains' given numbering (an (m, 2) int64
+        array sorted by rows) and each one's spring stretch ``s`` (length; 0 out of contact):
+        the spring of either grain is ``s (-n_y, n_x)`` with ``n`` the unit normal pointing to
+        that grain, so the same number from both sides; and the springs against the world,
+        (n,) in the given order. Each pair once."""
+        if not self._history:
+            raise ValueError("tangential_springs needs contact=ContactLaw(..., history=True)")
+        assert self._nbr is not None
+        n = self.ids.shape[0]
+        start = self._nbr_start
+        i = np.repeat(np.arange(n), np.diff(start))
+        j = (self._nbr[: start[n]] & INDEX_MASK).astype(np.int64)
+        s = self._spring[: start[n], 0].copy()
+        a, b = self.ids[i], self.ids[j]
+        pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], 1)
+        order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+        pairs, s = pairs[order], s[order]
+        first = np.ones(len(pairs), np.bool_)
+        first[1:] = np.any(pairs[1:] != pairs[:-1], axis=1)
+        wall = np.zeros(n)
+        if self._wall_spring.shape[1]:
+            wall[self.ids] = self._wall_spring[0]
+        return pairs[first], s[first], wall
+
     def contacts_per_grain(self) -> float:
         """Mean number of grain-grain contacts (overlaps) per grain, each counted at both
         grains."""
@@ -607,7 +707,13 @@ class GranularSimulation:
             self._nbr_start,
             self._counts,
             self._cell_start,
+            self._spring,
+            self._old_spring,
+            self._old_start,
+            self._wall_spring,
         ]
+        if self._old_nbr is not None:
+            arrays.append(self._old_nbr)
         total = sum(a.nbytes for a in arrays) + (0 if self._nbr is None else self._nbr.nbytes)
         return total / self.grains.x.shape[0]
 

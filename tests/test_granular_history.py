@@ -1,0 +1,257 @@
+"""Contact history (Cundall-Strack tangential springs, LAMMPS ``gran/hooke/history``) and rolling
+resistance: static friction on an incline against Coulomb's law and the rolling disc, the
+springs carried across list rebuilds and the reorder of grains against a run that never
+rebuilds, the Coulomb cap of the kernel, and a heap that keeps its slope.
+
+Heaps of 2D discs: without rolling resistance discs roll, and a poured heap flows away (the
+figures against ``mu_r`` are in ``bench/RESULTS.md``); the angle of repose rises with rolling
+resistance as in Zhou, Wright, Yang, Xu & Yu (Physica A 269 (1999) 536, "Rolling friction in
+the dynamic simulation of sandpile formation") and Itasca's PFC2D rolling-resistance
+repose-angle verification; Ai, Chen, Rotter & Ooi (Powder Technology 206 (2011) 269) assess the
+rolling models (model C is the rolling spring here). A frictionless heap spreads flat.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import fastsdf as fs
+from fastsdf.expr.graph import Param
+from fastsdf.granular import ContactLaw, GranularSimulation
+from fastsdf.granular.kernels import _contact_history
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Scenes of a few to a few hundred grains: one thread (waking workers three times a
+    substep costs more than it saves, most of all on a loaded machine)."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    yield
+    numba.set_num_threads(threads)
+
+
+def incline(theta_deg, law, offsets):
+    """Discs of radius 0.5 resting (just touching) on a floor tilted by ``theta``, at
+    ``offsets`` = (along the slope, above it); gravity 1 straight down."""
+    th = math.radians(theta_deg)
+    t = np.array([math.cos(th), math.sin(th)])  # up the slope
+    n = np.array([-math.sin(th), math.cos(th)])
+    pos = np.array([a * t + b * n for a, b in offsets])
+    sim = GranularSimulation(
+        pos,
+        0.5,
+        # the normal as parameters: one compiled world serves every angle
+        world=fs.Halfspace((Param("nx", float(n[0])), Param("ny", float(n[1]))), 0.0),
+        contact=law,
+        gravity=(0.0, -1.0),
+        timestep=1.0,
+    )
+    return sim, t, n
+
+
+BLOCK = [(-1, 0.5), (0, 0.5), (1, 0.5), (-0.5, 0.5 + 0.75**0.5), (0.5, 0.5 + 0.75**0.5)]
+
+
+def test_block_rests_below_atan_mu_and_slides_above():
+    """Five discs stacked as a block (3 + 2), with rolling resistance so that the block cannot
+    roll: at 12 degrees (below atan 0.3 = 16.7) it comes to rest and stays there; at 20 it
+    slides, accelerating at no more than a rigid block's ``g (sin - mu cos)``."""
+    law = ContactLaw(
+        stiffness=1e4, restitution=0.5, friction=0.3, history=True, rolling_friction=0.5
+    )
+    sim, t, _ = incline(12.0, law, BLOCK)
+    sim.run(5)
+    p0 = sim.positions
+    sim.run(10)
+    assert np.abs(sim.velocities).max() < 1e-9
+    assert np.abs(sim.positions - p0).max() < 1e-8
+    sim, t, _ = incline(20.0, law, BLOCK)
+    sim.run(4)
+    v0 = sim.velocities @ t
+    sim.run(6)
+    accel = (sim.velocities @ t - v0) / 6.0
+    th = math.radians(20.0)
+    coulomb = -(math.sin(th) - 0.3 * math.cos(th))  # down the slope
+    assert np.all(accel < 0.5 * coulomb)  # slides (moving down: negative)
+    assert np.all(accel > 1.02 * coulomb)  # never faster than a frictionless-limit block
+
+
+@pytest.mark.parametrize("history", [True, False])
+def test_disc_rolls_without_slipping_below_atan_3mu(history):
+    """A disc on an incline rolls without slipping while ``tan theta <= 3 mu`` (the friction a
+    rolling disc needs is a third of ``m g sin``), at ``a = (2/3) g sin theta``, and slips
+    above. With the spring the contact point is at rest (static friction); without it the
+    contact creeps: it slips at the speed where the viscous force carries the load."""
+    law = ContactLaw(stiffness=1e4, restitution=0.5, friction=0.3, history=history)
+    sim, t, _ = incline(25.0, law, [(0.0, 0.5)])  # tan 25 = 0.47 < 0.9
+    sim.run(2)
+    v0 = float((sim.velocities @ t)[0])
+    sim.run(4)
+    v = float((sim.velocities @ t)[0])
+    slip = v + 0.5 * sim.angular_velocities[0]  # contact point's speed along the slope
+    if history:
+        assert abs(slip) < 1e-9
+        assert (v - v0) / 4.0 == pytest.approx(-(2 / 3) * math.sin(math.radians(25.0)), rel=1e-6)
+    else:
+        assert abs(slip) > 1e-4  # creeps
+    if history:
+        sim, t, n = incline(50.0, law, [(0.0, 0.5)])  # tan 50 = 1.19 > 0.9: slips
+        sim.run(3)
+        slip = float((sim.velocities @ t)[0]) + 0.5 * sim.angular_velocities[0]
+        assert slip < -0.1
+        v0 = float((sim.velocities @ t)[0])
+        sim.run(2)
+        th = math.radians(50.0)
+        assert (float((sim.velocities @ t)[0]) - v0) / 2 == pytest.approx(
+            -(math.sin(th) - 0.3 * math.cos(th)), rel=1e-6
+        )
+
+
+def settling_pile(skin, seed=3):
+    """36 discs of radii 0.4-0.6 dropped into a V-shaped trough: many sliding, sticking and
+    breaking contacts."""
+    rng = np.random.default_rng(seed)
+    i = np.arange(36)
+    pos = np.stack([(i % 6 - 2.5) * 1.3, 2.4 + (i // 6) * 1.25], 1) + rng.uniform(
+        -0.1, 0.1, (36, 2)
+    )
+    world = fs.shapes.union([fs.Halfspace((-0.5, 1.0), 0.0), fs.Halfspace((0.5, 1.0), 0.0)])
+    return GranularSimulation(
+        pos,
+        rng.uniform(0.4, 0.6, 36),
+        world=world,
+        contact=ContactLaw(
+            stiffness=1e4, restitution=0.5, friction=0.5, history=True, rolling_friction=0.2
+        ),
+        gravity=(0.0, -1.0),
+        timestep=0.25,
+        skin=skin,
+        chunks=3,
+    )
+
+
+def test_springs_survive_rebuilds_and_reorders():
+    """The same pile run twice: once with a skin so wide the list is never rebuilt (each
+    contact keeps its list entry, nothing to carry), once rebuilt (grains reordered by cell,
+    the list remade, the springs carried by pair) every 5 substeps. Every contact's spring
+    agrees (to rounding: the reordered run adds forces in another order) after many springs
+    have stretched and slipped."""
+    ref = settling_pile(skin=12.0)
+    run = settling_pile(skin=0.2)
+    steps = 10 * ref.substeps_per_frame  # 2.5 time units: the grains land and settle
+    for _ in range(steps // 5):
+        ref.advance(5)
+        run.advance(5)
+        run._rebuild()
+    assert ref.rebuilds == 1 and run.rebuilds > steps // 5
+    assert not np.array_equal(run.ids, np.arange(36))  # reordered
+    pa, sa, wa = ref.tangential_springs()
+    pb, sb, wb = run.tangential_springs()
+    touching = {tuple(p): s for p, s in zip(pa, sa) if s != 0.0}
+    other = {tuple(p): s for p, s in zip(pb, sb) if s != 0.0}
+    assert len(touching) >= 8 and touching.keys() == other.keys()
+    a = np.array([touching[k] for k in touching])
+    b = np.array([other[k] for k in touching])
+    scale = np.abs(a).max()
+    assert scale > 1e-4  # stretched springs, not zeros
+    assert np.abs(a - b).max() < 1e-6 * scale
+    assert np.abs(wa - wb).max() < 1e-6 * max(np.abs(wa).max(), 1e-12)
+    assert np.abs(wa).max() > 1e-5
+    np.testing.assert_allclose(ref.positions, run.positions, atol=1e-9)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    delta=st.floats(1e-6, 0.1),
+    vn=st.floats(-5, 5),
+    vt=st.floats(-5, 5),
+    wr=st.floats(-5, 5),
+    s=st.floats(-0.05, 0.05),
+    mu=st.floats(0.0, 1.0),
+    angle=st.floats(0, 2 * math.pi),
+)
+def test_tangential_force_never_exceeds_coulomb(delta, vn, vt, wr, s, mu, angle):
+    """``|f_t| <= mu |F_n|`` always; below the cap the force is the spring and dashpot,
+    ``-(k_t s' + gamma_t v_t)`` with ``s' = s + v_t dt``; at the cap the spring is truncated so
+    that the same formula gives the capped force (the spring stores exactly the force)."""
+    nx, ny = math.cos(angle), math.sin(angle)
+    tx, ty = -ny, nx
+    vrx = vn * nx + vt * tx
+    vry = vn * ny + vt * ty
+    kn, kt, gamma_n, tdamp, dt = 1e4, 1e4 * 2 / 7, 30.0, 0.5, 1e-3
+    fx, fy, ftx, fty, s_new, fn = _contact_history(
+        delta, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s
+    )
+    ft = math.hypot(ftx, fty)
+    assert ft <= abs(mu * fn) * (1 + 1e-12) + 1e-300
+    vts = vt - wr
+    reach = abs(vn) * dt
+    g_eff = gamma_n * (0.5 + delta / reach) if reach > 2 * delta else gamma_n  # ramped dashpot
+    assert fn == pytest.approx(kn * delta - g_eff * vn, rel=1e-9, abs=1e-9)
+    gamma_t = tdamp * g_eff
+    spring_force = -(kt * s_new + gamma_t * vts)
+    assert ftx * tx + fty * ty == pytest.approx(spring_force, rel=1e-9, abs=1e-9)
+    free = -(kt * (s + vts * dt) + gamma_t * vts)  # the force were the contact to stick
+    if abs(free) <= abs(mu * fn) * (1 - 1e-9):  # sticks: the spring took the whole sliding
+        assert s_new == pytest.approx(s + vts * dt, rel=1e-12, abs=1e-15)
+    elif abs(free) > abs(mu * fn) * (1 + 1e-9):  # slides: at the cap
+        assert ft == pytest.approx(abs(mu * fn), rel=1e-9, abs=1e-12)
+
+
+def _example(name):
+    import importlib.util
+    import os
+
+    path = os.path.join(os.path.dirname(__file__), "..", "examples", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"_example_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
+    """250 discs poured through a hopper (``examples/heap.py``) onto a floor. With sliding
+    friction 0.5 and rolling resistance 0.3 the heap's flanks stand at 12-30 degrees on average
+    (a loose bracket around the 20-30 degrees of sand, which a frictionless heap fails) and
+    keep their slope over a further 20 time units; frictionless discs spread flat (below 3
+    degrees)."""
+    import numba
+
+    heap = _example("heap")
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # a small scene: one thread is fastest
+    try:
+        law = ContactLaw(
+            stiffness=2e3, restitution=0.3, friction=0.5, history=True, rolling_friction=0.3
+        )
+        sim = heap.pour(250, law)
+        left, right, _ = heap.repose_angle(sim.positions, sim.radius)
+        assert 12.0 < (left + right) / 2 < 30.0 and min(left, right) > 8.0
+        sim.run(20)
+        left2, right2, _ = heap.repose_angle(sim.positions, sim.radius)
+        assert abs(left2 - left) < 0.5 and abs(right2 - right) < 0.5
+        flat = heap.pour(250, law._replace(friction=0.0, rolling_friction=0.0), time_limit=40)
+        angles = heap.repose_angle(flat.positions, flat.radius)[:2]
+        assert all(not (a >= 3.0) for a in angles)  # NaN: no flank at all
+    finally:
+        numba.set_num_threads(threads)
+
+
+@pytest.mark.parametrize(
+    "law,error,match",
+    [
+        (ContactLaw(history=True, tangential_stiffness=0.0), ValueError, "tangential_stiffness"),
+        (ContactLaw(history=True, rolling_friction=-0.1), ValueError, "rolling_friction"),
+        (ContactLaw(rolling_friction=0.1), ValueError, "history=True"),
+        (ContactLaw(history="yes"), TypeError, "contact.history"),
+    ],
+)
+def test_bad_history_parameters_are_named(law, error, match):
+    with pytest.raises(error, match=match):
+        GranularSimulation([[0.0, 0.0]], 0.5, contact=law)
