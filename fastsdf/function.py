@@ -16,6 +16,7 @@ import numbers
 import sys
 import threading
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from types import ModuleType
 from typing import Any, Literal, overload
 
@@ -29,6 +30,7 @@ from fastsdf.backends.kernel.drive import max_threads, scratch
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
 from fastsdf.expr.graph import Expr, as_expr, expr_to_str, gc_paused, parameters, substitute_params
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
+from fastsdf.notice import compiling
 
 __all__ = [
     "Function",
@@ -42,7 +44,8 @@ __all__ = [
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
 #: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:mod:`fastsdf.backends.npeval`: no
 #: numba at all, the kernel's results to rounding), or ``'auto'`` (the default): the tape while
-#: the kernel compiles in a background thread, then the kernel.
+#: the kernel compiles in a background thread, then the kernel (the kernel at once where the
+#: interpreter is not compiled yet).
 BACKENDS = ("kernel", "tape", "numpy", "auto")
 
 #: The cost model of :meth:`CompiledSDF.first_path`, NumPy against the tape before the kernel is
@@ -58,6 +61,9 @@ TAPE_PER_NODE_POINT_S = 1.0e-9
 #: warm installation takes about 1.3 to 1.8 s: the tape evaluates every node at every point
 #: (never pruned), so a union of thousands of shapes on many points is faster compiled.
 AUTO_TAPE_MAX_S = 1.0
+
+#: A first kernel call that takes longer than this (seconds: compiling) says so once on stderr.
+COMPILE_NOTICE_AFTER_S = 1.0
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 #: Automatic pruning: inputs of at least this many points, scenes with at least this many
@@ -91,6 +97,7 @@ class CompiledSDF:
         self._numpy: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
+        self._called: set = set()  # the kernels called at least once (see _first_call)
         # Per Python thread: the scratch buffer handed to the scene-independent kernels (calls
         # may come from several threads at once, and each parallel region indexes the buffer
         # by its own thread ids, so two calls must never share one).
@@ -321,6 +328,15 @@ class CompiledSDF:
             buf = self._scratch.buf = scratch(need)
         return {"S": buf}
 
+    def _first_call(self, name: str) -> AbstractContextManager:
+        """Around a call of kernel ``name``: the first time, a notice on stderr if it takes
+        longer than :data:`COMPILE_NOTICE_AFTER_S` (it compiles, or loads from the disk
+        cache); nothing later, nor in the background compilation (nobody waits for it)."""
+        if name in self._called or threading.current_thread().name == "fastsdf-compile":
+            return nullcontext()
+        self._called.add(name)
+        return compiling("the kernel of a new scene", after=COMPILE_NOTICE_AFTER_S)
+
     def run(
         self,
         xs: np.ndarray,
@@ -338,21 +354,24 @@ class CompiledSDF:
         arrays = (out,) if grad is None else (out, grad)
         if plan is not None:
             order, starts = bin_points(xs, ys, plan)
-            getattr(self.module, f"tiles_{kind}_par")(
-                xs,
-                ys,
-                *arrays,
-                order,
-                starts,
-                plan.act,
-                plan.offs,
-                64 * numba.get_num_threads(),
-                **self.scratch(kind, True),
-            )
+            tiles = getattr(self.module, f"tiles_{kind}_par")
+            with self._first_call(f"tiles_{kind}"):
+                tiles(
+                    xs,
+                    ys,
+                    *arrays,
+                    order,
+                    starts,
+                    plan.act,
+                    plan.offs,
+                    64 * numba.get_num_threads(),
+                    **self.scratch(kind, True),
+                )
             return
         parallel = n >= PARALLEL_MIN_POINTS
         extra = (64 * numba.get_num_threads(),) if parallel else ()
-        self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
+        with self._first_call(f"{kind}_{parallel}"):
+            self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
 
     def evaluate(
         self,
@@ -389,7 +408,8 @@ class CompiledSDF:
             if kind == "vgt":
                 arrays.append(np.empty(n))
             if n:
-                self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
+                with self._first_call(f"{kind}_{parallel}"):
+                    self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
             if kind == "v":
                 return out.reshape(shape)
             res = (out.reshape(shape), arrays[1].reshape(shape + (2,)))
@@ -444,7 +464,11 @@ class Function:
     by the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
     installation; the first numba call of a process pays numba's one-time setup), while the
     scene's kernel compiles in a background thread started after that first answer; once it
-    is ready (``f.compiled.kernel_ready``) calls run the kernel. A call the tape would take
+    is ready (``f.compiled.kernel_ready``) calls run the kernel. Where the interpreter is not
+    compiled yet (a fresh installation: it takes several times longer to compile than a small
+    scene's kernel), the first call compiles the scene's kernel instead, saying so on stderr
+    if that takes more than a second, and the interpreter compiles for later in a low-priority
+    process of its own (:func:`fastsdf.backends.vm.warm_in_background`). A call the tape would take
     longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes on
     many points; the tape evaluates every node at every point) waits for the kernel instead.
     The tape computes the kernel's bits, so a call returns the same bits whichever of the two
@@ -674,6 +698,10 @@ class Function:
             # the other kinds (value only, value and gradient) compile meanwhile; until then
             # calls may still take the tape (the same bits)
             self.compiled.compile_in_background()
+            if not _interpreter_ready():
+                from fastsdf.backends.vm import warm_in_background
+
+                warm_in_background()  # for the first calls of later scenes and processes
         return res
 
     def _path_for(self, backend: str, x: Any, prune: bool | None = None) -> str | None:
@@ -683,6 +711,11 @@ class Function:
             return "numpy"
         if backend == "auto":
             if c.kernel_ready or prune or self.prune_tol is not None:
+                return None
+            if not _interpreter_ready():
+                # Compiling the interpreter takes longer than compiling the scene's kernel:
+                # the kernel answers, and the interpreter compiles for later in a process of
+                # its own (see Function.__call__).
                 return None
             per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + (
                 0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S
@@ -736,6 +769,14 @@ def _dag_size(root: Expr, limit: int) -> int:
             seen.add(id(node))
             stack.extend(node.args)
     return len(seen)
+
+
+def _interpreter_ready() -> bool:
+    """Whether the tape interpreter answers without compiling first (compiled in this process,
+    or in numba's disk cache): see :func:`fastsdf.backends.vm.interpreter_ready`."""
+    from fastsdf.backends.vm import interpreter_ready
+
+    return interpreter_ready()
 
 
 def _numba_warm() -> bool:
