@@ -13,7 +13,6 @@ from __future__ import annotations
 import copy
 import math
 import numbers
-import sys
 import threading
 from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
@@ -28,7 +27,15 @@ from fastsdf.backends.kernel.cache import load_module
 from fastsdf.backends.kernel.codegen import generate_module, scene_parameters
 from fastsdf.backends.kernel.drive import max_threads, scratch
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
-from fastsdf.expr.graph import Expr, as_expr, expr_to_str, gc_paused, parameters, substitute_params
+from fastsdf.expr.graph import (
+    Expr,
+    as_expr,
+    evaluate_numpy,
+    expr_to_str,
+    gc_paused,
+    parameters,
+    substitute_params,
+)
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 from fastsdf.notice import compiling
 
@@ -42,18 +49,14 @@ __all__ = [
 ]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:mod:`fastsdf.backends.npeval`: no
-#: numba at all, the kernel's results to rounding), or ``'auto'`` (the default): the tape while
-#: the kernel compiles in a background thread, then the kernel (the kernel at once where the
-#: interpreter is not compiled yet).
+#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:meth:`CompiledSDF.numpy`: the op
+#: table's reference formulas, no numba at all, the kernel's results to rounding), or ``'auto'``
+#: (the default): the tape while the kernel compiles in a background thread, then the kernel
+#: (the kernel at once where the interpreter is not compiled yet).
 BACKENDS = ("kernel", "tape", "numpy", "auto")
 
-#: The cost model of :meth:`CompiledSDF.first_path`, NumPy against the tape before the kernel is
-#: ready (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's
-#: one-time setup in a process
-#: (the first call of any compiled function, the tape interpreter included), building a tape per
-#: node, and running it per instruction and point (2 threads).
-NUMBA_SETUP_S = 0.4
+#: The cost model of the tape (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD
+#: EPYC): building a tape per node, and running it per instruction and point (2 threads).
 TAPE_BUILD_PER_NODE_S = 8e-6
 TAPE_PER_NODE_POINT_S = 1.0e-9
 #: ``backend='auto'`` answers through the tape where that is estimated (by the figures above) to
@@ -94,7 +97,6 @@ class CompiledSDF:
         self._plans: dict = {}
         self._tape: Any = None
         self._tape_error: str | None = None
-        self._numpy: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
         self._called: set = set()  # the kernels called at least once (see _first_call)
@@ -177,35 +179,27 @@ class CompiledSDF:
                 raise
         return self._tape
 
-    @property
-    def numpy_scene(self) -> Any:
-        """The :class:`fastsdf.backends.npeval.NumpyScene` of the expression (built on first
-        use)."""
-        if self._numpy is None:
-            from fastsdf.backends.npeval import compile_numpy
-
-            with gc_paused():
-                self._numpy = compile_numpy(self.expr, self.symbol_names)
-        return self._numpy
-
-    def first_path(self, n: int) -> str:
-        """``'numpy'`` or ``'tape'``: the cheaper way to answer ``n`` points before the kernel
-        is ready, by the cost model (:data:`NUMBA_SETUP_S` and the figures beside it, and
-        :meth:`fastsdf.backends.npeval.NumpyScene.cost`). The tape is never chosen while numba's
-        setup is still to be paid and a background compilation holds numba's compiler lock (loading
-        the interpreter would wait for the whole compilation)."""
-        scene = self.numpy_scene
-        t_numpy = scene.cost(n)
-        warm = _numba_warm()
-        if not warm and self._warm is not None and not self._warm.is_set():
-            return "numpy"
-        size = scene.size
-        t_tape = (
-            (0.0 if warm else NUMBA_SETUP_S)
-            + TAPE_PER_NODE_POINT_S * size * n
-            + (0.0 if self._tape is not None else TAPE_BUILD_PER_NODE_S * size)
-        )
-        return "numpy" if t_numpy <= t_tape else "tape"
+    def numpy(
+        self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False, params: dict | None = None
+    ) -> Any:
+        """Evaluate with NumPy alone (no numba): the op table's reference formulas
+        (:func:`fastsdf.expr.graph.evaluate_numpy`), one array operation per node; the kernel's
+        results to rounding (values 1e-12 relative, gradients 1e-9). ``params``: values of
+        runtime parameters by name (the others take their defaults)."""
+        xs, ys, shape = as_points(x, y)
+        ok = np.isfinite(xs) & np.isfinite(ys)
+        names = self.symbol_names
+        with gc_paused():
+            res = evaluate_numpy(
+                self.expr, {names[0]: xs[ok], names[1]: ys[ok]}, compute_gradient, params
+            )
+        out = np.full(xs.shape, np.nan)
+        out[ok] = res[0] if compute_gradient else res
+        if not compute_gradient:
+            return out.reshape(shape)
+        grad = np.full((xs.shape[0], 2), np.nan)
+        grad[ok, 0], grad[ok, 1] = res[1]
+        return out.reshape(shape), grad.reshape(shape + (2,))
 
     @property
     def kernel_ready(self) -> bool:
@@ -391,7 +385,6 @@ class CompiledSDF:
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
-        _KERNEL_RAN[0] = True
         if self.param_names is not None:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
@@ -468,17 +461,17 @@ class Function:
     compiled yet (a fresh installation: it takes several times longer to compile than a small
     scene's kernel), the first call compiles the scene's kernel instead, saying so on stderr
     if that takes more than a second, and the interpreter compiles for later in a low-priority
-    process of its own (:func:`fastsdf.backends.vm.warm_in_background`). A call the tape would take
-    longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes on
-    many points; the tape evaluates every node at every point) waits for the kernel instead.
+    process of its own (:func:`fastsdf.backends.vm.warm_in_background`). A call the tape would
+    take longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes
+    on many points; the tape evaluates every node at every point) waits for the kernel instead.
     The tape computes the kernel's bits, so a call returns the same bits whichever of the two
     answers it.
     ``backend='kernel'`` waits for the compiled kernel, ``backend='tape'`` always runs the tape,
-    ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no numba at
-    all, hard unions of many shapes pruned per tile; the kernel's results to rounding, values
-    1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy have no time
-    derivative: such calls use the kernel, as do calls on expressions the tape does not
-    evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
+    ``backend='numpy'`` evaluates with NumPy alone (:meth:`CompiledSDF.numpy`: the op table's
+    reference formulas, one array operation per node, no numba at all; the kernel's results to
+    rounding, values 1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy
+    have no time derivative: such calls use the kernel, as do calls on expressions the tape
+    does not evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
     :attr:`prune_tol` (pruned exponential blends are the kernel's own approximation). Calls
     made while the kernel compiles share the cores with the compilation.
 
@@ -675,7 +668,7 @@ class Function:
             path = self._path_for(backend, x, prune)
             if path is not None:
                 c = self.compiled
-                ev = c.tape if path == "tape" else c.numpy_scene
+                ev = c.tape if path == "tape" else c.numpy
                 res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
                 if backend == "auto" and c._warm is None:
                     # Started after the answer: the compiling thread would take a core from it,
@@ -777,17 +770,3 @@ def _interpreter_ready() -> bool:
     from fastsdf.backends.vm import interpreter_ready
 
     return interpreter_ready()
-
-
-def _numba_warm() -> bool:
-    """Whether this process has paid numba's one-time setup already (the tape interpreter is
-    loaded, or a scene's kernel ran)."""
-    if _KERNEL_RAN[0]:
-        return True
-    # not imported: not loaded (importing costs 10 ms)
-    tape = sys.modules.get("fastsdf.backends.vm")
-    return tape is not None and bool(tape._eval_par.overloads)
-
-
-#: Set once any compiled kernel has run in this process.
-_KERNEL_RAN = [False]

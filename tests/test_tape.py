@@ -391,7 +391,7 @@ def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bit
     p = _points(3000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, a=0.7)
     c = f.compiled
-    assert c._tape is not None and c._numpy is None and c._warm is not None
+    assert c._tape is not None and c._warm is not None
     v0 = f(*p.T)
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
     assert f._path_for("auto", p[:, 0]) is None  # the kernel answers from now on
