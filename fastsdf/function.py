@@ -30,6 +30,7 @@ from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
 from fastsdf.expr.graph import (
     Expr,
     as_expr,
+    dag_size,
     evaluate_numpy,
     expr_to_str,
     gc_paused,
@@ -714,7 +715,7 @@ class Function:
                 0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S
             )
             budget = int(AUTO_TAPE_MAX_S / per_node)
-            size = len(c._tape) if c._tape is not None else _dag_size(c.expr, budget)
+            size = len(c._tape) if c._tape is not None else dag_size(c.expr, budget)
             if size > budget:
                 return None
             try:
@@ -750,18 +751,6 @@ class Function:
 
     def __repr__(self) -> str:
         return f"Function({expr_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
-
-
-def _dag_size(root: Expr, limit: int) -> int:
-    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
-    seen: set[int] = set()
-    stack = [root]
-    while stack and len(seen) <= limit:
-        node = stack.pop()
-        if id(node) not in seen:
-            seen.add(id(node))
-            stack.extend(node.args)
-    return len(seen)
 
 
 def _interpreter_ready() -> bool:

@@ -54,7 +54,7 @@ from fastsdf.backends.kernel.simd import (
     vectorizable,
     vmath_import,
 )
-from fastsdf.expr.graph import Expr, gc_paused, parameters
+from fastsdf.expr.graph import Expr, dag_size, gc_paused, parameters
 from fastsdf.expr.ops import OPS, lit
 from fastsdf.version import __version__
 
@@ -285,18 +285,6 @@ def _foldable(root: Expr, memo: dict | None = None) -> bool:
             )
         memo[node] = ok
     return memo[root]
-
-
-def _dag_size(root: Expr, limit: int) -> int:
-    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
-    seen: set[int] = set()
-    stack = [root]
-    while stack and len(seen) <= limit:
-        node = stack.pop()
-        if id(node) not in seen:
-            seen.add(id(node))
-            stack.extend(node.args)
-    return len(seen)
 
 
 def _flatten_chain(node: Expr) -> list:
@@ -572,7 +560,7 @@ class _Emitter:
                 not singles
                 or node.op in _CHAIN_OPS
                 or node.op == "neg"
-                or _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
+                or dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
             )
 
         # The candidates depend on the expression alone: found once per module (the value and
@@ -1182,7 +1170,7 @@ def _function_source(
         and not time
         and vmath
         and COMBINE_PROGRAMS
-        and _dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2
+        and dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2
     ):
         # A large static scene: try the combine program first; it needs no straight-line code
         # (which is most of the code generation time of a large scene).
