@@ -147,17 +147,6 @@ NOROWS = np.zeros(1, dtype=np.int64)
 NOGRAD = np.empty((0, 2))
 
 
-@njit(nogil=True, error_model="numpy", inline="always")
-def _run_block(pre, fn, xs, ys, out, grad, gs, S, at, s, n, act, off):
-    """``pre`` then ``fn`` on the block of points from ``s`` (of ``n``), in the scratch space
-    from ``S[at]``; the block's gradient starts at ``grad[gs * s]`` (``gs``: 2 for x y pairs,
-    or 1 where ``grad`` is ``out`` and value-only blocks never read it)."""
-    m = min(s + BLOCK, n) - s
-    xp, yp, op, gp, sp = _at(xs, s), _at(ys, s), _at(out, s), _at(grad, gs * s), _at(S, at)
-    _call(pre, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0))
-    _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0))
-
-
 @njit(cache=True, parallel=True, error_model="numpy")
 def run_vg_par(
     pre: int,
@@ -185,7 +174,30 @@ def run_vg_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_block(pre, fn, xs, ys, out, grad, 2, S, at, b * BLOCK, n, act, off)
+            s = b * BLOCK
+            m = min(s + BLOCK, n) - s
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(grad, 2 * s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
+            _call(
+                fn,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(grad, 2 * s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -205,7 +217,29 @@ def run_vg_ser(
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
-        _run_block(pre, fn, xs, ys, out, grad, 2, S, 0, s, n, act, off)
+        m = min(s + BLOCK, n) - s
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(grad, 2 * s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
+        _call(
+            fn,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(grad, 2 * s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -230,7 +264,30 @@ def run_v_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_block(pre, fn, xs, ys, out, out, 1, S, at, b * BLOCK, n, act, off)
+            s = b * BLOCK
+            m = min(s + BLOCK, n) - s
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(out, s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
+            _call(
+                fn,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(out, s),
+                m,
+                _at(S, at),
+                _at(act, 0),
+                _at(off, 0),
+            )
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -249,7 +306,29 @@ def run_v_ser(
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
-        _run_block(pre, fn, xs, ys, out, out, 1, S, 0, s, n, act, off)
+        m = min(s + BLOCK, n) - s
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(out, s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
+        _call(
+            fn,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(out, s),
+            m,
+            _at(S, 0),
+            _at(act, 0),
+            _at(off, 0),
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -762,17 +841,6 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
             grad[2 * (start + i) + 1] = _sel(ok, S[ay + i], math.nan)
 
 
-@njit(nogil=True, error_model="numpy", inline="always")
-def _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, at, s, n, z, with_grad):
-    """Per block: ``pre`` (the scene's loops over tables, filling the scratch rows), the combine
-    program ``prog``, the outputs (``gs`` and ``grad`` as in :func:`_run_block`)."""
-    m = min(s + BLOCK, n) - s
-    gp = _at(grad, gs * s)
-    _call(pre, _at(xs, s), _at(ys, s), _at(out, s), gp, m, _at(S, at), _at(z, 0), _at(z, 0))
-    _combine(S, at, prog, with_grad, _lanes(m))
-    _outputs(S, at, prog, xs, ys, out, grad, s, m, with_grad)
-
-
 @njit(cache=True, parallel=True, error_model="numpy")
 def run_prog_vg_par(
     pre: int,
@@ -796,7 +864,21 @@ def run_prog_vg_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_prog_block(pre, prog, xs, ys, out, grad, 2, S, at, b * BLOCK, n, z, True)
+            s = b * BLOCK
+            m = min(s + BLOCK, n) - s
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(grad, 2 * s),
+                m,
+                _at(S, at),
+                _at(z, 0),
+                _at(z, 0),
+            )
+            _combine(S, at, prog, True, _lanes(m))
+            _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -813,9 +895,22 @@ def run_prog_vg_ser(
     """:func:`run_prog_vg_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
-    z = np.zeros(1, dtype=np.int64)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
-        _run_prog_block(pre, prog, xs, ys, out, grad, 2, S, 0, s, n, z, True)
+        m = min(s + BLOCK, n) - s
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(grad, 2 * s),
+            m,
+            _at(S, 0),
+            _at(z, 0),
+            _at(z, 0),
+        )
+        _combine(S, 0, prog, True, _lanes(m))
+        _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -835,11 +930,25 @@ def run_prog_v_par(
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
     _check_scratch(S, threads * size)
-    z = np.zeros(1, dtype=np.int64)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_prog_block(pre, prog, xs, ys, out, out, 1, S, at, b * BLOCK, n, z, False)
+            s = b * BLOCK
+            m = min(s + BLOCK, n) - s
+            _call(
+                pre,
+                _at(xs, s),
+                _at(ys, s),
+                _at(out, s),
+                _at(out, s),
+                m,
+                _at(S, at),
+                _at(z, 0),
+                _at(z, 0),
+            )
+            _combine(S, at, prog, False, _lanes(m))
+            _outputs(S, at, prog, xs, ys, out, out, s, m, False)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -855,9 +964,22 @@ def run_prog_v_ser(
     """:func:`run_prog_v_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
-    z = np.zeros(1, dtype=np.int64)
+    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
     for s in range(0, n, BLOCK):
-        _run_prog_block(pre, prog, xs, ys, out, out, 1, S, 0, s, n, z, False)
+        m = min(s + BLOCK, n) - s
+        _call(
+            pre,
+            _at(xs, s),
+            _at(ys, s),
+            _at(out, s),
+            _at(out, s),
+            m,
+            _at(S, 0),
+            _at(z, 0),
+            _at(z, 0),
+        )
+        _combine(S, 0, prog, False, _lanes(m))
+        _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
 
 
 def _guard():
