@@ -9,7 +9,7 @@ programs included, compiled once before), fresh random constants per process. Se
 points (value + gradient) through:
 
 * ``tape``: the scene-independent tape interpreter (``fastsdf.backends.vm``);
-* ``numpy``: the NumPy fast evaluator (``fastsdf.backends.npeval``);
+* ``numpy``: the NumPy path (the op table's reference formulas, no numba);
 * ``kernel``: the scene's compiled kernel, cold (for scenes of more than a few hundred nodes its
   block code is a fold function plus a combine program run by the interpreter of
   ``fastsdf.backends.kernel.drive``: the column says which);

@@ -71,7 +71,7 @@ def _per_point(quick: bool) -> str:
         rows.append(
             [
                 name,
-                f"{len(tape)} / {f.compiled.numpy_scene.nodes}",
+                f"{len(tape)} / {tape.nodes}",
                 fmt_rate(1 / k),
                 fmt_rate(1 / t),
                 fmt_rate(1 / u),
@@ -122,11 +122,10 @@ if BACKEND == "setup":  # one point through the tape: numba's one-time setup, an
 ONLY_FIRST = BACKEND == "autofirst"  # the first answer only (a repeat of it)
 if ONLY_FIRST:
     BACKEND = "auto"
-if BACKEND == "auto":
-    path = f.compiled.first_path(p.shape[1])
-    out["path"] = path
 d, g = f(p[0], p[1], compute_gradient=True, backend=BACKEND)
 out["first_s"] = time.perf_counter() - t0
+if BACKEND == "auto":  # the tape where the interpreter is compiled, else the kernel
+    path = out["path"] = "tape" if f.compiled._tape is not None else "kernel"
 if ONLY_FIRST:
     print(json.dumps(out))
     sys.exit(0)
@@ -262,10 +261,9 @@ def run(quick: bool = False) -> str:
             "construction are from that one). *First answer*: from the built scene to "
             "the answer of "
             "1e5 random points in "
-            "[-2, 2]^2, value + gradient. `backend='auto'` answers with the cheaper of NumPy "
-            "(`fastsdf.backends.npeval`, no numba: hard unions of many shapes pruned per tile) and "
-            "the tape "
-            "(which first pays numba's one-time setup in the process), then compiles the kernel in "
+            "[-2, 2]^2, value + gradient. `backend='auto'` answers with the tape "
+            "(which first pays numba's one-time setup in the process) where the interpreter is "
+            "compiled, else with the kernel, then compiles the kernel in "
             "a background thread; *total* = import + construction + first answer.",
             "",
             first,

@@ -13,9 +13,9 @@ from __future__ import annotations
 import copy
 import math
 import numbers
-import sys
 import threading
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from types import ModuleType
 from typing import Any, Literal, overload
 
@@ -27,8 +27,18 @@ from fastsdf.backends.kernel.cache import load_module
 from fastsdf.backends.kernel.codegen import generate_module, scene_parameters
 from fastsdf.backends.kernel.drive import max_threads, scratch
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
-from fastsdf.expr.graph import Expr, as_expr, expr_to_str, gc_paused, parameters, substitute_params
+from fastsdf.expr.graph import (
+    Expr,
+    as_expr,
+    dag_size,
+    evaluate_numpy,
+    expr_to_str,
+    gc_paused,
+    parameters,
+    substitute_params,
+)
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
+from fastsdf.notice import compiling
 
 __all__ = [
     "Function",
@@ -40,17 +50,14 @@ __all__ = [
 ]
 
 #: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:mod:`fastsdf.backends.npeval`: no
-#: numba at all, the kernel's results to rounding), or ``'auto'`` (the default): the tape while
-#: the kernel compiles in a background thread, then the kernel.
+#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:meth:`CompiledSDF.numpy`: the op
+#: table's reference formulas, no numba at all, the kernel's results to rounding), or ``'auto'``
+#: (the default): the tape while the kernel compiles in a background thread, then the kernel
+#: (the kernel at once where the interpreter is not compiled yet).
 BACKENDS = ("kernel", "tape", "numpy", "auto")
 
-#: The cost model of :meth:`CompiledSDF.first_path`, NumPy against the tape before the kernel is
-#: ready (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD EPYC): numba's
-#: one-time setup in a process
-#: (the first call of any compiled function, the tape interpreter included), building a tape per
-#: node, and running it per instruction and point (2 threads).
-NUMBA_SETUP_S = 0.4
+#: The cost model of the tape (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD
+#: EPYC): building a tape per node, and running it per instruction and point (2 threads).
 TAPE_BUILD_PER_NODE_S = 8e-6
 TAPE_PER_NODE_POINT_S = 1.0e-9
 #: ``backend='auto'`` answers through the tape where that is estimated (by the figures above) to
@@ -58,6 +65,9 @@ TAPE_PER_NODE_POINT_S = 1.0e-9
 #: warm installation takes about 1.3 to 1.8 s: the tape evaluates every node at every point
 #: (never pruned), so a union of thousands of shapes on many points is faster compiled.
 AUTO_TAPE_MAX_S = 1.0
+
+#: A first kernel call that takes longer than this (seconds: compiling) says so once on stderr.
+COMPILE_NOTICE_AFTER_S = 1.0
 
 #: Inputs with fewer points run serially: thread start-up costs more than it saves.
 #: Automatic pruning: inputs of at least this many points, scenes with at least this many
@@ -88,9 +98,9 @@ class CompiledSDF:
         self._plans: dict = {}
         self._tape: Any = None
         self._tape_error: str | None = None
-        self._numpy: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
+        self._called: set = set()  # the kernels called at least once (see _first_call)
         # Per Python thread: the scratch buffer handed to the scene-independent kernels (calls
         # may come from several threads at once, and each parallel region indexes the buffer
         # by its own thread ids, so two calls must never share one).
@@ -170,35 +180,27 @@ class CompiledSDF:
                 raise
         return self._tape
 
-    @property
-    def numpy_scene(self) -> Any:
-        """The :class:`fastsdf.backends.npeval.NumpyScene` of the expression (built on first
-        use)."""
-        if self._numpy is None:
-            from fastsdf.backends.npeval import compile_numpy
-
-            with gc_paused():
-                self._numpy = compile_numpy(self.expr, self.symbol_names)
-        return self._numpy
-
-    def first_path(self, n: int) -> str:
-        """``'numpy'`` or ``'tape'``: the cheaper way to answer ``n`` points before the kernel
-        is ready, by the cost model (:data:`NUMBA_SETUP_S` and the figures beside it, and
-        :meth:`fastsdf.backends.npeval.NumpyScene.cost`). The tape is never chosen while numba's
-        setup is still to be paid and a background compilation holds numba's compiler lock (loading
-        the interpreter would wait for the whole compilation)."""
-        scene = self.numpy_scene
-        t_numpy = scene.cost(n)
-        warm = _numba_warm()
-        if not warm and self._warm is not None and not self._warm.is_set():
-            return "numpy"
-        size = scene.size
-        t_tape = (
-            (0.0 if warm else NUMBA_SETUP_S)
-            + TAPE_PER_NODE_POINT_S * size * n
-            + (0.0 if self._tape is not None else TAPE_BUILD_PER_NODE_S * size)
-        )
-        return "numpy" if t_numpy <= t_tape else "tape"
+    def numpy(
+        self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False, params: dict | None = None
+    ) -> Any:
+        """Evaluate with NumPy alone (no numba): the op table's reference formulas
+        (:func:`fastsdf.expr.graph.evaluate_numpy`), one array operation per node; the kernel's
+        results to rounding (values 1e-12 relative, gradients 1e-9). ``params``: values of
+        runtime parameters by name (the others take their defaults)."""
+        xs, ys, shape = as_points(x, y)
+        ok = np.isfinite(xs) & np.isfinite(ys)
+        names = self.symbol_names
+        with gc_paused():
+            res = evaluate_numpy(
+                self.expr, {names[0]: xs[ok], names[1]: ys[ok]}, compute_gradient, params
+            )
+        out = np.full(xs.shape, np.nan)
+        out[ok] = res[0] if compute_gradient else res
+        if not compute_gradient:
+            return out.reshape(shape)
+        grad = np.full((xs.shape[0], 2), np.nan)
+        grad[ok, 0], grad[ok, 1] = res[1]
+        return out.reshape(shape), grad.reshape(shape + (2,))
 
     @property
     def kernel_ready(self) -> bool:
@@ -321,6 +323,15 @@ class CompiledSDF:
             buf = self._scratch.buf = scratch(need)
         return {"S": buf}
 
+    def _first_call(self, name: str) -> AbstractContextManager:
+        """Around a call of kernel ``name``: the first time, a notice on stderr if it takes
+        longer than :data:`COMPILE_NOTICE_AFTER_S` (it compiles, or loads from the disk
+        cache); nothing later, nor in the background compilation (nobody waits for it)."""
+        if name in self._called or threading.current_thread().name == "fastsdf-compile":
+            return nullcontext()
+        self._called.add(name)
+        return compiling("the kernel of a new scene", after=COMPILE_NOTICE_AFTER_S)
+
     def run(
         self,
         xs: np.ndarray,
@@ -338,21 +349,24 @@ class CompiledSDF:
         arrays = (out,) if grad is None else (out, grad)
         if plan is not None:
             order, starts = bin_points(xs, ys, plan)
-            getattr(self.module, f"tiles_{kind}_par")(
-                xs,
-                ys,
-                *arrays,
-                order,
-                starts,
-                plan.act,
-                plan.offs,
-                64 * numba.get_num_threads(),
-                **self.scratch(kind, True),
-            )
+            tiles = getattr(self.module, f"tiles_{kind}_par")
+            with self._first_call(f"tiles_{kind}"):
+                tiles(
+                    xs,
+                    ys,
+                    *arrays,
+                    order,
+                    starts,
+                    plan.act,
+                    plan.offs,
+                    64 * numba.get_num_threads(),
+                    **self.scratch(kind, True),
+                )
             return
         parallel = n >= PARALLEL_MIN_POINTS
         extra = (64 * numba.get_num_threads(),) if parallel else ()
-        self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
+        with self._first_call(f"{kind}_{parallel}"):
+            self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
 
     def evaluate(
         self,
@@ -372,7 +386,6 @@ class CompiledSDF:
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
-        _KERNEL_RAN[0] = True
         if self.param_names is not None:
             prm = tuple(float(v) for v in (params or ()))
             if len(prm) != len(self.param_names):
@@ -389,7 +402,8 @@ class CompiledSDF:
             if kind == "vgt":
                 arrays.append(np.empty(n))
             if n:
-                self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
+                with self._first_call(f"{kind}_{parallel}"):
+                    self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
             if kind == "v":
                 return out.reshape(shape)
             res = (out.reshape(shape), arrays[1].reshape(shape + (2,)))
@@ -444,17 +458,21 @@ class Function:
     by the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
     installation; the first numba call of a process pays numba's one-time setup), while the
     scene's kernel compiles in a background thread started after that first answer; once it
-    is ready (``f.compiled.kernel_ready``) calls run the kernel. A call the tape would take
-    longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes on
-    many points; the tape evaluates every node at every point) waits for the kernel instead.
+    is ready (``f.compiled.kernel_ready``) calls run the kernel. Where the interpreter is not
+    compiled yet (a fresh installation: it takes several times longer to compile than a small
+    scene's kernel), the first call compiles the scene's kernel instead, saying so on stderr
+    if that takes more than a second, and the interpreter compiles for later in a low-priority
+    process of its own (:func:`fastsdf.backends.vm.warm_in_background`). A call the tape would
+    take longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes
+    on many points; the tape evaluates every node at every point) waits for the kernel instead.
     The tape computes the kernel's bits, so a call returns the same bits whichever of the two
     answers it.
     ``backend='kernel'`` waits for the compiled kernel, ``backend='tape'`` always runs the tape,
-    ``backend='numpy'`` evaluates with NumPy alone (:mod:`fastsdf.backends.npeval`: no numba at
-    all, hard unions of many shapes pruned per tile; the kernel's results to rounding, values
-    1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy have no time
-    derivative: such calls use the kernel, as do calls on expressions the tape does not
-    evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
+    ``backend='numpy'`` evaluates with NumPy alone (:meth:`CompiledSDF.numpy`: the op table's
+    reference formulas, one array operation per node, no numba at all; the kernel's results to
+    rounding, values 1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy
+    have no time derivative: such calls use the kernel, as do calls on expressions the tape
+    does not evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
     :attr:`prune_tol` (pruned exponential blends are the kernel's own approximation). Calls
     made while the kernel compiles share the cores with the compilation.
 
@@ -651,7 +669,7 @@ class Function:
             path = self._path_for(backend, x, prune)
             if path is not None:
                 c = self.compiled
-                ev = c.tape if path == "tape" else c.numpy_scene
+                ev = c.tape if path == "tape" else c.numpy
                 res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
                 if backend == "auto" and c._warm is None:
                     # Started after the answer: the compiling thread would take a core from it,
@@ -674,6 +692,10 @@ class Function:
             # the other kinds (value only, value and gradient) compile meanwhile; until then
             # calls may still take the tape (the same bits)
             self.compiled.compile_in_background()
+            if not _interpreter_ready():
+                from fastsdf.backends.vm import warm_in_background
+
+                warm_in_background()  # for the first calls of later scenes and processes
         return res
 
     def _path_for(self, backend: str, x: Any, prune: bool | None = None) -> str | None:
@@ -684,11 +706,16 @@ class Function:
         if backend == "auto":
             if c.kernel_ready or prune or self.prune_tol is not None:
                 return None
+            if not _interpreter_ready():
+                # Compiling the interpreter takes longer than compiling the scene's kernel:
+                # the kernel answers, and the interpreter compiles for later in a process of
+                # its own (see Function.__call__).
+                return None
             per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + (
                 0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S
             )
             budget = int(AUTO_TAPE_MAX_S / per_node)
-            size = len(c._tape) if c._tape is not None else _dag_size(c.expr, budget)
+            size = len(c._tape) if c._tape is not None else dag_size(c.expr, budget)
             if size > budget:
                 return None
             try:
@@ -726,27 +753,9 @@ class Function:
         return f"Function({expr_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
 
 
-def _dag_size(root: Expr, limit: int) -> int:
-    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
-    seen: set[int] = set()
-    stack = [root]
-    while stack and len(seen) <= limit:
-        node = stack.pop()
-        if id(node) not in seen:
-            seen.add(id(node))
-            stack.extend(node.args)
-    return len(seen)
+def _interpreter_ready() -> bool:
+    """Whether the tape interpreter answers without compiling first (compiled in this process,
+    or in numba's disk cache): see :func:`fastsdf.backends.vm.interpreter_ready`."""
+    from fastsdf.backends.vm import interpreter_ready
 
-
-def _numba_warm() -> bool:
-    """Whether this process has paid numba's one-time setup already (the tape interpreter is
-    loaded, or a scene's kernel ran)."""
-    if _KERNEL_RAN[0]:
-        return True
-    # not imported: not loaded (importing costs 10 ms)
-    tape = sys.modules.get("fastsdf.backends.vm")
-    return tape is not None and bool(tape._eval_par.overloads)
-
-
-#: Set once any compiled kernel has run in this process.
-_KERNEL_RAN = [False]
+    return interpreter_ready()

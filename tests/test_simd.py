@@ -154,5 +154,5 @@ def test_batch_kernels_are_compiled_once_for_all_scenes():
             np.testing.assert_array_equal(d[:40], ref[:, 0])
             np.testing.assert_array_equal(g[:40], ref[:, 1:])
             np.testing.assert_array_equal(f(*p.T), d)
-    for kernel in (_drive.run_vg_par, _drive.run_vg_ser, _drive.run_v_par, _drive.run_v_ser):
+    for kernel in (_drive.run_par, _drive.run_ser):
         assert len(kernel.signatures) == 1, kernel.signatures

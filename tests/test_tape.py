@@ -4,7 +4,11 @@ primitive kind, smooth and polynomial blends, transforms, parameters and non-fin
 NumPy path agrees to rounding (values 1e-12 relative, gradients 1e-9); and the ``backend``
 switch of Function (``'auto'`` answers through the tape, then the kernel)."""
 
+import json
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -21,7 +25,7 @@ from test_codegen import (
 import fastsdf as sdf
 import fastsdf.expr.graph  # sdf.graph
 import fastsdf.graph as cg
-from fastsdf.backends.vm import BLOCK, compile_tape
+from fastsdf.backends.vm import BLOCK, compile_tape, warm
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy
 from fastsdf.shapes.scenes import box_world, seed_world
 
@@ -345,6 +349,8 @@ def test_instructions_are_deduplicated_and_registers_reused():
 def test_backend_switch_and_errors(monkeypatch):
     from fastsdf import function
 
+    warm()  # the default call answers through the interpreter once it is compiled
+
     f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
     p = _points(300, 3)
     with pytest.raises(ValueError, match="backend"):
@@ -371,6 +377,7 @@ def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bit
     """The default call on a new scene answers through the tape and starts the kernel's
     compilation in a background thread; once it is done, calls run the kernel and return the
     same bits (value-only and value + gradient, with parameters, non-finite points too)."""
+    warm()  # the default call answers through the interpreter once it is compiled
     rng = np.random.default_rng(12)
     a = Param("a", 0.3)
     f = sdf.Halfspace([0, 1], -1.8)
@@ -384,7 +391,7 @@ def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bit
     p = _points(3000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, a=0.7)
     c = f.compiled
-    assert c._tape is not None and c._numpy is None and c._warm is not None
+    assert c._tape is not None and c._warm is not None
     v0 = f(*p.T)
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
     assert f._path_for("auto", p[:, 0]) is None  # the kernel answers from now on
@@ -399,6 +406,7 @@ def test_auto_backend_answers_then_switches_to_the_kernel():
     """``backend='auto'`` named on a call, with the kernel as the class default: the first call
     answers through the tape and starts the compilation in a background thread; once it is
     done, calls run the kernel (the same bits)."""
+    warm()
     rng = np.random.default_rng(11)
     f = sdf.Halfspace([0, 1], -1.8)
     for _ in range(7):  # a scene of its own (not in the kernel cache of an earlier test)
@@ -417,3 +425,90 @@ def test_auto_backend_answers_then_switches_to_the_kernel():
     assert_same_bits(g1, g0)
     assert_same_bits(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
     assert math.isnan(d1[0]) and math.isnan(d0[0])
+
+
+_FIRST_CONTACT = r"""
+import json, numpy as np
+import fastsdf as sdf
+from fastsdf import function
+from fastsdf.backends import vm
+
+function.COMPILE_NOTICE_AFTER_S = 0.0  # the notice whatever the machine's speed
+out = {"ready_before": vm.interpreter_ready()}
+f = sdf.Circle([0.1, 0.2], 0.7) | sdf.Box([0.2, -0.5], [0.8, -0.1])
+x, y = np.random.default_rng(0).uniform(-2, 2, (2, 500))
+d, g = f(x, y, compute_gradient=True)
+out["tape_built"] = f.compiled._tape is not None
+out["interpreter_compiled"] = bool(vm._eval_par.overloads)
+assert f.compiled._warm.wait(300) and f.compiled.warm_error is None
+dk, gk = f(x, y, compute_gradient=True, backend="kernel")
+out["kernel_bits"] = d.tobytes() == dk.tobytes() and g.tobytes() == gk.tobytes()
+circle = np.hypot(x - 0.1, y - 0.2) - 0.7
+qx, qy = np.abs(x - 0.5) - 0.3, np.abs(y + 0.3) - 0.2
+box = np.hypot(np.maximum(qx, 0), np.maximum(qy, 0)) + np.minimum(np.maximum(qx, qy), 0)
+out["err"] = float(np.max(np.abs(d - np.minimum(circle, box))))
+print(json.dumps(out))
+"""
+
+
+def test_first_call_on_a_fresh_installation_compiles_the_kernel_and_says_so(tmp_path):
+    """A fresh installation (empty kernel cache, empty numba cache): the default call of a new
+    scene does not wait for the interpreter (which takes several times longer to compile than
+    the scene's kernel); the kernel answers, with its own bits, and the wait is said once on
+    stderr."""
+    env = dict(
+        os.environ,
+        FASTSDF_CACHE_DIR=str(tmp_path / "kernels"),
+        NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+        FASTSDF_BACKGROUND_COMPILE="0",
+    )
+    env.pop("FASTSDF_QUIET", None)
+    res = subprocess.run(
+        [sys.executable, "-c", _FIRST_CONTACT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out.pop("err") < 1e-12
+    assert out == {
+        "ready_before": False,
+        "tape_built": False,
+        "interpreter_compiled": False,
+        "kernel_bits": True,
+    }
+    assert res.stderr.count("fastsdf: compiling the kernel of a new scene") == 1, res.stderr
+
+
+def test_interpreter_is_compiled_for_later_in_a_process_of_its_own(tmp_path, monkeypatch):
+    """Where the interpreter is not compiled yet, one low-priority process per installation
+    compiles it into numba's disk cache (a claim file keeps a second process from starting the
+    same job); ``FASTSDF_BACKGROUND_COMPILE=0`` turns that off. Once the interpreter is in the
+    disk cache a fresh process sees it there without compiling."""
+    from fastsdf.backends import vm
+
+    warm()
+    code = (
+        "import fastsdf.backends.vm as v\nprint(v.interpreter_ready(), len(v._eval_par.overloads))"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.stdout.split() == ["True", "0"], res.stderr  # found on disk, not compiled
+    started = []
+    monkeypatch.setattr(vm.subprocess, "Popen", lambda cmd, **kw: started.append((cmd, kw)))
+    monkeypatch.setattr(vm, "interpreter_ready", lambda: False)
+    monkeypatch.setenv("FASTSDF_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("FASTSDF_BACKGROUND_COMPILE", "0")
+    monkeypatch.setattr(vm, "_warm_started", [False])
+    assert not vm.warm_in_background() and not started
+    monkeypatch.delenv("FASTSDF_BACKGROUND_COMPILE")
+    monkeypatch.setattr(vm, "_warm_started", [False])
+    assert vm.warm_in_background() and len(started) == 1
+    cmd, kw = started[0]
+    claim = tmp_path / "interpreter-compiling.claim"
+    assert claim.exists() and cmd[-1] == str(claim) and "warm()" in cmd[2]
+    assert kw["env"]["FASTSDF_BACKGROUND_COMPILE"] == "0"  # the child starts no child
+    assert not vm.warm_in_background()  # once per process
+    monkeypatch.setattr(vm, "_warm_started", [False])
+    assert not vm.warm_in_background() and len(started) == 1  # claimed by the first

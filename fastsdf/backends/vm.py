@@ -36,6 +36,10 @@ before and after the kernel takes over.
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -48,8 +52,9 @@ from fastsdf.backends.kernel import prims as _P
 from fastsdf.backends.kernel.intrinsics import select as _sel
 from fastsdf.backends.kernel.vmath import vexp, vlength, vlength_grad, vlog
 from fastsdf.expr.graph import Expr
+from fastsdf.notice import compiling
 
-__all__ = ["Tape", "compile_tape", "BLOCK"]
+__all__ = ["Tape", "compile_tape", "BLOCK", "interpreter_ready", "warm", "warm_in_background"]
 
 #: Points per block: the register file (``BLOCK`` floats per live value, three rows with the
 #: gradient) stays in the L1/L2 cache.
@@ -190,20 +195,12 @@ class Tape:
         gout = grad if g else np.empty((0, 2))
         blocks = (n + BLOCK - 1) // BLOCK
         chunks = min(blocks, 8 * numba.get_num_threads()) if n >= 4096 else 1
-        _eval_par(
-            self.code,
-            self.consts,
-            self.table,
-            self.nreg,
-            self.root,
-            xs,
-            ys,
-            prm,
-            out,
-            gout,
-            g,
-            chunks,
-        )
+        args = (self.code, self.consts, self.table, self.nreg, self.root, xs, ys, prm)
+        if _eval_par.overloads:
+            _eval_par(*args, out, gout, g, chunks)
+            return
+        with compiling("the tape interpreter"):
+            _eval_par(*args, out, gout, g, chunks)
 
     def __call__(
         self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False, params: dict | None = None
@@ -1000,11 +997,79 @@ def _eval_par(code, consts, table, nreg, root, xs, ys, prm, out, gout, grad, chu
 
 
 def _guard():
-    import sys
-
     from fastsdf.backends.kernel.cache import guard_module
 
     guard_module(sys.modules[__name__])
 
 
 _guard()
+
+
+def interpreter_ready() -> bool:
+    """Whether the interpreter runs without compiling first: compiled in this process, or found
+    in numba's disk cache for this source and this machine (one small index file is read)."""
+    if _eval_par.overloads:
+        return True
+    try:
+        import llvmlite.binding as ll
+
+        index = _eval_par._cache._cache_file._load_index()
+        host = (ll.get_process_triple(), numba.config.CPU_NAME or ll.get_host_cpu_name())
+        return any(tuple(key[1][:2]) == host for key in index)
+    except Exception:  # an unreadable or foreign cache: not ready
+        return False
+
+
+def warm() -> None:
+    """Compile the interpreter (or load it from numba's disk cache): one small tape, run."""
+    from fastsdf.expr.graph import Symbol, sym_length
+
+    tape = compile_tape(sym_length(Symbol("x"), Symbol("y")) - 1.0, ["x", "y"])
+    tape(np.zeros(1), np.zeros(1), compute_gradient=True)
+
+
+#: Seconds after which another process's claim to compile the interpreter is taken as stale.
+_WARM_CLAIM_S = 900.0
+_warm_started = [False]
+
+
+def warm_in_background() -> bool:
+    """Compile the interpreter into numba's disk cache in a separate low-priority process, so
+    that later processes answer a new scene's first calls through it; this process is not
+    slowed (no compiler lock, no GIL shared). Once per process, and not while another process
+    claims the job (a file in the kernel cache directory). ``FASTSDF_BACKGROUND_COMPILE=0``
+    turns it off. Returns whether a process was started."""
+    if _warm_started[0] or os.environ.get("FASTSDF_BACKGROUND_COMPILE", "1").strip() == "0":
+        return False
+    _warm_started[0] = True
+    if interpreter_ready():
+        return False
+    from fastsdf.backends.kernel.cache import cache_dir
+
+    claim = cache_dir() / "interpreter-compiling.claim"
+    try:
+        claim.parent.mkdir(parents=True, exist_ok=True)
+        if claim.exists() and time.time() - claim.stat().st_mtime < _WARM_CLAIM_S:
+            return False
+        claim.write_text(str(os.getpid()))
+        package_root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        env = dict(os.environ, FASTSDF_QUIET="1", FASTSDF_BACKGROUND_COMPILE="0")
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
+        script = (
+            "import os, sys\n"
+            "try:\n    os.nice(19)\nexcept (AttributeError, OSError):\n    pass\n"
+            "try:\n    from fastsdf.backends.vm import warm\n    warm()\n"
+            "finally:\n    try:\n        os.unlink(sys.argv[1])\n    except OSError:\n"
+            "        pass\n"
+        )
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(claim)],
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    except OSError:  # no cache directory, no process: the interpreter compiles when first used
+        return False
+    return True

@@ -64,6 +64,7 @@ __all__ = [
     "sym_prim",
     "substitute",
     "evaluate_numpy",
+    "dag_size",
     "topological_order",
     "Param",
     "t",
@@ -976,6 +977,18 @@ def _near_root(root: Expr, depth: int) -> list:
 
 # ---------------------------------------------------------------------------------------------
 # Reference evaluation with NumPy (the seed's approach: one array operation per node).
+
+
+def dag_size(root: Expr, limit: int) -> int:
+    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
+    seen: set[int] = set()
+    stack = [root]
+    while stack and len(seen) <= limit:
+        node = stack.pop()
+        if id(node) not in seen:
+            seen.add(id(node))
+            stack.extend(node.args)
+    return len(seen)
 
 
 def evaluate_numpy(

@@ -54,7 +54,7 @@ from fastsdf.backends.kernel.simd import (
     vectorizable,
     vmath_import,
 )
-from fastsdf.expr.graph import Expr, gc_paused, parameters
+from fastsdf.expr.graph import Expr, dag_size, gc_paused, parameters
 from fastsdf.expr.ops import OPS, lit
 from fastsdf.version import __version__
 
@@ -174,69 +174,48 @@ def _template(root: Expr) -> tuple[tuple, list, list]:
     counted separately, so equal constants do not change the shape) or ``('n', i)`` for the
     value of step i. Two roots with equal signatures evaluate by the same code.
     """
-    # Templates are of small subexpressions (a primitive): a recursive walk is the fastest;
-    # a deep one falls back to the iterative walk (the same order).
-    local: dict[Expr, int] = {}
-    steps: list[tuple] = []
-    sig: list[tuple] = []
-    consts: list[float] = []
-
-    def visit(node):
-        args = node.args
-        for a in args:
-            if a.op != "const" and a not in local:
-                visit(a)
-        refs = []
-        for a in args:
-            if a.op == "const":
-                refs.append(("c", len(consts)))
-                consts.append(a.attr)
-            else:
-                refs.append(("n", local[a]))
-        refs = tuple(refs)
-        local[node] = len(steps)
-        steps.append((node, refs))
-        sig.append((node.op, node.attr if node.op != "const" else None, refs))
-
-    try:
-        visit(root)
-    except RecursionError:
-        return _template_iterative(root)
-    return tuple(sig), steps, consts
-
-
-def _template_iterative(root: Expr) -> tuple[tuple, list, list]:
-    """:func:`_template` without recursion (for deep subexpressions)."""
     # (nodes hash by identity: dicts keyed by node, not by id(), save a call per lookup)
     local: dict[Expr, int] = {}
     steps: list[tuple] = []
     sig: list[tuple] = []
     consts: list[float] = []
-    stack = [(root, False)]
-    pop, push = stack.pop, stack.append
-    while stack:
-        node, expanded = pop()
-        if expanded:
+
+    def record(node: Expr) -> None:
+        arg_refs = []
+        for a in node.args:
+            if a.op == "const":
+                arg_refs.append(("c", len(consts)))
+                consts.append(a.attr)
+            else:
+                arg_refs.append(("n", local[a]))
+        refs = tuple(arg_refs)
+        local[node] = len(steps)
+        steps.append((node, refs))
+        sig.append((node.op, node.attr if node.op != "const" else None, refs))
+
+    def visit(node: Expr) -> None:
+        for a in node.args:
+            if a.op != "const" and a not in local:
+                visit(a)
+        record(node)
+
+    # Templates are of small subexpressions (a primitive): a recursive walk is the fastest;
+    # a deep one falls back to an iterative walk in the same order.
+    try:
+        visit(root)
+    except RecursionError:
+        for kept in (local, steps, sig, consts):
+            kept.clear()
+        stack = [(root, False)]
+        while stack:
+            node, expanded = stack.pop()
             if node in local:
                 continue
-            arg_refs = []
-            for a in node.args:
-                if a.op == "const":
-                    arg_refs.append(("c", len(consts)))
-                    consts.append(a.attr)
-                else:
-                    arg_refs.append(("n", local[a]))
-            refs = tuple(arg_refs)
-            local[node] = len(steps)
-            steps.append((node, refs))
-            sig.append((node.op, node.attr if node.op != "const" else None, refs))
-            continue
-        if node in local:
-            continue
-        push((node, True))
-        for a in reversed(node.args):
-            if a.op != "const" and a not in local:
-                push((a, False))
+            if expanded:
+                record(node)
+                continue
+            stack.append((node, True))
+            stack.extend((a, False) for a in reversed(node.args) if a.op != "const")
     return tuple(sig), steps, consts
 
 
@@ -285,18 +264,6 @@ def _foldable(root: Expr, memo: dict | None = None) -> bool:
             )
         memo[node] = ok
     return memo[root]
-
-
-def _dag_size(root: Expr, limit: int) -> int:
-    """Distinct nodes under ``root``, counted up to ``limit + 1``."""
-    seen: set[int] = set()
-    stack = [root]
-    while stack and len(seen) <= limit:
-        node = stack.pop()
-        if id(node) not in seen:
-            seen.add(id(node))
-            stack.extend(node.args)
-    return len(seen)
 
 
 def _flatten_chain(node: Expr) -> list:
@@ -572,7 +539,7 @@ class _Emitter:
                 not singles
                 or node.op in _CHAIN_OPS
                 or node.op == "neg"
-                or _dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
+                or dag_size(node, MAX_TEMPLATE_NODES) > MAX_TEMPLATE_NODES
             )
 
         # The candidates depend on the expression alone: found once per module (the value and
@@ -1182,7 +1149,7 @@ def _function_source(
         and not time
         and vmath
         and COMBINE_PROGRAMS
-        and _dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2
+        and dag_size(root, FOLD_MIN_LINES // 2) > FOLD_MIN_LINES // 2
     ):
         # A large static scene: try the combine program first; it needs no straight-line code
         # (which is most of the code generation time of a large scene).

@@ -35,17 +35,13 @@ __all__ = [
     "NOFOLD",
     "PROG_COLS",
     "max_threads",
-    "run_v_par",
-    "run_v_ser",
-    "run_vg_par",
-    "run_vg_ser",
+    "run_par",
+    "run_ser",
     "NOGRAD",
     "NOROWS",
     "tiles_par",
-    "run_prog_v_par",
-    "run_prog_v_ser",
-    "run_prog_vg_par",
-    "run_prog_vg_ser",
+    "run_prog_par",
+    "run_prog_ser",
     "combine_point_v",
     "combine_point_vg",
     "scratch",
@@ -147,14 +143,26 @@ NOROWS = np.zeros(1, dtype=np.int64)
 NOGRAD = np.empty((0, 2))
 
 
+@njit(nogil=True, error_model="numpy", inline="always")
+def _run_block(pre, fn, xs, ys, out, grad, gs, S, at, s, n, act, off):
+    """``pre`` then ``fn`` on the block of points from ``s`` (of ``n``), in the scratch space
+    from ``S[at]``; the block's gradient starts at ``grad[gs * s]`` (``gs``: 2 for x y pairs,
+    or 1 where ``grad`` is ``out`` and value-only blocks never read it)."""
+    m = min(s + BLOCK, n) - s
+    xp, yp, op, gp, sp = _at(xs, s), _at(ys, s), _at(out, s), _at(grad, gs * s), _at(S, at)
+    _call(pre, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0))
+    _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0))
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_vg_par(
+def run_par(
     pre: int,
     fn: int,
     xs: np.ndarray,
     ys: np.ndarray,
     out: np.ndarray,
     grad: np.ndarray,
+    gs: int,
     S: np.ndarray,
     size: int,
     chunks: int,
@@ -162,11 +170,12 @@ def run_vg_par(
     act: np.ndarray,
     off: np.ndarray,
 ) -> None:
-    """Value and gradient (``grad`` flat, x y pairs) at all points: ``pre`` then ``fn`` on each
-    block, blocks in parallel chunks, each thread with ``size`` floats of the scratch space
-    ``S`` (at least ``threads * size`` floats, ``threads``: :func:`max_threads`; see
-    :func:`scratch`); ``act``, ``off``: the row lists of every block (all rows: the scene's
-    ``_ACTG``, ``_OFFG``)."""
+    """All points: ``pre`` then ``fn`` on each block, blocks in parallel chunks, each thread
+    with ``size`` floats of the scratch space ``S`` (at least ``threads * size`` floats,
+    ``threads``: :func:`max_threads`; see :func:`scratch`); ``act``, ``off``: the row lists of
+    every block (all rows: the scene's ``_ACTG``, ``_OFFG``). Value and gradient: ``grad``
+    flat (x y pairs) and ``gs`` = 2; the value alone: ``grad`` is ``out`` and ``gs`` = 1 (the
+    block functions do not use it)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
@@ -174,161 +183,28 @@ def run_vg_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            s = b * BLOCK
-            m = min(s + BLOCK, n) - s
-            _call(
-                pre,
-                _at(xs, s),
-                _at(ys, s),
-                _at(out, s),
-                _at(grad, 2 * s),
-                m,
-                _at(S, at),
-                _at(act, 0),
-                _at(off, 0),
-            )
-            _call(
-                fn,
-                _at(xs, s),
-                _at(ys, s),
-                _at(out, s),
-                _at(grad, 2 * s),
-                m,
-                _at(S, at),
-                _at(act, 0),
-                _at(off, 0),
-            )
+            _run_block(pre, fn, xs, ys, out, grad, gs, S, at, b * BLOCK, n, act, off)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_vg_ser(
+def run_ser(
     pre: int,
     fn: int,
     xs: np.ndarray,
     ys: np.ndarray,
     out: np.ndarray,
     grad: np.ndarray,
+    gs: int,
     S: np.ndarray,
     size: int,
     act: np.ndarray,
     off: np.ndarray,
 ) -> None:
-    """:func:`run_vg_par` in this thread (``S``: at least ``size`` floats)."""
+    """:func:`run_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
-        m = min(s + BLOCK, n) - s
-        _call(
-            pre,
-            _at(xs, s),
-            _at(ys, s),
-            _at(out, s),
-            _at(grad, 2 * s),
-            m,
-            _at(S, 0),
-            _at(act, 0),
-            _at(off, 0),
-        )
-        _call(
-            fn,
-            _at(xs, s),
-            _at(ys, s),
-            _at(out, s),
-            _at(grad, 2 * s),
-            m,
-            _at(S, 0),
-            _at(act, 0),
-            _at(off, 0),
-        )
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def run_v_par(
-    pre: int,
-    fn: int,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    out: np.ndarray,
-    S: np.ndarray,
-    size: int,
-    chunks: int,
-    threads: int,
-    act: np.ndarray,
-    off: np.ndarray,
-) -> None:
-    """Value at all points (the block functions' ``grad`` pointer is not used)."""
-    n = xs.shape[0]
-    blocks = (n + BLOCK - 1) // BLOCK
-    chunks = max(1, min(blocks, chunks))
-    _check_scratch(S, threads * size)
-    for c in prange(chunks):
-        at = get_thread_id() * size
-        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            s = b * BLOCK
-            m = min(s + BLOCK, n) - s
-            _call(
-                pre,
-                _at(xs, s),
-                _at(ys, s),
-                _at(out, s),
-                _at(out, s),
-                m,
-                _at(S, at),
-                _at(act, 0),
-                _at(off, 0),
-            )
-            _call(
-                fn,
-                _at(xs, s),
-                _at(ys, s),
-                _at(out, s),
-                _at(out, s),
-                m,
-                _at(S, at),
-                _at(act, 0),
-                _at(off, 0),
-            )
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def run_v_ser(
-    pre: int,
-    fn: int,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    out: np.ndarray,
-    S: np.ndarray,
-    size: int,
-    act: np.ndarray,
-    off: np.ndarray,
-) -> None:
-    """:func:`run_v_par` in this thread."""
-    n = xs.shape[0]
-    _check_scratch(S, size)
-    for s in range(0, n, BLOCK):
-        m = min(s + BLOCK, n) - s
-        _call(
-            pre,
-            _at(xs, s),
-            _at(ys, s),
-            _at(out, s),
-            _at(out, s),
-            m,
-            _at(S, 0),
-            _at(act, 0),
-            _at(off, 0),
-        )
-        _call(
-            fn,
-            _at(xs, s),
-            _at(ys, s),
-            _at(out, s),
-            _at(out, s),
-            m,
-            _at(S, 0),
-            _at(act, 0),
-            _at(off, 0),
-        )
+        _run_block(pre, fn, xs, ys, out, grad, gs, S, 0, s, n, act, off)
 
 
 @njit(cache=True, nogil=True)
@@ -423,7 +299,7 @@ def tiles_par(
     offs: np.ndarray,
     rows: int,
 ) -> None:
-    """:func:`run_vg_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
+    """:func:`run_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
     ``rows``: the total number of rows of all loops). The points of a block are gathered into
@@ -841,21 +717,34 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
             grad[2 * (start + i) + 1] = _sel(ok, S[ay + i], math.nan)
 
 
+@njit(nogil=True, error_model="numpy", inline="always")
+def _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, at, s, n, z, with_grad):
+    """Per block: ``pre`` (the scene's loops over tables, filling the scratch rows), the combine
+    program ``prog``, the outputs (``gs`` and ``grad`` as in :func:`_run_block`)."""
+    m = min(s + BLOCK, n) - s
+    gp = _at(grad, gs * s)
+    _call(pre, _at(xs, s), _at(ys, s), _at(out, s), gp, m, _at(S, at), _at(z, 0), _at(z, 0))
+    _combine(S, at, prog, with_grad, _lanes(m))
+    _outputs(S, at, prog, xs, ys, out, grad, s, m, with_grad)
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_vg_par(
+def run_prog_par(
     pre: int,
     prog: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
     out: np.ndarray,
     grad: np.ndarray,
+    gs: int,
     S: np.ndarray,
     size: int,
     chunks: int,
     threads: int,
 ) -> None:
-    """Value and gradient at all points: per block, ``pre`` (the scene's loops over tables,
-    filling the scratch rows) then the combine program ``prog``; blocks in parallel chunks."""
+    """All points: per block, ``pre`` (the scene's loops over tables, filling the scratch
+    rows) then the combine program ``prog``; blocks in parallel chunks (``grad`` and ``gs`` as
+    in :func:`run_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
@@ -864,122 +753,27 @@ def run_prog_vg_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            s = b * BLOCK
-            m = min(s + BLOCK, n) - s
-            _call(
-                pre,
-                _at(xs, s),
-                _at(ys, s),
-                _at(out, s),
-                _at(grad, 2 * s),
-                m,
-                _at(S, at),
-                _at(z, 0),
-                _at(z, 0),
-            )
-            _combine(S, at, prog, True, _lanes(m))
-            _outputs(S, at, prog, xs, ys, out, grad, s, m, True)
+            _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, at, b * BLOCK, n, z, gs == 2)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_vg_ser(
+def run_prog_ser(
     pre: int,
     prog: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
     out: np.ndarray,
     grad: np.ndarray,
+    gs: int,
     S: np.ndarray,
     size: int,
 ) -> None:
-    """:func:`run_prog_vg_par` in this thread."""
+    """:func:`run_prog_par` in this thread."""
     n = xs.shape[0]
     _check_scratch(S, size)
-    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
+    z = np.zeros(1, dtype=np.int64)
     for s in range(0, n, BLOCK):
-        m = min(s + BLOCK, n) - s
-        _call(
-            pre,
-            _at(xs, s),
-            _at(ys, s),
-            _at(out, s),
-            _at(grad, 2 * s),
-            m,
-            _at(S, 0),
-            _at(z, 0),
-            _at(z, 0),
-        )
-        _combine(S, 0, prog, True, _lanes(m))
-        _outputs(S, 0, prog, xs, ys, out, grad, s, m, True)
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_v_par(
-    pre: int,
-    prog: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    out: np.ndarray,
-    S: np.ndarray,
-    size: int,
-    chunks: int,
-    threads: int,
-) -> None:
-    """Value at all points (see :func:`run_prog_vg_par`)."""
-    n = xs.shape[0]
-    blocks = (n + BLOCK - 1) // BLOCK
-    chunks = max(1, min(blocks, chunks))
-    _check_scratch(S, threads * size)
-    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
-    for c in prange(chunks):
-        at = get_thread_id() * size
-        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            s = b * BLOCK
-            m = min(s + BLOCK, n) - s
-            _call(
-                pre,
-                _at(xs, s),
-                _at(ys, s),
-                _at(out, s),
-                _at(out, s),
-                m,
-                _at(S, at),
-                _at(z, 0),
-                _at(z, 0),
-            )
-            _combine(S, at, prog, False, _lanes(m))
-            _outputs(S, at, prog, xs, ys, out, out, s, m, False)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_v_ser(
-    pre: int,
-    prog: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    out: np.ndarray,
-    S: np.ndarray,
-    size: int,
-) -> None:
-    """:func:`run_prog_v_par` in this thread."""
-    n = xs.shape[0]
-    _check_scratch(S, size)
-    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
-    for s in range(0, n, BLOCK):
-        m = min(s + BLOCK, n) - s
-        _call(
-            pre,
-            _at(xs, s),
-            _at(ys, s),
-            _at(out, s),
-            _at(out, s),
-            m,
-            _at(S, 0),
-            _at(z, 0),
-            _at(z, 0),
-        )
-        _combine(S, 0, prog, False, _lanes(m))
-        _outputs(S, 0, prog, xs, ys, out, out, s, m, False)
+        _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, 0, s, n, z, gs == 2)
 
 
 def _guard():

@@ -393,7 +393,7 @@ def block_source(
     tables = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(lines))))
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
-    gflat = "grad.reshape(-1), " if grad else ""
+    gflat = "grad.reshape(-1), 2, " if grad else "out, 1, "
     body: list[str] = []
 
     slots, fbase, fold_loop, fold_store = _fold_layout(fold_sizes)
@@ -508,13 +508,13 @@ def batch_{kind}_par({sig}, chunks, S=None):
     """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block
     (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_{kind}_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows})
+    _run_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows})
 
 
 def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_{kind}_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
+    _run_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
 '''
     )
     if rows != "_NOROWS, _NOROWS":
@@ -553,7 +553,7 @@ def program_source(
     :func:`block_source`, storing into scratch rows), of the combine program ``_PROG_<KIND>``
     (see ``codegen._Emitter.program``) and of the kernels ``batch_<kind>_par`` /
     ``batch_<kind>_ser``, which run both through the installation's kernels
-    (:func:`fastsdf.backends.kernel.drive.run_prog_vg_par`). The scene's compiled code is the fold
+    (:func:`fastsdf.backends.kernel.drive.run_prog_par`). The scene's compiled code is the fold
     function alone: it grows with the number of distinct shapes, not with the primitives."""
     grad = kind == "vg"
     segs = _split(lines)
@@ -617,7 +617,7 @@ def program_source(
     ]
     outs = ["out"] + (["grad"] if grad else [])
     sig = ", ".join(["xs", "ys"] + outs)
-    gflat = "grad.reshape(-1), " if grad else ""
+    gflat = "grad.reshape(-1), 2, " if grad else "out, 1, "
     nl = "\n"
     # The one-point function: the same loops storing into a small array (one float per row,
     # the program's offsets divided by BLOCK), then the program at one point.
@@ -666,13 +666,13 @@ def batch_{kind}_par({sig}, chunks, S=None):
     """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program
     (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_prog_{kind}_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
+    _run_prog_par(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
 
 
 def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_prog_{kind}_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
+    _run_prog_ser(_fold_{kind}_fn.address, _PROG_{kind.upper()}, xs, ys, out, {gflat}S, {size})
 ''',
     )
 
@@ -681,19 +681,15 @@ def drive_import() -> str:
     """Import of the scene-independent kernels of :mod:`fastsdf.backends.kernel.drive`."""
     names = [
         "BlockFn as _BlockFn",
-        "run_v_par as _run_v_par",
-        "run_v_ser as _run_v_ser",
-        "run_vg_par as _run_vg_par",
-        "run_vg_ser as _run_vg_ser",
+        "run_par as _run_par",
+        "run_ser as _run_ser",
         "max_threads as _max_threads",
         "NOFOLD as _drive_nofold",
         "tiles_par as _tiles_par",
         "NOROWS as _NOROWS",
         "NOGRAD as _NOGRAD",
-        "run_prog_v_par as _run_prog_v_par",
-        "run_prog_v_ser as _run_prog_v_ser",
-        "run_prog_vg_par as _run_prog_vg_par",
-        "run_prog_vg_ser as _run_prog_vg_ser",
+        "run_prog_par as _run_prog_par",
+        "run_prog_ser as _run_prog_ser",
         "combine_point_v as _combine_point_v",
         "combine_point_vg as _combine_point_vg",
         "scratch as _drive_scratch",
