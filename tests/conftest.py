@@ -8,6 +8,9 @@ import pytest
 # The tests share the installation's kernel cache (its files are named by the hash of their
 # source, so a stale entry cannot be hit); tests of a fresh installation use their own folders.
 os.environ.setdefault("MPLBACKEND", "Agg")
+# A fresh installation compiles the tape interpreter in a background process after its first
+# kernel; the test workers already use both cores (tests that need the tape warm it themselves).
+os.environ.setdefault("FASTSDF_BACKGROUND_COMPILE", "0")
 
 
 @pytest.fixture(autouse=True)
