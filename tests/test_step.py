@@ -56,19 +56,23 @@ def test_respond_matches_house_keyser(always):
         s = -abs(rng.normal()) * 0.1
         gx, gy = rng.normal(size=2) * rng.uniform(0.2, 3.0)
         cr, cf = rng.uniform(0, 1, 2)
-        got = _step._respond(x, y, vx, vy, s, gx, gy, cr, cf, always)
+        # a moving wall (dd/dt = gt) half of the time
+        gt = rng.normal() if rng.uniform() < 0.5 else 0.0
+        got = _step._respond(x, y, vx, vy, s, (gx, gy, gt), cr, cf, always)
         n = np.array([gx, gy]) / math.hypot(gx, gy)
+        w = -gt / math.hypot(gx, gy)  # the wall's normal speed
         v = np.array([vx, vy])
         vn = v @ n
         xe = np.array([x, y]) - (1 + cr) * s * n
-        ve = -cr * vn * n + (1 - cf) * (v - vn * n) if (vn < 0 or always) else v
+        # the velocity relative to the wall reflects
+        ve = (w - cr * (vn - w)) * n + (1 - cf) * (v - vn * n) if (vn < w or always) else v
         np.testing.assert_allclose(got[:2], xe, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(got[2:], ve, rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("g", [(0.0, 0.0), (math.nan, 1.0), (math.inf, 0.0)])
 def test_respond_without_a_direction_leaves_the_state(g):
-    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, g[0], g[1], 0.5, 0.5, True) == (
+    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, (g[0], g[1], 0.0), 0.5, 0.5, True) == (
         0.1,
         0.2,
         -0.3,
@@ -99,7 +103,13 @@ def test_sweep_reflects_off_a_thin_disc():
     # A point-sized particle flying through a small disc would cross it in one step.
     data = world(discs=[(1.0, 0.0, 0.05)])
     x, y, dx, dy, vx, vy, bounced = _step._sweep(
-        data, 0.0, 0.0, 2.0, 0.0, 60.0, 0.0, 0.01, 1.0, 0.0, 1.0, False, 0.0, 1.0
+        data,
+        _step.Motion(x=0.0, y=0.0, dx=2.0, dy=0.0, vx=60.0, vy=0.0),
+        _step.Disc(r=0.01, cr=1.0, cf=0.0),
+        1.0,
+        False,
+        0.0,
+        1.0,
     )
     assert bounced
     assert vx < 0.0  # reflected (cr = 1: elastic)

@@ -150,7 +150,15 @@ from types import ModuleType
 
 from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
 from fastsdf.particles.kernels.block import LANES, simd_par, simd_ser
-from fastsdf.particles.kernels.config import NO_EXT, Budget, Physics, State
+from fastsdf.particles.kernels.config import (
+    NO_EXT,
+    Budget,
+    Disc,
+    Motion,
+    Physics,
+    State,
+    Window,
+)
 from fastsdf.particles.kernels.constants import (
     ASLEEP,
     CONTACT_TOL,
@@ -182,6 +190,9 @@ __all__ = [
     "State",
     "Physics",
     "Budget",
+    "Motion",
+    "Disc",
+    "Window",
     "NO_EXT",
     "LANES",
     "PLAIN_BATCH",
@@ -235,8 +246,9 @@ def _shared_imports() -> str:
     )
     return (
         f"from {constants.__name__} import *  # noqa: F403  sha256 {_digest(constants)}\n"
-        f"from {config.__name__} import Budget, Physics, State  # noqa: F401  sha256 "
-        f"{_digest(config)}\n"
+        f"from {config.__name__} import (  # noqa: F401  sha256 {_digest(config)}\n"
+        "    Budget, Disc, Motion, Physics, State, Window,\n"
+        ")\n"
         f"from {intrinsics.__name__} import (  # noqa: F401  sha256 {_digest(intrinsics)}\n"
         + "".join(f"    {n},\n" for n in names)
         + ")\n"

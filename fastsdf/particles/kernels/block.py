@@ -6,7 +6,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from fastsdf.particles.kernels.config import Physics
+from fastsdf.particles.kernels.config import Disc, Motion, Physics
 from fastsdf.particles.kernels.constants import (
     CONTACT_TOL,
     FLAG_COEFF,
@@ -308,11 +308,10 @@ def _simd_gather_all(S, grid, row, lip):
     """:func:`_simd_gather` of every particle of the block, four at a time
     (:func:`_gather4`), without marks."""
     W = _STRIDE
+    rows = (_IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W, _R * W)
     ncon = 0
     for q in range(0, LANES, 4):
-        ncon += _gather4(
-            grid, S, q, row, _IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W, _R * W
-        )
+        ncon += _gather4(grid, S, q, row, rows)
     return ncon, 0
 
 
@@ -387,7 +386,13 @@ def _simd_fix(data, S, lip, always, trace):
             continue
         t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
         x, y, dx, dy, vx, vy, bounced = _sweep(
-            data, x, y, dx, dy, S[_NVX * W + q], S[_NVY * W + q], r, cr, cf, lip, always, 0.0, t1
+            data,
+            Motion(x, y, dx, dy, S[_NVX * W + q], S[_NVY * W + q]),
+            Disc(r, cr, cf),
+            lip,
+            always,
+            0.0,
+            t1,
         )
         if bounced:
             d, gx, gy = _simd_query(data, x + dx, y + dy)
