@@ -726,7 +726,9 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     sims[0].force_generators.append(phys.Drag(0.2))
     sims[1].force_generators.append(phys.Drag(0.2))
     _run_pair(sims, 3, 30)
-    assert sims[0]._module.simd_ser.signatures
+    # the block kernel ran: the entry point compiled for calls with or without skipping
+    module = sims[0]._module
+    assert (module.simd_ser if skip else module.simd_plain_ser).signatures
     # some particles touched surfaces, some left the grid, some were frozen
     assert np.any(np.abs(sims[0].p["x"]) > 2.0)
     assert np.isnan(sims[0].p["x"][7, 0]) and np.isinf(sims[0].p["v"][8, 0])
@@ -742,7 +744,8 @@ def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
     _run_pair(sims, 2, 25)
     sims[0]._skip = sims[1]._skip = False
     _run_pair(sims, 1, 25)
-    assert sims[0]._kernel((_gust,))[0].simd_par.signatures
+    module = sims[0]._kernel((_gust,))[0]
+    assert module.simd_par.signatures and module.simd_plain_par.signatures
     assert sims[0]._exact_ptr is not None or mode == "nearest"
 
 
@@ -769,6 +772,11 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
         sim.force_generators.append(phys.Gravity())
         sim.run(2)
         assert set(picked) == {name}  # (twice where particles resume at the edge)
+    picked.clear()
+    plain = phys.ParticleSimulation(g, n=200, seed=2)
+    plain._skip = False  # (as for a world without a known Lipschitz bound)
+    plain.run(2)
+    assert set(picked) == {"simd_plain_ser"}
     picked.clear()
     sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))  # a Python force
     sim.run(1)

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 
 from fastsdf.backends import prune as _prune
 from fastsdf.function import Function
+from fastsdf.notice import compiling
 from fastsdf.particles import kernels as _kernels
 from fastsdf.particles.checkpoint import load_simulation, save_simulation
 from fastsdf.particles.forces import Gravity, fuse, python_forces
@@ -524,7 +525,10 @@ class ParticleSimulation:
     def _call(self, module, data, steps, state, physics, budget):
         parallel = state.X.shape[0] >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
         kernel = self._pick_kernel(module, state, physics, budget, parallel)
-        return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
+        if kernel.signatures:  # compiled or loaded in this process
+            return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
+        with compiling("the particle step kernel"):
+            return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
 
     def _pick_kernel(self, module, state, physics, budget, parallel):
         """The kernel of ``module`` for a call: the block kernel of a static grid world
@@ -540,8 +544,10 @@ class ParticleSimulation:
             and state.X.dtype == np.float64
         )
         plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
-        if simd:
+        if simd and budget.skip:
             return module.simd_par if parallel else module.simd_ser
+        if simd:
+            return module.simd_plain_par if parallel else module.simd_plain_ser
         if plain:
             return module.plain_par if parallel else module.plain_ser
         return module.run_par if parallel else module.run_ser

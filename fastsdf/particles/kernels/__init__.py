@@ -122,7 +122,9 @@ scalar pass loading the cells (:func:`_simd_gather`, each cell's three channels 
 vector), a scalar fix-up of only the particles that need a tunnelling sweep or a query outside
 the grid (:func:`_simd_fix`), and a vector pass of the response with selects instead of
 branches (:func:`_simd_respond`). A step in which no particle of the block needs a query is
-the first pass alone. Sleeping is not needed there (it changes no result).
+the first pass alone. Sleeping is not needed there (it changes no result). Calls without
+query skipping go to :func:`simd_plain_par`/:func:`simd_plain_ser`: the same kernel compiled
+with the passes of that case only (each entry point compiles only what it runs).
 
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
@@ -149,7 +151,13 @@ import inspect
 from types import ModuleType
 
 from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
-from fastsdf.particles.kernels.block import LANES, simd_par, simd_ser
+from fastsdf.particles.kernels.block import (
+    LANES,
+    simd_par,
+    simd_plain_par,
+    simd_plain_ser,
+    simd_ser,
+)
 from fastsdf.particles.kernels.config import (
     NO_EXT,
     Budget,
@@ -215,6 +223,8 @@ __all__ = [
     "plain_ser",
     "simd_par",
     "simd_ser",
+    "simd_plain_par",
+    "simd_plain_ser",
     "query_many",
     "force_many",
     "march",
