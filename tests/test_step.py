@@ -8,6 +8,7 @@ step, the slow Python-force path).
 
 import math
 
+import numba
 import numpy as np
 import pytest
 from numba import njit
@@ -262,7 +263,7 @@ def _mixed_state(seed, n=96):
 )
 @pytest.mark.parametrize("block", [5, 64])
 def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, ext, block):
-    # Without skipping and the tunnelling check, calls go to plain_ser/plain_par (a straight
+    # Without skipping and the tunnelling check, calls go to plain_ser (a straight
     # and a batched step chosen by the contact count): bit-identical states, flags and counts.
     data = world(
         planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
@@ -272,7 +273,7 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
     n = base[0].shape[0]
     E = np.random.default_rng(2).normal(size=(n, 2)) if ext else np.zeros((0, 2))
     out = []
-    for kernel in (_step.run_ser, _step.plain_ser, _step.run_par, _step.plain_par):
+    for kernel in (_step.run_ser, _step.plain_ser):
         X, V, M, R, CR, CF = [a.copy() for a in base]
         flags = np.zeros(n, np.int32)
         # check_all off: cr, cf are checked at contacts
@@ -650,7 +651,7 @@ def test_rest_speed_is_validated(bad):
 
 
 # ---------------------------------------------------------------------------------------------
-# The block kernel of grid worlds (simd_ser/simd_par) against the particle-by-particle kernels.
+# The block kernel of grid worlds (simd_ser) against the particle-by-particle kernels.
 
 
 @njit(cache=True)
@@ -745,7 +746,7 @@ def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
     sims[0]._skip = sims[1]._skip = False
     _run_pair(sims, 1, 25)
     module = sims[0]._kernel((_gust,))[0]
-    assert module.simd_par.signatures and module.simd_plain_par.signatures
+    assert module.simd_ser.signatures and module.simd_plain_ser.signatures
     assert sims[0]._exact_ptr is not None or mode == "nearest"
 
 
@@ -791,3 +792,38 @@ def test_block_kernel_on_a_float32_grid():
     sims = _block_pair(g, 600, 8, 256)
     _run_pair(sims, 2, 30)
     assert sims[0]._module.simd_ser.signatures
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")
+@pytest.mark.parametrize("grid", [True, False])
+def test_threads_give_the_results_of_one_thread(grid):
+    # The particles are cut into slices of whole blocks, one per thread: the same bits as
+    # one call over all of them (the block kernel of a grid world, the general kernel of an
+    # exact SDF with its tunnelling sweep), frozen particles and error included.
+    world = seed_world()
+    if grid:
+        world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
+    n = phys.PARALLEL_MIN_PARTICLES + 77
+    out = []
+    for threads in (1, 2):
+        sim = phys.ParticleSimulation(world, n=n, seed=4, block=300)
+        sim.force_generators.append(phys.Gravity())
+        rng = np.random.default_rng(4)
+        sim.p["x"] = rng.uniform(-1.9, 1.9, (n, 2))
+        sim.p["v"] = rng.normal(scale=3.0, size=(n, 2))
+        sim.p["cr"][n - 5] = 1.5  # invalid: frozen at its first contact
+        previous = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            errors = []
+            for _ in range(3):
+                try:
+                    sim.run(10)
+                except ValueError as e:
+                    errors.append(str(e))
+        finally:
+            numba.set_num_threads(previous)
+        out.append((sim.p["x"].copy(), sim.p["v"].copy(), errors))
+    for a, b in zip(out[0][:2], out[1][:2], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert out[0][2] == out[1][2] and out[0][2]

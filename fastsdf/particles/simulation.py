@@ -9,6 +9,7 @@ import numbers
 import os
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numba
@@ -50,6 +51,18 @@ __all__ = ["ParticleSimulation", "create_animation", "PARALLEL_MIN_PARTICLES", "
 #: stops at the contact.
 #: Fewer particles than this run on one thread (thread start-up costs more than it saves).
 PARALLEL_MIN_PARTICLES = 4096
+# Threads that run slices of the particles through a kernel (which releases the GIL); made on
+# first use, grown when numba's thread count is raised.
+_POOL: list = [None]
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    pool = _POOL[0]
+    if pool is None or pool._max_workers < workers:
+        pool = _POOL[0] = ThreadPoolExecutor(workers, thread_name_prefix="fastsdf-step")
+    return pool
+
+
 #: Particles per block in :meth:`ParticleSimulation.run` (block state fits in the L1/L2 cache).
 DEFAULT_BLOCK = 512
 
@@ -135,7 +148,7 @@ class ParticleSimulation:
     Kernels (all give the same results, bit for bit; the choice is automatic, per call): a
     GridSDF world with stored gradients (the default ``gradient='stored'``, any grid dtype,
     either ``mode``) and float64 state, without ``rest_speed`` and Python force generators,
-    runs the block kernel (``simd_par``, :mod:`fastsdf.particles.kernels.block`): 64
+    runs the block kernel (``simd_ser``, :mod:`fastsdf.particles.kernels.block`): 64
     particles at a time held in scratch rows through all steps of a :meth:`run` call, each
     step in passes that the
     compiler turns into 4-wide vector code (forces, fused ``@njit`` forces and
@@ -523,14 +536,27 @@ class ParticleSimulation:
         return bad
 
     def _call(self, module, data, steps, state, physics, budget):
-        parallel = state.X.shape[0] >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
-        kernel = self._pick_kernel(module, state, physics, budget, parallel)
-        if kernel.signatures:  # compiled or loaded in this process
-            return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
-        with compiling("the particle step kernel"):
-            return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
+        """Run the call's kernel: on ``numba.get_num_threads()`` threads, each a slice of whole
+        blocks, from ``PARALLEL_MIN_PARTICLES`` particles on. Returns the frozen count."""
+        kernel = self._pick_kernel(module, state, physics, budget)
+        block = self.block or DEFAULT_BLOCK
+        n = state.X.shape[0]
+        if not kernel.signatures:  # compile (or load) it here, with a notice, before threads
+            with compiling("the particle step kernel"):
+                kernel(data, _part(state, 0, 0), physics, budget, steps, block)
+        threads = numba.get_num_threads() if n >= PARALLEL_MIN_PARTICLES else 1
+        if threads <= 1:
+            return kernel(data, state, physics, budget, steps, block)
+        blocks = -(-n // block)
+        per = -(-blocks // threads) * block  # whole blocks per thread
 
-    def _pick_kernel(self, module, state, physics, budget, parallel):
+        def run(lo: int) -> int:
+            return kernel(data, _part(state, lo, lo + per), physics, budget, steps, block)
+
+        rest = [_pool(threads).submit(run, lo) for lo in range(per, n, per)]
+        return run(0) + sum(job.result() for job in rest)
+
+    def _pick_kernel(self, module, state, physics, budget):
         """The kernel of ``module`` for a call: the block kernel of a static grid world
         (``simd_*``: float64 state, no resting contact, no Python forces), else the
         particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
@@ -545,12 +571,12 @@ class ParticleSimulation:
         )
         plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
         if simd and budget.skip:
-            return module.simd_par if parallel else module.simd_ser
+            return module.simd_ser
         if simd:
-            return module.simd_plain_par if parallel else module.simd_plain_ser
+            return module.simd_plain_ser
         if plain:
-            return module.plain_par if parallel else module.plain_ser
-        return module.run_par if parallel else module.run_ser
+            return module.plain_ser
+        return module.run_ser
 
     def _resume(self, module, steps, state, physics, budget, bad):
         """Particles that stopped near the grid's edge before its exact fallback was bound
@@ -710,6 +736,22 @@ class ParticleSimulation:
             f"integrator={self.integrator!r}, collision={self.collision!r}, "
             f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})"
         )
+
+
+def _part(state: State, lo: int, hi: int) -> State:
+    """The particles ``lo..hi-1`` of ``state`` (views; Python forces sliced too)."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    return State(
+        X[lo:hi],
+        V[lo:hi],
+        M[lo:hi],
+        R[lo:hi],
+        CR[lo:hi],
+        CF[lo:hi],
+        EXT[lo:hi] if EXT.shape[0] else EXT,
+        FLAGS[lo:hi],
+        check_all,
+    )
 
 
 def create_animation(

@@ -4,7 +4,7 @@ call, each step in passes that LLVM turns into vector code (``simd_*`` entry poi
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from fastsdf.particles.kernels.config import Disc, Motion, Physics
 from fastsdf.particles.kernels.constants import (
@@ -28,7 +28,7 @@ from fastsdf.particles.kernels.intrinsics import (
 from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
 from fastsdf.particles.kernels.step import _coeffs, _finite4, _valid_input
 
-__all__ = ["LANES", "simd_par", "simd_ser", "simd_plain_par", "simd_plain_ser"]
+__all__ = ["LANES", "simd_ser", "simd_plain_ser"]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -605,25 +605,12 @@ def _block_simd(data, lo, hi, steps, state, physics, budget, skipping):
     return bad
 
 
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def simd_par(data, state, physics, budget, steps, block):
-    """:func:`run_par` for a static grid world (``GRID_SIMD``), float64 state, without
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def simd_ser(data, state, physics, budget, steps, block):
+    """:func:`run_ser` for a static grid world (``GRID_SIMD``), float64 state, without
     resting contact (``physics.rest`` 0) or Python forces (``physics.use_ext`` False), with
     free-flight query skipping (``budget.skip``): the same results through
     :func:`_block_simd`. A separate entry point, compiled only when first used."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block_simd(data, lo, hi, steps, state, physics, budget, True)
-    return bad
-
-
-@njit(cache=_CACHE, error_model="numpy")
-def simd_ser(data, state, physics, budget, steps, block):
-    """Serial :func:`simd_par`."""
     n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
@@ -631,23 +618,10 @@ def simd_ser(data, state, physics, budget, steps, block):
     return bad
 
 
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def simd_plain_par(data, state, physics, budget, steps, block):
-    """:func:`simd_par` for calls without query skipping (``budget.skip`` False; the peers'
-    work): its own passes, compiled only when first used."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block_simd(data, lo, hi, steps, state, physics, budget, None)
-    return bad
-
-
-@njit(cache=_CACHE, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
 def simd_plain_ser(data, state, physics, budget, steps, block):
-    """Serial :func:`simd_plain_par`."""
+    """:func:`simd_ser` for calls without query skipping (``budget.skip`` False; the peers'
+    work): its own passes, compiled only when first used."""
     n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):

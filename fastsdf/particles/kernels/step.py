@@ -4,7 +4,7 @@ contact) and ``plain_*`` (none of those: the peers' work), parallel and serial e
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from fastsdf.particles.kernels.config import Disc, Motion, Physics, State, Window
 from fastsdf.particles.kernels.constants import (
@@ -33,9 +33,7 @@ from fastsdf.particles.kernels.scene import (
 
 __all__ = [
     "PLAIN_BATCH",
-    "run_par",
     "run_ser",
-    "plain_par",
     "plain_ser",
     "query_many",
     "force_many",
@@ -519,24 +517,13 @@ def _block_plain(data, lo, hi, steps, state, physics):
     return bad
 
 
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def run_par(data, state, physics, budget, steps, block):
-    """Parallel kernel: ``steps`` steps of the particles of ``state`` (:class:`.config.State`)
-    with ``physics`` and ``budget`` (:class:`.config.Physics`, :class:`.config.Budget`) in the
-    world ``data``, blocks of ``block`` particles over threads. Returns the frozen count."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block(data, lo, hi, steps, state, physics, budget)
-    return bad
-
-
-@njit(cache=_CACHE, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
 def run_ser(data, state, physics, budget, steps, block):
-    """Serial kernel (small n). Returns the frozen count."""
+    """The general kernel: ``steps`` steps of the particles of ``state``
+    (:class:`.config.State`) with ``physics`` and ``budget`` (:class:`.config.Physics`,
+    :class:`.config.Budget`) in the world ``data``, in blocks of ``block`` particles. Returns
+    the frozen count. It releases the GIL: the caller runs slices of the particles on several
+    threads (particles are independent, so the results do not depend on the slicing)."""
     n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
@@ -544,26 +531,12 @@ def run_ser(data, state, physics, budget, steps, block):
     return bad
 
 
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def plain_par(data, state, physics, budget, steps, block):
-    """:func:`run_par` for calls without query skipping, tunnelling check, moving world or
-    resting contact (``budget.skip``, ``budget.trace`` False, ``physics.rest`` 0; the rest of
-    ``budget`` is unused): the same
-    results through :func:`_block_plain`. A separate entry point, compiled only when first
-    used."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block_plain(data, lo, hi, steps, state, physics)
-    return bad
-
-
-@njit(cache=_CACHE, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
 def plain_ser(data, state, physics, budget, steps, block):
-    """Serial :func:`plain_par`."""
+    """:func:`run_ser` for calls without query skipping, tunnelling check, moving world or
+    resting contact (``budget.skip``, ``budget.trace`` False, ``physics.rest`` 0; the rest of
+    ``budget`` is unused): the same results through :func:`_block_plain`. A separate entry
+    point, compiled only when first used."""
     n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
