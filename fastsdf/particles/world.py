@@ -258,7 +258,7 @@ def _kernel_module(f, forces=()):
     """
     late = []
     keep = None
-    # The vector block step (simd_par) is written for the dense grid's stored-gradient sampler.
+    # The vector block step (simd_ser) is written for the dense grid's stored-gradient sampler.
     grid_simd = False
     grid_exact = False
     if _is_grid(f):
