@@ -378,7 +378,8 @@ class ParticleSimulation:
         from now on."""
         if self._exact_ptr is None:
             f = self._sdf
-            self._exact_ptr = _exact_address(f.exact if _is_grid(f) else f)
+            with compiling("the exact SDF behind the grid, for particles near its edge"):
+                self._exact_ptr = _exact_address(f.exact if _is_grid(f) else f)
             self._data = self._bind(self._data)
 
     def _update_plan(self, x: np.ndarray, steps: int) -> None:
