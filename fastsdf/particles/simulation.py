@@ -458,6 +458,8 @@ class ParticleSimulation:
                 ext = self._python_forces(python)
                 bad += self._launch(module, data, 1, ax, ay, drag, ext)
                 self.t += self.dt
+                # (a step may have bound the grid's exact fallback: the next uses its address)
+                module, data = self._kernel(user)
         if bad:
             raise self._frozen_error(bad, int(steps))
 
