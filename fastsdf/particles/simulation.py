@@ -544,10 +544,12 @@ class ParticleSimulation:
         kernel = self._pick_kernel(module, state, physics, budget)
         block = self.block or DEFAULT_BLOCK
         n = state.X.shape[0]
+        threads = numba.get_num_threads() if n >= PARALLEL_MIN_PARTICLES else 1
         if not kernel.signatures:  # compile (or load) it here, with a notice, before threads
             with compiling("the particle step kernel"):
                 kernel(data, _part(state, 0, 0), physics, budget, steps, block)
-        threads = numba.get_num_threads() if n >= PARALLEL_MIN_PARTICLES else 1
+        elif threads > 1:  # (types new to it, e.g. float32, compile here, not in two threads)
+            kernel(data, _part(state, 0, 0), physics, budget, steps, block)
         if threads <= 1:
             return kernel(data, state, physics, budget, steps, block)
         blocks = -(-n // block)
