@@ -54,6 +54,8 @@ PARALLEL_MIN_PARTICLES = 4096
 # Threads that run slices of the particles through a kernel (which releases the GIL); made on
 # first use, grown when numba's thread count is raised.
 _POOL: list = [None]
+# (kernel, state dtype, Python forces) combinations a kernel has been compiled for.
+_READY: set = set()
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
@@ -548,8 +550,10 @@ class ParticleSimulation:
         if not kernel.signatures:  # compile (or load) it here, with a notice, before threads
             with compiling("the particle step kernel"):
                 kernel(data, _part(state, 0, 0), physics, budget, steps, block)
-        elif threads > 1:  # (types new to it, e.g. float32, compile here, not in two threads)
+        elif threads > 1 and (kernel, state.X.dtype, state.EXT.shape[0] > 0) not in _READY:
+            # (types new to it, e.g. float32, compile here, not in two threads at once)
             kernel(data, _part(state, 0, 0), physics, budget, steps, block)
+        _READY.add((kernel, state.X.dtype, state.EXT.shape[0] > 0))
         if threads <= 1:
             return kernel(data, state, physics, budget, steps, block)
         blocks = -(-n // block)
