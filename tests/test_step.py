@@ -796,10 +796,14 @@ def test_block_kernel_on_a_float32_grid():
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")
 @pytest.mark.parametrize("grid", [True, False])
-def test_threads_give_the_results_of_one_thread(grid):
-    # The particles are cut into slices of whole blocks, one per thread: the same bits as
-    # one call over all of them (the block kernel of a grid world, the general kernel of an
-    # exact SDF with its tunnelling sweep), frozen particles and error included.
+@pytest.mark.parametrize("long", [False, True])
+def test_threads_give_the_results_of_one_thread(grid, long, monkeypatch):
+    # A short call: the particles cut into slices of whole blocks, one per thread; a long one:
+    # numba's parallel entry point. The same bits as one call over all of them on one thread
+    # (the block kernel of a grid world, the general kernel of an exact SDF with its
+    # tunnelling sweep), frozen particles and error included.
+    if long:
+        monkeypatch.setattr(phys.simulation, "LONG_CALL", 1000)
     world = seed_world()
     if grid:
         world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])

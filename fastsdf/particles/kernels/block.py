@@ -4,7 +4,7 @@ call, each step in passes that LLVM turns into vector code (``simd_*`` entry poi
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from fastsdf.particles.kernels.config import Disc, Motion, Physics
 from fastsdf.particles.kernels.constants import (
@@ -28,7 +28,7 @@ from fastsdf.particles.kernels.intrinsics import (
 from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
 from fastsdf.particles.kernels.step import _coeffs, _finite4, _valid_input
 
-__all__ = ["LANES", "simd_ser", "simd_plain_ser"]
+__all__ = ["LANES", "simd_ser", "simd_plain_ser", "simd_par", "simd_plain_par"]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -626,4 +626,30 @@ def simd_plain_ser(data, state, physics, budget, steps, block):
     bad = 0
     for lo in range(0, n, block):
         bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget, None)
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def simd_par(data, state, physics, budget, steps, block):
+    """:func:`simd_ser` with the blocks over numba's threads, for long calls."""
+    n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_simd(data, lo, hi, steps, state, physics, budget, True)
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def simd_plain_par(data, state, physics, budget, steps, block):
+    """:func:`simd_plain_ser` with the blocks over numba's threads, for long calls."""
+    n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_simd(data, lo, hi, steps, state, physics, budget, None)
     return bad

@@ -4,7 +4,7 @@ contact) and ``plain_*`` (none of those: the peers' work), parallel and serial e
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from fastsdf.particles.kernels.config import Disc, Motion, Physics, State, Window
 from fastsdf.particles.kernels.constants import (
@@ -35,6 +35,8 @@ __all__ = [
     "PLAIN_BATCH",
     "run_ser",
     "plain_ser",
+    "run_par",
+    "plain_par",
     "query_many",
     "force_many",
 ]
@@ -561,3 +563,31 @@ def force_many(xs, ys, vxs, vys, ms, t, out):
         fx, fy = _force(xs[i], ys[i], vxs[i], vys[i], ms[i], t)
         out[i, 0] = fx
         out[i, 1] = fy
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def run_par(data, state, physics, budget, steps, block):
+    """:func:`run_ser` with the blocks over numba's threads (``parallel=True``), for long
+    calls (see :meth:`fastsdf.particles.ParticleSimulation.run`); compiled only when first
+    used. Returns the frozen count."""
+    n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block(data, lo, hi, steps, state, physics, budget)
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def plain_par(data, state, physics, budget, steps, block):
+    """:func:`plain_ser` with the blocks over numba's threads, for long calls."""
+    n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_plain(data, lo, hi, steps, state, physics)
+    return bad
