@@ -663,7 +663,7 @@ def _force_alone_ns(grid, state, force, m=8192, reps=5, calls=200) -> float:
 LIMIT = """### Where the settled step stops: the per-particle limit
 
 Since this session a static grid world with stored gradients and float64 state runs the block
-kernel (`simd_par` in `fastsdf/particles/kernels/block.py`; the analysis of the particle-by-particle step below
+kernel (`simd_ser` in `fastsdf/particles/kernels/block.py`; the analysis of the particle-by-particle step below
 still holds for every other world). It keeps 64 particles (20 KB of rows, within the L1 cache) in the rows of one scratch array
 through all steps of a `run(k)` call and runs each step as passes over them: a vector pass of
 forces (fused `@njit` forces and `FieldForce` inlined), integration, free-flight budgets and
@@ -752,7 +752,7 @@ arithmetic and no gather instruction).
   `@njit` force such as the bench's `wind` is still evaluated inline: 1.04x settled, 0.95x falling). Not done: re-sorting particles by grid cell (it reorders the user's arrays
   and needs a permutation layer); explicit SIMD: the block kernel above.
 - The peers' work (skipping and the tunnelling check off) runs a kernel of its own,
-  `plain_par` in `fastsdf/particles/kernels/step.py` (compiled only when first used; same results bit for bit,
+  `plain_ser` in `fastsdf/particles/kernels/step.py` (compiled only when first used; same results bit for bit,
   tested against the general kernel): no budgets and no sweep; flat unsigned indexing of the
   state (numba emitted a negative-index wrap and a stride multiply for every `X[i, 0]`, which
   the general kernel now avoids too); one finiteness test instead of four; the common flags

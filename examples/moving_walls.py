@@ -1,7 +1,7 @@
 """A rotating stirrer in a box: a moving wall built with time ``sdf.t``, 1e6 particles.
 ====================================================================================
 
-    python examples/moving_walls.py [OUT]      # OUT/moving_walls.mp4 (.gif without ffmpeg),
+    python examples/moving_walls.py [OUT]      # OUT/moving_walls.mp4 (needs ffmpeg),
                                                # OUT/moving_walls.png (four frames)
 
 The stirrer is built under ``sdf.transform(angle=OMEGA * sdf.t, ...)``: its angle is an
@@ -21,12 +21,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.animation import FuncAnimation
 
 import fastsdf as sdf
 import fastsdf.particles as phys
-from fastsdf.viz.render import draw_particles, save_animation
-from fastsdf.viz.video import ffmpeg_available
+from fastsdf.viz.frames import VideoWriter
+from fastsdf.viz.progress import Progress
+from fastsdf.viz.render import draw_particles
 
 #: Angular speed of the stirrer, rad/s (blade tips at 1.2 move at about 1 length/s).
 OMEGA = 0.8
@@ -68,29 +68,42 @@ def _draw_walls(ax, world, t, grid):
 
 
 def main(out="examples-out", n=1_000_000, frames=300):
+    """One run of ``frames`` steps: every step a video frame (the walls drawn at the frame's
+    time by :class:`fastsdf.viz.frames.VideoWriter`), four of them the snapshots of the picture."""
     world = stirrer_world()
     sim = make_simulation(world, n=n)
+    os.makedirs(out, exist_ok=True)
+    shots = [0, frames // 3, 2 * frames // 3, frames]
+    snapshots = []  # (t, step, positions)
+    video = os.path.join(out, "moving_walls.mp4")
+    title = f"{n:,} particles, a stirrer turning at {OMEGA} rad/s"
+    t0 = time.perf_counter()
+    with (
+        VideoWriter(video, world, bounds=BOUNDS, size=(960, 720), title=title) as writer,
+        Progress(frames + 1, "moving walls: steps and frames") as bar,
+    ):
+        for i in range(frames + 1):
+            if i:
+                sim.run(1)
+            writer.add_simulation(sim)
+            if i in shots:
+                snapshots.append((sim.t, i, np.array(sim.p["x"], dtype=np.float64)))
+            bar.step()
+    run_s = time.perf_counter() - t0
+    print(f"wrote {video} ({frames} steps and {frames + 1} frames in {run_s:.1f} s)")
+
+    # Four snapshots side by side.
     xs = np.linspace(*BOUNDS[0], 400)
     ys = np.linspace(*BOUNDS[1], 400)
     grid = np.meshgrid(xs, ys)
-    os.makedirs(out, exist_ok=True)
-
-    # Four snapshots side by side.
     fig, axes = plt.subplots(1, 4, figsize=(16, 4.4), layout="constrained")
-    shots = [0, frames // 3, 2 * frames // 3, frames]
-    t0 = time.perf_counter()
-    done = 0
-    for ax, k in zip(axes, shots):
-        sim.run(k - done)
-        done = k
+    for ax, (t, k, x) in zip(axes, snapshots):
         ax.set_xlim(*BOUNDS[0])
         ax.set_ylim(*BOUNDS[1])
         ax.set_aspect("equal")
-        _draw_walls(ax, world, sim.t, grid)
-        x = np.asarray(sim.p["x"], dtype=np.float64)
+        _draw_walls(ax, world, t, grid)
         draw_particles(ax, x[:, 0], x[:, 1], bounds=BOUNDS)
-        ax.set_title(f"t = {sim.t:.1f} s (step {k})")
-    steps_s = time.perf_counter() - t0
+        ax.set_title(f"t = {t:.1f} s (step {k})")
     fig.suptitle(
         f"{n:,} particles and a stirrer turning at {OMEGA} rad/s "
         f"(the scene compiled once; {frames} steps)"
@@ -98,35 +111,8 @@ def main(out="examples-out", n=1_000_000, frames=300):
     png = os.path.join(out, "moving_walls.png")
     fig.savefig(png, dpi=80)
     plt.close(fig)
-    print(f"wrote {png} ({frames} steps and 4 pictures in {steps_s:.1f} s)")
-
-    # The animation, from a fresh start.
-    sim = make_simulation(world, n=n)
-    fig, ax = plt.subplots(figsize=(5.6, 5.6), layout="constrained")
-    ax.set_xlim(*BOUNDS[0])
-    ax.set_ylim(*BOUNDS[1])
-    ax.set_aspect("equal")
-    state = {"walls": _draw_walls(ax, world, 0.0, grid)}
-    x = np.asarray(sim.p["x"], dtype=np.float64)
-    layer = draw_particles(ax, x[:, 0], x[:, 1], bounds=BOUNDS)
-    title = ax.set_title("")
-
-    def frame(i):
-        if i:
-            sim.run(1)
-        state["walls"].remove()
-        state["walls"] = _draw_walls(ax, world, sim.t, grid)
-        p = np.asarray(sim.p["x"], dtype=np.float64)
-        layer.update(p[:, 0], p[:, 1])
-        title.set_text(f"{n:,} particles, t = {sim.t:.2f} s")
-        return ()
-
-    anim = FuncAnimation(fig, frame, frames=frames + 1, interval=1000 / 30, blit=False)
-    ext = ".mp4" if ffmpeg_available() else ".gif"
-    path = save_animation(anim, os.path.join(out, "moving_walls" + ext), fps=30)
-    plt.close(fig)
-    print(f"wrote {path}")
-    return png, path
+    print(f"wrote {png}")
+    return png, video
 
 
 if __name__ == "__main__":

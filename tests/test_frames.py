@@ -1,9 +1,11 @@
 """The compiled frame writer: splats against brute force, and the videos it writes."""
 
+import math
 import os
 
 import numpy as np
 import pytest
+from matplotlib.colors import to_rgb
 
 from fastsdf.viz.frames import (
     VideoWriter,
@@ -224,3 +226,30 @@ def test_discs_need_radii(tmp_path):
         w.add([0.0], [0.0])
     empty = w.render([], [])  # no particles: the background alone
     np.testing.assert_array_equal(empty[w.pixel(0.0, 0.0)], empty[w.pixel(1.0, 1.0)])
+
+
+def test_a_moving_world_is_drawn_at_each_frames_time(tmp_path):
+    """A disc moving right at unit speed: its solid is drawn where the world is negative at the
+    frame's time, and only there (pixel centres against the analytic disc)."""
+    import fastsdf as sdf
+    from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR
+
+    with sdf.transform(offset=[-1.0 + sdf.t, 0.0]):
+        world = sdf.Circle(center=[0.0, 0.0], radius=0.5)
+    writer = VideoWriter(str(tmp_path / "m.mp4"), world, BOUNDS, mode="discs", **SMALL)
+    assert writer.moving
+    solid = np.array(to_rgb(SOLID_COLOR)) * 255
+    free = np.array(to_rgb(BACKGROUND_COLOR)) * 255
+    x, y = np.array([5.0]), np.array([5.0])  # no particle on the axes
+    for t in (0.0, 2.0):
+        frame = writer.render(x, y, 0.01, t=t).astype(float)
+        for px, py in [(-1.0, 0.0), (1.0, 0.0), (-1.0 + t + 0.3, 0.2), (0.0, 1.0)]:
+            row, col = writer.pixel(px, py)
+            inside = math.hypot(px - (-1.0 + t), py) < 0.45  # clear of the edge's pixels
+            outside = math.hypot(px - (-1.0 + t), py) > 0.55
+            if inside:
+                np.testing.assert_allclose(frame[row, col], solid, atol=1.0)
+            elif outside:
+                np.testing.assert_allclose(frame[row, col], free, atol=3.0)
+    with pytest.raises(ValueError, match="time t"):
+        writer.render(x, y, 0.01)

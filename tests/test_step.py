@@ -8,6 +8,7 @@ step, the slow Python-force path).
 
 import math
 
+import numba
 import numpy as np
 import pytest
 from numba import njit
@@ -56,19 +57,23 @@ def test_respond_matches_house_keyser(always):
         s = -abs(rng.normal()) * 0.1
         gx, gy = rng.normal(size=2) * rng.uniform(0.2, 3.0)
         cr, cf = rng.uniform(0, 1, 2)
-        got = _step._respond(x, y, vx, vy, s, gx, gy, cr, cf, always)
+        # a moving wall (dd/dt = gt) half of the time
+        gt = rng.normal() if rng.uniform() < 0.5 else 0.0
+        got = _step._respond(x, y, vx, vy, s, (gx, gy, gt), cr, cf, always)
         n = np.array([gx, gy]) / math.hypot(gx, gy)
+        w = -gt / math.hypot(gx, gy)  # the wall's normal speed
         v = np.array([vx, vy])
         vn = v @ n
         xe = np.array([x, y]) - (1 + cr) * s * n
-        ve = -cr * vn * n + (1 - cf) * (v - vn * n) if (vn < 0 or always) else v
+        # the velocity relative to the wall reflects
+        ve = (w - cr * (vn - w)) * n + (1 - cf) * (v - vn * n) if (vn < w or always) else v
         np.testing.assert_allclose(got[:2], xe, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(got[2:], ve, rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("g", [(0.0, 0.0), (math.nan, 1.0), (math.inf, 0.0)])
 def test_respond_without_a_direction_leaves_the_state(g):
-    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, g[0], g[1], 0.5, 0.5, True) == (
+    assert _step._respond(0.1, 0.2, -0.3, 0.4, -0.05, (g[0], g[1], 0.0), 0.5, 0.5, True) == (
         0.1,
         0.2,
         -0.3,
@@ -99,7 +104,13 @@ def test_sweep_reflects_off_a_thin_disc():
     # A point-sized particle flying through a small disc would cross it in one step.
     data = world(discs=[(1.0, 0.0, 0.05)])
     x, y, dx, dy, vx, vy, bounced = _step._sweep(
-        data, 0.0, 0.0, 2.0, 0.0, 60.0, 0.0, 0.01, 1.0, 0.0, 1.0, False, 0.0, 1.0
+        data,
+        _step.Motion(x=0.0, y=0.0, dx=2.0, dy=0.0, vx=60.0, vy=0.0),
+        _step.Disc(r=0.01, cr=1.0, cf=0.0),
+        1.0,
+        False,
+        0.0,
+        1.0,
     )
     assert bounced
     assert vx < 0.0  # reflected (cr = 1: elastic)
@@ -252,7 +263,7 @@ def _mixed_state(seed, n=96):
 )
 @pytest.mark.parametrize("block", [5, 64])
 def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, ext, block):
-    # Without skipping and the tunnelling check, calls go to plain_ser/plain_par (a straight
+    # Without skipping and the tunnelling check, calls go to plain_ser (a straight
     # and a batched step chosen by the contact count): bit-identical states, flags and counts.
     data = world(
         planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
@@ -262,7 +273,7 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
     n = base[0].shape[0]
     E = np.random.default_rng(2).normal(size=(n, 2)) if ext else np.zeros((0, 2))
     out = []
-    for kernel in (_step.run_ser, _step.plain_ser, _step.run_par, _step.plain_par):
+    for kernel in (_step.run_ser, _step.plain_ser):
         X, V, M, R, CR, CF = [a.copy() for a in base]
         flags = np.zeros(n, np.int32)
         # check_all off: cr, cf are checked at contacts
@@ -640,7 +651,7 @@ def test_rest_speed_is_validated(bad):
 
 
 # ---------------------------------------------------------------------------------------------
-# The block kernel of grid worlds (simd_ser/simd_par) against the particle-by-particle kernels.
+# The block kernel of grid worlds (simd_ser) against the particle-by-particle kernels.
 
 
 @njit(cache=True)
@@ -716,7 +727,9 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     sims[0].force_generators.append(phys.Drag(0.2))
     sims[1].force_generators.append(phys.Drag(0.2))
     _run_pair(sims, 3, 30)
-    assert sims[0]._module.simd_ser.signatures
+    # the block kernel ran: the entry point compiled for calls with or without skipping
+    module = sims[0]._module
+    assert (module.simd_ser if skip else module.simd_plain_ser).signatures
     # some particles touched surfaces, some left the grid, some were frozen
     assert np.any(np.abs(sims[0].p["x"]) > 2.0)
     assert np.isnan(sims[0].p["x"][7, 0]) and np.isinf(sims[0].p["v"][8, 0])
@@ -732,7 +745,8 @@ def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
     _run_pair(sims, 2, 25)
     sims[0]._skip = sims[1]._skip = False
     _run_pair(sims, 1, 25)
-    assert sims[0]._kernel((_gust,))[0].simd_par.signatures
+    module = sims[0]._kernel((_gust,))[0]
+    assert module.simd_ser.signatures and module.simd_plain_ser.signatures
     assert sims[0]._exact_ptr is not None or mode == "nearest"
 
 
@@ -760,6 +774,11 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
         sim.run(2)
         assert set(picked) == {name}  # (twice where particles resume at the edge)
     picked.clear()
+    plain = phys.ParticleSimulation(g, n=200, seed=2)
+    plain._skip = False  # (as for a world without a known Lipschitz bound)
+    plain.run(2)
+    assert set(picked) == {"simd_plain_ser"}
+    picked.clear()
     sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))  # a Python force
     sim.run(1)
     assert set(picked) == {"run_ser"}
@@ -773,3 +792,59 @@ def test_block_kernel_on_a_float32_grid():
     sims = _block_pair(g, 600, 8, 256)
     _run_pair(sims, 2, 30)
     assert sims[0]._module.simd_ser.signatures
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")
+@pytest.mark.parametrize("grid", [True, False])
+@pytest.mark.parametrize("long", [False, True])
+def test_threads_give_the_results_of_one_thread(grid, long, monkeypatch):
+    # A short call: the particles cut into slices of whole blocks, one per thread; a long one:
+    # numba's parallel entry point. The same bits as one call over all of them on one thread
+    # (the block kernel of a grid world, the general kernel of an exact SDF with its
+    # tunnelling sweep), frozen particles and error included.
+    if long:
+        monkeypatch.setattr(phys.simulation, "LONG_CALL", 1000)
+    world = seed_world()
+    if grid:
+        world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
+    n = phys.PARALLEL_MIN_PARTICLES + 77
+    out = []
+    for threads in (1, 2):
+        sim = phys.ParticleSimulation(world, n=n, seed=4, block=300)
+        sim.force_generators.append(phys.Gravity())
+        rng = np.random.default_rng(4)
+        sim.p["x"] = rng.uniform(-1.9, 1.9, (n, 2))
+        sim.p["v"] = rng.normal(scale=3.0, size=(n, 2))
+        sim.p["cr"][n - 5] = 1.5  # invalid: frozen at its first contact
+        previous = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            errors = []
+            for _ in range(3):
+                try:
+                    sim.run(10)
+                except ValueError as e:
+                    errors.append(str(e))
+        finally:
+            numba.set_num_threads(previous)
+        out.append((sim.p["x"].copy(), sim.p["v"].copy(), errors))
+    for a, b in zip(out[0][:2], out[1][:2], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert out[0][2] == out[1][2] and out[0][2]
+
+
+def test_python_forces_near_the_grids_edge():
+    # One step per Python-force evaluation: the first step binds the grid's exact fallback
+    # for the particles near its edge, and every later step uses it (no particle is left
+    # stopped there). A Python drag force gives the fused Drag's results, bit for bit.
+    g = GridSDF(seed_world(), bounds=[(-1.5, 1.5), (-1.5, 1.5)], samples=[64j, 64j])
+    sims = []
+    for force in (lambda p, t: -0.1 * p["v"], phys.Drag(0.1)):
+        sim = phys.ParticleSimulation(g, n=200, seed=3)
+        sim.force_generators += [phys.Gravity(), force]
+        sim.p["x"][:50, 1] = np.linspace(1.3, 1.6, 50)  # near and beyond the top edge
+        sim.run(3)
+        sims.append(sim)
+    assert sims[0]._exact_ptr is not None
+    np.testing.assert_array_equal(sims[0].p["x"], sims[1].p["x"])
+    np.testing.assert_array_equal(sims[0].p["v"], sims[1].p["v"])

@@ -9,6 +9,7 @@ import numbers
 import os
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numba
@@ -17,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from fastsdf.backends import prune as _prune
 from fastsdf.function import Function
+from fastsdf.notice import compiling
 from fastsdf.particles import kernels as _kernels
 from fastsdf.particles.checkpoint import load_simulation, save_simulation
 from fastsdf.particles.forces import Gravity, fuse, python_forces
@@ -49,6 +51,22 @@ __all__ = ["ParticleSimulation", "create_animation", "PARALLEL_MIN_PARTICLES", "
 #: stops at the contact.
 #: Fewer particles than this run on one thread (thread start-up costs more than it saves).
 PARALLEL_MIN_PARTICLES = 4096
+# Threads that run slices of the particles through a kernel (which releases the GIL); made on
+# first use, grown when numba's thread count is raised.
+_POOL: list = [None]
+#: A call of at least this many particle-steps (about 0.05 s) runs numba's parallel entry point.
+LONG_CALL = 1 << 22
+# (kernel, state dtype, Python forces) combinations a kernel has been compiled for.
+_READY: set = set()
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    pool = _POOL[0]
+    if pool is None or pool._max_workers < workers:
+        pool = _POOL[0] = ThreadPoolExecutor(workers, thread_name_prefix="fastsdf-step")
+    return pool
+
+
 #: Particles per block in :meth:`ParticleSimulation.run` (block state fits in the L1/L2 cache).
 DEFAULT_BLOCK = 512
 
@@ -156,7 +174,7 @@ class ParticleSimulation:
     Kernels (all give the same results, bit for bit; the choice is automatic, per call): a
     GridSDF world with stored gradients (the default ``gradient='stored'``, any grid dtype,
     either ``mode``) and float64 state, without ``rest_speed`` and Python force generators,
-    runs the block kernel (``simd_par``, :mod:`fastsdf.particles.kernels.block`): 64
+    runs the block kernel (``simd_ser``, :mod:`fastsdf.particles.kernels.block`): 64
     particles at a time held in scratch rows through all steps of a :meth:`run` call, each
     step in passes that the
     compiler turns into 4-wide vector code (forces, fused ``@njit`` forces and
@@ -420,7 +438,8 @@ class ParticleSimulation:
         from now on."""
         if self._exact_ptr is None:
             f = self._sdf
-            self._exact_ptr = _exact_address(f.exact if _is_grid(f) else f)
+            with compiling("the exact SDF behind the grid, for particles near its edge"):
+                self._exact_ptr = _exact_address(f.exact if _is_grid(f) else f)
             self._data = self._bind(self._data)
 
     def _update_plan(self, x: np.ndarray, steps: int) -> None:
@@ -499,6 +518,8 @@ class ParticleSimulation:
                 ext = self._python_forces(python)
                 bad += self._launch(module, data, 1, ax, ay, drag, ext)
                 self.t += self.dt
+                # (a step may have bound the grid's exact fallback: the next uses its address)
+                module, data = self._kernel(user)
         if bad:
             raise self._frozen_error(bad, int(steps))
 
@@ -578,11 +599,42 @@ class ParticleSimulation:
         return bad
 
     def _call(self, module, data, steps, state, physics, budget):
-        parallel = state.X.shape[0] >= PARALLEL_MIN_PARTICLES and numba.get_num_threads() > 1
-        kernel = self._pick_kernel(module, state, physics, budget, parallel)
-        return kernel(data, state, physics, budget, steps, self.block or DEFAULT_BLOCK)
+        """Run the call's kernel on ``numba.get_num_threads()`` threads from
+        ``PARALLEL_MIN_PARTICLES`` particles on: a short call as one slice of whole blocks per
+        thread, a long one (``LONG_CALL`` particle-steps) through the kernel's parallel entry
+        point. Returns the frozen count."""
+        kernel = self._pick_kernel(module, state, physics, budget)
+        block = self.block or DEFAULT_BLOCK
+        n = state.X.shape[0]
+        threads = numba.get_num_threads() if n >= PARALLEL_MIN_PARTICLES else 1
+        if threads > 1 and n * steps >= LONG_CALL:
+            # numba's parallel entry point: a few percent faster on long calls, and twice
+            # the compile time, so compiled only when a long call first needs it
+            kernel = getattr(module, kernel.py_func.__name__[: -len("_ser")] + "_par")
+            if kernel.signatures:
+                return kernel(data, state, physics, budget, steps, block)
+            with compiling("the particle step kernel for long calls"):
+                return kernel(data, state, physics, budget, steps, block)
+        if not kernel.signatures:  # compile (or load) it here, with a notice, before threads
+            with compiling("the particle step kernel"):
+                kernel(data, _part(state, 0, 0), physics, budget, steps, block)
+        elif threads > 1 and (kernel, state.X.dtype, state.EXT.shape[0] > 0) not in _READY:
+            # (types new to it, e.g. float32, compile here, not in two threads at once)
+            kernel(data, _part(state, 0, 0), physics, budget, steps, block)
+        _READY.add((kernel, state.X.dtype, state.EXT.shape[0] > 0))
+        if threads <= 1:
+            return kernel(data, state, physics, budget, steps, block)
+        # one slice of whole blocks per thread, the first on this thread
+        blocks = -(-n // block)
+        per = -(-blocks // threads) * block
 
-    def _pick_kernel(self, module, state, physics, budget, parallel):
+        def run(lo: int) -> int:
+            return kernel(data, _part(state, lo, lo + per), physics, budget, steps, block)
+
+        rest = [_pool(threads).submit(run, lo) for lo in range(per, n, per)]
+        return run(0) + sum(job.result() for job in rest)
+
+    def _pick_kernel(self, module, state, physics, budget):
         """The kernel of ``module`` for a call: the block kernel of a static grid world
         (``simd_*``: float64 state, no resting contact, no Python forces), else the
         particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
@@ -596,11 +648,13 @@ class ParticleSimulation:
             and state.X.dtype == np.float64
         )
         plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
+        if simd and budget.skip:
+            return module.simd_ser
         if simd:
-            return module.simd_par if parallel else module.simd_ser
+            return module.simd_plain_ser
         if plain:
-            return module.plain_par if parallel else module.plain_ser
-        return module.run_par if parallel else module.run_ser
+            return module.plain_ser
+        return module.run_ser
 
     def _resume(self, module, steps, state, physics, budget, bad):
         """Particles that stopped near the grid's edge before its exact fallback was bound
@@ -796,6 +850,22 @@ def _start_state(
     if not (math.isfinite(dens) and dens > 0):
         raise ValueError(f"density must be finite and > 0, got density={density!r}")
     return pos, vel, rad, dens
+
+
+def _part(state: State, lo: int, hi: int) -> State:
+    """The particles ``lo..hi-1`` of ``state`` (views; Python forces sliced too)."""
+    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+    return State(
+        X[lo:hi],
+        V[lo:hi],
+        M[lo:hi],
+        R[lo:hi],
+        CR[lo:hi],
+        CF[lo:hi],
+        EXT[lo:hi] if EXT.shape[0] else EXT,
+        FLAGS[lo:hi],
+        check_all,
+    )
 
 
 def create_animation(

@@ -300,6 +300,9 @@ class VideoWriter:
 
     ``world``: the SDF drawn as the static background (filled solid and free space and the zero
     contour, as :func:`fastsdf.viz.render.render_frame`; ``None``: an empty axes over ``bounds``).
+    A world that moves (built with ``sdf.t``: ``world.time_dependent``) is drawn at each frame's
+    time instead: its solid pixels are filled anew per frame (the world evaluated at the pixel
+    centres, in compiled code), so each frame then needs its time ``t``.
     ``bounds``: ``[(x0, x1), (y0, y1)]`` shown (data units). ``size``: ``(width, height)``
     pixels, both even (the H.264 colour format needs it). ``fps``: frames per second.
     ``mode``: ``'density'`` (particle centres per pixel through a logarithmic colour map, with a
@@ -360,6 +363,8 @@ class VideoWriter:
         self.scale_frames = _positive_int(scale_frames, "scale_frames")
         self.title = title
         self.world = world
+        #: The world moves: its solid is drawn per frame at the frame's time.
+        self.moving = bool(getattr(world, "time_dependent", False))
         self.samples = _positive_int(samples, "samples", 2)
         self.crf = _positive_int(crf, "crf", 0)
         self.preset = str(preset)
@@ -377,7 +382,7 @@ class VideoWriter:
         self._log: Any = None
         self._background: Any = None
         self._counts: Any = None
-        self._pending: list = []  # (counts, label) held until the colour scale is known
+        self._pending: list = []  # (counts, label, walls) held until the colour scale is known
         # Two frame buffers: one is composed while ffmpeg reads the other (a writer thread).
         self._frames = [np.empty((height, width, 3), dtype=np.uint8) for _ in range(2)]
         self._frame = self._frames[0]
@@ -397,7 +402,9 @@ class VideoWriter:
         if self.mode == "auto":
             self.mode = "discs" if n <= self.max_discs else "density"
         figsize = (width / self.dpi, height / self.dpi)
-        world = self.world if self.world is not None else (lambda x, y: np.ones_like(x))
+        world = self.world
+        if world is None or self.moving:  # free space (a moving world is drawn per frame)
+            world = lambda x, y: np.ones_like(x)
         fig, ax, cax = world_figure(world, self.bounds, self.samples, figsize, self.dpi)
         FigureCanvasAgg(fig)
         # world_figure packs the axes and the colour bar to the left; centre them in a wide
@@ -423,6 +430,21 @@ class VideoWriter:
         self._atlas = _GlyphAtlas(_TIME_CHARS, 10.0, self.dpi)
         self._text_right = col1
         self._text_top = max(0, row0 - self._atlas.height - 2)
+        if self.moving:
+            from matplotlib.colors import to_rgb
+
+            from fastsdf.viz.plotting import SOLID_COLOR
+
+            # pixel centres of the particle image, where the moving world is evaluated
+            self._px = np.ascontiguousarray(
+                np.broadcast_to(x0 + (np.arange(col1 - col0) + 0.5) / self._sx, self._counts.shape)
+            )
+            self._py = np.ascontiguousarray(
+                np.broadcast_to(
+                    (y1 - (np.arange(row1 - row0) + 0.5) / self._sy)[:, None], self._counts.shape
+                )
+            )
+            self._solid = (np.array(to_rgb(SOLID_COLOR)) * 255.0 + 0.5).astype(np.uint8)
 
     def _paint(self) -> None:
         """Draw the static picture once (with the colour bar of the now fixed scale)."""
@@ -513,7 +535,7 @@ class VideoWriter:
         counts = self._splat(x, y, r)
         if self.mode == "density" and self.vmax is None:
             raise RuntimeError("the colour scale is not fixed yet: give vmax, or add frames")
-        return self._compose(counts, time_label(t, step))
+        return self._compose(counts, time_label(t, step), self._walls(t))
 
     def pixel(self, x: float, y: float) -> tuple:
         """``(row, column)`` of the frame pixel holding the data point ``(x, y)`` (row 0 at the
@@ -555,9 +577,20 @@ class VideoWriter:
             splat_discs(xs, ys, rs, x0, y1, self._sx, self._sy, counts)
         return counts
 
-    def _compose(self, counts: np.ndarray, label: str) -> np.ndarray:
+    def _walls(self, t: float | None) -> Any:
+        """The solid pixels of a moving world at time ``t`` (None for a static world)."""
+        if not self.moving:
+            return None
+        if t is None:
+            raise ValueError("a moving world (world.time_dependent) needs each frame's time t")
+        return self.world(self._px, self._py, t=float(t)) < 0.0
+
+    def _compose(self, counts: np.ndarray, label: str, walls: Any = None) -> np.ndarray:
         frame = self._frame
         np.copyto(frame, self._background)
+        if walls is not None:
+            h, w = walls.shape
+            frame[self._row0 : self._row0 + h, self._col0 : self._col0 + w][walls] = self._solid
         composite(counts, self._table, self._keep, frame, self._row0, self._col0)
         if label:
             self._atlas.draw(frame, label, self._text_right, self._text_top)
@@ -571,13 +604,14 @@ class VideoWriter:
             raise RuntimeError("this VideoWriter is closed")
         counts = self._splat(x, y, r)
         label = time_label(t, step)
+        walls = self._walls(t)
         if self.mode == "density" and self.vmax is None:
-            self._pending.append((counts.copy(), label))
+            self._pending.append((counts.copy(), label, walls))
             if len(self._pending) < self.scale_frames:
                 return
             self._fix_scale()
             return
-        self._write(self._compose(counts, label))
+        self._write(self._compose(counts, label, walls))
 
     def add_simulation(self, sim: Any) -> None:
         """Append the frame of ``sim``'s current particles (``sim.p['x']``, ``sim.p['r']``) at
@@ -588,11 +622,11 @@ class VideoWriter:
         self.add(x[:, 0], x[:, 1], sim.p["r"], t=t, step=int(round(t / dt)) if dt > 0 else None)
 
     def _fix_scale(self) -> None:
-        top = max(int(c.max()) for c, _ in self._pending)
+        top = max(int(c.max()) for c, _, _ in self._pending)
         self.vmax = float(max(top, 2))
         self._paint()
-        for counts, label in self._pending:
-            self._write(self._compose(counts, label))
+        for counts, label, walls in self._pending:
+            self._write(self._compose(counts, label, walls))
         self._pending = []
 
     def _write(self, frame: np.ndarray) -> None:

@@ -106,7 +106,7 @@ One step, per particle (the physics is described in :mod:`fastsdf.particles`)
    (``SLEEP``: a static world and no user force, so every later step would repeat it).
 
 Calls without query skipping, tunnelling check, moving world or resting contact (the peers'
-work: ``skip`` and ``trace`` off, ``rest`` 0) go to :func:`plain_par`/:func:`plain_ser`, a
+work: ``skip`` and ``trace`` off, ``rest`` 0) go to :func:`plain_ser`, a
 separate entry point compiled only when first used: the same results from a shorter loop (no
 budgets, no sweep), which runs a step particle after particle while few particles of a block
 touch a surface and in two passes over batches of ``PLAIN_BATCH`` (integrate and query all,
@@ -114,7 +114,7 @@ then respond) after a step where many did, so that mispredicted contact branches
 discard the next particles' queries.
 
 A static grid world with stored gradients (``GRID_SIMD``, set in the scene block; float64
-state, ``rest`` 0, no Python forces) goes to :func:`simd_par`/:func:`simd_ser` instead: the
+state, ``rest`` 0, no Python forces) goes to :func:`simd_ser` instead: the
 same results from :func:`_block_simd`, which keeps ``LANES`` particles in the rows of one
 scratch array through all steps of a call and runs each step as passes over them: a vector
 pass of forces, integration, free-flight budgets and the grid cell (:func:`_simd_move`), a
@@ -122,7 +122,9 @@ scalar pass loading the cells (:func:`_simd_gather`, each cell's three channels 
 vector), a scalar fix-up of only the particles that need a tunnelling sweep or a query outside
 the grid (:func:`_simd_fix`), and a vector pass of the response with selects instead of
 branches (:func:`_simd_respond`). A step in which no particle of the block needs a query is
-the first pass alone. Sleeping is not needed there (it changes no result).
+the first pass alone. Sleeping is not needed there (it changes no result). Calls without
+query skipping go to :func:`simd_plain_ser`: the same kernel compiled
+with the passes of that case only (each entry point compiles only what it runs).
 
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
@@ -139,7 +141,12 @@ Entry points
 Every entry point is ``kernel(data, state, physics, budget, steps, block) -> frozen count``:
 the world's query data, the particles' arrays (:class:`.config.State`), the physics of the
 call (:class:`.config.Physics`), the safety and skipping settings (:class:`.config.Budget`),
-the number of steps and the particles per block.
+the number of steps and the particles per block. The ``*_ser`` ones release the GIL: the
+caller (:meth:`fastsdf.particles.ParticleSimulation.run`) runs a short call as slices of the
+particles on several threads (particles are independent, so the results do not depend on the
+slicing), and a long one through the ``*_par`` entry point of the family (numba's
+``parallel=True``, compiled when first needed: its parfor passes double the compile time,
+and it runs long calls a few percent faster).
 """
 
 from __future__ import annotations
@@ -149,8 +156,20 @@ import inspect
 from types import ModuleType
 
 from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
-from fastsdf.particles.kernels.block import LANES, simd_par, simd_ser
-from fastsdf.particles.kernels.config import NO_EXT, Budget, Physics, State
+from fastsdf.particles.kernels.block import (
+    LANES,
+    simd_plain_ser,
+    simd_ser,
+)
+from fastsdf.particles.kernels.config import (
+    NO_EXT,
+    Budget,
+    Disc,
+    Motion,
+    Physics,
+    State,
+    Window,
+)
 from fastsdf.particles.kernels.constants import (
     ASLEEP,
     CONTACT_TOL,
@@ -182,6 +201,9 @@ __all__ = [
     "State",
     "Physics",
     "Budget",
+    "Motion",
+    "Disc",
+    "Window",
     "NO_EXT",
     "LANES",
     "PLAIN_BATCH",
@@ -198,12 +220,14 @@ __all__ = [
     "FLAG_RESUME",
     "borrow_all",
     "call_vg",
-    "run_par",
     "run_ser",
+    "run_par",
     "plain_par",
     "plain_ser",
-    "simd_par",
     "simd_ser",
+    "simd_par",
+    "simd_plain_par",
+    "simd_plain_ser",
     "query_many",
     "force_many",
     "march",
@@ -235,8 +259,9 @@ def _shared_imports() -> str:
     )
     return (
         f"from {constants.__name__} import *  # noqa: F403  sha256 {_digest(constants)}\n"
-        f"from {config.__name__} import Budget, Physics, State  # noqa: F401  sha256 "
-        f"{_digest(config)}\n"
+        f"from {config.__name__} import (  # noqa: F401  sha256 {_digest(config)}\n"
+        "    Budget, Disc, Motion, Physics, State, Window,\n"
+        ")\n"
         f"from {intrinsics.__name__} import (  # noqa: F401  sha256 {_digest(intrinsics)}\n"
         + "".join(f"    {n},\n" for n in names)
         + ")\n"

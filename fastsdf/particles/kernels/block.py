@@ -6,7 +6,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from fastsdf.particles.kernels.config import Physics
+from fastsdf.particles.kernels.config import Disc, Motion, Physics
 from fastsdf.particles.kernels.constants import (
     CONTACT_TOL,
     FLAG_COEFF,
@@ -28,7 +28,7 @@ from fastsdf.particles.kernels.intrinsics import (
 from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
 from fastsdf.particles.kernels.step import _coeffs, _finite4, _valid_input
 
-__all__ = ["LANES", "simd_par", "simd_ser"]
+__all__ = ["LANES", "simd_ser", "simd_plain_ser", "simd_par", "simd_plain_par"]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -308,11 +308,10 @@ def _simd_gather_all(S, grid, row, lip):
     """:func:`_simd_gather` of every particle of the block, four at a time
     (:func:`_gather4`), without marks."""
     W = _STRIDE
+    rows = (_IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W, _R * W)
     ncon = 0
     for q in range(0, LANES, 4):
-        ncon += _gather4(
-            grid, S, q, row, _IDX * W, _TX * W, _TY * W, _D * W, _GX * W, _GY * W, _R * W
-        )
+        ncon += _gather4(grid, S, q, row, rows)
     return ncon, 0
 
 
@@ -347,6 +346,12 @@ def _simd_blend(S, trace, lip):
 def _simd_query(data, x, y):
     """:func:`_query`, compiled once for the fix-up's two call sites (compile time)."""
     return _query(data, x, y)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def _simd_sweep(data, motion, disc, lip, always, t1):
+    """:func:`_sweep` compiled once on its own for :func:`_simd_fix` (compile time)."""
+    return _sweep(data, motion, disc, lip, always, 0.0, t1)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
@@ -386,8 +391,13 @@ def _simd_fix(data, S, lip, always, trace):
             nfrz += 1
             continue
         t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
-        x, y, dx, dy, vx, vy, bounced = _sweep(
-            data, x, y, dx, dy, S[_NVX * W + q], S[_NVY * W + q], r, cr, cf, lip, always, 0.0, t1
+        x, y, dx, dy, vx, vy, bounced = _simd_sweep(
+            data,
+            Motion(x, y, dx, dy, S[_NVX * W + q], S[_NVY * W + q]),
+            Disc(r, cr, cf),
+            lip,
+            always,
+            t1,
         )
         if bounced:
             d, gx, gy = _simd_query(data, x + dx, y + dy)
@@ -517,12 +527,17 @@ def _simd_flags(S, FLAGS, b0, nb):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _block_simd(data, lo, hi, steps, state, physics, budget):
+def _block_simd(data, lo, hi, steps, state, physics, budget, skipping):
     """:func:`_block` for a static grid world (``GRID_SIMD``) without resting contact or
     Python forces, the same results: ``LANES`` particles at a time through all steps, each
     step in passes over the block (:func:`_simd_move`, :func:`_simd_gather`,
     :func:`_simd_blend`, :func:`_simd_fix`, :func:`_simd_respond`); a step in which no
-    particle of the block needs a query is the first pass alone."""
+    particle of the block needs a query is the first pass alone.
+
+    ``skipping``: a compile-time flag by type, ``True`` for calls with free-flight query
+    skipping (``budget.skip``), ``None`` for calls without (numba prunes ``skipping is None``
+    before compiling), so that each of the two entry points compiles only the passes it
+    runs."""
     X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
     dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
     trace, lip, margin, eps, skip = budget
@@ -552,29 +567,36 @@ def _block_simd(data, lo, hi, steps, state, physics, budget):
         nb = min(hi, b0 + LANES) - b0
         bad += _simd_load(S, state, b0, nb, use_m)
         for step in range(steps):
-            if skip or fbchk:
-                nneed, nfrz, nout = _simd_move_budget(S, step, own, budget, fbchk, b, g)
-            else:
-                nneed, nfrz, nout = _simd_move_plain(S, step, own, budget, fbchk, b, g)
-            if nneed > 0:
-                if skip or trace:
-                    ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
+            if skipping is None:
+                if fbchk:
+                    nneed, nfrz, nout = _simd_move_budget(S, step, own, budget, fbchk, b, g)
                 else:
-                    ncon, nfix = _simd_gather_all(S, grid, row, lip)
-                    # (a query outside an 'exact' grid needs the exact value)
-                    if GRID_EXACT and nout > 0:
-                        nfix = _simd_blend(S, trace, lip)
+                    nneed, nfrz, nout = _simd_move_plain(S, step, own, budget, fbchk, b, g)
+            else:
+                nneed, nfrz, nout = _simd_move_budget(S, step, own, budget, fbchk, b, g)
+            if nneed > 0:
+                if skipping is None:
+                    if trace:
+                        ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
+                    else:
+                        ncon, nfix = _simd_gather_all(S, grid, row, lip)
+                        # (a query outside an 'exact' grid needs the exact value)
+                        if GRID_EXACT and nout > 0:
+                            nfix = _simd_blend(S, trace, lip)
+                else:
+                    ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
                 if nfix > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
                     ncon = 1
-                if ncon > 0 and skip:
-                    nfrz += _simd_respond_all(S, always, skip, lip, margin)
-                elif skip:
-                    nfrz += _simd_respond_none(S, always, skip, lip, margin)
+                if skipping is None:
+                    if ncon > 0:
+                        nfrz += _simd_respond_all_plain(S, always, skip, lip, margin)
+                    else:
+                        nfrz += _simd_respond_none_plain(S, always, skip, lip, margin)
                 elif ncon > 0:
-                    nfrz += _simd_respond_all_plain(S, always, skip, lip, margin)
+                    nfrz += _simd_respond_all(S, always, skip, lip, margin)
                 else:
-                    nfrz += _simd_respond_none_plain(S, always, skip, lip, margin)
+                    nfrz += _simd_respond_none(S, always, skip, lip, margin)
             else:
                 _simd_commit(S)
             if nfrz > 0:
@@ -583,27 +605,51 @@ def _block_simd(data, lo, hi, steps, state, physics, budget):
     return bad
 
 
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def simd_ser(data, state, physics, budget, steps, block):
+    """:func:`run_ser` for a static grid world (``GRID_SIMD``), float64 state, without
+    resting contact (``physics.rest`` 0) or Python forces (``physics.use_ext`` False), with
+    free-flight query skipping (``budget.skip``): the same results through
+    :func:`_block_simd`. A separate entry point, compiled only when first used."""
+    n = state.X.shape[0]
+    bad = 0
+    for lo in range(0, n, block):
+        bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget, True)
+    return bad
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
+def simd_plain_ser(data, state, physics, budget, steps, block):
+    """:func:`simd_ser` for calls without query skipping (``budget.skip`` False; the peers'
+    work): its own passes, compiled only when first used."""
+    n = state.X.shape[0]
+    bad = 0
+    for lo in range(0, n, block):
+        bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget, None)
+    return bad
+
+
 @njit(cache=_CACHE, parallel=True, error_model="numpy")
 def simd_par(data, state, physics, budget, steps, block):
-    """:func:`run_par` for a static grid world (``GRID_SIMD``), float64 state, without
-    resting contact (``physics.rest`` 0) or Python forces (``physics.use_ext`` False): the
-    same results through :func:`_block_simd`. A separate entry point, compiled only when
-    first used."""
+    """:func:`simd_ser` with the blocks over numba's threads, for long calls."""
     n = state.X.shape[0]
     nblocks = (n + block - 1) // block
     bad = 0
     for c in prange(nblocks):
         lo = c * block
         hi = min(n, lo + block)
-        bad += _block_simd(data, lo, hi, steps, state, physics, budget)
+        bad += _block_simd(data, lo, hi, steps, state, physics, budget, True)
     return bad
 
 
-@njit(cache=_CACHE, error_model="numpy")
-def simd_ser(data, state, physics, budget, steps, block):
-    """Serial :func:`simd_par`."""
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def simd_plain_par(data, state, physics, budget, steps, block):
+    """:func:`simd_plain_ser` with the blocks over numba's threads, for long calls."""
     n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
     bad = 0
-    for lo in range(0, n, block):
-        bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget)
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_simd(data, lo, hi, steps, state, physics, budget, None)
     return bad

@@ -1,5 +1,7 @@
 """The named structures a step kernel takes: the particles' arrays (:class:`State`), the physics
-of a call (:class:`Physics`) and the safety and skipping settings (:class:`Budget`).
+of a call (:class:`Physics`) and the safety and skipping settings (:class:`Budget`); and those
+of one particle's contact helpers: its step (:class:`Motion`), its disc (:class:`Disc`) and the
+part of the step a tunnelling sweep checks (:class:`Window`).
 
 They are ``typing.NamedTuple`` classes, which numba compiles as structs: a kernel reads
 ``physics.dt`` as it read a positional argument, and a new value never recompiles. Generated
@@ -12,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["State", "Physics", "Budget", "NO_EXT"]
+__all__ = ["State", "Physics", "Budget", "Motion", "Disc", "Window", "NO_EXT"]
 
 #: ``State.EXT`` of a call without Python forces.
 NO_EXT = np.zeros((0, 2))
@@ -68,3 +70,35 @@ class Budget(NamedTuple):
     margin: float
     eps: float
     skip: bool
+
+
+class Motion(NamedTuple):
+    """One particle's step: start ``(x, y)``, displacement ``(dx, dy)`` and velocity
+    ``(vx, vy)``."""
+
+    x: float
+    y: float
+    dx: float
+    dy: float
+    vx: float
+    vy: float
+
+
+class Disc(NamedTuple):
+    """One particle's radius ``r`` and its restitution ``cr`` and friction ``cf``."""
+
+    r: float
+    cr: float
+    cf: float
+
+
+class Window(NamedTuple):
+    """The part of a step a sweep checks: the step's parameters below ``t0`` and above ``t1``
+    are known to be free; meanwhile time runs from ``ts`` over ``tdt`` and the walls move at
+    most ``wd`` (0, 0, 0 in a static world)."""
+
+    t0: float
+    t1: float
+    ts: float
+    tdt: float
+    wd: float

@@ -5,6 +5,7 @@ import math
 
 from numba import njit
 
+from fastsdf.particles.kernels.config import Window
 from fastsdf.particles.kernels.constants import (
     CONTACT_TOL,
     MAX_BOUNCES,
@@ -23,11 +24,12 @@ __all__ = ["march", "sweep"]
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
+def _respond(x, y, vx, vy, s, grad, cr, cf, always):
     """Collision response of a disc whose surface distance is ``s = d - r <= 0`` (House and
     Keyser): ``x -= (1 + cr) s n`` and, when approaching (``v . n < 0``) or ``always``,
-    ``v = -cr v_n + (1 - cf) v_t``, with ``n = grad / |grad|``. A zero or non-finite gradient
-    (a ridge of a grid) gives no direction: the state is returned unchanged.
+    ``v = -cr v_n + (1 - cf) v_t``, with ``n = grad / |grad|`` (``grad``: ``(dd/dx, dd/dy,
+    dd/dt)`` of the world at the disc, ``dd/dt`` 0 for a static world). A zero or non-finite
+    gradient (a ridge of a grid) gives no direction: the state is returned unchanged.
 
     Written with selects rather than branches, so that a block of particles can share one
     instruction stream.
@@ -35,6 +37,7 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
     A moving wall (``gt = dd/dt``) has normal speed ``w = -gt / |grad|``: the relative normal
     velocity ``v_n - w`` is what approaches and reflects (``v_n -> w - cr (v_n - w)``).
     """
+    gx, gy, gt = grad
     gl2 = gx * gx + gy * gy
     ok = gl2 > 0.0 and gl2 < math.inf
     inv = 1.0 / math.sqrt(gl2) if ok else 0.0
@@ -55,13 +58,13 @@ def _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, gt=0.0):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def march(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
+def march(data, x0, y0, dx, dy, r, lip, window):
     """Conservative advancement of a disc of radius r from (x0, y0) along (dx, dy), in
-    space-time: time runs from ``ts`` over ``tdt`` meanwhile, and ``wd = W tdt`` bounds how
-    far the surfaces move (a static world, ``MOVING`` False, is the case ``wd = 0``, ``dd/dt =
-    0``, specialised when the kernel compiles).
+    space-time (:class:`.config.Window`): time runs from ``ts`` over ``tdt`` meanwhile, and
+    ``wd = W tdt`` bounds how far the surfaces move (a static world, ``MOVING`` False, is the
+    case ``wd = 0``, ``dd/dt = 0``, specialised when the kernel compiles).
 
-    The parts of the segment with parameter below ``t`` and above ``t_free`` are already known
+    The parts of the segment with parameter below ``t0`` and above ``t1`` are already known
     to be free. Along the path the distance changes at most at the rate ``lip |D| + wd`` per
     unit of the parameter, which sets the sphere-tracing step; a contact approaches when ``d``
     decreases along the path (``grad . D + dd/dt tdt < 0``). Returns (t, hit, s, nx, ny, wn):
@@ -69,6 +72,7 @@ def march(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
     normal n, the wall's normal speed ``wn`` there), 0 for a free path to t = 1, 2 when the
     iteration limit stopped it at t (a safe point, short of any contact).
     """
+    t, t_free, ts, tdt, wd = window
     length = math.sqrt(dx * dx + dy * dy)
     if MOVING:
         length += wd / lip  # distance-equivalent length of the step
@@ -109,9 +113,11 @@ def march(data, x0, y0, dx, dy, r, lip, t, t_free, ts, tdt, wd):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt, wd):
-    """Tunnelling check of one step: sweep the disc from (x, y) along (dx, dy) while time runs
-    from ``ts`` over ``tdt`` (see :func:`march`; ``wd``: how far the walls move meanwhile).
+def sweep(data, motion, disc, lip, always, window):
+    """Tunnelling check of one step: sweep the disc ``disc`` (:class:`.config.Disc`) from
+    (x, y) along (dx, dy) with velocity (vx, vy) (``motion``, :class:`.config.Motion`) while
+    time runs from ``ts`` over ``tdt`` (``window``, :class:`.config.Window`, see
+    :func:`march`; ``wd``: how far the walls move meanwhile).
 
     ``t0``, ``t1``: the step's parameters below and above which it is already known to be
     free (from the start's and the end's distance budgets). At a contact the remaining
@@ -122,9 +128,12 @@ def sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt, w
     contact was met (then the displacement and velocity have been reflected) or the end point
     moved for another reason.
     """
+    x, y, dx, dy, vx, vy = motion
+    r, cr, cf = disc
+    t0, t1, ts, tdt, wd = window
     bounced = False
     for b in range(MAX_BOUNCES):
-        t, hit, s, nx, ny, wn = march(data, x, y, dx, dy, r, lip, t0, t1, ts, tdt, wd)
+        t, hit, s, nx, ny, wn = march(data, x, y, dx, dy, r, lip, Window(t0, t1, ts, tdt, wd))
         t0 = 0.0
         t1 = 1.0
         if hit == 0:
@@ -188,13 +197,13 @@ def sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, ts, tdt, w
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _march(data, x0, y0, dx, dy, r, lip, t, t_free):
     """:func:`march` in a world held still: returns (t, hit, s, nx, ny)."""
-    return march(data, x0, y0, dx, dy, r, lip, t, t_free, 0.0, 0.0, 0.0)[:5]
+    return march(data, x0, y0, dx, dy, r, lip, Window(t, t_free, 0.0, 0.0, 0.0))[:5]
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1):
+def _sweep(data, motion, disc, lip, always, t0, t1):
     """:func:`sweep` in a world held still."""
-    return sweep(data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, t0, t1, 0.0, 0.0, 0.0)
+    return sweep(data, motion, disc, lip, always, Window(t0, t1, 0.0, 0.0, 0.0))
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")

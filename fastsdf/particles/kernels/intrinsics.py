@@ -180,20 +180,24 @@ def _cell_vg(typingctx, grid, a, c, tx, ty):
 
 
 @intrinsic
-def _gather4(typingctx, grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_at, r_at):
-    """:func:`_cell_vg` for the four particles ``q .. q + 3`` of a block: their flat indices
-    (int64 bits in ``S[idx_at + q:]``), fractions (``tx_at``, ``ty_at``) in, the values and
-    gradients out as three vector stores into ``S[d_at + q:]``, ``gx_at``, ``gy_at`` (the
-    four results transposed in registers; a scalar store per value would make the store
-    port the bottleneck). Returns how many of the four have ``d <= S[r_at + q]``."""
+def _gather4(typingctx, grid, S, q, row, rows):
+    """:func:`_cell_vg` for the four particles ``q .. q + 3`` of a block. ``rows``: the
+    offsets in ``S`` of seven rows ``(idx_at, tx_at, ty_at, d_at, gx_at, gy_at, r_at)``: their
+    flat indices (int64 bits in ``S[idx_at + q:]``), fractions (``tx_at``, ``ty_at``) in, the
+    values and gradients out as three vector stores into ``S[d_at + q:]``, ``gx_at``,
+    ``gy_at`` (the four results transposed in registers; a scalar store per value would make
+    the store port the bottleneck). Returns how many of the four have ``d <= S[r_at + q]``."""
     if not (
         isinstance(grid, types.Array)
         and grid.dtype in (types.float64, types.float32)
         and isinstance(S, types.Array)
         and S.dtype == types.float64
+        and isinstance(rows, types.UniTuple)
+        and rows.count == 7
+        and isinstance(rows.dtype, types.Integer)
     ):
         return None
-    sig = types.int64(grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_at, r_at)
+    sig = types.int64(grid, S, q, row, rows)
 
     def codegen(context, builder, signature, args):
         gty = signature.args[0]
@@ -207,7 +211,13 @@ def _gather4(typingctx, grid, S, q, row, idx_at, tx_at, ty_at, d_at, gx_at, gy_a
         intp = context.get_value_type(types.intp)
 
         def idx(k):
-            return context.cast(builder, args[k], signature.args[k], types.intp)
+            """Argument ``k`` as an index; 4 and on: the offsets in ``rows``."""
+            if k < 4:
+                return context.cast(builder, args[k], signature.args[k], types.intp)
+            rty = signature.args[4]
+            return context.cast(
+                builder, builder.extract_value(args[4], k - 4), rty.dtype, types.intp
+            )
 
         qi = idx(2)
         rowi = idx(3)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from fastsdf.particles.kernels.config import Physics, State
+from fastsdf.particles.kernels.config import Disc, Motion, Physics, State, Window
 from fastsdf.particles.kernels.constants import (
     ASLEEP,
     CONTACT_TOL,
@@ -33,10 +33,10 @@ from fastsdf.particles.kernels.scene import (
 
 __all__ = [
     "PLAIN_BATCH",
-    "run_par",
     "run_ser",
-    "plain_par",
     "plain_ser",
+    "run_par",
+    "plain_par",
     "query_many",
     "force_many",
 ]
@@ -149,11 +149,19 @@ def _forces_ahead(Xf, Vf, M, clear, lo, j0, j1, fbuf, t):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _accel(i, k, x, y, vx, vy, t, M, EXT, inv_mass, fbuf, q, ax, ay, drag, use_m, use_ext):
+def _accel(i, k, q, x, y, vx, vy, t, physics, arrays):
     """Acceleration ``g + (F_user + ext - drag v) / m`` of particle ``i`` (``k`` in its
-    block); ``q``: its row of ``fbuf`` when the user forces were evaluated ahead. Callers pass
-    ``M``, ``EXT`` and ``inv_mass`` through :func:`borrow_all`: arrays read only in these
-    branches would keep numba's reference counting (atomics) in the particle loop."""
+    block) at time ``t`` with ``physics`` (:class:`.config.Physics`, whose ``use_m`` includes
+    the fused user forces); ``arrays``: ``(M, EXT, inv_mass, fbuf)``, ``q``: the particle's
+    row of ``fbuf`` when the user forces were evaluated ahead. Callers pass ``M``, ``EXT`` and
+    ``inv_mass`` through :func:`borrow_all`: arrays read only in these branches would keep
+    numba's reference counting (atomics) in the particle loop."""
+    M, EXT, inv_mass, fbuf = arrays
+    ax = physics.ax
+    ay = physics.ay
+    drag = physics.drag
+    use_m = physics.use_m
+    use_ext = physics.use_ext
     bx = ax
     by = ay
     if use_m:
@@ -217,6 +225,7 @@ def _block(data, lo, hi, steps, state, physics, budget):
     # world, and far from every moving wall).
     wd = 0.0
     use_m = use_m or USE_FORCE
+    own = Physics(dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest)
     # 1 / m of the block, computed once per call rather than divided every step
     inv_mass = np.empty(hi - lo if use_m else 0)
     fbuf = np.empty((FORCE_BATCH if USE_FORCE and FORCE_AHEAD else 0, 2))
@@ -239,23 +248,7 @@ def _block(data, lo, hi, steps, state, physics, budget):
             vx0 = vx
             vy0 = vy
             bx, by = _accel(
-                i,
-                k,
-                x,
-                y,
-                vx,
-                vy,
-                t,
-                M,
-                EXT,
-                borrow_all(inv_mass),
-                fbuf,
-                k % FORCE_BATCH,
-                ax,
-                ay,
-                drag,
-                use_m,
-                use_ext,
+                i, k, k % FORCE_BATCH, x, y, vx, vy, t, own, (M, EXT, borrow_all(inv_mass), fbuf)
             )
             dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
             if MOVING:
@@ -310,7 +303,12 @@ def _block(data, lo, hi, steps, state, physics, budget):
                     if s > 0.0:
                         t1 = 1.0 - s / (lip * (ln if MOVING else math.sqrt(dd)))
                     x, y, dx, dy, vx, vy, bounced = sweep(
-                        data, x, y, dx, dy, vx, vy, r, cr, cf, lip, always, 0.0, t1, t, dt, wd
+                        data,
+                        Motion(x, y, dx, dy, vx, vy),
+                        Disc(r, cr, cf),
+                        lip,
+                        always,
+                        Window(0.0, t1, t, dt, wd),
                     )
                     if bounced:
                         d, gx, gy, gt = _query_t(data, x + dx, y + dy, t + dt)
@@ -330,7 +328,7 @@ def _block(data, lo, hi, steps, state, physics, budget):
                     vy = 0.0
                 else:
                     x, y, vx, vy = _respond(
-                        x, y, vx, vy, s, gx, gy, cr, cf, always and not bounced, gt
+                        x, y, vx, vy, s, (gx, gy, gt), cr, cf, always and not bounced
                     )
             elif skip and s > margin:
                 clear[k] = (s - margin) / lip * (1.0 - 1e-9)
@@ -365,23 +363,7 @@ def _plain_straight(data, lo, hi, step, t, state, physics, work):
         u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
         r = float(R[u])
         bx, by = _accel(
-            i,
-            k,
-            x,
-            y,
-            vx,
-            vy,
-            t,
-            M,
-            EXT,
-            borrow_all(inv_mass),
-            fbuf,
-            k % FORCE_BATCH,
-            ax,
-            ay,
-            drag,
-            use_m,
-            use_ext,
+            i, k, k % FORCE_BATCH, x, y, vx, vy, t, physics, (M, EXT, borrow_all(inv_mass), fbuf)
         )
         dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
         if _fallback_missing(data, x, y, dx, dy):
@@ -397,7 +379,7 @@ def _plain_straight(data, lo, hi, step, t, state, physics, work):
             if not ok:
                 bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                 continue
-            x, y, vx, vy = _respond(x, y, vx, vy, s, gx, gy, cr, cf, always, 0.0)
+            x, y, vx, vy = _respond(x, y, vx, vy, s, (gx, gy, 0.0), cr, cf, always)
         if not _finite4(x, y, vx, vy):
             bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
             continue
@@ -432,25 +414,7 @@ def _plain_staged(data, lo, hi, step, t, state, physics, work):
             if clear[k] < 0.0:
                 continue
             u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
-            bx, by = _accel(
-                i,
-                k,
-                x,
-                y,
-                vx,
-                vy,
-                t,
-                M,
-                EXT,
-                borrow_all(inv_mass),
-                fbuf,
-                q,
-                ax,
-                ay,
-                drag,
-                use_m,
-                use_ext,
-            )
+            bx, by = _accel(i, k, q, x, y, vx, vy, t, physics, (M, EXT, borrow_all(inv_mass), fbuf))
             dx, dy, vx, vy = _integrate(vx, vy, bx, by, dt, explicit)
             if _fallback_missing(data, x, y, dx, dy):
                 bad += _freeze(clear, FLAGS, k, u, FLAG_RESUME + step)
@@ -480,7 +444,7 @@ def _plain_staged(data, lo, hi, step, t, state, physics, work):
                 if not ok:
                     bad += _freeze(clear, FLAGS, k, u, FLAG_COEFF)
                     continue
-                x, y, vx, vy = _respond(x, y, vx, vy, s, sb[5, q], sb[6, q], cr, cf, always, 0.0)
+                x, y, vx, vy = _respond(x, y, vx, vy, s, (sb[5, q], sb[6, q], 0.0), cr, cf, always)
             if not _finite4(x, y, vx, vy):
                 bad += _freeze(clear, FLAGS, k, u, FLAG_NONFINITE)
                 continue
@@ -555,24 +519,13 @@ def _block_plain(data, lo, hi, steps, state, physics):
     return bad
 
 
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def run_par(data, state, physics, budget, steps, block):
-    """Parallel kernel: ``steps`` steps of the particles of ``state`` (:class:`.config.State`)
-    with ``physics`` and ``budget`` (:class:`.config.Physics`, :class:`.config.Budget`) in the
-    world ``data``, blocks of ``block`` particles over threads. Returns the frozen count."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block(data, lo, hi, steps, state, physics, budget)
-    return bad
-
-
-@njit(cache=_CACHE, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
 def run_ser(data, state, physics, budget, steps, block):
-    """Serial kernel (small n). Returns the frozen count."""
+    """The general kernel: ``steps`` steps of the particles of ``state``
+    (:class:`.config.State`) with ``physics`` and ``budget`` (:class:`.config.Physics`,
+    :class:`.config.Budget`) in the world ``data``, in blocks of ``block`` particles. Returns
+    the frozen count. It releases the GIL: the caller runs slices of the particles on several
+    threads (particles are independent, so the results do not depend on the slicing)."""
     n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
@@ -580,26 +533,12 @@ def run_ser(data, state, physics, budget, steps, block):
     return bad
 
 
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def plain_par(data, state, physics, budget, steps, block):
-    """:func:`run_par` for calls without query skipping, tunnelling check, moving world or
-    resting contact (``budget.skip``, ``budget.trace`` False, ``physics.rest`` 0; the rest of
-    ``budget`` is unused): the same
-    results through :func:`_block_plain`. A separate entry point, compiled only when first
-    used."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block_plain(data, lo, hi, steps, state, physics)
-    return bad
-
-
-@njit(cache=_CACHE, error_model="numpy")
+@njit(cache=_CACHE, nogil=True, error_model="numpy")
 def plain_ser(data, state, physics, budget, steps, block):
-    """Serial :func:`plain_par`."""
+    """:func:`run_ser` for calls without query skipping, tunnelling check, moving world or
+    resting contact (``budget.skip``, ``budget.trace`` False, ``physics.rest`` 0; the rest of
+    ``budget`` is unused): the same results through :func:`_block_plain`. A separate entry
+    point, compiled only when first used."""
     n = state.X.shape[0]
     bad = 0
     for lo in range(0, n, block):
@@ -624,3 +563,31 @@ def force_many(xs, ys, vxs, vys, ms, t, out):
         fx, fy = _force(xs[i], ys[i], vxs[i], vys[i], ms[i], t)
         out[i, 0] = fx
         out[i, 1] = fy
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def run_par(data, state, physics, budget, steps, block):
+    """:func:`run_ser` with the blocks over numba's threads (``parallel=True``), for long
+    calls (see :meth:`fastsdf.particles.ParticleSimulation.run`); compiled only when first
+    used. Returns the frozen count."""
+    n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block(data, lo, hi, steps, state, physics, budget)
+    return bad
+
+
+@njit(cache=_CACHE, parallel=True, error_model="numpy")
+def plain_par(data, state, physics, budget, steps, block):
+    """:func:`plain_ser` with the blocks over numba's threads, for long calls."""
+    n = state.X.shape[0]
+    nblocks = (n + block - 1) // block
+    bad = 0
+    for c in prange(nblocks):
+        lo = c * block
+        hi = min(n, lo + block)
+        bad += _block_plain(data, lo, hi, steps, state, physics)
+    return bad
