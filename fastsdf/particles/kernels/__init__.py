@@ -158,6 +158,8 @@ from types import ModuleType
 from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
 from fastsdf.particles.kernels.block import (
     LANES,
+    simd_par,
+    simd_plain_par,
     simd_plain_ser,
     simd_ser,
 )
