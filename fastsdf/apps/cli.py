@@ -77,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=sorted(WORLDS),
         default="seed",
         help="'seed': the funnel and a cut disc (cell 21), the scene of the "
-        "README's headline figures; 'boxes': the notebook's final world, the "
+        "headline figures (README, docs/performance.md); 'boxes': the notebook's final world, the "
         "funnel and 20 random boxes (cell 13), slower: its exact SDF, which "
         "answers queries outside the grid, costs over 100 grid queries "
         "(default: seed)",

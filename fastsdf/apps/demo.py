@@ -2,7 +2,8 @@
 
 ``fastsdf demo`` (and ``make demo``) runs :func:`run_demo`: it builds a world (``'boxes'``, the
 notebook's final world: the funnel and 20 random rotated boxes under smoothness 5, cell 13; or
-``'seed'``, the funnel and a cut disc of cell 21, the scene of the README's headline figures),
+``'seed'``, the funnel and a cut disc of cell 21, the scene of the headline figures in the
+README and docs/performance.md),
 samples it into a :class:`fastsdf.GridSDF` (or queries it exactly), spawns particles in free
 space, lets them fall under gravity with the fused particle step, and writes a video (MP4 with
 the ``video`` extra or a system ffmpeg, GIF otherwise) and a PNG of the last frame. It reports
@@ -84,7 +85,7 @@ WORLDS: dict[str, tuple[Callable[[], Any], str]] = {
     "seed": (
         _seed,
         "the seed world (cell 21): the funnel and a cut disc, smoothness 10; the "
-        "scene of the README's headline figures",
+        "scene of the headline figures (README, docs/performance.md)",
     ),
 }
 

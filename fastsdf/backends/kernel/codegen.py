@@ -1,6 +1,6 @@
 """Code generation: an expression DAG becomes Python source that numba compiles.
 
-Design (see the README's design section for the measurements behind it):
+Design (docs/codegen.md and docs/design.md give the measurements behind it):
 
 * The DAG is flattened into a tape of SSA assignments, one per reachable node, so shared
   subexpressions are computed once and unreachable nodes never appear. Gradients are carried in
