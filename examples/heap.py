@@ -103,7 +103,7 @@ def pour(grains: int, law: ContactLaw, seed: int = 0, time_limit: float = 200.0)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").strip().split("\n")[0])
     ap.add_argument("out", nargs="?", default=".")
     small = os.environ.get("FASTSDF_EXAMPLE_SMALL") == "1"
     ap.add_argument("--grains", type=int, default=150 if small else 400)

@@ -244,7 +244,7 @@ def main(out: str = OUT, small: bool = False) -> list[str]:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").strip().split("\n")[0])
     parser.add_argument("out", nargs="?", default=OUT, help="output folder (default docs/images)")
     parser.add_argument("--small", action="store_true", help="small simulations (tests)")
     args = parser.parse_args()

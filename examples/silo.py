@@ -43,7 +43,7 @@ def silo(slot: float) -> fs.SDF:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").strip().split("\n")[0])
     ap.add_argument("out", nargs="?", default=".")
     small = os.environ.get("FASTSDF_EXAMPLE_SMALL") == "1"
     ap.add_argument("--grains", type=int, default=300 if small else 800)
