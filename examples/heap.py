@@ -1,4 +1,5 @@
 """Grains pour from a hopper onto a floor and build a heap that keeps its slope.
+=============================================================================
 
     python examples/heap.py [OUT] [--grains 400] [--friction 0.5] [--rolling 0.3]
 

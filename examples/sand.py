@@ -1,4 +1,5 @@
 """Sand in the notebook's world: grains that collide with each other as well as with the world.
+============================================================================================
 
     python examples/sand.py [OUT]        # OUT/sand.png and OUT/sand.mp4 (.gif without ffmpeg)
 

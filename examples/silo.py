@@ -1,4 +1,5 @@
 """A silo drains through a slot in its floor; the flow rate is measured and printed.
+=================================================================================
 
     python examples/silo.py [OUT] [--grains 800] [--slot 6]
 
