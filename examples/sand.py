@@ -80,4 +80,4 @@ def main(out: str = "examples-out", n: int = 1200, frames: int = 60) -> str:
 
 if __name__ == "__main__":
     small = os.environ.get("FASTSDF_EXAMPLE_SMALL") == "1"
-    main(*sys.argv[1:], **({"n": 64, "frames": 3} if small else {}))
+    main(*sys.argv[1:], **({"n": 192, "frames": 45} if small else {}))
