@@ -11,8 +11,9 @@ diameters wide (narrower ones jam: grains with rolling resistance arch like sand
 the middle of a rough floor. The contact law keeps a tangential spring per contact
 (``history=True``: static friction, Cundall-Strack) and rolling resistance
 (``rolling_friction``): without them discs roll away and the heap flattens. The angle of
-repose is measured by a straight-line fit to each flank of the heap's surface (the highest
-grain in each bin of one diameter, between 20% and 80% of the heap's height) and printed.
+repose is measured by ``fastsdf.granular.repose_angle`` (a straight-line fit to each flank of
+the heap's surface: the highest grain in each bin of one diameter, between 20% and 80% of the
+heap's height) and printed.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numba
 import numpy as np
 
 import fastsdf as fs
-from fastsdf.granular import ContactLaw, GranularSimulation
+from fastsdf.granular import ContactLaw, GranularSimulation, repose_angle
 from fastsdf.shapes import union
 
 
@@ -41,35 +42,6 @@ def hopper(outlet_y: float, outlet: float = 8.0) -> fs.SDF:
             fs.Capsule((half, outlet_y), (half + 12.0, outlet_y + 12.0), 0.5),
         ]
     )
-
-
-def repose_angle(positions: np.ndarray, radius: np.ndarray) -> tuple:
-    """The heap's slope (degrees) on its left and right flanks, and the two fitted lines
-    ``(slope, intercept)``: the surface is the top (``y + R``) of the highest grain in each bin
-    one diameter wide; each flank's points between 20% and 80% of the heap's height get a
-    least-squares line (NaN where a flank has fewer than 3 such points)."""
-    x, top = positions[:, 0], positions[:, 1] + radius
-    bins = np.floor(x / 1.0).astype(int)
-    xs, hs = [], []
-    for b in np.unique(bins):
-        sel = bins == b
-        xs.append(float(x[sel].mean()))
-        hs.append(float(top[sel].max()))
-    xs, hs = np.array(xs), np.array(hs)
-    peak = hs.max()
-    apex = xs[np.argmax(hs)]
-    band = (hs > 0.2 * peak) & (hs < 0.8 * peak)
-    angles, lines = [], []
-    for side in (xs < apex, xs > apex):
-        sel = band & side
-        if sel.sum() < 3:
-            angles.append(math.nan)
-            lines.append((math.nan, math.nan))
-            continue
-        slope, intercept = np.polyfit(xs[sel], hs[sel], 1)
-        angles.append(math.degrees(math.atan(abs(slope))))
-        lines.append((float(slope), float(intercept)))
-    return angles[0], angles[1], lines
 
 
 def pour(grains: int, law: ContactLaw, seed: int = 0, time_limit: float = 200.0):
@@ -122,7 +94,8 @@ def main() -> None:
     )
     t0 = time.perf_counter()
     sim = pour(a.grains, law)
-    left, right, lines = repose_angle(sim.positions, sim.radius)
+    # the floor is at y = 0; bins one mean diameter (1) wide
+    left, right, lines = repose_angle(sim.positions, sim.radius, floor=0.0, bin_width=1.0)
     print(
         f"{a.grains} grains, mu = {a.friction}, mu_r = {a.rolling}: angle of repose "
         f"{left:.1f} (left) and {right:.1f} (right) degrees, mean {(left + right) / 2:.1f}; "

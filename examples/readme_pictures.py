@@ -113,7 +113,7 @@ def pour(small: bool) -> tuple:
         xy,
         r,
         world=f,
-        contact=ContactLaw(stiffness=stiffness),
+        contact=ContactLaw(stiffness=stiffness, history=True, rolling_friction=0.3),
         gravity=(0.0, -1.0),
         timestep=1 / 30,
     )
@@ -153,8 +153,8 @@ def picture_grains(out: str, f, states) -> None:
         _grains(ax, x, r, speed)
         ax.set_title(f"frame {k} (t = {k / 30:.1f} s)")
     fig.suptitle(
-        f"{len(states[0][1]):,} grains poured into the funnel: they collide with each "
-        "other and heap (lighter = faster)"
+        f"{len(states[0][1]):,} grains poured into the funnel collide, stick and heap "
+        "on the disc (lighter = faster)"
     )
     fig.tight_layout()
     fig.savefig(os.path.join(out, "readme_grains.png"))

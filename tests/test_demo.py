@@ -1,6 +1,7 @@
 """The main job: the CLI, the demo end to end at small size, and the examples (the notebook:
 test_notebook.py)."""
 
+import math
 import os
 import subprocess
 import sys
@@ -281,13 +282,70 @@ def test_sand_scene_pours_grains_and_draws_them(tmp_path):
     # the stiffness derived for the 4-high world keeps the step count at the library's scale
     assert res.substeps_per_step <= 1500
     assert res.max_overlap < 0.05 and res.max_wall_overlap < 0.05
+    assert res.history and res.rolling_friction == 0.3  # the law that heaps, by default
     text = sand_summary(res)
-    for needle in ("96 grains", "substeps per 1/30 s step", "15 steps", "largest overlap"):
+    for needle in (
+        "96 grains",
+        "substeps per 1/30 s step",
+        "15 steps",
+        "largest overlap",
+        "ContactLaw(history=True, rolling_friction=0.3)",
+        "angle of repose: ",
+    ):
         assert needle in text, needle
+    # the angle printed is the one measured (or says why there is none)
+    for angle, side in ((res.repose_left, "left"), (res.repose_right, "right")):
+        assert np.isnan(angle) or 0.0 <= angle <= 90.0
+        if np.isfinite(angle):
+            assert f"{angle:.1f} ({side})" in text
     # grains are drawn: orange discs (PARTICLE_COLOR at alpha 0.8 over the light background)
     img = imread(res.last_frame)[..., :3]
     orange = _hex(PARTICLE_COLOR) * 0.8 + img[5, 5] * 0.2  # a corner: background
     assert np.all(np.abs(img - orange) < 0.1, axis=-1).sum() > 50
+
+
+def test_sand_summary_prints_the_measured_angle_and_the_law():
+    from dataclasses import replace
+
+    from fastsdf.apps.demo import SandResult, sand_summary
+
+    res = SandResult(
+        world="seed",
+        grains=10,
+        radius=0.02,
+        steps=2,
+        timestep=1 / 30,
+        sdf="a 50x50 GridSDF",
+        stiffness=3000.0,
+        substeps_per_step=900,
+        first_step_seconds=0.5,
+        sim_seconds=0.1,
+        grain_substeps_per_second=1e5,
+        max_overlap=0.0,
+        max_wall_overlap=0.0,
+        heap_fraction=1.0,
+        heap_top=-1.0,
+        animation=None,
+        last_frame="x.png",
+        repose_left=21.04,
+        repose_right=math.nan,
+    )
+    text = sand_summary(res)
+    assert "angle of repose: 21.0 (left) and nan (right) degrees, mean 21.0" in text
+    assert "ContactLaw(history=True, rolling_friction=0.3) (a tangential spring" in text
+    flat = sand_summary(replace(res, history=False, rolling_friction=0.0, repose_left=math.nan))
+    assert "angle of repose: not measured" in flat and "ContactLaw() (no contact history" in flat
+
+
+def test_no_history_is_for_the_sand_scene_and_refused_with_rolling_friction():
+    res = _cli("demo", "--no-history")
+    assert res.returncode == 2 and "--scene sand only" in res.stderr
+    from fastsdf.apps.demo import run_sand_demo
+
+    with pytest.raises(ValueError, match="rolling_friction needs history=True"):
+        run_sand_demo(history=False, rolling_friction=0.3)
+    with pytest.raises(TypeError, match="history"):
+        run_sand_demo(history="yes")
 
 
 def test_sand_scene_refuses_dask_workers_in_one_line():

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 import fastsdf as fs
 from fastsdf.expr.graph import Param
-from fastsdf.granular import ContactLaw, GranularSimulation
+from fastsdf.granular import ContactLaw, GranularSimulation, repose_angle
 from fastsdf.granular.kernels import _contact_history
 
 
@@ -231,13 +231,13 @@ def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
             stiffness=2e3, restitution=0.3, friction=0.5, history=True, rolling_friction=0.3
         )
         sim = heap.pour(250, law)
-        left, right, _ = heap.repose_angle(sim.positions, sim.radius)
+        left, right, _ = repose_angle(sim.positions, sim.radius, floor=0.0, bin_width=1.0)
         assert 12.0 < (left + right) / 2 < 30.0 and min(left, right) > 8.0
         sim.run(20)
-        left2, right2, _ = heap.repose_angle(sim.positions, sim.radius)
+        left2, right2, _ = repose_angle(sim.positions, sim.radius, floor=0.0, bin_width=1.0)
         assert abs(left2 - left) < 0.5 and abs(right2 - right) < 0.5
         flat = heap.pour(250, law._replace(friction=0.0, rolling_friction=0.0), time_limit=40)
-        angles = heap.repose_angle(flat.positions, flat.radius)[:2]
+        angles = repose_angle(flat.positions, flat.radius, floor=0.0, bin_width=1.0)[:2]
         assert all(not (a >= 3.0) for a in angles)  # NaN: no flank at all
     finally:
         numba.set_num_threads(threads)

@@ -121,6 +121,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_FPS,
         help=f"video frames per second (default {DEFAULT_FPS})",
     )
+    demo.add_argument(
+        "--no-history",
+        action="store_true",
+        help="--scene sand: grains collide by the history-free ContactLaw() (no static "
+        "friction, no rolling resistance: the heap spreads flat) instead of "
+        "ContactLaw(history=True, rolling_friction=0.3), which keeps a slope",
+    )
     demo.add_argument("--no-animation", action="store_true", help="write only the last frame")
     demo.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
     demo.add_argument(
@@ -156,6 +163,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "(--scene sand) would need a halo exchange between shards: run it without "
                 "--workers"
             )
+        if args.no_history and not sand:
+            demo.error(
+                "--no-history chooses the grains' contact law: it applies to --scene sand only"
+            )
         if args.frames > args.steps and not args.no_animation:
             demo.error(
                 f"--frames {args.frames} is more than --steps {args.steps} (every frame "
@@ -181,7 +192,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         sys.stderr.flush()
         if sand:
-            from fastsdf.apps.demo import run_sand_demo, sand_summary
+            from fastsdf.apps.demo import SAND_ROLLING_FRICTION, run_sand_demo, sand_summary
 
             try:
                 sand_res = run_sand_demo(
@@ -195,6 +206,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     fps=args.fps,
                     world=args.world,
                     animate=not args.no_animation,
+                    history=not args.no_history,
+                    rolling_friction=0.0 if args.no_history else SAND_ROLLING_FRICTION,
                 )
             except OSError as exc:
                 demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")

@@ -12,10 +12,12 @@ the share of particle positions outside the grid (whose queries fall back to the
 ``mode='exact'``) and the cost of one exact query against one grid query.
 
 ``fastsdf demo --scene sand`` runs :func:`run_sand_demo` instead: grains that collide with each
-other (``ParticleSimulation(..., contacts=ContactLaw())``) pour from a column above the world
-onto its disc and into the funnel, where they heap up; it writes ``sand.mp4`` and
-``sand_last_frame.png`` and reports the derived contact law, the substeps per step, the rate,
-the heap and the largest overlap.
+other (``ParticleSimulation(..., contacts=ContactLaw(history=True, rolling_friction=0.3))``)
+pour from a column above the world onto its disc and into the funnel, where they heap up and
+keep a slope; it writes ``sand.mp4`` and ``sand_last_frame.png`` and reports the contact law,
+the substeps per step, the rate, the heap, its angle of repose and the largest overlap.
+``--no-history`` pours them with the history-free ``ContactLaw()`` (no static friction: the
+heap spreads flat).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ __all__ = [
     "pouring_column",
     "SAND_GRAINS",
     "SAND_STEPS",
+    "SAND_ROLLING_FRICTION",
     "summary",
     "check_output_dir",
     "spawn_in_free_space",
@@ -61,6 +64,8 @@ VIDEO_SIZE = (640, 560)
 SAND_GRAINS = 2000
 SAND_STEPS = 60
 SAND_RADIUS = 0.02
+#: The sand scene's rolling resistance with contact history (discs hold a slope with it).
+SAND_ROLLING_FRICTION = 0.3
 
 
 def _boxes() -> Any:
@@ -516,7 +521,11 @@ class SandResult:
     grain-world one (a grain in a corner of the world feels only the nearer wall, the SDF's
     nearest surface); ``heap_fraction``: the share of grains in the funnel (below the disc,
     ``y < -0.5``) at the end; ``heap_top``: the highest centre among those at rest there
-    (slower than 0.05 length/s); ``load``: as in :class:`DemoResult`.
+    (slower than 0.05 length/s); ``repose_left`` and ``repose_right``: the angle of repose
+    (degrees) of the heap's flanks, measured on those grains at rest in the funnel by
+    :func:`fastsdf.granular.repose_angle` (NaN where a flank has no slope to fit);
+    ``history`` and ``rolling_friction``: the contact law's; ``load``: as in
+    :class:`DemoResult`.
     """
 
     world: str
@@ -537,6 +546,10 @@ class SandResult:
     animation: str | None
     last_frame: str
     load: tuple[float, float] | None = None
+    history: bool = True
+    rolling_friction: float = SAND_ROLLING_FRICTION
+    repose_left: float = float("nan")
+    repose_right: float = float("nan")
 
     def as_dict(self) -> dict:
         """The fields as a plain dict."""
@@ -585,20 +598,27 @@ def run_sand_demo(
     world: str = "seed",
     radius: float = SAND_RADIUS,
     stream: IO[str] | None = None,
+    history: bool = True,
+    rolling_friction: float = SAND_ROLLING_FRICTION,
 ) -> SandResult:
     """Pour ``grains`` grains of ``radius`` into a notebook world (``world``, a key of
     :data:`WORLDS`) and let them heap up: ``steps`` steps of 1/30 s under g = 9.81, grains
-    colliding with each other and the world (``ParticleSimulation(..., contacts=ContactLaw())``,
-    the stiffness derived from the grains and the world's height, see
-    :class:`fastsdf.granular.ContactLaw`). The world is sampled into a ``grid`` x ``grid``
-    GridSDF over :data:`BOUNDS` (``exact=True``: queried exactly, with the stiffness the grid's
-    height would give). Writes ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without
+    colliding with each other and the world (``ParticleSimulation(..., contacts=
+    ContactLaw(history=True, rolling_friction=rolling_friction))``: a tangential spring per
+    contact, static friction, and rolling resistance, so the heap keeps a slope; ``history=
+    False``: ``ContactLaw()``, history-free, the heap spreads flat; the stiffness derived from
+    the grains and the world's height, see :class:`fastsdf.granular.ContactLaw`). The world
+    is sampled into a ``grid`` x ``grid`` GridSDF over :data:`BOUNDS` (``exact=True``: queried
+    exactly, with the stiffness the grid's height would give). The summary reports the heap's
+    angle of repose (:func:`fastsdf.granular.repose_angle` on the grains at rest in the
+    funnel). Writes ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without
     ffmpeg; ``animate=False`` skips it) and ``out/sand_last_frame.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
 
     from fastsdf.fields.grid import GridSDF
+    from fastsdf.granular.analysis import repose_angle
     from fastsdf.granular.params import ContactLaw, derived_stiffness
     from fastsdf.particles import Gravity, ParticleSimulation
     from fastsdf.viz.frames import VideoWriter
@@ -617,6 +637,17 @@ def run_sand_demo(
         raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
     if not (np.isfinite(radius) and 0 < radius < 0.2):
         raise ValueError(f"radius must be in (0, 0.2), got radius={radius!r}")
+    if not isinstance(history, bool):
+        raise TypeError(f"history must be True or False, got history={history!r}")
+    if not (np.isfinite(rolling_friction) and rolling_friction >= 0):
+        raise ValueError(
+            f"rolling_friction must be >= 0, got rolling_friction={rolling_friction!r}"
+        )
+    if rolling_friction and not history:
+        raise ValueError(
+            f"rolling_friction needs history=True, got rolling_friction={rolling_friction!r} "
+            f"with history=False"
+        )
     grains, steps, frames = int(grains), int(steps), int(frames)
     if animate and frames > steps:
         raise ValueError(
@@ -628,13 +659,14 @@ def run_sand_demo(
     f = WORLDS[world][0]()
     g = 9.81
     height = BOUNDS[1][1] - BOUNDS[1][0]
+    law = ContactLaw(history=history, rolling_friction=float(rolling_friction))
     if exact:
         sdf, sdf_name = f, "the exact compiled SDF (no grid)"
         # The grains' extent would set the derived stiffness: take the pictured world's height.
-        law = ContactLaw(stiffness=derived_stiffness(1.0, g, height))
+        law = law._replace(stiffness=derived_stiffness(1.0, g, height))
     else:
         sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
-        sdf_name, law = f"a {grid}x{grid} GridSDF", ContactLaw()
+        sdf_name = f"a {grid}x{grid} GridSDF"
     rng = np.random.default_rng(seed)
     sim: Any = ParticleSimulation(  # a GrainSimulation
         sdf, positions=pouring_column(grains, radius, rng), radius=radius, contacts=law
@@ -693,6 +725,7 @@ def run_sand_demo(
     )
     heap = x[:, 1] < -0.5
     resting = heap & (np.hypot(*np.asarray(sim.p["v"]).T) < 0.05)
+    repose = repose_angle(x[resting], np.asarray(sim.p["r"])[resting])
     overlap, wall_overlap = _max_overlaps(sim, sdf)
     substeps = sim.substeps_per_frame
     rest = timing["rest"]
@@ -716,7 +749,35 @@ def run_sand_demo(
         animation=animation_path,
         last_frame=last,
         load=_load_pair(timing.get("load0"), _load()),
+        history=history,
+        rolling_friction=float(rolling_friction),
+        repose_left=repose.left,
+        repose_right=repose.right,
     )
+
+
+def _sand_law(res: SandResult) -> str:
+    """The contact law as the user would write it, and what its options do."""
+    if not res.history:
+        return "ContactLaw() (no contact history: no static friction)"
+    law = f"ContactLaw(history=True, rolling_friction={res.rolling_friction:g})"
+    what = "a tangential spring per contact: static friction"
+    if res.rolling_friction:
+        what += "; rolling resistance: discs hold a slope"
+    return f"{law} ({what})"
+
+
+def _repose_line(res: SandResult) -> str:
+    """The heap's angle of repose, or why there is none."""
+    left, right = res.repose_left, res.repose_right
+    where = "the grains at rest in the funnel, a line fitted to each flank of its surface"
+    if np.isfinite(left) or np.isfinite(right):
+        finite = [a for a in (left, right) if np.isfinite(a)]
+        return (
+            f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
+            f"{sum(finite) / len(finite):.1f} ({where})"
+        )
+    return "angle of repose: not measured (the grains at rest in the funnel have no slope to fit)"
 
 
 def sand_summary(res: SandResult) -> str:
@@ -725,8 +786,8 @@ def sand_summary(res: SandResult) -> str:
         f"world: {res.world}, {WORLDS[res.world][1]}; queried through {res.sdf}",
         f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} (a column eight "
         f"grains wide above the world) under g = 9.81",
-        f"contact law: ContactLaw() derived its stiffness {res.stiffness:.4g} from the grains "
-        f"(1% overlap under a column as tall as the world): "
+        f"contact law: {_sand_law(res)} derived its stiffness {res.stiffness:.4g} from the "
+        f"grains (1% overlap under a column as tall as the world): "
         f"{res.substeps_per_step:,} substeps per 1/30 s step",
         f"simulated {_plural(res.steps, 'step')} of {res.timestep:.4g} s "
         f"({res.steps * res.timestep:.2f} s of simulated time)",
@@ -745,6 +806,7 @@ def sand_summary(res: SandResult) -> str:
         f"{res.max_overlap:.2%} of a diameter between grains, {res.max_wall_overlap:.2%} "
         f"against the world"
     )
+    lines.append(_repose_line(res))
     if res.load is not None:
         lines.append(
             f"machine load (1-minute average) {res.load[0]:.1f} before and {res.load[1]:.1f} "

@@ -12,7 +12,7 @@ Cundall-Strack tangential spring per contact: static friction; optional rolling 
 velocity Verlet, substepping each frame to resolve the contact time, with
 a parallel cell list and Verlet list (no atomics). The kernels live in :mod:`.kernels` and
 :mod:`.cells` and are usable on their own. Which model to choose, their parameters and units:
-``docs/granular_models.md``.
+``docs/granular_models.md``. :func:`repose_angle` measures a heap's angle of repose.
 
 Distribution (not implemented): grains interact, so sharding them across machines as
 independent batches (as plain particles are) would be wrong. The way to distribute is by
@@ -28,6 +28,7 @@ is no limit; the two messages per substep (their latency) are, once ``10 / N`` s
 a network round trip (N in the thousands).
 """
 
+from fastsdf.granular.analysis import ReposeAngle, repose_angle
 from fastsdf.granular.cells import CellGrid, brute_force_pairs, list_pairs
 from fastsdf.granular.kernels import Bulk, Grains
 from fastsdf.granular.params import (
@@ -47,11 +48,13 @@ __all__ = [
     "ContactLaw",
     "Grains",
     "GranularSimulation",
+    "ReposeAngle",
     "brute_force_pairs",
     "check_contact_law",
     "contact_time",
     "damping_ratio",
     "derived_stiffness",
     "list_pairs",
+    "repose_angle",
     "restitution_from_damping",
 ]
