@@ -11,13 +11,14 @@ tangential force opposes the sliding velocity of the contact point ``v_t = v - v
 ``-R_i (n x f_t)``. A wall is the SDF world: ``delta = R - d``, ``n = grad d / |grad d|``, the
 wall's velocity is its normal speed along ``n``, and ``m_eff = m_i``.
 
-With history (LAMMPS ``gran/hooke/history``, :func:`pair_forces_history`,
-:func:`wall_forces_history`) each contact keeps a tangential spring (Cundall-Strack): its stretch
-``xi`` along the tangent ``t = (-n_y, n_x)`` grows by the sliding ``v_t dt`` of the contact
-point, the force is ``-(k_t xi + gamma_t v_t) t``, and where that exceeds ``mu |F_n|`` it is
-set to the cap and ``xi`` truncated to match (:func:`_contact_history`); optionally a rolling
-spring per contact resists relative rotation (:func:`_rolling_spring`, model C of Ai, Chen,
-Rotter & Ooi 2011). Which model to choose: ``docs/granular_models.md``.
+With history (LAMMPS ``gran/hooke/history``: :func:`pair_forces` and :func:`wall_forces`
+given the contacts' memory instead of ``None``, a variant chosen at compile time) each contact
+keeps a tangential spring (Cundall-Strack): its stretch ``xi`` along the tangent ``t = (-n_y,
+n_x)`` grows by the sliding ``v_t dt`` of the contact point, the force is ``-(k_t xi + gamma_t
+v_t) t``, and where that exceeds ``mu |F_n|`` it is set to the cap and ``xi`` truncated to
+match (:func:`_contact_history`); optionally a rolling spring per contact resists relative
+rotation (:func:`_rolling_spring`, model C of Ai, Chen, Rotter & Ooi 2011). Which model to
+choose: ``docs/granular_models.md``.
 """
 
 from __future__ import annotations
@@ -45,10 +46,8 @@ __all__ = [
     "kinetic_energy",
     "pair_energy",
     "pair_forces",
-    "pair_forces_history",
     "wall_energy",
     "wall_forces",
-    "wall_forces_history",
 ]
 
 
@@ -135,179 +134,6 @@ def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
     return fn * nx + ftx, fn * ny + fty, ftx, fty
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
-def pair_forces(
-    g: Grains,
-    nbr_start: np.ndarray,
-    nbr: np.ndarray,
-    chunks: int,
-    law: Any,
-    bulk: Bulk,
-    dt: float,
-    dt_half: float,
-) -> None:
-    """The force pass of a substep, over ``chunks`` contiguous chunks of grains in parallel
-    (the chunks the list was built for, see :func:`fastsdf.granular.cells.build_verlet`).
-    Each chunk first half-kicks its grains' velocities with their previous force (``v +=
-    F_old dt_half / m``) and resets their forces to gravity; then for each listed pair at the
-    drifted positions and predicted velocities ``px, py, pomega`` it adds the contact force to
-    its grain and, when the neighbour is in the same chunk, the opposite force to the
-    neighbour. A chunk writes only its own grains and reads only positions and predicted
-    velocities, which nothing writes here: no races. ``dt`` is the substep (for the dashpot's
-    first and last step of contact, see :func:`_contact`)."""
-    kn = law.stiffness
-    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)  # gamma_n = damp sqrt(m_eff)
-    mu = law.friction
-    tdamp = law.tangential_damping
-    period = bulk.period
-    density = bulk.density
-    x = g.x
-    y = g.y
-    rad = g.radius
-    gvx = g.vx
-    gvy = g.vy
-    gw = g.omega
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    vx = g.px
-    vy = g.py
-    w = g.pomega
-    n = x.shape[0]
-    for c in prange(chunks):
-        lo = c * n // chunks
-        hi = (c + 1) * n // chunks
-        for i in range(lo, hi):
-            ri = rad[i]
-            mi = grain_mass(ri, density)
-            a = dt_half / mi
-            gvx[i] += gfx[i] * a
-            gvy[i] += gfy[i] * a
-            gw[i] += gtq[i] * a * 2.0 / (ri * ri)
-            gfx[i] = mi * bulk.gravity_x
-            gfy[i] = mi * bulk.gravity_y
-            gtq[i] = 0.0
-        for i in range(lo, hi):
-            xi = x[i]
-            yi = y[i]
-            ri = rad[i]
-            mi = grain_mass(ri, density)
-            gamma_equal = damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
-            fx = 0.0
-            fy = 0.0
-            tq = 0.0
-            for k in range(nbr_start[i], nbr_start[i + 1]):
-                entry = nbr[k]
-                j = entry & 0x3FFFFFFF
-                image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
-                dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
-                dy = yi - y[j]
-                rj = rad[j]
-                rsum = ri + rj
-                d2 = dx * dx + dy * dy
-                if d2 >= rsum * rsum:
-                    continue
-                if d2 > 0.0:
-                    dist = math.sqrt(d2)
-                    inv = 1.0 / dist
-                    nx = dx * inv
-                    ny = dy * inv
-                else:  # coincident centres: push apart along x, in opposite senses
-                    dist = 0.0
-                    nx = 1.0 if i < j else -1.0
-                    ny = 0.0
-                if rj == ri:
-                    gamma_n = gamma_equal
-                else:
-                    mj = grain_mass(rj, density)
-                    gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
-                cfx, cfy, ftx, fty = _contact(
-                    rsum - dist,
-                    nx,
-                    ny,
-                    vx[i] - vx[j],
-                    vy[i] - vy[j],
-                    ri * w[i] + rj * w[j],
-                    gamma_n,
-                    kn,
-                    mu,
-                    tdamp,
-                    dt,
-                )
-                cross = nx * fty - ny * ftx
-                fx += cfx
-                fy += cfy
-                tq -= ri * cross
-                if j >= lo and j < hi:  # same chunk: Newton's third law here
-                    gfx[j] -= cfx
-                    gfy[j] -= cfy
-                    gtq[j] -= rj * cross
-            gfx[i] += fx
-            gfy[i] += fy
-            gtq[i] += tq
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def wall_forces(
-    g: Grains,
-    idx: np.ndarray,
-    d: np.ndarray,
-    gx: np.ndarray,
-    gy: np.ndarray,
-    wall_vn: np.ndarray,
-    law: Any,
-    bulk: Bulk,
-    dt: float,
-) -> tuple:
-    """Add the world's contact forces to the grains ``idx`` (distinct indices) at distance
-    ``d`` with gradient ``(gx, gy)`` and wall normal speed ``wall_vn`` (the velocity of the
-    surface along ``grad d``; 0 for a static world), with the predicted velocities (run it
-    after :func:`pair_forces`, which resets the forces). Returns the total force the world exerts
-    on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel nothing."""
-    kn = law.stiffness
-    zeta = _zeta(law.restitution)
-    mu = law.friction
-    tdamp = law.tangential_damping
-    vx = g.px
-    vy = g.py
-    w = g.pomega
-    rad = g.radius
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    sx = 0.0
-    sy = 0.0
-    for k in prange(idx.shape[0]):
-        i = idx[k]
-        ri = rad[i]
-        delta = ri - d[k]
-        gn = math.sqrt(gx[k] * gx[k] + gy[k] * gy[k])
-        if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
-            continue
-        nx = gx[k] / gn
-        ny = gy[k] / gn
-        mi = grain_mass(ri, bulk.density)
-        cfx, cfy, ftx, fty = _contact(
-            delta,
-            nx,
-            ny,
-            vx[i] - wall_vn[k] * nx,
-            vy[i] - wall_vn[k] * ny,
-            ri * w[i],
-            2.0 * zeta * math.sqrt(mi * kn),
-            kn,
-            mu,
-            tdamp,
-            dt,
-        )
-        gfx[i] += cfx
-        gfy[i] += cfy
-        gtq[i] -= ri * (nx * fty - ny * ftx)
-        sx += cfx
-        sy += cfy
-    return sx, sy
-
-
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
 def _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s):
     """:func:`_contact` with a tangential spring (Cundall-Strack, LAMMPS
@@ -360,26 +186,39 @@ def _rolling_spring(m_old, kr, cap, w_rel, dt):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
-def pair_forces_history(
+def pair_forces(
     g: Grains,
     nbr_start: np.ndarray,
     nbr: np.ndarray,
-    memory: np.ndarray,
+    memory: np.ndarray | None,
     chunks: int,
     law: Any,
     bulk: Bulk,
     dt: float,
 ) -> None:
-    """:func:`pair_forces` with the contacts' memory (``law.history``): for list entry ``k``,
-    ``memory[k, 0]`` is the tangential spring's stretch (see :func:`_contact_history`), and,
-    when ``law.rolling_friction > 0``, ``memory[k, 1]`` the rolling spring's torque on the
-    entry's grain (:func:`_rolling_spring`, ``k_r = 2.25 k_n mu_r**2 R_eff**2``). Both are
-    set to 0 where the pair is not in contact (as LAMMPS forgets a history when the grains
-    part). A pair listed at both grains (across chunks) updates both entries alike (the
-    stretch is the same number from both sides, the torque its negative)."""
+    """The force pass of a substep, over ``chunks`` contiguous chunks of grains in parallel
+    (the chunks the list was built for, see :func:`fastsdf.granular.cells.build_verlet`).
+    Each chunk first half-kicks its grains' velocities with their previous force (``v +=
+    F_old dt / 2m``) and resets their forces to gravity; then for each listed pair at the
+    drifted positions and predicted velocities ``px, py, pomega`` it adds the contact force to
+    its grain and, when the neighbour is in the same chunk, the opposite force to the
+    neighbour. A chunk writes only its own grains and reads only positions and predicted
+    velocities, which nothing writes here: no races. ``dt`` is the substep (for the dashpot's
+    first and last step of contact, see :func:`_contact`).
+
+    ``memory=None``: history-free (:func:`_contact`). Otherwise the contacts' memory
+    (``law.history``): for list entry ``k``, ``memory[k, 0]`` is the tangential spring's
+    stretch (see :func:`_contact_history`), and, when ``law.rolling_friction > 0``,
+    ``memory[k, 1]`` the rolling spring's torque on the entry's grain
+    (:func:`_rolling_spring`, ``k_r = 2.25 k_n mu_r**2 R_eff**2``). Both are set to 0 where
+    the pair is not in contact (as LAMMPS forgets a history when the grains part). A pair
+    listed at both grains (across chunks) updates both entries alike (the stretch is the same
+    number from both sides, the torque its negative). The choice is made at compile time:
+    numba prunes the ``memory is None`` branches for the type of ``memory``, so each variant
+    compiles to its own loop."""
     kn = law.stiffness
     kt = law.tangential_stiffness * kn
-    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)
+    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)  # gamma_n = damp sqrt(m_eff)
     mu = law.friction
     mu_r = law.rolling_friction
     tdamp = law.tangential_damping
@@ -425,23 +264,24 @@ def pair_forces_history(
             for k in range(nbr_start[i], nbr_start[i + 1]):
                 entry = nbr[k]
                 j = entry & 0x3FFFFFFF
-                image = entry >> 30
+                image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
                 dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
                 dy = yi - y[j]
                 rj = rad[j]
                 rsum = ri + rj
                 d2 = dx * dx + dy * dy
                 if d2 >= rsum * rsum:
-                    memory[k, 0] = 0.0
-                    if roll:
-                        memory[k, 1] = 0.0
+                    if memory is not None:
+                        memory[k, 0] = 0.0
+                        if roll:
+                            memory[k, 1] = 0.0
                     continue
                 if d2 > 0.0:
                     dist = math.sqrt(d2)
                     inv = 1.0 / dist
                     nx = dx * inv
                     ny = dy * inv
-                else:
+                else:  # coincident centres: push apart along x, in opposite senses
                     dist = 0.0
                     nx = 1.0 if i < j else -1.0
                     ny = 0.0
@@ -450,69 +290,99 @@ def pair_forces_history(
                 else:
                     mj = grain_mass(rj, density)
                     gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
-                # the same sum from both sides of a pair: the lower index first
-                if i < j:
-                    wr = ri * w[i] + rj * w[j]
-                else:
-                    wr = rj * w[j] + ri * w[i]
-                cfx, cfy, ftx, fty, s, fn = _contact_history(
-                    rsum - dist,
-                    nx,
-                    ny,
-                    vx[i] - vx[j],
-                    vy[i] - vy[j],
-                    wr,
-                    gamma_n,
-                    kn,
-                    kt,
-                    mu,
-                    tdamp,
-                    dt,
-                    memory[k, 0],
-                )
-                memory[k, 0] = s
-                cross = nx * fty - ny * ftx
-                mr = 0.0
-                if roll:
-                    r_eff = ri * rj / rsum
-                    mr = _rolling_spring(
-                        memory[k, 1],
-                        2.25 * kn * mu_r * mu_r * r_eff * r_eff,
-                        mu_r * r_eff * abs(fn),
-                        w[i] - w[j],
+                if memory is None:
+                    cfx, cfy, ftx, fty = _contact(
+                        rsum - dist,
+                        nx,
+                        ny,
+                        vx[i] - vx[j],
+                        vy[i] - vy[j],
+                        ri * w[i] + rj * w[j],
+                        gamma_n,
+                        kn,
+                        mu,
+                        tdamp,
                         dt,
                     )
-                    memory[k, 1] = mr
-                fx += cfx
-                fy += cfy
-                tq += mr - ri * cross
-                if j >= lo and j < hi:
-                    gfx[j] -= cfx
-                    gfy[j] -= cfy
-                    gtq[j] -= mr + rj * cross
+                    cross = nx * fty - ny * ftx
+                    fx += cfx
+                    fy += cfy
+                    tq -= ri * cross
+                    if j >= lo and j < hi:  # same chunk: Newton's third law here
+                        gfx[j] -= cfx
+                        gfy[j] -= cfy
+                        gtq[j] -= rj * cross
+                else:
+                    # the same sum from both sides of a pair: the lower index first
+                    if i < j:
+                        wr = ri * w[i] + rj * w[j]
+                    else:
+                        wr = rj * w[j] + ri * w[i]
+                    cfx, cfy, ftx, fty, s, fn = _contact_history(
+                        rsum - dist,
+                        nx,
+                        ny,
+                        vx[i] - vx[j],
+                        vy[i] - vy[j],
+                        wr,
+                        gamma_n,
+                        kn,
+                        kt,
+                        mu,
+                        tdamp,
+                        dt,
+                        memory[k, 0],
+                    )
+                    memory[k, 0] = s
+                    cross = nx * fty - ny * ftx
+                    mr = 0.0
+                    if roll:
+                        r_eff = ri * rj / rsum
+                        mr = _rolling_spring(
+                            memory[k, 1],
+                            2.25 * kn * mu_r * mu_r * r_eff * r_eff,
+                            mu_r * r_eff * abs(fn),
+                            w[i] - w[j],
+                            dt,
+                        )
+                        memory[k, 1] = mr
+                    fx += cfx
+                    fy += cfy
+                    tq += mr - ri * cross
+                    if j >= lo and j < hi:
+                        gfx[j] -= cfx
+                        gfy[j] -= cfy
+                        gtq[j] -= mr + rj * cross
             gfx[i] += fx
             gfy[i] += fy
             gtq[i] += tq
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def wall_forces_history(
+def wall_forces(
     g: Grains,
     idx: np.ndarray,
     d: np.ndarray,
     gx: np.ndarray,
     gy: np.ndarray,
     wall_vn: np.ndarray,
-    memory: np.ndarray,
+    memory: np.ndarray | None,
     law: Any,
     bulk: Bulk,
     dt: float,
 ) -> tuple:
-    """:func:`wall_forces` with memory (``law.history``): one tangential spring per grain
+    """Add the world's contact forces to the grains ``idx`` (distinct indices) at distance
+    ``d`` with gradient ``(gx, gy)`` and wall normal speed ``wall_vn`` (the velocity of the
+    surface along ``grad d``; 0 for a static world), with the predicted velocities (run it
+    after :func:`pair_forces`, which resets the forces). Returns the total force the world exerts
+    on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel nothing.
+
+    ``memory=None``: history-free. Otherwise (``law.history``) one tangential spring per grain
     against the world, ``memory[0, i]`` for grain ``i`` (the world is one surface: a grain
     touches it at its nearest point, along ``grad d``), and its rolling spring
     ``memory[1, i]`` when ``law.rolling_friction > 0`` (``R_eff = R_i``; the world does not
-    turn). Reset to 0 for a grain listed here but out of contact."""
+    turn), reset to 0 for a grain listed here but out of contact. Chosen at compile time, as
+    in :func:`pair_forces`."""
     kn = law.stiffness
     kt = law.tangential_stiffness * kn
     zeta = _zeta(law.restitution)
@@ -535,38 +405,57 @@ def wall_forces_history(
         delta = ri - d[k]
         gn = math.sqrt(gx[k] * gx[k] + gy[k] * gy[k])
         if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
-            memory[0, i] = 0.0
-            if roll:
-                memory[1, i] = 0.0
+            if memory is not None:
+                memory[0, i] = 0.0
+                if roll:
+                    memory[1, i] = 0.0
             continue
         nx = gx[k] / gn
         ny = gy[k] / gn
         mi = grain_mass(ri, bulk.density)
-        cfx, cfy, ftx, fty, s, fn = _contact_history(
-            delta,
-            nx,
-            ny,
-            vx[i] - wall_vn[k] * nx,
-            vy[i] - wall_vn[k] * ny,
-            ri * w[i],
-            2.0 * zeta * math.sqrt(mi * kn),
-            kn,
-            kt,
-            mu,
-            tdamp,
-            dt,
-            memory[0, i],
-        )
-        memory[0, i] = s
-        mr = 0.0
-        if roll:
-            mr = _rolling_spring(
-                memory[1, i], 2.25 * kn * mu_r * mu_r * ri * ri, mu_r * ri * abs(fn), w[i], dt
+        if memory is None:
+            cfx, cfy, ftx, fty = _contact(
+                delta,
+                nx,
+                ny,
+                vx[i] - wall_vn[k] * nx,
+                vy[i] - wall_vn[k] * ny,
+                ri * w[i],
+                2.0 * zeta * math.sqrt(mi * kn),
+                kn,
+                mu,
+                tdamp,
+                dt,
             )
-            memory[1, i] = mr
-        gfx[i] += cfx
-        gfy[i] += cfy
-        gtq[i] += mr - ri * (nx * fty - ny * ftx)
+            gfx[i] += cfx
+            gfy[i] += cfy
+            gtq[i] -= ri * (nx * fty - ny * ftx)
+        else:
+            cfx, cfy, ftx, fty, s, fn = _contact_history(
+                delta,
+                nx,
+                ny,
+                vx[i] - wall_vn[k] * nx,
+                vy[i] - wall_vn[k] * ny,
+                ri * w[i],
+                2.0 * zeta * math.sqrt(mi * kn),
+                kn,
+                kt,
+                mu,
+                tdamp,
+                dt,
+                memory[0, i],
+            )
+            memory[0, i] = s
+            mr = 0.0
+            if roll:
+                mr = _rolling_spring(
+                    memory[1, i], 2.25 * kn * mu_r * mu_r * ri * ri, mu_r * ri * abs(fn), w[i], dt
+                )
+                memory[1, i] = mr
+            gfx[i] += cfx
+            gfy[i] += cfy
+            gtq[i] += mr - ri * (nx * fty - ny * ftx)
         sx += cfx
         sy += cfy
     return sx, sy

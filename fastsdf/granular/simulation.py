@@ -25,7 +25,7 @@ velocity of the contact point, capped by Coulomb. Without history there is no st
 a grain on a slope creeps (slowly, at the speed where the viscous force balances it), and heaps
 relax toward flat over time. ``ContactLaw(history=True)`` keeps a tangential spring per contact
 (Cundall-Strack, LAMMPS ``gran/hooke/history``; see
-:func:`fastsdf.granular.kernels.pair_forces_history`): one number per list entry (in 2D the
+:func:`fastsdf.granular.kernels.pair_forces`): one number per list entry (in 2D the
 tangent is a line, so the spring is its stretch along it), and one per grain against the world.
 At every rebuild the grains are reordered and the list rebuilt: the old list, its springs and
 the permutation are kept, and each new entry takes the spring of the same pair of grains from
@@ -77,10 +77,8 @@ from fastsdf.granular.kernels import (
     kinetic_energy,
     pair_energy,
     pair_forces,
-    pair_forces_history,
     wall_energy,
     wall_forces,
-    wall_forces_history,
 )
 from fastsdf.granular.params import (
     STANDARD_GRAVITY,
@@ -495,52 +493,34 @@ class GranularSimulation:
 
     def _forces(self, wall_sum: np.ndarray, dt: float) -> None:
         t0 = _time.perf_counter()
-        if self._history:
-            pair_forces_history(
-                self.grains,
-                self._nbr_start,
-                self._nbr,
-                self._spring,
-                self._chunks,
-                self.contact,
-                self.bulk,
-                dt,
-            )
-        else:
-            pair_forces(
-                self.grains,
-                self._nbr_start,
-                self._nbr,
-                self._chunks,
-                self.contact,
-                self.bulk,
-                dt,
-                0.5 * dt,
-            )
+        pair_forces(
+            self.grains,
+            self._nbr_start,
+            self._nbr,
+            self._spring if self._history else None,
+            self._chunks,
+            self.contact,
+            self.bulk,
+            dt,
+        )
         if self.external is not None:
             self.external(self.grains, self.density, self.time)
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
             idx, d, gx, gy, vn = self._query_world()
-            if idx.shape[0] and self.wall_contact.history:
-                fx, fy = wall_forces_history(
+            if idx.shape[0]:
+                fx, fy = wall_forces(
                     self.grains,
                     idx,
                     d,
                     gx,
                     gy,
                     vn,
-                    self._wall_spring,
+                    self._wall_spring if self.wall_contact.history else None,
                     self.wall_contact,
                     self.bulk,
                     dt,
-                )
-                wall_sum[0] += fx
-                wall_sum[1] += fy
-            elif idx.shape[0]:
-                fx, fy = wall_forces(
-                    self.grains, idx, d, gx, gy, vn, self.wall_contact, self.bulk, dt
                 )
                 wall_sum[0] += fx
                 wall_sum[1] += fy
