@@ -251,6 +251,16 @@ def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
     return exact / sampled if sampled > 0 else float("nan")
 
 
+def _check_sizes(world: str, **sizes: tuple[Any, int]) -> None:
+    """``ValueError`` naming the first size that is not an integer at least its lower bound
+    (``name=(value, low)``), or an unknown ``world``."""
+    for name, (value, low) in sizes.items():
+        if isinstance(value, bool) or int(value) != value or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+    if world not in WORLDS:
+        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
+
+
 def run_demo(
     particles: int = 1_000_000,
     steps: int = 300,
@@ -288,17 +298,14 @@ def run_demo(
     from fastsdf.viz.render import animate as _animate
     from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
 
-    for name, value, low in (
-        ("particles", particles, 1),
-        ("steps", steps, 1),
-        ("grid", grid, 2),
-        ("frames", frames, 1),
-        ("fps", fps, 1),
-    ):
-        if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
-    if world not in WORLDS:
-        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
+    _check_sizes(
+        world,
+        particles=(particles, 1),
+        steps=(steps, 1),
+        grid=(grid, 2),
+        frames=(frames, 1),
+        fps=(fps, 1),
+    )
     if mode not in ("exact", "nearest"):
         raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
     particles, steps, frames = int(particles), int(steps), int(frames)
@@ -624,17 +631,14 @@ def run_sand_demo(
     from fastsdf.viz.frames import VideoWriter
     from fastsdf.viz.render import render_frame, sim_title
 
-    for name, value, low in (
-        ("grains", grains, 1),
-        ("steps", steps, 1),
-        ("grid", grid, 2),
-        ("frames", frames, 1),
-        ("fps", fps, 1),
-    ):
-        if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
-    if world not in WORLDS:
-        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
+    _check_sizes(
+        world,
+        grains=(grains, 1),
+        steps=(steps, 1),
+        grid=(grid, 2),
+        frames=(frames, 1),
+        fps=(fps, 1),
+    )
     if not (np.isfinite(radius) and 0 < radius < 0.2):
         raise ValueError(f"radius must be in (0, 0.2), got radius={radius!r}")
     if not isinstance(history, bool):
