@@ -293,10 +293,10 @@ def test_sand_scene_pours_grains_and_draws_them(tmp_path):
         "angle of repose: ",
     ):
         assert needle in text, needle
-    # the angle printed is the one measured (or says why there is none)
+    # the angle printed is the one measured on both flanks (or says why there is none)
     for angle, side in ((res.repose_left, "left"), (res.repose_right, "right")):
         assert np.isnan(angle) or 0.0 <= angle <= 90.0
-        if np.isfinite(angle):
+        if np.isfinite(res.repose_left) and np.isfinite(res.repose_right):
             assert f"{angle:.1f} ({side})" in text
     # grains are drawn: orange discs (PARTICLE_COLOR at alpha 0.8 over the light background)
     img = imread(res.last_frame)[..., :3]
@@ -328,10 +328,12 @@ def test_sand_summary_prints_the_measured_angle_and_the_law():
         animation=None,
         last_frame="x.png",
         repose_left=21.04,
-        repose_right=math.nan,
+        repose_right=25.0,
     )
     text = sand_summary(res)
-    assert "angle of repose: 21.0 (left) and nan (right) degrees, mean 21.0" in text
+    assert "angle of repose: 21.0 (left) and 25.0 (right) degrees, mean 23.0" in text
+    one_flank = sand_summary(replace(res, repose_right=math.nan))
+    assert "angle of repose: not measured" in one_flank
     assert "ContactLaw(history=True, rolling_friction=0.3) (a tangential spring" in text
     flat = sand_summary(replace(res, history=False, rolling_friction=0.0, repose_left=math.nan))
     assert "angle of repose: not measured" in flat and "ContactLaw() (no contact history" in flat

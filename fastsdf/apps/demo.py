@@ -772,16 +772,18 @@ def _sand_law(res: SandResult) -> str:
 
 
 def _repose_line(res: SandResult) -> str:
-    """The heap's angle of repose, or why there is none."""
+    """The heap's angle of repose (both flanks measured), or why there is none."""
     left, right = res.repose_left, res.repose_right
     where = "the grains at rest in the funnel, a line fitted to each flank of its surface"
-    if np.isfinite(left) or np.isfinite(right):
-        finite = [a for a in (left, right) if np.isfinite(a)]
+    if np.isfinite(left) and np.isfinite(right):
         return (
             f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
-            f"{sum(finite) / len(finite):.1f} ({where})"
+            f"{(left + right) / 2:.1f} ({where})"
         )
-    return "angle of repose: not measured (the grains at rest in the funnel have no slope to fit)"
+    return (
+        "angle of repose: not measured (the grains at rest in the funnel do not form a heap "
+        "with two flanks yet; examples/heap.py pours slowly onto a floor and measures one)"
+    )
 
 
 def sand_summary(res: SandResult) -> str:
