@@ -223,7 +223,7 @@ def _points(value: ArrayLike, name: str) -> np.ndarray:
     return a
 
 
-class GrainSimulation(ParticleSimulation):
+class GrainSimulation(ParticleSimulation, steps_contacts=True):
     """Grains colliding with each other and with the world; built by
     ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactLaw(...))``
     (see :mod:`fastsdf.particles.grains`).

@@ -212,12 +212,20 @@ class ParticleSimulation:
     _flags: Any
     _wall: Any
 
+    #: The member of the family that grains with contacts are (set by the subclass that
+    #: declares ``class ...(ParticleSimulation, steps_contacts=True)``: the grains' module).
+    _contact_member: type | None = None
+
+    def __init_subclass__(cls, steps_contacts: bool = False, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if steps_contacts:
+            ParticleSimulation._contact_member = cls
+
     def __new__(cls, *args: Any, **kwargs: Any) -> ParticleSimulation:
         # Grains (contacts=ContactLaw(...)) are the member that steps with the granular engine.
-        if cls is ParticleSimulation and kwargs.get("contacts") is not None:
-            from fastsdf.particles.grains import GrainSimulation
-
-            return object.__new__(GrainSimulation)
+        member = ParticleSimulation._contact_member
+        if cls is ParticleSimulation and kwargs.get("contacts") is not None and member:
+            return object.__new__(member)
         return object.__new__(cls)
 
     def __init__(
