@@ -42,7 +42,7 @@ from fastsdf.granular.params import ContactLaw
 from fastsdf.granular.simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
 from fastsdf.notice import compiling
 from fastsdf.particles.forces import Gravity, fuse
-from fastsdf.particles.simulation import _DEFAULT_N, ParticleSimulation
+from fastsdf.particles.simulation import _DEFAULT_N, ParticleSimulation, _recorded
 from fastsdf.particles.world import _force_parts
 from fastsdf.version import __version__
 
@@ -403,17 +403,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
     def run(self, steps: int = 1, record: Any = None) -> None:
         """Advance ``steps`` steps of ``dt`` seconds (``substeps_per_frame`` substeps
         each); ``record``: a recorder such as :class:`fastsdf.io.TrajectoryRecorder`."""
-        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
-            raise TypeError(f"steps must be an integer, got steps={steps!r}")
-        if steps < 0:
-            raise ValueError(f"steps must be >= 0, got steps={steps!r}")
-        if record is not None:
-            if not callable(getattr(record, "run", None)):
-                raise TypeError(
-                    f"record must be a recorder with a run(sim, steps) method, such as "
-                    f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
-                )
-            record.run(self, int(steps))
+        if _recorded(self, steps, record):
             return
         self.p.sync()
         self._apply_forces()

@@ -86,6 +86,24 @@ _COLLISIONS = ("approaching", "notebook")
 # The simulation.
 
 
+def _recorded(sim: Any, steps: Any, record: Any) -> bool:
+    """Check ``run``'s arguments; hand the run to ``record`` (which steps ``sim`` itself and
+    records it) and say so, or return False for the caller to step."""
+    if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
+        raise TypeError(f"steps must be an integer, got steps={steps!r}")
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got steps={steps!r}")
+    if record is None:
+        return False
+    if not callable(getattr(record, "run", None)):
+        raise TypeError(
+            f"record must be a recorder with a run(sim, steps) method, such as "
+            f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
+        )
+    record.run(sim, int(steps))
+    return True
+
+
 class ParticleSimulation:
     """Particles moving under forces and colliding with an SDF (the notebook's interface).
 
@@ -500,17 +518,7 @@ class ParticleSimulation:
         advances by ``steps * timestep`` (clock and state agree), and then a ``ValueError``
         names the first such particle and what was wrong.
         """
-        if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
-            raise TypeError(f"steps must be an integer, got steps={steps!r}")
-        if steps < 0:
-            raise ValueError(f"steps must be >= 0, got steps={steps!r}")
-        if record is not None:
-            if not callable(getattr(record, "run", None)):
-                raise TypeError(
-                    f"record must be a recorder with a run(sim, steps) method, such as "
-                    f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
-                )
-            record.run(self, int(steps))
+        if _recorded(self, steps, record):
             return
         if steps == 0:
             return
