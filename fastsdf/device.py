@@ -32,7 +32,7 @@ def _patch_numpy() -> None:
     # numba-cuda 0.30 registers an implementation of np.row_stack, which numpy 2.5 removed
     # (an alias of np.vstack since numpy 1.x): the first kernel compile would fail on import.
     if not hasattr(np, "row_stack"):
-        np.row_stack = np.vstack  # type: ignore[attr-defined]
+        np.row_stack = np.vstack
 
 
 def cuda() -> ModuleType:
@@ -72,7 +72,7 @@ def is_device_array(a: Any) -> bool:
     if dev is not None and not isinstance(a, np.ndarray):
         try:
             return int(dev()[0]) == 2  # kDLCUDA
-        except Exception:  # noqa: BLE001 - a foreign object: not ours to judge further
+        except Exception:  # a foreign object: not ours to judge further
             return False
     return False
 
