@@ -66,8 +66,8 @@ def available() -> bool:
 def is_device_array(a: Any) -> bool:
     """Whether ``a`` lives on a CUDA device (``__cuda_array_interface__`` or a DLPack device
     of type CUDA)."""
-    if hasattr(a, "__cuda_array_interface__"):
-        return True
+    if hasattr(a, "__cuda_array_interface__") or hasattr(a, "copy_to_host"):
+        return True  # (numba's device arrays, and the simulator's, have copy_to_host)
     dev = getattr(a, "__dlpack_device__", None)
     if dev is not None and not isinstance(a, np.ndarray):
         try:
@@ -92,7 +92,7 @@ def as_device(a: Any, name: str = "array", dtype: Any = np.float64) -> Any:
     the device. A device array of another dtype is a :class:`TypeError` naming ``name``."""
     cu = cuda()
     if is_device_array(a):
-        if not hasattr(a, "__cuda_array_interface__"):
+        if not hasattr(a, "__cuda_array_interface__") and not hasattr(a, "copy_to_host"):
             # DLPack only (JAX): CuPy or PyTorch take it without a copy when present
             a = _from_dlpack(a, name)
         d = a if hasattr(a, "copy_to_host") else cu.as_cuda_array(a)
