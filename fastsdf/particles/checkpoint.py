@@ -11,7 +11,7 @@
   entries: the world as its expression graph (one node list, see
   :mod:`fastsdf.expr.serial`) and, for a ``GridSDF`` or ``NarrowBandGridSDF``, its samples and
   numbers; the parameters' values; the random generator given as ``seed`` (its bit
-  generator's state); the forces by name with their numbers (:data:`Gravity`, ``Drag``,
+  generator's state); the forces by name with their numbers (``Gravity``, ``Drag``,
   ``FieldForce``: see :data:`fastsdf.particles.forces.SAVED_FORCES`); for grains, the granular
   engine's arrays (state in its storage order, neighbour lists, the contacts' springs with
   ``history=True``), contact laws and counters. Compiled kernels are not stored: they are
@@ -255,7 +255,7 @@ class _Writer:
 
     def _pickled(self, obj: Any, where: str) -> dict:
         name = _force_name(obj)
-        what = f"{where} ({name})"
+        what = f"{where} ({name[:80]})"
         if not self.allow_pickle:
             raise ValueError(
                 f"{what} cannot be saved as data: a checkpoint holds arrays, numbers and "
@@ -371,7 +371,10 @@ class _Reader:
             raise ValueError(f"{name!r} is not an array of the state")
         a = self.arrays.get(name)
         if a is None:
-            a = self.arrays[name] = np.array(self.data[name])  # allow_pickle=False: no objects
+            try:  # (read with allow_pickle=False: an array of Python objects is refused)
+                a = self.arrays[name] = np.array(self.data[name])
+            except ValueError as exc:
+                raise ValueError(f"array {name!r} cannot be read as data: {exc}") from None
         return a
 
     def value(self, v: Any) -> Any:
