@@ -457,10 +457,10 @@ class _Reader:
                 n_children_spawned=f["n_children_spawned"],
             )
         elif "class" in entry:
-            cls = self.classes.get(entry["class"])
-            if cls is None:
+            known: Any = self.classes.get(entry["class"])
+            if known is None:
                 raise ValueError(f"{entry['class']!r} is not a class a checkpoint holds")
-            obj = cls.__new__(cls)
+            obj = known.__new__(known)
             self.objects[k] = obj  # (before its state: a reference back finds it)
             state = self.value(entry["state"])
             setstate = getattr(obj, "__setstate__", None)
