@@ -57,6 +57,7 @@ import numpy as np
 from fastsdf.expr.graph import Expr
 from fastsdf.expr.serial import GraphWriter, graph_from_data
 from fastsdf.files import atomic_write
+from fastsdf.particles.world import SimulationParams
 
 __all__ = ["save_simulation", "load_simulation", "FORMAT", "FORMAT_VERSION"]
 
@@ -194,7 +195,7 @@ class _Writer:
             return {"expr": self.graph.add(v)}
         if type(v) is list:
             return [self.value(x, f"{where}[{i}]") for i, x in enumerate(v)]
-        if type(v) is dict or _name(type(v)) == "fastsdf.particles.world.SimulationParams":
+        if type(v) in (dict, SimulationParams):  # (sim.params: its values; rebuilt on loading)
             return self._dict(v, where)
         if type(v) in (set, frozenset):
             items = sorted(v, key=repr)
@@ -534,7 +535,15 @@ def load_simulation(path: str | os.PathLike, *, allow_pickle: bool = False) -> A
             state = json.loads(bytes(data["state"]).decode())
             reader = _Reader(data, state, bool(allow_pickle), path)
             sim = reader.value(state["root"])
-    except (KeyError, IndexError, TypeError, AttributeError, UnicodeDecodeError) as exc:
+    except (
+        KeyError,
+        IndexError,
+        TypeError,
+        AttributeError,
+        UnicodeDecodeError,
+        struct.error,
+        RecursionError,
+    ) as exc:
         raise ValueError(f"{path!r} is not a valid saved fastsdf simulation: {exc}") from exc
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path!r} is not a valid saved fastsdf simulation: {exc}") from None
