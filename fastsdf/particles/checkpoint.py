@@ -186,7 +186,7 @@ class _Writer:
         if isinstance(v, float):
             return _float_out(v)
         if isinstance(v, np.ndarray):
-            return self._array(v, where)
+            return self._pickled(v, where) if v.dtype.hasobject else self._array(v, where)
         if isinstance(v, np.dtype):
             if v.hasobject:
                 raise ValueError(f"{where} (dtype {v}) cannot be saved as data")
