@@ -539,15 +539,23 @@ class ParticleSimulation:
         if bad:
             raise self._frozen_error(bad, int(steps))
 
-    def save(self, path: str | os.PathLike) -> str:
+    def save(self, path: str | os.PathLike, *, allow_pickle: bool = False) -> str:
         """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
-        bit; see :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path."""
-        return save_simulation(self, path)
+        bit: arrays and data only (the world's expression graph or grid, parameters, forces by
+        name and numbers, the random generator's state), so loading runs no code from the file.
+        A force or world that is not data (a numba ``@njit`` or Python force, a world class of
+        your own) is a ``ValueError`` naming it, unless ``allow_pickle=True`` (then it is stored
+        pickled and :meth:`load` needs ``allow_pickle=True`` too); see
+        :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path."""
+        return save_simulation(self, path, allow_pickle=allow_pickle)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> ParticleSimulation:
-        """The simulation saved by :meth:`save` at ``path``."""
-        sim = load_simulation(path)
+    def load(cls, path: str | os.PathLike, *, allow_pickle: bool = False) -> ParticleSimulation:
+        """The simulation saved by :meth:`save` at ``path``, continuing bit for bit. Runs no
+        code from the file; a file holding pickled objects (saved with ``allow_pickle=True``, or
+        by an older fastsdf) is refused with a ``ValueError`` unless ``allow_pickle=True``,
+        which unpickles them (running code named in the file: only for files you trust)."""
+        sim = load_simulation(path, allow_pickle=allow_pickle)
         if not isinstance(sim, cls):
             raise TypeError(f"{path!r} holds a {type(sim).__name__}, not a {cls.__name__}")
         return sim
