@@ -188,3 +188,23 @@ def test_readme_particle_block_queries_the_demos_world_and_grid():
         theirs.dtype,
     )
     np.testing.assert_array_equal(grid.data, theirs.data)
+
+
+def test_headline_table_names_each_worlds_exactness_as_the_code_reports():
+    """The headline table's words for the SDF rows are what ``f.exactness`` says of those
+    worlds (the notebook's world is a smooth union: a distance bound, not exact)."""
+    from fastsdf.shapes.scenes import box_world, seed_world
+
+    text = _readme()
+    start = text.index("## Headline figures")
+    table = text[start : text.index("\n## ", start + 1)]
+    rows = {
+        "notebook's world": seed_world().exactness,
+        "20 smoothly joined boxes": box_world().exactness,
+    }
+    for words, exactness in rows.items():
+        (row,) = [line for line in table.splitlines() if words in line]
+        what = row.split("|")[1]
+        assert f"'{exactness}'" in what, (words, exactness, what)
+        if exactness != "exact":
+            assert not re.search(r"\bexact\b", what), what
