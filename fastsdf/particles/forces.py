@@ -36,7 +36,7 @@ class Gravity:
     acceleration : (ax, ay), default (0, -1)
         In length/s**2, lengths in the world's coordinate units. The default is the notebook's
         ``gravity(p, t) = p['m'][:, None] * [0, -1]``: one length unit per second squared,
-        downward (the library's scenes span 4 units: a drop across one takes about 2.8 s). For
+        downward (the library's scenes span 4 units: a fall of 4 takes about 2.8 s). For
         a world measured in metres, pass the Earth's: ``Gravity((0, -9.81))``.
 
     In ``force_generators`` it is fused into the compiled step (no Python work per step); for
