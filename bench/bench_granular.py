@@ -63,11 +63,11 @@ def ours(n: int, history: bool = False) -> GranularSimulation:
     law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5, history=history)
     wall = law._replace(restitution=restitution_from_damping(GAMMA_N, KN, m))
     return GranularSimulation(
-        pos,
-        0.5,
-        world=fs.Halfspace((0.0, 1.0), 0.0),
-        contact=law,
-        wall_contact=wall,
+        fs.Halfspace((0.0, 1.0), 0.0),
+        positions=pos,
+        radius=0.5,
+        contacts=law,
+        wall_contacts=wall,
         density=1.0,
         gravity=(0.0, -1.0),
         substep=DT,

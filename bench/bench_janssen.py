@@ -43,7 +43,9 @@ def column(
     )
     r = rng.uniform(0.4, 0.5, len(i))
     law = ContactLaw(stiffness=k, restitution=0.3, friction=0.5, history=history)
-    sim = GranularSimulation(pos, r, world=world, contact=law, gravity=(0, -1), timestep=1.0)
+    sim = GranularSimulation(
+        world, positions=pos, radius=r, contacts=law, gravity=(0, -1), timestep=1.0
+    )
     for _ in range(60):
         sim.run(2)
         if np.abs(sim.velocities).max() < 1e-3:

@@ -59,11 +59,11 @@ def discharge(slot: float, grains: int, seed: int = 0, history: bool = False) ->
     )
     radius = rng.uniform(0.4, 0.6, grains)
     sim = GranularSimulation(
-        pos,
-        radius,
-        world=silo(slot),
+        silo(slot),
+        positions=pos,
+        radius=radius,
         gravity=(0.0, -G),
-        contact=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5, history=history),
+        contacts=ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5, history=history),
         timestep=0.5,
     )
     print(

@@ -6,12 +6,12 @@
 writes OUT/heap.png (OUT defaults to the current folder; ``FASTSDF_EXAMPLE_SMALL=1``: 150
 grains).
 
-Discs of diameter 0.8-1.2 (mean 1) under gravity 1 fall into a hopper whose outlet, eight
-diameters wide (narrower ones jam: grains with rolling resistance arch like sand), sits above
-the middle of a rough floor. The contact law keeps a tangential spring per contact
-(``history=True``: static friction, Cundall-Strack) and rolling resistance
-(``rolling_friction``): without them discs roll away and the heap flattens. The angle of
-repose is measured by ``fastsdf.granular.repose_angle`` (a straight-line fit to each flank of
+Discs of diameter 0.8-1.2 (mean 1) under ``Gravity()`` (1 length unit / s**2, downward) fall
+into a hopper whose outlet, eight diameters wide (narrower ones jam: grains with rolling
+resistance arch like sand), sits above the middle of a rough floor. The contact law keeps a
+tangential spring per contact (``history=True``: static friction, Cundall-Strack) and rolling
+resistance (``rolling_friction``): without them discs roll away and the heap flattens. The angle
+of repose is measured by ``fastsdf.granular.repose_angle`` (a straight-line fit to each flank of
 the heap's surface: the highest grain in each bin of one diameter, between 20% and 80% of the
 heap's height) and printed.
 """
@@ -27,7 +27,8 @@ import numba
 import numpy as np
 
 import fastsdf as fs
-from fastsdf.granular import ContactLaw, GranularSimulation, repose_angle
+from fastsdf.granular import repose_angle
+from fastsdf.particles import ContactLaw, Gravity, ParticleSimulation
 from fastsdf.shapes import union
 
 
@@ -44,11 +45,16 @@ def hopper(outlet_y: float, outlet: float = 8.0) -> fs.SDF:
     )
 
 
+def outlet_height(grains: int) -> float:
+    """The hopper's outlet: 2 above the top of a 25-degree heap of ``grains`` discs."""
+    return math.sqrt(grains * 0.9 * math.tan(math.radians(25.0))) + 2.0
+
+
 def pour(grains: int, law: ContactLaw, seed: int = 0, time_limit: float = 200.0):
-    """Pour ``grains`` discs through the hopper until they rest; returns the simulation."""
+    """Pour ``grains`` discs through the hopper until they rest; returns the simulation (a
+    ``GrainSimulation``: ``sim.p['x']``, ``sim.p['r']``, ``sim.t``)."""
     rng = np.random.default_rng(seed)
-    height = math.sqrt(grains * 0.9 * math.tan(math.radians(25.0)))  # a heap of 25 degrees
-    outlet_y = height + 2.0
+    outlet_y = outlet_height(grains)
     per_row = 18
     i = np.arange(grains)
     pos = np.stack(
@@ -59,18 +65,13 @@ def pour(grains: int, law: ContactLaw, seed: int = 0, time_limit: float = 200.0)
         1,
     )
     radius = rng.uniform(0.4, 0.6, grains)
-    sim = GranularSimulation(
-        pos,
-        radius,
-        world=hopper(outlet_y),
-        contact=law,
-        gravity=(0.0, -1.0),
-        timestep=1.0,
+    sim = ParticleSimulation(
+        hopper(outlet_y), positions=pos, radius=radius, contacts=law, timestep=1.0
     )
-    sim.outlet_y = outlet_y
-    while sim.time < time_limit:
+    sim.force_generators.append(Gravity())  # (0, -1) length / s**2
+    while sim.t < time_limit:
         sim.run(5)
-        if np.abs(sim.velocities).max() < 0.02 and sim.positions[:, 1].max() < outlet_y:
+        if np.abs(sim.p["v"]).max() < 0.02 and sim.p["x"][:, 1].max() < outlet_y:
             break
     return sim
 
@@ -95,11 +96,12 @@ def main() -> None:
     t0 = time.perf_counter()
     sim = pour(a.grains, law)
     # the floor is at y = 0; bins one mean diameter (1) wide
-    left, right, lines = repose_angle(sim.positions, sim.radius, floor=0.0, bin_width=1.0)
+    p, r = sim.p["x"], sim.p["r"]
+    left, right, lines = repose_angle(p, r, floor=0.0, bin_width=1.0)
     print(
         f"{a.grains} grains, mu = {a.friction}, mu_r = {a.rolling}: angle of repose "
         f"{left:.1f} (left) and {right:.1f} (right) degrees, mean {(left + right) / 2:.1f}; "
-        f"t = {sim.time:.0f}, {time.perf_counter() - t0:.0f} s"
+        f"t = {sim.t:.0f}, {time.perf_counter() - t0:.0f} s"
     )
     import matplotlib
 
@@ -107,10 +109,9 @@ def main() -> None:
     import matplotlib.pyplot as plt
     from matplotlib.collections import EllipseCollection
 
-    p, r = sim.positions, sim.radius
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
     xs = np.linspace(-30, 30, 601)
-    top = float(sim.outlet_y) + 13.0
+    top = outlet_height(a.grains) + 13.0
     ys = np.linspace(-1, top, 301)
     gx, gy = np.meshgrid(xs, ys)
     d = np.asarray(sim.world(gx.ravel(), gy.ravel())).reshape(gx.shape)

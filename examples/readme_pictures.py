@@ -110,10 +110,10 @@ def pour(small: bool) -> tuple:
     m = np.pi * r * r
     stiffness = 4.0 / (2 * r) * m * 1.0 / (0.01 * 2 * r)
     sim = GranularSimulation(
-        xy,
-        r,
-        world=f,
-        contact=ContactLaw(stiffness=stiffness, history=True, rolling_friction=0.3),
+        f,
+        positions=xy,
+        radius=r,
+        contacts=ContactLaw(stiffness=stiffness, history=True, rolling_friction=0.3),
         gravity=(0.0, -1.0),
         timestep=1 / 30,
     )
@@ -174,10 +174,10 @@ def picture_hero(out: str, small: bool) -> None:
     xy[:, 0] += np.random.default_rng(2).uniform(-0.2, 0.2, len(xy)) * r
     m = np.pi * r * r
     sim = GranularSimulation(
-        xy,
-        r,
-        world=grid,
-        contact=ContactLaw(stiffness=100 * m / (0.01 * 2 * r)),
+        grid,
+        positions=xy,
+        radius=r,
+        contacts=ContactLaw(stiffness=100 * m / (0.01 * 2 * r)),
         gravity=(0.0, -1.0),
         timestep=1 / 30,
     )

@@ -44,6 +44,7 @@ def main(out: str = "examples-out", n: int = 1200, frames: int = 60) -> str:
         radius=radius,
         contacts=phys.ContactLaw(restitution=0.3),
     )
+    # the world read in metres: the Earth's gravity (Gravity() is the notebook's (0, -1))
     sim.force_generators.append(phys.Gravity((0.0, -9.81)))
     print(f"{n} grains, {sim.substeps_per_frame} substeps per 1/30 s step")
 

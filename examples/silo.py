@@ -4,12 +4,12 @@
     python examples/silo.py [OUT] [--grains 800] [--slot 6]
 
 writes OUT/silo.png (OUT defaults to the current folder; ``FASTSDF_EXAMPLE_SMALL=1``: 300
-grains). Discs of diameter 0.8-1.2 (mean 1) under gravity 1 fill a flat-bottomed silo 20 wide;
-the slot opens at t = 0. The contacts keep a tangential spring (static friction). The flow
-rate (grains per unit time) is the slope of the count of grains out of the silo against time
-while 10-50% of them are out: constant, whatever the height of the fill above the slot
-(Beverloo's law, ``W = C sqrt(g) (D - k d)**1.5`` in 2D; ``bench/bench_silo.py`` fits it over
-several slots).
+grains). Discs of diameter 0.8-1.2 (mean 1) under ``Gravity()`` (1 length unit / s**2, downward)
+fill a flat-bottomed silo 20 wide; the slot opens at t = 0. The contacts keep a tangential
+spring (static friction). The flow rate (grains per unit time) is the slope of the count of
+grains out of the silo against time while 10-50% of them are out: constant, whatever the height
+of the fill above the slot (Beverloo's law, ``W = C sqrt(g) (D - k d)**1.5`` in 2D;
+``bench/bench_silo.py`` fits it over several slots).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 import fastsdf as fs
-from fastsdf.granular import ContactLaw, GranularSimulation
+from fastsdf.particles import ContactLaw, Gravity, ParticleSimulation
 from fastsdf.shapes import union
 
 WIDTH = 20.0
@@ -59,25 +59,21 @@ def main() -> None:
         [0.75 + (i % per_row) * 1.25 + rng.uniform(-0.05, 0.05, n), 0.8 + (i // per_row) * 1.25], 1
     )
     law = ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5, history=True)
-    sim = GranularSimulation(
-        pos,
-        rng.uniform(0.4, 0.6, n),
-        world=silo(a.slot),
-        contact=law,
-        gravity=(0.0, -1.0),
-        timestep=0.5,
+    sim = ParticleSimulation(
+        silo(a.slot), positions=pos, radius=rng.uniform(0.4, 0.6, n), contacts=law, timestep=0.5
     )
+    sim.force_generators.append(Gravity())  # (0, -1) length / s**2
     t0 = time.perf_counter()
     times, out = [], []
     snapshot = None
     while True:
         sim.run(1)
-        count = int((sim.positions[:, 1] < -1.0).sum())
-        times.append(sim.time)
+        count = int((sim.p["x"][:, 1] < -1.0).sum())
+        times.append(sim.t)
         out.append(count)
         if snapshot is None and count >= 0.3 * n:
-            snapshot = (sim.positions.copy(), sim.radius.copy())
-        if count > 0.6 * n or sim.time > 400:
+            snapshot = (sim.p["x"].copy(), sim.p["r"].copy())
+        if count > 0.6 * n or sim.t > 400:
             break
     times_a, out_a = np.array(times), np.array(out)
     window = (out_a >= 0.1 * n) & (out_a <= 0.5 * n)
@@ -93,7 +89,7 @@ def main() -> None:
     from matplotlib.collections import EllipseCollection
 
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 5), dpi=100, width_ratios=[1.1, 1])
-    p, r = snapshot if snapshot is not None else (sim.positions, sim.radius)
+    p, r = snapshot if snapshot is not None else (sim.p["x"], sim.p["r"])
     xs = np.linspace(-2, WIDTH + 2, 441)
     ys = np.linspace(-31, p[:, 1].max() + 2, 601)
     gx, gy = np.meshgrid(xs, ys)

@@ -108,3 +108,65 @@ def test_the_api_reference_documents_the_public_packages():
                 assert m.name in documented, m.name
     internal = [m for m in documented if m.startswith(("fastsdf.expr", "fastsdf.backends"))]
     assert not internal, internal
+
+
+def documented_parameters(doc):
+    """The names of a numpy-style docstring's ``Parameters`` section, in order (a line
+    ``a, b : type`` names two). The section ends at prose or the next section's title."""
+    lines = doc.splitlines()
+    titles = [i for i, line in enumerate(lines) if line.strip() == "Parameters"]
+    if not titles:
+        return []
+    start = titles[0]
+    assert set(lines[start + 1].strip()) == {"-"}, "a numpy section: 'Parameters' underlined"
+    indent = len(lines[start]) - len(lines[start].lstrip())
+    entry = re.compile(r"\s*\w+(\s*,\s*\w+)*\s*(:|$)")
+    names = []
+    for k in range(start + 2, len(lines)):
+        line = lines[k]
+        if not line.strip():
+            continue
+        depth = len(line) - len(line.lstrip())
+        if depth > indent:
+            continue  # a description
+        underlined = k + 1 < len(lines) and set(lines[k + 1].strip()) == {"-"}
+        if depth < indent or underlined or not entry.match(line):
+            break
+        names += [n.strip() for n in line.split(":")[0].split(",")]
+    return names
+
+
+def test_documented_parameter_parser():
+    doc = "Head.\n\nParameters\n----------\na, b : int\n    Two.\nc\n    One.\n\nProse.\n"
+    assert documented_parameters(doc) == ["a", "b", "c"]
+    doc2 = "Parameters\n----------\nx : float\n    X.\n\nReturns\n-------\ny : float\n"
+    assert documented_parameters(doc2) == ["x"]
+
+
+def test_public_classes_show_their_parameters_each_documented_once():
+    """``help()`` and the API pages show a class's real parameters (not ``*args, **kwargs``),
+    and its docstring's Parameters section names each of them once, and nothing else."""
+    from fastsdf.granular import ContactLaw, GranularSimulation
+    from fastsdf.particles import (
+        Drag,
+        FieldForce,
+        GrainSimulation,
+        Gravity,
+        ParticleSimulation,
+    )
+
+    for cls in (
+        ParticleSimulation,
+        GrainSimulation,
+        GranularSimulation,
+        ContactLaw,
+        Gravity,
+        Drag,
+        FieldForce,
+    ):
+        params = inspect.signature(cls).parameters.values()
+        variadic = [p.name for p in params if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        assert not variadic, (cls.__name__, variadic)
+        documented = documented_parameters(inspect.getdoc(cls))
+        assert len(documented) == len(set(documented)), (cls.__name__, documented)
+        assert sorted(documented) == sorted(p.name for p in params), cls.__name__

@@ -74,6 +74,32 @@ def test_grains_are_a_member_of_the_family(small_box):
         )
 
 
+def test_the_family_and_the_engine_take_the_same_arguments_and_gravity(small_box):
+    """One way to make grains: the family's constructor and the engine's take the world first
+    and the same keywords, and Gravity()'s default is the engine's: the two routes step the
+    same grains to the same states (derived stiffness included)."""
+    pos = lattice(6, 4, 0.02, -0.2, -0.3, jitter=0.002)
+    law = phys.ContactLaw(history=True)
+    args = dict(positions=pos, radius=0.02, contacts=law, timestep=1 / 30, skin=0.01)
+    family = phys.ParticleSimulation(small_box, **args)
+    family.force_generators.append(phys.Gravity())
+    engine = GranularSimulation(small_box, **args)
+    family.run(5)
+    engine.run(5)
+    assert family.engine.contact == engine.contact  # the same derived stiffness
+    assert family.substeps_per_frame == engine.substeps_per_frame
+    np.testing.assert_allclose(family.p["x"], engine.positions, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(family.p["v"], engine.velocities, rtol=0, atol=1e-12)
+    assert family.p["x"][:, 1].mean() < pos[:, 1].mean()  # both fell
+    # the grains' own keywords on particles, and the particles' on grains, are named
+    with pytest.raises(TypeError, match="wall_contacts= applies to grains only"):
+        phys.ParticleSimulation(small_box, wall_contacts=law)
+    with pytest.raises(TypeError, match="periodic_x= applies to grains only"):
+        phys.ParticleSimulation(small_box, periodic_x=(0.0, 1.0))
+    with pytest.raises(TypeError, match="rest_speed= does not apply to grains"):
+        phys.ParticleSimulation(small_box, positions=pos, contacts=law, rest_speed=0.1)
+
+
 def test_writes_to_p_reach_the_engine_and_masses_follow_radius(small_box):
     pos = [[-0.1, 0.0], [0.1, 0.0]]
     sim = phys.ParticleSimulation(small_box, positions=pos, contacts=phys.ContactLaw())

@@ -26,10 +26,11 @@ def head_on(e, gap, substeps_per_contact):
     ``gap``; returns (measured restitution, contact duration, substep, law)."""
     law = ContactLaw(stiffness=1e4, restitution=e, friction=0.0)
     sim = GranularSimulation(
-        [[-0.5 - gap / 2, 0.0], [0.5 + gap / 2, 0.0]],
-        0.5,
+        None,
+        positions=[[-0.5 - gap / 2, 0.0], [0.5 + gap / 2, 0.0]],
+        radius=0.5,
         velocities=[[1.0, 0.0], [-1.0, 0.0]],
-        contact=law,
+        contacts=law,
         gravity=(0.0, 0.0),
         timestep=1.0,
         substeps_per_contact=substeps_per_contact,
@@ -74,14 +75,14 @@ def gas(n, law, seed=0, walls=None, wall_law=None, chunks=None):
     radius = rng.uniform(0.25, 0.75, n)  # 1:3
     vel = rng.normal(0.0, 1.0, (n, 2))
     return GranularSimulation(
-        pos,
-        radius,
+        walls,
+        positions=pos,
+        radius=radius,
         velocities=vel,
-        contact=law,
+        contacts=law,
         gravity=(0.0, 0.0),
         timestep=0.1,
-        world=walls,
-        wall_contact=wall_law,
+        wall_contacts=wall_law,
         periodic_x=(0.0, side * 1.6),
         chunks=chunks,
     )
@@ -135,11 +136,11 @@ def test_settled_column_floor_carries_weight():
     gaps = np.concatenate([[radius[0]], radius[1:] + radius[:-1]]) - load / law.stiffness
     centres = np.cumsum(gaps)
     sim = GranularSimulation(
-        np.stack([np.full(n, width / 2), centres], 1),
-        radius,
-        world=walls,
-        contact=law,
-        wall_contact=law._replace(friction=0.0),
+        walls,
+        positions=np.stack([np.full(n, width / 2), centres], 1),
+        radius=radius,
+        contacts=law,
+        wall_contacts=law._replace(friction=0.0),
         gravity=(0.0, -g),
         timestep=1 / 30,
     )
@@ -156,10 +157,10 @@ def roll(friction, h=0.5, theta=math.pi / 6):
     n = np.array([-math.sin(theta), math.cos(theta)])
     law = ContactLaw(stiffness=1e4, restitution=0.5, friction=friction)
     sim = GranularSimulation(
-        [n * 0.5 * (1 - 1e-4)],
-        0.5,
-        world=fs.Halfspace(n, 0.0),
-        contact=law,
+        fs.Halfspace(n, 0.0),
+        positions=[n * 0.5 * (1 - 1e-4)],
+        radius=0.5,
+        contacts=law,
         gravity=(0.0, -1.0),
         timestep=0.01,
     )
@@ -194,8 +195,9 @@ def test_cell_list_matches_brute_force(n, seed, periodic, skin, chunks):
     radius = rng.uniform(0.2, 0.6, n)  # 1:3
     period = span + 4.0 if periodic else 0.0
     sim = GranularSimulation(
-        pos,
-        radius,
+        None,
+        positions=pos,
+        radius=radius,
         gravity=(0.0, 0.0),
         skin=skin,
         chunks=chunks,
@@ -231,10 +233,13 @@ def test_lammps_damping_conversion_round_trips():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"contact": ContactLaw(stiffness=-1.0)}, r"contact\.stiffness.*-1\.0"),
-        ({"contact": ContactLaw(restitution=1.5)}, r"contact\.restitution.*1\.5"),
-        ({"contact": ContactLaw(friction=float("nan"))}, r"contact\.friction.*nan"),
-        ({"wall_contact": ContactLaw(tangential_damping=-2)}, r"wall_contact\.tangential_damping"),
+        ({"contacts": ContactLaw(stiffness=-1.0)}, r"contacts\.stiffness.*-1\.0"),
+        ({"contacts": ContactLaw(restitution=1.5)}, r"contacts\.restitution.*1\.5"),
+        ({"contacts": ContactLaw(friction=float("nan"))}, r"contacts\.friction.*nan"),
+        (
+            {"wall_contacts": ContactLaw(tangential_damping=-2)},
+            r"wall_contacts\.tangential_damping",
+        ),
         ({"density": 0.0}, r"density.*0\.0"),
         ({"timestep": -1.0}, r"timestep.*-1\.0"),
         ({"substep": 0.0}, r"substep.*0\.0"),
@@ -250,16 +255,18 @@ def test_bad_parameters_are_named(kwargs, match):
     args = {"positions": [[0.0, 0.0]], "radius": 0.5}
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        GranularSimulation(args.pop("positions"), args.pop("radius"), **args)
+        GranularSimulation(None, **args)
 
 
 def test_bad_types_are_named():
-    with pytest.raises(TypeError, match="contact must be"):
-        GranularSimulation([[0.0, 0.0]], 0.5, contact=(1.0, 0.5, 0.5, 0.5))
+    with pytest.raises(TypeError, match="contacts must be"):
+        GranularSimulation(None, positions=[[0.0, 0.0]], radius=0.5, contacts=(1.0, 0.5, 0.5, 0.5))
     with pytest.raises(TypeError, match="world must be"):
-        GranularSimulation([[0.0, 0.0]], 0.5, world=3)
-    with pytest.raises(TypeError, match=r"contact\.stiffness must be a real number"):
-        GranularSimulation([[0.0, 0.0]], 0.5, contact=ContactLaw(stiffness="stiff"))
+        GranularSimulation(3, positions=[[0.0, 0.0]], radius=0.5)
+    with pytest.raises(TypeError, match=r"contacts\.stiffness must be a real number"):
+        GranularSimulation(
+            None, positions=[[0.0, 0.0]], radius=0.5, contacts=ContactLaw(stiffness="stiff")
+        )
 
 
 def test_chunking_changes_only_rounding():
@@ -281,10 +288,10 @@ def test_moving_floor_lifts_a_disc():
     it would drag otherwise)."""
     u, g, law = 0.3, 9.81, ContactLaw(stiffness=1e4)
     sim = GranularSimulation(
-        [[0.0, 0.5]],
-        0.5,
-        world=fs.Halfspace((0.0, 1.0), fs.t * u),
-        contact=law,
+        fs.Halfspace((0.0, 1.0), fs.t * u),
+        positions=[[0.0, 0.5]],
+        radius=0.5,
+        contacts=law,
         gravity=(0.0, -g),
         timestep=0.05,
     )
@@ -309,7 +316,9 @@ def test_grid_world_matches_exact_world():
     pos = np.stack([rng.uniform(0.6, 2.4, 8), 0.52 + 1.2 * np.arange(8)], 1)
     runs = []
     for world in (walls, grid):
-        sim = GranularSimulation(pos, 0.5, world=world, gravity=(0.0, -9.81), timestep=1 / 30)
+        sim = GranularSimulation(
+            world, positions=pos, radius=0.5, gravity=(0.0, -9.81), timestep=1 / 30
+        )
         sim.run(6)
         runs.append(sim)
     assert runs[0].energy()["wall_contacts"] > 0
@@ -323,11 +332,12 @@ def test_oblique_collision_turns_discs_and_keeps_angular_momentum():
     order of overlap / radius, far smaller than the spin created. A wrong torque sign would
     break it by twice the spin."""
     sim = GranularSimulation(
-        [[-0.6, 0.3], [0.6, -0.2]],
-        [0.5, 0.4],
+        None,
+        positions=[[-0.6, 0.3], [0.6, -0.2]],
+        radius=[0.5, 0.4],
         velocities=[[1.0, 0.0], [-1.0, 0.1]],
         gravity=(0.0, 0.0),
-        contact=ContactLaw(stiffness=1e4, friction=0.5),
+        contacts=ContactLaw(stiffness=1e4, friction=0.5),
         timestep=1.0,
     )
 

@@ -107,11 +107,27 @@ def test_readme_blocks_name_their_extras(line, source):
     )
 
 
+# Appended to a block that makes grains (run in the same process, after it): its grains have
+# landed within the block's simulated time: all at rest, each touching the world or a grain.
+GRAINS_AT_REST = """
+import numpy as _np
+_v = _np.hypot(*sim.p["v"].T)
+assert _v.max() < 1e-2, f"grains still moving at t = {sim.t}: up to {_v.max()} length/s"
+_x, _r = _np.asarray(sim.p["x"]), _np.asarray(sim.p["r"])
+_gap = _np.hypot(*(_x[:, None] - _x[None]).transpose(2, 0, 1)) - (_r[:, None] + _r[None])
+_np.fill_diagonal(_gap, _np.inf)
+_wall = _np.asarray(sim.world(_x[:, 0], _x[:, 1])).reshape(-1) - _r
+_free = (_wall > 1e-3 * _r) & (_gap.min(axis=1) > 1e-3 * _r)
+assert not _free.any(), f"{_free.sum()} grains touch nothing at t = {sim.t}"
+"""
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("line,source", BLOCKS, ids=BLOCK_IDS)
 def test_readme_block_runs_pasted_alone(line, source, tmp_path):
     script = tmp_path / "block.py"
-    script.write_text(scale_down(source), encoding="utf-8")
+    check = GRAINS_AT_REST if "contacts=" in source else ""
+    script.write_text(scale_down(source) + check, encoding="utf-8")
     env = dict(os.environ, MPLBACKEND="Agg")
     # this checkout's fastsdf, as `make demo`'s editable installation provides it
     env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, env.get("PYTHONPATH")) if p)
@@ -188,3 +204,23 @@ def test_readme_particle_block_queries_the_demos_world_and_grid():
         theirs.dtype,
     )
     np.testing.assert_array_equal(grid.data, theirs.data)
+
+
+def test_headline_table_names_each_worlds_exactness_as_the_code_reports():
+    """The headline table's words for the SDF rows are what ``f.exactness`` says of those
+    worlds (the notebook's world is a smooth union: a distance bound, not exact)."""
+    from fastsdf.shapes.scenes import box_world, seed_world
+
+    text = _readme()
+    start = text.index("## Headline figures")
+    table = text[start : text.index("\n## ", start + 1)]
+    rows = {
+        "notebook's world": seed_world().exactness,
+        "20 smoothly joined boxes": box_world().exactness,
+    }
+    for words, exactness in rows.items():
+        (row,) = [line for line in table.splitlines() if words in line]
+        what = row.split("|")[1]
+        assert f"'{exactness}'" in what, (words, exactness, what)
+        if exactness != "exact":
+            assert not re.search(r"\bexact\b", what), what

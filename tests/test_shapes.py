@@ -107,6 +107,60 @@ def test_set_operations_are_min_max(rng):
     np.testing.assert_array_equal(f(*p.T), np.minimum(da, db))
 
 
+def test_complement_negates_the_value_and_the_gradient(rng):
+    shapes = [
+        sdf.Polygon([[0, 0], [1, 0], [0.2, 0.3], [0, 1]]),  # not convex
+        sdf.Circle([0.2, -0.1], 0.6) | sdf.Box([-1, -0.2], [0.1, 0.5]),
+        sdf.Halfspace([1, 1], 0.3),
+    ]
+    p = rng.uniform(-1.5, 1.5, (400, 2))
+    for f in shapes:
+        d, grad = f(*p.T, compute_gradient=True)
+        dc, gradc = (-f)(*p.T, compute_gradient=True)
+        np.testing.assert_array_equal(dc, -d)
+        np.testing.assert_array_equal(gradc, -grad)
+        np.testing.assert_allclose(gradc, central_gradient(-f, *p.T), atol=1e-5)
+        twice = -f
+        np.testing.assert_array_equal((-twice)(*p.T), d)
+
+
+def test_difference_is_intersection_with_the_complement(rng):
+    a = sdf.Star([0.1, 0], 1.0, 5)
+    b = sdf.Ellipse([0.5, 0.2], [0.6, 0.3])
+    p = rng.uniform(-1.5, 1.5, (500, 2))
+    want, want_grad = (a - b)(*p.T, compute_gradient=True)
+    got, got_grad = (a & -b)(*p.T, compute_gradient=True)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got_grad, want_grad)
+    assert (a & -b).exactness == (a - b).exactness == "bound"
+    assert (a & -b).exact_inside and (a - b).exact_inside
+
+
+def test_complement_is_exact_where_the_shape_is_and_unbounded(rng):
+    lo, hi = (-0.4, -0.25), (0.5, 0.3)
+    box = sdf.Box(lo, hi)
+    p = rng.uniform(-1, 1, (600, 2))
+    inside_box = np.all((p > lo) & (p < hi), axis=1)
+    dist = brute_distance(p, _boundary_box(lo, hi))
+    np.testing.assert_allclose((-box)(*p.T), np.where(inside_box, dist, -dist), atol=1e-3)
+    assert (-box).exactness == "exact"
+    # exact inside and outside trade places
+    u = sdf.Circle([-0.3, 0], 0.5) | sdf.Circle([0.3, 0], 0.5)
+    assert (-u).exact_inside and not (-u).exact_outside and (-u).exactness == "bound"
+    back = -u
+    assert (-back).exact_outside and not (-back).exact_inside
+    # not a distance bound stays no bound
+    assert (-sdf.SDF(sdf.Circle([0, 0], 1).f * 2)).exactness == "none"
+    # Unbounded: a disc right of the axis mirrors exactly, its complement (which reaches
+    # across the axis) does not; a copy of it overlaps every other copy.
+    off = sdf.Circle([0.6, 0.2], 0.2)
+    assert off.mirror("x").exactness == "exact"
+    assert (-off).mirror("x").exactness == "bound"
+    centred = sdf.Circle([0, 0], 0.2)
+    assert centred.repeat(1.0, 3).exactness == "exact"
+    assert (-centred).repeat(1.0, 3).exactness != "exact"
+
+
 @pytest.mark.parametrize("k", [0.5, 10.0, 30.0])
 def test_smooth_blends_reproduce_the_notebook_formula(rng, k):
     a, b = sdf.Circle([-0.6, 0], 1.0), sdf.Halfspace([0.3, 1], 0.2)

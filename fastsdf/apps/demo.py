@@ -5,7 +5,8 @@ notebook's final world: the funnel and 20 random rotated boxes under smoothness 
 ``'seed'``, the funnel and a cut disc of cell 21, the scene of the headline figures in the
 README and docs/performance.md),
 samples it into a :class:`fastsdf.GridSDF` (or queries it exactly), spawns particles in free
-space, lets them fall under gravity with the fused particle step, and writes a video (MP4 with
+space, lets them fall under ``Gravity()`` (the notebook's ``(0, -1)`` length/s**2) with the fused
+particle step, and writes a video (MP4 with
 the ``video`` extra or a system ffmpeg, GIF otherwise) and a PNG of the last frame. It reports
 what it simulated and why the rate is what it is: the world, the grid and its out-of-bounds mode,
 the share of particle positions outside the grid (whose queries fall back to the exact SDF in
@@ -13,7 +14,8 @@ the share of particle positions outside the grid (whose queries fall back to the
 
 ``fastsdf demo --scene sand`` runs :func:`run_sand_demo` instead: grains that collide with each
 other (``ParticleSimulation(..., contacts=ContactLaw(history=True, rolling_friction=0.3))``)
-pour from a column above the world onto its disc and into the funnel, where they heap up and
+pour from a column above the world onto its disc and into the funnel under the Earth's gravity
+(``Gravity((0, -9.81))``: the world read in metres), where they heap up and
 keep a slope; it writes ``sand.mp4`` and ``sand_last_frame.png`` and reports the contact law,
 the substeps per step, the rate, the heap, its angle of repose and the largest overlap.
 ``--no-history`` pours them with the history-free ``ContactLaw()`` (no static friction: the
@@ -609,7 +611,8 @@ def run_sand_demo(
     rolling_friction: float = SAND_ROLLING_FRICTION,
 ) -> SandResult:
     """Pour ``grains`` grains of ``radius`` into a notebook world (``world``, a key of
-    :data:`WORLDS`) and let them heap up: ``steps`` steps of 1/30 s under g = 9.81, grains
+    :data:`WORLDS`) and let them heap up: ``steps`` steps of 1/30 s under ``Gravity((0,
+    -9.81))`` (length/s**2: the world in metres; ``Gravity()`` is the notebook's 1), grains
     colliding with each other and the world (``ParticleSimulation(..., contacts=
     ContactLaw(history=True, rolling_friction=rolling_friction))``: a tangential spring per
     contact, static friction, and rolling resistance, so the heap keeps a slope; ``history=
@@ -791,7 +794,8 @@ def sand_summary(res: SandResult) -> str:
     lines = [
         f"world: {res.world}, {WORLDS[res.world][1]}; queried through {res.sdf}",
         f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} (a column eight "
-        f"grains wide above the world) under g = 9.81",
+        f"grains wide above the world) under g = 9.81 length/s**2 (the world in metres; "
+        f"Gravity()'s default is the notebook's 1)",
         f"contact law: {_sand_law(res)} derived its stiffness {res.stiffness:.4g} from the "
         f"grains (1% overlap under a column as tall as the world): "
         f"{res.substeps_per_step:,} substeps per 1/30 s step",

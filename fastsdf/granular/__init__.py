@@ -5,7 +5,8 @@ positions=..., radius=..., contacts=ContactLaw())`` steps with it under the fami
 tools. ``ContactLaw()`` without a stiffness derives one from the grains (see
 :class:`ContactLaw`).
 
-``GranularSimulation(positions, radius, world=f, contact=ContactLaw(...))`` steps discs with
+``GranularSimulation(world, positions=..., radius=..., contacts=ContactLaw(...))`` (the family's
+arguments, with ``gravity=`` in place of a force generator) steps discs with
 the ``gran/hooke`` contact law (linear spring, restitution-set dashpot, Coulomb-capped viscous
 friction, rotation), or with ``ContactLaw(history=True)`` LAMMPS's ``gran/hooke/history`` (a
 Cundall-Strack tangential spring per contact: static friction; optional rolling resistance), by

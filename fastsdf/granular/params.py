@@ -34,6 +34,8 @@ class ContactLaw(NamedTuple):
     ``gran/hooke/history``), and optional rolling resistance; passed as it is to the compiled
     kernels.
 
+    Parameters
+    ----------
     stiffness : float > 0, or None (the default: derived)
         Normal spring constant ``k_n`` (force / length, i.e. mass / s**2). A grain pressed by
         a load ``F`` overlaps its neighbour by ``F / k_n``: keep ``F / (k_n d)`` (the overlap

@@ -90,8 +90,15 @@ from fastsdf.granular.params import (
 )
 from fastsdf.notice import compiling
 
-__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "PARALLEL_MIN_GRAINS", "GranularSimulation"]
+__all__ = [
+    "DEFAULT_RADIUS",
+    "DEFAULT_SUBSTEPS_PER_CONTACT",
+    "PARALLEL_MIN_GRAINS",
+    "GranularSimulation",
+]
 
+#: The radius of grains given without one (length units: the library's scenes span 4).
+DEFAULT_RADIUS = 0.02
 #: Substeps per (undamped) contact time of the lightest contact, by default.
 DEFAULT_SUBSTEPS_PER_CONTACT = 40
 #: Fewer grains than this step on one thread: waking the other threads for every pass of
@@ -134,38 +141,42 @@ def world_height(world: Any, positions: np.ndarray, diameter: float, gravity: Ar
 
 class GranularSimulation:
     """Discs (soft-sphere DEM, ``gran/hooke``) under gravity, colliding with each other and
-    with an SDF world.
+    with an SDF world: the engine under the particle family's grains, with the family's
+    argument names and order (``GranularSimulation(world, positions=..., radius=...,
+    contacts=ContactLaw(...))``; gravity is a parameter here, a force generator there).
 
     Parameters
     ----------
-    positions : array (n, 2)
-        Centres of the discs (length).
-    radius : float or array (n,)
-        Radii (length, > 0); any mix of sizes (the neighbour cells are sized by the largest).
     world : fastsdf Function, GridSDF or None
         The walls: negative inside matter; a grain of radius R touches it where ``d < R``
         (overlap ``R - d`` along ``grad d``). A world built with time :data:`fastsdf.t` moves
         (evaluated at the simulation's time; the wall's normal speed ``-dd/dt / |grad d|``
         enters the dashpot). ``None``: no walls.
+    positions : array (n, 2)
+        Centres of the discs (length).
     velocities : array (n, 2) or None
         Initial velocities (length / s; default 0). Angular velocities start at 0.
-    contact : ContactLaw or None
+    radius : float or array (n,)
+        Radii (length, > 0; default 0.02); any mix of sizes (the neighbour cells are sized by
+        the largest).
+    contacts : ContactLaw or None
         The grain-grain law (default ``ContactLaw()``) (stiffness in force/length,
         restitution, friction, tangential damping); see :class:`fastsdf.granular.ContactLaw`.
-    wall_contact : ContactLaw or None
-        The grain-world law (default: ``contact``).
+    wall_contacts : ContactLaw or None
+        The grain-world law (default: ``contacts``).
     density : float
         Mass per unit area (> 0): a disc weighs ``density pi R**2``, its moment of inertia is
         that of a solid disc, ``m R**2 / 2``.
-    gravity : (gx, gy)
-        Acceleration of gravity (length / s**2).
     timestep : float
         Seconds per frame (:meth:`run` advances whole frames).
+    gravity : (gx, gy)
+        Acceleration of gravity (length / s**2); the default ``(0, -1)`` is that of
+        :class:`fastsdf.particles.Gravity` (the notebook's, in the scene's length units).
+    substeps_per_contact : float
+        Resolution of the lightest contact when ``substep`` is None (>= 10).
     substep : float or None
         Integration step (s); ``None`` picks the largest step that divides ``timestep`` into
         equal parts no longer than ``t_c / substeps_per_contact`` (see the module docs).
-    substeps_per_contact : float
-        Resolution of the lightest contact when ``substep`` is None (>= 10).
     skin : float or None
         Verlet-list skin (length, > 0): the list is rebuilt when a grain has moved farther than
         ``skin / 2``. ``None``: a fifth of the mean diameter.
@@ -179,22 +190,23 @@ class GranularSimulation:
 
     def __init__(
         self,
-        positions: ArrayLike,
-        radius: ArrayLike | float,
+        world: Any,
         *,
-        world: Any = None,
+        positions: ArrayLike,
         velocities: ArrayLike | None = None,
-        contact: ContactLaw | None = None,
-        wall_contact: ContactLaw | None = None,
+        radius: ArrayLike | float = DEFAULT_RADIUS,
+        contacts: ContactLaw | None = None,
+        wall_contacts: ContactLaw | None = None,
         density: float = 1.0,
-        gravity: ArrayLike = (0.0, -9.81),
         timestep: float = 1 / 30,
-        substep: float | None = None,
+        gravity: ArrayLike = (0.0, -1.0),
         substeps_per_contact: float = DEFAULT_SUBSTEPS_PER_CONTACT,
+        substep: float | None = None,
         skin: float | None = None,
         periodic_x: ArrayLike | None = None,
         chunks: int | None = None,
     ) -> None:
+        contact, wall_contact = contacts, wall_contacts
         p = _points(positions, "positions")
         n = p.shape[0]
         if n < 1:
@@ -204,7 +216,7 @@ class GranularSimulation:
             bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
             raise ValueError(f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}")
         v = np.zeros((n, 2)) if velocities is None else _points(velocities, "velocities", n)
-        for name, law in (("contact", contact), ("wall_contact", wall_contact)):
+        for name, law in (("contacts", contact), ("wall_contacts", wall_contact)):
             if law is not None and not isinstance(law, ContactLaw):
                 raise TypeError(f"{name} must be a fastsdf.granular.ContactLaw, got {name}={law!r}")
         self.density = _real(density, "density")
@@ -332,8 +344,8 @@ class GranularSimulation:
                 law = law._replace(stiffness=derived_stiffness(self.density, g, self._height))
             return check_contact_law(law, name)
 
-        self.contact = resolved(contact, "contact")
-        self.wall_contact = self.contact if wall is None else resolved(wall, "wall_contact")
+        self.contact = resolved(contact, "contacts")
+        self.wall_contact = self.contact if wall is None else resolved(wall, "wall_contacts")
         m_min = self.density * math.pi * self._r_min**2
         self.contact_time = min(
             contact_time(m_min / 2, self.contact),
@@ -651,7 +663,7 @@ class GranularSimulation:
         that grain, so the same number from both sides; and the springs against the world,
         (n,) in the given order. Each pair once."""
         if not self._history:
-            raise ValueError("tangential_springs needs contact=ContactLaw(..., history=True)")
+            raise ValueError("tangential_springs needs contacts=ContactLaw(..., history=True)")
         assert self._nbr is not None
         n = self.ids.shape[0]
         start = self._nbr_start

@@ -29,12 +29,19 @@ def _gen_name(gen: Any) -> str:
 
 
 class Gravity:
-    """Uniform gravity: force ``m * acceleration`` on every particle.
+    """Uniform gravity: force ``m * acceleration`` on every particle (and grain).
 
-    ``acceleration`` is a pair in length/s**2; the default ``(0, -1)`` is the notebook's
-    ``gravity(p, t) = p['m'][:, None] * [0, -1]``. In ``force_generators`` it is fused into the
-    compiled step (no Python work per step); called as ``g(p, t)`` it returns the (n, 2) force
-    array like any generator.
+    Parameters
+    ----------
+    acceleration : (ax, ay), default (0, -1)
+        In length/s**2, lengths in the world's coordinate units. The default is the notebook's
+        ``gravity(p, t) = p['m'][:, None] * [0, -1]``: one length unit per second squared,
+        downward (the library's scenes span 4 units: a fall of 4 takes about 2.8 s). For
+        a world measured in metres, pass the Earth's: ``Gravity((0, -9.81))``.
+
+    In ``force_generators`` it is fused into the compiled step (no Python work per step); for
+    grains it is the granular engine's gravity. Called as ``g(p, t)`` it returns the (n, 2)
+    force array like any generator.
     """
 
     def __init__(self, acceleration: ArrayLike = (0.0, -1.0)):
@@ -53,10 +60,16 @@ class Gravity:
 
 
 class Drag:
-    """Linear drag: force ``-coefficient * v`` (coefficient in mass/s, >= 0).
+    """Linear drag: force ``-coefficient * v``.
 
-    A particle of mass ``m`` loses velocity at the rate ``coefficient / m`` per second. Fused into
-    the compiled step when in ``force_generators``; called as ``g(p, t)`` it returns the forces.
+    Parameters
+    ----------
+    coefficient : float, default 0.1
+        In mass/s, >= 0: a particle of mass ``m`` loses velocity at the rate
+        ``coefficient / m`` per second.
+
+    Fused into the compiled step when in ``force_generators``; called as ``g(p, t)`` it returns
+    the forces.
     """
 
     def __init__(self, coefficient: float = 0.1):
@@ -77,10 +90,17 @@ class Drag:
 class FieldForce:
     """A force field written with the graph API, compiled and fused into the step.
 
-    ``FieldForce(fx, fy)``: the force ``(fx(x, y), fy(x, y))`` (mass * length / s**2);
-    ``FieldForce(potential=U)``: the conservative force ``-grad U(x, y)`` (U in energy units).
-    With ``per_mass=True`` the field is an acceleration (the force is ``m`` times it), like
-    :class:`Gravity`. Each of ``fx``, ``fy``, ``U`` is a :class:`fastsdf.function.Function` (any
+    Parameters
+    ----------
+    fx, fy : Function or expression
+        ``FieldForce(fx, fy)``: the force ``(fx(x, y), fy(x, y))`` (mass * length / s**2).
+    potential : Function or expression
+        ``FieldForce(potential=U)`` (in place of ``fx``, ``fy``): the conservative force
+        ``-grad U(x, y)`` (U in energy units).
+    per_mass : bool, default False
+        The field is an acceleration (the force is ``m`` times it), like :class:`Gravity`.
+
+    Each of ``fx``, ``fy``, ``U`` is a :class:`fastsdf.function.Function` (any
     fastsdf shape is one), or an expression of the symbols named ``x`` and ``y``. Each is
     compiled like an SDF (analytic gradient for the potential), so an attractor
     ``FieldForce(potential=-k / sym_sqrt(x**2 + y**2), per_mass=True)`` costs one inlined

@@ -39,7 +39,11 @@ from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel.cache import load_module
 from fastsdf.granular.params import ContactLaw
-from fastsdf.granular.simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
+from fastsdf.granular.simulation import (
+    DEFAULT_RADIUS,
+    DEFAULT_SUBSTEPS_PER_CONTACT,
+    GranularSimulation,
+)
 from fastsdf.notice import compiling
 from fastsdf.particles.forces import Gravity, fuse
 from fastsdf.particles.simulation import _DEFAULT_N, ParticleSimulation, _recorded
@@ -230,12 +234,37 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
 
     One step (``timestep`` seconds, ``sim.dt``) is ``sim.substeps_per_frame`` substeps of
     the granular engine (``sim.engine``, a :class:`fastsdf.granular.GranularSimulation`).
-    ``contacts`` is the grain-grain law, ``wall_contacts`` the grain-world law (default:
-    ``contacts``); a law without a stiffness derives it (see
-    :class:`fastsdf.granular.ContactLaw`) from the grains, the density and the gravity of
-    ``force_generators`` when a run starts. ``density`` is mass per unit area.
-    ``substeps_per_contact``, ``substep``, ``skin``, ``periodic_x``, ``chunks``: the
-    engine's.
+    Gravity comes from ``force_generators`` (:class:`Gravity`), as for particles.
+
+    Parameters
+    ----------
+    world : fastsdf SDF, GridSDF or None
+        The walls, negative inside matter (``None``: no walls).
+    n : int, optional
+        The number of grains, if given: it must match ``positions``.
+    timestep : float, default 1/30
+        Seconds per step.
+    positions : array (n, 2)
+        Start centres of the grains (required).
+    velocities : array (n, 2) or None
+        Start velocities (default 0).
+    radius : float, array (n,) or None
+        Radii (default 0.02).
+    contacts : ContactLaw or None
+        The grain-grain law (``None``: ``ContactLaw()``); a law without a stiffness derives it
+        (see :class:`fastsdf.granular.ContactLaw`) from the grains, the density and the gravity
+        of ``force_generators`` when a run starts.
+    wall_contacts : ContactLaw or None
+        The grain-world law (default: ``contacts``).
+    substeps_per_contact : float or None
+        Resolution of the lightest contact (``None``: 40, the engine's default).
+    substep, skin, periodic_x, chunks : optional
+        The engine's (see :class:`fastsdf.granular.GranularSimulation`).
+    density : float, default 1
+        Mass per unit area.
+    seed : int, numpy Generator or None
+        Kept as given (``sim.seed``), for the family's interface: grains start where they are
+        given, nothing is drawn.
     """
 
     engine: GranularSimulation
@@ -244,7 +273,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
 
     def __init__(
         self,
-        f: Any,
+        world: Any,
         n: int = _DEFAULT_N,
         timestep: float = 1 / 30,
         *,
@@ -253,22 +282,14 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
         radius: ArrayLike | float | None = None,
         contacts: ContactLaw | None = None,
         wall_contacts: ContactLaw | None = None,
-        density: float = 1.0,
-        substeps_per_contact: float = DEFAULT_SUBSTEPS_PER_CONTACT,
+        substeps_per_contact: float | None = None,
         substep: float | None = None,
         skin: float | None = None,
         periodic_x: ArrayLike | None = None,
         chunks: int | None = None,
+        density: float = 1.0,
         seed: Any = None,
-        **others: Any,
     ) -> None:
-        if others:
-            name = next(iter(others))
-            raise TypeError(
-                f"{name}= does not apply to grains (contacts=...): their restitution and "
-                f"friction are the contact law's (ContactLaw(restitution=..., friction=...)), "
-                f"and they step by the granular engine's substeps"
-            )
         if positions is None:
             raise ValueError(
                 "grains (contacts=...) need positions= (n, 2): the notebook's random "
@@ -281,18 +302,19 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
             raise ValueError(f"n={n!r} does not match positions, which hold {pos.shape[0]} rows")
         self.n = int(pos.shape[0])
         self.seed = seed
+        spc = DEFAULT_SUBSTEPS_PER_CONTACT if substeps_per_contact is None else substeps_per_contact
         self.engine = GranularSimulation(
-            pos,
-            DEFAULT_RADIUS if radius is None else radius,
-            world=f,
+            world,
+            positions=pos,
             velocities=velocities,
-            contact=ContactLaw() if contacts is None else contacts,
-            wall_contact=wall_contacts,
+            radius=DEFAULT_RADIUS if radius is None else radius,
+            contacts=contacts,
+            wall_contacts=wall_contacts,
             density=density,
-            gravity=(0.0, 0.0),
             timestep=timestep,
+            gravity=(0.0, 0.0),  # the force generators' (Gravity), set when a run starts
+            substeps_per_contact=spc,
             substep=substep,
-            substeps_per_contact=substeps_per_contact,
             skin=skin,
             periodic_x=periodic_x,
             chunks=chunks,
@@ -467,7 +489,3 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
             f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
             f"contacts={e.contact!r}, substeps_per_frame={e.substeps_per_frame})"
         )
-
-
-#: The radius of grains given without one (length units: the library's scenes span 4).
-DEFAULT_RADIUS = 0.02

@@ -4,6 +4,7 @@ the choice of compiled step; the notebook's ``reset(ax)``/``update(ax)`` and
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 import os
@@ -109,7 +110,7 @@ class ParticleSimulation:
 
     Parameters
     ----------
-    f : fastsdf SDF (:class:`fastsdf.function.Function`) or GridSDF
+    world : fastsdf SDF (:class:`fastsdf.function.Function`) or GridSDF
         The world; negative inside matter. A GridSDF is sampled bilinearly (its ``sampler``),
         falling back to its exact SDF outside its bounds in ``mode='exact'``. An exact SDF (or
         fallback) with many operands in loops over tables is pruned as ``f(x, y)`` is (see
@@ -130,7 +131,13 @@ class ParticleSimulation:
         grains that also collide with each other (soft-sphere DEM): the simulation is then a
         :class:`fastsdf.particles.grains.GrainSimulation` (same names and tools; its step is
         the granular engine, see there); ``positions`` are required, ``radius`` defaults to
-        0.02, and ``ContactLaw()`` derives its stiffness from the grains.
+        0.02, and ``ContactLaw()`` derives its stiffness from the grains. The parameters from
+        ``integrator`` on are the particles' own and do not apply to grains.
+    wall_contacts : :class:`fastsdf.granular.ContactLaw` or None
+        Grains only: the grain-world law (default: ``contacts``).
+    substeps_per_contact, substep, skin, periodic_x, chunks : optional
+        Grains only: the granular engine's (see :class:`fastsdf.granular.GranularSimulation`);
+        ``substeps_per_contact=None`` is the engine's default, 40.
     density : float, default 1
         Mass per unit area, for the masses of particles given a ``radius`` and of grains.
     seed : int, numpy Generator or None
@@ -236,19 +243,28 @@ class ParticleSimulation:
 
     def __init_subclass__(cls, steps_contacts: bool = False, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
+        _show_init_signature(cls)
         if steps_contacts:
             ParticleSimulation._contact_member = cls
 
     def __new__(cls, *args: Any, **kwargs: Any) -> ParticleSimulation:
         # Grains (contacts=ContactLaw(...)) are the member that steps with the granular engine.
+        # (The signature shown for the class is __init__'s: see _show_init_signature.)
         member = ParticleSimulation._contact_member
         if cls is ParticleSimulation and kwargs.get("contacts") is not None and member:
+            particles_only = sorted(set(kwargs) - set(inspect.signature(member).parameters))
+            if particles_only:
+                raise TypeError(
+                    f"{particles_only[0]}= does not apply to grains (contacts=...): their "
+                    f"restitution and friction are the contact law's (ContactLaw(restitution="
+                    f"..., friction=...)), and they step by the granular engine's substeps"
+                )
             return object.__new__(member)
         return object.__new__(cls)
 
     def __init__(
         self,
-        f: Any,
+        world: Any,
         n: int = _DEFAULT_N,
         timestep: float = 1 / 30,
         *,
@@ -256,6 +272,12 @@ class ParticleSimulation:
         velocities: ArrayLike | None = None,
         radius: ArrayLike | float | None = None,
         contacts: Any = None,
+        wall_contacts: Any = None,
+        substeps_per_contact: float | None = None,
+        substep: float | None = None,
+        skin: float | None = None,
+        periodic_x: ArrayLike | None = None,
+        chunks: int | None = None,
         density: float = 1.0,
         seed: Any = None,
         integrator: str = "symplectic",
@@ -269,6 +291,20 @@ class ParticleSimulation:
         wall_speed: float | None = None,
         rest_speed: float = 0.0,
     ) -> None:
+        grains_only = {
+            "wall_contacts": wall_contacts,
+            "substeps_per_contact": substeps_per_contact,
+            "substep": substep,
+            "skin": skin,
+            "periodic_x": periodic_x,
+            "chunks": chunks,
+        }
+        for name, value in grains_only.items():
+            if value is not None:
+                raise TypeError(
+                    f"{name}= applies to grains only (contacts=ContactLaw(...)), got "
+                    f"{name}={value!r} without contacts"
+                )
         rest = _real(rest_speed, "rest_speed")
         if not (math.isfinite(rest) and rest >= 0.0):
             raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
@@ -322,7 +358,7 @@ class ParticleSimulation:
         self.dtype = dtype
         self.cr = _unit_interval(cr, "cr")
         self.cf = _unit_interval(cf, "cf")
-        self.sdf = f
+        self.sdf = world
         self.block = None if block is None else int(block)
         self.force_generators = []
         self.t = 0.0
@@ -838,6 +874,21 @@ class ParticleSimulation:
             f"integrator={self.integrator!r}, collision={self.collision!r}, "
             f"prevent_tunnelling={self.prevent_tunnelling}, dtype={self.dtype.name})"
         )
+
+
+def _show_init_signature(cls: type) -> None:
+    """Make ``inspect.signature(cls)`` (``help()``, the API pages) the parameters of
+    ``cls.__init__``: the family's ``__new__`` takes ``*args, **kwargs`` only to pick the
+    member, and would otherwise be what they show."""
+    init = inspect.signature(cls.__init__)  # type: ignore[misc]
+    shown = init.replace(
+        parameters=list(init.parameters.values())[1:],  # without self
+        return_annotation=inspect.Signature.empty,
+    )
+    setattr(cls, "__signature__", shown)  # noqa: B010 (a dunder the type checker refuses)
+
+
+_show_init_signature(ParticleSimulation)
 
 
 def _start_state(

@@ -124,6 +124,14 @@ def _bbox_union(a: tuple | None, b: tuple | None, grow: float | None = 0.0) -> t
     return _grow((min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])), grow)
 
 
+def _complement_info(info: _Info) -> _Info:
+    """Info of the complement ``-f``: the shape ``{f > 0}``, with the same boundary. Exact
+    outside where ``f`` was exact inside and the other way round; a bound if ``f`` is one
+    (``|-f| = |f|``, the sign flips with the side); mirror symmetries kept. Unbounded (no
+    bounding box) and, conservatively, not convex (only a half-plane's complement is)."""
+    return _Info(outside=info.inside, inside=info.outside, bound=info.bound, sym=info.sym)
+
+
 def _bbox_meet(a: tuple | None, b: tuple | None) -> tuple | None:
     if a is None:
         return b

@@ -43,6 +43,7 @@ from fastsdf.shapes.exactness import (
     _bbox_meet,
     _bbox_union,
     _blend_depth,
+    _complement_info,
     _frame_bbox,
     _grow,
     _Info,
@@ -117,9 +118,11 @@ class SDF(Function):
 
     Callable as ``f(x, y, compute_gradient=False)`` (see :class:`fastsdf.function.Function`);
     ``f.f`` is its expression. Combine with ``|`` (union), ``&`` (intersection), ``-``
-    (difference); ``|=`` and friends work too. The operators blend as the :func:`smoothness`
-    context says; the methods :meth:`union`, :meth:`intersection`, :meth:`difference` take the
-    blend explicitly. :attr:`exactness` says how far the value can be trusted as a distance.
+    (difference); ``|=`` and friends work too; ``-f`` is the complement: everything outside
+    the shape, the value negated (exact where ``f`` is, unbounded). The operators blend as the
+    :func:`smoothness` context says; the methods :meth:`union`, :meth:`intersection`,
+    :meth:`difference` take the blend explicitly. :attr:`exactness` says how far the value can
+    be trusted as a distance.
     """
 
     def __init__(self, expr: Expr, info: _Info | None = None):
@@ -178,6 +181,13 @@ class SDF(Function):
 
     def __sub__(self, other: SDF) -> Difference:
         return Difference(self, self._other(other, "subtract"))
+
+    def __neg__(self) -> SDF:
+        """The complement: the value negated, so the inside is everything outside the shape
+        (``a - b`` is ``a & -b``). The boundary and the distance to it are the same: exact
+        where ``f`` is exact (outside where ``f`` was exact inside, and the other way round),
+        a bound if ``f`` is one. The complement of a bounded shape is unbounded."""
+        return SDF(-self.f, _complement_info(self._info))
 
     def union(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
         """``self | other`` with an explicit blend (the :func:`smoothness` context is ignored):
