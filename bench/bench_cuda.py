@@ -121,6 +121,82 @@ def expressions(sim: bool) -> list:
     return rows
 
 
+def kernel_variants(sim: bool) -> list:
+    """The notebook's world's point function under other launch shapes and output layouts
+    (for tuning the generated kernels: one grid-stride kernel capped at 65,536 blocks of 256
+    threads is the shipped shape)."""
+    from fastsdf.device import cuda
+    from fastsdf.shapes.scenes import seed_world
+
+    cu = cuda()
+    f = seed_world()
+    k = f.compiled.cuda
+    point_vg = k.module.point_vg
+    n = 2_000 if sim else 100_000_000
+    rng = np.random.default_rng(3)
+    xd, yd = (cu.to_device(a) for a in rng.uniform(-2.5, 2.5, (2, n)))
+    out, grad = cu.device_array(n), cu.device_array((n, 2))
+    gx, gy = cu.device_array(n), cu.device_array(n)
+    (u,) = k.table_args()
+
+    @cu.jit
+    def one_per_thread(xs, ys, out, grad, u):
+        i = cu.grid(1)
+        if i < xs.shape[0]:
+            d, a, b = point_vg(xs[i], ys[i], u)
+            out[i] = d
+            grad[i, 0] = a
+            grad[i, 1] = b
+
+    @cu.jit
+    def split_gradient(xs, ys, out, gx, gy, u):
+        i = cu.grid(1)
+        if i < xs.shape[0]:
+            d, a, b = point_vg(xs[i], ys[i], u)
+            out[i] = d
+            gx[i] = a
+            gy[i] = b
+
+    @cu.jit
+    def value_only_io(xs, ys, out):
+        i = cu.grid(1)
+        if i < xs.shape[0]:
+            out[i] = xs[i] + ys[i]
+
+    rows = []
+    shipped = k.module.batch_vg
+    for name, run in (
+        ("shipped: grid-stride, 65536 x 256", lambda: shipped[65536, 256](xd, yd, out, grad, u)),
+        (
+            "one point per thread, 256",
+            lambda: one_per_thread[-(-n // 256), 256](xd, yd, out, grad, u),
+        ),
+        (
+            "one point per thread, 128",
+            lambda: one_per_thread[-(-n // 128), 128](xd, yd, out, grad, u),
+        ),
+        (
+            "one point per thread, 512",
+            lambda: one_per_thread[-(-n // 512), 512](xd, yd, out, grad, u),
+        ),
+        (
+            "gradient as two arrays, 256",
+            lambda: split_gradient[-(-n // 256), 256](xd, yd, out, gx, gy, u),
+        ),
+        (
+            "I/O floor: read x, y, write one value",
+            lambda: value_only_io[-(-n // 256), 256](xd, yd, out),
+        ),
+    ):
+        try:
+            t = _median_time(run)
+            rows.append({"variant": name, "points_per_s": n / t})
+        except Exception as exc:  # noqa: BLE001 - a variant's failure is reported, not fatal
+            rows.append({"variant": name, "error": repr(exc)[:300]})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def _jax(f, xh, yh, n) -> dict:
     import jax
     import jax.numpy as jnp
@@ -240,12 +316,13 @@ def main(argv: list | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default=os.environ.get("OUT", "."))
     ap.add_argument("--sim", action="store_true", help="tiny sizes under the simulator")
-    ap.add_argument("--only", default="expr,grid,particles,grains")
+    ap.add_argument("--only", default="expr,variants,grid,particles,grains")
     args = ap.parse_args(argv)
     if args.sim:
         os.environ["NUMBA_ENABLE_CUDASIM"] = "1"
     sections = {
         "expr": lambda: expressions(args.sim),
+        "variants": lambda: kernel_variants(args.sim),
         "grid": lambda: grid(args.sim),
         "particles": lambda: _optional("bench.cuda_particles", args.sim),
         "grains": lambda: _optional("bench.cuda_granular", args.sim),
