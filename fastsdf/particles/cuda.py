@@ -1,0 +1,423 @@
+"""Particles on a CUDA GPU: ``ParticleSimulation(world, ..., device='cuda')``.
+
+One thread per particle: :meth:`CudaStep.run` launches one kernel that takes each particle
+through all ``k`` steps of a call in registers (particles do not interact, so nothing couples
+the threads), reading its state once and writing it once. The per-particle arithmetic is the
+CPU's, written once: the CUDA kernel calls the same numba ``@njit`` functions the CPU kernels
+call (numba-cuda compiles them again for the device): the integration
+(:func:`.kernels.step._integrate`), the checks (``_valid_input``, ``_finite4``), the
+collision response (:func:`.kernels.contact._respond`), the grid's sampler
+(:func:`fastsdf.fields.grid.sample_stored` or ``sample_fd``), the scene's point function
+(``f.compiled.point_fn('vg')``) and the fused user forces (``@njit`` functions and
+:class:`.FieldForce`, summed by the world's generated kernel module as on the CPU).
+
+The step is the CPU's plain step (``plain_ser``: integrate, query the end point, respond),
+without query skipping and the tunnelling sweep, which give the same results there; the
+kernel is compiled without contraction of ``a * b + c`` into FMA instructions (NVVM's
+``-fma=0``), as the CPU's numba code is, so a GPU step rounds as the CPU's does.
+
+Worlds: a dense :class:`fastsdf.GridSDF` (stored or finite-difference gradients; in mode
+``'exact'`` a point outside the grid calls the scene's point function on the device) and an
+exact SDF, with runtime parameters too (their values are launch arguments: no recompile).
+Not on the GPU (a clear error names them): moving worlds (built with :data:`fastsdf.t`),
+band grids and other samplers, float32 state, Python force generators, resting contact.
+
+The state lives on the device as numba device arrays (``sim.p['x']``), which CuPy and PyTorch
+take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to NumPy.
+:meth:`CudaStep.run` does not wait for the GPU: particles frozen by a call (see
+:meth:`fastsdf.particles.ParticleSimulation.run`) are counted on the device and reported by
+``sim.check()``, which waits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from fastsdf import device as _device
+from fastsdf.fields import grid as _grid
+from fastsdf.function import Function
+from fastsdf.particles.kernels.constants import FLAG_COEFF, FLAG_INPUT, FLAG_NONFINITE
+from fastsdf.particles.kernels.contact import _respond
+from fastsdf.particles.kernels.step import _finite4, _integrate, _valid_input
+from fastsdf.particles.state import Particles
+
+__all__ = ["DeviceParticles", "CudaStep", "THREADS_PER_BLOCK", "ieee_compile"]
+
+#: Threads per block of the step kernel (under the simulator: fewer, its threads are slow).
+THREADS_PER_BLOCK = 256
+
+
+@contextlib.contextmanager
+def ieee_compile() -> Iterator[None]:
+    """Compile CUDA kernels without FMA contraction (NVVM ``-fma=0``) within the block:
+    ``a * b + c`` rounds twice, as numba's CPU code does, so the device reproduces the CPU's
+    bits. (numba-cuda's ``cuda.jit`` offers no option for it; explicit ``llvm.fmuladd``
+    calls, as in :mod:`fastsdf.backends.kernel.vmath`, stay fused on both targets.)"""
+    from numba.cuda.cudadrv import nvvm
+
+    original = nvvm.compile_ir
+
+    def compile_ir(llvmir: Any, **options: Any) -> Any:
+        if not options.get("fastmath"):
+            options["fma"] = False
+        return original(llvmir, **options)
+
+    nvvm.compile_ir = compile_ir
+    try:
+        yield
+    finally:
+        nvvm.compile_ir = original
+
+
+# ---------------------------------------------------------------------------------------------
+# The state on the device.
+
+
+class DeviceParticles:
+    """The particles' state on the GPU: the fields of :class:`.Particles` (``x``, ``v``:
+    (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,); float64) as numba device arrays.
+
+    ``p['x']`` is the device array itself (CuPy: ``cupy.asarray(p['x'])``, PyTorch:
+    ``torch.as_tensor(p['x'], device='cuda')``, both without a copy; write it in place freely
+    between steps). ``p['x'] = value`` copies a device array on the device and NumPy data
+    (broadcast, e.g. ``p['cr'] = 0.9``) from the host. :meth:`host` is a NumPy copy.
+    """
+
+    FIELDS = Particles.FIELDS
+
+    def __init__(self, host: Particles) -> None:
+        if host.dtype != np.dtype(np.float64):
+            raise ValueError(
+                f"device='cuda' steps float64 state only, got dtype={host.dtype} "
+                "(pass dtype=np.float64)"
+            )
+        cu = _device.cuda()
+        self._n = len(host)
+        self._arrays = {k: cu.to_device(np.ascontiguousarray(host[k])) for k in self.FIELDS}
+
+    def __getitem__(self, name: str) -> Any:
+        try:
+            return self._arrays[name]
+        except (KeyError, TypeError):
+            raise KeyError(f"no particle field {name!r}; fields are {self.FIELDS}") from None
+
+    def __setitem__(self, name: str, value: Any) -> None:
+        arr = self[name]
+        if _device.is_device_array(value):
+            src = _device.as_device(value, f"p[{name!r}]")
+            if tuple(src.shape) != tuple(arr.shape):
+                raise ValueError(
+                    f"p[{name!r}] has shape {arr.shape}; cannot assign a device array of "
+                    f"shape {src.shape}"
+                )
+            arr.copy_to_device(src)
+            return
+        host = np.asarray(value)
+        if host.dtype.kind not in "iuf":
+            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {host.dtype}")
+        try:
+            full = np.ascontiguousarray(np.broadcast_to(host, arr.shape), dtype=np.float64)
+        except ValueError:
+            raise ValueError(
+                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {host.shape}"
+            ) from None
+        arr.copy_to_device(full)
+
+    def __getattr__(self, name: str) -> Any:
+        arrays = self.__dict__.get("_arrays")
+        if arrays is not None and name in arrays:
+            return arrays[name]
+        raise AttributeError(name)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._arrays
+
+    def keys(self) -> tuple[str, ...]:
+        """The field names."""
+        return self.FIELDS
+
+    @property
+    def dtype(self) -> np.dtype:
+        """float64: the device state's dtype."""
+        return np.dtype(np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held on the device (8 floats per particle)."""
+        return sum(int(a.nbytes) for a in self._arrays.values())
+
+    def host(self) -> Particles:
+        """A NumPy copy of the state (a :class:`.Particles`)."""
+        out = Particles(self._n, np.float64)
+        for name in self.FIELDS:
+            out._arrays[name][...] = _device.to_host(self._arrays[name])
+        return out
+
+    def copy(self) -> DeviceParticles:
+        """An independent copy, on the device."""
+        out = DeviceParticles.__new__(DeviceParticles)
+        out._n = self._n
+        cu = _device.cuda()
+        out._arrays = {}
+        for name, arr in self._arrays.items():
+            new = cu.device_array(arr.shape, dtype=arr.dtype)
+            new.copy_to_device(arr)
+            out._arrays[name] = new
+        return out
+
+    def __repr__(self) -> str:
+        return f"DeviceParticles(n={self._n}, dtype=float64)"
+
+
+# ---------------------------------------------------------------------------------------------
+# The world's query on the device.
+
+
+def _is_grid(f: Any) -> bool:
+    return all(hasattr(f, a) for a in ("sampler", "sampler_data", "exact", "mode"))
+
+
+def _unsupported(what: str) -> NotImplementedError:
+    return NotImplementedError(f"device='cuda' does not support {what}; use device='cpu'")
+
+
+def world_query(f: Any) -> tuple:
+    """``(query, key, arrays)`` for the world ``f``: ``query(world, x, y, t) -> (d, dd/dx,
+    dd/dy)``, an ``@njit`` function the step kernel calls on the device with the launch
+    argument ``world`` (see :meth:`CudaStep.world_arg`); ``key`` names the compiled kernel;
+    ``arrays``: the host arrays the query reads (copied to the device once). Raises
+    :class:`NotImplementedError` naming a world the GPU step does not handle."""
+    from numba import njit
+
+    if _is_grid(f):
+        sampler = f.sampler
+        if sampler is not _grid.sample_stored and sampler is not _grid.sample_fd:
+            raise _unsupported(
+                f"the world {type(f).__name__} (sampler {getattr(sampler, '__name__', sampler)}): "
+                "only a dense GridSDF or an exact SDF"
+            )
+        if f.mode == "exact":
+            exact_vg = f.exact.compiled.point_fn("vg")
+            if f.exact.compiled.parametric:
+                raise _unsupported("a grid whose exact SDF has runtime parameters")
+
+            @njit(inline="always")
+            def query(world: Any, x: float, y: float, t: float) -> tuple:
+                d, gx, gy, inside = sampler(world, x, y)
+                if not inside:
+                    return exact_vg(x, y)
+                return d, gx, gy
+
+            key: tuple = ("grid", id(sampler), id(exact_vg))
+        else:
+
+            @njit(inline="always")
+            def query(world: Any, x: float, y: float, t: float) -> tuple:
+                d, gx, gy, inside = sampler(world, x, y)
+                return d, gx, gy
+
+            key = ("grid", id(sampler), "nearest")
+        return query, key, [a for a in f.sampler_data if isinstance(a, np.ndarray)]
+    if not isinstance(f, Function):
+        raise TypeError(
+            f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type {type(f).__name__}"
+        )
+    comp = f.compiled
+    if comp.parametric and f.time_dependent:
+        raise _unsupported("moving worlds (an SDF built with fastsdf.t)")
+    point_vg = comp.point_fn("vg")
+    if comp.parametric:
+
+        @njit(inline="always")
+        def query(world: Any, x: float, y: float, t: float) -> tuple:
+            return point_vg(x, y, t, world)
+
+    else:
+
+        @njit(inline="always")
+        def query(world: Any, x: float, y: float, t: float) -> tuple:
+            return point_vg(x, y)
+
+    return query, ("sdf", id(point_vg)), []
+
+
+# ---------------------------------------------------------------------------------------------
+# The step kernel.
+
+_KERNELS: dict = {}
+#: ``numba.cuda``, once a kernel is built: the kernels name it as a module global (the
+#: simulator swaps such globals for its own module while a kernel runs).
+cuda: Any = None
+
+
+def step_kernel(query: Any, force: Any, use_force: bool, key: tuple) -> Any:
+    """The CUDA kernel of one world's query and fused user forces (built once per ``key``).
+
+    Launch arguments: the state ``X, V, M, R, CR, CF`` (float64 device arrays, ``X``, ``V``
+    of shape (n, 2)), ``FLAGS`` (int32, (n,)) and ``BAD`` (int64, (1,): frozen particles are
+    counted there), ``steps``, the time of the first step ``t0``, ``dt``, gravity ``(ax,
+    ay)``, ``drag``, ``use_m`` (drag or user forces read the mass), ``explicit`` (explicit
+    Euler), ``always`` (the notebook's collision rule) and the world's query data."""
+    global cuda
+    kernel = _KERNELS.get(key)
+    if kernel is not None:
+        return kernel
+    cuda = _device.cuda()
+
+    def step(
+        X, V, M, R, CR, CF, FLAGS, BAD, steps, t0, dt, ax, ay, drag, use_m, explicit, always, world
+    ):
+        i = cuda.grid(1)
+        if i >= X.shape[0]:
+            return
+        x = X[i, 0]
+        y = X[i, 1]
+        vx = V[i, 0]
+        vy = V[i, 1]
+        r = R[i]
+        m = M[i]
+        cr = CR[i]
+        cf = CF[i]
+        coeffs_ok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
+        # every field is checked before the first step (as the CPU's first call checks them)
+        if not (_valid_input(x, y, vx, vy, r, m, True) and coeffs_ok):
+            FLAGS[i] = FLAG_INPUT
+            cuda.atomic.add(BAD, 0, 1)
+            return
+        inv_m = 1.0 / m if use_m else 0.0
+        flag = 0
+        for k in range(steps):
+            t = t0 + k * dt
+            bx = ax
+            by = ay
+            if use_m:
+                fx = -drag * vx
+                fy = -drag * vy
+                if use_force:
+                    ux, uy = force(x, y, vx, vy, m, t)
+                    fx += ux
+                    fy += uy
+                bx += fx * inv_m
+                by += fy * inv_m
+            dx, dy, nvx, nvy = _integrate(vx, vy, bx, by, dt, explicit)
+            d, gx, gy = query(world, x + dx, y + dy, t0)
+            s = d - r
+            nx = x + dx
+            ny = y + dy
+            if s <= 0.0:
+                if not coeffs_ok:
+                    flag = FLAG_COEFF
+                    break
+                nx, ny, nvx, nvy = _respond(nx, ny, nvx, nvy, s, (gx, gy, 0.0), cr, cf, always)
+            if not _finite4(nx, ny, nvx, nvy):
+                flag = FLAG_NONFINITE
+                break
+            x = nx
+            y = ny
+            vx = nvx
+            vy = nvy
+        X[i, 0] = x
+        X[i, 1] = y
+        V[i, 0] = vx
+        V[i, 1] = vy
+        if flag != 0:
+            FLAGS[i] = flag
+            cuda.atomic.add(BAD, 0, 1)
+
+    kernel = _KERNELS[key] = cuda.jit(step)
+    return kernel
+
+
+class CudaStep:
+    """The GPU step of one :class:`fastsdf.particles.ParticleSimulation` (``device='cuda'``):
+    the world's query data on the device, the flags and frozen count, the compiled kernels."""
+
+    def __init__(self, world: Any) -> None:
+        self.query, self.key, arrays = world_query(world)
+        cu = _device.cuda()
+        # the world's arrays on the device, once (a grid's nodes)
+        self._world = world
+        self._device_arrays = {id(a): cu.to_device(a) for a in arrays}
+        self.flags: Any = None
+        self.bad = cu.to_device(np.zeros(1, dtype=np.int64))
+        #: Steps run since the frozen count was last read (for the error's message).
+        self.steps_unchecked = 0
+
+    def world_arg(self, params: tuple, t: float) -> tuple:
+        """The ``world`` launch argument: a grid's sampler data with its arrays on the device,
+        an SDF's parameter values (or a placeholder)."""
+        f = self._world
+        if _is_grid(f):
+            return tuple(
+                _kernel_array(self._device_arrays[id(a)]) if isinstance(a, np.ndarray) else a
+                for a in f.sampler_data
+            )
+        return tuple(float(v) for v in params) if f.compiled.parametric else (0.0,)
+
+    def run(
+        self,
+        p: DeviceParticles,
+        steps: int,
+        t0: float,
+        dt: float,
+        forces: tuple,
+        integrator: str,
+        collision: str,
+        params: tuple,
+    ) -> None:
+        """Launch ``steps`` steps of every particle of ``p`` (asynchronous: no wait for the
+        GPU). ``forces``: ``(ax, ay, drag, module)``, the generated CPU kernel module holding
+        the fused user forces ``_force`` (``USE_FORCE``)."""
+        cu = _device.cuda()
+        ax, ay, drag, module = forces
+        use_force = bool(module.USE_FORCE)
+        kernel = step_kernel(self.query, module._force, use_force, self.key + (id(module),))
+        n = len(p)
+        if self.flags is None or self.flags.shape[0] != n:
+            self.flags = cu.to_device(np.zeros(n, dtype=np.int32))
+        tpb = 32 if _device.simulated() else THREADS_PER_BLOCK
+        blocks = (n + tpb - 1) // tpb
+        a = p._arrays
+        args = (
+            *(a[k] for k in Particles.FIELDS),
+            self.flags,
+            self.bad,
+            int(steps),
+            float(t0),
+            float(dt),
+            float(ax),
+            float(ay),
+            float(drag),
+            bool(drag != 0.0 or use_force),
+            integrator == "euler",
+            collision == "notebook",
+            self.world_arg(params, t0),
+        )
+        with ieee_compile():  # (compiles on the first launch of a kernel only)
+            kernel[blocks, tpb](*args)
+        self.steps_unchecked += int(steps)
+
+    def frozen(self) -> tuple[int, np.ndarray | None]:
+        """Wait for the GPU; the count of particles frozen since the last call and their flags
+        (host copies), and reset both."""
+        count = int(_device.to_host(self.bad)[0])
+        flags = None
+        if count:
+            flags = _device.to_host(self.flags)
+            self.flags.copy_to_device(np.zeros_like(flags))
+            self.bad.copy_to_device(np.zeros(1, dtype=np.int64))
+        return count, flags
+
+
+def _kernel_array(a: Any) -> Any:
+    """A device array as a kernel argument. Under numba-cuda's simulator an array inside a
+    tuple argument reaches the CPU-compiled helpers as it is: pass the simulator's NumPy
+    array there (a real device array is passed as it is)."""
+    return getattr(a, "_ary", a) if _device.simulated() else a
