@@ -1,0 +1,264 @@
+"""Particles on the GPU (``ParticleSimulation(..., device='cuda')``) against the same machine's
+CPU on all cores.
+
+    python -m bench.cuda_particles            # on a CUDA GPU: the sizes below
+    python -m bench.cuda_particles --sim      # tiny sizes under numba-cuda's simulator (no GPU)
+    python -m bench.cuda_particles --ptx      # compile the step kernels for sm_90 without a GPU
+                                              # (needs libnvvm and ptxas): registers, spills
+
+Scenario: the notebook's drop (``x ~ N([0, 1.5], 0.05 I)``, ``v ~ N(0, 0.1 I)``, ``m ~ U(1,
+10)``, ``r = 0.01 m``, gravity ``(0, -1)``, ``timestep = 1/30``, seed 0) in the seed world (the
+funnel and a cut disc, :func:`fastsdf.shapes.scenes.seed_world`), sampled by the demo's
+400x400 GridSDF over ``[-2, 2]**2`` (mode 'exact'), or queried exactly (the scene's point
+function). Phases as in ``bench/bench_particles.py``: **fall** (the steps after step 1: free
+fall, then the impact on the disc and the funnel) and **settled** (after 200 steps: most
+particles rest or slide in the funnel). Each timed call is ``run(steps)`` (default 100) after a
+warm-up step, between ``cuda.synchronize()`` calls; the rate is particle-steps per second.
+The CPU rows run the package's default path (query skipping, tunnelling check, the block
+kernel) on all cores with ``cpu_n`` particles.
+
+:func:`rows` returns one dict per measurement; the lead's ``bench/bench_cuda.py`` calls it.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import time
+from typing import Any
+
+SETTLE = 200
+#: The demo's grid over the demo's bounds.
+GRID = 400
+BOUNDS = ((-2.0, 2.0), (-2.0, 2.0))
+
+
+def _world(kind: str) -> Any:
+    from fastsdf import GridSDF
+    from fastsdf.shapes.scenes import seed_world
+
+    f = seed_world()
+    if kind == "exact":
+        return f
+    return GridSDF(f, bounds=BOUNDS, samples=[GRID * 1j, GRID * 1j], mode="exact")
+
+
+def _sim(world: Any, n: int, device: str) -> Any:
+    from fastsdf.particles import Gravity, ParticleSimulation
+
+    sim = ParticleSimulation(world, n=n, timestep=1 / 30, seed=0, device=device)
+    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
+    return sim
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        from fastsdf.device import cuda
+
+        cuda().synchronize()
+
+
+def _phases(world: Any, name: str, n: int, device: str, steps: int, settle: int) -> list[dict]:
+    """Fall and settled rates of ``n`` particles in ``world`` on ``device``."""
+    out = []
+    t0 = time.perf_counter()
+    sim = _sim(world, n, device)
+    made = time.perf_counter() - t0
+    for phase in ("fall", "settled"):
+        if phase == "settled":
+            sim.run(max(0, settle - int(round(sim.t / sim.dt))))
+        else:
+            sim.run(1)  # warm-up: compiles (or loads) the kernel
+        _sync(device)
+        t0 = time.perf_counter()
+        sim.run(steps)
+        _sync(device)
+        seconds = time.perf_counter() - t0
+        sim.check()
+        out.append(
+            {
+                "device": device,
+                "world": name,
+                "phase": phase,
+                "particles": n,
+                "steps": steps,
+                "seconds": seconds,
+                "rate": n * steps / seconds,
+                "setup_seconds": made,
+            }
+        )
+    return out
+
+
+def rows(
+    n: int = 10**7,
+    big: int = 10**8,
+    cpu_n: int = 10**6,
+    steps: int = 100,
+    settle: int = SETTLE,
+) -> list[dict]:
+    """The measurements: the GPU with ``n`` particles on the grid and the exact world (fall
+    and settled), ``big`` particles in one simulation on the grid, and the CPU on all cores
+    with ``cpu_n`` particles on the grid; each GPU row carries ``vs_cpu``, its rate over the
+    CPU's on the grid in the same phase."""
+    import numba
+
+    from fastsdf.device import cuda
+
+    cu = cuda()
+    grid, exact = _world("grid"), _world("exact")
+    gname, ename = f"seed grid {GRID}x{GRID}", "seed exact"
+    out = _phases(grid, gname, n, "cuda", steps, settle)
+    out += _phases(exact, ename, n, "cuda", steps, settle)
+    if big:
+        out += _phases(grid, gname, big, "cuda", steps, settle)
+    cpu = _phases(grid, gname, cpu_n, "cpu", steps, settle)
+    threads = numba.get_num_threads()
+    for row in cpu:
+        row["threads"] = threads
+    base = {row["phase"]: row["rate"] for row in cpu}
+    name = "simulator" if cu.__name__.endswith("simulator") or _simulated() else _gpu_name(cu)
+    for row in out:
+        row["vs_cpu"] = row["rate"] / base[row["phase"]]
+        row["gpu"] = name
+    return out + cpu
+
+
+def _simulated() -> bool:
+    from fastsdf.device import simulated
+
+    return simulated()
+
+
+def _gpu_name(cu: Any) -> str:
+    try:
+        name = cu.get_current_device().name
+        return name.decode() if isinstance(name, bytes) else str(name)
+    except Exception:  # noqa: BLE001 - a label only
+        return "cuda"
+
+
+def table(results: list[dict]) -> str:
+    """The rows as a Markdown table."""
+    lines = [
+        "| device | world | phase | particles | particle-steps/s | vs CPU |",
+        "|---|---|---|---:|---:|---:|",
+    ]
+    for r in results:
+        vs = f"{r['vs_cpu']:.3g}x" if "vs_cpu" in r else f"({r.get('threads', '?')} threads)"
+        lines.append(
+            f"| {r['device']} | {r['world']} | {r['phase']} | {r['particles']:,} | "
+            f"{r['rate'] / 1e9:.3g} G | {vs} |"
+        )
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# Compiling the kernels for a GPU without one (a development check).
+
+
+def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
+    """Compile the step kernel for the grid and the exact world (and the grid with an ``@njit``
+    force) to PTX for compute capability ``cc`` without a GPU, and assemble it with
+    ``ptxas``: registers, spills and FMA instructions per kernel. Needs the CUDA toolkit's
+    libnvvm, libdevice and ptxas (``CUDA_HOME``, default /usr/local/cuda); stands in for the
+    device's compute capability and the toolkit's list of architectures (numba-cuda asks the
+    driver and NVRTC for them)."""
+    import glob
+    import subprocess
+    import tempfile
+
+    home = os.environ.get("CUDA_HOME") or "/usr/local/cuda"
+    candidates = sorted(glob.glob(f"{home}*/nvvm/libdevice/libdevice*.bc"))
+    if not candidates:
+        raise RuntimeError(f"no libdevice under {home}*: set CUDA_HOME to a CUDA toolkit")
+    libdevice = candidates[-1]
+    root = libdevice.split("/nvvm/")[0]
+    ptxas = os.path.join(root, "bin", "ptxas")
+
+    import numba
+
+    import fastsdf.device as dv
+
+    dv._patch_numpy()
+    from numba import cuda as cu
+    from numba.cuda import dispatcher as disp
+    from numba.cuda.cudadrv import libs, nvrtc, nvvm
+
+    class _Device:
+        compute_capability = cc
+
+    disp.get_current_device = lambda: _Device()  # type: ignore[attr-defined]
+    nvrtc.get_supported_ccs = lambda: [(7, 5), (8, 0), (8, 6), (9, 0), (10, 0), (12, 0)]
+    nvvm.get_libdevice = lambda: libdevice  # type: ignore[attr-defined]
+    nvvm.open_libdevice = lambda: open(libdevice, "rb").read()  # type: ignore[attr-defined]
+    libs.get_libdevice = nvvm.get_libdevice
+    dv.cuda = lambda: cu
+
+    from numba import njit
+
+    from fastsdf.particles import cuda as pc
+    from fastsdf.particles.world import _kernel_module
+
+    @njit
+    def wind(x, y, vx, vy, m, t):
+        return 0.1 * y, -0.05 * vx
+
+    grid, exact = _world("grid"), _world("exact")
+    a2, a1 = numba.float64[:, ::1], numba.float64[::1]
+    out = []
+    for name, world, forces in (
+        ("grid", grid, ()),
+        ("exact", exact, ()),
+        ("grid + njit force", grid, (wind,)),
+    ):
+        query, key, _ = pc.world_query(world)
+        module = _kernel_module(world, forces)[0]
+        kernel = pc.step_kernel(query, module._force, bool(module.USE_FORCE), key + (id(module),))
+        arg = tuple(grid.sampler_data) if world is grid else (0.0,)
+        sig = (a2, a2, a1, a1, a1, a1, numba.int32[::1], numba.int64[::1], numba.int64)
+        sig += (numba.float64,) * 5 + (numba.boolean,) * 3 + (numba.typeof(arg),)
+        with pc.ieee_compile():
+            ptx, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)
+        with tempfile.TemporaryDirectory() as tmp:
+            src = os.path.join(tmp, "k.ptx")
+            with open(src, "w") as fh:
+                fh.write(ptx)
+            res = subprocess.run(
+                [ptxas, f"-arch=sm_{cc[0]}{cc[1]}", "-v", src, "-o", os.path.join(tmp, "k.cubin")],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+        regs = re.search(r"Used (\d+) registers", res.stderr)
+        spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", res.stderr)
+        out.append(
+            {
+                "kernel": name,
+                "cc": f"{cc[0]}.{cc[1]}",
+                "registers": int(regs.group(1)) if regs else None,
+                "spill_bytes": [int(b) for b in spill.groups()] if spill else None,
+                "fma_in_ptx": ptx.count("fma.rn.f64"),
+                "ptx_lines": ptx.count("\n"),
+            }
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    if "--ptx" in args:
+        for row in ptx_report():
+            print(row)
+        return
+    if "--sim" in args:
+        os.environ["NUMBA_ENABLE_CUDASIM"] = "1"  # before numba.cuda is imported
+        results = rows(n=64, big=96, cpu_n=256, steps=3, settle=6)
+    else:
+        results = rows()
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()
