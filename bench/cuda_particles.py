@@ -135,7 +135,7 @@ def _gpu_name(cu: Any) -> str:
     try:
         name = cu.get_current_device().name
         return name.decode() if isinstance(name, bytes) else str(name)
-    except Exception:  # noqa: BLE001 - a label only
+    except Exception:  # a label only
         return "cuda"
 
 
@@ -192,7 +192,9 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
     disp.get_current_device = lambda: _Device()  # type: ignore[attr-defined]
     nvrtc.get_supported_ccs = lambda: [(7, 5), (8, 0), (8, 6), (9, 0), (10, 0), (12, 0)]
     nvvm.get_libdevice = lambda: libdevice  # type: ignore[attr-defined]
-    nvvm.open_libdevice = lambda: open(libdevice, "rb").read()  # type: ignore[attr-defined]
+    with open(libdevice, "rb") as fh:
+        code = fh.read()
+    nvvm.open_libdevice = lambda: code  # type: ignore[attr-defined]
     libs.get_libdevice = nvvm.get_libdevice
     dv.cuda = lambda: cu
 

@@ -240,6 +240,11 @@ class ParticleSimulation:
     _ext: Any
     _flags: Any
     _wall: Any
+    #: The state: :class:`Particles`, or :class:`fastsdf.particles.cuda.DeviceParticles` with
+    #: ``device='cuda'``.
+    p: Any
+    #: The GPU step (:class:`fastsdf.particles.cuda.CudaStep`), None on the CPU.
+    _gpu: Any
 
     #: The member of the family that grains with contacts are (set by the subclass that
     #: declares ``class ...(ParticleSimulation, steps_contacts=True)``: the grains' module).
