@@ -92,16 +92,23 @@ def _phases(world: Any, name: str, n: int, device: str, steps: int, settle: int)
 
 
 def rows(
-    n: int = 10**7,
-    big: int = 10**8,
-    cpu_n: int = 10**6,
-    steps: int = 100,
-    settle: int = SETTLE,
+    sim: bool = False,
+    n: int | None = None,
+    big: int | None = None,
+    cpu_n: int | None = None,
+    steps: int | None = None,
+    settle: int | None = None,
 ) -> list[dict]:
-    """The measurements: the GPU with ``n`` particles on the grid and the exact world (fall
-    and settled), ``big`` particles in one simulation on the grid, and the CPU on all cores
-    with ``cpu_n`` particles on the grid; each GPU row carries ``vs_cpu``, its rate over the
-    CPU's on the grid in the same phase."""
+    """The measurements: the GPU with ``n`` particles (default 1e7) on the grid and the exact
+    world (fall and settled), ``big`` particles (1e8; 0: none) in one simulation on the grid,
+    and the CPU on all cores with ``cpu_n`` particles (1e6) on the grid; ``steps`` timed steps
+    (100) after ``settle`` (200). Each GPU row carries ``vs_cpu``, its rate over the CPU's on
+    the grid in the same phase. ``sim``: tiny sizes (for numba-cuda's simulator)."""
+    small = {"n": 64, "big": 96, "cpu_n": 256, "steps": 3, "settle": 6}
+    full = {"n": 10**7, "big": 10**8, "cpu_n": 10**6, "steps": 100, "settle": SETTLE}
+    given = {"n": n, "big": big, "cpu_n": cpu_n, "steps": steps, "settle": settle}
+    size = {k: v if v is not None else (small if sim else full)[k] for k, v in given.items()}
+    n, big, cpu_n, steps, settle = (int(size[k]) for k in ("n", "big", "cpu_n", "steps", "settle"))
     import numba
 
     from fastsdf.device import cuda
@@ -256,7 +263,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     if "--sim" in args:
         os.environ["NUMBA_ENABLE_CUDASIM"] = "1"  # before numba.cuda is imported
-        results = rows(n=64, big=96, cpu_n=256, steps=3, settle=6)
+        results = rows(sim=True)
     else:
         results = rows()
     print(table(results))
