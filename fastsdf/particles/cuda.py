@@ -191,8 +191,9 @@ def _unsupported(what: str) -> NotImplementedError:
 def world_query(f: Any) -> tuple:
     """``(query, key, arrays)`` for the world ``f``: ``query(world, x, y, t) -> (d, dd/dx,
     dd/dy)``, an ``@njit`` function the step kernel calls on the device with the launch
-    argument ``world`` (see :meth:`CudaStep.world_arg`); ``key`` names the compiled kernel;
-    ``arrays``: the host arrays the query reads (copied to the device once). Raises
+    argument ``world`` (see :meth:`CudaStep.world_arg`; ``t``: the call's start time); ``key``
+    names the compiled kernel; ``arrays``: the host arrays the query reads (copied to the
+    device once). Raises
     :class:`NotImplementedError` naming a world the GPU step does not handle."""
     from numba import njit
 
@@ -350,7 +351,7 @@ class CudaStep:
         #: Steps run since the frozen count was last read (for the error's message).
         self.steps_unchecked = 0
 
-    def world_arg(self, params: tuple, t: float) -> tuple:
+    def world_arg(self, params: tuple) -> tuple:
         """The ``world`` launch argument: a grid's sampler data with its arrays on the device,
         an SDF's parameter values (or a placeholder)."""
         f = self._world
@@ -398,7 +399,7 @@ class CudaStep:
             bool(drag != 0.0 or use_force),
             integrator == "euler",
             collision == "notebook",
-            self.world_arg(params, t0),
+            self.world_arg(params),
         )
         with ieee_compile():  # (compiles on the first launch of a kernel only)
             kernel[blocks, tpb](*args)
