@@ -165,24 +165,34 @@ def table(results: list[dict]) -> str:
 # Compiling the kernels for a GPU without one (a development check).
 
 
+def toolkit() -> tuple[str, str] | None:
+    """``(libdevice, ptxas)`` of the CUDA toolkit at ``CUDA_HOME`` (or /usr/local/cuda*), or
+    None."""
+    import glob
+
+    home = os.environ.get("CUDA_HOME") or "/usr/local/cuda"
+    for libdevice in sorted(glob.glob(f"{home}*/nvvm/libdevice/libdevice*.bc"), reverse=True):
+        ptxas = os.path.join(libdevice.split("/nvvm/")[0], "bin", "ptxas")
+        if os.path.exists(ptxas):
+            return libdevice, ptxas
+    return None
+
+
 def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
     """Compile the step kernel for the grid and the exact world (and the grid with an ``@njit``
     force) to PTX for compute capability ``cc`` without a GPU, and assemble it with
-    ``ptxas``: registers, spills and FMA instructions per kernel. Needs the CUDA toolkit's
+    ``ptxas``: registers, spills and FMA instructions per kernel (as compiled, and as NVVM
+    would contract them by default). Needs the CUDA toolkit's
     libnvvm, libdevice and ptxas (``CUDA_HOME``, default /usr/local/cuda); stands in for the
     device's compute capability and the toolkit's list of architectures (numba-cuda asks the
     driver and NVRTC for them)."""
-    import glob
     import subprocess
     import tempfile
 
-    home = os.environ.get("CUDA_HOME") or "/usr/local/cuda"
-    candidates = sorted(glob.glob(f"{home}*/nvvm/libdevice/libdevice*.bc"))
-    if not candidates:
-        raise RuntimeError(f"no libdevice under {home}*: set CUDA_HOME to a CUDA toolkit")
-    libdevice = candidates[-1]
-    root = libdevice.split("/nvvm/")[0]
-    ptxas = os.path.join(root, "bin", "ptxas")
+    found = toolkit()
+    if found is None:
+        raise RuntimeError("no CUDA toolkit (libdevice, ptxas) found: set CUDA_HOME")
+    libdevice, ptxas = found
 
     import numba
 
@@ -230,6 +240,7 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
         sig += (numba.float64,) * 5 + (numba.boolean,) * 3 + (numba.typeof(arg),)
         with pc.ieee_compile():
             ptx, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)
+        contracted, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)  # NVVM's default: -fma=1
         with tempfile.TemporaryDirectory() as tmp:
             src = os.path.join(tmp, "k.ptx")
             with open(src, "w") as fh:
@@ -249,6 +260,7 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
                 "registers": int(regs.group(1)) if regs else None,
                 "spill_bytes": [int(b) for b in spill.groups()] if spill else None,
                 "fma_in_ptx": ptx.count("fma.rn.f64"),
+                "fma_if_contracted": contracted.count("fma.rn.f64"),
                 "ptx_lines": ptx.count("\n"),
             }
         )
@@ -258,8 +270,10 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
 def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else argv
     if "--ptx" in args:
+        import json
+
         for row in ptx_report():
-            print(row)
+            print(json.dumps(row))
         return
     if "--sim" in args:
         os.environ["NUMBA_ENABLE_CUDASIM"] = "1"  # before numba.cuda is imported

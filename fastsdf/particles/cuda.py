@@ -32,6 +32,7 @@ take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to 
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -59,7 +60,10 @@ def ieee_compile() -> Iterator[None]:
     calls, as in :mod:`fastsdf.backends.kernel.vmath`, stay fused on both targets.)"""
     from numba.cuda.cudadrv import nvvm
 
-    original = nvvm.compile_ir
+    original = getattr(nvvm, "compile_ir", None)
+    if original is None:  # another numba-cuda: its default (contraction) applies
+        yield
+        return
 
     def compile_ir(llvmir: Any, **options: Any) -> Any:
         if not options.get("fastmath"):
@@ -401,7 +405,11 @@ class CudaStep:
             collision == "notebook",
             self.world_arg(params),
         )
-        with ieee_compile():  # (compiles on the first launch of a kernel only)
+        with ieee_compile(), warnings.catch_warnings():
+            # (compiles on the first launch only; a small launch is not a performance problem
+            # worth numba-cuda's under-utilisation warning here)
+            for category in _performance_warnings():
+                warnings.simplefilter("ignore", category)
             kernel[blocks, tpb](*args)
         self.steps_unchecked += int(steps)
 
@@ -415,6 +423,18 @@ class CudaStep:
             self.flags.copy_to_device(np.zeros_like(flags))
             self.bad.copy_to_device(np.zeros(1, dtype=np.int64))
         return count, flags
+
+
+def _performance_warnings() -> list:
+    """numba's and numba-cuda's NumbaPerformanceWarning classes (numba-cuda has its own)."""
+    from numba.core.errors import NumbaPerformanceWarning
+
+    found = [NumbaPerformanceWarning]
+    try:
+        from numba.cuda.core.errors import NumbaPerformanceWarning as cuda_warning
+    except ImportError:
+        return found
+    return found + [cuda_warning]
 
 
 def _kernel_array(a: Any) -> Any:
