@@ -179,8 +179,8 @@ def toolkit() -> tuple[str, str] | None:
 
 
 def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
-    """Compile the step kernel for the grid and the exact world (and the grid with an ``@njit``
-    force) to PTX for compute capability ``cc`` without a GPU, and assemble it with
+    """Compile the step kernel for the grid and the exact world (the grid with an ``@njit``
+    force, a moving world) to PTX for compute capability ``cc`` without a GPU, and assemble it with
     ``ptxas``: registers, spills and FMA instructions per kernel (as compiled, and as NVVM
     would contract them by default). Needs the CUDA toolkit's
     libnvvm, libdevice and ptxas (``CUDA_HOME``, default /usr/local/cuda); stands in for the
@@ -224,18 +224,25 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
     def wind(x, y, vx, vy, m, t):
         return 0.1 * y, -0.05 * vx
 
+    import fastsdf as sdf
+
     grid, exact = _world("grid"), _world("exact")
+    piston = sdf.Halfspace(normal=[1, 0], d=sdf.Param("x0", -1.0) + sdf.Param("u", 0.5) * sdf.t)
+    moving = piston | sdf.Halfspace(normal=[0, 1], d=-1.0 + 0.4 * sdf.t)
     a2, a1 = numba.float64[:, ::1], numba.float64[::1]
     out = []
     for name, world, forces in (
         ("grid", grid, ()),
         ("exact", exact, ()),
         ("grid + njit force", grid, (wind,)),
+        ("moving", moving, ()),
     ):
         query, key, _ = pc.world_query(world)
         module = _kernel_module(world, forces)[0]
         kernel = pc.step_kernel(query, module._force, bool(module.USE_FORCE), key + (id(module),))
         arg = tuple(grid.sampler_data) if world is grid else (0.0,)
+        if world is moving:
+            arg = tuple(float(v) for v in moving.param_tuple())
         sig = (a2, a2, a1, a1, a1, a1, numba.int32[::1], numba.int64[::1], numba.int64)
         sig += (numba.float64,) * 5 + (numba.boolean,) * 3 + (numba.typeof(arg),)
         with pc.ieee_compile():

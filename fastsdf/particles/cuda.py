@@ -17,10 +17,12 @@ kernel is compiled without contraction of ``a * b + c`` into FMA instructions (N
 ``-fma=0``), as the CPU's numba code is, so a GPU step rounds as the CPU's does.
 
 Worlds: a dense :class:`fastsdf.GridSDF` (stored or finite-difference gradients; in mode
-``'exact'`` a point outside the grid calls the scene's point function on the device) and an
-exact SDF, with runtime parameters too (their values are launch arguments: no recompile).
-Not on the GPU (a clear error names them): moving worlds (built with :data:`fastsdf.t`),
-band grids and other samplers, float32 state, Python force generators, resting contact.
+``'exact'`` a point outside the grid calls the scene's point function on the device), an exact
+SDF, with runtime parameters too (their values are launch arguments: no recompile), and a
+moving world (built with :data:`fastsdf.t`: evaluated at the end of each step with its time
+derivative, the response relative to the wall, as the CPU's step with the sweep and skipping
+off). Not on the GPU (a clear error names them): band grids and other samplers, float32
+state, Python force generators, resting contact.
 
 The state lives on the device as numba device arrays (``sim.p['x']``), which CuPy and PyTorch
 take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to NumPy.
@@ -194,11 +196,11 @@ def _unsupported(what: str) -> NotImplementedError:
 
 def world_query(f: Any) -> tuple:
     """``(query, key, arrays)`` for the world ``f``: ``query(world, x, y, t) -> (d, dd/dx,
-    dd/dy)``, an ``@njit`` function the step kernel calls on the device with the launch
-    argument ``world`` (see :meth:`CudaStep.world_arg`; ``t``: the call's start time); ``key``
-    names the compiled kernel; ``arrays``: the host arrays the query reads (copied to the
-    device once). Raises
-    :class:`NotImplementedError` naming a world the GPU step does not handle."""
+    dd/dy, dd/dt)`` at time ``t`` (``dd/dt`` 0 for a world that does not move), an ``@njit``
+    function the step kernel calls on the device with the launch argument ``world`` (see
+    :meth:`CudaStep.world_arg`); ``key`` names the compiled kernel; ``arrays``: the host
+    arrays the query reads (copied to the device once). Raises :class:`NotImplementedError`
+    naming a world the GPU step does not handle."""
     from numba import njit
 
     if _is_grid(f):
@@ -217,8 +219,8 @@ def world_query(f: Any) -> tuple:
             def query(world: Any, x: float, y: float, t: float) -> tuple:
                 d, gx, gy, inside = sampler(world, x, y)
                 if not inside:
-                    return exact_vg(x, y)
-                return d, gx, gy
+                    d, gx, gy = exact_vg(x, y)
+                return d, gx, gy, 0.0
 
             key: tuple = ("grid", id(sampler), id(exact_vg))
         else:
@@ -226,7 +228,7 @@ def world_query(f: Any) -> tuple:
             @njit(inline="always")
             def query(world: Any, x: float, y: float, t: float) -> tuple:
                 d, gx, gy, inside = sampler(world, x, y)
-                return d, gx, gy
+                return d, gx, gy, 0.0
 
             key = ("grid", id(sampler), "nearest")
         return query, key, [a for a in f.sampler_data if isinstance(a, np.ndarray)]
@@ -236,19 +238,28 @@ def world_query(f: Any) -> tuple:
         )
     comp = f.compiled
     if comp.parametric and f.time_dependent:
-        raise _unsupported("moving worlds (an SDF built with fastsdf.t)")
+        # a moving world: evaluated at the step's end time, with dd/dt (the walls' speed)
+        point_vgt = comp.point_fn("vgt")
+
+        @njit(inline="always")
+        def query(world: Any, x: float, y: float, t: float) -> tuple:
+            return point_vgt(x, y, t, world)
+
+        return query, ("sdf-moving", id(point_vgt)), []
     point_vg = comp.point_fn("vg")
     if comp.parametric:
 
         @njit(inline="always")
         def query(world: Any, x: float, y: float, t: float) -> tuple:
-            return point_vg(x, y, t, world)
+            d, gx, gy = point_vg(x, y, t, world)
+            return d, gx, gy, 0.0
 
     else:
 
         @njit(inline="always")
         def query(world: Any, x: float, y: float, t: float) -> tuple:
-            return point_vg(x, y)
+            d, gx, gy = point_vg(x, y)
+            return d, gx, gy, 0.0
 
     return query, ("sdf", id(point_vg)), []
 
@@ -312,7 +323,8 @@ def step_kernel(query: Any, force: Any, use_force: bool, key: tuple) -> Any:
                 bx += fx * inv_m
                 by += fy * inv_m
             dx, dy, nvx, nvy = _integrate(vx, vy, bx, by, dt, explicit)
-            d, gx, gy = query(world, x + dx, y + dy, t0)
+            # the world at the step's end (a world that does not move ignores the time)
+            d, gx, gy, gt = query(world, x + dx, y + dy, t + dt)
             s = d - r
             nx = x + dx
             ny = y + dy
@@ -320,7 +332,7 @@ def step_kernel(query: Any, force: Any, use_force: bool, key: tuple) -> Any:
                 if not coeffs_ok:
                     flag = FLAG_COEFF
                     break
-                nx, ny, nvx, nvy = _respond(nx, ny, nvx, nvy, s, (gx, gy, 0.0), cr, cf, always)
+                nx, ny, nvx, nvy = _respond(nx, ny, nvx, nvy, s, (gx, gy, gt), cr, cf, always)
             if not _finite4(nx, ny, nvx, nvy):
                 flag = FLAG_NONFINITE
                 break

@@ -188,8 +188,8 @@ class ParticleSimulation:
         it without a copy), ``sim.host('x')`` a NumPy copy; :meth:`run` does not wait for the
         GPU and :meth:`check` reports frozen particles. It runs the plain step (no tunnelling
         sweep: ``prevent_tunnelling`` is False), float64 state, with Gravity, Drag,
-        FieldForce and ``@njit`` forces, in a static world (a dense GridSDF or an exact SDF,
-        with parameters); other worlds and options raise an error naming them.
+        FieldForce and ``@njit`` forces, in a dense GridSDF or an exact SDF (with parameters,
+        moving too); other worlds and options raise an error naming them.
 
     Moving worlds and parameters: a world built with runtime parameters
     (:func:`fastsdf.Param`) is stepped with the values in ``sim.params`` (change them between
