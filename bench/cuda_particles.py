@@ -178,14 +178,14 @@ def toolkit() -> tuple[str, str] | None:
     return None
 
 
-def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
+def ptx_report(cc: tuple[int, int] = (9, 0), names: tuple | None = None) -> list[dict]:
     """Compile the step kernel for the grid and the exact world (the grid with an ``@njit``
     force, a moving world) to PTX for compute capability ``cc`` without a GPU, and assemble it with
     ``ptxas``: registers, spills and FMA instructions per kernel (as compiled, and as NVVM
-    would contract them by default). Needs the CUDA toolkit's
-    libnvvm, libdevice and ptxas (``CUDA_HOME``, default /usr/local/cuda); stands in for the
-    device's compute capability and the toolkit's list of architectures (numba-cuda asks the
-    driver and NVRTC for them)."""
+    would contract them by default); ``names``: only these kernels (see the list below).
+    Needs the CUDA toolkit's libnvvm, libdevice and ptxas (``CUDA_HOME``, default
+    /usr/local/cuda); stands in for the device's compute capability and the toolkit's list
+    of architectures (numba-cuda asks the driver and NVRTC for them)."""
     import subprocess
     import tempfile
 
@@ -218,7 +218,6 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
     from numba import njit
 
     from fastsdf.particles import cuda as pc
-    from fastsdf.particles.world import _kernel_module
 
     @njit
     def wind(x, y, vx, vy, m, t):
@@ -231,20 +230,22 @@ def ptx_report(cc: tuple[int, int] = (9, 0)) -> list[dict]:
     moving = piston | sdf.Halfspace(normal=[0, 1], d=-1.0 + 0.4 * sdf.t)
     a2, a1 = numba.float64[:, ::1], numba.float64[::1]
     out = []
-    for name, world, forces in (
-        ("grid", grid, ()),
-        ("exact", exact, ()),
-        ("grid + njit force", grid, (wind,)),
-        ("moving", moving, ()),
+    for name, world, forces, trace in (
+        ("grid", grid, (), False),
+        ("grid+sweep", grid, (), True),
+        ("exact+sweep", exact, (), True),
+        ("grid+force", grid, (wind,), False),
+        ("moving", moving, (), False),
     ):
-        query, key, _ = pc.world_query(world)
-        module = _kernel_module(world, forces)[0]
-        kernel = pc.step_kernel(query, module._force, bool(module.USE_FORCE), key + (id(module),))
+        if names is not None and name not in names:
+            continue
+        module, key, _ = pc.device_module(world, forces)
+        kernel = pc.step_kernel(module, trace, key + (trace,))
         arg = tuple(grid.sampler_data) if world is grid else (0.0,)
         if world is moving:
             arg = tuple(float(v) for v in moving.param_tuple())
         sig = (a2, a2, a1, a1, a1, a1, numba.int32[::1], numba.int64[::1], numba.int64)
-        sig += (numba.float64,) * 5 + (numba.boolean,) * 3 + (numba.typeof(arg),)
+        sig += (numba.float64,) * 5 + (numba.boolean,) * 3 + (numba.float64, numba.typeof(arg))
         with pc.ieee_compile():
             ptx, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)
         contracted, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)  # NVVM's default: -fma=1
@@ -279,7 +280,10 @@ def main(argv: list[str] | None = None) -> None:
     if "--ptx" in args:
         import json
 
-        for row in ptx_report():
+        # --ptx [name,name,...]: only those kernels
+        at = args.index("--ptx") + 1
+        names = tuple(args[at].split(",")) if at < len(args) else None
+        for row in ptx_report(names=names):
             print(json.dumps(row))
         return
     if "--sim" in args:

@@ -30,9 +30,11 @@ from numba import njit
 FLOOR = sdf.Halfspace(normal=[0, 1], d=0.0)  # solid below y = 0
 
 
-def _pair(world, pos, vel, steps, forces=(), **kw):
-    """The same particles stepped on the CPU (the plain step: no skipping, no sweep) and on
-    the GPU; returns both simulations."""
+def _pair(world, pos, vel, steps, forces=(), sweep=False, **kw):
+    """The same particles stepped on the CPU and on the GPU; returns both simulations. Without
+    ``sweep``, the CPU runs its plain step (no tunnelling sweep, no query skipping); with it,
+    both run the package's default (the sweep; the CPU skips queries too, which changes no
+    result)."""
     sims = []
     for dev in ("cpu", "cuda"):
         sim = ParticleSimulation(
@@ -40,13 +42,14 @@ def _pair(world, pos, vel, steps, forces=(), **kw):
             positions=pos,
             velocities=vel,
             radius=0.03,
-            prevent_tunnelling=False,
+            prevent_tunnelling=sweep,
             device=dev,
             **kw,
         )
         sim.force_generators += [Gravity(), *forces]
         sims.append(sim)
-    sims[0]._skip = False  # every step queries, as the GPU's
+    if not sweep:
+        sims[0]._skip = False  # every step queries, as the GPU's
     for sim in sims:
         sim.run(steps)
     sims[1].check()
@@ -60,6 +63,47 @@ def _drop(n, seed):
     pos = np.stack([rng.uniform(-1.2, 1.2, n), rng.uniform(0.35, 0.6, n)], axis=1)
     vel = np.stack([rng.uniform(-1, 1, n), rng.uniform(-3, -1, n)], axis=1)
     return pos, vel
+
+
+@pytest.mark.parametrize("kind", ["grid", "exact"])
+def test_cuda_sweep_matches_cpu_default_step(kind):
+    """Fast particles (steps of several radii) that the tunnelling sweep catches: the GPU's
+    step with the sweep against the CPU's default step, to 1e-12."""
+    f = seed_world()
+    world = GridSDF(f, bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j]) if kind == "grid" else f
+    pos, vel = _drop(16, seed=2)
+    vel = vel * 3.0  # 0.1 to 0.3 per step against a radius of 0.03
+    steps = 8
+    cpu, gpu = _pair(world, pos, vel, steps, sweep=True)
+    plain = _pair(world, pos, vel, steps)[1]
+    xc, vc = cpu.host("x"), cpu.host("v")
+    assert np.abs(plain.host("x") - xc).max() > 1e-3  # the sweep changed some steps
+    free = vel + steps * cpu.dt * np.array([0.0, -1.0])
+    assert np.sum(np.abs(vc - free).max(axis=1) > 1e-6) >= 6
+    np.testing.assert_allclose(gpu.host("x"), xc, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(gpu.host("v"), vc, rtol=0, atol=1e-12)
+
+
+def test_sweep_stops_tunnelling_through_a_thin_wall():
+    """A wall 0.02 thick and a particle moving 0.5 per step: the plain step jumps over it, the
+    sweep bounces it back."""
+    wall = sdf.Box(minc=[-0.01, -5.0], maxc=[0.01, 5.0])
+    ends = []
+    for sweep in (False, True):
+        sim = ParticleSimulation(
+            wall,
+            positions=[[-0.3, 0.0]],
+            velocities=[[15.0, 0.0]],
+            radius=0.005,
+            timestep=1 / 30,
+            prevent_tunnelling=sweep,
+            device="cuda",
+        )
+        sim.run(3)
+        sim.check()
+        ends.append(sim.host("x")[0, 0])
+    assert ends[0] > 0.5  # passed through
+    assert ends[1] < -0.01  # bounced off the wall's near side
 
 
 @pytest.mark.parametrize("kind", ["grid", "exact"])
@@ -244,6 +288,8 @@ def test_unsupported_on_the_gpu_say_so():
         ParticleSimulation(band, n=2, device="cuda")
     with pytest.raises(ValueError, match="float64"):
         ParticleSimulation(FLOOR, n=2, dtype=np.float32, device="cuda")
+    with pytest.raises(NotImplementedError, match="prevent_tunnelling=False"):
+        ParticleSimulation(sdf.Halfspace(normal=[0, 1], d=0.1 * sdf.t), n=2, device="cuda")
     with pytest.raises(NotImplementedError, match="rest_speed"):
         ParticleSimulation(FLOOR, n=2, rest_speed=0.1, device="cuda")
     with pytest.raises(ValueError, match="device"):
@@ -270,7 +316,8 @@ def test_save_holds_the_host_copy(tmp_path):
 def test_kernels_compile_for_a_real_gpu():
     """The simulator runs the CPU-compiled helpers: this compiles the step kernels for sm_90
     with numba-cuda and the CUDA toolkit's NVVM and ptxas (no GPU needed; skipped without the
-    toolkit): every kernel assembles without register spills, and without FMA contraction
+    toolkit; the grid with the sweep and the exact fallback, and a moving world): each
+    assembles without register spills, and without FMA contraction
     (fewer FMA instructions than NVVM's default contracts, so the bits follow the CPU's)."""
     import json
     import subprocess
@@ -283,7 +330,7 @@ def test_kernels_compile_for_a_real_gpu():
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="0")
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     res = subprocess.run(
-        [sys.executable, "-m", "bench.cuda_particles", "--ptx"],
+        [sys.executable, "-m", "bench.cuda_particles", "--ptx", "grid+sweep,moving"],
         cwd=root,
         env=env,
         capture_output=True,
@@ -292,7 +339,7 @@ def test_kernels_compile_for_a_real_gpu():
     )
     assert res.returncode == 0, res.stderr[-2000:]
     rows = [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
-    assert {r["kernel"] for r in rows} == {"grid", "exact", "grid + njit force", "moving"}
+    assert {r["kernel"] for r in rows} == {"grid+sweep", "moving"}
     for r in rows:
         assert r["registers"] and r["spill_bytes"] == [0, 0], r
         assert r["fma_in_ptx"] < r["fma_if_contracted"], r

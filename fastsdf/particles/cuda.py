@@ -3,26 +3,27 @@
 One thread per particle: :meth:`CudaStep.run` launches one kernel that takes each particle
 through all ``k`` steps of a call in registers (particles do not interact, so nothing couples
 the threads), reading its state once and writing it once. The per-particle arithmetic is the
-CPU's, written once: the CUDA kernel calls the same numba ``@njit`` functions the CPU kernels
-call (numba-cuda compiles them again for the device): the integration
-(:func:`.kernels.step._integrate`), the checks (``_valid_input``, ``_finite4``), the
-collision response (:func:`.kernels.contact._respond`), the grid's sampler
-(:func:`fastsdf.fields.grid.sample_stored` or ``sample_fd``), the scene's point function
-(``f.compiled.point_fn('vg')``) and the fused user forces (``@njit`` functions and
-:class:`.FieldForce`, summed by the world's generated kernel module as on the CPU).
+CPU's, written once: the kernel calls the numba ``@njit`` functions the CPU kernels call
+(numba-cuda compiles them again for the device): the integration and checks
+(:mod:`.kernels.step`), the collision response and the tunnelling sweep
+(:mod:`.kernels.contact`), the grid's sampler (:func:`fastsdf.fields.grid.sample_stored` or
+``sample_fd``), the scene's point function (``f.compiled.point_fn('vg')``) and the fused user
+forces (``@njit`` functions and :class:`.FieldForce`). It takes them from a kernel module
+generated as the CPU's is (the kernels' bodies after a scene block, :func:`device_module`),
+whose scene block queries the world in code numba-cuda compiles.
 
-The step is the CPU's plain step (``plain_ser``: integrate, query the end point, respond),
-without query skipping and the tunnelling sweep, which give the same results there; the
-kernel is compiled without contraction of ``a * b + c`` into FMA instructions (NVVM's
+A step is the CPU's (integrate, query the end point, sweep a fast step that is not provably
+clear when ``prevent_tunnelling``, respond) without query skipping, which changes no result;
+the kernel is compiled without contraction of ``a * b + c`` into FMA instructions (NVVM's
 ``-fma=0``), as the CPU's numba code is, so a GPU step rounds as the CPU's does.
 
 Worlds: a dense :class:`fastsdf.GridSDF` (stored or finite-difference gradients; in mode
 ``'exact'`` a point outside the grid calls the scene's point function on the device), an exact
 SDF, with runtime parameters too (their values are launch arguments: no recompile), and a
 moving world (built with :data:`fastsdf.t`: evaluated at the end of each step with its time
-derivative, the response relative to the wall, as the CPU's step with the sweep and skipping
-off). Not on the GPU (a clear error names them): band grids and other samplers, float32
-state, Python force generators, resting contact.
+derivative, the response relative to the wall, as on the CPU; without the sweep). Not on the
+GPU (a clear error names them): band grids and other samplers, float32 state, Python force
+generators, resting contact, the sweep in a moving world.
 
 The state lives on the device as numba device arrays (``sim.p['x']``), which CuPy and PyTorch
 take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to NumPy.
@@ -34,6 +35,7 @@ take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to 
 from __future__ import annotations
 
 import contextlib
+import math
 import warnings
 from collections.abc import Iterator
 from typing import Any
@@ -43,7 +45,13 @@ import numpy as np
 from fastsdf import device as _device
 from fastsdf.fields import grid as _grid
 from fastsdf.function import Function
-from fastsdf.particles.kernels.constants import FLAG_COEFF, FLAG_INPUT, FLAG_NONFINITE
+from fastsdf.particles.kernels.config import Disc, Motion, Window
+from fastsdf.particles.kernels.constants import (
+    FLAG_COEFF,
+    FLAG_INPUT,
+    FLAG_NONFINITE,
+    TRACE_FRACTION,
+)
 from fastsdf.particles.kernels.contact import _respond
 from fastsdf.particles.kernels.step import _finite4, _integrate, _valid_input
 from fastsdf.particles.state import Particles
@@ -194,15 +202,29 @@ def _unsupported(what: str) -> NotImplementedError:
     return NotImplementedError(f"device='cuda' does not support {what}; use device='cpu'")
 
 
-def world_query(f: Any) -> tuple:
-    """``(query, key, arrays)`` for the world ``f``: ``query(world, x, y, t) -> (d, dd/dx,
-    dd/dy, dd/dt)`` at time ``t`` (``dd/dt`` 0 for a world that does not move), an ``@njit``
-    function the step kernel calls on the device with the launch argument ``world`` (see
-    :meth:`CudaStep.world_arg`); ``key`` names the compiled kernel; ``arrays``: the host
-    arrays the query reads (copied to the device once). Raises :class:`NotImplementedError`
-    naming a world the GPU step does not handle."""
-    from numba import njit
+_DEVICE_MODULES: dict = {}
 
+
+def device_module(f: Any, forces: tuple = ()) -> tuple:
+    """The kernel module of the world ``f`` and the fused user forces for the device:
+    :mod:`fastsdf.particles.kernels`' bodies (the response, the march and sweep, the
+    integration) after a scene block whose query numba-cuda can compile (the CPU's block of a
+    grid world calls its exact fallback through a C function address, and a pruned scene's
+    through a plan header; here a grid calls its sampler and the scene's point function, an
+    SDF its point function without pruning: the same values), generated and cached like the
+    CPU's (:func:`fastsdf.particles.world._kernel_module`).
+
+    Returns ``(module, key, arrays)``: the module's ``_query_t(world, x, y, t) -> (d, dd/dx,
+    dd/dy, dd/dt)`` takes the launch argument ``world`` (see :meth:`CudaStep.world_arg`);
+    ``key`` names the compiled kernel; ``arrays``: the host arrays the query reads (copied to
+    the device once). Raises :class:`NotImplementedError` naming a world the GPU step does not
+    handle."""
+    from fastsdf.backends.kernel.cache import load_module
+    from fastsdf.particles import kernels as _kernels
+    from fastsdf.particles import world as _world
+
+    arrays: list = []
+    moving = False
     if _is_grid(f):
         sampler = f.sampler
         if sampler is not _grid.sample_stored and sampler is not _grid.sample_fd:
@@ -210,58 +232,69 @@ def world_query(f: Any) -> tuple:
                 f"the world {type(f).__name__} (sampler {getattr(sampler, '__name__', sampler)}): "
                 "only a dense GridSDF or an exact SDF"
             )
+        lines = [f"from {sampler.__module__} import {sampler.__name__} as _sampler"]
+        query = ["    d, gx, gy, inside = _sampler(data, x, y)"]
         if f.mode == "exact":
-            exact_vg = f.exact.compiled.point_fn("vg")
             if f.exact.compiled.parametric:
                 raise _unsupported("a grid whose exact SDF has runtime parameters")
-
-            @njit(inline="always")
-            def query(world: Any, x: float, y: float, t: float) -> tuple:
-                d, gx, gy, inside = sampler(world, x, y)
-                if not inside:
-                    d, gx, gy = exact_vg(x, y)
-                return d, gx, gy, 0.0
-
-            key: tuple = ("grid", id(sampler), id(exact_vg))
-        else:
-
-            @njit(inline="always")
-            def query(world: Any, x: float, y: float, t: float) -> tuple:
-                d, gx, gy, inside = sampler(world, x, y)
-                return d, gx, gy, 0.0
-
-            key = ("grid", id(sampler), "nearest")
-        return query, key, [a for a in f.sampler_data if isinstance(a, np.ndarray)]
-    if not isinstance(f, Function):
+            lines.append(f"from {f.exact.compiled.module.__name__} import point_vg as _exact")
+            query += ["    if not inside:", "        return _exact(x, y)"]
+        query.append("    return d, gx, gy")
+        arrays = [a for a in f.sampler_data if isinstance(a, np.ndarray)]
+        scene = f.exact.compiled.module.__name__ if f.mode == "exact" else None
+        key: tuple = ("grid", sampler.__name__, f.mode, scene)
+    elif isinstance(f, Function):
+        comp = f.compiled
+        scene = comp.module.__name__
+        lines = [f"from {scene} import point_vg as _exact"]
+        # a parametric world's launch argument is the tuple of its parameters' values
+        query = [
+            "    return _exact(x, y, 0.0, data)" if comp.parametric else "    return _exact(x, y)"
+        ]
+        moving = comp.parametric and f.time_dependent
+        key = ("sdf", scene)
+    else:
         raise TypeError(
             f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type {type(f).__name__}"
         )
-    comp = f.compiled
-    if comp.parametric and f.time_dependent:
-        # a moving world: evaluated at the step's end time, with dd/dt (the walls' speed)
-        point_vgt = comp.point_fn("vgt")
-
-        @njit(inline="always")
-        def query(world: Any, x: float, y: float, t: float) -> tuple:
-            return point_vgt(x, y, t, world)
-
-        return query, ("sdf-moving", id(point_vgt)), []
-    point_vg = comp.point_fn("vg")
-    if comp.parametric:
-
-        @njit(inline="always")
-        def query(world: Any, x: float, y: float, t: float) -> tuple:
-            d, gx, gy = point_vg(x, y, t, world)
-            return d, gx, gy, 0.0
-
+    deco = _world._DECORATOR
+    lines += ["", "", deco, "def _query(data, x, y):", *query]
+    lines += ["", "", deco, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
+    if moving:
+        # evaluated at the step's end with dd/dt; no wall speed bound (the sweep and skipping
+        # of moving worlds do not run on the device)
+        lines += [f"from {scene} import point_vgt as _exact_t", "", "", "MOVING = True"]
+        lines += ["", "", deco, "def _query_t(data, x, y, t):"]
+        lines += ["    return _exact_t(x, y, t, data)"]
+        lines += ["", "", deco, "def _wall_speed(data):", "    return 0.0"]
+        lines += ["", "", deco, "def _wall_speed_at(data, x, y, dx, dy):", "    return 0.0"]
     else:
-
-        @njit(inline="always")
-        def query(world: Any, x: float, y: float, t: float) -> tuple:
-            d, gx, gy = point_vg(x, y)
-            return d, gx, gy, 0.0
-
-    return query, ("sdf", id(point_vg)), []
+        lines += _world._STATIC_TIME_LINES
+    force_lines, _, late = _world._force_parts(forces)
+    block = "\n".join(
+        [
+            "# Scene block of the CUDA step (fastsdf.particles.cuda).",
+            f"_CACHE = {not late}",
+            "GRID_SIMD = False",
+            "GRID_EXACT = False",
+            "",
+            *lines,
+            "",
+            *force_lines,
+        ]
+    )
+    full_key = key + tuple(id(fn) for fn in forces)
+    entry = _DEVICE_MODULES.get(full_key)
+    if entry is None:
+        source = _kernels.kernel_source(block + "\n")
+        if late:  # forces not importable by name: a module of its own, bound here
+            source += f"\n# uncached instance {len(_DEVICE_MODULES)}\n"
+        module = load_module(source, prefix="fastsdf_cuda_particles")
+        for name, obj in late:
+            setattr(module, name, obj)
+        # (the entry keeps the forces alive, so their ids are not reused meanwhile)
+        entry = _DEVICE_MODULES[full_key] = (module, tuple(forces))
+    return entry[0], full_key, arrays
 
 
 # ---------------------------------------------------------------------------------------------
@@ -273,22 +306,54 @@ _KERNELS: dict = {}
 cuda: Any = None
 
 
-def step_kernel(query: Any, force: Any, use_force: bool, key: tuple) -> Any:
-    """The CUDA kernel of one world's query and fused user forces (built once per ``key``).
+def step_kernel(module: Any, trace: bool, key: tuple) -> Any:
+    """The CUDA kernel of one device kernel module (:func:`device_module`: the world's query
+    and the fused user forces), with the tunnelling sweep when ``trace`` (built once per
+    ``key``).
 
     Launch arguments: the state ``X, V, M, R, CR, CF`` (float64 device arrays, ``X``, ``V``
     of shape (n, 2)), ``FLAGS`` (int32, (n,)) and ``BAD`` (int64, (1,): frozen particles are
     counted there), ``steps``, the time of the first step ``t0``, ``dt``, gravity ``(ax,
     ay)``, ``drag``, ``use_m`` (drag or user forces read the mass), ``explicit`` (explicit
-    Euler), ``always`` (the notebook's collision rule) and the world's query data."""
+    Euler), ``always`` (the notebook's collision rule), the world's Lipschitz bound ``lip``
+    (for the sweep) and its query data ``world``.
+
+    Each step is the CPU's (:func:`fastsdf.particles.kernels.step._block` with query skipping
+    off, which changes no result): integrate, query the end point, sweep a step longer than
+    ``TRACE_FRACTION r`` whose end is not provably clear (``trace``), respond."""
     global cuda
     kernel = _KERNELS.get(key)
     if kernel is not None:
         return kernel
     cuda = _device.cuda()
+    query_t = module._query_t
+    sweep = module.sweep
+    force = module._force
+    use_force = bool(module.USE_FORCE)
+    moving = bool(module.MOVING)
+    if trace and moving:
+        raise _unsupported("the tunnelling sweep in a moving world; pass prevent_tunnelling=False")
 
     def step(
-        X, V, M, R, CR, CF, FLAGS, BAD, steps, t0, dt, ax, ay, drag, use_m, explicit, always, world
+        X,
+        V,
+        M,
+        R,
+        CR,
+        CF,
+        FLAGS,
+        BAD,
+        steps,
+        t0,
+        dt,
+        ax,
+        ay,
+        drag,
+        use_m,
+        explicit,
+        always,
+        lip,
+        world,
     ):
         i = cuda.grid(1)
         if i >= X.shape[0]:
@@ -308,6 +373,7 @@ def step_kernel(query: Any, force: Any, use_force: bool, key: tuple) -> Any:
             cuda.atomic.add(BAD, 0, 1)
             return
         inv_m = 1.0 / m if use_m else 0.0
+        short = TRACE_FRACTION * r
         flag = 0
         for k in range(steps):
             t = t0 + k * dt
@@ -324,15 +390,40 @@ def step_kernel(query: Any, force: Any, use_force: bool, key: tuple) -> Any:
                 by += fy * inv_m
             dx, dy, nvx, nvy = _integrate(vx, vy, bx, by, dt, explicit)
             # the world at the step's end (a world that does not move ignores the time)
-            d, gx, gy, gt = query(world, x + dx, y + dy, t + dt)
+            d, gx, gy, gt = query_t(world, x + dx, y + dy, t + dt)
             s = d - r
-            nx = x + dx
-            ny = y + dy
+            sx = x
+            sy = y
+            bounced = False
+            if trace:
+                dd = dx * dx + dy * dy
+                if dd > short * short and not (s * s >= lip * lip * dd and s > 0.0):
+                    if not coeffs_ok:
+                        flag = FLAG_COEFF
+                        break
+                    t1 = 1.0
+                    if s > 0.0:
+                        t1 = 1.0 - s / (lip * math.sqrt(dd))
+                    sx, sy, dx, dy, nvx, nvy, bounced = sweep(
+                        world,
+                        Motion(x, y, dx, dy, nvx, nvy),
+                        Disc(r, cr, cf),
+                        lip,
+                        always,
+                        Window(0.0, t1, t, dt, 0.0),
+                    )
+                    if bounced:
+                        d, gx, gy, gt = query_t(world, sx + dx, sy + dy, t + dt)
+                        s = d - r
+            nx = sx + dx
+            ny = sy + dy
             if s <= 0.0:
                 if not coeffs_ok:
                     flag = FLAG_COEFF
                     break
-                nx, ny, nvx, nvy = _respond(nx, ny, nvx, nvy, s, (gx, gy, gt), cr, cf, always)
+                nx, ny, nvx, nvy = _respond(
+                    nx, ny, nvx, nvy, s, (gx, gy, gt), cr, cf, always and not bounced
+                )
             if not _finite4(nx, ny, nvx, nvy):
                 flag = FLAG_NONFINITE
                 break
@@ -357,10 +448,10 @@ class CudaStep:
     the world's query data on the device, the flags and frozen count, the compiled kernels."""
 
     def __init__(self, world: Any) -> None:
-        self.query, self.key, arrays = world_query(world)
+        _, _, arrays = device_module(world)  # checks the world (a clear error) at once
         cu = _device.cuda()
-        # the world's arrays on the device, once (a grid's nodes)
         self._world = world
+        # the world's arrays on the device, once (a grid's nodes)
         self._device_arrays = {id(a): cu.to_device(a) for a in arrays}
         self.flags: Any = None
         self.bad = cu.to_device(np.zeros(1, dtype=np.int64))
@@ -388,14 +479,17 @@ class CudaStep:
         integrator: str,
         collision: str,
         params: tuple,
+        lip: float,
+        trace: bool,
     ) -> None:
         """Launch ``steps`` steps of every particle of ``p`` (asynchronous: no wait for the
-        GPU). ``forces``: ``(ax, ay, drag, module)``, the generated CPU kernel module holding
-        the fused user forces ``_force`` (``USE_FORCE``)."""
+        GPU). ``forces``: ``(ax, ay, drag, user)``, gravity, drag and the fused user forces
+        (numba dispatchers); ``lip``: the world's Lipschitz bound, ``trace``: whether the
+        tunnelling sweep runs (``prevent_tunnelling``)."""
         cu = _device.cuda()
-        ax, ay, drag, module = forces
-        use_force = bool(module.USE_FORCE)
-        kernel = step_kernel(self.query, module._force, use_force, self.key + (id(module),))
+        ax, ay, drag, user = forces
+        module, key, _ = device_module(self._world, tuple(user))
+        kernel = step_kernel(module, bool(trace), key + (bool(trace),))
         n = len(p)
         if self.flags is None or self.flags.shape[0] != n:
             self.flags = cu.to_device(np.zeros(n, dtype=np.int32))
@@ -412,9 +506,10 @@ class CudaStep:
             float(ax),
             float(ay),
             float(drag),
-            bool(drag != 0.0 or use_force),
+            bool(drag != 0.0 or module.USE_FORCE),
             integrator == "euler",
             collision == "notebook",
+            float(lip),
             self.world_arg(params),
         )
         with ieee_compile(), warnings.catch_warnings():

@@ -186,10 +186,11 @@ class ParticleSimulation:
         extra), one thread per particle through all steps of a :meth:`run` call (see
         :mod:`fastsdf.particles.cuda`): ``sim.p['x']`` is a device array (CuPy and PyTorch take
         it without a copy), ``sim.host('x')`` a NumPy copy; :meth:`run` does not wait for the
-        GPU and :meth:`check` reports frozen particles. It runs the plain step (no tunnelling
-        sweep: ``prevent_tunnelling`` is False), float64 state, with Gravity, Drag,
-        FieldForce and ``@njit`` forces, in a dense GridSDF or an exact SDF (with parameters,
-        moving too); other worlds and options raise an error naming them.
+        GPU and :meth:`check` reports frozen particles. The step is the CPU's (the tunnelling
+        sweep included; no query skipping, which changes no result), float64 state, with
+        Gravity, Drag, FieldForce and ``@njit`` forces, in a dense GridSDF or an exact SDF
+        (with parameters; moving too, without the sweep: pass ``prevent_tunnelling=False``);
+        other worlds and options raise an error naming them.
 
     Moving worlds and parameters: a world built with runtime parameters
     (:func:`fastsdf.Param`) is stepped with the values in ``sim.params`` (change them between
@@ -353,7 +354,6 @@ class ParticleSimulation:
         self._gpu = None
         if device == "cuda":
             self._gpu = _cuda_step(self)
-            self.prevent_tunnelling = False  # the GPU runs the plain step (see device)
         self.reset()
 
     @property
@@ -592,16 +592,17 @@ class ParticleSimulation:
                 f"sim.p must hold the {self.n} particles of this simulation (DeviceParticles "
                 f"or Particles), got {self.p!r}"
             )
-        module, _ = self._kernel(user)
         self._gpu.run(
             self.p,
             steps,
             self.t,
             self.dt,
-            (ax, ay, drag, module),
+            (ax, ay, drag, user),
             self.integrator,
             self.collision,
             self.params.as_tuple(),
+            self.lipschitz,
+            self.prevent_tunnelling,
         )
         self.t += steps * self.dt
 
@@ -941,6 +942,11 @@ def _cuda_step(sim: Any) -> Any:
     if sim.rest_speed > 0.0:
         raise NotImplementedError(
             "device='cuda' does not support resting contact (rest_speed > 0); use device='cpu'"
+        )
+    if sim.prevent_tunnelling and sim._moving:
+        raise NotImplementedError(
+            "device='cuda' does not run the tunnelling sweep in a moving world; pass "
+            "prevent_tunnelling=False"
         )
     return CudaStep(sim._sdf)
 
