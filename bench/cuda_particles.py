@@ -59,35 +59,50 @@ def _sync(device: str) -> None:
         cuda().synchronize()
 
 
-def _phases(world: Any, name: str, n: int, device: str, steps: int, settle: int) -> list[dict]:
-    """Fall and settled rates of ``n`` particles in ``world`` on ``device``."""
+def _phases(
+    world: Any, name: str, n: int, device: str, steps: int, settle: int, paths: tuple
+) -> list[dict]:
+    """Fall and settled rates of ``n`` particles in ``world`` on ``device``, for each step
+    path (``'sweep'``: the default, with the tunnelling sweep; ``'plain'``: without), each
+    timed from the same state."""
     out = []
     t0 = time.perf_counter()
     sim = _sim(world, n, device)
     made = time.perf_counter() - t0
+    start, t_start = sim.p.copy(), sim.t
+    for path in paths:  # warm-up: compiles (or loads) each path's kernel
+        sim.prevent_tunnelling = path == "sweep"
+        sim.run(1)
+        sim.p, sim.t = start.copy(), t_start
     for phase in ("fall", "settled"):
         if phase == "settled":
-            sim.run(max(0, settle - int(round(sim.t / sim.dt))))
-        else:
-            sim.run(1)  # warm-up: compiles (or loads) the kernel
-        _sync(device)
-        t0 = time.perf_counter()
-        sim.run(steps)
-        _sync(device)
-        seconds = time.perf_counter() - t0
-        sim.check()
-        out.append(
-            {
-                "device": device,
-                "world": name,
-                "phase": phase,
-                "particles": n,
-                "steps": steps,
-                "seconds": seconds,
-                "rate": n * steps / seconds,
-                "setup_seconds": made,
-            }
-        )
+            sim.p, sim.t = start, t_start
+            sim.prevent_tunnelling = True
+            sim.run(settle)
+            _sync(device)
+            start, t_start = sim.p.copy(), sim.t
+        for path in paths:
+            sim.p, sim.t = start.copy(), t_start
+            sim.prevent_tunnelling = path == "sweep"
+            _sync(device)
+            t0 = time.perf_counter()
+            sim.run(steps)
+            _sync(device)
+            seconds = time.perf_counter() - t0
+            sim.check()
+            out.append(
+                {
+                    "device": device,
+                    "world": name,
+                    "phase": phase,
+                    "step": path,
+                    "particles": n,
+                    "steps": steps,
+                    "seconds": seconds,
+                    "rate": n * steps / seconds,
+                    "setup_seconds": made,
+                }
+            )
     return out
 
 
@@ -116,16 +131,17 @@ def rows(
     cu = cuda()
     grid, exact = _world("grid"), _world("exact")
     gname, ename = f"seed grid {GRID}x{GRID}", "seed exact"
-    out = _phases(grid, gname, n, "cuda", steps, settle)
-    out += _phases(exact, ename, n, "cuda", steps, settle)
+    both = ("sweep", "plain")
+    out = _phases(grid, gname, n, "cuda", steps, settle, both)
+    out += _phases(exact, ename, n, "cuda", steps, settle, both)
     if big:
-        out += _phases(grid, gname, big, "cuda", steps, settle)
-    cpu = _phases(grid, gname, cpu_n, "cpu", steps, settle)
+        out += _phases(grid, gname, big, "cuda", steps, settle, both)
+    cpu = _phases(grid, gname, cpu_n, "cpu", steps, settle, ("sweep",))
     threads = numba.get_num_threads()
     for row in cpu:
         row["threads"] = threads
     base = {row["phase"]: row["rate"] for row in cpu}
-    name = "simulator" if cu.__name__.endswith("simulator") or _simulated() else _gpu_name(cu)
+    name = "simulator" if _simulated() else _gpu_name(cu)
     for row in out:
         row["vs_cpu"] = row["rate"] / base[row["phase"]]
         row["gpu"] = name
@@ -149,13 +165,13 @@ def _gpu_name(cu: Any) -> str:
 def table(results: list[dict]) -> str:
     """The rows as a Markdown table."""
     lines = [
-        "| device | world | phase | particles | particle-steps/s | vs CPU |",
-        "|---|---|---|---:|---:|---:|",
+        "| device | world | phase | step | particles | particle-steps/s | vs CPU |",
+        "|---|---|---|---|---:|---:|---:|",
     ]
     for r in results:
         vs = f"{r['vs_cpu']:.3g}x" if "vs_cpu" in r else f"({r.get('threads', '?')} threads)"
         lines.append(
-            f"| {r['device']} | {r['world']} | {r['phase']} | {r['particles']:,} | "
+            f"| {r['device']} | {r['world']} | {r['phase']} | {r['step']} | {r['particles']:,} | "
             f"{r['rate'] / 1e9:.3g} G | {vs} |"
         )
     return "\n".join(lines)
