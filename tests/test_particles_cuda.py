@@ -343,3 +343,12 @@ def test_kernels_compile_for_a_real_gpu():
     for r in rows:
         assert r["registers"] and r["spill_bytes"] == [0, 0], r
         assert r["fma_in_ptx"] < r["fma_if_contracted"], r
+
+
+def test_assigning_another_world_moves_its_data_to_the_device():
+    sim = ParticleSimulation(FLOOR, positions=[[0.0, 0.5]], radius=0.1, cr=0.0, device="cuda")
+    sim.force_generators.append(Gravity())
+    sim.sdf = GridSDF(sdf.Halfspace(normal=[0, 1], d=0.2), bounds=[(-1, 1), (-1, 1)])
+    sim.run(60)
+    sim.check()
+    assert abs(sim.host("x")[0, 1] - 0.3) < 0.01  # resting on the new floor at 0.2

@@ -366,8 +366,6 @@ class ParticleSimulation:
         module, data, keep = _kernel_module(f)  # raises TypeError for anything else
         self._sdf = f
         self._module, self._data, self._keep = module, data, keep
-        if getattr(self, "_gpu", None) is not None:
-            self._gpu = _cuda_step(self)
         self._kernels = {(): (module, data, keep, ())}
         # A grid in mode 'exact' binds its exact fallback when a particle first needs it; a
         # pruned SDF (see _prunes) binds its C function at once. Both read the plan header.
@@ -400,6 +398,8 @@ class ParticleSimulation:
                 RuntimeWarning,
                 stacklevel=3,
             )
+        if getattr(self, "_gpu", None) is not None:
+            self._gpu = _cuda_step(self)  # the new world's query data on the device
 
     @property
     def world(self) -> Any:
