@@ -109,8 +109,9 @@ def expressions(sim: bool) -> list:
             lambda: f(xh[:mc], yh[:mc], compute_gradient=True, backend="kernel"), repeats=3
         )
         row["cpu_points_per_s"] = mc / t
-        # JAX on the same GPU
-        if jax_ok and not sim:
+        # JAX on the same GPU (not on the 1,000-box union: tracing and compiling its graph
+        # takes longer than this whole run may)
+        if jax_ok and not sim and prune is None:
             try:
                 row.update(_jax(f, xh, yh, n))
             except Exception as exc:

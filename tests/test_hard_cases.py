@@ -1,5 +1,6 @@
 """Hard cases: damaged kernel caches, gradients exactly on boundaries and spines, subnormal and
-extreme coordinates, degenerate parameters."""
+extreme coordinates, degenerate parameters; the boundary, spine and range cases on the CPU
+kernel and on the CUDA target."""
 
 import math
 import os
@@ -371,31 +372,37 @@ def _world(s, tf=None):
     return f, samples
 
 
+#: The compiled kernel, and the CUDA target (under numba-cuda's simulator without a GPU).
+TARGETS = ["kernel", "cuda"]
+
+
+@pytest.mark.parametrize("backend", TARGETS)
 @pytest.mark.parametrize(
     "s,tf", [(1.0, None), (1.0, (0.7, (0.3, -0.2))), (1e-149, None), (4e148, (-2.1, (1.0, 2.0)))]
 )
-def test_unit_normals_on_every_boundary_and_spine(s, tf):
+def test_unit_normals_on_every_boundary_and_spine(s, tf, backend):
     """Every primitive, on random points of each edge (within rounding of it, or exactly on
     it where the coordinates are representable) and on its spine and centre: the gradient
     is the analytic outward normal (so of unit length) to 1e-12; at unit scale and at both ends
     of the supported range (the smallest lengths 1e-150, the largest coordinates 1e150)."""
     f, samples = _world(s, tf)
     for name, pts, nrm, spine in samples:
-        d, g = f(pts[:, 0], pts[:, 1], compute_gradient=True)
+        d, g = f(pts[:, 0], pts[:, 1], compute_gradient=True, backend=backend)
         assert np.all(np.abs(d) <= 1e-12 * 25 * s), (name, np.abs(d).max() / s)
         err = np.abs(g - nrm).max(axis=1)
         if name == "segment":  # unsigned: within rounding of it either side's normal is right
             err = np.minimum(err, np.abs(g + nrm).max(axis=1))
         assert np.all(err <= 1e-12), (name, err.max(), pts[np.argmax(err)])
         if len(spine):
-            d, g = f(spine[:, 0], spine[:, 1], compute_gradient=True)
+            d, g = f(spine[:, 0], spine[:, 1], compute_gradient=True, backend=backend)
             assert np.all(np.isfinite(d)), name
             unit = np.abs(np.hypot(g[:, 0], g[:, 1]) - 1.0)
             assert np.all(unit <= 1e-12), (name, unit.max(), spine[np.argmax(unit)])
 
 
+@pytest.mark.parametrize("backend", TARGETS)
 @pytest.mark.parametrize("s", [2.0**-494, 2.0**493])
-def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s):
+def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s, backend):
     """The whole catalogue at a power-of-two scale near each end of the supported range: at
     random points around every primitive, value / s and gradient equal the unit-scale ones to
     rounding (no silent over- or underflow anywhere in between)."""
@@ -406,7 +413,7 @@ def test_values_at_the_ends_of_the_range_are_the_unit_values_scaled(s):
         [np.asarray(cell) + rng.uniform(-2.0, 2.0, (60, 2)) for cell in _cells(len(samples))]
     )
     d1, g1 = f1(pts[:, 0], pts[:, 1], compute_gradient=True)
-    ds, gs = fs(pts[:, 0] * s, pts[:, 1] * s, compute_gradient=True)
+    ds, gs = fs(pts[:, 0] * s, pts[:, 1] * s, compute_gradient=True, backend=backend)
     np.testing.assert_allclose(ds / s, d1, rtol=1e-12, atol=1e-13)
     same = np.abs(gs - g1).max(axis=1)
     # a gradient may flip only where the point is on a kink (a medial axis) to rounding

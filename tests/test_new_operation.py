@@ -1,6 +1,7 @@
 """Adding an operation is one entry of the op table (fastsdf.expr.ops.OPS): a test operation,
 registered here and nowhere else, runs through the NumPy reference, the compiled kernel (serial
-and parallel, value and gradient), ``backend='numpy'``, interval bounds and the default call.
+and parallel, value and gradient), ``backend='numpy'``, the CUDA target (under numba-cuda's
+simulator without a GPU), interval bounds and the default call.
 The tape interpreter has its own opcodes: it says it has no instruction for the operation, and
 the default call answers with the kernel instead."""
 
@@ -63,7 +64,7 @@ def test_a_new_operation_runs_through_every_path(cube):
     d_ref, (gx, gy) = evaluate_numpy(e, {"x": x, "y": y}, compute_gradient=True)
     np.testing.assert_allclose(d_ref, d_true, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(np.stack([gx, gy], 1)[far], g_true[far], rtol=1e-12, atol=1e-12)
-    for backend, n in (("kernel", 100), ("kernel", 6000), ("numpy", 6000)):
+    for backend, n in (("kernel", 100), ("kernel", 6000), ("numpy", 6000), ("cuda", 300)):
         d, g = f(x[:n], y[:n], compute_gradient=True, backend=backend)
         np.testing.assert_allclose(d, d_ref[:n], rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(g[far[:n]], g_true[:n][far[:n]], rtol=1e-9, atol=1e-9)

@@ -84,19 +84,20 @@ def device_points(x: Any, y: Any = None) -> tuple[Any, Any, tuple]:
         return cu.to_device(xs), cu.to_device(ys), shape
     if y is None:
         d = as_device(x, "x")
-        if d.ndim == 0 or d.shape[-1] != 2:
+        dshape = tuple(d.shape)
+        if not dshape or dshape[-1] != 2:
             raise ValueError(
                 f"points given without y must have a last axis of length 2 (x, y), "
-                f"got a device array of shape {d.shape}"
+                f"got a device array of shape {dshape}"
             )
-        shape = tuple(d.shape[:-1]) or (1,)
+        shape = dshape[:-1] or (1,)
         flat = d.reshape(-1, 2)
         return flat[:, 0], flat[:, 1], shape
     xd, yd = as_device(x, "x"), as_device(y, "y")
-    if xd.shape != yd.shape:
+    if tuple(xd.shape) != tuple(yd.shape):
         raise ValueError(
-            f"x and y on the device must have the same shape, got x.shape={xd.shape} and "
-            f"y.shape={yd.shape}"
+            f"x and y on the device must have the same shape, got x.shape={tuple(xd.shape)} "
+            f"and y.shape={tuple(yd.shape)}"
         )
     shape = tuple(xd.shape) or (1,)
     return xd.reshape(-1), yd.reshape(-1), shape

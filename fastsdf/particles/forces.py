@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import numba
@@ -20,7 +20,7 @@ from fastsdf.function import Function
 from fastsdf.particles.state import Particles, _real
 from fastsdf.version import __version__
 
-__all__ = ["Gravity", "Drag", "FieldForce", "FusedForces", "fuse"]
+__all__ = ["Gravity", "Drag", "FieldForce", "FusedForces", "fuse", "SAVED_FORCES"]
 
 
 def _gen_name(gen: Any) -> str:
@@ -177,6 +177,23 @@ def _field_function(value: Any, name: str) -> Function:
             f"{name} must be a fastsdf Function or an expression of x and y, got {name}={value!r}"
         ) from None
     return Function(expr, [Symbol("x"), Symbol("y")])
+
+
+def _field_force_args(force: FieldForce) -> dict:
+    if force.potential:
+        return {"potential": force.parts[0], "per_mass": force.per_mass}
+    return {"fx": force.parts[0], "fy": force.parts[1], "per_mass": force.per_mass}
+
+
+#: The forces a checkpoint (:mod:`fastsdf.particles.checkpoint`) stores as data: name ->
+#: (class, the keyword arguments that rebuild an instance through its constructor: numbers,
+#: and a FieldForce's functions as their expression graphs). Only these exact classes (not
+#: subclasses); any other force (a numba @njit function, a Python generator) can only be pickled.
+SAVED_FORCES: dict[str, tuple[type, Callable[[Any], dict]]] = {
+    "Gravity": (Gravity, lambda g: {"acceleration": [float(a) for a in g.acceleration]}),
+    "Drag": (Drag, lambda d: {"coefficient": float(d.coefficient)}),
+    "FieldForce": (FieldForce, _field_force_args),
+}
 
 
 # ---------------------------------------------------------------------------------------------

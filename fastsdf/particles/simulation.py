@@ -244,8 +244,10 @@ class ParticleSimulation:
     #: The state: :class:`Particles`, or :class:`fastsdf.particles.cuda.DeviceParticles` with
     #: ``device='cuda'``.
     p: Any
-    #: The GPU step (:class:`fastsdf.particles.cuda.CudaStep`), None on the CPU.
-    _gpu: Any
+    #: The GPU step (:class:`fastsdf.particles.cuda.CudaStep`), None on the CPU (class
+    #: defaults: members of the family that do not run this constructor are on the CPU).
+    _gpu: Any = None
+    device: str = "cpu"
 
     #: The member of the family that grains with contacts are (set by the subclass that
     #: declares ``class ...(ParticleSimulation, steps_contacts=True)``: the grains' module).
@@ -631,15 +633,31 @@ class ParticleSimulation:
             return self.p.host() if self._gpu is not None else self.p.copy()
         return np.array(to_host(self.p[name]))
 
-    def save(self, path: str | os.PathLike) -> str:
+    def save(self, path: str | os.PathLike, *, allow_pickle: bool = False) -> str:
         """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
-        bit; see :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path."""
-        return save_simulation(self, path)
+        bit: arrays and data only (the world's expression graph or grid, parameters, forces by
+        name and numbers, the random generator's state), so loading runs no code from the file.
+        A force or world that is not data (a numba ``@njit`` or Python force, a world class of
+        your own) is a ``ValueError`` naming it, unless ``allow_pickle=True`` (then it is stored
+        pickled and :meth:`load` needs ``allow_pickle=True`` too); see
+        :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path. With
+        ``device='cuda'`` the state's host copy is written (and :meth:`load` puts it back on
+        the device)."""
+        if self._gpu is None:
+            return save_simulation(self, path, allow_pickle=allow_pickle)
+        on_device, self.p = self.p, self.p.host()
+        try:
+            return save_simulation(self, path, allow_pickle=allow_pickle)
+        finally:
+            self.p = on_device
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> ParticleSimulation:
-        """The simulation saved by :meth:`save` at ``path``."""
-        sim = load_simulation(path)
+    def load(cls, path: str | os.PathLike, *, allow_pickle: bool = False) -> ParticleSimulation:
+        """The simulation saved by :meth:`save` at ``path``, continuing bit for bit. Runs no
+        code from the file; a file holding pickled objects (saved with ``allow_pickle=True``, or
+        by an older fastsdf) is refused with a ``ValueError`` unless ``allow_pickle=True``,
+        which unpickles them (running code named in the file: only for files you trust)."""
+        sim = load_simulation(path, allow_pickle=allow_pickle)
         if not isinstance(sim, cls):
             raise TypeError(f"{path!r} holds a {type(sim).__name__}, not a {cls.__name__}")
         return sim
@@ -904,7 +922,7 @@ class ParticleSimulation:
             "_gpu",
         ):
             state.pop(key, None)
-        if self._gpu is not None:
+        if self._gpu is not None and not isinstance(self.p, Particles):
             state["p"] = self.p.host()  # the device state travels as its host copy
         return state
 
