@@ -269,7 +269,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
 
     engine: GranularSimulation
     _start: tuple
-    p: GrainState  # type: ignore[assignment]
+    p: GrainState
 
     def __init__(
         self,

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fastsdf.backends import prune as _prune
+from fastsdf.device import to_host
 from fastsdf.function import Function
 from fastsdf.notice import compiling
 from fastsdf.particles import kernels as _kernels
@@ -81,6 +82,7 @@ class _DefaultCount(int):
 
 _DEFAULT_N = _DefaultCount(100)
 _COLLISIONS = ("approaching", "notebook")
+_DEVICES = ("cpu", "cuda")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,6 +188,16 @@ class ParticleSimulation:
         (and at up to 4096 of them) at the call's step times, widened by the walls' travel,
         so particles far from every moving wall skip queries as in a static world; pass it
         when walls accelerate or move faster than those samples show.
+    device : {'cpu', 'cuda'}, default 'cpu'
+        ``'cuda'``: the particles live and step on a CUDA GPU (numba-cuda, the ``cuda``
+        extra), one thread per particle through all steps of a :meth:`run` call (see
+        :mod:`fastsdf.particles.cuda`): ``sim.p['x']`` is a device array (CuPy and PyTorch take
+        it without a copy), ``sim.host('x')`` a NumPy copy; :meth:`run` does not wait for the
+        GPU and :meth:`check` reports frozen particles. The step is the CPU's (the tunnelling
+        sweep included; no query skipping, which changes no result), float64 state, with
+        Gravity, Drag, FieldForce and ``@njit`` forces, in a dense GridSDF or an exact SDF
+        (with parameters; moving too, without the sweep: pass ``prevent_tunnelling=False``);
+        other worlds and options raise an error naming them.
 
     Moving worlds and parameters: a world built with runtime parameters
     (:func:`fastsdf.Param`) is stepped with the values in ``sim.params`` (change them between
@@ -236,6 +248,13 @@ class ParticleSimulation:
     _ext: Any
     _flags: Any
     _wall: Any
+    #: The state: :class:`Particles`, or :class:`fastsdf.particles.cuda.DeviceParticles` with
+    #: ``device='cuda'``.
+    p: Any
+    #: The GPU step (:class:`fastsdf.particles.cuda.CudaStep`), None on the CPU (class
+    #: defaults: members of the family that do not run this constructor are on the CPU).
+    _gpu: Any = None
+    device: str = "cpu"
 
     #: The member of the family that grains with contacts are (set by the subclass that
     #: declares ``class ...(ParticleSimulation, steps_contacts=True)``: the grains' module).
@@ -290,6 +309,7 @@ class ParticleSimulation:
         block: int | None = None,
         wall_speed: float | None = None,
         rest_speed: float = 0.0,
+        device: str = "cpu",
     ) -> None:
         grains_only = {
             "wall_contacts": wall_contacts,
@@ -305,6 +325,10 @@ class ParticleSimulation:
                     f"{name}= applies to grains only (contacts=ContactLaw(...)), got "
                     f"{name}={value!r} without contacts"
                 )
+        if device not in _DEVICES:
+            raise ValueError(f"device must be one of {_DEVICES}, got device={device!r}")
+        #: Where the particles are stepped: 'cpu' or 'cuda' (see :mod:`fastsdf.particles.cuda`).
+        self.device = device
         rest = _real(rest_speed, "rest_speed")
         if not (math.isfinite(rest) and rest >= 0.0):
             raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
@@ -365,6 +389,9 @@ class ParticleSimulation:
         self._ext = None
         self._flags = None
         self._wall = None
+        self._gpu = None
+        if device == "cuda":
+            self._gpu = _cuda_step(self)
         self.reset()
 
     @property
@@ -409,6 +436,8 @@ class ParticleSimulation:
                 RuntimeWarning,
                 stacklevel=3,
             )
+        if getattr(self, "_gpu", None) is not None:
+            self._gpu = _cuda_step(self)  # the new world's query data on the device
 
     @property
     def world(self) -> Any:
@@ -452,6 +481,10 @@ class ParticleSimulation:
                 p["r"] = rad
                 p["m"] = density * math.pi * np.asarray(p["r"], dtype=np.float64) ** 2
         self.p = p
+        if getattr(self, "_gpu", None) is not None:
+            from fastsdf.particles.cuda import DeviceParticles
+
+            self.p = DeviceParticles(p)  # copied to the device once
         self.t = 0.0
         self._wall = None
         return self._draw(ax, new=True)
@@ -558,6 +591,9 @@ class ParticleSimulation:
             return
         if steps == 0:
             return
+        if self._gpu is not None:
+            self._run_cuda(int(steps))
+            return
         self._check_state_shape()
         ax, ay, drag, python, user = self._fused_params()
         module, data = self._kernel(user)
@@ -575,6 +611,64 @@ class ParticleSimulation:
         if bad:
             raise self._frozen_error(bad, int(steps))
 
+    def _run_cuda(self, steps: int) -> None:
+        """:meth:`run` on the GPU (:mod:`fastsdf.particles.cuda`): launched, not waited for."""
+        from fastsdf.particles.cuda import DeviceParticles
+
+        ax, ay, drag, python, user = self._fused_params()
+        if python:
+            raise TypeError(
+                f"device='cuda' cannot run the Python force generator "
+                f"{getattr(python[0], '__name__', python[0])!r} (it runs on the CPU only): "
+                "write it as a numba @njit function (x, y, vx, vy, m, t) -> (fx, fy), or "
+                "use device='cpu'"
+            )
+        if isinstance(self.p, Particles):
+            self.p = DeviceParticles(self.p)  # a host state assigned to sim.p
+        elif not isinstance(self.p, DeviceParticles) or len(self.p) != self.n:
+            raise TypeError(
+                f"sim.p must hold the {self.n} particles of this simulation (DeviceParticles "
+                f"or Particles), got {self.p!r}"
+            )
+        self._gpu.run(
+            self.p,
+            steps,
+            self.t,
+            self.dt,
+            (ax, ay, drag, user),
+            self.integrator,
+            self.collision,
+            self.params.as_tuple(),
+            self.lipschitz,
+            self.prevent_tunnelling,
+        )
+        self.t += steps * self.dt
+
+    def check(self) -> None:
+        """With ``device='cuda'``: wait for the GPU and raise the :class:`ValueError` of
+        :meth:`run` if particles were frozen since the last check (on the GPU, :meth:`run`
+        does not wait for the steps to finish). Nothing to do on the CPU (:meth:`run` raises)."""
+        if self._gpu is None:
+            return
+        count, flags = self._gpu.frozen()
+        steps, self._gpu.steps_unchecked = self._gpu.steps_unchecked, 0
+        if count:
+            p, self.p = self.p, self.p.host()
+            self._flags = flags
+            try:
+                err = self._frozen_error(count, steps)
+            finally:
+                self.p, self._flags = p, None
+            raise err
+
+    def host(self, name: str | None = None) -> Any:
+        """A NumPy copy of the state's field ``name`` (``'x'``, ``'v'``, ``'m'``, ...), or of
+        the whole state (a :class:`Particles`) without a name; with ``device='cuda'`` copied
+        from the device (which waits for the GPU)."""
+        if name is None:
+            return self.p.host() if self._gpu is not None else self.p.copy()
+        return np.array(to_host(self.p[name]))
+
     def save(self, path: str | os.PathLike, *, allow_pickle: bool = False) -> str:
         """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
         bit: arrays and data only (the world's expression graph or grid, parameters, forces by
@@ -582,8 +676,16 @@ class ParticleSimulation:
         A force or world that is not data (a numba ``@njit`` or Python force, a world class of
         your own) is a ``ValueError`` naming it, unless ``allow_pickle=True`` (then it is stored
         pickled and :meth:`load` needs ``allow_pickle=True`` too); see
-        :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path."""
-        return save_simulation(self, path, allow_pickle=allow_pickle)
+        :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path. With
+        ``device='cuda'`` the state's host copy is written (and :meth:`load` puts it back on
+        the device)."""
+        if self._gpu is None:
+            return save_simulation(self, path, allow_pickle=allow_pickle)
+        on_device, self.p = self.p, self.p.host()
+        try:
+            return save_simulation(self, path, allow_pickle=allow_pickle)
+        finally:
+            self.p = on_device
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, allow_pickle: bool = False) -> ParticleSimulation:
@@ -853,16 +955,25 @@ class ParticleSimulation:
             "_flags",
             "_hdr",
             "_hdr_plan",
+            "_gpu",
         ):
             state.pop(key, None)
+        if self._gpu is not None and not isinstance(self.p, Particles):
+            state["p"] = self.p.host()  # the device state travels as its host copy
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._ext = self._wall = self._flags = None
+        self._ext = self._wall = self._flags = self._gpu = None
+        self.__dict__.setdefault("device", "cpu")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
             self.sdf = state["_sdf"]
+        if self.device == "cuda":
+            from fastsdf.particles.cuda import DeviceParticles
+
+            self._gpu = _cuda_step(self)
+            self.p = DeviceParticles(self.p)
         # Assigning the world resets its parameters to their defaults: set the saved values.
         saved = state.get("params")
         if saved:
@@ -889,6 +1000,24 @@ def _show_init_signature(cls: type) -> None:
 
 
 _show_init_signature(ParticleSimulation)
+
+
+def _cuda_step(sim: Any) -> Any:
+    """The GPU step of ``sim`` (``device='cuda'``), or a clear error for what it lacks."""
+    from fastsdf.particles.cuda import CudaStep
+
+    if sim.dtype != np.dtype(np.float64):
+        raise ValueError(f"device='cuda' steps float64 state only, got dtype={sim.dtype}")
+    if sim.rest_speed > 0.0:
+        raise NotImplementedError(
+            "device='cuda' does not support resting contact (rest_speed > 0); use device='cpu'"
+        )
+    if sim.prevent_tunnelling and sim._moving:
+        raise NotImplementedError(
+            "device='cuda' does not run the tunnelling sweep in a moving world; pass "
+            "prevent_tunnelling=False"
+        )
+    return CudaStep(sim._sdf)
 
 
 def _start_state(
