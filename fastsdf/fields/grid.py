@@ -742,7 +742,7 @@ class GridSDF:
         backend: str | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Interpolated distance (and gradient) at points; see the class docstring.
-        ``backend='cuda'`` queries on the GPU (:mod:`fastsdf.fields.cuda`): device arrays in
+        ``backend='cuda'`` queries on the GPU (:mod:`fastsdf.fields._cuda`): device arrays in
         (CuPy, PyTorch, JAX, numba; NumPy is copied there and back), the caller's kind out."""
         if backend not in (None, "cpu", "cuda"):
             raise ValueError(f"backend must be None, 'cpu' or 'cuda', got backend={backend!r}")
@@ -780,7 +780,7 @@ class GridSDF:
         from fastsdf.expr.points import device_points
 
         cuda()  # a clear error naming the extra before the kernels' module imports numba-cuda
-        from fastsdf.fields.cuda import query
+        from fastsdf.fields._cuda import query
 
         xs, ys, shape = device_points(x, y)
         out, grad = query(self, xs, ys, compute_gradient)
