@@ -134,7 +134,7 @@ def picture_hero(out: str, small: bool) -> str:
         timestep=1 / 30,
     )
     sim.run(40 if small else 120)
-    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=80, layout="compressed")
+    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=110, layout="compressed")
     # lines at distances clear of half the gaps between letters (which would ring their middles)
     sdf.plot_sdf(
         world,
