@@ -58,8 +58,7 @@ try:
     import jupyter_server_mathjax
 except ImportError:  # pragma: no cover - the docs extra installs it
     raise ImportError(
-        "the docs need jupyter-server-mathjax (MathJax served with the site): "
-        "pip install '.[docs]'"
+        "the docs need jupyter-server-mathjax (MathJax served with the site): pip install '.[docs]'"
     ) from None
 MATHJAX = Path(jupyter_server_mathjax.__file__).resolve().parent / "static"
 mathjax_path = "mathjax/MathJax.js?config=TeX-AMS-MML_HTMLorMML-full"  # TeX in, HTML out

@@ -3,6 +3,8 @@
 :func:`plot_sdf` draws an SDF on an axes: contour lines of the distance (all levels, or only the
 zero level, the surface), optional labels on them, an optional quiver of the gradient coloured by
 the distance, an optional filled inside/outside view and an optional colour bar of the distance.
+By default it has the notebook's look (no ticks); ``axes=True`` makes a figure to keep, with
+coordinates, labels inside the axes and tight margins.
 Particles and animations are drawn by :mod:`fastsdf.viz.render`, which builds on this module (this
 module never imports it).
 
