@@ -9,6 +9,7 @@ writes (pictures, and videos with a frame as the thumbnail).
 
 import os
 import re
+import shutil
 import sys
 import warnings
 from pathlib import Path
@@ -46,7 +47,34 @@ root_doc = "index"
 exclude_patterns = ["_build", "api/_generated", "gallery/*.ipynb", "gallery/*.py", "**.zip"]
 html_theme = "furo"
 html_title = f"fastsdf {release}"
-html_static_path: list[str] = []
+html_static_path = ["_static"]
+html_css_files = ["fastsdf.css"]  # code and tables that fit the page; the index's pictures
+
+# --- mathematics ---------------------------------------------------------------------------------
+# The pages write formulas as MyST math ($...$, $$...$$: dollarmath below). MathJax 2.7 renders
+# them from the site's own copy (_static/mathjax), taken from the jupyter-server-mathjax package
+# of the docs extra, so the pages need no network.
+try:
+    import jupyter_server_mathjax
+except ImportError:  # pragma: no cover - the docs extra installs it
+    raise ImportError(
+        "the docs need jupyter-server-mathjax (MathJax served with the site): pip install '.[docs]'"
+    ) from None
+MATHJAX = Path(jupyter_server_mathjax.__file__).resolve().parent / "static"
+mathjax_path = "mathjax/MathJax.js?config=TeX-AMS-MML_HTMLorMML-full"  # TeX in, HTML out
+mathjax2_config = {
+    "tex2jax": {"inlineMath": [["\\(", "\\)"]], "displayMath": [["\\[", "\\]"]]},
+    # the package ships the STIX-Web fonts only
+    "HTML-CSS": {
+        "availableFonts": [],
+        "preferredFont": None,
+        "webFont": "STIX-Web",
+        "imageFont": None,
+    },
+    "SVG": {"font": "STIX-Web"},
+    "showMathMenu": False,
+}
+myst_update_mathjax = False  # its settings are for MathJax 3 and up
 
 # --- MyST and the notebook ---------------------------------------------------------------------
 myst_enable_extensions = ["dollarmath", "colon_fence", "deflist"]
@@ -124,8 +152,18 @@ def _gallery_done(app: object) -> None:
         os.environ.pop("FASTSDF_EXAMPLE_SMALL", None)
 
 
+def _copy_mathjax(app: object, exception: Exception | None) -> None:
+    """Copy MathJax into the built site's _static/mathjax (what ``mathjax_path`` names)."""
+    builder = app.builder  # type: ignore[attr-defined]
+    if exception is None and builder.format == "html":
+        target = Path(builder.outdir) / "_static" / "mathjax"
+        if not (target / "MathJax.js").exists():
+            shutil.copytree(MATHJAX, target, dirs_exist_ok=True)
+
+
 def setup(app: object) -> None:
     # after sphinx-gallery's own builder-inited handler, which runs the examples
     app.connect("builder-inited", _gallery_done, priority=900)
     # before napoleon's own handler (priority 500)
     app.connect("autodoc-process-docstring", _prose_after_fields, priority=400)
+    app.connect("build-finished", _copy_mathjax)

@@ -1,140 +1,160 @@
-"""The README's pictures: what fastsdf is, an SDF and its gradient, particles in the notebook's
-funnel, grains pouring and heaping, a word and an image turned into worlds.
+"""The README's pictures, each made by the README block it stands under.
 
-    python examples/readme_pictures.py [DIR] [--small]
+    python examples/readme_pictures.py [DIR] [--small] [--only NAME ...]
 
-Writes ``readme_hero.png``, ``readme_sdf.png``, ``readme_particles.png``, ``readme_grains.png``
-and ``readme_geometry.png`` into ``DIR`` (default ``docs/images``). ``--small`` (or
-``FASTSDF_EXAMPLE_SMALL=1``, as for the other examples) runs every simulation at a fraction of
-its size, as the test suite does; the committed pictures are the full size. Each picture shows
-the scene of the README block beside it, at the picture's own sizes (the grains through
-``fastsdf.granular.GranularSimulation``, the engine under ``ParticleSimulation(contacts=...)``).
+Every Python block of ``README.md`` that a picture follows (``![...](docs/images/NAME.png)``)
+runs as a reader runs it: pasted alone into a fresh ``python``, in an empty folder. The one PNG
+it writes becomes ``DIR/NAME.png`` (``DIR`` defaults to ``docs/images``), so each picture is
+exactly what its block draws; ``tests/test_readme.py`` runs the blocks again and compares what
+they draw with the committed pictures. The page's top picture, ``readme_hero.png`` (a word as a
+world, grains poured on it), stands under no block and is drawn here.
+
+``--small`` (or ``FASTSDF_EXAMPLE_SMALL=1``, as for the other examples) runs the blocks with
+their large sizes (the underscore literals: ``n=100_000``) divided by 1000, as the test suite
+does, and the hero's pour small; the committed pictures are the full size.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.cbook import get_sample_data
 
 import fastsdf as sdf
-from fastsdf.geometry import Text, from_image
-from fastsdf.granular import ContactLaw, GranularSimulation
-from fastsdf.particles import Gravity, ParticleSimulation
-from fastsdf.viz.render import draw_particles
+from fastsdf.geometry import Text
+from fastsdf.particles import ContactLaw, Gravity, ParticleSimulation
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-OUT = os.path.join(HERE, "..", "docs", "images")
-BOUNDS = [(-2.0, 2.0), (-2.0, 2.0)]
-DPI = 80
-NAMES = ("hero", "sdf", "particles", "grains", "geometry")
+REPO = os.path.dirname(HERE)
+README = os.path.join(REPO, "README.md")
+OUT = os.path.join(REPO, "docs", "images")
+HERO = "readme_hero.png"
+
+# A fenced block: ```python (or ```py) ... ``` at the start of lines; other languages are skipped.
+_FENCE = re.compile(r"^```[ \t]*(python|py|python3)[ \t]*\n(.*?)^```[ \t]*$", re.M | re.S)
+# An integer literal with digit-group underscores: 1_000_000, 200_000, 4_096.
+_BIG = re.compile(r"(?<![\w.])(\d{1,3}(?:_\d{3})+)(?![\w.])")
+# A picture on the first non-blank line after a block.
+_PICTURE = re.compile(r"\s*!\[[^\]]*\]\(([^)\s]+\.png)\)")
 
 
-def funnel_world() -> sdf.SDF:
-    """The notebook's world (cell 21): a funnel and, under smoothness 10, a cut disc."""
-    f = sdf.Halfspace(normal=[0, 1], d=-1.8) | sdf.Halfspace(normal=[1, 1], d=-1.8)
-    f |= sdf.Halfspace(normal=[-1, 1], d=-1.8)
-    with sdf.smoothness(10):
-        f |= sdf.Circle(center=[0, 0], radius=0.5) & sdf.Halfspace(normal=[0.1, 1], d=0.3)
-    return f
+def python_blocks(text: str) -> list[tuple[int, str, str | None]]:
+    """``[(line_number, source, picture)]`` of the README's Python blocks, in order: the first
+    line of each block's code, its code, and the path of the picture right under it (relative
+    to the repository) or ``None``."""
+    blocks = []
+    for m in _FENCE.finditer(text):
+        picture = _PICTURE.match(text, m.end())
+        line = text.count("\n", 0, m.start()) + 2
+        blocks.append((line, m.group(2), picture.group(1) if picture else None))
+    return blocks
 
 
-def _world_axes(ax, f, bounds=BOUNDS, isolines="zero", samples=300) -> None:
-    sdf.plot_sdf(
-        f,
-        ax=ax,
-        bounds=bounds,
-        samples=samples,
-        show_quiver=False,
-        show_isolines=isolines,
-        filled=True,
+def scale_down(source: str) -> str:
+    """Replace each underscore integer literal by a thousandth of it (at least 16)."""
+    return _BIG.sub(lambda m: str(max(16, int(m.group(1).replace("_", "")) // 1000)), source)
+
+
+def run_block(source: str, folder: str, timeout: float = 900) -> subprocess.CompletedProcess:
+    """Run ``source`` as a reader would paste it into a fresh ``python``: a new process whose
+    working folder is ``folder``, matplotlib's Agg backend, this checkout's fastsdf."""
+    script = os.path.join(folder, "block.py")
+    with open(script, "w", encoding="utf-8") as fh:
+        fh.write(source)
+    env = dict(os.environ, MPLBACKEND="Agg")
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, env.get("PYTHONPATH")) if p)
+    return subprocess.run(
+        [sys.executable, script],
+        cwd=folder,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
 
 
-def picture_sdf(out: str) -> None:
-    """The funnel's distance (isolines, labelled) and its gradient (arrows)."""
-    f = funnel_world()
-    fig, ax = plt.subplots(figsize=(5.2, 5.2), dpi=DPI)
-    sdf.plot_sdf(
-        f,
-        ax=ax,
-        show_quiver=True,
-        show_isolines="all",
-        show_isolabels=True,
-        filled=True,
-        colorbar=True,
-    )
-    ax.set_title("f(x, y): distance (lines, negative inside)\nand its gradient (arrows)")
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, "readme_sdf.png"))
-    plt.close(fig)
+def written_picture(folder: str) -> str:
+    """The one PNG a block wrote into ``folder``; ``RuntimeError`` unless it wrote exactly one."""
+    pngs = sorted(n for n in os.listdir(folder) if n.endswith(".png"))
+    if len(pngs) != 1:
+        raise RuntimeError(f"a block under a picture must write one PNG, it wrote {pngs}")
+    return os.path.join(folder, pngs[0])
 
 
-def picture_particles(out: str, small: bool) -> None:
-    """The notebook's scenario: particles dropped from a blob into the funnel, three moments."""
-    f = funnel_world()
-    grid = sdf.GridSDF(f, bounds=BOUNDS, samples=[400j, 400j])
-    sim = ParticleSimulation(grid, n=2_000 if small else 20_000, timestep=1 / 30, seed=0)
-    sim.force_generators += [Gravity()]
-    fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.8), dpi=DPI)
-    for ax, steps in zip(axes, (0, 60, 240), strict=True):
-        sim.run(steps - round(sim.t / sim.dt))
-        _world_axes(ax, f)
-        x = sim.p["x"]
-        draw_particles(ax, x[:, 0], x[:, 1], r=sim.p["r"], bounds=BOUNDS)
-        ax.set_title(f"step {steps} (t = {sim.t:.1f} s)")
-    fig.suptitle(
-        f"{sim.p['x'].shape[0]:,} particles falling into the notebook's funnel "
-        "(no particle-particle contacts)"
-    )
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, "readme_particles.png"))
-    plt.close(fig)
+def block_pictures(out: str, small: bool, only: list[str] | None = None) -> list[str]:
+    """Run every README block that a picture follows (whose picture ``only`` names, if given)
+    and keep its PNG as that picture."""
+    with open(README, encoding="utf-8") as fh:
+        blocks = python_blocks(fh.read())
+    paths = []
+    for line, source, picture in blocks:
+        if picture is None or (only is not None and os.path.basename(picture) not in only):
+            continue
+        with tempfile.TemporaryDirectory() as folder:
+            run = run_block(scale_down(source) if small else source, folder)
+            if run.returncode != 0:
+                raise RuntimeError(f"README.md block at line {line} failed:\n{run.stderr[-3000:]}")
+            target = os.path.join(out, os.path.basename(picture))
+            part = target + ".part"  # the picture is replaced whole or not at all
+            shutil.copyfile(written_picture(folder), part)
+            os.replace(part, target)
+        paths.append(target)
+    return paths
 
 
-def pour(small: bool) -> tuple:
-    """Grains released as a column above the funnel; their states at a few frames."""
-    f = funnel_world()
-    r = 0.03 if small else 0.022
-    nx, ny = (10, 12) if small else (22, 40)
+def picture_hero(out: str, small: bool) -> str:
+    """A word as a world (an exact SDF of its glyphs, standing on a floor), grains poured on it."""
+    word = Text("fastsdf", size=1.05, position=(-1.9, -0.75))
+    world = word | sdf.Halfspace([0, 1], -0.7)  # the floor's top just above the baseline
+    bounds = [(-2.0, 2.0), (-1.0, 1.2)]
+    # grains meet a 400 x 240 grid of the world (a bilinear query instead of 400 glyph segments)
+    grid = sdf.GridSDF(world, bounds=[(-2.2, 2.2), (-1.2, 1.4)], samples=[400j, 240j])
+    r = 0.03 if small else 0.016
+    nx, ny = (40, 4) if small else (110, 12)
     gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
-    xy = np.column_stack([(gx.ravel() - (nx - 1) / 2) * 2.05 * r, 0.75 + gy.ravel() * 2.05 * r])
-    xy[:, 0] += np.random.default_rng(0).uniform(-0.1, 0.1, len(xy)) * r  # break the lattice
-    # stiffness: a column as tall as the world overlaps by about 1% of a diameter
+    xy = np.column_stack([-1.9 + gx.ravel() * 3.8 / (nx - 1), 0.7 + gy.ravel() * 2.1 * r])
+    xy[:, 0] += np.random.default_rng(2).uniform(-0.2, 0.2, len(xy)) * r
     m = np.pi * r * r
-    stiffness = 4.0 / (2 * r) * m * 1.0 / (0.01 * 2 * r)
-    sim = GranularSimulation(
-        f,
+    sim = ParticleSimulation(
+        grid,
         positions=xy,
         radius=r,
-        contacts=ContactLaw(stiffness=stiffness, history=True, rolling_friction=0.3),
-        gravity=(0.0, -1.0),
+        contacts=ContactLaw(stiffness=100 * m / (0.01 * 2 * r)),
         timestep=1 / 30,
     )
-    frames = (0, 40, 160) if small else (0, 45, 240)
-    states = []
-    for k in frames:
-        sim.run(k - (states[-1][0] if states else 0))
-        states.append((k, sim.positions, sim.radius, np.linalg.norm(sim.velocities, axis=1)))
-    return f, states
-
-
-def _grains(ax, x, r, speed) -> None:
+    sim.force_generators.append(Gravity())
+    sim.run(40 if small else 120)
+    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=110, layout="compressed")
+    # lines at distances clear of half the gaps between letters (which would ring their middles)
+    sdf.plot_sdf(
+        world,
+        ax=ax,
+        bounds=bounds,
+        samples=(400, 220),
+        show_quiver=False,
+        filled=True,
+        levels=[0.0, 0.2, 0.4, 0.6, 0.8],
+    )
     from matplotlib.collections import EllipseCollection
 
+    speed = np.linalg.norm(sim.p["v"], axis=1)
     ax.add_collection(
         EllipseCollection(
-            2 * r,
-            2 * r,
+            2 * sim.p["r"],
+            2 * sim.p["r"],
             0.0,
             units="xy",
-            offsets=x,
+            offsets=sim.p["x"],
             offset_transform=ax.transData,
             array=speed,
             cmap="YlOrBr_r",
@@ -144,110 +164,32 @@ def _grains(ax, x, r, speed) -> None:
             zorder=5,
         )
     )
-
-
-def picture_grains(out: str, f, states) -> None:
-    fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.8), dpi=DPI)
-    for ax, (k, x, r, speed) in zip(axes, states, strict=True):
-        _world_axes(ax, f)
-        _grains(ax, x, r, speed)
-        ax.set_title(f"frame {k} (t = {k / 30:.1f} s)")
-    fig.suptitle(
-        f"{len(states[0][1]):,} grains poured into the funnel collide, stick and heap "
-        "on the disc (lighter = faster)"
-    )
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, "readme_grains.png"))
-    plt.close(fig)
-
-
-def picture_hero(out: str, small: bool) -> None:
-    """A word as a world (an exact SDF of its glyphs, on a floor), grains poured onto it."""
-    world = Text("fastsdf", size=1.05, position=(-1.9, -0.6)) | sdf.Halfspace([0, 1], -1.0)
-    bounds = [(-2.0, 2.0), (-1.1, 1.3)]
-    # grains meet a 400 x 240 grid of the world (a bilinear query instead of 400 glyph segments)
-    grid = sdf.GridSDF(world, bounds=[(-2.2, 2.2), (-1.3, 1.5)], samples=[400j, 240j])
-    r = 0.03 if small else 0.016
-    nx, ny = (40, 4) if small else (110, 12)
-    gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
-    xy = np.column_stack([-1.9 + gx.ravel() * 3.8 / (nx - 1), 0.75 + gy.ravel() * 2.1 * r])
-    xy[:, 0] += np.random.default_rng(2).uniform(-0.2, 0.2, len(xy)) * r
-    m = np.pi * r * r
-    sim = GranularSimulation(
-        grid,
-        positions=xy,
-        radius=r,
-        contacts=ContactLaw(stiffness=100 * m / (0.01 * 2 * r)),
-        gravity=(0.0, -1.0),
-        timestep=1 / 30,
-    )
-    sim.run(40 if small else 120)
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=DPI)
-    _world_axes(ax, world, bounds=bounds, isolines="all", samples=(400, 240))
-    _grains(ax, sim.positions, sim.radius, np.linalg.norm(sim.velocities, axis=1))
     ax.set_title(f"Text('fastsdf') as an SDF (lines: distance), {len(xy):,} grains poured on it")
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, "readme_hero.png"))
+    path = os.path.join(out, HERO)
+    fig.savefig(path + ".part.png")
+    os.replace(path + ".part.png", path)
     plt.close(fig)
+    return path
 
 
-def picture_geometry(out: str, small: bool) -> None:
-    """Text('fastsdf') as an exact SDF; matplotlib's logo image as a grid world with particles."""
-    word = Text("fastsdf", size=1.0, position=(-1.8, -0.3))
-    image = plt.imread(get_sample_data("logo2.png", asfileobj=False))
-    # the logo's background is transparent: composite it over white
-    grey = image[..., :3].mean(axis=-1) * image[..., 3] + (1.0 - image[..., 3])
-    h, w = grey.shape
-    wb = [(-2.0, 2.0), (-2.0 * h / w, 2.0 * h / w)]
-    logo = from_image(grey, wb, threshold=0.5, dark_inside=True)
-    sim = ParticleSimulation(logo, n=500 if small else 3_000, timestep=1 / 60, seed=1)
-    rng = np.random.default_rng(1)
-    sim.p["x"][:, 0] = rng.uniform(-2.0, 2.0, sim.p["x"].shape[0])
-    sim.p["x"][:, 1] = rng.uniform(wb[1][1] + 0.1, wb[1][1] + 0.6, sim.p["x"].shape[0])
-    sim.p["r"][:] = 0.01
-    sim.force_generators += [Gravity(acceleration=(0.0, -2.0))]
-    sim.run(60 if small else 240)  # 4 s: they rest on the letters or fall between them
-
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.0, 5.6), dpi=DPI)
-    wbounds = [(-2.0, 2.0), (-0.8, 0.8)]
-    sdf.plot_sdf(
-        word,
-        ax=a1,
-        bounds=wbounds,
-        samples=(400, 160) if not small else (200, 80),
-        show_quiver=False,
-        show_isolines="all",
-        filled=True,
-    )
-    a1.axhline(-0.3, color="tab:red", lw=0.8, ls="--")
-    a1.set_title("Text('fastsdf', size=1.0, position=(-1.8, -0.3)): baseline dashed")
-    lb = [(-2.0, 2.0), (wb[1][0], wb[1][1] + 0.7)]
-    _world_axes(a2, logo, bounds=lb, isolines="zero", samples=(400, 160))
-    x = sim.p["x"]
-    draw_particles(a2, x[:, 0], x[:, 1], r=sim.p["r"], bounds=lb)
-    a2.set_title("from_image(matplotlib's logo): particles poured on it rest on the letters")
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, "readme_geometry.png"))
-    plt.close(fig)
-
-
-def main(out: str = OUT, small: bool = False) -> list[str]:
-    """Write every picture into ``out``; returns their paths."""
+def main(out: str = OUT, small: bool = False, only: list[str] | None = None) -> list[str]:
+    """Write the pictures (those named in ``only``, or every one) into ``out``; returns their
+    paths."""
     os.makedirs(out, exist_ok=True)
-    picture_hero(out, small)
-    picture_sdf(out)
-    picture_particles(out, small)
-    f, states = pour(small)
-    picture_grains(out, f, states)
-    picture_geometry(out, small)
-    return [os.path.join(out, f"readme_{n}.png") for n in NAMES]
+    paths = []
+    if only is None or HERO in only:
+        paths.append(picture_hero(out, small))
+    if only is None or set(only) - {HERO}:
+        paths += block_pictures(out, small, only)
+    return paths
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=(__doc__ or "").strip().split("\n")[0])
     parser.add_argument("out", nargs="?", default=OUT, help="output folder (default docs/images)")
-    parser.add_argument("--small", action="store_true", help="small simulations (tests)")
+    parser.add_argument("--small", action="store_true", help="small sizes (as the tests run)")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="these pictures (readme_sdf.png)")
     args = parser.parse_args()
     small = args.small or os.environ.get("FASTSDF_EXAMPLE_SMALL", "") not in ("", "0")
-    for path in main(args.out, small):
+    for path in main(args.out, small, args.only):
         print(path)

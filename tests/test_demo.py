@@ -211,6 +211,51 @@ def test_examples_run_at_small_size(tmp_path, name, outputs):
         assert (tmp_path / out).stat().st_size > 1000, out
 
 
+def test_video_and_last_frame_colour_a_state_alike(tmp_path):
+    """The particle demo's video frames and its last frame's picture share one colour scale
+    (density_norm of density_top): the same particles get the same colours in both."""
+    from matplotlib.image import imread
+
+    from fastsdf.apps import demo
+    from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.render import render_frame
+
+    def floor(x, y):  # a plain callable world: nothing to compile
+        return y + 1.8
+
+    n = 20_000
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(0.0, 0.05, n), rng.normal(-1.0, 0.05, n)  # a pile denser than the top
+    top = demo.density_top(n)
+    video = VideoWriter(
+        str(tmp_path / "v.mp4"), floor, demo.BOUNDS, size=demo.VIDEO_SIZE, vmax=top, title="t"
+    )
+    frame = video.render(x, y).astype(float)
+    png = str(tmp_path / "last.png")
+    w, h = demo.VIDEO_SIZE
+    fig = render_frame(
+        floor,
+        x,
+        y,
+        bounds=demo.BOUNDS,
+        out_png=png,
+        title="t",
+        figsize=(w / 100, h / 100),
+        dpi=100,
+        vmax=top,
+    )
+    picture = imread(png)[..., :3] * 255.0
+    norm = fig.particle_layer.artist.norm
+    assert (norm.vmin, norm.vmax) == (video.norm.vmin, video.norm.vmax) == (1.0, top)
+    assert picture.shape == frame.shape
+    # the pile's saturated core and its flanks (means over boxes: the two splats may round a
+    # point into neighbouring pixels)
+    i, j = video.pixel(0.0, -1.0)
+    for half in (3, 12, 25):
+        box = (slice(i - half, i + half + 1), slice(j - half, j + half + 1))
+        assert np.abs(frame[box].mean((0, 1)) - picture[box].mean((0, 1))).max() < 4.0, half
+
+
 def test_summary_counts_in_words_and_explains_the_rate():
     from fastsdf.apps.demo import DemoResult, summary
 

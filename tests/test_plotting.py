@@ -193,6 +193,12 @@ def test_plot_sdf_nothing_to_show_does_not_evaluate():
         (dict(samples=True), "samples"),
         (dict(samples=(10, 1)), "samples"),
         (dict(samples=(10, 10, 10)), "samples"),
+        (dict(levels=0), "levels"),
+        (dict(levels=[0.5, 0.1]), "levels"),
+        (dict(levels=[[0.1, 0.2]]), "levels"),
+        (dict(levels=[0.0, np.inf]), "levels"),
+        (dict(levels="many"), "levels"),
+        (dict(levels=[0.1], show_isolines="zero"), "levels"),
     ],
 )
 def test_plot_sdf_rejects_bad_arguments(kwargs, name):
@@ -254,6 +260,61 @@ def test_plot_sdf_colorbar_and_ticks(circle):
         plot_sdf(fig, ax, None)
     with pytest.raises(TypeError, match="f must be a callable"):
         plot_sdf(42, ax=ax)
+
+
+def test_plot_sdf_axes_draws_a_figure_to_keep():
+    """axes=True: ticks, axis labels, title and a labelled colour bar, every isoline label on its
+    line and inside the axes, and the figure's margins tight around what it shows."""
+    import matplotlib.pyplot as plt
+
+    # a funnel's floor and a disc: lines that run into the axes' edges, as in the README
+    f = sdf.Halfspace(normal=[0, 1], d=-1.5) | sdf.Circle(center=[0.0, 0.2], radius=0.5)
+    out = plot_sdf(f, show_isolabels=True, colorbar=True, axes=True, title="a title", samples=80)
+    ax, fig = out["ax"], out["ax"].figure
+    try:
+        fig.canvas.draw()
+        assert ax.get_title() == "a title" and (ax.get_xlabel(), ax.get_ylabel()) == ("x", "y")
+        assert any(t.get_text() for t in ax.get_xticklabels())
+        assert any(t.get_text() for t in ax.get_yticklabels())
+        assert "distance" in out["colorbar"].ax.get_ylabel()
+        assert len(out["labels"]) >= 3
+        box = ax.get_window_extent()
+        for label in out["labels"]:
+            ext = label.get_window_extent()
+            assert box.x0 <= ext.x0 and ext.x1 <= box.x1 and box.y0 <= ext.y0 and ext.y1 <= box.y1
+            x, y = label.get_position()
+            # on its line: the distance there is the label's value (bilinear contouring of 80
+            # samples over 4 units: within a fraction of a sample spacing)
+            assert abs(float(f(x, y)[0]) - float(label.get_text())) < 0.02
+        # tight: what the figure shows (axes, bar, labels) spans nearly all of it
+        shown = fig.get_tightbbox(fig.canvas.get_renderer())
+        w, h = fig.get_size_inches()
+        assert shown.width > 0.9 * w and shown.height > 0.9 * h
+        assert shown.x0 >= 0 and shown.y0 >= 0 and shown.x1 <= w and shown.y1 <= h
+        # the colour bar is as tall as the axes beside it (compressed layout)
+        bar = out["colorbar"].ax.get_window_extent()
+        assert abs(bar.height - box.height) < 0.05 * box.height
+    finally:
+        plt.close(fig)
+    # the notebook's look stays the default: no ticks, no labels
+    fig, ax = new_axes()
+    plot_sdf(f, ax=ax, samples=40, show_quiver=False)
+    assert ax.get_xlabel() == "" and ax.get_title() == ""
+
+
+def test_plot_sdf_levels_are_the_lines_drawn():
+    fig, ax = new_axes()
+    out = plot_sdf(NumpyCircle(), ax=ax, samples=60, levels=[-0.5, 0.0, 0.25], show_quiver=False)
+    np.testing.assert_array_equal(out["contour"].levels, [-0.5, 0.0, 0.25])
+    # each line is the circle of radius 1 + level
+    for level, segs in zip(out["contour"].levels, out["contour"].allsegs, strict=True):
+        pts = np.concatenate(segs)
+        np.testing.assert_allclose(np.hypot(*pts.T), 1.0 + level, atol=0.01)
+    fig, ax = new_axes()
+    out = plot_sdf(NumpyCircle(), ax=ax, samples=60, levels=4, show_quiver=False)
+    # a count: matplotlib picks that many round values (or about as many)
+    xs, ys, d = plotting.sdf_grid(NumpyCircle(), BOUNDS, 60)
+    np.testing.assert_array_equal(out["contour"].levels, ax.contour(xs, ys, d, levels=4).levels)
 
 
 def test_plotting_does_not_import_render():

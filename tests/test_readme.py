@@ -3,10 +3,13 @@
 Each block runs in its own fresh process (as a reader pasting it into a new session would), in a
 temporary working directory (files it writes land there), with matplotlib's Agg backend. Large
 sizes are written in the README as underscore literals (``1_000_000``, ``n=100_000``); the test
-scales each of those down by 1000 (at least 16), so the blocks run in seconds.
+scales each of those down by 1000 (at least 16), so the blocks run in seconds. A block that a
+picture follows draws that picture (examples/readme_pictures.py runs the blocks to make them):
+the test compares what it draws with the committed picture.
 
 """
 
+import importlib.util
 import os
 import re
 import subprocess
@@ -19,10 +22,15 @@ README = os.path.join(REPO, "README.md")
 MAX_LINES = 250
 MAX_PICTURE_BYTES = 200_000
 
-# A fenced block: ```python (or ```py) ... ``` at the start of lines; other languages are skipped.
-_FENCE = re.compile(r"^```[ \t]*(python|py|python3)[ \t]*\n(.*?)^```[ \t]*$", re.M | re.S)
-# An integer literal with digit-group underscores: 1_000_000, 200_000, 4_096.
-_BIG = re.compile(r"(?<![\w.])(\d{1,3}(?:_\d{3})+)(?![\w.])")
+# The README's blocks are read, scaled and run by the script that makes its pictures from them.
+_spec = importlib.util.spec_from_file_location(
+    "readme_pictures", os.path.join(REPO, "examples", "readme_pictures.py")
+)
+assert _spec is not None and _spec.loader is not None
+pictures = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(pictures)
+scale_down = pictures.scale_down
+
 # Modules that only an extra installs, and the extra's name.
 EXTRA_OF_MODULE = {
     "h5py": "io",
@@ -37,12 +45,7 @@ _PIP = re.compile(r"#\s*pip install\s+'fastsdf\[([\w,]+)\]'")
 
 def python_blocks(text):
     """``[(line_number, source)]`` of the README's Python blocks, in order."""
-    return [(text.count("\n", 0, m.start()) + 2, m.group(2)) for m in _FENCE.finditer(text)]
-
-
-def scale_down(source):
-    """Replace each underscore integer literal by a thousandth of it (at least 16)."""
-    return _BIG.sub(lambda m: str(max(16, int(m.group(1).replace("_", "")) // 1000)), source)
+    return [(line, source) for line, source, _ in pictures.python_blocks(text)]
 
 
 def extras_needed(source):
@@ -94,12 +97,34 @@ def test_readme_pictures_exist_and_are_small():
         assert size < MAX_PICTURE_BYTES, f"{rel} is {size} bytes (limit {MAX_PICTURE_BYTES})"
 
 
-BLOCKS = python_blocks(_readme())
-BLOCK_IDS = [f"line{line}" for line, _ in BLOCKS]
+BLOCKS = pictures.python_blocks(_readme())
+BLOCK_IDS = [f"line{line}" for line, _, _ in BLOCKS]
+# Share of a picture's pixels that may differ from the committed one (by more than a tenth of
+# the colour range in some channel): a block that runs as written must redraw its picture (a
+# little room for antialiasing); one whose sizes the test scales down simulates a thousandth of
+# the particles, which changes the particle layer (about 6% of the funnel's picture).
+SAME_PICTURE = 0.02
+SCALED_PICTURE = 0.10
 
 
-@pytest.mark.parametrize("line,source", BLOCKS, ids=BLOCK_IDS)
-def test_readme_blocks_name_their_extras(line, source):
+def differing_share(made, committed):
+    """Share of pixels of two equally sized RGB(A) images that differ by more than 0.1."""
+    return float((abs(made[..., :3] - committed[..., :3]).max(axis=-1) > 0.1).mean())
+
+
+def test_readme_blocks_and_their_pictures_are_paired():
+    text = "```python\nx = 1\n```\n\n![a](docs/images/a.png)\n\n```python\ny = 2\n```\ntext\n"
+    assert pictures.python_blocks(text) == [
+        (2, "x = 1\n", "docs/images/a.png"),
+        (8, "y = 2\n", None),
+    ]
+    shown = re.findall(r"!\[[^\]]*\]\(([^)\s]+\.png)\)", _readme())
+    # every picture but the page's top one stands under the block that draws it
+    assert sorted(p for _, _, p in BLOCKS if p) == sorted(p for p in shown if "hero" not in p)
+
+
+@pytest.mark.parametrize("line,source,picture", BLOCKS, ids=BLOCK_IDS)
+def test_readme_blocks_name_their_extras(line, source, picture):
     missing = set(extras_needed(source)) - set(extras_named(source))
     assert not missing, (
         f"README.md block at line {line} imports modules of the extras {sorted(missing)} "
@@ -123,53 +148,56 @@ assert not _free.any(), f"{_free.sum()} grains touch nothing at t = {sim.t}"
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("line,source", BLOCKS, ids=BLOCK_IDS)
-def test_readme_block_runs_pasted_alone(line, source, tmp_path):
-    script = tmp_path / "block.py"
-    check = GRAINS_AT_REST if "contacts=" in source else ""
-    script.write_text(scale_down(source) + check, encoding="utf-8")
-    env = dict(os.environ, MPLBACKEND="Agg")
-    # this checkout's fastsdf, as `make demo`'s editable installation provides it
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, env.get("PYTHONPATH")) if p)
-    run = subprocess.run(
-        [sys.executable, str(script)],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+@pytest.mark.parametrize("line,source,picture", BLOCKS, ids=BLOCK_IDS)
+def test_readme_block_runs_pasted_alone(line, source, picture, tmp_path):
+    """Each block runs alone; one under a picture draws that picture (same size, the same
+    pixels but for antialiasing, or but for the particles when its sizes are scaled down)."""
+    scaled = scale_down(source) + (GRAINS_AT_REST if "contacts=" in source else "")
+    run = pictures.run_block(scaled, str(tmp_path), timeout=600)
     assert run.returncode == 0, (
         f"README.md block at line {line} failed pasted alone:\n{source}\n"
         f"--- stderr ---\n{run.stderr[-4000:]}"
     )
+    if picture is None:
+        return
+    from matplotlib.image import imread
+
+    made = imread(pictures.written_picture(str(tmp_path)))
+    committed = imread(os.path.join(REPO, picture))
+    assert made.shape[:2] == committed.shape[:2], (
+        f"README.md block at line {line} draws a {made.shape[1]}x{made.shape[0]} picture, "
+        f"{picture} is {committed.shape[1]}x{committed.shape[0]}: "
+        f"run python examples/readme_pictures.py"
+    )
+    share = differing_share(made, committed)
+    limit = SAME_PICTURE if scaled == source else SCALED_PICTURE
+    assert share <= limit, (
+        f"README.md block at line {line} draws a picture {share:.1%} unlike {picture} "
+        f"(at most {limit:.0%}): run python examples/readme_pictures.py"
+    )
 
 
 @pytest.mark.slow
-def test_readme_pictures_script_runs_at_small_size(tmp_path):
-    """``examples/readme_pictures.py`` makes every picture the README shows from docs/images."""
-    env = dict(os.environ, MPLBACKEND="Agg", FASTSDF_EXAMPLE_SMALL="1")
+def test_readme_pictures_script_draws_the_top_picture(tmp_path):
+    """The script draws the page's top picture (the blocks' own pictures: the test above)."""
+    env = dict(os.environ, MPLBACKEND="Agg")
     env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, env.get("PYTHONPATH")) if p)
     script = os.path.join(REPO, "examples", "readme_pictures.py")
     run = subprocess.run(
-        [sys.executable, script, str(tmp_path)],
+        [sys.executable, script, str(tmp_path), "--small", "--only", pictures.HERO],
         env=env,
         capture_output=True,
         text=True,
         timeout=900,
     )
     assert run.returncode == 0, run.stderr[-3000:]
-    shown = {
-        os.path.basename(p)
-        for p in re.findall(r"!\[[^\]]*\]\((docs/images/[^)\s]+\.png)\)", _readme())
-    }
-    made = {name for name in os.listdir(tmp_path) if name.endswith(".png")}
-    assert shown and shown <= made, f"the README shows {sorted(shown - made)}, not made"
-    for name in made:  # a picture, not an empty canvas
-        from matplotlib.image import imread
+    assert os.listdir(tmp_path) == [pictures.HERO]
+    from matplotlib.image import imread
 
-        img = imread(tmp_path / name)[..., :3]
-        assert img.std() > 0.05, name
+    made = imread(tmp_path / pictures.HERO)
+    committed = imread(os.path.join(REPO, "docs", "images", pictures.HERO))
+    assert made.shape == committed.shape
+    assert made[..., :3].std() > 0.05  # a picture, not an empty canvas
 
 
 @pytest.mark.slow
@@ -185,7 +213,7 @@ def test_readme_particle_block_queries_the_demos_world_and_grid():
     from fastsdf.apps import demo
     from fastsdf.fields.grid import GridSDF
 
-    (line, source), *_ = [b for b in BLOCKS if "ParticleSimulation(grid" in b[1]]
+    (line, source, _), *_ = [b for b in BLOCKS if "ParticleSimulation(grid" in b[1]]
     # the block up to its grid (the world and the grid, not the simulation)
     upto = source[: source.index("\n", source.index("grid = "))]
     namespace: dict = {}

@@ -176,6 +176,14 @@ def spawn_in_free_space(sim: Any, f: Any, rng: np.random.Generator, tries: int =
     raise RuntimeError(f"{bad.size} particles found no free space to start in")
 
 
+def density_top(particles: int) -> float:
+    """Top of the colour scale (particles per pixel) of the particle demo's video frames and of
+    its last frame's picture, one value for both (:func:`fastsdf.viz.render.density_norm`): the
+    pile on the funnel's floor gathers about 3 thousandths of the particles in one pixel of the
+    640 x 560 picture by the last step (1e6 particles: about 3,000); at least 10."""
+    return max(10.0, 3.0 * particles / 1000)
+
+
 def _frame_schedule(steps: int, frames: int) -> list[int]:
     """Steps to take before each frame: frame 0 is the start, the last frame is step ``steps``."""
     if frames == 1:
@@ -298,7 +306,13 @@ def run_demo(
     from fastsdf.viz.frames import VideoWriter
     from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import animate as _animate
-    from fastsdf.viz.render import render_frame, save_animation, sim_title, world_figure
+    from fastsdf.viz.render import (
+        density_norm,
+        render_frame,
+        save_animation,
+        sim_title,
+        world_figure,
+    )
 
     _check_sizes(
         world,
@@ -365,9 +379,8 @@ def run_demo(
         animation_path = os.path.join(out, "particles" + ext)
         schedule = _frame_schedule(steps, frames)
         if ext == ".mp4":
-            # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames).
-            # One colour scale for the whole video: the pile on the funnel's floor reaches
-            # about a thousandth of the particles in one pixel by the end.
+            # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames),
+            # all on one colour scale, the last frame's picture's too.
             with (
                 Progress(len(schedule), "frames", stream=err) as bar,
                 VideoWriter(
@@ -376,7 +389,7 @@ def run_demo(
                     BOUNDS,
                     size=VIDEO_SIZE,
                     fps=fps,
-                    vmax=max(10.0, particles / 1000),
+                    vmax=density_top(particles),
                     title=label.rstrip(", "),
                 ) as writer,
             ):
@@ -390,14 +403,31 @@ def run_demo(
         else:
             fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
             anim = _animate(
-                sim, ax, frames, schedule, advance=advance, title=label, colorbar=cax, bounds=BOUNDS
+                sim,
+                ax,
+                frames,
+                schedule,
+                advance=advance,
+                title=label,
+                colorbar=cax,
+                bounds=BOUNDS,
+                norm=density_norm(density_top(particles)),
             )
             save_animation(anim, animation_path, fps=fps)
     advance(steps - timing["steps"])
     x = sim.p["x"]
     last = os.path.join(out, "last_frame.png")
     render_frame(
-        f, x[:, 0], x[:, 1], r=sim.p["r"], bounds=BOUNDS, out_png=last, title=sim_title(sim, label)
+        f,
+        x[:, 0],
+        x[:, 1],
+        r=sim.p["r"],
+        bounds=BOUNDS,
+        out_png=last,
+        title=sim_title(sim, label),
+        figsize=(VIDEO_SIZE[0] / 100, VIDEO_SIZE[1] / 100),  # the video's pixels: same counts
+        dpi=100,
+        vmax=density_top(particles),
     )
     # Penetration against the SDF the particles actually collided with (the grid's own error
     # against the exact world is reported separately).

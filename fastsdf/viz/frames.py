@@ -360,6 +360,9 @@ class VideoWriter:
                 raise ValueError(f"vmax must be in (1, 1e8] particles per pixel, got vmax={vmax!r}")
             vmax = v
         self.vmax = vmax
+        #: The density colour scale, :func:`fastsdf.viz.render.density_norm` of ``vmax``, once the
+        #: background is drawn (``None`` before, and for discs).
+        self.norm: Any = None
         self.scale_frames = _positive_int(scale_frames, "scale_frames")
         self.title = title
         self.world = world
@@ -457,10 +460,11 @@ class VideoWriter:
         cmap = _particle_cmap()
         if self.mode == "density":
             from matplotlib.cm import ScalarMappable
-            from matplotlib.colors import LogNorm
+
+            from fastsdf.viz.render import density_norm
 
             assert self.vmax is not None
-            norm = LogNorm(1.0, self.vmax)
+            norm = self.norm = density_norm(self.vmax)
             cax.set_visible(True)
             bar = fig.colorbar(
                 ScalarMappable(norm=norm, cmap=cmap),

@@ -3,6 +3,8 @@
 :func:`plot_sdf` draws an SDF on an axes: contour lines of the distance (all levels, or only the
 zero level, the surface), optional labels on them, an optional quiver of the gradient coloured by
 the distance, an optional filled inside/outside view and an optional colour bar of the distance.
+By default it has the notebook's look (no ticks); ``axes=True`` makes a figure to keep, with
+coordinates, labels inside the axes and tight margins.
 Particles and animations are drawn by :mod:`fastsdf.viz.render`, which builds on this module (this
 module never imports it).
 
@@ -187,6 +189,92 @@ def _setup_axes(ax: Any, bounds: tuple, ticks: bool = False) -> None:
         )
 
 
+#: Font size (points) of the isoline labels.
+ISOLABEL_FONTSIZE = 8
+
+
+def _check_levels(levels: Any, show_isolines: Any) -> Any:
+    """``levels`` for ``ax.contour``: ``None``, a count >= 1, or a finite increasing 1-D array."""
+    if levels is None:
+        return None
+    if show_isolines != "all":
+        raise ValueError(
+            f"levels applies to show_isolines='all', got levels={levels!r} with "
+            f"show_isolines={show_isolines!r}"
+        )
+    if isinstance(levels, numbers.Integral) and not isinstance(levels, (bool, np.bool_)):
+        if levels < 1:
+            raise ValueError(f"levels must be a count >= 1 or distances, got levels={levels!r}")
+        return int(levels)
+    try:
+        values = np.asarray(levels, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"levels must be a count >= 1 or increasing distances, got levels={levels!r}"
+        ) from None
+    if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
+        raise ValueError(
+            f"levels must be a count >= 1 or increasing distances, got levels={levels!r}"
+        )
+    if np.any(np.diff(values) <= 0):
+        raise ValueError(f"levels must be increasing, got levels={levels!r}")
+    return values
+
+
+def _figure_size(bounds: tuple, colorbar: bool, title: str | None) -> tuple:
+    """Inches of a figure holding one equal-aspect axes over ``bounds`` (its longer side 5
+    inches) with its tick labels, axis labels, colour bar and title, without spare margins."""
+    (x0, x1), (y0, y1) = bounds
+    aspect = (y1 - y0) / (x1 - x0)
+    w, h = (5.0, 5.0 * aspect) if aspect <= 1.0 else (5.0 / aspect, 5.0)
+    w, h = max(w, 2.0), max(h, 1.5)
+    extra_w = 0.8 + (1.1 if colorbar else 0.2)  # y tick labels and label; the colour bar
+    extra_h = 0.75 + (0.35 * (1 + title.count("\n")) if title else 0.1)
+    return (round(w + extra_w, 2), round(h + extra_h, 2))
+
+
+def _label_isolines(ax: Any, contours: Any, bounds: tuple) -> list:
+    """Label each line of ``contours`` once, at the point nearest the middle of its length where
+    the label fits inside ``bounds`` (matplotlib's own placement may put a label at the edge,
+    where the axes cut it). Lines too short to carry a label stay unlabelled."""
+    fig = ax.figure
+    box = ax.get_position()
+    fw, fh = fig.get_size_inches()
+    (x0, x1), (y0, y1) = bounds
+    # points per data unit (equal aspect: the tighter of the two directions)
+    per_unit = 72.0 * min(box.width * fw / (x1 - x0), box.height * fh / (y1 - y0))
+    half_h = 0.75 * ISOLABEL_FONTSIZE / per_unit
+    positions = []
+    for level, segments in zip(contours.levels, contours.allsegs, strict=True):
+        text = f"{level:g}"
+        half_w = (0.32 * ISOLABEL_FONTSIZE * len(text) + 2.0) / per_unit
+        for seg in segments:
+            if len(seg) < 3:
+                continue
+            steps = np.hypot(*np.diff(seg, axis=0).T)
+            along = np.concatenate([[0.0], np.cumsum(steps)])
+            if along[-1] < 6.0 * half_w:  # too short: the label would hide it
+                continue
+            # a rotated label fits when a disc of its half width does
+            r = max(half_w, half_h)
+            fits = (
+                (seg[:, 0] - x0 > r)
+                & (x1 - seg[:, 0] > r)
+                & (seg[:, 1] - y0 > r)
+                & (y1 - seg[:, 1] > r)
+            )
+            if not fits.any():
+                continue
+            candidates = np.flatnonzero(fits)
+            best = candidates[np.argmin(np.abs(along[candidates] - along[-1] / 2.0))]
+            positions.append((float(seg[best, 0]), float(seg[best, 1])))
+    if not positions:
+        return []
+    return list(
+        ax.clabel(contours, inline=True, fontsize=ISOLABEL_FONTSIZE, fmt="%g", manual=positions)
+    )
+
+
 def plot_sdf(
     f_or_fig: Any,
     ax: Any = None,
@@ -199,6 +287,9 @@ def plot_sdf(
     filled: bool = False,
     colorbar: bool = False,
     ticks: bool = False,
+    axes: bool = False,
+    levels: Any = None,
+    title: str | None = None,
 ) -> dict:
     """Plot the signed distance function ``f`` on a matplotlib axes.
 
@@ -218,12 +309,23 @@ def plot_sdf(
     ``colorbar`` adds a colour bar of the distance for the coloured lines and arrows (it needs
     ``show_isolines='all'`` or ``show_quiver``). ``ticks`` labels the axes in data units; by
     default they have the notebook's look: limits = ``bounds``, equal aspect, no ticks.
+    ``axes=True`` draws a figure to keep (the README's and the guide's pictures): ticks and axis
+    labels, and, when ``plot_sdf`` makes the figure, one sized to ``bounds`` with tight margins
+    (matplotlib's compressed layout: the colour bar as tall as the axes, its label inside).
+    ``title``: the axes title.
+
+    ``levels``: the distances of the lines of ``show_isolines='all'``: ``None`` for matplotlib's
+    automatic choice, a number of levels, or the values themselves (increasing). A level just
+    below a local maximum of the distance (midway between two shapes, in a hole) draws a small
+    closed loop around it; give the levels to keep them clear of such maxima. Isoline labels are
+    placed where they fit inside the axes, one per line long enough to carry one.
 
     Returns a dict with ``'ax'`` (the axes drawn on) and the artists created, with the keys that
     apply: ``'fill'`` (the filled ``QuadContourSet``), ``'contour'`` (the line
     ``QuadContourSet``), ``'labels'`` (the label ``Text`` list), ``'quiver'`` (the ``Quiver``),
     ``'colorbar'``. Raises ``ValueError`` naming the parameter for an unknown ``show_isolines``,
-    malformed or empty ``bounds``, ``samples < 2``, or a colour bar with nothing coloured;
+    malformed or empty ``bounds``, ``samples < 2``, bad ``levels`` (or ``levels`` without
+    ``show_isolines='all'``), or a colour bar with nothing coloured;
     ``TypeError`` if ``f`` is missing or not callable.
     """
     if f is None:
@@ -250,12 +352,18 @@ def plot_sdf(
         )
     bounds = check_bounds(bounds)
     samples = _check_samples(samples)
+    levels = _check_levels(levels, show_isolines)
     if ax is None:
         import matplotlib.pyplot as plt
 
-        _, ax = plt.subplots()
+        if axes:
+            _, ax = plt.subplots(figsize=_figure_size(bounds, colorbar, title), layout="compressed")
+        else:
+            _, ax = plt.subplots()
 
-    _setup_axes(ax, bounds, ticks)
+    _setup_axes(ax, bounds, ticks or axes)
+    if title is not None:
+        ax.set_title(title)
     ret = {"ax": ax}
     if not (show_quiver or show_isolines or filled):
         return ret
@@ -283,10 +391,11 @@ def plot_sdf(
             zorder=0.5,
         )
     if show_isolines:
-        levels = [0.0] if show_isolines == "zero" else None
+        if show_isolines == "zero":
+            levels = [0.0]
         ret["contour"] = ax.contour(xs, ys, dm, levels=levels, zorder=2, norm=norm)
         if show_isolabels:
-            ret["labels"] = ax.clabel(ret["contour"], inline=True, fontsize=8, fmt="%g")
+            ret["labels"] = _label_isolines(ax, ret["contour"], bounds)
     if show_quiver:
         sx = max(1, round(samples[0] / QUIVER_ARROWS))
         sy = max(1, round(samples[1] / QUIVER_ARROWS))
@@ -296,8 +405,10 @@ def plot_sdf(
         )
     if colorbar:
         mappable = ret["contour"] if show_isolines == "all" else ret["quiver"]
-        # fraction/pad: a bar as tall as a square axes beside it.
+        # fraction/pad: a bar as tall as a square axes beside it (in the compressed layout of
+        # axes=True, as tall as any axes: 0.046 would shorten it there).
+        size = dict(fraction=0.05, aspect=25, pad=0.03) if axes else dict(fraction=0.046, pad=0.04)
         ret["colorbar"] = ax.figure.colorbar(
-            mappable, ax=ax, fraction=0.046, pad=0.04, label="distance d (negative inside)"
+            mappable, ax=ax, label="distance d (negative inside)", **size
         )
     return ret

@@ -38,6 +38,7 @@ from fastsdf.viz.plotting import check_bounds
 
 __all__ = [
     "density_image",
+    "density_norm",
     "draw_particles",
     "ParticleLayer",
     "render_frame",
@@ -276,6 +277,16 @@ def plain_log_ticks(colorbar: Any) -> None:
     colorbar.ax.yaxis.set_minor_formatter(FuncFormatter(minor))
 
 
+def density_norm(vmax: float) -> Any:
+    """The colour scale of a density picture: logarithmic from 1 to ``vmax`` particles per pixel
+    (a ``matplotlib.colors.LogNorm``). The video's frames (:class:`fastsdf.viz.frames.VideoWriter`)
+    and the still pictures (:func:`render_frame`, :func:`draw_particles`) both take it from here,
+    so that a count has one colour in both for the same ``vmax``."""
+    from matplotlib.colors import LogNorm
+
+    return LogNorm(1.0, float(vmax))
+
+
 def _clip_side(v: float) -> int:
     return int(min(MAX_IMAGE_SIDE, max(1, round(v)))) if math.isfinite(v) else 256
 
@@ -373,8 +384,6 @@ class ParticleLayer:
 
     # -- density image
     def _density(self, xs, ys):
-        from matplotlib.colors import LogNorm
-
         if self.shape is None:
             self.shape = _axes_image_shape(self.ax, self.bounds)
         img = density_image(xs, ys, self.bounds, self.shape)
@@ -388,7 +397,7 @@ class ParticleLayer:
                     plain_log_ticks(self.colorbar)
         else:
             self._drop()
-            norm = self._fixed_norm if self._fixed_norm is not None else LogNorm(1.0, vmax)
+            norm = self._fixed_norm if self._fixed_norm is not None else density_norm(vmax)
             (x0, x1), (y0, y1) = self.bounds
             self.artist = self.ax.imshow(
                 shown,
@@ -565,6 +574,7 @@ def render_frame(
     dpi: float = 100,
     colorbar: bool = True,
     ticks: bool = True,
+    vmax: float | None = None,
 ) -> Any:
     """Draw the SDF ``f`` and particles at ``(x, y)`` in one figure, and save it as a PNG.
 
@@ -574,7 +584,9 @@ def render_frame(
     ``ticks=False``), and the particles on top via :func:`draw_particles`: circles of radius
     ``r`` (data units; scalar or per particle) up to ``max_circles`` particles (default
     :data:`DEFAULT_MAX_CIRCLES`), a density image above that, with a colour bar of particles per
-    pixel when ``colorbar``. ``title`` is the axes title (say what is shown: the simulated time,
+    pixel when ``colorbar``, scaled by :func:`density_norm` up to ``vmax`` particles per pixel
+    (``None``: the busiest pixel's count; give a video's ``vmax`` to colour the picture as its
+    frames). ``title`` is the axes title (say what is shown: the simulated time,
     the step). The figure is ``figsize`` inches at ``dpi``, laid out without wasted margin
     (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
     ``out_png`` is given it is saved there at that dpi, uncropped, so the axes' ``transData``
@@ -592,6 +604,7 @@ def render_frame(
         bounds=bounds,
         colorbar=cax if colorbar else False,
         max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles,
+        norm=None if vmax is None else density_norm(vmax),
     )
     fig.particle_layer = layer
     if title is not None:
