@@ -196,29 +196,29 @@ def _rolling_spring(m_old, kr, cap, w_rel, dt):
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
 def pair_force(
-    dx,
-    dy,
-    ri,
-    rj,
-    mi,
-    gamma_equal,
-    lower,
-    vrx,
-    vry,
-    wi,
-    wj,
-    damp,
-    density,
-    kn,
-    kt,
-    mu,
-    mu_r,
-    tdamp,
-    dt,
-    s,
-    m_roll,
-    history,
-    roll,
+    dx: float,
+    dy: float,
+    ri: float,
+    rj: float,
+    mi: float,
+    gamma_equal: float,
+    lower: bool,
+    vrx: float,
+    vry: float,
+    wi: float,
+    wj: float,
+    damp: float,
+    density: float,
+    kn: float,
+    kt: float,
+    mu: float,
+    mu_r: float,
+    tdamp: float,
+    dt: float,
+    s: float,
+    m_roll: float,
+    history: bool,
+    roll: bool,
 ) -> tuple:
     """The contact of grain ``i`` with grain ``j`` at ``(dx, dy) = x_i - x_j`` (the periodic
     image applied), radii ``ri, rj``, mass ``mi``, relative (predicted) velocity ``vr``,
@@ -271,26 +271,26 @@ def pair_force(
 
 @njit(cache=True, inline="always", error_model="numpy")
 def wall_force(
-    ri,
-    d,
-    gx,
-    gy,
-    wall_vn,
-    vx,
-    vy,
-    w,
-    density,
-    zeta,
-    kn,
-    kt,
-    mu,
-    mu_r,
-    tdamp,
-    dt,
-    s,
-    m_roll,
-    history,
-    roll,
+    ri: float,
+    d: float,
+    gx: float,
+    gy: float,
+    wall_vn: float,
+    vx: float,
+    vy: float,
+    w: float,
+    density: float,
+    zeta: float,
+    kn: float,
+    kt: float,
+    mu: float,
+    mu_r: float,
+    tdamp: float,
+    dt: float,
+    s: float,
+    m_roll: float,
+    history: bool,
+    roll: bool,
 ) -> tuple:
     """The world's contact on a grain of radius ``ri`` at distance ``d`` with gradient ``(gx,
     gy)``, the wall's normal speed ``wall_vn``, (predicted) velocity ``(vx, vy)`` and angular
@@ -340,7 +340,17 @@ def wall_force(
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
-def half_kick(vx, vy, w, r, fx, fy, tq, dt_half, density) -> tuple:
+def half_kick(
+    vx: float,
+    vy: float,
+    w: float,
+    r: float,
+    fx: float,
+    fy: float,
+    tq: float,
+    dt_half: float,
+    density: float,
+) -> tuple:
     """A grain's velocities after half a step of its force ``(fx, fy)`` and torque ``tq``
     (the start of a force pass, see :func:`pair_forces`)."""
     m = grain_mass(r, density)
@@ -349,7 +359,20 @@ def half_kick(vx, vy, w, r, fx, fy, tq, dt_half, density) -> tuple:
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def kick_grain(x, y, vx, vy, w, r, fx, fy, tq, dt_kick, dt, density) -> tuple:
+def kick_grain(
+    x: float,
+    y: float,
+    vx: float,
+    vy: float,
+    w: float,
+    r: float,
+    fx: float,
+    fy: float,
+    tq: float,
+    dt_kick: float,
+    dt: float,
+    density: float,
+) -> tuple:
     """One grain's elementwise pass (see :func:`kick_drift`): ``(x, y, vx, vy, w, px, py,
     pw)``, the drifted position, the completed velocities and the predicted ones."""
     m = grain_mass(r, density)
