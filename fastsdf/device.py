@@ -32,7 +32,7 @@ def _patch_numpy() -> None:
     # numba-cuda 0.30 registers an implementation of np.row_stack, which numpy 2.5 removed
     # (an alias of np.vstack since numpy 1.x): the first kernel compile would fail on import.
     if not hasattr(np, "row_stack"):
-        np.row_stack = np.vstack  # type: ignore[attr-defined]
+        np.row_stack = np.vstack
 
 
 def cuda() -> ModuleType:
@@ -66,13 +66,13 @@ def available() -> bool:
 def is_device_array(a: Any) -> bool:
     """Whether ``a`` lives on a CUDA device (``__cuda_array_interface__`` or a DLPack device
     of type CUDA)."""
-    if hasattr(a, "__cuda_array_interface__"):
-        return True
+    if hasattr(a, "__cuda_array_interface__") or hasattr(a, "copy_to_host"):
+        return True  # (numba's device arrays, and the simulator's, have copy_to_host)
     dev = getattr(a, "__dlpack_device__", None)
     if dev is not None and not isinstance(a, np.ndarray):
         try:
             return int(dev()[0]) == 2  # kDLCUDA
-        except Exception:  # noqa: BLE001 - a foreign object: not ours to judge further
+        except Exception:  # a foreign object: not ours to judge further
             return False
     return False
 
@@ -92,7 +92,7 @@ def as_device(a: Any, name: str = "array", dtype: Any = np.float64) -> Any:
     the device. A device array of another dtype is a :class:`TypeError` naming ``name``."""
     cu = cuda()
     if is_device_array(a):
-        if not hasattr(a, "__cuda_array_interface__"):
+        if not hasattr(a, "__cuda_array_interface__") and not hasattr(a, "copy_to_host"):
             # DLPack only (JAX): CuPy or PyTorch take it without a copy when present
             a = _from_dlpack(a, name)
         d = a if hasattr(a, "copy_to_host") else cu.as_cuda_array(a)

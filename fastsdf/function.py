@@ -37,7 +37,7 @@ from fastsdf.expr.graph import (
     parameters,
     substitute_params,
 )
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, device_points, point_arrays
 from fastsdf.notice import compiling
 
 __all__ = [
@@ -53,8 +53,9 @@ __all__ = [
 #: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:meth:`CompiledSDF.numpy`: the op
 #: table's reference formulas, no numba at all, the kernel's results to rounding), or ``'auto'``
 #: (the default): the tape while the kernel compiles in a background thread, then the kernel
-#: (the kernel at once where the interpreter is not compiled yet).
-BACKENDS = ("kernel", "tape", "numpy", "auto")
+#: (the kernel at once where the interpreter is not compiled yet). ``'cuda'``: the scene's CUDA
+#: kernels (:mod:`fastsdf.backends.cuda`) on a GPU, device arrays in and out.
+BACKENDS = ("kernel", "tape", "numpy", "auto", "cuda")
 
 #: The cost model of the tape (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD
 #: EPYC): building a tape per node, and running it per instruction and point (2 threads).
@@ -98,6 +99,7 @@ class CompiledSDF:
         self._plans: dict = {}
         self._tape: Any = None
         self._tape_error: str | None = None
+        self._cuda: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
         self._called: set = set()  # the kernels called at least once (see _first_call)
@@ -162,6 +164,16 @@ class CompiledSDF:
     def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
         """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
         return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
+
+    @property
+    def cuda(self) -> Any:
+        """The :class:`fastsdf.backends.cuda.CudaKernels` of the expression (generated on first
+        use; numba-cuda is imported only then)."""
+        if self._cuda is None:
+            from fastsdf.backends.cuda import CudaKernels
+
+            self._cuda = CudaKernels(self.expr, self.symbol_names)
+        return self._cuda
 
     @property
     def tape(self) -> Any:
@@ -257,17 +269,24 @@ class CompiledSDF:
         bounds: Sequence[Sequence[float]],
         tiles: Sequence[int] | None = None,
         tol: float | None = None,
+        target: str = "cpu",
     ) -> PrunePlan:
         """The pruning plan over ``bounds = ((x0, x1), (y0, y1))`` with ``tiles = (nx, ny)``
-        (default 32 x 32), cached per arguments."""
+        (default 32 x 32) for the code of ``target`` (``'cpu'`` or ``'cuda'``), cached per
+        arguments."""
         nx, ny = (PRUNE_TILES, PRUNE_TILES) if tiles is None else (int(tiles[0]), int(tiles[1]))
-        key = (tuple(map(tuple, bounds)), nx, ny, tol)
+        key = (tuple(map(tuple, bounds)), nx, ny, tol, target)
         plan = self._plans.get(key)
         if plan is None:
             if len(self._plans) > 16:
                 self._plans.clear()
-            plan = self._plans[key] = make_plan(self.groups, key[0], nx, ny, tol)
+            plan = self._plans[key] = make_plan(self._groups(target), key[0], nx, ny, tol)
         return plan
+
+    def _groups(self, target: str) -> list:
+        # Each target's code numbers its loop groups itself; a plan serves the code it was
+        # made from.
+        return self.cuda.groups if target == "cuda" else self.groups
 
     def pruned_plan(
         self,
@@ -277,28 +296,32 @@ class CompiledSDF:
         tol: float | None = None,
         bounds: Any = None,
         count: int | None = None,
+        target: str = "cpu",
     ) -> PrunePlan | None:
         """The plan a call on points ``xs, ys`` should use (over ``bounds`` if given, which must
         hold every finite point), or None for the unpruned kernels. ``prune``: None decides
         (large inputs, enough operands, and only where most of them are dropped), True
         forces, False never. ``count``: the number of points the plan will serve (default
-        ``len(xs)``)."""
+        ``len(xs)``). ``target='cuda'``: a plan for the CUDA code, ``xs, ys`` device arrays
+        (their bounds are found on the device)."""
         count = len(xs) if count is None else count
         if self.parametric:  # interval bounds would need ranges of the parameters: not pruned
             return None
         if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
             return None
-        operands = sum(len(g["members"]) for g in self.groups or ())
+        groups = self._groups(target)
+        operands = sum(len(g["members"]) for g in groups or ())
         if not operands or (
             not prune and (operands < PRUNE_MIN_OPERANDS or operands * count < PRUNE_MIN_WORK)
         ):
             return None
-        if not prune and tol is None and all(g["op"] in ("smin", "smax") for g in self.groups):
+        if not prune and tol is None and all(g["op"] in ("smin", "smax") for g in groups):
             return None  # exponential chains at half an ulp: next to nothing to drop
-        bounds = snap_bounds(xs, ys) if bounds is None else bounds
+        if bounds is None:
+            bounds = self.cuda.bounds(xs, ys) if target == "cuda" else snap_bounds(xs, ys)
         if bounds is None:
             return None
-        plan = self.plan(bounds, tol=tol)
+        plan = self.plan(bounds, tol=tol, target=target)
         # It pays when most rows are dropped; otherwise the sort by tile is wasted work.
         return plan if prune or plan.fraction < PRUNE_MAX_FRACTION else None
 
@@ -655,10 +678,12 @@ class Function:
         backend: str | None = None,
         **params: float,
     ) -> np.ndarray | tuple[np.ndarray, ...]:
-        x, y = point_arrays(x, y)
         backend = self.backend if backend is None else backend
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {list(BACKENDS)}, got backend={backend!r}")
+        if backend == "cuda":
+            return self._call_cuda(x, y, compute_gradient, prune, time_derivative, params)
+        x, y = point_arrays(x, y)
         kw: dict[str, Any] = {}
         vals = None
         if self._params or params:
@@ -697,6 +722,48 @@ class Function:
 
                 warm_in_background()  # for the first calls of later scenes and processes
         return res
+
+    def _call_cuda(
+        self,
+        x: Any,
+        y: Any,
+        compute_gradient: bool,
+        prune: bool | None,
+        time_derivative: bool,
+        params: dict,
+    ) -> Any:
+        """``backend='cuda'``: the points on the device (taken without a copy from CuPy,
+        PyTorch, JAX or numba device arrays; NumPy data copied there and the results copied
+        back), answered as the caller's kind of array."""
+        from fastsdf.device import cuda, like
+
+        k = self.compiled.cuda
+        xs, ys, shape = device_points(x, y)
+        vals = self._values(params) if (self._params or params) else {}
+        kind = (
+            "vgt"
+            if time_derivative and k.parametric
+            else "vg"
+            if (compute_gradient or time_derivative)
+            else "v"
+        )
+        plan = None
+        if not k.parametric:
+            plan = self.compiled.pruned_plan(
+                xs, ys, prune, self.prune_tol, count=xs.shape[0], target="cuda"
+            )
+        prm = [float(vals[n]) for n in self.param_names] if k.parametric else None
+        res = k.evaluate(xs, ys, kind, t=float(vals.get("t", 0.0)), prm=prm, plan=plan)
+        out = like(res[0].reshape(shape), x)
+        if kind == "v":
+            return out
+        grad = like(res[1].reshape(shape + (2,)), x)
+        if not time_derivative:
+            return out, grad
+        if kind == "vgt":
+            return out, grad, like(res[2].reshape(shape), x)
+        zeros = cuda().to_device(np.zeros(shape))  # a static scene: nothing moves
+        return out, grad, like(zeros, x)
 
     def _path_for(self, backend: str, x: Any, prune: bool | None = None) -> str | None:
         """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""

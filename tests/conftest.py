@@ -11,6 +11,9 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # A fresh installation compiles the tape interpreter in a background process after its first
 # kernel; the test workers already use both cores (tests that need the tape warm it themselves).
 os.environ.setdefault("FASTSDF_BACKGROUND_COMPILE", "0")
+# The CUDA target's tests run under numba-cuda's simulator (kernels executed on the CPU), read
+# when numba.cuda is first imported; NUMBA_ENABLE_CUDASIM=0 runs them on a GPU instead.
+os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
 
 
 @pytest.fixture(autouse=True)

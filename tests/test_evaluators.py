@@ -1,6 +1,7 @@
 """One suite for every evaluator of a scene: the same scenes and the same assertions run on each
 path (the NumPy reference of the op table, the compiled kernel serial, parallel and pruned, the
-tape interpreter and the NumPy fast path), as a backend-agnostic test suite should."""
+tape interpreter, the NumPy fast path, and the CUDA kernels, plain and pruned), as a
+backend-agnostic test suite should."""
 
 import numpy as np
 import pytest
@@ -47,6 +48,15 @@ def _numpy(f, x, y):
     return f(x, y, compute_gradient=True, backend="numpy")
 
 
+def _cuda(f, x, y):
+    # The CUDA target (under numba-cuda's simulator where no GPU is present: tests/conftest.py)
+    return f(x, y, compute_gradient=True, prune=False, backend="cuda")
+
+
+def _cuda_pruned(f, x, y):
+    return f(x, y, compute_gradient=True, prune=True, backend="cuda")
+
+
 PATHS = {
     "reference": _reference,
     "kernel_serial": _kernel_serial,
@@ -54,6 +64,8 @@ PATHS = {
     "kernel_pruned": _kernel_pruned,
     "tape": _tape,
     "numpy": _numpy,
+    "cuda": _cuda,
+    "cuda_pruned": _cuda_pruned,
 }
 
 
@@ -100,9 +112,15 @@ def scene(request):
     return f, x, y, _reference(f, x, y)
 
 
+#: The CUDA paths run the first points only: the simulator executes every GPU thread as Python.
+CUDA_POINTS = 1200
+
+
 @pytest.mark.parametrize("path", [p for p in PATHS if p != "reference"])
 def test_every_path_agrees_with_the_reference(scene, path):
     f, x, y, (d_ref, g_ref) = scene
+    if path.startswith("cuda"):
+        x, y, d_ref, g_ref = (a[:CUDA_POINTS] for a in (x, y, d_ref, g_ref))
     d, g = PATHS[path](f, x, y)
     ok = np.isfinite(x) & np.isfinite(y)
     assert d.shape == x.shape and g.shape == x.shape + (2,)
@@ -115,6 +133,8 @@ def test_every_path_agrees_with_the_reference(scene, path):
         kw = {
             "kernel_parallel": {"prune": False, "backend": "kernel"},
             "kernel_pruned": {"prune": True, "backend": "kernel"},
+            "cuda": {"prune": False, "backend": "cuda"},
+            "cuda_pruned": {"prune": True, "backend": "cuda"},
         }.get(path, {"backend": path})
         np.testing.assert_array_equal(f(x, y, **kw), d)
 

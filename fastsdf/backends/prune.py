@@ -538,9 +538,14 @@ def snap_bounds(xs: np.ndarray, ys: np.ndarray) -> tuple[tuple[float, float], ..
     ok = np.isfinite(xs) & np.isfinite(ys)
     if not ok.any():
         return None
+    x, y = xs[ok], ys[ok]
+    return snap_rect(float(x.min()), float(x.max()), float(y.min()), float(y.max()))
+
+
+def snap_rect(x0: float, x1: float, y0: float, y1: float) -> tuple[tuple[float, float], ...]:
+    """The rectangle ``[x0, x1] x [y0, y1]`` snapped outward as :func:`snap_bounds` does."""
     out = []
-    for v in (xs[ok], ys[ok]):
-        lo, hi = float(v.min()), float(v.max())
+    for lo, hi in ((x0, x1), (y0, y1)):
         span = max(hi - lo, 1e-300, 1e-12 * max(abs(lo), abs(hi)))
         step = 2.0 ** math.ceil(math.log2(span)) / 16
         a, b = math.floor(lo / step) * step, (math.floor(hi / step) + 1) * step

@@ -1,11 +1,12 @@
 """Coordinates as every evaluator takes them: validated, flat, contiguous float64."""
 
 import contextlib
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["PARALLEL_MIN_POINTS", "as_points", "point_arrays"]
+__all__ = ["PARALLEL_MIN_POINTS", "as_points", "point_arrays", "device_points"]
 
 PARALLEL_MIN_POINTS = 4096
 
@@ -68,3 +69,34 @@ def point_arrays(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, 
 def _preview(arr: np.ndarray) -> str:
     text = repr(arr.reshape(-1)[:3].tolist()) if arr.size else "[]"
     return text if len(text) < 80 else text[:77] + "..."
+
+
+def device_points(x: Any, y: Any = None) -> tuple[Any, Any, tuple]:
+    """:func:`as_points` for the CUDA target: ``(xs, ys, shape)`` with ``xs, ys`` flat float64
+    numba device arrays. Device arrays (CuPy, PyTorch, JAX, numba) are used where they are,
+    without a copy (a float64 ``(..., 2)`` array's columns are read strided); anything else is
+    checked by :func:`as_points` and copied to the device."""
+    from fastsdf.device import as_device, cuda, is_device_array
+
+    if not (is_device_array(x) or (y is not None and is_device_array(y))):
+        xs, ys, shape = as_points(x, y)
+        cu = cuda()
+        return cu.to_device(xs), cu.to_device(ys), shape
+    if y is None:
+        d = as_device(x, "x")
+        if d.ndim == 0 or d.shape[-1] != 2:
+            raise ValueError(
+                f"points given without y must have a last axis of length 2 (x, y), "
+                f"got a device array of shape {d.shape}"
+            )
+        shape = tuple(d.shape[:-1]) or (1,)
+        flat = d.reshape(-1, 2)
+        return flat[:, 0], flat[:, 1], shape
+    xd, yd = as_device(x, "x"), as_device(y, "y")
+    if xd.shape != yd.shape:
+        raise ValueError(
+            f"x and y on the device must have the same shape, got x.shape={xd.shape} and "
+            f"y.shape={yd.shape}"
+        )
+    shape = tuple(xd.shape) or (1,)
+    return xd.reshape(-1), yd.reshape(-1), shape

@@ -708,24 +708,47 @@ class GridSDF:
     # -- queries ------------------------------------------------------------------------------
     @overload
     def __call__(
-        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: Literal[False] = False
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: Literal[False] = False,
+        backend: str | None = None,
     ) -> np.ndarray: ...
 
     @overload
     def __call__(
-        self, x: ArrayLike, y: ArrayLike | None = None, *, compute_gradient: Literal[True]
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        *,
+        compute_gradient: Literal[True],
+        backend: str | None = None,
     ) -> tuple[np.ndarray, np.ndarray]: ...
 
     @overload
     def __call__(
-        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: bool = False,
+        backend: str | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
 
     def __call__(
-        self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
+        self,
+        x: ArrayLike,
+        y: ArrayLike | None = None,
+        compute_gradient: bool = False,
+        backend: str | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Interpolated distance (and gradient) at points; see the class docstring.
+        ``backend='cuda'`` queries on the GPU (:mod:`fastsdf.fields.cuda`): device arrays in
+        (CuPy, PyTorch, JAX, numba; NumPy is copied there and back), the caller's kind out."""
+        if backend not in (None, "cpu", "cuda"):
+            raise ValueError(f"backend must be None, 'cpu' or 'cuda', got backend={backend!r}")
+        if backend == "cuda":
+            return self._call_cuda(x, y, compute_gradient)
         x, y = point_arrays(x, y)
-        """Interpolated distance (and gradient) at points; see the class docstring."""
         xs, ys, shape = as_points(x, y)
         n = xs.shape[0]
         out = np.empty(n)
@@ -751,6 +774,19 @@ class GridSDF:
         if grad is not None:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
+
+    def _call_cuda(self, x: Any, y: Any, compute_gradient: bool) -> Any:
+        from fastsdf.device import cuda, like
+        from fastsdf.expr.points import device_points
+
+        cuda()  # a clear error naming the extra before the kernels' module imports numba-cuda
+        from fastsdf.fields.cuda import query
+
+        xs, ys, shape = device_points(x, y)
+        out, grad = query(self, xs, ys, compute_gradient)
+        if grad is None:
+            return like(out.reshape(shape), x)
+        return like(out.reshape(shape), x), like(grad.reshape(shape + (2,)), x)
 
     def _exact_outside(self, xs, ys, out, grad):
         """mode='exact': replace the clamped answers of finite points outside ``bounds``."""
@@ -801,6 +837,7 @@ class GridSDF:
         # that array and is rebuilt, so the samples arrive bit for bit.
         state = self.__dict__.copy()
         state.pop("sampler_data", None)
+        state.pop("_device_data", None)  # device memory belongs to this process
         return state
 
     def __setstate__(self, state: dict) -> None:

@@ -58,7 +58,7 @@ from fastsdf.expr.graph import Expr, dag_size, gc_paused, parameters
 from fastsdf.expr.ops import OPS, lit
 from fastsdf.version import __version__
 
-__all__ = ["generate_module_source", "MIN_LOOP"]
+__all__ = ["generate_module_source", "MIN_LOOP", "PointCode", "point_code", "table_source"]
 
 #: Same-shape operands of a chain needed before they are folded into a loop over a table.
 MIN_LOOP = 4
@@ -1281,6 +1281,66 @@ def _function_source(
     return one, many, lanes, em.groups
 
 
+class PointCode:
+    """The per-point statements of one kind of function, for a target other than the CPU's
+    (the CUDA target of :mod:`fastsdf.backends.cuda`): the same emitter and op table as the CPU
+    kernels, with the C library's functions (``math.exp``, ``math.log``, ``math.hypot``) left
+    as they are instead of the CPU's vectorisable ones.
+
+    ``lines``: statements (unindented) reading ``x``, ``y`` (and ``t``, ``_p<i>``), tables bound
+    by their names (``_T0`` ...), and for loop groups the row lists ``_act`` and ``_off``;
+    ``results``: the returned expressions (value, then dd/dx, dd/dy, then dd/dt for ``'vgt'``);
+    ``tables``: the table names the lines read; ``groups``: the loop groups (as
+    :func:`generate_module` returns them); ``nan_return``: what a non-finite point returns.
+    """
+
+    def __init__(self, lines: list, results: list, tables: list, groups: list) -> None:
+        self.lines, self.results, self.tables, self.groups = lines, results, tables, groups
+        self.nan_return = ", ".join(["math.nan"] * len(results))
+
+
+def point_code(
+    root: Expr,
+    symbol_names: Sequence[str],
+    kind: str,
+    tables: dict,
+    param_names: Sequence[str] | None = None,
+    memo: dict | None = None,
+) -> PointCode:
+    """The per-point statements of ``kind`` (``'v'``, ``'vg'``, ``'vgt'``) for ``root``;
+    ``tables`` (shared by the functions of one module) receives the constant tables, rendered
+    by :func:`table_source`."""
+    time = kind == "vgt"
+    grad = kind != "v"
+    em = _Emitter(symbol_names, grad, tables, param_names or (), time, memo=memo)
+    res = em.emit(root)
+    results = [_as_float(res.v)]
+    if grad:
+        results += [_as_float(_zero(c)) for c in res.grads(len(em.COMPONENTS))]
+    used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
+    binds = [f"_p{i} = prm[{i}]" for i in range(len(param_names or ()))]
+    return PointCode(binds + em.lines, results, used, em.groups)
+
+
+def table_source(tables: dict, groups: list) -> str:
+    """Module-level definitions of the constant tables (``_T<i>G``) and, for loop groups, of
+    the full row lists ``_ACTG`` and ``_OFFG``."""
+    parts = []
+    for (shape, data), name in tables.items():
+        arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
+        rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
+        parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
+    if groups:
+        sizes = [len(g["members"]) for g in groups]
+        parts.append(
+            "_ACTG = np.concatenate(("
+            + "".join(f"np.arange({n}), " for n in sizes)
+            + ")).astype(np.int64)\n"
+            f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n"
+        )
+    return "\n".join(parts)
+
+
 def _program_source(
     root: Expr, symbol_names: Sequence[str], grad: bool, tables: dict, memo: dict | None
 ) -> tuple[str, str] | None:
@@ -1366,18 +1426,8 @@ def _generate_module(
     ]
     if any("_P." in src for src in funcs.values()):
         parts.append(_prims_import())
-    for (shape, data), name in tables.items():
-        arr = np.frombuffer(data, dtype=np.float64).reshape(shape)
-        rows = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in arr)
-        parts.append(f"{name}G = np.array([\n    {rows},\n], dtype=np.float64)\n")
-    if groups:
-        sizes = [len(g["members"]) for g in groups]
-        parts.append(
-            "_ACTG = np.concatenate(("
-            + "".join(f"np.arange({n}), " for n in sizes)
-            + ")).astype(np.int64)\n"
-            f"_OFFG = np.array({[0] + list(np.cumsum(sizes).tolist())}, dtype=np.int64)\n"
-        )
+    if tables or groups:
+        parts.append(table_source(tables, groups))
     parts.extend(
         funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt") if k in funcs
     )
