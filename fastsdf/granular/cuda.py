@@ -49,9 +49,10 @@ import time as _time
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import float64, njit
 
 from fastsdf.device import cuda, simulated
+from fastsdf.fields.cuda import device_data
 from fastsdf.fields.grid import GridSDF
 from fastsdf.granular.cells import INDEX_MASK, make_grid
 from fastsdf.granular.kernels import (
@@ -92,8 +93,11 @@ def default_max_neighbours(r_min: float, r_max: float, skin: float) -> int:
     return max(1, int(math.pi / math.asin(min(0.99 * r_min / reach, 1.0))))
 
 
-def _blocks(n: int) -> int:
-    return max(1, (n + BLOCK - 1) // BLOCK)
+def _grid(n: int) -> tuple:
+    """``(blocks, threads)`` of a launch over ``n`` items: :data:`BLOCK` threads a block on
+    the GPU; under the simulator no more threads than the next power of two of ``n``."""
+    threads = BLOCK if not simulated() else min(BLOCK, 1 << max(n - 1, 0).bit_length())
+    return max(1, (n + threads - 1) // threads), threads
 
 
 # -- the world at one point -----------------------------------------------------------------
@@ -104,51 +108,59 @@ def _no_world(data: Any, x: float, y: float) -> tuple:
     return math.inf, 0.0, 0.0
 
 
+def _scene_point(scene: Any, what: str) -> tuple:
+    """A static scene's value-and-gradient device function and its tables on the device
+    (:class:`fastsdf.backends.cuda.CudaKernels`: the CPU's point function emitted for the
+    GPU, tables as arguments)."""
+    if getattr(scene, "param_names", ()) or getattr(scene, "time_dependent", False):
+        raise ValueError(
+            f"the CUDA engine takes a static world (a GridSDF, or a scene without parameters "
+            f"or time), got {what}={scene!r}: sample it into a GridSDF, or use device='cpu'"
+        )
+    compiled = getattr(scene, "compiled", None)
+    if compiled is None:
+        raise TypeError(
+            f"the CUDA engine takes a fastsdf Function or GridSDF as its world, got "
+            f"{what}={scene!r}"
+        )
+    kernels = compiled.cuda
+    return kernels.module.point_vg, tuple(kernels.table_args())
+
+
 def _world_point(world: Any) -> tuple:
-    """``(at, data)``: a ``@njit`` function ``at(data, x, y) -> (d, dd/dx, dd/dy)`` the
-    kernels call, and its data (a GridSDF's nodes on the device)."""
+    """``(at, data)``: a device function ``at(data, x, y) -> (d, dd/dx, dd/dy)`` the kernels
+    call, and its data (device arrays): a GridSDF's own ``@njit`` sampler on its nodes (with
+    its exact scene outside its bounds in ``mode='exact'``), or a scene's point function."""
     if world is None:
         return _no_world, (0.0,)
     if isinstance(world, GridSDF):
         sampler = world.sampler
-        sd = world.sampler_data
-        nodes = sd[0] if simulated() else cu.to_device(np.ascontiguousarray(sd[0]))
-        data = (nodes, *sd[1:])
-        exact = world.exact if world.mode == "exact" else None
-        if exact is not None and not (exact.param_names or exact.time_dependent):
-            exact_fn = exact.point_fn
+        nodes = device_data(world)
+        if world.mode == "exact" and world.exact is not None:
+            exact, tables = _scene_point(world.exact, "world.exact")
 
-            @njit
+            @cu.jit(device=True)
             def grid_or_exact(data: Any, x: float, y: float) -> tuple:
-                d, gx, gy, inside = sampler(data, x, y)
+                d, gx, gy, inside = sampler(data[0], x, y)
                 if not inside and math.isfinite(x) and math.isfinite(y):
-                    return exact_fn(x, y)
+                    return exact(x, y, *data[1])
                 return d, gx, gy
 
-            return grid_or_exact, data
+            return grid_or_exact, (nodes, tables)
 
         @njit
         def grid(data: Any, x: float, y: float) -> tuple:
             d, gx, gy, _ = sampler(data, x, y)
             return d, gx, gy
 
-        return grid, data
-    if getattr(world, "param_names", ()) or getattr(world, "time_dependent", False):
-        raise ValueError(
-            "the CUDA engine takes a static world (a GridSDF, or a scene without parameters or "
-            f"time), got world={world!r}: sample it into a GridSDF, or use device='cpu'"
-        )
-    point = getattr(world, "point_fn", None)
-    if point is None:
-        raise TypeError(
-            f"the CUDA engine takes a fastsdf Function or GridSDF as its world, got {world!r}"
-        )
+        return grid, nodes
+    point, tables = _scene_point(world, "world")
 
-    @njit
+    @cu.jit(device=True)
     def scene(data: Any, x: float, y: float) -> tuple:
-        return point(x, y)
+        return point(x, y, *data)
 
-    return scene, (0.0,)
+    return scene, tables
 
 
 # -- kernels that do not depend on the contact law ------------------------------------------
@@ -170,14 +182,39 @@ def _fill_u32(a, value):
 
 @cu.jit
 def _bounds(st, out):
-    """Atomic min and max of x and y over the grains: ``out = (xlo, -xhi, ylo, -yhi)``."""
-    i = cu.grid(1)
+    """Min and max of x and y over the grains, ``out = (xlo, -xhi, ylo, -yhi)`` (out starts
+    at +inf): each thread reduces a strided share, each block its threads in shared memory,
+    then one atomic min per block and value (atomics per grain would all queue on four
+    addresses)."""
+    sh = cu.shared.array((4, BLOCK), float64)
+    t = cu.threadIdx.x
     n = st.shape[1]
-    if i < n:
-        cu.atomic.min(out, 0, st[X, i])
-        cu.atomic.min(out, 1, -st[X, i])
-        cu.atomic.min(out, 2, st[Y, i])
-        cu.atomic.min(out, 3, -st[Y, i])
+    a = math.inf
+    b = math.inf
+    c = math.inf
+    e = math.inf
+    i = cu.grid(1)
+    while i < n:
+        a = min(a, st[X, i])
+        b = min(b, -st[X, i])
+        c = min(c, st[Y, i])
+        e = min(e, -st[Y, i])
+        i += cu.gridsize(1)
+    sh[0, t] = a
+    sh[1, t] = b
+    sh[2, t] = c
+    sh[3, t] = e
+    cu.syncthreads()
+    step = cu.blockDim.x // 2
+    while step > 0:
+        if t < step:
+            for k in range(4):
+                sh[k, t] = min(sh[k, t], sh[k, t + step])
+        cu.syncthreads()
+        step //= 2
+    if t == 0:
+        for k in range(4):
+            cu.atomic.min(out, k, sh[k, 0])
 
 
 @cu.jit
@@ -699,7 +736,7 @@ class CudaGranularSimulation(GranularSimulation):
             d["mem"] = cu.to_device(np.zeros((cols, slots, n)))
             d["old_mem"] = cu.to_device(np.zeros((cols, slots, n)))
             d["old_nbr"] = cu.device_array((slots, n), np.uint32)
-            _fill_u32[_blocks(slots * n), BLOCK](d["old_nbr"].reshape(slots * n), EMPTY)
+            _fill_u32[_grid(slots * n)](d["old_nbr"].reshape(slots * n), EMPTY)
         else:
             d["scratch"] = cu.device_array(n)
             d["mem"] = cu.device_array((1, 1, 1))  # typed like the springs, never read
@@ -739,19 +776,19 @@ class CudaGranularSimulation(GranularSimulation):
         sums = self._scan_sums.get((m, runs))
         if sums is None:
             sums = self._scan_sums[(m, runs)] = cu.device_array(max(runs, 1), np.int32)
-        _scan_runs[_blocks(runs), BLOCK](a, m, sums, _RUN)
+        _scan_runs[_grid(runs)](a, m, sums, _RUN)
         if runs > 1:
             self._scan(sums, runs)
-            _add_offsets[_blocks(m), BLOCK](a, m, sums, _RUN)
+            _add_offsets[_grid(m)](a, m, sums, _RUN)
 
     def _rebuild(self) -> None:
         t0 = _time.perf_counter()
         d = self._dev
         st = d["st"]
         n = st.shape[1]
-        blocks = _blocks(n)
+        launch = _grid(n)
         box = cu.to_device(np.full(4, np.inf))
-        _bounds[blocks, BLOCK](st, box)
+        _bounds[min(launch[0], 1024), launch[1]](st, box)
         xlo, mxhi, ylo, myhi = box.copy_to_host()
         lo_hi = (np.array([xlo, -mxhi]), np.array([ylo, -myhi]))
         grid = make_grid(
@@ -762,32 +799,32 @@ class CudaGranularSimulation(GranularSimulation):
             d["counts"] = cu.device_array(ncells + ncells // 4 + 1, np.int32)
             self._scan_sums = {}
         counts = d["counts"]
-        _fill_i32[_blocks(ncells + 1), BLOCK](counts[: ncells + 1], 0)
+        _fill_i32[_grid(ncells + 1)](counts[: ncells + 1], 0)
         scratch = self._sort_scratch()
         halves = scratch.view(np.int32)
         keys, rank = halves[:n], halves[n:]
         cell = (grid.x0, grid.y0, grid.inv_w, grid.inv_h, grid.ncx, grid.ncy, grid.period)
-        _keys[blocks, BLOCK](st, *cell, keys, rank, counts)
+        _keys[launch](st, *cell, keys, rank, counts)
         self._scan(counts, ncells + 1)
         perm = d["xref"].view(np.int32)  # the references are written last
-        _scatter[blocks, BLOCK](keys, rank, counts, perm)
-        _order_cells[_blocks(ncells), BLOCK](counts, ncells, perm)
+        _scatter[launch](keys, rank, counts, perm)
+        _order_cells[_grid(ncells)](counts, ncells, perm)
         for row in range(12):
-            _gather_row[blocks, BLOCK](st, row, perm, scratch)
-            _put_row[blocks, BLOCK](st, row, scratch)
+            _gather_row[launch](st, row, perm, scratch)
+            _put_row[launch](st, row, scratch)
         wmem = d["wmem"]
         for row in range(wmem.shape[0]):
-            _gather_row[blocks, BLOCK](wmem, row, perm, scratch)
-            _put_row[blocks, BLOCK](wmem, row, scratch)
+            _gather_row[launch](wmem, row, perm, scratch)
+            _put_row[launch](wmem, row, scratch)
         ids_scratch = d["yref"].view(np.int32)
-        _gather_i32[blocks, BLOCK](d["ids"], perm, ids_scratch)
-        _copy_i32[blocks, BLOCK](ids_scratch, d["ids"])
+        _gather_i32[launch](d["ids"], perm, ids_scratch)
+        _copy_i32[launch](ids_scratch, d["ids"])
         if self._history:  # the current list becomes the old one
             d["old_nbr"], d["nbr"] = d["nbr"], d["old_nbr"]
             d["old_mem"], d["mem"] = d["mem"], d["old_mem"]
         flag = d["flag"]
         flag.copy_to_device(np.zeros(3, np.int32))
-        _build[blocks, BLOCK](st, counts, *cell, self.skin, d["nbr"], flag)
+        _build[launch](st, counts, *cell, self.skin, d["nbr"], flag)
         found = int(flag.copy_to_host()[1])
         if found > self.max_neighbours:
             raise RuntimeError(
@@ -797,13 +834,13 @@ class CudaGranularSimulation(GranularSimulation):
                 "device='cuda')"
             )
         if self._history:
-            _carry[blocks, BLOCK](perm, d["old_nbr"], d["old_mem"], d["nbr"], d["mem"])
-        _set_refs[blocks, BLOCK](st, d["xref"], d["yref"])
+            _carry[launch](perm, d["old_nbr"], d["old_mem"], d["nbr"], d["mem"])
+        _set_refs[launch](st, d["xref"], d["yref"])
         # float32 references round by up to 2**-24 of the largest coordinate, per axis
         xs = (grid.x0, grid.x0 + grid.period) if grid.period > 0 else (xlo, -mxhi)
         self._ref_margin = 2.5e-7 * max(abs(xs[0]), abs(xs[1]), abs(ylo), abs(myhi))
         _, _, mark_near, _ = self._kern
-        mark_near[blocks, BLOCK](st, d["near"], wmem, self._wdata, self.skin)
+        mark_near[launch](st, d["near"], wmem, self._wdata, self.skin)
         self.grid = grid
         self.rebuilds += 1
         self._stale = True
@@ -838,7 +875,7 @@ class CudaGranularSimulation(GranularSimulation):
         law, wall, bulk = self._laws()
         mem = d["mem"]
         _, forces, _, _ = self._kern
-        forces[_blocks(d["st"].shape[1]), BLOCK](
+        forces[_grid(d["st"].shape[1])](
             d["flag"],
             d["st"],
             d["nbr"],
@@ -856,7 +893,7 @@ class CudaGranularSimulation(GranularSimulation):
     def _advance(self, substeps: int) -> None:
         d = self._dev
         st, flag = d["st"], d["flag"]
-        blocks = _blocks(st.shape[1])
+        launch = _grid(st.shape[1])
         drift, forces, _, _ = self._kern
         law, wall, bulk = self._laws()
         mem = d["mem"]
@@ -872,8 +909,8 @@ class CudaGranularSimulation(GranularSimulation):
             flag.copy_to_device(zeros)
             for b in range(1, batch + 1):
                 kick = 0.0 if done + b == 1 else 0.5 * dt
-                drift[blocks, BLOCK](b, flag, st, d["xref"], d["yref"], kick, dt, density, lim)
-                forces[blocks, BLOCK](
+                drift[launch](b, flag, st, d["xref"], d["yref"], kick, dt, density, lim)
+                forces[launch](
                     flag, st, d["nbr"], mem, d["near"], d["wmem"], self._wdata, law, wall,
                     bulk, dt, d["wsum"],
                 )  # fmt: skip
@@ -888,7 +925,7 @@ class CudaGranularSimulation(GranularSimulation):
             self._force_pass(dt)
             done += raised
         if substeps:
-            drift[blocks, BLOCK](1, flag, st, d["xref"], d["yref"], 0.5 * dt, 0.0, density, np.inf)
+            drift[launch](1, flag, st, d["xref"], d["yref"], 0.5 * dt, 0.0, density, np.inf)
             self.wall_force = d["wsum"].copy_to_host() / substeps
         cu.synchronize()
         self.time += substeps * dt
@@ -902,7 +939,7 @@ class CudaGranularSimulation(GranularSimulation):
         n = d["st"].shape[1]
         out = cu.device_array((4, n))
         energy = self._kern[3]
-        energy[_blocks(n), BLOCK](
+        energy[_grid(n)](
             d["st"],
             d["nbr"],
             d["near"],
