@@ -688,11 +688,6 @@ class CudaGranularSimulation(GranularSimulation):
 
     # -- device state ---------------------------------------------------------------------------
     def _start_engine(self) -> None:
-        if self.moving:
-            raise ValueError(
-                "the CUDA engine takes a static world; a moving one (built with fastsdf.t) "
-                "runs on device='cpu'"
-            )
         self._stale = False
         g = self._host
         n = g.x.shape[0]
@@ -707,18 +702,11 @@ class CudaGranularSimulation(GranularSimulation):
         else:
             slots = int(given)
         self.max_neighbours = slots
-        self._at, self._wdata = _world_point(self.world)
+        self._bind_world()
         wall_cols = (2 if self.wall_contact.rolling_friction > 0 else 1) * int(
             self.wall_contact.history
         )
         cols = self._memory_cols if self._history else 0
-        self._kern = _kernels(
-            self._at,
-            self._history,
-            cols == 2,
-            wall_cols > 0,
-            wall_cols == 2,
-        )
         st = np.stack([np.asarray(a, dtype=np.float64) for a in g])
         d: dict = {
             "st": cu.to_device(st),
@@ -745,11 +733,34 @@ class CudaGranularSimulation(GranularSimulation):
         with compiling("the granular CUDA kernels"):
             self._restart()
 
+    def _bind_world(self) -> None:
+        """The world's device function and data, and the kernels that call it."""
+        if self.moving:
+            raise ValueError(
+                "the CUDA engine takes a static world; a moving one (built with fastsdf.t) "
+                "runs on device='cpu'"
+            )
+        self._at, self._wdata = _world_point(self.world)
+        wall_cols = (2 if self.wall_contact.rolling_friction > 0 else 1) * int(
+            self.wall_contact.history
+        )
+        self._kern = _kernels(
+            self._at,
+            self._history,
+            self._history and self._memory_cols == 2,
+            wall_cols > 0,
+            wall_cols == 2,
+        )
+        self._world_bound = self.world
+
     def _restart(self) -> None:
-        """Continue from the host state (after :meth:`set_state`): upload it, rebuild the
-        list, predict with the current velocities and evaluate the forces."""
-        g = self._host
+        """Continue from the host state (after :meth:`set_state`, a new world or gravity):
+        upload it, rebuild the list, predict with the current velocities and evaluate the
+        forces."""
+        g = self.grains
         d = self._dev
+        if self.world is not self._world_bound:
+            self._bind_world()
         st = np.stack([np.asarray(a, dtype=np.float64) for a in g])
         st[PX], st[PY], st[PW] = st[VX], st[VY], st[W]
         d["st"].copy_to_device(st)
@@ -1009,16 +1020,13 @@ class CudaGranularSimulation(GranularSimulation):
         self.grains  # noqa: B018 - the host copies, current
         state = self.__dict__.copy()
         state["_dev"] = {k: v.copy_to_host() for k, v in self._dev.items()}
-        for k in ("_kern", "_at", "_wdata", "_scan_sums"):
+        for k in ("_kern", "_at", "_wdata", "_scan_sums", "_world_bound"):
             state.pop(k, None)
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._at, self._wdata = _world_point(self.world)
-        wall_cols = self._dev["wmem"].shape[0]
-        cols = self._dev["mem"].shape[0] if self._history else 0
-        self._kern = _kernels(self._at, self._history, cols == 2, wall_cols > 0, wall_cols == 2)
+        self._bind_world()
         self._dev = {k: cu.to_device(v) for k, v in self._dev.items()}
         self._scan_sums = {}
         self._stale = True

@@ -234,8 +234,8 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
     ``contacts``); a law without a stiffness derives it (see
     :class:`fastsdf.granular.ContactLaw`) from the grains, the density and the gravity of
     ``force_generators`` when a run starts. ``density`` is mass per unit area.
-    ``substeps_per_contact``, ``substep``, ``skin``, ``periodic_x``, ``chunks``: the
-    engine's.
+    ``substeps_per_contact``, ``substep``, ``skin``, ``periodic_x``, ``chunks``, ``device``
+    (``'cuda'``: the engine on the GPU, see :mod:`fastsdf.granular.cuda`): the engine's.
     """
 
     engine: GranularSimulation
@@ -259,6 +259,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
         skin: float | None = None,
         periodic_x: ArrayLike | None = None,
         chunks: int | None = None,
+        device: str = "cpu",
         seed: Any = None,
         **others: Any,
     ) -> None:
@@ -296,6 +297,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
             skin=skin,
             periodic_x=periodic_x,
             chunks=chunks,
+            device=device,
         )
         self._dt = self.engine.timestep
         self.force_generators: list = []
