@@ -127,40 +127,64 @@ def _scene_point(scene: Any, what: str) -> tuple:
     return kernels.module.point_vg, tuple(kernels.table_args())
 
 
-def _world_point(world: Any) -> tuple:
-    """``(at, data)``: a device function ``at(data, x, y) -> (d, dd/dx, dd/dy)`` the kernels
-    call, and its data (device arrays): a GridSDF's own ``@njit`` sampler on its nodes (with
-    its exact scene outside its bounds in ``mode='exact'``), or a scene's point function."""
-    if world is None:
-        return _no_world, (0.0,)
-    if isinstance(world, GridSDF):
-        sampler = world.sampler
-        nodes = device_data(world)
-        if world.mode == "exact" and world.exact is not None:
-            exact, tables = _scene_point(world.exact, "world.exact")
+_AT: dict = {}
 
-            @cu.jit(device=True)
-            def grid_or_exact(data: Any, x: float, y: float) -> tuple:
-                d, gx, gy, inside = sampler(data[0], x, y)
-                if not inside and math.isfinite(x) and math.isfinite(y):
-                    return exact(x, y, *data[1])
-                return d, gx, gy
 
-            return grid_or_exact, (nodes, tables)
+def _grid_at(sampler: Any, exact: Any) -> Any:
+    """The device function of a GridSDF with ``sampler``, answering outside its bounds with
+    the exact scene's point function ``exact`` (or None): one per pair (compiled once)."""
+    key = ("grid", sampler, exact)
+    if key in _AT:
+        return _AT[key]
+    if exact is not None:
+
+        @cu.jit(device=True)
+        def grid_or_exact(data: Any, x: float, y: float) -> tuple:
+            d, gx, gy, inside = sampler(data[0], x, y)
+            if not inside and math.isfinite(x) and math.isfinite(y):
+                return exact(x, y, *data[1])
+            return d, gx, gy
+
+        _AT[key] = grid_or_exact
+    else:
 
         @njit
         def grid(data: Any, x: float, y: float) -> tuple:
             d, gx, gy, _ = sampler(data, x, y)
             return d, gx, gy
 
-        return grid, nodes
+        _AT[key] = grid
+    return _AT[key]
+
+
+def _scene_at(point: Any) -> Any:
+    """The device function of a scene whose point function is ``point`` (tables as data)."""
+    key = ("scene", point)
+    if key not in _AT:
+
+        @cu.jit(device=True)
+        def scene(data: Any, x: float, y: float) -> tuple:
+            return point(x, y, *data)
+
+        _AT[key] = scene
+    return _AT[key]
+
+
+def _world_point(world: Any) -> tuple:
+    """``(at, data)``: a device function ``at(data, x, y) -> (d, dd/dx, dd/dy)`` the kernels
+    call, and its data (device arrays): a GridSDF's own ``@njit`` sampler on its nodes (with
+    its exact scene outside its bounds in ``mode='exact'``), or a scene's point function. The
+    functions are kept per scene code, so the kernels that call them compile once."""
+    if world is None:
+        return _no_world, (0.0,)
+    if isinstance(world, GridSDF):
+        nodes = device_data(world)
+        if world.mode == "exact" and world.exact is not None:
+            exact, tables = _scene_point(world.exact, "world.exact")
+            return _grid_at(world.sampler, exact), (nodes, tables)
+        return _grid_at(world.sampler, None), nodes
     point, tables = _scene_point(world, "world")
-
-    @cu.jit(device=True)
-    def scene(data: Any, x: float, y: float) -> tuple:
-        return point(x, y, *data)
-
-    return scene, tables
+    return _scene_at(point), tables
 
 
 # -- kernels that do not depend on the contact law ------------------------------------------
