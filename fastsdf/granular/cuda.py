@@ -206,8 +206,9 @@ def _fill_u32(a, value):
 
 @cu.jit
 def _bounds(st, out):
-    """Min and max of x and y over the grains, ``out = (xlo, -xhi, ylo, -yhi)`` (out starts
-    at +inf): each thread reduces a strided share, each block its threads in shared memory,
+    """Min and max of x and y over the grains, ``out = (xlo, -xhi, ylo, -yhi, bad)`` (out
+    starts at ``(inf, inf, inf, inf, 0)``; ``bad`` is 1 when a coordinate is not finite): each
+    thread reduces a strided share, each block its threads in shared memory,
     then one atomic min per block and value (atomics per grain would all queue on four
     addresses)."""
     sh = cu.shared.array((4, BLOCK), float64)
@@ -219,6 +220,8 @@ def _bounds(st, out):
     e = math.inf
     i = cu.grid(1)
     while i < n:
+        if not (math.isfinite(st[X, i]) and math.isfinite(st[Y, i])):
+            out[4] = 1.0
         a = min(a, st[X, i])
         b = min(b, -st[X, i])
         c = min(c, st[Y, i])
@@ -816,16 +819,29 @@ class CudaGranularSimulation(GranularSimulation):
             self._scan(sums, runs)
             _add_offsets[_grid(m)](a, m, sums, _RUN)
 
+    def _box(self) -> tuple:
+        """``(xlo, xhi, ylo, yhi)`` of the grains (a device reduction); a FloatingPointError,
+        as on the CPU, when a coordinate is not finite."""
+        st = self._dev["st"]
+        blocks, threads = _grid(st.shape[1])
+        box = cu.to_device(np.array([np.inf, np.inf, np.inf, np.inf, 0.0]))
+        _bounds[min(blocks, 1024), threads](st, box)
+        xlo, mxhi, ylo, myhi, bad = box.copy_to_host()
+        if bad:
+            raise FloatingPointError(
+                "grain positions are not finite (the simulation blew up: "
+                "is the substep short enough for the stiffness?)"
+            )
+        return float(xlo), float(-mxhi), float(ylo), float(-myhi)
+
     def _rebuild(self) -> None:
         t0 = _time.perf_counter()
         d = self._dev
         st = d["st"]
         n = st.shape[1]
         launch = _grid(n)
-        box = cu.to_device(np.full(4, np.inf))
-        _bounds[min(launch[0], 1024), launch[1]](st, box)
-        xlo, mxhi, ylo, myhi = box.copy_to_host()
-        lo_hi = (np.array([xlo, -mxhi]), np.array([ylo, -myhi]))
+        xlo, xhi, ylo, yhi = self._box()
+        lo_hi = (np.array([xlo, xhi]), np.array([ylo, yhi]))
         grid = make_grid(
             *lo_hi, self._cutoff, self.bulk.period_x0, self.bulk.period, max_cells=2 * n + 64
         )
@@ -871,9 +887,10 @@ class CudaGranularSimulation(GranularSimulation):
         if self._history:
             _carry[launch](perm, d["old_nbr"], d["old_mem"], d["nbr"], d["mem"])
         _set_refs[launch](st, d["xref"], d["yref"])
-        # float32 references round by up to 2**-24 of the largest coordinate, per axis
-        xs = (grid.x0, grid.x0 + grid.period) if grid.period > 0 else (xlo, -mxhi)
-        self._ref_margin = 2.5e-7 * max(abs(xs[0]), abs(xs[1]), abs(ylo), abs(myhi))
+        # float32 references round by up to 2**-24 of the largest coordinate, per axis (x as
+        # wrapped into the period)
+        box = self._box() if grid.period > 0 else (xlo, xhi, ylo, yhi)
+        self._ref_margin = 2.5e-7 * max(abs(v) for v in box)
         _, _, mark_near, _ = self._kern
         mark_near[launch](st, d["near"], wmem, self._wdata, self.skin)
         self.grid = grid
@@ -963,7 +980,8 @@ class CudaGranularSimulation(GranularSimulation):
             drift[launch](1, flag, st, d["xref"], d["yref"], 0.5 * dt, 0.0, density, np.inf)
             self.wall_force = d["wsum"].copy_to_host() / substeps
         cu.synchronize()
-        self.time += substeps * dt
+        for _ in range(substeps):  # summed as the CPU engine sums it
+            self.time += dt
         self.timings["integrate"] += _time.perf_counter() - t0
         self._stale = True
 
