@@ -87,10 +87,12 @@ _RUN = 64
 def default_max_neighbours(r_min: float, r_max: float, skin: float) -> int:
     """Slots per grain of the neighbour list: how many grains of radius ``r_min``, overlapping
     each other by at most 1%, fit around one of ``r_max`` with their centres within ``r_max +
-    r_min + skin`` (on that circle, ``pi / asin(0.99 r_min / (r_max + r_min + skin))``): 7 for
-    equal discs and a skin of 0.2 diameters."""
+    r_min + skin`` (on that circle, ``pi / asin(0.99 r_min / (r_max + r_min + skin))``), times
+    the rings of them a skin that wide holds (one below ``sqrt(3) r_min``): 7 for equal discs
+    and a skin of 0.2 diameters."""
     reach = r_max + r_min + skin
-    return max(1, int(math.pi / math.asin(min(0.99 * r_min / reach, 1.0))))
+    ring = int(math.pi / math.asin(min(0.99 * r_min / reach, 1.0)))
+    return max(1, ring * (1 + int(skin / (math.sqrt(3.0) * r_min))))
 
 
 def _grid(n: int) -> tuple:
