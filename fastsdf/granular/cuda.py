@@ -18,7 +18,9 @@ and writes only its own state, with no atomics; both sides of a pair compute the
 grain with more neighbours is reported by the rebuild (a RuntimeError naming the count found).
 
 A substep is two kernels, as on the CPU: the elementwise kick and drift, which also raises a
-device flag when a grain has moved farther than half the skin since the list was built, and
+device flag when a grain has moved farther than half the skin since the list was built (the
+CPU's test of the largest displacement, asked as "did any grain pass": a store any thread may
+make replaces the reduction), and
 the force pass (half kick, gravity, pairs, the world). The host launches a batch of substeps
 (:data:`CHECK_EVERY`) without waiting, then reads the flag once: every kernel after the
 substep that raised it returns at once, so the host rebuilds, completes that substep's force
@@ -38,7 +40,8 @@ packing (at most ``2 n + 64`` cells), 1 for the near-the-world flag; without his
 scratch row, so ``4 S + 120`` (148 bytes for a dense bed of equal discs, ``S = 7``); with
 history one spring per slot and the list before the rebuild (``24 S``, the scratch lives in
 the new list's springs), 8 bytes for the spring against the world: ``24 S + 120`` (288 bytes
-at ``S = 7``), and ``8 S`` (or 8 against the world) more with rolling resistance. See
+at ``S = 7``); rolling resistance adds a torque per slot in both lists and one against the
+world, ``16 S + 8`` (408 bytes at ``S = 7``). See
 :meth:`CudaGranularSimulation.memory_per_grain`.
 """
 
