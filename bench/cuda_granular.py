@@ -6,6 +6,7 @@ stepped by ``GranularSimulation(..., device='cuda')``, with and without contact 
     python -m bench.cuda_granular                     # 1e6, 1e7, 1e8 discs on the GPU
     python -m bench.cuda_granular --sizes 1e6 1e7 --history
     python -m bench.cuda_granular --sim               # tiny, under numba-cuda's simulator
+    python -m bench.cuda_granular --ptx               # every kernel compiled for sm_90, no GPU
 
 :func:`rows` is called by ``bench/bench_cuda.py``. Each size: one warm-up run of the substeps
 (compiling, and the first rebuilds), then timed runs with ``cuda.synchronize()`` around each
@@ -27,6 +28,8 @@ from typing import Any
 
 if "--sim" in sys.argv:  # read by numba when numba.cuda is first imported
     os.environ["NUMBA_ENABLE_CUDASIM"] = "1"
+if "--ptx" in sys.argv:
+    os.environ["NUMBA_ENABLE_CUDASIM"] = "0"
 
 import numpy as np
 
@@ -160,12 +163,105 @@ def rows(
     return out
 
 
+def ptx_check(cc: tuple = (9, 0)) -> list:
+    """Compile every kernel of :mod:`fastsdf.granular.cuda` (each contact model; no world, a
+    scene, a GridSDF with and without its exact fallback) to PTX for compute capability ``cc``
+    on a machine without a GPU: numba-cuda's typing, lowering and NVVM, which the simulator
+    skips (it runs the kernels as Python). Needs libnvvm and libdevice (``CUDA_HOME``); numba-cuda
+    asks a device or NVRTC for facts a compile to PTX does not need, patched here for this
+    check only. Returns ``(kernel, PTX characters)``; an error propagates."""
+    import numba.cuda.cudadrv.libs as libs
+    import numba.cuda.cudadrv.nvrtc as nvrtc
+    import numba.cuda.cudadrv.nvvm as nvvm
+    import numba.cuda.dispatcher as dispatcher
+    from numba import cuda as nbcuda
+
+    home = os.environ.get("CUDA_HOME", "/usr/local/cuda")
+    libdevice = os.path.join(home, "nvvm", "libdevice", "libdevice.10.bc")
+    nvrtc.get_supported_ccs = lambda: (cc,)
+    libs.get_libdevice = nvvm.get_libdevice = lambda: libdevice  # type: ignore[attr-defined]
+
+    def read_libdevice() -> bytes:
+        with open(libdevice, "rb") as fh:
+            return fh.read()
+
+    libs.open_libdevice = nvvm.open_libdevice = read_libdevice  # type: ignore[attr-defined]
+    dispatcher.get_current_device = lambda: type("Device", (), {"compute_capability": cc})()
+    nbcuda.is_available = lambda: True
+
+    import numba
+
+    import fastsdf as fs
+    import fastsdf.granular.cuda as gc
+
+    gc.device_data = lambda grid: grid.sampler_data  # the types of the device copy
+    n, slots = 64, 7
+    a = {
+        "st": np.zeros((12, n)),
+        "f32": np.zeros(n, np.float32),
+        "i32": np.zeros(n, np.int32),
+        "nbr": np.zeros((slots, n), np.uint32),
+        "i8": np.zeros(n, np.int8),
+        "flag": np.zeros(3, np.int32),
+        "f64": np.zeros(n),
+    }
+    cell = (0.0, 0.0, 1.0, 1.0, 5, 5, 0.0)
+    done = []
+
+    def ptx(kernel: Any, *args: Any) -> None:
+        sig = tuple(numba.typeof(v) for v in args)
+        code, _ = nbcuda.compile_ptx(kernel.py_func, sig, cc=cc)
+        done.append((kernel.py_func.__name__, len(code)))
+
+    st, i32, f32, nbr, flag = a["st"], a["i32"], a["f32"], a["nbr"], a["flag"]
+    ptx(gc._fill_i32, i32, 0)
+    ptx(gc._fill_u32, nbr.reshape(-1), gc.EMPTY)
+    ptx(gc._bounds, st, np.zeros(5))
+    ptx(gc._keys, st, *cell, i32, i32, i32)
+    ptx(gc._scan_runs, i32, 5, i32, 64)
+    ptx(gc._add_offsets, i32, 5, i32, 64)
+    ptx(gc._scatter, i32, i32, i32, i32)
+    ptx(gc._order_cells, i32, 5, i32)
+    ptx(gc._gather_row, st, 3, i32, a["f64"])
+    ptx(gc._put_row, st, 3, a["f64"])
+    ptx(gc._gather_i32, i32, i32, i32)
+    ptx(gc._copy_i32, i32, i32)
+    ptx(gc._build, st, i32, *cell, 0.2, nbr, flag)
+    ptx(gc._carry, i32, nbr, np.zeros((1, slots, n)), nbr, np.zeros((1, slots, n)))
+    ptx(gc._set_refs, st, f32, f32)
+    floor = fs.Halfspace((0.0, 1.0), 0.0)
+    bounds = [(-1.0, 9.0), (-1.0, 5.0)]
+    worlds = [
+        None,
+        floor,
+        fs.GridSDF(floor, bounds=bounds, samples=[11, 7]),
+        fs.GridSDF(floor, bounds=bounds, samples=[11, 7], mode="nearest"),
+    ]
+    law = (1.0,) * 6
+    for world in worlds:
+        at, data = gc._world_point(world)
+        for hist, roll in ((False, False), (True, False), (True, True)):
+            drift, forces, mark_near, energy = gc._kernels(at, hist, roll, hist, roll)
+            mem = np.zeros((2 if roll else 1, slots if hist else 1, n if hist else 1))
+            wmem = np.zeros((2 if roll else int(hist), n))
+            ptx(drift, 3, flag, st, f32, f32, 0.5, 1e-4, 1.0, 0.01)
+            ptx(forces, flag, st, nbr, mem, a["i8"], wmem, data, law, law, law[:4], 1e-4, a["f64"])
+            ptx(mark_near, st, a["i8"], wmem, data, 0.2)
+            ptx(energy, st, nbr, a["i8"], data, 1.0, 1.0, 0.0, np.zeros((4, n)))
+    return done
+
+
 def main(argv: list | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", nargs="+", type=float, default=None)
     ap.add_argument("--history", action="store_true", help="with contact history only")
     ap.add_argument("--sim", action="store_true", help="tiny sizes under the simulator")
+    ap.add_argument("--ptx", action="store_true", help="compile every kernel to PTX (no GPU)")
     a = ap.parse_args(argv)
+    if a.ptx:
+        done = ptx_check()
+        print(f"{len(done)} kernels compiled to PTX for sm_90: " + ", ".join(k for k, _ in done))
+        return 0
     sizes = tuple(int(s) for s in a.sizes) if a.sizes else (10**6, 10**7, 10**8)
     hist = (True,) if a.history else (False, True)
     rows(sizes, hist, sim=a.sim)
