@@ -36,8 +36,9 @@ import numpy as np
 COMMAND = "python -m bench.cuda_granular"
 
 
-def bed(n: int, history: bool, device: str) -> Any:
-    """The dense bed of ``bench.bench_granular`` (about ``n`` discs) on ``device``."""
+def bed(n: int, history: bool, device: str) -> tuple:
+    """The dense bed of ``bench.bench_granular`` (about ``n`` discs) on ``device``, and the
+    number of discs (reading the simulation's positions would copy its state)."""
     import fastsdf as fs
     from fastsdf.granular import ContactLaw, GranularSimulation, restitution_from_damping
 
@@ -47,7 +48,7 @@ def bed(n: int, history: bool, device: str) -> Any:
     m = math.pi / 4
     law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5, history=history)
     wall = law._replace(restitution=restitution_from_damping(GAMMA_N, KN, m))
-    return GranularSimulation(
+    sim = GranularSimulation(
         pos,
         0.5,
         world=fs.Halfspace((0.0, 1.0), 0.0),
@@ -61,6 +62,7 @@ def bed(n: int, history: bool, device: str) -> Any:
         periodic_x=(0.0, period),
         device=device,
     )
+    return sim, len(pos)
 
 
 def _timed(sim: Any, n: int, steps: int, repeats: int) -> list:
@@ -103,8 +105,6 @@ def rows(
 
     from fastsdf.device import simulated
 
-    from .bench_granular import hex_bed
-
     if sim or simulated():
         sizes, steps, repeats, warm = (150,), 6, 2, 4
     else:
@@ -120,9 +120,8 @@ def rows(
                 print(json.dumps(row), flush=True)
                 continue
             t0 = time.perf_counter()
-            gpu = bed(int(n), bool(hist), "cuda")
+            gpu, n_real = bed(int(n), bool(hist), "cuda")
             row["setup_s"] = time.perf_counter() - t0
-            n_real = len(hex_bed(int(n))[0])  # (reading gpu.positions would copy the state)
             row["n"] = int(n_real)
             k = steps or max(20, min(500, int(2e9 // n_real)))  # about 0.5 s a run at 4 G/s
             t0 = time.perf_counter()
@@ -139,8 +138,8 @@ def rows(
                 rebuilds_per_substep=(gpu.rebuilds - rebuilds) / (k * repeats),
             )
             if n == sizes[0]:
-                cpu = bed(int(n), bool(hist), "cpu")
-                again = bed(int(n), bool(hist), "cuda")
+                cpu, _ = bed(int(n), bool(hist), "cpu")
+                again, _ = bed(int(n), bool(hist), "cuda")
                 kc = steps or max(10, min(100, int(2e8 // n_real)))
                 cpu.advance(warm or kc)
                 again.advance(warm or kc)

@@ -739,10 +739,9 @@ class CudaGranularSimulation(GranularSimulation):
             self.wall_contact.history
         )
         cols = self._memory_cols if self._history else 0
-        st = np.stack([np.asarray(a, dtype=np.float64) for a in g])
         d: dict = {
-            "st": cu.to_device(st),
-            "ids": cu.to_device(np.asarray(self._host_ids, dtype=np.int32)),
+            "st": cu.device_array((12, n)),  # filled by _restart
+            "ids": cu.device_array(n, np.int32),
             "xref": cu.device_array(n, np.float32),
             "yref": cu.device_array(n, np.float32),
             "nbr": cu.device_array((slots, n), np.uint32),
@@ -952,6 +951,7 @@ class CudaGranularSimulation(GranularSimulation):
         st, flag = d["st"], d["flag"]
         launch = _grid(st.shape[1])
         drift, forces, _, _ = self._kern
+        drift, forces = drift[launch], forces[launch]  # configured once per call
         law, wall, bulk = self._laws()
         mem = d["mem"]
         dt = self.substep
@@ -966,8 +966,8 @@ class CudaGranularSimulation(GranularSimulation):
             flag.copy_to_device(zeros)
             for b in range(1, batch + 1):
                 kick = 0.0 if done + b == 1 else 0.5 * dt
-                drift[launch](b, flag, st, d["xref"], d["yref"], kick, dt, density, lim)
-                forces[launch](
+                drift(b, flag, st, d["xref"], d["yref"], kick, dt, density, lim)
+                forces(
                     flag, st, d["nbr"], mem, d["near"], d["wmem"], self._wdata, law, wall,
                     bulk, dt, d["wsum"],
                 )  # fmt: skip
@@ -982,7 +982,7 @@ class CudaGranularSimulation(GranularSimulation):
             self._force_pass(dt)
             done += raised
         if substeps:
-            drift[launch](1, flag, st, d["xref"], d["yref"], 0.5 * dt, 0.0, density, np.inf)
+            drift(1, flag, st, d["xref"], d["yref"], 0.5 * dt, 0.0, density, np.inf)
             self.wall_force = d["wsum"].copy_to_host() / substeps
         cu.synchronize()
         for _ in range(substeps):  # summed as the CPU engine sums it
