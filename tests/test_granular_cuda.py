@@ -70,6 +70,7 @@ def test_bed_steps_as_on_the_cpu(history, rolling):
         cpu.advance(20)
         gpu.advance(20)
         assert (gpu.rebuilds, gpu.time) == (cpu.rebuilds, cpu.time)
+        np.testing.assert_array_equal(gpu.ids, cpu.ids)  # the device sort: the CPU's order
         np.testing.assert_allclose(gpu.positions, cpu.positions, rtol=0, atol=1e-12)
         np.testing.assert_allclose(gpu.velocities, cpu.velocities, rtol=0, atol=1e-9)
         np.testing.assert_allclose(gpu.angular_velocities, cpu.angular_velocities, atol=1e-9)
@@ -164,6 +165,20 @@ def test_disc_rests_below_atan_mu_and_slides_above(degrees, rests):
         assert abs(v1) < 2e-3
     else:
         assert (v1 - v0) / 1.0 == pytest.approx(-(math.sin(th) - 0.3 * math.cos(th)), rel=0.05)
+
+
+def test_device_prefix_sum():
+    """The rebuild's exclusive prefix sum on the device (runs per thread, their totals summed
+    recursively) against NumPy's, at sizes of one, two and three levels."""
+    from fastsdf.granular.cuda import cu
+
+    sim = GranularSimulation([[0.0, 0.0]], 0.5, gravity=(0.0, 0.0), device="cuda")
+    rng = np.random.default_rng(0)
+    for m in (1, 64, 65, 4097 + 64):
+        counts = rng.integers(0, 5, m).astype(np.int32)
+        a = cu.to_device(counts)
+        sim._scan(a, m)
+        np.testing.assert_array_equal(a.copy_to_host(), np.cumsum(counts) - counts)
 
 
 def test_too_many_neighbours_is_reported():

@@ -811,16 +811,17 @@ class CudaGranularSimulation(GranularSimulation):
             return d["old_mem"][0, 0]  # becomes the new list's springs
         return d["scratch"]
 
-    def _scan(self, a: Any, m: int) -> None:
+    def _scan(self, a: Any, m: int, level: int = 0) -> None:
         """Exclusive prefix sum of ``a[:m]`` in place, on the device (runs of :data:`_RUN`
-        per thread, their totals summed the same way, recursively)."""
+        per thread, their totals summed the same way, recursively; one array of totals per
+        level, kept and grown as needed)."""
         runs = (m + _RUN - 1) // _RUN
-        sums = self._scan_sums.get((m, runs))
-        if sums is None:
-            sums = self._scan_sums[(m, runs)] = cu.device_array(max(runs, 1), np.int32)
+        sums = self._scan_sums.get(level)
+        if sums is None or sums.shape[0] < runs:
+            sums = self._scan_sums[level] = cu.device_array(max(runs + runs // 4, 1), np.int32)
         _scan_runs[_grid(runs)](a, m, sums, _RUN)
         if runs > 1:
-            self._scan(sums, runs)
+            self._scan(sums, runs, level + 1)
             _add_offsets[_grid(m)](a, m, sums, _RUN)
 
     def _box(self) -> tuple:
@@ -852,7 +853,6 @@ class CudaGranularSimulation(GranularSimulation):
         ncells = grid.ncx * grid.ncy
         if d["counts"].shape[0] < ncells + 1:
             d["counts"] = cu.device_array(ncells + ncells // 4 + 1, np.int32)
-            self._scan_sums = {}
         counts = d["counts"]
         _fill_i32[_grid(ncells + 1)](counts[: ncells + 1], 0)
         scratch = self._sort_scratch()
