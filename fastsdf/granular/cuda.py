@@ -98,6 +98,19 @@ def default_max_neighbours(r_min: float, r_max: float, skin: float) -> int:
     return max(1, ring * (1 + int(skin / (math.sqrt(3.0) * r_min))))
 
 
+def _empty(shape: Any, dtype: Any = np.float64) -> Any:
+    """An uninitialised device array; under the simulator filled with poison (NaN, or a
+    large integer) so that a kernel reading memory nothing wrote shows in the tests as
+    it would on a GPU."""
+    a = cu.device_array(shape, dtype)
+    if simulated():
+        host = a.copy_to_host()
+        poison = np.nan if np.dtype(dtype).kind == "f" else np.int64(0x5A5A5A5A).astype(dtype)
+        host[...] = poison
+        a.copy_to_device(host)
+    return a
+
+
 def _grid(n: int) -> tuple:
     """``(blocks, threads)`` of a launch over ``n`` items: :data:`BLOCK` threads a block on
     the GPU; under the simulator no more threads than the next power of two of ``n``."""
@@ -720,6 +733,7 @@ class CudaGranularSimulation(GranularSimulation):
 
     # -- device state ---------------------------------------------------------------------------
     def _start_engine(self) -> None:
+        """The device arrays (see the module docs), the first list and forces."""
         self._stale = False
         g = self._host
         n = g.x.shape[0]
@@ -740,25 +754,28 @@ class CudaGranularSimulation(GranularSimulation):
         )
         cols = self._memory_cols if self._history else 0
         d: dict = {
-            "st": cu.device_array((12, n)),  # filled by _restart
-            "ids": cu.device_array(n, np.int32),
-            "xref": cu.device_array(n, np.float32),
-            "yref": cu.device_array(n, np.float32),
-            "nbr": cu.device_array((slots, n), np.uint32),
-            "near": cu.device_array(n, np.int8),
+            "st": _empty((12, n)),  # filled by _restart
+            "ids": _empty(n, np.int32),
+            "xref": _empty(n, np.float32),
+            "yref": _empty(n, np.float32),
+            "nbr": _empty((slots, n), np.uint32),
+            "near": _empty(n, np.int8),
             "wmem": cu.to_device(np.zeros((wall_cols, n))),
-            "counts": cu.device_array(0, np.int32),
+            "counts": _empty(0, np.int32),
             "flag": cu.to_device(np.zeros(3, np.int32)),
             "wsum": cu.to_device(np.zeros(2)),
         }
         if self._history:
-            d["mem"] = cu.to_device(np.zeros((cols, slots, n)))
-            d["old_mem"] = cu.to_device(np.zeros((cols, slots, n)))
-            d["old_nbr"] = cu.device_array((slots, n), np.uint32)
-            _fill_u32[_grid(slots * n)](d["old_nbr"].reshape(slots * n), EMPTY)
+            # an empty list before the first: no spring to carry (the springs' memory is
+            # written by the carry before it is read)
+            d["mem"] = _empty((cols, slots, n))
+            d["old_mem"] = _empty((cols, slots, n))
+            d["old_nbr"] = _empty((slots, n), np.uint32)
+            for name in ("nbr", "old_nbr"):  # (the first rebuild swaps them)
+                _fill_u32[_grid(slots * n)](d[name].reshape(slots * n), EMPTY)
         else:
-            d["scratch"] = cu.device_array(n)
-            d["mem"] = cu.device_array((1, 1, 1))  # typed like the springs, never read
+            d["scratch"] = _empty(n)
+            d["mem"] = _empty((1, 1, 1))  # typed like the springs, never read
         self._dev = d
         self._scan_sums: dict = {}
         with compiling("the granular CUDA kernels"):
@@ -818,7 +835,7 @@ class CudaGranularSimulation(GranularSimulation):
         runs = (m + _RUN - 1) // _RUN
         sums = self._scan_sums.get(level)
         if sums is None or sums.shape[0] < runs:
-            sums = self._scan_sums[level] = cu.device_array(max(runs + runs // 4, 1), np.int32)
+            sums = self._scan_sums[level] = _empty(max(runs + runs // 4, 1), np.int32)
         _scan_runs[_grid(runs)](a, m, sums, _RUN)
         if runs > 1:
             self._scan(sums, runs, level + 1)
@@ -852,7 +869,7 @@ class CudaGranularSimulation(GranularSimulation):
         )
         ncells = grid.ncx * grid.ncy
         if d["counts"].shape[0] < ncells + 1:
-            d["counts"] = cu.device_array(ncells + ncells // 4 + 1, np.int32)
+            d["counts"] = _empty(ncells + ncells // 4 + 1, np.int32)
         counts = d["counts"]
         _fill_i32[_grid(ncells + 1)](counts[: ncells + 1], 0)
         scratch = self._sort_scratch()
@@ -995,7 +1012,7 @@ class CudaGranularSimulation(GranularSimulation):
         """As :meth:`GranularSimulation.energy`, the contacts' energy computed on the device."""
         d = self._dev
         n = d["st"].shape[1]
-        out = cu.device_array((4, n))
+        out = _empty((4, n))
         energy = self._kern[3]
         energy[_grid(n)](
             d["st"],
