@@ -42,11 +42,15 @@ __all__ = [
     "Bulk",
     "Grains",
     "grain_mass",
+    "half_kick",
     "kick_drift",
+    "kick_grain",
     "kinetic_energy",
     "pair_energy",
+    "pair_force",
     "pair_forces",
     "wall_energy",
+    "wall_force",
     "wall_forces",
 ]
 
@@ -185,6 +189,212 @@ def _rolling_spring(m_old, kr, cap, w_rel, dt):
     return m
 
 
+# -- the per-pair and per-grain arithmetic, shared by the CPU kernels below and the CUDA
+# kernels of :mod:`fastsdf.granular.cuda` (numba-cuda compiles these plain ``@njit``
+# functions for the device): one body, two targets.
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
+def pair_force(
+    dx: float,
+    dy: float,
+    ri: float,
+    rj: float,
+    mi: float,
+    gamma_equal: float,
+    lower: bool,
+    vrx: float,
+    vry: float,
+    wi: float,
+    wj: float,
+    damp: float,
+    density: float,
+    kn: float,
+    kt: float,
+    mu: float,
+    mu_r: float,
+    tdamp: float,
+    dt: float,
+    s: float,
+    m_roll: float,
+    history: bool,
+    roll: bool,
+) -> tuple:
+    """The contact of grain ``i`` with grain ``j`` at ``(dx, dy) = x_i - x_j`` (the periodic
+    image applied), radii ``ri, rj``, mass ``mi``, relative (predicted) velocity ``vr``,
+    angular velocities ``wi, wj``; ``lower``: ``i < j`` (the side that fixes the sums' order
+    and the normal of coincident centres, so both sides compute the same bits);
+    ``gamma_equal = damp sqrt(mi / 2)``, the dashpot against an equal grain. ``history``:
+    the tangential spring ``s`` (and, with ``roll``, the rolling torque ``m_roll``) is
+    updated. Returns ``(touch, fx, fy, cross, s, m_roll)``: whether they overlap, the force
+    on ``i``, ``cross = n x f_t`` (``i`` turns by ``m_roll - R_i cross``, ``j`` by
+    ``-m_roll - R_j cross``) and the memory (0 out of contact)."""
+    rsum = ri + rj
+    d2 = dx * dx + dy * dy
+    if d2 >= rsum * rsum:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    if d2 > 0.0:
+        dist = math.sqrt(d2)
+        inv = 1.0 / dist
+        nx = dx * inv
+        ny = dy * inv
+    else:  # coincident centres: push apart along x, in opposite senses
+        dist = 0.0
+        nx = 1.0 if lower else -1.0
+        ny = 0.0
+    if rj == ri:
+        gamma_n = gamma_equal
+    else:
+        mj = grain_mass(rj, density)
+        gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
+    if not history:
+        cfx, cfy, ftx, fty = _contact(
+            rsum - dist, nx, ny, vrx, vry, ri * wi + rj * wj, gamma_n, kn, mu, tdamp, dt
+        )
+        return True, cfx, cfy, nx * fty - ny * ftx, 0.0, 0.0
+    # the same sum from both sides of a pair: the lower index first
+    if lower:
+        wr = ri * wi + rj * wj
+    else:
+        wr = rj * wj + ri * wi
+    cfx, cfy, ftx, fty, s, fn = _contact_history(
+        rsum - dist, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s
+    )
+    mr = 0.0
+    if roll:
+        r_eff = ri * rj / rsum
+        mr = _rolling_spring(
+            m_roll, 2.25 * kn * mu_r * mu_r * r_eff * r_eff, mu_r * r_eff * abs(fn), wi - wj, dt
+        )
+    return True, cfx, cfy, nx * fty - ny * ftx, s, mr
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def wall_force(
+    ri: float,
+    d: float,
+    gx: float,
+    gy: float,
+    wall_vn: float,
+    vx: float,
+    vy: float,
+    w: float,
+    density: float,
+    zeta: float,
+    kn: float,
+    kt: float,
+    mu: float,
+    mu_r: float,
+    tdamp: float,
+    dt: float,
+    s: float,
+    m_roll: float,
+    history: bool,
+    roll: bool,
+) -> tuple:
+    """The world's contact on a grain of radius ``ri`` at distance ``d`` with gradient ``(gx,
+    gy)``, the wall's normal speed ``wall_vn``, (predicted) velocity ``(vx, vy)`` and angular
+    velocity ``w``; memory as in :func:`pair_force` (``R_eff = R_i``). Returns ``(touch, fx,
+    fy, torque, s, m_roll)``; no touch (memory 0) where the gradient is zero or not finite."""
+    delta = ri - d
+    gn = math.sqrt(gx * gx + gy * gy)
+    if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    nx = gx / gn
+    ny = gy / gn
+    mi = grain_mass(ri, density)
+    if not history:
+        cfx, cfy, ftx, fty = _contact(
+            delta,
+            nx,
+            ny,
+            vx - wall_vn * nx,
+            vy - wall_vn * ny,
+            ri * w,
+            2.0 * zeta * math.sqrt(mi * kn),
+            kn,
+            mu,
+            tdamp,
+            dt,
+        )
+        return True, cfx, cfy, -(ri * (nx * fty - ny * ftx)), 0.0, 0.0
+    cfx, cfy, ftx, fty, s, fn = _contact_history(
+        delta,
+        nx,
+        ny,
+        vx - wall_vn * nx,
+        vy - wall_vn * ny,
+        ri * w,
+        2.0 * zeta * math.sqrt(mi * kn),
+        kn,
+        kt,
+        mu,
+        tdamp,
+        dt,
+        s,
+    )
+    mr = 0.0
+    if roll:
+        mr = _rolling_spring(m_roll, 2.25 * kn * mu_r * mu_r * ri * ri, mu_r * ri * abs(fn), w, dt)
+    return True, cfx, cfy, mr - ri * (nx * fty - ny * ftx), s, mr
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
+def half_kick(
+    vx: float,
+    vy: float,
+    w: float,
+    r: float,
+    fx: float,
+    fy: float,
+    tq: float,
+    dt_half: float,
+    density: float,
+) -> tuple:
+    """A grain's velocities after half a step of its force ``(fx, fy)`` and torque ``tq``
+    (the start of a force pass, see :func:`pair_forces`)."""
+    m = grain_mass(r, density)
+    a = dt_half / m
+    return vx + fx * a, vy + fy * a, w + tq * a * 2.0 / (r * r)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def kick_grain(
+    x: float,
+    y: float,
+    vx: float,
+    vy: float,
+    w: float,
+    r: float,
+    fx: float,
+    fy: float,
+    tq: float,
+    dt_kick: float,
+    dt: float,
+    density: float,
+) -> tuple:
+    """One grain's elementwise pass (see :func:`kick_drift`): ``(x, y, vx, vy, w, px, py,
+    pw)``, the drifted position, the completed velocities and the predicted ones."""
+    m = grain_mass(r, density)
+    inv_m = 1.0 / m
+    ax = fx * inv_m
+    ay = fy * inv_m
+    alpha = tq * (2.0 * inv_m) / (r * r)
+    vx = vx + ax * dt_kick
+    vy = vy + ay * dt_kick
+    w = w + alpha * dt_kick
+    return (
+        x + (vx + 0.5 * ax * dt) * dt,
+        y + (vy + 0.5 * ay * dt) * dt,
+        vx,
+        vy,
+        w,
+        vx + ax * dt,
+        vy + ay * dt,
+        w + alpha * dt,
+    )
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
 def pair_forces(
     g: Grains,
@@ -245,10 +455,9 @@ def pair_forces(
         for i in range(lo, hi):
             ri = rad[i]
             mi = grain_mass(ri, density)
-            a = dt_half / mi
-            gvx[i] += gfx[i] * a
-            gvy[i] += gfy[i] * a
-            gw[i] += gtq[i] * a * 2.0 / (ri * ri)
+            gvx[i], gvy[i], gw[i] = half_kick(
+                gvx[i], gvy[i], gw[i], ri, gfx[i], gfy[i], gtq[i], dt_half, density
+            )
             gfx[i] = mi * bulk.gravity_x
             gfy[i] = mi * bulk.gravity_y
             gtq[i] = 0.0
@@ -267,44 +476,35 @@ def pair_forces(
                 image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
                 dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
                 dy = yi - y[j]
-                rj = rad[j]
-                rsum = ri + rj
-                d2 = dx * dx + dy * dy
-                if d2 >= rsum * rsum:
-                    if memory is not None:
-                        memory[k, 0] = 0.0
-                        if roll:
-                            memory[k, 1] = 0.0
-                    continue
-                if d2 > 0.0:
-                    dist = math.sqrt(d2)
-                    inv = 1.0 / dist
-                    nx = dx * inv
-                    ny = dy * inv
-                else:  # coincident centres: push apart along x, in opposite senses
-                    dist = 0.0
-                    nx = 1.0 if i < j else -1.0
-                    ny = 0.0
-                if rj == ri:
-                    gamma_n = gamma_equal
-                else:
-                    mj = grain_mass(rj, density)
-                    gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
                 if memory is None:
-                    cfx, cfy, ftx, fty = _contact(
-                        rsum - dist,
-                        nx,
-                        ny,
+                    touch, cfx, cfy, cross, _, _ = pair_force(
+                        dx,
+                        dy,
+                        ri,
+                        rad[j],
+                        mi,
+                        gamma_equal,
+                        i < j,
                         vx[i] - vx[j],
                         vy[i] - vy[j],
-                        ri * w[i] + rj * w[j],
-                        gamma_n,
+                        w[i],
+                        w[j],
+                        damp,
+                        density,
                         kn,
+                        kt,
                         mu,
+                        mu_r,
                         tdamp,
                         dt,
+                        0.0,
+                        0.0,
+                        False,
+                        False,
                     )
-                    cross = nx * fty - ny * ftx
+                    if not touch:
+                        continue
+                    rj = rad[j]
                     fx += cfx
                     fy += cfy
                     tq -= ri * cross
@@ -313,39 +513,37 @@ def pair_forces(
                         gfy[j] -= cfy
                         gtq[j] -= rj * cross
                 else:
-                    # the same sum from both sides of a pair: the lower index first
-                    if i < j:
-                        wr = ri * w[i] + rj * w[j]
-                    else:
-                        wr = rj * w[j] + ri * w[i]
-                    cfx, cfy, ftx, fty, s, fn = _contact_history(
-                        rsum - dist,
-                        nx,
-                        ny,
+                    touch, cfx, cfy, cross, s, mr = pair_force(
+                        dx,
+                        dy,
+                        ri,
+                        rad[j],
+                        mi,
+                        gamma_equal,
+                        i < j,
                         vx[i] - vx[j],
                         vy[i] - vy[j],
-                        wr,
-                        gamma_n,
+                        w[i],
+                        w[j],
+                        damp,
+                        density,
                         kn,
                         kt,
                         mu,
+                        mu_r,
                         tdamp,
                         dt,
                         memory[k, 0],
+                        memory[k, 1] if roll else 0.0,
+                        True,
+                        roll,
                     )
                     memory[k, 0] = s
-                    cross = nx * fty - ny * ftx
-                    mr = 0.0
                     if roll:
-                        r_eff = ri * rj / rsum
-                        mr = _rolling_spring(
-                            memory[k, 1],
-                            2.25 * kn * mu_r * mu_r * r_eff * r_eff,
-                            mu_r * r_eff * abs(fn),
-                            w[i] - w[j],
-                            dt,
-                        )
                         memory[k, 1] = mr
+                    if not touch:
+                        continue
+                    rj = rad[j]
                     fx += cfx
                     fy += cfy
                     tq += mr - ri * cross
@@ -401,61 +599,60 @@ def wall_forces(
     sy = 0.0
     for k in prange(idx.shape[0]):
         i = idx[k]
-        ri = rad[i]
-        delta = ri - d[k]
-        gn = math.sqrt(gx[k] * gx[k] + gy[k] * gy[k])
-        if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
-            if memory is not None:
-                memory[0, i] = 0.0
-                if roll:
-                    memory[1, i] = 0.0
-            continue
-        nx = gx[k] / gn
-        ny = gy[k] / gn
-        mi = grain_mass(ri, bulk.density)
         if memory is None:
-            cfx, cfy, ftx, fty = _contact(
-                delta,
-                nx,
-                ny,
-                vx[i] - wall_vn[k] * nx,
-                vy[i] - wall_vn[k] * ny,
-                ri * w[i],
-                2.0 * zeta * math.sqrt(mi * kn),
-                kn,
-                mu,
-                tdamp,
-                dt,
-            )
-            gfx[i] += cfx
-            gfy[i] += cfy
-            gtq[i] -= ri * (nx * fty - ny * ftx)
-        else:
-            cfx, cfy, ftx, fty, s, fn = _contact_history(
-                delta,
-                nx,
-                ny,
-                vx[i] - wall_vn[k] * nx,
-                vy[i] - wall_vn[k] * ny,
-                ri * w[i],
-                2.0 * zeta * math.sqrt(mi * kn),
+            touch, cfx, cfy, tq, _, _ = wall_force(
+                rad[i],
+                d[k],
+                gx[k],
+                gy[k],
+                wall_vn[k],
+                vx[i],
+                vy[i],
+                w[i],
+                bulk.density,
+                zeta,
                 kn,
                 kt,
                 mu,
+                mu_r,
+                tdamp,
+                dt,
+                0.0,
+                0.0,
+                False,
+                False,
+            )
+        else:
+            touch, cfx, cfy, tq, s, mr = wall_force(
+                rad[i],
+                d[k],
+                gx[k],
+                gy[k],
+                wall_vn[k],
+                vx[i],
+                vy[i],
+                w[i],
+                bulk.density,
+                zeta,
+                kn,
+                kt,
+                mu,
+                mu_r,
                 tdamp,
                 dt,
                 memory[0, i],
+                memory[1, i] if roll else 0.0,
+                True,
+                roll,
             )
             memory[0, i] = s
-            mr = 0.0
             if roll:
-                mr = _rolling_spring(
-                    memory[1, i], 2.25 * kn * mu_r * mu_r * ri * ri, mu_r * ri * abs(fn), w[i], dt
-                )
                 memory[1, i] = mr
-            gfx[i] += cfx
-            gfy[i] += cfy
-            gtq[i] += mr - ri * (nx * fty - ny * ftx)
+        if not touch:
+            continue
+        gfx[i] += cfx
+        gfy[i] += cfy
+        gtq[i] += tq
         sx += cfx
         sy += cfy
     return sx, sy
@@ -499,23 +696,26 @@ def kick_drift(
         hi = (c + 1) * n // chunks
         big = 0.0
         for i in range(lo, hi):
-            r = rad[i]
-            m = grain_mass(r, density)
-            inv_m = 1.0 / m
-            ax = gfx[i] * inv_m
-            ay = gfy[i] * inv_m
-            alpha = gtq[i] * (2.0 * inv_m) / (r * r)
-            vx = gvx[i] + ax * dt_kick
-            vy = gvy[i] + ay * dt_kick
-            w = gw[i] + alpha * dt_kick
+            x, y, vx, vy, w, px, py, pw = kick_grain(
+                gx[i],
+                gy[i],
+                gvx[i],
+                gvy[i],
+                gw[i],
+                rad[i],
+                gfx[i],
+                gfy[i],
+                gtq[i],
+                dt_kick,
+                dt,
+                density,
+            )
             gvx[i] = vx
             gvy[i] = vy
             gw[i] = w
-            gpx[i] = vx + ax * dt
-            gpy[i] = vy + ay * dt
-            gpw[i] = w + alpha * dt
-            x = gx[i] + (vx + 0.5 * ax * dt) * dt
-            y = gy[i] + (vy + 0.5 * ay * dt) * dt
+            gpx[i] = px
+            gpy[i] = py
+            gpw[i] = pw
             gx[i] = x
             gy[i] = y
             ex = x - x_ref[i]

@@ -186,7 +186,21 @@ class GranularSimulation:
         Contiguous chunks of grains the force pass runs over in parallel (tuning; the results
         do not depend on it beyond rounding). ``None``: four per thread, at least 256 grains
         each.
+    device : 'cpu' or 'cuda'
+        Where the grains are stepped: ``'cuda'`` builds a
+        :class:`fastsdf.granular.cuda.CudaGranularSimulation` (the same physics and names, its
+        state on the GPU; needs numba-cuda, see :mod:`fastsdf.device`), which also takes
+        ``max_neighbours``.
     """
+
+    def __new__(cls, *args: Any, device: str = "cpu", **kwargs: Any) -> GranularSimulation:
+        if device not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got device={device!r}")
+        if device == "cuda" and cls is GranularSimulation:
+            from fastsdf.granular.cuda import CudaGranularSimulation  # loads numba-cuda
+
+            return object.__new__(CudaGranularSimulation)
+        return object.__new__(cls)
 
     def __init__(
         self,
@@ -205,6 +219,7 @@ class GranularSimulation:
         skin: float | None = None,
         periodic_x: ArrayLike | None = None,
         chunks: int | None = None,
+        device: str = "cpu",
     ) -> None:
         contact, wall_contact = contacts, wall_contacts
         p = _points(positions, "positions")
@@ -269,7 +284,6 @@ class GranularSimulation:
             raise ValueError(f"skin must be > 0, got skin={skin!r}")
         self._cutoff = 2 * float(r.max()) + self.skin
 
-        f64 = np.float64
         self.grains = Grains(
             p[:, 0].copy(),
             p[:, 1].copy(),
@@ -280,14 +294,6 @@ class GranularSimulation:
             *(np.zeros(n) for _ in range(6)),
         )
         self.ids = np.arange(n, dtype=np.int64)  # ids[slot]: the grain's index as given
-        self._x_ref = np.empty(n, np.float32)  # float32 suffices for the skin test (below)
-        self._y_ref = np.empty(n, np.float32)
-        self._keys = np.empty(n, np.int32)
-        self._perm = np.empty(n, np.int32)
-        self._scratch = np.empty(n, f64)
-        self._nbr_start = np.zeros(n + 1, np.int64)
-        self._nbr: np.ndarray | None = None
-        self._chunk_max = np.zeros(max(4 * numba.get_num_threads(), 1))
         # chunks of the force pass: a few per thread (balance), few enough that the pairs
         # listed twice (across chunk boundaries) stay a small share
         if chunks is None:
@@ -295,20 +301,12 @@ class GranularSimulation:
         if isinstance(chunks, bool) or not isinstance(chunks, (int, np.integer)) or chunks < 1:
             raise ValueError(f"chunks must be an int >= 1, got chunks={chunks!r}")
         self._chunks = int(min(chunks, n))
-        self._counts = np.empty((0, 0), np.int32)
-        self._cell_start = np.empty(0, np.int64)
         self.grid: CellGrid | None = None
         # Contact memory (with history; see the module docs): springs per list entry (the
         # tangential stretch, and the rolling torque with rolling resistance), the list before
         # the last rebuild to carry them from, and the springs of each grain against the world.
         self._history = self.contact.history
         self._memory_cols = 2 if self.contact.rolling_friction > 0 else 1
-        self._spring = np.zeros((0, self._memory_cols))
-        self._old_spring = np.zeros((0, self._memory_cols))
-        self._old_start = np.zeros(n + 1 if self._history else 0, np.int64)
-        self._old_nbr: np.ndarray | None = None
-        wall_cols = 2 if self.wall_contact.rolling_friction > 0 else 1
-        self._wall_spring = np.zeros((wall_cols, n if self.wall_contact.history else 0))
         self._wall_idx = np.empty(0, np.int64)
         self._wall_d = np.empty(0)
         self.time = 0.0
@@ -320,6 +318,28 @@ class GranularSimulation:
         #: fy`` after the contact forces of every force pass (at the drifted positions and
         #: predicted velocities), or None.
         self.external: Any = None
+        self._start_engine()
+
+    def _start_engine(self) -> None:
+        """The engine's workspace, the first neighbour list and forces (compiling the kernels
+        on first use). The CUDA engine (:mod:`fastsdf.granular.cuda`) has its own."""
+        n = self.ids.shape[0]
+        self._x_ref = np.empty(n, np.float32)  # float32 suffices for the skin test (below)
+        self._y_ref = np.empty(n, np.float32)
+        self._keys = np.empty(n, np.int32)
+        self._perm = np.empty(n, np.int32)
+        self._scratch = np.empty(n, np.float64)
+        self._nbr_start = np.zeros(n + 1, np.int64)
+        self._nbr: np.ndarray | None = None
+        self._chunk_max = np.zeros(max(4 * numba.get_num_threads(), 1))
+        self._counts = np.empty((0, 0), np.int32)
+        self._cell_start = np.empty(0, np.int64)
+        self._spring = np.zeros((0, self._memory_cols))
+        self._old_spring = np.zeros((0, self._memory_cols))
+        self._old_start = np.zeros(n + 1 if self._history else 0, np.int64)
+        self._old_nbr: np.ndarray | None = None
+        wall_cols = 2 if self.wall_contact.rolling_friction > 0 else 1
+        self._wall_spring = np.zeros((wall_cols, n if self.wall_contact.history else 0))
         with compiling("the granular kernels"):
             self._rebuild()
             np.copyto(self.grains.px, self.grains.vx)

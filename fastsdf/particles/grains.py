@@ -260,6 +260,8 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
         Resolution of the lightest contact (``None``: 40, the engine's default).
     substep, skin, periodic_x, chunks : optional
         The engine's (see :class:`fastsdf.granular.GranularSimulation`).
+    device : {'cpu', 'cuda'}, default 'cpu'
+        ``'cuda'``: the engine on the GPU (:mod:`fastsdf.granular.cuda`).
     density : float, default 1
         Mass per unit area.
     seed : int, numpy Generator or None
@@ -288,6 +290,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
         periodic_x: ArrayLike | None = None,
         chunks: int | None = None,
         density: float = 1.0,
+        device: str = "cpu",
         seed: Any = None,
     ) -> None:
         if positions is None:
@@ -318,6 +321,7 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
             skin=skin,
             periodic_x=periodic_x,
             chunks=chunks,
+            device=device,
         )
         self._dt = self.engine.timestep
         self.force_generators: list = []
