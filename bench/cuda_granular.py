@@ -49,11 +49,11 @@ def bed(n: int, history: bool, device: str) -> tuple:
     law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5, history=history)
     wall = law._replace(restitution=restitution_from_damping(GAMMA_N, KN, m))
     sim = GranularSimulation(
-        pos,
-        0.5,
-        world=fs.Halfspace((0.0, 1.0), 0.0),
-        contact=law,
-        wall_contact=wall,
+        fs.Halfspace((0.0, 1.0), 0.0),
+        positions=pos,
+        radius=0.5,
+        contacts=law,
+        wall_contacts=wall,
         density=1.0,
         gravity=(0.0, -1.0),
         substep=DT,

@@ -39,11 +39,11 @@ def bed(device, law, world, seed=1):
     pos = np.stack([(i + 0.5 * (j % 2)) * 0.99, 0.5 + j * 0.99 * math.sqrt(3) / 2], 1)
     pos[:, 0] += 0.01 * rng.standard_normal(32)
     return GranularSimulation(
-        pos,
-        0.5 * (1 + 0.05 * rng.random(32)),
-        world=world,
+        world,
+        positions=pos,
+        radius=0.5 * (1 + 0.05 * rng.random(32)),
         velocities=4.0 * rng.standard_normal((32, 2)),
-        contact=law,
+        contacts=law,
         gravity=(0.3, -1.0),
         substep=3e-4,
         timestep=3e-4,
@@ -121,10 +121,11 @@ def test_head_on_restitution():
     substeps per contact) and keep their momentum, on the GPU alone."""
     e = 0.9
     sim = GranularSimulation(
-        [[-0.502, 0.0], [0.502, 0.0]],
-        0.5,
+        None,
+        positions=[[-0.502, 0.0], [0.502, 0.0]],
+        radius=0.5,
         velocities=[[1.0, 0.0], [-1.0, 0.0]],
-        contact=ContactLaw(1e4, e, 0.0, 0.0),
+        contacts=ContactLaw(1e4, e, 0.0, 0.0),
         gravity=(0.0, 0.0),
         timestep=1e-3,
         device="cuda",
@@ -147,10 +148,10 @@ def test_disc_rests_below_atan_mu_and_slides_above(degrees, rests):
     n = np.array([-math.sin(th), math.cos(th)])
     law = ContactLaw(200.0, 0.5, 0.3, history=True, rolling_friction=1.0)
     sim = GranularSimulation(
-        [0.5 * n],
-        0.5,
-        world=fs.Halfspace((float(n[0]), float(n[1])), 0.0),
-        contact=law,
+        fs.Halfspace((float(n[0]), float(n[1])), 0.0),
+        positions=[0.5 * n],
+        radius=0.5,
+        contacts=law,
         gravity=(0.0, -1.0),
         timestep=0.5,
         substeps_per_contact=20,
@@ -172,7 +173,9 @@ def test_device_prefix_sum():
     recursively) against NumPy's, at sizes of one, two and three levels."""
     from fastsdf.granular.cuda import cu
 
-    sim = GranularSimulation([[0.0, 0.0]], 0.5, gravity=(0.0, 0.0), device="cuda")
+    sim = GranularSimulation(
+        None, positions=[[0.0, 0.0]], radius=0.5, gravity=(0.0, 0.0), device="cuda"
+    )
     rng = np.random.default_rng(0)
     for m in (1, 64, 65, 4097 + 64):
         counts = rng.integers(0, 5, m).astype(np.int32)
@@ -186,15 +189,17 @@ def test_too_many_neighbours_is_reported():
     found and the parameter to raise."""
     pos = np.array([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
     with pytest.raises(RuntimeError, match=r"4 neighbours.*max_neighbours=3.*max_neighbours=5"):
-        GranularSimulation(pos, 0.5, gravity=(0.0, 0.0), device="cuda", max_neighbours=3)
+        GranularSimulation(
+            None, positions=pos, radius=0.5, gravity=(0.0, 0.0), device="cuda", max_neighbours=3
+        )
 
 
 def test_device_and_world_are_checked():
     with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda', got device='gpu'"):
-        GranularSimulation([[0.0, 0.0]], 0.5, device="gpu")
+        GranularSimulation(None, positions=[[0.0, 0.0]], radius=0.5, device="gpu")
     moving = fs.Halfspace((0.0, 1.0), fs.t)
     with pytest.raises(ValueError, match="static world"):
-        GranularSimulation([[0.0, 1.0]], 0.5, world=moving, device="cuda")
+        GranularSimulation(moving, positions=[[0.0, 1.0]], radius=0.5, device="cuda")
 
 
 def test_particle_family_reaches_the_cuda_engine():

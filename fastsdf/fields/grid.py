@@ -775,6 +775,17 @@ class GridSDF:
             return out.reshape(shape), grad.reshape(shape + (2,))
         return out.reshape(shape)
 
+    def device_sampler_data(self) -> tuple:
+        """:attr:`sampler_data` with the node array on the GPU (copied once per grid), for
+        CUDA kernels that call :attr:`sampler` (numba-cuda compiles the ``@njit`` sampler for
+        the device)."""
+        from fastsdf.device import cuda
+
+        cuda()
+        from fastsdf.fields._cuda import device_data
+
+        return device_data(self)
+
     def _call_cuda(self, x: Any, y: Any, compute_gradient: bool) -> Any:
         from fastsdf.device import cuda, like
         from fastsdf.expr.points import device_points

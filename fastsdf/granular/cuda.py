@@ -55,7 +55,6 @@ import numpy as np
 from numba import float64, njit
 
 from fastsdf.device import cuda, simulated
-from fastsdf.fields.cuda import device_data
 from fastsdf.fields.grid import GridSDF
 from fastsdf.granular.cells import INDEX_MASK, make_grid
 from fastsdf.granular.kernels import (
@@ -196,7 +195,7 @@ def _world_point(world: Any) -> tuple:
     if world is None:
         return _no_world, (0.0,)
     if isinstance(world, GridSDF):
-        nodes = device_data(world)
+        nodes = world.device_sampler_data()
         if world.mode == "exact" and world.exact is not None:
             exact, tables = _scene_point(world.exact, "world.exact")
             return _grid_at(world.sampler, exact), (nodes, tables)
@@ -1056,7 +1055,7 @@ class CudaGranularSimulation(GranularSimulation):
     def tangential_springs(self) -> tuple:
         """As :meth:`GranularSimulation.tangential_springs` (each pair once)."""
         if not self._history:
-            raise ValueError("tangential_springs needs contact=ContactLaw(..., history=True)")
+            raise ValueError("tangential_springs needs contacts=ContactLaw(..., history=True)")
         i, j, slot = self._host_list()
         s = self._dev["mem"][0].copy_to_host()[slot, i]
         ids = self.ids

@@ -88,6 +88,7 @@ from fastsdf.granular.params import (
     contact_time,
     derived_stiffness,
 )
+from fastsdf.introspect import show_init_signature
 from fastsdf.notice import compiling
 
 __all__ = [
@@ -734,3 +735,6 @@ class GranularSimulation:
             f"GranularSimulation(n={self.grains.x.shape[0]}, substep={self.substep:.3g}, "
             f"substeps_per_frame={self.substeps_per_frame}, time={self.time:.6g})"
         )
+
+
+show_init_signature(GranularSimulation)

@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike
 from fastsdf.backends import prune as _prune
 from fastsdf.device import to_host
 from fastsdf.function import Function
+from fastsdf.introspect import show_init_signature
 from fastsdf.notice import compiling
 from fastsdf.particles import kernels as _kernels
 from fastsdf.particles.checkpoint import load_simulation, save_simulation
@@ -262,7 +263,7 @@ class ParticleSimulation:
 
     def __init_subclass__(cls, steps_contacts: bool = False, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        _show_init_signature(cls)
+        show_init_signature(cls)
         if steps_contacts:
             ParticleSimulation._contact_member = cls
 
@@ -987,19 +988,7 @@ class ParticleSimulation:
         )
 
 
-def _show_init_signature(cls: type) -> None:
-    """Make ``inspect.signature(cls)`` (``help()``, the API pages) the parameters of
-    ``cls.__init__``: the family's ``__new__`` takes ``*args, **kwargs`` only to pick the
-    member, and would otherwise be what they show."""
-    init = inspect.signature(cls.__init__)  # type: ignore[misc]
-    shown = init.replace(
-        parameters=list(init.parameters.values())[1:],  # without self
-        return_annotation=inspect.Signature.empty,
-    )
-    setattr(cls, "__signature__", shown)  # noqa: B010 (a dunder the type checker refuses)
-
-
-_show_init_signature(ParticleSimulation)
+show_init_signature(ParticleSimulation)
 
 
 def _cuda_step(sim: Any) -> Any:
