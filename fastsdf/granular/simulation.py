@@ -53,6 +53,8 @@ from __future__ import annotations
 
 import math
 import time as _time
+import warnings
+from collections.abc import Callable
 from typing import Any
 
 import numba
@@ -88,15 +90,32 @@ from fastsdf.granular.params import (
     contact_time,
     derived_stiffness,
 )
-from fastsdf.notice import compiling
+from fastsdf.notice import RunProgress, compiling
 
-__all__ = ["DEFAULT_SUBSTEPS_PER_CONTACT", "PARALLEL_MIN_GRAINS", "GranularSimulation"]
+__all__ = [
+    "DEFAULT_SUBSTEPS_PER_CONTACT",
+    "PARALLEL_MIN_GRAINS",
+    "SUBSTEPS_WARNING",
+    "GranularSimulation",
+    "SubstepWarning",
+]
 
 #: Substeps per (undamped) contact time of the lightest contact, by default.
 DEFAULT_SUBSTEPS_PER_CONTACT = 40
 #: Fewer grains than this step on one thread: waking the other threads for every pass of
 #: every substep costs more than it saves (and far more on a busy machine).
 PARALLEL_MIN_GRAINS = 4096
+#: :meth:`GranularSimulation.run` warns (once per simulation) when a frame takes more substeps
+#: than this: the library's default grains (radius 0.02, derived stiffness, in its 4-high
+#: scenes under g = 9.81) take about 940.
+SUBSTEPS_WARNING = 1000
+#: Grain-substeps between two progress updates of a run (a few hundredths of a second).
+_PROGRESS_WORK = 200_000
+
+
+class SubstepWarning(UserWarning):
+    """A granular simulation cuts each frame into very many substeps (see
+    :data:`SUBSTEPS_WARNING`): its contact is short against the frame."""
 
 
 def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
@@ -532,11 +551,71 @@ class GranularSimulation:
     def run(self, frames: int = 1) -> None:
         """Advance ``frames`` frames of ``timestep`` seconds (``substeps_per_frame`` substeps
         each). :attr:`wall_force` becomes the mean force the world exerted on the grains over
-        the last frame."""
+        the last frame.
+
+        A run expected to take longer than :data:`fastsdf.notice.PROGRESS_AFTER_S` shows its
+        progress and the time left on stderr; a frame of more than :data:`SUBSTEPS_WARNING`
+        substeps is warned about (a :class:`SubstepWarning`, once per simulation) with its
+        cause and remedies."""
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
             raise ValueError(f"frames must be an int >= 0, got frames={frames!r}")
-        for _ in range(int(frames)):
-            self.advance(self.substeps_per_frame)
+        frames = int(frames)
+        if not frames:
+            return
+        self._warn_substeps()
+        per_frame = self.substeps_per_frame
+        n = self.grains.x.shape[0]
+        every = max(1, _PROGRESS_WORK // n)
+        what = f"{n:,} grains, run({frames}) at {per_frame:,} substeps per frame"
+        with RunProgress(frames, what, "frames") as bar:
+            for k in range(frames):
+                self._tick = (lambda s, k=k: bar.update(k + s / per_frame), every)
+                try:
+                    self.advance(per_frame)
+                finally:
+                    self._tick = None
+                bar.update(k + 1)
+
+    #: While :meth:`run` steps: ``(tick(substeps_done), every)``, called every ``every``
+    #: substeps of a frame (its progress).
+    _tick: tuple[Callable[[int], None], int] | None = None
+
+    def _warn_substeps(self) -> None:
+        """Warn once, with the cause and the remedies, when a frame takes more than
+        :data:`SUBSTEPS_WARNING` substeps."""
+        per_frame = self.substeps_per_frame
+        if per_frame <= SUBSTEPS_WARNING or getattr(self, "_warned_substeps", False):
+            return
+        self._warned_substeps = True
+        k = float(self.contact.stiffness)  # type: ignore[arg-type]
+        m = self.density * math.pi * self._r_min**2
+        derived = self._laws_given[0].stiffness is None
+        why = (
+            "derived from the grains, gravity and the world's height "
+            f"{self._height:.3g} (see ContactLaw)"
+            if derived
+            else "as given"
+        )
+        remedies = (
+            "give a softer ContactLaw(stiffness=...) (the overlap under a load grows as "
+            "1/stiffness; the substeps shrink as its square root)"
+            if not derived
+            else "give ContactLaw(stiffness=...) below the derived one (the overlap at the "
+            "bottom of a column as tall as the world grows past 1% of a diameter), or a world "
+            "of the height the grains fill (a grid's bounds set it)"
+        )
+        warnings.warn(
+            f"{per_frame:,} substeps per frame of {self.timestep:.4g} s "
+            f"({per_frame * self.grains.x.shape[0]:,} grain-substeps per frame): the lightest "
+            f"contact (two grains of radius {self._r_min:.3g}, mass {m:.3g} each, stiffness "
+            f"{k:.4g}, {why}) lasts t_c = pi sqrt(m_eff / k) = {self.contact_time:.3g} s and "
+            f"is resolved by {self._substeps_per_contact:g} substeps. Fewer substeps: "
+            f"{remedies}; bigger grains (t_c grows with the radius); or fewer "
+            f"substeps_per_contact (>= 10; less accurate restitution). A shorter timestep "
+            f"gives fewer substeps per frame, not fewer per second.",
+            SubstepWarning,
+            stacklevel=3,
+        )
 
     def advance(self, substeps: int) -> None:
         """Advance ``substeps`` substeps of :attr:`substep` seconds (velocities end
@@ -558,7 +637,10 @@ class GranularSimulation:
         # The reference positions are float32: allow for their rounding in the skin test.
         lim = max(0.5 * self.skin - self._ref_margin, 0.0) ** 2
         wall_sum = np.zeros(2)
+        tick, every = self._tick or (None, 0)
         for s in range(substeps):
+            if tick is not None and s and s % every == 0:
+                tick(s)
             t0 = _time.perf_counter()
             kick_drift(
                 g,
