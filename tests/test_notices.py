@@ -147,3 +147,18 @@ def test_a_long_particle_run_goes_in_pieces_with_progress_and_the_same_bits(monk
     for name in ("x", "v"):
         np.testing.assert_array_equal(pieces.p[name], whole.p[name])
     assert pieces.t == pytest.approx(whole.t, rel=1e-14)
+
+
+def test_the_demo_warms_the_grains_and_image_kernels_of_the_readme():
+    """``make demo`` ends by compiling (or loading) what the README's grain and image blocks
+    use: afterwards this process has the granular kernels and the distance transform."""
+    from fastsdf.apps.demo import warm_readme_kernels
+    from fastsdf.geometry.edt import edt_kernel
+    from fastsdf.granular.kernels import kick_drift, pair_forces
+
+    said = io.StringIO()
+    warm_readme_kernels(said)
+    assert said.getvalue().startswith("fastsdf demo: compiling the kernels of the README's")
+    assert "ready in" in said.getvalue()
+    for kernel in (pair_forces, kick_drift, edt_kernel):
+        assert kernel.signatures, kernel
