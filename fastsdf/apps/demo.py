@@ -818,7 +818,9 @@ def run_sand_demo(
     resting = heap & still
     # the cone: grains at rest on the disc (|x| <= 0.5, its top near y = 0.3), below the outlet
     cone = still & (np.abs(x[:, 0]) < 0.6) & (x[:, 1] > 0.0) & (x[:, 1] < HOPPER_OUTLET_Y)
-    repose = repose_angle(x[cone], np.asarray(sim.p["r"])[cone])
+    # bins one mean radius wide: the cone is about sixteen diameters across, and bins of a
+    # diameter would leave a flank too few surface points to fit
+    repose = repose_angle(x[cone], np.asarray(sim.p["r"])[cone], bin_width=float(radius))
     overlap, wall_overlap = _max_overlaps(sim, sdf)
     substeps = sim.substeps_per_frame
     rest = timing["rest"]
@@ -865,7 +867,10 @@ def _sand_law(res: SandResult) -> str:
 def _repose_line(res: SandResult) -> str:
     """The cone's angle of repose (both flanks measured), or why there is none."""
     left, right = res.repose_left, res.repose_right
-    where = "the grains at rest on the disc, a line fitted to each flank of the cone's surface"
+    where = (
+        "the grains at rest on the disc, a line fitted to each flank of the cone's surface, "
+        "bins one radius wide"
+    )
     if np.isfinite(left) and np.isfinite(right):
         return (
             f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
