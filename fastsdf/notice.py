@@ -21,6 +21,8 @@ import os
 import sys
 import threading
 import time
+import types
+import warnings
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import IO, Any
@@ -32,6 +34,7 @@ __all__ = [
     "compiling",
     "compiling_first",
     "notice",
+    "warn_caller",
 ]
 
 #: A computation tracked by :class:`RunProgress` shows its progress once its estimated
@@ -108,6 +111,18 @@ def compiling(what: str, after: float = 1.0) -> Iterator[None]:
                 sys.stderr.flush()
             except (AttributeError, ValueError, OSError):
                 pass
+
+
+def warn_caller(message: str, category: type[Warning] = UserWarning) -> None:
+    """``warnings.warn(message, category)`` attributed to the first caller outside fastsdf
+    (the user's line that ran into it, however deep inside the library it was found)."""
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame: types.FrameType | None = sys._getframe(1)
+    level = 2  # warn_caller's caller
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        level += 1
+        frame = frame.f_back
+    warnings.warn(message, category, stacklevel=level)
 
 
 def compiling_first(what: str, *kernels: Any, after: float = 1.0) -> AbstractContextManager:

@@ -86,6 +86,7 @@ def test_substep_warning_names_the_cause_and_fires_once():
     with pytest.warns(SubstepWarning) as caught:
         sim.run(1)
     text = str(caught[0].message)
+    assert caught[0].filename == __file__  # the user's line, not the library's
     assert f"{sim.substeps_per_frame:,} substeps per frame" in text
     for words in ("radius 0.002", "stiffness 1e+04", "t_c = pi sqrt(m_eff / k)", "softer"):
         assert words in text, words

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import math
 import time as _time
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -90,7 +89,7 @@ from fastsdf.granular.params import (
     contact_time,
     derived_stiffness,
 )
-from fastsdf.notice import RunProgress, compiling
+from fastsdf.notice import RunProgress, compiling, warn_caller
 
 __all__ = [
     "DEFAULT_SUBSTEPS_PER_CONTACT",
@@ -604,7 +603,7 @@ class GranularSimulation:
             "bottom of a column as tall as the world grows past 1% of a diameter), or a world "
             "of the height the grains fill (a grid's bounds set it)"
         )
-        warnings.warn(
+        warn_caller(
             f"{per_frame:,} substeps per frame of {self.timestep:.4g} s "
             f"({per_frame * self.grains.x.shape[0]:,} grain-substeps per frame): the lightest "
             f"contact (two grains of radius {self._r_min:.3g}, mass {m:.3g} each, stiffness "
@@ -614,7 +613,6 @@ class GranularSimulation:
             f"substeps_per_contact (>= 10; less accurate restitution). A shorter timestep "
             f"gives fewer substeps per frame, not fewer per second.",
             SubstepWarning,
-            stacklevel=3,
         )
 
     def advance(self, substeps: int) -> None:
