@@ -163,3 +163,20 @@ def test_the_demo_warms_the_grains_and_image_kernels_of_the_readme():
     assert "ready in" in said.getvalue()
     for kernel in (pair_forces, kick_drift, edt_kernel):
         assert kernel.signatures, kernel
+
+
+def test_the_demo_warms_the_law_of_the_readme_grain_block():
+    """The law the warm-up pours with is the README grain block's (its compiled variant)."""
+    import os
+    import re
+
+    from fastsdf.apps.demo import README_GRAIN_LAW
+
+    with open(os.path.join(os.path.dirname(__file__), "..", "README.md"), encoding="utf-8") as fh:
+        readme = fh.read()
+    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
+    (block,) = [b for b in blocks if "contacts=law" in b]
+    line = next(x for x in block.splitlines() if x.startswith("law = "))
+    namespace: dict = {"ContactLaw": ContactLaw}
+    exec(line, namespace)
+    assert namespace["law"] == ContactLaw(**README_GRAIN_LAW)

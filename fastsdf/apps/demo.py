@@ -49,6 +49,7 @@ __all__ = [
     "SAND_ROLLING_FRICTION",
     "summary",
     "warm_readme_kernels",
+    "README_GRAIN_LAW",
     "check_output_dir",
     "spawn_in_free_space",
     "WORLDS",
@@ -73,6 +74,10 @@ SAND_RADIUS = 0.022
 SAND_RADIUS_SPREAD = 0.1
 #: The sand scene's rolling resistance with contact history (discs hold a slope with it).
 SAND_ROLLING_FRICTION = 0.5
+#: The contact law of the README's grain block (``ContactLaw(**README_GRAIN_LAW)``), whose
+#: kernels :func:`warm_readme_kernels` compiles (history and rolling resistance each select
+#: their own compiled variant).
+README_GRAIN_LAW = {"history": True, "rolling_friction": 0.3}
 #: The hopper's outlet: its lower end's height and its width (about ten grains: narrower
 #: outlets jam, grains with rolling resistance arch like sand).
 HOPPER_OUTLET_Y = 0.95
@@ -456,7 +461,7 @@ def warm_readme_kernels(stream: IO[str] | None = None) -> float:
     err.flush()
     t0 = time.perf_counter()
     gx, gy = np.meshgrid(np.linspace(-0.1, 0.1, 3), np.linspace(0.8, 0.9, 2))
-    law = ContactLaw(history=True, rolling_friction=0.3)  # the README block's
+    law = ContactLaw(**README_GRAIN_LAW)
     with compiling("the grains' kernels"):
         sim = ParticleSimulation(
             _seed(), positions=np.column_stack([gx.ravel(), gy.ravel()]), radius=0.02, contacts=law
