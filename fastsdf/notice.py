@@ -144,6 +144,11 @@ def _duration(seconds: float) -> str:
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
+def _amount(x: float) -> str:
+    """``7``, ``3.4``, ``1,200``: tenths only where there are any."""
+    return f"{x:,.1f}".removesuffix(".0")
+
+
 def _is_terminal(stream: IO[str]) -> bool:
     try:
         return bool(stream.isatty())
@@ -240,7 +245,8 @@ class RunProgress:
     def _line(self, elapsed: float, left: float) -> None:
         self._last_line = time.perf_counter()
         self._write(
-            f"fastsdf: {self.what}: {self._done:.1f} of {self.total:g} {self.unit} in "
+            f"fastsdf: {self.what}: {_amount(self._done)} of {_amount(self.total)} "
+            f"{self.unit} in "
             f"{_duration(elapsed)}, about {_duration(left)} left\n"
         )
 
@@ -260,7 +266,8 @@ class RunProgress:
         elif self._shown and not self._closed:
             elapsed = time.perf_counter() - self._start
             self._write(
-                f"fastsdf: {self.what}: {self._done:.1f} of {self.total:g} {self.unit} in "
+                f"fastsdf: {self.what}: {_amount(self._done)} of {_amount(self.total)} "
+                f"{self.unit} in "
                 f"{_duration(elapsed)}\n"
             )
         self._closed = True

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from numba import njit
 
+import fastsdf.granular.simulation as granular_simulation
 import fastsdf.notice as notice
 from fastsdf.granular import ContactLaw, GranularSimulation
 from fastsdf.granular.simulation import SUBSTEPS_WARNING, SubstepWarning
@@ -53,9 +54,9 @@ def test_run_progress_shows_an_estimate_past_its_threshold_only():
         for k in range(10):
             bar.update(k + 1)
     text = shown.getvalue()
-    assert text.startswith("fastsdf: ten things: 1.0 of 10 things in ")
+    assert text.startswith("fastsdf: ten things: 1 of 10 things in ")
     assert "left" in text.splitlines()[0]
-    assert text.splitlines()[-1].startswith("fastsdf: ten things: 10.0 of 10 things in ")
+    assert text.splitlines()[-1].startswith("fastsdf: ten things: 10 of 10 things in ")
     quiet = io.StringIO()
     with notice.RunProgress(10, "ten things", after=1e9, stream=quiet) as bar:
         for k in range(10):
@@ -76,13 +77,18 @@ def _column(n: int, radius: float, height: float) -> np.ndarray:
     return np.column_stack([np.zeros(n), np.linspace(0.0, height, n)])
 
 
-def test_substep_warning_names_the_cause_and_fires_once():
+def test_substep_warning_names_the_cause_and_fires_once(monkeypatch):
     """Small grains and a stiff law: thousands of substeps per frame; the warning says why
-    (radius, mass, stiffness: the contact time) and what to change, once."""
+    (radius, mass, stiffness: the contact time) and what to change, once. (Three grains make
+    a quick frame however many substeps: the work threshold is lowered to theirs.)"""
     sim = GranularSimulation(
         _column(3, 0.002, 0.1), 0.002, contact=ContactLaw(stiffness=1e4), gravity=(0, -9.81)
     )
     assert sim.substeps_per_frame > SUBSTEPS_WARNING
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SubstepWarning)
+        sim.run(1)  # a quick frame: no warning at the default work threshold
+    monkeypatch.setattr(granular_simulation, "SUBSTEPS_WARNING_WORK", 3)
     with pytest.warns(SubstepWarning) as caught:
         sim.run(1)
     text = str(caught[0].message)
@@ -113,7 +119,7 @@ def test_a_long_granular_run_shows_its_progress_on_stderr(monkeypatch, capsys):
     sim.run(3)
     err = capsys.readouterr().err
     assert f"fastsdf: 20 grains, run(3) at {sim.substeps_per_frame:,} substeps per frame:" in err
-    assert "left" in err and "3.0 of 3 frames in" in err
+    assert "left" in err and "3 of 3 frames in" in err
     monkeypatch.setattr(notice, "PROGRESS_AFTER_S", 1e9)
     sim.run(3)
     assert capsys.readouterr().err == ""
@@ -143,8 +149,8 @@ def test_a_long_particle_run_goes_in_pieces_with_progress_and_the_same_bits(monk
     pieces = make()
     pieces.run(40)
     err = capsys.readouterr().err
-    assert "fastsdf: 500 particles, run(40): 7.0 of 40 steps in" in err
-    assert "40.0 of 40 steps in" in err
+    assert "fastsdf: 500 particles, run(40): 7 of 40 steps in" in err
+    assert "40 of 40 steps in" in err
     for name in ("x", "v"):
         np.testing.assert_array_equal(pieces.p[name], whole.p[name])
     assert pieces.t == pytest.approx(whole.t, rel=1e-14)

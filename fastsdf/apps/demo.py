@@ -77,7 +77,7 @@ SAND_ROLLING_FRICTION = 0.5
 #: The contact law of the README's grain block (``ContactLaw(**README_GRAIN_LAW)``), whose
 #: kernels :func:`warm_readme_kernels` compiles (history and rolling resistance each select
 #: their own compiled variant).
-README_GRAIN_LAW = {"history": True, "rolling_friction": 0.3}
+README_GRAIN_LAW: dict[str, Any] = {"history": True, "rolling_friction": 0.3}
 #: The hopper's outlet: its lower end's height and its width (about ten grains: narrower
 #: outlets jam, grains with rolling resistance arch like sand).
 HOPPER_OUTLET_Y = 0.95

@@ -89,12 +89,13 @@ from fastsdf.granular.params import (
     contact_time,
     derived_stiffness,
 )
-from fastsdf.notice import RunProgress, compiling, warn_caller
+from fastsdf.notice import RunProgress, compiling, compiling_first, warn_caller
 
 __all__ = [
     "DEFAULT_SUBSTEPS_PER_CONTACT",
     "PARALLEL_MIN_GRAINS",
     "SUBSTEPS_WARNING",
+    "SUBSTEPS_WARNING_WORK",
     "GranularSimulation",
     "SubstepWarning",
 ]
@@ -105,9 +106,12 @@ DEFAULT_SUBSTEPS_PER_CONTACT = 40
 #: every substep costs more than it saves (and far more on a busy machine).
 PARALLEL_MIN_GRAINS = 4096
 #: :meth:`GranularSimulation.run` warns (once per simulation) when a frame takes more substeps
-#: than this: the library's default grains (radius 0.02, derived stiffness, in its 4-high
-#: scenes under g = 9.81) take about 940.
+#: than this (the library's default grains, radius 0.02 with a derived stiffness in its
+#: 4-high scenes under g = 9.81, take about 940) and at least
+#: :data:`SUBSTEPS_WARNING_WORK` grain-substeps (a frame of a few grains is quick however
+#: many substeps it takes).
 SUBSTEPS_WARNING = 1000
+SUBSTEPS_WARNING_WORK = 1_000_000
 #: Grain-substeps between two progress updates of a run (a few hundredths of a second).
 _PROGRESS_WORK = 200_000
 
@@ -467,15 +471,17 @@ class GranularSimulation:
             if self._old_nbr is None:
                 self._spring[:] = 0.0
             else:
-                carry_springs(
-                    self._perm,
-                    self._old_start,
-                    self._old_nbr,
-                    self._old_spring,
-                    self._nbr_start,
-                    self._nbr,
-                    self._spring,
-                )
+                # (first called at the first rebuild of a run, after the constructor's)
+                with compiling_first("the granular kernels' contact memory", carry_springs):
+                    carry_springs(
+                        self._perm,
+                        self._old_start,
+                        self._old_nbr,
+                        self._old_spring,
+                        self._nbr_start,
+                        self._nbr,
+                        self._spring,
+                    )
         np.copyto(self._x_ref, g.x)
         np.copyto(self._y_ref, g.y)
         # float32 references round by up to 2**-24 of the largest coordinate, per axis
@@ -528,18 +534,20 @@ class GranularSimulation:
         if self.world is not None:
             idx, d, gx, gy, vn = self._query_world()
             if idx.shape[0]:
-                fx, fy = wall_forces(
-                    self.grains,
-                    idx,
-                    d,
-                    gx,
-                    gy,
-                    vn,
-                    self._wall_spring if self.wall_contact.history else None,
-                    self.wall_contact,
-                    self.bulk,
-                    dt,
-                )
+                # (compiled when the first grain comes near the world, often within a run)
+                with compiling_first("the granular kernels' contacts with the world", wall_forces):
+                    fx, fy = wall_forces(
+                        self.grains,
+                        idx,
+                        d,
+                        gx,
+                        gy,
+                        vn,
+                        self._wall_spring if self.wall_contact.history else None,
+                        self.wall_contact,
+                        self.bulk,
+                        dt,
+                    )
                 wall_sum[0] += fx
                 wall_sum[1] += fy
             self._wall_d = d
@@ -554,8 +562,8 @@ class GranularSimulation:
 
         A run expected to take longer than :data:`fastsdf.notice.PROGRESS_AFTER_S` shows its
         progress and the time left on stderr; a frame of more than :data:`SUBSTEPS_WARNING`
-        substeps is warned about (a :class:`SubstepWarning`, once per simulation) with its
-        cause and remedies."""
+        substeps (and :data:`SUBSTEPS_WARNING_WORK` grain-substeps) is warned about (a
+        :class:`SubstepWarning`, once per simulation) with its cause and remedies."""
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
             raise ValueError(f"frames must be an int >= 0, got frames={frames!r}")
         frames = int(frames)
@@ -581,9 +589,12 @@ class GranularSimulation:
 
     def _warn_substeps(self) -> None:
         """Warn once, with the cause and the remedies, when a frame takes more than
-        :data:`SUBSTEPS_WARNING` substeps."""
+        :data:`SUBSTEPS_WARNING` substeps and :data:`SUBSTEPS_WARNING_WORK` grain-substeps."""
         per_frame = self.substeps_per_frame
-        if per_frame <= SUBSTEPS_WARNING or getattr(self, "_warned_substeps", False):
+        work = per_frame * self.grains.x.shape[0]
+        if per_frame <= SUBSTEPS_WARNING or work < SUBSTEPS_WARNING_WORK:
+            return
+        if getattr(self, "_warned_substeps", False):
             return
         self._warned_substeps = True
         k = float(self.contact.stiffness)  # type: ignore[arg-type]
@@ -605,7 +616,7 @@ class GranularSimulation:
         )
         warn_caller(
             f"{per_frame:,} substeps per frame of {self.timestep:.4g} s "
-            f"({per_frame * self.grains.x.shape[0]:,} grain-substeps per frame): the lightest "
+            f"({work:,} grain-substeps per frame): the lightest "
             f"contact (two grains of radius {self._r_min:.3g}, mass {m:.3g} each, stiffness "
             f"{k:.4g}, {why}) lasts t_c = pi sqrt(m_eff / k) = {self.contact_time:.3g} s and "
             f"is resolved by {self._substeps_per_contact:g} substeps. Fewer substeps: "
