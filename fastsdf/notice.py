@@ -47,6 +47,8 @@ _said: set[str] = set()
 _lock = threading.Lock()
 # Nested waits print the outermost notice only.
 _depth = threading.local()
+# The RunProgress blocks open in this thread, innermost last.
+_running = threading.local()
 
 
 def _quiet() -> bool:
@@ -166,6 +168,10 @@ class RunProgress:
     stderr (or ``stream``) shows ``what``, the units done and the time left: a tqdm bar on a
     terminal, else a line every :data:`PROGRESS_LINE_EVERY_S` seconds and one at the end.
     ``FASTSDF_QUIET=1`` shows nothing. Use it as a context manager (or call :meth:`close`).
+
+    Inside another one's ``with`` block (a recorded run, whose recorder runs the simulation
+    in blocks) it shows nothing itself and reports to the outer one, in the same units:
+    ``done`` here is the outer's ``done`` at its start plus this one's.
     """
 
     def __init__(
@@ -188,6 +194,9 @@ class RunProgress:
         self._bar: Any = None
         self._last_line = 0.0
         self._closed = False
+        stack = getattr(_running, "stack", None)
+        self._outer: RunProgress | None = stack[-1] if stack else None
+        self._base = self._outer._done if self._outer is not None else 0.0
 
     @property
     def shown(self) -> bool:
@@ -212,6 +221,9 @@ class RunProgress:
         """``done`` units are done (in all, not since the last call)."""
         if self._closed:
             return
+        if self._outer is not None:
+            self._outer.update(self._base + float(done))
+            return
         now = time.perf_counter()
         self._done = min(float(done), self.total)
         if self._first is None:
@@ -219,8 +231,8 @@ class RunProgress:
         elapsed = now - self._start
         left = self.remaining(now)
         if not self._shown:
-            if _quiet() or not elapsed + left > self.after:
-                return
+            if _quiet() or not elapsed + left > self.after or self._done >= self.total:
+                return  # (finished at its first update: nothing left to show)
             self._shown = True
             if _is_terminal(self._out()):
                 from tqdm import tqdm
@@ -273,7 +285,13 @@ class RunProgress:
         self._closed = True
 
     def __enter__(self) -> RunProgress:
+        if not hasattr(_running, "stack"):
+            _running.stack = []
+        _running.stack.append(self)
         return self
 
     def __exit__(self, *exc: object) -> None:
+        stack = _running.stack
+        if stack and stack[-1] is self:
+            stack.pop()
         self.close()

@@ -186,3 +186,25 @@ def test_the_demo_warms_the_law_of_the_readme_grain_block():
     namespace: dict = {"ContactLaw": ContactLaw}
     exec(line, namespace)
     assert namespace["law"] == ContactLaw(**README_GRAIN_LAW)
+
+
+def test_a_recorded_run_shows_one_progress_for_all_its_blocks(monkeypatch, capsys):
+    """A recorder runs the simulation in blocks; their runs report to the recorded run's
+    progress (one line of it, counting every block), not each their own."""
+    import fastsdf as sdf
+    import fastsdf.particles as phys
+
+    class EveryFive:
+        def run(self, sim, steps):
+            for _ in range(steps // 5):
+                sim.run(5)
+
+    sim = phys.ParticleSimulation(sdf.Halfspace(normal=[0, 1], d=0.0), n=50, seed=1)
+    sim.force_generators += [phys.Gravity()]
+    monkeypatch.setattr(notice, "PROGRESS_AFTER_S", 0.0)
+    sim.run(20, record=EveryFive())
+    err = capsys.readouterr().err
+    assert "fastsdf: 50 particles, run(20, record=...): 5 of 20 steps in" in err
+    assert "fastsdf: 50 particles, run(20, record=...): 20 of 20 steps in" in err
+    assert "run(5)" not in err  # the blocks report to the recorded run
+    assert sim.t == pytest.approx(20 * sim.dt)

@@ -108,7 +108,9 @@ def _recorded(sim: Any, steps: Any, record: Any) -> bool:
             f"record must be a recorder with a run(sim, steps) method, such as "
             f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
         )
-    record.run(sim, int(steps))
+    kind = "grains" if hasattr(sim, "engine") else "particles"
+    with RunProgress(int(steps), f"{sim.n:,} {kind}, run({steps}, record=...)", "steps"):
+        record.run(sim, int(steps))  # (the runs it makes report to this progress)
     return True
 
 
@@ -536,13 +538,16 @@ class ParticleSimulation:
         self._check_state_shape()
         ax, ay, drag, python, user = self._fused_params()
         module, data = self._kernel(user)
+        what = f"{self.n:,} particles, run({steps})"
         if not python and self.n * steps < PROGRESS_MIN_PARTICLE_STEPS:
-            bad = self._launch(module, data, int(steps), ax, ay, drag, None)
-            self.t += steps * self.dt
+            with RunProgress(steps, what, "steps") as bar:  # (shown only inside a recorded run)
+                bad = self._launch(module, data, int(steps), ax, ay, drag, None)
+                self.t += steps * self.dt
+                bar.update(steps)
         elif not python:  # in pieces, with progress
             bad = done = 0
             piece = max(1, _PROGRESS_FIRST_PIECE // self.n)
-            with RunProgress(steps, f"{self.n:,} particles, run({steps})", "steps") as bar:
+            with RunProgress(steps, what, "steps") as bar:
                 while done < steps:
                     k = min(piece, steps - done)
                     t0 = time.perf_counter()
@@ -555,7 +560,7 @@ class ParticleSimulation:
                     module, data = self._kernel(user)  # (the fallback may have been bound)
         else:
             bad = 0
-            with RunProgress(steps, f"{self.n:,} particles, run({steps})", "steps") as bar:
+            with RunProgress(steps, what, "steps") as bar:
                 for i in range(int(steps)):
                     ext = self._python_forces(python)
                     bad += self._launch(module, data, 1, ax, ay, drag, ext)
