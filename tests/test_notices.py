@@ -10,8 +10,8 @@ from numba import njit
 
 import fastsdf.granular.simulation as granular_simulation
 import fastsdf.notice as notice
-from fastsdf.granular import ContactLaw, GranularSimulation
-from fastsdf.granular.simulation import SUBSTEPS_WARNING, SubstepWarning
+from fastsdf.granular import ContactLaw, GranularSimulation, SubstepWarning
+from fastsdf.granular.simulation import SUBSTEPS_WARNING
 
 
 @pytest.fixture(autouse=True)
