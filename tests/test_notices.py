@@ -94,13 +94,34 @@ def test_substep_warning_names_the_cause_and_fires_once(monkeypatch):
     text = str(caught[0].message)
     assert caught[0].filename == __file__  # the user's line, not the library's
     assert f"{sim.substeps_per_frame:,} substeps per frame" in text
-    for words in ("radius 0.002", "stiffness 1e+04", "t_c = pi sqrt(m_eff / k)", "softer"):
+    for words in (
+        "two grains of radius 0.002",
+        "stiffness 1e+04, as given",
+        "t_c = pi sqrt(m_eff / k)",
+        "a softer contact law",
+        "bigger grains",
+    ):
         assert words in text, words
     # the contact time printed is the one the substep resolves
     assert f"{sim.contact_time:.3g} s" in text
     with warnings.catch_warnings():
         warnings.simplefilter("error", SubstepWarning)
         sim.run(1)  # said once per simulation
+
+
+def test_substep_warning_says_what_set_the_substep(monkeypatch):
+    """A derived stiffness: the world's height it was derived for; a substep given: that."""
+    monkeypatch.setattr(granular_simulation, "SUBSTEPS_WARNING_WORK", 3)
+    derived = GranularSimulation(_column(3, 0.002, 0.5), 0.002, gravity=(0, -9.81))
+    given = GranularSimulation(_column(3, 0.02, 0.5), 0.02, substep=1e-5, gravity=(0, -9.81))
+    for sim, words in (
+        (derived, "derived for a column of grains as tall as the world, H = 0.5"),
+        (given, "the substep given, 1e-05 s"),
+    ):
+        assert sim.substeps_per_frame > SUBSTEPS_WARNING
+        with pytest.warns(SubstepWarning, match="substeps per frame") as caught:
+            sim.run(1)
+        assert words in str(caught[0].message)
 
 
 def test_default_grains_run_without_the_warning():

@@ -597,30 +597,46 @@ class GranularSimulation:
         if getattr(self, "_warned_substeps", False):
             return
         self._warned_substeps = True
-        k = float(self.contact.stiffness)  # type: ignore[arg-type]
+        head = (
+            f"{per_frame:,} substeps per frame of {self.timestep:.4g} s ({work:,} "
+            f"grain-substeps per frame): "
+        )
+        if self._substep_given is not None:
+            warn_caller(
+                head + f"the substep given, {self.substep:.3g} s, is that short (the lightest "
+                f"contact lasts {self.contact_time:.3g} s). Fewer substeps: a longer substep, "
+                f"or substep=None (the contact's time / substeps_per_contact).",
+                SubstepWarning,
+            )
+            return
         m = self.density * math.pi * self._r_min**2
-        derived = self._laws_given[0].stiffness is None
-        why = (
-            "derived from the grains, gravity and the world's height "
-            f"{self._height:.3g} (see ContactLaw)"
-            if derived
-            else "as given"
+        pair = contact_time(m / 2, self.contact)
+        against_world = self.contact_time < pair  # the world's law is the stiffer one
+        law = self.wall_contact if against_world else self.contact
+        given = self._laws_given[1] if against_world else self._laws_given[0]
+        name = "wall_contact" if against_world else "contact"
+        k = float(law.stiffness)  # type: ignore[arg-type]
+        who = (
+            f"a grain of radius {self._r_min:.3g} and mass {m:.3g} against the world"
+            if against_world
+            else f"two grains of radius {self._r_min:.3g} and mass {m:.3g}"
         )
-        remedies = (
-            "give a softer ContactLaw(stiffness=...) (the overlap under a load grows as "
-            "1/stiffness; the substeps shrink as its square root)"
-            if not derived
-            else "give ContactLaw(stiffness=...) below the derived one (the overlap at the "
-            "bottom of a column as tall as the world grows past 1% of a diameter), or a world "
-            "of the height the grains fill (a grid's bounds set it)"
-        )
+        if given is None or given.stiffness is None:
+            why = (
+                f"stiffness {k:.4g}, derived for a column of grains as tall as the world, "
+                f"H = {self._height:.3g} (a grid's bounds, else the grains' extent at the "
+                f"start; see ContactLaw), to overlap 1% of a diameter at its bottom"
+            )
+            softer = f"a {name} law with a stiffness below the derived one"
+        else:
+            why = f"stiffness {k:.4g}, as given"
+            softer = f"a softer {name} law"
         warn_caller(
-            f"{per_frame:,} substeps per frame of {self.timestep:.4g} s "
-            f"({work:,} grain-substeps per frame): the lightest "
-            f"contact (two grains of radius {self._r_min:.3g}, mass {m:.3g} each, stiffness "
-            f"{k:.4g}, {why}) lasts t_c = pi sqrt(m_eff / k) = {self.contact_time:.3g} s and "
-            f"is resolved by {self._substeps_per_contact:g} substeps. Fewer substeps: "
-            f"{remedies}; bigger grains (t_c grows with the radius); or fewer "
+            head + f"the lightest contact, {who} ({why}), lasts t_c = pi sqrt(m_eff / k) = "
+            f"{self.contact_time:.3g} s and is resolved by {self._substeps_per_contact:g} "
+            f"substeps. Fewer substeps: {softer} (ContactLaw(stiffness=...): the substeps "
+            f"shrink as the square root of the stiffness, resting overlaps grow as its "
+            f"inverse); bigger grains (t_c grows with the radius); or fewer "
             f"substeps_per_contact (>= 10; less accurate restitution). A shorter timestep "
             f"gives fewer substeps per frame, not fewer per second.",
             SubstepWarning,
