@@ -108,10 +108,10 @@ PARALLEL_MIN_GRAINS = 4096
 #: :meth:`GranularSimulation.run` warns (once per simulation) when a frame takes more substeps
 #: than this (the library's default grains, radius 0.02 with a derived stiffness in its
 #: 4-high scenes under g = 9.81, take about 940) and at least
-#: :data:`SUBSTEPS_WARNING_WORK` grain-substeps (a frame of a few grains is quick however
-#: many substeps it takes).
+#: :data:`SUBSTEPS_WARNING_WORK` grain-substeps, a frame of a second or so on a busy 2-core
+#: machine (a frame of a few grains is quick however many substeps it takes).
 SUBSTEPS_WARNING = 1000
-SUBSTEPS_WARNING_WORK = 1_000_000
+SUBSTEPS_WARNING_WORK = 2_000_000
 #: Grain-substeps between two progress updates of a run (a few hundredths of a second).
 _PROGRESS_WORK = 200_000
 
