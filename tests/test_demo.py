@@ -342,6 +342,7 @@ def test_sand_summary_prints_the_measured_angle_and_the_law():
     assert "ContactLaw(history=True, rolling_friction=0.5) (a tangential spring" in text
     flat = sand_summary(replace(res, history=False, rolling_friction=0.0, repose_left=math.nan))
     assert "angle of repose: not measured" in flat and "ContactLaw() (no contact history" in flat
+    assert "spread flat" in flat and "spread flat" not in one_flank
 
 
 def test_no_history_is_for_the_sand_scene_and_refused_with_rolling_friction():

@@ -881,6 +881,11 @@ def _repose_line(res: SandResult) -> str:
             f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
             f"{(left + right) / 2:.1f} ({where})"
         )
+    if not res.history:
+        return (
+            "angle of repose: not measured (without contact history there is no static "
+            "friction: the grains on the disc spread flat instead of forming a cone)"
+        )
     return (
         "angle of repose: not measured (the grains at rest on the disc do not form a cone "
         "with two flanks: pour longer, or see examples/heap.py, which pours onto a floor)"
