@@ -794,9 +794,12 @@ def run_sand_demo(
                     animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, title=label
                 ) as writer,
             ):
-                for k in schedule:
+                for i, k in enumerate(schedule):
+                    if i < 2:  # these may compile: their notices get a line of their own
+                        bar.clear()
                     advance(k)
-                    writer.add_simulation(sim)
+                    with compiling("the video's drawing kernels"):
+                        writer.add_simulation(sim)
                     bar.step()
         else:
             from fastsdf.viz.render import animate as _animate
