@@ -35,7 +35,8 @@ $(VENV)/.bench: $(VENV)/.base
 venv: $(VENV)/.base
 
 # The demo needs the video extra; the README's blocks need nothing more (a block that imports
-# another extra's module names it: tests/test_readme.py checks that).
+# another extra's module names it: tests/test_readme.py checks that). It ends by compiling the
+# kernels of the README's grain and image blocks, so that pasting them later loads them.
 demo: $(VENV)/.video
 	$(VENV)/bin/fastsdf demo
 

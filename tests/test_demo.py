@@ -318,7 +318,12 @@ def test_summary_counts_in_words_and_explains_the_rate():
 def test_sand_scene_pours_grains_and_draws_them(tmp_path):
     from matplotlib.image import imread
 
-    from fastsdf.apps.demo import SAND_RADIUS, run_sand_demo, sand_summary
+    from fastsdf.apps.demo import (
+        SAND_RADIUS,
+        SAND_ROLLING_FRICTION,
+        run_sand_demo,
+        sand_summary,
+    )
     from fastsdf.viz.render import PARTICLE_COLOR
 
     res = run_sand_demo(grains=96, steps=15, grid=100, out=str(tmp_path), frames=3)
@@ -327,14 +332,14 @@ def test_sand_scene_pours_grains_and_draws_them(tmp_path):
     # the stiffness derived for the 4-high world keeps the step count at the library's scale
     assert res.substeps_per_step <= 1500
     assert res.max_overlap < 0.05 and res.max_wall_overlap < 0.05
-    assert res.history and res.rolling_friction == 0.3  # the law that heaps, by default
+    assert res.history and res.rolling_friction == SAND_ROLLING_FRICTION  # the law that heaps
     text = sand_summary(res)
     for needle in (
         "96 grains",
         "substeps per 1/30 s step",
         "15 steps",
         "largest overlap",
-        "ContactLaw(history=True, rolling_friction=0.3)",
+        f"ContactLaw(history=True, rolling_friction={SAND_ROLLING_FRICTION:g})",
         "angle of repose: ",
     ):
         assert needle in text, needle
@@ -379,9 +384,10 @@ def test_sand_summary_prints_the_measured_angle_and_the_law():
     assert "angle of repose: 21.0 (left) and 25.0 (right) degrees, mean 23.0" in text
     one_flank = sand_summary(replace(res, repose_right=math.nan))
     assert "angle of repose: not measured" in one_flank
-    assert "ContactLaw(history=True, rolling_friction=0.3) (a tangential spring" in text
+    assert "ContactLaw(history=True, rolling_friction=0.5) (a tangential spring" in text
     flat = sand_summary(replace(res, history=False, rolling_friction=0.0, repose_left=math.nan))
     assert "angle of repose: not measured" in flat and "ContactLaw() (no contact history" in flat
+    assert "spread flat" in flat and "spread flat" not in one_flank
 
 
 def test_no_history_is_for_the_sand_scene_and_refused_with_rolling_friction():

@@ -148,11 +148,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "demo":
         demo = parser._demo
-        from fastsdf.apps.demo import DEFAULT_FRAMES, SAND_STEPS
+        from fastsdf.apps.demo import DEFAULT_FRAMES, SAND_GRAINS, SAND_STEPS
 
         sand = args.scene == "sand"
         if args.particles is None:
-            args.particles = 2000 if sand else 1_000_000
+            args.particles = SAND_GRAINS if sand else 1_000_000
         if args.steps is None:
             args.steps = SAND_STEPS if sand else 300
         if args.frames is None:
@@ -231,6 +231,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))
+        if not args.workers:
+            from fastsdf.apps.demo import warm_readme_kernels
+
+            warm_readme_kernels()
         return 0
     return 2  # pragma: no cover - argparse rejects unknown commands
 

@@ -13,17 +13,18 @@ the share of particle positions outside the grid (whose queries fall back to the
 ``mode='exact'``) and the cost of one exact query against one grid query.
 
 ``fastsdf demo --scene sand`` runs :func:`run_sand_demo` instead: grains that collide with each
-other (``ParticleSimulation(..., contacts=ContactLaw(history=True, rolling_friction=0.3))``)
-pour from a column above the world onto its disc and into the funnel under the Earth's gravity
-(``Gravity((0, -9.81))``: the world read in metres), where they heap up and
-keep a slope; it writes ``sand.mp4`` and ``sand_last_frame.png`` and reports the contact law,
-the substeps per step, the rate, the heap, its angle of repose and the largest overlap.
+other (``ParticleSimulation(..., contacts=ContactLaw(history=True, rolling_friction=0.5))``)
+pour from a hopper above the world's disc (:func:`sand_world`): a cone builds on the disc, as
+in the fixed-base measurement of the angle of repose, and what runs off its flanks fills the
+funnel; it writes ``sand.mp4`` and ``sand_last_frame.png`` and reports the contact law, the
+substeps per step, the rate, the cone, its angle of repose and the largest overlap.
 ``--no-history`` pours them with the history-free ``ContactLaw()`` (no static friction: the
 heap spreads flat).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import tempfile
@@ -42,11 +43,14 @@ __all__ = [
     "run_demo",
     "run_sand_demo",
     "sand_summary",
-    "pouring_column",
+    "hopper_fill",
+    "sand_world",
     "SAND_GRAINS",
     "SAND_STEPS",
     "SAND_ROLLING_FRICTION",
     "summary",
+    "warm_readme_kernels",
+    "README_GRAIN_LAW",
     "check_output_dir",
     "spawn_in_free_space",
     "WORLDS",
@@ -62,12 +66,25 @@ DEFAULT_FRAMES = 120
 DEFAULT_FPS = 20
 #: Pixels (width, height) of the demo's MP4.
 VIDEO_SIZE = (640, 560)
-#: The sand scene's grains, steps (1/30 s) and grain radius by default.
-SAND_GRAINS = 2000
-SAND_STEPS = 60
-SAND_RADIUS = 0.02
+#: The sand scene's grains, steps (1/30 s: the hopper empties in about 3 s, the cone then
+#: settles) and mean grain radius by default (radii spread +-10% about it: equal discs
+#: stack into a crystal, whose planes, not friction, would set the slope).
+SAND_GRAINS = 900
+SAND_STEPS = 180
+SAND_RADIUS = 0.022
+SAND_RADIUS_SPREAD = 0.1
 #: The sand scene's rolling resistance with contact history (discs hold a slope with it).
-SAND_ROLLING_FRICTION = 0.3
+SAND_ROLLING_FRICTION = 0.5
+#: The contact law of the README's grain block (``ContactLaw(**README_GRAIN_LAW)``), whose
+#: kernels :func:`warm_readme_kernels` compiles (history and rolling resistance each select
+#: their own compiled variant).
+README_GRAIN_LAW: dict[str, Any] = {"history": True, "rolling_friction": 0.3}
+#: The hopper's outlet: its lower end's height and its width (about ten grains: narrower
+#: outlets jam, grains with rolling resistance arch like sand).
+HOPPER_OUTLET_Y = 0.95
+HOPPER_OUTLET_WIDTH = 0.45
+_HOPPER_WALL = 0.03  # half the thickness of the hopper's walls
+_HOPPER_SLOPE = 1.5  # rise over run of its walls (56 degrees: steeper than the grains hold)
 
 
 def _boxes() -> Any:
@@ -456,6 +473,42 @@ def run_demo(
     )
 
 
+def warm_readme_kernels(stream: IO[str] | None = None) -> float:
+    """Compile (or load) the kernels the README's blocks use that the particle demo does not:
+    the grains' (a few grains of the README's block poured for one step, with its contact law
+    and world, the exact seed world) and the distance transforms of images (a small image
+    through :func:`fastsdf.geometry.from_image`). So a block pasted after ``make demo`` loads
+    them from the cache instead of compiling them. Says so on ``stream`` (default stderr);
+    returns the seconds it took."""
+    from fastsdf.geometry import from_image
+    from fastsdf.granular.params import ContactLaw
+    from fastsdf.particles import Gravity, ParticleSimulation
+
+    err = stream if stream is not None else sys.stderr
+    err.write(
+        "fastsdf demo: compiling the kernels of the README's other blocks (grains, images) "
+        "for later ...\n"
+    )
+    err.flush()
+    t0 = time.perf_counter()
+    gx, gy = np.meshgrid(np.linspace(-0.1, 0.1, 3), np.linspace(0.8, 0.9, 2))
+    law = ContactLaw(**README_GRAIN_LAW)
+    with compiling("the grains' kernels"):
+        sim = ParticleSimulation(
+            _seed(), positions=np.column_stack([gx.ravel(), gy.ravel()]), radius=0.02, contacts=law
+        )
+        sim.force_generators.append(Gravity())
+        sim.run(1)
+    yy, xx = np.mgrid[0:24, 0:32]
+    disc = np.clip(8.5 - np.hypot(xx - 15.5, yy - 11.5), 0.0, 1.0)  # an anti-aliased disc
+    with compiling("the distance transforms of images"):
+        from_image(disc, bounds=[(-2, 2), (-1.5, 1.5)])(0.0, 0.0)
+    seconds = time.perf_counter() - t0
+    err.write(f"fastsdf demo: ... ready in {seconds:.1f} s\n")
+    err.flush()
+    return seconds
+
+
 def _plural(n: int, word: str) -> str:
     return f"{n:,} {word}" + ("" if n == 1 else "s")
 
@@ -560,8 +613,9 @@ class SandResult:
     grain-world one (a grain in a corner of the world feels only the nearer wall, the SDF's
     nearest surface); ``heap_fraction``: the share of grains in the funnel (below the disc,
     ``y < -0.5``) at the end; ``heap_top``: the highest centre among those at rest there
-    (slower than 0.05 length/s); ``repose_left`` and ``repose_right``: the angle of repose
-    (degrees) of the heap's flanks, measured on those grains at rest in the funnel by
+    (slower than 0.05 length/s); ``cone_grains`` and ``cone_top``: the grains at rest on
+    the disc, below the hopper, and the highest centre among them; ``repose_left`` and
+    ``repose_right``: the angle of repose (degrees) of that cone's flanks, measured on them by
     :func:`fastsdf.granular.repose_angle` (NaN where a flank has no slope to fit);
     ``history`` and ``rolling_friction``: the contact law's; ``load``: as in
     :class:`DemoResult`.
@@ -589,24 +643,52 @@ class SandResult:
     rolling_friction: float = SAND_ROLLING_FRICTION
     repose_left: float = float("nan")
     repose_right: float = float("nan")
+    cone_grains: int = 0
+    cone_top: float = float("nan")
 
     def as_dict(self) -> dict:
         """The fields as a plain dict."""
         return asdict(self)
 
 
-def pouring_column(
-    n: int, radius: float, rng: np.random.Generator, x: float = 0.0, bottom: float = 1.2
-) -> np.ndarray:
-    """Start positions (n, 2) of a stream of grains: a column eight grains wide centred at
-    ``x``, from ``bottom`` up, grains ``2.2 radius`` apart with a small random offset (so the
-    stream does not fall as a crystal). Under gravity its lower end reaches the world first
-    and the rest follows: the grains pour."""
-    cols = 8
-    i = np.arange(n)
-    pitch = 2.2 * radius
-    pos = np.stack([x + (i % cols - (cols - 1) / 2) * pitch, bottom + (i // cols) * pitch], 1)
-    return pos + rng.uniform(-0.05 * radius, 0.05 * radius, pos.shape)
+def sand_world(world: str = "seed") -> Any:
+    """The world ``world`` (a key of :data:`WORLDS`) and a hopper above its disc: two walls
+    rising from an outlet :data:`HOPPER_OUTLET_WIDTH` wide at height :data:`HOPPER_OUTLET_Y`."""
+    from fastsdf.shapes import Capsule
+
+    half = HOPPER_OUTLET_WIDTH / 2 + _HOPPER_WALL
+    run = 2.0 / math.hypot(1.0, _HOPPER_SLOPE)
+    rise = _HOPPER_SLOPE * run
+    y = HOPPER_OUTLET_Y
+    f = WORLDS[world][0]()
+    return (
+        f
+        | Capsule((-half, y), (-half - run, y + rise), _HOPPER_WALL)
+        | Capsule((half, y), (half + run, y + rise), _HOPPER_WALL)
+    )
+
+
+def hopper_fill(n: int, radius: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Start positions (n, 2) of grains of radii ``radius`` filling the hopper of
+    :func:`sand_world` from its outlet up: rows of grains a little apart (their largest
+    diameter and a tenth), alternate rows shifted by half a pitch, each grain clear of the
+    walls, with a small random offset (so the fill does not settle as a crystal)."""
+    pitch = 2.2 * float(np.max(radius))
+    rows: list[np.ndarray] = []
+    count, y, row = 0, HOPPER_OUTLET_Y + pitch, 0
+    while count < n:
+        # the walls' inner faces run from the outlet's edges at _HOPPER_SLOPE; centres keep
+        # 0.7 pitch (1.5 radii) from them
+        half = HOPPER_OUTLET_WIDTH / 2 + (y - HOPPER_OUTLET_Y) / _HOPPER_SLOPE - 0.7 * pitch
+        k = int(half / pitch) + 1
+        xs = (np.arange(-k, k + 1) + (0.5 if row % 2 else 0.0)) * pitch  # a triangular lattice
+        xs = xs[np.abs(xs) <= half]
+        rows.append(np.column_stack([xs, np.full(xs.shape, y)]))
+        count += xs.size
+        y += 0.9 * pitch
+        row += 1
+    pos = np.concatenate(rows)[:n]
+    return pos + rng.uniform(-0.02, 0.02, pos.shape) * pitch
 
 
 def _max_overlaps(sim: Any, world: Any) -> tuple[float, float]:
@@ -640,19 +722,21 @@ def run_sand_demo(
     history: bool = True,
     rolling_friction: float = SAND_ROLLING_FRICTION,
 ) -> SandResult:
-    """Pour ``grains`` grains of ``radius`` into a notebook world (``world``, a key of
-    :data:`WORLDS`) and let them heap up: ``steps`` steps of 1/30 s under ``Gravity((0,
-    -9.81))`` (length/s**2: the world in metres; ``Gravity()`` is the notebook's 1), grains
-    colliding with each other and the world (``ParticleSimulation(..., contacts=
-    ContactLaw(history=True, rolling_friction=rolling_friction))``: a tangential spring per
-    contact, static friction, and rolling resistance, so the heap keeps a slope; ``history=
-    False``: ``ContactLaw()``, history-free, the heap spreads flat; the stiffness derived from
-    the grains and the world's height, see :class:`fastsdf.granular.ContactLaw`). The world
-    is sampled into a ``grid`` x ``grid`` GridSDF over :data:`BOUNDS` (``exact=True``: queried
-    exactly, with the stiffness the grid's height would give). The summary reports the heap's
-    angle of repose (:func:`fastsdf.granular.repose_angle` on the grains at rest in the
-    funnel). Writes ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without
-    ffmpeg; ``animate=False`` skips it) and ``out/sand_last_frame.png``."""
+    """Pour ``grains`` grains of mean radius ``radius`` (radii +-:data:`SAND_RADIUS_SPREAD`
+    about it) from a hopper onto the disc of a notebook world (``world``, a key of
+    :data:`WORLDS`; :func:`sand_world`) and let them heap up: ``steps`` steps of 1/30 s under
+    ``Gravity((0, -9.81))`` (length/s**2: the world in metres; ``Gravity()`` is
+    the notebook's 1), grains colliding with each other and the world (``ParticleSimulation(...,
+    contacts=ContactLaw(history=True, rolling_friction=rolling_friction))``: a tangential
+    spring per contact, static friction, and rolling resistance, so the heap keeps a slope;
+    ``history=False``: ``ContactLaw()``, history-free, the heap spreads flat; the stiffness
+    derived from the grains and the world's height, see :class:`fastsdf.granular.ContactLaw`).
+    The world is sampled into a ``grid`` x ``grid`` GridSDF over :data:`BOUNDS`
+    (``exact=True``: queried exactly, with the stiffness the grid's height would give). The
+    summary reports the angle of repose of the cone on the disc
+    (:func:`fastsdf.granular.repose_angle` on the grains at rest there). Writes
+    ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without ffmpeg; ``animate=False``
+    skips it) and ``out/sand_last_frame.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -662,6 +746,7 @@ def run_sand_demo(
     from fastsdf.granular.params import ContactLaw, derived_stiffness
     from fastsdf.particles import Gravity, ParticleSimulation
     from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import render_frame, sim_title
 
     _check_sizes(
@@ -693,7 +778,7 @@ def run_sand_demo(
         )
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
-    f = WORLDS[world][0]()
+    f = sand_world(world)
     g = 9.81
     height = BOUNDS[1][1] - BOUNDS[1][0]
     law = ContactLaw(history=history, rolling_friction=float(rolling_friction))
@@ -705,8 +790,9 @@ def run_sand_demo(
         sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
         sdf_name = f"a {grid}x{grid} GridSDF"
     rng = np.random.default_rng(seed)
+    radii = radius * rng.uniform(1 - SAND_RADIUS_SPREAD, 1 + SAND_RADIUS_SPREAD, grains)
     sim: Any = ParticleSimulation(  # a GrainSimulation
-        sdf, positions=pouring_column(grains, radius, rng), radius=radius, contacts=law
+        sdf, positions=hopper_fill(grains, radii, rng), radius=radii, contacts=law
     )
     sim.force_generators.append(Gravity((0.0, -g)))
     timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0}
@@ -734,12 +820,19 @@ def run_sand_demo(
         animation_path = os.path.join(out, "sand" + ext)
         schedule = _frame_schedule(steps, frames)
         if ext == ".mp4":
-            with VideoWriter(
-                animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, title=label
-            ) as writer:
-                for k in schedule:
+            with (
+                Progress(len(schedule), "frames", stream=err) as bar,
+                VideoWriter(
+                    animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, title=label
+                ) as writer,
+            ):
+                for i, k in enumerate(schedule):
+                    if i < 2:  # these may compile: their notices get a line of their own
+                        bar.clear()
                     advance(k)
-                    writer.add_simulation(sim)
+                    with compiling("the video's drawing kernels"):
+                        writer.add_simulation(sim)
+                    bar.step()
         else:
             from fastsdf.viz.render import animate as _animate
             from fastsdf.viz.render import save_animation, world_figure
@@ -761,8 +854,13 @@ def run_sand_demo(
         colorbar=False,
     )
     heap = x[:, 1] < -0.5
-    resting = heap & (np.hypot(*np.asarray(sim.p["v"]).T) < 0.05)
-    repose = repose_angle(x[resting], np.asarray(sim.p["r"])[resting])
+    still = np.hypot(*np.asarray(sim.p["v"]).T) < 0.05
+    resting = heap & still
+    # the cone: grains at rest on the disc (|x| <= 0.5, its top near y = 0.3), below the outlet
+    cone = still & (np.abs(x[:, 0]) < 0.6) & (x[:, 1] > 0.0) & (x[:, 1] < HOPPER_OUTLET_Y)
+    # bins one mean radius wide: the cone is about sixteen diameters across, and bins of a
+    # diameter would leave a flank too few surface points to fit
+    repose = repose_angle(x[cone], np.asarray(sim.p["r"])[cone], bin_width=float(radius))
     overlap, wall_overlap = _max_overlaps(sim, sdf)
     substeps = sim.substeps_per_frame
     rest = timing["rest"]
@@ -790,6 +888,8 @@ def run_sand_demo(
         rolling_friction=float(rolling_friction),
         repose_left=repose.left,
         repose_right=repose.right,
+        cone_grains=int(cone.sum()),
+        cone_top=float(x[cone, 1].max()) if cone.any() else float("nan"),
     )
 
 
@@ -805,17 +905,25 @@ def _sand_law(res: SandResult) -> str:
 
 
 def _repose_line(res: SandResult) -> str:
-    """The heap's angle of repose (both flanks measured), or why there is none."""
+    """The cone's angle of repose (both flanks measured), or why there is none."""
     left, right = res.repose_left, res.repose_right
-    where = "the grains at rest in the funnel, a line fitted to each flank of its surface"
+    where = (
+        "the grains at rest on the disc, a line fitted to each flank of the cone's surface, "
+        "bins one radius wide"
+    )
     if np.isfinite(left) and np.isfinite(right):
         return (
             f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
             f"{(left + right) / 2:.1f} ({where})"
         )
+    if not res.history:
+        return (
+            "angle of repose: not measured (without contact history there is no static "
+            "friction: the grains on the disc spread flat instead of forming a cone)"
+        )
     return (
-        "angle of repose: not measured (the grains at rest in the funnel do not form a heap "
-        "with two flanks yet; examples/heap.py pours slowly onto a floor and measures one)"
+        "angle of repose: not measured (the grains at rest on the disc do not form a cone "
+        "with two flanks: pour longer, or see examples/heap.py, which pours onto a floor)"
     )
 
 
@@ -823,9 +931,9 @@ def sand_summary(res: SandResult) -> str:
     """Human-readable lines for the sand scene's result."""
     lines = [
         f"world: {res.world}, {WORLDS[res.world][1]}; queried through {res.sdf}",
-        f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} (a column eight "
-        f"grains wide above the world) under g = 9.81 length/s**2 (the world in metres; "
-        f"Gravity()'s default is the notebook's 1)",
+        f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} +-"
+        f"{SAND_RADIUS_SPREAD:.0%} from a hopper above the disc under g = 9.81 length/s**2 "
+        f"(the world in metres; Gravity()'s default is the notebook's 1)",
         f"contact law: {_sand_law(res)} derived its stiffness {res.stiffness:.4g} from the "
         f"grains (1% overlap under a column as tall as the world): "
         f"{res.substeps_per_step:,} substeps per 1/30 s step",
@@ -841,8 +949,9 @@ def sand_summary(res: SandResult) -> str:
     else:
         lines.append(f"the only step took {res.first_step_seconds:.2f} s, compiling included")
     lines.append(
-        f"heap: {res.heap_fraction:.0%} of the grains in the funnel (below the disc), the "
-        f"highest at rest at y = {res.heap_top:.2f}; largest overlap at the end "
+        f"cone: {_plural(res.cone_grains, 'grain')} at rest on the disc, the highest at "
+        f"y = {res.cone_top:.2f}; {res.heap_fraction:.0%} of the grains in the funnel (below "
+        f"the disc), the highest at rest at y = {res.heap_top:.2f}; largest overlap at the end "
         f"{res.max_overlap:.2%} of a diameter between grains, {res.max_wall_overlap:.2%} "
         f"against the world"
     )

@@ -73,6 +73,7 @@ from fastsdf.fields.grid import (
     _stats,
 )
 from fastsdf.function import Function
+from fastsdf.notice import compiling_first
 
 __all__ = ["NarrowBandGridSDF", "sample_band", "measure_band_error"]
 
@@ -662,15 +663,18 @@ class NarrowBandGridSDF:
         grad = np.empty((n, 2)) if compute_gradient else None
         if n:
             workers = numba.get_num_threads()
-            if n >= PARALLEL_MIN_POINTS:
-                if compute_gradient:
-                    miss = _vg_par(self.sampler_data, xs, ys, out, grad, 64 * workers, workers)
+            par = n >= PARALLEL_MIN_POINTS
+            kern = (_vg_par if par else _vg_range) if compute_gradient else None
+            kern = kern or (_v_par if par else _v_range)
+            with compiling_first("the band's interpolation", kern):
+                if par and compute_gradient:
+                    miss = kern(self.sampler_data, xs, ys, out, grad, 64 * workers, workers)
+                elif par:
+                    miss = kern(self.sampler_data, xs, ys, out, 64 * workers, workers)
+                elif compute_gradient:
+                    miss = kern(self.sampler_data, xs, ys, out, grad, 0, n)
                 else:
-                    miss = _v_par(self.sampler_data, xs, ys, out, 64 * workers, workers)
-            elif compute_gradient:
-                miss = _vg_range(self.sampler_data, xs, ys, out, grad, 0, n)
-            else:
-                miss = _v_range(self.sampler_data, xs, ys, out, 0, n)
+                    miss = kern(self.sampler_data, xs, ys, out, 0, n)
             if miss:
                 idx = np.flatnonzero(np.isnan(out) & np.isfinite(xs) & np.isfinite(ys))
                 if idx.size:

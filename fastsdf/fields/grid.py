@@ -45,6 +45,7 @@ from numpy.typing import ArrayLike
 
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
 from fastsdf.function import Function
+from fastsdf.notice import compiling_first
 
 __all__ = ["GridSDF", "GridError", "measure_error", "sample_stored", "sample_fd", "BYTES_PER_NODE"]
 
@@ -757,18 +758,21 @@ class GridSDF:
             par = n >= PARALLEL_MIN_POINTS
             workers = numba.get_num_threads()
             chunks = 64 * workers
+            stored = self.gradient == "stored"
             if compute_gradient:
-                stored = self.gradient == "stored"
-                if par:
-                    kern = _vg_stored_par if stored else _vg_fd_par
-                    outside = kern(self.sampler_data, xs, ys, out, grad, chunks, workers)
-                else:
-                    kern = _vg_stored_range if stored else _vg_fd_range
-                    outside = kern(self.sampler_data, xs, ys, out, grad, 0, n)
-            elif par:
-                outside = _v_par(self.sampler_data, self._channels, xs, ys, out, chunks, workers)
+                kern = (_vg_stored_par if stored else _vg_fd_par) if par else None
+                kern = kern or (_vg_stored_range if stored else _vg_fd_range)
             else:
-                outside = _v_range(self.sampler_data, self._channels, xs, ys, out, 0, n)
+                kern = _v_par if par else _v_range
+            with compiling_first("the grid's interpolation", kern):
+                if compute_gradient and par:
+                    outside = kern(self.sampler_data, xs, ys, out, grad, chunks, workers)
+                elif compute_gradient:
+                    outside = kern(self.sampler_data, xs, ys, out, grad, 0, n)
+                elif par:
+                    outside = kern(self.sampler_data, self._channels, xs, ys, out, chunks, workers)
+                else:
+                    outside = kern(self.sampler_data, self._channels, xs, ys, out, 0, n)
             if outside and self.mode == "exact":
                 self._exact_outside(xs, ys, out, grad)
         if grad is not None:

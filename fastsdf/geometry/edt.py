@@ -21,6 +21,8 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import ArrayLike
 
+from fastsdf.notice import compiling_first
+
 __all__ = ["distance_transform", "signed_distance_transform", "EdtSpacing", "edt_kernel"]
 
 #: Columns per tile in the column pass (one tile row is two cache lines of float64).
@@ -220,7 +222,8 @@ def distance_transform(
     else:
         fi = fj = np.empty((0, 0), dtype=np.int32)
     if a.size:
-        edt_kernel(a, sp, False, out, fi, fj)
+        with compiling_first("the distance transform", edt_kernel):
+            edt_kernel(a, sp, False, out, fi, fj)
         np.sqrt(out, out=out)
     if return_indices:
         return out, np.stack([fi, fj])
@@ -248,8 +251,9 @@ def signed_distance_transform(
     else:
         fi = fj = np.empty((0, 0), dtype=np.int32)
     if a.size:
-        edt_kernel(a, sp, True, out, fi, fj)
-        _finish_signed(out, a, 0.5 * min(sp.hi, sp.hj))
+        with compiling_first("the distance transform", edt_kernel, _finish_signed):
+            edt_kernel(a, sp, True, out, fi, fj)
+            _finish_signed(out, a, 0.5 * min(sp.hi, sp.hj))
     if return_indices:
         return out, np.stack([fi, fj])
     return out

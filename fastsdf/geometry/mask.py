@@ -37,7 +37,8 @@ from numpy.typing import ArrayLike
 
 from fastsdf.fields.grid import GridSDF
 from fastsdf.function import Function
-from fastsdf.geometry.edt import distance_transform, signed_distance_transform
+from fastsdf.geometry.edt import distance_transform, edt_kernel, signed_distance_transform
+from fastsdf.notice import compiling_first
 
 __all__ = ["from_mask", "from_image", "pixel_grid", "edge_offset"]
 
@@ -249,7 +250,8 @@ def from_image(
         )
     if inside.all() or not inside.any():
         raise ValueError("image must hold pixels on both sides of the threshold")
-    d = _subpixel_distance(cov, inside, partial) * px
+    with compiling_first("the distance transform of images", edt_kernel, _nearest_edge_point):
+        d = _subpixel_distance(cov, inside, partial) * px
     nodes, gb = pixel_grid(d, bounds, origin)
     return GridSDF.from_samples(nodes, gb, exact=exact, mode=mode, dtype=dtype, exactness="none")
 

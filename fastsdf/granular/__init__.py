@@ -40,7 +40,11 @@ from fastsdf.granular.params import (
     derived_stiffness,
     restitution_from_damping,
 )
-from fastsdf.granular.simulation import DEFAULT_SUBSTEPS_PER_CONTACT, GranularSimulation
+from fastsdf.granular.simulation import (
+    DEFAULT_SUBSTEPS_PER_CONTACT,
+    GranularSimulation,
+    SubstepWarning,
+)
 
 __all__ = [
     "DEFAULT_SUBSTEPS_PER_CONTACT",
@@ -50,6 +54,7 @@ __all__ = [
     "Grains",
     "GranularSimulation",
     "ReposeAngle",
+    "SubstepWarning",
     "brute_force_pairs",
     "check_contact_law",
     "contact_time",

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import math
 import time as _time
+from collections.abc import Callable
 from typing import Any
 
 import numba
@@ -89,13 +90,16 @@ from fastsdf.granular.params import (
     derived_stiffness,
 )
 from fastsdf.introspect import show_init_signature
-from fastsdf.notice import compiling
+from fastsdf.notice import RunProgress, compiling, compiling_first, warn_caller
 
 __all__ = [
     "DEFAULT_RADIUS",
     "DEFAULT_SUBSTEPS_PER_CONTACT",
     "PARALLEL_MIN_GRAINS",
+    "SUBSTEPS_WARNING",
+    "SUBSTEPS_WARNING_WORK",
     "GranularSimulation",
+    "SubstepWarning",
 ]
 
 #: The radius of grains given without one (length units: the library's scenes span 4).
@@ -105,6 +109,20 @@ DEFAULT_SUBSTEPS_PER_CONTACT = 40
 #: Fewer grains than this step on one thread: waking the other threads for every pass of
 #: every substep costs more than it saves (and far more on a busy machine).
 PARALLEL_MIN_GRAINS = 4096
+#: :meth:`GranularSimulation.run` warns (once per simulation) when a frame takes more substeps
+#: than this (the library's default grains, radius 0.02 with a derived stiffness in its
+#: 4-high scenes under g = 9.81, take about 940) and at least
+#: :data:`SUBSTEPS_WARNING_WORK` grain-substeps, a frame of a second or so on a busy 2-core
+#: machine (a frame of a few grains is quick however many substeps it takes).
+SUBSTEPS_WARNING = 1000
+SUBSTEPS_WARNING_WORK = 2_000_000
+#: Grain-substeps between two progress updates of a run (a few hundredths of a second).
+_PROGRESS_WORK = 200_000
+
+
+class SubstepWarning(UserWarning):
+    """A granular simulation cuts each frame into very many substeps (see
+    :data:`SUBSTEPS_WARNING`): its contact is short against the frame."""
 
 
 def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
@@ -482,15 +500,17 @@ class GranularSimulation:
             if self._old_nbr is None:
                 self._spring[:] = 0.0
             else:
-                carry_springs(
-                    self._perm,
-                    self._old_start,
-                    self._old_nbr,
-                    self._old_spring,
-                    self._nbr_start,
-                    self._nbr,
-                    self._spring,
-                )
+                # (first called at the first rebuild of a run, after the constructor's)
+                with compiling_first("the granular kernels' contact memory", carry_springs):
+                    carry_springs(
+                        self._perm,
+                        self._old_start,
+                        self._old_nbr,
+                        self._old_spring,
+                        self._nbr_start,
+                        self._nbr,
+                        self._spring,
+                    )
         np.copyto(self._x_ref, g.x)
         np.copyto(self._y_ref, g.y)
         # float32 references round by up to 2**-24 of the largest coordinate, per axis
@@ -543,18 +563,20 @@ class GranularSimulation:
         if self.world is not None:
             idx, d, gx, gy, vn = self._query_world()
             if idx.shape[0]:
-                fx, fy = wall_forces(
-                    self.grains,
-                    idx,
-                    d,
-                    gx,
-                    gy,
-                    vn,
-                    self._wall_spring if self.wall_contact.history else None,
-                    self.wall_contact,
-                    self.bulk,
-                    dt,
-                )
+                # (compiled when the first grain comes near the world, often within a run)
+                with compiling_first("the granular kernels' contacts with the world", wall_forces):
+                    fx, fy = wall_forces(
+                        self.grains,
+                        idx,
+                        d,
+                        gx,
+                        gy,
+                        vn,
+                        self._wall_spring if self.wall_contact.history else None,
+                        self.wall_contact,
+                        self.bulk,
+                        dt,
+                    )
                 wall_sum[0] += fx
                 wall_sum[1] += fy
             self._wall_d = d
@@ -565,11 +587,89 @@ class GranularSimulation:
     def run(self, frames: int = 1) -> None:
         """Advance ``frames`` frames of ``timestep`` seconds (``substeps_per_frame`` substeps
         each). :attr:`wall_force` becomes the mean force the world exerted on the grains over
-        the last frame."""
+        the last frame.
+
+        A run expected to take longer than :data:`fastsdf.notice.PROGRESS_AFTER_S` shows its
+        progress and the time left on stderr; a frame of more than :data:`SUBSTEPS_WARNING`
+        substeps (and :data:`SUBSTEPS_WARNING_WORK` grain-substeps) is warned about (a
+        :class:`SubstepWarning`, once per simulation) with its cause and remedies."""
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
             raise ValueError(f"frames must be an int >= 0, got frames={frames!r}")
-        for _ in range(int(frames)):
-            self.advance(self.substeps_per_frame)
+        frames = int(frames)
+        if not frames:
+            return
+        self._warn_substeps()
+        per_frame = self.substeps_per_frame
+        n = self.grains.x.shape[0]
+        every = max(1, _PROGRESS_WORK // n)
+        what = f"{n:,} grains, run({frames}) at {per_frame:,} substeps per frame"
+        with RunProgress(frames, what, "frames") as bar:
+            for k in range(frames):
+                self._tick = (lambda s, k=k: bar.update(k + s / per_frame), every)
+                try:
+                    self.advance(per_frame)
+                finally:
+                    self._tick = None
+                bar.update(k + 1)
+
+    #: While :meth:`run` steps: ``(tick(substeps_done), every)``, called every ``every``
+    #: substeps of a frame (its progress).
+    _tick: tuple[Callable[[int], None], int] | None = None
+
+    def _warn_substeps(self) -> None:
+        """Warn once, with the cause and the remedies, when a frame takes more than
+        :data:`SUBSTEPS_WARNING` substeps and :data:`SUBSTEPS_WARNING_WORK` grain-substeps."""
+        per_frame = self.substeps_per_frame
+        work = per_frame * self.grains.x.shape[0]
+        if per_frame <= SUBSTEPS_WARNING or work < SUBSTEPS_WARNING_WORK:
+            return
+        if getattr(self, "_warned_substeps", False):
+            return
+        self._warned_substeps = True
+        head = (
+            f"{per_frame:,} substeps per frame of {self.timestep:.4g} s ({work:,} "
+            f"grain-substeps per frame): "
+        )
+        if self._substep_given is not None:
+            warn_caller(
+                head + f"the substep given, {self.substep:.3g} s, is that short (the lightest "
+                f"contact lasts {self.contact_time:.3g} s). Fewer substeps: a longer substep, "
+                f"or substep=None (the contact's time / substeps_per_contact).",
+                SubstepWarning,
+            )
+            return
+        m = self.density * math.pi * self._r_min**2
+        pair = contact_time(m / 2, self.contact)
+        against_world = self.contact_time < pair  # the world's law is the stiffer one
+        law = self.wall_contact if against_world else self.contact
+        given = self._laws_given[1] if against_world else self._laws_given[0]
+        name = "wall_contact" if against_world else "contact"
+        k = float(law.stiffness)  # type: ignore[arg-type]
+        who = (
+            f"a grain of radius {self._r_min:.3g} and mass {m:.3g} against the world"
+            if against_world
+            else f"two grains of radius {self._r_min:.3g} and mass {m:.3g}"
+        )
+        if given is None or given.stiffness is None:
+            why = (
+                f"stiffness {k:.4g}, derived for a column of grains as tall as the world, "
+                f"H = {self._height:.3g} (a grid's bounds, else the grains' extent at the "
+                f"start; see ContactLaw), to overlap 1% of a diameter at its bottom"
+            )
+            softer = f"a {name} law with a stiffness below the derived one"
+        else:
+            why = f"stiffness {k:.4g}, as given"
+            softer = f"a softer {name} law"
+        warn_caller(
+            head + f"the lightest contact, {who} ({why}), lasts t_c = pi sqrt(m_eff / k) = "
+            f"{self.contact_time:.3g} s and is resolved by {self._substeps_per_contact:g} "
+            f"substeps. Fewer substeps: {softer} (ContactLaw(stiffness=...): the substeps "
+            f"shrink as the square root of the stiffness, resting overlaps grow as its "
+            f"inverse); bigger grains (t_c grows with the radius); or fewer "
+            f"substeps_per_contact (>= 10; less accurate restitution). A shorter timestep "
+            f"gives fewer substeps per frame, not fewer per second.",
+            SubstepWarning,
+        )
 
     def advance(self, substeps: int) -> None:
         """Advance ``substeps`` substeps of :attr:`substep` seconds (velocities end
@@ -591,7 +691,10 @@ class GranularSimulation:
         # The reference positions are float32: allow for their rounding in the skin test.
         lim = max(0.5 * self.skin - self._ref_margin, 0.0) ** 2
         wall_sum = np.zeros(2)
+        tick, every = self._tick or (None, 0)
         for s in range(substeps):
+            if tick is not None and s and s % every == 0:
+                tick(s)
             t0 = _time.perf_counter()
             kick_drift(
                 g,

@@ -21,7 +21,7 @@ from fastsdf.backends import prune as _prune
 from fastsdf.device import to_host
 from fastsdf.function import Function
 from fastsdf.introspect import show_init_signature
-from fastsdf.notice import compiling
+from fastsdf.notice import RunProgress, compiling
 from fastsdf.particles import kernels as _kernels
 from fastsdf.particles.checkpoint import load_simulation, save_simulation
 from fastsdf.particles.forces import Gravity, fuse, python_forces
@@ -72,6 +72,14 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 #: Particles per block in :meth:`ParticleSimulation.run` (block state fits in the L1/L2 cache).
 DEFAULT_BLOCK = 512
+#: A run of at least this many particle-steps (a second or so of compiled work) goes in
+#: pieces, so that it can show its progress once it is seen to take longer than
+#: :data:`fastsdf.notice.PROGRESS_AFTER_S` (the same bits: particles do not interact).
+PROGRESS_MIN_PARTICLE_STEPS = 50_000_000
+#: The first piece of such a run, in particle-steps; later pieces last about
+#: ``_PROGRESS_PIECE_S`` seconds each at the rate seen.
+_PROGRESS_FIRST_PIECE = 10_000_000
+_PROGRESS_PIECE_S = 0.5
 
 _INTEGRATORS = ("symplectic", "euler")
 
@@ -104,7 +112,9 @@ def _recorded(sim: Any, steps: Any, record: Any) -> bool:
             f"record must be a recorder with a run(sim, steps) method, such as "
             f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
         )
-    record.run(sim, int(steps))
+    kind = "grains" if hasattr(sim, "engine") else "particles"
+    with RunProgress(int(steps), f"{sim.n:,} {kind}, run({steps}, record=...)", "steps"):
+        record.run(sim, int(steps))  # (the runs it makes report to this progress)
     return True
 
 
@@ -577,8 +587,11 @@ class ParticleSimulation:
         steps)``).
 
         With only fused forces (:class:`Gravity`, :class:`Drag`, numba ``@njit`` forces) this
-        is one compiled call for all steps; with Python force generators, one generator
-        evaluation and one compiled step per step.
+        is one compiled call for all steps (a long run, from
+        :data:`PROGRESS_MIN_PARTICLE_STEPS`, goes in pieces with the same results); with Python
+        force generators, one generator evaluation and one compiled step per step. A run seen
+        to take longer than :data:`fastsdf.notice.PROGRESS_AFTER_S` shows its progress and the
+        time left on stderr.
 
         Errors. A particle whose state cannot be stepped (a non-finite position or velocity, a
         mass that is not > 0 where the mass is used, a negative or non-finite radius, ``cr`` or
@@ -598,17 +611,37 @@ class ParticleSimulation:
         self._check_state_shape()
         ax, ay, drag, python, user = self._fused_params()
         module, data = self._kernel(user)
-        if not python:
-            bad = self._launch(module, data, int(steps), ax, ay, drag, None)
-            self.t += steps * self.dt
+        what = f"{self.n:,} particles, run({steps})"
+        if not python and self.n * steps < PROGRESS_MIN_PARTICLE_STEPS:
+            with RunProgress(steps, what, "steps") as bar:  # (shown only inside a recorded run)
+                bad = self._launch(module, data, int(steps), ax, ay, drag, None)
+                self.t += steps * self.dt
+                bar.update(steps)
+        elif not python:  # in pieces, with progress
+            bad = done = 0
+            piece = max(1, _PROGRESS_FIRST_PIECE // self.n)
+            with RunProgress(steps, what, "steps") as bar:
+                while done < steps:
+                    k = min(piece, steps - done)
+                    t0 = time.perf_counter()
+                    bad += self._launch(module, data, k, ax, ay, drag, None)
+                    per_step = (time.perf_counter() - t0) / k
+                    self.t += k * self.dt
+                    done += k
+                    bar.update(done)
+                    piece = max(1, int(_PROGRESS_PIECE_S / max(per_step, 1e-9)))
+                    module, data = self._kernel(user)  # (the fallback may have been bound)
         else:
             bad = 0
-            for _ in range(int(steps)):
-                ext = self._python_forces(python)
-                bad += self._launch(module, data, 1, ax, ay, drag, ext)
-                self.t += self.dt
-                # (a step may have bound the grid's exact fallback: the next uses its address)
-                module, data = self._kernel(user)
+            with RunProgress(steps, what, "steps") as bar:
+                for i in range(int(steps)):
+                    ext = self._python_forces(python)
+                    bad += self._launch(module, data, 1, ax, ay, drag, ext)
+                    self.t += self.dt
+                    bar.update(i + 1)
+                    # (a step may have bound the grid's exact fallback: the next uses its
+                    # address)
+                    module, data = self._kernel(user)
         if bad:
             raise self._frozen_error(bad, int(steps))
 
