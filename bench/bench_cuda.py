@@ -129,8 +129,8 @@ _cuda = None  # numba.cuda, once kernel_variants has loaded it
 
 def kernel_variants(sim: bool) -> list:
     """The notebook's world's point function under other launch shapes and output layouts
-    (for tuning the generated kernels: one grid-stride kernel capped at 65,536 blocks of 256
-    threads is the shipped shape)."""
+    (for tuning the generated kernels: one point per thread in blocks of 256 is the shipped
+    shape)."""
     from fastsdf.device import cuda
     from fastsdf.shapes.scenes import seed_world
 
@@ -145,6 +145,17 @@ def kernel_variants(sim: bool) -> list:
     out, grad = cu.device_array(n), cu.device_array((n, 2))
     gx, gy = cu.device_array(n), cu.device_array(n)
     (u,) = k.table_args()
+
+    @cu.jit
+    def grid_stride(xs, ys, out, grad, u):
+        i = _cuda.grid(1)
+        stride = _cuda.gridsize(1)
+        while i < xs.shape[0]:
+            d, a, b = point_vg(xs[i], ys[i], u)
+            out[i] = d
+            grad[i, 0] = a
+            grad[i, 1] = b
+            i += stride
 
     @cu.jit
     def one_per_thread(xs, ys, out, grad, u):
@@ -174,9 +185,13 @@ def kernel_variants(sim: bool) -> list:
     shipped = k.module.batch_vg
     cap = 4 if sim else 65536  # (the simulator runs each thread as a Python thread)
     for name, run in (
-        ("shipped: grid-stride, 65536 x 256", lambda: shipped[cap, 256](xd, yd, out, grad, u)),
         (
-            "one point per thread, 256",
+            "shipped: one point per thread, 256",
+            lambda: shipped[-(-n // 256), 256](xd, yd, out, grad, u),
+        ),
+        ("grid-stride, 65536 x 256", lambda: grid_stride[cap, 256](xd, yd, out, grad, u)),
+        (
+            "one point per thread, 256 (kernel defined here)",
             lambda: one_per_thread[-(-n // 256), 256](xd, yd, out, grad, u),
         ),
         (
