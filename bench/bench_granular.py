@@ -57,7 +57,8 @@ def hex_bed(n: int) -> tuple:
     return np.stack([x, y], 1), cols * SPACING
 
 
-def ours(n: int, history: bool = False) -> GranularSimulation:
+def ours(n: int, history: bool = False, device: str = "cpu") -> GranularSimulation:
+    """fastsdf's engine on the dense bed of about ``n`` discs, on ``device``."""
     pos, period = hex_bed(n)
     m = math.pi / 4
     law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5, history=history)
@@ -74,6 +75,7 @@ def ours(n: int, history: bool = False) -> GranularSimulation:
         timestep=DT,
         skin=SKIN,
         periodic_x=(0.0, period),
+        device=device,
     )
 
 

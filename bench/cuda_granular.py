@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -39,30 +38,10 @@ COMMAND = "python -m bench.cuda_granular"
 def bed(n: int, history: bool, device: str) -> tuple:
     """The dense bed of ``bench.bench_granular`` (about ``n`` discs) on ``device``, and the
     number of discs (reading the simulation's positions would copy its state)."""
-    import fastsdf as fs
-    from fastsdf.granular import ContactLaw, GranularSimulation, restitution_from_damping
+    from .bench_granular import ours
 
-    from .bench_granular import DT, GAMMA_N, KN, MU, SKIN, hex_bed
-
-    pos, period = hex_bed(n)
-    m = math.pi / 4
-    law = ContactLaw(KN, restitution_from_damping(GAMMA_N, KN, m / 2), MU, 0.5, history=history)
-    wall = law._replace(restitution=restitution_from_damping(GAMMA_N, KN, m))
-    sim = GranularSimulation(
-        fs.Halfspace((0.0, 1.0), 0.0),
-        positions=pos,
-        radius=0.5,
-        contacts=law,
-        wall_contacts=wall,
-        density=1.0,
-        gravity=(0.0, -1.0),
-        substep=DT,
-        timestep=DT,
-        skin=SKIN,
-        periodic_x=(0.0, period),
-        device=device,
-    )
-    return sim, len(pos)
+    rows = max(round(math.sqrt(n)), 4)  # the lattice of bench_granular.hex_bed
+    return ours(n, history, device), rows * (rows + rows % 2)
 
 
 def _timed(sim: Any, n: int, steps: int, repeats: int) -> list:

@@ -23,30 +23,22 @@ cuda = _load_cuda()
 THREADS = 256
 
 
-@cuda.jit
-def _vg_stored(data, xs, ys, out, grad, outside):
-    i = cuda.grid(1)
-    stride = cuda.gridsize(1)
-    while i < xs.shape[0]:
-        d, gx, gy, inside = sample_stored(data, xs[i], ys[i])
-        out[i] = d
-        grad[i, 0] = gx
-        grad[i, 1] = gy
-        outside[i] = not inside
-        i += stride
+def _sampling_kernel(sampler: Any) -> Any:
+    """The kernel of one of the grid's samplers: value, gradient and 'outside' per point."""
 
+    @cuda.jit
+    def sample(data, xs, ys, out, grad, outside):
+        i = cuda.grid(1)
+        stride = cuda.gridsize(1)
+        while i < xs.shape[0]:
+            d, gx, gy, inside = sampler(data, xs[i], ys[i])
+            out[i] = d
+            grad[i, 0] = gx
+            grad[i, 1] = gy
+            outside[i] = not inside
+            i += stride
 
-@cuda.jit
-def _vg_fd(data, xs, ys, out, grad, outside):
-    i = cuda.grid(1)
-    stride = cuda.gridsize(1)
-    while i < xs.shape[0]:
-        d, gx, gy, inside = sample_fd(data, xs[i], ys[i])
-        out[i] = d
-        grad[i, 0] = gx
-        grad[i, 1] = gy
-        outside[i] = not inside
-        i += stride
+    return sample
 
 
 @cuda.jit
@@ -74,7 +66,7 @@ def _count(flags, total):
     cuda.atomic.add(total, 0, c)
 
 
-_SAMPLE = {"stored": _vg_stored, "fd": _vg_fd}
+_SAMPLE = {"stored": _sampling_kernel(sample_stored), "fd": _sampling_kernel(sample_fd)}
 
 
 def device_data(grid: Any) -> tuple:
