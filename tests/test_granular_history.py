@@ -356,3 +356,41 @@ def test_spinning_disc_on_a_floor_keeps_energy_in_its_tangential_and_rolling_spr
 
     rows = elastic_contact_energies(sim, ratio)
     check_conserved_with_springs(rows, e0, ["tangential_springs", "rolling_springs"])
+
+
+def test_energy_has_the_same_parts_on_every_route():
+    """``energy()`` of grains in the particle family, of their engine and of plain particles:
+    one dict of named parts and their total. The grains' parts agree with the family's own
+    kinetic and potential energy and with the state (rotational ``m r**2 w**2 / 4``); plain
+    particles hold no rotation and no springs."""
+    import fastsdf.particles as phys
+
+    floor = fs.Halfspace((0.0, 1.0), 0.0)
+    law = ContactLaw(stiffness=2e3, friction=0.5, history=True, rolling_friction=0.2)
+    xs = np.arange(6) * 0.05
+    pos = np.c_[xs, np.full(6, 0.02 - 6e-6)]  # on the floor, pressed by about their weight
+    sim = phys.ParticleSimulation(floor, positions=pos, radius=0.02, contacts=law, timestep=0.01)
+    sim.force_generators.append(phys.Gravity((0.0, -9.81)))
+    sim.p["v"] = np.c_[np.full(6, 0.3), np.zeros(6)]  # sliding: the springs stretch
+    sim.run(1)
+    assert sim.engine.contact_counts() == (0, 6)
+    e = sim.energy()
+    parts = ("kinetic", "rotational", "potential")
+    springs = ("normal_springs", "tangential_springs", "rolling_springs")
+    assert list(e) == [*parts, *springs, "total"]
+    assert e == sim.engine.energy()
+    assert e["kinetic"] == pytest.approx(sim.kinetic_energy(), rel=1e-12)
+    assert e["potential"] == pytest.approx(sim.potential_energy(), rel=1e-12)
+    m, r, w = sim.p["m"], sim.p["r"], sim.p["omega"]
+    assert e["rotational"] == pytest.approx(float(np.sum(m * r * r * w * w / 4)), rel=1e-12)
+    assert e["rotational"] > 0 and all(e[k] > 0 for k in springs)
+    assert e["total"] == pytest.approx(sum(e[k] for k in (*parts, *springs)), rel=1e-12)
+
+    plain = phys.ParticleSimulation(floor, n=5, seed=0)
+    plain.force_generators.append(phys.Gravity())
+    plain.run(2)
+    p = plain.energy()
+    assert list(p) == list(e)
+    assert p["rotational"] == 0.0 and all(p[k] == 0.0 for k in springs)
+    assert p["kinetic"] == pytest.approx(plain.kinetic_energy(), rel=1e-12)
+    assert p["total"] == pytest.approx(plain.kinetic_energy() + plain.potential_energy())
