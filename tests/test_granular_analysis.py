@@ -1,11 +1,12 @@
-"""The angle of repose measured on synthetic heaps whose slopes are known."""
+"""The angle of repose measured on synthetic heaps whose slopes are known; flow rates and
+Beverloo fits of synthetic discharges whose rates and laws are known."""
 
 import math
 
 import numpy as np
 import pytest
 
-from fastsdf.granular import repose_angle
+from fastsdf.granular import BeverlooFit, beverloo_fit, flow_rate, repose_angle
 
 
 def _packed_triangle(left_deg, right_deg, radius=0.5, base=40.0):
@@ -87,3 +88,56 @@ def test_a_flat_layer_has_no_flank():
 def test_bad_input_is_named(args, kwargs, match):
     with pytest.raises(ValueError, match=match):
         repose_angle(*args, **kwargs)
+
+
+def test_flow_rate_is_the_slope_of_a_staircase_inside_its_window():
+    """Grains leaving one by one at rate 7 (a staircase sampled at 0.1), after a start at
+    rate 2 and before a tail at rate 1: the window [low, high] of counts sees only the 7, to
+    the staircase's rounding."""
+    t = np.arange(0.0, 60.0, 0.1)
+    flow = np.where(t < 5, 2 * t, np.where(t < 40, 10 + 7 * (t - 5), 255 + (t - 40)))
+    counts = np.floor(flow)
+    assert flow_rate(t, counts, low=20, high=240) == pytest.approx(7.0, rel=5e-3)
+    assert flow_rate(t, counts, after=10.0, high=240) == pytest.approx(7.0, rel=5e-3)
+    assert flow_rate(t, counts) < 6.0  # the whole run mixes the three rates
+
+
+@pytest.mark.parametrize("c,k,b", [(1.1, 1.7, 1.5), (0.6, 2.5, 1.3), (2.0, 1.0, 1.8)])
+def test_beverloo_fit_recovers_the_law_it_is_given(c, k, b):
+    widths = np.array([4.0, 5.0, 6.5, 8.0, 10.0])
+    rates = BeverlooFit(c, k, b).rate(widths, gravity=2.0)
+    assert rates == pytest.approx(c * math.sqrt(2.0) * (widths - k) ** b)
+    free = beverloo_fit(widths, rates, gravity=2.0)
+    assert (free.C, free.k, free.exponent) == pytest.approx((c, k, b), rel=1e-6)
+    known_k = beverloo_fit(widths[:3], rates[:3], gravity=2.0, k=k)
+    assert (known_k.C, known_k.exponent) == pytest.approx((c, b), rel=1e-9)
+    known_b = beverloo_fit(widths[:3], rates[:3], gravity=2.0, exponent=b)
+    assert (known_b.C, known_b.k) == pytest.approx((c, k), rel=1e-9)
+    # the grains' diameter scales k: slots of 2 diameters' worth at d = 2
+    in_d = beverloo_fit(widths * 2.0, rates, gravity=2.0, diameter=2.0, exponent=b)
+    assert in_d.k == pytest.approx(k, rel=1e-9)
+
+
+def test_beverloo_fit_with_a_wrong_k_biases_the_exponent_the_expected_way():
+    # a true k of 2.2 fitted with k = 1.5: the slots seem wider, the exponent larger
+    widths = np.array([5.0, 6.0, 7.0])
+    rates = BeverlooFit(1.0, 2.2, 1.5).rate(widths)
+    b = beverloo_fit(widths, rates, k=1.5).exponent
+    expected = 1.5 * math.log(4.8 / 2.8) / math.log(5.5 / 3.5)  # two-point slope, nearly linear
+    assert b == pytest.approx(expected, rel=2e-2)
+    assert b > 1.5
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda: flow_rate([0, 1, 2], [0, 1]), "one length"),
+        (lambda: flow_rate([0, 1, 2, 3], [0, 1, 2, 3], low=2), "needs 3 samples"),
+        (lambda: beverloo_fit([4, 5, 6], [1, 2, 3]), "needs 4 distinct widths"),
+        (lambda: beverloo_fit([4, 5], [1, 0], k=1.5), "rates must be > 0"),
+        (lambda: beverloo_fit([4, 5], [1, 2], k=4.5), "no gap"),
+    ],
+)
+def test_bad_flow_input_is_named(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()

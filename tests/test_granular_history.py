@@ -254,3 +254,143 @@ def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
 def test_bad_history_parameters_are_named(law, error, match):
     with pytest.raises(error, match=match):
         GranularSimulation(None, positions=[[0.0, 0.0]], radius=0.5, contacts=law)
+
+
+# Springs store energy: without dashpots, and while no spring slips, the kinetic, rotational
+# and spring energies sum to a constant (the tangential force does work -k_t s v_t on the
+# grains, the spring's k_t s**2 / 2 grows by k_t s v_t; likewise the rolling torque). A spring
+# cut down to Coulomb's cap dissipates, so the check stops where a spring comes near its cap
+# (which every spring does as the contact ends: the cap goes to 0 with the overlap). The
+# stretch grows with the velocity the force pass sees, a step's end, not its middle: the
+# energy drifts at first order in the substep, hence the fine substep here.
+ELASTIC_SUBSTEPS_PER_CONTACT = 2560
+
+
+def elastic_contact_energies(sim, spring_ratio):
+    """Step ``sim`` one substep at a time through its first contact; each substep's energy
+    parts (the dict of ``energy()``) and whether every spring is below 0.9 of its cap
+    (``spring_ratio(sim, energy)``: the largest spring over its cap)."""
+    rows = []
+    for _ in range(100_000):
+        sim.advance(1)
+        touching = sum(sim.contact_counts()) > 0
+        if touching:
+            e = sim.energy()
+            rows.append((e, spring_ratio(sim, e) < 0.9))
+        elif rows:
+            return rows
+    raise AssertionError("the contact did not end")
+
+
+def check_conserved_with_springs(rows, e0, springs):
+    sticking = [e for e, ok in rows if ok]
+    assert len(sticking) >= 0.75 * len(rows)  # most of the contact is checked
+    for e in sticking:
+        assert abs(e["total"] - e0) < 1e-3 * e0
+        assert e["total"] == pytest.approx(sum(v for k, v in e.items() if k != "total"), rel=1e-12)
+    # the springs hold enough that the sum without them is not conserved
+    for name in springs:
+        assert max(e[name] for e in sticking) > 5e-3 * e0, name
+    assert max(abs(e["total"] - sum(e[k] for k in springs) - e0) for e in sticking) > 2e-2 * e0
+
+
+def test_oblique_elastic_pair_keeps_energy_in_its_tangential_spring():
+    """Two equal discs, one at rest, struck off-centre (restitution 1: no dashpots; friction
+    10: the spring holds): the tangential spring takes up to about 6% of the energy."""
+    law = ContactLaw(stiffness=1e4, restitution=1.0, friction=10.0, history=True)
+    sim = GranularSimulation(
+        None,
+        positions=[[-1.0, -0.3], [0.2, 0.3]],
+        radius=0.5,
+        velocities=[[2.0, 0.0], [0.0, 0.0]],
+        gravity=(0.0, 0.0),
+        contacts=law,
+        timestep=1e-3,
+        substeps_per_contact=ELASTIC_SUBSTEPS_PER_CONTACT,
+    )
+    e0 = sim.energy()["total"]
+    assert e0 == pytest.approx(0.5 * math.pi * 0.25 * 4.0)  # m v**2 / 2, density 1
+    kn, kt = law.stiffness, law.stiffness * law.tangential_stiffness
+
+    def ratio(sim, e):
+        _, stretch, _ = sim.tangential_springs()
+        x = sim.positions
+        overlap = 1.0 - float(np.hypot(*(x[0] - x[1])))
+        return kt * float(np.abs(stretch).max()) / (law.friction * kn * overlap)
+
+    rows = elastic_contact_energies(sim, ratio)
+    check_conserved_with_springs(rows, e0, ["tangential_springs"])
+
+
+def test_spinning_disc_on_a_floor_keeps_energy_in_its_tangential_and_rolling_springs():
+    """A disc spinning against its motion lands obliquely on a floor (restitution 1, friction
+    10, rolling friction 0.2): both springs of the wall contact store energy."""
+    law = ContactLaw(
+        stiffness=1e4, restitution=1.0, friction=10.0, history=True, rolling_friction=0.2
+    )
+    sim = GranularSimulation(
+        fs.Halfspace((0.0, 1.0), 0.0),
+        positions=[[0.0, 0.55]],
+        radius=0.5,
+        velocities=[[1.0, -1.0]],
+        gravity=(0.0, 0.0),
+        contacts=law,
+        timestep=1e-3,
+        substeps_per_contact=ELASTIC_SUBSTEPS_PER_CONTACT,
+    )
+    sim.set_state(angular_velocities=[2.0])
+    e0 = sim.energy()["total"]
+    m = math.pi * 0.25
+    assert e0 == pytest.approx(0.5 * m * 2.0 + 0.25 * m * 0.25 * 4.0)
+    kn, kt = law.stiffness, law.stiffness * law.tangential_stiffness
+    kr = 2.25 * kn * law.rolling_friction**2 * 0.25  # R_eff = R against the world
+
+    def ratio(sim, e):
+        _, _, wall = sim.tangential_springs()
+        overlap = 0.5 - float(sim.positions[0, 1])
+        torque = math.sqrt(2.0 * kr * e["rolling_springs"])
+        return max(
+            kt * abs(float(wall[0])) / (law.friction * kn * overlap),
+            torque / (law.rolling_friction * 0.5 * kn * overlap),
+        )
+
+    rows = elastic_contact_energies(sim, ratio)
+    check_conserved_with_springs(rows, e0, ["tangential_springs", "rolling_springs"])
+
+
+def test_energy_has_the_same_parts_on_every_route():
+    """``energy()`` of grains in the particle family, of their engine and of plain particles:
+    one dict of named parts and their total. The grains' parts agree with the family's own
+    kinetic and potential energy and with the state (rotational ``m r**2 w**2 / 4``); plain
+    particles hold no rotation and no springs."""
+    import fastsdf.particles as phys
+
+    floor = fs.Halfspace((0.0, 1.0), 0.0)
+    law = ContactLaw(stiffness=2e3, friction=0.5, history=True, rolling_friction=0.2)
+    xs = np.arange(6) * 0.05
+    pos = np.c_[xs, np.full(6, 0.02 - 6e-6)]  # on the floor, pressed by about their weight
+    sim = phys.ParticleSimulation(floor, positions=pos, radius=0.02, contacts=law, timestep=0.01)
+    sim.force_generators.append(phys.Gravity((0.0, -9.81)))
+    sim.p["v"] = np.c_[np.full(6, 0.3), np.zeros(6)]  # sliding: the springs stretch
+    sim.run(1)
+    assert sim.engine.contact_counts() == (0, 6)
+    e = sim.energy()
+    parts = ("kinetic", "rotational", "potential")
+    springs = ("normal_springs", "tangential_springs", "rolling_springs")
+    assert list(e) == [*parts, *springs, "total"]
+    assert e == sim.engine.energy()
+    assert e["kinetic"] == pytest.approx(sim.kinetic_energy(), rel=1e-12)
+    assert e["potential"] == pytest.approx(sim.potential_energy(), rel=1e-12)
+    m, r, w = sim.p["m"], sim.p["r"], sim.p["omega"]
+    assert e["rotational"] == pytest.approx(float(np.sum(m * r * r * w * w / 4)), rel=1e-12)
+    assert e["rotational"] > 0 and all(e[k] > 0 for k in springs)
+    assert e["total"] == pytest.approx(sum(e[k] for k in (*parts, *springs)), rel=1e-12)
+
+    plain = phys.ParticleSimulation(floor, n=5, seed=0)
+    plain.force_generators.append(phys.Gravity())
+    plain.run(2)
+    p = plain.energy()
+    assert list(p) == list(e)
+    assert p["rotational"] == 0.0 and all(p[k] == 0.0 for k in springs)
+    assert p["kinetic"] == pytest.approx(plain.kinetic_energy(), rel=1e-12)
+    assert p["total"] == pytest.approx(plain.kinetic_energy() + plain.potential_energy())

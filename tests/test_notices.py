@@ -82,7 +82,11 @@ def test_substep_warning_names_the_cause_and_fires_once(monkeypatch):
     (radius, mass, stiffness: the contact time) and what to change, once. (Three grains make
     a quick frame however many substeps: the work threshold is lowered to theirs.)"""
     sim = GranularSimulation(
-        _column(3, 0.002, 0.1), 0.002, contact=ContactLaw(stiffness=1e4), gravity=(0, -9.81)
+        None,
+        positions=_column(3, 0.002, 0.1),
+        radius=0.002,
+        contacts=ContactLaw(stiffness=1e4),
+        gravity=(0, -9.81),
     )
     assert sim.substeps_per_frame > SUBSTEPS_WARNING
     with warnings.catch_warnings():
@@ -112,8 +116,12 @@ def test_substep_warning_names_the_cause_and_fires_once(monkeypatch):
 def test_substep_warning_says_what_set_the_substep(monkeypatch):
     """A derived stiffness: the world's height it was derived for; a substep given: that."""
     monkeypatch.setattr(granular_simulation, "SUBSTEPS_WARNING_WORK", 3)
-    derived = GranularSimulation(_column(3, 0.002, 0.5), 0.002, gravity=(0, -9.81))
-    given = GranularSimulation(_column(3, 0.02, 0.5), 0.02, substep=1e-5, gravity=(0, -9.81))
+    derived = GranularSimulation(
+        None, positions=_column(3, 0.002, 0.5), radius=0.002, gravity=(0, -9.81)
+    )
+    given = GranularSimulation(
+        None, positions=_column(3, 0.02, 0.5), radius=0.02, substep=1e-5, gravity=(0, -9.81)
+    )
     for sim, words in (
         (derived, "derived for a column of grains as tall as the world, H = 0.5"),
         (given, "the substep given, 1e-05 s"),
@@ -129,7 +137,9 @@ def test_default_grains_run_without_the_warning(monkeypatch):
     its scenes are: fewer substeps than the threshold, no warning (whatever their number:
     the work threshold is lowered so that the substeps alone decide)."""
     monkeypatch.setattr(granular_simulation, "SUBSTEPS_WARNING_WORK", 0)
-    sim = GranularSimulation(_column(20, 0.02, 4.0), 0.02, gravity=(0, -9.81))
+    sim = GranularSimulation(
+        None, positions=_column(20, 0.02, 4.0), radius=0.02, gravity=(0, -9.81)
+    )
     assert sim.substeps_per_frame <= SUBSTEPS_WARNING
     with warnings.catch_warnings():
         warnings.simplefilter("error", SubstepWarning)
@@ -138,7 +148,9 @@ def test_default_grains_run_without_the_warning(monkeypatch):
 
 def test_a_long_granular_run_shows_its_progress_on_stderr(monkeypatch, capsys):
     monkeypatch.setattr(notice, "PROGRESS_AFTER_S", 0.0)
-    sim = GranularSimulation(_column(20, 0.02, 4.0), 0.02, gravity=(0, -9.81))
+    sim = GranularSimulation(
+        None, positions=_column(20, 0.02, 4.0), radius=0.02, gravity=(0, -9.81)
+    )
     sim.run(3)
     err = capsys.readouterr().err
     assert f"fastsdf: 20 grains, run(3) at {sim.substeps_per_frame:,} substeps per frame:" in err

@@ -13,7 +13,9 @@ Cundall-Strack tangential spring per contact: static friction; optional rolling 
 velocity Verlet, substepping each frame to resolve the contact time, with
 a parallel cell list and Verlet list (no atomics). The kernels live in :mod:`.kernels` and
 :mod:`.cells` and are usable on their own. Which model to choose, their parameters and units:
-``docs/granular_models.md``. :func:`repose_angle` measures a heap's angle of repose.
+``docs/granular_models.md``. :func:`repose_angle` measures a heap's angle of repose,
+:func:`flow_rate` a silo's discharge, and :func:`beverloo_fit` fits Beverloo's law to the
+discharges through slots of several widths.
 
 Distribution (not implemented): grains interact, so sharding them across machines as
 independent batches (as plain particles are) would be wrong. The way to distribute is by
@@ -29,7 +31,13 @@ is no limit; the two messages per substep (their latency) are, once ``10 / N`` s
 a network round trip (N in the thousands).
 """
 
-from fastsdf.granular.analysis import ReposeAngle, repose_angle
+from fastsdf.granular.analysis import (
+    BeverlooFit,
+    ReposeAngle,
+    beverloo_fit,
+    flow_rate,
+    repose_angle,
+)
 from fastsdf.granular.cells import CellGrid, brute_force_pairs, list_pairs
 from fastsdf.granular.kernels import Bulk, Grains
 from fastsdf.granular.params import (
@@ -48,6 +56,7 @@ from fastsdf.granular.simulation import (
 
 __all__ = [
     "DEFAULT_SUBSTEPS_PER_CONTACT",
+    "BeverlooFit",
     "Bulk",
     "CellGrid",
     "ContactLaw",
@@ -55,11 +64,13 @@ __all__ = [
     "GranularSimulation",
     "ReposeAngle",
     "SubstepWarning",
+    "beverloo_fit",
     "brute_force_pairs",
     "check_contact_law",
     "contact_time",
     "damping_ratio",
     "derived_stiffness",
+    "flow_rate",
     "list_pairs",
     "repose_angle",
     "restitution_from_damping",

@@ -1,4 +1,5 @@
-"""Measurements on a pile of grains: the angle of repose of a heap."""
+"""Measurements on grains: the angle of repose of a heap, the flow rate of a draining silo and
+Beverloo's law fitted to flow rates."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["ReposeAngle", "repose_angle"]
+__all__ = ["BeverlooFit", "ReposeAngle", "beverloo_fit", "flow_rate", "repose_angle"]
 
 
 class ReposeAngle(NamedTuple):
@@ -80,3 +81,101 @@ def repose_angle(
         angles.append(math.degrees(math.atan(abs(float(slope)))))
         lines.append((float(slope), float(intercept)))
     return ReposeAngle(angles[0], angles[1], (lines[0], lines[1]))
+
+
+def flow_rate(
+    times: np.ndarray,
+    counts: np.ndarray,
+    *,
+    low: float = -math.inf,
+    high: float = math.inf,
+    after: float = -math.inf,
+) -> float:
+    """The rate at which a count grows (e.g. grains out of a silo, per unit time): the
+    least-squares slope of ``counts`` against ``times`` over the samples with ``low <= count
+    <= high`` and ``time >= after`` (the steady part of a discharge: after the start, before
+    the fill runs low). Fewer than 3 such samples with distinct times are a ValueError."""
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    c = np.asarray(counts, dtype=np.float64).reshape(-1)
+    if t.shape != c.shape:
+        raise ValueError(f"times and counts must have one length, got {t.shape} and {c.shape}")
+    window = (c >= low) & (c <= high) & (t >= after)
+    if np.unique(t[window]).size < 3:
+        raise ValueError(
+            f"flow_rate needs 3 samples with counts in [low, high] = [{low!r}, {high!r}] and "
+            f"times >= after={after!r}, got {int(window.sum())}"
+        )
+    return float(np.polyfit(t[window], c[window], 1)[0])
+
+
+class BeverlooFit(NamedTuple):
+    """Beverloo's law of the flow rate through a slot of width ``D`` in 2D, ``W = C sqrt(g)
+    (D - k d)**exponent`` (grains per unit time, ``d`` the grains' diameter; ``exponent`` is
+    1.5 in 2D, ``k`` about 1-3)."""
+
+    C: float
+    k: float
+    exponent: float
+
+    def rate(
+        self, width: float | np.ndarray, diameter: float = 1.0, gravity: float = 1.0
+    ) -> np.ndarray:
+        """The law's flow rate through a slot of ``width``."""
+        gap = np.clip(np.asarray(width, dtype=np.float64) - self.k * diameter, 0.0, None)
+        return np.asarray(self.C * math.sqrt(gravity) * gap**self.exponent)
+
+
+def beverloo_fit(
+    widths: np.ndarray,
+    rates: np.ndarray,
+    *,
+    diameter: float = 1.0,
+    gravity: float = 1.0,
+    k: float | None = None,
+    exponent: float | None = None,
+) -> BeverlooFit:
+    """Beverloo's law ``W = C sqrt(g) (D - k d)**exponent`` (2D) fitted to the flow ``rates``
+    through slots of ``widths`` (least squares in ``log W``). ``k`` given: ``C`` and the
+    exponent by a straight line through ``log W`` against ``log(D - k d)`` (2 widths at
+    least). ``exponent`` given: ``k`` and ``C`` by a straight line through ``W**(1 /
+    exponent)`` against ``D``. Both free: ``k`` is searched in ``[0, min(D) / d)`` (4 widths at
+    least: three give an exact fit for many ``k``)."""
+    d = np.asarray(widths, dtype=np.float64).reshape(-1)
+    w = np.asarray(rates, dtype=np.float64).reshape(-1)
+    if d.shape != w.shape or not (np.all(np.isfinite(d)) and np.all(np.isfinite(w))):
+        raise ValueError("widths and rates must be finite and of one length")
+    if not np.all(w > 0):
+        raise ValueError(f"rates must be > 0, got rates={w.tolist()!r}")
+    need = 4 if k is None and exponent is None else 2
+    if len(np.unique(d)) < need:
+        raise ValueError(f"beverloo_fit needs {need} distinct widths here, got {d.tolist()!r}")
+    root_g = math.sqrt(gravity)
+
+    def with_k(kk: float) -> tuple[BeverlooFit, float]:
+        gap = d - kk * diameter
+        if not np.all(gap > 0):
+            raise ValueError(f"k={kk!r} leaves no gap in the slot of width {float(d.min())!r}")
+        x, y = np.log(gap), np.log(w)
+        if exponent is None:
+            b, a = np.polyfit(x, y, 1)
+        else:
+            b, a = exponent, float(np.mean(y - exponent * x))
+        resid = float(np.sum((y - a - b * x) ** 2))
+        return BeverlooFit(math.exp(a) / root_g, float(kk), float(b)), resid
+
+    if k is not None:
+        return with_k(float(k))[0]
+    if exponent is not None:
+        slope, intercept = np.polyfit(d, w ** (1.0 / exponent), 1)
+        return with_k(float(-intercept / (slope * diameter)))[0]
+    top = float(d.min()) / diameter
+    ks = np.linspace(0.0, top, 401)[:-1]
+    best = min(ks, key=lambda kk: with_k(float(kk))[1])
+    lo, hi = max(best - top / 400, 0.0), min(best + top / 400, top * (1 - 1e-9))
+    for _ in range(60):  # golden-section refinement around the best grid point
+        m1, m2 = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
+        if with_k(m1)[1] < with_k(m2)[1]:
+            hi = m2
+        else:
+            lo = m1
+    return with_k(0.5 * (lo + hi))[0]

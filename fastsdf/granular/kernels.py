@@ -724,41 +724,88 @@ def kick_drift(
         chunk_max[c] = big
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _rolling_energy(torque, kn, mu_r, r_eff):
+    """Energy ``M**2 / (2 k_r)`` of a rolling spring holding the torque ``M``, with ``k_r =
+    2.25 k_n mu_r**2 R_eff**2`` (see :func:`_rolling_spring`: its torque grows by ``-k_r``
+    times the relative rotation, and the cap only truncates it)."""
+    return 0.5 * torque * torque / (2.25 * kn * mu_r * mu_r * r_eff * r_eff)
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
-def pair_energy(g: Grains, nbr_start: np.ndarray, nbr: np.ndarray, law: Any, bulk: Bulk) -> tuple:
-    """Elastic energy ``k_n delta**2 / 2`` stored in the grain-grain contacts (each pair once)
-    and the number of contacts (pairs in overlap)."""
-    e = 0.0
+def pair_energy(
+    g: Grains,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    memory: np.ndarray | None,
+    law: Any,
+    bulk: Bulk,
+) -> tuple:
+    """Elastic energy stored in the grain-grain contacts, each pair once: ``(normal,
+    tangential, rolling, contacts)``, the normal springs ``k_n delta**2 / 2`` at the current
+    positions, the tangential springs ``k_t s**2 / 2`` and the rolling springs ``M**2 / (2
+    k_r)`` held in ``memory`` (the list's, as :func:`pair_forces` left it; ``None``: no
+    history, no springs but the normal ones), and the number of pairs in overlap. A spring
+    truncated by Coulomb's cap holds what is left after the truncation: the slip dissipated
+    the rest."""
+    en = 0.0
+    et = 0.0
+    er = 0.0
     count = 0
+    kn = law.stiffness
+    kt = law.tangential_stiffness * kn
+    mu_r = law.rolling_friction
+    roll = mu_r > 0.0
     period = bulk.period
     for i in prange(g.x.shape[0]):
         for k in range(nbr_start[i], nbr_start[i + 1]):
             entry = nbr[k]
             j = entry & 0x3FFFFFFF
-            if j <= i:
+            if j <= i:  # a pair listed at both grains is counted at the lower index
                 continue
             image = entry >> 30
             dx = g.x[i] - g.x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
             dy = g.y[i] - g.y[j]
-            delta = g.radius[i] + g.radius[j] - math.sqrt(dx * dx + dy * dy)
+            rsum = g.radius[i] + g.radius[j]
+            delta = rsum - math.sqrt(dx * dx + dy * dy)
             if delta > 0.0:
-                e += 0.5 * law.stiffness * delta * delta
+                en += 0.5 * kn * delta * delta
                 count += 1
-    return e, count
+            if memory is not None:
+                et += 0.5 * kt * memory[k, 0] * memory[k, 0]
+                if roll:
+                    r_eff = g.radius[i] * g.radius[j] / rsum
+                    er += _rolling_energy(memory[k, 1], kn, mu_r, r_eff)
+    return en, et, er, count
 
 
 @njit(cache=True, error_model="numpy")
-def wall_energy(g: Grains, idx: np.ndarray, d: np.ndarray, law: Any) -> tuple:
+def wall_energy(
+    g: Grains, idx: np.ndarray, d: np.ndarray, memory: np.ndarray | None, law: Any
+) -> tuple:
     """Elastic energy stored in the grain-wall contacts of the grains ``idx`` at distances
-    ``d``, and their number."""
-    e = 0.0
+    ``d``: ``(normal, tangential, rolling, contacts)`` as in :func:`pair_energy`, the springs
+    read from the world's ``memory`` (one column per grain, as :func:`wall_forces` left it;
+    ``None``: no history)."""
+    en = 0.0
+    et = 0.0
+    er = 0.0
     count = 0
+    kn = law.stiffness
+    kt = law.tangential_stiffness * kn
+    mu_r = law.rolling_friction
+    roll = mu_r > 0.0
     for k in range(idx.shape[0]):
-        delta = g.radius[idx[k]] - d[k]
+        i = idx[k]
+        delta = g.radius[i] - d[k]
         if delta > 0.0:
-            e += 0.5 * law.stiffness * delta * delta
+            en += 0.5 * kn * delta * delta
             count += 1
-    return e, count
+        if memory is not None:
+            et += 0.5 * kt * memory[0, i] * memory[0, i]
+            if roll:
+                er += _rolling_energy(memory[1, i], kn, mu_r, g.radius[i])
+    return en, et, er, count
 
 
 @njit(cache=True, parallel=True, error_model="numpy")

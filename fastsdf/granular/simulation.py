@@ -750,26 +750,47 @@ class GranularSimulation:
         """Masses (n,), in the given order."""
         return self.density * np.pi * self.radius**2
 
-    def energy(self) -> dict:
-        """Energies at the current time: ``translational``, ``rotational``, ``gravitational``
-        (``-m g . x``), ``elastic`` (springs of grain-grain and grain-world contacts) and their
-        ``total``; ``contacts`` (grain-grain pairs in overlap) and ``wall_contacts``."""
+    def energy(self) -> dict[str, float]:
+        """Energies at the current time, by part: ``kinetic`` (translational, ``m |v|**2 /
+        2``), ``rotational`` (``m R**2 w**2 / 4``), ``potential`` (gravitational, ``-m g .
+        x``, zero at the origin), the springs of the grain-grain and grain-world contacts:
+        ``normal_springs`` (``k_n delta**2 / 2``), ``tangential_springs`` (``k_t s**2 / 2``,
+        with history) and ``rolling_springs`` (``M**2 / (2 k_r)``, with rolling resistance),
+        and their sum, ``total``. Without dashpots, and while no contact slips or parts, the
+        total is conserved (see ``docs/granular_models.md``)."""
         g = self.grains
-        et, er, ep = kinetic_energy(g, self.bulk)
-        ee, nc = pair_energy(g, self._nbr_start, self._nbr, self.contact, self.bulk)
-        ew, nw = 0.0, 0
+        kinetic, rotational, potential = kinetic_energy(g, self.bulk)
+        memory = self._spring if self._history else None
+        normal, tangential, rolling, _ = pair_energy(
+            g, self._nbr_start, self._nbr, memory, self.contact, self.bulk
+        )
         if self.world is not None:
             idx, d, _, _, _ = self._query_world()
-            ew, nw = wall_energy(g, idx, d, self.wall_contact)
-        return {
-            "translational": et,
-            "rotational": er,
-            "gravitational": ep,
-            "elastic": ee + ew,
-            "total": et + er + ep + ee + ew,
-            "contacts": int(nc),
-            "wall_contacts": int(nw),
+            wall_memory = self._wall_spring if self.wall_contact.history else None
+            wn, wt, wr, _ = wall_energy(g, idx, d, wall_memory, self.wall_contact)
+            normal, tangential, rolling = normal + wn, tangential + wt, rolling + wr
+        parts = {
+            "kinetic": float(kinetic),
+            "rotational": float(rotational),
+            "potential": float(potential),
+            "normal_springs": float(normal),
+            "tangential_springs": float(tangential),
+            "rolling_springs": float(rolling),
         }
+        parts["total"] = sum(parts.values())
+        return parts
+
+    def contact_counts(self) -> tuple[int, int]:
+        """``(pairs, walls)``: the grain-grain pairs in overlap now, and the grains
+        overlapping the world."""
+        _, _, _, pairs = pair_energy(
+            self.grains, self._nbr_start, self._nbr, None, self.contact, self.bulk
+        )
+        walls = 0
+        if self.world is not None:
+            idx, d, _, _, _ = self._query_world()
+            walls = wall_energy(self.grains, idx, d, None, self.wall_contact)[3]
+        return int(pairs), int(walls)
 
     def neighbour_pairs(self) -> np.ndarray:
         """The pairs ``(i, j)``, ``i < j``, of the current Verlet list, in the grains' given
@@ -808,7 +829,7 @@ class GranularSimulation:
     def contacts_per_grain(self) -> float:
         """Mean number of grain-grain contacts (overlaps) per grain, each counted at both
         grains."""
-        return 2.0 * self.energy()["contacts"] / self.grains.x.shape[0]
+        return 2.0 * self.contact_counts()[0] / self.grains.x.shape[0]
 
     def memory_per_grain(self) -> float:
         """Bytes held per grain: state, neighbour list, sort and cell arrays, scratch."""

@@ -450,11 +450,14 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
         self._wall = None
         return self._draw(ax, new=True)
 
-    def energy(self) -> float:
-        """Kinetic (translational and rotational), gravitational and elastic energy."""
+    def energy(self) -> dict[str, float]:
+        """Energies by part (the family's names): ``kinetic``, ``rotational``, ``potential``
+        (gravitational), the contacts' ``normal_springs``, ``tangential_springs`` and
+        ``rolling_springs``, and their sum, ``total``; see
+        :meth:`fastsdf.granular.GranularSimulation.energy`."""
         self.p.sync()
         self._apply_forces()
-        return float(self.engine.energy()["total"])
+        return self.engine.energy()
 
     def potential_energy(self) -> float:
         """Gravitational potential energy ``-m g . x`` (zero at the origin)."""

@@ -946,9 +946,23 @@ class ParticleSimulation:
             )
         )
 
-    def energy(self) -> float:
-        """Kinetic plus gravitational potential energy."""
-        return self.kinetic_energy() + self.potential_energy()
+    def energy(self) -> dict[str, float]:
+        """Energies by part, the same names for every member of the family (grains:
+        :meth:`fastsdf.granular.GranularSimulation.energy`): ``kinetic``, ``rotational``,
+        ``potential`` (of the :class:`Gravity` generators, zero at the origin),
+        ``normal_springs``, ``tangential_springs``, ``rolling_springs`` and their sum,
+        ``total``. Particles do not turn and meet the world in instants, so here the rotation
+        and the springs hold nothing: ``total`` is kinetic plus potential energy."""
+        parts = {
+            "kinetic": self.kinetic_energy(),
+            "rotational": 0.0,
+            "potential": self.potential_energy(),
+            "normal_springs": 0.0,
+            "tangential_springs": 0.0,
+            "rolling_springs": 0.0,
+        }
+        parts["total"] = sum(parts.values())
+        return parts
 
     def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
         """``(d, grad)`` of the world at points, exactly as the compiled step sees it (for a
