@@ -226,11 +226,14 @@ class RunProgress:
             return
         now = time.perf_counter()
         self._done = min(float(done), self.total)
-        if self._first is None:
+        first = self._first is None
+        if first:
             self._first = (now, self._done)
         elapsed = now - self._start
         left = self.remaining(now)
         if not self._shown:
+            if first and elapsed <= self.after:
+                return  # the first piece may have compiled: the next one gives the rate
             if _quiet() or not elapsed + left > self.after or self._done >= self.total:
                 return  # (finished at its first update: nothing left to show)
             self._shown = True
