@@ -139,7 +139,7 @@ def module_source(root: Expr, symbol_names: Sequence[str]) -> tuple[str, list, b
         kinds = KINDS if pn is not None else KINDS[:2]
         codes = {k: point_code(root, symbol_names, k, tables, pn, memo) for k in kinds}
     groups = codes["vg"].groups
-    names = sorted({t for c in codes.values() for t in c.tables})
+    names = sorted(tables.values(), key=lambda name: int(name[2:]))
     args: list[str] = (["_act", "_off"] if groups else []) + names
     args += ["t", "prm"] if pn is not None else []
     arglist = ", ".join(args) or "_unused"

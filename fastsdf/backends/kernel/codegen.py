@@ -965,166 +965,6 @@ def {name}(x, y{pargs}):
     return {ret}
 '''
 
-_LANES_TEMPLATE = '''
-@njit(cache=True, nogil=True, error_model="numpy")
-def {name}({args}):
-    """{doc} at {lanes} points at once (finite inputs only; see the batch kernels)."""
-{body}
-    return {ret}
-'''
-
-# The parallel kernels walk the points in groups of LANES through the multi-lane function:
-# each point's work is one long dependency chain (exp -> log -> next blend), and interleaving
-# independent chains lets the CPU overlap them. Non-finite points are evaluated at the origin
-# and overwritten; the last group repeats the final point. The serial kernels (small inputs) use
-# the one-point function, which compiles in about half the time.
-_BATCH_TEMPLATE = """
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _batch_{kind}(xs, ys, out, {grad}{pa}start, stop, n):
-    for p in range(start, stop):
-        i = {lanes} * p
-{gather}
-        {results} = lanes_{kind}({args})
-{scatter}
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def batch_{kind}_par(xs, ys, out, {grad}{pa}chunks):
-    n = xs.shape[0]
-    groups = (n + {lanes_minus_1}) // {lanes}
-    chunks = max(1, min(groups, chunks))
-    for c in prange(chunks):
-        _batch_{kind}(xs, ys, out, {grad}{pa}c * groups // chunks, (c + 1) * groups // chunks, n)
-
-
-@njit(cache=True, error_model="numpy")
-def batch_{kind}_ser(xs, ys, out, {grad}{pa}):
-    for i in range(xs.shape[0]):
-        {single} = point_{kind}(xs[i], ys[i]{pargs})
-{single_store}
-"""
-
-
-#: The outputs of each kind of function: value; value and gradient; value, gradient and dd/dt.
-_RESULTS = {"v": ("d",), "vg": ("d", "gx", "gy"), "vgt": ("d", "gx", "gy", "gt")}
-_OUTPUTS = {"v": "", "vg": "grad, ", "vgt": "grad, dt, "}
-
-
-def _kernels_source(lanes_of: dict, groups: bool = False, parametric: bool = False) -> str:
-    """Batch kernels for each kind, with that kind's number of lanes (the value-only body is
-    shorter than the gradient body, so the two may differ). With loop groups, the lanes
-    functions take row lists (the batch kernels pass all rows; the tile kernels of pruning are
-    the block kernels of :mod:`fastsdf.backends.kernel.simd`, which take them as data too).
-    Kernels of a scene with parameters take time ``t`` and the parameter tuple ``prm`` after
-    the output arrays."""
-    parts = []
-    pa, pargs = ("t, prm, ", ", t, prm") if parametric else ("", "")
-    for kind, lanes in lanes_of.items():
-        names = _RESULTS[kind]
-        gather, args, scatter, results = [], [], [], []
-        for k in range(lanes):
-            gather += [
-                f"        j{k} = min(i + {k}, n - 1)",
-                f"        x{k} = xs[j{k}]",
-                f"        y{k} = ys[j{k}]",
-                f"        ok{k} = math.isfinite(x{k}) and math.isfinite(y{k})",
-                f"        if not ok{k}:",
-                f"            x{k} = 0.0",
-                f"            y{k} = 0.0",
-            ]
-            args.append(f"x{k}, y{k}")
-            results += [f"{r}{k}" for r in names]
-        for k in reversed(range(lanes)):  # lane 0 last: a repeated final point stays correct
-            if kind == "v":
-                scatter.append(f"        out[j{k}] = d{k} if ok{k} else math.nan")
-            else:
-                scatter += [
-                    f"        if not ok{k}:",
-                    f"            {' = '.join(r + str(k) for r in names)} = math.nan",
-                    f"        out[j{k}] = d{k}",
-                    f"        grad[j{k}, 0] = gx{k}",
-                    f"        grad[j{k}, 1] = gy{k}",
-                ]
-                if kind == "vgt":
-                    scatter.append(f"        dt[j{k}] = gt{k}")
-        single = ", ".join(names)
-        stores = {
-            "d": "out[i] = d",
-            "gx": "grad[i, 0] = gx",
-            "gy": "grad[i, 1] = gy",
-            "gt": "dt[i] = gt",
-        }
-        single_store = "\n".join("        " + stores[r] for r in names)
-        all_args = ", ".join(args + (["_ACTG, _OFFG"] if groups else [])) + pargs
-        src = _BATCH_TEMPLATE.format(
-            kind=kind,
-            grad=_OUTPUTS[kind],
-            pa=pa,
-            pargs=pargs,
-            lanes=lanes,
-            lanes_minus_1=lanes - 1,
-            gather="\n".join(gather),
-            args=all_args,
-            results=", ".join(results),
-            scatter="\n".join(scatter),
-            single=single,
-            single_store=single_store,
-        )
-        parts.append(
-            src.replace("out, grad, )", "out, grad)")
-            .replace("out, )", "out)")
-            .replace("dt, )", "dt)")
-            .replace("prm, )", "prm)")
-        )
-    return "".join(parts)
-
-
-def choose_lanes(lines: list) -> int:
-    """Points interleaved per iteration of the parallel kernels: 4 for loop-free code (short
-    dependency chains, measured 1.4x over 2 lanes on the seed world), 2 when the code has loops
-    over tables (more lanes spill registers: 4 lanes measured slower than 2 on the 20-box world),
-    1 for long straight-line bodies (compile time).
-    """
-    if len(lines) > LONG_BODY_LINES:
-        # numba's compile time grows faster than linearly with a function's length; copies of a
-        # long straight-line body would multiply it (measured: a 50-primitive scene with no
-        # repeated structure took 98 s cold with 4 lanes).
-        return 1
-    return 2 if any(line.lstrip().startswith("for ") for line in lines) else 4
-
-
-_LANE_VARS = re.compile(r"\b([vcw]\d+[a-z]*)\b")
-
-
-def _lane(line: str, k: int) -> str:
-    """Rename one lane's variables: v3 -> v3_1, x -> x1 (loop indices and tables are shared)."""
-    line = _LANE_VARS.sub(lambda mt: f"{mt.group(1)}_{k}", line)
-    return re.sub(r"\b([xy])\b", lambda mt: f"{mt.group(1)}{k}", line)
-
-
-def _interleave(lines: list, lanes: int = 2) -> list:
-    """Two-lane version of a function body: every statement once per lane, lane after lane, so
-    the two chains are adjacent in the instruction stream; ``for`` loops over tables are shared
-    (both lanes iterate the same rows) and ``if`` blocks are copied whole per lane."""
-    out, i = [], 0
-    while i < len(lines):
-        line = lines[i]
-        indent = len(line) - len(line.lstrip())
-        j = i + 1
-        while j < len(lines) and len(lines[j]) - len(lines[j].lstrip()) > indent:
-            j += 1
-        block = lines[i + 1 : j]
-        if line.lstrip().startswith("for "):
-            out.append(line)
-            out.extend(_interleave(block, lanes))
-        else:
-            for k in range(lanes):
-                out.extend(_lane(ln, k) for ln in [line] + block)
-        i = j
-    return out
-
-
 def _as_float(expr: str) -> str:
     """Wrap literal results so that numba types every returned value as float64."""
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr
@@ -1139,11 +979,13 @@ def _function_source(
     time: bool = False,
     vmath: bool = True,
     memo: dict | None = None,
-) -> tuple[Any, str, int, list]:
-    """Sources of the one-point function and of the multi-lane function for the batch kernels;
-    also returns the number of lanes. ``param_names`` (None for a scene without parameters):
-    the functions take ``(x, y, t, prm)``, ``prm`` the tuple of those parameters' values;
-    ``time``: also return dd/dt (the ``vgt`` functions)."""
+) -> tuple[Any, str, list]:
+    """``(one, rows, groups)``: the source of the one-point function (with the block kernels
+    where the scene has them: a pair), of the one-point function over given row lists
+    (``rows_vg``, for scenes with loop groups; else empty), and the loop groups.
+    ``param_names`` (None for a scene without parameters): the functions take ``(x, y, t,
+    prm)``, ``prm`` the tuple of those parameters' values; ``time``: also return dd/dt (the
+    ``vgt`` functions)."""
     if (
         param_names is None
         and not time
@@ -1155,7 +997,7 @@ def _function_source(
         # (which is most of the code generation time of a large scene).
         prog = _program_source(root, symbol_names, grad, tables, memo)
         if prog is not None:
-            return prog, "", 1, []
+            return prog, "", []
     em = _Emitter(symbol_names, grad or time, tables, param_names or (), time, memo=memo)
     res = em.emit(root)
     if grad or time:
@@ -1166,21 +1008,17 @@ def _function_source(
             "Value, gradient and time derivative (d, dd/dx, dd/dy, dd/dt) at one point.",
             "math.nan, math.nan, math.nan, math.nan",
         )
-        multi = ("lanes_vgt", "Value, gradient and time derivative")
     elif grad:
         single = (
             "point_vg",
             "Value and gradient (d, dd/dx, dd/dy) at one point.",
             "math.nan, math.nan, math.nan",
         )
-        multi = ("lanes_vg", "Value and gradient")
     else:
         results = [_as_float(res.v)]
         single = ("point_v", "Value at one point.", "math.nan")
-        multi = ("lanes_v", "Value")
     if vmath:
         em.lines = vectorizable(em.lines)
-    lanes = choose_lanes(em.lines)
     # numba lowers every reference to a global array as its own constant: bind each table to
     # a local once, so a table is embedded once per function however often the loop reads it.
     used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
@@ -1189,8 +1027,8 @@ def _function_source(
     binds += [f"_p{i} = prm[{i}]" for i in range(len(param_names or ()))]
     em.lines[:0] = binds
     pargs = ", t, prm" if param_names is not None else ""
-    # The one-point function iterates every row of every group; the multi-lane one takes the
-    # row lists as arguments (all rows, or a tile's pruned lists).
+    # The one-point function iterates every row of every group; rows_vg takes the row lists
+    # as arguments (all rows, or a tile's pruned lists).
     all_rows = ["_act = _ACTG", "_off = _OFFG"] if em.groups else []
     body = "\n".join("    " + line for line in all_rows + em.lines) or "    pass"
     point = _POINT_TEMPLATE.format(
@@ -1203,31 +1041,7 @@ def _function_source(
     )
     one: str | tuple[str, str] = point
     bind, rest = em.lines[: len(binds)], em.lines[len(binds) :]
-    if param_names is None and not time:
-        # A static scene's batch kernels are its block kernels: no multi-lane function.
-        many = ""
-    elif lanes == 1:  # nothing to interleave: rename the whole body at once
-        body_n = (
-            "\n".join("    " + line for line in bind)
-            + "\n"
-            + _lane("\n".join("    " + line for line in rest), 0)
-            if rest
-            else "\n".join("    " + line for line in bind) or "    pass"
-        )
-    else:
-        body_n = "\n".join("    " + line for line in bind + _interleave(rest, lanes)) or "    pass"
-    if param_names is not None or time:
-        many = _LANES_TEMPLATE.format(
-            name=multi[0],
-            doc=multi[1],
-            lanes=lanes,
-            body=body_n,
-            args=", ".join(
-                [f"x{k}, y{k}" for k in range(lanes)] + (["_act, _off"] if em.groups else [])
-            )
-            + pargs,
-            ret=", ".join(_lane(r, k) for k in range(lanes) for r in results),
-        )
+    many = ""
     if em.groups and grad and param_names is None and not time:
         # The one-point function over given row lists (pointers to int64: a tile's pruned
         # lists), for per-point callers such as the particle step (see fastsdf.backends.prune).
@@ -1278,7 +1092,7 @@ def _function_source(
                 binds=tuple(ln for ln in bind if ln.startswith("_p")),
             ),
         )
-    return one, many, lanes, em.groups
+    return one, many, em.groups
 
 
 class PointCode:
@@ -1290,12 +1104,13 @@ class PointCode:
     ``lines``: statements (unindented) reading ``x``, ``y`` (and ``t``, ``_p<i>``), tables bound
     by their names (``_T0`` ...), and for loop groups the row lists ``_act`` and ``_off``;
     ``results``: the returned expressions (value, then dd/dx, dd/dy, then dd/dt for ``'vgt'``);
-    ``tables``: the table names the lines read; ``groups``: the loop groups (as
-    :func:`generate_module` returns them); ``nan_return``: what a non-finite point returns.
+    ``groups``: the loop groups (as :func:`generate_module` returns them); ``nan_return``: what
+    a non-finite point returns. The tables the lines may read are the values of the ``tables``
+    dict given to :func:`point_code` (each named ``_T<i>``).
     """
 
-    def __init__(self, lines: list, results: list, tables: list, groups: list) -> None:
-        self.lines, self.results, self.tables, self.groups = lines, results, tables, groups
+    def __init__(self, lines: list, results: list, groups: list) -> None:
+        self.lines, self.results, self.groups = lines, results, groups
         self.nan_return = ", ".join(["math.nan"] * len(results))
 
 
@@ -1317,9 +1132,8 @@ def point_code(
     results = [_as_float(res.v)]
     if grad:
         results += [_as_float(_zero(c)) for c in res.grads(len(em.COMPONENTS))]
-    used = sorted(set(re.findall(r"\b(_T\d+)\b", "\n".join(em.lines))))
     binds = [f"_p{i} = prm[{i}]" for i in range(len(param_names or ()))]
-    return PointCode(binds + em.lines, results, used, em.groups)
+    return PointCode(binds + em.lines, results, em.groups)
 
 
 def table_source(tables: dict, groups: list) -> str:
@@ -1390,31 +1204,31 @@ def _generate_module(
     tables: dict = {}
     pn = scene_parameters(root)
     memo: dict = {}
-    v_one, v_many, lanes_v, groups_v = _function_source(
+    v_one, v_rows, groups_v = _function_source(
         root, symbol_names, False, tables, pn, vmath=vmath, memo=memo
     )
-    vg_one, vg_many, lanes_vg, groups = _function_source(
+    vg_one, vg_rows, groups = _function_source(
         root, symbol_names, True, tables, pn, vmath=vmath, memo=memo
     )
-    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd (defined last,
-    # they replace the multi-lane batch kernels of the same name).
+    # The batch kernels are the SIMD block kernels of fastsdf.backends.kernel.simd.
     blocks = []
     if isinstance(v_one, tuple):
         (v_one, v_block), (vg_one, vg_block) = v_one, vg_one
         blocks = [v_block, vg_block]
     assert [len(g["members"]) for g in groups_v] == [len(g["members"]) for g in groups]
-    funcs = {"v": v_one, "vg": vg_one, "lanes_v": v_many, "lanes_vg": vg_many}
-    lanes_of = {"v": lanes_v, "vg": lanes_vg}
+    funcs = {"v": v_one, "vg": vg_one}
+    rows = [v_rows, vg_rows]
     if pn is not None:
         # A scene with parameters: functions (x, y, t, prm) and a third kind with dd/dt.
         # Parameter values never appear in the source: scenes that differ only in them share
         # one module.
-        vgt_one, vgt_many, lanes_of["vgt"], _ = _function_source(
+        vgt_one, vgt_rows, _ = _function_source(
             root, symbol_names, True, tables, pn, time=True, vmath=vmath, memo=memo
         )
         vgt_one, vgt_block = vgt_one
         blocks.append(vgt_block)
-        funcs.update(vgt=vgt_one, lanes_vgt=vgt_many)
+        funcs.update(vgt=vgt_one)
+        rows.append(vgt_rows)
     parts = [
         _HEADER.format(
             fastsdf=__version__,
@@ -1424,15 +1238,12 @@ def _generate_module(
             expr=_short(root).replace('"""', "'''").replace("\\", "\\\\"),
         )
     ]
-    if any("_P." in src for src in funcs.values()):
+    if any("_P." in src for src in [*funcs.values(), *rows]):
         parts.append(_prims_import())
     if tables or groups:
         parts.append(table_source(tables, groups))
-    parts.extend(
-        funcs[k] for k in ("v", "vg", "vgt", "lanes_v", "lanes_vg", "lanes_vgt") if k in funcs
-    )
-    if pn is not None:  # a static scene's batch kernels are its block kernels (below)
-        parts.append(_kernels_source(lanes_of, bool(groups), pn is not None))
+    parts.extend(funcs[k] for k in ("v", "vg", "vgt") if k in funcs)
+    parts.extend(rows)
     if vmath:
         parts.append(vmath_import())
     if blocks:
