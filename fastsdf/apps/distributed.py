@@ -682,9 +682,21 @@ class DistributedSimulation:
             bbox=bbox,
         )
 
-    def energy(self) -> float:
-        """Total kinetic plus gravitational potential energy (sum over shards, shard order)."""
-        return self.stats().energy
+    def energy(self) -> dict[str, float]:
+        """Energies by part, as :meth:`fastsdf.particles.ParticleSimulation.energy` names them
+        (sums over shards, in shard order): ``kinetic``, ``potential`` (of the gravity
+        generators), the parts particles do not hold (rotation, springs: 0) and ``total``."""
+        st = self.stats()
+        parts = {
+            "kinetic": st.kinetic,
+            "rotational": 0.0,
+            "potential": st.potential,
+            "normal_springs": 0.0,
+            "tangential_springs": 0.0,
+            "rolling_springs": 0.0,
+        }
+        parts["total"] = sum(parts.values())
+        return parts
 
     def bounding_box(self) -> tuple:
         """``(xmin, ymin, xmax, ymax)`` of all particle centres (length units)."""

@@ -30,6 +30,7 @@ tiles' lists (a superset of the rows that can matter visits them in the same ord
 from __future__ import annotations
 
 import math
+import sys
 import time
 from typing import Any
 
@@ -649,3 +650,14 @@ def exact_out(x, y, out, h):
     out[1] = gx
     out[2] = gy
 '''
+
+
+def _guard() -> None:
+    # Generated modules call these dispatchers: every process reads and writes their numba
+    # cache files sealed (see fastsdf.backends.kernel.cache.guard_module).
+    from fastsdf.backends.kernel.cache import guard_module
+
+    guard_module(sys.modules[__name__])
+
+
+_guard()

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
 import time
 from typing import Any, Literal, overload
 
@@ -790,3 +791,14 @@ def band_points(
     ys = ((k % g.tiles[1]) * T + rng.uniform(0, T, n)) * hy + y0
     keep = (xs <= x1) & (ys <= y1)
     return xs[keep], ys[keep]
+
+
+def _guard() -> None:
+    # Generated modules call these dispatchers: every process reads and writes their numba
+    # cache files sealed (see fastsdf.backends.kernel.cache.guard_module).
+    from fastsdf.backends.kernel.cache import guard_module
+
+    guard_module(sys.modules[__name__])
+
+
+_guard()

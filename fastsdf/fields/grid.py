@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
 from dataclasses import asdict, dataclass
 from typing import Any, Literal, overload
 
@@ -967,3 +968,14 @@ def measure_error(
         band_angle_max_deg=bamax,
         band_angle_rms_deg=barms,
     )
+
+
+def _guard() -> None:
+    # Generated modules call these dispatchers: every process reads and writes their numba
+    # cache files sealed (see fastsdf.backends.kernel.cache.guard_module).
+    from fastsdf.backends.kernel.cache import guard_module
+
+    guard_module(sys.modules[__name__])
+
+
+_guard()

@@ -1024,17 +1024,54 @@ class CudaGranularSimulation(GranularSimulation):
             out,
         )
         rows = out.copy_to_host()
-        et, er, ep = kinetic_energy(self.grains, self.bulk)
-        ee, nc, ew, nw = (float(rows[k].sum()) for k in range(4))
-        return {
-            "translational": et,
-            "rotational": er,
-            "gravitational": ep,
-            "elastic": ee + ew,
-            "total": et + er + ep + ee + ew,
-            "contacts": int(round(nc)),
-            "wall_contacts": int(round(nw)),
+        kinetic, rotational, potential = kinetic_energy(self.grains, self.bulk)
+        ee, _, ew, _ = (float(rows[k].sum()) for k in range(4))
+        tangential, rolling = self._spring_energy() if self._history else (0.0, 0.0)
+        parts = {
+            "kinetic": float(kinetic),
+            "rotational": float(rotational),
+            "potential": float(potential),
+            "normal_springs": ee + ew,
+            "tangential_springs": tangential,
+            "rolling_springs": rolling,
         }
+        parts["total"] = sum(parts.values())
+        return parts
+
+    def contact_counts(self) -> tuple[int, int]:
+        """As :meth:`GranularSimulation.contact_counts`, counted on the device."""
+        d = self._dev
+        n = d["st"].shape[1]
+        out = _empty((4, n))
+        self._kern[3][_grid(n)](
+            d["st"],
+            d["nbr"],
+            d["near"],
+            self._wdata,
+            float(self.contact.stiffness),  # type: ignore[arg-type]
+            float(self.wall_contact.stiffness),  # type: ignore[arg-type]
+            self.bulk.period,
+            out,
+        )
+        rows = out.copy_to_host()
+        return int(round(float(rows[1].sum()))), int(round(float(rows[3].sum())))
+
+    def _spring_energy(self) -> tuple[float, float]:
+        """``(tangential, rolling)`` energy held in the springs (on the host: the same terms
+        as :func:`fastsdf.granular.kernels.pair_energy` and ``wall_energy``)."""
+        i, j, slot = self._host_list()
+        keep = i < j  # each pair listed at both grains: counted once
+        i, j, slot = i[keep], j[keep], slot[keep]
+        r = self.grains.radius
+        pair_springs = [m[slot, i] for m in self._dev["mem"].copy_to_host()]
+        tangential, rolling = _springs_energy(
+            self.contact, pair_springs, r[i] * r[j] / (r[i] + r[j])
+        )
+        wmem = self._dev["wmem"]
+        if wmem.shape[0]:  # (storage order, as the grains' host arrays)
+            wt, wr = _springs_energy(self.wall_contact, list(wmem.copy_to_host()), r)
+            tangential, rolling = tangential + wt, rolling + wr
+        return tangential, rolling
 
     def _host_list(self) -> tuple:
         """``(i, j, slot)`` of every listed pair (both sides), in storage slots."""
@@ -1098,3 +1135,16 @@ class CudaGranularSimulation(GranularSimulation):
         return (
             super().__repr__().replace("GranularSimulation(", "GranularSimulation(device='cuda', ")
         )
+
+
+def _springs_energy(law: Any, springs: list, r_eff: np.ndarray) -> tuple[float, float]:
+    """``(k_t s**2 / 2, M**2 / (2 k_r))`` summed over springs (``springs[0]``: tangential
+    stretches; ``springs[1]``, with rolling resistance: torques) of contacts of effective
+    radii ``r_eff``: the terms of :func:`fastsdf.granular.kernels.pair_energy`."""
+    kn = float(law.stiffness)
+    tangential = 0.5 * law.tangential_stiffness * kn * float(np.sum(springs[0] ** 2))
+    mu_r = law.rolling_friction
+    if mu_r > 0.0 and len(springs) > 1:
+        k_r = 2.25 * kn * mu_r * mu_r * r_eff * r_eff
+        return tangential, float(np.sum(0.5 * springs[1] ** 2 / k_r))
+    return tangential, 0.0

@@ -194,14 +194,22 @@ def load_module(source: str, prefix: str = "fastsdf_kernel") -> types.ModuleType
 # numba's cache files: sealed, checked, repaired.
 
 
+#: The fastsdf modules that guard their own dispatchers when imported (so every process that
+#: uses them reads and writes their cache files sealed).
+_SELF_GUARDED: set = set()
+
+
 def guard_module(module: types.ModuleType) -> None:
-    """Seal and check the numba cache files of every cached dispatcher of fastsdf's in
-    ``module`` (its own and those it imports from fastsdf). A user's function it imports (a
-    fused force) is left alone: sealing its cache files would make numba fail to read them
-    wherever the user's code runs it without fastsdf's guard."""
+    """Seal and check the numba cache files of the cached dispatchers of ``module``: its own,
+    and those it imports from fastsdf modules that guard themselves (a library module calls
+    this on itself at import). Any other function it imports (a user's fused force, a field's
+    sampler) is left alone: sealing its cache files would make numba fail to read them
+    wherever it runs without the guard."""
+    if not module.__name__.startswith("fastsdf_"):  # a library module guarding itself
+        _SELF_GUARDED.add(module.__name__)
     for value in list(vars(module).values()):
         owner = getattr(getattr(value, "py_func", None), "__module__", None) or ""
-        if owner == module.__name__ or owner.split(".")[0].startswith("fastsdf"):
+        if owner == module.__name__ or owner in _SELF_GUARDED:
             guard_dispatcher(value)
 
 

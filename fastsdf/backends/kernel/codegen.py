@@ -965,6 +965,7 @@ def {name}(x, y{pargs}):
     return {ret}
 '''
 
+
 def _as_float(expr: str) -> str:
     """Wrap literal results so that numba types every returned value as float64."""
     return f"float({expr})" if expr[0].isdigit() or expr.startswith("(") else expr

@@ -37,6 +37,7 @@ more compile time per scene); ``vlog1p``, which LLVM judges too big, is inlined 
 from __future__ import annotations
 
 import math
+import sys
 
 from numba import njit
 
@@ -211,3 +212,14 @@ def vlength_grad(a: float, b: float) -> tuple[float, float, float]:
     p = select(scaled, sa / rs, sa * ri)
     q = select(scaled, sb / rs, sb * ri)
     return rs * inv, select(pos, p, 1.0), select(pos, q, 0.0)
+
+
+def _guard() -> None:
+    # Generated modules call these dispatchers: every process reads and writes their numba
+    # cache files sealed (see fastsdf.backends.kernel.cache.guard_module).
+    from fastsdf.backends.kernel.cache import guard_module
+
+    guard_module(sys.modules[__name__])
+
+
+_guard()
