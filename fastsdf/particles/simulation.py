@@ -259,8 +259,8 @@ class ParticleSimulation:
     _ext: Any
     _flags: Any
     _wall: Any
-    #: The state: :class:`Particles`, or :class:`fastsdf.particles.cuda.DeviceParticles` with
-    #: ``device='cuda'``.
+    # The state: Particles, or fastsdf.particles.cuda.DeviceParticles with device='cuda' (the
+    # class docstring's attributes describe it).
     p: Any
     #: The GPU step (:class:`fastsdf.particles.cuda.CudaStep`), None on the CPU (class
     #: defaults: members of the family that do not run this constructor are on the CPU).
