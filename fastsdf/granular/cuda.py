@@ -1009,21 +1009,7 @@ class CudaGranularSimulation(GranularSimulation):
     # -- observables --------------------------------------------------------------------------
     def energy(self) -> dict:
         """As :meth:`GranularSimulation.energy`, the contacts' energy computed on the device."""
-        d = self._dev
-        n = d["st"].shape[1]
-        out = _empty((4, n))
-        energy = self._kern[3]
-        energy[_grid(n)](
-            d["st"],
-            d["nbr"],
-            d["near"],
-            self._wdata,
-            float(self.contact.stiffness),  # type: ignore[arg-type]
-            float(self.wall_contact.stiffness),  # type: ignore[arg-type]
-            self.bulk.period,
-            out,
-        )
-        rows = out.copy_to_host()
+        rows = self._contact_rows()
         kinetic, rotational, potential = kinetic_energy(self.grains, self.bulk)
         ee, _, ew, _ = (float(rows[k].sum()) for k in range(4))
         tangential, rolling = self._spring_energy() if self._history else (0.0, 0.0)
@@ -1040,6 +1026,12 @@ class CudaGranularSimulation(GranularSimulation):
 
     def contact_counts(self) -> tuple[int, int]:
         """As :meth:`GranularSimulation.contact_counts`, counted on the device."""
+        rows = self._contact_rows()
+        return int(round(float(rows[1].sum()))), int(round(float(rows[3].sum())))
+
+    def _contact_rows(self) -> np.ndarray:
+        """Per grain, from the device: the normal springs' energy of its pairs with a higher
+        index and their count, and of its wall contact and whether it touches (4 rows)."""
         d = self._dev
         n = d["st"].shape[1]
         out = _empty((4, n))
@@ -1053,8 +1045,7 @@ class CudaGranularSimulation(GranularSimulation):
             self.bulk.period,
             out,
         )
-        rows = out.copy_to_host()
-        return int(round(float(rows[1].sum()))), int(round(float(rows[3].sum())))
+        return out.copy_to_host()
 
     def _spring_energy(self) -> tuple[float, float]:
         """``(tangential, rolling)`` energy held in the springs (on the host: the same terms
