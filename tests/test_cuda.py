@@ -118,3 +118,18 @@ def test_missing_numba_cuda_names_the_extra(monkeypatch):
         device.cuda()
     with pytest.raises(RuntimeError, match=r"fastsdf\[cuda\]"):
         sdf.Circle([0, 0], 1)(np.zeros(3), np.zeros(3), backend="cuda")
+
+
+def test_importing_fastsdf_does_not_import_numba_cuda():
+    """numba-cuda is an extra: the package and its layers import without it (it is loaded
+    when a CUDA path is first asked for)."""
+    import subprocess
+    import textwrap
+
+    code = textwrap.dedent("""
+        import sys
+        import fastsdf, fastsdf.particles, fastsdf.granular, fastsdf.fields, fastsdf.viz
+        print(sorted(m for m in sys.modules if m == "numba_cuda" or m.startswith("numba.cuda")))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
