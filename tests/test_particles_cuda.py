@@ -352,3 +352,31 @@ def test_assigning_another_world_moves_its_data_to_the_device():
     sim.run(60)
     sim.check()
     assert abs(sim.host("x")[0, 1] - 0.3) < 0.01  # resting on the new floor at 0.2
+
+
+def test_trajectories_and_video_read_the_device_state(tmp_path):
+    """The tools take a GPU simulation: an H5MD trajectory holds the device state of each frame
+    (the same numbers as the CPU's run of the same particles), and a video is written."""
+    pytest.importorskip("h5py")
+    from fastsdf.io import TrajectoryRecorder, read_trajectory
+    from fastsdf.viz import record_video
+
+    grid = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+    frames = {}
+    for dev in ("cpu", "cuda"):
+        sim = ParticleSimulation(grid, n=60, timestep=1 / 30, seed=3, device=dev)
+        sim.force_generators.append(Gravity())
+        path = tmp_path / f"{dev}.h5"
+        with TrajectoryRecorder(path, every=2, fields=("position", "velocity")) as rec:
+            rec.run(sim, 6)
+        frames[dev] = read_trajectory(path)
+        last = device.to_host(sim.p["x"])
+        np.testing.assert_array_equal(frames[dev]["position"][-1], last)
+    assert frames["cuda"]["position"].shape == (4, 60, 2)
+    np.testing.assert_allclose(
+        frames["cuda"]["position"], frames["cpu"]["position"], rtol=0, atol=1e-12
+    )
+    pytest.importorskip("imageio_ffmpeg")
+    video = tmp_path / "drop.mp4"
+    record_video(sim, str(video), frames=3, steps_per_frame=1)
+    assert video.stat().st_size > 1000
