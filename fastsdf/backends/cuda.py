@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from contextlib import nullcontext
 from types import ModuleType
 from typing import Any
 
@@ -287,7 +288,7 @@ class CudaKernels:
         name = f"{'tiles' if plan is not None else 'batch'}_{kind}"
         first = name not in self._called
         self._called.add(name)
-        with compiling("the CUDA kernel of a new scene") if first else _nothing():
+        with compiling("the CUDA kernel of a new scene") if first else nullcontext():
             if plan is None:
                 self._launch(getattr(mod, name), n, xs, ys, *outs, *args)
             else:
@@ -356,11 +357,3 @@ class _SimulatedPrims:
     def __getattr__(self, name: str) -> Any:
         f = getattr(self._prims, name)
         return lambda *a: f(*(getattr(v, "_ary", v) for v in a))
-
-
-class _nothing:
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: Any) -> None:
-        return None
