@@ -133,3 +133,35 @@ def test_importing_fastsdf_does_not_import_numba_cuda():
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize(
+    "framework, maker",
+    [
+        ("cupy", lambda mod, result: mod.asarray(result)),
+        ("torch", lambda mod, result: mod.as_tensor(result, device="cuda")),
+    ],
+)
+def test_results_go_back_as_the_callers_kind_of_array(monkeypatch, framework, maker):
+    """A caller's CuPy or PyTorch array gets its answer as the same kind, handed over without
+    a copy by that framework's own zero-copy constructor (stand-ins here: no GPU in CI)."""
+    import types
+
+    handed = []
+    fake = types.ModuleType(framework)
+    fake.asarray = lambda a: handed.append(("asarray", a)) or "cupy result"
+    fake.as_tensor = lambda a, device=None: handed.append(("as_tensor", a, device)) or "tensor"
+    monkeypatch.setitem(sys.modules, framework, fake)
+    template = type("Array", (), {"__module__": f"{framework}._core"})()
+    result = device.cuda().to_device(np.arange(3.0))
+    expected = maker(
+        types.SimpleNamespace(
+            asarray=lambda a: "cupy result", as_tensor=lambda a, device=None: "tensor"
+        ),
+        result,
+    )
+    assert device.like(result, template) == expected
+    assert handed[0][1] is result  # the device array itself: no copy to the host
+    # NumPy in: a NumPy copy out; a numba device array in: the device array out
+    np.testing.assert_array_equal(device.like(result, np.zeros(3)), [0.0, 1.0, 2.0])
+    assert device.like(result, result) is result
