@@ -1,6 +1,7 @@
 """The CUDA target against its peers on one GPU machine, in one run.
 
-``python -m bench.bench_cuda [--out DIR] [--sim] [--only expr,grid,particles,grains]``
+``python -m bench.bench_cuda [--out DIR] [--sim] [--only expr,variants,grid,particles,grains]
+[--scenes 0,1,2]``
 
 Sections (each runs on its own: one failing prints its traceback and the next goes on):
 
@@ -9,9 +10,12 @@ Sections (each runs on its own: one failing prints its traceback and the next go
   backend='cuda')`` on device arrays (1e8 points; 1e7 for the 1,000 boxes), the same with
   NumPy in and out (host round trip), JAX's ``jit(vmap(value_and_grad))`` on the same GPU
   (``bench.peers``) and this package's CPU kernel on every core of the machine; the largest
-  difference from the CPU kernel, relative to ``max(1, |d|)``.
+  difference from the CPU kernel, relative to ``max(1, |d|)``. ``--scenes`` picks some.
+* variants: the notebook's world's point function under other launch shapes and output
+  layouts, and the I/O floor (for tuning the generated kernels).
 * grid: a 400 x 400 ``GridSDF`` of the notebook's world queried on the device.
-* particles, grains: ``bench.cuda_particles.rows()`` and ``bench.cuda_granular.rows()``.
+* particles, grains: ``bench.cuda_particles.rows()`` and ``bench.cuda_granular.rows()`` (the
+  dense bed at 1e6 and 1e7 discs with and without history, 1e8 with history).
 
 Times are medians of 5 runs after a warm-up, with ``cuda.synchronize()`` around each. Figures
 go to ``DIR/bench_cuda.json`` and ``DIR/bench_cuda.md`` (DIR: ``--out``, else ``$OUT``, else
