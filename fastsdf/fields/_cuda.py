@@ -1,5 +1,5 @@
-"""A :class:`~fastsdf.fields.grid.GridSDF` queried on the GPU: the grid's own per-point samplers
-(``sample_stored``, ``sample_fd``: the same ``@njit`` functions the CPU kernels inline),
+"""A :class:`~fastsdf.fields.grid.GridSDF` queried on the GPU: the grid's own per-point sampler
+(``grid.sampler``: the same ``@njit`` function the CPU kernels inline),
 compiled by numba-cuda into one kernel over device arrays. The node array is copied to the
 device once per grid. Points outside ``bounds`` in ``mode='exact'`` are answered by the exact
 SDF's CUDA kernels (:mod:`fastsdf.backends.cuda`), merged on the device."""
@@ -12,7 +12,6 @@ import numpy as np
 
 from fastsdf.device import cuda as _load_cuda
 from fastsdf.device import simulated
-from fastsdf.fields.grid import sample_fd, sample_stored
 
 __all__ = ["query", "device_data"]
 
@@ -66,7 +65,7 @@ def _count(flags, total):
     cuda.atomic.add(total, 0, c)
 
 
-_SAMPLE = {"stored": _sampling_kernel(sample_stored), "fd": _sampling_kernel(sample_fd)}
+_SAMPLE: dict = {}  # a grid's sampler -> its kernel
 
 
 def device_data(grid: Any) -> tuple:
@@ -90,7 +89,10 @@ def query(grid: Any, xs: Any, ys: Any, compute_gradient: bool) -> tuple:
     blocks = max(1, min(-(-n // THREADS), 65536))
     if n:
         with np.errstate(all="ignore"):
-            _SAMPLE[grid.gradient][blocks, THREADS](device_data(grid), xs, ys, out, grad, outside)
+            kernel = _SAMPLE.get(grid.sampler)
+            if kernel is None:
+                kernel = _SAMPLE[grid.sampler] = _sampling_kernel(grid.sampler)
+            kernel[blocks, THREADS](device_data(grid), xs, ys, out, grad, outside)
         if grid.mode == "exact" and grid.exact is not None:
             total = cuda.to_device(np.zeros(1, dtype=np.int64))
             _count[blocks, THREADS](outside, total)

@@ -31,6 +31,8 @@ is no limit; the two messages per substep (their latency) are, once ``10 / N`` s
 a network round trip (N in the thousands).
 """
 
+# (registers the GPU engine as GranularSimulation's device='cuda'; loads no numba-cuda)
+import fastsdf.granular.cuda  # noqa: F401
 from fastsdf.granular.analysis import (
     BeverlooFit,
     ReposeAngle,

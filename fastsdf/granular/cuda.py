@@ -72,7 +72,31 @@ from fastsdf.notice import compiling
 
 __all__ = ["CHECK_EVERY", "EMPTY", "CudaGranularSimulation", "default_max_neighbours"]
 
-cu = cuda()
+#: ``numba.cuda``, loaded by the first GPU engine (:func:`_load`): importing this module needs no
+#: numba-cuda, so the package registers the class without it. (A module global: numba-cuda's
+#: simulator swaps it inside kernels.)
+cu: Any = None
+
+
+def _load() -> Any:
+    global cu
+    if cu is None:
+        cu = cuda()
+    return cu
+
+
+class _Kernel:
+    """A CUDA kernel compiled when first launched (``kernel[grid, block](...)``)."""
+
+    def __init__(self, fn: Any) -> None:
+        self._fn = fn
+        self._kernel: Any = None
+
+    def __getitem__(self, config: Any) -> Any:
+        if self._kernel is None:
+            self._kernel = _load().jit(self._fn)
+        return self._kernel[config]
+
 
 #: An unused slot of the neighbour list.
 EMPTY = 0xFFFFFFFF
@@ -207,21 +231,21 @@ def _world_point(world: Any) -> tuple:
 # -- kernels that do not depend on the contact law ------------------------------------------
 
 
-@cu.jit
+@_Kernel
 def _fill_i32(a, value):
     i = cu.grid(1)
     if i < a.shape[0]:
         a[i] = value
 
 
-@cu.jit
+@_Kernel
 def _fill_u32(a, value):
     i = cu.grid(1)
     if i < a.shape[0]:
         a[i] = value
 
 
-@cu.jit
+@_Kernel
 def _bounds(st, out):
     """Min and max of x and y over the grains, ``out = (xlo, -xhi, ylo, -yhi, bad)`` (out
     starts at ``(inf, inf, inf, inf, 0)``; ``bad`` is 1 when a coordinate is not finite): each
@@ -261,7 +285,7 @@ def _bounds(st, out):
             cu.atomic.min(out, k, sh[k, 0])
 
 
-@cu.jit
+@_Kernel
 def _keys(st, x0, y0, inv_w, inv_h, ncx, ncy, period, keys, rank, counts):
     """Each grain's cell (x wrapped into the period first, as on the CPU) and its rank among
     its cell's grains as the atomic count hands it out."""
@@ -278,7 +302,7 @@ def _keys(st, x0, y0, inv_w, inv_h, ncx, ncy, period, keys, rank, counts):
         rank[i] = cu.atomic.add(counts, k, 1)
 
 
-@cu.jit
+@_Kernel
 def _scan_runs(a, m, sums, run):
     """Exclusive prefix sum within each run of ``run`` entries of ``a[:m]``; run totals into
     ``sums``."""
@@ -294,21 +318,21 @@ def _scan_runs(a, m, sums, run):
         sums[t] = acc
 
 
-@cu.jit
+@_Kernel
 def _add_offsets(a, m, sums, run):
     c = cu.grid(1)
     if c < m:
         a[c] += sums[c // run]
 
 
-@cu.jit
+@_Kernel
 def _scatter(keys, rank, cell_start, perm):
     i = cu.grid(1)
     if i < keys.shape[0]:
         perm[cell_start[keys[i]] + rank[i]] = i
 
 
-@cu.jit
+@_Kernel
 def _order_cells(cell_start, ncells, perm):
     """Put each cell's grains in index order (an insertion sort of a handful): the stable
     order of the CPU's counting sort, whatever order the atomics handed out."""
@@ -325,35 +349,35 @@ def _order_cells(cell_start, ncells, perm):
             perm[b + 1] = v
 
 
-@cu.jit
+@_Kernel
 def _gather_row(src, row, perm, out):
     i = cu.grid(1)
     if i < perm.shape[0]:
         out[i] = src[row, perm[i]]
 
 
-@cu.jit
+@_Kernel
 def _put_row(dst, row, src):
     i = cu.grid(1)
     if i < src.shape[0]:
         dst[row, i] = src[i]
 
 
-@cu.jit
+@_Kernel
 def _gather_i32(src, perm, out):
     i = cu.grid(1)
     if i < perm.shape[0]:
         out[i] = src[perm[i]]
 
 
-@cu.jit
+@_Kernel
 def _copy_i32(src, dst):
     i = cu.grid(1)
     if i < src.shape[0]:
         dst[i] = src[i]
 
 
-@cu.jit
+@_Kernel
 def _build(st, cell_start, x0, y0, inv_w, inv_h, ncx, ncy, period, skin, nbr, flag):
     """Grain ``i``'s neighbours closer than ``R_i + R_j + skin`` in the 3 x 3 cells around its
     own, in cell order then index order, into its slots; a grain with more than the slots
@@ -405,7 +429,7 @@ def _build(st, cell_start, x0, y0, inv_w, inv_h, ncx, ncy, period, skin, nbr, fl
         cu.atomic.max(flag, 1, count)
 
 
-@cu.jit
+@_Kernel
 def _carry(perm, old_nbr, old_mem, nbr, mem):
     """Each new entry takes the memory of the same pair in the old list (new slot ``p`` was
     old slot ``perm[p]``): a search of the grain's old row; 0 for a pair not found (new)."""
@@ -432,7 +456,7 @@ def _carry(perm, old_nbr, old_mem, nbr, mem):
             mem[c, k, p] = old_mem[c, at, op] if at >= 0 else 0.0
 
 
-@cu.jit
+@_Kernel
 def _set_refs(st, xref, yref):
     i = cu.grid(1)
     if i < st.shape[1]:
@@ -671,7 +695,7 @@ def _kernels(at: Any, history: bool, roll: bool, wall_history: bool, wall_roll: 
     return out
 
 
-class CudaGranularSimulation(GranularSimulation):
+class CudaGranularSimulation(GranularSimulation, device="cuda"):
     """:class:`~fastsdf.granular.GranularSimulation` stepped on a CUDA GPU, built by
     ``GranularSimulation(..., device='cuda')``: the same parameters, physics and accessors
     (``positions``, ``velocities``, ... are host copies, in the grains' given order); the state
@@ -688,6 +712,7 @@ class CudaGranularSimulation(GranularSimulation):
     def __init__(
         self, *args: Any, max_neighbours: int | None = None, device: str = "cuda", **kwargs: Any
     ) -> None:
+        _load()  # numba-cuda, or a clear error naming the extra
         self._max_neighbours_given = max_neighbours
         super().__init__(*args, **kwargs)
 

@@ -212,13 +212,21 @@ class GranularSimulation:
         ``max_neighbours``.
     """
 
+    #: The engine of each device other than the CPU, registered by its subclass
+    #: (``class ...(GranularSimulation, device='cuda')``: :mod:`fastsdf.granular.cuda`, which
+    #: the package imports), so this module imports none of them.
+    _devices: dict[str, type] = {}
+
+    def __init_subclass__(cls, device: str | None = None, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if device is not None:
+            GranularSimulation._devices[device] = cls
+
     def __new__(cls, *args: Any, device: str = "cpu", **kwargs: Any) -> GranularSimulation:
         if device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got device={device!r}")
-        if device == "cuda" and cls is GranularSimulation:
-            from fastsdf.granular.cuda import CudaGranularSimulation  # loads numba-cuda
-
-            return object.__new__(CudaGranularSimulation)
+        if device != "cpu" and cls is GranularSimulation:
+            return object.__new__(GranularSimulation._devices[device])
         return object.__new__(cls)
 
     def __init__(

@@ -88,6 +88,18 @@ def _name(cls: type) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
+#: The simulation classes of the particle family, registered by their modules
+#: (:func:`register_simulation`), which import this one.
+_SIMULATIONS: list[type] = []
+
+
+def register_simulation(cls: type) -> type:
+    """Let checkpoints rebuild ``cls`` (a member of the particle family) from its state."""
+    if cls not in _SIMULATIONS:
+        _SIMULATIONS.append(cls)
+    return cls
+
+
 def _state_classes() -> dict[str, type]:
     """The classes a checkpoint rebuilds from their state (by ``__setstate__`` or their
     ``__dict__``): the simulations, the granular engine, the particle state, the worlds
@@ -96,14 +108,11 @@ def _state_classes() -> dict[str, type]:
     from fastsdf.fields.grid import GridSDF
     from fastsdf.function import Function
     from fastsdf.granular.simulation import GranularSimulation
-    from fastsdf.particles.grains import GrainSimulation
-    from fastsdf.particles.simulation import ParticleSimulation
     from fastsdf.particles.state import Particles
     from fastsdf.shapes import SDF
 
     classes: list[type] = [
-        ParticleSimulation,
-        GrainSimulation,
+        *_SIMULATIONS,
         GranularSimulation,
         Particles,
         GridSDF,

@@ -45,6 +45,7 @@ from fastsdf.granular.simulation import (
     GranularSimulation,
 )
 from fastsdf.notice import compiling
+from fastsdf.particles.checkpoint import register_simulation
 from fastsdf.particles.forces import Gravity, fuse
 from fastsdf.particles.simulation import _DEFAULT_N, ParticleSimulation, _recorded
 from fastsdf.particles.world import _force_parts
@@ -227,6 +228,7 @@ def _points(value: ArrayLike, name: str) -> np.ndarray:
     return a
 
 
+@register_simulation
 class GrainSimulation(ParticleSimulation, steps_contacts=True):
     """Grains colliding with each other and with the world; built by
     ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactLaw(...))``

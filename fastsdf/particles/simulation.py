@@ -23,7 +23,7 @@ from fastsdf.function import Function
 from fastsdf.introspect import show_init_signature
 from fastsdf.notice import RunProgress, compiling
 from fastsdf.particles import kernels as _kernels
-from fastsdf.particles.checkpoint import load_simulation, save_simulation
+from fastsdf.particles.checkpoint import load_simulation, register_simulation, save_simulation
 from fastsdf.particles.forces import Gravity, fuse, python_forces
 from fastsdf.particles.kernels import NO_EXT, Budget, Physics, State
 from fastsdf.particles.state import Particles, _invalid_state_error, _real, _unit_interval
@@ -118,6 +118,7 @@ def _recorded(sim: Any, steps: Any, record: Any) -> bool:
     return True
 
 
+@register_simulation
 class ParticleSimulation:
     """Particles moving under forces and colliding with an SDF (the notebook's interface).
 
