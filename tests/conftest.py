@@ -1,5 +1,6 @@
 """Shared fixtures and reference helpers for the fastsdf tests."""
 
+import importlib.util
 import os
 
 import numpy as np
@@ -14,6 +15,10 @@ os.environ.setdefault("FASTSDF_BACKGROUND_COMPILE", "0")
 # The CUDA target's tests run under numba-cuda's simulator (kernels executed on the CPU), read
 # when numba.cuda is first imported; NUMBA_ENABLE_CUDASIM=0 runs them on a GPU instead.
 os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
+
+#: Whether the CUDA target can be tested here (numba-cuda is the `cuda` extra; without it the
+#: CUDA paths of the shared suites are left out, and the rest must pass).
+HAS_NUMBA_CUDA = importlib.util.find_spec("numba_cuda") is not None
 
 
 @pytest.fixture(autouse=True)

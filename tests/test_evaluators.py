@@ -5,6 +5,7 @@ backend-agnostic test suite should."""
 
 import numpy as np
 import pytest
+from conftest import HAS_NUMBA_CUDA
 
 import fastsdf as sdf
 from fastsdf.expr.graph import evaluate_numpy
@@ -64,9 +65,9 @@ PATHS = {
     "kernel_pruned": _kernel_pruned,
     "tape": _tape,
     "numpy": _numpy,
-    "cuda": _cuda,
-    "cuda_pruned": _cuda_pruned,
 }
+if HAS_NUMBA_CUDA:
+    PATHS.update(cuda=_cuda, cuda_pruned=_cuda_pruned)
 
 
 def _every_kind():

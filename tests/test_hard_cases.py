@@ -10,6 +10,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from conftest import HAS_NUMBA_CUDA
 
 import fastsdf as sdf
 
@@ -373,7 +374,7 @@ def _world(s, tf=None):
 
 
 #: The compiled kernel, and the CUDA target (under numba-cuda's simulator without a GPU).
-TARGETS = ["kernel", "cuda"]
+TARGETS = ["kernel", "cuda"] if HAS_NUMBA_CUDA else ["kernel"]
 
 
 @pytest.mark.parametrize("backend", TARGETS)
