@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from fastsdf.backends.kernel.intrinsics import select as _sel
+from fastsdf.intrinsics import select as _sel
 
 
 

@@ -49,7 +49,7 @@ from numba import njit, prange
 from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel import prims as _P
-from fastsdf.backends.kernel.intrinsics import select as _sel
+from fastsdf.intrinsics import select as _sel
 from fastsdf.backends.kernel.vmath import vexp, vlength, vlength_grad, vlog
 from fastsdf.expr.graph import Expr
 from fastsdf.notice import compiling

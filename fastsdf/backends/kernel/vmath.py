@@ -41,8 +41,8 @@ import sys
 
 from numba import njit
 
-from fastsdf.backends.kernel.intrinsics import bits_f64, f64_bits, select
-from fastsdf.backends.kernel.intrinsics import fmuladd as fma
+from fastsdf.intrinsics import bits_f64, f64_bits, select
+from fastsdf.intrinsics import fmuladd as fma
 
 __all__ = ["vexp", "vlog", "vlog1p", "vlength"]
 

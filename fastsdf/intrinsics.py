@@ -1,4 +1,5 @@
-"""Low-level helpers for generated kernels.
+"""Numeric intrinsics that the evaluators and the physics both compile (the bottom layer:
+every kernel may import them).
 
 numba lowers ``a if c else b`` to a branch. In SDF code the condition (which operand of a min
 wins, which side of a blend is larger) flips from point to point, so such branches mispredict
