@@ -50,17 +50,12 @@ SECTIONS = [
     (
         "build",
         "bench.bench_build",
-        "building scenes: the modelling DSL, code generation, tape and pruning plan per size",
-    ),
-    (
-        "tape",
-        "bench.bench_tape",
-        "tape interpreter: cost per point against the kernels, first answer of a new scene",
+        "building scenes: the modelling DSL, code generation and pruning plan per size",
     ),
     (
         "instant",
         "bench.bench_instant",
-        "a new scene's first answer through each instant path (tape, NumPy) and the default call",
+        "a new scene's first answer through the kernel, NumPy and the default call",
     ),
     (
         "simd",

@@ -4,9 +4,9 @@
 
 For each scene, in this process after a warm-up (pure Python: no numba compilation is timed),
 the median over repeats of: building the scene with the modelling DSL (``fastsdf.shapes``),
-per primitive; the code generator (``f.compiled.module_source``); the tape of the interpreter
-(``f.compiled.tape``); and the pruning plan (``f.compiled.plan`` over ``[-3, 3]^2``, 32 x 32
-tiles; only scenes with loops over tables have one). Every repeat builds the scene from other
+per primitive; the code generator (``f.compiled.module_source``); and the pruning plan
+(``f.compiled.plan`` over ``[-3, 3]^2``, 32 x 32 tiles; only scenes with loops over tables
+have one). Every repeat builds the scene from other
 random constants (``seed``), so no cache keyed by the expression helps.
 
 Box unions are written two ways: ``f = f | Box(...)`` in a loop, and the n-ary
@@ -96,7 +96,7 @@ def measure(build, repeats: int = 3) -> dict:
     and NumPy, so on an idle machine it is the wall time, and on a loaded one (other processes
     sharing the cores) it is far steadier than the wall time."""
     clock = time.process_time
-    steps = {"build": [], "codegen": [], "tape": [], "plan": []}
+    steps = {"build": [], "codegen": [], "plan": []}
     for seed in range(1, repeats + 1):
         t0 = clock()
         f = build(seed)
@@ -104,9 +104,6 @@ def measure(build, repeats: int = 3) -> dict:
         t0 = clock()
         f.compiled.module_source  # noqa: B018 - generates
         steps["codegen"].append(clock() - t0)
-        t0 = clock()
-        f.compiled.tape  # noqa: B018 - builds
-        steps["tape"].append(clock() - t0)
         if f.compiled.groups:
             t0 = clock()
             f.compiled.plan(((-3.0, 3.0), (-3.0, 3.0)))
@@ -137,7 +134,6 @@ def run(quick: bool = False) -> str:
                 _ms(r["build"]),
                 f"{r['build'] / n * 1e6:.0f}",
                 _ms(r["codegen"]),
-                _ms(r["tape"]),
                 _ms(r["plan"]),
                 _ms(total),
             ]
@@ -148,7 +144,6 @@ def run(quick: bool = False) -> str:
         "build (ms)",
         "build per primitive (us)",
         "codegen (ms)",
-        "tape (ms)",
         "plan 32x32 (ms)",
         "total (ms)",
     ]
@@ -162,7 +157,7 @@ def run(quick: bool = False) -> str:
             "median over 3 scenes of each kind (other random constants each time), in one process "
             "after a warm-up; pure Python and NumPy, no numba compilation. "
             "'codegen': the generated "
-            "module's source (`f.compiled.module_source`); 'tape': `f.compiled.tape`; "
+            "module's source (`f.compiled.module_source`); "
             "'plan': the pruning plan over [-3, 3]^2 in 32 x 32 tiles (scenes with loops over "
             "tables only).",
             "",

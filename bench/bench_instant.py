@@ -2,13 +2,12 @@
 
     python -m bench.bench_instant       (QUICK=1: the seed and 20-box worlds only)
 
-Fresh process per scene and path, empty kernel cache, warm installation cache (the tape
-interpreter and the scene-independent kernels of ``fastsdf.backends.kernel.drive``, combine
+Fresh process per scene and path, empty kernel cache, warm installation cache (the
+scene-independent kernels of ``fastsdf.backends.kernel.drive``, combine
 programs included, compiled once before), fresh random constants per process. Seconds for
 ``import fastsdf``, for building the scene, and from the built scene to the first answer of 1e5
 points (value + gradient) through:
 
-* ``tape``: the scene-independent tape interpreter (``fastsdf.backends.vm``);
 * ``numpy``: the NumPy path (the op table's reference formulas, no numba);
 * ``kernel``: the scene's compiled kernel, cold (for scenes of more than a few hundred nodes its
   block code is a fold function plus a combine program run by the interpreter of
@@ -67,7 +66,7 @@ SCENES = [
     ("hard1000", "hard union of 1000 boxes"),
     ("hard5000", "hard union of 5000 boxes"),
 ]
-PATHS = ("tape", "numpy", "kernel", "default")
+PATHS = ("numpy", "kernel", "default")
 
 
 def _fresh(kind: str, backend: str, seed: int, cache: str) -> dict:
@@ -82,8 +81,7 @@ def run(quick: bool = False) -> str:
     cache = tempfile.mkdtemp(prefix="fastsdf-instant-bench-")
     rows = []
     try:
-        # warm the installation cache: the tape interpreter, the scene-independent kernels
-        _fresh("seed", "tape", 999, cache)
+        # warm the installation cache: the scene-independent kernels
         for kind, _ in scenes:
             _fresh(kind, "kernel", 999, cache)
         seed = int.from_bytes(os.urandom(3), "little")
@@ -101,7 +99,6 @@ def run(quick: bool = False) -> str:
                     label,
                     f"{d['import_s']:.2f}",
                     f"{d['build_s']:.3f}",
-                    f"{res['tape']['first_s']:.3f}",
                     f"{res['numpy']['first_s']:.3f}",
                     kernel,
                     f"**{d['first_s']:.3f}** ({d['default']})",
@@ -128,7 +125,6 @@ def run(quick: bool = False) -> str:
                     "new scene",
                     "import fastsdf (s)",
                     "construction (s)",
-                    "tape (s)",
                     "NumPy (s)",
                     "kernel, cold (s)",
                     "default call (s)",

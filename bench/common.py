@@ -102,7 +102,7 @@ def run_fresh_process(code: str, env: dict | None = None, timeout: float = 600) 
 from fastsdf.viz.progress import Progress  # noqa: E402,F401 - re-exported for sections
 
 # The scenes of the first-answer benchmarks, built with fresh constants in a child process's
-# script (bench_tape, bench_instant): KIND_ and SEED_ are filled in by the caller.
+# script (bench_instant): KIND_ and SEED_ are filled in by the caller.
 FRESH_SCENE = r"""
 from fastsdf.shapes.scenes import box_world, mixed_scene
 from bench.bench_prune import hard_union

@@ -45,7 +45,10 @@ def scenes() -> dict:
         ]
     )
     circles = sdf.union(
-        [sdf.Circle(c, r) for c, r in zip(rng.uniform(-2, 2, (200, 2)), rng.uniform(0.05, 0.2, 200))]
+        [
+            sdf.Circle(c, r)
+            for c, r in zip(rng.uniform(-2, 2, (200, 2)), rng.uniform(0.05, 0.2, 200))
+        ]
     )
     with sdf.smoothness(0.3, kind="quadratic"):
         poly = sdf.Circle([0.0, 0.0], 0.6)

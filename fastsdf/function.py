@@ -16,6 +16,7 @@ import numbers
 import threading
 from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
+from dataclasses import replace
 from types import ModuleType
 from typing import Any, Literal, overload
 
@@ -27,17 +28,17 @@ from fastsdf.backends.kernel.cache import load_module
 from fastsdf.backends.kernel.codegen import generate_module, scene_parameters
 from fastsdf.backends.kernel.drive import max_threads, scratch
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
+from fastsdf.backends.request import Request, check_kind, make_request
 from fastsdf.expr.graph import (
     Expr,
     as_expr,
-    dag_size,
     evaluate_numpy,
     expr_to_str,
     gc_paused,
     parameters,
     substitute_params,
 )
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, device_points, point_arrays
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
 from fastsdf.notice import compiling
 
 __all__ = [
@@ -49,23 +50,12 @@ __all__ = [
     "BACKENDS",
 ]
 
-#: How a call is answered: the scene's compiled kernel, the scene-independent tape interpreter
-#: of :mod:`fastsdf.backends.vm` (the kernel's bits), NumPy (:meth:`CompiledSDF.numpy`: the op
-#: table's reference formulas, no numba at all, the kernel's results to rounding), or ``'auto'``
-#: (the default): the tape while the kernel compiles in a background thread, then the kernel
-#: (the kernel at once where the interpreter is not compiled yet). ``'cuda'``: the scene's CUDA
+#: How a call is answered: ``'auto'`` (the default), the scene's compiled kernel, which then
+#: compiles the scene's other kinds of kernel in a background thread; ``'kernel'``, the compiled
+#: kernel alone; ``'numpy'``, NumPy alone (:meth:`CompiledSDF.numpy`: the op table's reference
+#: formulas, no numba at all, the kernel's results to rounding); ``'cuda'``, the scene's CUDA
 #: kernels (:mod:`fastsdf.backends.cuda`) on a GPU, device arrays in and out.
-BACKENDS = ("kernel", "tape", "numpy", "auto", "cuda")
-
-#: The cost model of the tape (seconds; measured by ``python -m bench.bench_tape`` on a 2-core AMD
-#: EPYC): building a tape per node, and running it per instruction and point (2 threads).
-TAPE_BUILD_PER_NODE_S = 8e-6
-TAPE_PER_NODE_POINT_S = 1.0e-9
-#: ``backend='auto'`` answers through the tape where that is estimated (by the figures above) to
-#: take less than this (seconds), and otherwise waits for the kernel, whose first answer on a
-#: warm installation takes about 1.3 to 1.8 s: the tape evaluates every node at every point
-#: (never pruned), so a union of thousands of shapes on many points is faster compiled.
-AUTO_TAPE_MAX_S = 1.0
+BACKENDS = ("auto", "kernel", "numpy", "cuda")
 
 #: A first kernel call that takes longer than this (seconds: compiling) says so once on stderr.
 COMPILE_NOTICE_AFTER_S = 1.0
@@ -97,8 +87,6 @@ class CompiledSDF:
         self._generated: tuple[str, dict, list] | None = None
         self._module: ModuleType | None = None
         self._plans: dict = {}
-        self._tape: Any = None
-        self._tape_error: str | None = None
         self._cuda: Any = None
         self._warm: threading.Event | None = None
         self._warm_lock = threading.Lock()
@@ -119,7 +107,7 @@ class CompiledSDF:
         return self.param_names is not None
 
     def _kind(self, kind: str) -> str:
-        kind = _check_kind(kind)
+        kind = check_kind(kind)
         if kind == "vgt" and not self.parametric:
             raise ValueError(
                 "kind='vgt' (with dd/dt) exists only for scenes with parameters "
@@ -175,44 +163,28 @@ class CompiledSDF:
             self._cuda = CudaKernels(self.expr, self.symbol_names)
         return self._cuda
 
-    @property
-    def tape(self) -> Any:
-        """The :class:`fastsdf.backends.vm.Tape` of the expression (built on first use; raises
-        ``ValueError`` for an expression the tape does not evaluate)."""
-        if self._tape is None:
-            if self._tape_error is not None:  # known already: not walked again per call
-                raise ValueError(self._tape_error)
-            from fastsdf.backends.vm import compile_tape
-
-            try:
-                with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
-                    self._tape = compile_tape(self.expr, self.symbol_names)
-            except ValueError as exc:
-                self._tape_error = str(exc)
-                raise
-        return self._tape
-
-    def numpy(
-        self, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False, params: dict | None = None
-    ) -> Any:
-        """Evaluate with NumPy alone (no numba): the op table's reference formulas
+    def numpy(self, req: Request) -> tuple:
+        """Evaluate ``req`` with NumPy alone (no numba): the op table's reference formulas
         (:func:`fastsdf.expr.graph.evaluate_numpy`), one array operation per node; the kernel's
-        results to rounding (values 1e-12 relative, gradients 1e-9). ``params``: values of
-        runtime parameters by name (the others take their defaults)."""
-        xs, ys, shape = as_points(x, y)
+        results to rounding (values 1e-12 relative, gradients 1e-9). No dd/dt: a request of
+        kind ``'vgt'`` is a ``ValueError``."""
+        if req.kind == "vgt":
+            raise ValueError("the NumPy reference has no time derivative: use backend='kernel'")
+        xs, ys = req.xs, req.ys
         ok = np.isfinite(xs) & np.isfinite(ys)
         names = self.symbol_names
+        values = dict(zip(self.param_names or (), req.params), t=req.t)
         with gc_paused():
             res = evaluate_numpy(
-                self.expr, {names[0]: xs[ok], names[1]: ys[ok]}, compute_gradient, params
+                self.expr, {names[0]: xs[ok], names[1]: ys[ok]}, req.gradient, values
             )
         out = np.full(xs.shape, np.nan)
-        out[ok] = res[0] if compute_gradient else res
-        if not compute_gradient:
-            return out.reshape(shape)
+        out[ok] = res[0] if req.gradient else res
+        if not req.gradient:
+            return (out,)
         grad = np.full((xs.shape[0], 2), np.nan)
         grad[ok, 0], grad[ok, 1] = res[1]
-        return out.reshape(shape), grad.reshape(shape + (2,))
+        return out, grad
 
     @property
     def kernel_ready(self) -> bool:
@@ -220,28 +192,21 @@ class CompiledSDF:
         done (False if it never started)."""
         return self._warm is not None and self._warm.is_set()
 
-    def compile_in_background(
-        self, xs: np.ndarray | None = None, ys: np.ndarray | None = None, tol: float | None = None
-    ) -> threading.Event:
-        """Compile (or load from the disk cache) the kernels a call needs, in a daemon thread;
-        returns an event set when done (also on failure: see :attr:`warm_error`). Started once.
+    def compile_in_background(self, req: Request | None = None) -> threading.Event:
+        """Compile (or load from the disk cache) the kernels of the kinds a call did not ask
+        for, in a daemon thread; returns an event set when done (also on failure: see
+        :attr:`warm_error`). Started once.
 
         The thread runs only serial kernels on a few points: for scenes without parameters that
         compiles the scene's block functions, which the parallel kernels call (those are
-        scene-independent and cached once per installation). Given the points of a call
-        (``xs, ys``, and the pruning tolerance ``tol``), it then also builds the pruning plan
-        such a call would use, so that the first kernel call after the switch does not."""
+        scene-independent and cached once per installation). Given a call's request, it then
+        also builds the pruning plan such calls would use."""
         with self._warm_lock:
             if self._warm is None:
                 self._warm = threading.Event()
                 job = None
-                if (
-                    xs is not None
-                    and ys is not None
-                    and not self.parametric
-                    and len(xs) >= PRUNE_MIN_POINTS
-                ):
-                    job = (snap_bounds(xs, ys), len(xs), tol)
+                if req is not None and not self.parametric and req.n >= PRUNE_MIN_POINTS:
+                    job = (req.bounds, req.n, req.tol)
                 threading.Thread(
                     target=self._compile_now, args=(job,), name="fastsdf-compile", daemon=True
                 ).start()
@@ -249,15 +214,13 @@ class CompiledSDF:
 
     def _compile_now(self, job: tuple | None = None) -> None:
         try:
-            xs = np.zeros(4)
-            kw: dict[str, Any] = {}
-            if self.param_names is not None:
-                kw = dict(t=0.0, params=(1.0,) * len(self.param_names))
-            for g in (True, False):
-                self.evaluate(xs, xs, compute_gradient=g, prune=False, **kw)
+            zeros = np.zeros(4)
+            params = (1.0,) * len(self.param_names or ())
+            for kind in ("vg", "v"):
+                self.evaluate(Request(zeros, zeros, (4,), kind, 0.0, params, prune=False))
             if job is not None and job[0] is not None:
                 bounds, count, tol = job
-                self.pruned_plan(xs, xs, None, tol, bounds=bounds, count=count)
+                self.pruned_plan(zeros, zeros, None, tol, bounds=bounds, count=count)
         except BaseException as exc:  # reported through warm_error; the kernel path re-raises
             self.warm_error = exc
         finally:
@@ -290,8 +253,8 @@ class CompiledSDF:
 
     def pruned_plan(
         self,
-        xs: np.ndarray,
-        ys: np.ndarray,
+        xs: Any,
+        ys: Any,
         prune: bool | None = None,
         tol: float | None = None,
         bounds: Any = None,
@@ -305,20 +268,32 @@ class CompiledSDF:
         ``len(xs)``). ``target='cuda'``: a plan for the CUDA code, ``xs, ys`` device arrays
         (their bounds are found on the device)."""
         count = len(xs) if count is None else count
+        if not self._wants_plan(count, prune, tol, target):
+            return None
+        if bounds is None:
+            bounds = self.cuda.bounds(xs, ys) if target == "cuda" else snap_bounds(xs, ys)
+        return self._plan_over(bounds, prune, tol, target)
+
+    def _wants_plan(self, count: int, prune: bool | None, tol: float | None, target: str) -> bool:
+        """Whether a call on ``count`` points may be pruned (before its bounds are known)."""
         if self.parametric:  # interval bounds would need ranges of the parameters: not pruned
-            return None
+            return False
         if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
-            return None
+            return False
         groups = self._groups(target)
         operands = sum(len(g["members"]) for g in groups or ())
         if not operands or (
             not prune and (operands < PRUNE_MIN_OPERANDS or operands * count < PRUNE_MIN_WORK)
         ):
-            return None
-        if not prune and tol is None and all(g["op"] in ("smin", "smax") for g in groups):
-            return None  # exponential chains at half an ulp: next to nothing to drop
-        if bounds is None:
-            bounds = self.cuda.bounds(xs, ys) if target == "cuda" else snap_bounds(xs, ys)
+            return False
+        # exponential chains at half an ulp: next to nothing to drop
+        return bool(
+            prune or tol is not None or any(g["op"] not in ("smin", "smax") for g in groups)
+        )
+
+    def _plan_over(
+        self, bounds: Any, prune: bool | None, tol: float | None, target: str
+    ) -> PrunePlan | None:
         if bounds is None:
             return None
         plan = self.plan(bounds, tol=tol, target=target)
@@ -391,59 +366,37 @@ class CompiledSDF:
         with self._first_call(f"{kind}_{parallel}"):
             self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
 
-    def evaluate(
-        self,
-        x: ArrayLike,
-        y: ArrayLike,
-        compute_gradient: bool = False,
-        prune: bool | None = None,
-        tol: float | None = None,
-        t: float = 0.0,
-        params: tuple | None = None,
-        time_derivative: bool = False,
-    ) -> Any:
-        """Evaluate at points; see :class:`fastsdf.function.Function` for the conventions.
-
-        For a scene with parameters, ``t`` is the time and ``params`` the tuple of the other
-        parameters' values (``param_names`` order); ``time_derivative`` also returns dd/dt."""
-        xs, ys, shape = as_points(x, y)
-        n = xs.shape[0]
+    def evaluate(self, req: Request) -> tuple:
+        """The compiled kernel's answer to ``req``: ``(value,)``, ``(value, gradient)`` or
+        ``(value, gradient, dd/dt)`` as flat arrays (gradient of shape (n, 2)); see
+        :class:`fastsdf.function.Function` for the conventions. For a scene with parameters
+        ``req.params`` holds the values of :attr:`param_names`; a static scene's dd/dt is 0."""
+        n = req.n
         out = np.empty(n)
-        if self.param_names is not None:
-            prm = tuple(float(v) for v in (params or ()))
-            if len(prm) != len(self.param_names):
-                raise ValueError(
-                    f"params must hold {len(self.param_names)} values (for "
-                    f"{list(self.param_names)}), got {params!r}"
-                )
-            parallel = n >= PARALLEL_MIN_POINTS
-            extra = (float(t), prm) + ((64 * numba.get_num_threads(),) if parallel else ())
-            kind = "vgt" if time_derivative else "vg" if compute_gradient else "v"
-            arrays = [out]
-            if kind != "v":
-                arrays.append(np.empty((n, 2)))
-            if kind == "vgt":
-                arrays.append(np.empty(n))
-            if n:
-                with self._first_call(f"{kind}_{parallel}"):
-                    self.kernel(kind, parallel)(xs, ys, *arrays, *extra)
-            if kind == "v":
-                return out.reshape(shape)
-            res = (out.reshape(shape), arrays[1].reshape(shape + (2,)))
-            return res + ((arrays[2].reshape(shape),) if kind == "vgt" else ())
-        plan = self.pruned_plan(xs, ys, prune, tol)
-        if compute_gradient:
-            grad = np.empty((n, 2))
-            self.run(xs, ys, out, grad, plan)
-            return out.reshape(shape), grad.reshape(shape + (2,))
-        self.run(xs, ys, out, None, plan)
-        return out.reshape(shape)
-
-
-def _check_kind(kind: str) -> str:
-    if kind not in ("v", "vg", "vgt"):
-        raise ValueError(f"kind must be 'v', 'vg' or 'vgt', got kind={kind!r}")
-    return kind
+        grad = np.empty((n, 2)) if req.gradient else None
+        if self.param_names is None:
+            plan = None
+            if self._wants_plan(n, req.prune, req.tol, "cpu"):
+                plan = self._plan_over(req.bounds, req.prune, req.tol, "cpu")
+            self.run(req.xs, req.ys, out, grad, plan)
+            if req.kind == "vgt":
+                return out, grad, np.zeros(n)
+            return (out,) if grad is None else (out, grad)
+        if len(req.params) != len(self.param_names):
+            raise ValueError(
+                f"params must hold {len(self.param_names)} values (for "
+                f"{list(self.param_names)}), got {req.params!r}"
+            )
+        parallel = n >= PARALLEL_MIN_POINTS
+        extra = (req.t, tuple(map(float, req.params)))
+        extra += (64 * numba.get_num_threads(),) if parallel else ()
+        arrays = [out] + ([grad] if grad is not None else [])
+        if req.kind == "vgt":
+            arrays.append(np.empty(n))
+        if n:
+            with self._first_call(f"{req.kind}_{parallel}"):
+                self.kernel(req.kind, parallel)(req.xs, req.ys, *arrays, *extra)
+        return tuple(arrays)
 
 
 def compile_expr(expr: Expr, symbol_names: Sequence[str], vmath: bool = True) -> CompiledSDF:
@@ -477,27 +430,14 @@ class Function:
     shows the generated Python code and ``point_fn`` is the compiled per-point function for use
     inside your own ``@njit`` code.
 
-    Backends: by default (``backend='auto'``, :attr:`backend`) a new scene is answered at once
-    by the scene-independent tape interpreter of :mod:`fastsdf.backends.vm` (compiled once per
-    installation; the first numba call of a process pays numba's one-time setup), while the
-    scene's kernel compiles in a background thread started after that first answer; once it
-    is ready (``f.compiled.kernel_ready``) calls run the kernel. Where the interpreter is not
-    compiled yet (a fresh installation: it takes several times longer to compile than a small
-    scene's kernel), the first call compiles the scene's kernel instead, saying so on stderr
-    if that takes more than a second, and the interpreter compiles for later in a low-priority
-    process of its own (:func:`fastsdf.backends.vm.warm_in_background`). A call the tape would
-    take longer for than the kernel's first answer (:data:`AUTO_TAPE_MAX_S`: thousands of shapes
-    on many points; the tape evaluates every node at every point) waits for the kernel instead.
-    The tape computes the kernel's bits, so a call returns the same bits whichever of the two
-    answers it.
-    ``backend='kernel'`` waits for the compiled kernel, ``backend='tape'`` always runs the tape,
-    ``backend='numpy'`` evaluates with NumPy alone (:meth:`CompiledSDF.numpy`: the op table's
-    reference formulas, one array operation per node, no numba at all; the kernel's results to
-    rounding, values 1e-12 relative and gradients 1e-9, not bit for bit). The tape and NumPy
-    have no time derivative: such calls use the kernel, as do calls on expressions the tape
-    does not evaluate, calls that ask for pruning (``prune=True``) and calls on a function with a
-    :attr:`prune_tol` (pruned exponential blends are the kernel's own approximation). Calls
-    made while the kernel compiles share the cores with the compilation.
+    Backends (``backend=``, default :attr:`backend`, ``'auto'``): ``'auto'`` and ``'kernel'``
+    run the compiled kernel (``'auto'`` then compiles the scene's other kinds of kernel, value
+    alone or with the gradient, in a background thread, so that a later call of the other kind
+    does not wait); ``'numpy'`` evaluates with NumPy alone (:meth:`CompiledSDF.numpy`: the op
+    table's reference formulas, one array operation per node, no numba at all; the kernel's
+    results to rounding, values 1e-12 relative and gradients 1e-9, not bit for bit; no
+    ``time_derivative``); ``'cuda'`` runs the scene's CUDA kernels on a GPU (device arrays in
+    and out, see :mod:`fastsdf.backends.cuda`).
 
     Pruning (:mod:`fastsdf.backends.prune`): for large inputs (``PRUNE_MIN_POINTS``) of scenes with
     many operands folded into loops, the points are sorted into tiles and each tile evaluates only
@@ -614,7 +554,7 @@ class Function:
         """The generated Python source of the per-point function (with gradient by default)."""
         return self.compiled.function_source("vg" if gradient else "v")
 
-    #: The default backend of calls: ``'auto'``, ``'kernel'``, ``'numpy'`` or ``'tape'`` (see the
+    #: The default backend of calls: ``'auto'``, ``'kernel'``, ``'numpy'`` or ``'cuda'`` (see the
     #: class docstring).
     backend = "auto"
 
@@ -678,120 +618,92 @@ class Function:
         backend: str | None = None,
         **params: float,
     ) -> np.ndarray | tuple[np.ndarray, ...]:
+        """The signed distance at points, in the coordinates' units (negative inside).
+
+        Parameters
+        ----------
+        x, y
+            Coordinates: arrays of one shape (or shapes that broadcast), any real dtype, or
+            scalars; with ``y`` omitted, ``x`` holds points along its last axis of length 2.
+        compute_gradient
+            Also return the gradient: ``(d, grad)`` with ``grad[..., 0] = dd/dx`` and
+            ``grad[..., 1] = dd/dy``.
+        prune
+            Evaluate per tile only the operands that can matter there: None (default) decides
+            per call, True forces, False never (see the class docstring).
+        time_derivative
+            Return ``(d, grad, dd/dt)`` (0 for a scene without time).
+        backend
+            ``'auto'`` (default: :attr:`backend`), ``'kernel'``, ``'numpy'`` or ``'cuda'`` (see
+            the class docstring).
+        **params
+            Values of the scene's runtime parameters (and of the time ``t``) for this call.
+
+        Returns
+        -------
+        float64 arrays of the points' shape (NumPy scalars for scalar coordinates; for
+        ``backend='cuda'``, arrays of the caller's kind on the device). A point with a NaN or
+        infinite coordinate gets NaN.
+        """
         backend = self.backend if backend is None else backend
         if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {list(BACKENDS)}, got backend={backend!r}")
-        if backend == "cuda":
-            return self._call_cuda(x, y, compute_gradient, prune, time_derivative, params)
-        x, y = point_arrays(x, y)
-        kw: dict[str, Any] = {}
-        vals = None
-        if self._params or params:
-            vals = self._values(params)
-            if self._params:
-                kw = {"t": vals.get("t", 0.0), "params": tuple(vals[n] for n in self.param_names)}
-        if backend != "kernel" and not time_derivative:
-            path = self._path_for(backend, x, prune)
-            if path is not None:
-                c = self.compiled
-                ev = c.tape if path == "tape" else c.numpy
-                res = ev(x, y, compute_gradient=bool(compute_gradient), params=vals)
-                if backend == "auto" and c._warm is None:
-                    # Started after the answer: the compiling thread would take a core from it,
-                    # and numba's compiler lock, which it holds, would make a first tape call
-                    # (loading the interpreter) wait for the whole compilation.
-                    xs, ys, _ = as_points(x, y)
-                    c.compile_in_background(xs, ys, self.prune_tol)
-                return res
-        if time_derivative:
-            if not kw:  # no parameters: nothing moves
-                d, g = self.compiled.evaluate(
-                    x, y, compute_gradient=True, prune=prune, tol=self.prune_tol
-                )
-                return d, g, np.zeros_like(d)
-            return self.compiled.evaluate(x, y, compute_gradient=True, time_derivative=True, **kw)
-        res = self.compiled.evaluate(
-            x, y, compute_gradient=bool(compute_gradient), prune=prune, tol=self.prune_tol, **kw
-        )
-        if backend == "auto" and self.compiled._warm is None:
-            # the other kinds (value only, value and gradient) compile meanwhile; until then
-            # calls may still take the tape (the same bits)
-            self.compiled.compile_in_background()
-            if not _interpreter_ready():
-                from fastsdf.backends.vm import warm_in_background
-
-                warm_in_background()  # for the first calls of later scenes and processes
-        return res
-
-    def _call_cuda(
-        self,
-        x: Any,
-        y: Any,
-        compute_gradient: bool,
-        prune: bool | None,
-        time_derivative: bool,
-        params: dict,
-    ) -> Any:
-        """``backend='cuda'``: the points on the device (taken without a copy from CuPy,
-        PyTorch, JAX or numba device arrays; NumPy data copied there and the results copied
-        back), answered as the caller's kind of array."""
-        from fastsdf.device import cuda, like
-
-        k = self.compiled.cuda
-        xs, ys, shape = device_points(x, y)
-        vals = self._values(params) if (self._params or params) else {}
-        kind = (
-            "vgt"
-            if time_derivative and k.parametric
-            else "vg"
-            if (compute_gradient or time_derivative)
-            else "v"
-        )
-        plan = None
-        if not k.parametric:
-            plan = self.compiled.pruned_plan(
-                xs, ys, prune, self.prune_tol, count=xs.shape[0], target="cuda"
+            hint = (
+                " (the interpreter 'tape' was removed: the kernel answers new scenes at once)"
+                if backend == "tape"
+                else ""
             )
-        prm = [float(vals[n]) for n in self.param_names] if k.parametric else None
-        res = k.evaluate(xs, ys, kind, t=float(vals.get("t", 0.0)), prm=prm, plan=plan)
-        out = like(res[0].reshape(shape), x)
-        if kind == "v":
-            return out
-        grad = like(res[1].reshape(shape + (2,)), x)
-        if not time_derivative:
-            return out, grad
-        if kind == "vgt":
-            return out, grad, like(res[2].reshape(shape), x)
-        zeros = cuda().to_device(np.zeros(shape))  # a static scene: nothing moves
-        return out, grad, like(zeros, x)
-
-    def _path_for(self, backend: str, x: Any, prune: bool | None = None) -> str | None:
-        """``'tape'`` or ``'numpy'`` to answer a call with, or None for the kernel."""
+            raise ValueError(
+                f"backend must be one of {list(BACKENDS)}, got backend={backend!r}{hint}"
+            )
+        kind = "vgt" if time_derivative else "vg" if compute_gradient else "v"
+        if backend == "numpy" and kind == "vgt":
+            raise ValueError(
+                "backend='numpy' has no time derivative: use backend='kernel' (or 'auto')"
+            )
+        values = self._values(params) if (self._params or params) else {}
+        req = make_request(
+            x,
+            y,
+            kind,
+            t=values.get("t", 0.0),
+            params=tuple(values[n] for n in self.param_names),
+            prune=prune,
+            tol=self.prune_tol,
+            device="cuda" if backend == "cuda" else "cpu",
+        )
         c = self.compiled
         if backend == "numpy":
-            return "numpy"
-        if backend == "auto":
-            if c.kernel_ready or prune or self.prune_tol is not None:
-                return None
-            if not _interpreter_ready():
-                # Compiling the interpreter takes longer than compiling the scene's kernel:
-                # the kernel answers, and the interpreter compiles for later in a process of
-                # its own (see Function.__call__).
-                return None
-            per_node = TAPE_PER_NODE_POINT_S * max(int(np.size(x)), 1) + (
-                0.0 if c._tape is not None else TAPE_BUILD_PER_NODE_S
+            return req.answer(c.numpy(req))
+        if backend == "cuda":
+            return req.answer(self._evaluate_cuda(req))
+        res = req.answer(c.evaluate(req))
+        if backend == "auto" and c._warm is None:
+            c.compile_in_background(req)  # the other kinds compile meanwhile
+        return res
+
+    def evaluate(self, req: Request) -> tuple:
+        """The compiled kernel's flat results for a request made elsewhere (a grid's points
+        outside its samples), with this function's parameter values; see
+        :meth:`CompiledSDF.evaluate`."""
+        if self._params:
+            req = replace(
+                req, t=self._params.get("t", 0.0), params=self.param_tuple(), device="cpu"
             )
-            budget = int(AUTO_TAPE_MAX_S / per_node)
-            size = len(c._tape) if c._tape is not None else dag_size(c.expr, budget)
-            if size > budget:
-                return None
-            try:
-                c.tape  # noqa: B018 - built here: an expression it does not evaluate raises
-            except ValueError:
-                return None  # the kernel evaluates it (or says why not)
-            return "tape"
-        c.tape  # noqa: B018 - raises for an expression the tape does not evaluate
-        return "tape"
+        return self.compiled.evaluate(req)
+
+    def _evaluate_cuda(self, req: Request) -> tuple:
+        """``backend='cuda'``: the request's points are on the device (taken without a copy
+        from CuPy, PyTorch, JAX or numba device arrays; NumPy data copied there)."""
+        k = self.compiled.cuda
+        plan = None
+        if not k.parametric:
+            plan = self.compiled.pruned_plan(req.xs, req.ys, req.prune, req.tol, target="cuda")
+        res = k.evaluate(req, plan)
+        if req.kind == "vgt" and len(res) == 2:  # a static scene: nothing moves
+            from fastsdf.device import cuda
+
+            res = res + (cuda().to_device(np.zeros(req.n)),)
+        return res
 
     #: Tolerance of pruning exponential smooth chains (distance units; None: half an ulp of
     #: the chain's value, identical in practice). Hard and polynomial chains are exact anyway.
@@ -818,11 +730,3 @@ class Function:
 
     def __repr__(self) -> str:
         return f"Function({expr_to_str(self.f, limit=200)}, {[s.attr for s in self.symbols]})"
-
-
-def _interpreter_ready() -> bool:
-    """Whether the tape interpreter answers without compiling first (compiled in this process,
-    or in numba's disk cache): see :func:`fastsdf.backends.vm.interpreter_ready`."""
-    from fastsdf.backends.vm import interpreter_ready
-
-    return interpreter_ready()

@@ -9,9 +9,6 @@ import pytest
 # The tests share the installation's kernel cache (its files are named by the hash of their
 # source, so a stale entry cannot be hit); tests of a fresh installation use their own folders.
 os.environ.setdefault("MPLBACKEND", "Agg")
-# A fresh installation compiles the tape interpreter in a background process after its first
-# kernel; the test workers already use both cores (tests that need the tape warm it themselves).
-os.environ.setdefault("FASTSDF_BACKGROUND_COMPILE", "0")
 # The CUDA target's tests run under numba-cuda's simulator (kernels executed on the CPU), read
 # when numba.cuda is first imported; NUMBA_ENABLE_CUDASIM=0 runs them on a GPU instead.
 os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
@@ -38,6 +35,15 @@ def _kernel_backend(request, monkeypatch):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+def evaluate(comp, x, y, compute_gradient=False, prune=None):
+    """A :class:`fastsdf.function.CompiledSDF`'s kernel at points (a request made as
+    ``Function.__call__`` makes it): the value, or ``(value, gradient)``."""
+    from fastsdf.backends.request import make_request
+
+    req = make_request(x, y, "vg" if compute_gradient else "v", prune=prune)
+    return req.answer(comp.evaluate(req))
 
 
 def central_gradient(f, x, y, h=1e-6):

@@ -6,6 +6,7 @@ order, tie and non-finite point."""
 
 import numpy as np
 import pytest
+from conftest import evaluate
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -76,7 +77,7 @@ def _check(f, p):
         assert "_PROG_VG = np.array" in src and "_PROG_V = np.array" in src
         assert "def _block_vg(" not in src  # the blends run in the interpreter
     d, g = f(*p.T, compute_gradient=True, prune=False)
-    ds, gs = f.compiled.evaluate(p[:200, 0], p[:200, 1], compute_gradient=True, prune=False)
+    ds, gs = evaluate(f.compiled, p[:200, 0], p[:200, 1], compute_gradient=True, prune=False)
     dv = f(*p.T, prune=False)
     # the reference: the straight-line per-point functions (a module without programs)
     line = compile_expr(f.f, ["x", "y"])

@@ -1,6 +1,6 @@
 """One suite for every evaluator of a scene: the same scenes and the same assertions run on each
 path (the NumPy reference of the op table, the compiled kernel serial, parallel and pruned, the
-tape interpreter, the NumPy fast path, and the CUDA kernels, plain and pruned), as a
+NumPy path, and the CUDA kernels, plain and pruned), as a
 backend-agnostic test suite should."""
 
 import numpy as np
@@ -41,10 +41,6 @@ def _kernel_pruned(f, x, y):
     return f(x, y, compute_gradient=True, prune=True, backend="kernel")
 
 
-def _tape(f, x, y):
-    return f(x, y, compute_gradient=True, backend="tape")
-
-
 def _numpy(f, x, y):
     return f(x, y, compute_gradient=True, backend="numpy")
 
@@ -63,7 +59,6 @@ PATHS = {
     "kernel_serial": _kernel_serial,
     "kernel_parallel": _kernel_parallel,
     "kernel_pruned": _kernel_pruned,
-    "tape": _tape,
     "numpy": _numpy,
 }
 if HAS_NUMBA_CUDA:

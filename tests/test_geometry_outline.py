@@ -174,7 +174,6 @@ def test_text_is_an_exact_sdf_like_any_other():
     x, y = np.random.default_rng(6).uniform([-0.1, -0.3], [4.0, 1.0], (200, 2)).T
     d = word(x, y)  # the compiled kernel
     np.testing.assert_allclose(d, word(x, y, backend="numpy"), atol=1e-12)
-    np.testing.assert_allclose(d, word(x, y, backend="tape"), atol=1e-12)
     g = sdf.GridSDF(word, bounds=[(-0.1, 4.0), (-0.3, 1.0)], samples=[120j, 40j])
     assert np.abs(g(x, y) - d).max() < 0.05  # it grids like any SDF
     split = Text("fastsdf", size=1.0, split_glyphs=True)  # a union of glyph outlines

@@ -82,12 +82,16 @@ def test_function_validates_symbols():
 
 
 def test_notebook_circle_outputs():
-    """Notebook cell 2: c(0,0), c(1,0), c(100,100) -> (-1, 0, 140.42135624)."""
+    """Notebook cell 2: c(0,0), c(1,0), c(100,100) -> (-1, 0, 140.42135624) (scalars for
+    scalar coordinates, as NumPy answers; the notebook printed one-element arrays)."""
     c = cg.Function(cg.sym_sqrt((x - 0) ** 2 + (y - 0) ** 2) - 1.0, [x, y])
     d0, d1, d2 = c(0, 0), c(1, 0), c(100, 100)
-    assert d0.shape == (1,) and d0[0] == -1.0
-    assert d1[0] == 0.0
-    assert d2[0] == pytest.approx(140.42135624, abs=1e-8)
+    assert isinstance(d0, np.float64) and d0 == -1.0
+    assert d1 == 0.0
+    assert d2 == pytest.approx(140.42135624, abs=1e-8)
+    d, g = c(3.0, 4.0, compute_gradient=True)
+    assert isinstance(d, np.float64) and g.shape == (2,)
+    np.testing.assert_allclose(g, [0.6, 0.8], rtol=1e-15)
     d, g = c(np.array([3.0]), np.array([4.0]), compute_gradient=True)
     assert g.shape == (1, 2)
     np.testing.assert_allclose(g[0], [0.6, 0.8], rtol=1e-15)
@@ -210,7 +214,8 @@ def test_dead_nodes_are_not_generated():
 
 def test_input_shapes_and_types():
     f = cg.Function(x * 2 + y, [x, y])
-    assert f(1, 2).shape == (1,)
+    assert f(1, 2) == 4.0 and np.shape(f(1, 2)) == ()
+    assert f(np.array([1]), 2).shape == (1,)
     grid = np.mgrid[0:1:3j, 0:1:4j]
     d, g = f(grid[0], grid[1], compute_gradient=True)
     assert d.shape == (3, 4) and g.shape == (3, 4, 2)

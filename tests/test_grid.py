@@ -207,7 +207,9 @@ def test_non_finite_points_give_nan(circle, mode, gradient, n):
 
 def test_query_shapes_follow_function_conventions(circle):
     g = GridSDF(circle, samples=[11, 11])
-    assert g(0.3, 0.2).shape == (1,)
+    assert np.shape(g(0.3, 0.2)) == () and isinstance(g(0.3, 0.2), np.float64)
+    assert g(0.3, 0.2, compute_gradient=True)[1].shape == (2,)
+    assert g(np.array([0.3]), 0.2).shape == (1,)
     d, grad = g(np.zeros((3, 4)), np.ones((3, 4), dtype=np.float32), compute_gradient=True)
     assert d.shape == (3, 4) and grad.shape == (3, 4, 2) and d.dtype == np.float64
     assert g(np.array([]), np.array([])).shape == (0,)

@@ -1,16 +1,13 @@
 """Adding an operation is one entry of the op table (fastsdf.expr.ops.OPS): a test operation,
 registered here and nowhere else, runs through the NumPy reference, the compiled kernel (serial
 and parallel, value and gradient), ``backend='numpy'``, the CUDA target (under numba-cuda's
-simulator without a GPU), interval bounds and the default call.
-The tape interpreter has its own opcodes: it says it has no instruction for the operation, and
-the default call answers with the kernel instead."""
+simulator without a GPU), interval bounds and the default call."""
 
 import numpy as np
 import pytest
 from conftest import HAS_NUMBA_CUDA
 
 import fastsdf as sdf
-from fastsdf.backends.vm import compile_tape
 from fastsdf.expr.graph import Expr, Symbol, evaluate_numpy, sym_min
 from fastsdf.expr.interval import bounds
 from fastsdf.expr.ops import OPS, Op
@@ -41,7 +38,6 @@ CUBE = Op(
 @pytest.fixture
 def cube(monkeypatch):
     monkeypatch.setitem(OPS, "cube_test", CUBE)
-    monkeypatch.setenv("FASTSDF_BACKGROUND_COMPILE", "0")  # no interpreter compile beside it
     return lambda e: Expr("cube_test", (e,))
 
 
@@ -82,9 +78,7 @@ def test_a_new_operation_runs_through_every_path(cube):
         int
     ).clip(0, 7)
     assert np.all(lo[box] <= d) and np.all(d <= hi[box])
-    # the tape has no opcode for it; the default call answers with the kernel's bits
-    with pytest.raises(ValueError, match="cube_test"):
-        compile_tape(e, ["x", "y"])
+    # the default call answers with the kernel's bits
     d_auto, g_auto = f(x, y, compute_gradient=True, backend="auto")
     d_k, g_k = f(x, y, compute_gradient=True, backend="kernel")
     assert d_auto.tobytes() == d_k.tobytes() and g_auto.tobytes() == g_k.tobytes()

@@ -1,8 +1,8 @@
 """The NumPy path (``backend='numpy'``: the op table's reference formulas, no numba):
-agreement with the compiled kernel and the tape (values 1e-12 relative, gradients 1e-9) on long
+agreement with the compiled kernel (values 1e-12 relative, gradients 1e-9) on long
 hard unions and intersections, nested chains, random point clouds with far, huge and non-finite
 coordinates, parameters and symbol names, and a first answer that never touches numba. (Every
-scene of test_tape.py is also checked through the NumPy path, by its ``assert_agree``.)"""
+scene of test_reference.py is also checked through the NumPy path, by its ``assert_agree``.)"""
 
 import json
 import os
@@ -12,7 +12,7 @@ import sys
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_tape import _points, assert_agree
+from test_reference import _points, assert_agree
 
 import fastsdf as sdf
 import fastsdf.graph as cg
@@ -71,14 +71,14 @@ def test_pruned_chains_agree_with_the_kernel():
     intersect=st.booleans(),
     raw=st.booleans(),
 )
-def test_random_chains_and_clouds_agree_with_the_tape(kinds, seed, intersect, raw):
+def test_random_chains_and_clouds_agree_with_the_kernel(kinds, seed, intersect, raw):
     """Random hard chains on point clouds (uniform, clustered, a thin strip, one point, far away
-    and huge coordinates, non-finite ones): the kernel's results (the tape's bits) to rounding,
-    NaN exactly at the non-finite points."""
+    and huge coordinates, non-finite ones): the kernel's results to rounding, NaN exactly at
+    the non-finite points."""
     f = _union(kinds, seed, intersect, raw)
     for p in _clouds(seed):
         d, g = f(*p.T, compute_gradient=True, backend="numpy")
-        dt, gt = f(*p.T, compute_gradient=True, backend="tape")
+        dt, gt = f(*p.T, compute_gradient=True, backend="kernel")
         ok = np.isfinite(p).all(axis=1)
         assert np.isnan(d[~ok]).all() and np.isnan(g[~ok]).all()
         np.testing.assert_allclose(d[ok], dt[ok], rtol=1e-12, atol=1e-12)
@@ -95,7 +95,7 @@ def test_parameters_and_symbol_names():
     p = _points(500, 7)
     for vals in ({}, dict(angle=-0.4, t=0.3)):
         d, g = f(*p.T, compute_gradient=True, backend="numpy", **vals)
-        dt, gt = f(*p.T, compute_gradient=True, backend="tape", **vals)
+        dt, gt = f(*p.T, compute_gradient=True, backend="kernel", **vals)
         ok = np.isfinite(p).all(axis=1)
         np.testing.assert_allclose(d[ok], dt[ok], rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(g[ok], gt[ok], rtol=1e-9, atol=1e-9)
@@ -110,34 +110,24 @@ def test_parameters_and_symbol_names():
 _FRESH = r"""
 import json, sys, numpy as np
 import fastsdf
-from fastsdf.shapes.scenes import box_world, seed_world
-from fastsdf.backends import vm
-out = {}
+from fastsdf.shapes.scenes import box_world
 f = box_world(20, seed=123)
 x, y = np.random.default_rng(0).uniform(-2, 2, (2, 100_000))
 d, g = f(x, y, compute_gradient=True, backend="numpy")
-out["numba_setup"] = "numba.np.arraymath" in sys.modules or bool(vm._eval_par.overloads)
-s = seed_world()
-d, g = s(x, y, compute_gradient=True)  # the tape; then compiles in a daemon thread
-out["default_tape"] = s.compiled._tape is not None
-print(json.dumps(out))
+print(json.dumps({"numba_setup": "numba.np.arraymath" in sys.modules}))
 """
 
 
 def test_first_answer_needs_no_numba(tmp_path):
     """In a fresh process, a new scene answers through NumPy without numba's one-time setup
-    (which would import numba's registries: numba.np.arraymath); the default call answers
-    through the tape (the kernel's bits) once the interpreter is in numba's disk cache."""
-    from fastsdf.backends.vm import warm
-
-    warm()  # compiled into the disk cache the child reads
+    (which would import numba's registries: numba.np.arraymath)."""
     env = dict(os.environ, FASTSDF_CACHE_DIR=str(tmp_path))
     res = subprocess.run(
         [sys.executable, "-c", _FRESH], env=env, capture_output=True, text=True, timeout=300
     )
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
-    assert out == {"default_tape": True, "numba_setup": False}
+    assert out == {"numba_setup": False}
 
 
 def test_operands_that_differ_in_sharing_or_attributes():

@@ -6,6 +6,7 @@ import re
 import numba
 import numpy as np
 import pytest
+from conftest import evaluate
 from test_vmath import PACKED, _has_avx2
 
 from fastsdf.backends.kernel.drive import BLOCK_SIG
@@ -56,8 +57,8 @@ def test_vectorizable_and_libm_kernels_agree(pair):
     terms summed, gradients to 1e-13 of their length; non-finite points NaN in both."""
     fast, libm = pair
     p = _points(20_000, 1, nan_every=97)
-    d1, g1 = fast.evaluate(p[:, 0], p[:, 1], compute_gradient=True)
-    d2, g2 = libm.evaluate(p[:, 0], p[:, 1], compute_gradient=True)
+    d1, g1 = evaluate(fast, p[:, 0], p[:, 1], compute_gradient=True)
+    d2, g2 = evaluate(libm, p[:, 0], p[:, 1], compute_gradient=True)
     bad = ~np.isfinite(p).all(axis=1)
     assert np.isnan(d1[bad]).all() and np.isnan(g1[bad]).all() and np.isnan(d2[bad]).all()
     ok = ~bad
@@ -65,7 +66,7 @@ def test_vectorizable_and_libm_kernels_agree(pair):
     np.testing.assert_allclose(d1[ok], d2[ok], rtol=1e-14, atol=4e-15)
     scale = np.linalg.norm(g2[ok], axis=1)[:, None]
     assert np.max(np.abs(g1[ok] - g2[ok]) / scale) < 1e-13
-    np.testing.assert_array_equal(fast.evaluate(p[:, 0], p[:, 1]), d1)  # value-only kernel
+    np.testing.assert_array_equal(evaluate(fast, p[:, 0], p[:, 1]), d1)  # value-only kernel
     ref = evaluate_numpy(fast.expr, {"x": p[ok, 0], "y": p[ok, 1]})
     np.testing.assert_allclose(d1[ok], ref, rtol=1e-12, atol=1e-12)
 
@@ -76,7 +77,7 @@ def test_every_block_length_matches_the_point_function(n):
     per-point function gives, for full and partial blocks (vector body and scalar tail)."""
     comp = box_world(6).compiled
     p = _points(n, n, nan_every=7 if n > 10 else 0)
-    d, g = comp.evaluate(p[:, 0], p[:, 1], compute_gradient=True)
+    d, g = evaluate(comp, p[:, 0], p[:, 1], compute_gradient=True)
     point = comp.point_fn("vg")
     ref = np.array([point(x, y) for x, y in p])
     np.testing.assert_array_equal(d, ref[:, 0])

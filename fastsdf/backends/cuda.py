@@ -259,20 +259,14 @@ class CudaKernels:
         with np.errstate(all="ignore"):  # (the simulator's NumPy scalars: inf, not warnings)
             kernel[max(1, blocks), THREADS](*args)
 
-    def evaluate(
-        self,
-        xs: Any,
-        ys: Any,
-        kind: str,
-        t: float = 0.0,
-        prm: Any = None,
-        plan: PrunePlan | None = None,
-    ) -> tuple:
-        """Evaluate ``kind`` at device points ``xs, ys`` (1-d float64); returns the device
-        arrays ``(out,)``, ``(out, grad)`` or ``(out, grad, dt)``. ``prm``: the parameters'
-        values (a device or host float64 array, in ``param_names`` order)."""
+    def evaluate(self, req: Any, plan: PrunePlan | None = None) -> tuple:
+        """The CUDA kernels' answer to ``req`` (a :class:`fastsdf.backends.request.Request` of
+        device points): the device arrays ``(out,)``, ``(out, grad)`` or ``(out, grad, dt)``
+        (``dt`` for scenes with parameters; the caller adds a static scene's zeros), with the
+        tile kernels of ``plan`` if given."""
         cu = cuda()
-        n = xs.shape[0]
+        n, xs, ys = req.n, req.xs, req.ys
+        kind = req.kind if self.parametric else req.kind[:2]
         outs = [cu.device_array(n)]
         if kind != "v":
             outs.append(cu.device_array((n, 2)))
@@ -282,8 +276,8 @@ class CudaKernels:
             return tuple(outs)
         args = list(self.table_args())
         if self.parametric:
-            p = np.zeros(1) if prm is None or len(prm) == 0 else prm
-            args += [float(t), p if hasattr(p, "copy_to_host") else cu.to_device(np.asarray(p))]
+            prm = np.asarray(req.params if req.params else (0.0,), dtype=np.float64)
+            args += [float(req.t), cu.to_device(prm)]
         mod = self.module
         name = f"{'tiles' if plan is not None else 'batch'}_{kind}"
         first = name not in self._called

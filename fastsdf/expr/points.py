@@ -16,8 +16,8 @@ def as_points(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, np.
 
     ``x`` and ``y`` broadcast against each other (``f(x, 0.0)`` is a horizontal line); with
     ``y`` omitted, ``x`` holds points along its last axis of length 2 (``f(points)`` for an
-    ``(n, 2)`` array). ``shape`` is the shape of the result. Raises ``TypeError`` for non-real
-    data and ``ValueError`` for shapes that do not fit.
+    ``(n, 2)`` array). ``shape`` is the shape of the result (``()`` for scalar coordinates).
+    Raises ``TypeError`` for non-real data and ``ValueError`` for shapes that do not fit.
     """
     xa = np.asarray(x)
     if y is None:
@@ -42,7 +42,7 @@ def as_points(x: ArrayLike, y: ArrayLike | None = None) -> tuple[np.ndarray, np.
                 f"x and y must have the same shape (or shapes that broadcast), got "
                 f"x.shape={xa.shape} and y.shape={ya.shape}"
             ) from None
-    shape = xa.shape if xa.ndim else (1,)
+    shape = xa.shape
     xs = np.ascontiguousarray(xa, dtype=np.float64).reshape(-1)
     ys = np.ascontiguousarray(ya, dtype=np.float64).reshape(-1)
     return xs, ys, shape

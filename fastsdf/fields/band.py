@@ -63,12 +63,14 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
+from fastsdf.backends.request import Request, make_request
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
 from fastsdf.fields.grid import (
     GridError,
     _check_bounds,
     _check_dtype,
     _check_samples,
+    _exact_at,
     _fetch_add,
     _n_chunks,
     _stats,
@@ -653,39 +655,37 @@ class NarrowBandGridSDF:
     def __call__(
         self, x: ArrayLike, y: ArrayLike | None = None, compute_gradient: bool = False
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-        x, y = point_arrays(x, y)
         """Distance (and gradient) at points: bilinear in fine tiles, the stored lower bound
         (with the centre's gradient direction) in far tiles, the exact SDF outside ``bounds``
         and in exact cells; NaN for non-finite points. Conventions as
         :class:`fastsdf.function.Function`."""
-        xs, ys, shape = as_points(x, y)
-        n = xs.shape[0]
+        req = make_request(x, y, "vg" if compute_gradient else "v")
+        return req.answer(self.evaluate(req))
+
+    def evaluate(self, req: Request) -> tuple:
+        """The flat results ``(value,)`` or ``(value, gradient)`` of a request (see
+        :mod:`fastsdf.backends.request`)."""
+        xs, ys, n = req.xs, req.ys, req.n
         out = np.empty(n)
-        grad = np.empty((n, 2)) if compute_gradient else None
+        grad = np.empty((n, 2)) if req.gradient else None
         if n:
             workers = numba.get_num_threads()
             par = n >= PARALLEL_MIN_POINTS
-            kern = (_vg_par if par else _vg_range) if compute_gradient else None
+            kern = (_vg_par if par else _vg_range) if grad is not None else None
             kern = kern or (_v_par if par else _v_range)
             with compiling_first("the band's interpolation", kern):
-                if par and compute_gradient:
+                if par and grad is not None:
                     miss = kern(self.sampler_data, xs, ys, out, grad, 64 * workers, workers)
                 elif par:
                     miss = kern(self.sampler_data, xs, ys, out, 64 * workers, workers)
-                elif compute_gradient:
+                elif grad is not None:
                     miss = kern(self.sampler_data, xs, ys, out, grad, 0, n)
                 else:
                     miss = kern(self.sampler_data, xs, ys, out, 0, n)
             if miss:
                 idx = np.flatnonzero(np.isnan(out) & np.isfinite(xs) & np.isfinite(ys))
-                if idx.size:
-                    if grad is not None:
-                        out[idx], grad[idx] = self.exact(xs[idx], ys[idx], compute_gradient=True)
-                    else:
-                        out[idx] = self.exact(xs[idx], ys[idx])
-        if grad is not None:
-            return out.reshape(shape), grad.reshape(shape + (2,))
-        return out.reshape(shape)
+                _exact_at(self.exact, xs, ys, idx, out, grad)
+        return (out,) if grad is None else (out, grad)
 
     def measure_error(self, n: int = 200_000, seed: int = 0) -> GridError:
         """The achieved error in the band: :func:`measure_band_error` on ``n`` random points."""

@@ -44,7 +44,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points, point_arrays
+from fastsdf.backends.request import Request, make_request
+from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
 from fastsdf.function import Function
 from fastsdf.notice import compiling_first
 
@@ -748,27 +749,32 @@ class GridSDF:
         (CuPy, PyTorch, JAX, numba; NumPy is copied there and back), the caller's kind out."""
         if backend not in (None, "cpu", "cuda"):
             raise ValueError(f"backend must be None, 'cpu' or 'cuda', got backend={backend!r}")
-        if backend == "cuda":
-            return self._call_cuda(x, y, compute_gradient)
-        x, y = point_arrays(x, y)
-        xs, ys, shape = as_points(x, y)
-        n = xs.shape[0]
+        device = "cuda" if backend == "cuda" else "cpu"
+        req = make_request(x, y, "vg" if compute_gradient else "v", device=device)
+        return req.answer(self.evaluate(req))
+
+    def evaluate(self, req: Request) -> tuple:
+        """The flat results ``(value,)`` or ``(value, gradient)`` of a request (see
+        :mod:`fastsdf.backends.request`), on the CPU or the GPU as it says."""
+        if req.device == "cuda":
+            return self._evaluate_cuda(req)
+        xs, ys, n = req.xs, req.ys, req.n
         out = np.empty(n)
-        grad = np.empty((n, 2)) if compute_gradient else None
+        grad = np.empty((n, 2)) if req.gradient else None
         if n:
             par = n >= PARALLEL_MIN_POINTS
             workers = numba.get_num_threads()
             chunks = 64 * workers
             stored = self.gradient == "stored"
-            if compute_gradient:
+            if grad is not None:
                 kern = (_vg_stored_par if stored else _vg_fd_par) if par else None
                 kern = kern or (_vg_stored_range if stored else _vg_fd_range)
             else:
                 kern = _v_par if par else _v_range
             with compiling_first("the grid's interpolation", kern):
-                if compute_gradient and par:
+                if grad is not None and par:
                     outside = kern(self.sampler_data, xs, ys, out, grad, chunks, workers)
-                elif compute_gradient:
+                elif grad is not None:
                     outside = kern(self.sampler_data, xs, ys, out, grad, 0, n)
                 elif par:
                     outside = kern(self.sampler_data, self._channels, xs, ys, out, chunks, workers)
@@ -776,9 +782,7 @@ class GridSDF:
                     outside = kern(self.sampler_data, self._channels, xs, ys, out, 0, n)
             if outside and self.mode == "exact":
                 self._exact_outside(xs, ys, out, grad)
-        if grad is not None:
-            return out.reshape(shape), grad.reshape(shape + (2,))
-        return out.reshape(shape)
+        return (out,) if grad is None else (out, grad)
 
     def device_sampler_data(self) -> tuple:
         """:attr:`sampler_data` with the node array on the GPU (copied once per grid), for
@@ -791,18 +795,14 @@ class GridSDF:
 
         return device_data(self)
 
-    def _call_cuda(self, x: Any, y: Any, compute_gradient: bool) -> Any:
-        from fastsdf.device import cuda, like
-        from fastsdf.expr.points import device_points
+    def _evaluate_cuda(self, req: Request) -> tuple:
+        from fastsdf.device import cuda
 
         cuda()  # a clear error naming the extra before the kernels' module imports numba-cuda
         from fastsdf.fields._cuda import query
 
-        xs, ys, shape = device_points(x, y)
-        out, grad = query(self, xs, ys, compute_gradient)
-        if grad is None:
-            return like(out.reshape(shape), x)
-        return like(out.reshape(shape), x), like(grad.reshape(shape + (2,)), x)
+        out, grad = query(self, req.xs, req.ys, req.gradient)
+        return (out,) if grad is None else (out, grad)
 
     def _exact_outside(self, xs, ys, out, grad):
         """mode='exact': replace the clamped answers of finite points outside ``bounds``."""
@@ -810,12 +810,7 @@ class GridSDF:
         with np.errstate(invalid="ignore"):
             inside = (xs >= x0) & (xs <= x1) & (ys >= y0) & (ys <= y1)
         idx = np.flatnonzero(~inside & np.isfinite(xs) & np.isfinite(ys))
-        if grad is None:
-            out[idx] = self.exact(xs[idx], ys[idx])
-        else:
-            d, g = self.exact(xs[idx], ys[idx], compute_gradient=True)
-            out[idx] = d
-            grad[idx] = g
+        _exact_at(self.exact, xs, ys, idx, out, grad)
 
     def contains(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Boolean array: True where the point lies inside ``bounds`` (edges included)."""
@@ -882,6 +877,25 @@ class GridSDF:
 
 # ---------------------------------------------------------------------------------------------
 # Accuracy.
+
+
+def _exact_at(
+    exact: Function,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    idx: np.ndarray,
+    out: np.ndarray,
+    grad: np.ndarray | None,
+) -> None:
+    """``out[idx]`` (and ``grad[idx]``) from the exact SDF at the points ``idx`` (checked
+    already: no second validation)."""
+    if not idx.size:
+        return
+    kind = "v" if grad is None else "vg"
+    res = exact.evaluate(Request(xs[idx], ys[idx], (idx.size,), kind))
+    out[idx] = res[0]
+    if grad is not None:
+        grad[idx] = res[1]
 
 
 @dataclass(frozen=True)

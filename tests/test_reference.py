@@ -1,8 +1,8 @@
-"""The tape interpreter (fastsdf.backends.vm) against the compiled kernels: the tape computes the
-kernel's bits (value and gradient, bit for bit) on the bench scenes, random scenes, every
-primitive kind, smooth and polynomial blends, transforms, parameters and non-finite points; the
-NumPy path agrees to rounding (values 1e-12 relative, gradients 1e-9); and the ``backend``
-switch of Function (``'auto'`` answers through the tape, then the kernel)."""
+"""The NumPy reference (``backend='numpy'``, the op table's formulas) against the compiled
+kernels, to rounding (values 1e-12 relative, gradients 1e-9), on the bench scenes, random
+scenes, every primitive kind, smooth and polynomial blends, transforms, parameters and
+non-finite points; and the ``backend`` switch of Function (``'auto'`` answers with the kernel
+and compiles the scene's other kinds meanwhile)."""
 
 import json
 import math
@@ -25,7 +25,7 @@ from test_codegen import (
 import fastsdf as sdf
 import fastsdf.expr.graph  # sdf.graph
 import fastsdf.graph as cg
-from fastsdf.backends.vm import BLOCK, compile_tape, warm
+from fastsdf.backends.kernel.layout import BLOCK
 from fastsdf.expr.graph import Param, Symbol, evaluate_numpy
 from fastsdf.shapes.scenes import box_world, seed_world
 
@@ -53,18 +53,15 @@ def assert_same_bits(a, b):
     )
 
 
-def assert_agree(f, p, backends=("tape", "numpy"), **params):
-    """The tape gives the kernel's bits, the NumPy path agrees with it to rounding, value (also
-    value-only calls) and gradient; non-finite points give NaN for those points only."""
+def assert_agree(f, p, backends=("numpy",), **params):
+    """The NumPy path agrees with the kernel to rounding, value (also value-only calls) and
+    gradient; non-finite points give NaN for those points only."""
     dk, gk = f(*p.T, compute_gradient=True, **params)
     ok = np.isfinite(p).all(axis=1)
     for backend in backends:
         dt, gt = f(*p.T, compute_gradient=True, backend=backend, **params)
         assert np.all(np.isnan(dt[~ok])) and np.all(np.isnan(gt[~ok]))
         assert np.array_equal(np.isnan(dt), np.isnan(dk))
-        if backend == "tape":
-            assert_same_bits(dt, dk)
-            assert_same_bits(gt, gk)
         fin = ok & np.isfinite(dk)
         scale = max(1.0, float(np.max(np.abs(dk[fin])))) if fin.any() else 1.0
         np.testing.assert_allclose(dt[fin], dk[fin], rtol=1e-12, atol=1e-12 * scale)
@@ -96,28 +93,6 @@ def _every_primitive():
             sdf.Arc(),
         ]
     return shapes
-
-
-def assert_matches_reference(f, p):
-    """Tape against the NumPy reference of the op table (no kernel compiled)."""
-    ok = np.isfinite(p).all(axis=1)
-    d, g = f(*p.T, compute_gradient=True, backend="tape")
-    assert np.all(np.isnan(d[~ok])) and np.all(np.isnan(g[~ok]))
-    ref, (gx, gy) = evaluate_numpy(f.f, {"x": p[ok, 0], "y": p[ok, 1]}, compute_gradient=True)
-    np.testing.assert_allclose(d[ok], ref, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(g[ok], np.stack([gx, gy], -1), rtol=1e-9, atol=1e-9)
-
-
-@pytest.mark.parametrize("i", range(15))
-def test_every_primitive_kind(i):
-    """Each primitive kind alone and with modifiers and blends, against the NumPy reference."""
-    s = _every_primitive()[i]
-    p = _points(700, i)
-    assert_matches_reference(s, p)
-    with sdf.smoothness(6):
-        assert_matches_reference(
-            (s.round(0.05) | sdf.Circle([1, 1], 0.3)) - s.shell(0.02).rotate(0.3), p
-        )
 
 
 def test_every_primitive_kind_against_the_kernel():
@@ -172,12 +147,12 @@ def _circles(n, seed=3):
     [seed_world, lambda: box_world(20), lambda: _circles(200)],
     ids=["seed world", "20-box world", "200 circles"],
 )
-def test_bench_scenes_give_the_kernels_bits(scene):
+def test_bench_scenes(scene):
     """The bench scenes (a hard union of 200 primitives is a combine program in the kernel) on
-    points spread over the scene, several blocks: the tape's bits are the kernel's."""
+    points spread over the scene, several blocks."""
     f = scene()
     p = _points(3 * BLOCK + 17, 23)
-    assert_agree(f, p, backends=("tape",))
+    assert_agree(f, p)
 
 
 def _blend(a, b, op, kind, k):
@@ -207,10 +182,10 @@ def _blend(a, b, op, kind, k):
     ),
     chain=st.sampled_from(["quadratic", "cubic", "exponential"]),
 )
-def test_random_blend_scenes_give_the_kernels_bits(prims, ops, chain):
+def test_random_blend_scenes(prims, ops, chain):
     """Random scenes of every blend kind (exponential, quadratic, cubic) between random pairs,
     the rest joined by one left fold of blends (folded into loops where four neighbours share
-    a shape): the tape's bits are the kernel's."""
+    a shape)."""
     shapes = [build_scene([pr], []) for pr in prims]
     for op, kind, k, pick in ops:
         if len(shapes) == 2:
@@ -221,14 +196,15 @@ def test_random_blend_scenes_give_the_kernels_bits(prims, ops, chain):
     f = shapes[0]
     for s in shapes[1:]:
         f = f.union(s, k=0.1, kind=chain)
-    assert_agree(f, _points(300, len(prims)), backends=("tape",))
+    assert_agree(f, _points(300, len(prims)))
 
 
 def test_loop_members_with_nested_chains_and_zero_gradient_components():
-    """Corners where the generated code's form decides the last bits: loop members whose
-    nested chains the loop evaluates pairwise (the straight-line code would flatten them), a
-    left fold of blends that opens with a loop, and chains whose gradient components are known
-    zero (the kernel still carries them: at x = 0, 1/x makes them NaN, not dropped terms)."""
+    """Corners of the generated code's form: loop members whose nested chains the loop
+    evaluates pairwise (the straight-line code would flatten them), a left fold of blends that
+    opens with a loop, and chains whose gradient components are known zero (the kernel carries
+    them: at x = 0, 1/x makes them NaN where the reference drops the term, so the gradient of
+    that scene is compared away from x = 0)."""
     rng = np.random.default_rng(4)
     members = []
     for _ in range(6):
@@ -250,8 +226,11 @@ def test_loop_members_with_nested_chains_and_zero_gradient_components():
     flat = sdf.Function(sdf.graph.sym_min(Y - 1.0, -Y - 1.0) / X + X * Y, [X, Y])
     p = _points(600, 5)
     p[:40, 0] = np.repeat([0.0, -0.0, 5e-324, -5e-324], 10)
-    for f in (hard, fold, flat, hard.union(fold, k=0.3, kind="quadratic")):
-        assert_agree(f, p, backends=("tape",))
+    for f in (hard, fold, hard.union(fold, k=0.3, kind="quadratic")):
+        assert_agree(f, p)
+    assert_agree(flat, p[40:])
+    d, g = flat(*p[:40].T, compute_gradient=True)
+    np.testing.assert_array_equal(d, flat(*p[:40].T, backend="numpy"))
 
 
 @settings(max_examples=3, deadline=None, derandomize=True)
@@ -262,8 +241,8 @@ def test_loop_members_with_nested_chains_and_zero_gradient_components():
     seed=st.integers(0, 1000),
 )
 def test_chains_and_polynomial_blends(n, kind, union, seed):
-    """Long chains (folded into loops in the kernel: the tape follows its operand order and
-    start), polynomial blends between random primitive kinds."""
+    """Long chains (folded into loops in the kernel), polynomial blends between random
+    primitive kinds."""
     rng = np.random.default_rng(seed)
     f = sdf.Halfspace([0, 1], -1.8) if union else sdf.Circle([0, 0], 2.4)
     for _ in range(n):
@@ -309,7 +288,7 @@ def test_elementary_operations_against_numpy():
 
 
 def test_runtime_parameters_are_inputs():
-    """Parameters and time are read per call: no rebuild, the kernel's answers."""
+    """Parameters and time are read per call: no rebuild, no recompile."""
     a, px, r, k = Param("angle", 0.3), Param("px", 0.5), Param("r", 0.3), Param("k", 0.2)
     with sdf.transform(angle=a, offset=[0.1, 0.2]):
         bar = sdf.Box(minc=[-1, -0.1], maxc=[1, 0.1])
@@ -321,63 +300,33 @@ def test_runtime_parameters_are_inputs():
     )
     p = _points(500, 7)
     assert_agree(f, p)
-    tape = f.compiled.tape
+    module = f.compiled.module
     for vals in (dict(angle=-0.4, px=0.1, r=0.5, k=0.05, t=0.3), dict(angle=1.2, t=-1.0)):
         assert_agree(f, p, **vals)
-    assert f.compiled.tape is tape
-    # time derivative: the kernel answers (the tape has none)
-    d, g, dt = f(*p[:50].T, time_derivative=True, backend="tape")
+    assert f.compiled.module is module and len(module.batch_vg_ser.signatures) == 1
+    d, g, dt = f(*p[:50].T, time_derivative=True)
     assert np.isfinite(dt[np.isfinite(p[:50]).all(axis=1)]).all()
 
 
-def test_instructions_are_deduplicated_and_registers_reused():
-    """A shared subexpression is one instruction; the register file follows the scene's width
-    (a union of 200 circles needs a handful of registers, not one per node)."""
-    c = sdf.sym_length(X, Y)
-    tape = compile_tape(c - 1.0 + sdf.sym_exp(c), ["x", "y"])
-    assert sum(1 for row in tape.code if row[0] == 18) == 1  # one length
-    f = sdf.Circle([0, 0], 0.1)
-    rng = np.random.default_rng(0)
-    for _ in range(200):
-        f = f | sdf.Circle(rng.uniform(-2, 2, 2), rng.uniform(0.05, 0.2))
-    tape = f.compiled.tape
-    assert len(tape) > 1000 and tape.nreg < 16
-    assert_agree(f, _points(300, 2))
-
-
 @pytest.mark.default_backend
-def test_backend_switch_and_errors(monkeypatch):
-    from fastsdf import function
-
-    warm()  # the default call answers through the interpreter once it is compiled
-
+def test_backend_switch_and_errors():
     f = sdf.Circle([0.2, 0], 0.7) | sdf.Box([-1, -1], [-0.5, 0.3])
     p = _points(300, 3)
-    with pytest.raises(ValueError, match="backend"):
+    with pytest.raises(ValueError, match="backend must be one of .*got backend='jit'"):
         f(*p.T, backend="jit")
-    with pytest.raises(ValueError, match="got symbol .z."):
-        compile_tape(X + Symbol("z"), ["x", "y"])
-    assert sdf.Function.backend == "auto"  # the shipped default: the tape, then the kernel
-    f(*p.T, backend="kernel")
-    assert f.compiled._tape is None  # the kernel path never builds a tape
-    # a call that asks for pruning goes to the kernel: pruned blends are its own approximation
-    g = sdf.Circle([0.1, 0], 0.5) | sdf.Circle([0.5, 0.2], 0.3)
-    g(*p.T, prune=True)
-    assert g.compiled._tape is None
-    # a call the tape would take longer for than the kernel's first answer waits for the kernel
-    h = sdf.Circle([0, 0], 0.5) | sdf.Box([0.1, 0.1], [0.6, 0.4])
-    monkeypatch.setattr(function, "AUTO_TAPE_MAX_S", 1e-6)
-    assert h._path_for("auto", p[:, 0]) is None and h.compiled._tape is None
-    monkeypatch.setattr(function, "AUTO_TAPE_MAX_S", 1.0)
-    assert h._path_for("auto", p[:, 0]) == "tape"
+    # the interpreter of earlier versions is gone: the error names what answers instead
+    with pytest.raises(ValueError, match="'kernel', 'numpy'.*'tape' was removed"):
+        f(*p.T, backend="tape")
+    with pytest.raises(ValueError, match="no time derivative"):
+        f(*p.T, time_derivative=True, backend="numpy")
+    assert sdf.Function.backend == "auto"
 
 
 @pytest.mark.default_backend
-def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bits():
-    """The default call on a new scene answers through the tape and starts the kernel's
-    compilation in a background thread; once it is done, calls run the kernel and return the
-    same bits (value-only and value + gradient, with parameters, non-finite points too)."""
-    warm()  # the default call answers through the interpreter once it is compiled
+def test_default_call_answers_with_the_kernel_and_compiles_the_other_kind_meanwhile():
+    """The default call on a new scene answers with the kernel and starts compiling the
+    scene's other kinds of kernel in a background thread; calls of every kind return the
+    kernel's bits before and after (with parameters, non-finite points too)."""
     rng = np.random.default_rng(12)
     a = Param("a", 0.3)
     f = sdf.Halfspace([0, 1], -1.8)
@@ -391,39 +340,13 @@ def test_default_call_answers_through_the_tape_then_the_kernel_with_the_same_bit
     p = _points(3000, 4)
     d0, g0 = f(*p.T, compute_gradient=True, a=0.7)
     c = f.compiled
-    assert c._tape is not None and c._warm is not None
-    v0 = f(*p.T)
+    assert c._warm is not None
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
-    assert f._path_for("auto", p[:, 0]) is None  # the kernel answers from now on
-    d1, g1 = f(*p.T, compute_gradient=True, a=0.7)
+    assert c.module.batch_v_ser.signatures  # the value-only kernel compiled meanwhile
+    d1, g1 = f(*p.T, compute_gradient=True, a=0.7, backend="kernel")
     assert_same_bits(d1, d0)
     assert_same_bits(g1, g0)
-    assert_same_bits(f(*p.T), v0)
-    assert math.isnan(d1[0]) and math.isnan(d0[0])
-
-
-def test_auto_backend_answers_then_switches_to_the_kernel():
-    """``backend='auto'`` named on a call, with the kernel as the class default: the first call
-    answers through the tape and starts the compilation in a background thread; once it is
-    done, calls run the kernel (the same bits)."""
-    warm()
-    rng = np.random.default_rng(11)
-    f = sdf.Halfspace([0, 1], -1.8)
-    for _ in range(7):  # a scene of its own (not in the kernel cache of an earlier test)
-        with (
-            sdf.transform(angle=rng.uniform(-3, 3), offset=rng.uniform(-2, 2, 2)),
-            sdf.smoothness(float(rng.uniform(1, 9))),
-        ):
-            f = f | sdf.Capsule([0, 0], rng.uniform(0.1, 0.4, 2), rng.uniform(0.05, 0.2))
-    p = _points(5000, 4)
-    d0, g0 = f(*p.T, compute_gradient=True, backend="auto")
-    c = f.compiled
-    assert c._tape is not None and c._warm is not None
-    assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
-    d1, g1 = f(*p.T, compute_gradient=True, backend="auto")
-    assert_same_bits(d1, d0)
-    assert_same_bits(g1, g0)
-    assert_same_bits(f(*p.T, compute_gradient=True)[0], d1)  # the kernel's bits
+    assert_same_bits(f(*p.T, a=0.7), d0)
     assert math.isnan(d1[0]) and math.isnan(d0[0])
 
 
@@ -431,15 +354,12 @@ _FIRST_CONTACT = r"""
 import json, numpy as np
 import fastsdf as sdf
 from fastsdf import function
-from fastsdf.backends import vm
 
 function.COMPILE_NOTICE_AFTER_S = 0.0  # the notice whatever the machine's speed
-out = {"ready_before": vm.interpreter_ready()}
+out = {}
 f = sdf.Circle([0.1, 0.2], 0.7) | sdf.Box([0.2, -0.5], [0.8, -0.1])
 x, y = np.random.default_rng(0).uniform(-2, 2, (2, 500))
 d, g = f(x, y, compute_gradient=True)
-out["tape_built"] = f.compiled._tape is not None
-out["interpreter_compiled"] = bool(vm._eval_par.overloads)
 assert f.compiled._warm.wait(300) and f.compiled.warm_error is None
 dk, gk = f(x, y, compute_gradient=True, backend="kernel")
 out["kernel_bits"] = d.tobytes() == dk.tobytes() and g.tobytes() == gk.tobytes()
@@ -453,14 +373,12 @@ print(json.dumps(out))
 
 def test_first_call_on_a_fresh_installation_compiles_the_kernel_and_says_so(tmp_path):
     """A fresh installation (empty kernel cache, empty numba cache): the default call of a new
-    scene does not wait for the interpreter (which takes several times longer to compile than
-    the scene's kernel); the kernel answers, with its own bits, and the wait is said once on
+    scene compiles its kernel, which answers with its own bits, and the wait is said once on
     stderr."""
     env = dict(
         os.environ,
         FASTSDF_CACHE_DIR=str(tmp_path / "kernels"),
         NUMBA_CACHE_DIR=str(tmp_path / "numba"),
-        FASTSDF_BACKGROUND_COMPILE="0",
     )
     env.pop("FASTSDF_QUIET", None)
     res = subprocess.run(
@@ -473,42 +391,5 @@ def test_first_call_on_a_fresh_installation_compiles_the_kernel_and_says_so(tmp_
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out.pop("err") < 1e-12
-    assert out == {
-        "ready_before": False,
-        "tape_built": False,
-        "interpreter_compiled": False,
-        "kernel_bits": True,
-    }
+    assert out == {"kernel_bits": True}
     assert res.stderr.count("fastsdf: compiling the kernel of a new scene") == 1, res.stderr
-
-
-def test_interpreter_is_compiled_for_later_in_a_process_of_its_own(tmp_path, monkeypatch):
-    """Where the interpreter is not compiled yet, one low-priority process per installation
-    compiles it into numba's disk cache (a claim file keeps a second process from starting the
-    same job); ``FASTSDF_BACKGROUND_COMPILE=0`` turns that off. Once the interpreter is in the
-    disk cache a fresh process sees it there without compiling."""
-    from fastsdf.backends import vm
-
-    warm()
-    code = (
-        "import fastsdf.backends.vm as v\nprint(v.interpreter_ready(), len(v._eval_par.overloads))"
-    )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert res.stdout.split() == ["True", "0"], res.stderr  # found on disk, not compiled
-    started = []
-    monkeypatch.setattr(vm.subprocess, "Popen", lambda cmd, **kw: started.append((cmd, kw)))
-    monkeypatch.setattr(vm, "interpreter_ready", lambda: False)
-    monkeypatch.setenv("FASTSDF_CACHE_DIR", str(tmp_path))
-    monkeypatch.setenv("FASTSDF_BACKGROUND_COMPILE", "0")
-    monkeypatch.setattr(vm, "_warm_started", [False])
-    assert not vm.warm_in_background() and not started
-    monkeypatch.delenv("FASTSDF_BACKGROUND_COMPILE")
-    monkeypatch.setattr(vm, "_warm_started", [False])
-    assert vm.warm_in_background() and len(started) == 1
-    cmd, kw = started[0]
-    claim = tmp_path / "interpreter-compiling.claim"
-    assert claim.exists() and cmd[-1] == str(claim) and "warm()" in cmd[2]
-    assert kw["env"]["FASTSDF_BACKGROUND_COMPILE"] == "0"  # the child starts no child
-    assert not vm.warm_in_background()  # once per process
-    monkeypatch.setattr(vm, "_warm_started", [False])
-    assert not vm.warm_in_background() and len(started) == 1  # claimed by the first
