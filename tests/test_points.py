@@ -3,8 +3,11 @@
 
 import numpy as np
 import pytest
+from conftest import HAS_NUMBA_CUDA
 
 import fastsdf as sdf
+from fastsdf.backends import request
+from fastsdf.expr import points
 from fastsdf.expr.points import as_points
 
 
@@ -32,7 +35,7 @@ def test_scalars_broadcast_against_arrays(world):
     col, row = np.linspace(-1, 1, 3)[:, None], np.linspace(-1, 1, 4)[None, :]
     d = world(col, row)
     assert d.shape == (3, 4)
-    assert d[2, 1] == world(1.0, row[0, 1])[0]
+    assert d[2, 1] == world(1.0, row[0, 1])
 
 
 def test_bad_point_shapes_are_named():
@@ -42,3 +45,41 @@ def test_bad_point_shapes_are_named():
         as_points(np.zeros(3), np.zeros(4))
     with pytest.raises(TypeError, match="real numbers"):
         as_points(np.array(["a"]), 0.0)
+
+
+def test_each_call_validates_its_points_once(world, monkeypatch):
+    """A call's coordinates are checked and flattened once, whichever evaluator answers: the
+    kernel (serial, parallel, pruned), NumPy, the CUDA target (NumPy points copied to the
+    device), a grid (and its exact fallback outside its samples) and a narrow band."""
+    calls = []
+
+    def counting(name, fn):
+        def wrapped(*args, **kwargs):
+            calls.append(name)
+            return fn(*args, **kwargs)
+
+        return wrapped
+
+    monkeypatch.setattr(request, "as_points", counting("host", request.as_points))
+    monkeypatch.setattr(request, "device_points", counting("device", request.device_points))
+    monkeypatch.setattr(points, "as_points", counting("inner", points.as_points))
+    grid = sdf.GridSDF(world, bounds=[(-1, 1), (-1, 1)], samples=[41j, 41j], mode="exact")
+    band = sdf.NarrowBandGridSDF(
+        world, bounds=[(-1.5, 1.5), (-1.5, 1.5)], band=0.2, samples=[257, 257]
+    )
+    p = np.random.default_rng(1).uniform(-2, 2, (5000, 2))  # some outside the grid
+    cases = {
+        "kernel serial": lambda: world(p[:100], compute_gradient=True, backend="kernel"),
+        "kernel parallel": lambda: world(p[:, 0], p[:, 1], backend="kernel"),
+        "kernel pruned": lambda: world(p, compute_gradient=True, prune=True),
+        "numpy": lambda: world(p, compute_gradient=True, backend="numpy"),
+        "grid": lambda: grid(p, compute_gradient=True),
+        "band": lambda: band(p),
+    }
+    if HAS_NUMBA_CUDA:
+        cases["cuda"] = lambda: world(p[:64], compute_gradient=True, backend="cuda")
+    for name, call in cases.items():
+        calls.clear()
+        call()
+        expected = ["device", "inner"] if name == "cuda" else ["host"]
+        assert calls == expected, name
