@@ -25,8 +25,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel.cache import load_module
-from fastsdf.backends.kernel.codegen import generate_module, scene_parameters
+from fastsdf.backends.kernel.codegen import generate_module
 from fastsdf.backends.kernel.drive import max_threads, scratch
+from fastsdf.backends.lower import Program, lower
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
 from fastsdf.backends.request import Request, check_kind, make_request
 from fastsdf.expr.graph import (
@@ -84,7 +85,8 @@ class CompiledSDF:
         self.expr = expr
         self.vmath = vmath
         self.symbol_names = tuple(symbol_names)
-        self._generated: tuple[str, dict, list] | None = None
+        self._program: Program | None = None
+        self._generated: tuple[str, dict] | None = None
         self._module: ModuleType | None = None
         self._plans: dict = {}
         self._cuda: Any = None
@@ -97,14 +99,26 @@ class CompiledSDF:
         self._scratch = threading.local()
         #: the exception that stopped the background compilation (``backend='auto'``), if any
         self.warm_error: BaseException | None = None
-        #: None for a scene without parameters; else the names of the parameters other than
-        #: time, in the order of the ``prm`` tuple the kernels take after ``t``.
-        self.param_names = scene_parameters(expr)
+
+    @property
+    def program(self) -> Program:
+        """The scene lowered (:func:`fastsdf.backends.lower.lower`): built once, read by the CPU
+        and CUDA code generators, pruning and the NumPy reference."""
+        if self._program is None:
+            self._program = lower(self.expr, self.symbol_names)
+        return self._program
+
+    @property
+    def param_names(self) -> tuple | None:
+        """None for a scene without parameters or time; else the names of the parameters
+        other than time, in the order of the ``prm`` tuple the kernels take after ``t``."""
+        p = self.program
+        return (p.params or ()) if p.parametric else None
 
     @property
     def parametric(self) -> bool:
         """Whether the kernels take ``(t, prm)`` (the scene has parameters or time)."""
-        return self.param_names is not None
+        return self.program.parametric
 
     def _kind(self, kind: str) -> str:
         kind = check_kind(kind)
@@ -115,10 +129,11 @@ class CompiledSDF:
             )
         return kind
 
-    def _generate(self) -> tuple[str, dict, list]:
-        """``(module source, per-point function sources, loop groups)``, generated on demand."""
+    def _generate(self) -> tuple[str, dict]:
+        """``(module source, per-point function sources)``, generated on demand."""
         if self._generated is None:
-            self._generated = generate_module(self.expr, self.symbol_names, vmath=self.vmath)
+            with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
+                self._generated = generate_module(self.program, vmath=self.vmath)
         return self._generated
 
     @property
@@ -128,9 +143,9 @@ class CompiledSDF:
 
     @property
     def groups(self) -> list:
-        """The loop groups of the generated code (see
-        :func:`fastsdf.backends.kernel.codegen.generate_module`)."""
-        return self._generate()[2]
+        """The loops over tables of the generated code (:class:`fastsdf.backends.lower.Group`,
+        in the order of the kernels' row lists)."""
+        return self.program.groups
 
     def function_source(self, kind: str = "vg") -> str:
         """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
@@ -160,7 +175,7 @@ class CompiledSDF:
         if self._cuda is None:
             from fastsdf.backends.cuda import CudaKernels
 
-            self._cuda = CudaKernels(self.expr, self.symbol_names)
+            self._cuda = CudaKernels(self.program)
         return self._cuda
 
     def numpy(self, req: Request) -> tuple:
@@ -176,7 +191,11 @@ class CompiledSDF:
         values = dict(zip(self.param_names or (), req.params), t=req.t)
         with gc_paused():
             res = evaluate_numpy(
-                self.expr, {names[0]: xs[ok], names[1]: ys[ok]}, req.gradient, values
+                self.expr,
+                {names[0]: xs[ok], names[1]: ys[ok]},
+                req.gradient,
+                values,
+                order=self.program.nodes,
             )
         out = np.full(xs.shape, np.nan)
         out[ok] = res[0] if req.gradient else res
@@ -247,9 +266,8 @@ class CompiledSDF:
         return plan
 
     def _groups(self, target: str) -> list:
-        # Each target's code numbers its loop groups itself; a plan serves the code it was
-        # made from.
-        return self.cuda.groups if target == "cuda" else self.groups
+        # Every target's code numbers the Program's loop groups as the Program does.
+        return self.program.groups
 
     def pruned_plan(
         self,
@@ -274,6 +292,18 @@ class CompiledSDF:
             bounds = self.cuda.bounds(xs, ys) if target == "cuda" else snap_bounds(xs, ys)
         return self._plan_over(bounds, prune, tol, target)
 
+    def prunable(self, tol: float | None = None) -> bool:
+        """Whether per-point callers (the particle step) gain from pruning plans: a scene
+        without parameters with at least ``PRUNE_MIN_OPERANDS`` operands in loops over
+        tables, and not only exponential blends with the default tolerance (next to nothing
+        to drop at half an ulp)."""
+        if self.parametric:
+            return False
+        groups = self.program.groups
+        if tol is None and all(g.op in ("smin", "smax") for g in groups):
+            return False
+        return sum(len(g.members) for g in groups) >= PRUNE_MIN_OPERANDS
+
     def _wants_plan(self, count: int, prune: bool | None, tol: float | None, target: str) -> bool:
         """Whether a call on ``count`` points may be pruned (before its bounds are known)."""
         if self.parametric:  # interval bounds would need ranges of the parameters: not pruned
@@ -281,15 +311,13 @@ class CompiledSDF:
         if prune is False or count < (1 if prune else PRUNE_MIN_POINTS):
             return False
         groups = self._groups(target)
-        operands = sum(len(g["members"]) for g in groups or ())
+        operands = sum(len(g.members) for g in groups)
         if not operands or (
             not prune and (operands < PRUNE_MIN_OPERANDS or operands * count < PRUNE_MIN_WORK)
         ):
             return False
         # exponential chains at half an ulp: next to nothing to drop
-        return bool(
-            prune or tol is not None or any(g["op"] not in ("smin", "smax") for g in groups)
-        )
+        return bool(prune or tol is not None or any(g.op not in ("smin", "smax") for g in groups))
 
     def _plan_over(
         self, bounds: Any, prune: bool | None, tol: float | None, target: str

@@ -101,11 +101,12 @@ def test_folded_block_kernels_match_the_straight_line_code(seed, cap, monkeypatc
     Both give the same bits, value and gradient, serial and parallel; and they agree with the
     NumPy reference and with central differences. ``cap``: a small budget of stored values per
     point, so that only some groups are folded."""
+    from fastsdf.backends import lower
     from fastsdf.backends.kernel import codegen
 
     monkeypatch.setattr(codegen, "COMBINE_PROGRAMS", False)  # see test_combine.py for those
     if cap is not None:
-        monkeypatch.setattr(codegen, "MAX_FOLD_ROWS", cap)
+        monkeypatch.setattr(lower, "MAX_FOLD_ROWS", cap)
     f = _unstructured_scene(seed)
     src = f.compiled.module_source
     assert "def _fold_vg(" in src and "def _fold_v(" in src

@@ -28,8 +28,8 @@ CUBE = Op(
     fmt=lambda node, s: f"cube_test({s[0]})",
     np=lambda node, av, g: (av[0] * av[0] * av[0], [3.0 * av[0] * av[0]] if g else None),
     emit=lambda em, out, node, a, r: (
-        em.assign(out, r, f"({a[0].v} * {a[0].v} * {a[0].v})"),
-        [f"(3.0 * {a[0].v} * {a[0].v})"],
+        em.assign(out, r, a[0].v * a[0].v * a[0].v),
+        [3.0 * a[0].v * a[0].v],
     )[1],
     interval=_iv_cube,
 )

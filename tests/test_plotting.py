@@ -285,7 +285,7 @@ def test_plot_sdf_axes_draws_a_figure_to_keep():
             x, y = label.get_position()
             # on its line: the distance there is the label's value (bilinear contouring of 80
             # samples over 4 units: within a fraction of a sample spacing)
-            assert abs(float(f(x, y)[0]) - float(label.get_text())) < 0.02
+            assert abs(float(f(x, y)) - float(label.get_text())) < 0.02
         # tight: what the figure shows (axes, bar, labels) spans nearly all of it
         shown = fig.get_tightbbox(fig.canvas.get_renderer())
         w, h = fig.get_size_inches()

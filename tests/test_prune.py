@@ -246,7 +246,7 @@ def test_pruned_polynomial_chains_are_bit_identical(seed, n, kind, k, tiles):
             )
         f = f.union(s, k=k, kind=kind)
     comp = f.compiled
-    assert comp.groups and all(g["op"] in ("qmin", "cmin") for g in comp.groups)
+    assert comp.groups and all(g.op in ("qmin", "cmin") for g in comp.groups)
     p = rng.uniform(-2.3, 2.3, (2, 3000))
     p[:, :3] = [[0.0, np.nan, 1.0], [0.0, 1.0, np.inf]]
     d0, g0 = f(*p, compute_gradient=True, prune=False)
@@ -301,7 +301,7 @@ def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(
 
     f = _mixed_chain(seed, n, k, op)
     groups = f.compiled.groups
-    assert len(groups) == 3 and any(g["steps"][-1][0].op == "prim" for g in groups)
+    assert len(groups) == 3 and any(g.steps[-1][0].op == "prim" for g in groups)
     bounds = ((-2.5, 2.5), (-2.4, 2.6))
     plan = prune.make_plan(groups, bounds, *tiles, tol)
     with pytest.MonkeyPatch.context() as mp:
@@ -318,15 +318,15 @@ def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(
     sign = 1.0 if op == "|" else -1.0  # a max is the min of the negated operands
     vals, kept = [], []
     for gi, g in enumerate(groups):
-        for j, m in enumerate(g["members"]):
+        for j, m in enumerate(g.members):
             vals.append(sign * evaluate_numpy(m, pts))
             rows = [
                 set(plan.act[plan.offs[t, gi] : plan.offs[t, gi + 1]].tolist())
                 for t in range(plan.nx * plan.ny)
             ]
             kept.append(np.array([j in rows[t] for t in tile]))
-    vals += [sign * evaluate_numpy(o, pts) for o in groups[0]["others"]]
-    kept += [np.ones(p.shape[1], dtype=bool)] * len(groups[0]["others"])
+    vals += [sign * evaluate_numpy(o, pts) for o in groups[0].others]
+    kept += [np.ones(p.shape[1], dtype=bool)] * len(groups[0].others)
     vals, kept = np.array(vals), np.array(kept)
     low = vals.min(axis=0)
     if k == 0.0:

@@ -9,6 +9,7 @@ import pytest
 from conftest import evaluate
 from test_vmath import PACKED, _has_avx2
 
+from fastsdf.backends.emit import Emitter
 from fastsdf.backends.kernel.drive import BLOCK_SIG
 from fastsdf.backends.kernel.simd import BLOCK, choose_lanes
 from fastsdf.expr.graph import Symbol, evaluate_numpy, sym_exp, sym_log, sym_max
@@ -111,7 +112,7 @@ def test_loop_free_bodies_interleave_two_lanes():
     src = comp.module_source
     start = src.index("def _block_vg")
     block = src[start : src.index("def batch_vg_par", start)]
-    lanes = choose_lanes(comp.function_source("vg").splitlines()[4:])
+    lanes = choose_lanes(Emitter(comp.program, "vg", {}).plain().stmts)
     assert lanes == 2
     assert f"    for i in range({BLOCK // 2}):" in block
     assert f"x_1 = S[{BLOCK // 2} + i]" in block and "x_0 = S[0 + i]" in block

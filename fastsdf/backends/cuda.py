@@ -1,8 +1,8 @@
 """The CUDA target: a scene's point functions emitted for numba-cuda, and the kernels over
 device arrays that call them.
 
-The statements come from the same emitter and op table as the CPU kernels
-(:func:`fastsdf.backends.kernel.codegen.point_code`), with the C library's functions
+The statements come from the same Program, emitter and op table as the CPU kernels
+(:mod:`fastsdf.backends.emit`), rendered with the C library's functions
 (``math.exp``, ``math.log``, ``math.hypot``: libdevice on the GPU) where the CPU uses its
 vectorisable ones, so results agree with the CPU kernel to rounding. Constant tables and loop
 row lists are kernel arguments (device arrays, copied once per scene), not module globals:
@@ -18,18 +18,20 @@ tile's rows, one outside it every row. The module is written to the kernel cache
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from contextlib import nullcontext
 from types import ModuleType
 from typing import Any
 
 import numpy as np
 
+from fastsdf.backends.code import MATH, Style, render
+from fastsdf.backends.emit import Emitter
 from fastsdf.backends.kernel.cache import hashed_import, load_module
-from fastsdf.backends.kernel.codegen import point_code, scene_parameters, table_source
+from fastsdf.backends.kernel.codegen import docstring_text, render_lines, table_source
+from fastsdf.backends.lower import Program
 from fastsdf.backends.prune import PrunePlan, snap_rect
 from fastsdf.device import cuda, simulated
-from fastsdf.expr.graph import Expr, expr_to_str, gc_paused
+from fastsdf.expr.graph import gc_paused
 from fastsdf.notice import compiling
 from fastsdf.version import __version__
 
@@ -131,38 +133,34 @@ def bounds(xs, ys, box):
 '''
 
 
-def module_source(root: Expr, symbol_names: Sequence[str]) -> tuple[str, list, bool]:
-    """``(source, loop groups, parametric)`` of the CUDA module of ``root``."""
-    with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
-        pn = scene_parameters(root)
-        tables: dict = {}
-        memo: dict = {}
-        kinds = KINDS if pn is not None else KINDS[:2]
-        codes = {k: point_code(root, symbol_names, k, tables, pn, memo) for k in kinds}
-    groups = codes["vg"].groups
+def module_source(program: Program) -> str:
+    """The CUDA module of ``program``: device point functions of each kind and the kernels
+    that call them (tables and row lists as kernel arguments)."""
+    tables: dict = {}
+    kinds = KINDS if program.parametric else KINDS[:2]
+    bodies = {k: Emitter(program, k, tables).plain() for k in kinds}
+    groups = program.groups
     names = sorted(tables.values(), key=lambda name: int(name[2:]))
     args: list[str] = (["_act", "_off"] if groups else []) + names
-    args += ["t", "prm"] if pn is not None else []
+    args += ["t", "prm"] if program.parametric else []
     arglist = ", ".join(args) or "_unused"
-    parts = [
-        _HEADER.format(
-            version=__version__,
-            expr=expr_to_str(root, limit=300).replace('"""', "'''").replace("\\", "\\\\"),
-        )
-    ]
-    if any("_P." in line for c in codes.values() for line in c.lines):
+    parts = [_HEADER.format(version=__version__, expr=docstring_text(program.root))]
+    if "prim" in program.ops:
         parts.append(hashed_import("fastsdf.backends.kernel.prims", alias="_P") + "\n")
     if tables or groups:
         parts.append(table_source(tables, groups))
-    for kind, code in codes.items():
+    style = Style(MATH)
+    for kind, body in bodies.items():
+        lines = [f"_p{i} = prm[{i}]" for i in range(body.nparams)]
+        lines += render_lines(body.stmts, style)
         res = ", ".join(f"r{j}" for j in range(_OUTPUTS[kind]))
         parts.append(
             _POINT.format(
                 kind=kind,
                 args=arglist,
-                nan=code.nan_return,
-                body="\n".join("    " + line for line in code.lines) or "    pass",
-                results=", ".join(code.results),
+                nan=", ".join(["math.nan"] * _OUTPUTS[kind]),
+                body="\n".join("    " + line for line in lines) or "    pass",
+                results=", ".join(render(r, style) for r in body.results),
             )
         )
         fmt = dict(kind=kind, outs=_OUT_ARGS[kind], res=res, store=_STORE[kind])
@@ -175,7 +173,7 @@ def module_source(root: Expr, symbol_names: Sequence[str]) -> tuple[str, list, b
                 )
             )
     parts.append(_BOUNDS)
-    return "\n".join(parts), groups, pn is not None
+    return "\n".join(parts)
 
 
 class CudaKernels:
@@ -184,10 +182,12 @@ class CudaKernels:
     :meth:`evaluate` is the CUDA evaluator: flat float64 device arrays of points in, device
     arrays out."""
 
-    def __init__(self, expr: Expr, symbol_names: Sequence[str]) -> None:
-        self.expr = expr
-        self.symbol_names = tuple(symbol_names)
-        self.source, self.groups, self.parametric = module_source(expr, symbol_names)
+    def __init__(self, program: Program) -> None:
+        self.program = program
+        self.groups = program.groups
+        self.parametric = program.parametric
+        with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
+            self.source = module_source(program)
         self._module: ModuleType | None = None
         self._tables: list | None = None
         self._plans: dict = {}

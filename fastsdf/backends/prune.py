@@ -1,7 +1,7 @@
 """Pruning per tile: evaluate only the operands of a chain that can matter near a point.
 
 The generated kernels evaluate every loop over a constant table ("group": the same-shape
-operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.backends.kernel.codegen`)
+operands of a ``min``/``max``/``smin``/``smax`` chain, see :mod:`fastsdf.backends.lower`)
 over a list of rows given as data. A :class:`PrunePlan` covers a rectangle with tiles and, from
 sound interval bounds of every operand over every tile (:mod:`fastsdf.expr.interval`), keeps per
 tile only the rows that can matter:
@@ -115,20 +115,18 @@ _MEMBER_CHUNK = 128
 
 def _steps_bounds(group, ranges):
     """Bounds of every member of a group over every tile, in chunks of members."""
-    M = len(group["members"])
-    if M <= _MEMBER_CHUNK:
-        return _steps_bounds_chunk(group, ranges)
+    M = len(group.members)
     parts = [
         _steps_bounds_chunk(
-            dict(
-                group,
-                members=group["members"][i : i + _MEMBER_CHUNK],
-                rows=group["rows"][i : i + _MEMBER_CHUNK],
-            ),
+            group.steps,
+            group.members[i : i + _MEMBER_CHUNK],
+            group.rows[i : i + _MEMBER_CHUNK],
             ranges,
         )
         for i in range(0, M, _MEMBER_CHUNK)
     ]
+    if len(parts) == 1:
+        return parts[0]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
@@ -140,10 +138,9 @@ def _per_member(steps: list) -> bool:
     return any(node.op == "prim" and len(node.args) > 2 for node, _ in steps)
 
 
-def _steps_bounds_chunk(group, ranges):
-    """Bounds ``(lo, hi)`` of shape (members, tiles) of every member of a group: the shared
+def _steps_bounds_chunk(steps, members, rows, ranges):
+    """Bounds ``(lo, hi)`` of shape (members, tiles) of members of a group: the shared
     template is evaluated once on (members x tiles) arrays, the constants as columns."""
-    steps, rows, members = group["steps"], group["rows"], group["members"]
     if _per_member(steps):  # per-member constants in the reference
         out = [node_bounds(m, ranges) for m in members]
         return (
@@ -212,8 +209,8 @@ def _template_bounds(steps, cols, ranges, shape, hint):
 
 
 def make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None = None) -> PrunePlan:
-    """The :class:`PrunePlan` of ``groups`` (from
-    :func:`fastsdf.backends.kernel.codegen.generate_module`) over ``bounds = ((x0, x1), (y0, y1))``
+    """The :class:`PrunePlan` of ``groups`` (a Program's,
+    :attr:`fastsdf.backends.lower.Program.groups`) over ``bounds = ((x0, x1), (y0, y1))``
     cut into ``nx x ny`` tiles."""
     with gc_paused():  # a bulk pass (see fastsdf.expr.graph._GCPaused)
         return _make_plan(groups, bounds, nx, ny, tol)
@@ -237,11 +234,11 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
     # Bounds of each chain's operands that are not in a group.
     chains: dict = {}
     for gi, g in enumerate(groups):
-        chains.setdefault(id(g["chain"]), []).append(gi)
+        chains.setdefault(id(g.chain), []).append(gi)
     keep: list[Any] = [None] * len(groups)  # (every slot is set below: an array per group)
     for gis in chains.values():
         g0 = groups[gis[0]]
-        op, k = g0["op"], g0["k"]
+        op, k = g0.op, g0.k
         if op not in ("qmin", "cmin") and T >= _COARSE_MIN_TILES:
             for gi, kk in zip(gis, _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol)):
                 keep[gi] = kk
@@ -254,9 +251,9 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
             node_bounds(o, ranges)[id(o)]
             if o.op != "const"
             else (np.full(T, o.attr), np.full(T, o.attr))
-            for o in g0["others"]
+            for o in g0.others
         ]
-        n_ops = len(others) + sum(len(groups[gi]["members"]) for gi in gis)
+        n_ops = len(others) + sum(len(groups[gi].members) for gi in gis)
         lows = [member_bounds[gi][0] for gi in gis]
         highs = [member_bounds[gi][1] for gi in gis]
         lo_cands = [lo.min(axis=0) for lo in lows] + [o[0] for o in others]
@@ -282,7 +279,7 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
         for gi, kk in zip(gis, kp):
             # Non-finite bounds (unknown) keep the operand.
             keep[gi] = kk | ~np.isfinite(H)[None, :]
-    sizes = [len(g["members"]) for g in groups]
+    sizes = [len(g.members) for g in groups]
     kept = [kk.sum(axis=0).astype(np.int64) for kk in keep]
     G = len(groups)
     offs = np.zeros((T, G + 1), dtype=np.int64)
@@ -346,7 +343,7 @@ def _member_hints(members):
 def _pair_bounds(group, hints, mem, til, lranges):
     """Bounds ``(lo, hi)`` of member ``mem[p]`` over tile ``til[p]`` of a level, per pair p
     (pairs ordered by member): the same numbers as the dense (members x tiles) bounds."""
-    steps, members = group["steps"], group["members"]
+    steps, members = group.steps, group.members
     if not len(mem):
         return np.empty(0), np.empty(0)
     if _per_member(steps):
@@ -358,7 +355,7 @@ def _pair_bounds(group, hints, mem, til, lranges):
             out = node_bounds(m, {k: (v[0][t], v[1][t]) for k, v in lranges.items()})[id(m)]
             lo[a:b], hi[a:b] = out
         return lo, hi
-    rows = group["rows"]
+    rows = group.rows
     cols = [rows[mem, j] for j in range(rows.shape[1])]
     boxes = {k: (v[0][til], v[1][til]) for k, v in lranges.items()}
     lo, hi = _template_bounds(steps, cols, boxes, (len(mem),), hints[mem])
@@ -377,16 +374,16 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
     For the exponential blends with the default tolerance (half an ulp of the chain's value),
     coarse levels use the smallest magnitude the fine tiles' value can have."""
     g0 = groups[gis[0]]
-    op, k = g0["op"], g0["k"]
+    op, k = g0.op, g0.k
     lower = op in ("min", "smin")  # the chain's value is below every upper bound
-    n_ops = len(g0["others"]) + sum(len(groups[gi]["members"]) for gi in gis)
+    n_ops = len(g0.others) + sum(len(groups[gi].members) for gi in gis)
     levels = _levels(ranges, nx, ny)
-    hints = [_member_hints(groups[gi]["members"]) for gi in gis]
+    hints = [_member_hints(groups[gi].members) for gi in gis]
     T0 = levels[0][1] * levels[0][2]
     pairs = [
         (
-            np.repeat(np.arange(len(groups[gi]["members"])), T0),
-            np.tile(np.arange(T0), len(groups[gi]["members"])),
+            np.repeat(np.arange(len(groups[gi].members)), T0),
+            np.tile(np.arange(T0), len(groups[gi].members)),
         )
         for gi in gis
     ]
@@ -401,7 +398,7 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
             node_bounds(o, lranges)[id(o)]
             if o.op != "const"
             else (np.full(Tl, o.attr), np.full(Tl, o.attr))
-            for o in g0["others"]
+            for o in g0.others
         ]
         # H: the smallest upper bound (min, smin), or the largest lower bound (max, smax); F:
         # the other end over all operands (for the magnitude of the fine tiles' H)
@@ -463,7 +460,7 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
         pairs = nxt
     out = []
     for gi, (mem, til) in zip(gis, pairs):
-        kk = np.zeros((len(groups[gi]["members"]), nx * ny), dtype=bool)
+        kk = np.zeros((len(groups[gi].members), nx * ny), dtype=bool)
         kk[mem, til] = True
         out.append(kk)
     return out
@@ -477,9 +474,9 @@ def _keep_ordered(groups, gi, member_bounds, ranges, T):
     smallest upper bound of the operands before it in the chain (an outward margin covers the
     rounding of that sum): dropping it leaves every later running value unchanged."""
     g = groups[gi]
-    k = float(g["k"])
+    k = float(g.k)
     prefix = np.full(T, np.inf)
-    for kind, ref in g["before"]:
+    for kind, ref in g.before:
         if kind == "node":
             if ref.op == "const":
                 hi = np.full(T, float(ref.attr))

@@ -34,7 +34,7 @@ import struct
 import threading
 import weakref
 from _weakref import _remove_dead_weakref  # type: ignore[attr-defined]  # not in typeshed
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, Literal, TypeGuard
 
 import numpy as np
@@ -992,7 +992,11 @@ def dag_size(root: Expr, limit: int) -> int:
 
 
 def evaluate_numpy(
-    root: Expr, symbols: dict, compute_gradient: bool = False, params: dict | None = None
+    root: Expr,
+    symbols: dict,
+    compute_gradient: bool = False,
+    params: dict | None = None,
+    order: Sequence[Expr] | None = None,
 ) -> Any:
     """Evaluate ``root`` with NumPy, one whole-array operation per node.
 
@@ -1000,7 +1004,8 @@ def evaluate_numpy(
     is ``(value, [d/d s for s in symbol order])`` by forward-mode differentiation. A parameter
     (:func:`Param`) named in ``symbols`` is treated as a symbol (so ``{'x': .., 'y': .., 't': ..}``
     also differentiates in time); the others take their value from ``params`` or their default.
-    This is the
+    ``order``: every node under ``root``, arguments first (a lowered scene's
+    :attr:`fastsdf.backends.lower.Program.nodes`; found here if not given). This is the
     independent reference the compiled kernels are tested against, and the baseline the
     benchmarks time them against; it follows the same tie rules as the kernels.
     """
@@ -1010,7 +1015,7 @@ def evaluate_numpy(
     val: dict[int, np.ndarray] = {}
     grad: dict[int, list | None] = {}
     with np.errstate(all="ignore"):
-        for node in topological_order(root):
+        for node in topological_order(root) if order is None else order:
             i, op, a = id(node), node.op, node.args
             av = [val[id(c)] for c in a]
             ag: list | None = [grad[id(c)] for c in a] if compute_gradient else None

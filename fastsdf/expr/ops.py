@@ -9,12 +9,15 @@ Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
     :func:`fastsdf.expr.graph.evaluate_numpy`). ``partials`` (only when ``with_grad``) is a
     :ref:`gradient rule <rules>`.
 ``emit(em, out, node, a, r) -> partials``
-    the code template for the generated numba code (:mod:`fastsdf.backends.kernel.codegen`): append
-    source lines to ``out`` that assign the node's value to the variable named ``r``; ``a`` holds
-    the arguments' emitted values (``a[i].v`` is a Python expression); ``em.grad`` says whether the
-    gradient is wanted, ``em.assign(out, name, expr)`` appends an assignment and returns
-    ``name``, ``em.table(array)`` names a constant table. Returns the gradient rule (source
-    expressions), or None when ``em.grad`` is false.
+    the code template for the generated code (:mod:`fastsdf.backends.emit`): append statements
+    to ``out`` that assign the node's value to the variable named ``r``. ``a`` holds the
+    arguments' emitted values: ``a[i].v`` is an expression of generated code
+    (:class:`fastsdf.backends.code.Code`), built with Python's operators and ``em.num(v)``,
+    ``em.call(fn, *args)`` (``'exp'``, ``'log'``, ``'sqrt'``, ``'sin'``, ``'cos'``, ``'abs'``,
+    ``'floor'``: each target picks its implementation), ``em.sel(cond, a, b)`` (branch-free).
+    ``em.grad`` says whether the gradient is wanted, ``em.assign(out, name, expr)`` appends an
+    assignment and returns the variable, ``em.table_arg(array)`` passes a constant table.
+    Returns the gradient rule (expressions), or None when ``em.grad`` is false.
 ``interval(node, lo, hi) -> (lo, hi)``
     bounds of the node's value over a set of boxes (arrays, one entry per box) given bounds of
     its arguments; sound for the values the compiled code computes (see
@@ -22,6 +25,10 @@ Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
 ``lipschitz(node, L, lo, hi) -> L``
     a bound of the gradient's length over the boxes from the arguments' bounds ``L`` (optional:
     ``None`` means no bound is known).
+``live(node, args) -> bool`` (optional)
+    whether a gradient component of the node can be nonzero given, per argument, whether its
+    component can (default: any argument's); the lowering (:mod:`fastsdf.backends.lower`) keeps
+    this as data, and the emitter checks its gradient rules against it.
 ``chain``
     min, max, smin, smax: associative, flattened into n-ary chains by the code generator (which
     emits them itself; their ``emit`` is not used).
@@ -30,7 +37,7 @@ Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
 
 **Gradient rules.** An operation gives the partial derivatives of its value with respect to each
 argument, a list with one entry per argument (``None``: known zero; in generated code the
-strings ``"1.0"``/``"-1.0"`` are recognised). The gradient of the node is then the generic
+literals ``1.0`` and ``-1.0`` are recognised). The gradient of the node is then the generic
 chain rule ``grad(node)[c] = sum_i partials[i] * grad(arg_i)[c]``, applied by the evaluator to
 every gradient component ``c`` alike: x and y today, any further symbol (such as a time ``t``)
 with no change here. An operation whose gradient is not a linear combination (``select``, which
@@ -66,6 +73,7 @@ class Op:
     interval: Callable
     lipschitz: Callable | None = None
     chain: bool = False
+    live: Callable | None = None
 
 
 OPS: dict[str, Op] = {}
@@ -173,14 +181,6 @@ def _monotone(fn, lo, hi, ulps=4.0):
     return _widen(rlo, rhi, _mag(rlo, rhi), ulps)
 
 
-# ---------------------------------------------------------------------------------------------
-# Code-generation helpers (source strings; None is a known zero, "1.0" a literal one).
-
-
-def _g(a):
-    return a.g
-
-
 def _iv_ab(lo, hi):
     return lo[0], hi[0], (lo[1] if len(lo) > 1 else None), (hi[1] if len(hi) > 1 else None)
 
@@ -218,8 +218,8 @@ _register(
         _fmt_add,
         np=lambda node, av, g: (av[0] + av[1], [1.0, 1.0] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"{a[0].v} + {a[1].v}"),
-            ["1.0", "1.0"],
+            em.assign(out, r, a[0].v + a[1].v),
+            [em.num(1.0), em.num(1.0)],
         )[1],
         interval=lambda node, lo, hi: (lo[0] + lo[1], hi[0] + hi[1]),
         lipschitz=lambda node, L, lo, hi: L[0] + L[1],
@@ -233,8 +233,8 @@ _register(
         _infix("-"),
         np=lambda node, av, g: (av[0] - av[1], [1.0, -1.0] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"{a[0].v} - {a[1].v}"),
-            ["1.0", "-1.0"],
+            em.assign(out, r, a[0].v - a[1].v),
+            [em.num(1.0), em.num(-1.0)],
         )[1],
         interval=lambda node, lo, hi: (lo[0] - hi[1], hi[0] - lo[1]),
         lipschitz=lambda node, L, lo, hi: L[0] + L[1],
@@ -260,7 +260,7 @@ _register(
         _infix("*"),
         np=lambda node, av, g: (av[0] * av[1], [av[1], av[0]] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"{a[0].v} * {a[1].v}"),
+            em.assign(out, r, a[0].v * a[1].v),
             [a[1].v, a[0].v],
         )[1],
         interval=_iv_mul,
@@ -270,11 +270,11 @@ _register(
 
 
 def _emit_div(em, out, node, a, r):
-    em.assign(out, r, f"{a[0].v} / {a[1].v}")
+    R = em.assign(out, r, a[0].v / a[1].v)
     if not em.grad:
         return None
-    ib = em.assign(out, f"{r}i", f"1.0 / {a[1].v}")
-    return [ib, f"(-{r} * {ib})"]
+    ib = em.assign(out, f"{r}i", 1.0 / a[1].v)
+    return [ib, -R * ib]
 
 
 def _iv_div(node, lo, hi):
@@ -313,7 +313,7 @@ _register(
         1,
         lambda node, s: f"(-{s[0]})",
         np=lambda node, av, g: (-av[0], [-1.0] if g else None),
-        emit=lambda em, out, node, a, r: (em.assign(out, r, f"-{a[0].v}"), ["-1.0"])[1],
+        emit=lambda em, out, node, a, r: (em.assign(out, r, -a[0].v), [em.num(-1.0)])[1],
         interval=lambda node, lo, hi: (-hi[0], -lo[0]),
         lipschitz=lambda node, L, lo, hi: L[0],
     )
@@ -333,15 +333,15 @@ def _fmt_powc(node, s):
 
 
 def _emit_powc(em, out, node, a, r):
-    p, A = node.attr, a[0]
+    p, A = node.attr, a[0].v
     if p == 2.0:
-        em.assign(out, r, f"{A.v} * {A.v}")
-        return [f"(2.0 * {A.v})"]
+        em.assign(out, r, A * A)
+        return [2.0 * A]
     if p == -1.0:
-        em.assign(out, r, f"1.0 / {A.v}")
-        return [f"(-{r} * {r})"]
-    em.assign(out, r, f"{A.v} ** {lit(p)}")
-    return [f"({lit(p)} * {A.v} ** {lit(p - 1.0)})"]
+        R = em.assign(out, r, 1.0 / A)
+        return [-R * R]
+    em.assign(out, r, A ** em.num(p))
+    return [em.num(p) * A ** em.num(p - 1.0)]
 
 
 def _iv_powc(node, lo, hi):
@@ -403,6 +403,12 @@ def _np_pow(node, av, g):
     return v, ([y * x ** (y - 1.0), v * np.log(x)] if g else None)
 
 
+def _emit_pow(em, out, node, a, r):
+    A, B = a[0].v, a[1].v
+    R = em.assign(out, r, A**B)
+    return [B * A ** (B - 1.0), R * em.call("log", A)]
+
+
 def _iv_pow(node, lo, hi):
     with np.errstate(all="ignore"):
         rlo, rhi = _corners(np.power, lo[0], hi[0], lo[1], hi[1])
@@ -417,10 +423,7 @@ _register(
         2,
         _infix("**"),
         np=_np_pow,
-        emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"{a[0].v} ** {a[1].v}"),
-            [f"({a[1].v} * {a[0].v} ** ({a[1].v} - 1.0))", f"({r} * math.log({a[0].v}))"],
-        )[1],
+        emit=_emit_pow,
         interval=_iv_pow,
     )
 )
@@ -434,6 +437,11 @@ def _np_sqrt(node, av, g):
     return v, ([np.where(v > 0, 0.5 / np.where(v > 0, v, 1.0), 0.0)] if g else None)
 
 
+def _emit_sqrt(em, out, node, a, r):
+    R = em.assign(out, r, em.call("sqrt", a[0].v))
+    return [em.sel(R > 0.0, 0.5 / R, 0.0)]
+
+
 def _lip_sqrt(node, L, lo, hi):
     with np.errstate(all="ignore"):
         return np.where(lo[0] > 0, L[0] / (2.0 * np.sqrt(np.maximum(lo[0], 0.0))), np.inf)
@@ -445,10 +453,7 @@ _register(
         1,
         _call("sqrt"),
         np=_np_sqrt,
-        emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"math.sqrt({a[0].v})"),
-            [f"_sel({r} > 0.0, 0.5 / {r}, 0.0)"],
-        )[1],
+        emit=_emit_sqrt,
         interval=lambda node, lo, hi: (
             np.sqrt(np.maximum(lo[0], 0.0)),
             np.sqrt(np.maximum(hi[0], 0.0)),
@@ -474,7 +479,7 @@ _register(
         1,
         _call("exp"),
         np=_np_exp,
-        emit=lambda em, out, node, a, r: (em.assign(out, r, f"math.exp({a[0].v})"), [r])[1],
+        emit=lambda em, out, node, a, r: [em.assign(out, r, em.call("exp", a[0].v))],
         interval=_iv_exp,
         lipschitz=lambda node, L, lo, hi: np.exp(hi[0]) * L[0],
     )
@@ -494,8 +499,8 @@ _register(
         _call("log"),
         np=lambda node, av, g: (np.log(av[0]), [1.0 / av[0]] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"math.log({a[0].v})"),
-            [f"(1.0 / {a[0].v})"],
+            em.assign(out, r, em.call("log", a[0].v)),
+            [1.0 / a[0].v],
         )[1],
         interval=_iv_log,
         lipschitz=lambda node, L, lo, hi: np.where(
@@ -511,8 +516,8 @@ _register(
         _call("sin"),
         np=lambda node, av, g: (np.sin(av[0]), [np.cos(av[0])] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"math.sin({a[0].v})"),
-            [f"math.cos({a[0].v})"],
+            em.assign(out, r, em.call("sin", a[0].v)),
+            [em.call("cos", a[0].v)],
         )[1],
         interval=lambda node, lo, hi: _trig_iv(lo[0], hi[0], 0.0),
         lipschitz=lambda node, L, lo, hi: L[0],
@@ -526,8 +531,8 @@ _register(
         _call("cos"),
         np=lambda node, av, g: (np.cos(av[0]), [-np.sin(av[0])] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"math.cos({a[0].v})"),
-            [f"(-math.sin({a[0].v}))"],
+            em.assign(out, r, em.call("cos", a[0].v)),
+            [-em.call("sin", a[0].v)],
         )[1],
         interval=lambda node, lo, hi: _trig_iv(lo[0], hi[0], np.pi / 2),
         lipschitz=lambda node, L, lo, hi: L[0],
@@ -541,8 +546,8 @@ _register(
         _call("abs"),
         np=lambda node, av, g: (np.abs(av[0]), [np.where(av[0] >= 0, 1.0, -1.0)] if g else None),
         emit=lambda em, out, node, a, r: (
-            em.assign(out, r, f"abs({a[0].v})"),
-            [f"_sel({a[0].v} >= 0.0, 1.0, -1.0)"],
+            em.assign(out, r, em.call("abs", a[0].v)),
+            [em.sel(a[0].v >= 0.0, 1.0, -1.0)],
         )[1],
         interval=lambda node, lo, hi: _abs_iv(lo[0], hi[0]),
         lipschitz=lambda node, L, lo, hi: L[0],
@@ -555,8 +560,9 @@ _register(
         1,
         _call("floor"),
         np=lambda node, av, g: (np.floor(av[0]), [None] if g else None),
-        emit=lambda em, out, node, a, r: (em.assign(out, r, f"np.floor({a[0].v})"), [None])[1],
+        emit=lambda em, out, node, a, r: (em.assign(out, r, em.call("floor", a[0].v)), [None])[1],
         interval=lambda node, lo, hi: (np.floor(lo[0]), np.floor(hi[0])),
+        live=lambda node, a: False,
     )
 )
 
@@ -618,27 +624,9 @@ def _np_length(node, av, g):
 
 
 def _emit_length(em, out, node, a, r):
-    A, B = a
-    # sqrt(a*a + b*b) unless that over- or underflows; hypot is exact but slower.
-    em.assign(out, r, f"math.sqrt({A.v} * {A.v} + {B.v} * {B.v})")
-    if not em.grad:
-        out.append(f"if not (1e-150 < {r} < 1e150):")
-        out.append(f"    {r} = math.hypot({A.v}, {B.v})")
-        return None
-    # The partials (a, b) / r, recomputed in the rare branch as in _np_length (1 / r overflows
-    # for subnormal r). An if block, not if/else: the lane interleaver copies it whole.
-    em.assign(out, f"{r}i", f"1.0 / {r}")
-    em.assign(out, f"{r}p", f"{A.v} * {r}i")
-    em.assign(out, f"{r}q", f"{B.v} * {r}i")
-    out.append(f"if not (1e-150 < {r} < 1e150):")
-    out.append(f"    {r} = math.hypot({A.v}, {B.v})")
-    out.append(f"    {r}i = {lit(_UP)} if {r} < 1e-150 else 1.0")
-    out.append(f"    {r}p = {A.v} * {r}i")
-    out.append(f"    {r}q = {B.v} * {r}i")
-    out.append(f"    {r}i = math.hypot({r}p, {r}q)")
-    out.append(f"    {r}p = {r}p / {r}i if {r}i > 0.0 else 1.0")
-    out.append(f"    {r}q = {r}q / {r}i if {r}i > 0.0 else 0.0")
-    return [f"{r}p", f"{r}q"]
+    # One statement: each target writes the overflow-safe length its own way (see
+    # fastsdf.backends.code.Length); the partials are (a, b) / r, as in _np_length.
+    return em.length(out, r, a[0].v, a[1].v) or None
 
 
 def _iv_length(node, lo, hi):
@@ -743,40 +731,35 @@ def _np_poly(node, av, g):
 def _emit_poly(em, out, node, a, r):
     # min(a, b) - k h^2/4 (quadratic) or - k h^3/6 (cubic), h = max(k - |a - b|, 0)/k;
     # the gradient is a convex combination: weight 1 - h/2 (1 - h^2/2) on the smaller.
-    A, B = a
+    A, B = a[0].v, a[1].v
     k = node.attr
-    w = em.assign(out, f"{r}w", f"{A.v} <= {B.v}")
-    t = em.assign(out, f"{r}t", f"{lit(k)} - abs({A.v} - {B.v})")
-    h = em.assign(out, f"{r}h", f"_sel({t} > 0.0, {t}, 0.0) * {lit(1.0 / k)}")
-    m = f"_sel({w}, {A.v}, {B.v})"
+    w = em.assign(out, f"{r}w", A <= B)
+    t = em.assign(out, f"{r}t", em.num(k) - em.call("abs", A - B))
+    h = em.assign(out, f"{r}h", em.sel(t > 0.0, t, 0.0) * em.num(1.0 / k))
+    m = em.sel(w, A, B)
     if node.op == "qmin":
-        em.assign(out, r, f"{m} - {h} * {h} * {lit(k / 4.0)}")
-        other = f"{h} * 0.5"
+        em.assign(out, r, m - h * h * em.num(k / 4.0))
+        other = h * 0.5
     else:
-        em.assign(out, r, f"{m} - {h} * {h} * {h} * {lit(k / 6.0)}")
-        other = f"{h} * {h} * 0.5"
+        em.assign(out, r, m - h * h * h * em.num(k / 6.0))
+        other = h * h * 0.5
     if not em.grad:
         return None
     o = em.assign(out, f"{r}o", other)
-    wa = em.assign(out, f"{r}a", f"_sel({w}, 1.0 - {o}, {o})")
-    wb = em.assign(out, f"{r}b", f"1.0 - {wa}")
+    wa = em.assign(out, f"{r}a", em.sel(w, 1.0 - o, o))
+    wb = em.assign(out, f"{r}b", 1.0 - wa)
 
     def rule(gs):
         # Outside the blend (h = 0) exactly the smaller operand's gradient, as min gives it
         # (not g_a + 0 * g_b, which turns -0.0 into 0.0): pruning a chain of blends drops
         # operands only there and keeps the same bits.
         ga, gb = gs
-        terms = [
-            t
-            for t in (
-                (None if g is None else wt if g == "1.0" else f"{g} * {wt}")
-                for g, wt in ((ga, wa), (gb, wb))
-            )
-            if t is not None
-        ]
+        terms = [wt if g.is_num(1.0) else g * wt for g, wt in ((ga, wa), (gb, wb)) if g is not None]
         if not terms:
             return None
-        return f"_sel({h} > 0.0, {' + '.join(terms)}, _sel({w}, {ga or '0.0'}, {gb or '0.0'}))"
+        blend = terms[0] if len(terms) == 1 else terms[0] + terms[1]
+        zero = em.num(0.0)
+        return em.sel(h > 0.0, blend, em.sel(w, ga or zero, gb or zero))
 
     return rule
 
@@ -819,18 +802,15 @@ def _np_select(node, av, g):
     return np.where(pick, av[1], av[2]), ((lambda gs: np.where(pick, gs[1], gs[2])) if g else None)
 
 
-def _zero(g):
-    return "0.0" if g is None else g
-
-
 def _emit_select(em, out, node, a, r):
-    cond, T, F = f"{a[0].v} > 0.0", a[1], a[2]
-    em.assign(out, r, f"_sel({cond}, {T.v}, {F.v})")
+    cond = a[0].v > 0.0
+    em.assign(out, r, em.sel(cond, a[1].v, a[2].v))
 
     def combine(gs):
         if gs[1] is None and gs[2] is None:
             return None
-        return f"_sel({cond}, {_zero(gs[1])}, {_zero(gs[2])})"
+        zero = em.num(0.0)
+        return em.sel(cond, zero if gs[1] is None else gs[1], zero if gs[2] is None else gs[2])
 
     return combine
 
@@ -850,6 +830,7 @@ _register(
         np=_np_select,
         emit=_emit_select,
         interval=_iv_select,
+        live=lambda node, a: a[1] or a[2],
     )
 )
 
@@ -891,21 +872,16 @@ def _np_prim(node, av, g):
             )
     if not g:
         return d, None
-    return d, [du, dv] + _prim_constant_partials(node, av, d, du, dv, np)
+    return d, [du, dv] + _prim_constant_partials(node, av, d, du, dv)
 
 
-def _prim_constant_partials(node, a, d, du, dv, lib):
-    """Partial derivatives in a prim node's constants (``None`` where not available), as arrays
-    (``lib = np``) or as source (``lib = None``, names in ``a``). Ellipse: by the envelope
-    theorem, with the closest point ``q = p - d n`` (``n`` the gradient),
-    ``dd/da = -n_u q_u / a`` and ``dd/db = -n_v q_v / b``."""
+def _prim_constant_partials(node, a, d, du, dv):
+    """Partial derivatives in a prim node's constants (``None`` where not available), of
+    arrays or of generated code's expressions alike. Ellipse: by the envelope theorem, with
+    the closest point ``q = p - d n`` (``n`` the gradient), ``dd/da = -n_u q_u / a`` and
+    ``dd/db = -n_v q_v / b``."""
     if node.attr[0] != "ellipse":
         return [None] * (len(a) - 2)
-    if lib is None:
-        return [
-            f"(-{du} * ({a[0]} - {d} * {du}) / {a[2]})",
-            f"(-{dv} * ({a[1]} - {d} * {dv}) / {a[3]})",
-        ]
     return [-du * (a[0] - d * du) / a[2], -dv * (a[1] - d * dv) / a[3]]
 
 
@@ -915,18 +891,16 @@ def _emit_prim(em, out, node, a, r):
     kind, data = node.attr
     extra = [c.v for c in a[2:]]
     if data is not None:
-        extra.insert(0, em.table(np.asarray(data, dtype=np.float64)))
-    call = f"_P.{kind}_{'vg' if em.grad else 'v'}({', '.join([a[0].v, a[1].v] + extra)})"
+        extra.insert(0, em.table_arg(np.asarray(data, dtype=np.float64)))
+    call = em.call(f"_P.{kind}_{'vg' if em.grad else 'v'}", a[0].v, a[1].v, *extra)
     if not em.grad:
         em.assign(out, r, call)
         return None
-    out.append(f"{r}, {r}u, {r}v = {call}")
-    if all(c.grads(len(em.COMPONENTS)) == (None,) * len(em.COMPONENTS) for c in a[2:]):
-        return [f"{r}u", f"{r}v"] + [None] * (len(a) - 2)
+    d, du, dv = em.assign_many(out, [r, f"{r}u", f"{r}v"], call)
+    if all(c.g is None or all(x is None for x in c.g) for c in a[2:]):
+        return [du, dv] + [None] * (len(a) - 2)
     # constants that depend on time (an ellipse's axes given by sdf.t)
-    return [f"{r}u", f"{r}v"] + _prim_constant_partials(
-        node, [c.v for c in a], r, f"{r}u", f"{r}v", None
-    )
+    return [du, dv] + _prim_constant_partials(node, [c.v for c in a], d, du, dv)
 
 
 def _iv_prim(node, lo, hi):
@@ -972,6 +946,7 @@ _register(
         np=_np_prim,
         emit=_emit_prim,
         interval=_iv_prim,
+        live=lambda node, a: a[0] or a[1] or (node.attr[0] == "ellipse" and any(a[2:])),
         lipschitz=lambda node, L, lo, hi: np.hypot(L[0], L[1]),
     )
 )

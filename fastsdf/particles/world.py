@@ -111,18 +111,9 @@ def _exact_address(exact: Any) -> tuple:
 
 
 def _prunes(f: Any) -> bool:
-    """Whether the particle step on the SDF ``f`` evaluates per-tile row lists (a scene with
-    at least ``PRUNE_MIN_OPERANDS`` operands in loops over tables, without parameters, and not
-    only exponential blends with ``f.prune_tol`` unset), decided when the step is built."""
-    from fastsdf import function as _function
-
-    comp = f.compiled
-    if comp.parametric:
-        return False
-    groups = comp.groups or ()
-    if getattr(f, "prune_tol", None) is None and all(g["op"] in ("smin", "smax") for g in groups):
-        return False  # exponential blends at half an ulp: next to nothing to drop
-    return sum(len(g["members"]) for g in groups) >= _function.PRUNE_MIN_OPERANDS
+    """Whether the particle step on the SDF ``f`` evaluates per-tile row lists, decided when
+    the step is built (see :meth:`fastsdf.function.CompiledSDF.prunable`)."""
+    return bool(f.compiled.prunable(getattr(f, "prune_tol", None)))
 
 
 def _plan_import() -> str:
