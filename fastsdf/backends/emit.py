@@ -37,7 +37,16 @@ from fastsdf.backends.lower import Chain, FoldPlan, Program
 from fastsdf.expr.graph import Expr
 from fastsdf.expr.ops import OPS
 
-__all__ = ["Body", "Emitter", "Val", "KIND_COMPONENTS"]
+__all__ = [
+    "Body",
+    "Emitter",
+    "Val",
+    "Writer",
+    "KIND_COMPONENTS",
+    "chain_step",
+    "chain_finish",
+    "flagged",
+]
 
 _HUGE = 1.7976931348623157e308
 #: The emitted names of the coordinates (the generated functions' arguments, and the suffixes
@@ -124,36 +133,24 @@ class Body:
         self.stmts, self.results, self.nparams, self.fold = stmts, results, nparams, fold
 
 
-class Emitter:
-    """Emits the statements of one kind of per-point function of a Program.
+class Writer:
+    """Names and statements, what the op table's emitters write with (``fastsdf.expr.ops``
+    imports no backend): ``kind`` ``'v'``, ``'vg'`` or ``'vgt'``; ``tables`` (shared by the
+    functions of one module: bytes -> name) names constant tables."""
 
-    :meth:`plain`: straight-line code with loops over tables; :meth:`folded`: a long scene's
-    small subexpressions in loops first (stored per point), then the straight-line code that
-    combines them; :meth:`fold_loops`: those loops alone (a combine program does the rest).
-    ``tables`` (shared by the functions of one module: bytes -> name) names constant tables.
-    """
-
-    def __init__(self, program: Program, kind: str, tables: dict) -> None:
-        self.program = program
+    def __init__(self, kind: str, tables: dict | None = None) -> None:
         self.kind = kind
         self.grad = kind != "v"
         self.time = kind == "vgt"
-        self.comps = KIND_COMPONENTS(program, kind)
-        n = len(self.comps)
-        self.syms = {
-            name: Val(var(axis), tuple(num(1.0) if j == i else None for j in range(n)))
-            for i, (name, axis) in enumerate(zip(program.coords, _AXES))
-        }
-        # Parameters are read from the argument tuple prm once per call (bound to _p<i>); the
-        # time is the argument t.
-        self.params = {name: Val(var(f"_p{i}", "b")) for i, name in enumerate(program.params or ())}
-        t_grad = tuple(None for _ in program.coords) + (num(1.0),)
-        self.params["t"] = Val(var("t", "b"), t_grad if self.time else None)
-        self.tables = tables
+        self.tables = {} if tables is None else tables
         self.n = 0
 
-    # -- what the op table's emitters build with (fastsdf.expr.ops imports no backend) -------
-    num = staticmethod(num)
+    @staticmethod
+    def num(value: Any) -> Code:
+        """A literal (a value given as an expression already, such as a ``k`` read at run
+        time, is passed on)."""
+        return value if isinstance(value, Code) else num(value)
+
     call = staticmethod(call)
     var = staticmethod(var)
 
@@ -165,7 +162,6 @@ class Emitter:
         """A constant table as an argument (a compiled primitive's structure)."""
         return table(self.table(rows))
 
-    # -- names and statements -------------------------------------------------------------
     def _name(self, prefix: str = "v") -> str:
         self.n += 1
         return f"{prefix}{self.n}"
@@ -195,6 +191,111 @@ class Emitter:
             name = f"_T{len(self.tables)}"
             self.tables[key] = name
         return name
+
+
+def chain_step(
+    em: Writer,
+    out: list,
+    op: str,
+    v: Code,
+    grads: Sequence,
+    cur: dict,
+    new: dict,
+    nk: Code | None,
+    comps: Sequence[str],
+    zero: Sequence = (),
+) -> None:
+    """One operand of an n-ary ``min``/``max``/``smin``/``smax`` chain streamed into its
+    accumulator: the one definition of the update, which the straight-line code and the
+    combine programs' interpreter (:mod:`fastsdf.backends.kernel.combine`) both render.
+
+    ``v`` is the operand's value and ``grads`` its gradient components (None: known zero);
+    ``cur`` the accumulator (``'m'`` the running value, ``'s'`` a smooth chain's sum of
+    weights, and one entry per gradient component ``comps``); ``new`` the names of the
+    updated entries (and of ``'w'``, the comparison, and ``'e'``, the weight); ``nk`` is
+    ``-k``, a smooth chain's sharpness (a literal, or a value read at run time); ``zero``, per
+    component, a flag read at run time that the operand's component is known to be zero: its
+    product with the weight is then left out, as the straight-line code leaves out the term of
+    a zero component.
+
+    The smooth update is the online log-sum-exp: where the operand beats the running value the
+    sum is rescaled, ``s e + 1``, else ``s + e``, with ``e = exp(-k |v - m|) <= 1``, so nothing
+    overflows for any k; :func:`chain_finish` adds ``-+ log(s) / k``. The earlier operand wins
+    ties."""
+    less = op in ("min", "smin")
+    m = cur["m"]
+    w = em.assign(out, new["w"], v < m if less else v > m)
+    smooth = op in ("smin", "smax")
+    if smooth:
+        assert nk is not None  # (a smooth chain has a sharpness)
+        s = cur["s"]
+        e = em.assign(out, new["e"], call("exp", nk * call("abs", v - m)))
+        out.append(Assign((new["s"],), call("sel", w, s * e + 1.0, s + e)))
+    for c, sfx in enumerate(comps):
+        comp, acc = _zero(grads[c]), cur[sfx]
+        if not smooth:
+            value = call("sel", w, comp, acc)
+        else:
+            blend = None if comp.is_num(0.0) else _prod(comp, e)
+            if zero and blend is not None:
+                blend = call("sel", zero[c], 0.0, blend)
+            value = call("sel", w, acc * e + comp, acc + _zero(blend))
+        out.append(Assign((new[sfx],), value))
+    out.append(Assign((new["m"],), call("sel", w, v, m)))
+
+
+def chain_finish(
+    em: Writer, out: list, op: str, cur: dict, ik: Code, r: str, comps: Sequence[str]
+) -> Val:
+    """A smooth chain's result from its accumulator ``cur`` (see :func:`chain_step`):
+    ``m -+ log(s) / k`` (``ik`` is ``1 / k``: multiplying instead of dividing shortens the
+    latency chain exp -> log -> next blend, by at most one rounding) and the gradient
+    divided by the sum of weights."""
+    log = call("log", cur["s"]) * ik
+    rv = em.assign(out, r, cur["m"] - log if op == "smin" else cur["m"] + log)
+    if not comps:
+        return Val(rv)
+    ri = em.assign(out, f"{r}i", 1.0 / cur["s"])
+    return Val(rv, tuple(em.assign(out, f"{r}{sfx}", cur[sfx] * ri) for sfx in comps))
+
+
+def flagged(flags: Sequence[Code], value: Any) -> Code:
+    """An expression whose terms depend on whether components are known to be zero, with
+    the knowledge read at run time (``flags``: booleans): a select over ``value(dead)`` for
+    every combination ``dead`` (a tuple of bools, one per flag; None from ``value`` is 0.0),
+    each exactly what the straight-line code writes for that combination."""
+
+    def choose(dead: tuple) -> Code:
+        if len(dead) == len(flags):
+            return _zero(value(dead))
+        return call("sel", flags[len(dead)], choose((*dead, True)), choose((*dead, False)))
+
+    return choose(())
+
+
+class Emitter(Writer):
+    """Emits the statements of one kind of per-point function of a Program.
+
+    :meth:`plain`: straight-line code with loops over tables; :meth:`folded`: a long scene's
+    small subexpressions in loops first (stored per point), then the straight-line code that
+    combines them; :meth:`fold_loops`: those loops alone (a combine program does the rest).
+    ``tables`` (shared by the functions of one module: bytes -> name) names constant tables.
+    """
+
+    def __init__(self, program: Program, kind: str, tables: dict) -> None:
+        super().__init__(kind, tables)
+        self.program = program
+        self.comps = KIND_COMPONENTS(program, kind)
+        n = len(self.comps)
+        self.syms = {
+            name: Val(var(axis), tuple(num(1.0) if j == i else None for j in range(n)))
+            for i, (name, axis) in enumerate(zip(program.coords, _AXES))
+        }
+        # Parameters are read from the argument tuple prm once per call (bound to _p<i>); the
+        # time is the argument t.
+        self.params = {name: Val(var(f"_p{i}", "b")) for i, name in enumerate(program.params or ())}
+        t_grad = tuple(None for _ in program.coords) + (num(1.0),)
+        self.params["t"] = Val(var("t", "b"), t_grad if self.time else None)
 
     def _grad(self, out: list, name: str, comps: list) -> tuple | None:
         """Assign gradient expressions to variables named after ``name`` (if nonzero)."""
@@ -274,24 +375,13 @@ class Emitter:
 
         def update(body: list, v: Val, new: dict | None) -> None:
             w = self._name("w")
-            new = new or {key: f"{w}{key}" for key in keys}
-            m = cur["m"]
-            wv = self.assign(body, w, v.v < m if less else v.v > m)
-            if smooth:
-                s = cur["s"]
-                e = self.assign(body, f"{w}e", call("exp", -num(k) * call("abs", v.v - m)))
-                body.append(Assign((new["s"],), call("sel", wv, s * e + 1.0, s + e)))
-                if g:
-                    for sfx, comp in zip(self.comps, v.grads(ncomp)):
-                        comp, acc = _zero(comp), cur[sfx]
-                        blend = None if comp.is_num(0.0) else _prod(comp, e)
-                        value = call("sel", wv, acc * e + comp, acc + _zero(blend))
-                        body.append(Assign((new[sfx],), value))
-            elif g:
-                for sfx, comp in zip(self.comps, v.grads(ncomp)):
-                    body.append(Assign((new[sfx],), call("sel", wv, _zero(comp), cur[sfx])))
-            body.append(Assign((new["m"],), call("sel", wv, v.v, m)))
-            cur.update((key, var(name)) for key, name in new.items())
+            names = {key: f"{w}{key}" for key in keys} if new is None else dict(new)
+            names.update(w=w, e=f"{w}e")
+            grads = v.grads(ncomp) if g else ()
+            comps = self.comps if g else ()
+            nk = -num(k) if smooth else None
+            chain_step(self, body, op, v.v, grads, dict(cur), names, nk, comps)
+            cur.update((key, var(names[key])) for key in keys)
 
         for item in items:
             if item[0] == "val":
@@ -308,15 +398,8 @@ class Emitter:
             out.append(Loop(index, body, group=group.index))
         if not smooth:
             return Val(cur["m"], tuple(cur[sfx] for sfx in self.comps) if g else None)
-        r = self._name()
-        # Multiplying by 1/k instead of dividing shortens the latency chain (the kernel is bound
-        # by exp -> log -> next blend); it changes the result by at most one rounding.
-        log = call("log", cur["s"]) * num(1.0 / k)
-        rv = self.assign(out, r, cur["m"] - log if op == "smin" else cur["m"] + log)
-        if not g:
-            return Val(rv)
-        ri = self.assign(out, f"{r}i", 1.0 / cur["s"])
-        return Val(rv, tuple(self.assign(out, f"{r}{sfx}", cur[sfx] * ri) for sfx in self.comps))
+        comps = self.comps if g else ()
+        return chain_finish(self, out, op, cur, num(1.0 / k), self._name(), comps)
 
     def ordered_chain(self, out: list, op: str, k: float, items: list) -> Val:
         """Emit the left fold of the blend ``op`` (qmin, cmin) over ``items`` (as

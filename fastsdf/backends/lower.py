@@ -30,6 +30,7 @@ __all__ = [
     "CHAIN_OPS",
     "ORDERED_OPS",
     "MIN_LOOP",
+    "PROGRAM_STEPS",
     "Chain",
     "Combine",
     "FoldGroup",
@@ -57,6 +58,25 @@ CHAIN_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
 ORDERED_OPS = ("qmin", "cmin")
 #: The chains a combine program runs.
 PROGRAM_OPS = ("min", "max", "smin", "smax", "qmin", "cmin")
+#: The steps of a combine program, by opcode (a program row's first column): copy the operand
+#: into the accumulator (s = 1); one hard or smooth step of a min or max chain; finish a smooth
+#: chain; the last row (the result's rows); a smooth pair (blend and finish in one step); the
+#: negated operand; one step of a left fold of polynomial blends.
+PROGRAM_STEPS = (
+    "init",
+    "min",
+    "max",
+    "smin",
+    "smax",
+    "fin_smin",
+    "fin_smax",
+    "out",
+    "smin2",
+    "smax2",
+    "neg",
+    "qmin",
+    "cmin",
+)
 
 
 @dataclass(eq=False)

@@ -25,12 +25,11 @@ from numba import get_thread_id, njit, prange, types
 from numba.extending import intrinsic
 
 from fastsdf.backends.kernel.layout import BLOCK
-from fastsdf.backends.kernel.vmath import vexp as _vexp
-from fastsdf.backends.kernel.vmath import vlog as _vlog
 from fastsdf.intrinsics import select as _sel
 
 __all__ = [
     "BLOCK_SIG",
+    "STEP_SIG",
     "BlockFn",
     "NOFOLD",
     "PROG_COLS",
@@ -42,8 +41,6 @@ __all__ = [
     "tiles_par",
     "run_prog_par",
     "run_prog_ser",
-    "combine_point_v",
-    "combine_point_vg",
     "scratch",
 ]
 
@@ -54,6 +51,9 @@ _I = types.CPointer(types.int64)
 #: and the row lists of the scene's loops over tables (rows ``act[off[g]:off[g + 1]]`` for loop
 #: ``g``: all rows, or a tile's pruned lists; ignored by scenes without such loops).
 BLOCK_SIG = types.void(_P, _P, _P, _P, types.intp, _P, _I, _I)
+#: ``(op, operand rows, accumulator rows, program row, points)``: one step of a combine program
+#: on a block's scratch space (:mod:`fastsdf.backends.kernel.combine`).
+STEP_SIG = types.void(types.int64, _P, _P, _P, types.int64)
 
 
 @intrinsic
@@ -86,20 +86,23 @@ def _at(typingctx, arr, index):
 
 
 class BlockFn:
-    """A scene's block function (an ``@njit(cache=True)`` dispatcher) for the kernels here:
-    ``address`` is its compiled C-callable wrapper, compiled (or loaded from the disk cache) on
-    first use. An integer argument keeps numba's dispatch of the kernels as cheap as for any
-    array call (a first-class function object is typed in Python on every call: +25 us)."""
+    """A compiled function the kernels here call by address (an ``@njit(cache=True)``
+    dispatcher of signature ``sig``: a scene's block function, :data:`BLOCK_SIG`, or a combine
+    program's step function): ``address`` is its compiled C-callable wrapper, compiled (or
+    loaded from the disk cache) on first use. An integer argument keeps numba's dispatch of the
+    kernels as cheap as for any array call (a first-class function object is typed in Python
+    on every call: +25 us)."""
 
-    def __init__(self, dispatcher: Any) -> None:
+    def __init__(self, dispatcher: Any, sig: Any = BLOCK_SIG) -> None:
         self.dispatcher = dispatcher
+        self.sig = sig
         self._addr: int | None = None
 
     @property
     def address(self) -> int:
-        """The C-callable address of the compiled block function."""
+        """The C-callable address of the compiled function."""
         if self._addr is None:
-            args = BLOCK_SIG.args
+            args = self.sig.args
             self.dispatcher.compile(args)
             cres = self.dispatcher.overloads[args]
             self._addr = cres.library.get_pointer_to_function(cres.fndesc.llvm_cfunc_wrapper_name)
@@ -356,193 +359,35 @@ def tiles_par(
 #
 # A long scene's primitives are evaluated in loops over tables (the scene's ``_fold_<kind>``
 # function) into scratch rows; what remains is a tree of min/max/smin/smax chains over those
-# rows. Instead of straight-line code per scene (numba's and LLVM's time grows faster than its
-# length), the chains run as a program: one row of ``prog`` per step, each step a loop over the
-# block's points with the opcode branch outside it (so each step vectorizes). The formulas, the
-# operand order and the tie rule are those of ``codegen._Emitter.chain``: the same bits.
+# rows, run as a program: one row of ``prog`` per step, each step a loop over the block's points
+# with the opcode branch outside it (so each step vectorizes). The steps are the interpreter of
+# :mod:`fastsdf.backends.kernel.combine` (generated from the emitter's own chain arithmetic:
+# the straight-line code's bits), called by address.
 
-#: Columns of a program row: opcode; the operand's first row (its value; then the x and y
-#: gradient components in the next rows); the accumulator's first row (m; then the gradient
-#: components, then s, the smooth sum); -k (polynomial blends: k); 1/k; whether the operand's
-#: x and y gradient components are known to be zero (as in the straight-line code: no
-#: product); the same for the accumulator (polynomial blends). Rows are offsets in the block's
-#: scratch space, in floats. Each step works on two slices of it (operand, accumulator): LLVM
-#: then checks their overlap once and vectorizes the step.
+#: Columns of a program row: opcode (:data:`fastsdf.backends.lower.PROGRAM_STEPS`); the
+#: operand's first row (its value; then the x and y gradient components in the next rows); the
+#: accumulator's first row (m; then the gradient components, then s, the smooth sum); -k
+#: (polynomial blends: k); 1/k; whether the operand's x and y gradient components are known to
+#: be zero (as in the straight-line code: no product); the same for the accumulator
+#: (polynomial blends). Rows are offsets in the block's scratch space, in floats.
 PROG_COLS = 9
-#: Opcodes: copy the first operand into the accumulator (s = 1); one hard or smooth step of a
-#: min (``<``) or max (``>``) chain; finish a smooth chain (m -/+ log(s) / k, gradient / s);
-#: the last row: the result's rows, copied to the outputs; a smooth blend of two operands, the
-#: first already in the accumulator (blend and finish in one pass, s never stored); the
-#: negated operand (a gradient component known to be zero stays +0, as in the straight-line
-#: code, where it is no variable at all).
-(
-    OP_INIT,
-    OP_MIN,
-    OP_MAX,
-    OP_SMIN,
-    OP_SMAX,
-    OP_FIN_SMIN,
-    OP_FIN_SMAX,
-    OP_OUT,
-    OP_SMIN2,
-    OP_SMAX2,
-    OP_NEG,
-    OP_QMIN,
-    OP_CMIN,
-) = range(13)
 
 
-@njit(nogil=True, error_model="numpy", inline="always")
-def _poly(a, b, k, ik, cubic):
-    """The quadratic (cubic) polynomial blend of ``a`` (the running value) and ``b`` as
-    ``ops._emit_poly`` writes it: value and the weight of ``a`` in the gradient."""
-    w = a <= b
-    t = k - abs(a - b)
-    h = _sel(t > 0.0, t, 0.0) * ik
-    m = _sel(w, a, b)
-    hh = h * h
-    r = _sel(cubic, m - hh * h * (k / 6.0), m - hh * (k / 4.0))
-    o = _sel(cubic, hh * 0.5, h * 0.5)
-    return r, _sel(w, 1.0 - o, o)
+@intrinsic
+def _call_step(typingctx, address, op, ap, mp, rp, nv):
+    """Call the step function at ``address`` (the C-callable wrapper of a function with the
+    signature :data:`STEP_SIG`)."""
+    sig = types.void(types.intp, types.int64, _P, _P, _P, types.int64)
 
+    def codegen(context, builder, signature, args):
+        dbl = ir.DoubleType().as_pointer()
+        i64 = ir.IntType(64)
+        fnty = ir.FunctionType(ir.VoidType(), [i64, dbl, dbl, dbl, i64])
+        fn = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(fn, args[1:])
+        return context.get_dummy_value()
 
-@njit(nogil=True, error_model="numpy", inline="always")
-def _poly_grad(ga, gb, wa, wb, za, zb):
-    """``ga * wa + gb * wb`` without the terms of components known to be zero."""
-    ta = ga * wa
-    tb = gb * wb
-    return _sel(za, _sel(zb, 0.0, tb), _sel(zb, ta, ta + tb))
-
-
-@njit(nogil=True, error_model="numpy")
-def _step_vg(op, A, M, nk, ik, zx, zy, zax, zay, nv):
-    """One step with gradients: operand rows ``A`` (v, gx, gy), accumulator ``M`` (m, gx, gy, s);
-    the first ``nv`` points of each row."""
-    B = BLOCK
-    if op == OP_INIT:
-        for i in range(nv):
-            M[i] = A[i]
-            M[B + i] = A[B + i]
-            M[2 * B + i] = A[2 * B + i]
-            M[3 * B + i] = 1.0
-    elif op == OP_NEG:
-        for i in range(nv):
-            M[i] = -A[i]
-            M[B + i] = _sel(zx, 0.0, -A[B + i])
-            M[2 * B + i] = _sel(zy, 0.0, -A[2 * B + i])
-    elif op == OP_QMIN or op == OP_CMIN:
-        cubic = op == OP_CMIN
-        for i in range(nv):
-            r, wa = _poly(M[i], A[i], nk, ik, cubic)
-            wb = 1.0 - wa
-            M[B + i] = _poly_grad(M[B + i], A[B + i], wa, wb, zax, zx)
-            M[2 * B + i] = _poly_grad(M[2 * B + i], A[2 * B + i], wa, wb, zay, zy)
-            M[i] = r
-    elif op == OP_MIN:
-        for i in range(nv):
-            w = A[i] < M[i]
-            M[B + i] = _sel(w, A[B + i], M[B + i])
-            M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
-            M[i] = _sel(w, A[i], M[i])
-    elif op == OP_MAX:
-        for i in range(nv):
-            w = A[i] > M[i]
-            M[B + i] = _sel(w, A[B + i], M[B + i])
-            M[2 * B + i] = _sel(w, A[2 * B + i], M[2 * B + i])
-            M[i] = _sel(w, A[i], M[i])
-    elif op == OP_SMIN or op == OP_SMAX:
-        lt = op == OP_SMIN
-        gt = not lt
-        for i in range(nv):
-            v = A[i]
-            c = M[i]
-            w = ((v < c) & lt) | ((v > c) & gt)
-            e = _vexp(nk * abs(v - c))
-            acc = M[3 * B + i]
-            M[3 * B + i] = _sel(w, acc * e + 1.0, acc + e)
-            vx = A[B + i]
-            vy = A[2 * B + i]
-            cx = M[B + i]
-            cy = M[2 * B + i]
-            M[B + i] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e))
-            M[2 * B + i] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e))
-            M[i] = _sel(w, v, c)
-    elif op == OP_SMIN2 or op == OP_SMAX2:
-        lt = op == OP_SMIN2
-        gt = not lt
-        sign = -1.0 if lt else 1.0
-        for i in range(nv):
-            v = A[i]
-            c = M[i]
-            w = ((v < c) & lt) | ((v > c) & gt)
-            e = _vexp(nk * abs(v - c))
-            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
-            vx = A[B + i]
-            vy = A[2 * B + i]
-            cx = M[B + i]
-            cy = M[2 * B + i]
-            r = 1.0 / acc
-            M[B + i] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e)) * r
-            M[2 * B + i] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e)) * r
-            M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
-    elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
-        sign = -1.0 if op == OP_FIN_SMIN else 1.0
-        for i in range(nv):
-            acc = M[3 * B + i]
-            M[i] = M[i] + sign * (_vlog(acc) * ik)  # m - t is m + (-t), bit for bit
-            r = 1.0 / acc
-            M[B + i] = M[B + i] * r
-            M[2 * B + i] = M[2 * B + i] * r
-
-
-@njit(nogil=True, error_model="numpy")
-def _step_v(op, A, M, nk, ik, nv):
-    """One value-only step: operand row ``A`` (v), accumulator ``M`` (m, s); the first ``nv``
-    points of each row."""
-    B = BLOCK
-    if op == OP_INIT:
-        for i in range(nv):
-            M[i] = A[i]
-            M[B + i] = 1.0
-    elif op == OP_NEG:
-        for i in range(nv):
-            M[i] = -A[i]
-    elif op == OP_QMIN or op == OP_CMIN:
-        cubic = op == OP_CMIN
-        for i in range(nv):
-            M[i] = _poly(M[i], A[i], nk, ik, cubic)[0]
-    elif op == OP_MIN:
-        for i in range(nv):
-            M[i] = _sel(A[i] < M[i], A[i], M[i])
-    elif op == OP_MAX:
-        for i in range(nv):
-            M[i] = _sel(A[i] > M[i], A[i], M[i])
-    elif op == OP_SMIN or op == OP_SMAX:
-        lt = op == OP_SMIN
-        gt = not lt
-        for i in range(nv):
-            v = A[i]
-            c = M[i]
-            w = ((v < c) & lt) | ((v > c) & gt)
-            e = _vexp(nk * abs(v - c))
-            acc = M[B + i]
-            M[B + i] = _sel(w, acc * e + 1.0, acc + e)
-            M[i] = _sel(w, v, c)
-    elif op == OP_SMIN2 or op == OP_SMAX2:
-        lt = op == OP_SMIN2
-        gt = not lt
-        sign = -1.0 if lt else 1.0
-        for i in range(nv):
-            v = A[i]
-            c = M[i]
-            w = ((v < c) & lt) | ((v > c) & gt)
-            e = _vexp(nk * abs(v - c))
-            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
-            M[i] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
-    elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
-        sign = -1.0 if op == OP_FIN_SMIN else 1.0
-        for i in range(nv):
-            M[i] = M[i] + sign * (_vlog(M[B + i]) * ik)
+    return sig, codegen
 
 
 @njit(nogil=True, inline="always")
@@ -554,155 +399,19 @@ def _lanes(m):
 
 
 @njit(nogil=True, error_model="numpy")
-def _combine(S, at, prog, grad, nv):
+def _combine(S, at, prog, step, nv):
     """Run the program ``prog`` on one block's scratch space ``S[at:]`` (its first ``nv``
-    points: :func:`_lanes`)."""
-    rows = 3 if grad else 1
-    acc_rows = 4 if grad else 2
+    points: :func:`_lanes`), each step by the step function at ``step``."""
     for p in range(prog.shape[0] - 1):
-        op = int(prog[p, 0])
         a = at + int(prog[p, 1])
         m = at + int(prog[p, 2])
-        A = S[a : a + rows * BLOCK]
-        M = S[m : m + acc_rows * BLOCK]
-        if grad:
-            _step_vg(
-                op,
-                A,
-                M,
-                prog[p, 3],
-                prog[p, 4],
-                prog[p, 5] != 0.0,
-                prog[p, 6] != 0.0,
-                prog[p, 7] != 0.0,
-                prog[p, 8] != 0.0,
-                nv,
-            )
-        else:
-            _step_v(op, A, M, prog[p, 3], prog[p, 4], nv)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def combine_point_vg(F: np.ndarray, prog: np.ndarray) -> tuple[float, float, float]:
-    """The program ``prog`` at one point: rows are single floats ``F[row]`` (the program's
-    offsets divided by ``BLOCK``); the same formulas as :func:`_step_vg`, so the same bits.
-    Returns the value and gradient."""
-    for p in range(prog.shape[0] - 1):
-        op = int(prog[p, 0])
-        a = int(prog[p, 1]) // BLOCK
-        m = int(prog[p, 2]) // BLOCK
-        nk = prog[p, 3]
-        ik = prog[p, 4]
-        zx = prog[p, 5] != 0.0
-        zy = prog[p, 6] != 0.0
-        if op == OP_INIT:
-            F[m] = F[a]
-            F[m + 1] = F[a + 1]
-            F[m + 2] = F[a + 2]
-            F[m + 3] = 1.0
-        elif op == OP_NEG:
-            F[m] = -F[a]
-            F[m + 1] = _sel(zx, 0.0, -F[a + 1])
-            F[m + 2] = _sel(zy, 0.0, -F[a + 2])
-        elif op == OP_QMIN or op == OP_CMIN:
-            r, wa = _poly(F[m], F[a], nk, ik, op == OP_CMIN)
-            wb = 1.0 - wa
-            F[m + 1] = _poly_grad(F[m + 1], F[a + 1], wa, wb, prog[p, 7] != 0.0, zx)
-            F[m + 2] = _poly_grad(F[m + 2], F[a + 2], wa, wb, prog[p, 8] != 0.0, zy)
-            F[m] = r
-        elif op == OP_MIN or op == OP_MAX:
-            w = F[a] < F[m] if op == OP_MIN else F[a] > F[m]
-            F[m + 1] = _sel(w, F[a + 1], F[m + 1])
-            F[m + 2] = _sel(w, F[a + 2], F[m + 2])
-            F[m] = _sel(w, F[a], F[m])
-        elif op == OP_SMIN or op == OP_SMAX:
-            v = F[a]
-            c = F[m]
-            w = v < c if op == OP_SMIN else v > c
-            e = _vexp(nk * abs(v - c))
-            acc = F[m + 3]
-            F[m + 3] = _sel(w, acc * e + 1.0, acc + e)
-            vx = F[a + 1]
-            vy = F[a + 2]
-            cx = F[m + 1]
-            cy = F[m + 2]
-            F[m + 1] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e))
-            F[m + 2] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e))
-            F[m] = _sel(w, v, c)
-        elif op == OP_SMIN2 or op == OP_SMAX2:
-            lt = op == OP_SMIN2
-            sign = -1.0 if lt else 1.0
-            v = F[a]
-            c = F[m]
-            w = v < c if lt else v > c
-            e = _vexp(nk * abs(v - c))
-            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
-            vx = F[a + 1]
-            vy = F[a + 2]
-            cx = F[m + 1]
-            cy = F[m + 2]
-            r = 1.0 / acc
-            F[m + 1] = _sel(w, cx * e + vx, cx + _sel(zx, 0.0, vx * e)) * r
-            F[m + 2] = _sel(w, cy * e + vy, cy + _sel(zy, 0.0, vy * e)) * r
-            F[m] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
-        elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
-            sign = -1.0 if op == OP_FIN_SMIN else 1.0
-            acc = F[m + 3]
-            F[m] = F[m] + sign * (_vlog(acc) * ik)
-            r = 1.0 / acc
-            F[m + 1] = F[m + 1] * r
-            F[m + 2] = F[m + 2] * r
-    a = int(prog[prog.shape[0] - 1, 1]) // BLOCK
-    return F[a], F[a + 1], F[a + 2]
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def combine_point_v(F: np.ndarray, prog: np.ndarray) -> float:
-    """:func:`combine_point_vg` for the value alone (the rows of :func:`_step_v`)."""
-    for p in range(prog.shape[0] - 1):
-        op = int(prog[p, 0])
-        a = int(prog[p, 1]) // BLOCK
-        m = int(prog[p, 2]) // BLOCK
-        nk = prog[p, 3]
-        ik = prog[p, 4]
-        if op == OP_INIT:
-            F[m] = F[a]
-            F[m + 1] = 1.0
-        elif op == OP_NEG:
-            F[m] = -F[a]
-        elif op == OP_QMIN or op == OP_CMIN:
-            F[m] = _poly(F[m], F[a], nk, ik, op == OP_CMIN)[0]
-        elif op == OP_MIN:
-            F[m] = _sel(F[a] < F[m], F[a], F[m])
-        elif op == OP_MAX:
-            F[m] = _sel(F[a] > F[m], F[a], F[m])
-        elif op == OP_SMIN or op == OP_SMAX:
-            v = F[a]
-            c = F[m]
-            w = v < c if op == OP_SMIN else v > c
-            e = _vexp(nk * abs(v - c))
-            acc = F[m + 1]
-            F[m + 1] = _sel(w, acc * e + 1.0, acc + e)
-            F[m] = _sel(w, v, c)
-        elif op == OP_SMIN2 or op == OP_SMAX2:
-            lt = op == OP_SMIN2
-            sign = -1.0 if lt else 1.0
-            v = F[a]
-            c = F[m]
-            w = v < c if lt else v > c
-            e = _vexp(nk * abs(v - c))
-            acc = _sel(w, 1.0 * e + 1.0, 1.0 + e)
-            F[m] = _sel(w, v, c) + sign * (_vlog(acc) * ik)
-        elif op == OP_FIN_SMIN or op == OP_FIN_SMAX:
-            sign = -1.0 if op == OP_FIN_SMIN else 1.0
-            F[m] = F[m] + sign * (_vlog(F[m + 1]) * ik)
-    return F[int(prog[prog.shape[0] - 1, 1]) // BLOCK]
+        _call_step(step, int(prog[p, 0]), _at(S, a), _at(S, m), _at(prog[p], 0), nv)
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
 def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
-    """The last program row (``OP_OUT``) names the result rows: copy them out, NaN where the
-    point is not finite."""
+    """The last program row names the result rows: copy them out, NaN where the point is not
+    finite."""
     last = prog.shape[0] - 1
     a = at + int(prog[last, 1])
     ax = a + BLOCK
@@ -718,19 +427,21 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
-def _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, at, s, n, z, with_grad):
+def _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, at, s, n, z):
     """Per block: ``pre`` (the scene's loops over tables, filling the scratch rows), the combine
-    program ``prog``, the outputs (``gs`` and ``grad`` as in :func:`_run_block`)."""
+    program ``prog`` (its steps by ``step``), the outputs (``gs`` and ``grad`` as in
+    :func:`_run_block`)."""
     m = min(s + BLOCK, n) - s
     gp = _at(grad, gs * s)
     _call(pre, _at(xs, s), _at(ys, s), _at(out, s), gp, m, _at(S, at), _at(z, 0), _at(z, 0))
-    _combine(S, at, prog, with_grad, _lanes(m))
-    _outputs(S, at, prog, xs, ys, out, grad, s, m, with_grad)
+    _combine(S, at, prog, step, _lanes(m))
+    _outputs(S, at, prog, xs, ys, out, grad, s, m, gs == 2)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def run_prog_par(
     pre: int,
+    step: int,
     prog: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
@@ -743,8 +454,8 @@ def run_prog_par(
     threads: int,
 ) -> None:
     """All points: per block, ``pre`` (the scene's loops over tables, filling the scratch
-    rows) then the combine program ``prog``; blocks in parallel chunks (``grad`` and ``gs`` as
-    in :func:`run_par`)."""
+    rows) then the combine program ``prog`` (steps by the function at ``step``); blocks in
+    parallel chunks (``grad`` and ``gs`` as in :func:`run_par`)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
@@ -753,12 +464,13 @@ def run_prog_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, at, b * BLOCK, n, z, gs == 2)
+            _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, at, b * BLOCK, n, z)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def run_prog_ser(
     pre: int,
+    step: int,
     prog: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
@@ -773,7 +485,7 @@ def run_prog_ser(
     _check_scratch(S, size)
     z = np.zeros(1, dtype=np.int64)
     for s in range(0, n, BLOCK):
-        _run_prog_block(pre, prog, xs, ys, out, grad, gs, S, 0, s, n, z, gs == 2)
+        _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, 0, s, n, z)
 
 
 def _guard():

@@ -40,8 +40,9 @@ from fastsdf.backends.code import (
 )
 from fastsdf.backends.emit import Body
 from fastsdf.backends.kernel.cache import hashed_import
+from fastsdf.backends.kernel.combine import combine_import
 from fastsdf.backends.kernel.layout import BLOCK
-from fastsdf.backends.lower import Combine
+from fastsdf.backends.lower import PROGRAM_STEPS, Combine
 
 __all__ = [
     "BLOCK",
@@ -54,22 +55,6 @@ __all__ = [
 
 #: Bodies longer than this (generated lines) get one lane: copies would multiply compile time.
 LONG_BODY_LINES = 400
-
-_PROG_OPS = {
-    "init": 0,
-    "min": 1,
-    "max": 2,
-    "smin": 3,
-    "smax": 4,
-    "fin_smin": 5,
-    "fin_smax": 6,
-    "out": 7,
-    "smin2": 8,
-    "smax2": 9,
-    "neg": 10,
-    "qmin": 11,
-    "cmin": 12,
-}
 
 
 def choose_lanes(stmts: list, vmath: bool = True) -> int:
@@ -494,19 +479,26 @@ def point_{kind}(x, y):
     return _combine_point_{kind}(F, _PROG_{kind.upper()})
 '''
     names = _KernelNames(kind, grad, size).fmt
-    blocks = _BLOCK_FN.format(
-        name=f"_fold_{kind}",
-        doc="The scene's subexpressions, each in a loop over a table of its shape: "
-        f"{'values and gradients' if grad else 'values'} into the scratch rows that the combine "
-        "program reads.",
-        head=nl.join(views + tables + prelude),
-        body=nl.join(code),
-    ) + _PROGRAM.format(prog=prog, KIND=kind.upper(), **names)
+    blocks = (
+        "\n"
+        + combine_import()
+        + "\n"
+        + _BLOCK_FN.format(
+            name=f"_fold_{kind}",
+            doc="The scene's subexpressions, each in a loop over a table of its shape: "
+            f"{'values and gradients' if grad else 'values'} into the scratch rows that the combine "
+            "program reads.",
+            head=nl.join(views + tables + prelude),
+            body=nl.join(code),
+        )
+        + _PROGRAM.format(prog=prog, KIND=kind.upper(), **names)
+    )
     return point, blocks
 
 
 def _program_table(steps: list, fbase: list, first: int, grad: bool) -> str:
-    """The combine program as rows of floats (see :data:`fastsdf.backends.kernel.drive.PROG_COLS`)."""
+    """The combine program as rows of floats (see :data:`fastsdf.backends.kernel.drive.PROG_COLS`;
+    opcodes: :data:`fastsdf.backends.lower.PROGRAM_STEPS`)."""
 
     def row(ref: tuple) -> int:
         if ref[0] == "F":
@@ -516,7 +508,7 @@ def _program_table(steps: list, fbase: list, first: int, grad: bool) -> str:
     table = []
     for op, operand, acc, k, zeros in steps:
         r = [0.0] * 9
-        r[0] = _PROG_OPS[op]
+        r[0] = PROGRAM_STEPS.index(op)
         if operand is not None:
             r[1] = row(operand)
         if acc is not None:
@@ -546,13 +538,13 @@ def batch_{kind}_par({sig}, chunks, S=None):
     """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program
     (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_prog_par(_fold_{kind}_fn.address, _PROG_{KIND}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
+    _run_prog_par(_fold_{kind}_fn.address, _step_{kind}_fn.address, _PROG_{KIND}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
 
 
 def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_prog_ser(_fold_{kind}_fn.address, _PROG_{KIND}, xs, ys, out, {gflat}S, {size})
+    _run_prog_ser(_fold_{kind}_fn.address, _step_{kind}_fn.address, _PROG_{KIND}, xs, ys, out, {gflat}S, {size})
 '''
 
 
@@ -569,8 +561,6 @@ def drive_import() -> str:
         "NOGRAD as _NOGRAD",
         "run_prog_par as _run_prog_par",
         "run_prog_ser as _run_prog_ser",
-        "combine_point_v as _combine_point_v",
-        "combine_point_vg as _combine_point_vg",
         "scratch as _drive_scratch",
     ]
     drive = hashed_import("fastsdf.backends.kernel.drive", names)
