@@ -330,7 +330,7 @@ class CompiledSDF:
 
     def scratch(self, kind: str, parallel: bool) -> dict:
         """Keyword arguments giving the kernels of ``kind`` this Python thread's scratch buffer
-        (``{}`` for kernels that allocate their own: short scenes, parameters).
+        (``{}`` for kernels that allocate their own).
 
         The buffer is kept between calls, so a small call costs microseconds instead of the
         page faults of a fresh buffer on every row it uses. One per Python thread that has
@@ -362,18 +362,18 @@ class CompiledSDF:
         self,
         xs: np.ndarray,
         ys: np.ndarray,
-        out: np.ndarray,
-        grad: np.ndarray | None = None,
+        kind: str,
         plan: PrunePlan | None = None,
-    ) -> None:
-        """Evaluate at flat float64 points into ``out`` (and ``grad``, shape (n, 2), if given),
-        with the tile kernels of ``plan`` if given (see :meth:`pruned_plan`)."""
+        data: np.ndarray | None = None,
+    ) -> tuple:
+        """The kernel of ``kind`` at flat float64 points (with the tile kernels of ``plan`` if
+        given, see :meth:`pruned_plan`; ``data``: the time and the parameters' values of a
+        scene with them): ``(value,)``, ``(value, gradient)`` or ``(value, gradient, dd/dt)``,
+        the gradient of shape (n, 2)."""
         n = xs.shape[0]
-        if not n:
-            return
-        kind = "v" if grad is None else "vg"
-        arrays = (out,) if grad is None else (out, grad)
-        if plan is not None:
+        out = np.empty(n)
+        arrays: tuple = (out,) if kind == "v" else (out, np.empty((n, 3 if kind == "vgt" else 2)))
+        if n and plan is not None:
             order, starts = bin_points(xs, ys, plan)
             tiles = getattr(self.module, f"tiles_{kind}_par")
             with self._first_call(f"tiles_{kind}"):
@@ -388,43 +388,37 @@ class CompiledSDF:
                     64 * numba.get_num_threads(),
                     **self.scratch(kind, True),
                 )
-            return
-        parallel = n >= PARALLEL_MIN_POINTS
-        extra = (64 * numba.get_num_threads(),) if parallel else ()
-        with self._first_call(f"{kind}_{parallel}"):
-            self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **self.scratch(kind, parallel))
+        elif n:
+            parallel = n >= PARALLEL_MIN_POINTS
+            extra = (64 * numba.get_num_threads(),) if parallel else ()
+            kw = self.scratch(kind, parallel)
+            if data is not None:
+                kw["D"] = data
+            with self._first_call(f"{kind}_{parallel}"):
+                self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **kw)
+        if kind == "vgt":  # written as (x, y, t) triples
+            g = arrays[1]
+            return out, np.ascontiguousarray(g[:, :2]), np.ascontiguousarray(g[:, 2])
+        return arrays
 
     def evaluate(self, req: Request) -> tuple:
         """The compiled kernel's answer to ``req``: ``(value,)``, ``(value, gradient)`` or
         ``(value, gradient, dd/dt)`` as flat arrays (gradient of shape (n, 2)); see
         :class:`fastsdf.function.Function` for the conventions. For a scene with parameters
         ``req.params`` holds the values of :attr:`param_names`; a static scene's dd/dt is 0."""
-        n = req.n
-        out = np.empty(n)
-        grad = np.empty((n, 2)) if req.gradient else None
         if self.param_names is None:
             plan = None
-            if self._wants_plan(n, req.prune, req.tol, "cpu"):
+            if self._wants_plan(req.n, req.prune, req.tol, "cpu"):
                 plan = self._plan_over(req.bounds, req.prune, req.tol, "cpu")
-            self.run(req.xs, req.ys, out, grad, plan)
-            if req.kind == "vgt":
-                return out, grad, np.zeros(n)
-            return (out,) if grad is None else (out, grad)
+            res = self.run(req.xs, req.ys, req.kind[:2], plan)
+            return res + (np.zeros(req.n),) if req.kind == "vgt" else res
         if len(req.params) != len(self.param_names):
             raise ValueError(
                 f"params must hold {len(self.param_names)} values (for "
                 f"{list(self.param_names)}), got {req.params!r}"
             )
-        parallel = n >= PARALLEL_MIN_POINTS
-        extra = (req.t, tuple(map(float, req.params)))
-        extra += (64 * numba.get_num_threads(),) if parallel else ()
-        arrays = [out] + ([grad] if grad is not None else [])
-        if req.kind == "vgt":
-            arrays.append(np.empty(n))
-        if n:
-            with self._first_call(f"{req.kind}_{parallel}"):
-                self.kernel(req.kind, parallel)(req.xs, req.ys, *arrays, *extra)
-        return tuple(arrays)
+        data = np.array([req.t, *map(float, req.params)], dtype=np.float64)
+        return self.run(req.xs, req.ys, req.kind, None, data)
 
 
 def compile_expr(expr: Expr, symbol_names: Sequence[str], vmath: bool = True) -> CompiledSDF:

@@ -385,3 +385,60 @@ def test_looped_chains_match_numpy_reference(n, k, union, seed):
     ref, (rgx, rgy) = evaluate_numpy(f.f, {"x": p[:, 0], "y": p[:, 1]}, compute_gradient=True)
     np.testing.assert_allclose(d, ref, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(g, np.stack([rgx, rgy], -1), rtol=1e-9, atol=1e-9)
+
+
+def test_one_lowering_per_scene_serves_every_evaluator(monkeypatch):
+    """The Program of a scene is built once and read by everything that evaluates it: the CPU
+    kernel's code (value and gradient), the pruning plan, the NumPy reference and the CUDA
+    target's code; no other module plans the scene again."""
+    from conftest import HAS_NUMBA_CUDA
+
+    from fastsdf.backends import lower
+
+    built = []
+    real = lower.Program.__init__
+
+    def counting(self, *args, **kwargs):
+        built.append(self)
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(lower.Program, "__init__", counting)
+    f = box_world(36, seed=5)
+    p = np.random.default_rng(0).uniform(-2, 2, (2000, 2))
+    d, g = f(p, compute_gradient=True)
+    np.testing.assert_array_equal(f(p), d)
+    plan = f.compiled.plan(((-2, 2), (-2, 2)))
+    assert sum(plan.sizes) == 36  # the Program's loop over the boxes
+    dn = f(p, backend="numpy")
+    np.testing.assert_allclose(dn, d, rtol=1e-12, atol=1e-12)
+    if HAS_NUMBA_CUDA:
+        dc = f(p[:64], backend="cuda")
+        np.testing.assert_allclose(dc, d[:64], rtol=1e-12, atol=1e-12)
+        assert f.compiled.cuda.program is f.compiled.program
+    assert built == [f.compiled.program]
+
+
+def test_no_private_name_is_imported_across_modules_of_the_backends():
+    """The backends' modules share their plan through the Program and public names only: no
+    module imports another's private name (``_x``), and nothing outside the lowering names
+    its planning helpers."""
+    import ast
+    import pathlib
+
+    root = pathlib.Path(sdf.__file__).parent
+    bad = []
+    for path in root.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
+                "fastsdf.backends"
+            ):
+                bad += [f"{path.name}: {a.name}" for a in node.names if a.name.startswith("_")]
+        if path.name != "lower.py":
+            text = path.read_text()
+            bad += [
+                f"{path.name}: {n}"
+                for n in ("_Emitter", "_foldable", "_flatten_chain")
+                if n in text
+            ]
+    assert not bad

@@ -305,7 +305,7 @@ def test_coarse_to_fine_plans_are_sound_and_no_looser_than_the_dense_rule(
     bounds = ((-2.5, 2.5), (-2.4, 2.6))
     plan = prune.make_plan(groups, bounds, *tiles, tol)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(prune, "_COARSE_MIN_TILES", 10**9)
+        mp.setattr(prune, "_COARSE_TOP_TILES", 10**9)  # the fine tiles alone
         dense = prune.make_plan(groups, bounds, *tiles, tol)
     assert plan.act.size <= dense.act.size
     rng = np.random.default_rng(seed)

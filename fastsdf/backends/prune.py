@@ -220,65 +220,32 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
     t0 = time.perf_counter()
     ranges = _tile_ranges(bounds, nx, ny)
     T = nx * ny
-    # Bounds of every member over every tile, computed where a chain needs them (chains of
-    # min, max, smin, smax over many tiles go coarse to fine instead, see _keep_coarse_to_fine).
-    cache: dict = {}
+    cache: dict = {}  # bounds of a left fold's members over every tile, found where needed
 
-    class _Bounds:
-        def __getitem__(self, gi: int) -> tuple:
-            if gi not in cache:
-                cache[gi] = _steps_bounds(groups[gi], ranges)
-            return cache[gi]
+    def member_bounds(gi: int) -> tuple:
+        if gi not in cache:
+            cache[gi] = _steps_bounds(groups[gi], ranges)
+        return cache[gi]
 
-    member_bounds = _Bounds()
-    # Bounds of each chain's operands that are not in a group.
     chains: dict = {}
     for gi, g in enumerate(groups):
         chains.setdefault(id(g.chain), []).append(gi)
     keep: list[Any] = [None] * len(groups)  # (every slot is set below: an array per group)
     for gis in chains.values():
-        g0 = groups[gis[0]]
-        op, k = g0.op, g0.k
-        if op not in ("qmin", "cmin") and T >= _COARSE_MIN_TILES:
-            for gi, kk in zip(gis, _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol)):
-                keep[gi] = kk
-            continue
-        if op in ("qmin", "cmin"):
+        if groups[gis[0]].op in ("qmin", "cmin"):
             for gi in gis:
                 keep[gi] = _keep_ordered(groups, gi, member_bounds, ranges, T)
             continue
-        others = [
-            node_bounds(o, ranges)[id(o)]
-            if o.op != "const"
-            else (np.full(T, o.attr), np.full(T, o.attr))
-            for o in g0.others
-        ]
-        n_ops = len(others) + sum(len(groups[gi].members) for gi in gis)
-        lows = [member_bounds[gi][0] for gi in gis]
-        highs = [member_bounds[gi][1] for gi in gis]
-        lo_cands = [lo.min(axis=0) for lo in lows] + [o[0] for o in others]
-        hi_cands = [hi.min(axis=0) for hi in highs] + [o[1] for o in others]
-        if op in ("min", "smin"):
-            H = np.min(np.stack(hi_cands), axis=0)
-        else:
-            H = np.max(np.stack([lo.max(axis=0) for lo in lows] + [o[0] for o in others]), axis=0)
-        with np.errstate(all="ignore"):
-            if op == "min":
-                kp = [lo <= H[None, :] for lo in lows]
-            elif op == "max":
-                kp = [hi >= H[None, :] for hi in highs]
-            else:
-                t = (0.5 * np.spacing(np.abs(H))) if tol is None else np.full(T, float(tol))
-                budget = np.expm1(k * t)
-                margin = np.where(budget > 0, np.log(n_ops / budget) / k, np.inf)
-                if op == "smin":
-                    kp = [~(lo >= (H + margin)[None, :]) for lo in lows]
-                else:
-                    kp = [~(hi <= (H - margin)[None, :]) for hi in highs]
-        del lo_cands, hi_cands
-        for gi, kk in zip(gis, kp):
-            # Non-finite bounds (unknown) keep the operand.
-            keep[gi] = kk | ~np.isfinite(H)[None, :]
+        for gi, kk in zip(gis, _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol)):
+            keep[gi] = kk
+    return _plan_of(keep, groups, bounds, nx, ny, time.perf_counter() - t0, tol)
+
+
+def _plan_of(
+    keep: list, groups: list, bounds: tuple, nx: int, ny: int, build_s: float, tol: float | None
+) -> PrunePlan:
+    """The row lists of the kept rows (``keep[g]``: (members, tiles) booleans)."""
+    T = nx * ny
     sizes = [len(g.members) for g in groups]
     kept = [kk.sum(axis=0).astype(np.int64) for kk in keep]
     G = len(groups)
@@ -292,12 +259,11 @@ def _make_plan(groups: list, bounds: tuple, nx: int, ny: int, tol: float | None)
         for t in range(T):
             rows = np.flatnonzero(kk[:, t])
             act[offs[t, gi] : offs[t, gi + 1]] = rows
-    return PrunePlan(bounds, nx, ny, act, offs, kept, sizes, time.perf_counter() - t0, tol)
+    return PrunePlan(bounds, nx, ny, act, offs, kept, sizes, build_s, tol)
 
 
-#: Plans over at least this many tiles find each chain's survivors coarse to fine.
-_COARSE_MIN_TILES = 64
-#: ... starting from the level of at most this many tiles.
+#: Chains find their survivors coarse to fine, starting from the level of at most this many
+#: tiles.
 _COARSE_TOP_TILES = 16
 
 
@@ -364,18 +330,17 @@ def _pair_bounds(group, hints, mem, til, lranges):
 
 def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
     """Rows kept per tile, (members, tiles) per group, for a chain of ``min``, ``max``,
-    ``smin`` or ``smax``: the rule of :func:`make_plan` applied coarse to fine. A member
-    dropped over a level tile (its bounds there say it cannot matter anywhere in it: for
-    ``min``, its lower bound exceeds the smallest upper bound of all operands over the tile)
-    is dropped in every fine tile under it, and only the surviving (member, tile) pairs are
-    bounded at the next level. At the fine level the survivors' bounds are the numbers the
-    dense computation gives, and a member dropped higher up has bounds above the fine tile's
-    minimum there too (bounds shrink with the box), so the kept rows are the dense rule's.
-    For the exponential blends with the default tolerance (half an ulp of the chain's value),
-    coarse levels use the smallest magnitude the fine tiles' value can have."""
+    ``smin`` or ``smax``. At the fine tiles the rule is: for ``min``, member ``i`` is dropped
+    where its lower bound exceeds the smallest upper bound ``H`` of all operands over the tile
+    (it can never be the minimum, nor tie with it); ``max`` mirrors this; the exponential blends
+    drop members whose weights together change the value by at most ``tol`` (see the module
+    docstring). The rule is applied coarse to fine: a member dropped over a level tile is
+    dropped in every fine tile under it, and only the surviving (member, tile) pairs are
+    bounded at the next level (bounds shrink with the box, so the kept rows are those of the
+    rule applied at the fine tiles alone). For the exponential blends with the default
+    tolerance (half an ulp of the chain's value), coarse levels use the smallest magnitude the
+    fine tiles' value can have."""
     g0 = groups[gis[0]]
-    op, k = g0.op, g0.k
-    lower = op in ("min", "smin")  # the chain's value is below every upper bound
     n_ops = len(g0.others) + sum(len(groups[gi].members) for gi in gis)
     levels = _levels(ranges, nx, ny)
     hints = [_member_hints(groups[gi].members) for gi in gis]
@@ -388,82 +353,90 @@ def _keep_coarse_to_fine(groups, gis, ranges, nx, ny, tol):
         for gi in gis
     ]
     for li, (_s, lnx, lny, lranges) in enumerate(levels):
-        fine = li == len(levels) - 1
-        Tl = lnx * lny
         bounds = [
             _pair_bounds(groups[gi], h, mem, til, lranges)
             for gi, h, (mem, til) in zip(gis, hints, pairs)
         ]
-        others = [
-            node_bounds(o, lranges)[id(o)]
-            if o.op != "const"
-            else (np.full(Tl, o.attr), np.full(Tl, o.attr))
-            for o in g0.others
-        ]
-        # H: the smallest upper bound (min, smin), or the largest lower bound (max, smax); F:
-        # the other end over all operands (for the magnitude of the fine tiles' H)
-        H = np.full(Tl, np.inf if lower else -np.inf)
-        F = np.full(Tl, np.inf if lower else -np.inf)
-        red = np.minimum if lower else np.maximum
-        for (lo, hi), (_mem, til) in zip(bounds, pairs):
-            red.at(H, til, hi if lower else lo)
-            red.at(F, til, lo if lower else hi)
-        for olo, ohi in others:
-            H = red(H, ohi if lower else olo)
-            F = red(F, olo if lower else ohi)
-        with np.errstate(all="ignore"):
-            if op in ("smin", "smax"):
-                if tol is not None:
-                    t = np.full(Tl, float(tol))
-                elif fine:
-                    t = 0.5 * np.spacing(np.abs(H))
-                else:  # the fine tiles' H lies between F and H: its smallest magnitude
-                    mag = (
-                        np.where(F > 0, F, np.where(H < 0, -H, 0.0))
-                        if lower
-                        else np.where(F < 0, -F, np.where(H > 0, H, 0.0))
-                    )
-                    t = 0.5 * np.spacing(mag)
-                budget = np.expm1(k * t)
-                margin = np.where(budget > 0, np.log(n_ops / budget) / k, np.inf)
-            unknown = ~np.isfinite(H)
-            new = []
-            for (lo, hi), (mem, til) in zip(bounds, pairs):
-                if op == "min":
-                    kp = lo <= H[til]
-                elif op == "max":
-                    kp = hi >= H[til]
-                elif op == "smin":
-                    kp = ~(lo >= (H + margin)[til])
-                else:
-                    kp = ~(hi <= (H - margin)[til])
-                kp |= unknown[til]
-                new.append((mem[kp], til[kp]))
-        pairs = new
+        fine = li == len(levels) - 1
+        pairs = _survivors(g0, n_ops, tol, fine, lnx * lny, lranges, bounds, pairs)
         if fine:
             break
-        # the surviving pairs' children at the next level, still ordered by member
-        cnx, cny = levels[li + 1][1], levels[li + 1][2]
-        nxt = []
-        for mem, til in pairs:
-            tx, ty = til % lnx, til // lnx
-            cm, ct = [], []
-            for dy in (0, 1):
-                for dx in (0, 1):
-                    cx, cy = 2 * tx + dx, 2 * ty + dy
-                    ok = (cx < cnx) & (cy < cny)
-                    cm.append(mem[ok])
-                    ct.append((cy * cnx + cx)[ok])
-            cm, ct = np.concatenate(cm), np.concatenate(ct)
-            order = np.argsort(cm, kind="stable")
-            nxt.append((cm[order], ct[order]))
-        pairs = nxt
+        pairs = [_children(mem, til, lnx, levels[li + 1]) for mem, til in pairs]
     out = []
     for gi, (mem, til) in zip(gis, pairs):
         kk = np.zeros((len(groups[gi].members), nx * ny), dtype=bool)
         kk[mem, til] = True
         out.append(kk)
     return out
+
+
+def _survivors(g0, n_ops, tol, fine, Tl, lranges, bounds, pairs):
+    """The (member, tile) pairs of one level that the chain's rule keeps."""
+    op, k = g0.op, g0.k
+    lower = op in ("min", "smin")  # the chain's value is below every upper bound
+    # H: the smallest upper bound (min, smin), or the largest lower bound (max, smax); F:
+    # the other end over all operands (for the magnitude of the fine tiles' H)
+    H = np.full(Tl, np.inf if lower else -np.inf)
+    F = np.full(Tl, np.inf if lower else -np.inf)
+    red = np.minimum if lower else np.maximum
+    for (lo, hi), (_mem, til) in zip(bounds, pairs):
+        red.at(H, til, hi if lower else lo)
+        red.at(F, til, lo if lower else hi)
+    for o in g0.others:
+        olo, ohi = (o.attr, o.attr) if o.op == "const" else node_bounds(o, lranges)[id(o)]
+        H = red(H, ohi if lower else olo)
+        F = red(F, olo if lower else ohi)
+    with np.errstate(all="ignore"):
+        margin = _smooth_margin(op, k, tol, fine, n_ops, H, F, lower) if k else 0.0
+        unknown = ~np.isfinite(H)
+        out = []
+        for (lo, hi), (mem, til) in zip(bounds, pairs):
+            if op == "min":
+                kp = lo <= H[til]
+            elif op == "max":
+                kp = hi >= H[til]
+            elif op == "smin":
+                kp = ~(lo >= (H + margin)[til])
+            else:
+                kp = ~(hi <= (H - margin)[til])
+            kp |= unknown[til]
+            out.append((mem[kp], til[kp]))
+    return out
+
+
+def _smooth_margin(op, k, tol, fine, n_ops, H, F, lower):
+    """How far above ``H`` (below, for ``smax``) an exponential chain's member may be dropped:
+    ``log(n / expm1(k tol)) / k``, its total weight then changes the value by at most ``tol``
+    (default: half an ulp of the value, whose magnitude is bounded by ``H`` and ``F``)."""
+    if tol is not None:
+        t = np.full(H.shape, float(tol))
+    elif fine:
+        t = 0.5 * np.spacing(np.abs(H))
+    else:  # the fine tiles' H lies between F and H: its smallest magnitude
+        mag = (
+            np.where(F > 0, F, np.where(H < 0, -H, 0.0))
+            if lower
+            else np.where(F < 0, -F, np.where(H > 0, H, 0.0))
+        )
+        t = 0.5 * np.spacing(mag)
+    budget = np.expm1(k * t)
+    return np.where(budget > 0, np.log(n_ops / budget) / k, np.inf)
+
+
+def _children(mem, til, lnx, level):
+    """The (member, tile) pairs' children at the next level, still ordered by member."""
+    cnx, cny = level[1], level[2]
+    tx, ty = til % lnx, til // lnx
+    cm, ct = [], []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            cx, cy = 2 * tx + dx, 2 * ty + dy
+            ok = (cx < cnx) & (cy < cny)
+            cm.append(mem[ok])
+            ct.append((cy * cnx + cx)[ok])
+    cm, ct = np.concatenate(cm), np.concatenate(ct)
+    order = np.argsort(cm, kind="stable")
+    return cm[order], ct[order]
 
 
 def _keep_ordered(groups, gi, member_bounds, ranges, T):
@@ -483,9 +456,9 @@ def _keep_ordered(groups, gi, member_bounds, ranges, T):
             else:
                 hi = node_bounds(ref, ranges)[id(ref)][1]
         else:
-            hi = member_bounds[ref][1].min(axis=0)
+            hi = member_bounds(ref)[1].min(axis=0)
         prefix = np.minimum(prefix, np.where(np.isnan(hi), np.inf, hi))
-    lo, hi = member_bounds[gi]
+    lo, hi = member_bounds(gi)
     hi = np.where(np.isnan(hi), np.inf, hi)
     # the smallest upper bound before each member: the chain's before, then earlier members
     before = np.minimum(

@@ -669,18 +669,14 @@ class GridSDF:
             r1 = min(nx, r0 + rows)
             xs = np.repeat(ax[r0:r1], ny)
             ys = np.tile(ay, r1 - r0)
-            n = xs.shape[0]
-            out = np.empty(n)
             block = grid[r0:r1]
-            if stored:
-                grad = np.empty((n, 2))
-                comp.run(xs, ys, out, grad, plan)
-                with np.errstate(over="ignore"):  # float32 overflow is reported below
+            res = comp.run(xs, ys, "vg" if stored else "v", plan)
+            out = res[0]
+            with np.errstate(over="ignore"):  # float32 overflow is reported below
+                if stored:
                     block[:, :, 0] = out.reshape(r1 - r0, ny)
-                    block[:, :, 1:] = grad.reshape(r1 - r0, ny, 2)
-            else:
-                comp.run(xs, ys, out, None, plan)
-                with np.errstate(over="ignore"):
+                    block[:, :, 1:] = res[1].reshape(r1 - r0, ny, 2)
+                else:
                     block[...] = out.reshape(r1 - r0, ny)
             if not np.all(np.isfinite(block)):
                 self._raise_non_finite(block, r0, ax, ay, out)

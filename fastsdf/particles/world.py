@@ -490,14 +490,11 @@ def wall_speed_table(
     X = np.ascontiguousarray(np.concatenate([X, sample[:, 0]]))
     Y = np.ascontiguousarray(np.concatenate([Y, sample[:, 1]]))
     m, nodes = X.shape[0], (n + 1) * (n + 1)
-    # the serial kernel: a few thousand points are not worth waking the threads
-    kernel = f.compiled.kernel("vgt", parallel=False)
-    out, grad, gt = np.empty(m), np.empty((m, 2)), np.empty(m)
     count = min(steps, 8)
     times = t + dt * np.unique(np.round(np.linspace(1, steps, count)))
     top = np.zeros(m)
     for at in times:
-        kernel(X, Y, out, grad, gt, float(at), prm)
+        gt = f.compiled.run(X, Y, "vgt", data=np.array([float(at), *prm]))[2]
         top = np.maximum(top, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
     node = top[:nodes]
     at_particles = top[nodes:]

@@ -135,7 +135,7 @@ def _function_source(program: Program, kind: str, tables: dict, vmath: bool) -> 
             return prog, ""
     body = Emitter(program, kind, tables).plain()
     point, many = _point_sources(body, kind, program, vmath)
-    if not static:  # parameters are data: read once per block from prm
+    if not static:  # the time and the parameters are data: read once per block
         return (point, block_source(body, kind, vmath, parametric=True)), many
     long = line_count(body.stmts, vmath) > FOLD_MIN_LINES
     if long and vmath and not program.groups and COMBINE_PROGRAMS:

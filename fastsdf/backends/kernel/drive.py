@@ -38,6 +38,7 @@ __all__ = [
     "run_ser",
     "NOGRAD",
     "NOROWS",
+    "NODATA",
     "tiles_par",
     "run_prog_par",
     "run_prog_ser",
@@ -46,21 +47,23 @@ __all__ = [
 
 _P = types.CPointer(types.float64)
 _I = types.CPointer(types.int64)
-#: ``(xs, ys, out, grad, n, scratch, act, off)``: pointers to the block's first point in each
-#: array, ``grad`` flat (x, y pairs; ignored by value-only blocks), the block's scratch space,
-#: and the row lists of the scene's loops over tables (rows ``act[off[g]:off[g + 1]]`` for loop
-#: ``g``: all rows, or a tile's pruned lists; ignored by scenes without such loops).
-BLOCK_SIG = types.void(_P, _P, _P, _P, types.intp, _P, _I, _I)
+#: ``(xs, ys, out, grad, n, scratch, act, off, data)``: pointers to the block's first point in
+#: each array, ``grad`` flat (x, y pairs, or x, y, t triples with the time derivative; ignored
+#: by value-only blocks), the block's scratch space, the row lists of the scene's loops over
+#: tables (rows ``act[off[g]:off[g + 1]]`` for loop ``g``: all rows, or a tile's pruned lists;
+#: ignored by scenes without such loops), and the values a call passes (the time, then the
+#: parameters; ignored by static scenes).
+BLOCK_SIG = types.void(_P, _P, _P, _P, types.intp, _P, _I, _I, _P)
 #: ``(op, operand rows, accumulator rows, program row, points)``: one step of a combine program
 #: on a block's scratch space (:mod:`fastsdf.backends.kernel.combine`).
 STEP_SIG = types.void(types.int64, _P, _P, _P, types.int64)
 
 
 @intrinsic
-def _call(typingctx, address, xp, yp, op, gp, n, sp, ap, fp):
+def _call(typingctx, address, xp, yp, op, gp, n, sp, ap, fp, dp):
     """Call the compiled function at ``address`` (an integer: the C-callable wrapper of a
     function with the signature :data:`BLOCK_SIG`) with the other arguments."""
-    sig = types.void(types.intp, _P, _P, _P, _P, types.intp, _P, _I, _I)
+    sig = types.void(types.intp, _P, _P, _P, _P, types.intp, _P, _I, _I, _P)
 
     def codegen(context, builder, signature, args):
         fnty = ir.FunctionType(
@@ -133,7 +136,7 @@ def scratch(floats: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _nofold(xp, yp, op, gp, n, sp, ap, fp):
+def _nofold(xp, yp, op, gp, n, sp, ap, fp, dp):
     """The ``pre`` function of a scene without loops of its own to run first: nothing."""
     return
 
@@ -142,19 +145,23 @@ def _nofold(xp, yp, op, gp, n, sp, ap, fp):
 NOFOLD = BlockFn(_nofold)
 #: The row lists of scenes without loops over tables (never read).
 NOROWS = np.zeros(1, dtype=np.int64)
+#: The values of a call of a static scene (never read).
+NODATA = np.zeros(1)
 #: The ``grad`` of :func:`tiles_par` for the value alone.
 NOGRAD = np.empty((0, 2))
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
-def _run_block(pre, fn, xs, ys, out, grad, gs, S, at, s, n, act, off):
+def _run_block(pre, fn, xs, ys, out, grad, gs, S, at, s, n, act, off, data):
     """``pre`` then ``fn`` on the block of points from ``s`` (of ``n``), in the scratch space
     from ``S[at]``; the block's gradient starts at ``grad[gs * s]`` (``gs``: 2 for x y pairs,
-    or 1 where ``grad`` is ``out`` and value-only blocks never read it)."""
+    3 with the time derivative, or 1 where ``grad`` is ``out`` and value-only blocks never read
+    it); ``data``: the call's time and parameters."""
     m = min(s + BLOCK, n) - s
     xp, yp, op, gp, sp = _at(xs, s), _at(ys, s), _at(out, s), _at(grad, gs * s), _at(S, at)
-    _call(pre, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0))
-    _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0))
+    dp = _at(data, 0)
+    _call(pre, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0), dp)
+    _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0), dp)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -172,13 +179,15 @@ def run_par(
     threads: int,
     act: np.ndarray,
     off: np.ndarray,
+    data: np.ndarray,
 ) -> None:
     """All points: ``pre`` then ``fn`` on each block, blocks in parallel chunks, each thread
     with ``size`` floats of the scratch space ``S`` (at least ``threads * size`` floats,
     ``threads``: :func:`max_threads`; see :func:`scratch`); ``act``, ``off``: the row lists of
-    every block (all rows: the scene's ``_ACTG``, ``_OFFG``). Value and gradient: ``grad``
-    flat (x y pairs) and ``gs`` = 2; the value alone: ``grad`` is ``out`` and ``gs`` = 1 (the
-    block functions do not use it)."""
+    every block (all rows: the scene's ``_ACTG``, ``_OFFG``); ``data``: the call's time and
+    parameters (:data:`NODATA` for a static scene). Value and gradient: ``grad`` flat (x y
+    pairs) and ``gs`` = 2 (3 with the time derivative); the value alone: ``grad`` is ``out``
+    and ``gs`` = 1 (the block functions do not use it)."""
     n = xs.shape[0]
     blocks = (n + BLOCK - 1) // BLOCK
     chunks = max(1, min(blocks, chunks))
@@ -186,7 +195,7 @@ def run_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_block(pre, fn, xs, ys, out, grad, gs, S, at, b * BLOCK, n, act, off)
+            _run_block(pre, fn, xs, ys, out, grad, gs, S, at, b * BLOCK, n, act, off, data)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -202,12 +211,13 @@ def run_ser(
     size: int,
     act: np.ndarray,
     off: np.ndarray,
+    data: np.ndarray,
 ) -> None:
     """:func:`run_par` in this thread (``S``: at least ``size`` floats)."""
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
-        _run_block(pre, fn, xs, ys, out, grad, gs, S, 0, s, n, act, off)
+        _run_block(pre, fn, xs, ys, out, grad, gs, S, 0, s, n, act, off, data)
 
 
 @njit(cache=True, nogil=True)
@@ -343,8 +353,9 @@ def tiles_par(
                 _merge_rows(act, offs, t0, t1, starts, actb, offb, cur)
                 ap, fp = _at(actb, 0), _at(offb, 0)
             gp = _at(gb, 0) if vg else _at(ob, 0)
-            _call(pre, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp)
-            _call(fn, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp)
+            dp = _at(NODATA, 0)  # (pruned scenes are static)
+            _call(pre, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp, dp)
+            _call(fn, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp, dp)
             for i in range(m):
                 out[seq[s + i]] = ob[i]
             if vg:
@@ -433,7 +444,8 @@ def _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, at, s, n, z):
     :func:`_run_block`)."""
     m = min(s + BLOCK, n) - s
     gp = _at(grad, gs * s)
-    _call(pre, _at(xs, s), _at(ys, s), _at(out, s), gp, m, _at(S, at), _at(z, 0), _at(z, 0))
+    z0 = _at(z, 0)
+    _call(pre, _at(xs, s), _at(ys, s), _at(out, s), gp, m, _at(S, at), z0, z0, _at(NODATA, 0))
     _combine(S, at, prog, step, _lanes(m))
     _outputs(S, at, prog, xs, ys, out, grad, s, m, gs == 2)
 

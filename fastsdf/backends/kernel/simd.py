@@ -265,15 +265,11 @@ def _prelude(pad_to: str) -> list:
 
 def _outputs(at: Callable, kind: str) -> list:
     """The last loop of a block: results out of the scratch rows, NaN where the point is not
-    finite."""
+    finite (the gradient as x, y pairs, or x, y, t triples with the time derivative)."""
     res = [f"        out[i] = _sel(ok, {at('r0', 0)}, math.nan)"]
-    if kind != "v":
-        res += [
-            f"        grad[2 * i] = _sel(ok, {at('r1', 0)}, math.nan)",
-            f"        grad[2 * i + 1] = _sel(ok, {at('r2', 0)}, math.nan)",
-        ]
-    if kind == "vgt":
-        res.append(f"        dt[i] = _sel(ok, {at('r3', 0)}, math.nan)")
+    gs = _stride(kind)
+    for c in range(gs if kind != "v" else 0):
+        res.append(f"        grad[{gs} * i + {c}] = _sel(ok, {at(f'r{c + 1}', 0)}, math.nan)")
     return [
         "    for i in range(n):",
         "        x = xs[i]",
@@ -296,22 +292,26 @@ def _tables_of(segs: list) -> list:
     return tables_read([s for seg in segs for s in (seg[1] if seg[0] == "line" else [seg[1]])])
 
 
+def _stride(kind: str) -> int:
+    """Floats per point of a kind's gradient array: x, y (and t with the time derivative)."""
+    return 3 if kind == "vgt" else 2
+
+
 def block_source(body: Body, kind: str, vmath: bool = True, parametric: bool = False) -> str:
     """Source of ``_block_<kind>`` (a block of points; for long scenes also ``_fold_<kind>``,
     the loops over same-shape subexpressions it runs first) and of the kernels
     ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[,
     grad])``, plain functions that hand the block function to the scene-independent kernels of
     :mod:`fastsdf.backends.kernel.drive` (and, for scenes with loops over tables, the pruned
-    ``tiles_<kind>_par``). Scenes with parameters or time (``parametric``):
-    :func:`_param_block_source`.
+    ``tiles_<kind>_par``). A scene with parameters or time (``parametric``) reads the time and
+    the parameters per call from the kernels' data (``D``: ``t``, then ``prm``); its ``'vgt'``
+    kernels write the gradient and dd/dt as (x, y, t) triples.
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
     replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
     writing only rows of the scratch array at constant offsets with a constant trip count (no
     runtime alias checks, no scalar remainder loops), results copied out."""
-    if parametric:
-        return _param_block_source(body, kind, vmath)
-    grad = kind == "vg"
+    grad = kind != "v"
     fold_sizes = body.fold.sizes if body.fold is not None else []
     lanes = choose_lanes(body.stmts, vmath)
     assert lanes == 1 or not fold_sizes
@@ -338,8 +338,11 @@ def block_source(body: Body, kind: str, vmath: bool = True, parametric: bool = F
     size = max(len(slots), 1) * BLOCK
     views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))", "    out = carray(op, (n,))"]
     if grad:
-        views.append("    grad = carray(gp, (2 * n,))")
+        views.append(f"    grad = carray(gp, ({_stride(kind)} * n,))")
     views.append(f"    S = carray(sp, ({size},))")
+    if parametric:  # the call's time and parameters
+        views += [f"    D = carray(dp, ({1 + body.nparams},))", "    t = D[0]"]
+        views += [f"    _p{i} = D[{i + 1}]" for i in range(body.nparams)]
 
     def head(part_segs: list) -> str:
         used = [f"    {t} = {t}G" for t in sorted(_tables_of(part_segs))]
@@ -381,14 +384,14 @@ class _KernelNames:
             kind=kind,
             size=size,
             sig=", ".join(["xs", "ys"] + outs),
-            gflat="grad.reshape(-1), 2, " if grad else "out, 1, ",
+            gflat=f"grad.reshape(-1), {_stride(kind)}, " if grad else "out, 1, ",
         )
 
 
 _BLOCK_FN = '''
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def {name}(xp, yp, op, gp, n, sp, ap, fp):
+def {name}(xp, yp, op, gp, n, sp, ap, fp, dp):
     """{doc}"""
 {head}
 {body}
@@ -403,17 +406,18 @@ _BATCH = '''
 scratch_{kind} = {size}
 
 
-def batch_{kind}_par({sig}, chunks, S=None):
+def batch_{kind}_par({sig}, chunks, S=None, D=_NODATA):
     """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block
-    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
+    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here;
+    ``D``: the time and the parameters' values, for a scene with them)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows})
+    _run_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows}, D)
 
 
-def batch_{kind}_ser({sig}, S=None):
+def batch_{kind}_ser({sig}, S=None, D=_NODATA):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows})
+    _run_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows}, D)
 '''
 
 _TILES = '''
@@ -559,75 +563,13 @@ def drive_import() -> str:
         "tiles_par as _tiles_par",
         "NOROWS as _NOROWS",
         "NOGRAD as _NOGRAD",
+        "NODATA as _NODATA",
         "run_prog_par as _run_prog_par",
         "run_prog_ser as _run_prog_ser",
         "scratch as _drive_scratch",
     ]
     drive = hashed_import("fastsdf.backends.kernel.drive", names)
     return "from numba import carray\n" + drive + "\n"
-
-
-def _param_block_source(body: Body, kind: str, vmath: bool) -> str:
-    """:func:`block_source` for scenes with parameters: the block function takes arrays and
-    the time and parameters (``t``, the tuple ``prm``, read once per block), and the kernels
-    that call it are compiled with the scene. ``kind='vgt'`` also writes ``dt`` (the time
-    derivative)."""
-    grad = kind in ("vg", "vgt")
-    timed = kind == "vgt"
-    lanes = choose_lanes(body.stmts, vmath)
-    stmts, result_names = _with_results(body)
-    segs = _segments(stmts)
-    outs = ["out"] + (["grad"] if grad else []) + (["dt"] if timed else [])
-    sig = ", ".join(["xs", "ys"] + outs + ["t", "prm"])
-    code = [f"    {t} = {t}G" for t in sorted(_tables_of(segs))]
-    code += [f"    _p{i} = prm[{i}]" for i in range(body.nparams)]
-    if _rows_of(segs):
-        code += ["    _act = _ACTG", "    _off = _OFFG"]
-    code.append("    n = xs.shape[0]")
-    slots: dict = {"x": 0, "y": 1}
-    st = _Staging(segs, result_names, lanes, slots, vmath)
-    code += _prelude(str(BLOCK))
-    for k, seg in enumerate(segs):
-        code += st.segment(k, seg)
-    code += _outputs(st.at, kind)
-    size = max(len(slots), 1) * BLOCK
-    views = ["    xs = xs[start:stop]", "    ys = ys[start:stop]", "    out = out[start:stop]"]
-    if grad:
-        views.append("    grad = grad[2 * start:2 * stop]")
-    if timed:
-        views.append("    dt = dt[start:stop]")
-    views.append(f"    S = S[at:at + {size}]")
-    flat = "\n    grad = grad.reshape(-1)" if grad else ""
-    what = "Value, gradient and dd/dt" if timed else "Value and gradient" if grad else "Value"
-    nl = "\n"
-    return f'''
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _block_{kind}({sig}, start, stop, S, at):
-    """{what} at points start..stop-1 (at most {BLOCK}){", ``grad`` flat (x, y pairs)" if grad else ""};
-    scratch ``S[at:at + {size}]``."""
-{nl.join(views)}
-{nl.join(code)}
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def batch_{kind}_par({sig}, chunks):
-    n = xs.shape[0]{flat}
-    blocks = (n + {BLOCK - 1}) // {BLOCK}
-    chunks = max(1, min(blocks, chunks))
-    S = np.empty(chunks * {size})
-    for c in prange(chunks):
-        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _block_{kind}({sig}, b * {BLOCK}, min((b + 1) * {BLOCK}, n), S, c * {size})
-
-
-@njit(cache=True, error_model="numpy")
-def batch_{kind}_ser({sig}):
-    n = xs.shape[0]{flat}
-    S = np.empty({size})
-    for s in range(0, n, {BLOCK}):
-        _block_{kind}({sig}, s, min(s + {BLOCK}, n), S, 0)
-'''
 
 
 def vmath_import() -> str:
