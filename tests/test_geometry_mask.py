@@ -99,7 +99,7 @@ def test_mask_of_analytic_shape_is_within_a_pixel(name):
         assert err.max() <= px * np.sqrt(0.5) + 1e-12
         # the grid answers queries like any GridSDF: values and gradients
         d, grad = g(np.array([0.1, 0.95]), np.array([-0.2, 0.9]), compute_gradient=True)
-        assert d[0] == pytest.approx(f(0.1, -0.2)[0], abs=px)
+        assert d[0] == pytest.approx(f(0.1, -0.2), abs=px)
         assert np.isfinite(grad).all()
 
 
@@ -108,10 +108,10 @@ def test_origin_and_orientation():
     mask[0, 0] = True  # top-left pixel
     g = from_mask(mask, [(0, 6), (0, 4)])
     assert g.shape == (6, 4)
-    assert g(0.5, 3.5)[0] == pytest.approx(-0.5)  # its centre, top left in (x, y)
-    assert g(0.5, 0.5)[0] > 2.0
+    assert g(0.5, 3.5) == pytest.approx(-0.5)  # its centre, top left in (x, y)
+    assert g(0.5, 0.5) > 2.0
     low = from_mask(mask, [(0, 6), (0, 4)], origin="lower")
-    assert low(0.5, 0.5)[0] == pytest.approx(-0.5)
+    assert low(0.5, 0.5) == pytest.approx(-0.5)
 
 
 def test_edge_offset_of_straight_edges():

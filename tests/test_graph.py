@@ -51,7 +51,7 @@ def test_str_is_readable():
 def test_numpy_scalars_combine_with_expressions():
     e = np.float64(2.0) * x - np.array([1.0])[0]
     assert isinstance(e, cg.Expr)
-    assert cg.Function(e, [x, y])(3.0, 0.0)[0] == 5.0
+    assert cg.Function(e, [x, y])(3.0, 0.0) == 5.0
 
 
 def test_expressions_have_no_truth_value():

@@ -49,9 +49,10 @@ def test_notebook_runs_every_cell(tmp_path, monkeypatch):
     ).execute()
     code = [c for c in nb.cells if c.cell_type == "code"]
     assert [c.source for c in code] == sources
-    # In [2] and In [3]: the seed's numbers, and the circle's expression
+    # In [2] and In [3]: the seed's numbers (scalars for scalar coordinates, where the seed
+    # printed one-element arrays), and the circle's expression
     circle = next(c for c in code if "c = circle()" in c.source)
-    assert _text(circle) == "(array([-1.]), array([0.]), array([140.42135624]))"
+    assert _text(circle) == "(np.float64(-1.0), np.float64(0.0), np.float64(140.4213562373095))"
     assert "(length(x, y) - 1)" in _text(next(c for c in code if c.source == "c.f"))
     # every figure cell shows its figure
     figures = [c for c in code if "sdf.plot_sdf(fig" in c.source and "HTML(" not in c.source]

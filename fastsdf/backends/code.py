@@ -24,6 +24,7 @@ __all__ = [
     "Loop",
     "Store",
     "Stmt",
+    "Statement",
     "Style",
     "var",
     "num",
@@ -158,7 +159,23 @@ def fold_entry(group: int, entry: int) -> Code:
 # -- statements ------------------------------------------------------------------------------
 
 
-class Assign:
+class Statement:
+    """A statement of generated code: what it assigns (:meth:`defs`), what it reads
+    (:meth:`reads`), and whether its value is a boolean (stored as 0.0 / 1.0 between loops)."""
+
+    __slots__ = ()
+    boolean = False
+
+    def defs(self, vmath: bool) -> tuple:
+        """The names it assigns (``vmath``: rendered with the vectorisable functions)."""
+        return ()
+
+    def reads(self) -> Iterator[Code]:
+        """Every node of the expressions it reads."""
+        return iter(())
+
+
+class Assign(Statement):
     """``targets = value`` (one name, or several for a call returning a tuple)."""
 
     __slots__ = ("targets", "value")
@@ -173,18 +190,18 @@ class Assign:
         return walk(self.value)
 
     @property
-    def boolean(self) -> bool:
+    def boolean(self) -> bool:  # type: ignore[override]
+        """Whether the value is a comparison."""
         return self.value.boolean
 
 
-class Length:
+class Length(Statement):
     """``r = length(a, b)`` (``sqrt(a*a + b*b)`` without overflow or underflow), and with
     ``grad`` its partials ``rp = a / r``, ``rq = b / r``. Targets render it as they choose:
     the branch-free ``_vlength`` of :mod:`fastsdf.backends.kernel.vmath`, or the plain formula
     with ``math.hypot`` where it over- or underflows."""
 
     __slots__ = ("r", "a", "b", "grad")
-    boolean = False
 
     def __init__(self, r: str, a: Code, b: Code, grad: bool) -> None:
         self.r, self.a, self.b, self.grad = r, a, b, grad
@@ -200,30 +217,25 @@ class Length:
         yield from walk(self.b)
 
 
-class Store:
+class Store(Statement):
     """Store a folded subexpression's value (``slot`` 0) or gradient component (``slot`` > 0)
     for member ``index`` of fold group ``group`` (``size`` values per member)."""
 
     __slots__ = ("group", "index", "size", "slot", "value")
-    boolean = False
 
     def __init__(self, group: int, index: Code, size: int, slot: int, value: Code) -> None:
         self.group, self.index, self.size, self.slot, self.value = group, index, size, slot, value
-
-    def defs(self, vmath: bool) -> tuple:
-        return ()
 
     def reads(self) -> Iterator[Code]:
         return walk(self.value)
 
 
-class Loop:
+class Loop(Statement):
     """A loop over the rows of a table: ``index`` (a variable of scope ``'i'``) runs over
     ``range(count)`` (a fold group), or, for a chain's loop group ``group``, over the row list
     ``_act[_off[group]:_off[group + 1]]`` (all rows, or a tile's pruned list)."""
 
     __slots__ = ("index", "group", "count", "body")
-    boolean = False
 
     def __init__(self, index: Code, body: list, group: int | None = None, count: int = 0) -> None:
         self.index, self.body, self.group, self.count = index, body, group, count
@@ -236,7 +248,7 @@ class Loop:
             yield from st.reads()
 
 
-Stmt = Assign | Length | Store | Loop
+Stmt = Statement
 
 
 def walk(code: Code) -> Iterator[Code]:
@@ -358,6 +370,7 @@ def render_stmt(stmt: Stmt, style: Style, store: Callable[[Store], str] | None =
     if isinstance(stmt, Store):
         assert store is not None, "a Store is rendered by the target that lays out the stores"
         return [f"{store(stmt)} = {render(stmt.value, style)}"]
+    assert isinstance(stmt, Loop)
     idx = render(stmt.index, style)
     body = [line for st in stmt.body for line in render_stmt(st, style, store)]
     if stmt.group is None:
