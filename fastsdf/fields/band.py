@@ -66,6 +66,7 @@ from numpy.typing import ArrayLike
 from fastsdf.backends.request import Request, make_request
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
 from fastsdf.fields.grid import (
+    NOGRAD,
     GridError,
     _check_bounds,
     _check_dtype,
@@ -249,31 +250,26 @@ def _borrow(data):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _vg_range(data, xs, ys, out, grad, start, stop):
+def _range(data, gradient, xs, ys, out, grad, start, stop):
+    """Points ``start..stop-1``: the value, and with ``gradient`` the gradient."""
     data = _borrow(data)
     miss = 0
     for p in range(start, stop):
-        d, gx, gy, inside = sample_band(data, xs[p], ys[p])
+        if gradient:
+            d, gx, gy, inside = sample_band(data, xs[p], ys[p])
+            grad[p, 0] = gx
+            grad[p, 1] = gy
+        else:
+            d = _sample_band_value(data, xs[p], ys[p])
+            inside = d == d
         out[p] = d
-        grad[p, 0] = gx
-        grad[p, 1] = gy
         miss += not inside
     return miss
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _v_range(data, xs, ys, out, start, stop):
-    data = _borrow(data)
-    miss = 0
-    for p in range(start, stop):
-        d = _sample_band_value(data, xs[p], ys[p])
-        out[p] = d
-        miss += d != d
-    return miss
-
-
 @njit(cache=True, parallel=True, error_model="numpy")
-def _vg_par(data, xs, ys, out, grad, chunks, workers):
+def _par(data, gradient, xs, ys, out, grad, chunks, workers):
+    """:func:`_range` over all points, chunks claimed by ``workers`` threads."""
     n = xs.shape[0]
     chunks = _n_chunks(n, chunks)
     counter = np.zeros(1, dtype=np.int64)
@@ -282,23 +278,8 @@ def _vg_par(data, xs, ys, out, grad, chunks, workers):
         total = 0
         c = _fetch_add(counter, 0, 1)
         while c < chunks:
-            total += _vg_range(data, xs, ys, out, grad, c * n // chunks, (c + 1) * n // chunks)
-            c = _fetch_add(counter, 0, 1)
-        counts[w] = total
-    return counts.sum()
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _v_par(data, xs, ys, out, chunks, workers):
-    n = xs.shape[0]
-    chunks = _n_chunks(n, chunks)
-    counter = np.zeros(1, dtype=np.int64)
-    counts = np.zeros(workers, dtype=np.int64)
-    for w in prange(workers):
-        total = 0
-        c = _fetch_add(counter, 0, 1)
-        while c < chunks:
-            total += _v_range(data, xs, ys, out, c * n // chunks, (c + 1) * n // chunks)
+            a, b = c * n // chunks, (c + 1) * n // chunks
+            total += _range(data, gradient, xs, ys, out, grad, a, b)
             c = _fetch_add(counter, 0, 1)
         counts[w] = total
     return counts.sum()
@@ -670,18 +651,20 @@ class NarrowBandGridSDF:
         grad = np.empty((n, 2)) if req.gradient else None
         if n:
             workers = numba.get_num_threads()
-            par = n >= PARALLEL_MIN_POINTS
-            kern = (_vg_par if par else _vg_range) if grad is not None else None
-            kern = kern or (_v_par if par else _v_range)
+            args = (
+                self.sampler_data,
+                grad is not None,
+                xs,
+                ys,
+                out,
+                NOGRAD if grad is None else grad,
+            )
+            kern = _par if n >= PARALLEL_MIN_POINTS else _range
             with compiling_first("the band's interpolation", kern):
-                if par and grad is not None:
-                    miss = kern(self.sampler_data, xs, ys, out, grad, 64 * workers, workers)
-                elif par:
-                    miss = kern(self.sampler_data, xs, ys, out, 64 * workers, workers)
-                elif grad is not None:
-                    miss = kern(self.sampler_data, xs, ys, out, grad, 0, n)
+                if kern is _par:
+                    miss = _par(*args, 64 * workers, workers)
                 else:
-                    miss = kern(self.sampler_data, xs, ys, out, 0, n)
+                    miss = _range(*args, 0, n)
             if miss:
                 idx = np.flatnonzero(np.isnan(out) & np.isfinite(xs) & np.isfinite(ys))
                 _exact_at(self.exact, xs, ys, idx, out, grad)

@@ -249,49 +249,26 @@ PREFETCH = 24
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _vg_stored_range(data, xs, ys, out, grad, start, stop):
+def _range(data, ch, gradient, xs, ys, out, grad, start, stop):
+    """Points ``start..stop-1``: the value (``gradient`` 0, storage of ``ch`` channels per
+    node), or value and gradient, stored (1) or by finite differences (2)."""
     outside = 0
     ahead = min(stop, start + PREFETCH)
+    wide = gradient == 2
     for p in range(start, ahead):
-        _prefetch_cell(data, 3, False, xs[p], ys[p])
+        _prefetch_cell(data, ch, wide, xs[p], ys[p])
     for p in range(start, stop):
         if p + PREFETCH < stop:
-            _prefetch_cell(data, 3, False, xs[p + PREFETCH], ys[p + PREFETCH])
-        d, gx, gy, inside = sample_stored(data, xs[p], ys[p])
-        out[p] = d
-        grad[p, 0] = gx
-        grad[p, 1] = gy
-        outside += (not inside) and (d == d)
-    return outside
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _vg_fd_range(data, xs, ys, out, grad, start, stop):
-    outside = 0
-    ahead = min(stop, start + PREFETCH)
-    for p in range(start, ahead):
-        _prefetch_cell(data, 1, True, xs[p], ys[p])
-    for p in range(start, stop):
-        if p + PREFETCH < stop:
-            _prefetch_cell(data, 1, True, xs[p + PREFETCH], ys[p + PREFETCH])
-        d, gx, gy, inside = sample_fd(data, xs[p], ys[p])
-        out[p] = d
-        grad[p, 0] = gx
-        grad[p, 1] = gy
-        outside += (not inside) and (d == d)
-    return outside
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _v_range(data, ch, xs, ys, out, start, stop):
-    outside = 0
-    ahead = min(stop, start + PREFETCH)
-    for p in range(start, ahead):
-        _prefetch_cell(data, ch, False, xs[p], ys[p])
-    for p in range(start, stop):
-        if p + PREFETCH < stop:
-            _prefetch_cell(data, ch, False, xs[p + PREFETCH], ys[p + PREFETCH])
-        d, inside = _sample_value(data, ch, xs[p], ys[p])
+            _prefetch_cell(data, ch, wide, xs[p + PREFETCH], ys[p + PREFETCH])
+        if gradient == 0:
+            d, inside = _sample_value(data, ch, xs[p], ys[p])
+        else:
+            if gradient == 1:
+                d, gx, gy, inside = sample_stored(data, xs[p], ys[p])
+            else:
+                d, gx, gy, inside = sample_fd(data, xs[p], ys[p])
+            grad[p, 0] = gx
+            grad[p, 1] = gy
         out[p] = d
         outside += (not inside) and (d == d)
     return outside
@@ -335,7 +312,8 @@ def _n_chunks(n, chunks):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _vg_stored_par(data, xs, ys, out, grad, chunks, workers):
+def _par(data, ch, gradient, xs, ys, out, grad, chunks, workers):
+    """:func:`_range` over all points, chunks claimed by ``workers`` threads."""
     n = xs.shape[0]
     chunks = _n_chunks(n, chunks)
     counter = np.zeros(1, dtype=np.int64)
@@ -344,44 +322,15 @@ def _vg_stored_par(data, xs, ys, out, grad, chunks, workers):
         total = 0
         c = _fetch_add(counter, 0, 1)
         while c < chunks:
-            total += _vg_stored_range(
-                data, xs, ys, out, grad, c * n // chunks, (c + 1) * n // chunks
-            )
+            a, b = c * n // chunks, (c + 1) * n // chunks
+            total += _range(data, ch, gradient, xs, ys, out, grad, a, b)
             c = _fetch_add(counter, 0, 1)
         counts[w] = total
     return counts.sum()
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _vg_fd_par(data, xs, ys, out, grad, chunks, workers):
-    n = xs.shape[0]
-    chunks = _n_chunks(n, chunks)
-    counter = np.zeros(1, dtype=np.int64)
-    counts = np.zeros(workers, dtype=np.int64)
-    for w in prange(workers):
-        total = 0
-        c = _fetch_add(counter, 0, 1)
-        while c < chunks:
-            total += _vg_fd_range(data, xs, ys, out, grad, c * n // chunks, (c + 1) * n // chunks)
-            c = _fetch_add(counter, 0, 1)
-        counts[w] = total
-    return counts.sum()
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _v_par(data, ch, xs, ys, out, chunks, workers):
-    n = xs.shape[0]
-    chunks = _n_chunks(n, chunks)
-    counter = np.zeros(1, dtype=np.int64)
-    counts = np.zeros(workers, dtype=np.int64)
-    for w in prange(workers):
-        total = 0
-        c = _fetch_add(counter, 0, 1)
-        while c < chunks:
-            total += _v_range(data, ch, xs, ys, out, c * n // chunks, (c + 1) * n // chunks)
-            c = _fetch_add(counter, 0, 1)
-        counts[w] = total
-    return counts.sum()
+#: The gradient array of a value-only call (never written).
+NOGRAD = np.empty((0, 2))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -758,24 +707,23 @@ class GridSDF:
         out = np.empty(n)
         grad = np.empty((n, 2)) if req.gradient else None
         if n:
-            par = n >= PARALLEL_MIN_POINTS
             workers = numba.get_num_threads()
-            chunks = 64 * workers
-            stored = self.gradient == "stored"
-            if grad is not None:
-                kern = (_vg_stored_par if stored else _vg_fd_par) if par else None
-                kern = kern or (_vg_stored_range if stored else _vg_fd_range)
-            else:
-                kern = _v_par if par else _v_range
+            mode = 0 if grad is None else 1 if self.gradient == "stored" else 2
+            args = (
+                self.sampler_data,
+                self._channels,
+                mode,
+                xs,
+                ys,
+                out,
+                NOGRAD if grad is None else grad,
+            )
+            kern = _par if n >= PARALLEL_MIN_POINTS else _range
             with compiling_first("the grid's interpolation", kern):
-                if grad is not None and par:
-                    outside = kern(self.sampler_data, xs, ys, out, grad, chunks, workers)
-                elif grad is not None:
-                    outside = kern(self.sampler_data, xs, ys, out, grad, 0, n)
-                elif par:
-                    outside = kern(self.sampler_data, self._channels, xs, ys, out, chunks, workers)
+                if kern is _par:
+                    outside = _par(*args, 64 * workers, workers)
                 else:
-                    outside = kern(self.sampler_data, self._channels, xs, ys, out, 0, n)
+                    outside = _range(*args, 0, n)
             if outside and self.mode == "exact":
                 self._exact_outside(xs, ys, out, grad)
         return (out,) if grad is None else (out, grad)
