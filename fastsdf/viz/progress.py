@@ -11,14 +11,9 @@ from typing import IO, Any
 
 from tqdm.auto import tqdm
 
+from fastsdf.notice import is_terminal
+
 __all__ = ["Progress", "progress"]
-
-
-def _is_terminal(stream: IO[str]) -> bool:
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError):  # closed or not a real stream
-        return False
 
 
 def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwargs: Any) -> tqdm:
@@ -27,7 +22,7 @@ def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwarg
     Pass ``disable=False`` to force it on (e.g. in a notebook, where tqdm draws a widget).
     """
     stream = stream if stream is not None else sys.stderr
-    kwargs.setdefault("disable", not _is_terminal(stream))
+    kwargs.setdefault("disable", not is_terminal(stream))
     return tqdm(
         total=max(1, int(total)), desc=label, file=stream, dynamic_ncols=True, leave=True, **kwargs
     )
