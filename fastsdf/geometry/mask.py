@@ -28,7 +28,10 @@ close approximation elsewhere, except near corners (measured in bench/RESULTS.md
 
 from __future__ import annotations
 
+import errno
 import math
+import os
+import reprlib
 from typing import Any
 
 import numpy as np
@@ -189,8 +192,62 @@ def _levels(image: np.ndarray, levels: Any) -> np.ndarray:
     return (image.astype(np.float64) - lo) / (hi - lo)
 
 
+def _read_image(path: str | os.PathLike) -> np.ndarray:
+    """The pixels of the image file ``path`` (PNG, JPEG and the other formats Pillow reads,
+    which matplotlib installs): 8-bit images as their integers, as an array of them would
+    be; deeper ones by matplotlib's ``imread``, as levels on [0, 1]."""
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise FileNotFoundError(errno.ENOENT, "image: no such file", name)
+    from matplotlib.image import imread
+    from PIL import Image
+
+    try:
+        with Image.open(name) as im:
+            if im.mode in ("1", "L", "LA", "RGB", "RGBA"):
+                return np.asarray(im)
+            if not im.mode.startswith(("I", "F")):  # palette, CMYK, ...: 8-bit colours
+                return np.asarray(im.convert("RGBA"))
+        return np.asarray(imread(name))
+    except (OSError, ValueError, SyntaxError) as exc:  # (Pillow's errors for unreadable data)
+        raise ValueError(f"image: {name!r} could not be read as an image ({exc})") from exc
+
+
+def _grey_levels(image: ArrayLike | str | os.PathLike, levels: Any) -> np.ndarray:
+    """``image`` (an array or an image file's path) as grey levels on [0, 1]: colour channels
+    averaged, an alpha channel laid over white."""
+    if isinstance(image, (str, os.PathLike)):
+        image = _read_image(image)
+    img = np.asarray(image)
+    if img.ndim == 0 or img.dtype == object:
+        raise TypeError(
+            f"image must be a path to an image file or an array of grey levels (rows, cols) "
+            f"or colours (rows, cols, 3 or 4), got image={reprlib.repr(image)} "
+            f"({type(image).__name__})"
+        )
+    if img.dtype == np.bool_:
+        img = img.astype(np.float64)
+    if img.dtype.kind not in "iuf":
+        raise TypeError(f"image must hold real numbers, got dtype {img.dtype}")
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[-1] in (1, 2, 3, 4))):
+        raise ValueError(
+            f"image must be grey levels (rows, cols) or colours (rows, cols, 3 or 4), got "
+            f"shape {img.shape}"
+        )
+    g = _levels(img, levels)
+    if g.ndim == 3:
+        channels = g.shape[-1]
+        alpha = g[..., -1] if channels in (2, 4) else None
+        g = g[..., : 3 if channels >= 3 else 1].mean(axis=-1)
+        if alpha is not None:
+            g = g * alpha + (1.0 - alpha)
+    if not np.isfinite(g).all():
+        raise ValueError("image must be finite at every pixel")
+    return g
+
+
 def from_image(
-    image: ArrayLike,
+    image: ArrayLike | str | os.PathLike,
     bounds: ArrayLike,
     threshold: float = 0.5,
     origin: str = "upper",
@@ -204,25 +261,36 @@ def from_image(
     """A signed distance grid from a grey-level image: pixels brighter than ``threshold`` are
     inside (darker ones with ``dark_inside=True``).
 
-    Levels are read on ``[0, 1]``: unsigned integer images are divided by their type's maximum,
-    floats are taken as they are, or ``levels=(black, white)`` maps any range. With
-    ``subpixel=True`` (square pixels only) anti-aliased pixels place the edge inside the pixel
-    from their level (read as coverage, shifted so that ``threshold`` is the edge: see the
-    module docstring); with ``subpixel=False``, or on a hard black and white image, the result
-    is :func:`from_mask` of the thresholded image. Layout, ``bounds``, ``exact`` and ``mode``
-    as in :func:`from_mask`; the grid is marked ``exactness='none'`` when sub-pixel placement
-    is used (its node differences are not bounded by the spacing).
+    Parameters
+    ----------
+    image : path, or array (rows, cols) or (rows, cols, 3 or 4)
+        An image file (``str`` or ``os.PathLike``: PNG, JPEG and whatever else Pillow
+        reads; a missing file is a ``FileNotFoundError``) or its pixels. Colours are
+        averaged to a grey level and an alpha channel is laid over white.
+    bounds : [(x0, x1), (y0, y1)]
+        The image's extent in the world's units: the outer edges of its pixels.
+    threshold : float in (0, 1), default 0.5
+        The grey level of the edge.
+    origin : 'upper' (default) or 'lower'
+        Where row 0 is, as for ``matplotlib.pyplot.imshow``.
+    levels : (black, white) or None
+        The levels read as 0 and 1. ``None``: unsigned integers are divided by their type's
+        maximum (255 for 8-bit images), floats are taken as they are.
+    dark_inside : bool, default False
+        Dark pixels are inside.
+    subpixel : bool, default True
+        Anti-aliased pixels (levels strictly between 0 and 1, square pixels only) place the
+        edge inside the pixel from their level (read as coverage, shifted so that
+        ``threshold`` is the edge: see the module docstring); ``False``, or a hard black and
+        white image, gives :func:`from_mask` of the thresholded image.
+    exact, mode, dtype
+        As in :func:`from_mask`.
+
+    Returns a :class:`fastsdf.fields.grid.GridSDF` with a node at every pixel centre, marked
+    ``exactness='none'`` when sub-pixel placement is used (its node differences are not
+    bounded by the spacing).
     """
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise ValueError(
-            f"image must be a 2-d grey-level array (rows, cols), got shape "
-            f"{img.shape} (convert colour images first, e.g. image.mean(axis=-1))"
-        )
-    if img.dtype == np.bool_:
-        img = img.astype(np.float64)
-    if img.dtype.kind not in "iuf":
-        raise TypeError(f"image must hold real numbers, got dtype {img.dtype}")
+    g = _grey_levels(image, levels)
     if (
         not isinstance(threshold, (int, float, np.floating, np.integer))
         or not 0.0 < float(threshold) < 1.0
@@ -230,16 +298,13 @@ def from_image(
         raise ValueError(
             f"threshold must be a level strictly between 0 and 1, got threshold={threshold!r}"
         )
-    g = _levels(img, levels)
-    if not np.isfinite(g).all():
-        raise ValueError("image must be finite at every pixel")
     if dark_inside:
         g = 1.0 - g
     t = float(threshold)
     cov = np.clip(g - t + 0.5, 0.0, 1.0)  # coverage whose half level is the threshold
     inside = cov > 0.5
     _check_origin(origin)
-    _, (px, py) = _extent(bounds, img.shape)
+    _, (px, py) = _extent(bounds, g.shape)
     partial = (cov > 0.0) & (cov < 1.0)
     if not subpixel or not partial.any():
         return from_mask(inside, bounds, origin=origin, exact=exact, mode=mode, dtype=dtype)
