@@ -134,9 +134,10 @@ def warn_caller(message: str, category: type[Warning] = UserWarning) -> None:
 
 
 def compiling_first(what: str, *kernels: Any, after: float = 1.0) -> AbstractContextManager:
-    """:func:`compiling` while any of ``kernels`` (numba dispatchers) has compiled nothing in
-    this process yet (its first call compiles it, or loads it from numba's cache), else a
-    no-op: a later call that merely takes long is not announced as compiling."""
+    """:func:`compiling` (``what``, said after ``after`` seconds) while any of ``kernels``
+    (numba dispatchers) has compiled nothing in this process yet (its first call compiles
+    it, or loads it from numba's cache), else a no-op: a later call that merely takes long
+    is not announced as compiling."""
     if all(getattr(k, "signatures", True) for k in kernels):
         return nullcontext()
     return compiling(what, after=after)
@@ -291,8 +292,9 @@ class RunProgress:
         return max(now - self._start - self.compiled(), 0.0)
 
     def remaining(self, now: float | None = None) -> float:
-        """Estimated seconds left (inf before any unit is done): the units left at the rate
-        of the latest :data:`PROGRESS_WINDOW` of the work, compiling left out."""
+        """Estimated seconds left at time ``now`` (default: the clock's now; inf before any
+        unit is done): the units left at the rate of the latest :data:`PROGRESS_WINDOW` of
+        the work, compiling left out."""
         now = _clock() if now is None else now
         left = max(self.total - self._done, 0.0)
         if not left:

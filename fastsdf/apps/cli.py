@@ -11,6 +11,8 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
+from fastsdf.expr.validate import shown
+
 __all__ = ["main"]
 
 
@@ -28,9 +30,11 @@ def _count(text: str, low: int) -> int:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected an integer >= {low}, got {shown(text)}"
+        ) from None
     if not value.is_integer() or value < low:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {shown(text)}")
     return int(value)
 
 

@@ -35,6 +35,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from fastsdf.expr.validate import shown
 from fastsdf.notice import compiling
 
 __all__ = [
@@ -283,9 +284,9 @@ def _check_sizes(world: str, **sizes: tuple[Any, int]) -> None:
     (``name=(value, low)``), or an unknown ``world``."""
     for name, (value, low) in sizes.items():
         if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={shown(value)}")
     if world not in WORLDS:
-        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
+        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={shown(world)}")
 
 
 def run_demo(
@@ -340,7 +341,7 @@ def run_demo(
         fps=(fps, 1),
     )
     if mode not in ("exact", "nearest"):
-        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
+        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={shown(mode)}")
     particles, steps, frames = int(particles), int(steps), int(frames)
     if animate and frames > steps:
         raise ValueError(
@@ -758,16 +759,16 @@ def run_sand_demo(
         fps=(fps, 1),
     )
     if not (np.isfinite(radius) and 0 < radius < 0.2):
-        raise ValueError(f"radius must be in (0, 0.2), got radius={radius!r}")
+        raise ValueError(f"radius must be in (0, 0.2), got radius={shown(radius)}")
     if not isinstance(history, bool):
-        raise TypeError(f"history must be True or False, got history={history!r}")
+        raise TypeError(f"history must be True or False, got history={shown(history)}")
     if not (np.isfinite(rolling_friction) and rolling_friction >= 0):
         raise ValueError(
-            f"rolling_friction must be >= 0, got rolling_friction={rolling_friction!r}"
+            f"rolling_friction must be >= 0, got rolling_friction={shown(rolling_friction)}"
         )
     if rolling_friction and not history:
         raise ValueError(
-            f"rolling_friction needs history=True, got rolling_friction={rolling_friction!r} "
+            f"rolling_friction needs history=True, got rolling_friction={shown(rolling_friction)} "
             f"with history=False"
         )
     grains, steps, frames = int(grains), int(steps), int(frames)

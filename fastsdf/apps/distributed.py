@@ -62,6 +62,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
+
 __all__ = [
     "evaluate",
     "DistributedSimulation",
@@ -97,7 +99,7 @@ def _check_world(f: Any, name: str = "f") -> Any:
 
     if not isinstance(f, (Function, GridSDF)):
         raise TypeError(
-            f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
+            f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={shown(f)} "
             f"of type {type(f).__name__}"
         )
     return f
@@ -422,7 +424,7 @@ class DistributedSimulation:
     ):
         if contacts is not None:
             raise ValueError(
-                f"contacts={contacts!r}: grains that collide with each other cannot be "
+                f"contacts={shown(contacts)}: grains that collide with each other cannot be "
                 f"sharded as independent batches (each shard would need the grains near its "
                 f"border from its neighbours every substep: a halo exchange, not implemented). "
                 f"What shards: non-interacting particles (contacts=None); grains run in one "
@@ -435,10 +437,10 @@ class DistributedSimulation:
         from fastsdf.particles import ParticleSimulation
 
         if not isinstance(client, Client):
-            raise TypeError(f"client must be a dask.distributed.Client, got client={client!r}")
+            raise TypeError(f"client must be a dask.distributed.Client, got client={shown(client)}")
         _check_world(world, "world")
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n <= 0:
-            raise ValueError(f"n must be a positive integer, got n={n!r}")
+            raise ValueError(f"n must be a positive integer, got n={shown(n)}")
         info = _workers(client)
         if not info:
             raise ValueError("the client's cluster has no workers")
@@ -450,18 +452,22 @@ class DistributedSimulation:
             or not isinstance(shards, numbers.Integral)
             or shards <= 0
         ):
-            raise ValueError(f"shards must be a positive integer or None, got shards={shards!r}")
+            raise ValueError(
+                f"shards must be a positive integer or None, got shards={shown(shards)}"
+            )
         if n < shards:
             raise ValueError(
-                f"n must be >= shards (every shard holds a particle), got n={n!r}, "
-                f"shards={shards!r}"
+                f"n must be >= shards (every shard holds a particle), got n={shown(n)}, "
+                f"shards={shown(shards)}"
             )
         if threads is not None and (
             isinstance(threads, (bool, np.bool_))
             or not isinstance(threads, numbers.Integral)
             or threads <= 0
         ):
-            raise ValueError(f"threads must be a positive integer or None, got threads={threads!r}")
+            raise ValueError(
+                f"threads must be a positive integer or None, got threads={shown(threads)}"
+            )
         if seed is None:
             seed = np.random.SeedSequence().entropy
         parameters = dict(
@@ -482,7 +488,7 @@ class DistributedSimulation:
             if not callable(gen):
                 raise TypeError(
                     f"force_generators must hold Gravity, Drag or callables "
-                    f"(p, t) -> (n, 2) forces, got {gen!r}"
+                    f"(p, t) -> (n, 2) forces, got {shown(gen)}"
                 )
         self.client = client
         self.world = world
@@ -497,7 +503,7 @@ class DistributedSimulation:
         self.sizes = shard_sizes(self.n, self.shards)
         self._lost = None
         if init is not None and not callable(init):
-            raise TypeError(f"init must be a callable (sim, shard) or None, got init={init!r}")
+            raise TypeError(f"init must be a callable (sim, shard) or None, got init={shown(init)}")
         config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()), init)
         self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
         self._config_future = client.scatter(config, broadcast=True, hash=False)
@@ -647,9 +653,9 @@ class DistributedSimulation:
         died, and the shard's own ``ValueError`` for an invalid particle state.
         """
         if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
-            raise TypeError(f"steps must be an integer, got steps={steps!r}")
+            raise TypeError(f"steps must be an integer, got steps={shown(steps)}")
         if steps < 0:
-            raise ValueError(f"steps must be >= 0, got steps={steps!r}")
+            raise ValueError(f"steps must be >= 0, got steps={shown(steps)}")
         if steps == 0:
             return
         if self._lost is not None:
@@ -731,7 +737,7 @@ class DistributedSimulation:
             or not isinstance(k, numbers.Integral)
             or not 0 <= k <= self.n
         ):
-            raise ValueError(f"k must be an integer in [0, n={self.n}], got k={k!r}")
+            raise ValueError(f"k must be an integer in [0, n={self.n}], got k={shown(k)}")
         from fastsdf.particles import Particles
 
         rng = np.random.default_rng(seed)
@@ -809,7 +815,7 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
         or not isinstance(workers, numbers.Integral)
         or workers <= 0
     ):
-        raise ValueError(f"workers must be a positive integer, got workers={workers!r}")
+        raise ValueError(f"workers must be a positive integer, got workers={shown(workers)}")
     if threads_per_worker is None:
         threads_per_worker = max(1, (os.cpu_count() or 1) // int(workers))
     options = dict(
@@ -920,11 +926,11 @@ def run_demo(
         ("fps", fps, 1),
     ):
         if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={shown(value)}")
     if world not in _demo.WORLDS:
-        raise ValueError(f"world must be one of {sorted(_demo.WORLDS)}, got world={world!r}")
+        raise ValueError(f"world must be one of {sorted(_demo.WORLDS)}, got world={shown(world)}")
     if mode not in ("exact", "nearest"):
-        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
+        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={shown(mode)}")
     particles, steps, frames = int(particles), int(steps), int(frames)
     if animate and frames > steps:
         raise ValueError(

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import reprlib
 from collections.abc import Sequence
 from typing import TypeAlias, TypeGuard
 
@@ -16,6 +17,7 @@ from numpy.typing import ArrayLike
 from fastsdf.expr.graph import Expr
 
 __all__ = [
+    "shown",
     "MAX_COORD",
     "MIN_LENGTH",
     "real",
@@ -39,6 +41,39 @@ PairOrParam: TypeAlias = "ArrayLike | Sequence[float | Expr]"
 Pair: TypeAlias = "np.ndarray | tuple[float | Expr, float | Expr]"
 
 
+class _Described(str):
+    """Text that quotes itself as it is (a value described rather than written out)."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+def _plain(value: object) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        if value.size <= 16:
+            return value.tolist()
+        return _Described(f"<an array of shape {value.shape} and dtype {value.dtype}>")
+    if type(value) is tuple:
+        return tuple(_plain(v) for v in value)
+    if type(value) is list:
+        return [_plain(v) for v in value]
+    return value
+
+
+_SHORT = reprlib.Repr()
+_SHORT.maxlist = _SHORT.maxtuple = 8
+_SHORT.maxstring = _SHORT.maxother = 200
+
+
+def shown(value: object) -> str:
+    """``repr(value)`` as an error message quotes it: NumPy's numbers as plain numbers
+    (``-0.1``, not ``np.float64(-0.1)``) and its small arrays as lists, inside tuples and
+    lists too; long ones cut short (``[0, 1, 2, 3, 4, 5, 6, 7, ...]``)."""
+    return _SHORT.repr(_plain(value))
+
+
 def real(value: object, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
@@ -47,10 +82,10 @@ def real(value: object, name: str, finite: bool = True) -> float:
         if not finite or math.isfinite(value):
             return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {name}={value!r}")
+        raise TypeError(f"{name} must be a real number, got {name}={shown(value)}")
     value = float(value)
     if finite and not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+        raise ValueError(f"{name} must be finite, got {name}={shown(value)}")
     return value
 
 
@@ -86,14 +121,16 @@ def vec2(value: object, name: str) -> np.ndarray:
     try:
         arr = np.asarray(value)
     except Exception:  # any conversion failure is a type error for the user
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}") from None
+        raise TypeError(
+            f"{name} must be a pair of real numbers, got {name}={shown(value)}"
+        ) from None
     if arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}")
+        raise TypeError(f"{name} must be a pair of real numbers, got {name}={shown(value)}")
     if arr.shape != (2,):
-        raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
+        raise ValueError(f"{name} must have exactly 2 components, got {name}={shown(value)}")
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+        raise ValueError(f"{name} must be finite, got {name}={shown(value)}")
     return arr
 
 
@@ -111,7 +148,8 @@ def coord(value: object, name: str) -> float:
     number = real(value, name)
     if abs(number) > MAX_COORD:
         raise ValueError(
-            f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got {name}={number!r}"
+            f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got "
+            f"{name}={shown(number)}"
         )
     return number
 
@@ -125,7 +163,7 @@ def coord2(value: object, name: str) -> np.ndarray:
     if np.any(np.abs(arr) > MAX_COORD):
         raise ValueError(
             f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
-            f"({_RANGE}), got {name}={arr.tolist()!r}"
+            f"({_RANGE}), got {name}={shown(arr.tolist())}"
         )
     return arr
 
@@ -140,13 +178,14 @@ def length(value: object, name: str, zero: bool = False) -> float:
     return number
 
 
-def check_length(size: float, name: str, shown: object = None) -> None:
-    """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
+def check_length(size: float, name: str, given: object = None) -> None:
+    """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``, the
+    value ``given``)."""
     if not (MIN_LENGTH <= size <= MAX_COORD):
-        shown = size if shown is None else shown
+        given = size if given is None else given
         raise ValueError(
             f"{name} must be between {MIN_LENGTH:g} and {MAX_COORD:g} in "
-            f"magnitude ({_RANGE}), got {name}={shown!r}"
+            f"magnitude ({_RANGE}), got {name}={shown(given)}"
         )
 
 
@@ -185,7 +224,7 @@ def real_or_param(value: object, name: str) -> tuple[float | Expr, float]:
         number = _param_value(value, name)
         if not math.isfinite(number):
             raise ValueError(
-                f"{name} must be finite, got {name}={value} = {number!r} at the "
+                f"{name} must be finite, got {name}={value} = {shown(number)} at the "
                 f"parameters' defaults"
             )
         return value, number
@@ -202,7 +241,7 @@ def vec2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
         return arr, arr
     if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
         if len(value) != 2:
-            raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
+            raise ValueError(f"{name} must have exactly 2 components, got {name}={shown(value)}")
         (a, na), (b, nb) = (real_or_param(v, name) for v in value)
         return (a, b), np.array([na, nb])
     arr = vec2(value, name)
@@ -220,6 +259,6 @@ def coord2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
     if np.any(np.abs(numbers_) > MAX_COORD):
         raise ValueError(
             f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
-            f"({_RANGE}), got {name}={numbers_.tolist()!r}"
+            f"({_RANGE}), got {name}={shown(numbers_.tolist())}"
         )
     return pair, numbers_

@@ -21,9 +21,13 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
+from fastsdf.introspect import show_field_types
+
 __all__ = ["Contour", "contours", "refine_crossings"]
 
 
+@show_field_types
 class Contour(NamedTuple):
     """One polyline of a level set: ``points`` (k, 2) in the function's coordinates and
     whether it is ``closed`` (then the last point connects back to the first, which is not
@@ -55,7 +59,7 @@ def refine_crossings(
     ``hi[k]`` at the other coordinate ``fixed[k]``; ``glo``, ``ghi`` are ``f - level`` at its
     ends, of opposite signs (one may be 0). Returns the coordinate along the edge of a point
     whose distance to a sign change of ``f - level`` is at most ``tol``: the end of the final
-    bracket with the smaller ``|f - level|``.
+    bracket with the smaller ``|f - level|`` (after at most ``max_iter`` steps).
     """
     a, b = lo.astype(np.float64).copy(), hi.astype(np.float64).copy()
     fa, fb = glo.astype(np.float64).copy(), ghi.astype(np.float64).copy()
@@ -83,7 +87,7 @@ def refine_crossings(
             raise ValueError(
                 f"the function is not finite at {int(bad.sum())} point(s) on "
                 f"cell edges crossing the level set (e.g. at "
-                f"{float(c[bad][0])!r} along axis {int(ax[bad][0])})"
+                f"{shown(float(c[bad][0]))} along axis {int(ax[bad][0])})"
             )
         same_as_b = np.sign(fc) == np.sign(FB)
         # c replaces b where it has b's sign, else a; halve the other end's value if that end
@@ -112,11 +116,11 @@ def _check_resolution(resolution: Any) -> tuple:
         nx, ny = (int(abs(complex(r))) if isinstance(r, complex) else int(r) for r in resolution)
     except (TypeError, ValueError):
         raise TypeError(
-            f"resolution must be a node count or a pair of them, got resolution={resolution!r}"
+            f"resolution must be a node count or a pair of them, got resolution={shown(resolution)}"
         ) from None
     if nx < 2 or ny < 2:
         raise ValueError(
-            f"resolution needs at least 2 nodes per axis, got resolution={resolution!r}"
+            f"resolution needs at least 2 nodes per axis, got resolution={shown(resolution)}"
         )
     return nx, ny
 
@@ -126,11 +130,11 @@ def _check_bounds(bounds: ArrayLike) -> tuple:
         (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
     except (TypeError, ValueError):
         raise TypeError(
-            f"bounds must be two (min, max) pairs of numbers, got bounds={bounds!r}"
+            f"bounds must be two (min, max) pairs of numbers, got bounds={shown(bounds)}"
         ) from None
     if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
         raise ValueError(
-            f"bounds must be finite with min < max on each axis, got bounds={bounds!r}"
+            f"bounds must be finite with min < max on each axis, got bounds={shown(bounds)}"
         )
     return (x0, x1), (y0, y1)
 
@@ -157,9 +161,9 @@ def contours(
     (x0, x1), (y0, y1) = _check_bounds(bounds)
     nx, ny = _check_resolution(resolution)
     if not (isinstance(level, (int, float, np.integer, np.floating)) and math.isfinite(level)):
-        raise ValueError(f"level must be a finite number, got level={level!r}")
+        raise ValueError(f"level must be a finite number, got level={shown(level)}")
     if not (isinstance(tol, (int, float)) and tol > 0):
-        raise ValueError(f"tol must be a positive number, got tol={tol!r}")
+        raise ValueError(f"tol must be a positive number, got tol={shown(tol)}")
     level = float(level)
     xs, ys = np.linspace(x0, x1, nx), np.linspace(y0, y1, ny)
     X, Y = np.meshgrid(xs, ys, indexing="ij")

@@ -21,6 +21,8 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
+from fastsdf.introspect import show_field_types
 from fastsdf.notice import compiling_first
 
 __all__ = ["distance_transform", "signed_distance_transform", "EdtSpacing", "edt_kernel"]
@@ -30,6 +32,7 @@ _TILE = 16
 _INF = np.inf
 
 
+@show_field_types
 class EdtSpacing(NamedTuple):
     """Pixel spacing along the first (``hi``) and second (``hj``) axis of the mask."""
 
@@ -199,7 +202,7 @@ def _check_spacing(sampling: ArrayLike | None) -> EdtSpacing:
         return EdtSpacing(1.0, 1.0)
     s = np.broadcast_to(np.asarray(sampling, dtype=np.float64), (2,))
     if not (np.isfinite(s).all() and (s > 0).all()):
-        raise ValueError(f"sampling must be positive and finite, got sampling={sampling!r}")
+        raise ValueError(f"sampling must be positive and finite, got sampling={shown(sampling)}")
     return EdtSpacing(float(s[0]), float(s[1]))
 
 
@@ -233,7 +236,9 @@ def distance_transform(
 def signed_distance_transform(
     mask: ArrayLike, sampling: ArrayLike | None = None, return_indices: bool = False
 ) -> np.ndarray | tuple:
-    """Signed distance of each pixel centre to the boundary of the True pixels.
+    """Signed distance of each pixel centre to the boundary of the True pixels of ``mask`` (a
+    2-d boolean array), in the units of ``sampling`` (the pixel's height and width; default
+    1: pixels).
 
     Half-pixel convention: the boundary lies halfway between the centres of two neighbouring
     pixels of different phase, so a pixel's value is its distance to the nearest pixel of the

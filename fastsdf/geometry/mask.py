@@ -31,13 +31,13 @@ from __future__ import annotations
 import errno
 import math
 import os
-import reprlib
 from typing import Any
 
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
 from fastsdf.fields.grid import GridSDF
 from fastsdf.function import Function
 from fastsdf.geometry.edt import distance_transform, edt_kernel, signed_distance_transform
@@ -50,7 +50,7 @@ _ORIGINS = ("upper", "lower")
 
 def _check_origin(origin: str) -> str:
     if origin not in _ORIGINS:
-        raise ValueError(f"origin must be 'upper' or 'lower', got origin={origin!r}")
+        raise ValueError(f"origin must be 'upper' or 'lower', got origin={shown(origin)}")
     return origin
 
 
@@ -60,11 +60,11 @@ def _extent(bounds: ArrayLike, shape: tuple) -> tuple:
         (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
     except (TypeError, ValueError):
         raise TypeError(
-            f"bounds must be two (min, max) pairs of numbers, got bounds={bounds!r}"
+            f"bounds must be two (min, max) pairs of numbers, got bounds={shown(bounds)}"
         ) from None
     if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
         raise ValueError(
-            f"bounds must be finite with min < max on each axis, got bounds={bounds!r}"
+            f"bounds must be finite with min < max on each axis, got bounds={shown(bounds)}"
         )
     rows, cols = shape
     if rows < 2 or cols < 2:
@@ -74,7 +74,8 @@ def _extent(bounds: ArrayLike, shape: tuple) -> tuple:
 
 def pixel_grid(values: np.ndarray, bounds: ArrayLike, origin: str = "upper") -> tuple:
     """Node values ``(ncols, nrows)`` in the grid's layout (x along the first axis, y up) and
-    the grid's bounds (the pixel centres), from a per-pixel array ``values[row, col]``."""
+    the grid's bounds (the pixel centres), from a per-pixel array ``values[row, col]`` with
+    row 0 at the top (``origin='upper'``) or the bottom (``'lower'``)."""
     _check_origin(origin)
     ((x0, x1), (y0, y1)), (px, py) = _extent(bounds, values.shape)
     nodes = values[::-1].T if origin == "upper" else values.T
@@ -105,7 +106,8 @@ def from_mask(
     unless an ``exact`` SDF for the world beyond the image is given with ``mode='exact'``.
     The mask needs pixels of both phases. With square pixels neighbouring nodes differ by at
     most the pixel size, so the grid is marked ``exactness='exact'`` (safe for simulations'
-    query skipping); with non-square pixels it is ``'none'``.
+    query skipping); with non-square pixels it is ``'none'``. ``dtype``: the grid's floats
+    (float64, or float32 for half the memory).
     """
     a = np.asarray(mask)
     if a.ndim != 2:
@@ -185,10 +187,12 @@ def _levels(image: np.ndarray, levels: Any) -> np.ndarray:
             lo, hi = (float(v) for v in levels)
         except (TypeError, ValueError):
             raise TypeError(
-                f"levels must be a (black, white) pair, got levels={levels!r}"
+                f"levels must be a (black, white) pair, got levels={shown(levels)}"
             ) from None
         if not (math.isfinite(lo) and math.isfinite(hi) and lo != hi):
-            raise ValueError(f"levels must be two different finite numbers, got levels={levels!r}")
+            raise ValueError(
+                f"levels must be two different finite numbers, got levels={shown(levels)}"
+            )
     return (image.astype(np.float64) - lo) / (hi - lo)
 
 
@@ -210,7 +214,7 @@ def _read_image(path: str | os.PathLike) -> np.ndarray:
                 return np.asarray(im.convert("RGBA"))
         return np.asarray(imread(name))
     except (OSError, ValueError, SyntaxError) as exc:  # (Pillow's errors for unreadable data)
-        raise ValueError(f"image: {name!r} could not be read as an image ({exc})") from exc
+        raise ValueError(f"image: {shown(name)} could not be read as an image ({exc})") from exc
 
 
 def _grey_levels(image: ArrayLike | str | os.PathLike, levels: Any) -> np.ndarray:
@@ -222,7 +226,7 @@ def _grey_levels(image: ArrayLike | str | os.PathLike, levels: Any) -> np.ndarra
     if img.ndim == 0 or img.dtype == object:
         raise TypeError(
             f"image must be a path to an image file or an array of grey levels (rows, cols) "
-            f"or colours (rows, cols, 3 or 4), got image={reprlib.repr(image)} "
+            f"or colours (rows, cols, 3 or 4), got image={shown(image)} "
             f"({type(image).__name__})"
         )
     if img.dtype == np.bool_:
@@ -296,7 +300,7 @@ def from_image(
         or not 0.0 < float(threshold) < 1.0
     ):
         raise ValueError(
-            f"threshold must be a level strictly between 0 and 1, got threshold={threshold!r}"
+            f"threshold must be a level strictly between 0 and 1, got threshold={shown(threshold)}"
         )
     if dark_inside:
         g = 1.0 - g
@@ -310,7 +314,7 @@ def from_image(
         return from_mask(inside, bounds, origin=origin, exact=exact, mode=mode, dtype=dtype)
     if not _square(px, py):
         raise ValueError(
-            f"sub-pixel edges need square pixels, got {px!r} x {py!r} (choose "
+            f"sub-pixel edges need square pixels, got {shown(px)} x {shown(py)} (choose "
             f"bounds in the image's aspect ratio, or subpixel=False)"
         )
     if inside.all() or not inside.any():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from fastsdf.expr.graph import gc_paused
+from fastsdf.expr.validate import shown
 from fastsdf.shapes import SDF, Box, Circle, Halfspace, smoothness, transform
 
 __all__ = ["funnel", "seed_world", "box_world", "mixed_scene"]
@@ -33,7 +34,7 @@ def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
     [-2, 2]^2, corners in [-0.3, -0.1] and [0.1, 0.3]) from ``numpy.random.default_rng(seed)``.
     """
     if int(n_boxes) != n_boxes or n_boxes < 0:
-        raise ValueError(f"n_boxes must be a non-negative integer, got n_boxes={n_boxes!r}")
+        raise ValueError(f"n_boxes must be a non-negative integer, got n_boxes={shown(n_boxes)}")
     with gc_paused():  # a bulk build (see fastsdf.expr.graph._GCPaused)
         return _box_world(int(n_boxes), seed)
 
@@ -57,7 +58,7 @@ def mixed_scene(n: int, seed: int = 1) -> SDF:
     ``numpy.random.default_rng(seed)``. The worst case for code generation and compile time
     (used by the benchmarks and tests)."""
     if int(n) != n or n < 1:
-        raise ValueError(f"n must be a positive integer, got n={n!r}")
+        raise ValueError(f"n must be a positive integer, got n={shown(n)}")
     with gc_paused():  # a bulk build (see fastsdf.expr.graph._GCPaused)
         return _mixed_scene(int(n), seed)
 

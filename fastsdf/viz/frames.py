@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from fastsdf.expr.validate import shown
 from fastsdf.files import commit, temporary_sibling
 
 __all__ = [
@@ -198,7 +199,7 @@ def _positive_int(value: Any, name: str, minimum: int = 1) -> int:
         or not isinstance(value, numbers.Integral)
         or value < minimum
     ):
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
     return int(value)
 
 
@@ -206,9 +207,9 @@ def _positive_real(value: Any, name: str) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number > 0, got {name}={value!r}") from None
+        raise ValueError(f"{name} must be a finite number > 0, got {name}={shown(value)}") from None
     if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {name}={value!r}")
+        raise ValueError(f"{name} must be a finite number > 0, got {name}={shown(value)}")
     return v
 
 
@@ -341,15 +342,17 @@ class VideoWriter:
         try:
             width, height = (int(v) for v in size)
         except (TypeError, ValueError):
-            raise ValueError(f"size must be (width, height) in pixels, got size={size!r}") from None
+            raise ValueError(
+                f"size must be (width, height) in pixels, got size={shown(size)}"
+            ) from None
         if width < 64 or height < 64 or width % 2 or height % 2:
             raise ValueError(
-                f"size must be (width, height), both even and >= 64, got size={size!r}"
+                f"size must be (width, height), both even and >= 64, got size={shown(size)}"
             )
         self.size = (width, height)
         self.fps = _positive_real(fps, "fps")
         if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got mode={mode!r}")
+            raise ValueError(f"mode must be one of {MODES}, got mode={shown(mode)}")
         self.mode = mode
         self.max_discs = (
             DEFAULT_MAX_CIRCLES if max_discs is None else _positive_int(max_discs, "max_discs", 0)
@@ -357,7 +360,9 @@ class VideoWriter:
         if vmax is not None:
             v = _positive_real(vmax, "vmax")
             if v <= 1.0 or v > 1e8:
-                raise ValueError(f"vmax must be in (1, 1e8] particles per pixel, got vmax={vmax!r}")
+                raise ValueError(
+                    f"vmax must be in (1, 1e8] particles per pixel, got vmax={shown(vmax)}"
+                )
             vmax = v
         self.vmax = vmax
         #: The density colour scale, :func:`fastsdf.viz.render.density_norm` of ``vmax``, once the
@@ -372,12 +377,12 @@ class VideoWriter:
         self.crf = _positive_int(crf, "crf", 0)
         self.preset = str(preset)
         if not 0.0 < float(alpha) <= 1.0:
-            raise ValueError(f"alpha must be in (0, 1], got alpha={alpha!r}")
+            raise ValueError(f"alpha must be in (0, 1], got alpha={shown(alpha)}")
         self.alpha = float(alpha)
         self.dpi = _positive_real(dpi, "dpi")
         ext = os.path.splitext(self.path)[1].lower()
         if ext not in (".mp4", ".m4v", ".mov", ".mkv"):
-            raise ValueError(f"path must end in .mp4, .m4v, .mov or .mkv, got path={path!r}")
+            raise ValueError(f"path must end in .mp4, .m4v, .mov or .mkv, got path={shown(path)}")
         self._exe = ffmpeg_exe()
         self.frames_written = 0
         self._proc: subprocess.Popen | None = None

@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from fastsdf.expr.validate import shown
+
 __all__ = [
     "plot_sdf",
     "sdf_grid",
@@ -61,14 +63,16 @@ def check_bounds(bounds: Any, name: str = "bounds") -> tuple:
         arr = np.asarray(bounds, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(
-            f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}"
+            f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={shown(bounds)}"
         ) from None
     if arr.shape != (2, 2):
-        raise ValueError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}")
+        raise ValueError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={shown(bounds)}")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={bounds!r}")
+        raise ValueError(f"{name} must be finite, got {name}={shown(bounds)}")
     if not (arr[0, 0] < arr[0, 1] and arr[1, 0] < arr[1, 1]):
-        raise ValueError(f"{name} must have xmin < xmax and ymin < ymax, got {name}={bounds!r}")
+        raise ValueError(
+            f"{name} must have xmin < xmax and ymin < ymax, got {name}={shown(bounds)}"
+        )
     return ((float(arr[0, 0]), float(arr[0, 1])), (float(arr[1, 0]), float(arr[1, 1])))
 
 
@@ -80,7 +84,8 @@ def _check_samples(samples: Any) -> tuple:
         for v in pair
     ):
         raise ValueError(
-            f"samples must be an integer >= 2 or a pair of them (x, y), got samples={samples!r}"
+            f"samples must be an integer >= 2 or a pair of them (x, y), got "
+            f"samples={shown(samples)}"
         )
     return int(pair[0]), int(pair[1])
 
@@ -199,25 +204,27 @@ def _check_levels(levels: Any, show_isolines: Any) -> Any:
         return None
     if show_isolines != "all":
         raise ValueError(
-            f"levels applies to show_isolines='all', got levels={levels!r} with "
-            f"show_isolines={show_isolines!r}"
+            f"levels applies to show_isolines='all', got levels={shown(levels)} with "
+            f"show_isolines={shown(show_isolines)}"
         )
     if isinstance(levels, numbers.Integral) and not isinstance(levels, (bool, np.bool_)):
         if levels < 1:
-            raise ValueError(f"levels must be a count >= 1 or distances, got levels={levels!r}")
+            raise ValueError(
+                f"levels must be a count >= 1 or distances, got levels={shown(levels)}"
+            )
         return int(levels)
     try:
         values = np.asarray(levels, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(
-            f"levels must be a count >= 1 or increasing distances, got levels={levels!r}"
+            f"levels must be a count >= 1 or increasing distances, got levels={shown(levels)}"
         ) from None
     if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
         raise ValueError(
-            f"levels must be a count >= 1 or increasing distances, got levels={levels!r}"
+            f"levels must be a count >= 1 or increasing distances, got levels={shown(levels)}"
         )
     if np.any(np.diff(values) <= 0):
-        raise ValueError(f"levels must be increasing, got levels={levels!r}")
+        raise ValueError(f"levels must be increasing, got levels={shown(levels)}")
     return values
 
 
@@ -332,7 +339,7 @@ def plot_sdf(
         f = f_or_fig
     if f is None or not callable(f):
         raise TypeError(
-            f"f must be a callable SDF, got f={f!r}: call plot_sdf(f), "
+            f"f must be a callable SDF, got f={shown(f)}: call plot_sdf(f), "
             f"plot_sdf(f, ax=ax) or plot_sdf(fig, ax, f)"
         )
     if isinstance(show_isolines, str) or show_isolines is None or show_isolines is False:
@@ -342,13 +349,13 @@ def plot_sdf(
     if not ok:
         raise ValueError(
             f"show_isolines must be 'all', 'zero', False or None, got "
-            f"show_isolines={show_isolines!r}"
+            f"show_isolines={shown(show_isolines)}"
         )
     if colorbar and not (show_isolines == "all" or show_quiver):
         raise ValueError(
             f"colorbar=True needs something coloured by the distance "
             f"(show_isolines='all' or show_quiver=True), got "
-            f"show_isolines={show_isolines!r}, show_quiver={show_quiver!r}"
+            f"show_isolines={shown(show_isolines)}, show_quiver={shown(show_quiver)}"
         )
     bounds = check_bounds(bounds)
     samples = _check_samples(samples)

@@ -34,6 +34,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
 from fastsdf.viz.plotting import check_bounds
 
 __all__ = [
@@ -139,9 +140,9 @@ def _splat_parallel(xs, ys, ws, use_w, img, xe, ye, chunks):
 
 def _check_count(value: object, name: str, minimum: int) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
     if int(value) < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
     return int(value)
 
 
@@ -150,13 +151,15 @@ def check_shape(shape: Any) -> tuple[int, int]:
         h, w = shape
     except (TypeError, ValueError):
         raise ValueError(
-            f"shape must be a pair (H, W) of positive integers, got shape={shape!r}"
+            f"shape must be a pair (H, W) of positive integers, got shape={shown(shape)}"
         ) from None
     if not all(
         isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 1
         for v in (h, w)
     ):
-        raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}")
+        raise ValueError(
+            f"shape must be a pair (H, W) of positive integers, got shape={shown(shape)}"
+        )
     return int(h), int(w)
 
 
@@ -676,7 +679,7 @@ def animate(
         except TypeError:
             raise ValueError(
                 f"steps_per_frame must be an integer >= 0 or one per frame, got "
-                f"steps_per_frame={steps_per_frame!r}"
+                f"steps_per_frame={shown(steps_per_frame)}"
             ) from None
         if len(schedule) != frames:
             raise ValueError(
@@ -757,7 +760,9 @@ def save_animation(
 
     ext = os.path.splitext(str(path))[1].lower()
     if ext not in VIDEO_FORMATS:
-        raise ValueError(f"path must end in one of {', '.join(VIDEO_FORMATS)}, got path={path!r}")
+        raise ValueError(
+            f"path must end in one of {', '.join(VIDEO_FORMATS)}, got path={shown(path)}"
+        )
     if fps is None:
         fps = 1000.0 / float(getattr(anim, "_interval", 50) or 50)
     kind = VIDEO_FORMATS[ext]
