@@ -270,8 +270,8 @@ def read_trajectory(
 ) -> dict:
     """The frames of the H5MD file at ``path`` as NumPy arrays: ``{'step': (F,), 'time':
     (F,), field: (F, N, ...) ...}`` for each time-dependent element of ``/particles/<group>``
-    (or the ``fields`` named). Opens files left by a writer that died (SWMR read mode) and keeps only
-    frames that have a step (see the module docs)."""
+    (or the ``fields`` named). Opens files left by a writer that died (SWMR read mode) and
+    keeps only frames that have a step (see the module docs)."""
     h5py = _h5py()
     try:
         f = h5py.File(path, "r")
