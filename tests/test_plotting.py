@@ -19,7 +19,7 @@ from matplotlib.image import AxesImage
 
 import fastsdf as sdf
 from fastsdf.viz import plotting, render
-from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf
+from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, SURFACE_COLOR, plot_sdf
 from fastsdf.viz.render import ParticleLayer, density_image, draw_particles, render_frame
 
 BOUNDS = [(-2, 2), (-2, 2)]
@@ -84,17 +84,26 @@ def test_plot_sdf_every_option_creates_expected_artists(circle, isolines, quiver
         expected.add("contour")
         if labels:
             expected.add("labels")
+    if isolines == "all":
+        expected.add("surface")  # the zero contour, over the coloured lines
     if quiver:
         expected.add("quiver")
     if filled:
         expected.add("fill")
+    if isolines == "all" or quiver:
+        expected.add("colorbar")  # by default where something is coloured by the distance
     assert set(out) == expected
-    # The notebook's look: limits = bounds, equal aspect, no tick labels.
+    # A figure to keep by default: limits = bounds, equal aspect, ticks labelled x and y.
     assert ax.get_xlim() == (-2, 2) and ax.get_ylim() == (-2, 2)
     assert ax.get_aspect() == 1.0
     fig.canvas.draw()
-    assert all(not t.get_visible() or t.get_text() == "" for t in ax.get_xticklabels())
-    assert all(not t.get_visible() or t.get_text() == "" for t in ax.get_yticklabels())
+    assert any(t.get_text() for t in ax.get_xticklabels())
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x", "y")
+    surface = out.get("surface" if isolines == "all" else "contour") if isolines else None
+    if surface is not None:  # the zero contour: a thick black line
+        assert list(surface.levels) == [0.0]
+        assert np.allclose(surface.get_edgecolor()[0], to_rgba(SURFACE_COLOR))
+        assert surface.get_linewidth()[0] > 1.5 * matplotlib.rcParams["lines.linewidth"]
     if isolines == "zero":
         assert list(out["contour"].levels) == [0.0]
     if isolines == "all":
@@ -163,7 +172,7 @@ def test_plot_sdf_with_nan_values_does_not_fail():
 
     fig, ax = new_axes()
     out = plot_sdf(fig, ax, holey, samples=30, filled=True)
-    assert set(out) == {"ax", "contour", "quiver", "fill"}
+    assert set(out) == {"ax", "contour", "surface", "quiver", "fill", "colorbar"}
     fig.canvas.draw()
 
 
@@ -296,10 +305,12 @@ def test_plot_sdf_axes_draws_a_figure_to_keep():
         assert abs(bar.height - box.height) < 0.05 * box.height
     finally:
         plt.close(fig)
-    # the notebook's look stays the default: no ticks, no labels
+    # axes=False: the notebook's look, no ticks, no labels, no colour bar
     fig, ax = new_axes()
-    plot_sdf(f, ax=ax, samples=40, show_quiver=False)
-    assert ax.get_xlabel() == "" and ax.get_title() == ""
+    out = plot_sdf(f, ax=ax, samples=40, show_quiver=False, axes=False, colorbar=False)
+    fig.canvas.draw()
+    assert ax.get_xlabel() == "" and ax.get_title() == "" and "colorbar" not in out
+    assert all(not t.get_visible() or t.get_text() == "" for t in ax.get_xticklabels())
 
 
 def test_plot_sdf_levels_are_the_lines_drawn():
