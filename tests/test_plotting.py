@@ -553,3 +553,28 @@ def test_render_frame_without_png_returns_figure(world):
     fig = render_frame(world, [0.0], [0.0], r=0.1, samples=20, figsize=(2, 2), dpi=40)
     assert isinstance(fig, Figure) and fig.particle_layer.mode == "circles"
     assert render.DEFAULT_MAX_CIRCLES == 5000
+
+
+@pytest.mark.parametrize(
+    "bounds, n, title",
+    [([(-2, 2), (-1, 1)], 50, "wide"), ([(-1, 1), (-2, 2)], 50, None), (BOUNDS, 20_000, "dense")],
+)
+def test_render_frame_is_sized_to_its_bounds(world, tmp_path, bounds, n, title):
+    """Without a figsize the figure fits its bounds: what it shows (axes, tick labels, title,
+    colour bar) spans nearly all of it, with no blank band beside or above the world; a colour
+    bar only where the particles are a density image."""
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.9, 0.9, n)
+    out = tmp_path / "frame.png"
+    fig = render_frame(world, x, y, r=0.02, bounds=bounds, samples=60, out_png=str(out), title=title)
+    FigureCanvasAgg(fig).draw()
+    ax = fig.axes[0]
+    (x0, x1), (y0, y1) = bounds
+    box = ax.get_window_extent()
+    assert box.height / box.width == pytest.approx((y1 - y0) / (x1 - x0), rel=0.02)
+    drawn = fig.get_tightbbox(fig.canvas.get_renderer())
+    w, h = fig.get_size_inches()
+    assert drawn.width > 0.9 * w and drawn.height > 0.9 * h, (drawn, w, h)
+    assert fig.axes[1].get_visible() == (n > render.DEFAULT_MAX_CIRCLES)
+    img = mpimg.imread(str(out))
+    assert img.shape[:2] == (round(h * 100), round(w * 100))

@@ -129,7 +129,7 @@ class BeverlooFit(NamedTuple):
         self, width: float | np.ndarray, diameter: float = 1.0, gravity: float = 1.0
     ) -> np.ndarray:
         """The law's flow rate through a slot of ``width``, for grains of ``diameter`` under
-    ``gravity`` (the magnitude), in the units the law was fitted in."""
+        ``gravity`` (the magnitude), in the units the law was fitted in."""
         gap = np.clip(np.asarray(width, dtype=np.float64) - self.k * diameter, 0.0, None)
         return np.asarray(self.C * math.sqrt(gravity) * gap**self.exponent)
 

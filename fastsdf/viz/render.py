@@ -528,26 +528,48 @@ def draw_particles(
 # A world with particles in one figure; animations of a running simulation; saving them.
 
 
+#: The width (inches) of a figure that :func:`render_frame` sizes to its bounds, and the
+#: most its axes may be tall.
+FRAME_WIDTH = 6.4
+FRAME_MAX_HEIGHT = 6.4
+
+
 def world_figure(
-    f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float, ticks: bool = True
+    f: Any,
+    bounds: Any,
+    samples: int,
+    figsize: tuple | None,
+    dpi: float,
+    ticks: bool = True,
+    bar: bool = True,
+    title: bool = True,
 ) -> tuple:
     """``(fig, ax, cax)``: ``f``'s filled view on ``ax``, and a hidden axes ``cax`` for a colour
     bar beside it, laid out by hand so that nothing is cut and no margin is wasted (matplotlib's
-    layout engines misplace a colour bar beside an equal-aspect axes)."""
+    layout engines misplace a colour bar beside an equal-aspect axes). ``figsize=None``: a
+    figure :data:`FRAME_WIDTH` wide (narrower for a tall world, whose axes stop at
+    :data:`FRAME_MAX_HEIGHT`) as tall as the bounds' aspect needs, with room for the colour
+    bar only with ``bar`` and for a title only with ``title``."""
     from matplotlib.figure import Figure
 
     from fastsdf.viz.plotting import check_bounds, plot_sdf
 
     (x0, x1), (y0, y1) = check_bounds(bounds)
+    left, bottom = (0.75, 0.47) if ticks else (0.15, 0.15)
+    top = 0.32 if title else (0.15 if ticks else 0.1)
+    # the colour bar: gap, width, room for its ticks and label (else room for a tick label)
+    gap, width, right = (0.15, 0.2, 0.85) if bar else (0.0, 0.0, 0.3 if ticks else 0.15)
+    aspect = (y1 - y0) / (x1 - x0)
+    if figsize is None:
+        w = FRAME_WIDTH - left - gap - width - right
+        w = min(w, FRAME_MAX_HEIGHT / aspect)
+        figsize = (round(left + w + gap + width + right, 2), round(bottom + w * aspect + top, 2))
     fig = Figure(figsize=figsize, dpi=dpi)
     W, H = fig.get_size_inches()
-    left, bottom, top = (0.75, 0.6, 0.45) if ticks else (0.15, 0.15, 0.45)
-    gap, bar, right = 0.15, 0.2, 0.85  # colour bar: gap, width, room for its ticks and label
-    aspect = (y1 - y0) / (x1 - x0)
-    w = min(W - left - gap - bar - right, (H - bottom - top) / aspect)
+    w = min(W - left - gap - width - right, (H - bottom - top) / aspect)
     h = w * aspect
     ax = fig.add_axes((left / W, bottom / H, w / W, h / H))
-    cax = fig.add_axes(((left + w + gap) / W, bottom / H, bar / W, h / H))
+    cax = fig.add_axes(((left + w + gap) / W, bottom / H, max(width, 0.01) / W, h / H))
     cax.set_visible(False)
     plot_sdf(
         fig,
@@ -573,7 +595,7 @@ def render_frame(
     title: str | None = None,
     samples: int = 400,
     max_circles: int | None = None,
-    figsize: tuple = (6.4, 5.6),
+    figsize: tuple | None = None,
     dpi: float = 100,
     colorbar: bool = True,
     ticks: bool = True,
@@ -590,15 +612,19 @@ def render_frame(
     pixel when ``colorbar``, scaled by :func:`density_norm` up to ``vmax`` particles per pixel
     (``None``: the busiest pixel's count; give a video's ``vmax`` to colour the picture as its
     frames). ``title`` is the axes title (say what is shown: the simulated time,
-    the step). The figure is ``figsize`` inches at ``dpi``, laid out without wasted margin
-    (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
+    the step). The figure is ``figsize`` inches at ``dpi`` (default: sized to ``bounds``,
+    :data:`FRAME_WIDTH` wide, with room for the colour bar only where one is drawn), laid out
+    without wasted margin (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
     ``out_png`` is given it is saved there at that dpi, uncropped, so the axes' ``transData``
     maps data coordinates to the PNG's pixels (y counted from the bottom).
 
     Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
     closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
     """
-    fig, ax, cax = world_figure(f, bounds, samples, figsize, dpi, ticks)
+    max_circles = DEFAULT_MAX_CIRCLES if max_circles is None else max_circles
+    # a colour bar: of the density image drawn above max_circles particles
+    bar = bool(colorbar) and (figsize is not None or np.size(x) > max_circles)
+    fig, ax, cax = world_figure(f, bounds, samples, figsize, dpi, ticks, bar, title is not None)
     layer = draw_particles(
         ax,
         x,
@@ -606,7 +632,7 @@ def render_frame(
         r=r,
         bounds=bounds,
         colorbar=cax if colorbar else False,
-        max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles,
+        max_circles=max_circles,
         norm=None if vmax is None else density_norm(vmax),
     )
     fig.particle_layer = layer
