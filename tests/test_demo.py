@@ -164,7 +164,7 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
     assert np.all(world(*np.array(probes).T) < -0.05)
     # Map data coordinates to PNG pixels with the same figure layout render_frame uses.
-    fig = render_frame(world, np.zeros(0), np.zeros(0))
+    fig = render_frame(world, np.zeros(0), np.zeros(0), figsize=(6.4, 5.6))  # the demo's
     fig.canvas.draw()
     to_px = fig.axes[0].transData
     height = img.shape[0]

@@ -103,7 +103,7 @@ def test_plot_sdf_every_option_creates_expected_artists(circle, isolines, quiver
     if surface is not None:  # the zero contour: a thick black line
         assert list(surface.levels) == [0.0]
         assert np.allclose(surface.get_edgecolor()[0], to_rgba(SURFACE_COLOR))
-        assert surface.get_linewidth()[0] > 1.5 * matplotlib.rcParams["lines.linewidth"]
+        assert surface.get_linewidth()[0] > 1.25 * matplotlib.rcParams["lines.linewidth"]
     if isolines == "zero":
         assert list(out["contour"].levels) == [0.0]
     if isolines == "all":

@@ -235,16 +235,21 @@ def _load() -> float | None:
 
 
 def _timed_advance(
-    sim: Any, k: int, timing: dict[str, Any], outside_share: Callable[[], float]
+    sim: Any,
+    k: int,
+    timing: dict[str, Any],
+    outside_share: Callable[[], float] = lambda: 0.0,
+    what: str = "the particle step",
 ) -> None:
-    """Advance ``sim`` by ``k`` steps, keeping the demo's timing record: the first call, which
-    compiles (or loads) the kernel, is timed apart from the rest; ``outside_share()`` is the
-    share of particles outside the grid now, standing for the steps before it."""
+    """Advance ``sim`` by ``k`` steps, keeping the demo's timing record (``first``, ``rest``,
+    ``steps``, ``outside``, ``load0``): the first call, which compiles (or loads) ``what``,
+    is timed apart from the rest; ``outside_share()`` is the share of particles outside the
+    grid now, standing for the steps before it."""
     if k <= 0:
         return
     if timing["first"] is None:
         t0 = time.perf_counter()
-        with compiling("the particle step"):
+        with compiling(what):
             sim.run(1)
         timing["first"] = time.perf_counter() - t0
         timing["load0"] = _load()
@@ -257,6 +262,10 @@ def _timed_advance(
         timing["rest"] += time.perf_counter() - t0
         timing["outside"] += k * outside_share()
         timing["steps"] += k
+
+
+def _new_timing() -> dict[str, Any]:
+    return {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
 
 def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
@@ -279,14 +288,170 @@ def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
     return exact / sampled if sampled > 0 else float("nan")
 
 
-def _check_sizes(world: str, **sizes: tuple[Any, int]) -> None:
-    """``ValueError`` naming the first size that is not an integer at least its lower bound
-    (``name=(value, low)``), or an unknown ``world``."""
+def _check_demo_args(
+    world: str, sizes: dict[str, tuple[Any, int]], animate: bool, mode: str | None = None
+) -> None:
+    """``ValueError`` naming the first of ``sizes`` (``{name: (value, low)}``) that is not an
+    integer at least ``low``, an unknown ``world`` or ``mode`` (a grid's, unless None), or
+    more video frames than steps (each frame advances at least one step)."""
+    frames, steps = sizes["frames"][0], sizes["steps"][0]
     for name, (value, low) in sizes.items():
         if isinstance(value, bool) or int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {name}={shown(value)}")
     if world not in WORLDS:
         raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={shown(world)}")
+    if mode is not None and mode not in ("exact", "nearest"):
+        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={shown(mode)}")
+    if animate and frames > steps:
+        raise ValueError(
+            f"frames must be at most steps (every frame advances at least one step), "
+            f"got frames={frames}, steps={steps}"
+        )
+
+
+@dataclass
+class QueriedWorld:
+    """The world a demo's particles meet: ``f``, the exact SDF; ``sdf``, what they query (a
+    GridSDF of ``f``, or ``f`` itself); ``name``, that said in words; ``mode``, the grid's
+    answer outside its bounds; the grid's error in the collision band (``band_max``,
+    ``band_angle``) and the cost of an exact query in grid queries (``cost``); None without
+    a grid."""
+
+    f: Any
+    sdf: Any
+    name: str
+    mode: str | None = None
+    band_max: float | None = None
+    band_angle: float | None = None
+    cost: float | None = None
+
+
+def queried_world(
+    world: str,
+    grid: int,
+    mode: str,
+    exact: bool,
+    seed: int,
+    step: Callable[[str], None] = lambda what: None,
+) -> QueriedWorld:
+    """The world ``world`` (a key of :data:`WORLDS`) sampled into a ``grid`` x ``grid``
+    GridSDF over :data:`BOUNDS` answering ``mode`` outside it, with the grid's error and cost
+    measured (``seed``: their points); ``exact=True``: the exact compiled SDF, no grid.
+    ``step(what)`` is called before each part that takes time (a progress bar's)."""
+    from fastsdf.fields.grid import GridSDF, measure_error
+
+    f = WORLDS[world][0]()
+    if exact:
+        return QueriedWorld(f, f, "the exact compiled SDF (no grid)")
+    t0 = time.perf_counter()
+    with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
+        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
+    built = time.perf_counter() - t0
+    step("the grid's error")
+    error = measure_error(sdf, seed=seed)
+    name = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)"
+    return QueriedWorld(
+        f,
+        sdf,
+        name,
+        mode,
+        error.band_value_max,
+        error.band_angle_rms_deg,
+        _query_cost(sdf, seed=seed),
+    )
+
+
+def particle_result(
+    qw: QueriedWorld,
+    world: str,
+    particles: int,
+    timing: dict[str, Any],
+    timestep: float,
+    x: np.ndarray,
+    r: np.ndarray,
+    respawned: int,
+    animation: str | None,
+    last_frame: str,
+    load: tuple[float, float] | None,
+) -> DemoResult:
+    """The :class:`DemoResult` of a particle demo: ``timing`` as :func:`_timed_advance` kept
+    it, ``x`` and ``r`` the particles (or a sample of them) at the end, whose penetration of
+    the SDF they collided with is measured (the grid's own error is reported apart)."""
+    d = np.asarray(qw.sdf(x[:, 0], x[:, 1])).reshape(-1) - r
+    timed = timing["steps"] - 1
+    rest = timing["rest"]
+    return DemoResult(
+        world=world,
+        particles=particles,
+        steps=timing["steps"],
+        timestep=timestep,
+        sdf=qw.name,
+        mode=qw.mode,
+        sim_seconds=rest,
+        first_step_seconds=timing["first"] or 0.0,
+        particle_steps_per_second=timed * particles / rest if rest > 0 else float("nan"),
+        outside_grid_fraction=(
+            None if qw.mode is None else timing["outside"] / max(1, timing["steps"])
+        ),
+        exact_query_cost=qw.cost,
+        grid_band_value_max=qw.band_max,
+        grid_band_angle_rms_deg=qw.band_angle,
+        respawned=respawned,
+        inside_fraction=float(np.mean(d < -0.01 * r)),
+        load=load,
+        animation=animation,
+        last_frame=last_frame,
+    )
+
+
+def _write_video(
+    sim: Any,
+    f: Any,
+    path: str,
+    schedule: list[int],
+    advance: Callable[[int], None],
+    label: str,
+    fps: int,
+    err: IO[str],
+    vmax: float | None = None,
+) -> str:
+    """Advance ``sim`` by ``schedule`` (``advance(k)``), a frame after each advance, to a
+    video of it over the world ``f``: ``path`` with ``.mp4`` (ffmpeg: the particles splatted
+    per frame over a picture drawn once, :mod:`fastsdf.viz.frames`) or ``.gif`` (matplotlib)
+    appended; ``vmax``: the density's colour scale's top (particles per pixel, None: discs).
+    Returns the path written."""
+    from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.progress import Progress
+    from fastsdf.viz.render import animate, density_norm, save_animation, world_figure
+
+    path += _video_writer_ext(err)
+    if path.endswith(".mp4"):
+        with (
+            Progress(len(schedule), "frames", stream=err) as bar,
+            VideoWriter(path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, vmax=vmax, title=label) as video,
+        ):
+            for i, k in enumerate(schedule):
+                if i < 2:  # these may compile: their notices get a line of their own
+                    bar.clear()
+                advance(k)
+                with compiling("the video's drawing kernels"):
+                    video.add_simulation(sim)
+                bar.step()
+        return path
+    fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+    anim = animate(
+        sim,
+        ax,
+        len(schedule),
+        schedule,
+        advance=advance,
+        title=label + ", ",
+        colorbar=cax if vmax is not None else False,
+        bounds=BOUNDS,
+        norm=None if vmax is None else density_norm(vmax),
+    )
+    save_animation(anim, path, fps=fps)
+    return path
 
 
 def run_demo(
@@ -319,35 +484,23 @@ def run_demo(
 
     matplotlib.use("Agg")
 
-    from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.frames import VideoWriter
     from fastsdf.viz.progress import Progress
-    from fastsdf.viz.render import animate as _animate
-    from fastsdf.viz.render import (
-        density_norm,
-        render_frame,
-        save_animation,
-        sim_title,
-        world_figure,
-    )
+    from fastsdf.viz.render import render_frame, sim_title
 
-    _check_sizes(
+    _check_demo_args(
         world,
-        particles=(particles, 1),
-        steps=(steps, 1),
-        grid=(grid, 2),
-        frames=(frames, 1),
-        fps=(fps, 1),
+        {
+            "particles": (particles, 1),
+            "steps": (steps, 1),
+            "grid": (grid, 2),
+            "frames": (frames, 1),
+            "fps": (fps, 1),
+        },
+        animate,
+        mode,
     )
-    if mode not in ("exact", "nearest"):
-        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={shown(mode)}")
     particles, steps, frames = int(particles), int(steps), int(frames)
-    if animate and frames > steps:
-        raise ValueError(
-            f"frames must be at most steps (every frame advances at least one step), "
-            f"got frames={frames}, steps={steps}"
-        )
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
 
@@ -355,31 +508,15 @@ def run_demo(
     # the notice stands on its own line), its error and cost, the particles.
     setup = Progress(3, "setting up", stream=err)
     setup.clear()
-    build, _ = WORLDS[world]
-    f = build()
-    band_max = band_angle = cost = None
-    if exact:
-        sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
-    else:
-        t0 = time.perf_counter()
-        with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
-            sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
-        built = time.perf_counter() - t0
-        setup.step("the grid's error")
-        error = measure_error(sdf, seed=seed)
-        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
-        cost = _query_cost(sdf, seed=seed)
-        sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    qw = queried_world(world, grid, mode, exact, seed, setup.step)
     setup.step("particles", count=2 if exact else 1)
-
-    sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
-    # (fastsdf.particles is excluded from type checking while it becomes a package)
+    sim = ParticleSimulation(qw.sdf, n=particles, timestep=1 / 30, seed=seed)
     sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
-    respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
+    respawned = spawn_in_free_space(sim, qw.f, np.random.default_rng([seed, 1]))
     setup.step()
     setup.close()
 
-    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+    timing = _new_timing()
 
     def outside_share() -> float:
         x = sim.p["x"]
@@ -390,87 +527,48 @@ def run_demo(
     def advance(k: int) -> None:
         _timed_advance(sim, k, timing, outside_share)
 
-    label = f"{particles:,} particles, "
+    label = f"{particles:,} particles"
     animation_path = None
     if animate:
-        ext = _video_writer_ext(err)
-        animation_path = os.path.join(out, "particles" + ext)
-        schedule = _frame_schedule(steps, frames)
-        if ext == ".mp4":
-            # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames),
-            # all on one colour scale, the last frame's picture's too.
-            with (
-                Progress(len(schedule), "frames", stream=err) as bar,
-                VideoWriter(
-                    animation_path,
-                    f,
-                    BOUNDS,
-                    size=VIDEO_SIZE,
-                    fps=fps,
-                    vmax=density_top(particles),
-                    title=label.rstrip(", "),
-                ) as writer,
-            ):
-                for i, k in enumerate(schedule):
-                    if i < 2:  # these may compile: their notices get a line of their own
-                        bar.clear()
-                    advance(k)
-                    with compiling("the video's drawing kernels"):
-                        writer.add_simulation(sim)
-                    bar.step()
-        else:
-            fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
-            anim = _animate(
-                sim,
-                ax,
-                frames,
-                schedule,
-                advance=advance,
-                title=label,
-                colorbar=cax,
-                bounds=BOUNDS,
-                norm=density_norm(density_top(particles)),
-            )
-            save_animation(anim, animation_path, fps=fps)
+        # all on one colour scale, the last frame's picture's too
+        animation_path = _write_video(
+            sim,
+            qw.f,
+            os.path.join(out, "particles"),
+            _frame_schedule(steps, frames),
+            advance,
+            label,
+            fps,
+            err,
+            vmax=density_top(particles),
+        )
     advance(steps - timing["steps"])
     x = sim.p["x"]
     last = os.path.join(out, "last_frame.png")
     render_frame(
-        f,
+        qw.f,
         x[:, 0],
         x[:, 1],
         r=sim.p["r"],
         bounds=BOUNDS,
         out_png=last,
-        title=sim_title(sim, label),
+        title=sim_title(sim, label + ", "),
         figsize=(VIDEO_SIZE[0] / 100, VIDEO_SIZE[1] / 100),  # the video's pixels: same counts
         dpi=100,
         vmax=density_top(particles),
     )
-    # Penetration against the SDF the particles actually collided with (the grid's own error
-    # against the exact world is reported separately).
-    d = sdf(x[:, 0], x[:, 1]) - sim.p["r"]
-    timed = steps - 1
-    rate = timed * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
-    return DemoResult(
-        world=world,
-        particles=particles,
-        steps=timing["steps"],
-        timestep=sim.dt,
-        sdf=sdf_name,
-        mode=grid_mode,
-        sim_seconds=timing["rest"],
-        first_step_seconds=timing["first"] or 0.0,
-        particle_steps_per_second=rate,
-        outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
-        exact_query_cost=cost,
-        grid_band_value_max=band_max,
-        grid_band_angle_rms_deg=band_angle,
-        respawned=respawned,
-        inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
-        load=_load_pair(timing.get("load0"), _load()),
-        animation=animation_path,
-        last_frame=last,
+    return particle_result(
+        qw,
+        world,
+        particles,
+        timing,
+        sim.dt,
+        x,
+        np.asarray(sim.p["r"]),
+        respawned,
+        animation_path,
+        last,
+        _load_pair(timing.get("load0"), _load()),
     )
 
 
@@ -742,105 +840,39 @@ def run_sand_demo(
 
     matplotlib.use("Agg")
 
-    from fastsdf.fields.grid import GridSDF
-    from fastsdf.granular.analysis import repose_angle
-    from fastsdf.granular.params import ContactLaw, derived_stiffness
-    from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.frames import VideoWriter
-    from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import render_frame, sim_title
 
-    _check_sizes(
+    _check_sand_args(radius, history, rolling_friction)
+    _check_demo_args(
         world,
-        grains=(grains, 1),
-        steps=(steps, 1),
-        grid=(grid, 2),
-        frames=(frames, 1),
-        fps=(fps, 1),
+        {
+            "grains": (grains, 1),
+            "steps": (steps, 1),
+            "grid": (grid, 2),
+            "frames": (frames, 1),
+            "fps": (fps, 1),
+        },
+        animate,
     )
-    if not (np.isfinite(radius) and 0 < radius < 0.2):
-        raise ValueError(f"radius must be in (0, 0.2), got radius={shown(radius)}")
-    if not isinstance(history, bool):
-        raise TypeError(f"history must be True or False, got history={shown(history)}")
-    if not (np.isfinite(rolling_friction) and rolling_friction >= 0):
-        raise ValueError(
-            f"rolling_friction must be >= 0, got rolling_friction={shown(rolling_friction)}"
-        )
-    if rolling_friction and not history:
-        raise ValueError(
-            f"rolling_friction needs history=True, got rolling_friction={shown(rolling_friction)} "
-            f"with history=False"
-        )
     grains, steps, frames = int(grains), int(steps), int(frames)
-    if animate and frames > steps:
-        raise ValueError(
-            f"frames must be at most steps (every frame advances at least one step), "
-            f"got frames={frames}, steps={steps}"
-        )
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
     f = sand_world(world)
-    g = 9.81
-    height = BOUNDS[1][1] - BOUNDS[1][0]
-    law = ContactLaw(history=history, rolling_friction=float(rolling_friction))
-    if exact:
-        sdf, sdf_name = f, "the exact compiled SDF (no grid)"
-        # The grains' extent would set the derived stiffness: take the pictured world's height.
-        law = law._replace(stiffness=derived_stiffness(1.0, g, height))
-    else:
-        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
-        sdf_name = f"a {grid}x{grid} GridSDF"
-    rng = np.random.default_rng(seed)
-    radii = radius * rng.uniform(1 - SAND_RADIUS_SPREAD, 1 + SAND_RADIUS_SPREAD, grains)
-    sim: Any = ParticleSimulation(  # a GrainSimulation
-        sdf, positions=hopper_fill(grains, radii, rng), radius=radii, contacts=law
+    sim, sdf, sdf_name = _sand_simulation(
+        f, grid, exact, seed, grains, radius, history, rolling_friction
     )
-    sim.force_generators.append(Gravity((0.0, -g)))
-    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0}
+    timing = _new_timing()
 
     def advance(k: int) -> None:
-        if k <= 0:
-            return
-        if timing["first"] is None:
-            t0 = time.perf_counter()
-            sim.run(1)
-            timing["first"] = time.perf_counter() - t0
-            timing["load0"] = _load()
-            timing["steps"] += 1
-            k -= 1
-        if k > 0:
-            t0 = time.perf_counter()
-            sim.run(k)
-            timing["rest"] += time.perf_counter() - t0
-            timing["steps"] += k
+        _timed_advance(sim, k, timing, what="the granular kernels")
 
     label = f"{grains:,} grains"
     animation_path = None
     if animate:
-        ext = _video_writer_ext(err)
-        animation_path = os.path.join(out, "sand" + ext)
         schedule = _frame_schedule(steps, frames)
-        if ext == ".mp4":
-            with (
-                Progress(len(schedule), "frames", stream=err) as bar,
-                VideoWriter(
-                    animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, title=label
-                ) as writer,
-            ):
-                for i, k in enumerate(schedule):
-                    if i < 2:  # these may compile: their notices get a line of their own
-                        bar.clear()
-                    advance(k)
-                    with compiling("the video's drawing kernels"):
-                        writer.add_simulation(sim)
-                    bar.step()
-        else:
-            from fastsdf.viz.render import animate as _animate
-            from fastsdf.viz.render import save_animation, world_figure
-
-            fig, ax, _ = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
-            anim = _animate(sim, ax, frames, schedule, advance=advance, title=label + ", ")
-            save_animation(anim, animation_path, fps=fps)
+        animation_path = _write_video(
+            sim, f, os.path.join(out, "sand"), schedule, advance, label, fps, err
+        )
     advance(steps - timing["steps"])
     x = sim.p["x"]
     last = os.path.join(out, "sand_last_frame.png")
@@ -854,18 +886,9 @@ def run_sand_demo(
         title=sim_title(sim, label + ", "),
         colorbar=False,
     )
-    heap = x[:, 1] < -0.5
-    still = np.hypot(*np.asarray(sim.p["v"]).T) < 0.05
-    resting = heap & still
-    # the cone: grains at rest on the disc (|x| <= 0.5, its top near y = 0.3), below the outlet
-    cone = still & (np.abs(x[:, 0]) < 0.6) & (x[:, 1] > 0.0) & (x[:, 1] < HOPPER_OUTLET_Y)
-    # bins one mean radius wide: the cone is about sixteen diameters across, and bins of a
-    # diameter would leave a flank too few surface points to fit
-    repose = repose_angle(x[cone], np.asarray(sim.p["r"])[cone], bin_width=float(radius))
     overlap, wall_overlap = _max_overlaps(sim, sdf)
     substeps = sim.substeps_per_frame
     rest = timing["rest"]
-    rate = (timing["steps"] - 1) * substeps * grains / rest if rest > 0 else float("nan")
     return SandResult(
         world=world,
         grains=grains,
@@ -877,16 +900,91 @@ def run_sand_demo(
         substeps_per_step=int(substeps),
         first_step_seconds=timing["first"] or 0.0,
         sim_seconds=rest,
-        grain_substeps_per_second=rate,
+        grain_substeps_per_second=(
+            (timing["steps"] - 1) * substeps * grains / rest if rest > 0 else float("nan")
+        ),
         max_overlap=overlap,
         max_wall_overlap=wall_overlap,
-        heap_fraction=float(np.mean(heap)),
-        heap_top=float(x[resting, 1].max()) if resting.any() else float("nan"),
         animation=animation_path,
         last_frame=last,
         load=_load_pair(timing.get("load0"), _load()),
         history=history,
         rolling_friction=float(rolling_friction),
+        **_sand_heaps(sim, radius),
+    )
+
+
+def _check_sand_args(radius: float, history: bool, rolling_friction: float) -> None:
+    """``ValueError`` (``TypeError``) naming a grain radius outside (0, 0.2), a ``history``
+    not a bool, or a rolling friction that is negative or given without history."""
+    if not (np.isfinite(radius) and 0 < radius < 0.2):
+        raise ValueError(f"radius must be in (0, 0.2), got radius={shown(radius)}")
+    if not isinstance(history, bool):
+        raise TypeError(f"history must be True or False, got history={shown(history)}")
+    if not (np.isfinite(rolling_friction) and rolling_friction >= 0):
+        raise ValueError(
+            f"rolling_friction must be >= 0, got rolling_friction={shown(rolling_friction)}"
+        )
+    if rolling_friction and not history:
+        raise ValueError(
+            f"rolling_friction needs history=True, got rolling_friction="
+            f"{shown(rolling_friction)} with history=False"
+        )
+
+
+def _sand_simulation(
+    f: Any,
+    grid: int,
+    exact: bool,
+    seed: int,
+    grains: int,
+    radius: float,
+    history: bool,
+    rolling_friction: float,
+) -> tuple:
+    """``(sim, sdf, sdf_name)``: the sand scene's grains in the hopper of ``f`` under
+    ``Gravity((0, -9.81))``, meeting ``sdf`` (a ``grid`` x ``grid`` GridSDF of ``f``, or
+    ``f`` itself with ``exact``), described by ``sdf_name``."""
+    from fastsdf.fields.grid import GridSDF
+    from fastsdf.granular.params import ContactLaw, derived_stiffness
+    from fastsdf.particles import Gravity, ParticleSimulation
+
+    g = 9.81
+    law = ContactLaw(history=history, rolling_friction=float(rolling_friction))
+    if exact:
+        sdf, sdf_name = f, "the exact compiled SDF (no grid)"
+        # The grains' extent would set the derived stiffness: take the pictured world's height.
+        law = law._replace(stiffness=derived_stiffness(1.0, g, BOUNDS[1][1] - BOUNDS[1][0]))
+    else:
+        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
+        sdf_name = f"a {grid}x{grid} GridSDF"
+    rng = np.random.default_rng(seed)
+    radii = radius * rng.uniform(1 - SAND_RADIUS_SPREAD, 1 + SAND_RADIUS_SPREAD, grains)
+    sim: Any = ParticleSimulation(  # a GrainSimulation
+        sdf, positions=hopper_fill(grains, radii, rng), radius=radii, contacts=law
+    )
+    sim.force_generators.append(Gravity((0.0, -g)))
+    return sim, sdf, sdf_name
+
+
+def _sand_heaps(sim: Any, radius: float) -> dict[str, Any]:
+    """The :class:`SandResult` fields of the heaps: the funnel's (``heap_fraction``,
+    ``heap_top``) and the cone on the disc (``cone_grains``, ``cone_top``, and its angle of
+    repose ``repose_left`` and ``repose_right``)."""
+    from fastsdf.granular.analysis import repose_angle
+
+    x = np.asarray(sim.p["x"])
+    heap = x[:, 1] < -0.5
+    still = np.hypot(*np.asarray(sim.p["v"]).T) < 0.05
+    resting = heap & still
+    # the cone: grains at rest on the disc (|x| <= 0.5, its top near y = 0.3), below the outlet
+    cone = still & (np.abs(x[:, 0]) < 0.6) & (x[:, 1] > 0.0) & (x[:, 1] < HOPPER_OUTLET_Y)
+    # bins one mean radius wide: the cone is about sixteen diameters across, and bins of a
+    # diameter would leave a flank too few surface points to fit
+    repose = repose_angle(x[cone], np.asarray(sim.p["r"])[cone], bin_width=float(radius))
+    return dict(
+        heap_fraction=float(np.mean(heap)),
+        heap_top=float(x[resting, 1].max()) if resting.any() else float("nan"),
         repose_left=repose.left,
         repose_right=repose.right,
         cone_grains=int(cone.sum()),

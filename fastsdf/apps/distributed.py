@@ -52,7 +52,6 @@ import hashlib
 import numbers
 import os
 import pickle
-import time
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
@@ -911,47 +910,30 @@ def run_demo(
     from matplotlib.animation import FuncAnimation
 
     from fastsdf.apps import demo as _demo
-    from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity
     from fastsdf.viz.render import save_animation, world_figure
 
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
-    for name, value, low in (
-        ("workers", workers, 1),
-        ("particles", particles, 1),
-        ("steps", steps, 1),
-        ("grid", grid, 2),
-        ("frames", frames, 1),
-        ("fps", fps, 1),
-    ):
-        if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={shown(value)}")
-    if world not in _demo.WORLDS:
-        raise ValueError(f"world must be one of {sorted(_demo.WORLDS)}, got world={shown(world)}")
-    if mode not in ("exact", "nearest"):
-        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={shown(mode)}")
+    _demo._check_demo_args(
+        world,
+        {
+            "workers": (workers, 1),
+            "particles": (particles, 1),
+            "steps": (steps, 1),
+            "grid": (grid, 2),
+            "frames": (frames, 1),
+            "fps": (fps, 1),
+        },
+        animate,
+        mode,
+    )
     particles, steps, frames = int(particles), int(steps), int(frames)
-    if animate and frames > steps:
-        raise ValueError(
-            f"frames must be at most steps (every frame advances at least one "
-            f"step), got frames={frames}, steps={steps}"
-        )
     err = stream if stream is not None else sys.stderr
     out = _demo.check_output_dir(out)
     bounds = _demo.BOUNDS
-    f = _demo.WORLDS[world][0]()
-    band_max = band_angle = cost = None
-    if exact:
-        sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
-    else:
-        t0 = time.perf_counter()
-        sdf = GridSDF(f, bounds=bounds, samples=[grid * 1j, grid * 1j], mode=mode)
-        built = time.perf_counter() - t0
-        error = measure_error(sdf, seed=seed)
-        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
-        cost = _demo._query_cost(sdf, seed=seed)
-        sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    qw = _demo.queried_world(world, grid, mode, exact, seed)
+    f = qw.f
     with contextlib.ExitStack() as stack:
         if client is None:
             cluster = stack.enter_context(local_cluster(int(workers)))
@@ -959,7 +941,7 @@ def run_demo(
         workers = len(_workers(client))
         sim = stack.enter_context(
             DistributedSimulation(
-                sdf,
+                qw.sdf,
                 particles,
                 client=client,
                 seed=seed,
@@ -968,8 +950,8 @@ def run_demo(
                 init=_Spawn(f, seed),
             )
         )
-        sdf_name += f", particles on {workers} Dask worker processes"
-        timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+        qw.name += f", particles on {workers} Dask worker processes"
+        timing = _demo._new_timing()
 
         def outside_share() -> float:
             # Particles inside the bounds, edges included: a 1x1 density image counts them.
@@ -1007,26 +989,17 @@ def run_demo(
         sample = sim.sample(min(particles, 100_000), seed=seed)
         respawned = int(sum(sim.init_results))
         dt = sim.dt
-    x, r = sample["x"], sample["r"]
-    d = sdf(x[:, 0], x[:, 1]) - r
-    rate = (steps - 1) * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
-    return _demo.DemoResult(
-        world=world,
-        particles=particles,
-        steps=timing["steps"],
-        timestep=dt,
-        sdf=sdf_name,
-        mode=grid_mode,
-        sim_seconds=timing["rest"],
-        first_step_seconds=timing["first"] or 0.0,
-        particle_steps_per_second=rate,
-        outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
-        exact_query_cost=cost,
-        grid_band_value_max=band_max,
-        grid_band_angle_rms_deg=band_angle,
-        respawned=respawned,
-        inside_fraction=float(np.mean(d < -0.01 * r)),
-        load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
-        animation=animation_path,
-        last_frame=last,
+    load0 = timing.get("load0")
+    return _demo.particle_result(
+        qw,
+        world,
+        particles,
+        timing,
+        dt,
+        sample["x"],
+        sample["r"],
+        respawned,
+        animation_path,
+        last,
+        _demo._load_pair(load0, _demo._load()),
     )

@@ -286,7 +286,7 @@ def _label_isolines(ax: Any, contours: Any, bounds: tuple) -> list:
 #: The zero contour (the surface) is drawn in this colour and width (points), over the
 #: coloured lines of the other distances.
 SURFACE_COLOR = "black"
-SURFACE_WIDTH = 2.4
+SURFACE_WIDTH = 2.0
 
 
 def _check_show(show_isolines: Any, show_quiver: bool, colorbar: bool | None) -> bool:
