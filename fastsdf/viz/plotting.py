@@ -370,8 +370,8 @@ def plot_sdf(
     f_or_fig : callable SDF, or a figure (with ``ax`` and ``f``: the notebook's form)
         ``f``: any callable of the module docstring (``f(x, y, compute_gradient=...)``,
         ``f(x, y)`` or ``f(p)`` with ``p`` of shape ``(n, 2)``).
-    ax : matplotlib axes, default None (a new pyplot figure)
-    f : callable SDF, default None (then ``f_or_fig``)
+    ax : matplotlib axes or None (default: a new pyplot figure)
+    f : callable SDF or None (default: ``f_or_fig``)
     bounds : [(xmin, xmax), (ymin, ymax)], default [(-2, 2), (-2, 2)]
         The region shown, in the units of the coordinates.
     samples : int >= 2 or (nx, ny), default 200
@@ -408,14 +408,10 @@ def plot_sdf(
     title : str or None
         The axes title.
 
-    Returns a dict with ``'ax'`` (the axes drawn on) and the artists created, with the keys that
-    apply: ``'fill'`` (the filled ``QuadContourSet``), ``'contour'`` (the lines'
-    ``QuadContourSet``), ``'surface'`` (the zero contour over the lines of ``'all'``),
-    ``'labels'`` (the label ``Text`` list), ``'quiver'`` (the ``Quiver``), ``'colorbar'``.
-    Raises ``ValueError`` naming the parameter for an unknown ``show_isolines``, malformed or
-    empty ``bounds``, ``samples < 2``, bad ``levels`` (or ``levels`` without
-    ``show_isolines='all'``), or a colour bar with nothing coloured; ``TypeError`` if ``f`` is
-    missing or not callable.
+    Returns a dict of ``'ax'`` (the axes drawn on) and the artists drawn: ``'fill'``,
+    ``'contour'`` (the lines), ``'surface'`` (the zero contour over the lines of ``'all'``),
+    ``'labels'``, ``'quiver'``, ``'colorbar'``. Bad arguments raise ``ValueError`` (``TypeError``
+    for ``f``) naming the parameter.
     """
     if f is None:
         f = f_or_fig
@@ -437,10 +433,30 @@ def plot_sdf(
     if not (show_quiver or show_isolines or filled):
         return ret
 
-    if show_quiver:
-        xs, ys, d, grad = sdf_grid(f, bounds, samples, compute_gradient=True)
-    else:
-        xs, ys, d = sdf_grid(f, bounds, samples)
+    grid = sdf_grid(f, bounds, samples, compute_gradient=show_quiver)
+    ret.update(
+        _draw_layers(ax, grid, bounds, filled, show_isolines, show_isolabels, levels, colorbar)
+    )
+    if colorbar:
+        mappable = ret["contour"] if show_isolines == "all" else ret["quiver"]
+        ret["colorbar"] = _draw_colorbar(ax, mappable, axes)
+    return ret
+
+
+def _draw_layers(
+    ax: Any,
+    grid: tuple,
+    bounds: tuple,
+    filled: bool,
+    show_isolines: Any,
+    show_isolabels: bool,
+    levels: Any,
+    colorbar: bool,
+) -> dict:
+    """:func:`plot_sdf`'s layers from ``grid`` (:func:`sdf_grid`'s, with the gradient where
+    arrows are drawn): the filled view, the lines (and their labels), the arrows, all
+    coloured on one scale of the distance when there is a colour bar."""
+    xs, ys, d = grid[:3]
     # NaN (e.g. where a grid-sampled SDF has no data) is left blank instead of breaking contour.
     dm = np.ma.masked_invalid(d)
     norm = None
@@ -448,6 +464,7 @@ def plot_sdf(
         from matplotlib.colors import Normalize
 
         norm = Normalize(float(dm.min()), float(dm.max()))  # one scale for lines and arrows
+    ret: dict = {}
     if filled:
         ret["fill"] = ax.contourf(
             xs,
@@ -461,14 +478,12 @@ def plot_sdf(
         ret.update(_draw_isolines(ax, xs, ys, dm, str(show_isolines), levels, norm))
         if show_isolabels:
             ret["labels"] = _label_isolines(ax, ret["contour"], bounds)
-    if show_quiver:
-        sx = max(1, round(samples[0] / QUIVER_ARROWS))
-        sy = max(1, round(samples[1] / QUIVER_ARROWS))
+    if len(grid) == 4:  # the arrows
+        grad = grid[3]
+        sx = max(1, round(len(xs) / QUIVER_ARROWS))
+        sy = max(1, round(len(ys) / QUIVER_ARROWS))
         X, Y = np.meshgrid(xs[::sx], ys[::sy])
         ret["quiver"] = ax.quiver(
             X, Y, grad[::sy, ::sx, 0], grad[::sy, ::sx, 1], d[::sy, ::sx], zorder=3, norm=norm
         )
-    if colorbar:
-        mappable = ret["contour"] if show_isolines == "all" else ret["quiver"]
-        ret["colorbar"] = _draw_colorbar(ax, mappable, axes)
     return ret
