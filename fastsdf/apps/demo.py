@@ -484,8 +484,6 @@ def run_demo(
 
     matplotlib.use("Agg")
 
-    from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import render_frame, sim_title
 
     _check_demo_args(
@@ -504,28 +502,11 @@ def run_demo(
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
 
-    # The steps before the first frame: the grid (which may compile: the bar is cleared so that
-    # the notice stands on its own line), its error and cost, the particles.
-    setup = Progress(3, "setting up", stream=err)
-    setup.clear()
-    qw = queried_world(world, grid, mode, exact, seed, setup.step)
-    setup.step("particles", count=2 if exact else 1)
-    sim = ParticleSimulation(qw.sdf, n=particles, timestep=1 / 30, seed=seed)
-    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
-    respawned = spawn_in_free_space(sim, qw.f, np.random.default_rng([seed, 1]))
-    setup.step()
-    setup.close()
-
+    qw, sim, respawned = _demo_particles(world, grid, mode, exact, seed, particles, err)
     timing = _new_timing()
 
-    def outside_share() -> float:
-        x = sim.p["x"]
-        (x0, x1), (y0, y1) = BOUNDS
-        inside = (x[:, 0] >= x0) & (x[:, 0] <= x1) & (x[:, 1] >= y0) & (x[:, 1] <= y1)
-        return 1.0 - float(np.mean(inside))
-
     def advance(k: int) -> None:
-        _timed_advance(sim, k, timing, outside_share)
+        _timed_advance(sim, k, timing, lambda: _outside_share(sim.p["x"]))
 
     label = f"{particles:,} particles"
     animation_path = None
@@ -570,6 +551,34 @@ def run_demo(
         last,
         _load_pair(timing.get("load0"), _load()),
     )
+
+
+def _demo_particles(
+    world: str, grid: int, mode: str, exact: bool, seed: int, particles: int, err: IO[str]
+) -> tuple:
+    """``(queried world, simulation, particles redrawn)``: the steps before the first frame,
+    with a progress bar: the grid (which may compile: the bar is cleared so that the notice
+    stands on its own line), its error and cost, ``particles`` particles in the notebook's
+    blob under its gravity, none inside matter."""
+    from fastsdf.particles import Gravity, ParticleSimulation
+    from fastsdf.viz.progress import Progress
+
+    with Progress(3, "setting up", stream=err) as setup:
+        setup.clear()
+        qw = queried_world(world, grid, mode, exact, seed, setup.step)
+        setup.step("particles", count=2 if exact else 1)
+        sim = ParticleSimulation(qw.sdf, n=particles, timestep=1 / 30, seed=seed)
+        sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
+        respawned = spawn_in_free_space(sim, qw.f, np.random.default_rng([seed, 1]))
+        setup.step()
+    return qw, sim, respawned
+
+
+def _outside_share(x: np.ndarray) -> float:
+    """The share of the positions ``x`` outside :data:`BOUNDS`."""
+    (x0, x1), (y0, y1) = BOUNDS
+    inside = (x[:, 0] >= x0) & (x[:, 0] <= x1) & (x[:, 1] >= y0) & (x[:, 1] <= y1)
+    return 1.0 - float(np.mean(inside))
 
 
 def warm_readme_kernels(stream: IO[str] | None = None) -> float:
@@ -886,9 +895,24 @@ def run_sand_demo(
         title=sim_title(sim, label + ", "),
         colorbar=False,
     )
+    return _sand_result(sim, sdf, sdf_name, world, radius, timing, animation_path, last)
+
+
+def _sand_result(
+    sim: Any,
+    sdf: Any,
+    sdf_name: str,
+    world: str,
+    radius: float,
+    timing: dict[str, Any],
+    animation: str | None,
+    last_frame: str,
+) -> SandResult:
+    """The sand scene's :class:`SandResult`: its law and rate (``timing`` as
+    :func:`_timed_advance` kept it), overlaps and heaps at the end, files written."""
     overlap, wall_overlap = _max_overlaps(sim, sdf)
-    substeps = sim.substeps_per_frame
-    rest = timing["rest"]
+    substeps, grains, rest = sim.substeps_per_frame, sim.n, timing["rest"]
+    law = sim.contacts
     return SandResult(
         world=world,
         grains=grains,
@@ -896,7 +920,7 @@ def run_sand_demo(
         steps=timing["steps"],
         timestep=sim.dt,
         sdf=sdf_name,
-        stiffness=float(sim.contacts.stiffness),
+        stiffness=float(law.stiffness),
         substeps_per_step=int(substeps),
         first_step_seconds=timing["first"] or 0.0,
         sim_seconds=rest,
@@ -905,11 +929,11 @@ def run_sand_demo(
         ),
         max_overlap=overlap,
         max_wall_overlap=wall_overlap,
-        animation=animation_path,
-        last_frame=last,
+        animation=animation,
+        last_frame=last_frame,
         load=_load_pair(timing.get("load0"), _load()),
-        history=history,
-        rolling_friction=float(rolling_friction),
+        history=bool(law.history),
+        rolling_friction=float(law.rolling_friction),
         **_sand_heaps(sim, radius),
     )
 

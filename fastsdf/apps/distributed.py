@@ -52,6 +52,7 @@ import hashlib
 import numbers
 import os
 import pickle
+import sys
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
@@ -340,6 +341,12 @@ class SimulationStats:
         return self.kinetic + self.potential
 
 
+def _positive_int(value: Any, name: str) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value <= 0:
+        raise ValueError(f"{name} must be a positive integer, got {name}={shown(value)}")
+    return int(value)
+
+
 class DistributedSimulation:
     """A :class:`fastsdf.particles.ParticleSimulation` of ``n`` particles split into shards that
     live on Dask workers.
@@ -438,34 +445,17 @@ class DistributedSimulation:
         if not isinstance(client, Client):
             raise TypeError(f"client must be a dask.distributed.Client, got client={shown(client)}")
         _check_world(world, "world")
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n <= 0:
-            raise ValueError(f"n must be a positive integer, got n={shown(n)}")
         info = _workers(client)
         if not info:
             raise ValueError("the client's cluster has no workers")
         addresses = sorted(info)
-        if shards is None:
-            shards = len(addresses)
-        if (
-            isinstance(shards, (bool, np.bool_))
-            or not isinstance(shards, numbers.Integral)
-            or shards <= 0
-        ):
-            raise ValueError(
-                f"shards must be a positive integer or None, got shards={shown(shards)}"
-            )
+        n = _positive_int(n, "n")
+        shards = _positive_int(len(addresses) if shards is None else shards, "shards")
+        threads = None if threads is None else _positive_int(threads, "threads")
         if n < shards:
             raise ValueError(
                 f"n must be >= shards (every shard holds a particle), got n={shown(n)}, "
                 f"shards={shown(shards)}"
-            )
-        if threads is not None and (
-            isinstance(threads, (bool, np.bool_))
-            or not isinstance(threads, numbers.Integral)
-            or threads <= 0
-        ):
-            raise ValueError(
-                f"threads must be a positive integer or None, got threads={shown(threads)}"
             )
         if seed is None:
             seed = np.random.SeedSequence().entropy
@@ -505,6 +495,19 @@ class DistributedSimulation:
             raise TypeError(f"init must be a callable (sim, shard) or None, got init={shown(init)}")
         config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()), init)
         self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
+        self._start_shards(config, info, threads)
+        #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
+        self.init_results = [None] * self.shards
+        if init is not None:
+            for _, payload in self._call("initialized"):
+                for i, value in payload.items():
+                    self.init_results[i] = value
+
+    def _start_shards(self, config: _Config, info: dict, threads: int | None) -> None:
+        """Build the shards on their workers: ``config`` sent to each once, one actor per
+        worker holding its shards, running ``threads`` numba threads (default its Dask
+        thread count)."""
+        client = self.client
         self._config_future = client.scatter(config, broadcast=True, hash=False)
         tag = uuid.uuid4().hex[:12]
         self._groups = {}
@@ -529,12 +532,6 @@ class DistributedSimulation:
             check_steps=False,
         )
         self._actors = dict(zip(self._groups, actors))
-        #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
-        self.init_results = [None] * self.shards
-        if init is not None:
-            for _, payload in self._call("initialized"):
-                for i, value in payload.items():
-                    self.init_results[i] = value
 
     # -- calls and loss detection -----------------------------------------------------------
     def _lost_error(self, shards: Sequence[int], detail: str = "") -> ShardLostError:
@@ -875,6 +872,51 @@ class _Spawn:
         return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
 
 
+def _density_video(
+    sim: DistributedSimulation,
+    f: Any,
+    path: str,
+    schedule: list[int],
+    advance: Callable[[int], None],
+    label: str,
+    fps: int,
+) -> None:
+    """A video at ``path`` of ``sim`` over the world ``f``: its density image (only images
+    travel from the workers) after each ``advance(k)`` of ``schedule``."""
+    from matplotlib.animation import FuncAnimation
+
+    from fastsdf.apps.demo import BOUNDS
+    from fastsdf.viz.render import save_animation, world_figure
+
+    shape = (480, 480)
+    fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+    artist = _draw_density(ax, sim.density(BOUNDS, shape), BOUNDS, cax)
+    title = ax.set_title(label + "t = 0.00 s (step 0)")
+
+    def update(i: int) -> tuple:
+        advance(schedule[i])
+        image = sim.density(BOUNDS, shape)
+        artist.set_data(np.ma.masked_less_equal(image, 0.0))
+        artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
+        title.set_text(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+        return (artist,)
+
+    anim = FuncAnimation(fig, update, frames=len(schedule), blit=False, repeat=False)
+    save_animation(anim, path, fps=fps)
+
+
+def _density_picture(sim: DistributedSimulation, f: Any, path: str, label: str) -> str:
+    """A PNG at ``path`` of ``sim``'s density image over the world ``f``; returns ``path``."""
+    from fastsdf.apps.demo import BOUNDS
+    from fastsdf.viz.render import world_figure
+
+    fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+    _draw_density(ax, sim.density(BOUNDS, (600, 600)), BOUNDS, cax)
+    ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+    fig.savefig(path, dpi=100)
+    return path
+
+
 def run_demo(
     workers: int = 2,
     particles: int = 1_000_000,
@@ -901,18 +943,13 @@ def run_demo(
     the share of particles inside matter at the end is measured on a random sample of up to
     100,000 particles (:meth:`DistributedSimulation.sample`).
     """
-    import sys
-
     import matplotlib
-
-    matplotlib.use("Agg")
     from distributed import Client
-    from matplotlib.animation import FuncAnimation
 
     from fastsdf.apps import demo as _demo
     from fastsdf.particles import Gravity
-    from fastsdf.viz.render import save_animation, world_figure
 
+    matplotlib.use("Agg")
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
     _demo._check_demo_args(
@@ -929,9 +966,7 @@ def run_demo(
         mode,
     )
     particles, steps, frames = int(particles), int(steps), int(frames)
-    err = stream if stream is not None else sys.stderr
     out = _demo.check_output_dir(out)
-    bounds = _demo.BOUNDS
     qw = _demo.queried_world(world, grid, mode, exact, seed)
     f = qw.f
     with contextlib.ExitStack() as stack:
@@ -939,53 +974,31 @@ def run_demo(
             cluster = stack.enter_context(local_cluster(int(workers)))
             client = stack.enter_context(Client(cluster))
         workers = len(_workers(client))
-        sim = stack.enter_context(
-            DistributedSimulation(
-                qw.sdf,
-                particles,
-                client=client,
-                seed=seed,
-                timestep=1 / 30,
-                force_generators=[Gravity(acceleration=(0.0, -1.0))],
-                init=_Spawn(f, seed),
-            )
+        gravity = [Gravity(acceleration=(0.0, -1.0))]
+        spawn = _Spawn(f, seed)
+        sim = DistributedSimulation(
+            qw.sdf, particles, client=client, seed=seed, force_generators=gravity, init=spawn
         )
+        stack.enter_context(sim)
         qw.name += f", particles on {workers} Dask worker processes"
         timing = _demo._new_timing()
 
         def outside_share() -> float:
             # Particles inside the bounds, edges included: a 1x1 density image counts them.
-            return 1.0 - float(sim.density(bounds, (1, 1)).sum()) / particles
+            return 1.0 - float(sim.density(_demo.BOUNDS, (1, 1)).sum()) / particles
 
         def advance(k: int) -> None:
             _demo._timed_advance(sim, k, timing, outside_share)
 
         label = f"{particles:,} particles on {workers} workers, "
-        shape = (480, 480)
         animation_path = None
         if animate:
-            fig, ax, cax = world_figure(f, bounds, 400, (6.4, 5.6), 100)
-            artist = _draw_density(ax, sim.density(bounds, shape), bounds, cax)
-            title = ax.set_title(label + "t = 0.00 s (step 0)")
+            ext = _demo._video_writer_ext(stream if stream is not None else sys.stderr)
+            animation_path = os.path.join(out, "particles" + ext)
             schedule = _demo._frame_schedule(steps, frames)
-
-            def update(i):
-                advance(schedule[i])
-                image = sim.density(bounds, shape)
-                artist.set_data(np.ma.masked_less_equal(image, 0.0))
-                artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
-                title.set_text(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
-                return (artist,)
-
-            anim = FuncAnimation(fig, update, frames=frames, blit=False, repeat=False)
-            animation_path = os.path.join(out, "particles" + _demo._video_writer_ext(err))
-            save_animation(anim, animation_path, fps=fps)
+            _density_video(sim, f, animation_path, schedule, advance, label, fps)
         advance(steps - timing["steps"])
-        last = os.path.join(out, "last_frame.png")
-        fig, ax, cax = world_figure(f, bounds, 400, (6.4, 5.6), 100)
-        _draw_density(ax, sim.density(bounds, (600, 600)), bounds, cax)
-        ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
-        fig.savefig(last, dpi=100)
+        last = _density_picture(sim, f, os.path.join(out, "last_frame.png"), label)
         sample = sim.sample(min(particles, 100_000), seed=seed)
         respawned = int(sum(sim.init_results))
         dt = sim.dt
