@@ -170,29 +170,39 @@ def contours(
     v = _evaluate(f, X, Y) - level
     if not np.isfinite(v).all():
         raise ValueError("the function is not finite at every sample of the grid")
-    inside = v < 0
+    px, py = _crossings(f, xs, ys, v, level, tol, refine)
+    return _chains(_successors(f, xs, ys, v < 0, level), px, py)
 
-    # Crossing edges. Horizontal edge (i, j): nodes (i, j)-(i+1, j), id i*ny + j. Vertical
-    # edge (i, j): nodes (i, j)-(i, j+1), id H + i*(ny-1) + j.
+
+def _crossings(
+    f: Callable,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    v: np.ndarray,
+    level: float,
+    tol: float,
+    refine: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(px, py)``: the point where ``f = level`` crosses each edge of the grid of nodes
+    ``xs`` x ``ys`` whose values ``v`` (``f - level``) change sign there (NaN at the other
+    edges); linearly interpolated (scikit-image's answer), then refined on ``f`` to ``tol``.
+    Horizontal edge (i, j), nodes (i, j)-(i+1, j), has id ``i*ny + j``; vertical edge (i, j),
+    nodes (i, j)-(i, j+1), id ``H + i*(ny-1) + j`` with ``H = (nx - 1) ny``."""
+    nx, ny = v.shape
+    inside = v < 0
     H = (nx - 1) * ny
-    hx_cross = inside[:-1, :] != inside[1:, :]
-    vy_cross = inside[:, :-1] != inside[:, 1:]
-    n_ids = H + nx * (ny - 1)
-    px = np.full(n_ids, np.nan)
-    py = np.full(n_ids, np.nan)
-    hi_, hj_ = np.nonzero(hx_cross)
-    vi_, vj_ = np.nonzero(vy_cross)
+    px = np.full(H + nx * (ny - 1), np.nan)
+    py = np.full(px.size, np.nan)
+    hi_, hj_ = np.nonzero(inside[:-1, :] != inside[1:, :])
+    vi_, vj_ = np.nonzero(inside[:, :-1] != inside[:, 1:])
     h_ids = hi_ * ny + hj_
     v_ids = H + vi_ * (ny - 1) + vj_
-    # linear interpolation first (scikit-image's answer), then refinement on f
     ga, gb = v[hi_, hj_], v[hi_ + 1, hj_]
-    tx = ga / (ga - gb)
-    px[h_ids] = xs[hi_] + tx * (xs[hi_ + 1] - xs[hi_])
+    px[h_ids] = xs[hi_] + ga / (ga - gb) * (xs[hi_ + 1] - xs[hi_])
     py[h_ids] = ys[hj_]
     ga2, gb2 = v[vi_, vj_], v[vi_, vj_ + 1]
-    ty = ga2 / (ga2 - gb2)
     px[v_ids] = xs[vi_]
-    py[v_ids] = ys[vj_] + ty * (ys[vj_ + 1] - ys[vj_])
+    py[v_ids] = ys[vj_] + ga2 / (ga2 - gb2) * (ys[vj_ + 1] - ys[vj_])
     if refine and (h_ids.size or v_ids.size):
         fixed = np.concatenate([ys[hj_], xs[vi_]])
         lo = np.concatenate([xs[hi_], ys[vj_]])
@@ -203,7 +213,16 @@ def contours(
         )
         px[h_ids] = roots[: h_ids.size]
         py[v_ids] = roots[h_ids.size :]
+    return px, py
 
+
+def _successors(
+    f: Callable, xs: np.ndarray, ys: np.ndarray, inside: np.ndarray, level: float
+) -> np.ndarray:
+    """For each edge id (see :func:`_crossings`) the id of the next crossing along the level
+    set, the region ``f < level`` (``inside``, at the nodes) on its left; -1 for none."""
+    nx, ny = inside.shape
+    H = (nx - 1) * ny
     # Cells with crossings; their four corners' phases in CCW order (0: (i, j), 1: (i+1, j),
     # 2: (i+1, j+1), 3: (i, j+1)) and the ids of their edges e0..e3 (bottom, right, top,
     # left: edge k runs from corner k to corner k+1 counter-clockwise).
@@ -226,7 +245,7 @@ def contours(
     # an outside one is an exit, the reverse an entry. Each exit joins the entry before it
     # (cutting off an inside corner), or in a saddle whose centre is inside, the entry after
     # it (cutting off an outside corner); the inside then lies on the segment's left.
-    nxt = np.full(n_ids, -1, dtype=np.int64)
+    nxt = np.full(H + nx * (ny - 1), -1, dtype=np.int64)
     for k in range(4):
         exit_k = corners[:, k] & ~corners[:, (k + 1) % 4]
         if not exit_k.any():
@@ -243,7 +262,7 @@ def contours(
             after = np.where((after < 0) & is_entry, e, after)
         partner = np.where(saddle[rows] & centre_inside[rows], after, before)
         nxt[edges[rows, k]] = edges[rows, partner]
-    return _chains(nxt, px, py)
+    return nxt
 
 
 def _chains(nxt: np.ndarray, px: np.ndarray, py: np.ndarray) -> list[Contour]:
