@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import shown
+from fastsdf.expr.validate import check_bounds, count, shown
 
 __all__ = [
     "evaluate",
@@ -341,12 +341,6 @@ class SimulationStats:
         return self.kinetic + self.potential
 
 
-def _positive_int(value: Any, name: str) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value <= 0:
-        raise ValueError(f"{name} must be a positive integer, got {name}={shown(value)}")
-    return int(value)
-
-
 class DistributedSimulation:
     """A :class:`fastsdf.particles.ParticleSimulation` of ``n`` particles split into shards that
     live on Dask workers.
@@ -449,9 +443,9 @@ class DistributedSimulation:
         if not info:
             raise ValueError("the client's cluster has no workers")
         addresses = sorted(info)
-        n = _positive_int(n, "n")
-        shards = _positive_int(len(addresses) if shards is None else shards, "shards")
-        threads = None if threads is None else _positive_int(threads, "threads")
+        n = count(n, "n")
+        shards = count(len(addresses) if shards is None else shards, "shards")
+        threads = None if threads is None else count(threads, "threads")
         if n < shards:
             raise ValueError(
                 f"n must be >= shards (every shard holds a particle), got n={shown(n)}, "
@@ -711,7 +705,6 @@ class DistributedSimulation:
         :func:`fastsdf.viz.render.density_image` (float64, ``shape=(H, W)``, row 0 at the bottom,
         covering ``bounds``; exact integer counts, so the order of summation does not matter). Each
         worker sends one summed image: the client holds O(workers * H * W), not O(n)."""
-        from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import check_shape
 
         bounds = check_bounds(bounds)

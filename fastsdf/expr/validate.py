@@ -18,6 +18,10 @@ from fastsdf.expr.graph import Expr
 
 __all__ = [
     "shown",
+    "count",
+    "positive",
+    "reals",
+    "check_bounds",
     "MAX_COORD",
     "MIN_LENGTH",
     "real",
@@ -72,6 +76,59 @@ def shown(value: object) -> str:
     (``-0.1``, not ``np.float64(-0.1)``) and its small arrays as lists, inside tuples and
     lists too; long ones cut short (``[0, 1, 2, 3, 4, 5, 6, 7, ...]``)."""
     return _SHORT.repr(_plain(value))
+
+
+def count(value: object, name: str, minimum: int = 1) -> int:
+    """``value`` as an int; ``ValueError`` naming ``name`` unless it is an integer (not a
+    bool) at least ``minimum``."""
+    if (
+        isinstance(value, (bool, np.bool_))
+        or not isinstance(value, numbers.Integral)
+        or value < minimum
+    ):
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
+    return int(value)
+
+
+def positive(value: object, name: str) -> float:
+    """``value`` as a float; ``ValueError`` naming ``name`` unless it is a finite number > 0."""
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        number = math.nan
+    if not (math.isfinite(number) and number > 0.0):
+        raise ValueError(f"{name} must be a finite number > 0, got {name}={shown(value)}")
+    return number
+
+
+def reals(value: ArrayLike, name: str) -> np.ndarray:
+    """``value`` as a 1-d float64 array (flattened; a 1-d float64 array, strided views
+    included, as it is); ``ValueError`` naming ``name`` unless it holds real numbers."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name} must be an array of real numbers, got {name} of type {type(value).__name__}"
+        ) from None
+    return arr if arr.ndim == 1 else arr.reshape(-1)
+
+
+def check_bounds(bounds: object, name: str = "bounds") -> tuple:
+    """``bounds`` as ``((x0, x1), (y0, y1))`` floats: ``TypeError`` naming ``name`` unless
+    it is two pairs of numbers, ``ValueError`` unless they are finite with ``x0 < x1`` and
+    ``y0 < y1``."""
+    try:
+        arr = np.asarray(bounds, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != (2, 2):
+        raise TypeError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={shown(bounds)}")
+    if not (np.all(np.isfinite(arr)) and arr[0, 0] < arr[0, 1] and arr[1, 0] < arr[1, 1]):
+        raise ValueError(
+            f"{name} must be finite with xmin < xmax and ymin < ymax, got {name}={shown(bounds)}"
+        )
+    (x0, x1), (y0, y1) = arr.tolist()
+    return (x0, x1), (y0, y1)
 
 
 def real(value: object, name: str, finite: bool = True) -> float:

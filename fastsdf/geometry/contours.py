@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import shown
+from fastsdf.expr.validate import check_bounds, shown
 from fastsdf.introspect import show_field_types
 
 __all__ = ["Contour", "contours", "refine_crossings"]
@@ -125,20 +125,6 @@ def _check_resolution(resolution: Any) -> tuple:
     return nx, ny
 
 
-def _check_bounds(bounds: ArrayLike) -> tuple:
-    try:
-        (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
-    except (TypeError, ValueError):
-        raise TypeError(
-            f"bounds must be two (min, max) pairs of numbers, got bounds={shown(bounds)}"
-        ) from None
-    if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
-        raise ValueError(
-            f"bounds must be finite with min < max on each axis, got bounds={shown(bounds)}"
-        )
-    return (x0, x1), (y0, y1)
-
-
 def contours(
     f: Callable,
     level: float = 0.0,
@@ -158,7 +144,7 @@ def contours(
     ``f < level`` lies on the left of each. Features smaller than a cell may be missed, as in
     every sampling method.
     """
-    (x0, x1), (y0, y1) = _check_bounds(bounds)
+    (x0, x1), (y0, y1) = check_bounds(bounds)
     nx, ny = _check_resolution(resolution)
     if not (isinstance(level, (int, float, np.integer, np.floating)) and math.isfinite(level)):
         raise ValueError(f"level must be a finite number, got level={shown(level)}")

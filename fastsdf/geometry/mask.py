@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import shown
+from fastsdf.expr.validate import check_bounds, shown
 from fastsdf.fields.grid import GridSDF
 from fastsdf.function import Function
 from fastsdf.geometry.edt import distance_transform, edt_kernel, signed_distance_transform
@@ -56,16 +56,7 @@ def _check_origin(origin: str) -> str:
 
 def _extent(bounds: ArrayLike, shape: tuple) -> tuple:
     """Validated extent and pixel size ``(px, py)`` of an image of ``shape`` (rows, cols)."""
-    try:
-        (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
-    except (TypeError, ValueError):
-        raise TypeError(
-            f"bounds must be two (min, max) pairs of numbers, got bounds={shown(bounds)}"
-        ) from None
-    if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
-        raise ValueError(
-            f"bounds must be finite with min < max on each axis, got bounds={shown(bounds)}"
-        )
+    (x0, x1), (y0, y1) = check_bounds(bounds)
     rows, cols = shape
     if rows < 2 or cols < 2:
         raise ValueError(f"the image needs at least 2 pixels along each axis, got shape {shape}")

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from fastsdf.expr.validate import shown
+from fastsdf.expr.validate import check_bounds, shown
 
 __all__ = [
     "plot_sdf",
@@ -52,29 +52,6 @@ BACKGROUND_COLOR = "#f4f1ea"
 ISOLINE_OPTIONS = ("all", "zero", False, None)
 #: Quiver arrows along each axis (the notebook: every 5th of 100 samples).
 QUIVER_ARROWS = 20
-
-
-def check_bounds(bounds: Any, name: str = "bounds") -> tuple:
-    """``bounds`` as ``((x0, x1), (y0, y1))`` floats.
-
-    Raises ``ValueError`` naming ``name`` unless ``bounds`` is a finite ``[(x0, x1), (y0, y1)]``
-    with ``x0 < x1`` and ``y0 < y1``.
-    """
-    try:
-        arr = np.asarray(bounds, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={shown(bounds)}"
-        ) from None
-    if arr.shape != (2, 2):
-        raise ValueError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={shown(bounds)}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={shown(bounds)}")
-    if not (arr[0, 0] < arr[0, 1] and arr[1, 0] < arr[1, 1]):
-        raise ValueError(
-            f"{name} must have xmin < xmax and ymin < ymax, got {name}={shown(bounds)}"
-        )
-    return ((float(arr[0, 0]), float(arr[0, 1])), (float(arr[1, 0]), float(arr[1, 1])))
 
 
 def _check_samples(samples: Any) -> tuple:

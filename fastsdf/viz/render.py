@@ -32,10 +32,8 @@ from typing import Any
 import numba
 import numpy as np
 from numba import njit, prange
-from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import shown
-from fastsdf.viz.plotting import check_bounds
+from fastsdf.expr.validate import check_bounds, count, reals, shown
 
 __all__ = [
     "density_image",
@@ -138,14 +136,6 @@ def _splat_parallel(xs, ys, ws, use_w, img, xe, ye, chunks):
 # Validation helpers (errors name the parameter and the value).
 
 
-def _check_count(value: object, name: str, minimum: int) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
-    if int(value) < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
-    return int(value)
-
-
 def check_shape(shape: Any) -> tuple[int, int]:
     try:
         h, w = shape
@@ -161,17 +151,6 @@ def check_shape(shape: Any) -> tuple[int, int]:
             f"shape must be a pair (H, W) of positive integers, got shape={shown(shape)}"
         )
     return int(h), int(w)
-
-
-def _coords(v: ArrayLike, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name} must be an array of real numbers, got {name} of type {type(v).__name__}"
-        ) from None
-    # 1-d arrays (strided views such as sim.p['x'][:, 0] included) go to the kernel as they are.
-    return arr if arr.ndim == 1 else arr.reshape(-1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,14 +187,14 @@ def density_image(
     """
     (x0, x1), (y0, y1) = check_bounds(bounds)
     h, w = check_shape(shape)
-    xs, ys = _coords(x, "x"), _coords(y, "y")
+    xs, ys = reals(x, "x"), reals(y, "y")
     if xs.shape != ys.shape:
         raise ValueError(
             f"x and y must have the same number of points, got {xs.size} and {ys.size}"
         )
     use_w = weights is not None
     if use_w:
-        ws = _coords(weights, "weights")
+        ws = reals(weights, "weights")
         if ws.shape != xs.shape:
             raise ValueError(
                 f"weights must have one value per point ({xs.size}), got {ws.size} values"
@@ -449,7 +428,7 @@ class ParticleLayer:
         if r is None:
             r = self._r
         self._r = r
-        xs, ys = _coords(x, "x"), _coords(y, "y")
+        xs, ys = reals(x, "x"), reals(y, "y")
         if xs.shape != ys.shape:
             raise ValueError(
                 f"x and y must have the same number of points, got {xs.size} and {ys.size}"
@@ -504,7 +483,7 @@ def draw_particles(
         bounds = (ax.get_xlim(), ax.get_ylim())
         bounds = tuple((min(b), max(b)) for b in bounds)
     bounds = check_bounds(bounds)
-    max_circles = _check_count(max_circles, "max_circles", 0)
+    max_circles = count(max_circles, "max_circles", 0)
     if shape is not None:
         shape = check_shape(shape)
     layer = ParticleLayer(
@@ -552,7 +531,7 @@ def world_figure(
     bar only with ``bar`` and for a title only with ``title``."""
     from matplotlib.figure import Figure
 
-    from fastsdf.viz.plotting import check_bounds, plot_sdf
+    from fastsdf.viz.plotting import plot_sdf
 
     (x0, x1), (y0, y1) = check_bounds(bounds)
     left, bottom = (0.75, 0.47) if ticks else (0.15, 0.15)
@@ -696,12 +675,12 @@ def animate(
     """
     from matplotlib.animation import FuncAnimation
 
-    frames = _check_count(frames, "frames", 1)
+    frames = count(frames, "frames", 1)
     if isinstance(steps_per_frame, numbers.Integral) and not isinstance(steps_per_frame, bool):
-        schedule = [_check_count(steps_per_frame, "steps_per_frame", 0)] * frames
+        schedule = [count(steps_per_frame, "steps_per_frame", 0)] * frames
     else:
         try:
-            schedule = [_check_count(k, "steps_per_frame", 0) for k in steps_per_frame]
+            schedule = [count(k, "steps_per_frame", 0) for k in steps_per_frame]
         except TypeError:
             raise ValueError(
                 f"steps_per_frame must be an integer >= 0 or one per frame, got "
