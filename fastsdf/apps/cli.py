@@ -195,43 +195,34 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{args.steps} steps in the {args.world} world, writing to {args.out}/ ...\n"
         )
         sys.stderr.flush()
-        if sand:
-            from fastsdf.apps.demo import SAND_ROLLING_FRICTION, run_sand_demo, sand_summary
-
-            try:
-                sand_res = run_sand_demo(
-                    grains=args.particles,
-                    steps=args.steps,
-                    grid=args.grid,
-                    exact=args.exact,
-                    seed=args.seed,
-                    out=args.out,
-                    frames=args.frames,
-                    fps=args.fps,
-                    world=args.world,
-                    animate=not args.no_animation,
-                    history=not args.no_history,
-                    rolling_friction=0.0 if args.no_history else SAND_ROLLING_FRICTION,
-                )
-            except OSError as exc:
-                demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
-            print(sand_summary(sand_res))
-            return 0
+        common = dict(
+            steps=args.steps,
+            grid=args.grid,
+            exact=args.exact,
+            seed=args.seed,
+            out=args.out,
+            frames=args.frames,
+            fps=args.fps,
+            world=args.world,
+            animate=not args.no_animation,
+        )
         try:
-            res = runner(
-                particles=args.particles,
-                steps=args.steps,
-                grid=args.grid,
-                exact=args.exact,
-                seed=args.seed,
-                out=args.out,
-                frames=args.frames,
-                fps=args.fps,
-                world=args.world,
-                mode=args.mode,
-                animate=not args.no_animation,
-                **extra,
-            )
+            if sand:
+                from fastsdf.apps.demo import SAND_ROLLING_FRICTION, run_sand_demo, sand_summary
+
+                rolling = 0.0 if args.no_history else SAND_ROLLING_FRICTION
+                print(
+                    sand_summary(
+                        run_sand_demo(
+                            grains=args.particles,
+                            history=not args.no_history,
+                            rolling_friction=rolling,
+                            **common,
+                        )
+                    )
+                )
+                return 0
+            res = runner(particles=args.particles, mode=args.mode, **common, **extra)
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))

@@ -289,12 +289,21 @@ def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
 
 
 def _check_demo_args(
-    world: str, sizes: dict[str, tuple[Any, int]], animate: bool, mode: str | None = None
+    world: str,
+    mode: str | None,
+    animate: bool,
+    frames: int,
+    steps: int,
+    grid: int,
+    fps: int,
+    **counts: int,
 ) -> None:
-    """``ValueError`` naming the first of ``sizes`` (``{name: (value, low)}``) that is not an
-    integer at least ``low``, an unknown ``world`` or ``mode`` (a grid's, unless None), or
-    more video frames than steps (each frame advances at least one step)."""
-    frames, steps = sizes["frames"][0], sizes["steps"][0]
+    """``ValueError`` naming the first size that is not an integer at least its lower bound
+    (1; 2 for ``grid``; ``counts`` are more, each at least 1), an unknown ``world`` or
+    ``mode`` (a grid's, unless None), or more video frames than steps (each frame advances
+    at least one step)."""
+    sizes = {"frames": (frames, 1), "steps": (steps, 1), "grid": (grid, 2), "fps": (fps, 1)}
+    sizes.update({name: (value, 1) for name, value in counts.items()})
     for name, (value, low) in sizes.items():
         if isinstance(value, bool) or int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {name}={shown(value)}")
@@ -486,18 +495,7 @@ def run_demo(
 
     from fastsdf.viz.render import render_frame, sim_title
 
-    _check_demo_args(
-        world,
-        {
-            "particles": (particles, 1),
-            "steps": (steps, 1),
-            "grid": (grid, 2),
-            "frames": (frames, 1),
-            "fps": (fps, 1),
-        },
-        animate,
-        mode,
-    )
+    _check_demo_args(world, mode, animate, frames, steps, grid, fps, particles=particles)
     particles, steps, frames = int(particles), int(steps), int(frames)
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
@@ -852,17 +850,7 @@ def run_sand_demo(
     from fastsdf.viz.render import render_frame, sim_title
 
     _check_sand_args(radius, history, rolling_friction)
-    _check_demo_args(
-        world,
-        {
-            "grains": (grains, 1),
-            "steps": (steps, 1),
-            "grid": (grid, 2),
-            "frames": (frames, 1),
-            "fps": (fps, 1),
-        },
-        animate,
-    )
+    _check_demo_args(world, None, animate, frames, steps, grid, fps, grains=grains)
     grains, steps, frames = int(grains), int(steps), int(frames)
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)

@@ -145,17 +145,9 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
     yd = yd.rechunk(xd.chunks)
     world = dask.delayed(f, name="fastsdf-world-" + _digest(f), pure=True)
     gradient = bool(compute_gradient)
-    if not gradient:
-        return da.map_blocks(
-            _evaluate_block,
-            xd,
-            yd,
-            world,
-            gradient,
-            dtype=np.float64,
-            meta=np.empty((0,) * xd.ndim),
-            name="fastsdf-evaluate-" + dask.base.tokenize(world.key, xd.name, yd.name, False),
-        )
+    token = dask.base.tokenize(world.key, xd.name, yd.name, gradient)
+    # with the gradient: one (..., 3) block of value, d/dx, d/dy, split below
+    shape = dict(new_axis=xd.ndim, chunks=xd.chunks + ((3,),)) if gradient else {}
     out = da.map_blocks(
         _evaluate_block,
         xd,
@@ -163,11 +155,12 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
         world,
         gradient,
         dtype=np.float64,
-        new_axis=xd.ndim,
-        chunks=xd.chunks + ((3,),),
-        meta=np.empty((0,) * (xd.ndim + 1)),
-        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, xd.name, yd.name, True),
+        meta=np.empty((0,) * (xd.ndim + gradient)),
+        name=("fastsdf-evaluate-vg-" if gradient else "fastsdf-evaluate-") + token,
+        **shape,
     )
+    if not gradient:
+        return out
     return out[..., 0], out[..., 1:]
 
 
@@ -946,17 +939,7 @@ def run_demo(
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
     _demo._check_demo_args(
-        world,
-        {
-            "workers": (workers, 1),
-            "particles": (particles, 1),
-            "steps": (steps, 1),
-            "grid": (grid, 2),
-            "frames": (frames, 1),
-            "fps": (fps, 1),
-        },
-        animate,
-        mode,
+        world, mode, animate, frames, steps, grid, fps, workers=workers, particles=particles
     )
     particles, steps, frames = int(particles), int(steps), int(frames)
     out = _demo.check_output_dir(out)

@@ -216,21 +216,7 @@ def distance_transform(
     parallel. ``return_indices=True`` also returns the nearest False pixel's indices as an
     int32 array (2, n, m), like scipy's ``return_indices``.
     """
-    a = _check_mask(mask)
-    sp = _check_spacing(sampling)
-    out = np.empty(a.shape)
-    if return_indices:
-        fi = np.empty(a.shape, dtype=np.int32)
-        fj = np.empty(a.shape, dtype=np.int32)
-    else:
-        fi = fj = np.empty((0, 0), dtype=np.int32)
-    if a.size:
-        with compiling_first("the distance transform", edt_kernel):
-            edt_kernel(a, sp, False, out, fi, fj)
-        np.sqrt(out, out=out)
-    if return_indices:
-        return out, np.stack([fi, fj])
-    return out
+    return _transform(mask, sampling, return_indices, signed=False)
 
 
 def signed_distance_transform(
@@ -247,18 +233,25 @@ def signed_distance_transform(
     differ by at most their spacing. ``inf``/``-inf`` where the other phase is absent.
     ``return_indices=True`` also returns the nearest other-phase pixel, (2, n, m) int32.
     """
+    return _transform(mask, sampling, return_indices, signed=True)
+
+
+def _transform(
+    mask: ArrayLike, sampling: ArrayLike | None, return_indices: bool, signed: bool
+) -> np.ndarray | tuple:
+    """:func:`distance_transform` or, ``signed``, :func:`signed_distance_transform`."""
     a = _check_mask(mask)
     sp = _check_spacing(sampling)
     out = np.empty(a.shape)
-    if return_indices:
-        fi = np.empty(a.shape, dtype=np.int32)
-        fj = np.empty(a.shape, dtype=np.int32)
-    else:
-        fi = fj = np.empty((0, 0), dtype=np.int32)
+    shape = a.shape if return_indices else (0, 0)
+    fi, fj = np.empty(shape, dtype=np.int32), np.empty(shape, dtype=np.int32)
     if a.size:
         with compiling_first("the distance transform", edt_kernel, _finish_signed):
-            edt_kernel(a, sp, True, out, fi, fj)
-            _finish_signed(out, a, 0.5 * min(sp.hi, sp.hj))
+            edt_kernel(a, sp, signed, out, fi, fj)
+            if signed:
+                _finish_signed(out, a, 0.5 * min(sp.hi, sp.hj))
+            else:
+                np.sqrt(out, out=out)
     if return_indices:
         return out, np.stack([fi, fj])
     return out

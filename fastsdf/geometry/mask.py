@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike
 
-from fastsdf.expr.validate import check_bounds, shown
+from fastsdf.expr.validate import check_bounds, shown, vec2
 from fastsdf.fields.grid import GridSDF
 from fastsdf.function import Function
 from fastsdf.geometry.edt import distance_transform, edt_kernel, signed_distance_transform
@@ -174,16 +174,9 @@ def _levels(image: np.ndarray, levels: Any) -> np.ndarray:
         else:
             lo, hi = 0.0, 1.0
     else:
-        try:
-            lo, hi = (float(v) for v in levels)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"levels must be a (black, white) pair, got levels={shown(levels)}"
-            ) from None
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo != hi):
-            raise ValueError(
-                f"levels must be two different finite numbers, got levels={shown(levels)}"
-            )
+        lo, hi = vec2(levels, "levels").tolist()
+        if lo == hi:
+            raise ValueError(f"levels must be two different numbers, got levels={shown(levels)}")
     return (image.astype(np.float64) - lo) / (hi - lo)
 
 

@@ -471,6 +471,18 @@ def _k_and_kind(k: object, kind: object) -> tuple[FloatOrParam, str]:
     return _smoothness_value(k), _blend_kind(kind)
 
 
+def _operands(a: object, b: object, k: object, kind: object) -> tuple:
+    """``(a, b, k, kind)`` of a set operation, checked."""
+    return (_check_sdf(a, "a"), _check_sdf(b, "b"), *_k_and_kind(k, kind))
+
+
+def _joined(ia: _Info, ib: _Info, **known: Any) -> _Info:
+    """What is known of a set operation's result: ``known``, and what every one keeps: a
+    bound of bounds (a blend's gradient is a convex combination of its operands'), and the
+    symmetries both operands have."""
+    return _Info(bound=ia.bound and ib.bound, sym=ia.sym & ib.sym, **known)
+
+
 class Union(SDF):
     """Union of two SDFs: ``min(a, b)``, or a smooth minimum for ``k > 0``: the notebook's
     exponential one (``kind='exponential'``, ``k`` = sharpness in 1/distance, deepens by at
@@ -496,14 +508,13 @@ class Union(SDF):
     """
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
-        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
-        k, kind = _k_and_kind(k, kind)
+        a, b, k, kind = _operands(a, b, k, kind)
         ia, ib = a._info, b._info
-        info = _Info(
+        info = _joined(
+            ia,
+            ib,
             outside=k == 0 and ia.outside and ib.outside,
-            bound=ia.bound and ib.bound,
             bbox=_bbox_union(ia.bbox, ib.bbox, _blend_depth(k, kind)),
-            sym=ia.sym & ib.sym,
         )
         super().__init__(_blend_min(a.f, b.f, k, kind), info)
 
@@ -515,24 +526,19 @@ class Intersection(SDF):
     Exactness: the hard intersection of exact SDFs is exact inside and a bound outside (near a
     corner the distance to the intersection is larger than either operand). Blends: a bound.
 
-    Parameters
-    ----------
-    a, b : SDF
-        The operands.
-    k, kind
-        The blend, as for :class:`Union` (default: hard).
+    ``a``, ``b``: the operands (SDFs); ``k``, ``kind``: the blend, as for :class:`Union`
+    (default: hard).
     """
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
-        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
-        k, kind = _k_and_kind(k, kind)
+        a, b, k, kind = _operands(a, b, k, kind)
         ia, ib = a._info, b._info
-        info = _Info(
+        info = _joined(
+            ia,
+            ib,
             inside=k == 0 and ia.inside and ib.inside,
-            bound=ia.bound and ib.bound,
             convex=k == 0 and ia.convex and ib.convex,
             bbox=_bbox_meet(ia.bbox, ib.bbox),
-            sym=ia.sym & ib.sym,
         )
         super().__init__(_blend_max(a.f, b.f, k, kind), info)
 
@@ -544,24 +550,14 @@ class Difference(SDF):
     Exactness: exact inside where ``a`` is exact inside and ``b`` exact outside; a bound
     outside. Blends: a bound.
 
-    Parameters
-    ----------
-    a, b : SDF
-        The shape, and the shape cut from it.
-    k, kind
-        The blend, as for :class:`Union` (default: hard).
+    ``a``: the shape, ``b``: the shape cut from it (SDFs); ``k``, ``kind``: the blend, as for
+    :class:`Union` (default: hard).
     """
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
-        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
-        k, kind = _k_and_kind(k, kind)
+        a, b, k, kind = _operands(a, b, k, kind)
         ia, ib = a._info, b._info
-        info = _Info(
-            inside=k == 0 and ia.inside and ib.outside,
-            bound=ia.bound and ib.bound,
-            bbox=ia.bbox,
-            sym=ia.sym & ib.sym,
-        )
+        info = _joined(ia, ib, inside=k == 0 and ia.inside and ib.outside, bbox=ia.bbox)
         super().__init__(_blend_max(a.f, -b.f, k, kind), info)
 
 

@@ -850,12 +850,8 @@ class EquilateralTriangle(RegularPolygon):
     """Equilateral triangle inscribed in the circle of ``radius`` around ``center``, one
     corner pointing up (+y).
 
-    Parameters
-    ----------
-    center : pair (x, y), default (0, 0)
-        The centre, in the units of the coordinates.
-    radius : float > 0, default 1
-        The circumradius (centre to corner), in the same units.
+    ``center`` and ``radius`` (the circumradius: centre to corner) as for
+    :class:`RegularPolygon`.
     """
 
     def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0):

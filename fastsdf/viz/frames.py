@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from fastsdf.expr.validate import check_bounds, count, positive, reals, shown
+from fastsdf.expr.validate import check_bounds, count, positive, reals, shown, vec2
 from fastsdf.files import commit, temporary_sibling
 
 __all__ = [
@@ -307,13 +307,8 @@ class VideoWriter:
 
         self.path = os.path.abspath(os.fspath(path))
         self.bounds = check_bounds(bounds)
-        try:
-            width, height = (int(v) for v in size)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"size must be (width, height) in pixels, got size={shown(size)}"
-            ) from None
-        if width < 64 or height < 64 or width % 2 or height % 2:
+        width, height = (int(v) for v in vec2(size, "size"))
+        if width < 64 or height < 64 or width % 2 or height % 2 or (width, height) != tuple(size):
             raise ValueError(
                 f"size must be (width, height), both even and >= 64, got size={shown(size)}"
             )

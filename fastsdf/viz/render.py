@@ -819,19 +819,16 @@ def notebook_animation(
     fig: Any,
     ax: Any,
     sim: Any,
+    *,
     frames: int = 300,
     repeat: bool = True,
     use_wall_time: bool = False,
     interval: float | None = None,
 ) -> Any:
-    """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's ``create_animation``).
-
-    Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
-    calls ``sim.reset(ax)``, which redraws a fresh random state. ``interval`` is the delay
-    between frames in milliseconds (default: the simulation's timestep). Returns the animation
-    (keep a reference to it; ``anim.to_html5_video()`` renders it in a notebook: an MP4 when
-    ffmpeg is installed, matplotlib's JavaScript player (``to_jshtml``) otherwise).
-    """
+    """The drawing of :func:`fastsdf.particles.create_animation` (the notebook's helper), which
+    states what ``fig``, ``ax``, ``sim``, ``frames``, ``repeat``, ``use_wall_time`` and
+    ``interval`` do: a ``FuncAnimation`` whose frames call ``sim.update(ax, use_wall_time)``
+    and whose init calls ``sim.reset(ax)``."""
     from matplotlib.animation import FuncAnimation
 
     if interval is None:
