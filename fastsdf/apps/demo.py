@@ -49,6 +49,7 @@ __all__ = [
     "SAND_GRAINS",
     "SAND_STEPS",
     "SAND_ROLLING_FRICTION",
+    "REPOSE_AGREEMENT",
     "summary",
     "warm_readme_kernels",
     "README_GRAIN_LAW",
@@ -74,6 +75,9 @@ SAND_GRAINS = 900
 SAND_STEPS = 180
 SAND_RADIUS = 0.022
 SAND_RADIUS_SPREAD = 0.1
+#: The sand scene's angle of repose is reported where its cone's two flanks agree within this
+#: (degrees); else it is said to be unreliable, with the reason.
+REPOSE_AGREEMENT = 5.0
 #: The sand scene's rolling resistance with contact history (discs hold a slope with it).
 SAND_ROLLING_FRICTION = 0.5
 #: The contact law of the README's grain block (``ContactLaw(**README_GRAIN_LAW)``), whose
@@ -756,6 +760,12 @@ class SandResult:
         """The fields as a plain dict."""
         return asdict(self)
 
+    @property
+    def repose_reliable(self) -> bool:
+        """Whether the cone's two flanks were measured and agree within
+        :data:`REPOSE_AGREEMENT` degrees."""
+        return bool(abs(self.repose_left - self.repose_right) <= REPOSE_AGREEMENT)
+
 
 def sand_world(world: str = "seed") -> Any:
     """The world ``world`` (a key of :data:`WORLDS`) and a hopper above its disc: two walls
@@ -1016,16 +1026,25 @@ def _sand_law(res: SandResult) -> str:
 
 
 def _repose_line(res: SandResult) -> str:
-    """The cone's angle of repose (both flanks measured), or why there is none."""
+    """The cone's angle of repose where its two flanks agree (within
+    :data:`REPOSE_AGREEMENT` degrees), else why it is not measured or not reliable."""
     left, right = res.repose_left, res.repose_right
     where = (
         "the grains at rest on the disc, a line fitted to each flank of the cone's surface, "
         "bins one radius wide"
     )
-    if np.isfinite(left) and np.isfinite(right):
+    if res.repose_reliable:
         return (
             f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
             f"{(left + right) / 2:.1f} ({where})"
+        )
+    if np.isfinite(left) and np.isfinite(right):
+        return (
+            f"angle of repose: not reliable here: the cone's flanks give {left:.1f} (left) "
+            f"and {right:.1f} (right) degrees, more than {REPOSE_AGREEMENT:g} apart; the cone "
+            f"on the disc holds {_plural(res.cone_grains, 'grain')}, too few for a slope to "
+            f"fit (a heap of hundreds of grains measures it: examples/heap.py pours 400 onto "
+            f"a floor)"
         )
     if not res.history:
         return (
