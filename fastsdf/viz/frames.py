@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import subprocess
 import tempfile
 from typing import Any
@@ -41,6 +40,7 @@ from numba import njit
 
 from fastsdf.expr.validate import check_bounds, count, positive, reals, shown, vec2
 from fastsdf.files import commit, temporary_sibling
+from fastsdf.viz.video import ffmpeg_exe
 
 __all__ = [
     "VideoWriter",
@@ -168,28 +168,6 @@ def color_table(colors: np.ndarray, alpha: float) -> tuple:
     a = int(round(256 * float(alpha)))
     table = np.rint(np.asarray(colors, dtype=np.float64)[:, :3] * 255.0).astype(np.int32) * a
     return np.ascontiguousarray(table), 256 - a
-
-
-# ---------------------------------------------------------------------------------------------
-# ffmpeg and parameter checks.
-
-
-def ffmpeg_exe() -> str:
-    """The ffmpeg binary: that of ``imageio-ffmpeg`` (``pip install 'fastsdf[video]'``), else
-    the system's. Raises ``RuntimeError`` saying what to install when there is none."""
-    try:
-        import imageio_ffmpeg
-
-        return str(imageio_ffmpeg.get_ffmpeg_exe())
-    except (ImportError, RuntimeError):
-        pass
-    exe = shutil.which("ffmpeg")
-    if exe is None:
-        raise RuntimeError(
-            "writing a video needs ffmpeg: pip install 'fastsdf[video]' (it "
-            "installs imageio-ffmpeg, which ships one), or install ffmpeg"
-        )
-    return exe
 
 
 def time_label(t: float | None, step: int | None) -> str:
