@@ -1,8 +1,9 @@
 """One-line notices on stderr for waits a user would otherwise sit through in silence.
 
 ``with compiling("the kernel of a new scene"):`` runs its block; if the block is still running
-after ``after`` seconds (default 1), one line is printed on stderr, e.g.
-``fastsdf: compiling the kernel of a new scene (once; later runs load it from the cache)...``,
+after ``after`` seconds (default 1) and numba compiles in it, one line is printed on stderr,
+e.g. ``fastsdf: compiling the kernel of a new scene (once; later runs load it from the
+cache)...`` (``loading ... from the cache`` when numba only loads compiled kernels),
 and when the block ends a line with its duration (every such wait is said: two new scenes,
 two notices; :func:`compiling_first` wraps only the first call of numba kernels).
 :func:`notice` prints a message at most once per process. ``FASTSDF_QUIET=1`` silences every
@@ -77,9 +78,78 @@ def notice(message: str) -> bool:
     return True
 
 
+# The clock of the progress estimates (a test replaces it).
+_clock = time.perf_counter
+
+
+class _CompilerUse:
+    """One thread's use of numba's compiler: how deep in its lock now and since when, the
+    seconds spent holding or waiting for it (compiling, loading compiled kernels from the
+    cache, or waiting for another thread's compile), and the compiles begun (a load from the
+    cache takes the lock without compiling)."""
+
+    __slots__ = ("depth", "since", "seconds", "compiles")
+
+    def __init__(self) -> None:
+        self.depth, self.since, self.seconds, self.compiles = 0, 0.0, 0.0, 0
+
+
+_uses: dict[int, _CompilerUse] = {}
+_listening = False
+
+
+def _use(ident: int | None = None) -> _CompilerUse:
+    ident = threading.get_ident() if ident is None else ident
+    use = _uses.get(ident)
+    if use is None:
+        use = _uses[ident] = _CompilerUse()
+    return use
+
+
+def compile_seconds() -> float:
+    """Seconds this thread has spent in numba's compiler (compiling, loading compiled kernels
+    from the cache, or waiting for another thread's compile: numba holds one lock for all of
+    it), counted from the first :class:`RunProgress` or :func:`compiling` block."""
+    return _use().seconds
+
+
+def _listen_to_numba() -> None:
+    """Follow numba's compiler from now on: its lock (what :func:`compile_seconds` counts)
+    and its compiles."""
+    global _listening
+    if _listening:
+        return
+    from numba.core import event
+
+    class _Compiler(event.Listener):
+        def on_start(self, event: event.Event) -> None:
+            use = _use()
+            if event.kind == "numba:compile":
+                use.compiles += 1
+                return
+            if not use.depth:
+                use.since = _clock()
+            use.depth += 1
+
+        def on_end(self, event: event.Event) -> None:
+            use = _use()
+            if event.kind == "numba:compile" or use.depth <= 0:  # (begun before listening)
+                return
+            use.depth -= 1
+            if not use.depth:
+                use.seconds += _clock() - use.since
+
+    listener = _Compiler()
+    event.register("numba:compiler_lock", listener)
+    event.register("numba:compile", listener)
+    _listening = True
+
+
 @contextmanager
 def compiling(what: str, after: float = 1.0) -> Iterator[None]:
-    """Say ``compiling <what>`` on stderr if the block takes longer than ``after`` seconds.
+    """Say ``compiling <what>`` on stderr if the block takes longer than ``after`` seconds
+    while numba compiles in it (``loading <what> from the cache`` while numba only loads
+    compiled kernels; nothing while the block's time is not numba's), and how long it took.
 
     The line is printed from a timer thread while the block runs (numba releases the GIL often
     enough while it compiles), so the user sees it during the wait, not after it.
@@ -92,33 +162,53 @@ def compiling(what: str, after: float = 1.0) -> Iterator[None]:
         finally:
             _depth.value = depth
         return
-    message = f"fastsdf: compiling {what} (once; later runs load it from the cache)...\n"
-    printed = threading.Event()
+    _listen_to_numba()
+    use = _use()
+    compiles, seconds = use.compiles, use.seconds
+    said: list[str] = []  # the line printed, once
+    timer: list[threading.Timer] = []
 
-    def speak() -> None:
+    def line() -> str | None:
+        """What numba is doing in this block: compiling, loading from the cache, or none."""
+        if use.compiles > compiles:
+            return f"compiling {what} (once; later runs load it from the cache)"
+        if use.depth or use.seconds > seconds:
+            return f"loading {what} from the cache"
+        return None
+
+    def say(text: str) -> None:
         try:
-            sys.stderr.write(message)
+            sys.stderr.write(f"fastsdf: {text}\n")
             sys.stderr.flush()
         except (AttributeError, ValueError, OSError):  # closed or missing stderr
-            return
-        printed.set()
+            pass
 
-    timer = threading.Timer(after, speak)
-    timer.daemon = True
+    def speak() -> None:
+        text = line()
+        if text is None:  # not (yet) numba's work: look again soon
+            timer[:] = [threading.Timer(0.25, speak)]
+            timer[0].daemon = True
+            timer[0].start()
+            return
+        said.append(text)
+        say(text + "...")
+
+    timer.append(threading.Timer(after, speak))
+    timer[0].daemon = True
     start = time.perf_counter()
     _depth.value = 1
-    timer.start()
+    timer[0].start()
     try:
         yield
     finally:
-        timer.cancel()
+        timer[0].cancel()
         _depth.value = 0
-        if printed.is_set():
-            try:
-                sys.stderr.write(f"fastsdf: ...done in {time.perf_counter() - start:.1f} s\n")
-                sys.stderr.flush()
-            except (AttributeError, ValueError, OSError):
-                pass
+        elapsed = time.perf_counter() - start
+        if not said and elapsed > after and use.compiles > compiles:
+            said.append(f"compiling {what}")  # (quicker than the timer could tell)
+            say(said[0] + "...")
+        if said:
+            say(f"...done in {elapsed:.1f} s")
 
 
 def warn_caller(message: str, category: type[Warning] = UserWarning) -> None:
@@ -164,54 +254,6 @@ def is_terminal(stream: IO[str]) -> bool:
         return bool(stream.isatty())
     except (AttributeError, ValueError):  # closed or not a real stream
         return False
-
-
-# The clock of the progress estimates (a test replaces it).
-_clock = time.perf_counter
-# Per thread: how deep in numba's compiler lock, since when, and the seconds spent there.
-_compiles = threading.local()
-_listening = False
-
-
-def _compile_started() -> None:
-    depth = getattr(_compiles, "depth", 0)
-    if not depth:
-        _compiles.since = _clock()
-    _compiles.depth = depth + 1
-
-
-def _compile_ended() -> None:
-    depth = getattr(_compiles, "depth", 0)
-    if depth <= 0:  # (began before the listener was installed)
-        return
-    _compiles.depth = depth - 1
-    if depth == 1:
-        _compiles.seconds = getattr(_compiles, "seconds", 0.0) + _clock() - _compiles.since
-
-
-def compile_seconds() -> float:
-    """Seconds this thread has spent in numba's compiler since the first :class:`RunProgress`
-    (compiling, loading compiled kernels from the cache, or waiting for another thread's
-    compile: numba holds one lock for all of it)."""
-    return getattr(_compiles, "seconds", 0.0)
-
-
-def _listen_to_numba() -> None:
-    """Time numba's compiler lock from now on (what :func:`compile_seconds` counts)."""
-    global _listening
-    if _listening:
-        return
-    from numba.core import event
-
-    class _CompilerLock(event.Listener):
-        def on_start(self, event: event.Event) -> None:
-            _compile_started()
-
-        def on_end(self, event: event.Event) -> None:
-            _compile_ended()
-
-    event.register("numba:compiler_lock", _CompilerLock())
-    _listening = True
 
 
 #: :class:`RunProgress` estimates the time left from the rate over this share of the work

@@ -366,3 +366,23 @@ def test_a_real_compile_is_left_out_of_the_work():
         fresh(1.0)
         bar.update(1)
         assert bar.compiled() > 0.0
+
+
+def test_a_slow_block_is_announced_only_for_what_numba_does(capsys):
+    """A block that takes long without numba compiling says nothing; one where numba only
+    loads compiled kernels (its lock held, no compile) says "loading"; a compile says
+    "compiling" (the granular kernels were said to compile twice in one process: the second
+    time they were loaded, or nothing was numba's)."""
+    import time
+
+    from numba.core import event
+
+    with notice.compiling("a slow block", after=0.0):
+        time.sleep(0.4)
+    assert capsys.readouterr().err == ""
+    with notice.compiling("some kernels", after=0.0):
+        event.start_event("numba:compiler_lock")
+        time.sleep(0.4)
+        event.end_event("numba:compiler_lock")
+    err = capsys.readouterr().err
+    assert "fastsdf: loading some kernels from the cache..." in err and "compiling" not in err
