@@ -584,28 +584,45 @@ def _outside_share(x: np.ndarray) -> float:
 
 
 def warm_readme_kernels(stream: IO[str] | None = None) -> float:
-    """Compile (or load) the kernels the README's blocks use that the particle demo does not:
-    the grains' (a few grains of the README's block poured for one step, with its contact law
-    and world, the exact seed world) and the distance transforms of images (a small image
-    through :func:`fastsdf.geometry.from_image`). So a block pasted after ``make demo`` loads
-    them from the cache instead of compiling them. Says so on ``stream`` (default stderr);
-    returns the seconds it took."""
+    """Compile (or load) the kernels the README's blocks use that the particle demo may not:
+    the particle step's parallel entry point for long calls on the README's 400 x 400 grid
+    of the seed world (whatever particle count the demo ran), the grains' (grains of the
+    README's block, with its contact law and world, the exact seed world: some falling, some
+    resting on the disc, so that their contacts with the world compile too) and the distance
+    transforms of images (a small image through :func:`fastsdf.geometry.from_image`). So a
+    block pasted after ``make demo`` loads them from the cache instead of compiling them.
+    Says so on ``stream`` (default stderr); returns the seconds it took."""
+    from fastsdf.fields.grid import GridSDF
     from fastsdf.geometry import from_image
     from fastsdf.granular.params import ContactLaw
     from fastsdf.particles import Gravity, ParticleSimulation
+    from fastsdf.particles.simulation import LONG_CALL, PARALLEL_MIN_PARTICLES
 
     err = stream if stream is not None else sys.stderr
     err.write(
-        "fastsdf demo: compiling the kernels of the README's other blocks (grains, images) "
-        "for later ...\n"
+        "fastsdf demo: compiling the kernels of the README's other blocks (particles, grains, "
+        "images) for later ...\n"
     )
     err.flush()
     t0 = time.perf_counter()
-    gx, gy = np.meshgrid(np.linspace(-0.1, 0.1, 3), np.linspace(0.8, 0.9, 2))
-    law = ContactLaw(**README_GRAIN_LAW)
+    with compiling("the particle step for long runs"):
+        grid = GridSDF(_seed(), bounds=BOUNDS, samples=[400j, 400j])  # the README's grid
+        sim = ParticleSimulation(grid, n=PARALLEL_MIN_PARTICLES, seed=0)
+        sim.force_generators.append(Gravity())
+        sim.run(-(-LONG_CALL // PARALLEL_MIN_PARTICLES))
+    r, world = 0.02, _seed()
+    falling = np.column_stack([np.linspace(-0.1, 0.1, 3), np.full(3, 0.85)])
+    # three more touching the disc's top: the lowest heights above it where the distance is r
+    ys = np.linspace(0.0, 0.6, 601)
+    resting = [
+        (x, ys[np.argmax(world(np.full(ys.size, x), ys) > 0.95 * r)]) for x in (-0.2, 0, 0.2)
+    ]
     with compiling("the grains' kernels"):
         sim = ParticleSimulation(
-            _seed(), positions=np.column_stack([gx.ravel(), gy.ravel()]), radius=0.02, contacts=law
+            world,
+            positions=np.concatenate([falling, resting]),
+            radius=r,
+            contacts=ContactLaw(**README_GRAIN_LAW),
         )
         sim.force_generators.append(Gravity())
         sim.run(1)
