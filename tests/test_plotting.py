@@ -566,7 +566,9 @@ def test_render_frame_is_sized_to_its_bounds(world, tmp_path, bounds, n, title):
     rng = np.random.default_rng(5)
     x, y = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.9, 0.9, n)
     out = tmp_path / "frame.png"
-    fig = render_frame(world, x, y, r=0.02, bounds=bounds, samples=60, out_png=str(out), title=title)
+    fig = render_frame(
+        world, x, y, r=0.02, bounds=bounds, samples=60, out_png=str(out), title=title
+    )
     FigureCanvasAgg(fig).draw()
     ax = fig.axes[0]
     (x0, x1), (y0, y1) = bounds

@@ -146,7 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the exit status (0, or 2 after a one-line error)."""
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status (0,
+    or 2 after a one-line error)."""
     parser = build_parser()
     assert isinstance(parser, _Parser)
     args = parser.parse_args(argv)

@@ -123,6 +123,12 @@ WORLDS: dict[str, tuple[Callable[[], Any], str]] = {
 class DemoResult:
     """What :func:`run_demo` simulated, measured and wrote (paths are absolute).
 
+    ``world``, ``particles``, ``steps``: as run; ``timestep``: seconds per step; ``sdf``: what
+    the particles queried, in words, and ``mode`` the grid's answer outside its bounds
+    (``None`` without a grid); ``sim_seconds``: the steps after the first, in seconds;
+    ``grid_band_value_max`` and ``grid_band_angle_rms_deg``: the grid's largest value error
+    and its gradient's RMS angle error in the collision band ``|d| < 0.1`` (``None`` without
+    a grid); ``animation``, ``last_frame``: the video and the PNG written; ``notes``: remarks.
     ``particle_steps_per_second`` counts the steps after the first (which compiles or loads the
     kernel, ``first_step_seconds``); ``outside_grid_fraction`` is the share of particle positions
     outside the grid's bounds, sampled after every frame's steps (``None`` without a grid);
@@ -175,7 +181,8 @@ def spawn_in_free_space(sim: Any, f: Any, rng: np.random.Generator, tries: int =
 
     ``sim`` is a fresh :class:`fastsdf.particles.ParticleSimulation`; its ``reset`` draws the
     notebook's blob ``x ~ N([0, 1.5], 0.05 I)``. Rejected positions are replaced by fresh draws
-    from the same blob (up to ``tries`` rounds), then by uniform draws over :data:`BOUNDS`.
+    from ``rng`` (a ``numpy.random.Generator``): from the same blob (up to ``tries`` rounds),
+    then uniform over :data:`BOUNDS`.
     Returns the number of particles that were redrawn; raises ``RuntimeError`` if the world
     leaves no room.
     """
@@ -641,7 +648,8 @@ def _plural(n: int, word: str) -> str:
 
 
 def summary(res: DemoResult) -> str:
-    """Human-readable lines for the demo's result: what was simulated, the rate, and why."""
+    """Human-readable lines for the demo's result ``res``: what was simulated, the rate, and
+    why."""
     lines = [
         f"world: {res.world}, {WORLDS[res.world][1]}",
         f"queried through {res.sdf}"
@@ -732,6 +740,9 @@ def summary(res: DemoResult) -> str:
 class SandResult:
     """What :func:`run_sand_demo` simulated, measured and wrote (paths are absolute).
 
+    ``world``, ``grains``, ``radius`` (the mean), ``steps``: as run; ``timestep``: seconds per
+    step; ``sdf``: what the grains queried, in words; ``sim_seconds``: the steps after the
+    first, in seconds; ``animation``, ``last_frame``: the video and the PNG written.
     ``substeps_per_step``: the granular engine's substeps per 1/30 s step (from the contact
     law's stiffness, ``stiffness``, derived from the grains by ``ContactLaw()``);
     ``first_step_seconds``: the first step (compiling or loading the kernels);
@@ -805,7 +816,8 @@ def hopper_fill(n: int, radius: np.ndarray, rng: np.random.Generator) -> np.ndar
     """Start positions (n, 2) of grains of radii ``radius`` filling the hopper of
     :func:`sand_world` from its outlet up: rows of grains a little apart (their largest
     diameter and a tenth), alternate rows shifted by half a pitch, each grain clear of the
-    walls, with a small random offset (so the fill does not settle as a crystal)."""
+    walls, with a small random offset (so the fill does not settle as a crystal) drawn from
+    ``rng`` (a ``numpy.random.Generator``)."""
     pitch = 2.2 * float(np.max(radius))
     rows: list[np.ndarray] = []
     count, y, row = 0, HOPPER_OUTLET_Y + pitch, 0
@@ -869,7 +881,8 @@ def run_sand_demo(
     summary reports the angle of repose of the cone on the disc
     (:func:`fastsdf.granular.repose_angle` on the grains at rest there). Writes
     ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without ffmpeg; ``animate=False``
-    skips it) and ``out/sand_last_frame.png``."""
+    skips it) and ``out/sand_last_frame.png``. ``seed``: the radii's and the fill's random
+    seed; ``stream``: where notices go (default stderr)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1075,7 +1088,7 @@ def _repose_line(res: SandResult) -> str:
 
 
 def sand_summary(res: SandResult) -> str:
-    """Human-readable lines for the sand scene's result."""
+    """Human-readable lines for the sand scene's result ``res``."""
     lines = [
         f"world: {res.world}, {WORLDS[res.world][1]}; queried through {res.sdf}",
         f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} +-"

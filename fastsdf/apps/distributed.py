@@ -171,8 +171,9 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
 class ShardLostError(RuntimeError):
     """A shard of a :class:`DistributedSimulation` is gone (its worker died or was restarted).
 
-    ``shards``: the lost shard indices; ``workers``: the addresses they lived on. The other
-    shards are intact, but the simulation can no longer advance consistently.
+    ``shards``: the lost shard indices; ``workers``: the addresses they lived on; ``detail``:
+    what Dask said. The other shards are intact, but the simulation can no longer advance
+    consistently.
     """
 
     def __init__(self, shards: Sequence[int], workers: Sequence[str], detail: str = ""):
@@ -712,7 +713,8 @@ class DistributedSimulation:
 
         Returns a dict of the fields ``x, v, m, r, cr, cf`` (float arrays of ``k`` rows) and
         ``index`` (their global indices, sorted; shard ``i`` holds the indices from
-        ``sum(sizes[:i])``). Only the ``k`` rows travel.
+        ``sum(sizes[:i])``). Only the ``k`` rows travel. ``seed``: the draw's random seed
+        (``None``: fresh entropy).
         """
         if (
             isinstance(k, (bool, np.bool_))
@@ -922,7 +924,9 @@ def run_demo(
     """:func:`fastsdf.apps.demo.run_demo` with the particles on a :func:`local_cluster` of
     ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
 
-    Same parameters and result (a :class:`fastsdf.apps.demo.DemoResult`). The particles live on the
+    Same parameters (``steps``, ``grid``, ``exact``, ``seed``, ``out``, ``frames``, ``fps``,
+    ``animate``, ``world``, ``mode``, ``stream``) and result (a
+    :class:`fastsdf.apps.demo.DemoResult`). The particles live on the
     workers, one shard per worker; each shard spawns its particles in free space there
     (:func:`fastsdf.apps.demo.spawn_in_free_space`); video frames and the last frame are drawn from
     :meth:`DistributedSimulation.density` images, so only images travel to this process, and

@@ -1,6 +1,7 @@
 """Parameter checks shared by the modelling and simulation modules.
 
-Every error names the parameter and the value it got, at construction time.
+Every error names the parameter and the value it got, at construction time: each check takes
+the ``value`` given and the ``name`` of the parameter it was given as.
 """
 
 from __future__ import annotations

@@ -261,6 +261,7 @@ class VideoWriter:
     the simulated time (``t``/``step`` given to :meth:`add`) is written at its right.
     ``samples``: grid samples per axis of the world's picture. ``crf``, ``preset``: libx264's
     quality (lower is better) and speed settings. ``alpha``: opacity of the particle layer.
+    ``dpi``: the figure's dots per inch (the picture's fonts scale with it).
     """
 
     def __init__(
@@ -549,7 +550,8 @@ class VideoWriter:
     def add(
         self, x: Any, y: Any, r: Any = None, t: float | None = None, step: int | None = None
     ) -> None:
-        """Append the frame of particles at ``(x, y)`` (see :meth:`render`)."""
+        """Append the frame of particles at ``(x, y)``, radii ``r``, simulated time ``t`` and
+        ``step`` (see :meth:`render`)."""
         if self._closed:
             raise RuntimeError("this VideoWriter is closed")
         counts = self._splat(x, y, r)
@@ -690,7 +692,8 @@ def record_video(
     """Run ``sim`` and write a video of it: frame 0 is its current state, each later frame
     follows ``steps_per_frame`` more steps (``sim.run``, or ``advance(k)`` if given).
 
-    ``world``: the picture's SDF (default ``sim.sdf``). ``writer_options`` go to
+    ``frames``: how many (>= 1). ``world``: the picture's SDF (default ``sim.sdf``).
+    ``writer_options`` go to
     :class:`VideoWriter` (``bounds``, ``size``, ``fps``, ``mode``, ``vmax``, ``title``, ...).
     Returns the path written.
     """

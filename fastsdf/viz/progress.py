@@ -17,7 +17,8 @@ __all__ = ["Progress", "progress"]
 
 
 def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwargs: Any) -> tqdm:
-    """A tqdm bar of ``total`` steps on ``stream`` (default stderr), off unless it is a terminal.
+    """A tqdm bar of ``total`` steps named ``label`` on ``stream`` (default stderr), off unless
+    it is a terminal.
 
     Pass ``disable=False`` to force it on (e.g. in a notebook, where tqdm draws a widget).
     """
@@ -29,8 +30,8 @@ def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwarg
 
 
 class Progress:
-    """``with Progress(total, 'label') as bar: ... bar.step(note)``: a tqdm bar (see
-    :func:`progress`); ``note`` is shown after the counts."""
+    """``with Progress(total, 'label') as bar: ... bar.step(note)``: a tqdm bar on ``stream``
+    (see :func:`progress`); ``note`` is shown after the counts."""
 
     def __init__(self, total: int, label: str = "", stream: IO[str] | None = None):
         self._bar = progress(total, label, stream)

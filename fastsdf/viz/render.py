@@ -281,7 +281,9 @@ class ParticleLayer:
     image (``None`` in circle mode); ``colorbar``, the density image's colour bar (particles per
     pixel) when one was asked for and the layer is in density mode, else ``None``; ``bounds``,
     ``shape``, ``max_circles``. The mode is chosen from the particle count at every update, so a
-    layer switches representation if the count crosses ``max_circles``.
+    layer switches representation if the count crosses ``max_circles``. The drawing options
+    (``color``, ``cmap``, ``norm``, ``alpha``, ``zorder``, ``marker_points``, ``colorbar``)
+    are :func:`draw_particles`'s.
     """
 
     def __init__(
@@ -668,6 +670,7 @@ def animate(
     ``title``: when not ``None``, the axes title is ``title`` followed by each frame's simulated
     time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay
     between frames in ms (default the simulation's timestep times ``steps_per_frame``).
+    ``repeat`` and ``blit`` are ``FuncAnimation``'s (a repeat continues the simulation).
 
     Each frame advances the simulation once more every time the animation is drawn or saved:
     saving it twice continues the simulation. Returns a ``FuncAnimation`` (keep a reference;
