@@ -19,6 +19,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -66,9 +67,14 @@ def first_estimate(source: str) -> dict:
     """Run ``source`` in a fresh process; the first estimate shown against the truth."""
     env = dict(os.environ, MPLBACKEND="Agg")
     env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, env.get("PYTHONPATH")) if p)
-    done = subprocess.run(
-        [sys.executable, "-c", _PRELUDE + source], env=env, capture_output=True, text=True
-    )
+    with tempfile.TemporaryDirectory() as folder:  # (where the block writes its picture)
+        done = subprocess.run(
+            [sys.executable, "-c", _PRELUDE + source],
+            cwd=folder,
+            env=env,
+            capture_output=True,
+            text=True,
+        )
     lines = [ln for ln in done.stderr.splitlines() if ln.startswith("PROGRESS ")]
     if done.returncode or not lines:
         return {"error": done.stderr[-2000:]}

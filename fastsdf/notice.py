@@ -1,9 +1,9 @@
 """One-line notices on stderr for waits a user would otherwise sit through in silence.
 
 ``with compiling("the kernel of a new scene"):`` runs its block; if the block is still running
-after ``after`` seconds (default 1) and numba compiles in it, one line is printed on stderr,
+after ``after`` seconds (default 1) and numba compiles for it, one line is printed on stderr,
 e.g. ``fastsdf: compiling the kernel of a new scene (once; later runs load it from the
-cache)...`` (``loading ... from the cache`` when numba only loads compiled kernels),
+cache)...`` (nothing for a block that is merely slow, or loads kernels from the cache),
 and when the block ends a line with its duration (every such wait is said: two new scenes,
 two notices; :func:`compiling_first` wraps only the first call of numba kernels).
 :func:`notice` prints a message at most once per process. ``FASTSDF_QUIET=1`` silences every
@@ -95,6 +95,7 @@ class _CompilerUse:
 
 
 _uses: dict[int, _CompilerUse] = {}
+_compiles_begun = [0]  # in every thread
 _listening = False
 
 
@@ -126,6 +127,7 @@ def _listen_to_numba() -> None:
             use = _use()
             if event.kind == "numba:compile":
                 use.compiles += 1
+                _compiles_begun[0] += 1
                 return
             if not use.depth:
                 use.since = _clock()
@@ -148,8 +150,9 @@ def _listen_to_numba() -> None:
 @contextmanager
 def compiling(what: str, after: float = 1.0) -> Iterator[None]:
     """Say ``compiling <what>`` on stderr if the block takes longer than ``after`` seconds
-    while numba compiles in it (``loading <what> from the cache`` while numba only loads
-    compiled kernels; nothing while the block's time is not numba's), and how long it took.
+    while numba compiles for it (in this thread, or in another while this one waits for
+    numba's compiler), and when it ends how long it took; nothing while the block's time is
+    not numba's compiling (a slow call, or kernels loaded from the cache).
 
     The line is printed from a timer thread while the block runs (numba releases the GIL often
     enough while it compiles), so the user sees it during the wait, not after it.
@@ -164,17 +167,13 @@ def compiling(what: str, after: float = 1.0) -> Iterator[None]:
         return
     _listen_to_numba()
     use = _use()
-    compiles, seconds = use.compiles, use.seconds
-    said: list[str] = []  # the line printed, once
+    compiles, anywhere, seconds = use.compiles, _compiles_begun[0], use.seconds
+    said = threading.Event()
     timer: list[threading.Timer] = []
 
-    def line() -> str | None:
-        """What numba is doing in this block: compiling, loading from the cache, or none."""
-        if use.compiles > compiles:
-            return f"compiling {what} (once; later runs load it from the cache)"
-        if use.depth or use.seconds > seconds:
-            return f"loading {what} from the cache"
-        return None
+    def compiled() -> bool:
+        waited = use.depth > 0 or use.seconds > seconds  # for numba's compiler
+        return use.compiles > compiles or (waited and _compiles_begun[0] > anywhere)
 
     def say(text: str) -> None:
         try:
@@ -184,14 +183,13 @@ def compiling(what: str, after: float = 1.0) -> Iterator[None]:
             pass
 
     def speak() -> None:
-        text = line()
-        if text is None:  # not (yet) numba's work: look again soon
+        if not compiled():  # not (yet) numba compiling: look again soon
             timer[:] = [threading.Timer(0.25, speak)]
             timer[0].daemon = True
             timer[0].start()
             return
-        said.append(text)
-        say(text + "...")
+        said.set()
+        say(f"compiling {what} (once; later runs load it from the cache)...")
 
     timer.append(threading.Timer(after, speak))
     timer[0].daemon = True
@@ -204,10 +202,9 @@ def compiling(what: str, after: float = 1.0) -> Iterator[None]:
         timer[0].cancel()
         _depth.value = 0
         elapsed = time.perf_counter() - start
-        if not said and elapsed > after and use.compiles > compiles:
-            said.append(f"compiling {what}")  # (quicker than the timer could tell)
-            say(said[0] + "...")
-        if said:
+        if not said.is_set() and elapsed > after and compiled():
+            speak()  # (quicker than the timer could tell)
+        if said.is_set():
             say(f"...done in {elapsed:.1f} s")
 
 

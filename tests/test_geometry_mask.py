@@ -241,8 +241,8 @@ def test_from_image_reads_a_png_or_jpeg_file_as_its_pixels(tmp_path):
     ):
         path = tmp_path / f"disc_{mode}.png"
         image.fromarray(pixels, mode).save(path)
-        for given in (path, str(path)):
-            got = from_image(given, bounds)
+        for source in (path, str(path)):
+            got = from_image(source, bounds)
             np.testing.assert_array_equal(got.values, want.values)
     path = tmp_path / "disc.jpg"
     image.fromarray(grey, "L").save(path, quality=95)

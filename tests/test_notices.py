@@ -383,21 +383,34 @@ def test_a_real_compile_is_left_out_of_the_work():
         assert bar.compiled() > 0.0
 
 
-def test_a_slow_block_is_announced_only_for_what_numba_does(capsys):
-    """A block that takes long without numba compiling says nothing; one where numba only
-    loads compiled kernels (its lock held, no compile) says "loading"; a compile says
-    "compiling" (the granular kernels were said to compile twice in one process: the second
-    time they were loaded, or nothing was numba's)."""
+def test_a_slow_block_is_announced_only_when_numba_compiles_for_it(capsys):
+    """A block that takes long without numba compiling says nothing, nor one where numba
+    only loads compiled kernels (its lock held, no compile: a second simulation was said to
+    compile the granular kernels again); one that waits for another thread's compile says
+    "compiling"."""
+    import threading
     import time
 
     from numba.core import event
 
     with notice.compiling("a slow block", after=0.0):
         time.sleep(0.4)
-    assert capsys.readouterr().err == ""
     with notice.compiling("some kernels", after=0.0):
         event.start_event("numba:compiler_lock")
         time.sleep(0.4)
         event.end_event("numba:compiler_lock")
+    assert capsys.readouterr().err == ""
+
+    def compile_elsewhere():
+        event.start_event("numba:compile", data={})
+        event.end_event("numba:compile", data={})
+
+    with notice.compiling("a scene", after=0.0):
+        event.start_event("numba:compiler_lock")  # waiting for it...
+        other = threading.Thread(target=compile_elsewhere)
+        other.start()
+        other.join()
+        time.sleep(0.4)
+        event.end_event("numba:compiler_lock")
     err = capsys.readouterr().err
-    assert "fastsdf: loading some kernels from the cache..." in err and "compiling" not in err
+    assert "fastsdf: compiling a scene (once" in err and "...done in" in err

@@ -530,7 +530,8 @@ def world_figure(
     layout engines misplace a colour bar beside an equal-aspect axes). ``figsize=None``: a
     figure :data:`FRAME_WIDTH` wide (narrower for a tall world, whose axes stop at
     :data:`FRAME_MAX_HEIGHT`) as tall as the bounds' aspect needs, with room for the colour
-    bar only with ``bar`` and for a title only with ``title``."""
+    bar only with ``bar`` (without, the same axes in a narrower figure) and for a title only
+    with ``title``."""
     from matplotlib.figure import Figure
 
     from fastsdf.viz.plotting import plot_sdf
@@ -538,12 +539,12 @@ def world_figure(
     (x0, x1), (y0, y1) = check_bounds(bounds)
     left, bottom = (0.75, 0.47) if ticks else (0.15, 0.15)
     top = 0.32 if title else (0.15 if ticks else 0.1)
-    # the colour bar: gap, width, room for its ticks and label (else room for a tick label)
+    # the colour bar: gap, width, room for its ticks and label (1.2 in all; else room for a
+    # tick label)
     gap, width, right = (0.15, 0.2, 0.85) if bar else (0.0, 0.0, 0.3 if ticks else 0.15)
     aspect = (y1 - y0) / (x1 - x0)
-    if figsize is None:
-        w = FRAME_WIDTH - left - gap - width - right
-        w = min(w, FRAME_MAX_HEIGHT / aspect)
+    if figsize is None:  # the axes as wide with or without a colour bar: the figure narrower
+        w = min(FRAME_WIDTH - left - 1.2, FRAME_MAX_HEIGHT / aspect)
         figsize = (round(left + w + gap + width + right, 2), round(bottom + w * aspect + top, 2))
     fig = Figure(figsize=figsize, dpi=dpi)
     W, H = fig.get_size_inches()
@@ -594,7 +595,8 @@ def render_frame(
     (``None``: the busiest pixel's count; give a video's ``vmax`` to colour the picture as its
     frames). ``title`` is the axes title (say what is shown: the simulated time,
     the step). The figure is ``figsize`` inches at ``dpi`` (default: sized to ``bounds``,
-    :data:`FRAME_WIDTH` wide, with room for the colour bar only where one is drawn), laid out
+    :data:`FRAME_WIDTH` wide with a colour bar, the same axes in a narrower figure without
+    one), laid out
     without wasted margin (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
     ``out_png`` is given it is saved there at that dpi, uncropped, so the axes' ``transData``
     maps data coordinates to the PNG's pixels (y counted from the bottom).
