@@ -476,13 +476,6 @@ def _operands(a: object, b: object, k: object, kind: object) -> tuple:
     return (_check_sdf(a, "a"), _check_sdf(b, "b"), *_k_and_kind(k, kind))
 
 
-def _joined(ia: _Info, ib: _Info, **known: Any) -> _Info:
-    """What is known of a set operation's result: ``known``, and what every one keeps: a
-    bound of bounds (a blend's gradient is a convex combination of its operands'), and the
-    symmetries both operands have."""
-    return _Info(bound=ia.bound and ib.bound, sym=ia.sym & ib.sym, **known)
-
-
 class Union(SDF):
     """Union of two SDFs: ``min(a, b)``, or a smooth minimum for ``k > 0``: the notebook's
     exponential one (``kind='exponential'``, ``k`` = sharpness in 1/distance, deepens by at
@@ -509,14 +502,8 @@ class Union(SDF):
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
         a, b, k, kind = _operands(a, b, k, kind)
-        ia, ib = a._info, b._info
-        info = _joined(
-            ia,
-            ib,
-            outside=k == 0 and ia.outside and ib.outside,
-            bbox=_bbox_union(ia.bbox, ib.bbox, _blend_depth(k, kind)),
-        )
-        super().__init__(_blend_min(a.f, b.f, k, kind), info)
+        joined = _union([a, b], k, kind)  # (the rules of many shapes' union, for two)
+        super().__init__(joined.f, joined._info)
 
 
 class Intersection(SDF):
@@ -532,15 +519,8 @@ class Intersection(SDF):
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
         a, b, k, kind = _operands(a, b, k, kind)
-        ia, ib = a._info, b._info
-        info = _joined(
-            ia,
-            ib,
-            inside=k == 0 and ia.inside and ib.inside,
-            convex=k == 0 and ia.convex and ib.convex,
-            bbox=_bbox_meet(ia.bbox, ib.bbox),
-        )
-        super().__init__(_blend_max(a.f, b.f, k, kind), info)
+        joined = _intersection([a, b], k, kind)
+        super().__init__(joined.f, joined._info)
 
 
 class Difference(SDF):
@@ -557,7 +537,12 @@ class Difference(SDF):
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
         a, b, k, kind = _operands(a, b, k, kind)
         ia, ib = a._info, b._info
-        info = _joined(ia, ib, inside=k == 0 and ia.inside and ib.outside, bbox=ia.bbox)
+        info = _Info(
+            inside=k == 0 and ia.inside and ib.outside,
+            bound=ia.bound and ib.bound,
+            bbox=ia.bbox,
+            sym=ia.sym & ib.sym,
+        )
         super().__init__(_blend_max(a.f, -b.f, k, kind), info)
 
 
