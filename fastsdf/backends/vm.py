@@ -49,9 +49,9 @@ from numba import njit, prange
 from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel import prims as _P
+from fastsdf.intrinsics import select as _sel
 from fastsdf.backends.kernel.vmath import vexp, vlength, vlength_grad, vlog
 from fastsdf.expr.graph import Expr
-from fastsdf.intrinsics import select as _sel
 from fastsdf.notice import compiling
 
 __all__ = ["Tape", "compile_tape", "BLOCK", "interpreter_ready", "warm", "warm_in_background"]

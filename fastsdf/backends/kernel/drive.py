@@ -24,10 +24,10 @@ from llvmlite import ir
 from numba import get_thread_id, njit, prange, types
 from numba.extending import intrinsic
 
+from fastsdf.intrinsics import select as _sel
 from fastsdf.backends.kernel.layout import BLOCK
 from fastsdf.backends.kernel.vmath import vexp as _vexp
 from fastsdf.backends.kernel.vmath import vlog as _vlog
-from fastsdf.intrinsics import select as _sel
 
 __all__ = [
     "BLOCK_SIG",
