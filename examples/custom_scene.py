@@ -33,11 +33,9 @@ def main(out: str = "examples-out") -> str:
     f = cup()
     os.makedirs(out, exist_ok=True)
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.4), layout="constrained")
-    sdf.plot_sdf(
-        f, ax=left, filled=True, show_quiver=False, show_isolines="all", colorbar=True, ticks=True
-    )
+    sdf.plot_sdf(f, ax=left, filled=True, show_quiver=False, show_isolines="all")
     left.set_title(f"a cup ({f.exactness}): solid and isolines of d")
-    sdf.plot_sdf(f, ax=right, show_isolines="zero", show_quiver=True, colorbar=True, ticks=True)
+    sdf.plot_sdf(f, ax=right, show_isolines="zero", show_quiver=True)
     right.set_title("grad d: arrows point out of the solid")
     path = os.path.join(out, "custom_scene.png")
     fig.savefig(path, dpi=90)

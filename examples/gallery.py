@@ -97,6 +97,7 @@ def main(out: str | None = None) -> str:
                 filled=True,
                 show_quiver=False,
                 show_isolines=None,
+                axes=False,  # small panels: the shapes alone, no ticks
             )
             xs, ys, d = sdf_grid(f, bounds, 160)
             ax.contour(xs, ys, d, levels=levels[levels > 0], colors="#8a6f3a", linewidths=0.6)

@@ -85,10 +85,12 @@ def main(out: str | None = None, n: int = 700, steps: int = 360) -> str:
         sdf.Halfspace([0, 1], -1.97) | sdf.Halfspace([1, 0], -1.97) | sdf.Halfspace([-1, 0], -1.97)
     )
     for ax, (title, f, grid) in zip(axes, panels, strict=True):
-        sdf.plot_sdf(f, ax=ax, bounds=BOUNDS, samples=300, filled=True, show_quiver=False)
+        sdf.plot_sdf(
+            f, ax=ax, bounds=BOUNDS, samples=300, filled=True, show_quiver=False, colorbar=False
+        )
         for c in contours(f, bounds=BOUNDS, resolution=200):
             p = np.vstack([c.points, c.points[:1]]) if c.closed else c.points
-            ax.plot(p[:, 0], p[:, 1], color="#e8702a", lw=1.2)
+            ax.plot(p[:, 0], p[:, 1], color="#e8702a", lw=1.2, zorder=3)  # over the surface
         # the particles' world: the shape and the box's walls and floor, as a grid
         if grid is None:
             grid = sdf.GridSDF(

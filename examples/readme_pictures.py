@@ -134,21 +134,24 @@ def picture_hero(out: str, small: bool) -> str:
     )
     sim.force_generators.append(Gravity())
     sim.run(40 if small else 120)
-    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=110, layout="compressed")
-    # lines at distances clear of half the gaps between letters (which would ring their middles)
-    sdf.plot_sdf(
+    fig, ax = plt.subplots(figsize=(6.4, 3.3), dpi=110, layout="compressed")
+    # lines at distances clear of half the gaps between letters (which would ring their
+    # middles), each labelled with its distance
+    lines = sdf.plot_sdf(
         world,
         ax=ax,
         bounds=bounds,
         samples=(400, 220),
         show_quiver=False,
+        show_isolabels=True,
         filled=True,
-        levels=[0.0, 0.2, 0.4, 0.6, 0.8],
+        colorbar=False,
+        levels=[0.2, 0.4, 0.6, 0.8],
     )
     from matplotlib.collections import EllipseCollection
 
     speed = np.linalg.norm(sim.p["v"], axis=1)
-    ax.add_collection(
+    grains = ax.add_collection(
         EllipseCollection(
             2 * sim.p["r"],
             2 * sim.p["r"],
@@ -164,7 +167,14 @@ def picture_hero(out: str, small: bool) -> str:
             zorder=5,
         )
     )
-    ax.set_title(f"Text('fastsdf') as an SDF (lines: distance), {len(xy):,} grains poured on it")
+    for label in lines.get("labels", []):  # above the grains, on a patch of free space
+        label.set_zorder(6)
+        label.set_bbox(dict(facecolor=sdf.viz.plotting.BACKGROUND_COLOR, edgecolor="none", pad=0.5))
+    fig.colorbar(grains, ax=ax, label="grain speed (length/s)", fraction=0.05, aspect=20, pad=0.02)
+    ax.set_title(
+        f"Text('fastsdf') as an SDF (lines: its distance), {len(xy):,} grains poured on it",
+        fontsize=10,
+    )
     path = os.path.join(out, HERO)
     fig.savefig(path + ".part.png")
     os.replace(path + ".part.png", path)

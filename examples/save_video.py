@@ -49,7 +49,7 @@ def main(out: str = "examples-out", n: int = 200_000, frames: int = 90) -> str:
         )
     else:
         fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
-        sdf.plot_sdf(world, ax=ax, filled=True, show_quiver=False, show_isolines="zero", ticks=True)
+        sdf.plot_sdf(world, ax=ax, filled=True, show_quiver=False, show_isolines="zero")
         anim = animate(
             sim, ax, frames=frames, steps_per_frame=2, colorbar=True, title=f"{n:,} particles, "
         )

@@ -28,38 +28,12 @@ from fastsdf.expr.graph import (
 from fastsdf.fields.band import NarrowBandGridSDF
 from fastsdf.fields.grid import GridSDF
 from fastsdf.function import Function
-from fastsdf.shapes import (
-    SDF,
-    Arc,
-    Box,
-    Capsule,
-    Circle,
-    Difference,
-    Ellipse,
-    EquilateralTriangle,
-    Halfspace,
-    Intersection,
-    OrientedBox,
-    Polygon,
-    RegularPolygon,
-    Ring,
-    RoundedBox,
-    Segment,
-    Star,
-    Triangle,
-    Union,
-    intersection,
-    mirror,
-    offset,
-    repeat,
-    rotate,
-    scale,
-    shell,
-    smoothness,
-    transform,
-    translate,
-    union,
-)
+from fastsdf.shapes import context as _context
+from fastsdf.shapes import operations as _operations
+from fastsdf.shapes import primitives as _primitives
+from fastsdf.shapes.context import *  # noqa: F403 (the modelling API: fastsdf.shapes's names)
+from fastsdf.shapes.operations import *  # noqa: F403
+from fastsdf.shapes.primitives import *  # noqa: F403
 from fastsdf.version import __version__
 from fastsdf.viz.plotting import plot_sdf
 
@@ -81,37 +55,10 @@ __all__ = [
     "sym_smax",
     "sym_smin",
     "sym_sqrt",
-    "SDF",
-    "Box",
-    "Circle",
-    "Difference",
-    "Halfspace",
-    "Intersection",
-    "Union",
-    "union",
-    "intersection",
-    "smoothness",
-    "transform",
-    "Segment",
-    "Capsule",
-    "RoundedBox",
-    "OrientedBox",
-    "EquilateralTriangle",
-    "Triangle",
-    "RegularPolygon",
-    "Polygon",
-    "Star",
-    "Ellipse",
-    "Arc",
-    "Ring",
-    "offset",
-    "shell",
-    "scale",
-    "translate",
-    "rotate",
-    "mirror",
-    "repeat",
     "GridSDF",
     "NarrowBandGridSDF",
     "plot_sdf",
 ]
+__all__ += _primitives.__all__
+__all__ += _operations.__all__
+__all__ += _context.__all__

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import inspect
+import typing
+from typing import TypeVar
 
-__all__ = ["show_init_signature"]
+__all__ = ["show_init_signature", "show_field_types"]
+
+_Class = TypeVar("_Class", bound=type)
 
 
 def show_init_signature(cls: type) -> None:
@@ -17,3 +21,15 @@ def show_init_signature(cls: type) -> None:
         return_annotation=inspect.Signature.empty,
     )
     setattr(cls, "__signature__", shown)  # noqa: B010 (a dunder the type checker refuses)
+
+
+def show_field_types(cls: _Class) -> _Class:
+    """A ``typing.NamedTuple`` whose module has ``from __future__ import annotations`` keeps
+    its fields' types as ``ForwardRef('float')``, which ``help()`` and ``inspect.signature``
+    show; this puts the types themselves in their place (use as a class decorator)."""
+    hints = typing.get_type_hints(cls)
+    for holder in (cls, cls.__new__):
+        annotations = getattr(holder, "__annotations__", None)
+        if annotations is not None:
+            annotations.update({k: v for k, v in hints.items() if k in annotations})
+    return cls

@@ -171,3 +171,75 @@ def test_public_classes_show_their_parameters_each_documented_once():
         documented = documented_parameters(inspect.getdoc(cls))
         assert len(documented) == len(set(documented)), (cls.__name__, documented)
         assert sorted(documented) == sorted(p.name for p in params), cls.__name__
+
+
+# The packages whose every public call names each of its parameters in its docstring (what
+# they take, in which units, which values); the others' are listed in the wave's report.
+NAMED_PARAMETERS = (
+    "fastsdf.shapes",
+    "fastsdf.geometry",
+    "fastsdf.viz",
+    "fastsdf.io",
+    "fastsdf.apps",
+    "fastsdf.notice",
+    "fastsdf.introspect",
+    "fastsdf.granular.analysis",
+)
+
+
+def test_every_public_call_names_its_parameters():
+    """``help(call)`` answers what each argument is: every parameter of a public function,
+    method or class (its ``__init__``'s) is named in its docstring."""
+    missing = []
+    for name, obj in public_objects():
+        if isinstance(obj, property) or name.endswith(".__init__"):
+            continue
+        if not getattr(obj, "__module__", "").startswith(NAMED_PARAMETERS):
+            continue
+        doc = inspect.getdoc(obj) or ""
+        if inspect.isclass(obj):
+            doc += "\n" + (inspect.getdoc(obj.__init__) or "")
+        try:
+            params = inspect.signature(obj).parameters
+        except (TypeError, ValueError):
+            continue
+        unnamed = [
+            p
+            for p in params
+            if p not in ("self", "cls", "args", "kwargs")
+            and not re.search(rf"\b{re.escape(p)}\b", doc)
+        ]
+        if unnamed:
+            missing.append(f"{name}: {unnamed}")
+    assert not missing, "\n".join(missing)
+
+
+def test_signatures_show_types_not_forward_references():
+    """``help()`` and ``inspect.signature`` show ``float``, not ``ForwardRef('float')`` (what a
+    NamedTuple keeps under ``from __future__ import annotations``, unless its module applies
+    ``fastsdf.introspect.show_field_types``)."""
+    # (their modules are being restructured in this wave: each applies show_field_types)
+    awaiting = {
+        "fastsdf.granular.Bulk",
+        "fastsdf.granular.CellGrid",
+        "fastsdf.granular.ContactLaw",
+        "fastsdf.granular.Grains",
+        "fastsdf.particles.forces.FusedForces",
+        "fastsdf.particles.kernels.State",
+        "fastsdf.particles.kernels.Physics",
+        "fastsdf.particles.kernels.Budget",
+        "fastsdf.particles.kernels.Motion",
+        "fastsdf.particles.kernels.Disc",
+        "fastsdf.particles.kernels.Window",
+    }
+    shown = []
+    for name, obj in public_objects():
+        if isinstance(obj, property) or name in awaiting:
+            continue
+        try:
+            signature = str(inspect.signature(obj))
+        except (TypeError, ValueError):
+            continue
+        if "ForwardRef" in signature:
+            shown.append(f"{name}{signature}")
+    assert not shown, "\n".join(shown)

@@ -164,7 +164,7 @@ def test_demo_runs_end_to_end_and_draws_the_world(tmp_path, exact):
     probes = [(0.0, -1.95), (-1.9, -1.0), (1.9, -1.0)]  # deep in the funnel's floor and walls
     assert np.all(world(*np.array(probes).T) < -0.05)
     # Map data coordinates to PNG pixels with the same figure layout render_frame uses.
-    fig = render_frame(world, np.zeros(0), np.zeros(0))
+    fig = render_frame(world, np.zeros(0), np.zeros(0), figsize=(6.4, 5.6))  # the demo's
     fig.canvas.draw()
     to_px = fig.axes[0].transData
     height = img.shape[0]
@@ -343,11 +343,14 @@ def test_sand_scene_pours_grains_and_draws_them(tmp_path):
         "angle of repose: ",
     ):
         assert needle in text, needle
-    # the angle printed is the one measured on both flanks (or says why there is none)
+    # the angle printed is the one measured on both flanks (or says why there is none, or
+    # why it is not reliable)
     for angle, side in ((res.repose_left, "left"), (res.repose_right, "right")):
         assert np.isnan(angle) or 0.0 <= angle <= 90.0
         if np.isfinite(res.repose_left) and np.isfinite(res.repose_right):
             assert f"{angle:.1f} ({side})" in text
+    line = text.split("angle of repose: ")[1].splitlines()[0]
+    assert ("mean" in line) == res.repose_reliable
     # grains are drawn: orange discs (PARTICLE_COLOR at alpha 0.8 over the light background)
     img = imread(res.last_frame)[..., :3]
     orange = _hex(PARTICLE_COLOR) * 0.8 + img[5, 5] * 0.2  # a corner: background
@@ -388,6 +391,16 @@ def test_sand_summary_prints_the_measured_angle_and_the_law():
     flat = sand_summary(replace(res, history=False, rolling_friction=0.0, repose_left=math.nan))
     assert "angle of repose: not measured" in flat and "ContactLaw() (no contact history" in flat
     assert "spread flat" in flat and "spread flat" not in one_flank
+    # flanks more than REPOSE_AGREEMENT apart (the demo's first version printed "15.9 (left)
+    # and 61.5 (right) degrees, mean 38.7" fitted on 48 grains): unreliable, and why
+    apart = sand_summary(replace(res, repose_left=15.9, repose_right=61.5, cone_grains=48))
+    assert "angle of repose: not reliable here" in apart and " mean " not in apart
+    assert "15.9 (left) and 61.5 (right) degrees, more than 5 apart" in apart
+    assert "48 grains, too few" in apart and "examples/heap.py" in apart
+    assert (
+        res.repose_reliable
+        and not replace(res, repose_left=15.9, repose_right=61.5).repose_reliable
+    )
 
 
 def test_no_history_is_for_the_sand_scene_and_refused_with_rolling_friction():

@@ -216,3 +216,65 @@ def test_bad_input(bad, err):
         from_mask(**args)
     with pytest.raises(ValueError, match="threshold"):
         from_image(np.eye(5), [(0, 1), (0, 1)], threshold=1.5)
+
+
+def _disc_image(size=40):
+    """An anti-aliased white disc on black, 8-bit grey levels."""
+    c = (np.arange(size) + 0.5) / size * 2 - 1
+    x, y = np.meshgrid(c, c)
+    cov = np.clip((0.6 - np.hypot(x, y)) * size / 2 + 0.5, 0, 1)
+    return (cov * 255).round().astype(np.uint8)
+
+
+def test_from_image_reads_a_png_or_jpeg_file_as_its_pixels(tmp_path):
+    """A path is read with the installed image readers: a PNG gives the grid of its pixels
+    (bit for bit, grey or RGB or with an opaque alpha), a JPEG that of its pixels within a
+    pixel (JPEG is lossy)."""
+    image = pytest.importorskip("PIL.Image")
+    grey = _disc_image()
+    bounds = [(-1, 1), (-1, 1)]
+    want = from_image(grey, bounds)
+    for mode, pixels in (
+        ("L", grey),
+        ("RGB", np.repeat(grey[..., None], 3, axis=-1)),
+        ("RGBA", np.dstack([grey, grey, grey, np.full_like(grey, 255)])),
+    ):
+        path = tmp_path / f"disc_{mode}.png"
+        image.fromarray(pixels, mode).save(path)
+        for source in (path, str(path)):
+            got = from_image(source, bounds)
+            np.testing.assert_array_equal(got.values, want.values)
+    path = tmp_path / "disc.jpg"
+    image.fromarray(grey, "L").save(path, quality=95)
+    # (JPEG's ringing leaves levels a little off black or white far from the disc, which
+    # sub-pixel placement would read as edges: compare the thresholded images)
+    got = from_image(path, bounds, subpixel=False)
+    sharp = from_image(grey, bounds, subpixel=False)
+    assert np.abs(got.values - sharp.values).max() <= 0.05 + 1e-12  # a pixel is 0.05 wide
+
+
+def test_from_image_lays_a_transparent_image_over_white(tmp_path):
+    """A black disc on a transparent background: transparent pixels are white."""
+    grey = 255 - _disc_image()
+    rgba = np.dstack([np.zeros_like(grey)] * 3 + [grey])  # black, opaque where the disc is
+    bounds = [(-1, 1), (-1, 1)]
+    want = from_image(255 - grey, bounds, dark_inside=True)
+    np.testing.assert_allclose(
+        from_image(rgba, bounds, dark_inside=True).values, want.values, atol=1e-12
+    )
+
+
+def test_from_image_names_a_missing_file_and_a_wrong_type(tmp_path):
+    missing = tmp_path / "missing.png"
+    with pytest.raises(FileNotFoundError, match="missing.png") as caught:
+        from_image(missing, [(0, 1), (0, 1)])
+    assert caught.value.filename == str(missing)
+    for bad in (42, None, {"a": 1}):
+        with pytest.raises(TypeError, match="image must be a path"):
+            from_image(bad, [(0, 1), (0, 1)])
+    with pytest.raises(ValueError, match=r"got shape \(5, 5, 7\)"):
+        from_image(np.zeros((5, 5, 7)), [(0, 1), (0, 1)])
+    not_an_image = tmp_path / "notes.png"
+    not_an_image.write_text("not a picture")
+    with pytest.raises(ValueError, match="could not be read as an image"):
+        from_image(not_an_image, [(0, 1), (0, 1)])

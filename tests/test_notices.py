@@ -192,17 +192,32 @@ def test_a_long_particle_run_goes_in_pieces_with_progress_and_the_same_bits(monk
 
 
 def test_the_demo_warms_the_grains_and_image_kernels_of_the_readme():
-    """``make demo`` ends by compiling (or loading) what the README's grain and image blocks
-    use: afterwards this process has the granular kernels and the distance transform."""
+    """``make demo`` ends by compiling (or loading) what the README's particle, grain and
+    image blocks use: afterwards this process has the particle step's entry point for long
+    calls, the granular kernels (their contacts with the world too: after the demo the grain
+    block once compiled them for 4.4 s) and the distance transform."""
+    import fastsdf.particles.simulation as simulation
     from fastsdf.apps.demo import warm_readme_kernels
     from fastsdf.geometry.edt import edt_kernel
-    from fastsdf.granular.kernels import kick_drift, pair_forces
+    from fastsdf.granular.kernels import kick_drift, pair_forces, wall_forces
+
+    long_calls = []
+    real_run = simulation.ParticleSimulation.run
+
+    def run(self, steps, record=None):
+        long_calls.append(self.n * steps >= simulation.LONG_CALL and not hasattr(self, "engine"))
+        return real_run(self, steps, record)
 
     said = io.StringIO()
-    warm_readme_kernels(said)
+    simulation.ParticleSimulation.run = run
+    try:
+        warm_readme_kernels(said)
+    finally:
+        simulation.ParticleSimulation.run = real_run
     assert said.getvalue().startswith("fastsdf demo: compiling the kernels of the README's")
     assert "ready in" in said.getvalue()
-    for kernel in (pair_forces, kick_drift, edt_kernel):
+    assert any(long_calls)
+    for kernel in (pair_forces, kick_drift, wall_forces, edt_kernel):
         assert kernel.signatures, kernel
 
 
@@ -243,3 +258,159 @@ def test_a_recorded_run_shows_one_progress_for_all_its_blocks(monkeypatch, capsy
     assert "fastsdf: 50 particles, run(20, record=...): 20 of 20 steps in" in err
     assert "run(5)" not in err  # the blocks report to the recorded run
     assert sim.t == pytest.approx(20 * sim.dt)
+
+
+# -- the time left, on a fake clock ---------------------------------------------------------
+
+
+class _Clock:
+    """A clock the test moves: ``clock.wait(seconds)``."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+    def wait(self, seconds):
+        self.now += seconds
+
+
+def _compile(clock, seconds):
+    """``seconds`` in numba's compiler, as numba announces it (the events its lock fires)."""
+    from numba.core import event
+
+    event.start_event("numba:compiler_lock")
+    clock.wait(seconds)
+    event.end_event("numba:compiler_lock")
+
+
+def _first_estimate(monkeypatch, costs, compiles=None, updates=1):
+    """Run ``RunProgress`` over frames costing ``costs`` seconds each (``compiles``: frame ->
+    seconds of compiling before it) on a fake clock, ``updates`` per frame; return the clock
+    and the true time left when the first estimate was shown, its estimate, and the text."""
+    clock = _Clock()
+    monkeypatch.setattr(notice, "_clock", clock)
+    out = io.StringIO()
+    compiles = compiles or {}
+    start = clock.now
+    first = None
+    with notice.RunProgress(len(costs), "frames of a test", "frames", stream=out) as bar:
+        for k, cost in enumerate(costs):
+            if k in compiles:
+                _compile(clock, compiles[k])
+            for s in range(updates):
+                clock.wait(cost / updates)
+                bar.update(k + (s + 1) / updates)
+                if bar.shown and first is None:
+                    first = (clock.now - start, bar.remaining(), sum(costs[k + 1 :]))
+                    first += ((1 - (s + 1) / updates) * cost,)
+    shown_at, estimate, later, rest_of_frame = first
+    return shown_at, estimate, later + rest_of_frame, out.getvalue()
+
+
+def test_the_readme_grain_blocks_first_estimate_leaves_its_compiling_out(monkeypatch):
+    """The README's grain block as the issue saw it: grains fall freely for 18 frames, the
+    first grain to reach the world compiles the wall contacts (4.4 s), frames then cost
+    what grains on a heap do (measured per frame: 0.012 s falling, 0.043 s landing, 0.03 s at
+    rest). The old estimate, "18 of 600 frames in 5 s, about 2 min 34 s left", counted the
+    compiling as work; the first estimate now comes within 10 s and within 2x of the truth."""
+    costs = [0.012] * 18 + [0.043] * 232 + [0.03] * 350
+    shown_at, estimate, truth, text = _first_estimate(monkeypatch, costs, {18: 4.4})
+    assert shown_at <= 10.0
+    assert 0.5 <= estimate / truth <= 2.0, (estimate, truth)
+    first = text.splitlines()[0]
+    assert "(4 s of it compiling)" in first, first
+    assert text.splitlines()[-1].startswith("fastsdf: frames of a test: 600 of 600 frames in")
+
+
+def test_the_estimate_follows_the_latest_half_of_the_work(monkeypatch):
+    """Frames that become twice as slow: once the latest half of the work is all slow frames,
+    the estimate is exactly the slow frames' rate times the frames left."""
+    clock = _Clock()
+    monkeypatch.setattr(notice, "_clock", clock)
+    with notice.RunProgress(400, "x", "frames", after=1e9, stream=io.StringIO()) as bar:
+        for k in range(100):
+            clock.wait(0.01)
+            bar.update(k + 1)
+        for k in range(100, 300):
+            clock.wait(0.02)
+            bar.update(k + 1)
+        # work 5 s: the latest half, from 2.5 s, is slow frames only
+        assert bar.remaining() == pytest.approx(100 * 0.02, rel=1e-9)
+        _compile(clock, 30.0)  # compiling is no work: the estimate stands
+        assert bar.remaining(clock.now) == pytest.approx(100 * 0.02, rel=1e-9)
+        assert bar.compiled() == pytest.approx(30.0)
+
+
+def test_a_run_whose_frames_get_slower_says_so(monkeypatch):
+    """The estimate cannot know that frames will keep getting slower (grains landing): it
+    says that they are."""
+    costs = [0.01 * 1.04**k for k in range(100)]
+    shown_at, estimate, truth, text = _first_estimate(monkeypatch, costs)
+    assert "(the frames are getting slower)" in text.splitlines()[0]
+    steady = _first_estimate(monkeypatch, [0.03] * 300)
+    assert "getting" not in steady[3] and steady[1] == pytest.approx(steady[2], rel=1e-6)
+
+
+def test_compiling_in_another_thread_is_work_of_this_one(monkeypatch):
+    """Only this thread's time in numba's compiler is left out: a background compile while
+    this thread works does not stop its clock."""
+    import threading
+
+    clock = _Clock()
+    monkeypatch.setattr(notice, "_clock", clock)
+    with notice.RunProgress(10, "x", after=1e9, stream=io.StringIO()) as bar:
+        worker = threading.Thread(target=_compile, args=(clock, 5.0))
+        worker.start()
+        worker.join()
+        clock.wait(1.0)
+        bar.update(5)
+        assert bar.compiled() == 0.0
+        assert bar.remaining() == pytest.approx(6.0)
+
+
+def test_a_real_compile_is_left_out_of_the_work():
+    """numba compiling a new function inside a run is seen as compiling (its lock's events)."""
+
+    @njit
+    def fresh(x):
+        return x + 1.5
+
+    with notice.RunProgress(2, "x", after=1e9, stream=io.StringIO()) as bar:
+        fresh(1.0)
+        bar.update(1)
+        assert bar.compiled() > 0.0
+
+
+def test_a_slow_block_is_announced_only_when_numba_compiles_for_it(capsys):
+    """A block that takes long without numba compiling says nothing, nor one where numba
+    only loads compiled kernels (its lock held, no compile: a second simulation was said to
+    compile the granular kernels again); one that waits for another thread's compile says
+    "compiling"."""
+    import threading
+    import time
+
+    from numba.core import event
+
+    with notice.compiling("a slow block", after=0.0):
+        time.sleep(0.4)
+    with notice.compiling("some kernels", after=0.0):
+        event.start_event("numba:compiler_lock")
+        time.sleep(0.4)
+        event.end_event("numba:compiler_lock")
+    assert capsys.readouterr().err == ""
+
+    def compile_elsewhere():
+        event.start_event("numba:compile", data={})
+        event.end_event("numba:compile", data={})
+
+    with notice.compiling("a scene", after=0.0):
+        event.start_event("numba:compiler_lock")  # waiting for it...
+        other = threading.Thread(target=compile_elsewhere)
+        other.start()
+        other.join()
+        time.sleep(0.4)
+        event.end_event("numba:compiler_lock")
+    err = capsys.readouterr().err
+    assert "fastsdf: compiling a scene (once" in err and "...done in" in err

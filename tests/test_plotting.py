@@ -19,7 +19,7 @@ from matplotlib.image import AxesImage
 
 import fastsdf as sdf
 from fastsdf.viz import plotting, render
-from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, plot_sdf
+from fastsdf.viz.plotting import BACKGROUND_COLOR, SOLID_COLOR, SURFACE_COLOR, plot_sdf
 from fastsdf.viz.render import ParticleLayer, density_image, draw_particles, render_frame
 
 BOUNDS = [(-2, 2), (-2, 2)]
@@ -84,17 +84,26 @@ def test_plot_sdf_every_option_creates_expected_artists(circle, isolines, quiver
         expected.add("contour")
         if labels:
             expected.add("labels")
+    if isolines == "all":
+        expected.add("surface")  # the zero contour, over the coloured lines
     if quiver:
         expected.add("quiver")
     if filled:
         expected.add("fill")
+    if isolines == "all" or quiver:
+        expected.add("colorbar")  # by default where something is coloured by the distance
     assert set(out) == expected
-    # The notebook's look: limits = bounds, equal aspect, no tick labels.
+    # A figure to keep by default: limits = bounds, equal aspect, ticks labelled x and y.
     assert ax.get_xlim() == (-2, 2) and ax.get_ylim() == (-2, 2)
     assert ax.get_aspect() == 1.0
     fig.canvas.draw()
-    assert all(not t.get_visible() or t.get_text() == "" for t in ax.get_xticklabels())
-    assert all(not t.get_visible() or t.get_text() == "" for t in ax.get_yticklabels())
+    assert any(t.get_text() for t in ax.get_xticklabels())
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x", "y")
+    surface = out.get("surface" if isolines == "all" else "contour") if isolines else None
+    if surface is not None:  # the zero contour: a thick black line
+        assert list(surface.levels) == [0.0]
+        assert np.allclose(surface.get_edgecolor()[0], to_rgba(SURFACE_COLOR))
+        assert surface.get_linewidth()[0] > 1.25 * matplotlib.rcParams["lines.linewidth"]
     if isolines == "zero":
         assert list(out["contour"].levels) == [0.0]
     if isolines == "all":
@@ -163,7 +172,7 @@ def test_plot_sdf_with_nan_values_does_not_fail():
 
     fig, ax = new_axes()
     out = plot_sdf(fig, ax, holey, samples=30, filled=True)
-    assert set(out) == {"ax", "contour", "quiver", "fill"}
+    assert set(out) == {"ax", "contour", "surface", "quiver", "fill", "colorbar"}
     fig.canvas.draw()
 
 
@@ -203,7 +212,7 @@ def test_plot_sdf_nothing_to_show_does_not_evaluate():
 )
 def test_plot_sdf_rejects_bad_arguments(kwargs, name):
     fig, ax = new_axes()
-    with pytest.raises(ValueError, match=name) as info:
+    with pytest.raises((ValueError, TypeError), match=name) as info:  # (malformed: a TypeError)
         plot_sdf(fig, ax, NumpyCircle(), **kwargs)
     assert repr(next(iter(kwargs.values())))[:3] in str(info.value)
 
@@ -296,10 +305,12 @@ def test_plot_sdf_axes_draws_a_figure_to_keep():
         assert abs(bar.height - box.height) < 0.05 * box.height
     finally:
         plt.close(fig)
-    # the notebook's look stays the default: no ticks, no labels
+    # axes=False: the notebook's look, no ticks, no labels, no colour bar
     fig, ax = new_axes()
-    plot_sdf(f, ax=ax, samples=40, show_quiver=False)
-    assert ax.get_xlabel() == "" and ax.get_title() == ""
+    out = plot_sdf(f, ax=ax, samples=40, show_quiver=False, axes=False, colorbar=False)
+    fig.canvas.draw()
+    assert ax.get_xlabel() == "" and ax.get_title() == "" and "colorbar" not in out
+    assert all(not t.get_visible() or t.get_text() == "" for t in ax.get_xticklabels())
 
 
 def test_plot_sdf_levels_are_the_lines_drawn():
@@ -542,3 +553,30 @@ def test_render_frame_without_png_returns_figure(world):
     fig = render_frame(world, [0.0], [0.0], r=0.1, samples=20, figsize=(2, 2), dpi=40)
     assert isinstance(fig, Figure) and fig.particle_layer.mode == "circles"
     assert render.DEFAULT_MAX_CIRCLES == 5000
+
+
+@pytest.mark.parametrize(
+    "bounds, n, title",
+    [([(-2, 2), (-1, 1)], 50, "wide"), ([(-1, 1), (-2, 2)], 50, None), (BOUNDS, 20_000, "dense")],
+)
+def test_render_frame_is_sized_to_its_bounds(world, tmp_path, bounds, n, title):
+    """Without a figsize the figure fits its bounds: what it shows (axes, tick labels, title,
+    colour bar) spans nearly all of it, with no blank band beside or above the world; a colour
+    bar only where the particles are a density image."""
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.9, 0.9, n)
+    out = tmp_path / "frame.png"
+    fig = render_frame(
+        world, x, y, r=0.02, bounds=bounds, samples=60, out_png=str(out), title=title
+    )
+    FigureCanvasAgg(fig).draw()
+    ax = fig.axes[0]
+    (x0, x1), (y0, y1) = bounds
+    box = ax.get_window_extent()
+    assert box.height / box.width == pytest.approx((y1 - y0) / (x1 - x0), rel=0.02)
+    drawn = fig.get_tightbbox(fig.canvas.get_renderer())
+    w, h = fig.get_size_inches()
+    assert drawn.width > 0.9 * w and drawn.height > 0.9 * h, (drawn, w, h)
+    assert fig.axes[1].get_visible() == (n > render.DEFAULT_MAX_CIRCLES)
+    img = mpimg.imread(str(out))
+    assert img.shape[:2] == (round(h * 100), round(w * 100))

@@ -164,6 +164,11 @@ def test_readme_block_runs_pasted_alone(line, source, picture, tmp_path):
 
     made = imread(pictures.written_picture(str(tmp_path)))
     committed = imread(os.path.join(REPO, picture))
+    if scaled != source and made.shape[0] == committed.shape[0]:
+        # a thousandth of the particles are drawn as discs, without the density image's colour
+        # bar: the same axes in a figure narrower by the bar's room; compare what they share
+        width = min(made.shape[1], committed.shape[1])
+        made, committed = made[:, :width], committed[:, :width]
     assert made.shape[:2] == committed.shape[:2], (
         f"README.md block at line {line} draws a {made.shape[1]}x{made.shape[0]} picture, "
         f"{picture} is {committed.shape[1]}x{committed.shape[0]}: "

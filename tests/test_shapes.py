@@ -461,3 +461,70 @@ def test_polygons_with_the_same_vertices_share_their_checks_not_their_arrays():
     for _ in range(2):
         with pytest.raises(ValueError, match="vertices"):
             sdf.Polygon(bowtie)
+
+
+_NUMPY_BAD = [
+    np.float64(-0.1),
+    np.float64("nan"),
+    np.int64(-3),
+    np.float32(-2.5),
+    np.bool_(True),
+    np.float64(1e200),
+    np.array([np.float64(-1.0), np.float64(2.0)]),
+    (np.float64(0.5), np.float64("inf")),
+]
+_VALID = {
+    "center": (0.0, 0.0),
+    "radius": 1.0,
+    "normal": (0.0, 1.0),
+    "a": (0.0, 0.0),
+    "b": (1.0, 0.0),
+    "minc": (0.0, 0.0),
+    "maxc": (1.0, 1.0),
+    "vertices": [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)],
+    "shapes": [sdf.Circle((0.0, 0.0), 1.0)],
+}
+
+
+def _public_constructors():
+    import inspect
+
+    import fastsdf.shapes as shapes
+
+    for name in shapes.__all__:
+        obj = getattr(shapes, name)
+        if not callable(obj) or name in ("SDF", "smoothness"):
+            continue
+        try:
+            params = inspect.signature(obj).parameters.values()
+        except (TypeError, ValueError):
+            continue
+        named = [p for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        yield name, obj, named
+
+
+def test_errors_quote_numpy_values_as_plain_numbers():
+    """Every shape's error, given NumPy numbers, quotes them as Python would print the numbers
+    (``radius=-0.1``, never ``np.float64(-0.1)`` or ``array([...])``)."""
+    import inspect
+
+    circle = sdf.Circle((0.0, 0.0), 1.0)
+    errors = 0
+    for name, make, params in _public_constructors():
+        for param in params:
+            for bad in _NUMPY_BAD:
+                kwargs = {
+                    p.name: _VALID.get(p.name, circle if p.name in ("f", "a", "b") else 1.0)
+                    for p in params
+                    if p.default is inspect.Parameter.empty and p.name != param.name
+                }
+                kwargs[param.name] = bad
+                try:
+                    make(**kwargs)
+                except (TypeError, ValueError) as exc:
+                    errors += 1
+                    text = str(exc)
+                    assert "np." not in text and "array(" not in text, (name, param.name, text)
+    assert errors > 300  # (the sweep reached the checks)
+    with pytest.raises(ValueError, match=r"got radius=-0\.1$"):
+        sdf.Circle(center=(0.0, 0.0), radius=np.float64(-0.1))

@@ -11,6 +11,8 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
+from fastsdf.expr.validate import shown
+
 __all__ = ["main"]
 
 
@@ -28,9 +30,11 @@ def _count(text: str, low: int) -> int:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected an integer >= {low}, got {shown(text)}"
+        ) from None
     if not value.is_integer() or value < low:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {shown(text)}")
     return int(value)
 
 
@@ -142,7 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the exit status (0, or 2 after a one-line error)."""
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status (0,
+    or 2 after a one-line error)."""
     parser = build_parser()
     assert isinstance(parser, _Parser)
     args = parser.parse_args(argv)
@@ -191,43 +196,34 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{args.steps} steps in the {args.world} world, writing to {args.out}/ ...\n"
         )
         sys.stderr.flush()
-        if sand:
-            from fastsdf.apps.demo import SAND_ROLLING_FRICTION, run_sand_demo, sand_summary
-
-            try:
-                sand_res = run_sand_demo(
-                    grains=args.particles,
-                    steps=args.steps,
-                    grid=args.grid,
-                    exact=args.exact,
-                    seed=args.seed,
-                    out=args.out,
-                    frames=args.frames,
-                    fps=args.fps,
-                    world=args.world,
-                    animate=not args.no_animation,
-                    history=not args.no_history,
-                    rolling_friction=0.0 if args.no_history else SAND_ROLLING_FRICTION,
-                )
-            except OSError as exc:
-                demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
-            print(sand_summary(sand_res))
-            return 0
+        common = dict(
+            steps=args.steps,
+            grid=args.grid,
+            exact=args.exact,
+            seed=args.seed,
+            out=args.out,
+            frames=args.frames,
+            fps=args.fps,
+            world=args.world,
+            animate=not args.no_animation,
+        )
         try:
-            res = runner(
-                particles=args.particles,
-                steps=args.steps,
-                grid=args.grid,
-                exact=args.exact,
-                seed=args.seed,
-                out=args.out,
-                frames=args.frames,
-                fps=args.fps,
-                world=args.world,
-                mode=args.mode,
-                animate=not args.no_animation,
-                **extra,
-            )
+            if sand:
+                from fastsdf.apps.demo import SAND_ROLLING_FRICTION, run_sand_demo, sand_summary
+
+                rolling = 0.0 if args.no_history else SAND_ROLLING_FRICTION
+                print(
+                    sand_summary(
+                        run_sand_demo(
+                            grains=args.particles,
+                            history=not args.no_history,
+                            rolling_friction=rolling,
+                            **common,
+                        )
+                    )
+                )
+                return 0
+            res = runner(particles=args.particles, mode=args.mode, **common, **extra)
         except OSError as exc:
             demo.error(f"could not write to --out {args.out!r}: {exc.strerror or exc}")
         print(summary(res))

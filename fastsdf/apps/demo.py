@@ -35,6 +35,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from fastsdf.expr.validate import shown
 from fastsdf.notice import compiling
 
 __all__ = [
@@ -48,6 +49,7 @@ __all__ = [
     "SAND_GRAINS",
     "SAND_STEPS",
     "SAND_ROLLING_FRICTION",
+    "REPOSE_AGREEMENT",
     "summary",
     "warm_readme_kernels",
     "README_GRAIN_LAW",
@@ -73,6 +75,9 @@ SAND_GRAINS = 900
 SAND_STEPS = 180
 SAND_RADIUS = 0.022
 SAND_RADIUS_SPREAD = 0.1
+#: The sand scene's angle of repose is reported where its cone's two flanks agree within this
+#: (degrees); else it is said to be unreliable, with the reason.
+REPOSE_AGREEMENT = 5.0
 #: The sand scene's rolling resistance with contact history (discs hold a slope with it).
 SAND_ROLLING_FRICTION = 0.5
 #: The contact law of the README's grain block (``ContactLaw(**README_GRAIN_LAW)``), whose
@@ -118,6 +123,12 @@ WORLDS: dict[str, tuple[Callable[[], Any], str]] = {
 class DemoResult:
     """What :func:`run_demo` simulated, measured and wrote (paths are absolute).
 
+    ``world``, ``particles``, ``steps``: as run; ``timestep``: seconds per step; ``sdf``: what
+    the particles queried, in words, and ``mode`` the grid's answer outside its bounds
+    (``None`` without a grid); ``sim_seconds``: the steps after the first, in seconds;
+    ``grid_band_value_max`` and ``grid_band_angle_rms_deg``: the grid's largest value error
+    and its gradient's RMS angle error in the collision band ``|d| < 0.1`` (``None`` without
+    a grid); ``animation``, ``last_frame``: the video and the PNG written; ``notes``: remarks.
     ``particle_steps_per_second`` counts the steps after the first (which compiles or loads the
     kernel, ``first_step_seconds``); ``outside_grid_fraction`` is the share of particle positions
     outside the grid's bounds, sampled after every frame's steps (``None`` without a grid);
@@ -170,7 +181,8 @@ def spawn_in_free_space(sim: Any, f: Any, rng: np.random.Generator, tries: int =
 
     ``sim`` is a fresh :class:`fastsdf.particles.ParticleSimulation`; its ``reset`` draws the
     notebook's blob ``x ~ N([0, 1.5], 0.05 I)``. Rejected positions are replaced by fresh draws
-    from the same blob (up to ``tries`` rounds), then by uniform draws over :data:`BOUNDS`.
+    from ``rng`` (a ``numpy.random.Generator``): from the same blob (up to ``tries`` rounds),
+    then uniform over :data:`BOUNDS`.
     Returns the number of particles that were redrawn; raises ``RuntimeError`` if the world
     leaves no room.
     """
@@ -234,16 +246,21 @@ def _load() -> float | None:
 
 
 def _timed_advance(
-    sim: Any, k: int, timing: dict[str, Any], outside_share: Callable[[], float]
+    sim: Any,
+    k: int,
+    timing: dict[str, Any],
+    outside_share: Callable[[], float] = lambda: 0.0,
+    what: str = "the particle step",
 ) -> None:
-    """Advance ``sim`` by ``k`` steps, keeping the demo's timing record: the first call, which
-    compiles (or loads) the kernel, is timed apart from the rest; ``outside_share()`` is the
-    share of particles outside the grid now, standing for the steps before it."""
+    """Advance ``sim`` by ``k`` steps, keeping the demo's timing record (``first``, ``rest``,
+    ``steps``, ``outside``, ``load0``): the first call, which compiles (or loads) ``what``,
+    is timed apart from the rest; ``outside_share()`` is the share of particles outside the
+    grid now, standing for the steps before it."""
     if k <= 0:
         return
     if timing["first"] is None:
         t0 = time.perf_counter()
-        with compiling("the particle step"):
+        with compiling(what):
             sim.run(1)
         timing["first"] = time.perf_counter() - t0
         timing["load0"] = _load()
@@ -256,6 +273,10 @@ def _timed_advance(
         timing["rest"] += time.perf_counter() - t0
         timing["outside"] += k * outside_share()
         timing["steps"] += k
+
+
+def _new_timing() -> dict[str, Any]:
+    return {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
 
 
 def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
@@ -278,14 +299,179 @@ def _query_cost(grid: Any, n: int = 200_000, seed: int = 0) -> float:
     return exact / sampled if sampled > 0 else float("nan")
 
 
-def _check_sizes(world: str, **sizes: tuple[Any, int]) -> None:
+def _check_demo_args(
+    world: str,
+    mode: str | None,
+    animate: bool,
+    frames: int,
+    steps: int,
+    grid: int,
+    fps: int,
+    **counts: int,
+) -> None:
     """``ValueError`` naming the first size that is not an integer at least its lower bound
-    (``name=(value, low)``), or an unknown ``world``."""
+    (1; 2 for ``grid``; ``counts`` are more, each at least 1), an unknown ``world`` or
+    ``mode`` (a grid's, unless None), or more video frames than steps (each frame advances
+    at least one step)."""
+    sizes = {"frames": (frames, 1), "steps": (steps, 1), "grid": (grid, 2), "fps": (fps, 1)}
+    sizes.update({name: (value, 1) for name, value in counts.items()})
     for name, (value, low) in sizes.items():
         if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
+            raise ValueError(f"{name} must be an integer >= {low}, got {name}={shown(value)}")
     if world not in WORLDS:
-        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={world!r}")
+        raise ValueError(f"world must be one of {sorted(WORLDS)}, got world={shown(world)}")
+    if mode is not None and mode not in ("exact", "nearest"):
+        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={shown(mode)}")
+    if animate and frames > steps:
+        raise ValueError(
+            f"frames must be at most steps (every frame advances at least one step), "
+            f"got frames={frames}, steps={steps}"
+        )
+
+
+@dataclass
+class QueriedWorld:
+    """The world a demo's particles meet: ``f``, the exact SDF; ``sdf``, what they query (a
+    GridSDF of ``f``, or ``f`` itself); ``name``, that said in words; ``mode``, the grid's
+    answer outside its bounds; the grid's error in the collision band (``band_max``,
+    ``band_angle``) and the cost of an exact query in grid queries (``cost``); None without
+    a grid."""
+
+    f: Any
+    sdf: Any
+    name: str
+    mode: str | None = None
+    band_max: float | None = None
+    band_angle: float | None = None
+    cost: float | None = None
+
+
+def queried_world(
+    world: str,
+    grid: int,
+    mode: str,
+    exact: bool,
+    seed: int,
+    step: Callable[[str], None] = lambda what: None,
+) -> QueriedWorld:
+    """The world ``world`` (a key of :data:`WORLDS`) sampled into a ``grid`` x ``grid``
+    GridSDF over :data:`BOUNDS` answering ``mode`` outside it, with the grid's error and cost
+    measured (``seed``: their points); ``exact=True``: the exact compiled SDF, no grid.
+    ``step(what)`` is called before each part that takes time (a progress bar's)."""
+    from fastsdf.fields.grid import GridSDF, measure_error
+
+    f = WORLDS[world][0]()
+    if exact:
+        return QueriedWorld(f, f, "the exact compiled SDF (no grid)")
+    t0 = time.perf_counter()
+    with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
+        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
+    built = time.perf_counter() - t0
+    step("the grid's error")
+    error = measure_error(sdf, seed=seed)
+    name = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)"
+    return QueriedWorld(
+        f,
+        sdf,
+        name,
+        mode,
+        error.band_value_max,
+        error.band_angle_rms_deg,
+        _query_cost(sdf, seed=seed),
+    )
+
+
+def particle_result(
+    qw: QueriedWorld,
+    world: str,
+    particles: int,
+    timing: dict[str, Any],
+    timestep: float,
+    x: np.ndarray,
+    r: np.ndarray,
+    respawned: int,
+    animation: str | None,
+    last_frame: str,
+    load: tuple[float, float] | None,
+) -> DemoResult:
+    """The :class:`DemoResult` of a particle demo: ``timing`` as :func:`_timed_advance` kept
+    it, ``x`` and ``r`` the particles (or a sample of them) at the end, whose penetration of
+    the SDF they collided with is measured (the grid's own error is reported apart)."""
+    d = np.asarray(qw.sdf(x[:, 0], x[:, 1])).reshape(-1) - r
+    timed = timing["steps"] - 1
+    rest = timing["rest"]
+    return DemoResult(
+        world=world,
+        particles=particles,
+        steps=timing["steps"],
+        timestep=timestep,
+        sdf=qw.name,
+        mode=qw.mode,
+        sim_seconds=rest,
+        first_step_seconds=timing["first"] or 0.0,
+        particle_steps_per_second=timed * particles / rest if rest > 0 else float("nan"),
+        outside_grid_fraction=(
+            None if qw.mode is None else timing["outside"] / max(1, timing["steps"])
+        ),
+        exact_query_cost=qw.cost,
+        grid_band_value_max=qw.band_max,
+        grid_band_angle_rms_deg=qw.band_angle,
+        respawned=respawned,
+        inside_fraction=float(np.mean(d < -0.01 * r)),
+        load=load,
+        animation=animation,
+        last_frame=last_frame,
+    )
+
+
+def _write_video(
+    sim: Any,
+    f: Any,
+    path: str,
+    schedule: list[int],
+    advance: Callable[[int], None],
+    label: str,
+    fps: int,
+    err: IO[str],
+    vmax: float | None = None,
+) -> str:
+    """Advance ``sim`` by ``schedule`` (``advance(k)``), a frame after each advance, to a
+    video of it over the world ``f``: ``path`` with ``.mp4`` (ffmpeg: the particles splatted
+    per frame over a picture drawn once, :mod:`fastsdf.viz.frames`) or ``.gif`` (matplotlib)
+    appended; ``vmax``: the density's colour scale's top (particles per pixel, None: discs).
+    Returns the path written."""
+    from fastsdf.viz.frames import VideoWriter
+    from fastsdf.viz.progress import Progress
+    from fastsdf.viz.render import animate, density_norm, save_animation, world_figure
+
+    path += _video_writer_ext(err)
+    if path.endswith(".mp4"):
+        with (
+            Progress(len(schedule), "frames", stream=err) as bar,
+            VideoWriter(path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, vmax=vmax, title=label) as video,
+        ):
+            for i, k in enumerate(schedule):
+                if i < 2:  # these may compile: their notices get a line of their own
+                    bar.clear()
+                advance(k)
+                with compiling("the video's drawing kernels"):
+                    video.add_simulation(sim)
+                bar.step()
+        return path
+    fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+    anim = animate(
+        sim,
+        ax,
+        len(schedule),
+        schedule,
+        advance=advance,
+        title=label + ", ",
+        colorbar=cax if vmax is not None else False,
+        bounds=BOUNDS,
+        norm=None if vmax is None else density_norm(vmax),
+    )
+    save_animation(anim, path, fps=fps)
+    return path
 
 
 def run_demo(
@@ -318,184 +504,132 @@ def run_demo(
 
     matplotlib.use("Agg")
 
-    from fastsdf.fields.grid import GridSDF, measure_error
-    from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.frames import VideoWriter
-    from fastsdf.viz.progress import Progress
-    from fastsdf.viz.render import animate as _animate
-    from fastsdf.viz.render import (
-        density_norm,
-        render_frame,
-        save_animation,
-        sim_title,
-        world_figure,
-    )
+    from fastsdf.viz.render import render_frame, sim_title
 
-    _check_sizes(
-        world,
-        particles=(particles, 1),
-        steps=(steps, 1),
-        grid=(grid, 2),
-        frames=(frames, 1),
-        fps=(fps, 1),
-    )
-    if mode not in ("exact", "nearest"):
-        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
+    _check_demo_args(world, mode, animate, frames, steps, grid, fps, particles=particles)
     particles, steps, frames = int(particles), int(steps), int(frames)
-    if animate and frames > steps:
-        raise ValueError(
-            f"frames must be at most steps (every frame advances at least one step), "
-            f"got frames={frames}, steps={steps}"
-        )
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
 
-    # The steps before the first frame: the grid (which may compile: the bar is cleared so that
-    # the notice stands on its own line), its error and cost, the particles.
-    setup = Progress(3, "setting up", stream=err)
-    setup.clear()
-    build, _ = WORLDS[world]
-    f = build()
-    band_max = band_angle = cost = None
-    if exact:
-        sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
-    else:
-        t0 = time.perf_counter()
-        with compiling(f"the {world} world's kernel and its {grid}x{grid} grid"):
-            sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode=mode)
-        built = time.perf_counter() - t0
-        setup.step("the grid's error")
-        error = measure_error(sdf, seed=seed)
-        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
-        cost = _query_cost(sdf, seed=seed)
-        sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
-    setup.step("particles", count=2 if exact else 1)
-
-    sim = ParticleSimulation(sdf, n=particles, timestep=1 / 30, seed=seed)
-    # (fastsdf.particles is excluded from type checking while it becomes a package)
-    sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
-    respawned = spawn_in_free_space(sim, f, np.random.default_rng([seed, 1]))
-    setup.step()
-    setup.close()
-
-    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
-
-    def outside_share() -> float:
-        x = sim.p["x"]
-        (x0, x1), (y0, y1) = BOUNDS
-        inside = (x[:, 0] >= x0) & (x[:, 0] <= x1) & (x[:, 1] >= y0) & (x[:, 1] <= y1)
-        return 1.0 - float(np.mean(inside))
+    qw, sim, respawned = _demo_particles(world, grid, mode, exact, seed, particles, err)
+    timing = _new_timing()
 
     def advance(k: int) -> None:
-        _timed_advance(sim, k, timing, outside_share)
+        _timed_advance(sim, k, timing, lambda: _outside_share(sim.p["x"]))
 
-    label = f"{particles:,} particles, "
+    label = f"{particles:,} particles"
     animation_path = None
     if animate:
-        ext = _video_writer_ext(err)
-        animation_path = os.path.join(out, "particles" + ext)
-        schedule = _frame_schedule(steps, frames)
-        if ext == ".mp4":
-            # Static picture drawn once, particles splatted per frame (fastsdf.viz.frames),
-            # all on one colour scale, the last frame's picture's too.
-            with (
-                Progress(len(schedule), "frames", stream=err) as bar,
-                VideoWriter(
-                    animation_path,
-                    f,
-                    BOUNDS,
-                    size=VIDEO_SIZE,
-                    fps=fps,
-                    vmax=density_top(particles),
-                    title=label.rstrip(", "),
-                ) as writer,
-            ):
-                for i, k in enumerate(schedule):
-                    if i < 2:  # these may compile: their notices get a line of their own
-                        bar.clear()
-                    advance(k)
-                    with compiling("the video's drawing kernels"):
-                        writer.add_simulation(sim)
-                    bar.step()
-        else:
-            fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
-            anim = _animate(
-                sim,
-                ax,
-                frames,
-                schedule,
-                advance=advance,
-                title=label,
-                colorbar=cax,
-                bounds=BOUNDS,
-                norm=density_norm(density_top(particles)),
-            )
-            save_animation(anim, animation_path, fps=fps)
+        # all on one colour scale, the last frame's picture's too
+        animation_path = _write_video(
+            sim,
+            qw.f,
+            os.path.join(out, "particles"),
+            _frame_schedule(steps, frames),
+            advance,
+            label,
+            fps,
+            err,
+            vmax=density_top(particles),
+        )
     advance(steps - timing["steps"])
     x = sim.p["x"]
     last = os.path.join(out, "last_frame.png")
     render_frame(
-        f,
+        qw.f,
         x[:, 0],
         x[:, 1],
         r=sim.p["r"],
         bounds=BOUNDS,
         out_png=last,
-        title=sim_title(sim, label),
+        title=sim_title(sim, label + ", "),
         figsize=(VIDEO_SIZE[0] / 100, VIDEO_SIZE[1] / 100),  # the video's pixels: same counts
         dpi=100,
         vmax=density_top(particles),
     )
-    # Penetration against the SDF the particles actually collided with (the grid's own error
-    # against the exact world is reported separately).
-    d = sdf(x[:, 0], x[:, 1]) - sim.p["r"]
-    timed = steps - 1
-    rate = timed * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
-    return DemoResult(
-        world=world,
-        particles=particles,
-        steps=timing["steps"],
-        timestep=sim.dt,
-        sdf=sdf_name,
-        mode=grid_mode,
-        sim_seconds=timing["rest"],
-        first_step_seconds=timing["first"] or 0.0,
-        particle_steps_per_second=rate,
-        outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
-        exact_query_cost=cost,
-        grid_band_value_max=band_max,
-        grid_band_angle_rms_deg=band_angle,
-        respawned=respawned,
-        inside_fraction=float(np.mean(d < -0.01 * sim.p["r"])),
-        load=_load_pair(timing.get("load0"), _load()),
-        animation=animation_path,
-        last_frame=last,
+    return particle_result(
+        qw,
+        world,
+        particles,
+        timing,
+        sim.dt,
+        x,
+        np.asarray(sim.p["r"]),
+        respawned,
+        animation_path,
+        last,
+        _load_pair(timing.get("load0"), _load()),
     )
+
+
+def _demo_particles(
+    world: str, grid: int, mode: str, exact: bool, seed: int, particles: int, err: IO[str]
+) -> tuple:
+    """``(queried world, simulation, particles redrawn)``: the steps before the first frame,
+    with a progress bar: the grid (which may compile: the bar is cleared so that the notice
+    stands on its own line), its error and cost, ``particles`` particles in the notebook's
+    blob under its gravity, none inside matter."""
+    from fastsdf.particles import Gravity, ParticleSimulation
+    from fastsdf.viz.progress import Progress
+
+    with Progress(3, "setting up", stream=err) as setup:
+        setup.clear()
+        qw = queried_world(world, grid, mode, exact, seed, setup.step)
+        setup.step("particles", count=2 if exact else 1)
+        sim = ParticleSimulation(qw.sdf, n=particles, timestep=1 / 30, seed=seed)
+        sim.force_generators.append(Gravity(acceleration=(0.0, -1.0)))
+        respawned = spawn_in_free_space(sim, qw.f, np.random.default_rng([seed, 1]))
+        setup.step()
+    return qw, sim, respawned
+
+
+def _outside_share(x: np.ndarray) -> float:
+    """The share of the positions ``x`` outside :data:`BOUNDS`."""
+    (x0, x1), (y0, y1) = BOUNDS
+    inside = (x[:, 0] >= x0) & (x[:, 0] <= x1) & (x[:, 1] >= y0) & (x[:, 1] <= y1)
+    return 1.0 - float(np.mean(inside))
 
 
 def warm_readme_kernels(stream: IO[str] | None = None) -> float:
-    """Compile (or load) the kernels the README's blocks use that the particle demo does not:
-    the grains' (a few grains of the README's block poured for one step, with its contact law
-    and world, the exact seed world) and the distance transforms of images (a small image
-    through :func:`fastsdf.geometry.from_image`). So a block pasted after ``make demo`` loads
-    them from the cache instead of compiling them. Says so on ``stream`` (default stderr);
-    returns the seconds it took."""
+    """Compile (or load) the kernels the README's blocks use that the particle demo may not:
+    the particle step's parallel entry point for long calls on the README's 400 x 400 grid
+    of the seed world (whatever particle count the demo ran), the grains' (grains of the
+    README's block, with its contact law and world, the exact seed world: some falling, some
+    resting on the disc, so that their contacts with the world compile too) and the distance
+    transforms of images (a small image through :func:`fastsdf.geometry.from_image`). So a
+    block pasted after ``make demo`` loads them from the cache instead of compiling them.
+    Says so on ``stream`` (default stderr); returns the seconds it took."""
+    from fastsdf.fields.grid import GridSDF
     from fastsdf.geometry import from_image
     from fastsdf.granular.params import ContactLaw
     from fastsdf.particles import Gravity, ParticleSimulation
+    from fastsdf.particles.simulation import LONG_CALL, PARALLEL_MIN_PARTICLES
 
     err = stream if stream is not None else sys.stderr
     err.write(
-        "fastsdf demo: compiling the kernels of the README's other blocks (grains, images) "
-        "for later ...\n"
+        "fastsdf demo: compiling the kernels of the README's other blocks (particles, grains, "
+        "images) for later ...\n"
     )
     err.flush()
     t0 = time.perf_counter()
-    gx, gy = np.meshgrid(np.linspace(-0.1, 0.1, 3), np.linspace(0.8, 0.9, 2))
-    law = ContactLaw(**README_GRAIN_LAW)
+    with compiling("the particle step for long runs"):
+        grid = GridSDF(_seed(), bounds=BOUNDS, samples=[400j, 400j])  # the README's grid
+        sim = ParticleSimulation(grid, n=PARALLEL_MIN_PARTICLES, seed=0)
+        sim.force_generators.append(Gravity())
+        sim.run(-(-LONG_CALL // PARALLEL_MIN_PARTICLES))
+    r, world = 0.02, _seed()
+    falling = np.column_stack([np.linspace(-0.1, 0.1, 3), np.full(3, 0.85)])
+    # three more touching the disc's top: the lowest heights above it where the distance is r
+    ys = np.linspace(0.0, 0.6, 601)
+    resting = [
+        (x, ys[np.argmax(world(np.full(ys.size, x), ys) > 0.95 * r)]) for x in (-0.2, 0, 0.2)
+    ]
     with compiling("the grains' kernels"):
         sim = ParticleSimulation(
-            _seed(), positions=np.column_stack([gx.ravel(), gy.ravel()]), radius=0.02, contacts=law
+            world,
+            positions=np.concatenate([falling, resting]),
+            radius=r,
+            contacts=ContactLaw(**README_GRAIN_LAW),
         )
         sim.force_generators.append(Gravity())
         sim.run(1)
@@ -514,7 +648,8 @@ def _plural(n: int, word: str) -> str:
 
 
 def summary(res: DemoResult) -> str:
-    """Human-readable lines for the demo's result: what was simulated, the rate, and why."""
+    """Human-readable lines for the demo's result ``res``: what was simulated, the rate, and
+    why."""
     lines = [
         f"world: {res.world}, {WORLDS[res.world][1]}",
         f"queried through {res.sdf}"
@@ -605,6 +740,9 @@ def summary(res: DemoResult) -> str:
 class SandResult:
     """What :func:`run_sand_demo` simulated, measured and wrote (paths are absolute).
 
+    ``world``, ``grains``, ``radius`` (the mean), ``steps``: as run; ``timestep``: seconds per
+    step; ``sdf``: what the grains queried, in words; ``sim_seconds``: the steps after the
+    first, in seconds; ``animation``, ``last_frame``: the video and the PNG written.
     ``substeps_per_step``: the granular engine's substeps per 1/30 s step (from the contact
     law's stiffness, ``stiffness``, derived from the grains by ``ContactLaw()``);
     ``first_step_seconds``: the first step (compiling or loading the kernels);
@@ -650,6 +788,12 @@ class SandResult:
         """The fields as a plain dict."""
         return asdict(self)
 
+    @property
+    def repose_reliable(self) -> bool:
+        """Whether the cone's two flanks were measured and agree within
+        :data:`REPOSE_AGREEMENT` degrees."""
+        return bool(abs(self.repose_left - self.repose_right) <= REPOSE_AGREEMENT)
+
 
 def sand_world(world: str = "seed") -> Any:
     """The world ``world`` (a key of :data:`WORLDS`) and a hopper above its disc: two walls
@@ -672,7 +816,8 @@ def hopper_fill(n: int, radius: np.ndarray, rng: np.random.Generator) -> np.ndar
     """Start positions (n, 2) of grains of radii ``radius`` filling the hopper of
     :func:`sand_world` from its outlet up: rows of grains a little apart (their largest
     diameter and a tenth), alternate rows shifted by half a pitch, each grain clear of the
-    walls, with a small random offset (so the fill does not settle as a crystal)."""
+    walls, with a small random offset (so the fill does not settle as a crystal) drawn from
+    ``rng`` (a ``numpy.random.Generator``)."""
     pitch = 2.2 * float(np.max(radius))
     rows: list[np.ndarray] = []
     count, y, row = 0, HOPPER_OUTLET_Y + pitch, 0
@@ -736,110 +881,35 @@ def run_sand_demo(
     summary reports the angle of repose of the cone on the disc
     (:func:`fastsdf.granular.repose_angle` on the grains at rest there). Writes
     ``out/sand.mp4`` (``frames`` frames at ``fps``; a GIF without ffmpeg; ``animate=False``
-    skips it) and ``out/sand_last_frame.png``."""
+    skips it) and ``out/sand_last_frame.png``. ``seed``: the radii's and the fill's random
+    seed; ``stream``: where notices go (default stderr)."""
     import matplotlib
 
     matplotlib.use("Agg")
 
-    from fastsdf.fields.grid import GridSDF
-    from fastsdf.granular.analysis import repose_angle
-    from fastsdf.granular.params import ContactLaw, derived_stiffness
-    from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.viz.frames import VideoWriter
-    from fastsdf.viz.progress import Progress
     from fastsdf.viz.render import render_frame, sim_title
 
-    _check_sizes(
-        world,
-        grains=(grains, 1),
-        steps=(steps, 1),
-        grid=(grid, 2),
-        frames=(frames, 1),
-        fps=(fps, 1),
-    )
-    if not (np.isfinite(radius) and 0 < radius < 0.2):
-        raise ValueError(f"radius must be in (0, 0.2), got radius={radius!r}")
-    if not isinstance(history, bool):
-        raise TypeError(f"history must be True or False, got history={history!r}")
-    if not (np.isfinite(rolling_friction) and rolling_friction >= 0):
-        raise ValueError(
-            f"rolling_friction must be >= 0, got rolling_friction={rolling_friction!r}"
-        )
-    if rolling_friction and not history:
-        raise ValueError(
-            f"rolling_friction needs history=True, got rolling_friction={rolling_friction!r} "
-            f"with history=False"
-        )
+    _check_sand_args(radius, history, rolling_friction)
+    _check_demo_args(world, None, animate, frames, steps, grid, fps, grains=grains)
     grains, steps, frames = int(grains), int(steps), int(frames)
-    if animate and frames > steps:
-        raise ValueError(
-            f"frames must be at most steps (every frame advances at least one step), "
-            f"got frames={frames}, steps={steps}"
-        )
     err = stream if stream is not None else sys.stderr
     out = check_output_dir(out)
     f = sand_world(world)
-    g = 9.81
-    height = BOUNDS[1][1] - BOUNDS[1][0]
-    law = ContactLaw(history=history, rolling_friction=float(rolling_friction))
-    if exact:
-        sdf, sdf_name = f, "the exact compiled SDF (no grid)"
-        # The grains' extent would set the derived stiffness: take the pictured world's height.
-        law = law._replace(stiffness=derived_stiffness(1.0, g, height))
-    else:
-        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
-        sdf_name = f"a {grid}x{grid} GridSDF"
-    rng = np.random.default_rng(seed)
-    radii = radius * rng.uniform(1 - SAND_RADIUS_SPREAD, 1 + SAND_RADIUS_SPREAD, grains)
-    sim: Any = ParticleSimulation(  # a GrainSimulation
-        sdf, positions=hopper_fill(grains, radii, rng), radius=radii, contacts=law
+    sim, sdf, sdf_name = _sand_simulation(
+        f, grid, exact, seed, grains, radius, history, rolling_friction
     )
-    sim.force_generators.append(Gravity((0.0, -g)))
-    timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0}
+    timing = _new_timing()
 
     def advance(k: int) -> None:
-        if k <= 0:
-            return
-        if timing["first"] is None:
-            t0 = time.perf_counter()
-            sim.run(1)
-            timing["first"] = time.perf_counter() - t0
-            timing["load0"] = _load()
-            timing["steps"] += 1
-            k -= 1
-        if k > 0:
-            t0 = time.perf_counter()
-            sim.run(k)
-            timing["rest"] += time.perf_counter() - t0
-            timing["steps"] += k
+        _timed_advance(sim, k, timing, what="the granular kernels")
 
     label = f"{grains:,} grains"
     animation_path = None
     if animate:
-        ext = _video_writer_ext(err)
-        animation_path = os.path.join(out, "sand" + ext)
         schedule = _frame_schedule(steps, frames)
-        if ext == ".mp4":
-            with (
-                Progress(len(schedule), "frames", stream=err) as bar,
-                VideoWriter(
-                    animation_path, f, BOUNDS, size=VIDEO_SIZE, fps=fps, title=label
-                ) as writer,
-            ):
-                for i, k in enumerate(schedule):
-                    if i < 2:  # these may compile: their notices get a line of their own
-                        bar.clear()
-                    advance(k)
-                    with compiling("the video's drawing kernels"):
-                        writer.add_simulation(sim)
-                    bar.step()
-        else:
-            from fastsdf.viz.render import animate as _animate
-            from fastsdf.viz.render import save_animation, world_figure
-
-            fig, ax, _ = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
-            anim = _animate(sim, ax, frames, schedule, advance=advance, title=label + ", ")
-            save_animation(anim, animation_path, fps=fps)
+        animation_path = _write_video(
+            sim, f, os.path.join(out, "sand"), schedule, advance, label, fps, err
+        )
     advance(steps - timing["steps"])
     x = sim.p["x"]
     last = os.path.join(out, "sand_last_frame.png")
@@ -853,6 +923,109 @@ def run_sand_demo(
         title=sim_title(sim, label + ", "),
         colorbar=False,
     )
+    return _sand_result(sim, sdf, sdf_name, world, radius, timing, animation_path, last)
+
+
+def _sand_result(
+    sim: Any,
+    sdf: Any,
+    sdf_name: str,
+    world: str,
+    radius: float,
+    timing: dict[str, Any],
+    animation: str | None,
+    last_frame: str,
+) -> SandResult:
+    """The sand scene's :class:`SandResult`: its law and rate (``timing`` as
+    :func:`_timed_advance` kept it), overlaps and heaps at the end, files written."""
+    overlap, wall_overlap = _max_overlaps(sim, sdf)
+    substeps, grains, rest = sim.substeps_per_frame, sim.n, timing["rest"]
+    law = sim.contacts
+    return SandResult(
+        world=world,
+        grains=grains,
+        radius=float(radius),
+        steps=timing["steps"],
+        timestep=sim.dt,
+        sdf=sdf_name,
+        stiffness=float(law.stiffness),
+        substeps_per_step=int(substeps),
+        first_step_seconds=timing["first"] or 0.0,
+        sim_seconds=rest,
+        grain_substeps_per_second=(
+            (timing["steps"] - 1) * substeps * grains / rest if rest > 0 else float("nan")
+        ),
+        max_overlap=overlap,
+        max_wall_overlap=wall_overlap,
+        animation=animation,
+        last_frame=last_frame,
+        load=_load_pair(timing.get("load0"), _load()),
+        history=bool(law.history),
+        rolling_friction=float(law.rolling_friction),
+        **_sand_heaps(sim, radius),
+    )
+
+
+def _check_sand_args(radius: float, history: bool, rolling_friction: float) -> None:
+    """``ValueError`` (``TypeError``) naming a grain radius outside (0, 0.2), a ``history``
+    not a bool, or a rolling friction that is negative or given without history."""
+    if not (np.isfinite(radius) and 0 < radius < 0.2):
+        raise ValueError(f"radius must be in (0, 0.2), got radius={shown(radius)}")
+    if not isinstance(history, bool):
+        raise TypeError(f"history must be True or False, got history={shown(history)}")
+    if not (np.isfinite(rolling_friction) and rolling_friction >= 0):
+        raise ValueError(
+            f"rolling_friction must be >= 0, got rolling_friction={shown(rolling_friction)}"
+        )
+    if rolling_friction and not history:
+        raise ValueError(
+            f"rolling_friction needs history=True, got rolling_friction="
+            f"{shown(rolling_friction)} with history=False"
+        )
+
+
+def _sand_simulation(
+    f: Any,
+    grid: int,
+    exact: bool,
+    seed: int,
+    grains: int,
+    radius: float,
+    history: bool,
+    rolling_friction: float,
+) -> tuple:
+    """``(sim, sdf, sdf_name)``: the sand scene's grains in the hopper of ``f`` under
+    ``Gravity((0, -9.81))``, meeting ``sdf`` (a ``grid`` x ``grid`` GridSDF of ``f``, or
+    ``f`` itself with ``exact``), described by ``sdf_name``."""
+    from fastsdf.fields.grid import GridSDF
+    from fastsdf.granular.params import ContactLaw, derived_stiffness
+    from fastsdf.particles import Gravity, ParticleSimulation
+
+    g = 9.81
+    law = ContactLaw(history=history, rolling_friction=float(rolling_friction))
+    if exact:
+        sdf, sdf_name = f, "the exact compiled SDF (no grid)"
+        # The grains' extent would set the derived stiffness: take the pictured world's height.
+        law = law._replace(stiffness=derived_stiffness(1.0, g, BOUNDS[1][1] - BOUNDS[1][0]))
+    else:
+        sdf = GridSDF(f, bounds=BOUNDS, samples=[grid * 1j, grid * 1j], mode="exact")
+        sdf_name = f"a {grid}x{grid} GridSDF"
+    rng = np.random.default_rng(seed)
+    radii = radius * rng.uniform(1 - SAND_RADIUS_SPREAD, 1 + SAND_RADIUS_SPREAD, grains)
+    sim: Any = ParticleSimulation(  # a GrainSimulation
+        sdf, positions=hopper_fill(grains, radii, rng), radius=radii, contacts=law
+    )
+    sim.force_generators.append(Gravity((0.0, -g)))
+    return sim, sdf, sdf_name
+
+
+def _sand_heaps(sim: Any, radius: float) -> dict[str, Any]:
+    """The :class:`SandResult` fields of the heaps: the funnel's (``heap_fraction``,
+    ``heap_top``) and the cone on the disc (``cone_grains``, ``cone_top``, and its angle of
+    repose ``repose_left`` and ``repose_right``)."""
+    from fastsdf.granular.analysis import repose_angle
+
+    x = np.asarray(sim.p["x"])
     heap = x[:, 1] < -0.5
     still = np.hypot(*np.asarray(sim.p["v"]).T) < 0.05
     resting = heap & still
@@ -861,31 +1034,9 @@ def run_sand_demo(
     # bins one mean radius wide: the cone is about sixteen diameters across, and bins of a
     # diameter would leave a flank too few surface points to fit
     repose = repose_angle(x[cone], np.asarray(sim.p["r"])[cone], bin_width=float(radius))
-    overlap, wall_overlap = _max_overlaps(sim, sdf)
-    substeps = sim.substeps_per_frame
-    rest = timing["rest"]
-    rate = (timing["steps"] - 1) * substeps * grains / rest if rest > 0 else float("nan")
-    return SandResult(
-        world=world,
-        grains=grains,
-        radius=float(radius),
-        steps=timing["steps"],
-        timestep=sim.dt,
-        sdf=sdf_name,
-        stiffness=float(sim.contacts.stiffness),
-        substeps_per_step=int(substeps),
-        first_step_seconds=timing["first"] or 0.0,
-        sim_seconds=rest,
-        grain_substeps_per_second=rate,
-        max_overlap=overlap,
-        max_wall_overlap=wall_overlap,
+    return dict(
         heap_fraction=float(np.mean(heap)),
         heap_top=float(x[resting, 1].max()) if resting.any() else float("nan"),
-        animation=animation_path,
-        last_frame=last,
-        load=_load_pair(timing.get("load0"), _load()),
-        history=history,
-        rolling_friction=float(rolling_friction),
         repose_left=repose.left,
         repose_right=repose.right,
         cone_grains=int(cone.sum()),
@@ -905,16 +1056,25 @@ def _sand_law(res: SandResult) -> str:
 
 
 def _repose_line(res: SandResult) -> str:
-    """The cone's angle of repose (both flanks measured), or why there is none."""
+    """The cone's angle of repose where its two flanks agree (within
+    :data:`REPOSE_AGREEMENT` degrees), else why it is not measured or not reliable."""
     left, right = res.repose_left, res.repose_right
     where = (
         "the grains at rest on the disc, a line fitted to each flank of the cone's surface, "
         "bins one radius wide"
     )
-    if np.isfinite(left) and np.isfinite(right):
+    if res.repose_reliable:
         return (
             f"angle of repose: {left:.1f} (left) and {right:.1f} (right) degrees, mean "
             f"{(left + right) / 2:.1f} ({where})"
+        )
+    if np.isfinite(left) and np.isfinite(right):
+        return (
+            f"angle of repose: not reliable here: the cone's flanks give {left:.1f} (left) "
+            f"and {right:.1f} (right) degrees, more than {REPOSE_AGREEMENT:g} apart; the cone "
+            f"on the disc holds {_plural(res.cone_grains, 'grain')}, too few for a slope to "
+            f"fit (a heap of hundreds of grains measures it: examples/heap.py pours 400 onto "
+            f"a floor)"
         )
     if not res.history:
         return (
@@ -928,7 +1088,7 @@ def _repose_line(res: SandResult) -> str:
 
 
 def sand_summary(res: SandResult) -> str:
-    """Human-readable lines for the sand scene's result."""
+    """Human-readable lines for the sand scene's result ``res``."""
     lines = [
         f"world: {res.world}, {WORLDS[res.world][1]}; queried through {res.sdf}",
         f"poured {_plural(res.grains, 'grain')} of radius {res.radius:g} +-"

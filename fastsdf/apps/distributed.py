@@ -52,7 +52,7 @@ import hashlib
 import numbers
 import os
 import pickle
-import time
+import sys
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
@@ -61,6 +61,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+from fastsdf.expr.validate import check_bounds, count, shown
 
 __all__ = [
     "evaluate",
@@ -97,7 +99,7 @@ def _check_world(f: Any, name: str = "f") -> Any:
 
     if not isinstance(f, (Function, GridSDF)):
         raise TypeError(
-            f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={f!r} "
+            f"{name} must be a fastsdf SDF (Function) or GridSDF, got {name}={shown(f)} "
             f"of type {type(f).__name__}"
         )
     return f
@@ -143,17 +145,9 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
     yd = yd.rechunk(xd.chunks)
     world = dask.delayed(f, name="fastsdf-world-" + _digest(f), pure=True)
     gradient = bool(compute_gradient)
-    if not gradient:
-        return da.map_blocks(
-            _evaluate_block,
-            xd,
-            yd,
-            world,
-            gradient,
-            dtype=np.float64,
-            meta=np.empty((0,) * xd.ndim),
-            name="fastsdf-evaluate-" + dask.base.tokenize(world.key, xd.name, yd.name, False),
-        )
+    token = dask.base.tokenize(world.key, xd.name, yd.name, gradient)
+    # with the gradient: one (..., 3) block of value, d/dx, d/dy, split below
+    shape = dict(new_axis=xd.ndim, chunks=xd.chunks + ((3,),)) if gradient else {}
     out = da.map_blocks(
         _evaluate_block,
         xd,
@@ -161,11 +155,12 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
         world,
         gradient,
         dtype=np.float64,
-        new_axis=xd.ndim,
-        chunks=xd.chunks + ((3,),),
-        meta=np.empty((0,) * (xd.ndim + 1)),
-        name="fastsdf-evaluate-vg-" + dask.base.tokenize(world.key, xd.name, yd.name, True),
+        meta=np.empty((0,) * (xd.ndim + gradient)),
+        name=("fastsdf-evaluate-vg-" if gradient else "fastsdf-evaluate-") + token,
+        **shape,
     )
+    if not gradient:
+        return out
     return out[..., 0], out[..., 1:]
 
 
@@ -176,8 +171,9 @@ def evaluate(f: Any, x: ArrayLike, y: ArrayLike, compute_gradient: bool = False)
 class ShardLostError(RuntimeError):
     """A shard of a :class:`DistributedSimulation` is gone (its worker died or was restarted).
 
-    ``shards``: the lost shard indices; ``workers``: the addresses they lived on. The other
-    shards are intact, but the simulation can no longer advance consistently.
+    ``shards``: the lost shard indices; ``workers``: the addresses they lived on; ``detail``:
+    what Dask said. The other shards are intact, but the simulation can no longer advance
+    consistently.
     """
 
     def __init__(self, shards: Sequence[int], workers: Sequence[str], detail: str = ""):
@@ -422,7 +418,7 @@ class DistributedSimulation:
     ):
         if contacts is not None:
             raise ValueError(
-                f"contacts={contacts!r}: grains that collide with each other cannot be "
+                f"contacts={shown(contacts)}: grains that collide with each other cannot be "
                 f"sharded as independent batches (each shard would need the grains near its "
                 f"border from its neighbours every substep: a halo exchange, not implemented). "
                 f"What shards: non-interacting particles (contacts=None); grains run in one "
@@ -435,33 +431,20 @@ class DistributedSimulation:
         from fastsdf.particles import ParticleSimulation
 
         if not isinstance(client, Client):
-            raise TypeError(f"client must be a dask.distributed.Client, got client={client!r}")
+            raise TypeError(f"client must be a dask.distributed.Client, got client={shown(client)}")
         _check_world(world, "world")
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral) or n <= 0:
-            raise ValueError(f"n must be a positive integer, got n={n!r}")
         info = _workers(client)
         if not info:
             raise ValueError("the client's cluster has no workers")
         addresses = sorted(info)
-        if shards is None:
-            shards = len(addresses)
-        if (
-            isinstance(shards, (bool, np.bool_))
-            or not isinstance(shards, numbers.Integral)
-            or shards <= 0
-        ):
-            raise ValueError(f"shards must be a positive integer or None, got shards={shards!r}")
+        n = count(n, "n")
+        shards = count(len(addresses) if shards is None else shards, "shards")
+        threads = None if threads is None else count(threads, "threads")
         if n < shards:
             raise ValueError(
-                f"n must be >= shards (every shard holds a particle), got n={n!r}, "
-                f"shards={shards!r}"
+                f"n must be >= shards (every shard holds a particle), got n={shown(n)}, "
+                f"shards={shown(shards)}"
             )
-        if threads is not None and (
-            isinstance(threads, (bool, np.bool_))
-            or not isinstance(threads, numbers.Integral)
-            or threads <= 0
-        ):
-            raise ValueError(f"threads must be a positive integer or None, got threads={threads!r}")
         if seed is None:
             seed = np.random.SeedSequence().entropy
         parameters = dict(
@@ -482,7 +465,7 @@ class DistributedSimulation:
             if not callable(gen):
                 raise TypeError(
                     f"force_generators must hold Gravity, Drag or callables "
-                    f"(p, t) -> (n, 2) forces, got {gen!r}"
+                    f"(p, t) -> (n, 2) forces, got {shown(gen)}"
                 )
         self.client = client
         self.world = world
@@ -497,9 +480,22 @@ class DistributedSimulation:
         self.sizes = shard_sizes(self.n, self.shards)
         self._lost = None
         if init is not None and not callable(init):
-            raise TypeError(f"init must be a callable (sim, shard) or None, got init={init!r}")
+            raise TypeError(f"init must be a callable (sim, shard) or None, got init={shown(init)}")
         config = _Config(world, self.n, self.shards, seed, tuple(parameters.items()), init)
         self.workers = [addresses[i % len(addresses)] for i in range(self.shards)]
+        self._start_shards(config, info, threads)
+        #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
+        self.init_results = [None] * self.shards
+        if init is not None:
+            for _, payload in self._call("initialized"):
+                for i, value in payload.items():
+                    self.init_results[i] = value
+
+    def _start_shards(self, config: _Config, info: dict, threads: int | None) -> None:
+        """Build the shards on their workers: ``config`` sent to each once, one actor per
+        worker holding its shards, running ``threads`` numba threads (default its Dask
+        thread count)."""
+        client = self.client
         self._config_future = client.scatter(config, broadcast=True, hash=False)
         tag = uuid.uuid4().hex[:12]
         self._groups = {}
@@ -524,12 +520,6 @@ class DistributedSimulation:
             check_steps=False,
         )
         self._actors = dict(zip(self._groups, actors))
-        #: What ``init(sim, i)`` returned on each shard, in shard order (None without init).
-        self.init_results = [None] * self.shards
-        if init is not None:
-            for _, payload in self._call("initialized"):
-                for i, value in payload.items():
-                    self.init_results[i] = value
 
     # -- calls and loss detection -----------------------------------------------------------
     def _lost_error(self, shards: Sequence[int], detail: str = "") -> ShardLostError:
@@ -647,9 +637,9 @@ class DistributedSimulation:
         died, and the shard's own ``ValueError`` for an invalid particle state.
         """
         if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
-            raise TypeError(f"steps must be an integer, got steps={steps!r}")
+            raise TypeError(f"steps must be an integer, got steps={shown(steps)}")
         if steps < 0:
-            raise ValueError(f"steps must be >= 0, got steps={steps!r}")
+            raise ValueError(f"steps must be >= 0, got steps={shown(steps)}")
         if steps == 0:
             return
         if self._lost is not None:
@@ -709,7 +699,6 @@ class DistributedSimulation:
         :func:`fastsdf.viz.render.density_image` (float64, ``shape=(H, W)``, row 0 at the bottom,
         covering ``bounds``; exact integer counts, so the order of summation does not matter). Each
         worker sends one summed image: the client holds O(workers * H * W), not O(n)."""
-        from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import check_shape
 
         bounds = check_bounds(bounds)
@@ -724,14 +713,15 @@ class DistributedSimulation:
 
         Returns a dict of the fields ``x, v, m, r, cr, cf`` (float arrays of ``k`` rows) and
         ``index`` (their global indices, sorted; shard ``i`` holds the indices from
-        ``sum(sizes[:i])``). Only the ``k`` rows travel.
+        ``sum(sizes[:i])``). Only the ``k`` rows travel. ``seed``: the draw's random seed
+        (``None``: fresh entropy).
         """
         if (
             isinstance(k, (bool, np.bool_))
             or not isinstance(k, numbers.Integral)
             or not 0 <= k <= self.n
         ):
-            raise ValueError(f"k must be an integer in [0, n={self.n}], got k={k!r}")
+            raise ValueError(f"k must be an integer in [0, n={self.n}], got k={shown(k)}")
         from fastsdf.particles import Particles
 
         rng = np.random.default_rng(seed)
@@ -809,7 +799,7 @@ def local_cluster(workers: int = 2, threads_per_worker: int | None = None, **kwa
         or not isinstance(workers, numbers.Integral)
         or workers <= 0
     ):
-        raise ValueError(f"workers must be a positive integer, got workers={workers!r}")
+        raise ValueError(f"workers must be a positive integer, got workers={shown(workers)}")
     if threads_per_worker is None:
         threads_per_worker = max(1, (os.cpu_count() or 1) // int(workers))
     options = dict(
@@ -870,6 +860,51 @@ class _Spawn:
         return spawn_in_free_space(sim, self.world, np.random.default_rng([self.seed, 1, i]))
 
 
+def _density_video(
+    sim: DistributedSimulation,
+    f: Any,
+    path: str,
+    schedule: list[int],
+    advance: Callable[[int], None],
+    label: str,
+    fps: int,
+) -> None:
+    """A video at ``path`` of ``sim`` over the world ``f``: its density image (only images
+    travel from the workers) after each ``advance(k)`` of ``schedule``."""
+    from matplotlib.animation import FuncAnimation
+
+    from fastsdf.apps.demo import BOUNDS
+    from fastsdf.viz.render import save_animation, world_figure
+
+    shape = (480, 480)
+    fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+    artist = _draw_density(ax, sim.density(BOUNDS, shape), BOUNDS, cax)
+    title = ax.set_title(label + "t = 0.00 s (step 0)")
+
+    def update(i: int) -> tuple:
+        advance(schedule[i])
+        image = sim.density(BOUNDS, shape)
+        artist.set_data(np.ma.masked_less_equal(image, 0.0))
+        artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
+        title.set_text(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+        return (artist,)
+
+    anim = FuncAnimation(fig, update, frames=len(schedule), blit=False, repeat=False)
+    save_animation(anim, path, fps=fps)
+
+
+def _density_picture(sim: DistributedSimulation, f: Any, path: str, label: str) -> str:
+    """A PNG at ``path`` of ``sim``'s density image over the world ``f``; returns ``path``."""
+    from fastsdf.apps.demo import BOUNDS
+    from fastsdf.viz.render import world_figure
+
+    fig, ax, cax = world_figure(f, BOUNDS, 400, (6.4, 5.6), 100)
+    _draw_density(ax, sim.density(BOUNDS, (600, 600)), BOUNDS, cax)
+    ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
+    fig.savefig(path, dpi=100)
+    return path
+
+
 def run_demo(
     workers: int = 2,
     particles: int = 1_000_000,
@@ -889,138 +924,75 @@ def run_demo(
     """:func:`fastsdf.apps.demo.run_demo` with the particles on a :func:`local_cluster` of
     ``workers`` processes (closed at the end), or on the cluster of ``client`` if given.
 
-    Same parameters and result (a :class:`fastsdf.apps.demo.DemoResult`). The particles live on the
+    Same parameters (``steps``, ``grid``, ``exact``, ``seed``, ``out``, ``frames``, ``fps``,
+    ``animate``, ``world``, ``mode``, ``stream``) and result (a
+    :class:`fastsdf.apps.demo.DemoResult`). The particles live on the
     workers, one shard per worker; each shard spawns its particles in free space there
     (:func:`fastsdf.apps.demo.spawn_in_free_space`); video frames and the last frame are drawn from
     :meth:`DistributedSimulation.density` images, so only images travel to this process, and
     the share of particles inside matter at the end is measured on a random sample of up to
     100,000 particles (:meth:`DistributedSimulation.sample`).
     """
-    import sys
-
     import matplotlib
-
-    matplotlib.use("Agg")
     from distributed import Client
-    from matplotlib.animation import FuncAnimation
 
     from fastsdf.apps import demo as _demo
-    from fastsdf.fields.grid import GridSDF, measure_error
     from fastsdf.particles import Gravity
-    from fastsdf.viz.render import save_animation, world_figure
 
+    matplotlib.use("Agg")
     frames = _demo.DEFAULT_FRAMES if frames is None else frames
     fps = _demo.DEFAULT_FPS if fps is None else fps
-    for name, value, low in (
-        ("workers", workers, 1),
-        ("particles", particles, 1),
-        ("steps", steps, 1),
-        ("grid", grid, 2),
-        ("frames", frames, 1),
-        ("fps", fps, 1),
-    ):
-        if isinstance(value, bool) or int(value) != value or value < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {name}={value!r}")
-    if world not in _demo.WORLDS:
-        raise ValueError(f"world must be one of {sorted(_demo.WORLDS)}, got world={world!r}")
-    if mode not in ("exact", "nearest"):
-        raise ValueError(f"mode must be 'exact' or 'nearest', got mode={mode!r}")
+    _demo._check_demo_args(
+        world, mode, animate, frames, steps, grid, fps, workers=workers, particles=particles
+    )
     particles, steps, frames = int(particles), int(steps), int(frames)
-    if animate and frames > steps:
-        raise ValueError(
-            f"frames must be at most steps (every frame advances at least one "
-            f"step), got frames={frames}, steps={steps}"
-        )
-    err = stream if stream is not None else sys.stderr
     out = _demo.check_output_dir(out)
-    bounds = _demo.BOUNDS
-    f = _demo.WORLDS[world][0]()
-    band_max = band_angle = cost = None
-    if exact:
-        sdf, sdf_name, grid_mode = f, "the exact compiled SDF (no grid)", None
-    else:
-        t0 = time.perf_counter()
-        sdf = GridSDF(f, bounds=bounds, samples=[grid * 1j, grid * 1j], mode=mode)
-        built = time.perf_counter() - t0
-        error = measure_error(sdf, seed=seed)
-        band_max, band_angle = error.band_value_max, error.band_angle_rms_deg
-        cost = _demo._query_cost(sdf, seed=seed)
-        sdf_name, grid_mode = f"a {grid}x{grid} GridSDF (built in {built:.2f} s)", mode
+    qw = _demo.queried_world(world, grid, mode, exact, seed)
+    f = qw.f
     with contextlib.ExitStack() as stack:
         if client is None:
             cluster = stack.enter_context(local_cluster(int(workers)))
             client = stack.enter_context(Client(cluster))
         workers = len(_workers(client))
-        sim = stack.enter_context(
-            DistributedSimulation(
-                sdf,
-                particles,
-                client=client,
-                seed=seed,
-                timestep=1 / 30,
-                force_generators=[Gravity(acceleration=(0.0, -1.0))],
-                init=_Spawn(f, seed),
-            )
+        gravity = [Gravity(acceleration=(0.0, -1.0))]
+        spawn = _Spawn(f, seed)
+        sim = DistributedSimulation(
+            qw.sdf, particles, client=client, seed=seed, force_generators=gravity, init=spawn
         )
-        sdf_name += f", particles on {workers} Dask worker processes"
-        timing: dict[str, Any] = {"first": None, "rest": 0.0, "steps": 0, "outside": 0.0}
+        stack.enter_context(sim)
+        qw.name += f", particles on {workers} Dask worker processes"
+        timing = _demo._new_timing()
 
         def outside_share() -> float:
             # Particles inside the bounds, edges included: a 1x1 density image counts them.
-            return 1.0 - float(sim.density(bounds, (1, 1)).sum()) / particles
+            return 1.0 - float(sim.density(_demo.BOUNDS, (1, 1)).sum()) / particles
 
         def advance(k: int) -> None:
             _demo._timed_advance(sim, k, timing, outside_share)
 
         label = f"{particles:,} particles on {workers} workers, "
-        shape = (480, 480)
         animation_path = None
         if animate:
-            fig, ax, cax = world_figure(f, bounds, 400, (6.4, 5.6), 100)
-            artist = _draw_density(ax, sim.density(bounds, shape), bounds, cax)
-            title = ax.set_title(label + "t = 0.00 s (step 0)")
+            ext = _demo._video_writer_ext(stream if stream is not None else sys.stderr)
+            animation_path = os.path.join(out, "particles" + ext)
             schedule = _demo._frame_schedule(steps, frames)
-
-            def update(i):
-                advance(schedule[i])
-                image = sim.density(bounds, shape)
-                artist.set_data(np.ma.masked_less_equal(image, 0.0))
-                artist.norm.vmax = max(float(image.max()), 1.0 + 1e-9)
-                title.set_text(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
-                return (artist,)
-
-            anim = FuncAnimation(fig, update, frames=frames, blit=False, repeat=False)
-            animation_path = os.path.join(out, "particles" + _demo._video_writer_ext(err))
-            save_animation(anim, animation_path, fps=fps)
+            _density_video(sim, f, animation_path, schedule, advance, label, fps)
         advance(steps - timing["steps"])
-        last = os.path.join(out, "last_frame.png")
-        fig, ax, cax = world_figure(f, bounds, 400, (6.4, 5.6), 100)
-        _draw_density(ax, sim.density(bounds, (600, 600)), bounds, cax)
-        ax.set_title(f"{label}t = {sim.t:.2f} s (step {sim.steps})")
-        fig.savefig(last, dpi=100)
+        last = _density_picture(sim, f, os.path.join(out, "last_frame.png"), label)
         sample = sim.sample(min(particles, 100_000), seed=seed)
         respawned = int(sum(sim.init_results))
         dt = sim.dt
-    x, r = sample["x"], sample["r"]
-    d = sdf(x[:, 0], x[:, 1]) - r
-    rate = (steps - 1) * particles / timing["rest"] if timing["rest"] > 0 else float("nan")
-    return _demo.DemoResult(
-        world=world,
-        particles=particles,
-        steps=timing["steps"],
-        timestep=dt,
-        sdf=sdf_name,
-        mode=grid_mode,
-        sim_seconds=timing["rest"],
-        first_step_seconds=timing["first"] or 0.0,
-        particle_steps_per_second=rate,
-        outside_grid_fraction=None if exact else timing["outside"] / max(1, timing["steps"]),
-        exact_query_cost=cost,
-        grid_band_value_max=band_max,
-        grid_band_angle_rms_deg=band_angle,
-        respawned=respawned,
-        inside_fraction=float(np.mean(d < -0.01 * r)),
-        load=None if "load0" not in timing else (timing["load0"], os.getloadavg()[0]),
-        animation=animation_path,
-        last_frame=last,
+    load0 = timing.get("load0")
+    return _demo.particle_result(
+        qw,
+        world,
+        particles,
+        timing,
+        dt,
+        sample["x"],
+        sample["r"],
+        respawned,
+        animation_path,
+        last,
+        _demo._load_pair(load0, _demo._load()),
     )

@@ -1,12 +1,14 @@
 """Parameter checks shared by the modelling and simulation modules.
 
-Every error names the parameter and the value it got, at construction time.
+Every error names the parameter and the value it got, at construction time: each check takes
+the ``value`` given and the ``name`` of the parameter it was given as.
 """
 
 from __future__ import annotations
 
 import math
 import numbers
+import reprlib
 from collections.abc import Sequence
 from typing import TypeAlias, TypeGuard
 
@@ -16,6 +18,11 @@ from numpy.typing import ArrayLike
 from fastsdf.expr.graph import Expr
 
 __all__ = [
+    "shown",
+    "count",
+    "positive",
+    "reals",
+    "check_bounds",
     "MAX_COORD",
     "MIN_LENGTH",
     "real",
@@ -39,6 +46,92 @@ PairOrParam: TypeAlias = "ArrayLike | Sequence[float | Expr]"
 Pair: TypeAlias = "np.ndarray | tuple[float | Expr, float | Expr]"
 
 
+class _Described(str):
+    """Text that quotes itself as it is (a value described rather than written out)."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+def _plain(value: object) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        if value.size <= 16:
+            return value.tolist()
+        return _Described(f"<an array of shape {value.shape} and dtype {value.dtype}>")
+    if type(value) is tuple:
+        return tuple(_plain(v) for v in value)
+    if type(value) is list:
+        return [_plain(v) for v in value]
+    return value
+
+
+_SHORT = reprlib.Repr()
+_SHORT.maxlist = _SHORT.maxtuple = 8
+_SHORT.maxstring = _SHORT.maxother = 200
+
+
+def shown(value: object) -> str:
+    """``repr(value)`` as an error message quotes it: NumPy's numbers as plain numbers
+    (``-0.1``, not ``np.float64(-0.1)``) and its small arrays as lists, inside tuples and
+    lists too; long ones cut short (``[0, 1, 2, 3, 4, 5, 6, 7, ...]``)."""
+    return _SHORT.repr(_plain(value))
+
+
+def count(value: object, name: str, minimum: int = 1) -> int:
+    """``value`` as an int; ``ValueError`` naming ``name`` unless it is an integer (not a
+    bool) at least ``minimum``."""
+    if (
+        isinstance(value, (bool, np.bool_))
+        or not isinstance(value, numbers.Integral)
+        or value < minimum
+    ):
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={shown(value)}")
+    return int(value)
+
+
+def positive(value: object, name: str) -> float:
+    """``value`` as a float; ``ValueError`` naming ``name`` unless it is a finite number > 0."""
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        number = math.nan
+    if not (math.isfinite(number) and number > 0.0):
+        raise ValueError(f"{name} must be a finite number > 0, got {name}={shown(value)}")
+    return number
+
+
+def reals(value: ArrayLike, name: str) -> np.ndarray:
+    """``value`` as a 1-d float64 array (flattened; a 1-d float64 array, strided views
+    included, as it is); ``ValueError`` naming ``name`` unless it holds real numbers."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name} must be an array of real numbers, got {name} of type {type(value).__name__}"
+        ) from None
+    return arr if arr.ndim == 1 else arr.reshape(-1)
+
+
+def check_bounds(bounds: object, name: str = "bounds") -> tuple:
+    """``bounds`` as ``((x0, x1), (y0, y1))`` floats: ``TypeError`` naming ``name`` unless
+    it is two pairs of numbers, ``ValueError`` unless they are finite with ``x0 < x1`` and
+    ``y0 < y1``."""
+    try:
+        arr = np.asarray(bounds, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != (2, 2):
+        raise TypeError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={shown(bounds)}")
+    if not (np.all(np.isfinite(arr)) and arr[0, 0] < arr[0, 1] and arr[1, 0] < arr[1, 1]):
+        raise ValueError(
+            f"{name} must be finite with xmin < xmax and ymin < ymax, got {name}={shown(bounds)}"
+        )
+    (x0, x1), (y0, y1) = arr.tolist()
+    return (x0, x1), (y0, y1)
+
+
 def real(value: object, name: str, finite: bool = True) -> float:
     """``value`` as a float; ``TypeError`` unless it is a real number (bools are not), and
     ``ValueError`` if ``finite`` and it is NaN or infinite."""
@@ -47,10 +140,10 @@ def real(value: object, name: str, finite: bool = True) -> float:
         if not finite or math.isfinite(value):
             return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {name}={value!r}")
+        raise TypeError(f"{name} must be a real number, got {name}={shown(value)}")
     value = float(value)
     if finite and not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+        raise ValueError(f"{name} must be finite, got {name}={shown(value)}")
     return value
 
 
@@ -86,14 +179,16 @@ def vec2(value: object, name: str) -> np.ndarray:
     try:
         arr = np.asarray(value)
     except Exception:  # any conversion failure is a type error for the user
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}") from None
+        raise TypeError(
+            f"{name} must be a pair of real numbers, got {name}={shown(value)}"
+        ) from None
     if arr.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be a pair of real numbers, got {name}={value!r}")
+        raise TypeError(f"{name} must be a pair of real numbers, got {name}={shown(value)}")
     if arr.shape != (2,):
-        raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
+        raise ValueError(f"{name} must have exactly 2 components, got {name}={shown(value)}")
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+        raise ValueError(f"{name} must be finite, got {name}={shown(value)}")
     return arr
 
 
@@ -111,7 +206,8 @@ def coord(value: object, name: str) -> float:
     number = real(value, name)
     if abs(number) > MAX_COORD:
         raise ValueError(
-            f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got {name}={number!r}"
+            f"{name} must be at most {MAX_COORD:g} in magnitude ({_RANGE}), got "
+            f"{name}={shown(number)}"
         )
     return number
 
@@ -125,7 +221,7 @@ def coord2(value: object, name: str) -> np.ndarray:
     if np.any(np.abs(arr) > MAX_COORD):
         raise ValueError(
             f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
-            f"({_RANGE}), got {name}={arr.tolist()!r}"
+            f"({_RANGE}), got {name}={shown(arr.tolist())}"
         )
     return arr
 
@@ -140,13 +236,14 @@ def length(value: object, name: str, zero: bool = False) -> float:
     return number
 
 
-def check_length(size: float, name: str, shown: object = None) -> None:
-    """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``)."""
+def check_length(size: float, name: str, given: object = None) -> None:
+    """Raise unless ``MIN_LENGTH <= size <= MAX_COORD`` (``size`` derived from ``name``, the
+    value ``given``)."""
     if not (MIN_LENGTH <= size <= MAX_COORD):
-        shown = size if shown is None else shown
+        given = size if given is None else given
         raise ValueError(
             f"{name} must be between {MIN_LENGTH:g} and {MAX_COORD:g} in "
-            f"magnitude ({_RANGE}), got {name}={shown!r}"
+            f"magnitude ({_RANGE}), got {name}={shown(given)}"
         )
 
 
@@ -185,7 +282,7 @@ def real_or_param(value: object, name: str) -> tuple[float | Expr, float]:
         number = _param_value(value, name)
         if not math.isfinite(number):
             raise ValueError(
-                f"{name} must be finite, got {name}={value} = {number!r} at the "
+                f"{name} must be finite, got {name}={value} = {shown(number)} at the "
                 f"parameters' defaults"
             )
         return value, number
@@ -202,7 +299,7 @@ def vec2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
         return arr, arr
     if isinstance(value, (tuple, list)) and any(isinstance(v, Expr) for v in value):
         if len(value) != 2:
-            raise ValueError(f"{name} must have exactly 2 components, got {name}={value!r}")
+            raise ValueError(f"{name} must have exactly 2 components, got {name}={shown(value)}")
         (a, na), (b, nb) = (real_or_param(v, name) for v in value)
         return (a, b), np.array([na, nb])
     arr = vec2(value, name)
@@ -220,6 +317,6 @@ def coord2_or_param(value: object, name: str) -> tuple[Pair, np.ndarray]:
     if np.any(np.abs(numbers_) > MAX_COORD):
         raise ValueError(
             f"{name} must have coordinates at most {MAX_COORD:g} in magnitude "
-            f"({_RANGE}), got {name}={numbers_.tolist()!r}"
+            f"({_RANGE}), got {name}={shown(numbers_.tolist())}"
         )
     return pair, numbers_

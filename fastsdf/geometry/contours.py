@@ -21,9 +21,13 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import check_bounds, shown
+from fastsdf.introspect import show_field_types
+
 __all__ = ["Contour", "contours", "refine_crossings"]
 
 
+@show_field_types
 class Contour(NamedTuple):
     """One polyline of a level set: ``points`` (k, 2) in the function's coordinates and
     whether it is ``closed`` (then the last point connects back to the first, which is not
@@ -55,7 +59,7 @@ def refine_crossings(
     ``hi[k]`` at the other coordinate ``fixed[k]``; ``glo``, ``ghi`` are ``f - level`` at its
     ends, of opposite signs (one may be 0). Returns the coordinate along the edge of a point
     whose distance to a sign change of ``f - level`` is at most ``tol``: the end of the final
-    bracket with the smaller ``|f - level|``.
+    bracket with the smaller ``|f - level|`` (after at most ``max_iter`` steps).
     """
     a, b = lo.astype(np.float64).copy(), hi.astype(np.float64).copy()
     fa, fb = glo.astype(np.float64).copy(), ghi.astype(np.float64).copy()
@@ -83,7 +87,7 @@ def refine_crossings(
             raise ValueError(
                 f"the function is not finite at {int(bad.sum())} point(s) on "
                 f"cell edges crossing the level set (e.g. at "
-                f"{float(c[bad][0])!r} along axis {int(ax[bad][0])})"
+                f"{shown(float(c[bad][0]))} along axis {int(ax[bad][0])})"
             )
         same_as_b = np.sign(fc) == np.sign(FB)
         # c replaces b where it has b's sign, else a; halve the other end's value if that end
@@ -112,27 +116,13 @@ def _check_resolution(resolution: Any) -> tuple:
         nx, ny = (int(abs(complex(r))) if isinstance(r, complex) else int(r) for r in resolution)
     except (TypeError, ValueError):
         raise TypeError(
-            f"resolution must be a node count or a pair of them, got resolution={resolution!r}"
+            f"resolution must be a node count or a pair of them, got resolution={shown(resolution)}"
         ) from None
     if nx < 2 or ny < 2:
         raise ValueError(
-            f"resolution needs at least 2 nodes per axis, got resolution={resolution!r}"
+            f"resolution needs at least 2 nodes per axis, got resolution={shown(resolution)}"
         )
     return nx, ny
-
-
-def _check_bounds(bounds: ArrayLike) -> tuple:
-    try:
-        (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
-    except (TypeError, ValueError):
-        raise TypeError(
-            f"bounds must be two (min, max) pairs of numbers, got bounds={bounds!r}"
-        ) from None
-    if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
-        raise ValueError(
-            f"bounds must be finite with min < max on each axis, got bounds={bounds!r}"
-        )
-    return (x0, x1), (y0, y1)
 
 
 def contours(
@@ -154,41 +144,51 @@ def contours(
     ``f < level`` lies on the left of each. Features smaller than a cell may be missed, as in
     every sampling method.
     """
-    (x0, x1), (y0, y1) = _check_bounds(bounds)
+    (x0, x1), (y0, y1) = check_bounds(bounds)
     nx, ny = _check_resolution(resolution)
     if not (isinstance(level, (int, float, np.integer, np.floating)) and math.isfinite(level)):
-        raise ValueError(f"level must be a finite number, got level={level!r}")
+        raise ValueError(f"level must be a finite number, got level={shown(level)}")
     if not (isinstance(tol, (int, float)) and tol > 0):
-        raise ValueError(f"tol must be a positive number, got tol={tol!r}")
+        raise ValueError(f"tol must be a positive number, got tol={shown(tol)}")
     level = float(level)
     xs, ys = np.linspace(x0, x1, nx), np.linspace(y0, y1, ny)
     X, Y = np.meshgrid(xs, ys, indexing="ij")
     v = _evaluate(f, X, Y) - level
     if not np.isfinite(v).all():
         raise ValueError("the function is not finite at every sample of the grid")
-    inside = v < 0
+    px, py = _crossings(f, xs, ys, v, level, tol, refine)
+    return _chains(_successors(f, xs, ys, v < 0, level), px, py)
 
-    # Crossing edges. Horizontal edge (i, j): nodes (i, j)-(i+1, j), id i*ny + j. Vertical
-    # edge (i, j): nodes (i, j)-(i, j+1), id H + i*(ny-1) + j.
+
+def _crossings(
+    f: Callable,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    v: np.ndarray,
+    level: float,
+    tol: float,
+    refine: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(px, py)``: the point where ``f = level`` crosses each edge of the grid of nodes
+    ``xs`` x ``ys`` whose values ``v`` (``f - level``) change sign there (NaN at the other
+    edges); linearly interpolated (scikit-image's answer), then refined on ``f`` to ``tol``.
+    Horizontal edge (i, j), nodes (i, j)-(i+1, j), has id ``i*ny + j``; vertical edge (i, j),
+    nodes (i, j)-(i, j+1), id ``H + i*(ny-1) + j`` with ``H = (nx - 1) ny``."""
+    nx, ny = v.shape
+    inside = v < 0
     H = (nx - 1) * ny
-    hx_cross = inside[:-1, :] != inside[1:, :]
-    vy_cross = inside[:, :-1] != inside[:, 1:]
-    n_ids = H + nx * (ny - 1)
-    px = np.full(n_ids, np.nan)
-    py = np.full(n_ids, np.nan)
-    hi_, hj_ = np.nonzero(hx_cross)
-    vi_, vj_ = np.nonzero(vy_cross)
+    px = np.full(H + nx * (ny - 1), np.nan)
+    py = np.full(px.size, np.nan)
+    hi_, hj_ = np.nonzero(inside[:-1, :] != inside[1:, :])
+    vi_, vj_ = np.nonzero(inside[:, :-1] != inside[:, 1:])
     h_ids = hi_ * ny + hj_
     v_ids = H + vi_ * (ny - 1) + vj_
-    # linear interpolation first (scikit-image's answer), then refinement on f
     ga, gb = v[hi_, hj_], v[hi_ + 1, hj_]
-    tx = ga / (ga - gb)
-    px[h_ids] = xs[hi_] + tx * (xs[hi_ + 1] - xs[hi_])
+    px[h_ids] = xs[hi_] + ga / (ga - gb) * (xs[hi_ + 1] - xs[hi_])
     py[h_ids] = ys[hj_]
     ga2, gb2 = v[vi_, vj_], v[vi_, vj_ + 1]
-    ty = ga2 / (ga2 - gb2)
     px[v_ids] = xs[vi_]
-    py[v_ids] = ys[vj_] + ty * (ys[vj_ + 1] - ys[vj_])
+    py[v_ids] = ys[vj_] + ga2 / (ga2 - gb2) * (ys[vj_ + 1] - ys[vj_])
     if refine and (h_ids.size or v_ids.size):
         fixed = np.concatenate([ys[hj_], xs[vi_]])
         lo = np.concatenate([xs[hi_], ys[vj_]])
@@ -199,7 +199,16 @@ def contours(
         )
         px[h_ids] = roots[: h_ids.size]
         py[v_ids] = roots[h_ids.size :]
+    return px, py
 
+
+def _successors(
+    f: Callable, xs: np.ndarray, ys: np.ndarray, inside: np.ndarray, level: float
+) -> np.ndarray:
+    """For each edge id (see :func:`_crossings`) the id of the next crossing along the level
+    set, the region ``f < level`` (``inside``, at the nodes) on its left; -1 for none."""
+    nx, ny = inside.shape
+    H = (nx - 1) * ny
     # Cells with crossings; their four corners' phases in CCW order (0: (i, j), 1: (i+1, j),
     # 2: (i+1, j+1), 3: (i, j+1)) and the ids of their edges e0..e3 (bottom, right, top,
     # left: edge k runs from corner k to corner k+1 counter-clockwise).
@@ -222,7 +231,7 @@ def contours(
     # an outside one is an exit, the reverse an entry. Each exit joins the entry before it
     # (cutting off an inside corner), or in a saddle whose centre is inside, the entry after
     # it (cutting off an outside corner); the inside then lies on the segment's left.
-    nxt = np.full(n_ids, -1, dtype=np.int64)
+    nxt = np.full(H + nx * (ny - 1), -1, dtype=np.int64)
     for k in range(4):
         exit_k = corners[:, k] & ~corners[:, (k + 1) % 4]
         if not exit_k.any():
@@ -239,7 +248,7 @@ def contours(
             after = np.where((after < 0) & is_entry, e, after)
         partner = np.where(saddle[rows] & centre_inside[rows], after, before)
         nxt[edges[rows, k]] = edges[rows, partner]
-    return _chains(nxt, px, py)
+    return nxt
 
 
 def _chains(nxt: np.ndarray, px: np.ndarray, py: np.ndarray) -> list[Contour]:

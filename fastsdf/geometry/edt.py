@@ -21,6 +21,8 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
+from fastsdf.introspect import show_field_types
 from fastsdf.notice import compiling_first
 
 __all__ = ["distance_transform", "signed_distance_transform", "EdtSpacing", "edt_kernel"]
@@ -30,6 +32,7 @@ _TILE = 16
 _INF = np.inf
 
 
+@show_field_types
 class EdtSpacing(NamedTuple):
     """Pixel spacing along the first (``hi``) and second (``hj``) axis of the mask."""
 
@@ -199,7 +202,7 @@ def _check_spacing(sampling: ArrayLike | None) -> EdtSpacing:
         return EdtSpacing(1.0, 1.0)
     s = np.broadcast_to(np.asarray(sampling, dtype=np.float64), (2,))
     if not (np.isfinite(s).all() and (s > 0).all()):
-        raise ValueError(f"sampling must be positive and finite, got sampling={sampling!r}")
+        raise ValueError(f"sampling must be positive and finite, got sampling={shown(sampling)}")
     return EdtSpacing(float(s[0]), float(s[1]))
 
 
@@ -213,27 +216,15 @@ def distance_transform(
     parallel. ``return_indices=True`` also returns the nearest False pixel's indices as an
     int32 array (2, n, m), like scipy's ``return_indices``.
     """
-    a = _check_mask(mask)
-    sp = _check_spacing(sampling)
-    out = np.empty(a.shape)
-    if return_indices:
-        fi = np.empty(a.shape, dtype=np.int32)
-        fj = np.empty(a.shape, dtype=np.int32)
-    else:
-        fi = fj = np.empty((0, 0), dtype=np.int32)
-    if a.size:
-        with compiling_first("the distance transform", edt_kernel):
-            edt_kernel(a, sp, False, out, fi, fj)
-        np.sqrt(out, out=out)
-    if return_indices:
-        return out, np.stack([fi, fj])
-    return out
+    return _transform(mask, sampling, return_indices, signed=False)
 
 
 def signed_distance_transform(
     mask: ArrayLike, sampling: ArrayLike | None = None, return_indices: bool = False
 ) -> np.ndarray | tuple:
-    """Signed distance of each pixel centre to the boundary of the True pixels.
+    """Signed distance of each pixel centre to the boundary of the True pixels of ``mask`` (a
+    2-d boolean array), in the units of ``sampling`` (the pixel's height and width; default
+    1: pixels).
 
     Half-pixel convention: the boundary lies halfway between the centres of two neighbouring
     pixels of different phase, so a pixel's value is its distance to the nearest pixel of the
@@ -242,18 +233,25 @@ def signed_distance_transform(
     differ by at most their spacing. ``inf``/``-inf`` where the other phase is absent.
     ``return_indices=True`` also returns the nearest other-phase pixel, (2, n, m) int32.
     """
+    return _transform(mask, sampling, return_indices, signed=True)
+
+
+def _transform(
+    mask: ArrayLike, sampling: ArrayLike | None, return_indices: bool, signed: bool
+) -> np.ndarray | tuple:
+    """:func:`distance_transform` or, ``signed``, :func:`signed_distance_transform`."""
     a = _check_mask(mask)
     sp = _check_spacing(sampling)
     out = np.empty(a.shape)
-    if return_indices:
-        fi = np.empty(a.shape, dtype=np.int32)
-        fj = np.empty(a.shape, dtype=np.int32)
-    else:
-        fi = fj = np.empty((0, 0), dtype=np.int32)
+    shape = a.shape if return_indices else (0, 0)
+    fi, fj = np.empty(shape, dtype=np.int32), np.empty(shape, dtype=np.int32)
     if a.size:
         with compiling_first("the distance transform", edt_kernel, _finish_signed):
-            edt_kernel(a, sp, True, out, fi, fj)
-            _finish_signed(out, a, 0.5 * min(sp.hi, sp.hj))
+            edt_kernel(a, sp, signed, out, fi, fj)
+            if signed:
+                _finish_signed(out, a, 0.5 * min(sp.hi, sp.hj))
+            else:
+                np.sqrt(out, out=out)
     if return_indices:
         return out, np.stack([fi, fj])
     return out

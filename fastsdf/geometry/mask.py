@@ -28,13 +28,16 @@ close approximation elsewhere, except near corners (measured in bench/RESULTS.md
 
 from __future__ import annotations
 
+import errno
 import math
+import os
 from typing import Any
 
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import check_bounds, shown, vec2
 from fastsdf.fields.grid import GridSDF
 from fastsdf.function import Function
 from fastsdf.geometry.edt import distance_transform, edt_kernel, signed_distance_transform
@@ -47,22 +50,13 @@ _ORIGINS = ("upper", "lower")
 
 def _check_origin(origin: str) -> str:
     if origin not in _ORIGINS:
-        raise ValueError(f"origin must be 'upper' or 'lower', got origin={origin!r}")
+        raise ValueError(f"origin must be 'upper' or 'lower', got origin={shown(origin)}")
     return origin
 
 
 def _extent(bounds: ArrayLike, shape: tuple) -> tuple:
     """Validated extent and pixel size ``(px, py)`` of an image of ``shape`` (rows, cols)."""
-    try:
-        (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore
-    except (TypeError, ValueError):
-        raise TypeError(
-            f"bounds must be two (min, max) pairs of numbers, got bounds={bounds!r}"
-        ) from None
-    if not all(math.isfinite(v) for v in (x0, x1, y0, y1)) or not (x0 < x1 and y0 < y1):
-        raise ValueError(
-            f"bounds must be finite with min < max on each axis, got bounds={bounds!r}"
-        )
+    (x0, x1), (y0, y1) = check_bounds(bounds)
     rows, cols = shape
     if rows < 2 or cols < 2:
         raise ValueError(f"the image needs at least 2 pixels along each axis, got shape {shape}")
@@ -71,7 +65,8 @@ def _extent(bounds: ArrayLike, shape: tuple) -> tuple:
 
 def pixel_grid(values: np.ndarray, bounds: ArrayLike, origin: str = "upper") -> tuple:
     """Node values ``(ncols, nrows)`` in the grid's layout (x along the first axis, y up) and
-    the grid's bounds (the pixel centres), from a per-pixel array ``values[row, col]``."""
+    the grid's bounds (the pixel centres), from a per-pixel array ``values[row, col]`` with
+    row 0 at the top (``origin='upper'``) or the bottom (``'lower'``)."""
     _check_origin(origin)
     ((x0, x1), (y0, y1)), (px, py) = _extent(bounds, values.shape)
     nodes = values[::-1].T if origin == "upper" else values.T
@@ -102,7 +97,8 @@ def from_mask(
     unless an ``exact`` SDF for the world beyond the image is given with ``mode='exact'``.
     The mask needs pixels of both phases. With square pixels neighbouring nodes differ by at
     most the pixel size, so the grid is marked ``exactness='exact'`` (safe for simulations'
-    query skipping); with non-square pixels it is ``'none'``.
+    query skipping); with non-square pixels it is ``'none'``. ``dtype``: the grid's floats
+    (float64, or float32 for half the memory).
     """
     a = np.asarray(mask)
     if a.ndim != 2:
@@ -178,19 +174,68 @@ def _levels(image: np.ndarray, levels: Any) -> np.ndarray:
         else:
             lo, hi = 0.0, 1.0
     else:
-        try:
-            lo, hi = (float(v) for v in levels)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"levels must be a (black, white) pair, got levels={levels!r}"
-            ) from None
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo != hi):
-            raise ValueError(f"levels must be two different finite numbers, got levels={levels!r}")
+        lo, hi = vec2(levels, "levels").tolist()
+        if lo == hi:
+            raise ValueError(f"levels must be two different numbers, got levels={shown(levels)}")
     return (image.astype(np.float64) - lo) / (hi - lo)
 
 
+def _read_image(path: str | os.PathLike) -> np.ndarray:
+    """The pixels of the image file ``path`` (PNG, JPEG and the other formats Pillow reads,
+    which matplotlib installs): 8-bit images as their integers, as an array of them would
+    be; deeper ones by matplotlib's ``imread``, as levels on [0, 1]."""
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise FileNotFoundError(errno.ENOENT, "image: no such file", name)
+    from matplotlib.image import imread
+    from PIL import Image
+
+    try:
+        with Image.open(name) as im:
+            if im.mode in ("1", "L", "LA", "RGB", "RGBA"):
+                return np.asarray(im)
+            if not im.mode.startswith(("I", "F")):  # palette, CMYK, ...: 8-bit colours
+                return np.asarray(im.convert("RGBA"))
+        return np.asarray(imread(name))
+    except (OSError, ValueError, SyntaxError) as exc:  # (Pillow's errors for unreadable data)
+        raise ValueError(f"image: {shown(name)} could not be read as an image ({exc})") from exc
+
+
+def _grey_levels(image: ArrayLike | str | os.PathLike, levels: Any) -> np.ndarray:
+    """``image`` (an array or an image file's path) as grey levels on [0, 1]: colour channels
+    averaged, an alpha channel laid over white."""
+    if isinstance(image, (str, os.PathLike)):
+        image = _read_image(image)
+    img = np.asarray(image)
+    if img.ndim == 0 or img.dtype == object:
+        raise TypeError(
+            f"image must be a path to an image file or an array of grey levels (rows, cols) "
+            f"or colours (rows, cols, 3 or 4), got image={shown(image)} "
+            f"({type(image).__name__})"
+        )
+    if img.dtype == np.bool_:
+        img = img.astype(np.float64)
+    if img.dtype.kind not in "iuf":
+        raise TypeError(f"image must hold real numbers, got dtype {img.dtype}")
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[-1] in (1, 2, 3, 4))):
+        raise ValueError(
+            f"image must be grey levels (rows, cols) or colours (rows, cols, 3 or 4), got "
+            f"shape {img.shape}"
+        )
+    g = _levels(img, levels)
+    if g.ndim == 3:
+        channels = g.shape[-1]
+        alpha = g[..., -1] if channels in (2, 4) else None
+        g = g[..., : 3 if channels >= 3 else 1].mean(axis=-1)
+        if alpha is not None:
+            g = g * alpha + (1.0 - alpha)
+    if not np.isfinite(g).all():
+        raise ValueError("image must be finite at every pixel")
+    return g
+
+
 def from_image(
-    image: ArrayLike,
+    image: ArrayLike | str | os.PathLike,
     bounds: ArrayLike,
     threshold: float = 0.5,
     origin: str = "upper",
@@ -204,48 +249,56 @@ def from_image(
     """A signed distance grid from a grey-level image: pixels brighter than ``threshold`` are
     inside (darker ones with ``dark_inside=True``).
 
-    Levels are read on ``[0, 1]``: unsigned integer images are divided by their type's maximum,
-    floats are taken as they are, or ``levels=(black, white)`` maps any range. With
-    ``subpixel=True`` (square pixels only) anti-aliased pixels place the edge inside the pixel
-    from their level (read as coverage, shifted so that ``threshold`` is the edge: see the
-    module docstring); with ``subpixel=False``, or on a hard black and white image, the result
-    is :func:`from_mask` of the thresholded image. Layout, ``bounds``, ``exact`` and ``mode``
-    as in :func:`from_mask`; the grid is marked ``exactness='none'`` when sub-pixel placement
-    is used (its node differences are not bounded by the spacing).
+    Parameters
+    ----------
+    image : path, or array (rows, cols) or (rows, cols, 3 or 4)
+        An image file (``str`` or ``os.PathLike``: PNG, JPEG and whatever else Pillow
+        reads; a missing file is a ``FileNotFoundError``) or its pixels. Colours are
+        averaged to a grey level and an alpha channel is laid over white.
+    bounds : [(x0, x1), (y0, y1)]
+        The image's extent in the world's units: the outer edges of its pixels.
+    threshold : float in (0, 1), default 0.5
+        The grey level of the edge.
+    origin : 'upper' (default) or 'lower'
+        Where row 0 is, as for ``matplotlib.pyplot.imshow``.
+    levels : (black, white) or None
+        The levels read as 0 and 1. ``None``: unsigned integers are divided by their type's
+        maximum (255 for 8-bit images), floats are taken as they are.
+    dark_inside : bool, default False
+        Dark pixels are inside.
+    subpixel : bool, default True
+        Anti-aliased pixels (levels strictly between 0 and 1, square pixels only) place the
+        edge inside the pixel from their level (read as coverage, shifted so that
+        ``threshold`` is the edge: see the module docstring); ``False``, or a hard black and
+        white image, gives :func:`from_mask` of the thresholded image.
+    exact, mode, dtype
+        As in :func:`from_mask`.
+
+    Returns a :class:`fastsdf.fields.grid.GridSDF` with a node at every pixel centre, marked
+    ``exactness='none'`` when sub-pixel placement is used (its node differences are not
+    bounded by the spacing).
     """
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise ValueError(
-            f"image must be a 2-d grey-level array (rows, cols), got shape "
-            f"{img.shape} (convert colour images first, e.g. image.mean(axis=-1))"
-        )
-    if img.dtype == np.bool_:
-        img = img.astype(np.float64)
-    if img.dtype.kind not in "iuf":
-        raise TypeError(f"image must hold real numbers, got dtype {img.dtype}")
+    g = _grey_levels(image, levels)
     if (
         not isinstance(threshold, (int, float, np.floating, np.integer))
         or not 0.0 < float(threshold) < 1.0
     ):
         raise ValueError(
-            f"threshold must be a level strictly between 0 and 1, got threshold={threshold!r}"
+            f"threshold must be a level strictly between 0 and 1, got threshold={shown(threshold)}"
         )
-    g = _levels(img, levels)
-    if not np.isfinite(g).all():
-        raise ValueError("image must be finite at every pixel")
     if dark_inside:
         g = 1.0 - g
     t = float(threshold)
     cov = np.clip(g - t + 0.5, 0.0, 1.0)  # coverage whose half level is the threshold
     inside = cov > 0.5
     _check_origin(origin)
-    _, (px, py) = _extent(bounds, img.shape)
+    _, (px, py) = _extent(bounds, g.shape)
     partial = (cov > 0.0) & (cov < 1.0)
     if not subpixel or not partial.any():
         return from_mask(inside, bounds, origin=origin, exact=exact, mode=mode, dtype=dtype)
     if not _square(px, py):
         raise ValueError(
-            f"sub-pixel edges need square pixels, got {px!r} x {py!r} (choose "
+            f"sub-pixel edges need square pixels, got {shown(px)} x {shown(py)} (choose "
             f"bounds in the image's aspect ratio, or subpixel=False)"
         )
     if inside.all() or not inside.any():

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from fastsdf.expr.validate import shown
 from fastsdf.shapes import SDF, Outline, union
 
 __all__ = [
@@ -54,7 +55,7 @@ def _check_tol(tol: Any) -> float:
         or not tol > 0
         or not math.isfinite(tol)
     ):
-        raise ValueError(f"tol must be a positive finite number, got tol={tol!r}")
+        raise ValueError(f"tol must be a positive finite number, got tol={shown(tol)}")
     return float(tol)
 
 
@@ -204,13 +205,14 @@ def SvgPath(
     """The region an SVG path's data ``d`` fills, as an exact SDF (an
     :class:`fastsdf.shapes.Outline`): ``fill_rule`` as SVG's ``fill-rule`` (``'nonzero'``, its
     default, or ``'evenodd'``); coordinates multiplied by ``scale`` then moved by ``offset``
-    (after the y flip, see :func:`path_segments`); ``tol`` bounds the error of cubics and arcs
-    in the result's units."""
+    (after the y flip, see :func:`path_segments`); ``tol`` (> 0, default 1e-4) bounds the
+    error of cubics and arcs in the result's units. ``flip_y`` (default True) negates y, as
+    SVG's y axis points down."""
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
-        raise ValueError(f"scale must be a positive number, got scale={scale!r}")
+        raise ValueError(f"scale must be a positive number, got scale={shown(scale)}")
     off = np.asarray(offset, dtype=np.float64)
     if off.shape != (2,) or not np.isfinite(off).all():
-        raise ValueError(f"offset must be a finite (x, y) pair, got offset={offset!r}")
+        raise ValueError(f"offset must be a finite (x, y) pair, got offset={shown(offset)}")
     rows = path_segments(d, _check_tol(tol) / scale, flip_y)
     rows[:, 1:7] = rows[:, 1:7] * scale + np.tile(off, 3)
     return Outline(rows, fill_rule)
@@ -226,7 +228,9 @@ def SvgFile(
     """The region the ``<path>`` elements of an SVG file fill, as an exact SDF: the union of
     each path's :func:`SvgPath` (its own ``fill-rule``, its transforms applied), in the file's
     user units times ``scale``. Other elements (rectangles, circles, text) are not read: convert
-    them to paths in the drawing program. Raises ``ValueError`` if the file holds no path."""
+    them to paths in the drawing program. Raises ``ValueError`` if the file holds no path.
+    ``tol``, ``flip_y`` (default True: SVG's y points down, the result's up), ``scale`` and
+    ``offset`` as for :func:`SvgPath`."""
     try:
         from svgelements import SVG
         from svgelements import Path as SvgElementPath
@@ -236,7 +240,7 @@ def SvgFile(
         ) from None
     name = os.fspath(path)
     if not os.path.isfile(name):
-        raise ValueError(f"path must be an existing SVG file, got path={name!r}")
+        raise ValueError(f"path must be an existing SVG file, got path={shown(name)}")
     shapes = []
     for element in SVG.parse(name).elements():
         if isinstance(element, SvgElementPath) and len(element) > 0:
@@ -248,7 +252,7 @@ def SvgFile(
                 )
             )
     if not shapes:
-        raise ValueError(f"the SVG file {name!r} holds no <path> element with data")
+        raise ValueError(f"the SVG file {shown(name)} holds no <path> element with data")
     return shapes[0] if len(shapes) == 1 else union(shapes)
 
 
@@ -261,19 +265,21 @@ def text_segments(
 ) -> list[np.ndarray]:
     """Segment rows of ``text`` set by matplotlib's ``TextPath`` (baseline starting at
     ``position``, em size ``size``), one array per glyph group: each outermost loop with the
-    loops inside it (holes), so that groups do not overlap."""
+    loops inside it (holes), so that groups do not overlap. ``family``: a font family
+    matplotlib knows (default: its default font, DejaVu Sans); ``tol`` (> 0, in the units of
+    ``size``): the largest error of the glyphs' cubic curves converted to quadratics."""
     from matplotlib.font_manager import FontProperties
     from matplotlib.path import Path as MplPath
     from matplotlib.textpath import TextPath
 
     if not isinstance(text, str) or not text.strip():
-        raise ValueError(f"text must be a non-empty string, got text={text!r}")
+        raise ValueError(f"text must be a non-empty string, got text={shown(text)}")
     if isinstance(size, bool) or not isinstance(size, (int, float)) or not size > 0:
-        raise ValueError(f"size must be a positive number, got size={size!r}")
+        raise ValueError(f"size must be a positive number, got size={shown(size)}")
     tol = _check_tol(tol)
     pos = np.asarray(position, dtype=np.float64)
     if pos.shape != (2,) or not np.isfinite(pos).all():
-        raise ValueError(f"position must be a finite (x, y) pair, got position={position!r}")
+        raise ValueError(f"position must be a finite (x, y) pair, got position={shown(position)}")
     prop = FontProperties(family=family) if family else FontProperties()
     path = TextPath((float(pos[0]), float(pos[1])), text, size=float(size), prop=prop)
     loops: list = []
@@ -394,7 +400,7 @@ def Text(
     point, so it is slower for a word; tile pruning of long texts gives identical values)."""
     groups = text_segments(text, size, position, family, tol)
     if not groups:
-        raise ValueError(f"text={text!r} has no visible glyphs")
+        raise ValueError(f"text={shown(text)} has no visible glyphs")
     if not split_glyphs:
         return Outline(np.concatenate(groups), "nonzero")
     return union([Outline(g, "nonzero") for g in groups])

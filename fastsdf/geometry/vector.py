@@ -1,9 +1,12 @@
 """Contours out as vector files: SVG (no dependency) and DXF (the optional ``ezdxf`` package).
 
-Both writers take a list of :class:`fastsdf.geometry.contours.Contour` or an SDF (then its
-zero contours are computed with :func:`fastsdf.geometry.contours.contours`), and write
+Both writers take ``path`` (the file to write) and ``shape``: a list of
+:class:`fastsdf.geometry.contours.Contour`, or an SDF (any callable ``f(x, y)``), whose
+contours at ``level`` (default 0: the boundary) are computed with
+:func:`fastsdf.geometry.contours.contours` over ``bounds = [(x0, x1), (y0, y1)]`` (needed
+then) on a ``resolution`` grid (nodes along x and y, default 512 x 512). They write
 atomically: to a temporary file in the target's folder, then ``os.replace``, so a reader never
-sees a half-written file.
+sees a half-written file, and return the contours written.
 """
 
 from __future__ import annotations
@@ -76,8 +79,11 @@ def to_svg(
     Coordinates are kept as they are (y up) inside a group flipped by
     ``transform="matrix(1 0 0 -1 0 y0 + y1)"``, so a reader of the path data gets the
     function's coordinates back exactly; the ``viewBox`` is ``bounds`` (by default the
-    contours' extent plus 2%). ``fill`` applies the even-odd rule (``fill-rule="evenodd"``),
-    which shows holes as holes. ``stroke_width`` defaults to 1/500 of the view's width.
+    contours' extent plus 2%). ``fill`` (an SVG colour, default ``'none'``) applies the
+    even-odd rule (``fill-rule="evenodd"``), which shows holes as holes. ``stroke``: the
+    lines' SVG colour; ``stroke_width`` in the coordinates' units, by default 1/500 of the
+    view's width; ``width_px``: the picture's width in pixels (its height follows the
+    bounds). ``path``, ``shape``, ``bounds``, ``resolution``, ``level``: see the module.
     """
     items, bounds = _as_contours(shape, bounds, resolution, level)
     (x0, x1), (y0, y1) = ((float(a), float(b)) for a, b in bounds)  # type: ignore
@@ -117,7 +123,8 @@ def to_dxf(
 ) -> list[Contour]:
     """Write contours (or an SDF's zero contours) to a DXF file as lightweight polylines
     (closed ones flagged closed) on ``layer``; needs the optional ``ezdxf`` package
-    (``pip install fastsdf[geometry]``). Returns the contours."""
+    (``pip install fastsdf[geometry]``). Returns the contours. ``path``, ``shape``,
+    ``bounds``, ``resolution``, ``level``: see the module."""
     try:
         import ezdxf
     except ImportError:

@@ -8,13 +8,18 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fastsdf.expr.validate import shown
+from fastsdf.introspect import show_field_types
+
 __all__ = ["BeverlooFit", "ReposeAngle", "beverloo_fit", "flow_rate", "repose_angle"]
 
 
+@show_field_types
 class ReposeAngle(NamedTuple):
     """The slope of a heap's flanks: ``left`` and ``right`` in degrees (NaN where a flank has
     fewer than 3 surface points in the band), and each flank's fitted line ``(slope,
-    intercept)`` of the surface height ``y = slope x + intercept``."""
+    intercept)`` of the surface height ``y = slope x + intercept`` in ``lines``: ``(left,
+    right)``."""
 
     left: float
     right: float
@@ -43,7 +48,8 @@ def repose_angle(
     first bin that reaches 80% of that height, the right flank the surface right of the last
     such bin (so a heap with two summits is measured on its outer flanks). Each flank's points
     between 20% and 80% of the height get a least-squares line; its angle is ``atan |slope|``.
-    Pass only the grains of the heap (not those in flight or on other surfaces).
+    Pass only the grains of the heap (not those in flight or on other surfaces):
+    ``positions`` (n, 2) and ``radius`` (one, or (n,)), in any unit of length.
     """
     x = np.asarray(positions, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != 2:
@@ -56,7 +62,7 @@ def repose_angle(
         return ReposeAngle(math.nan, math.nan, (nan, nan))
     width = 2.0 * float(r.mean()) if bin_width is None else float(bin_width)
     if not (math.isfinite(width) and width > 0):
-        raise ValueError(f"bin_width must be > 0 (or the grains' radius > 0), got {width!r}")
+        raise ValueError(f"bin_width must be > 0 (or the grains' radius > 0), got {shown(width)}")
     top = x[:, 1] + r
     bins, which = np.unique(np.floor(x[:, 0] / width).astype(np.int64), return_inverse=True)
     xs = np.bincount(which, weights=x[:, 0]) / np.bincount(which)  # ascending with the bins
@@ -102,12 +108,14 @@ def flow_rate(
     window = (c >= low) & (c <= high) & (t >= after)
     if np.unique(t[window]).size < 3:
         raise ValueError(
-            f"flow_rate needs 3 samples with counts in [low, high] = [{low!r}, {high!r}] and "
-            f"times >= after={after!r}, got {int(window.sum())}"
+            f"flow_rate needs 3 samples with counts in [low, high] = [{shown(low)}, "
+            f"{shown(high)}] and "
+            f"times >= after={shown(after)}, got {int(window.sum())}"
         )
     return float(np.polyfit(t[window], c[window], 1)[0])
 
 
+@show_field_types
 class BeverlooFit(NamedTuple):
     """Beverloo's law of the flow rate through a slot of width ``D`` in 2D, ``W = C sqrt(g)
     (D - k d)**exponent`` (grains per unit time, ``d`` the grains' diameter; ``exponent`` is
@@ -120,7 +128,8 @@ class BeverlooFit(NamedTuple):
     def rate(
         self, width: float | np.ndarray, diameter: float = 1.0, gravity: float = 1.0
     ) -> np.ndarray:
-        """The law's flow rate through a slot of ``width``."""
+        """The law's flow rate through a slot of ``width``, for grains of ``diameter`` under
+        ``gravity`` (the magnitude), in the units the law was fitted in."""
         gap = np.clip(np.asarray(width, dtype=np.float64) - self.k * diameter, 0.0, None)
         return np.asarray(self.C * math.sqrt(gravity) * gap**self.exponent)
 
@@ -139,22 +148,26 @@ def beverloo_fit(
     exponent by a straight line through ``log W`` against ``log(D - k d)`` (2 widths at
     least). ``exponent`` given: ``k`` and ``C`` by a straight line through ``W**(1 /
     exponent)`` against ``D``. Both free: ``k`` is searched in ``[0, min(D) / d)`` (4 widths at
-    least: three give an exact fit for many ``k``)."""
+    least: three give an exact fit for many ``k``). ``diameter`` is the grains' ``d`` and
+    ``gravity`` the magnitude ``g``, in the units of ``widths`` and ``rates`` (grains per unit
+    time)."""
     d = np.asarray(widths, dtype=np.float64).reshape(-1)
     w = np.asarray(rates, dtype=np.float64).reshape(-1)
     if d.shape != w.shape or not (np.all(np.isfinite(d)) and np.all(np.isfinite(w))):
         raise ValueError("widths and rates must be finite and of one length")
     if not np.all(w > 0):
-        raise ValueError(f"rates must be > 0, got rates={w.tolist()!r}")
+        raise ValueError(f"rates must be > 0, got rates={shown(w.tolist())}")
     need = 4 if k is None and exponent is None else 2
     if len(np.unique(d)) < need:
-        raise ValueError(f"beverloo_fit needs {need} distinct widths here, got {d.tolist()!r}")
+        raise ValueError(f"beverloo_fit needs {need} distinct widths here, got {shown(d.tolist())}")
     root_g = math.sqrt(gravity)
 
     def with_k(kk: float) -> tuple[BeverlooFit, float]:
         gap = d - kk * diameter
         if not np.all(gap > 0):
-            raise ValueError(f"k={kk!r} leaves no gap in the slot of width {float(d.min())!r}")
+            raise ValueError(
+                f"k={shown(kk)} leaves no gap in the slot of width {shown(float(d.min()))}"
+            )
         x, y = np.log(gap), np.log(w)
         if exponent is None:
             b, a = np.polyfit(x, y, 1)

@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from fastsdf.expr.validate import shown
+
 __all__ = ["TrajectoryRecorder", "read_trajectory", "FIELDS"]
 
 #: Recordable fields: H5MD element name -> the simulation's particle field.
@@ -105,19 +107,22 @@ class TrajectoryRecorder:
             or not isinstance(every, numbers.Integral)
             or every < 1
         ):
-            raise ValueError(f"every must be an integer >= 1, got every={every!r}")
+            raise ValueError(f"every must be an integer >= 1, got every={shown(every)}")
         if isinstance(fields, str):
             fields = (fields,)
         fields = tuple(fields)
         bad = [f for f in fields if f not in FIELDS]
         if bad or not fields:
             raise ValueError(
-                f"fields must be a non-empty selection of {tuple(FIELDS)}, got fields={fields!r}"
+                f"fields must be a non-empty selection of {tuple(FIELDS)}, got "
+                f"fields={shown(fields)}"
             )
         if len(set(fields)) != len(fields):
-            raise ValueError(f"fields must not repeat a name, got fields={fields!r}")
+            raise ValueError(f"fields must not repeat a name, got fields={shown(fields)}")
         if not isinstance(group, str) or not group or "/" in group:
-            raise ValueError(f"group must be a non-empty name without '/', got group={group!r}")
+            raise ValueError(
+                f"group must be a non-empty name without '/', got group={shown(group)}"
+            )
         if dtype is not None:
             dtype = np.dtype(dtype)
             if dtype.kind != "f":
@@ -204,7 +209,7 @@ class TrajectoryRecorder:
             arr = np.asarray(p[FIELDS[name]])
             if arr.shape != ds.shape[1:]:
                 raise ValueError(
-                    f"p[{FIELDS[name]!r}] has shape {arr.shape}; this trajectory "
+                    f"p[{shown(FIELDS[name])}] has shape {arr.shape}; this trajectory "
                     f"holds {ds.shape[1:]} per frame"
                 )
             ds.resize(k + 1, axis=0)
@@ -227,7 +232,7 @@ class TrajectoryRecorder:
             or not isinstance(steps, numbers.Integral)
             or steps < 0
         ):
-            raise ValueError(f"steps must be an integer >= 0, got steps={steps!r}")
+            raise ValueError(f"steps must be an integer >= 0, got steps={shown(steps)}")
         if self._last_step != _step_of(sim):
             self.record(sim)
         left = int(steps)
@@ -263,10 +268,10 @@ def _login() -> str:
 def read_trajectory(
     path: str | os.PathLike, group: str = "all", fields: tuple | list | None = None
 ) -> dict:
-    """The frames of an H5MD file as NumPy arrays: ``{'step': (F,), 'time': (F,), field:
-    (F, N, ...) ...}`` for each time-dependent element of ``/particles/<group>`` (or the
-    ``fields`` named). Opens files left by a writer that died (SWMR read mode) and keeps only
-    frames that have a step (see the module docs)."""
+    """The frames of the H5MD file at ``path`` as NumPy arrays: ``{'step': (F,), 'time':
+    (F,), field: (F, N, ...) ...}`` for each time-dependent element of ``/particles/<group>``
+    (or the ``fields`` named). Opens files left by a writer that died (SWMR read mode) and
+    keeps only frames that have a step (see the module docs)."""
     h5py = _h5py()
     try:
         f = h5py.File(path, "r")
@@ -274,11 +279,13 @@ def read_trajectory(
         f = h5py.File(path, "r", swmr=True)  # a writer died with the file open for writing
     with f:
         if "h5md" not in f:
-            raise ValueError(f"{os.fspath(path)!r} is not an H5MD file (no /h5md group)")
+            raise ValueError(f"{shown(os.fspath(path))} is not an H5MD file (no /h5md group)")
         try:
             particles = f["particles"][group]
         except KeyError:
-            raise ValueError(f"{os.fspath(path)!r} has no particles group {group!r}") from None
+            raise ValueError(
+                f"{shown(os.fspath(path))} has no particles group {shown(group)}"
+            ) from None
         names = (
             [n for n in particles if n != "box" and "value" in particles[n]]
             if fields is None

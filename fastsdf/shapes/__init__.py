@@ -26,82 +26,13 @@ Beyond the notebook: more primitives with exact distances (:class:`Segment`, :cl
 ``f.exactness`` (``'exact'``, ``'bound'`` or ``'none'``), tracked through all of them.
 """
 
-from fastsdf.shapes.context import (
-    BLEND_KINDS,
-    current_blend,
-    current_smoothness,
-    smoothness,
-    transform,
-)
+from fastsdf.shapes import context, operations, primitives
+from fastsdf.shapes.context import *  # noqa: F403 (each part's __all__, re-exported)
 from fastsdf.shapes.exactness import EXACTNESS
-from fastsdf.shapes.operations import (
-    SDF,
-    Difference,
-    Intersection,
-    Union,
-    intersection,
-    mirror,
-    offset,
-    repeat,
-    rotate,
-    scale,
-    shell,
-    translate,
-    union,
-)
-from fastsdf.shapes.primitives import (
-    Arc,
-    Box,
-    Capsule,
-    Circle,
-    Ellipse,
-    EquilateralTriangle,
-    Halfspace,
-    OrientedBox,
-    Outline,
-    Polygon,
-    RegularPolygon,
-    Ring,
-    RoundedBox,
-    Segment,
-    Star,
-    Triangle,
-)
+from fastsdf.shapes.operations import *  # noqa: F403
+from fastsdf.shapes.primitives import *  # noqa: F403
 
-__all__ = [
-    "SDF",
-    "Circle",
-    "Halfspace",
-    "Box",
-    "Union",
-    "Intersection",
-    "Difference",
-    "union",
-    "intersection",
-    "smoothness",
-    "transform",
-    "current_smoothness",
-    "current_blend",
-    "BLEND_KINDS",
-    "EXACTNESS",
-    "Segment",
-    "Capsule",
-    "RoundedBox",
-    "OrientedBox",
-    "EquilateralTriangle",
-    "Triangle",
-    "RegularPolygon",
-    "Polygon",
-    "Star",
-    "Ellipse",
-    "Arc",
-    "Ring",
-    "Outline",
-    "offset",
-    "shell",
-    "scale",
-    "translate",
-    "rotate",
-    "mirror",
-    "repeat",
-]
+__all__ = ["EXACTNESS"]
+__all__ += primitives.__all__
+__all__ += operations.__all__
+__all__ += context.__all__

@@ -23,6 +23,7 @@ from fastsdf.expr.validate import (
     coord2_or_param,
     is_param,
     real_or_param,
+    shown,
 )
 from fastsdf.expr.validate import check_length as _check_length
 
@@ -85,15 +86,15 @@ def _smoothness_value(k: object) -> FloatOrParam:
         if not number > 0:
             raise ValueError(
                 f"a blend k given by parameters must be > 0 (at their defaults), "
-                f"got k={k} = {number!r}"
+                f"got k={k} = {shown(number)}"
             )
         return k
     if isinstance(k, (bool, np.bool_)) or not isinstance(k, numbers.Real):
-        raise TypeError(f"smoothness k must be a real number, got k={k!r}")
+        raise TypeError(f"smoothness k must be a real number, got k={shown(k)}")
     number = float(k)
     if not math.isfinite(number) or number < 0:
         raise ValueError(
-            f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={number!r}"
+            f"smoothness k must be finite and >= 0 (0 means a hard min/max), got k={shown(number)}"
         )
     if number > 0:
         # a blend width (or, for the exponential blend, its inverse) is a length
@@ -105,7 +106,7 @@ def _blend_kind(kind: object) -> str:
     if kind == "exp":
         kind = "exponential"
     if not isinstance(kind, str) or kind not in BLEND_KINDS:
-        raise ValueError(f"kind must be one of {BLEND_KINDS}, got kind={kind!r}")
+        raise ValueError(f"kind must be one of {BLEND_KINDS}, got kind={shown(kind)}")
     return kind
 
 

@@ -33,6 +33,7 @@ from fastsdf.expr.validate import (
     coord2_or_param,
     is_param,
     real_or_param,
+    shown,
 )
 from fastsdf.expr.validate import check_length as _check_length
 from fastsdf.expr.validate import length as _length
@@ -104,7 +105,8 @@ def _blend_max(a: Expr, b: Expr, k: FloatOrParam, kind: str) -> Expr:
 def _check_sdf(value: object, name: str) -> SDF:
     if not isinstance(value, SDF):
         raise TypeError(
-            f"{name} must be a fastsdf SDF, got {name}={value!r} of type {type(value).__name__}"
+            f"{name} must be a fastsdf SDF, got {name}={shown(value)} of type "
+            f"{type(value).__name__}"
         )
     return value
 
@@ -123,6 +125,15 @@ class SDF(Function):
     :func:`smoothness` context says; the methods :meth:`union`, :meth:`intersection`,
     :meth:`difference` take the blend explicitly. :attr:`exactness` says how far the value can
     be trusted as a distance.
+
+    Parameters
+    ----------
+    expr : Expr
+        The expression of the coordinates ``x`` and ``y`` (built by the primitives and
+        operations; ``SDF(expr)`` wraps one written by hand, see docs/modelling.md).
+    info : internal, default None
+        What is known of the expression (exactness, bounding box, symmetries); ``None``:
+        nothing (``exactness == 'none'``).
     """
 
     def __init__(self, expr: Expr, info: _Info | None = None):
@@ -166,7 +177,7 @@ class SDF(Function):
     def _other(self, other: object, op: str) -> SDF:
         if not isinstance(other, SDF):
             raise TypeError(
-                f"cannot {op} an SDF with {other!r} of type {type(other).__name__}; "
+                f"cannot {op} an SDF with {shown(other)} of type {type(other).__name__}; "
                 "both operands must be fastsdf SDF objects"
             )
         return other
@@ -196,11 +207,13 @@ class SDF(Function):
         return Union(self, self._other(other, "unite"), k=k, kind=kind)
 
     def intersection(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
-        """``self & other`` with an explicit blend (see :meth:`union`, :class:`Intersection`)."""
+        """``self & other`` with an explicit blend, ``k`` and ``kind`` as for :meth:`union`
+        (see :class:`Intersection`)."""
         return Intersection(self, self._other(other, "intersect"), k=k, kind=kind)
 
     def difference(self, other: SDF, k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
-        """``self - other``, smooth for ``k > 0`` (see :meth:`union`, :class:`Difference`)."""
+        """``self - other``, smooth for ``k > 0``; ``k`` and ``kind`` as for :meth:`union` (see
+        :class:`Difference`)."""
         return Difference(self, self._other(other, "subtract"), k=k, kind=kind)
 
     # -- modifiers -----------------------------------------------------------------------------
@@ -236,7 +249,7 @@ class SDF(Function):
         """
         t, tv = real_or_param(thickness, "thickness")
         if tv <= 0:
-            raise ValueError(f"thickness must be > 0, got thickness={thickness!r}")
+            raise ValueError(f"thickness must be > 0, got thickness={shown(thickness)}")
         _check_length(tv, "thickness")
         i = self._info
         info = _Info(
@@ -253,7 +266,7 @@ class SDF(Function):
         distance, so exactness is kept."""
         factor, sv = real_or_param(s, "s")
         if sv <= 0:
-            raise ValueError(f"s must be > 0, got s={factor!r}")
+            raise ValueError(f"s must be > 0, got s={shown(factor)}")
         _check_length(sv, "s")
         inv = 1.0 / factor
         i = self._info
@@ -308,7 +321,7 @@ class SDF(Function):
         value smaller than the distance.
         """
         if axis not in ("x", "y", "xy"):
-            raise ValueError(f"axis must be 'x', 'y' or 'xy', got axis={axis!r}")
+            raise ValueError(f"axis must be 'x', 'y' or 'xy', got axis={shown(axis)}")
         f = self
         for ax in axis:
             i = f._info
@@ -351,7 +364,7 @@ class SDF(Function):
         spv = [v[1] for v in sp_checked]
         sp = [v[0] for v in sp_checked]
         if not all(v > 0 for v in spv):
-            raise ValueError(f"spacing must be > 0, got spacing={spacing!r}")
+            raise ValueError(f"spacing must be > 0, got spacing={shown(spacing)}")
         for v in spv:
             _check_length(v, "spacing", spacing)
         i = self._info
@@ -388,7 +401,7 @@ class SDF(Function):
 def _pair(value: object, name: str, check: Callable[[Any, str], Any]) -> tuple:
     if isinstance(value, (tuple, list, np.ndarray)):
         if len(value) != 2:
-            raise ValueError(f"{name} must be a number or a pair, got {name}={value!r}")
+            raise ValueError(f"{name} must be a number or a pair, got {name}={shown(value)}")
         return tuple(check(v, name) for v in value)
     v = check(value, name)
     return (v, v)
@@ -401,14 +414,14 @@ def _count(value: object, name: str) -> Expr | int:
         expr, number = real_or_param(value, name)
         if number < 1 or number != int(number):
             raise ValueError(
-                f"{name} must be an integer >= 1, got {name}={expr} = {number!r} "
+                f"{name} must be an integer >= 1, got {name}={expr} = {shown(number)} "
                 f"at the parameters' defaults"
             )
         return sym_floor(expr)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"{name} must be an integer, got {name}={value!r}")
+        raise TypeError(f"{name} must be an integer, got {name}={shown(value)}")
     if value < 1:
-        raise ValueError(f"{name} must be >= 1, got {name}={value!r}")
+        raise ValueError(f"{name} must be >= 1, got {name}={shown(value)}")
     return int(value)
 
 
@@ -458,6 +471,11 @@ def _k_and_kind(k: object, kind: object) -> tuple[FloatOrParam, str]:
     return _smoothness_value(k), _blend_kind(kind)
 
 
+def _operands(a: object, b: object, k: object, kind: object) -> tuple:
+    """``(a, b, k, kind)`` of a set operation, checked."""
+    return (_check_sdf(a, "a"), _check_sdf(b, "b"), *_k_and_kind(k, kind))
+
+
 class Union(SDF):
     """Union of two SDFs: ``min(a, b)``, or a smooth minimum for ``k > 0``: the notebook's
     exponential one (``kind='exponential'``, ``k`` = sharpness in 1/distance, deepens by at
@@ -469,19 +487,23 @@ class Union(SDF):
     shapes overlap, the boundary of the union is farther than the nearer shape's). Every blend
     of bounds is a bound: its gradient is a convex combination of the operands' gradients, so
     it is 1-Lipschitz.
+
+    Parameters
+    ----------
+    a, b : SDF
+        The operands.
+    k : float >= 0, default 0
+        The blend: 0 is hard; for ``kind='exponential'`` the sharpness, in 1 / (unit of the
+        coordinates); for the polynomial kinds the blend width, in the units of the
+        coordinates. Also an expression of runtime parameters.
+    kind : 'exponential' (default), 'quadratic' or 'cubic'
+        The blend's formula.
     """
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
-        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
-        k, kind = _k_and_kind(k, kind)
-        ia, ib = a._info, b._info
-        info = _Info(
-            outside=k == 0 and ia.outside and ib.outside,
-            bound=ia.bound and ib.bound,
-            bbox=_bbox_union(ia.bbox, ib.bbox, _blend_depth(k, kind)),
-            sym=ia.sym & ib.sym,
-        )
-        super().__init__(_blend_min(a.f, b.f, k, kind), info)
+        a, b, k, kind = _operands(a, b, k, kind)
+        joined = _union([a, b], k, kind)  # (the rules of many shapes' union, for two)
+        super().__init__(joined.f, joined._info)
 
 
 class Intersection(SDF):
@@ -490,20 +512,15 @@ class Intersection(SDF):
 
     Exactness: the hard intersection of exact SDFs is exact inside and a bound outside (near a
     corner the distance to the intersection is larger than either operand). Blends: a bound.
+
+    ``a``, ``b``: the operands (SDFs); ``k``, ``kind``: the blend, as for :class:`Union`
+    (default: hard).
     """
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
-        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
-        k, kind = _k_and_kind(k, kind)
-        ia, ib = a._info, b._info
-        info = _Info(
-            inside=k == 0 and ia.inside and ib.inside,
-            bound=ia.bound and ib.bound,
-            convex=k == 0 and ia.convex and ib.convex,
-            bbox=_bbox_meet(ia.bbox, ib.bbox),
-            sym=ia.sym & ib.sym,
-        )
-        super().__init__(_blend_max(a.f, b.f, k, kind), info)
+        a, b, k, kind = _operands(a, b, k, kind)
+        joined = _intersection([a, b], k, kind)
+        super().__init__(joined.f, joined._info)
 
 
 class Difference(SDF):
@@ -512,11 +529,13 @@ class Difference(SDF):
 
     Exactness: exact inside where ``a`` is exact inside and ``b`` exact outside; a bound
     outside. Blends: a bound.
+
+    ``a``: the shape, ``b``: the shape cut from it (SDFs); ``k``, ``kind``: the blend, as for
+    :class:`Union` (default: hard).
     """
 
     def __init__(self, a: SDF, b: SDF, k: FloatOrParam = 0.0, kind: str = "exponential"):
-        a, b = _check_sdf(a, "a"), _check_sdf(b, "b")
-        k, kind = _k_and_kind(k, kind)
+        a, b, k, kind = _operands(a, b, k, kind)
         ia, ib = a._info, b._info
         info = _Info(
             inside=k == 0 and ia.inside and ib.outside,
@@ -542,7 +561,7 @@ def _shapes_list(shapes: Iterable[SDF], name: str) -> list[SDF]:
     except TypeError:
         raise TypeError(
             f"shapes must be an iterable of fastsdf SDF objects, got "
-            f"{shapes!r} of type {type(shapes).__name__}"
+            f"{shown(shapes)} of type {type(shapes).__name__}"
         ) from None
     if not out:
         raise ValueError(f"{name} needs at least one shape, got an empty iterable")
@@ -585,8 +604,9 @@ def _union(out: list, k: FloatOrParam, kind: str) -> SDF:
 
 
 def intersection(shapes: Iterable[SDF], k: FloatOrParam = 0.0, kind: str = "exponential") -> SDF:
-    """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (see
-    :func:`union` and :class:`Intersection`), built in one step."""
+    """The intersection of many shapes: ``shapes[0] & shapes[1] & ...`` with one blend (``k``
+    and ``kind`` as for :class:`Union`; the :func:`smoothness` context is not used), built in
+    one step (see :func:`union`)."""
     out = _shapes_list(shapes, "intersection")
     k, kind = _k_and_kind(k, kind)
     if len(out) == 1:

@@ -1,6 +1,14 @@
 """Primitives: the notebook's (Circle, Halfspace, Box) and the others, each built in the local
 coordinates of the :func:`~fastsdf.shapes.transform` context. All are exact signed distances
-unless their docstring says otherwise."""
+unless their docstring says otherwise.
+
+Units: lengths (coordinates, radii, sizes) are in the units of the coordinates the shape is
+queried at (any unit: metres, pixels, the notebook's 4-unit world), and the distances come
+back in the same unit; angles are in radians, counter-clockwise. A point is a pair ``(x, y)``
+(tuple, list or array). Each number may also be an expression of runtime parameters
+(:class:`fastsdf.Param`, the time ``fastsdf.t``; see docs/moving.md), checked at the
+parameters' defaults. Bad values raise ``TypeError`` or ``ValueError`` naming the parameter.
+Lengths must lie between 1e-150 and 1e150 in magnitude."""
 
 from __future__ import annotations
 
@@ -32,6 +40,7 @@ from fastsdf.expr.validate import (
     coord2_or_param,
     is_param,
     real_or_param,
+    shown,
     vec2_or_param,
 )
 from fastsdf.expr.validate import check_length as _check_length
@@ -71,7 +80,8 @@ def _positive_p(value: object, name: str, size: bool = True) -> tuple[FloatOrPar
         expr, number = real_or_param(value, name)
         if not number > 0:
             raise ValueError(
-                f"{name} must be > 0, got {name}={expr} = {number!r} at the parameters' defaults"
+                f"{name} must be > 0, got {name}={expr} = {shown(number)} at the parameters' "
+                f"defaults"
             )
         if size:
             _check_length(number, name)
@@ -83,7 +93,7 @@ def _positive_p(value: object, name: str, size: bool = True) -> tuple[FloatOrPar
 def _not_param(value: object, name: str, why: str) -> None:
     """``TypeError`` for a number that cannot be a runtime parameter, saying why."""
     if is_param(value) or _has_param(value):
-        raise TypeError(f"{name} cannot be a runtime parameter ({why}), got {name}={value!r}")
+        raise TypeError(f"{name} cannot be a runtime parameter ({why}), got {name}={shown(value)}")
 
 
 # A segment whose ends meet at run time divides by its length: it is kept above this (the
@@ -178,9 +188,16 @@ __all__ = [
 
 
 class Circle(SDF):
-    """Disc of ``radius`` around ``center`` (exact distance).
+    """Disc of ``radius`` around ``center`` (exact distance: ``|p - center| - radius``).
 
     At the centre, where every direction is steepest, the gradient is the local +x axis.
+
+    Parameters
+    ----------
+    center : pair (x, y), default (0, 0)
+        The centre, in the units of the coordinates.
+    radius : float > 0, default 1
+        The radius, in the same units.
     """
 
     center: Pair
@@ -191,7 +208,7 @@ class Circle(SDF):
             center, _ = coord2_or_param(center, "center")
             radius, r0 = real_or_param(radius, "radius")
             if r0 <= 0:
-                raise ValueError(f"radius must be > 0, got radius={radius!r}")
+                raise ValueError(f"radius must be > 0, got radius={shown(radius)}")
         else:
             center = _point(center, "center")
             radius = _positive(radius, "radius")
@@ -219,7 +236,16 @@ class Circle(SDF):
 
 class Halfspace(SDF):
     """Half-plane ``{p : n . p <= d}`` with outward normal ``normal`` (normalized here) and
-    signed offset ``d`` from the origin (Hessian normal form; exact distance)."""
+    signed offset ``d`` from the origin (Hessian normal form; exact distance).
+
+    Parameters
+    ----------
+    normal : pair (x, y) of non-zero length, default (1, 0)
+        The outward normal: the side it points to is outside. Any length; normalized.
+    d : float, default 0
+        The boundary's signed distance from the origin along ``normal``, in the units of the
+        coordinates (``Halfspace((0, 1), -1.8)``: everything below ``y = -1.8``).
+    """
 
     normal: Pair
     d: FloatOrParam
@@ -230,7 +256,7 @@ class Halfspace(SDF):
             normal, nv = vec2_or_param(normal, "normal")
             if not float(np.hypot(*nv)) > 0:
                 raise ValueError(
-                    f"normal must have non-zero length, got normal={nv.tolist()!r} "
+                    f"normal must have non-zero length, got normal={shown(nv.tolist())} "
                     f"at the parameters' defaults"
                 )
             length = sym_length(*normal)
@@ -243,7 +269,9 @@ class Halfspace(SDF):
         normal = _vec2(normal, "normal")
         big = float(np.abs(normal).max())
         if not big > 0:
-            raise ValueError(f"normal must have non-zero length, got normal={normal.tolist()!r}")
+            raise ValueError(
+                f"normal must have non-zero length, got normal={shown(normal.tolist())}"
+            )
         n = normal / big  # first to about 1: the direction is exact also for subnormal input
         n = n / float(np.hypot(n[0], n[1]))
         self.normal, self.d = n, d
@@ -267,6 +295,12 @@ class Box(SDF):
     The distance is exact everywhere. (The notebook's box, an intersection of four half-spaces,
     agrees inside and along the faces but outside the corners gives only a lower bound, the
     L-infinity distance, with an axis-aligned gradient.)
+
+    Parameters
+    ----------
+    minc, maxc : pair (x, y), default (-1, -1) and (1, 1)
+        The lower-left and upper-right corners, ``minc < maxc`` along both axes, in the units of
+        the coordinates.
     """
 
     def __init__(self, minc: PairOrParam = (-1.0, -1.0), maxc: PairOrParam = (1.0, 1.0)):
@@ -278,7 +312,7 @@ class Box(SDF):
         if not np.all(lo < hi):
             raise ValueError(
                 f"minc must be below maxc in both coordinates, got "
-                f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}"
+                f"minc={shown(lo.tolist())}, maxc={shown(hi.tolist())}"
             )
         _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
         self.minc, self.maxc = minc, maxc
@@ -300,7 +334,7 @@ class Box(SDF):
         if not (l0 < h0 and l1 < h1):
             raise ValueError(
                 f"minc must be below maxc in both coordinates, got "
-                f"minc={[l0, l1]!r}, maxc={[h0, h1]!r}"
+                f"minc={shown([l0, l1])}, maxc={shown([h0, h1])}"
             )
         _check_length(min(h0 - l0, h1 - l1), "the smaller side maxc - minc")
         self.minc, self.maxc = minc, maxc
@@ -384,24 +418,24 @@ def _vertices(value: object, name: str, minimum: int = 3) -> np.ndarray:
         arr = np.asarray(value)
     except Exception:
         raise TypeError(
-            f"{name} must be a sequence of (x, y) pairs, got {name}={value!r}"
+            f"{name} must be a sequence of (x, y) pairs, got {name}={shown(value)}"
         ) from None
     if arr.dtype.kind not in "iuf":
         raise TypeError(
-            f"{name} must be a sequence of (x, y) pairs of real numbers, got {name}={value!r}"
+            f"{name} must be a sequence of (x, y) pairs of real numbers, got {name}={shown(value)}"
         )
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(
-            f"{name} must have shape (n, 2), got shape {arr.shape} for {name}={value!r}"
+            f"{name} must have shape (n, 2), got shape {arr.shape} for {name}={shown(value)}"
         )
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
+        raise ValueError(f"{name} must be finite, got {name}={shown(value)}")
     if np.any(np.abs(arr) > MAX_COORD):
         raise ValueError(
             f"{name} must have coordinates at most {MAX_COORD:g} in magnitude (the "
             f"supported range of fastsdf geometry is 1e-150 to 1e150), got "
-            f"{name}={value!r}"
+            f"{name}={shown(value)}"
         )
     if len(arr) < minimum:
         raise ValueError(f"{name} needs at least {minimum} vertices, got {len(arr)}")
@@ -427,7 +461,7 @@ def _check_simple(v: np.ndarray, name: str) -> None:
     if np.all(np.abs(w[:, 0] * far[1] - w[:, 1] * far[0]) <= 1e-12 * scale * scale):
         raise ValueError(
             f"{name} must enclose a non-zero area (got collinear or coincident "
-            f"vertices: {v.tolist()!r})"
+            f"vertices: {shown(v.tolist())})"
         )
 
     def orient(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -481,7 +515,7 @@ def _check_simple(v: np.ndarray, name: str) -> None:
     if abs(area2) <= 1e-12 * scale * scale:
         raise ValueError(
             f"{name} must enclose a non-zero area (got collinear or coincident "
-            f"vertices: {v.tolist()!r})"
+            f"vertices: {shown(v.tolist())})"
         )
 
 
@@ -494,6 +528,11 @@ class Segment(SDF):
     along +x), a one-sided choice as at a circle's centre: a particle there is pushed off
     sideways; at a point segment (``a == b``) it is the local +x axis.
     ``Segment(a, b).round(r)`` is the same shape as ``Capsule(a, b, r)``.
+
+    Parameters
+    ----------
+    a, b : pair (x, y), default (0, 0) and (1, 0)
+        The ends, in the units of the coordinates.
     """
 
     def __init__(self, a: PairOrParam = (0.0, 0.0), b: PairOrParam = (1.0, 0.0)):
@@ -516,7 +555,15 @@ class Capsule(SDF):
     """The segment ``a``-``b`` thickened by ``radius`` (a stadium; a disc if ``a == b``).
 
     On the spine (the segment ``a``-``b``) the gradient is the unit normal to the left of
-    ``b - a``, as for :class:`Segment`."""
+    ``b - a``, as for :class:`Segment`.
+
+    Parameters
+    ----------
+    a, b : pair (x, y), default (0, 0) and (1, 0)
+        The ends of the spine, in the units of the coordinates.
+    radius : float > 0, default 0.25
+        Half the width, in the same units.
+    """
 
     def __init__(
         self, a: PairOrParam = (0.0, 0.0), b: PairOrParam = (1.0, 0.0), radius: FloatOrParam = 0.25
@@ -543,9 +590,15 @@ class Capsule(SDF):
 class RoundedBox(SDF):
     """Axis-aligned rectangle ``minc``-``maxc`` with rounded corners.
 
-    ``radii``: one radius, or four in the order of the quadrants (counter-clockwise from the
-    upper right): ``(upper-right, upper-left, lower-left, lower-right)``; each in
-    ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
+    Parameters
+    ----------
+    minc, maxc : pair (x, y), default (-1, -1) and (1, 1)
+        The corners of the rectangle before rounding, ``minc < maxc``, in the units of the
+        coordinates.
+    radii : float, or 4 floats, default 0.25
+        One radius for every corner, or four in the order of the quadrants (counter-clockwise
+        from the upper right): ``(upper-right, upper-left, lower-left, lower-right)``; each in
+        ``[0, min(width, height) / 2]`` (0 keeps the corner sharp).
     """
 
     def __init__(
@@ -560,7 +613,7 @@ class RoundedBox(SDF):
         if not np.all(lo < hi):
             raise ValueError(
                 f"minc must be below maxc in both coordinates, got "
-                f"minc={lo.tolist()!r}, maxc={hi.tolist()!r}"
+                f"minc={shown(lo.tolist())}, maxc={shown(hi.tolist())}"
             )
         _check_length(float(np.min(hi - lo)), "the smaller side maxc - minc")
 
@@ -576,7 +629,7 @@ class RoundedBox(SDF):
             if len(radii) != 4:
                 raise ValueError(
                     f"radii must be one number or four (upper-right, upper-left, "
-                    f"lower-left, lower-right), got radii={radii!r}"
+                    f"lower-left, lower-right), got radii={shown(radii)}"
                 )
             r, rv = zip(*[radius(v) for v in radii])
         else:
@@ -584,7 +637,8 @@ class RoundedBox(SDF):
         limit = float(min((hi - lo) / 2))
         if not all(0.0 <= v <= limit for v in rv):
             raise ValueError(
-                f"radii must be in [0, {limit!r}] (half the smaller side), got radii={radii!r}"
+                f"radii must be in [0, {shown(limit)}] (half the smaller side), got "
+                f"radii={shown(radii)}"
             )
         moving = _any_param(minc, maxc, *r)
         self.minc, self.maxc, self.radii = minc, maxc, tuple(r)
@@ -610,7 +664,15 @@ class RoundedBox(SDF):
 
 class OrientedBox(SDF):
     """Rectangle along the segment ``a``-``b``: length ``|b - a|``, total width ``thickness``
-    (IQ's oriented box; the ends are flat, at ``a`` and ``b``)."""
+    (IQ's oriented box; the ends are flat, at ``a`` and ``b``).
+
+    Parameters
+    ----------
+    a, b : pair (x, y), ``a != b``, default (-1, 0) and (1, 0)
+        The middles of the two flat ends, in the units of the coordinates.
+    thickness : float > 0, default 0.5
+        The total width across the segment, in the same units.
+    """
 
     def __init__(
         self,
@@ -623,8 +685,8 @@ class OrientedBox(SDF):
             thickness, _ = _positive_p(thickness, "thickness")
             if not _segment_length(av, bv) > 0:
                 raise ValueError(
-                    f"a and b must differ, got a={av.tolist()!r}, "
-                    f"b={bv.tolist()!r} at the parameters' defaults"
+                    f"a and b must differ, got a={shown(av.tolist())}, "
+                    f"b={shown(bv.tolist())} at the parameters' defaults"
                 )
             self.a, self.b, self.thickness = a, b, thickness
             ex, ey = as_expr(b[0] - a[0]), as_expr(b[1] - a[1])
@@ -640,7 +702,9 @@ class OrientedBox(SDF):
         thickness = _positive(thickness, "thickness")
         length = _segment_length(a, b)
         if not length > 0:
-            raise ValueError(f"a and b must differ, got a={a.tolist()!r}, b={b.tolist()!r}")
+            raise ValueError(
+                f"a and b must differ, got a={shown(a.tolist())}, b={shown(b.tolist())}"
+            )
         self.a, self.b, self.thickness = a, b, thickness
         d = (b - a) / length
         m = (a + b) / 2
@@ -658,7 +722,13 @@ class OrientedBox(SDF):
 
 
 class Triangle(SDF):
-    """The triangle with corners ``p0, p1, p2`` (either orientation; not collinear)."""
+    """The triangle with corners ``p0, p1, p2`` (either orientation; not collinear).
+
+    Parameters
+    ----------
+    p0, p1, p2 : pair (x, y), default (-1, -0.5), (1, -0.5), (0, 1)
+        The corners, in the units of the coordinates.
+    """
 
     vertices: np.ndarray | tuple
 
@@ -678,8 +748,8 @@ class Triangle(SDF):
         scale = float(max(np.hypot(*e1), np.hypot(*e2), np.hypot(*(w[2] - w[1]))))
         if not abs(area2) > 1e-12 * scale * scale:
             raise ValueError(
-                f"p0, p1, p2 must not be collinear, got p0={v[0].tolist()!r}, "
-                f"p1={v[1].tolist()!r}, p2={v[2].tolist()!r}"
+                f"p0, p1, p2 must not be collinear, got p0={shown(v[0].tolist())}, "
+                f"p1={shown(v[1].tolist())}, p2={shown(v[2].tolist())}"
             )
         if _any_param(p0, p1, p2):
             # Either orientation at run time: the sign of the (doubled) area picks the normals.
@@ -704,9 +774,9 @@ def _regular_vertices(
 
 def _check_n(n: object, name: str = "n", minimum: int = 3) -> int:
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
-        raise TypeError(f"{name} must be an integer, got {name}={n!r}")
+        raise TypeError(f"{name} must be an integer, got {name}={shown(n)}")
     if n < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {name}={n!r}")
+        raise ValueError(f"{name} must be >= {minimum}, got {name}={shown(n)}")
     return int(n)
 
 
@@ -714,7 +784,7 @@ def _positive(value: object, name: str, size: bool = True) -> float:
     """A positive real; with ``size``, a length in the supported range."""
     value = _real(value, name)
     if value <= 0:
-        raise ValueError(f"{name} must be > 0, got {name}={value!r}")
+        raise ValueError(f"{name} must be > 0, got {name}={shown(value)}")
     if size:
         _check_length(value, name)
     return value
@@ -733,7 +803,17 @@ def _segment_length(a: np.ndarray, b: np.ndarray) -> float:
 class RegularPolygon(SDF):
     """Regular ``n``-gon inscribed in the circle of ``radius`` (circumradius) around
     ``center``, one vertex pointing up (+y). Built from graph operations: ``n`` segments (one
-    loop over a table in the generated code for ``n >= 4``)."""
+    loop over a table in the generated code for ``n >= 4``).
+
+    Parameters
+    ----------
+    center : pair (x, y), default (0, 0)
+        The centre, in the units of the coordinates.
+    radius : float > 0, default 1
+        The circumradius (centre to vertex), in the same units.
+    n : int >= 3, default 6
+        The number of sides.
+    """
 
     vertices: np.ndarray | list
 
@@ -768,7 +848,11 @@ class RegularPolygon(SDF):
 
 class EquilateralTriangle(RegularPolygon):
     """Equilateral triangle inscribed in the circle of ``radius`` around ``center``, one
-    corner pointing up (+y)."""
+    corner pointing up (+y).
+
+    ``center`` and ``radius`` (the circumradius: centre to corner) as for
+    :class:`RegularPolygon`.
+    """
 
     def __init__(self, center: PairOrParam = (0.0, 0.0), radius: FloatOrParam = 1.0):
         super().__init__(center=center, radius=radius, n=3)
@@ -802,6 +886,11 @@ class Polygon(SDF):
     polygon must not intersect or touch itself and must enclose a non-zero area (checked, in
     O(n^2)). Evaluated by a compiled loop over the edges (graph op ``prim``, kind
     ``'polygon'``): O(n) per point; the vertices are a table in the generated module.
+
+    Parameters
+    ----------
+    vertices : array (n, 2) or sequence of pairs (x, y), n >= 3
+        The corners in order, in the units of the coordinates.
     """
 
     def __init__(self, vertices: ArrayLike | Sequence[PairOrParam]):
@@ -816,7 +905,7 @@ class Polygon(SDF):
         if len(v) < 3:
             raise ValueError(
                 f"vertices needs at least 3 distinct vertices, got "
-                f"{np.asarray(vertices).tolist()!r}"
+                f"{shown(np.asarray(vertices).tolist())}"
             )
         w, unit, data, bbox, sym, convex = _polygon_local(v.tobytes(), len(v))
         self.vertices = w / unit
@@ -840,7 +929,7 @@ class Polygon(SDF):
         if np.any(keep):
             pts, v = [p for p, k in zip(pts, keep) if k], v[keep]
         if len(v) < 3:
-            raise ValueError(f"vertices needs at least 3 distinct vertices, got {vertices!r}")
+            raise ValueError(f"vertices needs at least 3 distinct vertices, got {shown(vertices)}")
         _check_length(float(np.abs(v - v[0]).max()), "the polygon's size max|v_i - v_0|")
         _check_simple(v, "vertices")
         self.vertices = [p[0] for p in pts]
@@ -849,7 +938,19 @@ class Polygon(SDF):
 
 class Star(Polygon):
     """Star with ``n`` points: a polygon alternating between ``radius`` (the tips, one
-    pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``."""
+    pointing up) and ``inner_radius`` (default ``radius / 2``) around ``center``.
+
+    Parameters
+    ----------
+    center : pair (x, y), default (0, 0)
+        The centre, in the units of the coordinates.
+    radius : float > 0, default 1
+        The tips' distance from the centre, in the same units.
+    n : int >= 2, default 5
+        The number of tips.
+    inner_radius : float, 0 < inner_radius < radius, or None (default: radius / 2)
+        The notches' distance from the centre.
+    """
 
     def __init__(
         self,
@@ -869,8 +970,8 @@ class Star(Polygon):
             n = _check_n(n, minimum=2)
             if not iv < rv:
                 raise ValueError(
-                    f"inner_radius must be < radius, got inner_radius={inner!r}, "
-                    f"radius={radius!r} (at the parameters' defaults)"
+                    f"inner_radius must be < radius, got inner_radius={shown(inner)}, "
+                    f"radius={shown(radius)} (at the parameters' defaults)"
                 )
             ang = math.pi / 2 + math.pi * np.arange(2 * n) / n
             pts = [
@@ -889,7 +990,8 @@ class Star(Polygon):
         inner = radius / 2 if inner_radius is None else _positive(inner_radius, "inner_radius")
         if not inner < radius:
             raise ValueError(
-                f"inner_radius must be < radius, got inner_radius={inner!r}, radius={radius!r}"
+                f"inner_radius must be < radius, got inner_radius={shown(inner)}, "
+                f"radius={shown(radius)}"
             )
         t = math.pi / 2 + math.pi * np.arange(2 * n) / n
         rr = np.where(np.arange(2 * n) % 2 == 0, radius, inner)
@@ -918,6 +1020,13 @@ class Ellipse(SDF):
     far away (beyond ``2**30`` times the largest radius of curvature) a closed form through
     the support point, exact to rounding there. At the centre the gradient points along the
     minor axis (+y for ``a > b``).
+
+    Parameters
+    ----------
+    center : pair (x, y), default (0, 0)
+        The centre, in the units of the coordinates.
+    axes : pair (a, b) of floats > 0, default (1, 0.5)
+        The semi-axes along the local x and y axes, in the same units.
     """
 
     def __init__(self, center: PairOrParam = (0.0, 0.0), axes: PairOrParam = (1.0, 0.5)):
@@ -947,19 +1056,29 @@ class Ellipse(SDF):
     @staticmethod
     def _check_axes(axes: np.ndarray) -> None:
         if not np.all(axes > 0):
-            raise ValueError(f"axes must be > 0, got axes={axes.tolist()!r}")
+            raise ValueError(f"axes must be > 0, got axes={shown(axes.tolist())}")
         for v in axes:
             _check_length(float(v), "axes", axes.tolist())
         if axes.max() / axes.min() > _MAX_ECCENTRICITY:
             raise ValueError(
                 f"axes must not differ by more than a factor "
-                f"{_MAX_ECCENTRICITY:g}, got axes={axes.tolist()!r}"
+                f"{_MAX_ECCENTRICITY:g}, got axes={shown(axes.tolist())}"
             )
 
 
 class Ring(SDF):
     """Annulus: the circle of ``radius`` around ``center`` thickened to total width
-    ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``."""
+    ``thickness`` (``0 < thickness < 2 radius``): ``|length(p - c) - radius| - thickness/2``.
+
+    Parameters
+    ----------
+    center : pair (x, y), default (0, 0)
+        The centre, in the units of the coordinates.
+    radius : float > 0, default 1
+        The radius of the ring's centre line, in the same units.
+    thickness : float, 0 < thickness < 2 radius, default 0.2
+        The total width, in the same units.
+    """
 
     def __init__(
         self,
@@ -972,7 +1091,7 @@ class Ring(SDF):
         if not tv < 2 * rv:
             raise ValueError(
                 f"thickness must be < 2 * radius (the hole would close), got "
-                f"thickness={thickness!r}, radius={radius!r}"
+                f"thickness={shown(thickness)}, radius={shown(radius)}"
             )
         self.center, self.radius, self.thickness = center, radius, thickness
         x, y = _coords()
@@ -992,6 +1111,17 @@ class Arc(SDF):
     Exact when ``thickness < 2 radius`` and the two round ends do not overlap (their centres
     are at least ``thickness`` apart, or the arc is a full circle); otherwise exact outside and
     a bound inside (reported as ``'bound'``).
+
+    Parameters
+    ----------
+    center : pair (x, y), default (0, 0)
+        The circle's centre, in the units of the coordinates.
+    radius : float > 0, default 1
+        The radius of the arc's centre line, in the same units.
+    aperture : float in (0, 2 pi], default pi
+        The angle the arc spans, in radians.
+    thickness : float > 0, default 0.2
+        The total width, in the units of the coordinates.
     """
 
     def __init__(
@@ -1004,11 +1134,12 @@ class Arc(SDF):
         (center, cv), (radius, rv) = _point_p(center, "center"), _positive_p(radius, "radius")
         aperture, apv = _positive_p(aperture, "aperture", size=False)
         if apv > 2 * math.pi:
-            raise ValueError(f"aperture must be <= 2 pi, got aperture={aperture!r}")
+            raise ValueError(f"aperture must be <= 2 pi, got aperture={shown(aperture)}")
         thickness, tv = _positive_p(thickness, "thickness")
         if not tv < 2 * rv:
             raise ValueError(
-                f"thickness must be < 2 * radius, got thickness={thickness!r}, radius={radius!r}"
+                f"thickness must be < 2 * radius, got thickness={shown(thickness)}, "
+                f"radius={shown(radius)}"
             )
         moving = _any_param(center, radius, aperture, thickness)
         self.center, self.radius = center, radius
@@ -1070,7 +1201,7 @@ def outline_table(segments: ArrayLike, fill_rule: str = "nonzero") -> np.ndarray
     to ``(x2, y2)``; kind 1: the quadratic Bezier with control ``(x1, y1)``): quadratics split
     into y-monotone pieces, a bounding box per row, a header row with the fill rule."""
     if fill_rule not in FILL_RULES:
-        raise ValueError(f"fill_rule must be one of {FILL_RULES}, got fill_rule={fill_rule!r}")
+        raise ValueError(f"fill_rule must be one of {FILL_RULES}, got fill_rule={shown(fill_rule)}")
     seg = np.asarray(segments, dtype=np.float64)
     if seg.ndim != 2 or seg.shape[1] != 7 or len(seg) == 0:
         raise ValueError(
@@ -1114,6 +1245,13 @@ class Outline(SDF):
     compiled loop over the segments (graph op ``prim``, kind ``'outline'``), skipping those
     whose bounding box is farther than the best so far. ``fastsdf.geometry`` builds outlines
     from SVG path data and text (cubics and arcs converted within a stated tolerance).
+
+    Parameters
+    ----------
+    segments : array (n, 7)
+        The rows above, in the units of the coordinates.
+    fill_rule : 'nonzero' (default) or 'evenodd'
+        Which points the loops enclose: a non-zero winding number, or an odd one.
     """
 
     def __init__(self, segments: ArrayLike, fill_rule: str = "nonzero"):

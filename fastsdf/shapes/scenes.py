@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from fastsdf.expr.graph import gc_paused
+from fastsdf.expr.validate import count
 from fastsdf.shapes import SDF, Box, Circle, Halfspace, smoothness, transform
 
 __all__ = ["funnel", "seed_world", "box_world", "mixed_scene"]
@@ -32,10 +33,9 @@ def box_world(n_boxes: int = 20, seed: int = 0) -> SDF:
     smoothness 5. The random draws follow the notebook (angle in [-0.8, 0.8], offset in
     [-2, 2]^2, corners in [-0.3, -0.1] and [0.1, 0.3]) from ``numpy.random.default_rng(seed)``.
     """
-    if int(n_boxes) != n_boxes or n_boxes < 0:
-        raise ValueError(f"n_boxes must be a non-negative integer, got n_boxes={n_boxes!r}")
+    n_boxes = count(n_boxes, "n_boxes", 0)
     with gc_paused():  # a bulk build (see fastsdf.expr.graph._GCPaused)
-        return _box_world(int(n_boxes), seed)
+        return _box_world(n_boxes, seed)
 
 
 def _box_world(n_boxes: int, seed: int) -> SDF:
@@ -56,10 +56,9 @@ def mixed_scene(n: int, seed: int = 1) -> SDF:
     intersection with a cut, union) and smoothness (0, 5, 10), from
     ``numpy.random.default_rng(seed)``. The worst case for code generation and compile time
     (used by the benchmarks and tests)."""
-    if int(n) != n or n < 1:
-        raise ValueError(f"n must be a positive integer, got n={n!r}")
+    n = count(n, "n")
     with gc_paused():  # a bulk build (see fastsdf.expr.graph._GCPaused)
-        return _mixed_scene(int(n), seed)
+        return _mixed_scene(n, seed)
 
 
 def _mixed_scene(n: int, seed: int) -> SDF:

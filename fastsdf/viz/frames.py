@@ -30,9 +30,7 @@ with a non-finite coordinate, are dropped.
 from __future__ import annotations
 
 import math
-import numbers
 import os
-import shutil
 import subprocess
 import tempfile
 from typing import Any
@@ -40,7 +38,9 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from fastsdf.expr.validate import check_bounds, count, positive, reals, shown, vec2
 from fastsdf.files import commit, temporary_sibling
+from fastsdf.viz.video import ffmpeg_exe
 
 __all__ = [
     "VideoWriter",
@@ -170,58 +170,6 @@ def color_table(colors: np.ndarray, alpha: float) -> tuple:
     return np.ascontiguousarray(table), 256 - a
 
 
-# ---------------------------------------------------------------------------------------------
-# ffmpeg and parameter checks.
-
-
-def ffmpeg_exe() -> str:
-    """The ffmpeg binary: that of ``imageio-ffmpeg`` (``pip install 'fastsdf[video]'``), else
-    the system's. Raises ``RuntimeError`` saying what to install when there is none."""
-    try:
-        import imageio_ffmpeg
-
-        return str(imageio_ffmpeg.get_ffmpeg_exe())
-    except (ImportError, RuntimeError):
-        pass
-    exe = shutil.which("ffmpeg")
-    if exe is None:
-        raise RuntimeError(
-            "writing a video needs ffmpeg: pip install 'fastsdf[video]' (it "
-            "installs imageio-ffmpeg, which ships one), or install ffmpeg"
-        )
-    return exe
-
-
-def _positive_int(value: Any, name: str, minimum: int = 1) -> int:
-    if (
-        isinstance(value, (bool, np.bool_))
-        or not isinstance(value, numbers.Integral)
-        or value < minimum
-    ):
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
-    return int(value)
-
-
-def _positive_real(value: Any, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number > 0, got {name}={value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {name}={value!r}")
-    return v
-
-
-def _coords(v: Any, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name} must be an array of real numbers, got {name} of type {type(v).__name__}"
-        ) from None
-    return arr.reshape(-1)
-
-
 def time_label(t: float | None, step: int | None) -> str:
     """The frame's clock line, ``'t = 1.23 s (step 37)'`` (parts that are ``None`` left out)."""
     parts = []
@@ -313,6 +261,7 @@ class VideoWriter:
     the simulated time (``t``/``step`` given to :meth:`add`) is written at its right.
     ``samples``: grid samples per axis of the world's picture. ``crf``, ``preset``: libx264's
     quality (lower is better) and speed settings. ``alpha``: opacity of the particle layer.
+    ``dpi``: the figure's dots per inch (the picture's fonts scale with it).
     """
 
     def __init__(
@@ -333,51 +282,49 @@ class VideoWriter:
         alpha: float = 0.8,
         dpi: float = 100,
     ) -> None:
-        from fastsdf.viz.plotting import check_bounds
         from fastsdf.viz.render import DEFAULT_MAX_CIRCLES
 
         self.path = os.path.abspath(os.fspath(path))
         self.bounds = check_bounds(bounds)
-        try:
-            width, height = (int(v) for v in size)
-        except (TypeError, ValueError):
-            raise ValueError(f"size must be (width, height) in pixels, got size={size!r}") from None
-        if width < 64 or height < 64 or width % 2 or height % 2:
+        width, height = (int(v) for v in vec2(size, "size"))
+        if width < 64 or height < 64 or width % 2 or height % 2 or (width, height) != tuple(size):
             raise ValueError(
-                f"size must be (width, height), both even and >= 64, got size={size!r}"
+                f"size must be (width, height), both even and >= 64, got size={shown(size)}"
             )
         self.size = (width, height)
-        self.fps = _positive_real(fps, "fps")
+        self.fps = positive(fps, "fps")
         if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got mode={mode!r}")
+            raise ValueError(f"mode must be one of {MODES}, got mode={shown(mode)}")
         self.mode = mode
         self.max_discs = (
-            DEFAULT_MAX_CIRCLES if max_discs is None else _positive_int(max_discs, "max_discs", 0)
+            DEFAULT_MAX_CIRCLES if max_discs is None else count(max_discs, "max_discs", 0)
         )
         if vmax is not None:
-            v = _positive_real(vmax, "vmax")
+            v = positive(vmax, "vmax")
             if v <= 1.0 or v > 1e8:
-                raise ValueError(f"vmax must be in (1, 1e8] particles per pixel, got vmax={vmax!r}")
+                raise ValueError(
+                    f"vmax must be in (1, 1e8] particles per pixel, got vmax={shown(vmax)}"
+                )
             vmax = v
         self.vmax = vmax
         #: The density colour scale, :func:`fastsdf.viz.render.density_norm` of ``vmax``, once the
         #: background is drawn (``None`` before, and for discs).
         self.norm: Any = None
-        self.scale_frames = _positive_int(scale_frames, "scale_frames")
+        self.scale_frames = count(scale_frames, "scale_frames")
         self.title = title
         self.world = world
         #: The world moves: its solid is drawn per frame at the frame's time.
         self.moving = bool(getattr(world, "time_dependent", False))
-        self.samples = _positive_int(samples, "samples", 2)
-        self.crf = _positive_int(crf, "crf", 0)
+        self.samples = count(samples, "samples", 2)
+        self.crf = count(crf, "crf", 0)
         self.preset = str(preset)
         if not 0.0 < float(alpha) <= 1.0:
-            raise ValueError(f"alpha must be in (0, 1], got alpha={alpha!r}")
+            raise ValueError(f"alpha must be in (0, 1], got alpha={shown(alpha)}")
         self.alpha = float(alpha)
-        self.dpi = _positive_real(dpi, "dpi")
+        self.dpi = positive(dpi, "dpi")
         ext = os.path.splitext(self.path)[1].lower()
         if ext not in (".mp4", ".m4v", ".mov", ".mkv"):
-            raise ValueError(f"path must end in .mp4, .m4v, .mov or .mkv, got path={path!r}")
+            raise ValueError(f"path must end in .mp4, .m4v, .mov or .mkv, got path={shown(path)}")
         self._exe = ffmpeg_exe()
         self.frames_written = 0
         self._proc: subprocess.Popen | None = None
@@ -553,7 +500,7 @@ class VideoWriter:
         )
 
     def _splat(self, x: Any, y: Any, r: Any) -> np.ndarray:
-        xs, ys = _coords(x, "x"), _coords(y, "y")
+        xs, ys = reals(x, "x"), reals(y, "y")
         if xs.shape != ys.shape:
             raise ValueError(
                 f"x and y must have the same number of points, got {xs.size} and {ys.size}"
@@ -572,7 +519,7 @@ class VideoWriter:
                 if xs.size == 0:
                     return counts
                 raise ValueError("r (the particles' radii) is needed to draw discs")
-            rs = _coords(r, "r")
+            rs = reals(r, "r")
             if rs.size not in (1, xs.size):
                 raise ValueError(
                     f"r must be a scalar or one radius per particle ({xs.size}), "
@@ -603,7 +550,8 @@ class VideoWriter:
     def add(
         self, x: Any, y: Any, r: Any = None, t: float | None = None, step: int | None = None
     ) -> None:
-        """Append the frame of particles at ``(x, y)`` (see :meth:`render`)."""
+        """Append the frame of particles at ``(x, y)``, radii ``r``, simulated time ``t`` and
+        ``step`` (see :meth:`render`)."""
         if self._closed:
             raise RuntimeError("this VideoWriter is closed")
         counts = self._splat(x, y, r)
@@ -744,12 +692,13 @@ def record_video(
     """Run ``sim`` and write a video of it: frame 0 is its current state, each later frame
     follows ``steps_per_frame`` more steps (``sim.run``, or ``advance(k)`` if given).
 
-    ``world``: the picture's SDF (default ``sim.sdf``). ``writer_options`` go to
+    ``frames``: how many (>= 1). ``world``: the picture's SDF (default ``sim.sdf``).
+    ``writer_options`` go to
     :class:`VideoWriter` (``bounds``, ``size``, ``fps``, ``mode``, ``vmax``, ``title``, ...).
     Returns the path written.
     """
-    frames = _positive_int(frames, "frames")
-    steps_per_frame = _positive_int(steps_per_frame, "steps_per_frame", 0)
+    frames = count(frames, "frames")
+    steps_per_frame = count(steps_per_frame, "steps_per_frame", 0)
     run = advance if advance is not None else sim.run
     with VideoWriter(path, sim.sdf if world is None else world, **writer_options) as writer:
         for i in range(frames):

@@ -1,10 +1,10 @@
 """Plotting signed distance functions with matplotlib, as the notebook does.
 
 :func:`plot_sdf` draws an SDF on an axes: contour lines of the distance (all levels, or only the
-zero level, the surface), optional labels on them, an optional quiver of the gradient coloured by
-the distance, an optional filled inside/outside view and an optional colour bar of the distance.
-By default it has the notebook's look (no ticks); ``axes=True`` makes a figure to keep, with
-coordinates, labels inside the axes and tight margins.
+zero level, the surface, always a distinct black line), optional labels on them, an optional
+quiver of the gradient coloured by the distance, an optional filled inside/outside view and a
+colour bar of the distance. By default it makes a figure to keep: coordinates on ticked and
+labelled axes, a colour bar, tight margins; ``axes=False`` gives the notebook's bare look.
 Particles and animations are drawn by :mod:`fastsdf.viz.render`, which builds on this module (this
 module never imports it).
 
@@ -31,12 +31,15 @@ from typing import Any
 
 import numpy as np
 
+from fastsdf.expr.validate import check_bounds, shown
+
 __all__ = [
     "plot_sdf",
     "sdf_grid",
     "check_bounds",
     "SOLID_COLOR",
     "BACKGROUND_COLOR",
+    "SURFACE_COLOR",
     "ISOLINE_OPTIONS",
     "QUIVER_ARROWS",
 ]
@@ -51,27 +54,6 @@ ISOLINE_OPTIONS = ("all", "zero", False, None)
 QUIVER_ARROWS = 20
 
 
-def check_bounds(bounds: Any, name: str = "bounds") -> tuple:
-    """``bounds`` as ``((x0, x1), (y0, y1))`` floats.
-
-    Raises ``ValueError`` naming ``name`` unless ``bounds`` is a finite ``[(x0, x1), (y0, y1)]``
-    with ``x0 < x1`` and ``y0 < y1``.
-    """
-    try:
-        arr = np.asarray(bounds, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}"
-        ) from None
-    if arr.shape != (2, 2):
-        raise ValueError(f"{name} must be [(xmin, xmax), (ymin, ymax)], got {name}={bounds!r}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {name}={bounds!r}")
-    if not (arr[0, 0] < arr[0, 1] and arr[1, 0] < arr[1, 1]):
-        raise ValueError(f"{name} must have xmin < xmax and ymin < ymax, got {name}={bounds!r}")
-    return ((float(arr[0, 0]), float(arr[0, 1])), (float(arr[1, 0]), float(arr[1, 1])))
-
-
 def _check_samples(samples: Any) -> tuple:
     """``samples`` (an int, or a pair for x and y) as ``(nx, ny)``, each an integer >= 2."""
     pair = samples if isinstance(samples, (tuple, list, np.ndarray)) else (samples, samples)
@@ -80,7 +62,8 @@ def _check_samples(samples: Any) -> tuple:
         for v in pair
     ):
         raise ValueError(
-            f"samples must be an integer >= 2 or a pair of them (x, y), got samples={samples!r}"
+            f"samples must be an integer >= 2 or a pair of them (x, y), got "
+            f"samples={shown(samples)}"
         )
     return int(pair[0]), int(pair[1])
 
@@ -199,25 +182,27 @@ def _check_levels(levels: Any, show_isolines: Any) -> Any:
         return None
     if show_isolines != "all":
         raise ValueError(
-            f"levels applies to show_isolines='all', got levels={levels!r} with "
-            f"show_isolines={show_isolines!r}"
+            f"levels applies to show_isolines='all', got levels={shown(levels)} with "
+            f"show_isolines={shown(show_isolines)}"
         )
     if isinstance(levels, numbers.Integral) and not isinstance(levels, (bool, np.bool_)):
         if levels < 1:
-            raise ValueError(f"levels must be a count >= 1 or distances, got levels={levels!r}")
+            raise ValueError(
+                f"levels must be a count >= 1 or distances, got levels={shown(levels)}"
+            )
         return int(levels)
     try:
         values = np.asarray(levels, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(
-            f"levels must be a count >= 1 or increasing distances, got levels={levels!r}"
+            f"levels must be a count >= 1 or increasing distances, got levels={shown(levels)}"
         ) from None
     if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
         raise ValueError(
-            f"levels must be a count >= 1 or increasing distances, got levels={levels!r}"
+            f"levels must be a count >= 1 or increasing distances, got levels={shown(levels)}"
         )
     if np.any(np.diff(values) <= 0):
-        raise ValueError(f"levels must be increasing, got levels={levels!r}")
+        raise ValueError(f"levels must be increasing, got levels={shown(levels)}")
     return values
 
 
@@ -275,6 +260,64 @@ def _label_isolines(ax: Any, contours: Any, bounds: tuple) -> list:
     )
 
 
+#: The zero contour (the surface) is drawn in this colour and width (points), over the
+#: coloured lines of the other distances.
+SURFACE_COLOR = "black"
+SURFACE_WIDTH = 2.0
+
+
+def _check_show(show_isolines: Any, show_quiver: bool, colorbar: bool | None) -> bool:
+    """Check ``show_isolines``; return whether to draw a colour bar (``colorbar=None``: when
+    lines or arrows are coloured by the distance)."""
+    ok = show_isolines is None or show_isolines is False
+    ok = ok or (isinstance(show_isolines, str) and show_isolines in ISOLINE_OPTIONS)
+    if not ok:
+        raise ValueError(
+            f"show_isolines must be 'all', 'zero', False or None, got "
+            f"show_isolines={shown(show_isolines)}"
+        )
+    coloured = show_isolines == "all" or bool(show_quiver)
+    if colorbar and not coloured:
+        raise ValueError(
+            f"colorbar=True needs something coloured by the distance "
+            f"(show_isolines='all' or show_quiver=True), got "
+            f"show_isolines={shown(show_isolines)}, show_quiver={shown(show_quiver)}"
+        )
+    return coloured if colorbar is None else bool(colorbar)
+
+
+def _new_axes(bounds: tuple, axes: bool, colorbar: bool, title: str | None) -> Any:
+    """A new pyplot figure's axes: sized to ``bounds`` (compressed layout) for ``axes``."""
+    import matplotlib.pyplot as plt
+
+    if axes:
+        return plt.subplots(figsize=_figure_size(bounds, colorbar, title), layout="compressed")[1]
+    return plt.subplots()[1]
+
+
+def _draw_isolines(
+    ax: Any, xs: np.ndarray, ys: np.ndarray, dm: Any, show: str, levels: Any, norm: Any
+) -> dict:
+    """The lines of ``show_isolines``: ``'all'``, coloured by the distance (``'contour'``),
+    with the surface over them (``'surface'``, where ``d`` changes sign); ``'zero'``, the
+    surface alone (``'contour'``)."""
+    surface = dict(colors=SURFACE_COLOR, linewidths=SURFACE_WIDTH, zorder=2.5)
+    if show == "zero":
+        return {"contour": ax.contour(xs, ys, dm, levels=[0.0], **surface)}
+    out = {"contour": ax.contour(xs, ys, dm, levels=levels, zorder=2, norm=norm)}
+    if dm.count() and dm.min() < 0.0 < dm.max():
+        out["surface"] = ax.contour(xs, ys, dm, levels=[0.0], **surface)
+    return out
+
+
+def _draw_colorbar(ax: Any, mappable: Any, axes: bool) -> Any:
+    """A colour bar of the distance beside ``ax``."""
+    # fraction/pad: a bar as tall as a square axes beside it (in the compressed layout of
+    # axes=True, as tall as any axes: 0.046 would shorten it there).
+    size = dict(fraction=0.05, aspect=25, pad=0.03) if axes else dict(fraction=0.046, pad=0.04)
+    return ax.figure.colorbar(mappable, ax=ax, label="distance d (negative inside)", **size)
+
+
 def plot_sdf(
     f_or_fig: Any,
     ax: Any = None,
@@ -285,9 +328,9 @@ def plot_sdf(
     show_isolines: str | bool | None = "all",
     show_isolabels: bool = False,
     filled: bool = False,
-    colorbar: bool = False,
-    ticks: bool = False,
-    axes: bool = False,
+    colorbar: bool | None = None,
+    ticks: bool | None = None,
+    axes: bool = True,
     levels: Any = None,
     title: str | None = None,
 ) -> dict:
@@ -295,92 +338,110 @@ def plot_sdf(
 
     Call it as ``plot_sdf(f)`` (a new pyplot figure), ``plot_sdf(f, ax=ax)``, or with the
     notebook's positional signature ``plot_sdf(fig, ax, f, ...)`` (``fig`` is not used and may be
-    ``None``). ``f``: any callable of the module docstring (``f(x, y, compute_gradient=...)``,
-    ``f(x, y)`` or ``f(p)`` with ``p`` of shape ``(n, 2)``); it is evaluated on a ``samples`` x
-    ``samples`` grid (an int >= 2, or a pair ``(nx, ny)``) spanning
-    ``bounds = [(xmin, xmax), (ymin, ymax)]`` (data units).
+    ``None``). By default the picture is one to keep: axes in data units with ticks and labels
+    ``x`` and ``y``, the distance's lines coloured by their value with a colour bar, the
+    surface (the zero contour) a thick black line over them, and the gradient's arrows.
 
-    ``show_isolines``: ``'all'`` draws contour lines at matplotlib's automatic distance levels,
-    ``'zero'`` only the zero level (the surface), ``False``/``None`` none. ``show_isolabels``
-    writes the distance on the lines. ``show_quiver`` draws the gradient (direction of steepest
-    distance ascent, pointing out of solids) at about ``QUIVER_ARROWS`` points per axis,
-    coloured by the distance. ``filled`` paints the solid region ``d < 0`` in
-    :data:`SOLID_COLOR` and the rest in :data:`BACKGROUND_COLOR`, beneath the lines and arrows.
-    ``colorbar`` adds a colour bar of the distance for the coloured lines and arrows (it needs
-    ``show_isolines='all'`` or ``show_quiver``). ``ticks`` labels the axes in data units; by
-    default they have the notebook's look: limits = ``bounds``, equal aspect, no ticks.
-    ``axes=True`` draws a figure to keep (the README's and the guide's pictures): ticks and axis
-    labels, and, when ``plot_sdf`` makes the figure, one sized to ``bounds`` with tight margins
-    (matplotlib's compressed layout: the colour bar as tall as the axes, its label inside).
-    ``title``: the axes title.
+    Parameters
+    ----------
+    f_or_fig : callable SDF, or a figure (with ``ax`` and ``f``: the notebook's form)
+        ``f``: any callable of the module docstring (``f(x, y, compute_gradient=...)``,
+        ``f(x, y)`` or ``f(p)`` with ``p`` of shape ``(n, 2)``).
+    ax : matplotlib axes or None (default: a new pyplot figure)
+    f : callable SDF or None (default: ``f_or_fig``)
+    bounds : [(xmin, xmax), (ymin, ymax)], default [(-2, 2), (-2, 2)]
+        The region shown, in the units of the coordinates.
+    samples : int >= 2 or (nx, ny), default 200
+        Grid points along each axis where ``f`` is evaluated.
+    show_quiver : bool, default True
+        Arrows of the gradient (the direction of steepest ascent, out of solids) at about
+        :data:`QUIVER_ARROWS` points per axis, coloured by the distance.
+    show_isolines : 'all' (default), 'zero', False or None
+        ``'all'``: lines at matplotlib's automatic distances (or ``levels``), coloured by the
+        distance, and the surface (``d = 0``) in :data:`SURFACE_COLOR`; ``'zero'``: the
+        surface only; ``False``/``None``: no lines.
+    show_isolabels : bool, default False
+        Write the distance on the lines, each label where it fits inside the axes (one per
+        line long enough to carry one).
+    filled : bool, default False
+        Paint the solid region ``d < 0`` in :data:`SOLID_COLOR` and the rest in
+        :data:`BACKGROUND_COLOR`, beneath the lines and arrows.
+    colorbar : bool or None (default)
+        A colour bar of the distance for the coloured lines and arrows; ``None``: one when
+        something is coloured (``show_isolines='all'`` or ``show_quiver``). ``True`` with
+        nothing coloured is a ``ValueError``.
+    ticks : bool or None (default: as ``axes``)
+        Ticks and axis labels in data units; ``False``: the notebook's bare look.
+    axes : bool, default True
+        A figure to keep: ticks and axis labels, and, when ``plot_sdf`` makes the figure, one
+        sized to ``bounds`` with tight margins (matplotlib's compressed layout: the colour bar
+        as tall as the axes). ``False``: the notebook's look (limits = ``bounds``, equal
+        aspect, no ticks) in matplotlib's default figure.
+    levels : None, int >= 1, or increasing distances
+        The distances of the lines of ``show_isolines='all'``: matplotlib's automatic choice,
+        a number of levels, or the values themselves. A level just below a local maximum of
+        the distance (midway between two shapes, in a hole) draws a small closed loop around
+        it; give the levels to keep them clear of such maxima.
+    title : str or None
+        The axes title.
 
-    ``levels``: the distances of the lines of ``show_isolines='all'``: ``None`` for matplotlib's
-    automatic choice, a number of levels, or the values themselves (increasing). A level just
-    below a local maximum of the distance (midway between two shapes, in a hole) draws a small
-    closed loop around it; give the levels to keep them clear of such maxima. Isoline labels are
-    placed where they fit inside the axes, one per line long enough to carry one.
-
-    Returns a dict with ``'ax'`` (the axes drawn on) and the artists created, with the keys that
-    apply: ``'fill'`` (the filled ``QuadContourSet``), ``'contour'`` (the line
-    ``QuadContourSet``), ``'labels'`` (the label ``Text`` list), ``'quiver'`` (the ``Quiver``),
-    ``'colorbar'``. Raises ``ValueError`` naming the parameter for an unknown ``show_isolines``,
-    malformed or empty ``bounds``, ``samples < 2``, bad ``levels`` (or ``levels`` without
-    ``show_isolines='all'``), or a colour bar with nothing coloured;
-    ``TypeError`` if ``f`` is missing or not callable.
+    Returns a dict of ``'ax'`` (the axes drawn on) and the artists drawn: ``'fill'``,
+    ``'contour'`` (the lines), ``'surface'`` (the zero contour over the lines of ``'all'``),
+    ``'labels'``, ``'quiver'``, ``'colorbar'``. Bad arguments raise ``ValueError`` (``TypeError``
+    for ``f``) naming the parameter.
     """
     if f is None:
         f = f_or_fig
     if f is None or not callable(f):
         raise TypeError(
-            f"f must be a callable SDF, got f={f!r}: call plot_sdf(f), "
+            f"f must be a callable SDF, got f={shown(f)}: call plot_sdf(f), "
             f"plot_sdf(f, ax=ax) or plot_sdf(fig, ax, f)"
         )
-    if isinstance(show_isolines, str) or show_isolines is None or show_isolines is False:
-        ok = show_isolines in ISOLINE_OPTIONS
-    else:
-        ok = False
-    if not ok:
-        raise ValueError(
-            f"show_isolines must be 'all', 'zero', False or None, got "
-            f"show_isolines={show_isolines!r}"
-        )
-    if colorbar and not (show_isolines == "all" or show_quiver):
-        raise ValueError(
-            f"colorbar=True needs something coloured by the distance "
-            f"(show_isolines='all' or show_quiver=True), got "
-            f"show_isolines={show_isolines!r}, show_quiver={show_quiver!r}"
-        )
+    colorbar = _check_show(show_isolines, show_quiver, colorbar)
     bounds = check_bounds(bounds)
     samples = _check_samples(samples)
     levels = _check_levels(levels, show_isolines)
     if ax is None:
-        import matplotlib.pyplot as plt
-
-        if axes:
-            _, ax = plt.subplots(figsize=_figure_size(bounds, colorbar, title), layout="compressed")
-        else:
-            _, ax = plt.subplots()
-
-    _setup_axes(ax, bounds, ticks or axes)
+        ax = _new_axes(bounds, axes, colorbar, title)
+    _setup_axes(ax, bounds, axes if ticks is None else ticks)
     if title is not None:
         ax.set_title(title)
     ret = {"ax": ax}
     if not (show_quiver or show_isolines or filled):
         return ret
 
-    if show_quiver:
-        xs, ys, d, grad = sdf_grid(f, bounds, samples, compute_gradient=True)
-    else:
-        xs, ys, d = sdf_grid(f, bounds, samples)
+    grid = sdf_grid(f, bounds, samples, compute_gradient=show_quiver)
+    ret.update(
+        _draw_layers(ax, grid, bounds, filled, show_isolines, show_isolabels, levels, colorbar)
+    )
+    if colorbar:
+        mappable = ret["contour"] if show_isolines == "all" else ret["quiver"]
+        ret["colorbar"] = _draw_colorbar(ax, mappable, axes)
+    return ret
+
+
+def _draw_layers(
+    ax: Any,
+    grid: tuple,
+    bounds: tuple,
+    filled: bool,
+    show_isolines: Any,
+    show_isolabels: bool,
+    levels: Any,
+    colorbar: bool,
+) -> dict:
+    """:func:`plot_sdf`'s layers from ``grid`` (:func:`sdf_grid`'s, with the gradient where
+    arrows are drawn): the filled view, the lines (and their labels), the arrows, all
+    coloured on one scale of the distance when there is a colour bar."""
+    xs, ys, d = grid[:3]
     # NaN (e.g. where a grid-sampled SDF has no data) is left blank instead of breaking contour.
     dm = np.ma.masked_invalid(d)
     norm = None
-    if colorbar:
+    if colorbar and dm.count():
         from matplotlib.colors import Normalize
 
-        # One scale for lines and arrows, so the bar reads both.
-        norm = Normalize(float(dm.min()), float(dm.max())) if dm.count() else None
-
+        norm = Normalize(float(dm.min()), float(dm.max()))  # one scale for lines and arrows
+    ret: dict = {}
     if filled:
         ret["fill"] = ax.contourf(
             xs,
@@ -391,24 +452,15 @@ def plot_sdf(
             zorder=0.5,
         )
     if show_isolines:
-        if show_isolines == "zero":
-            levels = [0.0]
-        ret["contour"] = ax.contour(xs, ys, dm, levels=levels, zorder=2, norm=norm)
+        ret.update(_draw_isolines(ax, xs, ys, dm, str(show_isolines), levels, norm))
         if show_isolabels:
             ret["labels"] = _label_isolines(ax, ret["contour"], bounds)
-    if show_quiver:
-        sx = max(1, round(samples[0] / QUIVER_ARROWS))
-        sy = max(1, round(samples[1] / QUIVER_ARROWS))
+    if len(grid) == 4:  # the arrows
+        grad = grid[3]
+        sx = max(1, round(len(xs) / QUIVER_ARROWS))
+        sy = max(1, round(len(ys) / QUIVER_ARROWS))
         X, Y = np.meshgrid(xs[::sx], ys[::sy])
         ret["quiver"] = ax.quiver(
             X, Y, grad[::sy, ::sx, 0], grad[::sy, ::sx, 1], d[::sy, ::sx], zorder=3, norm=norm
-        )
-    if colorbar:
-        mappable = ret["contour"] if show_isolines == "all" else ret["quiver"]
-        # fraction/pad: a bar as tall as a square axes beside it (in the compressed layout of
-        # axes=True, as tall as any axes: 0.046 would shorten it there).
-        size = dict(fraction=0.05, aspect=25, pad=0.03) if axes else dict(fraction=0.046, pad=0.04)
-        ret["colorbar"] = ax.figure.colorbar(
-            mappable, ax=ax, label="distance d (negative inside)", **size
         )
     return ret

@@ -11,31 +11,27 @@ from typing import IO, Any
 
 from tqdm.auto import tqdm
 
+from fastsdf.notice import is_terminal
+
 __all__ = ["Progress", "progress"]
 
 
-def _is_terminal(stream: IO[str]) -> bool:
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError):  # closed or not a real stream
-        return False
-
-
 def progress(total: int, label: str = "", stream: IO[str] | None = None, **kwargs: Any) -> tqdm:
-    """A tqdm bar of ``total`` steps on ``stream`` (default stderr), off unless it is a terminal.
+    """A tqdm bar of ``total`` steps named ``label`` on ``stream`` (default stderr), off unless
+    it is a terminal.
 
     Pass ``disable=False`` to force it on (e.g. in a notebook, where tqdm draws a widget).
     """
     stream = stream if stream is not None else sys.stderr
-    kwargs.setdefault("disable", not _is_terminal(stream))
+    kwargs.setdefault("disable", not is_terminal(stream))
     return tqdm(
         total=max(1, int(total)), desc=label, file=stream, dynamic_ncols=True, leave=True, **kwargs
     )
 
 
 class Progress:
-    """``with Progress(total, 'label') as bar: ... bar.step(note)``: a tqdm bar (see
-    :func:`progress`); ``note`` is shown after the counts."""
+    """``with Progress(total, 'label') as bar: ... bar.step(note)``: a tqdm bar on ``stream``
+    (see :func:`progress`); ``note`` is shown after the counts."""
 
     def __init__(self, total: int, label: str = "", stream: IO[str] | None = None):
         self._bar = progress(total, label, stream)

@@ -32,9 +32,8 @@ from typing import Any
 import numba
 import numpy as np
 from numba import njit, prange
-from numpy.typing import ArrayLike
 
-from fastsdf.viz.plotting import check_bounds
+from fastsdf.expr.validate import check_bounds, count, reals, shown
 
 __all__ = [
     "density_image",
@@ -137,38 +136,21 @@ def _splat_parallel(xs, ys, ws, use_w, img, xe, ye, chunks):
 # Validation helpers (errors name the parameter and the value).
 
 
-def _check_count(value: object, name: str, minimum: int) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
-    if int(value) < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {name}={value!r}")
-    return int(value)
-
-
 def check_shape(shape: Any) -> tuple[int, int]:
     try:
         h, w = shape
     except (TypeError, ValueError):
         raise ValueError(
-            f"shape must be a pair (H, W) of positive integers, got shape={shape!r}"
+            f"shape must be a pair (H, W) of positive integers, got shape={shown(shape)}"
         ) from None
     if not all(
         isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and int(v) >= 1
         for v in (h, w)
     ):
-        raise ValueError(f"shape must be a pair (H, W) of positive integers, got shape={shape!r}")
-    return int(h), int(w)
-
-
-def _coords(v: ArrayLike, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
         raise ValueError(
-            f"{name} must be an array of real numbers, got {name} of type {type(v).__name__}"
-        ) from None
-    # 1-d arrays (strided views such as sim.p['x'][:, 0] included) go to the kernel as they are.
-    return arr if arr.ndim == 1 else arr.reshape(-1)
+            f"shape must be a pair (H, W) of positive integers, got shape={shown(shape)}"
+        )
+    return int(h), int(w)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -205,14 +187,14 @@ def density_image(
     """
     (x0, x1), (y0, y1) = check_bounds(bounds)
     h, w = check_shape(shape)
-    xs, ys = _coords(x, "x"), _coords(y, "y")
+    xs, ys = reals(x, "x"), reals(y, "y")
     if xs.shape != ys.shape:
         raise ValueError(
             f"x and y must have the same number of points, got {xs.size} and {ys.size}"
         )
     use_w = weights is not None
     if use_w:
-        ws = _coords(weights, "weights")
+        ws = reals(weights, "weights")
         if ws.shape != xs.shape:
             raise ValueError(
                 f"weights must have one value per point ({xs.size}), got {ws.size} values"
@@ -299,7 +281,9 @@ class ParticleLayer:
     image (``None`` in circle mode); ``colorbar``, the density image's colour bar (particles per
     pixel) when one was asked for and the layer is in density mode, else ``None``; ``bounds``,
     ``shape``, ``max_circles``. The mode is chosen from the particle count at every update, so a
-    layer switches representation if the count crosses ``max_circles``.
+    layer switches representation if the count crosses ``max_circles``. The drawing options
+    (``color``, ``cmap``, ``norm``, ``alpha``, ``zorder``, ``marker_points``, ``colorbar``)
+    are :func:`draw_particles`'s.
     """
 
     def __init__(
@@ -446,7 +430,7 @@ class ParticleLayer:
         if r is None:
             r = self._r
         self._r = r
-        xs, ys = _coords(x, "x"), _coords(y, "y")
+        xs, ys = reals(x, "x"), reals(y, "y")
         if xs.shape != ys.shape:
             raise ValueError(
                 f"x and y must have the same number of points, got {xs.size} and {ys.size}"
@@ -501,7 +485,7 @@ def draw_particles(
         bounds = (ax.get_xlim(), ax.get_ylim())
         bounds = tuple((min(b), max(b)) for b in bounds)
     bounds = check_bounds(bounds)
-    max_circles = _check_count(max_circles, "max_circles", 0)
+    max_circles = count(max_circles, "max_circles", 0)
     if shape is not None:
         shape = check_shape(shape)
     layer = ParticleLayer(
@@ -525,26 +509,49 @@ def draw_particles(
 # A world with particles in one figure; animations of a running simulation; saving them.
 
 
+#: The width (inches) of a figure that :func:`render_frame` sizes to its bounds, and the
+#: most its axes may be tall.
+FRAME_WIDTH = 6.4
+FRAME_MAX_HEIGHT = 6.4
+
+
 def world_figure(
-    f: Any, bounds: Any, samples: int, figsize: tuple, dpi: float, ticks: bool = True
+    f: Any,
+    bounds: Any,
+    samples: int,
+    figsize: tuple | None,
+    dpi: float,
+    ticks: bool = True,
+    bar: bool = True,
+    title: bool = True,
 ) -> tuple:
     """``(fig, ax, cax)``: ``f``'s filled view on ``ax``, and a hidden axes ``cax`` for a colour
     bar beside it, laid out by hand so that nothing is cut and no margin is wasted (matplotlib's
-    layout engines misplace a colour bar beside an equal-aspect axes)."""
+    layout engines misplace a colour bar beside an equal-aspect axes). ``figsize=None``: a
+    figure :data:`FRAME_WIDTH` wide (narrower for a tall world, whose axes stop at
+    :data:`FRAME_MAX_HEIGHT`) as tall as the bounds' aspect needs, with room for the colour
+    bar only with ``bar`` (without, the same axes in a narrower figure) and for a title only
+    with ``title``."""
     from matplotlib.figure import Figure
 
-    from fastsdf.viz.plotting import check_bounds, plot_sdf
+    from fastsdf.viz.plotting import plot_sdf
 
     (x0, x1), (y0, y1) = check_bounds(bounds)
+    left, bottom = (0.75, 0.47) if ticks else (0.15, 0.15)
+    top = 0.32 if title else (0.15 if ticks else 0.1)
+    # the colour bar: gap, width, room for its ticks and label (1.2 in all; else room for a
+    # tick label)
+    gap, width, right = (0.15, 0.2, 0.85) if bar else (0.0, 0.0, 0.3 if ticks else 0.15)
+    aspect = (y1 - y0) / (x1 - x0)
+    if figsize is None:  # the axes as wide with or without a colour bar: the figure narrower
+        w = min(FRAME_WIDTH - left - 1.2, FRAME_MAX_HEIGHT / aspect)
+        figsize = (round(left + w + gap + width + right, 2), round(bottom + w * aspect + top, 2))
     fig = Figure(figsize=figsize, dpi=dpi)
     W, H = fig.get_size_inches()
-    left, bottom, top = (0.75, 0.6, 0.45) if ticks else (0.15, 0.15, 0.45)
-    gap, bar, right = 0.15, 0.2, 0.85  # colour bar: gap, width, room for its ticks and label
-    aspect = (y1 - y0) / (x1 - x0)
-    w = min(W - left - gap - bar - right, (H - bottom - top) / aspect)
+    w = min(W - left - gap - width - right, (H - bottom - top) / aspect)
     h = w * aspect
     ax = fig.add_axes((left / W, bottom / H, w / W, h / H))
-    cax = fig.add_axes(((left + w + gap) / W, bottom / H, bar / W, h / H))
+    cax = fig.add_axes(((left + w + gap) / W, bottom / H, max(width, 0.01) / W, h / H))
     cax.set_visible(False)
     plot_sdf(
         fig,
@@ -570,7 +577,7 @@ def render_frame(
     title: str | None = None,
     samples: int = 400,
     max_circles: int | None = None,
-    figsize: tuple = (6.4, 5.6),
+    figsize: tuple | None = None,
     dpi: float = 100,
     colorbar: bool = True,
     ticks: bool = True,
@@ -587,15 +594,20 @@ def render_frame(
     pixel when ``colorbar``, scaled by :func:`density_norm` up to ``vmax`` particles per pixel
     (``None``: the busiest pixel's count; give a video's ``vmax`` to colour the picture as its
     frames). ``title`` is the axes title (say what is shown: the simulated time,
-    the step). The figure is ``figsize`` inches at ``dpi``, laid out without wasted margin
-    (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
+    the step). The figure is ``figsize`` inches at ``dpi`` (default: sized to ``bounds``,
+    :data:`FRAME_WIDTH` wide with a colour bar, the same axes in a narrower figure without
+    one), laid out
+    without wasted margin (``fig.axes[1]`` holds the colour bar, hidden when there is none); if
     ``out_png`` is given it is saved there at that dpi, uncropped, so the axes' ``transData``
     maps data coordinates to the PNG's pixels (y counted from the bottom).
 
     Returns the ``matplotlib.figure.Figure`` (not registered with pyplot, so nothing needs
     closing; its axes is ``fig.axes[0]`` and the particle layer ``fig.particle_layer``).
     """
-    fig, ax, cax = world_figure(f, bounds, samples, figsize, dpi, ticks)
+    max_circles = DEFAULT_MAX_CIRCLES if max_circles is None else max_circles
+    # a colour bar: of the density image drawn above max_circles particles
+    bar = bool(colorbar) and (figsize is not None or np.size(x) > max_circles)
+    fig, ax, cax = world_figure(f, bounds, samples, figsize, dpi, ticks, bar, title is not None)
     layer = draw_particles(
         ax,
         x,
@@ -603,7 +615,7 @@ def render_frame(
         r=r,
         bounds=bounds,
         colorbar=cax if colorbar else False,
-        max_circles=DEFAULT_MAX_CIRCLES if max_circles is None else max_circles,
+        max_circles=max_circles,
         norm=None if vmax is None else density_norm(vmax),
     )
     fig.particle_layer = layer
@@ -660,6 +672,7 @@ def animate(
     ``title``: when not ``None``, the axes title is ``title`` followed by each frame's simulated
     time and step count since the simulation's reset (:func:`sim_title`). ``interval``: delay
     between frames in ms (default the simulation's timestep times ``steps_per_frame``).
+    ``repeat`` and ``blit`` are ``FuncAnimation``'s (a repeat continues the simulation).
 
     Each frame advances the simulation once more every time the animation is drawn or saved:
     saving it twice continues the simulation. Returns a ``FuncAnimation`` (keep a reference;
@@ -667,16 +680,16 @@ def animate(
     """
     from matplotlib.animation import FuncAnimation
 
-    frames = _check_count(frames, "frames", 1)
+    frames = count(frames, "frames", 1)
     if isinstance(steps_per_frame, numbers.Integral) and not isinstance(steps_per_frame, bool):
-        schedule = [_check_count(steps_per_frame, "steps_per_frame", 0)] * frames
+        schedule = [count(steps_per_frame, "steps_per_frame", 0)] * frames
     else:
         try:
-            schedule = [_check_count(k, "steps_per_frame", 0) for k in steps_per_frame]
+            schedule = [count(k, "steps_per_frame", 0) for k in steps_per_frame]
         except TypeError:
             raise ValueError(
                 f"steps_per_frame must be an integer >= 0 or one per frame, got "
-                f"steps_per_frame={steps_per_frame!r}"
+                f"steps_per_frame={shown(steps_per_frame)}"
             ) from None
         if len(schedule) != frames:
             raise ValueError(
@@ -757,7 +770,9 @@ def save_animation(
 
     ext = os.path.splitext(str(path))[1].lower()
     if ext not in VIDEO_FORMATS:
-        raise ValueError(f"path must end in one of {', '.join(VIDEO_FORMATS)}, got path={path!r}")
+        raise ValueError(
+            f"path must end in one of {', '.join(VIDEO_FORMATS)}, got path={shown(path)}"
+        )
     if fps is None:
         fps = 1000.0 / float(getattr(anim, "_interval", 50) or 50)
     kind = VIDEO_FORMATS[ext]
@@ -809,19 +824,16 @@ def notebook_animation(
     fig: Any,
     ax: Any,
     sim: Any,
+    *,
     frames: int = 300,
     repeat: bool = True,
     use_wall_time: bool = False,
     interval: float | None = None,
 ) -> Any:
-    """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's ``create_animation``).
-
-    Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
-    calls ``sim.reset(ax)``, which redraws a fresh random state. ``interval`` is the delay
-    between frames in milliseconds (default: the simulation's timestep). Returns the animation
-    (keep a reference to it; ``anim.to_html5_video()`` renders it in a notebook: an MP4 when
-    ffmpeg is installed, matplotlib's JavaScript player (``to_jshtml``) otherwise).
-    """
+    """The drawing of :func:`fastsdf.particles.create_animation` (the notebook's helper), which
+    states what ``fig``, ``ax``, ``sim``, ``frames``, ``repeat``, ``use_wall_time`` and
+    ``interval`` do: a ``FuncAnimation`` whose frames call ``sim.update(ax, use_wall_time)``
+    and whose init calls ``sim.reset(ax)``."""
     from matplotlib.animation import FuncAnimation
 
     if interval is None:
