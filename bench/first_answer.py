@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             for tree in caches:
                 _time(tree, caches[tree], n, seed, "" if not _has_tape(tree) else "tape")
                 _time(tree, caches[tree], n, seed + 1)
-        for rnd in range(args.rounds):
+        for _ in range(args.rounds):
             for n in args.sizes:
                 for name, tree, backend in paths:
                     seed += 2
