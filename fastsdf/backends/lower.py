@@ -294,8 +294,6 @@ class Program:
         self._folds: dict[tuple, FoldPlan | None] = {}
         self._combine: dict[bool, Combine | None] = {}
         self._nodes: list | None = None
-        #: the operations the scene uses (a module imports what they call)
-        self.ops: set[str] = set()
         self.order = self._walk(root, {})
         self._number_groups()
 
@@ -317,6 +315,14 @@ class Program:
             self._nodes = topological_order(self.root)
         return self._nodes
 
+    @property
+    def ops(self) -> set[str]:
+        """The operations the scene uses (a module imports what they call): those of the
+        planned nodes and of every loop's template."""
+        steps = [g.steps for g in self.groups]
+        steps += [shape[0] for shapes in self._shapes.values() for shape in shapes.values()]
+        return {n.op for n in self._deps} | {s[0].op for ss in steps for s in ss}
+
     def deps(self, node: Expr) -> list:
         """The values ``node`` is computed from in straight-line code: a chain's operands
         outside loops, else its arguments."""
@@ -327,7 +333,6 @@ class Program:
         t = self._templates.get(node)
         if t is None:
             t = self._templates[node] = template(node)
-            self.ops.update(step[0].op for step in t[1])
         return t
 
     # -- the walk ----------------------------------------------------------------------------
@@ -355,7 +360,6 @@ class Program:
     def _plan(self, node: Expr) -> list:
         deps = self._deps.get(node)
         if deps is None:
-            self.ops.add(node.op)
             if node.op in CHAIN_OPS:
                 items = self._plan_chain(node)
                 self.chains[node] = Chain(node, items)
