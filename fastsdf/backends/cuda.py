@@ -27,7 +27,12 @@ import numpy as np
 from fastsdf.backends.code import MATH, Style, render
 from fastsdf.backends.emit import Emitter
 from fastsdf.backends.kernel.cache import hashed_import, load_module
-from fastsdf.backends.kernel.codegen import docstring_text, render_lines, table_source
+from fastsdf.backends.kernel.codegen import (
+    docstring_text,
+    point_function,
+    render_lines,
+    table_source,
+)
 from fastsdf.backends.lower import Program
 from fastsdf.backends.prune import PrunePlan, snap_rect
 from fastsdf.device import cuda, simulated
@@ -60,15 +65,8 @@ def _sel(c, a, b):
 
 '''
 
-_POINT = """
-@cuda.jit(device=True)
-def point_{kind}(x, y, {args}):
-    if not (math.isfinite(x) and math.isfinite(y)):
-        return {nan}
-{body}
-    return {results}
-"""
 
+_DEVICE = "@cuda.jit(device=True)"
 _STORE = {
     "v": "out[i] = r0",
     "vg": "out[i] = r0\n        grad[i, 0] = r1\n        grad[i, 1] = r2",
@@ -154,15 +152,10 @@ def module_source(program: Program) -> str:
         lines = [f"_p{i} = prm[{i}]" for i in range(body.nparams)]
         lines += render_lines(body.stmts, style)
         res = ", ".join(f"r{j}" for j in range(_OUTPUTS[kind]))
-        parts.append(
-            _POINT.format(
-                kind=kind,
-                args=arglist,
-                nan=", ".join(["math.nan"] * _OUTPUTS[kind]),
-                body="\n".join("    " + line for line in lines) or "    pass",
-                results=", ".join(render(r, style) for r in body.results),
-            )
-        )
+        results = [render(r, style) for r in body.results]
+        doc = f"point_{kind} on the device (the tables and row lists as arguments)."
+        point = point_function(f"point_{kind}", doc, lines, results, ", " + arglist, _DEVICE)
+        parts.append(point)
         fmt = dict(kind=kind, outs=_OUT_ARGS[kind], res=res, store=_STORE[kind])
         parts.append(_BATCH.format(args=arglist, **fmt))
         if groups:

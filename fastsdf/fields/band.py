@@ -147,6 +147,15 @@ def _lerp2(tx, ty, a, b, c, e):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _lerp_channel(q, base, c, k, tx, ty):
+    """Channel ``k`` (value, x or y gradient) of a fine cell's nodes (``base`` its lower left,
+    ``c`` the node one column on; 3 channels per node), blended bilinearly."""
+    u3 = np.uint64(3)
+    a, b = np.float64(q[base + k]), np.float64(q[base + k + u3])
+    return _lerp2(tx, ty, a, b, np.float64(q[c + k]), np.float64(q[c + k + u3]))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def sample_band(data: tuple, x: float, y: float) -> tuple[float, float, float, bool]:
     """Value and gradient at one point of a :class:`NarrowBandGridSDF`.
 
@@ -165,32 +174,9 @@ def sample_band(data: tuple, x: float, y: float) -> tuple[float, float, float, b
     q = data[1]
     base = np.uint64(3 * ((k * _N1 + a) * _N1 + b))
     c = base + np.uint64(3 * _N1)
-    u1, u3 = np.uint64(1), np.uint64(3)
-    u2, u4, u5 = np.uint64(2), np.uint64(4), np.uint64(5)
-    d = _lerp2(
-        tx,
-        ty,
-        np.float64(q[base]),
-        np.float64(q[base + u3]),
-        np.float64(q[c]),
-        np.float64(q[c + u3]),
-    )
-    gx = _lerp2(
-        tx,
-        ty,
-        np.float64(q[base + u1]),
-        np.float64(q[base + u4]),
-        np.float64(q[c + u1]),
-        np.float64(q[c + u4]),
-    )
-    gy = _lerp2(
-        tx,
-        ty,
-        np.float64(q[base + u2]),
-        np.float64(q[base + u5]),
-        np.float64(q[c + u2]),
-        np.float64(q[c + u5]),
-    )
+    d = _lerp_channel(q, base, c, np.uint64(0), tx, ty)
+    gx = _lerp_channel(q, base, c, np.uint64(1), tx, ty)
+    gy = _lerp_channel(q, base, c, np.uint64(2), tx, ty)
     return d, gx, gy, True
 
 

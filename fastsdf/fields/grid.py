@@ -528,8 +528,7 @@ class GridSDF:
         self.bytes_per_node = BYTES_PER_NODE[(self.gradient, self.dtype.name)]
         self.data = self._sample()
         self.nbytes = int(self.data.nbytes)
-        ihx, ihy = 1.0 / self.spacing[0], 1.0 / self.spacing[1]
-        self.sampler_data = (self.data.reshape(-1), x0, x1, y0, y1, ihx, ihy, nx, ny)
+        self._set_sampler_data()
         self._channels = 3 if self.gradient == "stored" else 1
 
     @classmethod
@@ -581,17 +580,7 @@ class GridSDF:
         g.bytes_per_node = BYTES_PER_NODE[(g.gradient, g.dtype.name)]
         g.data = np.ascontiguousarray(v, dtype=g.dtype)
         g.nbytes = int(g.data.nbytes)
-        g.sampler_data = (
-            g.data.reshape(-1),
-            x0,
-            x1,
-            y0,
-            y1,
-            1.0 / g.spacing[0],
-            1.0 / g.spacing[1],
-            nx,
-            ny,
-        )
+        g._set_sampler_data()
         g._channels = 1
         return g
 
@@ -797,19 +786,15 @@ class GridSDF:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
+        self._set_sampler_data()
+
+    def _set_sampler_data(self) -> None:
+        """The tuple the samplers read: the flat nodes, the bounds, the inverse spacings and
+        the node counts."""
         (x0, x1), (y0, y1) = self.bounds
         nx, ny = self.shape
-        self.sampler_data = (
-            self.data.reshape(-1),
-            x0,
-            x1,
-            y0,
-            y1,
-            1.0 / self.spacing[0],
-            1.0 / self.spacing[1],
-            nx,
-            ny,
-        )
+        ihx, ihy = 1.0 / self.spacing[0], 1.0 / self.spacing[1]
+        self.sampler_data = (self.data.reshape(-1), x0, x1, y0, y1, ihx, ihy, nx, ny)
 
     def __repr__(self) -> str:
         return (

@@ -37,7 +37,14 @@ from fastsdf.backends.lower import Program
 from fastsdf.expr.graph import Expr, dag_size, expr_to_str
 from fastsdf.version import __version__
 
-__all__ = ["generate_module", "render_lines", "table_source", "docstring_text", "COMBINE_PROGRAMS"]
+__all__ = [
+    "generate_module",
+    "render_lines",
+    "point_function",
+    "table_source",
+    "docstring_text",
+    "COMBINE_PROGRAMS",
+]
 
 #: Scenes whose per-point code is longer than this (lines) get block kernels that evaluate
 #: same-shape subexpressions anywhere in the scene in loops first.
@@ -62,14 +69,32 @@ from fastsdf.intrinsics import select as _sel
 '''
 
 _POINT_TEMPLATE = '''
-@njit(cache=True, nogil=True, error_model="numpy")
-def {name}(x, y{pargs}):
+{decorator}
+def {name}(x, y{args}):
     """{doc}"""
     if not (math.isfinite(x) and math.isfinite(y)):
-        return {nan_return}
+        return {nan}
 {body}
-    return {ret}
+    return {results}
 '''
+_NJIT = '@njit(cache=True, nogil=True, error_model="numpy")'
+
+
+def point_function(
+    name: str, doc: str, lines: list, results: list, args: str = "", decorator: str = _NJIT
+) -> str:
+    """Source of a one-point function ``name(x, y, ...)`` (``args``: the further arguments,
+    each after a comma) of the rendered ``lines`` and ``results``; non-finite points give NaN."""
+    return _POINT_TEMPLATE.format(
+        decorator=decorator,
+        name=name,
+        args=args,
+        doc=doc,
+        nan=", ".join(["math.nan"] * len(results)),
+        body="\n".join("    " + line for line in lines) or "    pass",
+        results=", ".join(results),
+    )
+
 
 _DOC = {
     "v": "Value at one point.",
@@ -94,31 +119,16 @@ def _point_sources(body: Body, kind: str, program: Program, vmath: bool) -> tupl
     # Parameters: read once per call from the tuple (passed by value: no reference counting).
     binds += [f"_p{i} = prm[{i}]" for i in range(body.nparams)]
     results = [render(r, style) for r in body.results]
-    nan = ", ".join(["math.nan"] * len(results))
     pargs = ", t, prm" if program.parametric else ""
     # The one-point function iterates every row of every group; rows_vg takes the row lists as
     # arguments (all rows, or a tile's pruned lists).
     all_rows = ["_act = _ACTG", "_off = _OFFG"] if program.groups else []
-    point = _POINT_TEMPLATE.format(
-        name=f"point_{kind}",
-        doc=_DOC[kind],
-        body="\n".join("    " + line for line in all_rows + binds + lines) or "    pass",
-        pargs=pargs,
-        ret=", ".join(results),
-        nan_return=nan,
-    )
+    point = point_function(f"point_{kind}", _DOC[kind], all_rows + binds + lines, results, pargs)
     many = ""
     if program.groups and kind == "vg" and not program.parametric:
         # For per-point callers such as the particle step (see fastsdf.backends.prune).
-        many = _POINT_TEMPLATE.format(
-            name="rows_vg",
-            doc="point_vg over the row lists ``_act``, ``_off`` (int64 "
-            "pointers, see fastsdf.backends.prune).",
-            body="\n".join("    " + line for line in binds + lines),
-            pargs=", _act, _off",
-            ret=", ".join(results),
-            nan_return=nan,
-        )
+        doc = "point_vg over the row lists ``_act``, ``_off`` (int64 pointers, see prune.py)."
+        many = point_function("rows_vg", doc, binds + lines, results, ", _act, _off")
     return point, many
 
 

@@ -40,8 +40,6 @@ __all__ = [
     "NOROWS",
     "NODATA",
     "tiles_par",
-    "run_prog_par",
-    "run_prog_ser",
     "scratch",
 ]
 
@@ -152,22 +150,28 @@ NOGRAD = np.empty((0, 2))
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
-def _run_block(pre, fn, xs, ys, out, grad, gs, S, at, s, n, act, off, data):
+def _run_block(pre, fn, step, xs, ys, out, grad, gs, S, at, s, n, act, off, data):
     """``pre`` then ``fn`` on the block of points from ``s`` (of ``n``), in the scratch space
     from ``S[at]``; the block's gradient starts at ``grad[gs * s]`` (``gs``: 2 for x y pairs,
     3 with the time derivative, or 1 where ``grad`` is ``out`` and value-only blocks never read
-    it); ``data``: the call's time and parameters."""
+    it); ``data``: the call's time and parameters. With a ``step`` function (a combine
+    program's), ``data`` is the program (flat rows) and it runs in place of ``fn``."""
     m = min(s + BLOCK, n) - s
     xp, yp, op, gp, sp = _at(xs, s), _at(ys, s), _at(out, s), _at(grad, gs * s), _at(S, at)
     dp = _at(data, 0)
     _call(pre, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0), dp)
-    _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0), dp)
+    if step == 0:
+        _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0), dp)
+    else:
+        _combine(S, at, data, step, _lanes(m))
+        _outputs(S, at, data, xs, ys, out, grad, s, m, gs == 2)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def run_par(
     pre: int,
     fn: int,
+    step: int,
     xs: np.ndarray,
     ys: np.ndarray,
     out: np.ndarray,
@@ -181,7 +185,8 @@ def run_par(
     off: np.ndarray,
     data: np.ndarray,
 ) -> None:
-    """All points: ``pre`` then ``fn`` on each block, blocks in parallel chunks, each thread
+    """All points: ``pre`` then ``fn`` (or the combine program ``data`` by ``step``, see
+    :func:`_run_block`; else ``step`` is 0) on each block, blocks in parallel chunks, each thread
     with ``size`` floats of the scratch space ``S`` (at least ``threads * size`` floats,
     ``threads``: :func:`max_threads`; see :func:`scratch`); ``act``, ``off``: the row lists of
     every block (all rows: the scene's ``_ACTG``, ``_OFFG``); ``data``: the call's time and
@@ -195,13 +200,14 @@ def run_par(
     for c in prange(chunks):
         at = get_thread_id() * size
         for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_block(pre, fn, xs, ys, out, grad, gs, S, at, b * BLOCK, n, act, off, data)
+            _run_block(pre, fn, step, xs, ys, out, grad, gs, S, at, b * BLOCK, n, act, off, data)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def run_ser(
     pre: int,
     fn: int,
+    step: int,
     xs: np.ndarray,
     ys: np.ndarray,
     out: np.ndarray,
@@ -217,7 +223,7 @@ def run_ser(
     n = xs.shape[0]
     _check_scratch(S, size)
     for s in range(0, n, BLOCK):
-        _run_block(pre, fn, xs, ys, out, grad, gs, S, 0, s, n, act, off, data)
+        _run_block(pre, fn, step, xs, ys, out, grad, gs, S, 0, s, n, act, off, data)
 
 
 @njit(cache=True, nogil=True)
@@ -411,20 +417,21 @@ def _lanes(m):
 
 @njit(nogil=True, error_model="numpy")
 def _combine(S, at, prog, step, nv):
-    """Run the program ``prog`` on one block's scratch space ``S[at:]`` (its first ``nv``
-    points: :func:`_lanes`), each step by the step function at ``step``."""
-    for p in range(prog.shape[0] - 1):
-        a = at + int(prog[p, 1])
-        m = at + int(prog[p, 2])
-        _call_step(step, int(prog[p, 0]), _at(S, a), _at(S, m), _at(prog[p], 0), nv)
+    """Run the program ``prog`` (flat rows of :data:`PROG_COLS`) on one block's scratch space
+    ``S[at:]`` (its first ``nv`` points: :func:`_lanes`), each step by the step function at
+    ``step``."""
+    for p in range(prog.shape[0] // PROG_COLS - 1):
+        r = p * PROG_COLS
+        a = at + int(prog[r + 1])
+        m = at + int(prog[r + 2])
+        _call_step(step, int(prog[r]), _at(S, a), _at(S, m), _at(prog, r), nv)
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
 def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
     """The last program row names the result rows: copy them out, NaN where the point is not
     finite."""
-    last = prog.shape[0] - 1
-    a = at + int(prog[last, 1])
+    a = at + int(prog[prog.shape[0] - PROG_COLS + 1])
     ax = a + BLOCK
     ay = a + 2 * BLOCK
     for i in range(m):
@@ -435,69 +442,6 @@ def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
         if with_grad:
             grad[2 * (start + i)] = _sel(ok, S[ax + i], math.nan)
             grad[2 * (start + i) + 1] = _sel(ok, S[ay + i], math.nan)
-
-
-@njit(nogil=True, error_model="numpy", inline="always")
-def _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, at, s, n, z):
-    """Per block: ``pre`` (the scene's loops over tables, filling the scratch rows), the combine
-    program ``prog`` (its steps by ``step``), the outputs (``gs`` and ``grad`` as in
-    :func:`_run_block`)."""
-    m = min(s + BLOCK, n) - s
-    gp = _at(grad, gs * s)
-    z0 = _at(z, 0)
-    _call(pre, _at(xs, s), _at(ys, s), _at(out, s), gp, m, _at(S, at), z0, z0, _at(NODATA, 0))
-    _combine(S, at, prog, step, _lanes(m))
-    _outputs(S, at, prog, xs, ys, out, grad, s, m, gs == 2)
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def run_prog_par(
-    pre: int,
-    step: int,
-    prog: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    out: np.ndarray,
-    grad: np.ndarray,
-    gs: int,
-    S: np.ndarray,
-    size: int,
-    chunks: int,
-    threads: int,
-) -> None:
-    """All points: per block, ``pre`` (the scene's loops over tables, filling the scratch
-    rows) then the combine program ``prog`` (steps by the function at ``step``); blocks in
-    parallel chunks (``grad`` and ``gs`` as in :func:`run_par`)."""
-    n = xs.shape[0]
-    blocks = (n + BLOCK - 1) // BLOCK
-    chunks = max(1, min(blocks, chunks))
-    _check_scratch(S, threads * size)
-    z = np.zeros(1, dtype=np.int64)  # no row lists: the scene has no loops over rows
-    for c in prange(chunks):
-        at = get_thread_id() * size
-        for b in range(c * blocks // chunks, (c + 1) * blocks // chunks):
-            _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, at, b * BLOCK, n, z)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def run_prog_ser(
-    pre: int,
-    step: int,
-    prog: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    out: np.ndarray,
-    grad: np.ndarray,
-    gs: int,
-    S: np.ndarray,
-    size: int,
-) -> None:
-    """:func:`run_prog_par` in this thread."""
-    n = xs.shape[0]
-    _check_scratch(S, size)
-    z = np.zeros(1, dtype=np.int64)
-    for s in range(0, n, BLOCK):
-        _run_prog_block(pre, step, prog, xs, ys, out, grad, gs, S, 0, s, n, z)
 
 
 def _guard():

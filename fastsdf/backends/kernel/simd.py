@@ -411,13 +411,13 @@ def batch_{kind}_par({sig}, chunks, S=None, D=_NODATA):
     (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here;
     ``D``: the time and the parameters' values, for a scene with them)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows}, D)
+    _run_par({fold}.address, _block_{kind}_fn.address, 0, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows}, D)
 
 
 def batch_{kind}_ser({sig}, S=None, D=_NODATA):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_ser({fold}.address, _block_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, {rows}, D)
+    _run_ser({fold}.address, _block_{kind}_fn.address, 0, xs, ys, out, {gflat}S, {size}, {rows}, D)
 '''
 
 _TILES = '''
@@ -435,7 +435,7 @@ def program_source(loops: list, kind: str, combine: Combine) -> tuple[str, str]:
     over same-shape subexpressions, as in :func:`block_source`, storing into scratch rows), of
     the combine program ``_PROG_<KIND>`` (see :meth:`fastsdf.backends.lower.Program.combine`)
     and of the kernels ``batch_<kind>_par`` / ``batch_<kind>_ser``, which run both through the
-    installation's kernels (:func:`fastsdf.backends.kernel.drive.run_prog_par`). The scene's
+    installation's kernels (:func:`fastsdf.backends.kernel.drive.run_par`). The scene's
     compiled code is the fold function alone: it grows with the number of distinct shapes, not
     with the primitives."""
     grad = kind == "vg"
@@ -542,13 +542,13 @@ def batch_{kind}_par({sig}, chunks, S=None):
     """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program
     (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_prog_par(_fold_{kind}_fn.address, _step_{kind}_fn.address, _PROG_{KIND}, xs, ys, out, {gflat}S, {size}, chunks, _max_threads())
+    _run_par(_fold_{kind}_fn.address, 0, _step_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), _NOROWS, _NOROWS, _PROG_{KIND}.reshape(-1))
 
 
 def batch_{kind}_ser({sig}, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_prog_ser(_fold_{kind}_fn.address, _step_{kind}_fn.address, _PROG_{KIND}, xs, ys, out, {gflat}S, {size})
+    _run_ser(_fold_{kind}_fn.address, 0, _step_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, _NOROWS, _NOROWS, _PROG_{KIND}.reshape(-1))
 '''
 
 
@@ -564,8 +564,6 @@ def drive_import() -> str:
         "NOROWS as _NOROWS",
         "NOGRAD as _NOGRAD",
         "NODATA as _NODATA",
-        "run_prog_par as _run_prog_par",
-        "run_prog_ser as _run_prog_ser",
         "scratch as _drive_scratch",
     ]
     drive = hashed_import("fastsdf.backends.kernel.drive", names)
