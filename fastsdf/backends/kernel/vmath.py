@@ -93,13 +93,13 @@ _SMALL_HI = 0.41421356237309503
 _TINY = 1.1102230246251565e-16  # 2^-53: below it log1p(x) rounds to x
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _int_to_f64(k):
     """An int64 ``|k| < 2^51`` as float64 by bit arithmetic (AVX2 has no int64 -> double)."""
     return bits_f64(k + _SHIFT_BITS) - _SHIFT
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def vexp(x: float) -> float:
     """``e**x`` for a float64, branch-free (within 2 ulp of ``math.exp``; see the module)."""
     xc = select(x > _EXP_HI, _EXP_HI, x)
@@ -125,7 +125,7 @@ def vexp(x: float) -> float:
     return (p * bits_f64((k1 + 1023) << 52)) * bits_f64((k2 + 1023) << 52)
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _log1p_kernel(f, kf, c):
     """``kf ln2 + log1p(f) + c`` for ``1 + f`` in ``[sqrt(2)/2, sqrt(2))`` (fdlibm)."""
     hfsq = 0.5 * f * f
@@ -138,7 +138,7 @@ def _log1p_kernel(f, kf, c):
     return fma(s, hfsq + r, fma(kf, _LN2_LO, c)) - hfsq + f + kf * _LN2_HI
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def vlog(x: float) -> float:
     """Natural logarithm of a float64, branch-free (within 2 ulp of ``math.log``)."""
     sub = x < _MIN_NORMAL  # subnormal (or <= 0: replaced below)
@@ -155,7 +155,7 @@ def vlog(x: float) -> float:
     return select(x != x, x, res)
 
 
-@njit(nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def vlog1p(x: float) -> float:
     """``log(1 + x)`` of a float64, branch-free (within 2 ulp of ``math.log1p``)."""
     u = 1.0 + x
@@ -183,7 +183,7 @@ _DOWN = 2.0**-600
 _UP = 2.0**600
 
 
-@njit(nogil=True, error_model="numpy")  # no contraction: same bits as a*a+b*b
+@njit(cache=True, nogil=True, error_model="numpy")  # no contraction: same bits as a*a+b*b
 def vlength(a: float, b: float) -> float:
     """``sqrt(a*a + b*b)`` for float64, branch-free, without overflow or underflow."""
     m = max(abs(a), abs(b))
@@ -194,7 +194,7 @@ def vlength(a: float, b: float) -> float:
     return math.sqrt(sa * sa + sb * sb) * inv
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def vlength_grad(a: float, b: float) -> tuple[float, float, float]:
     """``(r, a/r, b/r)`` with ``r = sqrt(a*a + b*b)``, branch-free, without overflow or
     underflow (also for subnormal ``r``); ``(0, 1, 0)`` at ``a = b = 0``. Bit-identical to
