@@ -75,10 +75,12 @@ PRUNE_TILES = 32
 
 
 class CompiledSDF:
-    """The compiled kernels of one expression of two coordinates.
+    """The compiled kernels of one expression of two coordinates: ``expr`` over the symbols
+    named ``symbol_names`` (x first); ``vmath=False`` keeps the C library's ``exp``/``log``
+    instead of the vectorisable ones (for comparison).
 
-    Everything is lazy: the module source is generated on first use, and each numba function
-    compiles (or loads from the disk cache) the first time it is needed.
+    Everything is lazy: the scene is lowered and its module generated on first use, and each
+    numba function compiles (or loads from the disk cache) the first time it is needed.
     """
 
     def __init__(self, expr: Expr, symbol_names: Sequence[str], vmath: bool = True):
@@ -160,12 +162,15 @@ class CompiledSDF:
         return self._module
 
     def point_fn(self, kind: str = "vg") -> Any:
-        """The numba dispatcher of the per-point function (``point_v``, ``point_vg`` or
-        ``point_vgt``); a scene with parameters takes ``(x, y, t, prm)``."""
+        """The numba dispatcher of the per-point function of ``kind`` (``'v'``: ``point_v``,
+        ``'vg'``: ``point_vg``, or ``'vgt'``: ``point_vgt``); a scene with parameters takes
+        ``(x, y, t, prm)``."""
         return getattr(self.module, "point_" + self._kind(kind))
 
     def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
-        """Batch kernel ``(xs, ys, out[, grad[, dt]][, t, prm])`` over 1-d float64 arrays."""
+        """The batch kernel of ``kind`` (``'v'``, ``'vg'``, ``'vgt'``), ``parallel`` or serial:
+        ``(xs, ys, out[, grad][, chunks], S=None, D=...)`` over 1-d float64 arrays (``grad``
+        (n, 2), or (n, 3) with dd/dt for ``'vgt'``; ``D``: the time, then the parameters)."""
         return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
 
     @property
@@ -214,7 +219,8 @@ class CompiledSDF:
     def compile_in_background(self, req: Request | None = None) -> threading.Event:
         """Compile (or load from the disk cache) the kernels of the kinds a call did not ask
         for, in a daemon thread; returns an event set when done (also on failure: see
-        :attr:`warm_error`). Started once.
+        :attr:`warm_error`). Started once; ``req``: the call's request (its pruning plan is
+        built too).
 
         The thread runs only serial kernels on a few points: for scenes without parameters that
         compiles the scene's block functions, which the parallel kernels call (those are
@@ -254,7 +260,8 @@ class CompiledSDF:
         target: str = "cpu",
     ) -> PrunePlan:
         """The pruning plan over ``bounds = ((x0, x1), (y0, y1))`` with ``tiles = (nx, ny)``
-        (default 32 x 32) for the code of ``target`` (``'cpu'`` or ``'cuda'``), cached per
+        (default 32 x 32) and tolerance ``tol`` of exponential blends (None: half an ulp) for
+        the code of ``target`` (``'cpu'`` or ``'cuda'``), cached per
         arguments."""
         nx, ny = (PRUNE_TILES, PRUNE_TILES) if tiles is None else (int(tiles[0]), int(tiles[1]))
         key = (tuple(map(tuple, bounds)), nx, ny, tol, target)
@@ -280,7 +287,8 @@ class CompiledSDF:
         target: str = "cpu",
     ) -> PrunePlan | None:
         """The plan a call on points ``xs, ys`` should use (over ``bounds`` if given, which must
-        hold every finite point), or None for the unpruned kernels. ``prune``: None decides
+        hold every finite point; ``tol`` as in :meth:`plan`), or None for the unpruned kernels.
+        ``prune``: None decides
         (large inputs, enough operands, and only where most of them are dropped), True
         forces, False never. ``count``: the number of points the plan will serve (default
         ``len(xs)``). ``target='cuda'``: a plan for the CUDA code, ``xs, ys`` device arrays
@@ -295,8 +303,8 @@ class CompiledSDF:
     def prunable(self, tol: float | None = None) -> bool:
         """Whether per-point callers (the particle step) gain from pruning plans: a scene
         without parameters with at least ``PRUNE_MIN_OPERANDS`` operands in loops over
-        tables, and not only exponential blends with the default tolerance (next to nothing
-        to drop at half an ulp)."""
+        tables, and not only exponential blends with the default tolerance ``tol`` None (next
+        to nothing to drop at half an ulp)."""
         if self.parametric:
             return False
         groups = self.program.groups
@@ -366,10 +374,10 @@ class CompiledSDF:
         plan: PrunePlan | None = None,
         data: np.ndarray | None = None,
     ) -> tuple:
-        """The kernel of ``kind`` at flat float64 points (with the tile kernels of ``plan`` if
-        given, see :meth:`pruned_plan`; ``data``: the time and the parameters' values of a
-        scene with them): ``(value,)``, ``(value, gradient)`` or ``(value, gradient, dd/dt)``,
-        the gradient of shape (n, 2)."""
+        """The kernel of ``kind`` at flat float64 points ``xs``, ``ys`` (with the tile kernels
+        of ``plan`` if given, see :meth:`pruned_plan`; ``data``: the time and the parameters'
+        values of a scene with them): ``(value,)``, ``(value, gradient)`` or ``(value,
+        gradient, dd/dt)``, the gradient of shape (n, 2)."""
         n = xs.shape[0]
         out = np.empty(n)
         arrays: tuple = (out,) if kind == "v" else (out, np.empty((n, 3 if kind == "vgt" else 2)))
@@ -422,7 +430,8 @@ class CompiledSDF:
 
 
 def compile_expr(expr: Expr, symbol_names: Sequence[str], vmath: bool = True) -> CompiledSDF:
-    """The :class:`CompiledSDF` of ``expr`` over the two named symbols (nothing compiles yet).
+    """The :class:`CompiledSDF` of ``expr`` over the two symbols named ``symbol_names``
+    (nothing compiles yet).
 
     ``vmath=False`` keeps the C library's ``math.exp``/``math.log`` in the kernels instead of the
     vectorizable functions of :mod:`fastsdf.backends.kernel.vmath` (for comparison)."""
@@ -704,8 +713,8 @@ class Function:
         return res
 
     def evaluate(self, req: Request) -> tuple:
-        """The compiled kernel's flat results for a request made elsewhere (a grid's points
-        outside its samples), with this function's parameter values; see
+        """The compiled kernel's flat results for a request ``req`` made elsewhere (a grid's
+        points outside its samples), with this function's parameter values; see
         :meth:`CompiledSDF.evaluate`."""
         if self._params:
             req = replace(
@@ -734,7 +743,8 @@ class Function:
     def pruning_report(
         self, bounds: Sequence, tiles: Sequence | None = None, tol: float | None = None
     ) -> dict:
-        """How pruning does over ``bounds = [(x0, x1), (y0, y1)]`` cut into ``tiles = (nx,
+        """How pruning (tolerance ``tol``, default :attr:`prune_tol`) does over
+        ``bounds = [(x0, x1), (y0, y1)]`` cut into ``tiles = (nx,
         ny)`` tiles: operands in loops over tables, survivors per tile (mean, max), the
         fraction evaluated and the time to build the plan (s). Empty plan if the generated
         code has no such loops (then nothing is pruned)."""

@@ -176,6 +176,9 @@ def test_public_classes_show_their_parameters_each_documented_once():
 # The packages whose every public call names each of its parameters in its docstring (what
 # they take, in which units, which values); the others' are listed in the wave's report.
 NAMED_PARAMETERS = (
+    "fastsdf.function",
+    "fastsdf.fields",
+    "fastsdf.graph",
     "fastsdf.shapes",
     "fastsdf.geometry",
     "fastsdf.viz",

@@ -421,8 +421,10 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
             and not np.issubdtype(value.dtype, np.complexfloating)
         ):
             return _intern("const", (), float(value))
+        from fastsdf.expr.validate import shown  # (it builds on this module)
+
         raise TypeError(
-            f"{name} must be a real number or an expression, got {value!r} "
+            f"{name} must be a real number or an expression, got {shown(value)} "
             f"of type {type(value).__name__}"
         )
     return _intern("const", (), float(value))

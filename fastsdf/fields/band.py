@@ -630,7 +630,7 @@ class NarrowBandGridSDF:
         return req.answer(self.evaluate(req))
 
     def evaluate(self, req: Request) -> tuple:
-        """The flat results ``(value,)`` or ``(value, gradient)`` of a request (see
+        """The flat results ``(value,)`` or ``(value, gradient)`` of a request ``req`` (see
         :mod:`fastsdf.backends.request`)."""
         xs, ys, n = req.xs, req.ys, req.n
         out = np.empty(n)
@@ -657,11 +657,13 @@ class NarrowBandGridSDF:
         return (out,) if grad is None else (out, grad)
 
     def measure_error(self, n: int = 200_000, seed: int = 0) -> GridError:
-        """The achieved error in the band: :func:`measure_band_error` on ``n`` random points."""
+        """The achieved error in the band: :func:`measure_band_error` on ``n`` random points
+        (drawn by a generator seeded with ``seed``)."""
         return measure_band_error(self, n=n, seed=seed)
 
     def is_fine(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
-        """Boolean array: True where the point lies inside ``bounds`` in a fine tile."""
+        """Boolean array of the points' shape: True where the point ``(x, y)`` lies inside
+        ``bounds`` in a fine tile."""
         xs, ys, shape = as_points(x, y)
         (x0, x1), (y0, y1) = self.bounds
         hx, hy = self.spacing
@@ -699,7 +701,8 @@ def measure_band_error(
     band: float | None = None,
     points: tuple | None = None,
 ) -> GridError:
-    """Errors of a grid against its exact SDF on ``n`` random points in the band.
+    """Errors of a grid against its exact SDF on ``n`` random points in the band (drawn by a
+    generator seeded with ``seed``).
 
     Points are drawn uniformly from the fine tiles of ``g`` (a :class:`NarrowBandGridSDF`;
     they cover the band) and the band statistics keep those with ``|d_exact| < band`` (or

@@ -688,7 +688,7 @@ class GridSDF:
         return req.answer(self.evaluate(req))
 
     def evaluate(self, req: Request) -> tuple:
-        """The flat results ``(value,)`` or ``(value, gradient)`` of a request (see
+        """The flat results ``(value,)`` or ``(value, gradient)`` of a request ``req`` (see
         :mod:`fastsdf.backends.request`), on the CPU or the GPU as it says."""
         if req.device == "cuda":
             return self._evaluate_cuda(req)
@@ -746,7 +746,8 @@ class GridSDF:
         _exact_at(self.exact, xs, ys, idx, out, grad)
 
     def contains(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
-        """Boolean array: True where the point lies inside ``bounds`` (edges included)."""
+        """Boolean array of the points' shape: True where the point ``(x, y)`` lies inside
+        ``bounds`` (edges included)."""
         xs, ys, shape = as_points(x, y)
         (x0, x1), (y0, y1) = self.bounds
         with np.errstate(invalid="ignore"):
@@ -831,10 +832,12 @@ def _exact_at(
 class GridError:
     """Errors of a grid against its exact SDF on random points inside ``bounds``.
 
-    Value errors are absolute, in the units of the coordinates; gradient errors are the angle
-    between interpolated and exact gradient, in degrees. ``band_*`` fields restrict to points
-    with ``|d_exact| < band`` (near the surface, where collisions happen); they are NaN when no
-    point fell in the band. ``spacing`` is the grid's (hx, hy).
+    ``n`` points were compared, ``band_n`` of them in the band ``|d_exact| < band`` (near the
+    surface, where collisions happen). ``value_max`` and ``value_rms``: the value's absolute
+    error, in the units of the coordinates; ``angle_max_deg`` and ``angle_rms_deg``: the angle
+    between interpolated and exact gradient, in degrees; ``band_value_max``,
+    ``band_value_rms``, ``band_angle_max_deg`` and ``band_angle_rms_deg`` the same in the band
+    (NaN when no point fell in it). ``spacing`` is the grid's (hx, hy).
     """
 
     n: int
