@@ -11,6 +11,7 @@ resolves here lazily).
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import numbers
 import threading
@@ -25,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fastsdf.backends.kernel.cache import load_module
-from fastsdf.backends.kernel.codegen import generate_module
+from fastsdf.backends.kernel.codegen import Generated, generate_module
 from fastsdf.backends.kernel.drive import max_threads, scratch
 from fastsdf.backends.lower import Program, lower
 from fastsdf.backends.prune import PrunePlan, bin_points, make_plan, snap_bounds
@@ -88,8 +89,9 @@ class CompiledSDF:
         self.vmath = vmath
         self.symbol_names = tuple(symbol_names)
         self._program: Program | None = None
-        self._generated: tuple[str, dict] | None = None
+        self._generated: Generated | None = None
         self._module: ModuleType | None = None
+        self._blocks: ModuleType | None = None
         self._plans: dict = {}
         self._cuda: Any = None
         self._warm: threading.Event | None = None
@@ -131,8 +133,8 @@ class CompiledSDF:
             )
         return kind
 
-    def _generate(self) -> tuple[str, dict]:
-        """``(module source, per-point function sources)``, generated on demand."""
+    def _generate(self) -> Generated:
+        """The generated code, generated on demand."""
         if self._generated is None:
             with gc_paused():  # a bulk pass over the graph (see fastsdf.expr.graph._GCPaused)
                 self._generated = generate_module(self.program, vmath=self.vmath)
@@ -140,8 +142,10 @@ class CompiledSDF:
 
     @property
     def module_source(self) -> str:
-        """The complete generated module (tables, per-point functions, kernels)."""
-        return self._generate()[0]
+        """The generated code: the scene's module (its tables and per-point functions), then
+        the module of its structure (the block kernels, see :attr:`blocks`)."""
+        generated = self._generate()
+        return generated.source + "\n\n" + generated.blocks
 
     @property
     def groups(self) -> list:
@@ -152,14 +156,41 @@ class CompiledSDF:
     def function_source(self, kind: str = "vg") -> str:
         """Source of the per-point function: ``kind`` is ``'v'`` (value), ``'vg'`` or, for a
         scene with parameters, ``'vgt'`` (with dd/dt)."""
-        return self._generate()[1][self._kind(kind)]
+        return self._generate().functions[self._kind(kind)]
 
     @property
     def module(self) -> ModuleType:
         """The imported generated module (compiled lazily; loaded from the disk cache)."""
         if self._module is None:
-            self._module = load_module(self.module_source, prefix="fastsdf_scene")
+            self._module = load_module(self._generate().source, prefix="fastsdf_scene")
         return self._module
+
+    @property
+    def blocks(self) -> ModuleType:
+        """The imported module of the block kernels (``batch_<kind>_par``, ``_ser``, and for
+        scenes with loops over tables ``tiles_<kind>_par``). Its source depends on the scene's
+        structure alone (the scene's numbers come with each call, :meth:`data`): every scene of
+        one structure shares it, compiled once per installation."""
+        if self._blocks is None:
+            self._blocks = load_module(self._generate().blocks, prefix="fastsdf_blocks")
+        return self._blocks
+
+    def data(self, kind: str = "vg", t: float = 0.0, params: Sequence[float] = ()) -> np.ndarray:
+        """The data the block kernels of ``kind`` read (a new array): the time ``t`` and the
+        values ``params`` of :attr:`param_names` first for a scene with them, then the scene's
+        numbers (its constants and tables, or its combine program)."""
+        base = self._generate().data[self._kind(kind)]
+        if not self.parametric:
+            return base.copy()
+        names = self.param_names or ()
+        if len(params) != len(names):
+            raise ValueError(
+                f"params must hold {len(names)} values (for {list(names)}), got {params!r}"
+            )
+        out = base.copy()
+        out[0] = float(t)
+        out[1 : 1 + len(names)] = [float(v) for v in params]
+        return out
 
     def point_fn(self, kind: str = "vg") -> Any:
         """The numba dispatcher of the per-point function of ``kind`` (``'v'``: ``point_v``,
@@ -167,11 +198,20 @@ class CompiledSDF:
         ``(x, y, t, prm)``."""
         return getattr(self.module, "point_" + self._kind(kind))
 
-    def kernel(self, kind: str = "vg", parallel: bool = True) -> Any:
-        """The batch kernel of ``kind`` (``'v'``, ``'vg'``, ``'vgt'``), ``parallel`` or serial:
-        ``(xs, ys, out[, grad][, chunks], S=None, D=...)`` over 1-d float64 arrays (``grad``
-        (n, 2), or (n, 3) with dd/dt for ``'vgt'``; ``D``: the time, then the parameters)."""
-        return getattr(self.module, f"batch_{self._kind(kind)}_{'par' if parallel else 'ser'}")
+    def kernel(
+        self,
+        kind: str = "vg",
+        parallel: bool = True,
+        t: float = 0.0,
+        params: Sequence[float] = (),
+    ) -> Any:
+        """The batch kernel of ``kind`` (``'v'``, ``'vg'``, ``'vgt'``), ``parallel`` or serial,
+        with its data (:meth:`data` at time ``t`` and parameter values ``params``):
+        ``(xs, ys, out[, grad][, chunks], S=None)`` over 1-d float64 arrays (``grad`` (n, 2),
+        or (n, 3) with dd/dt for ``'vgt'``; ``chunks``: work items of the parallel kernel)."""
+        kind = self._kind(kind)
+        fn = getattr(self.blocks, f"batch_{kind}_{'par' if parallel else 'ser'}")
+        return functools.partial(fn, D=self.data(kind, t, params))
 
     @property
     def cuda(self) -> Any:
@@ -348,7 +388,7 @@ class CompiledSDF:
         bytes each: 603 rows of 512 floats (2.4 MiB) per numba thread for 200 mixed primitives,
         about ``codegen.MAX_PROGRAM_ROWS`` = 8192 rows (32 MiB) for the longest scenes. Only the
         rows a call touched are resident."""
-        size = getattr(self.module, "scratch_" + self._kind(kind), None)
+        size = getattr(self.blocks, "scratch_" + self._kind(kind), None)
         if size is None:
             return {}
         need = size * (max_threads() if parallel else 1)
@@ -372,38 +412,32 @@ class CompiledSDF:
         ys: np.ndarray,
         kind: str,
         plan: PrunePlan | None = None,
-        data: np.ndarray | None = None,
+        t: float = 0.0,
+        params: Sequence[float] = (),
     ) -> tuple:
         """The kernel of ``kind`` at flat float64 points ``xs``, ``ys`` (with the tile kernels
-        of ``plan`` if given, see :meth:`pruned_plan`; ``data``: the time and the parameters'
-        values of a scene with them): ``(value,)``, ``(value, gradient)`` or ``(value,
-        gradient, dd/dt)``, the gradient of shape (n, 2)."""
+        of ``plan`` if given, see :meth:`pruned_plan`; ``t``, ``params``: the time and the
+        parameters' values of a scene with them): ``(value,)``, ``(value, gradient)`` or
+        ``(value, gradient, dd/dt)``, the gradient of shape (n, 2)."""
         n = xs.shape[0]
         out = np.empty(n)
         arrays: tuple = (out,) if kind == "v" else (out, np.empty((n, 3 if kind == "vgt" else 2)))
+        data = self.data(kind, t, params) if self.parametric else self._generate().data[kind]
         if n and plan is not None:
             order, starts = bin_points(xs, ys, plan)
-            tiles = getattr(self.module, f"tiles_{kind}_par")
+            tiles = getattr(self.blocks, f"tiles_{kind}_par")
+            chunks = 64 * numba.get_num_threads()
             with self._first_call(f"tiles_{kind}"):
                 tiles(
-                    xs,
-                    ys,
-                    *arrays,
-                    order,
-                    starts,
-                    plan.act,
-                    plan.offs,
-                    64 * numba.get_num_threads(),
+                    xs, ys, *arrays, order, starts, plan.act, plan.offs, chunks, data,
                     **self.scratch(kind, True),
-                )
+                )  # fmt: skip
         elif n:
             parallel = n >= PARALLEL_MIN_POINTS
             extra = (64 * numba.get_num_threads(),) if parallel else ()
-            kw = self.scratch(kind, parallel)
-            if data is not None:
-                kw["D"] = data
+            fn = getattr(self.blocks, f"batch_{kind}_{'par' if parallel else 'ser'}")
             with self._first_call(f"{kind}_{parallel}"):
-                self.kernel(kind, parallel)(xs, ys, *arrays, *extra, **kw)
+                fn(xs, ys, *arrays, *extra, D=data, **self.scratch(kind, parallel))
         if kind == "vgt":  # written as (x, y, t) triples
             g = arrays[1]
             return out, np.ascontiguousarray(g[:, :2]), np.ascontiguousarray(g[:, 2])
@@ -420,13 +454,7 @@ class CompiledSDF:
                 plan = self._plan_over(req.bounds, req.prune, req.tol, "cpu")
             res = self.run(req.xs, req.ys, req.kind[:2], plan)
             return res + (np.zeros(req.n),) if req.kind == "vgt" else res
-        if len(req.params) != len(self.param_names):
-            raise ValueError(
-                f"params must hold {len(self.param_names)} values (for "
-                f"{list(self.param_names)}), got {req.params!r}"
-            )
-        data = np.array([req.t, *map(float, req.params)], dtype=np.float64)
-        return self.run(req.xs, req.ys, req.kind, None, data)
+        return self.run(req.xs, req.ys, req.kind, None, req.t, req.params)
 
 
 def compile_expr(expr: Expr, symbol_names: Sequence[str], vmath: bool = True) -> CompiledSDF:

@@ -37,9 +37,33 @@ def test_value_only_call_compiles_no_gradient_code():
     with sdf.transform(angle=0.123, offset=[0.2, 0.1]):
         f = sdf.Circle([0.31, 0.2], unique) | sdf.Box([-0.1, -0.2], [0.3, 0.4])
     f(np.zeros(10), np.zeros(10), backend="kernel")  # the default would compile both kinds
-    mod = f.compiled.module
-    assert mod._block_v.signatures and not mod._block_vg.signatures
-    assert not mod.point_vg.signatures and not hasattr(mod, "lanes_vg")  # block kernels only
+    blocks = f.compiled.blocks
+    assert blocks._block_v.signatures and not blocks._block_vg.signatures
+    assert not f.compiled.module.point_vg.signatures  # block kernels only  # block kernels only
+
+
+def _overloads(module) -> int:
+    functions = [getattr(module, n) for n in dir(module)]
+    return sum(len(fn.overloads) for fn in functions if hasattr(fn, "overloads"))
+
+
+@pytest.mark.parametrize("n", [3, 20])
+def test_scenes_of_one_structure_share_their_block_kernels(n):
+    """The block kernels read a scene's numbers (constants, tables, blend sharpness) from each
+    call's data: box worlds of one size share one block module, the second compiles nothing,
+    and each gives its own values (against the NumPy reference)."""
+    f, g = box_world(n, seed=3), box_world(n, seed=4)
+    assert f.compiled.blocks is g.compiled.blocks and f.compiled.module is not g.compiled.module
+    x, y = np.random.default_rng(5).uniform(-2, 2, (2, 3000))
+    answers = [evaluate(f.compiled, x, y, True)]
+    compiled = _overloads(f.compiled.blocks)
+    answers.append(evaluate(g.compiled, x, y, True))
+    assert _overloads(g.compiled.blocks) == compiled
+    for h, (d, grad) in zip((f, g), answers):
+        ref, ref_grad = h(x, y, compute_gradient=True, backend="numpy")
+        np.testing.assert_allclose(d, ref, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(grad, ref_grad, rtol=1e-9, atol=1e-9)
+    assert not np.allclose(answers[0][0], answers[1][0])
 
 
 def test_same_shape_operands_become_one_loop():
@@ -192,7 +216,7 @@ from fastsdf.shapes.scenes import box_world
 f = box_world({n})
 p = np.random.default_rng(0).uniform(-2, 2, (20000, 2))
 d, g = f(p[:, 0], p[:, 1], compute_gradient=True, backend="kernel")
-k = f.compiled.module._block_vg  # the scene's compiled code (the batch kernels are shared)
+k = f.compiled.blocks._block_vg  # the scene's compiled code (the batch kernels are shared)
 print(k.stats.cache_hits.__len__() if hasattr(k.stats.cache_hits, '__len__') else 0,
       sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), repr(float(d.sum())))
 """

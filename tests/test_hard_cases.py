@@ -26,7 +26,7 @@ _CACHE_SCRIPT = textwrap.dedent("""
     import fastsdf as sdf
     f = sdf.Circle([0.1, 0.0], 0.5) | sdf.Box([0.0, 0.0], [1.0, 1.0])
     d, g = f(np.array([0.3]), np.array([0.2]), compute_gradient=True, backend="kernel")
-    k = f.compiled.module._block_vg
+    k = f.compiled.blocks._block_vg
     f.point_fn(0.3, 0.2)  # a second cached function of the scene
     print("RESULT", repr(float(d[0])), repr(float(g[0, 0])), repr(float(g[0, 1])),
           sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()))
@@ -83,11 +83,12 @@ def test_damaged_cache_files_are_repaired_once(tmp_path):
     value, hits, misses, reports = _parse(_run_cache_script(cache))
     assert (hits, misses, reports) == (0, 1, 0)
     files = _cache_files(cache)
-    module = [p for p in files if p.suffix == ".py"]
+    modules = [p for p in files if p.suffix == ".py"]  # the scene's and its structure's
+    blocks = [p for p in modules if p.name.startswith("fastsdf_blocks_")]
     point = [p for p in files if "._block_vg-" in p.name]
     batch = [p for p in files if ".point_vg-" in p.name]
-    assert len(module) == 1 and len(point) == 2 and len(batch) == 2
-    _truncate(module[0])
+    assert len(modules) == 2 and len(blocks) == 1 and len(point) == 2 and len(batch) == 2
+    _truncate(blocks[0])
     for p in point:  # a valid index in front of an altered data file
         if p.suffix == ".nbc":
             _flip(p)
@@ -95,7 +96,7 @@ def test_damaged_cache_files_are_repaired_once(tmp_path):
         p.write_bytes(b"" if p.suffix == ".nbi" else b"\x80\x05garbage" * 5)
     repaired = _parse(_run_cache_script(cache))
     assert repaired[0] == value  # the same answer, computed afresh
-    assert repaired[2:] == (1, 3)  # recompiled; module, _block_vg, point_vg reported once
+    assert repaired[2:] == (1, 3)  # recompiled; blocks module, _block_vg, point_vg reported once
     again = _parse(_run_cache_script(cache))
     assert again == (value, 1, 0, 0)  # loaded from the repaired cache, nothing to report
 

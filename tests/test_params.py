@@ -35,11 +35,11 @@ def abs_(e):
 
 
 def _kernel_count(f):
-    mod = f.compiled.module
     return sum(
         len(getattr(mod, name).overloads)
+        for mod in (f.compiled.module, f.compiled.blocks)
         for name in dir(mod)
-        if name.startswith(("batch_", "point_", "lanes_", "_batch_"))
+        if hasattr(getattr(mod, name), "overloads")  # the numba functions
     )
 
 

@@ -65,8 +65,7 @@ def test_pruned_hard_chains_are_bit_identical(seed, n, op, extra, tiles):
     d0, g0 = f(*p, compute_gradient=True, prune=False)
     comp = f.compiled
     plan = comp.plan(((-2.3, 2.3), (-2.3, 2.3)), tiles=(tiles, tiles + 1))
-    out, grad = np.empty(p.shape[1]), np.empty((p.shape[1], 2))
-    comp.run(p[0].copy(), p[1].copy(), out, grad, plan)
+    out, grad = comp.run(p[0].copy(), p[1].copy(), "vg", plan)
     assert _bits(out, d0) and _bits(grad, g0)
     assert np.isnan(out[5]) and np.isnan(out[6]) and np.all(np.isnan(grad[5:7]))
     if tiles >= 8 and op == "|":
@@ -101,8 +100,7 @@ def test_pruned_exponential_chains_stay_within_tol(k):
     comp = f.compiled
     for tol in (None, 1e-9, 1e-4, 1e-2):
         plan = comp.plan(((-2.0, 2.0), (-2.0, 2.0)), tiles=(16, 16), tol=tol)
-        out, grad = np.empty(p.shape[1]), np.empty((p.shape[1], 2))
-        comp.run(p[0].copy(), p[1].copy(), out, grad, plan)
+        out, grad = comp.run(p[0].copy(), p[1].copy(), "vg", plan)
         bound = (1e-15 if tol is None else tol) + 1e-14 * (1 + np.abs(d0))
         assert np.all(np.abs(out - d0) <= bound)
         if tol == 1e-2 and k == 40.0:
@@ -254,8 +252,7 @@ def test_pruned_polynomial_chains_are_bit_identical(seed, n, kind, k, tiles):
     ref = evaluate_numpy(f.f, {"x": p[0, 3:], "y": p[1, 3:]})
     np.testing.assert_allclose(d0[3:], ref, rtol=1e-12, atol=1e-12)
     plan = comp.plan(((-2.3, 2.3), (-2.3, 2.3)), tiles=(tiles, tiles + 1))
-    out, grad = np.empty(p.shape[1]), np.empty((p.shape[1], 2))
-    comp.run(p[0].copy(), p[1].copy(), out, grad, plan)
+    out, grad = comp.run(p[0].copy(), p[1].copy(), "vg", plan)
     assert _bits(out, d0) and _bits(grad, g0)
     if tiles >= 8 and k < 0.4:
         assert plan.fraction < 0.6

@@ -300,10 +300,10 @@ def test_runtime_parameters_are_inputs():
     )
     p = _points(500, 7)
     assert_agree(f, p)
-    module = f.compiled.module
+    module = f.compiled.blocks
     for vals in (dict(angle=-0.4, px=0.1, r=0.5, k=0.05, t=0.3), dict(angle=1.2, t=-1.0)):
         assert_agree(f, p, **vals)
-    assert f.compiled.module is module and len(module.batch_vg_ser.signatures) == 1
+    assert f.compiled.blocks is module and len(module._block_vg.signatures) == 1
     d, g, dt = f(*p[:50].T, time_derivative=True)
     assert np.isfinite(dt[np.isfinite(p[:50]).all(axis=1)]).all()
 
@@ -342,7 +342,7 @@ def test_default_call_answers_with_the_kernel_and_compiles_the_other_kind_meanwh
     c = f.compiled
     assert c._warm is not None
     assert c._warm.wait(300) and c.warm_error is None and c.kernel_ready
-    assert c.module.batch_v_ser.signatures  # the value-only kernel compiled meanwhile
+    assert c.blocks._block_v.signatures  # the value-only kernel compiled meanwhile
     d1, g1 = f(*p.T, compute_gradient=True, a=0.7, backend="kernel")
     assert_same_bits(d1, d0)
     assert_same_bits(g1, g0)

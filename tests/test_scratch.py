@@ -101,7 +101,7 @@ def test_too_small_scratch_is_refused():
     f = _mixed()
     xs, ys = _points(10)
     out, grad = np.empty(10), np.empty((10, 2))
-    size = f.compiled.module.scratch_vg
+    size = f.compiled.blocks.scratch_vg
     with pytest.raises(ValueError, match="scratch"):
         f.compiled.kernel("vg", False)(xs, ys, out, grad, S=np.empty(size - 1))
 

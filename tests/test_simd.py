@@ -121,7 +121,7 @@ def test_loop_free_bodies_interleave_two_lanes():
 
 def _fresh_block(comp, kind="vg"):
     """The block function compiled afresh (numba shows no assembly for cached code)."""
-    fn = numba.njit(error_model="numpy", nogil=True)(getattr(comp.module, f"_block_{kind}").py_func)
+    fn = numba.njit(error_model="numpy", nogil=True)(getattr(comp.blocks, f"_block_{kind}").py_func)
     fn.compile(BLOCK_SIG.args)
     return "\n".join(fn.inspect_asm().values())
 

@@ -28,6 +28,7 @@ __all__ = [
     "Style",
     "var",
     "num",
+    "const",
     "call",
     "lit",
     "render",
@@ -43,7 +44,8 @@ _ATOM = 6
 class Code:
     """One expression of generated code. ``op`` is ``'var'`` (``args``: name, scope: ``'p'`` a
     value per point, ``'b'`` one per call or block such as the time, ``'i'`` a loop index),
-    ``'num'`` (a float), ``'table'`` (a constant table by name), ``'read'`` (table, row index,
+    ``'num'`` (a float), ``'const'`` (a number of the scene: see :func:`const`), ``'table'``
+    (a constant table by name), ``'read'`` (table, row index,
     column), ``'fold'`` (a stored subexpression's entry: group, entry), ``'call'`` (function
     name, arguments), a binary operator (``'+'``, ``'-'``, ``'*'``, ``'/'``, ``'**'``, ``'<'``,
     ``'<='``, ``'>'``, ``'>='``) or ``'neg'``."""
@@ -132,6 +134,13 @@ def var(name: str, scope: str = "p") -> Code:
 def num(value: float) -> Code:
     """A float literal."""
     return Code("num", (float(value),))
+
+
+def const(value: float) -> Code:
+    """A number of the scene (a constant of its graph, a blend's ``k``): a literal in per-point
+    code, read from the call's data in block kernels, so that scenes that differ only in such
+    numbers share their compiled block kernels."""
+    return Code("const", (float(value),))
 
 
 def call(fn: str, *args: Operand) -> Code:
@@ -300,8 +309,9 @@ VMATH = dict(MATH, exp="_vexp", log="_vlog", log1p="_vlog1p")
 
 class Style:
     """How a target writes an expression: ``funcs`` maps the emitter's function names,
-    ``name(var_name, scope)`` a variable's name, ``read(table, row, col)`` a table element and
-    ``fold(group, entry)`` a stored subexpression (each given rendered arguments)."""
+    ``name(var_name, scope)`` a variable's name, ``read(table, row, col)`` a table element,
+    ``fold(group, entry)`` a stored subexpression (each given rendered arguments) and
+    ``const(code)`` a number of the scene (a literal by default)."""
 
     def __init__(
         self,
@@ -309,11 +319,13 @@ class Style:
         name: Callable[[str, str], str] | None = None,
         read: Callable[[str, str, int], str] | None = None,
         fold: Callable[[int, int], str] | None = None,
+        const: Callable[[Code], str] | None = None,
     ) -> None:
         self.funcs = MATH if funcs is None else funcs
         self.name = name or (lambda n, scope: n)
         self.read = read or (lambda t, row, col: f"{t}[{row}, {col}]")
         self.fold = fold or (lambda g, e: f"_F{g}[{e}]")
+        self.const = const or (lambda c: lit(c.args[0]))
 
     @property
     def vmath(self) -> bool:
@@ -335,6 +347,8 @@ def _render(c: Code, st: Style) -> tuple[str, int]:
         return st.name(c.args[0], c.args[1]), _ATOM
     if op == "num":
         return lit(c.args[0]), _ATOM
+    if op == "const":
+        return st.const(c), _ATOM
     if op == "table":
         return c.args[0], _ATOM
     if op == "read":

@@ -27,6 +27,7 @@ from fastsdf.backends.code import (
     Loop,
     Store,
     call,
+    const,
     fold_entry,
     num,
     read,
@@ -145,11 +146,13 @@ class Writer:
         self.tables = {} if tables is None else tables
         self.n = 0
 
+    num = staticmethod(num)
+
     @staticmethod
-    def num(value: Any) -> Code:
-        """A literal (a value given as an expression already, such as a ``k`` read at run
-        time, is passed on)."""
-        return value if isinstance(value, Code) else num(value)
+    def const(value: Any) -> Code:
+        """A number of the scene (:func:`fastsdf.backends.code.const`); a value given as an
+        expression already (a ``k`` read at run time) is passed on."""
+        return value if isinstance(value, Code) else const(value)
 
     call = staticmethod(call)
     var = staticmethod(var)
@@ -345,7 +348,7 @@ class Emitter(Writer):
     def _constants(self, tab: np.ndarray, refs: list, index: Code) -> list:
         """A loop's constants: literals, or elements of its table at row ``index``."""
         name = self.table(tab) if tab.shape[1] else ""
-        return [num(v) if kind == "l" else read(name, index, v) for kind, v in refs]
+        return [const(v) if kind == "l" else read(name, index, v) for kind, v in refs]
 
     # -- n-ary chains ---------------------------------------------------------------------------
     def chain(self, out: list, op: str, k: float, items: list) -> Val:
@@ -379,7 +382,7 @@ class Emitter(Writer):
             names.update(w=w, e=f"{w}e")
             grads = v.grads(ncomp) if g else ()
             comps = self.comps if g else ()
-            nk = -num(k) if smooth else None
+            nk = -const(k) if smooth else None
             chain_step(self, body, op, v.v, grads, dict(cur), names, nk, comps)
             cur.update((key, var(names[key])) for key in keys)
 
@@ -399,7 +402,7 @@ class Emitter(Writer):
         if not smooth:
             return Val(cur["m"], tuple(cur[sfx] for sfx in self.comps) if g else None)
         comps = self.comps if g else ()
-        return chain_finish(self, out, op, cur, num(1.0 / k), self._name(), comps)
+        return chain_finish(self, out, op, cur, const(1.0 / k), self._name(), comps)
 
     def ordered_chain(self, out: list, op: str, k: float, items: list) -> Val:
         """Emit the left fold of the blend ``op`` (qmin, cmin) over ``items`` (as
@@ -457,7 +460,7 @@ class Emitter(Writer):
                 comps[c] = self.assign(out, f"{r}{self.comps[c]}", fold_entry(gi, base + slot))
             return Val(rv, tuple(comps) if self.grad else None)
         if node.op == "const":
-            return Val(num(node.attr))
+            return Val(const(node.attr))
         if node.op in ("sym", "param"):
             return self.leaf(node)
         chain = self.program.chains.get(node)

@@ -12,7 +12,8 @@ Each entry of :data:`OPS` is an :class:`Op` with everything an evaluator needs:
     the code template for the generated code (:mod:`fastsdf.backends.emit`): append statements
     to ``out`` that assign the node's value to the variable named ``r``. ``a`` holds the
     arguments' emitted values: ``a[i].v`` is an expression of generated code
-    (:class:`fastsdf.backends.code.Code`), built with Python's operators and ``em.num(v)``,
+    (:class:`fastsdf.backends.code.Code`), built with Python's operators and ``em.num(v)``
+    (a literal of the formula), ``em.const(v)`` (a number of the scene: a node's attribute),
     ``em.call(fn, *args)`` (``'exp'``, ``'log'``, ``'sqrt'``, ``'sin'``, ``'cos'``, ``'abs'``,
     ``'floor'``: each target picks its implementation), ``em.sel(cond, a, b)`` (branch-free).
     ``em.grad`` says whether the gradient is wanted, ``em.assign(out, name, expr)`` appends an
@@ -734,14 +735,14 @@ def _emit_poly(em, out, node, a, r):
     A, B = a[0].v, a[1].v
     k = node.attr
     w = em.assign(out, f"{r}w", A <= B)
-    t = em.assign(out, f"{r}t", em.num(k) - em.call("abs", A - B))
-    h = em.assign(out, f"{r}h", em.sel(t > 0.0, t, 0.0) * em.num(1.0 / k))
+    t = em.assign(out, f"{r}t", em.const(k) - em.call("abs", A - B))
+    h = em.assign(out, f"{r}h", em.sel(t > 0.0, t, 0.0) * em.const(1.0 / k))
     m = em.sel(w, A, B)
     if node.op == "qmin":
-        em.assign(out, r, m - h * h * em.num(k / 4.0))
+        em.assign(out, r, m - h * h * em.const(k / 4.0))
         other = h * 0.5
     else:
-        em.assign(out, r, m - h * h * h * em.num(k / 6.0))
+        em.assign(out, r, m - h * h * h * em.const(k / 6.0))
         other = h * h * 0.5
     if not em.grad:
         return None

@@ -494,7 +494,7 @@ def wall_speed_table(
     times = t + dt * np.unique(np.round(np.linspace(1, steps, count)))
     top = np.zeros(m)
     for at in times:
-        gt = f.compiled.run(X, Y, "vgt", data=np.array([float(at), *prm]))[2]
+        gt = f.compiled.run(X, Y, "vgt", t=float(at), params=prm)[2]
         top = np.maximum(top, np.abs(np.where(np.isfinite(gt), gt, np.inf)))
     node = top[:nodes]
     at_particles = top[nodes:]

@@ -25,6 +25,7 @@ from numba import get_thread_id, njit, prange, types
 from numba.extending import intrinsic
 
 from fastsdf.backends.kernel.layout import BLOCK
+from fastsdf.backends.lower import PROGRAM_STEPS
 from fastsdf.intrinsics import select as _sel
 
 __all__ = [
@@ -38,7 +39,7 @@ __all__ = [
     "run_ser",
     "NOGRAD",
     "NOROWS",
-    "NODATA",
+    "element_ptr",
     "tiles_par",
     "scratch",
 ]
@@ -75,7 +76,7 @@ def _call(typingctx, address, xp, yp, op, gp, n, sp, ap, fp, dp):
 
 
 @intrinsic
-def _at(typingctx, arr, index):
+def element_ptr(typingctx: object, arr: types.Array, index: types.Integer) -> tuple:
     """Pointer to ``arr[index]`` (1-d contiguous array); no bounds check."""
     sig = types.CPointer(arr.dtype)(arr, index)
 
@@ -84,6 +85,9 @@ def _at(typingctx, arr, index):
         return builder.gep(ary.data, [args[1]])
 
     return sig, codegen
+
+
+_at = element_ptr
 
 
 class BlockFn:
@@ -143,8 +147,6 @@ def _nofold(xp, yp, op, gp, n, sp, ap, fp, dp):
 NOFOLD = BlockFn(_nofold)
 #: The row lists of scenes without loops over tables (never read).
 NOROWS = np.zeros(1, dtype=np.int64)
-#: The values of a call of a static scene (never read).
-NODATA = np.zeros(1)
 #: The ``grad`` of :func:`tiles_par` for the value alone.
 NOGRAD = np.empty((0, 2))
 
@@ -163,8 +165,8 @@ def _run_block(pre, fn, step, xs, ys, out, grad, gs, S, at, s, n, act, off, data
     if step == 0:
         _call(fn, xp, yp, op, gp, m, sp, _at(act, 0), _at(off, 0), dp)
     else:
-        _combine(S, at, data, step, _lanes(m))
-        _outputs(S, at, data, xs, ys, out, grad, s, m, gs == 2)
+        last = _combine(S, at, data, step, _lanes(m))
+        _outputs(S, at + int(data[last + 1]), xs, ys, out, grad, s, m, gs == 2)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -189,8 +191,9 @@ def run_par(
     :func:`_run_block`; else ``step`` is 0) on each block, blocks in parallel chunks, each thread
     with ``size`` floats of the scratch space ``S`` (at least ``threads * size`` floats,
     ``threads``: :func:`max_threads`; see :func:`scratch`); ``act``, ``off``: the row lists of
-    every block (all rows: the scene's ``_ACTG``, ``_OFFG``); ``data``: the call's time and
-    parameters (:data:`NODATA` for a static scene). Value and gradient: ``grad`` flat (x y
+    every block (all rows: the scene's ``_ACTG``, ``_OFFG``); ``data``: the call's data (the
+    time and parameters, the combine program, the scene's numbers: see
+    :class:`fastsdf.backends.kernel.simd.Data`). Value and gradient: ``grad`` flat (x y
     pairs) and ``gs`` = 2 (3 with the time derivative); the value alone: ``grad`` is ``out``
     and ``gs`` = 1 (the block functions do not use it)."""
     n = xs.shape[0]
@@ -317,14 +320,16 @@ def tiles_par(
     act: np.ndarray,
     offs: np.ndarray,
     rows: int,
+    data: np.ndarray,
 ) -> None:
     """:func:`run_par` (``grad`` of shape (n, 2), or :data:`NOGRAD` for the value alone) on
     points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``),
     each block with its tile's row lists (``act``, ``offs`` of shape (tiles, loops + 1);
-    ``rows``: the total number of rows of all loops). The points of a block are gathered into
-    contiguous buffers and the results scattered back; a block shared by the last points of
-    several tiles runs the union of their lists. Only ``S`` comes from the caller: the other
-    buffers here are a few KiB per thread, and the tile path serves large inputs only."""
+    ``rows``: the total number of rows of all loops; ``data``: the scene's numbers). The
+    points of a block are gathered into contiguous buffers and the results scattered back; a
+    block shared by the last points of several tiles runs the union of their lists. Only
+    ``S`` comes from the caller: the other buffers here are a few KiB per thread, and the tile
+    path serves large inputs only."""
     seq, work = _tile_work(order, starts)
     blocks = work.shape[0]
     chunks = max(1, min(blocks, chunks))
@@ -359,7 +364,7 @@ def tiles_par(
                 _merge_rows(act, offs, t0, t1, starts, actb, offb, cur)
                 ap, fp = _at(actb, 0), _at(offb, 0)
             gp = _at(gb, 0) if vg else _at(ob, 0)
-            dp = _at(NODATA, 0)  # (pruned scenes are static)
+            dp = _at(data, 0)
             _call(pre, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp, dp)
             _call(fn, _at(xb, 0), _at(yb, 0), _at(ob, 0), gp, m, _at(S, at), ap, fp, dp)
             for i in range(m):
@@ -388,6 +393,7 @@ def tiles_par(
 #: be zero (as in the straight-line code: no product); the same for the accumulator
 #: (polynomial blends). Rows are offsets in the block's scratch space, in floats.
 PROG_COLS = 9
+_OUT = PROGRAM_STEPS.index("out")
 
 
 @intrinsic
@@ -417,21 +423,21 @@ def _lanes(m):
 
 @njit(nogil=True, error_model="numpy")
 def _combine(S, at, prog, step, nv):
-    """Run the program ``prog`` (flat rows of :data:`PROG_COLS`) on one block's scratch space
-    ``S[at:]`` (its first ``nv`` points: :func:`_lanes`), each step by the step function at
-    ``step``."""
-    for p in range(prog.shape[0] // PROG_COLS - 1):
-        r = p * PROG_COLS
+    """Run the program at the start of ``prog`` (rows of :data:`PROG_COLS`, up to the row of
+    opcode ``out``, which it returns the offset of) on one block's scratch space ``S[at:]``
+    (its first ``nv`` points: :func:`_lanes`), each step by the step function at ``step``."""
+    r = 0
+    while int(prog[r]) != _OUT:
         a = at + int(prog[r + 1])
         m = at + int(prog[r + 2])
         _call_step(step, int(prog[r]), _at(S, a), _at(S, m), _at(prog, r), nv)
+        r += PROG_COLS
+    return r
 
 
 @njit(nogil=True, error_model="numpy", inline="always")
-def _outputs(S, at, prog, xs, ys, out, grad, start, m, with_grad):
-    """The last program row names the result rows: copy them out, NaN where the point is not
-    finite."""
-    a = at + int(prog[prog.shape[0] - PROG_COLS + 1])
+def _outputs(S, a, xs, ys, out, grad, start, m, with_grad):
+    """Copy the result rows (from ``S[a]``) out, NaN where the point is not finite."""
     ax = a + BLOCK
     ay = a + 2 * BLOCK
     for i in range(m):

@@ -27,10 +27,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
+
 from fastsdf.backends.code import (
     MATH,
     VMATH,
     Assign,
+    Code,
     Loop,
     Store,
     Style,
@@ -40,7 +43,6 @@ from fastsdf.backends.code import (
 )
 from fastsdf.backends.emit import Body
 from fastsdf.backends.kernel.cache import hashed_import
-from fastsdf.backends.kernel.combine import combine_import
 from fastsdf.backends.kernel.layout import BLOCK
 from fastsdf.backends.lower import PROGRAM_STEPS, Combine
 
@@ -101,6 +103,50 @@ def _defs_uses(stmts: list, vmath: bool) -> tuple[list, list, set]:
     return list(defs), list(uses), bools
 
 
+class Data:
+    """What a kind's block kernels read from the call's data ``D`` after its first ``first``
+    values (the time and the parameters, or a combine program): the scene's tables (``tables``:
+    name -> array) and numbers (constants of its graph, its blends' ``k``), each placed where it
+    is first used. The kernels' source then depends only on the scene's structure, so scenes
+    that differ in these numbers share it, compiled once; the values travel with each call
+    (:meth:`values`)."""
+
+    def __init__(self, first: int, tables: dict) -> None:
+        self.first, self.size, self.tables = first, first, tables
+        self.parts: list = [np.zeros(first)]
+        self.at: dict = {}  # a constant (by identity) or a table name -> its offset
+        self.used: dict[str, str] = {}  # the current function's bindings: name -> line
+
+    def const(self, c: Code) -> str:
+        """The local name of constant ``c`` (bound in the function that uses it)."""
+        if id(c) not in self.at:
+            self.at[id(c)] = self.size
+            self.parts.append(np.array([c.args[0]]))
+            self.size += 1
+        name = f"K{self.at[id(c)]}"
+        self.used[name] = f"{name} = D[{self.at[id(c)]}]"
+        return name
+
+    def table(self, name: str) -> None:
+        """Bind table ``name`` (a view of the data) in the current function."""
+        arr = self.tables[name]
+        if name not in self.at:
+            self.at[name] = self.size
+            self.parts.append(arr.reshape(-1))
+            self.size += arr.size
+        rows, cols = arr.shape
+        self.used[name] = f"{name} = carray(_at(D, {self.at[name]}), ({rows}, {cols}))"
+
+    def binds(self) -> list:
+        """The current function's bindings, then a fresh start for the next one."""
+        out, self.used = [f"    {line}" for _, line in sorted(self.used.items())], {}
+        return out
+
+    def values(self) -> np.ndarray:
+        """The data, its first ``first`` values zero (the caller's)."""
+        return np.concatenate(self.parts + [np.zeros(1)])  # (never empty)
+
+
 class _Staging:
     """The per-point statements of a block, segment by segment, staged through the scratch
     array ``S``: a variable live across segments has one row per lane,
@@ -116,9 +162,11 @@ class _Staging:
         lanes: int,
         slots: dict,
         vmath: bool,
+        data: Data,
         fbase: Sequence[int] = (),
         count: str | None = None,
     ):
+        self.data = data
         self.lanes, self.half = lanes, BLOCK // lanes
         self.count = count or str(self.half)
         self.slots, self.fbase, self.vmath = slots, fbase, vmath
@@ -162,6 +210,7 @@ class _Staging:
             name=lambda n, scope: f"{n}_{k}" if scope == "p" else n,
             read=read,
             fold=lambda g, e: f"S[{(self.fbase[g] + e) * BLOCK} + i]",
+            const=self.data.const,
         )
 
     def compute(self, stmts: list, pad: str, hoisted: dict | None = None) -> list:
@@ -297,15 +346,18 @@ def _stride(kind: str) -> int:
     return 3 if kind == "vgt" else 2
 
 
-def block_source(body: Body, kind: str, vmath: bool = True, parametric: bool = False) -> str:
+def block_source(
+    body: Body, kind: str, tables: dict, vmath: bool = True, parametric: bool = False
+) -> tuple[str, np.ndarray]:
     """Source of ``_block_<kind>`` (a block of points; for long scenes also ``_fold_<kind>``,
     the loops over same-shape subexpressions it runs first) and of the kernels
-    ``batch_<kind>_par(xs, ys, out[, grad], chunks)`` and ``batch_<kind>_ser(xs, ys, out[,
-    grad])``, plain functions that hand the block function to the scene-independent kernels of
+    ``batch_<kind>_par(xs, ys, out[, grad], chunks, D)`` and ``batch_<kind>_ser(xs, ys, out[,
+    grad], D)``, plain functions that hand the block function to the scene-independent kernels of
     :mod:`fastsdf.backends.kernel.drive` (and, for scenes with loops over tables, the pruned
-    ``tiles_<kind>_par``). A scene with parameters or time (``parametric``) reads the time and
-    the parameters per call from the kernels' data (``D``: ``t``, then ``prm``); its ``'vgt'``
-    kernels write the gradient and dd/dt as (x, y, t) triples.
+    ``tiles_<kind>_par``), with the values they read from the call's data (see :class:`Data`;
+    ``tables``: the module's tables by name). A scene with parameters or time (``parametric``)
+    reads them from the data's first values too (``t``, then ``prm``, written by the caller);
+    its ``'vgt'`` kernels write the gradient and dd/dt as (x, y, t) triples.
 
     The block's points are staged in the scratch array: coordinates copied in (non-finite ones
     replaced by 0, the block padded to ``BLOCK`` points), every compute loop reading and
@@ -318,7 +370,8 @@ def block_source(body: Body, kind: str, vmath: bool = True, parametric: bool = F
     stmts, result_names = _with_results(body)
     segs = _segments(stmts)
     slots, fbase = _fold_layout(fold_sizes)
-    st = _Staging(segs, result_names, lanes, slots, vmath, fbase)
+    data = Data(1 + body.nparams if parametric else 0, tables)
+    st = _Staging(segs, result_names, lanes, slots, vmath, data, fbase)
     # The loops that store the fold groups open the body; they go to a function of their own
     # (_fold_<kind>), called before the block function: in one function with the rest, LLVM
     # stops inlining the exp/log calls of the long straight-line loop, which then stays scalar.
@@ -330,23 +383,28 @@ def block_source(body: Body, kind: str, vmath: bool = True, parametric: bool = F
         and any(isinstance(s, Store) for s in segs[nfold][1].body)
     ):
         nfold += 1
-    fold_code: list = []
-    code: list = []
-    for k, seg in enumerate(segs):
-        (fold_code if k < nfold else code).extend(st.segment(k, seg))
-    code += _outputs(st.at, kind)
+    parts = [segs[:nfold], segs[nfold:]]
+    codes: list = [[], []]
+    binds: list = [[], []]
+    for j, part in enumerate(parts):
+        for t in _tables_of(part):
+            data.table(t)
+        for k, seg in enumerate(part, 0 if j == 0 else nfold):
+            codes[j] += st.segment(k, seg)
+        if j:
+            codes[j] += _outputs(st.at, kind)
+        binds[j] = data.binds()
     size = max(len(slots), 1) * BLOCK
     views = ["    xs = carray(xp, (n,))", "    ys = carray(yp, (n,))", "    out = carray(op, (n,))"]
     if grad:
         views.append(f"    grad = carray(gp, ({_stride(kind)} * n,))")
-    views.append(f"    S = carray(sp, ({size},))")
+    views += [f"    S = carray(sp, ({size},))", f"    D = carray(dp, ({max(data.size, 1)},))"]
     if parametric:  # the call's time and parameters
-        views += [f"    D = carray(dp, ({1 + body.nparams},))", "    t = D[0]"]
-        views += [f"    _p{i} = D[{i + 1}]" for i in range(body.nparams)]
+        views += ["    t = D[0]"] + [f"    _p{i} = D[{i + 1}]" for i in range(body.nparams)]
 
-    def head(part_segs: list) -> str:
-        used = [f"    {t} = {t}G" for t in sorted(_tables_of(part_segs))]
-        if _rows_of(part_segs):  # the row lists: all rows, or a tile's (pruning)
+    def head(j: int) -> str:
+        used = binds[j]
+        if _rows_of(parts[j]):  # the row lists: all rows, or a tile's (pruning)
             used += ["    _act = ap", "    _off = fp"]
         return "\n".join(views + used + _prelude(str(BLOCK)))
 
@@ -361,20 +419,20 @@ def block_source(body: Body, kind: str, vmath: bool = True, parametric: bool = F
             doc="The loops over same-shape subexpressions of the block function: their values "
             f"and gradients into the scratch rows (called before ``_block_{kind}``, same "
             "arguments).",
-            head=head(segs[:nfold]),
-            body="\n".join(fold_code),
+            head=head(0),
+            body="\n".join(codes[0]),
         )
     src += _BLOCK_FN.format(
         name=f"_block_{kind}",
         doc=f"{'Value and gradient' if grad else 'Value'} at ``n`` (at most {BLOCK}) points from "
         f"pointers (:data:`fastsdf.backends.kernel.drive.BLOCK_SIG`); scratch ``sp[:{size}]``.",
-        head=head(segs[nfold:]),
-        body="\n".join(code),
+        head=head(1),
+        body="\n".join(codes[1]),
     )
     src += _BATCH.format(fold=fold, rows=rows, **names.fmt)
     if rows != "_NOROWS, _NOROWS":
         src += _TILES.format(fold=fold, grads="grad" if grad else "_NOGRAD", **names.fmt)
-    return src
+    return src, data.values()
 
 
 class _KernelNames:
@@ -406,15 +464,15 @@ _BATCH = '''
 scratch_{kind} = {size}
 
 
-def batch_{kind}_par({sig}, chunks, S=None, D=_NODATA):
+def batch_{kind}_par({sig}, chunks, D, S=None):
     """All points, in parallel: the installation's kernel calls ``_block_{kind}`` per block
-    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here;
-    ``D``: the time and the parameters' values, for a scene with them)."""
+    (``D``: the call's data, see fastsdf.backends.kernel.simd.Data; ``S``: scratch space of
+    ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
     _run_par({fold}.address, _block_{kind}_fn.address, 0, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), {rows}, D)
 
 
-def batch_{kind}_ser({sig}, S=None, D=_NODATA):
+def batch_{kind}_ser({sig}, D, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
     _run_ser({fold}.address, _block_{kind}_fn.address, 0, xs, ys, out, {gflat}S, {size}, {rows}, D)
@@ -422,96 +480,114 @@ def batch_{kind}_ser({sig}, S=None, D=_NODATA):
 
 _TILES = '''
 
-def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, S=None):
+def tiles_{kind}_par({sig}, order, starts, act, offs, chunks, D, S=None):
     """Points sorted by tile (tile ``t``: ``order[starts[t]:starts[t + 1]]``) in parallel
     blocks, each with its tile's row lists (``act``, ``offs[t]``: see :mod:`fastsdf.backends.prune`)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {grads}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0])
+    _tiles_par({fold}.address, _block_{kind}_fn.address, xs, ys, out, {grads}, S, {size}, chunks, _max_threads(), order, starts, act, offs, _ACTG.shape[0], D)
 '''
 
 
-def program_source(loops: list, kind: str, combine: Combine) -> tuple[str, str]:
-    """Source of the one-point function ``point_<kind>`` and of ``_fold_<kind>`` (the loops
-    over same-shape subexpressions, as in :func:`block_source`, storing into scratch rows), of
-    the combine program ``_PROG_<KIND>`` (see :meth:`fastsdf.backends.lower.Program.combine`)
-    and of the kernels ``batch_<kind>_par`` / ``batch_<kind>_ser``, which run both through the
-    installation's kernels (:func:`fastsdf.backends.kernel.drive.run_par`). The scene's
-    compiled code is the fold function alone: it grows with the number of distinct shapes, not
-    with the primitives."""
+def program_source(
+    loops: list, kind: str, combine: Combine, tables: dict
+) -> tuple[str, str, np.ndarray]:
+    """``(point, blocks, data)``: the one-point function ``point_<kind>`` (with the combine
+    program ``_PROG_<KIND>`` it runs, see :meth:`fastsdf.backends.lower.Program.combine`); the
+    block kernels: ``_fold_<kind>`` (the loops over same-shape subexpressions, as in
+    :func:`block_source`, storing into scratch rows) and ``batch_<kind>_par`` /
+    ``batch_<kind>_ser``, which run it and the program through the installation's kernels
+    (:func:`fastsdf.backends.kernel.drive.run_par`); and the data those read (the program's
+    rows first, then the numbers of :class:`Data`; ``tables``: the module's tables by name).
+    The scene's compiled code is the fold function alone: it grows with the number of distinct
+    shapes, not with the primitives."""
     grad = kind == "vg"
     segs = _segments(loops)
     assert segs and all(seg[0] == "loop" for seg in segs)
     slots, fbase = _fold_layout(combine.fold.sizes)
+    first = len(slots)
+    rows = _program_rows(combine.steps, fbase, first, grad)
+    data = Data(rows.size, tables)
     # With gradients, only the block's first nv points (its n rounded up to whole vectors, as
     # the program in fastsdf.backends.kernel.drive._lanes): a call on a few points does not pay
     # for a whole block. Not for the value alone: there LLVM vectorizes the loops worse without
     # their constant trip count (a whole block measured 1.6x slower), so they keep it.
-    st = _Staging(segs, [], 1, slots, True, fbase, count="nv" if grad else None)
+    st = _Staging(segs, [], 1, slots, True, data, fbase, count="nv" if grad else None)
+    for t in _tables_of(segs):
+        data.table(t)
     code = [ln for k, seg in enumerate(segs) for ln in st.segment(k, seg)]
-    first = len(slots)
+    binds = data.binds()
+    values = data.values()
+    values[: rows.size] = rows.reshape(-1)
     size = (first + combine.acc_rows) * BLOCK
-    prog = _program_table(combine.steps, fbase, first, grad)
-    tables = [f"    {t} = {t}G" for t in sorted(tables_read(loops))]
     views = [
         "    xs = carray(xp, (n,))",
         "    ys = carray(yp, (n,))",
         f"    S = carray(sp, ({size},))",
+        f"    D = carray(dp, ({data.size},))",
     ]
     prelude = ([f"    nv = min({BLOCK}, (n + 7) // 8 * 8)"] if grad else []) + _prelude(
         "nv" if grad else str(BLOCK)
     )
-    # The one-point function: the same loops storing into a small array (one float per row,
-    # the program's offsets divided by BLOCK), then the program at one point.
-    point_style = Style(VMATH)
+    nl = "\n"
+    names = _KernelNames(kind, grad, size).fmt
+    blocks = _BLOCK_FN.format(
+        name=f"_fold_{kind}",
+        doc="The scene's subexpressions, each in a loop over a table of its shape: "
+        f"{'values and gradients' if grad else 'values'} into the scratch rows that the combine "
+        "program reads.",
+        head=nl.join(views + binds + prelude),
+        body=nl.join(code),
+    ) + _PROGRAM.format(KIND=kind.upper(), **names)
+    return _program_point(loops, kind, rows, fbase, first + combine.acc_rows), blocks, values
 
-    def point_store(s: Store) -> str:
+
+def _program_point(loops: list, kind: str, rows: np.ndarray, fbase: list, floats: int) -> str:
+    """The one-point function of a combine program: the same loops storing into a small
+    array (one float per row, the program's offsets divided by BLOCK), then the program at
+    one point (``rows``: the program, written into the module as ``_PROG_<KIND>``)."""
+    grad = kind == "vg"
+    style = Style(VMATH)
+
+    def store(s: Store) -> str:
         idx = f"{s.index.name} * {s.size}" + (f" + {s.slot}" if s.slot else "")
         return f"F[{fbase[s.group]} + {idx}]"
 
-    plines = ["    " + ln for s in loops for ln in render_stmt(s, point_style, point_store)]
+    tables = [f"    {t} = {t}G" for t in sorted(tables_read(loops))]
+    lines = ["    " + ln for s in loops for ln in render_stmt(s, style, store)]
+    table = ",\n    ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in rows)
     nl = "\n"
-    point = f'''
+    what = "Value and gradient (d, dd/dx, dd/dy)" if grad else "Value"
+    return f'''
+#: The combine program (see fastsdf.backends.kernel.drive.PROG_COLS).
+_PROG_{kind.upper()} = np.array([
+    {table},
+], dtype=np.float64)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def point_{kind}(x, y):
-    """{"Value and gradient (d, dd/dx, dd/dy)" if grad else "Value"} at one point: the scene's subexpressions in loops over
-    tables, then its combine program (fastsdf.backends.kernel.drive.combine_point_{kind})."""
+    """{what} at one point: the scene's subexpressions in loops over tables, then its combine
+    program (fastsdf.backends.kernel.combine)."""
     if not (math.isfinite(x) and math.isfinite(y)):
         return {"math.nan, math.nan, math.nan" if grad else "math.nan"}
 {nl.join(tables)}
-    F = np.empty({first + combine.acc_rows})
-{nl.join(plines)}
+    F = np.empty({floats})
+{nl.join(lines)}
     return _combine_point_{kind}(F, _PROG_{kind.upper()})
 '''
-    names = _KernelNames(kind, grad, size).fmt
-    blocks = (
-        "\n"
-        + combine_import()
-        + "\n"
-        + _BLOCK_FN.format(
-            name=f"_fold_{kind}",
-            doc="The scene's subexpressions, each in a loop over a table of its shape: "
-            f"{'values and gradients' if grad else 'values'} into the scratch rows that the combine "
-            "program reads.",
-            head=nl.join(views + tables + prelude),
-            body=nl.join(code),
-        )
-        + _PROGRAM.format(prog=prog, KIND=kind.upper(), **names)
-    )
-    return point, blocks
 
 
-def _program_table(steps: list, fbase: list, first: int, grad: bool) -> str:
-    """The combine program as rows of floats (see :data:`fastsdf.backends.kernel.drive.PROG_COLS`;
-    opcodes: :data:`fastsdf.backends.lower.PROGRAM_STEPS`)."""
+def _program_rows(steps: list, fbase: list, first: int, grad: bool) -> np.ndarray:
+    """The combine program, a row of :data:`fastsdf.backends.kernel.drive.PROG_COLS` floats
+    per step (opcodes: :data:`fastsdf.backends.lower.PROGRAM_STEPS`)."""
 
     def row(ref: tuple) -> int:
         if ref[0] == "F":
             return (fbase[ref[1]] + ref[2]) * BLOCK
         return (first + ref[1]) * BLOCK
 
-    table = []
-    for op, operand, acc, k, zeros in steps:
-        r = [0.0] * 9
+    table = np.zeros((len(steps), 9))
+    for r, (op, operand, acc, k, zeros) in zip(table, steps):
         r[0] = PROGRAM_STEPS.index(op)
         if operand is not None:
             r[1] = row(operand)
@@ -523,32 +599,27 @@ def _program_table(steps: list, fbase: list, first: int, grad: bool) -> str:
             r[3], r[4] = float(k), 1.0 / float(k)
         if zeros and grad:
             r[5 : 5 + len(zeros)] = [float(z) for z in zeros]
-        table.append(r)
-    return ",\n    ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in table)
+    return table
 
 
 _PROGRAM = '''
-#: The combine program (see fastsdf.backends.kernel.drive.PROG_COLS).
-_PROG_{KIND} = np.array([
-    {prog},
-], dtype=np.float64)
-
 
 #: Scratch floats per thread of the ``{kind}`` kernels (see :func:`fastsdf.backends.kernel.drive.scratch`).
 scratch_{kind} = {size}
 
 
-def batch_{kind}_par({sig}, chunks, S=None):
-    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the program
-    (``S``: scratch space of ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
+def batch_{kind}_par({sig}, chunks, D, S=None):
+    """All points, in parallel: the installation's kernel runs ``_fold_{kind}`` and the
+    program (``D``: the program, then the scene's numbers; ``S``: scratch space of
+    ``_max_threads() * scratch_{kind}`` floats, else allocated here)."""
     S = _drive_scratch(_max_threads() * {size}) if S is None else S
-    _run_par(_fold_{kind}_fn.address, 0, _step_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), _NOROWS, _NOROWS, _PROG_{KIND}.reshape(-1))
+    _run_par(_fold_{kind}_fn.address, 0, _step_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, chunks, _max_threads(), _NOROWS, _NOROWS, D)
 
 
-def batch_{kind}_ser({sig}, S=None):
+def batch_{kind}_ser({sig}, D, S=None):
     """All points, in this thread (``S``: at least ``scratch_{kind}`` floats)."""
     S = _drive_scratch({size}) if S is None else S
-    _run_ser(_fold_{kind}_fn.address, 0, _step_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, _NOROWS, _NOROWS, _PROG_{KIND}.reshape(-1))
+    _run_ser(_fold_{kind}_fn.address, 0, _step_{kind}_fn.address, xs, ys, out, {gflat}S, {size}, _NOROWS, _NOROWS, D)
 '''
 
 
@@ -563,8 +634,8 @@ def drive_import() -> str:
         "tiles_par as _tiles_par",
         "NOROWS as _NOROWS",
         "NOGRAD as _NOGRAD",
-        "NODATA as _NODATA",
         "scratch as _drive_scratch",
+        "element_ptr as _at",
     ]
     drive = hashed_import("fastsdf.backends.kernel.drive", names)
     return "from numba import carray\n" + drive + "\n"
