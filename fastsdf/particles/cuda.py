@@ -219,7 +219,7 @@ def device_module(f: Any, forces: tuple = ()) -> tuple:
     ``key`` names the compiled kernel; ``arrays``: the host arrays the query reads (copied to
     the device once). Raises :class:`NotImplementedError` naming a world the GPU step does not
     handle."""
-    from fastsdf.backends.kernel.cache import load_module
+    from fastsdf.backends import load_module
     from fastsdf.particles import kernels as _kernels
     from fastsdf.particles import world as _world
 

@@ -37,7 +37,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.backends.kernel.cache import load_module
+from fastsdf.backends import load_module
 from fastsdf.granular.params import ContactLaw
 from fastsdf.granular.simulation import (
     DEFAULT_RADIUS,

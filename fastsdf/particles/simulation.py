@@ -17,7 +17,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.backends import prune as _prune
+from fastsdf.backends import HEADER_SIZE, plan_header
 from fastsdf.device import to_host
 from fastsdf.function import Function
 from fastsdf.introspect import show_init_signature
@@ -420,7 +420,7 @@ class ParticleSimulation:
         # A grid in mode 'exact' binds its exact fallback when a particle first needs it; a
         # pruned SDF (see _prunes) binds its C function at once. Both read the plan header.
         pruned = isinstance(f, Function) and not _is_grid(f) and len(data) == 2
-        self._hdr = np.zeros(_prune.HEADER_SIZE)
+        self._hdr = np.zeros(HEADER_SIZE)
         self._hdr_plan = None  # the plan the header points into (kept alive here)
         self._exact_ptr = None if (_is_grid(f) and f.mode == "exact") or pruned else 0
         if self._exact_ptr is None and (pruned or getattr(f, "bounds", None) is None):
@@ -572,7 +572,7 @@ class ParticleSimulation:
             xs, ys, None, getattr(exact, "prune_tol", None), count=xs.shape[0] * max(1, int(steps))
         )
         if plan is not self._hdr_plan:
-            _prune.plan_header(plan, self._hdr)
+            plan_header(plan, self._hdr)
             self._hdr_plan = plan
 
     def _python_forces(self, gens: Any) -> np.ndarray:

@@ -14,8 +14,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from fastsdf.backends import prune as _prune
-from fastsdf.backends.kernel.cache import load_module
+from fastsdf.backends import call_vg_plan, exact_source, hashed_import, load_module
 from fastsdf.expr.validate import real
 from fastsdf.fields import grid as _grid
 from fastsdf.function import Function
@@ -104,7 +103,7 @@ def _exact_address(exact: Any) -> tuple:
     entry = _EXACT_OUT.get(scene)
     if entry is None:
         rows = bool(exact.compiled.groups) and not exact.compiled.parametric
-        source = _prune.exact_source(scene, rows, f"{__version__} (numba {numba.__version__})")
+        source = exact_source(scene, rows, f"{__version__} (numba {numba.__version__})")
         mod = load_module(source, prefix="fastsdf_exactptr")
         entry = _EXACT_OUT[scene] = (int(mod.exact_out.address), mod)
     return entry
@@ -125,13 +124,9 @@ def _prunes(f: Any) -> bool:
     return sum(len(g["members"]) for g in groups) >= _function.PRUNE_MIN_OPERANDS
 
 
-def _plan_import() -> str:
-    with open(_prune.__file__, "rb") as fh:
-        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-    return f"from {_prune.__name__} import _call_vg_plan  # prune.py sha256 {digest}"
-
-
-_PLAN_IMPORT = _plan_import()
+# The call of a pruned C function with its plan header, imported where it is defined (with that
+# module's hash: a change there changes every kernel that calls it).
+_PLAN_IMPORT = hashed_import(call_vg_plan.__module__, [f"{call_vg_plan.__name__} as _call_vg_plan"])
 
 
 def _force_parts(forces: Any) -> tuple:

@@ -155,6 +155,7 @@ import hashlib
 import inspect
 from types import ModuleType
 
+from fastsdf import intrinsics as _intrinsics
 from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
 from fastsdf.particles.kernels.block import (
     LANES,
@@ -252,14 +253,18 @@ def _digest(module: ModuleType) -> str:
 
 
 def _shared_imports() -> str:
-    """Import lines of the scene-independent modules, each with its file's hash (so that an
-    edit there changes every generated module's hash)."""
+    """Import lines of the scene-independent modules (the bottom layer's intrinsics, this
+    package's constants, structures and intrinsics), each with its file's hash (so that an edit
+    there changes every generated module's hash)."""
     names = sorted(
         n
         for n, obj in vars(intrinsics).items()
         if getattr(obj, "__module__", "") == intrinsics.__name__ and not inspect.isfunction(obj)
     )
     return (
+        f"from {_intrinsics.__name__} import (  # noqa: F401  sha256 {_digest(_intrinsics)}\n"
+        + "".join(f"    {n},\n" for n in _intrinsics.__all__)
+        + ")\n"
         f"from {constants.__name__} import *  # noqa: F403  sha256 {_digest(constants)}\n"
         f"from {config.__name__} import (  # noqa: F401  sha256 {_digest(config)}\n"
         "    Budget, Disc, Motion, Physics, State, Window,\n"

@@ -6,6 +6,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from fastsdf.intrinsics import bits_f64, f64_bits, select
 from fastsdf.particles.kernels.config import Disc, Motion, Physics
 from fastsdf.particles.kernels.constants import (
     CONTACT_TOL,
@@ -17,14 +18,7 @@ from fastsdf.particles.kernels.constants import (
     TRACE_FRACTION,
 )
 from fastsdf.particles.kernels.contact import _sweep
-from fastsdf.particles.kernels.intrinsics import (
-    _cell_vg,
-    _f64_as_i64,
-    _gather4,
-    _i64_as_f64,
-    _sel,
-    borrow_all,
-)
+from fastsdf.particles.kernels.intrinsics import _cell_vg, _gather4, borrow_all
 from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
 from fastsdf.particles.kernels.step import _coeffs, _finite4, _valid_input
 
@@ -73,9 +67,9 @@ def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
     gt = 0.0
     gl2 = gx * gx + gy * gy
     ok = (gl2 > 0.0) & (gl2 < math.inf)
-    inv = _sel(ok, 1.0 / math.sqrt(gl2), 0.0)
-    nx = _sel(ok, gx * inv, 0.0)
-    ny = _sel(ok, gy * inv, 0.0)
+    inv = select(ok, 1.0 / math.sqrt(gl2), 0.0)
+    nx = select(ok, gx * inv, 0.0)
+    ny = select(ok, gy * inv, 0.0)
     k = (1.0 + cr) * s
     x -= k * nx
     y -= k * ny
@@ -83,8 +77,8 @@ def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
     wn = -gt * inv
     vr = vn - wn
     resp = ok & ((vr < 0.0) | always)
-    w = _sel(resp, 1.0 - cf, 1.0)
-    c = _sel(resp, cr, -1.0)
+    w = select(resp, 1.0 - cf, 1.0)
+    c = select(resp, cr, -1.0)
     vx = w * (vx - vn * nx) + (wn - c * vr) * nx
     vy = w * (vy - vn * ny) + (wn - c * vr) * ny
     return x, y, vx, vy
@@ -185,12 +179,12 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
             fx += ux
             fy += uy
         im = S[_IM * W + q]
-        bx = _sel(use_m, ax + fx * im, ax)
-        by = _sel(use_m, ay + fy * im, ay)
+        bx = select(use_m, ax + fx * im, ax)
+        by = select(use_m, ay + fy * im, ay)
         nvx = vx + bx * dt
         nvy = vy + by * dt
-        dx = _sel(explicit, vx, nvx) * dt
-        dy = _sel(explicit, vy, nvy) * dt
+        dx = select(explicit, vx, nvx) * dt
+        dy = select(explicit, vy, nvy) * dt
         # the step's length (a square root: only for budgets and the fallback check)
         ln = math.sqrt(dx * dx + dy * dy) if budgets else 0.0
         c = S[_CLR * W + q] if skipping else 0.0
@@ -201,23 +195,23 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
         fin = _finite4(xe, ye, nvx, nvy)
         moved = live & skip
         keep = moved & fin
-        S[_X1 * W + q] = _sel(keep, xe, x)
-        S[_Y1 * W + q] = _sel(keep, ye, y)
-        S[_VX1 * W + q] = _sel(keep, nvx, vx)
-        S[_VY1 * W + q] = _sel(keep, nvy, vy)
+        S[_X1 * W + q] = select(keep, xe, x)
+        S[_Y1 * W + q] = select(keep, ye, y)
+        S[_VX1 * W + q] = select(keep, nvx, vx)
+        S[_VY1 * W + q] = select(keep, nvy, vy)
         if skipping:
-            S[_CLR1 * W + q] = _sel(skip, c2, 0.0)
+            S[_CLR1 * W + q] = select(skip, c2, 0.0)
         reach = 2.0 * (MAX_BOUNCES + 1) * ln + 1e-9
         away = (x - reach >= bx0) & (x + reach <= bx1) & (y - reach >= by0) & (y + reach <= by1)
         need = live & (not skip)
         miss = need & fbchk & (not away)
         need = need & (not miss)
-        code = _sel(miss, resume, _sel(moved & (not fin), nonfinite, 0.0))
+        code = select(miss, resume, select(moved & (not fin), nonfinite, 0.0))
         # the sampler's _locate, branch-free
         inside = (xe >= x0) & (xe <= x1) & (ye >= y0) & (ye <= y1)
         ok = inside | ((abs(xe) < math.inf) & (abs(ye) < math.inf))
-        xq = _sel(inside, xe, min(max(_sel(ok, xe, x0), x0), x1))
-        yq = _sel(inside, ye, min(max(_sel(ok, ye, y0), y0), y1))
+        xq = select(inside, xe, min(max(select(ok, xe, x0), x0), x1))
+        yq = select(inside, ye, min(max(select(ok, ye, y0), y0), y1))
         u = (xq - x0) * ihx
         v = (yq - y0) * ihy
         fi = min(np.floor(u), nxm2)
@@ -226,14 +220,14 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
         S[_TY * W + q] = v - fj
         # the flat index as an integer (converted here, in vector registers: a scalar
         # conversion in the gather would lengthen each particle's dependent chain)
-        S[_IDX * W + q] = _i64_as_f64(np.int64(np.int32(3.0 * (fi * nyf + fj))))
-        S[_INS * W + q] = _sel(inside, 1.0, 0.0)
-        S[_OK * W + q] = _sel(ok, 1.0, 0.0)
+        S[_IDX * W + q] = bits_f64(np.int64(np.int32(3.0 * (fi * nyf + fj))))
+        S[_INS * W + q] = select(inside, 1.0, 0.0)
+        S[_OK * W + q] = select(ok, 1.0, 0.0)
         S[_DX * W + q] = dx
         S[_DY * W + q] = dy
         S[_NVX * W + q] = nvx
         S[_NVY * W + q] = nvy
-        S[_NEED * W + q] = _sel(need, 1.0, 0.0)
+        S[_NEED * W + q] = select(need, 1.0, 0.0)
         S[_CODE1 * W + q] = code
         nneed += need
         nfrz += code != 0.0
@@ -272,7 +266,7 @@ def _simd_gather(S, grid, row, lip, trace, every, marks):
     nfix = 0
     for q in range(L):
         if every or S[_NEED * W + q] != 0.0:
-            a = np.uint64(_f64_as_i64(S[_IDX * W + q]))
+            a = np.uint64(f64_bits(S[_IDX * W + q]))
             d, gx, gy = _cell_vg(grid, a, a + row, S[_TX * W + q], S[_TY * W + q])
             S[_D * W + q] = d
             S[_GX * W + q] = gx
@@ -280,7 +274,7 @@ def _simd_gather(S, grid, row, lip, trace, every, marks):
             r = S[_R * W + q]
             ncon += d <= r
             if marks:
-                s = _sel(S[_OK * W + q] != 0.0, d, math.nan) - r
+                s = select(S[_OK * W + q] != 0.0, d, math.nan) - r
                 dx = S[_DX * W + q]
                 dy = S[_DY * W + q]
                 dd = dx * dx + dy * dy
@@ -290,7 +284,7 @@ def _simd_gather(S, grid, row, lip, trace, every, marks):
                     & (not ((s * s >= lip * lip * dd) & (s > 0.0)))
                 )
                 fix = (S[_NEED * W + q] != 0.0) & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
-                S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
+                S[_FIX * W + q] = select(fix, 1.0, 0.0)
                 S[_BNC * W + q] = 0.0
                 nfix += fix
     return ncon, nfix
@@ -326,7 +320,7 @@ def _simd_blend(S, trace, lip):
     for q in range(L):
         need = S[_NEED * W + q] != 0.0
         r = S[_R * W + q]
-        s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
+        s = select(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
         dx = S[_DX * W + q]
         dy = S[_DY * W + q]
         dd = dx * dx + dy * dy
@@ -336,7 +330,7 @@ def _simd_blend(S, trace, lip):
             & (not ((s * s >= lip * lip * dd) & (s > 0.0)))
         )
         fix = need & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
-        S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
+        S[_FIX * W + q] = select(fix, 1.0, 0.0)
         S[_BNC * W + q] = 0.0
         nfix += fix
     return nfix
@@ -377,7 +371,7 @@ def _simd_fix(data, S, lip, always, trace):
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
             S[_OK * W + q] = 1.0  # these values stand as they are
-        s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
+        s = select(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
         if not (
             trace
             and dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)
@@ -434,12 +428,12 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         bounced = S[_BNC * W + q] != 0.0
         x1 = S[_X1 * W + q]
         y1 = S[_Y1 * W + q]
-        x = _sel(bounced, S[_XS * W + q], x1) + S[_DX * W + q]
-        y = _sel(bounced, S[_YS * W + q], y1) + S[_DY * W + q]
+        x = select(bounced, S[_XS * W + q], x1) + S[_DX * W + q]
+        y = select(bounced, S[_YS * W + q], y1) + S[_DY * W + q]
         vx = S[_NVX * W + q]
         vy = S[_NVY * W + q]
         ok = S[_OK * W + q] != 0.0  # False: a non-finite end point (the sampler's NaN)
-        s = _sel(ok, S[_D * W + q], math.nan) - S[_R * W + q]
+        s = select(ok, S[_D * W + q], math.nan) - S[_R * W + q]
         cr = S[_CR * W + q]
         cf = S[_CF * W + q]
         cok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
@@ -448,27 +442,27 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         rx, ry, rvx, rvy = _respond_sel(
             x, y, vx, vy, s, S[_GX * W + q], S[_GY * W + q], cr, cf, always & (not bounced)
         )
-        x = _sel(contact, rx, x)
-        y = _sel(contact, ry, y)
-        vx = _sel(contact, rvx, vx)
-        vy = _sel(contact, rvy, vy)
+        x = select(contact, rx, x)
+        y = select(contact, ry, y)
+        vx = select(contact, rvx, vx)
+        vy = select(contact, rvy, vy)
         code0 = S[_CODE1 * W + q]
-        code = _sel(
+        code = select(
             code0 != 0.0,
             code0,
-            _sel(contact & (not cok), coeff, _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)),
+            select(contact & (not cok), coeff, select(_finite4(x, y, vx, vy), 0.0, nonfinite)),
         )
         commit = need & (code == 0.0)
-        S[_X * W + q] = _sel(commit, x, x1)
-        S[_Y * W + q] = _sel(commit, y, y1)
-        S[_VX * W + q] = _sel(commit, vx, S[_VX1 * W + q])
-        S[_VY * W + q] = _sel(commit, vy, S[_VY1 * W + q])
+        S[_X * W + q] = select(commit, x, x1)
+        S[_Y * W + q] = select(commit, y, y1)
+        S[_VX * W + q] = select(commit, vx, S[_VX1 * W + q])
+        S[_VY * W + q] = select(commit, vy, S[_VY1 * W + q])
         if skip:
             refill = (not contact) & (s > margin)
-            S[_CLR * W + q] = _sel(
-                need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0), S[_CLR1 * W + q]
+            S[_CLR * W + q] = select(
+                need, select(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0), S[_CLR1 * W + q]
             )
-        S[_CODE * W + q] = _sel(need, code, code0)
+        S[_CODE * W + q] = select(need, code, code0)
         nfrz += need & (code != 0.0)
     return nfrz
 
