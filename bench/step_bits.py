@@ -363,7 +363,10 @@ def _set_skip(sim: Any, skip: bool) -> None:
     """Turn query skipping off (as for a world without a known Lipschitz bound)."""
     if skip:
         return
-    sim._skip = False
+    if "_skip" in vars(sim):  # (an earlier version: the simulation's own)
+        sim._skip = False
+    else:
+        sim.engine.skip = False
 
 
 def _set_long_call(engine: Any, value: int | None) -> list:

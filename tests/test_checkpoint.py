@@ -443,7 +443,7 @@ def test_files_of_an_earlier_fastsdf_continue_bit_for_bit(name):
     after = np.load(os.path.join(data, f"{name}_9af86bd_after.npz"))
     sim.run(int(after["steps"]))
     assert sim.t == float(after["t"])
-    for field in sim.p.keys():
+    for field in sim.p.FIELDS:
         got = np.asarray(sim.p[field])
         assert got.dtype == after[field].dtype
         np.testing.assert_array_equal(got, after[field], err_msg=field)

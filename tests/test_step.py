@@ -17,6 +17,7 @@ import fastsdf as sdf
 import fastsdf.particles as phys
 from fastsdf import GridSDF
 from fastsdf.particles import kernels as _step
+from fastsdf.particles.forces import fuse
 from fastsdf.shapes.scenes import seed_world
 
 
@@ -310,19 +311,22 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
     for tunnelling in (False, True):
         sim = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=tunnelling)
         sim.force_generators.append(phys.Gravity())
-        sim._skip = False
-        sim._simd = False  # (a grid world would take the block kernel, tested below)
+        sim.engine.skip = False
+        sim.engine.simd = False  # (a grid world would take the block kernel, tested below)
         sims.append(sim)
     sims[0].run(60)
-    assert sims[0]._module.plain_ser.signatures  # compiled and called
-    assert not sims[1]._module.plain_ser.signatures or sims[1]._module is sims[0]._module
+    module = sims[0].engine.kernel()[0]
+    assert module.plain_ser.signatures  # compiled and called
+    assert (
+        not sims[1].engine.kernel()[0].plain_ser.signatures or sims[1].engine.kernel()[0] is module
+    )
     # the general kernel with the same switches gives the same state
     ref = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=False)
     ref.force_generators.append(phys.Gravity())
     a = ref.p._arrays
     flags = np.zeros(300, np.int32)
-    ax, ay, drag, _, _ = ref._fused_params()
-    ref._bind_fallback()  # no particle stops to bind it
+    ax, ay, drag, _, _ = fuse(ref.force_generators)
+    ref.engine.bind_fallback()  # no particle stops to bind it
     state = _step.State(*[a[k] for k in phys.Particles.FIELDS], np.zeros((0, 2)), flags, True)
     physics = _step.Physics(
         dt=ref.dt,
@@ -337,9 +341,9 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
         rest=0.0,
     )
     budget = _step.Budget(
-        trace=False, lip=ref.lipschitz, margin=ref._margin, eps=2.2e-16, skip=False
+        trace=False, lip=ref.lipschitz, margin=ref.engine.margin, eps=2.2e-16, skip=False
     )
-    ref._module.run_ser(ref._bind(ref._data), state, physics, budget, 60, 512)
+    ref.engine.kernel()[0].run_ser(ref.engine.data, state, physics, budget, 60, 512)
     assert not flags.any()
     np.testing.assert_array_equal(sims[0].p["x"], ref.p["x"])
     np.testing.assert_array_equal(sims[0].p["v"], ref.p["v"])
@@ -352,7 +356,7 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
 def test_generated_kernel_is_the_step_module_with_one_scene_block():
     head, tail = phys._step_source()
     sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
-    with open(sim._module.__file__) as fh:
+    with open(sim.engine.kernel()[0].__file__) as fh:
         src = fh.read()
     assert src.startswith(head) and src.endswith(tail)
     assert "# >>> SCENE BLOCK" not in src and "_CACHE = True" in src
@@ -363,7 +367,7 @@ def test_grid_kernel_does_not_depend_on_the_scene():
     b = GridSDF(sdf.Box([-1, -1], [1, 0.5]), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     sa = phys.ParticleSimulation(a, n=3, seed=0)
     sb = phys.ParticleSimulation(b, n=3, seed=0)
-    assert sa._module is sb._module
+    assert sa.engine.kernel()[0] is sb.engine.kernel()[0]
     # ...and each still answers with its own scene, inside and outside the grid.
     pts = np.array([[0.0, 0.0], [1.5, 0.3], [3.0, -4.0], [-7.0, 0.2]])
     for sim, grid in ((sa, a), (sb, b)):
@@ -415,7 +419,7 @@ def test_fused_njit_forces_equal_the_python_path(n):
 def test_force_many_sums_the_fused_forces():
     sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
     sim.force_generators += [_wind, _spring]
-    module, _ = sim._kernel(tuple(sim.force_generators))
+    module, _ = sim.engine.kernel(tuple(sim.force_generators))
     xs, ys, vx, vy, m = np.random.default_rng(6).normal(size=(5, 10))
     out = np.empty((10, 2))
     module.force_many(xs, ys, vx, vy, m, 0.7, out)
@@ -511,8 +515,8 @@ def test_lazy_exact_fallback_gives_the_same_trajectories(n):
     grid = GridSDF(w, bounds=[(-1, 1), (-1, 1)], samples=[60j, 60j])
     lazy = phys.ParticleSimulation(grid, n=n, seed=9)
     eager = phys.ParticleSimulation(grid, n=n, seed=9)
-    eager._bind_fallback()
-    assert lazy._exact_ptr is None and eager._exact_ptr
+    eager.engine.bind_fallback()
+    assert not lazy.engine.fallback_bound and eager.engine.fallback_bound
     x = np.c_[np.random.default_rng(9).uniform(-0.5, 0.5, n), np.linspace(0.4, 0.9, n)]
     for s in (lazy, eager):
         s.force_generators.append(phys.Gravity())
@@ -520,12 +524,12 @@ def test_lazy_exact_fallback_gives_the_same_trajectories(n):
         s.p["v"] = 0.0
     lazy.run(3)  # nobody comes near the edge yet: nothing compiled
     eager.run(3)
-    assert lazy._exact_ptr is None
+    assert not lazy.engine.fallback_bound
     for s in (lazy, eager):
         s.p["v"] = np.c_[np.linspace(-3, 3, n), np.zeros(n)]
     lazy.run(40)
     eager.run(40)
-    assert lazy._exact_ptr is not None
+    assert lazy.engine.fallback_bound
     assert np.any(np.abs(eager.p["x"]) > 1.0)  # some did leave the grid
     np.testing.assert_array_equal(lazy.p["x"], eager.p["x"])
     np.testing.assert_array_equal(lazy.p["v"], eager.p["v"])
@@ -557,8 +561,8 @@ def test_fields_evaluated_ahead_give_the_results_of_inline_forces():
     plain.force_generators += [phys.Gravity(), inline]
     for sim in (ahead, plain):
         sim.run(100)
-    assert ahead._kernel((field.dispatcher,))[0].FORCE_AHEAD
-    assert not plain._kernel((inline,))[0].FORCE_AHEAD
+    assert ahead.engine.kernel((field.dispatcher,))[0].FORCE_AHEAD
+    assert not plain.engine.kernel((inline,))[0].FORCE_AHEAD
     # free fall for 100 steps would reach a speed of about 3.3: slower particles have hit walls
     assert (np.hypot(*ahead.p["v"].T) < 1.0).sum() > n // 4
     np.testing.assert_array_equal(ahead.p["x"], plain.p["x"])
@@ -668,7 +672,7 @@ def _block_pair(grid, n, seed, block, forces=(), **kw):
     for simd in (True, False):
         sim = phys.ParticleSimulation(grid, n=n, seed=seed, block=block, **kw)
         sim.force_generators += [phys.Gravity()] + list(forces)
-        sim._simd = simd
+        sim.engine.simd = simd
         sims.append(sim)
     k = n // 4
     # resting on the floor of the seed world's funnel, falling, fast across the scene, and
@@ -720,7 +724,7 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
     sims = _block_pair(g, 1000, 3, block, prevent_tunnelling=tunnelling, **extra)
     for sim in sims:
-        sim._skip = skip
+        sim.engine.skip = skip
         sim.p["x"][7] = math.nan  # invalid input: frozen, flagged, left as it is
         sim.p["v"][8] = math.inf
         sim.p["cr"][:40] = 1.5  # invalid cr, found at a contact
@@ -728,7 +732,7 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     sims[1].force_generators.append(phys.Drag(0.2))
     _run_pair(sims, 3, 30)
     # the block kernel ran: the entry point compiled for calls with or without skipping
-    module = sims[0]._module
+    module = sims[0].engine.kernel()[0]
     assert (module.simd_ser if skip else module.simd_plain_ser).signatures
     # some particles touched surfaces, some left the grid, some were frozen
     assert np.any(np.abs(sims[0].p["x"]) > 2.0)
@@ -743,24 +747,24 @@ def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
     n = phys.PARALLEL_MIN_PARTICLES + 77
     sims = _block_pair(g, n, 5, 700, forces=[_gust])
     _run_pair(sims, 2, 25)
-    sims[0]._skip = sims[1]._skip = False
+    sims[0].engine.skip = sims[1].engine.skip = False
     _run_pair(sims, 1, 25)
-    module = sims[0]._kernel((_gust,))[0]
+    module = sims[0].engine.kernel((_gust,))[0]
     assert module.simd_ser.signatures and module.simd_plain_ser.signatures
-    assert sims[0]._exact_ptr is not None or mode == "nearest"
+    assert sims[0].engine.fallback_bound or mode == "nearest"
 
 
 def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     picked = []
-    pick = phys.ParticleSimulation._pick_kernel
+    pick = phys.engine.ParticleEngine._pick_kernel
 
     def spy(self, *args):
         kernel = pick(self, *args)
         picked.append(kernel.py_func.__name__)
         return kernel
 
-    monkeypatch.setattr(phys.ParticleSimulation, "_pick_kernel", spy)
+    monkeypatch.setattr(phys.engine.ParticleEngine, "_pick_kernel", spy)
     cases = [
         ({}, "simd_ser"),
         ({"prevent_tunnelling": False}, "simd_ser"),
@@ -775,7 +779,7 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
         assert set(picked) == {name}  # (twice where particles resume at the edge)
     picked.clear()
     plain = phys.ParticleSimulation(g, n=200, seed=2)
-    plain._skip = False  # (as for a world without a known Lipschitz bound)
+    plain.engine.skip = False  # (as for a world without a known Lipschitz bound)
     plain.run(2)
     assert set(picked) == {"simd_plain_ser"}
     picked.clear()
@@ -783,7 +787,8 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
     sim.run(1)
     assert set(picked) == {"run_ser"}
     # an exact-SDF world has no block kernel
-    assert not phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)._module.GRID_SIMD
+    circle = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)
+    assert not circle.engine.kernel()[0].GRID_SIMD
 
 
 def test_block_kernel_on_a_float32_grid():
@@ -791,7 +796,7 @@ def test_block_kernel_on_a_float32_grid():
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j], dtype=np.float32)
     sims = _block_pair(g, 600, 8, 256)
     _run_pair(sims, 2, 30)
-    assert sims[0]._module.simd_ser.signatures
+    assert sims[0].engine.kernel()[0].simd_ser.signatures
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")
@@ -803,7 +808,7 @@ def test_threads_give_the_results_of_one_thread(grid, long, monkeypatch):
     # (the block kernel of a grid world, the general kernel of an exact SDF with its
     # tunnelling sweep), frozen particles and error included.
     if long:
-        monkeypatch.setattr(phys.simulation, "LONG_CALL", 1000)
+        monkeypatch.setattr(phys.engine, "LONG_CALL", 1000)
     world = seed_world()
     if grid:
         world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
@@ -845,6 +850,6 @@ def test_python_forces_near_the_grids_edge():
         sim.p["x"][:50, 1] = np.linspace(1.3, 1.6, 50)  # near and beyond the top edge
         sim.run(3)
         sims.append(sim)
-    assert sims[0]._exact_ptr is not None
+    assert sims[0].engine.fallback_bound
     np.testing.assert_array_equal(sims[0].p["x"], sims[1].p["x"])
     np.testing.assert_array_equal(sims[0].p["v"], sims[1].p["v"])

@@ -74,9 +74,11 @@ Grains: ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactL
 particles that also collide with each other (a :class:`GrainSimulation`, stepped by the
 granular engine :mod:`fastsdf.granular`); the names and tools above are the same.
 
-Modules: :mod:`.grains` (grains), :mod:`.state` (the particles' arrays), :mod:`.forces`,
-:mod:`.world` (what a step queries), :mod:`.simulation`, :mod:`.reference` (the notebook's
-step in NumPy) and :mod:`.kernels`.
+Modules: :mod:`.family` (what every simulation of the family shares), :mod:`.simulation`
+(particles), :mod:`.grains` (grains), :mod:`.engine` (the particles' fused step, the engine a
+ParticleSimulation holds), :mod:`.state` (the states' arrays), :mod:`.forces`, :mod:`.world`
+(what a step queries), :mod:`.reference` (the notebook's step in NumPy), :mod:`.kernels` and
+:mod:`.cuda` (the GPU step).
 """
 
 from fastsdf.granular.params import ContactLaw

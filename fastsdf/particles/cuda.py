@@ -54,7 +54,7 @@ from fastsdf.particles.kernels.constants import (
 )
 from fastsdf.particles.kernels.contact import _respond
 from fastsdf.particles.kernels.step import _finite4, _integrate, _valid_input
-from fastsdf.particles.state import Particles
+from fastsdf.particles.state import FieldState, Particles
 
 __all__ = ["DeviceParticles", "CudaStep", "THREADS_PER_BLOCK", "ieee_compile"]
 
@@ -91,9 +91,10 @@ def ieee_compile() -> Iterator[None]:
 # The state on the device.
 
 
-class DeviceParticles:
+class DeviceParticles(FieldState):
     """The particles' state on the GPU: the fields of :class:`.Particles` (``x``, ``v``:
-    (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,); float64) as numba device arrays.
+    (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,); float64) as numba device arrays, with the
+    family's mapping surface (:class:`.FieldState`).
 
     ``p['x']`` is the device array itself (CuPy: ``cupy.asarray(p['x'])``, PyTorch:
     ``torch.as_tensor(p['x'], device='cuda')``, both without a copy; write it in place freely
@@ -113,59 +114,20 @@ class DeviceParticles:
         self._n = len(host)
         self._arrays = {k: cu.to_device(np.ascontiguousarray(host[k])) for k in self.FIELDS}
 
-    def __getitem__(self, name: str) -> Any:
-        try:
-            return self._arrays[name]
-        except (KeyError, TypeError):
-            raise KeyError(f"no particle field {name!r}; fields are {self.FIELDS}") from None
-
-    def __setitem__(self, name: str, value: Any) -> None:
-        arr = self[name]
-        if _device.is_device_array(value):
-            src = _device.as_device(value, f"p[{name!r}]")
-            if tuple(src.shape) != tuple(arr.shape):
-                raise ValueError(
-                    f"p[{name!r}] has shape {arr.shape}; cannot assign a device array of "
-                    f"shape {src.shape}"
-                )
-            arr.copy_to_device(src)
-            return
-        host = np.asarray(value)
-        if host.dtype.kind not in "iuf":
-            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {host.dtype}")
-        try:
-            full = np.ascontiguousarray(np.broadcast_to(host, arr.shape), dtype=np.float64)
-        except ValueError:
+    def _assign_device(self, name: str, arr: Any, value: Any) -> bool:
+        if not _device.is_device_array(value):
+            return False
+        src = _device.as_device(value, f"p[{name!r}]")
+        if tuple(src.shape) != tuple(arr.shape):
             raise ValueError(
-                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {host.shape}"
-            ) from None
-        arr.copy_to_device(full)
+                f"p[{name!r}] has shape {arr.shape}; cannot assign a device array of "
+                f"shape {src.shape}"
+            )
+        arr.copy_to_device(src)
+        return True
 
-    def __getattr__(self, name: str) -> Any:
-        arrays = self.__dict__.get("_arrays")
-        if arrays is not None and name in arrays:
-            return arrays[name]
-        raise AttributeError(name)
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __contains__(self, name: object) -> bool:
-        return name in self._arrays
-
-    def keys(self) -> tuple[str, ...]:
-        """The field names."""
-        return self.FIELDS
-
-    @property
-    def dtype(self) -> np.dtype:
-        """float64: the device state's dtype."""
-        return np.dtype(np.float64)
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held on the device (8 floats per particle)."""
-        return sum(int(a.nbytes) for a in self._arrays.values())
+    def _write(self, arr: Any, full: np.ndarray) -> None:
+        arr.copy_to_device(np.ascontiguousarray(full, dtype=np.float64))
 
     def host(self) -> Particles:
         """A NumPy copy of the state (a :class:`.Particles`)."""
@@ -185,9 +147,6 @@ class DeviceParticles:
             new.copy_to_device(arr)
             out._arrays[name] = new
         return out
-
-    def __repr__(self) -> str:
-        return f"DeviceParticles(n={self._n}, dtype=float64)"
 
 
 # ---------------------------------------------------------------------------------------------

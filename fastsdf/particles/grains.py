@@ -45,22 +45,24 @@ from fastsdf.granular.simulation import (
     GranularSimulation,
 )
 from fastsdf.notice import compiling
-from fastsdf.particles.checkpoint import register_simulation
+from fastsdf.particles.family import DEFAULT_COUNT, Simulation
 from fastsdf.particles.forces import Gravity, fuse
-from fastsdf.particles.simulation import _DEFAULT_N, ParticleSimulation, _recorded
+from fastsdf.particles.simulation import ParticleSimulation
+from fastsdf.particles.state import FieldState
 from fastsdf.particles.world import _force_parts
 from fastsdf.version import __version__
 
 __all__ = ["GrainSimulation", "GrainState"]
 
 
-class GrainState:
+class GrainState(FieldState):
     """The grains' state in their given order: ``p['x']``, ``p['v']`` (n, 2), ``p['m']``,
-    ``p['r']``, ``p['omega']`` (n,) (angular velocity, rad/s, counter-clockwise), like
-    :class:`~fastsdf.particles.Particles`. Arrays read here may be written in place (``m``
-    excepted); the next step takes the changes."""
+    ``p['r']``, ``p['omega']`` (n,) (angular velocity, rad/s, counter-clockwise), with the
+    family's mapping surface (:class:`~fastsdf.particles.state.FieldState`). Arrays read here
+    may be written in place (``m`` excepted); the next step takes the changes."""
 
     FIELDS = ("x", "v", "m", "r", "omega")
+    _ITEM = "grain"
 
     def __init__(self, engine: GranularSimulation) -> None:
         self._engine = engine
@@ -81,47 +83,8 @@ class GrainState:
             self._arrays = self._current()
         return self._arrays
 
-    def __getitem__(self, name: str) -> np.ndarray:
-        if name not in self.FIELDS:
-            raise KeyError(f"no grain field {name!r}; fields are {self.FIELDS}")
-        return self._fields()[name]
-
-    def __setitem__(self, name: str, value: Any) -> None:
-        arr = self[name]
-        value = np.asarray(value)
-        if value.dtype.kind not in "iuf":
-            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {value.dtype}")
-        try:
-            np.copyto(arr, np.broadcast_to(value, arr.shape), casting="unsafe")
-        except ValueError:
-            raise ValueError(
-                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {value.shape}"
-            ) from None
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        if name in GrainState.FIELDS:
-            return self[name]
-        raise AttributeError(name)
-
     def __len__(self) -> int:
         return int(self._engine.ids.shape[0])
-
-    def __contains__(self, name: object) -> bool:
-        return name in self.FIELDS
-
-    def keys(self) -> tuple[str, ...]:
-        """The field names."""
-        return self.FIELDS
-
-    @property
-    def dtype(self) -> np.dtype:
-        """float64 (the engine's)."""
-        return np.dtype(np.float64)
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the window now (0 while it is not filled)."""
-        return 0 if self._arrays is None else sum(a.nbytes for a in self._arrays.values())
 
     def sync(self) -> None:
         """Hand the changes written into the window to the engine (which restarts from them)
@@ -154,8 +117,9 @@ class GrainState:
         """An independent copy of the fields, as a dict of arrays."""
         return {k: v.copy() for k, v in self._fields().items()}
 
-    def __repr__(self) -> str:
-        return f"GrainState(n={len(self)})"
+    def host(self) -> dict:
+        """A copy of the fields (the state is on the host), as a dict of arrays."""
+        return self.copy()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,8 +192,7 @@ def _points(value: ArrayLike, name: str) -> np.ndarray:
     return a
 
 
-@register_simulation
-class GrainSimulation(ParticleSimulation, steps_contacts=True):
+class GrainSimulation(Simulation):
     """Grains colliding with each other and with the world; built by
     ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactLaw(...))``
     (see :mod:`fastsdf.particles.grains`).
@@ -272,13 +235,17 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
     """
 
     engine: GranularSimulation
+    _dt: float
     _start: tuple
     p: GrainState
+    _noun = "grains"
+    #: Where the engine steps the grains ('cpu' or 'cuda').
+    device: str = "cpu"
 
     def __init__(
         self,
         world: Any,
-        n: int = _DEFAULT_N,
+        n: int = DEFAULT_COUNT,
         timestep: float = 1 / 30,
         *,
         positions: ArrayLike | None = None,
@@ -303,10 +270,11 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
         pos = _points(positions, "positions")
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
             raise TypeError(f"n must be an integer, got n={n!r}")
-        if n is not _DEFAULT_N and int(n) != pos.shape[0]:
+        if n is not DEFAULT_COUNT and int(n) != pos.shape[0]:
             raise ValueError(f"n={n!r} does not match positions, which hold {pos.shape[0]} rows")
         self.n = int(pos.shape[0])
         self.seed = seed
+        self.device = device
         spc = DEFAULT_SUBSTEPS_PER_CONTACT if substeps_per_contact is None else substeps_per_contact
         self.engine = GranularSimulation(
             world,
@@ -428,14 +396,11 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
             e.set_state()
         self._fused = (key, user)
 
-    def run(self, steps: int = 1, record: Any = None) -> None:
-        """Advance ``steps`` steps of ``dt`` seconds (``substeps_per_frame`` substeps
-        each); ``record``: a recorder such as :class:`fastsdf.io.TrajectoryRecorder`."""
-        if _recorded(self, steps, record):
-            return
+    def _run(self, steps: int) -> None:
+        """``steps`` steps of ``dt`` seconds, ``substeps_per_frame`` substeps each."""
         self.p.sync()
         self._apply_forces()
-        self.engine.run(int(steps))
+        self.engine.run(steps)
 
     def reset(self, ax: Any = None) -> tuple:
         """Back to the start (the positions, velocities and radii given), ``t = 0``; with
@@ -498,3 +463,8 @@ class GrainSimulation(ParticleSimulation, steps_contacts=True):
             f"ParticleSimulation(n={self.n}, timestep={self.dt!r}, t={self.t:.4g}, "
             f"contacts={e.contact!r}, substeps_per_frame={e.substeps_per_frame})"
         )
+
+
+# Grains are the family's member with contacts: ParticleSimulation(..., contacts=...) builds
+# them, and they count as a ParticleSimulation without inheriting its step.
+ParticleSimulation._admit_grains(GrainSimulation)
