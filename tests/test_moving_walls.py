@@ -111,7 +111,7 @@ def test_parameters_in_the_simulation_never_recompile():
     assert sim.params == {"speed": 0.5, "cx": 0.5}
     sim.run(30)
     mod = sim.engine.kernel()[0]
-    count = sum(len(getattr(mod, k).overloads) for k in ("run_ser", "_block"))
+    count = sum(len(getattr(mod, k).overloads) for k in ("step_ser", "_block"))
     sim.params["speed"] = 1.5
     sim.params["cx"] = -5.0  # the circle leaves
     sim.run(30)
@@ -120,7 +120,7 @@ def test_parameters_in_the_simulation_never_recompile():
     np.testing.assert_allclose(d[0], r, atol=1e-9)  # riding on the piston
     # the circle has gone: only the piston is left
     np.testing.assert_allclose(d[1], sim.p["x"][1, 0] - (-1.0 + 1.5 * sim.t), atol=1e-12)
-    assert sum(len(getattr(mod, k).overloads) for k in ("run_ser", "_block")) == count
+    assert sum(len(getattr(mod, k).overloads) for k in ("step_ser", "_block")) == count
     with pytest.raises(KeyError, match="unknown parameter 'angle'"):
         sim.params["angle"] = 1.0
     with pytest.raises(ValueError, match="finite"):

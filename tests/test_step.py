@@ -18,7 +18,21 @@ import fastsdf.particles as phys
 from fastsdf import GridSDF
 from fastsdf.particles import kernels as _step
 from fastsdf.particles.forces import fuse
+from fastsdf.particles.kernels import constants as C
 from fastsdf.shapes.scenes import seed_world
+
+#: The kernel variants by their switches (simd, plain): see fastsdf.particles.kernels.step.
+VARIANTS = {(None, None): "general", (None, True): "plain", (True, None): "simd"}
+VARIANTS[True, True] = "simd_plain"
+
+
+def compiled_variants(module, entry="step_ser"):
+    """The variants of ``module``'s entry point compiled (or loaded) in this process."""
+    done = set()
+    for sig in getattr(module, entry).signatures:
+        simd, plain = (None if isinstance(t, numba.types.NoneType) else True for t in sig[-2:])
+        done.add(VARIANTS[simd, plain])
+    return done
 
 
 def world(planes=(), discs=()):
@@ -89,7 +103,7 @@ def test_march_stops_at_the_first_contact_along_the_segment():
     assert hit == 1
     contact = 0.9 / 2.0  # x + r = 1
     assert contact - 1e-3 <= t <= contact + 1e-9
-    assert abs(s) <= _step.CONTACT_TOL * 2.0
+    assert abs(s) <= C.CONTACT_TOL * 2.0
     assert (nx, ny) == (-1.0, 0.0)
 
 
@@ -171,7 +185,7 @@ def run_kernel(
         rest=0.0,
     )
     budget = _step.Budget(trace=trace, lip=1.0, margin=0.0, eps=2.2e-16, skip=skip)
-    bad = _step.run_ser(data, state, physics, budget, steps, block)
+    bad = _step.step_ser(data, state, physics, budget, steps, block, None, None)
     return bad, flags
 
 
@@ -229,11 +243,11 @@ def test_kernel_flags_invalid_particles_and_non_finite_steps():
     X[1, 0] = math.nan
     CR[2] = 2.0
     bad, flags = run_kernel(FLOOR, 3, X, V, M, R, CR, CF)
-    assert bad == 2 and flags.tolist() == [0, _step.FLAG_INPUT, _step.FLAG_INPUT, 0]
+    assert bad == 2 and flags.tolist() == [0, C.FLAG_INPUT, C.FLAG_INPUT, 0]
     # A step that overflows is not stored: the particle keeps its last finite state.
     X, V, M, R, CR, CF = kernel_args(1, [[0, 1]], [[1e300, 0]])
     bad, flags = run_kernel(FLOOR, 2, X, V, M, R, CR, CF, dt=1e10, g=(0.0, 0.0))
-    assert bad == 1 and flags[0] == _step.FLAG_NONFINITE
+    assert bad == 1 and flags[0] == C.FLAG_NONFINITE
     assert X.tolist() == [[0.0, 1.0]] and V.tolist() == [[1e300, 0.0]]
 
 
@@ -264,7 +278,7 @@ def _mixed_state(seed, n=96):
 )
 @pytest.mark.parametrize("block", [5, 64])
 def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, ext, block):
-    # Without skipping and the tunnelling check, calls go to plain_ser (a straight
+    # Without skipping and the tunnelling check, calls take the plain variant (a straight
     # and a batched step chosen by the contact count): bit-identical states, flags and counts.
     data = world(
         planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
@@ -274,7 +288,7 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
     n = base[0].shape[0]
     E = np.random.default_rng(2).normal(size=(n, 2)) if ext else np.zeros((0, 2))
     out = []
-    for kernel in (_step.run_ser, _step.plain_ser):
+    for plain in (None, True):
         X, V, M, R, CR, CF = [a.copy() for a in base]
         flags = np.zeros(n, np.int32)
         # check_all off: cr, cf are checked at contacts
@@ -292,10 +306,10 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
             rest=0.0,
         )
         budget = _step.Budget(trace=False, lip=1.0, margin=0.0, eps=2.2e-16, skip=False)
-        bad = kernel(data, state, physics, budget, 40, block)
+        bad = _step.step_ser(data, state, physics, budget, 40, block, None, plain)
         out.append((X, V, flags, bad))
     ref = out[0]
-    assert ref[2][5] == _step.FLAG_INPUT and ref[2][7] == _step.FLAG_COEFF
+    assert ref[2][5] == C.FLAG_INPUT and ref[2][7] == C.FLAG_COEFF
     assert ref[3] == np.count_nonzero(ref[2])
     assert np.all(ref[1][: n // 3 - 1, 1] ** 2 < 1.0)  # the resting third stays in contact
     for X, V, flags, bad in out[1:]:
@@ -316,9 +330,9 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
         sims.append(sim)
     sims[0].run(60)
     module = sims[0].engine.kernel()[0]
-    assert module.plain_ser.signatures  # compiled and called
-    assert (
-        not sims[1].engine.kernel()[0].plain_ser.signatures or sims[1].engine.kernel()[0] is module
+    assert "plain" in compiled_variants(module)  # compiled and called
+    assert "plain" not in compiled_variants(sims[1].engine.kernel()[0]) or (
+        sims[1].engine.kernel()[0] is module
     )
     # the general kernel with the same switches gives the same state
     ref = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=False)
@@ -343,7 +357,7 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
     budget = _step.Budget(
         trace=False, lip=ref.lipschitz, margin=ref.engine.margin, eps=2.2e-16, skip=False
     )
-    ref.engine.kernel()[0].run_ser(ref.engine.data, state, physics, budget, 60, 512)
+    ref.engine.kernel()[0].step_ser(ref.engine.data, state, physics, budget, 60, 512, None, None)
     assert not flags.any()
     np.testing.assert_array_equal(sims[0].p["x"], ref.p["x"])
     np.testing.assert_array_equal(sims[0].p["v"], ref.p["v"])
@@ -655,7 +669,7 @@ def test_rest_speed_is_validated(bad):
 
 
 # ---------------------------------------------------------------------------------------------
-# The block kernel of grid worlds (simd_ser) against the particle-by-particle kernels.
+# The block kernel of grid worlds (the simd variant) against the particle-by-particle kernels.
 
 
 @njit(cache=True)
@@ -733,7 +747,7 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     _run_pair(sims, 3, 30)
     # the block kernel ran: the entry point compiled for calls with or without skipping
     module = sims[0].engine.kernel()[0]
-    assert (module.simd_ser if skip else module.simd_plain_ser).signatures
+    assert ("simd" if skip else "simd_plain") in compiled_variants(module)
     # some particles touched surfaces, some left the grid, some were frozen
     assert np.any(np.abs(sims[0].p["x"]) > 2.0)
     assert np.isnan(sims[0].p["x"][7, 0]) and np.isinf(sims[0].p["v"][8, 0])
@@ -750,26 +764,26 @@ def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
     sims[0].engine.skip = sims[1].engine.skip = False
     _run_pair(sims, 1, 25)
     module = sims[0].engine.kernel((_gust,))[0]
-    assert module.simd_ser.signatures and module.simd_plain_ser.signatures
+    assert {"simd", "simd_plain"} <= compiled_variants(module)
     assert sims[0].engine.fallback_bound or mode == "nearest"
 
 
 def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     picked = []
-    pick = phys.engine.ParticleEngine._pick_kernel
+    pick = phys.engine.ParticleEngine._variant
 
     def spy(self, *args):
-        kernel = pick(self, *args)
-        picked.append(kernel.py_func.__name__)
-        return kernel
+        variant = pick(self, *args)
+        picked.append(VARIANTS[variant])
+        return variant
 
-    monkeypatch.setattr(phys.engine.ParticleEngine, "_pick_kernel", spy)
+    monkeypatch.setattr(phys.engine.ParticleEngine, "_variant", spy)
     cases = [
-        ({}, "simd_ser"),
-        ({"prevent_tunnelling": False}, "simd_ser"),
-        ({"rest_speed": 0.1}, "run_ser"),
-        ({"dtype": np.float32}, "run_ser"),
+        ({}, "simd"),
+        ({"prevent_tunnelling": False}, "simd"),
+        ({"rest_speed": 0.1}, "general"),
+        ({"dtype": np.float32}, "general"),
     ]
     for kw, name in cases:
         picked.clear()
@@ -781,14 +795,51 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
     plain = phys.ParticleSimulation(g, n=200, seed=2)
     plain.engine.skip = False  # (as for a world without a known Lipschitz bound)
     plain.run(2)
-    assert set(picked) == {"simd_plain_ser"}
+    assert set(picked) == {"simd_plain"}
     picked.clear()
     sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))  # a Python force
     sim.run(1)
-    assert set(picked) == {"run_ser"}
+    assert set(picked) == {"general"}
     # an exact-SDF world has no block kernel
     circle = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)
     assert not circle.engine.kernel()[0].GRID_SIMD
+
+
+@pytest.mark.parametrize("grid", [True, False])
+def test_switching_skip_trace_and_rest_per_call_compiles_each_variant_once(grid):
+    """The tunnelling check, query skipping and resting contact are chosen per call: each
+    choice takes one of the kernel family's variants, compiled the first time it is needed;
+    switching back and forth compiles nothing more (the variants' specializations, and the
+    functions they call, keep their counts)."""
+    world = seed_world()
+    if grid:
+        world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+    sim = phys.ParticleSimulation(world, n=300, seed=2)
+    sim.force_generators.append(phys.Gravity())
+    module = sim.engine.kernel()[0]
+    settings = [(True, True, 0.0), (False, True, 0.0), (True, False, 0.0), (False, False, 0.0)]
+    settings.append((True, True, 0.1))
+
+    def cycle():
+        for trace, skip, rest in settings:
+            sim.prevent_tunnelling, sim.engine.skip, sim.rest_speed = trace, skip, rest
+            sim.run(3)
+
+    def counts():
+        names = ("step_ser", "_block_of", "_block", "_block_plain", "_block_simd")
+        return [len(getattr(module, k).overloads) for k in names]
+
+    cycle()
+    first = counts()
+    used = compiled_variants(module)
+    # the grid world's calls without resting contact take the block step, with or without
+    # skipping; the exact world's take the plain step without skipping and tunnelling check
+    # (other tests of this process may have compiled more variants of the shared grid kernel)
+    assert used >= ({"simd", "simd_plain", "general"} if grid else {"general", "plain"})
+    assert first[0] == len(used)
+    cycle()
+    cycle()
+    assert counts() == first
 
 
 def test_block_kernel_on_a_float32_grid():
@@ -796,7 +847,7 @@ def test_block_kernel_on_a_float32_grid():
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j], dtype=np.float32)
     sims = _block_pair(g, 600, 8, 256)
     _run_pair(sims, 2, 30)
-    assert sims[0].engine.kernel()[0].simd_ser.signatures
+    assert "simd" in compiled_variants(sims[0].engine.kernel()[0])
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")

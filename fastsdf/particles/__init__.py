@@ -84,7 +84,7 @@ ParticleSimulation holds), :mod:`.state` (the states' arrays), :mod:`.forces`, :
 from fastsdf.granular.params import ContactLaw
 from fastsdf.particles.forces import Drag, FieldForce, Gravity
 from fastsdf.particles.grains import GrainSimulation, GrainState
-from fastsdf.particles.kernels import TRACE_FRACTION
+from fastsdf.particles.kernels.constants import TRACE_FRACTION
 from fastsdf.particles.reference import reference_step
 from fastsdf.particles.simulation import (
     DEFAULT_BLOCK,

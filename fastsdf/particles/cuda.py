@@ -35,7 +35,6 @@ take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to 
 from __future__ import annotations
 
 import contextlib
-import math
 import warnings
 from collections.abc import Iterator
 from typing import Any
@@ -45,18 +44,17 @@ import numpy as np
 from fastsdf import device as _device
 from fastsdf.fields import grid as _grid
 from fastsdf.function import Function
-from fastsdf.particles.kernels.config import Disc, Motion, Window
-from fastsdf.particles.kernels.constants import (
-    FLAG_COEFF,
-    FLAG_INPUT,
-    FLAG_NONFINITE,
-    TRACE_FRACTION,
-)
-from fastsdf.particles.kernels.contact import _respond
-from fastsdf.particles.kernels.step import _finite4, _integrate, _valid_input
+from fastsdf.particles.kernels.config import Budget, Physics, State
+from fastsdf.particles.kernels.constants import FLAG_INPUT
 from fastsdf.particles.state import FieldState, Particles
 
-__all__ = ["DeviceParticles", "CudaStep", "THREADS_PER_BLOCK", "ieee_compile"]
+__all__ = [
+    "DeviceParticles",
+    "CudaStep",
+    "THREADS_PER_BLOCK",
+    "ieee_compile",
+    "kernel_signature",
+]
 
 #: Threads per block of the step kernel (under the simulator: fewer, its threads are slow).
 THREADS_PER_BLOCK = 256
@@ -229,7 +227,7 @@ def device_module(f: Any, forces: tuple = ()) -> tuple:
         lines += ["", "", deco, "def _wall_speed_at(data, x, y, dx, dy):", "    return 0.0"]
     else:
         lines += _world._STATIC_TIME_LINES
-    force_lines, _, late = _world._force_parts(forces)
+    force_lines, _, late = _world._force_parts(forces, ahead=False)
     block = "\n".join(
         [
             "# Scene block of the CUDA step (fastsdf.particles.cuda).",
@@ -270,121 +268,55 @@ def step_kernel(module: Any, trace: bool, key: tuple) -> Any:
     and the fused user forces), with the tunnelling sweep when ``trace`` (built once per
     ``key``).
 
-    Launch arguments: the state ``X, V, M, R, CR, CF`` (float64 device arrays, ``X``, ``V``
-    of shape (n, 2)), ``FLAGS`` (int32, (n,)) and ``BAD`` (int64, (1,): frozen particles are
-    counted there), ``steps``, the time of the first step ``t0``, ``dt``, gravity ``(ax,
-    ay)``, ``drag``, ``use_m`` (drag or user forces read the mass), ``explicit`` (explicit
-    Euler), ``always`` (the notebook's collision rule), the world's Lipschitz bound ``lip``
-    (for the sweep) and its query data ``world``.
+    Launch arguments (:func:`kernel_signature`): the state (a :class:`.kernels.State` of device
+    arrays, ``check_all`` True), ``BAD`` (int64, (1,): frozen particles are counted there),
+    ``steps``, the call's :class:`.kernels.Physics` and :class:`.kernels.Budget` (its
+    ``lip`` for the sweep), and the world's query data ``world`` (:meth:`CudaStep.world_arg`).
 
-    Each step is the CPU's (:func:`fastsdf.particles.kernels.step._block` with query skipping
-    off, which changes no result): integrate, query the end point, sweep a step longer than
-    ``TRACE_FRACTION r`` whose end is not provably clear (``trace``), respond."""
+    One thread per particle: its checks (:func:`.kernels.phases.input_ok`, every field, as the
+    CPU's first call checks them), then each step :func:`.kernels.phases.particle_step`, the
+    CPU's step, with query skipping off (which changes no result) and the sweep as compiled
+    (``trace``)."""
     global cuda
     kernel = _KERNELS.get(key)
     if kernel is not None:
         return kernel
     cuda = _device.cuda()
-    query_t = module._query_t
-    sweep = module.sweep
-    force = module._force
+    input_ok = module.input_ok
+    particle_step = module.particle_step
+    switched = module.switched
     use_force = bool(module.USE_FORCE)
-    moving = bool(module.MOVING)
-    if trace and moving:
+    if trace and module.MOVING:
         raise _unsupported("the tunnelling sweep in a moving world; pass prevent_tunnelling=False")
+    sweeps = bool(trace)
 
-    def step(
-        X,
-        V,
-        M,
-        R,
-        CR,
-        CF,
-        FLAGS,
-        BAD,
-        steps,
-        t0,
-        dt,
-        ax,
-        ay,
-        drag,
-        use_m,
-        explicit,
-        always,
-        lip,
-        world,
-    ):
+    def step(state, BAD, steps, physics, budget, world):
         i = cuda.grid(1)
-        if i >= X.shape[0]:
+        if i >= state.X.shape[0]:
+            return
+        X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+        ok, m = input_ok(state, i, True)
+        if not ok:
+            FLAGS[i] = FLAG_INPUT
+            cuda.atomic.add(BAD, 0, 1)
             return
         x = X[i, 0]
         y = X[i, 1]
         vx = V[i, 0]
         vy = V[i, 1]
         r = R[i]
-        m = M[i]
-        cr = CR[i]
-        cf = CF[i]
-        coeffs_ok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
-        # every field is checked before the first step (as the CPU's first call checks them)
-        if not (_valid_input(x, y, vx, vy, r, m, True) and coeffs_ok):
-            FLAGS[i] = FLAG_INPUT
-            cuda.atomic.add(BAD, 0, 1)
-            return
-        inv_m = 1.0 / m if use_m else 0.0
-        short = TRACE_FRACTION * r
+        inv_m = 1.0 / m
+        # what the thread knows as constants: no Python forces, resting contact or skipping
+        own = switched(physics, physics.use_m or use_force, False, 0.0)
+        thread = Budget(sweeps, budget.lip, 0.0, 0.0, False)
         flag = 0
         for k in range(steps):
-            t = t0 + k * dt
-            bx = ax
-            by = ay
-            if use_m:
-                fx = -drag * vx
-                fy = -drag * vy
-                if use_force:
-                    ux, uy = force(x, y, vx, vy, m, t)
-                    fx += ux
-                    fy += uy
-                bx += fx * inv_m
-                by += fy * inv_m
-            dx, dy, nvx, nvy = _integrate(vx, vy, bx, by, dt, explicit)
-            # the world at the step's end (a world that does not move ignores the time)
-            d, gx, gy, gt = query_t(world, x + dx, y + dy, t + dt)
-            s = d - r
-            sx = x
-            sy = y
-            bounced = False
-            if trace:
-                dd = dx * dx + dy * dy
-                if dd > short * short and not (s * s >= lip * lip * dd and s > 0.0):
-                    if not coeffs_ok:
-                        flag = FLAG_COEFF
-                        break
-                    t1 = 1.0
-                    if s > 0.0:
-                        t1 = 1.0 - s / (lip * math.sqrt(dd))
-                    sx, sy, dx, dy, nvx, nvy, bounced = sweep(
-                        world,
-                        Motion(x, y, dx, dy, nvx, nvy),
-                        Disc(r, cr, cf),
-                        lip,
-                        always,
-                        Window(0.0, t1, t, dt, 0.0),
-                    )
-                    if bounced:
-                        d, gx, gy, gt = query_t(world, sx + dx, sy + dy, t + dt)
-                        s = d - r
-            nx = sx + dx
-            ny = sy + dy
-            if s <= 0.0:
-                if not coeffs_ok:
-                    flag = FLAG_COEFF
-                    break
-                nx, ny, nvx, nvy = _respond(
-                    nx, ny, nvx, nvy, s, (gx, gy, gt), cr, cf, always and not bounced
-                )
-            if not _finite4(nx, ny, nvx, nvy):
-                flag = FLAG_NONFINITE
+            here = (x, y, vx, vy, r, m, inv_m)
+            nx, ny, nvx, nvy, c, code, touched = particle_step(
+                world, here, (CR, CF, i), 0.0, (0.0, 0.0, 0.0, 0.0), k, own, thread, steps
+            )
+            if code > 0:
+                flag = code
                 break
             x = nx
             y = ny
@@ -402,6 +334,35 @@ def step_kernel(module: Any, trace: bool, key: tuple) -> Any:
     return kernel
 
 
+def kernel_signature(world_arg: tuple) -> tuple:
+    """The argument types of the step kernel for the world's launch argument ``world_arg``
+    (see :func:`step_kernel`), e.g. to compile it ahead of a launch."""
+    import numba
+
+    one = np.zeros(1)
+    state = State(
+        np.zeros((1, 2)),
+        np.zeros((1, 2)),
+        one,
+        one,
+        one,
+        one,
+        np.zeros((0, 2)),
+        np.zeros(1, dtype=np.int32),
+        True,
+    )
+    physics = Physics(1.0, 0.0, 0.0, 0.0, 0.0, True, False, False, False, 0.0)
+    budget = Budget(True, 1.0, 0.0, 0.0, False)
+    return (
+        numba.typeof(state),
+        numba.int64[::1],
+        numba.int64,
+        numba.typeof(physics),
+        numba.typeof(budget),
+        numba.typeof(world_arg),
+    )
+
+
 class CudaStep:
     """The GPU step of one :class:`fastsdf.particles.ParticleSimulation` (``device='cuda'``):
     the world's query data on the device, the flags and frozen count, the compiled kernels."""
@@ -414,6 +375,7 @@ class CudaStep:
         self._device_arrays = {id(a): cu.to_device(a) for a in arrays}
         self.flags: Any = None
         self.bad = cu.to_device(np.zeros(1, dtype=np.int64))
+        self._no_ext = cu.to_device(np.zeros((0, 2)))
         #: Steps run since the frozen count was last read (for the error's message).
         self.steps_unchecked = 0
 
@@ -432,51 +394,36 @@ class CudaStep:
         self,
         p: DeviceParticles,
         steps: int,
-        t0: float,
-        dt: float,
-        forces: tuple,
-        integrator: str,
-        collision: str,
+        physics: Physics,
+        user: tuple,
+        budget: Budget,
         params: tuple,
-        lip: float,
-        trace: bool,
     ) -> None:
         """Launch ``steps`` steps of every particle of ``p`` (asynchronous: no wait for the
-        GPU). ``forces``: ``(ax, ay, drag, user)``, gravity, drag and the fused user forces
-        (numba dispatchers); ``lip``: the world's Lipschitz bound, ``trace``: whether the
-        tunnelling sweep runs (``prevent_tunnelling``)."""
+        GPU) with ``physics`` (:class:`.kernels.Physics`), the fused user forces ``user``
+        (numba dispatchers), ``budget`` (:class:`.kernels.Budget`: the tunnelling sweep
+        ``trace`` with the world's Lipschitz bound ``lip``) and the values of the world's
+        parameters."""
         cu = _device.cuda()
-        ax, ay, drag, user = forces
         module, key, _ = device_module(self._world, tuple(user))
-        kernel = step_kernel(module, bool(trace), key + (bool(trace),))
+        kernel = step_kernel(module, budget.trace, key + (bool(budget.trace),))
         n = len(p)
         if self.flags is None or self.flags.shape[0] != n:
             self.flags = cu.to_device(np.zeros(n, dtype=np.int32))
         tpb = 32 if _device.simulated() else THREADS_PER_BLOCK
         blocks = (n + tpb - 1) // tpb
         a = p._arrays
-        args = (
-            *(a[k] for k in Particles.FIELDS),
-            self.flags,
-            self.bad,
-            int(steps),
-            float(t0),
-            float(dt),
-            float(ax),
-            float(ay),
-            float(drag),
-            bool(drag != 0.0 or module.USE_FORCE),
-            integrator == "euler",
-            collision == "notebook",
-            float(lip),
-            self.world_arg(params),
-        )
+        X, V, M, R, CR, CF = (_kernel_array(a[k]) for k in Particles.FIELDS)
+        ext, flags = _kernel_array(self._no_ext), _kernel_array(self.flags)
+        state = State(X, V, M, R, CR, CF, ext, flags, True)
         with ieee_compile(), warnings.catch_warnings():
             # (compiles on the first launch only; a small launch is not a performance problem
             # worth numba-cuda's under-utilisation warning here)
             for category in _performance_warnings():
                 warnings.simplefilter("ignore", category)
-            kernel[blocks, tpb](*args)
+            kernel[blocks, tpb](
+                state, self.bad, int(steps), physics, budget, self.world_arg(params)
+            )
         self.steps_unchecked += int(steps)
 
     def frozen(self) -> tuple[int, np.ndarray | None]:

@@ -278,45 +278,47 @@ class ParticleEngine:
         return bad
 
     def _call(self, module, data, steps, state, physics, budget, block):
-        """Run the call's kernel on ``numba.get_num_threads()`` threads from
+        """Run the call's kernel variant on ``numba.get_num_threads()`` threads from
         ``PARALLEL_MIN_PARTICLES`` particles on: a short call as one slice of whole blocks per
-        thread, a long one (``LONG_CALL`` particle-steps) through the kernel's parallel entry
-        point. Returns the frozen count."""
-        kernel = self._pick_kernel(module, state, physics, budget)
+        thread through ``step_ser``, a long one (``LONG_CALL`` particle-steps) through the
+        parallel entry point ``step_par``. Returns the frozen count."""
+        variant = self._variant(module, state, physics, budget)
+        args = (physics, budget, steps, block) + variant
         n = state.X.shape[0]
         threads = numba.get_num_threads() if n >= PARALLEL_MIN_PARTICLES else 1
+        key = (module, variant, state.X.dtype, state.EXT.shape[0] > 0)
         if threads > 1 and n * steps >= LONG_CALL:
             # numba's parallel entry point: a few percent faster on long calls, and twice
             # the compile time, so compiled only when a long call first needs it
-            kernel = getattr(module, kernel.py_func.__name__[: -len("_ser")] + "_par")
-            if kernel.signatures:
-                return kernel(data, state, physics, budget, steps, block)
+            if ("par",) + key in _READY:
+                return module.step_par(data, state, *args)
+            _READY.add(("par",) + key)
             with compiling("the particle step kernel for long calls"):
-                return kernel(data, state, physics, budget, steps, block)
-        if not kernel.signatures:  # compile (or load) it here, with a notice, before threads
+                return module.step_par(data, state, *args)
+        if key not in _READY:
+            # compile (or load) this variant here, with a notice, before threads (types new to
+            # it, e.g. float32, compile here too, not in two threads at once)
             with compiling("the particle step kernel"):
-                kernel(data, _part(state, 0, 0), physics, budget, steps, block)
-        elif threads > 1 and (kernel, state.X.dtype, state.EXT.shape[0] > 0) not in _READY:
-            # (types new to it, e.g. float32, compile here, not in two threads at once)
-            kernel(data, _part(state, 0, 0), physics, budget, steps, block)
-        _READY.add((kernel, state.X.dtype, state.EXT.shape[0] > 0))
+                module.step_ser(data, _part(state, 0, 0), *args)
+            _READY.add(key)
         if threads <= 1:
-            return kernel(data, state, physics, budget, steps, block)
+            return module.step_ser(data, state, *args)
         # one slice of whole blocks per thread, the first on this thread
         blocks = -(-n // block)
         per = -(-blocks // threads) * block
 
         def run(lo: int) -> int:
-            return kernel(data, _part(state, lo, lo + per), physics, budget, steps, block)
+            return module.step_ser(data, _part(state, lo, lo + per), *args)
 
         rest = [_pool(threads).submit(run, lo) for lo in range(per, n, per)]
         return run(0) + sum(job.result() for job in rest)
 
-    def _pick_kernel(self, module, state, physics, budget):
-        """The kernel of ``module`` for a call: the block kernel of a static grid world
-        (``simd_*``: float64 state, no resting contact, no Python forces), else the
-        particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
-        the general one (``run_*``). All give the same results."""
+    def _variant(self, module, state, physics, budget):
+        """The kernel variant of a call, ``(simd, plain)`` (see
+        :func:`fastsdf.particles.kernels.step.step_ser`): the block step of a static grid
+        world (``simd``: float64 state, no resting contact, no Python forces), with or without
+        query skipping; else the particle-by-particle step, plain (without skipping, tunnelling
+        check, moving world and resting contact) or general. All give the same results."""
         simd = (
             self.simd
             and module.GRID_SIMD
@@ -325,14 +327,10 @@ class ParticleEngine:
             and not physics.use_ext
             and state.X.dtype == np.float64
         )
-        plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
-        if simd and budget.skip:
-            return module.simd_ser
         if simd:
-            return module.simd_plain_ser
-        if plain:
-            return module.plain_ser
-        return module.run_ser
+            return True, None if budget.skip else True
+        plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
+        return None, True if plain else None
 
     def _resume(self, p, module, steps, state, physics, budget, block, bad):
         """Particles that stopped near the grid's edge before its exact fallback was bound

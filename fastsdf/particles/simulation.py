@@ -21,7 +21,7 @@ from fastsdf.notice import RunProgress
 from fastsdf.particles.engine import DEFAULT_BLOCK, PARALLEL_MIN_PARTICLES, ParticleEngine
 from fastsdf.particles.family import DEFAULT_COUNT, Simulation
 from fastsdf.particles.forces import FusedForces, Gravity, fuse, python_forces
-from fastsdf.particles.kernels import Physics
+from fastsdf.particles.kernels import Budget, Physics
 from fastsdf.particles.kernels.constants import FLAG_COEFF, FLAG_NONFINITE
 from fastsdf.particles.state import Particles, _invalid_state_error, _real, _unit_interval
 from fastsdf.particles.world import SimulationParams, _exactness
@@ -176,7 +176,7 @@ class ParticleSimulation(Simulation):
     Kernels (all give the same results, bit for bit; the choice is automatic, per call): a
     GridSDF world with stored gradients (the default ``gradient='stored'``, any grid dtype,
     either ``mode``) and float64 state, without ``rest_speed`` and Python force generators,
-    runs the block kernel (``simd_ser``, :mod:`fastsdf.particles.kernels.block`): 64
+    runs the block kernel (the ``simd`` variant, :mod:`fastsdf.particles.kernels.block`): 64
     particles at a time held in scratch rows through all steps of a :meth:`run` call, each
     step in passes that the
     compiler turns into 4-wide vector code (forces, fused ``@njit`` forces and
@@ -184,8 +184,8 @@ class ParticleSimulation(Simulation):
     pass loading the cells' grid values, and a scalar fix-up only for particles that need a
     tunnelling sweep or a query outside the grid. Everything else runs particle by particle:
     exact-SDF and moving worlds, ``gradient='fd'`` and band grids, float32 state, resting
-    contact, Python forces (the ``plain`` kernel without skipping and tunnelling check, the
-    general one otherwise).
+    contact, Python forces (the plain variant without skipping and tunnelling check, the
+    general one otherwise); see :mod:`fastsdf.particles.kernels`.
 
     Attributes
     ----------
@@ -466,11 +466,9 @@ class ParticleSimulation(Simulation):
         if bad and flags is not None:
             raise self._frozen_error(bad, steps, flags)
 
-    def _step(self, steps: int, forces: FusedForces, ext: np.ndarray | None = None) -> int:
-        """One call of the engine's step (``ext``: the Python forces of a one-step call);
-        advances the clock. Returns the frozen count."""
-        use_ext = ext is not None
-        physics = Physics(
+    def _physics(self, forces: FusedForces, use_ext: bool) -> Physics:
+        """The physics of a call from now (:class:`fastsdf.particles.kernels.Physics`)."""
+        return Physics(
             dt=self.dt,
             t0=self.t,
             ax=forces.ax,
@@ -482,6 +480,11 @@ class ParticleSimulation(Simulation):
             always=self.collision == "notebook",
             rest=float(self.rest_speed),
         )
+
+    def _step(self, steps: int, forces: FusedForces, ext: np.ndarray | None = None) -> int:
+        """One call of the engine's step (``ext``: the Python forces of a one-step call);
+        advances the clock. Returns the frozen count."""
+        physics = self._physics(forces, ext is not None)
         bad = self.engine.step(
             self.p, steps, physics, forces.user, ext, self.prevent_tunnelling, self.block
         )
@@ -507,18 +510,9 @@ class ParticleSimulation(Simulation):
                 f"sim.p must hold the {self.n} particles of this simulation (DeviceParticles "
                 f"or Particles), got {self.p!r}"
             )
-        self.engine.gpu.run(
-            self.p,
-            steps,
-            self.t,
-            self.dt,
-            (forces.ax, forces.ay, forces.drag, forces.user),
-            self.integrator,
-            self.collision,
-            self.params.as_tuple(),
-            self.lipschitz,
-            self.prevent_tunnelling,
-        )
+        budget = Budget(self.prevent_tunnelling, self.lipschitz, 0.0, 0.0, False)
+        physics = self._physics(forces, False)
+        self.engine.gpu.run(self.p, steps, physics, forces.user, budget, self.params.as_tuple())
         self.t += steps * self.dt
 
     def check(self) -> None:

@@ -129,9 +129,11 @@ def _prunes(f: Any) -> bool:
 _PLAN_IMPORT = hashed_import(call_vg_plan.__module__, [f"{call_vg_plan.__name__} as _call_vg_plan"])
 
 
-def _force_parts(forces: Any) -> tuple:
+def _force_parts(forces: Any, ahead: bool = True) -> tuple:
     """Scene-block lines binding the fused user forces and the ``_force`` function; names of
-    forces that must be bound after import (not importable: no disk cache)."""
+    forces that must be bound after import (not importable: no disk cache). ``ahead``: whether
+    the kernel may evaluate long-latency forces ahead of their steps (``FORCE_AHEAD``; the
+    GPU's thread evaluates them inline)."""
     lines, deps, late = [], [], []
     for k, fn in enumerate(forces):
         where = _importable(fn)
@@ -155,7 +157,7 @@ def _force_parts(forces: Any) -> tuple:
         body.append("    return fx, fy")
     lines += ["", ""] + body
     lines.append(f"USE_FORCE = {bool(forces)}")
-    batched = any(getattr(fn, "_fastsdf_batched", False) for fn in forces)
+    batched = ahead and any(getattr(fn, "_fastsdf_batched", False) for fn in forces)
     lines.append(f"FORCE_AHEAD = {batched}")
     return lines, deps, late
 
@@ -253,7 +255,7 @@ def _kernel_module(f, forces=()):
     """
     late = []
     keep = None
-    # The vector block step (simd_ser) is written for the dense grid's stored-gradient sampler.
+    # The block step (the simd variant) is written for the dense grid's stored-gradient sampler.
     grid_simd = False
     grid_exact = False
     if _is_grid(f):
