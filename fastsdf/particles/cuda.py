@@ -42,10 +42,9 @@ from typing import Any
 import numpy as np
 
 from fastsdf import device as _device
-from fastsdf.fields import grid as _grid
-from fastsdf.function import Function
 from fastsdf.particles.kernels.config import Budget, Physics, State
 from fastsdf.particles.kernels.constants import FLAG_INPUT
+from fastsdf.particles.scene_blocks import _is_grid, block_source, device_scene, generated_module
 from fastsdf.particles.state import FieldState, Particles
 
 __all__ = [
@@ -151,107 +150,35 @@ class DeviceParticles(FieldState):
 # The world's query on the device.
 
 
-def _is_grid(f: Any) -> bool:
-    return all(hasattr(f, a) for a in ("sampler", "sampler_data", "exact", "mode"))
-
-
 def _unsupported(what: str) -> NotImplementedError:
     return NotImplementedError(f"device='cuda' does not support {what}; use device='cpu'")
 
 
+# Device kernel modules by world and forces (the entry keeps the forces alive, so their ids
+# are not reused meanwhile).
 _DEVICE_MODULES: dict = {}
 
 
 def device_module(f: Any, forces: tuple = ()) -> tuple:
     """The kernel module of the world ``f`` and the fused user forces for the device:
-    :mod:`fastsdf.particles.kernels`' bodies (the response, the march and sweep, the
-    integration) after a scene block whose query numba-cuda can compile (the CPU's block of a
-    grid world calls its exact fallback through a C function address, and a pruned scene's
-    through a plan header; here a grid calls its sampler and the scene's point function, an
-    SDF its point function without pruning: the same values), generated and cached like the
-    CPU's (:func:`fastsdf.particles.world._kernel_module`).
+    :mod:`fastsdf.particles.kernels`' bodies after the GPU's scene block
+    (:func:`fastsdf.particles.scene_blocks.device_scene`: a query numba-cuda can compile),
+    generated and cached like the CPU's (:func:`fastsdf.particles.world._kernel_module`).
 
     Returns ``(module, key, arrays)``: the module's ``_query_t(world, x, y, t) -> (d, dd/dx,
     dd/dy, dd/dt)`` takes the launch argument ``world`` (see :meth:`CudaStep.world_arg`);
     ``key`` names the compiled kernel; ``arrays``: the host arrays the query reads (copied to
     the device once). Raises :class:`NotImplementedError` naming a world the GPU step does not
     handle."""
-    from fastsdf.backends import load_module
-    from fastsdf.particles import kernels as _kernels
-    from fastsdf.particles import world as _world
-
-    arrays: list = []
-    moving = False
-    if _is_grid(f):
-        sampler = f.sampler
-        if sampler is not _grid.sample_stored and sampler is not _grid.sample_fd:
-            raise _unsupported(
-                f"the world {type(f).__name__} (sampler {getattr(sampler, '__name__', sampler)}): "
-                "only a dense GridSDF or an exact SDF"
-            )
-        lines = [f"from {sampler.__module__} import {sampler.__name__} as _sampler"]
-        query = ["    d, gx, gy, inside = _sampler(data, x, y)"]
-        if f.mode == "exact":
-            if f.exact.compiled.parametric:
-                raise _unsupported("a grid whose exact SDF has runtime parameters")
-            lines.append(f"from {f.exact.compiled.module.__name__} import point_vg as _exact")
-            query += ["    if not inside:", "        return _exact(x, y)"]
-        query.append("    return d, gx, gy")
-        arrays = [a for a in f.sampler_data if isinstance(a, np.ndarray)]
-        scene = f.exact.compiled.module.__name__ if f.mode == "exact" else None
-        key: tuple = ("grid", sampler.__name__, f.mode, scene)
-    elif isinstance(f, Function):
-        comp = f.compiled
-        scene = comp.module.__name__
-        lines = [f"from {scene} import point_vg as _exact"]
-        # a parametric world's launch argument is the tuple of its parameters' values
-        query = [
-            "    return _exact(x, y, 0.0, data)" if comp.parametric else "    return _exact(x, y)"
-        ]
-        moving = comp.parametric and f.time_dependent
-        key = ("sdf", scene)
-    else:
-        raise TypeError(
-            f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type {type(f).__name__}"
-        )
-    deco = _world._DECORATOR
-    lines += ["", "", deco, "def _query(data, x, y):", *query]
-    lines += ["", "", deco, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
-    if moving:
-        # evaluated at the step's end with dd/dt; no wall speed bound (the sweep and skipping
-        # of moving worlds do not run on the device)
-        lines += [f"from {scene} import point_vgt as _exact_t", "", "", "MOVING = True"]
-        lines += ["", "", deco, "def _query_t(data, x, y, t):"]
-        lines += ["    return _exact_t(x, y, t, data)"]
-        lines += ["", "", deco, "def _wall_speed(data):", "    return 0.0"]
-        lines += ["", "", deco, "def _wall_speed_at(data, x, y, dx, dy):", "    return 0.0"]
-    else:
-        lines += _world._STATIC_TIME_LINES
-    force_lines, _, late = _world._force_parts(forces, ahead=False)
-    block = "\n".join(
-        [
-            "# Scene block of the CUDA step (fastsdf.particles.cuda).",
-            f"_CACHE = {not late}",
-            "GRID_SIMD = False",
-            "GRID_EXACT = False",
-            "",
-            *lines,
-            "",
-            *force_lines,
-        ]
-    )
-    full_key = key + tuple(id(fn) for fn in forces)
+    scene = device_scene(f, _unsupported)
+    full_key = scene.key + tuple(id(fn) for fn in forces)
     entry = _DEVICE_MODULES.get(full_key)
     if entry is None:
-        source = _kernels.kernel_source(block + "\n")
-        if late:  # forces not importable by name: a module of its own, bound here
-            source += f"\n# uncached instance {len(_DEVICE_MODULES)}\n"
-        module = load_module(source, prefix="fastsdf_cuda_particles")
-        for name, obj in late:
-            setattr(module, name, obj)
-        # (the entry keeps the forces alive, so their ids are not reused meanwhile)
+        title = "# Scene block of the CUDA step (fastsdf.particles.cuda)."
+        source, late = block_source(scene, tuple(forces), ahead=False, title=title)
+        module, _ = generated_module(source, late, scene.key, "fastsdf_cuda_particles")
         entry = _DEVICE_MODULES[full_key] = (module, tuple(forces))
-    return entry[0], full_key, arrays
+    return entry[0], full_key, list(scene.data)
 
 
 # ---------------------------------------------------------------------------------------------

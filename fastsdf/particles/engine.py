@@ -26,10 +26,10 @@ from fastsdf.function import Function
 from fastsdf.notice import compiling
 from fastsdf.particles.kernels import NO_EXT, Budget, Physics, State
 from fastsdf.particles.kernels.constants import FLAG_RESUME
+from fastsdf.particles.scene_blocks import NO_TABLE
 from fastsdf.particles.state import Particles
 from fastsdf.particles.world import (
     _NO_PARAMS,
-    _NO_TABLE,
     SimulationParams,
     _exact_address,
     _grid_margin,
@@ -213,7 +213,7 @@ class ParticleEngine:
         ``_PARAMS_AT`` in :mod:`fastsdf.particles.world`."""
         prm = self.params.as_tuple()
         wall = 0.0
-        table = (0.0, 0.0, 1.0, _NO_TABLE)
+        table = (0.0, 0.0, 1.0, NO_TABLE)
         if self.moving and steps:
             if self.wall_speed is None:
                 r_max = float(np.max(p["r"]))
