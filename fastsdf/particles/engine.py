@@ -210,7 +210,7 @@ class ParticleEngine:
     def scene_data(self, p: Any, t: float, dt: float, steps: int) -> tuple:
         """Query data of a parametric world for a call of ``steps`` steps from time ``t``: (t,
         wall speed bound, table geometry and the per-region table, *parameters); see
-        ``_PARAMS_AT`` in :mod:`fastsdf.particles.world`."""
+        ``PARAMS_AT`` in :mod:`fastsdf.particles.scene_blocks`."""
         prm = self.params.as_tuple()
         wall = 0.0
         table = (0.0, 0.0, 1.0, NO_TABLE)

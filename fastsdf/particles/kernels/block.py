@@ -29,8 +29,9 @@ from fastsdf.particles.kernels.phases import (
     spend,
     swept,
     switched,
+    with_user_forces,
 )
-from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
+from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _query
 
 __all__ = ["LANES"]
 
@@ -138,10 +139,8 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, skipping):
         y = S[_Y * W + q]
         vx = S[_VX * W + q]
         vy = S[_VY * W + q]
-        ux = uy = 0.0
-        if USE_FORCE:
-            ux, uy = _force(x, y, vx, vy, S[_M * W + q], t)
-        bx, by = accelerate(vx, vy, S[_IM * W + q], (ux, uy, 0.0, 0.0), own)
+        push = with_user_forces((0.0, 0.0, 0.0, 0.0), x, y, vx, vy, S[_M * W + q], t, True)
+        bx, by = accelerate(vx, vy, S[_IM * W + q], push, own)
         dx, dy, nvx, nvy = euler(vx, vy, bx, by, own)
         c = S[_CLR * W + q] if skipping else 0.0
         c2 = spend(c, x, y, dx, dy, 0.0, budget)

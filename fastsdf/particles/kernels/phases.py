@@ -36,7 +36,7 @@ from fastsdf.particles.kernels.scene import (
     _wall_speed_at,
 )
 
-__all__ = ["particle_step", "accelerate", "euler", "needs_sweep", "swept", "SLEPT"]
+__all__ = ["particle_step", "with_user_forces", "accelerate", "euler", "needs_sweep", "swept"]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -124,6 +124,18 @@ def switched(physics, use_m, use_ext, rest):
         physics.always,
         rest,
     )
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def with_user_forces(push, x, y, vx, vy, m, t, inline):
+    """``push = (ux, uy, ex, ey)`` (see :func:`accelerate`) with the fused user forces of a
+    particle at ``(x, y)``, velocity ``(vx, vy)``, mass ``m`` and time ``t`` evaluated here
+    (``USE_FORCE``), unless the loop evaluated them ahead (``FORCE_AHEAD``, and not
+    ``inline``: the block step and the GPU's thread evaluate them here)."""
+    if USE_FORCE and (inline or not FORCE_AHEAD):
+        ux, uy = _force(x, y, vx, vy, m, t)
+        return (ux, uy, push[2], push[3])
+    return push
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -256,9 +268,7 @@ def particle_step(data, here, coeffs, c, push, step, physics, budget, steps):
     y0 = y
     vx0 = vx
     vy0 = vy
-    if USE_FORCE and not FORCE_AHEAD:
-        ux, uy = _force(x, y, vx, vy, m, t)
-        push = (ux, uy, push[2], push[3])
+    push = with_user_forces(push, x, y, vx, vy, m, t, False)
     bx, by = accelerate(vx, vy, inv_m, push, physics)
     dx, dy, vx, vy = euler(vx, vy, bx, by, physics)
     # A moving world: its surfaces move by at most wd in this step near the particle (0 for a

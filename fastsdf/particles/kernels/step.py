@@ -25,6 +25,7 @@ from fastsdf.particles.kernels.phases import (
     input_ok,
     particle_step,
     switched,
+    with_user_forces,
 )
 from fastsdf.particles.kernels.scene import (
     _CACHE,
@@ -235,9 +236,7 @@ def _plain_staged(data, lo, hi, step, state, physics, work):
                 continue
             u, ix, iy, x, y, vx, vy = _load(Xf, Vf, i)
             r, m, inv_m, push = _pushed(i, k, q, u, physics, (R, M, EXT, inv_mass, fbuf))
-            if USE_FORCE and not FORCE_AHEAD:
-                ux, uy = _force(x, y, vx, vy, m, t)
-                push = (ux, uy, push[2], push[3])
+            push = with_user_forces(push, x, y, vx, vy, m, t, False)
             bx, by = accelerate(vx, vy, inv_m, push, physics)
             dx, dy, vx, vy = euler(vx, vy, bx, by, physics)
             if _fallback_missing(data, x, y, dx, dy):
