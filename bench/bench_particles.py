@@ -68,7 +68,8 @@ class Fused:
 
     def __init__(self, f, state, steps, per_step=False, skip=True, forces=(), **kw):
         self.sim = _sim(f, len(state), **kw)
-        self.sim._skip = self.sim._skip and skip  # skip=False: every step queries (peers' work)
+        # skip=False: every step queries (the peers' work)
+        self.sim.engine.skip = self.sim.engine.skip and skip
         self.sim.force_generators += list(forces)
         self.state, self.steps, self.per_step = state, steps, per_step
         self.work = len(state) * steps
@@ -638,7 +639,7 @@ def _force_alone_ns(grid, state, force, m=8192, reps=5, calls=200) -> float:
     ``force_many`` over ``m`` particles of ``state`` (in cache), one thread, best of ``reps``."""
     sim = _sim(grid, m)
     sim.force_generators.append(force)
-    module = sim._kernel(sim._fused_params()[4])[0]
+    module = sim.engine.kernel(phys.forces.fuse(sim.force_generators).user)[0]
     x = np.array(state["x"][:m], dtype=np.float64)
     v = np.array(state["v"][:m], dtype=np.float64)
     args = (

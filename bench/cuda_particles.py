@@ -210,8 +210,6 @@ def ptx_report(cc: tuple[int, int] = (9, 0), names: tuple | None = None) -> list
         raise RuntimeError("no CUDA toolkit (libdevice, ptxas) found: set CUDA_HOME")
     libdevice, ptxas = found
 
-    import numba
-
     import fastsdf.device as dv
 
     dv._patch_numpy()
@@ -244,7 +242,6 @@ def ptx_report(cc: tuple[int, int] = (9, 0), names: tuple | None = None) -> list
     grid, exact = _world("grid"), _world("exact")
     piston = sdf.Halfspace(normal=[1, 0], d=sdf.Param("x0", -1.0) + sdf.Param("u", 0.5) * sdf.t)
     moving = piston | sdf.Halfspace(normal=[0, 1], d=-1.0 + 0.4 * sdf.t)
-    a2, a1 = numba.float64[:, ::1], numba.float64[::1]
     out = []
     for name, world, forces, trace in (
         ("grid", grid, (), False),
@@ -260,8 +257,7 @@ def ptx_report(cc: tuple[int, int] = (9, 0), names: tuple | None = None) -> list
         arg = tuple(grid.sampler_data) if world is grid else (0.0,)
         if world is moving:
             arg = tuple(float(v) for v in moving.param_tuple())
-        sig = (a2, a2, a1, a1, a1, a1, numba.int32[::1], numba.int64[::1], numba.int64)
-        sig += (numba.float64,) * 5 + (numba.boolean,) * 3 + (numba.float64, numba.typeof(arg))
+        sig = pc.kernel_signature(arg)
         with pc.ieee_compile():
             ptx, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)
         contracted, _ = cu.compile_ptx(kernel.py_func, sig, cc=cc)  # NVVM's default: -fma=1

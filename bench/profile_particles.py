@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     sim.force_generators.append(phys.Gravity())
     sim.run(args.settle)
     state = sim.p.copy()
-    query_one = sim._module._query  # the fused kernel's own inlined query
+    query_one = sim.engine.kernel()[0]._query  # the fused kernel's own inlined query
 
     def fresh():  # restore the state in place: no allocation, no page faults in the timings
         for field in phys.Particles.FIELDS:
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
 
     def integrate_query():
         copy_only()
-        _integrate_and_query(query_one, sim._data, x, v, r0, dt, -1.0, out)
+        _integrate_and_query(query_one, sim.engine.data, x, v, r0, dt, -1.0, out)
 
     def copy_state():
         fresh()

@@ -90,8 +90,9 @@ def _git(*args: str) -> str:
 
 
 def _load_base(rev: str):
-    """The particle engine of ``rev`` as the module ``fastsdf._ab_base`` (its relative imports of
-    the rest of fastsdf resolve to the current package)."""
+    """The particle engine of ``rev`` as the module ``fastsdf._ab_base``: its imports of its own
+    modules (``fastsdf.particles.*``) are rewritten to name the copy, its imports of the rest of
+    fastsdf resolve to the current package."""
     import importlib.util
     import tempfile
 
@@ -124,7 +125,8 @@ def _load_base(rev: str):
             out = os.path.join(pkg, path[len("fastsdf/particles/") :])
             os.makedirs(os.path.dirname(out), exist_ok=True)
             with open(out, "w") as fh:
-                fh.write(_git("show", f"{rev}:{path}"))
+                # its absolute imports of its own modules name the copy, not the current ones
+                fh.write(_git("show", f"{rev}:{path}").replace("fastsdf.particles", name))
     spec = importlib.util.spec_from_file_location(
         name, os.path.join(pkg, "__init__.py"), submodule_search_locations=[pkg]
     )

@@ -5,10 +5,10 @@
 Compiles the kernels afresh in a temporary cache directory (numba cannot show the assembly of
 code loaded from its cache) and counts:
 
-* in the particle-by-particle step (``_block`` and the functions it calls out of line): the
-  instructions, branches, calls, scalar (``sd``) and packed (``pd``) double arithmetic, and
-  whether any vector register or gather is used;
-* in the block kernel's passes (``_simd_*`` of ``simd_ser``, see
+* in the particle-by-particle step (``_block`` and the functions it calls out of line: the
+  sweep ``swept``, the march): the instructions, branches, calls, scalar (``sd``) and packed
+  (``pd``) double arithmetic, and whether any vector register or gather is used;
+* in the block kernel's passes (``_simd_*`` of the ``simd`` variant of ``step_ser``, see
   :mod:`fastsdf.particles.kernels`): each
   pass's innermost loop, its instructions per particle (a loop iteration handles 4 particles
   where it is vectorized), its ymm (256-bit) instructions and square roots/divisions, and the
@@ -68,9 +68,9 @@ def main() -> None:
     g = sdf.GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     sim = phys.ParticleSimulation(g, n=100, seed=0)
     sim.force_generators.append(phys.Gravity())
-    sim._simd = False
-    sim.run(1)  # serial path: n < PARALLEL_MIN_PARTICLES
-    kernel = sim._module.run_ser
+    sim.engine.simd = False
+    sim.run(1)  # serial path: n < PARALLEL_MIN_PARTICLES, the general variant
+    kernel = sim.engine.kernel()[0].step_ser
     asm = kernel.inspect_asm(kernel.signatures[0])
     funcs, cur = {}, None
     for line in asm.splitlines():
@@ -80,13 +80,13 @@ def main() -> None:
             funcs[cur] = []
         elif cur and line.startswith("\t") and not line.startswith("\t."):
             funcs[cur].append(line.split()[0])
-    print("particle-by-particle step (run_ser)")
+    print("particle-by-particle step (step_ser, the general variant)")
     print(
         f"{'function':12s} {'instr':>6s} {'branches':>8s} {'calls':>6s} {'mul/add sd':>10s} "
         f"{'div sd':>6s} {'sqrt sd':>7s} {'pd ops':>6s} {'gathers':>7s}"
     )
     for name, ops in funcs.items():
-        short = next((k for k in ("_block", "_sweep", "_march") if k in name), None)
+        short = next((k for k in ("_block_of", "_block", "swept", "_march") if k in name), None)
         if short is None:
             continue
         c = collections.Counter(ops)
@@ -103,10 +103,10 @@ def main() -> None:
     for kw in ({"prevent_tunnelling": False}, {}):
         s = phys.ParticleSimulation(g, n=100, seed=0, **kw)
         s.force_generators.append(phys.Gravity())
-        s._skip = bool(kw == {})
+        s.engine.skip = bool(kw == {})
         s.run(1)
-    mod = sim._module
-    print("\nblock kernel (simd_ser): innermost loop of each pass")
+    mod = sim.engine.kernel()[0]
+    print("\nblock kernel (the simd variant): innermost loop of each pass")
     print(
         f"{'pass':26s} {'instr/particle':>14s} {'ymm':>5s} {'sqrt+div':>8s} {'masked st':>9s}"
         "   (ymm, sqrt+div: per loop iteration)"

@@ -74,6 +74,47 @@ def test_grains_are_a_member_of_the_family(small_box):
         )
 
 
+#: The particles' fused-step machinery: a grain simulation has none of it.
+PARTICLE_STEP_ONLY = {"_kernel", "_launch", "_pick_kernel", "_resume", "_kernels", "_exact_ptr"}
+
+
+def test_each_member_inherits_only_what_it_uses(small_box):
+    """The family shares its tools through one base (fastsdf.particles.family.Simulation);
+    grains count as ParticleSimulation without inheriting the particles' step: neither their
+    class nor an instance has any of its machinery, and every method of the base that a
+    grain simulation inherits runs on one."""
+    from fastsdf.particles.family import Simulation
+
+    assert not PARTICLE_STEP_ONLY & set(dir(phys.GrainSimulation))
+    sim = grains(small_box, nx=3, ny=2)
+    assert not PARTICLE_STEP_ONLY & set(dir(sim))
+    assert phys.ParticleSimulation not in type(sim).__mro__
+    assert isinstance(sim, phys.ParticleSimulation) and issubclass(
+        phys.GrainSimulation, phys.ParticleSimulation
+    )
+    particles = phys.ParticleSimulation(small_box, n=5, seed=0)
+    assert isinstance(particles, Simulation) and isinstance(sim, Simulation)
+    assert not isinstance(particles, phys.GrainSimulation)
+    # what the members share, each from its own engine
+    assert isinstance(sim.engine, GranularSimulation)
+    assert isinstance(particles.engine, phys.engine.ParticleEngine)
+    inherited = {
+        name
+        for name in dir(phys.GrainSimulation)
+        if not name.startswith("__") and name not in vars(phys.GrainSimulation)
+    }
+    assert inherited <= set(vars(Simulation)) | {"_abc_impl"}, inherited
+    sim.advance()
+    sim.update(None)
+    sim.check()
+    assert sim.t == pytest.approx(2 / 30) and sim.world is small_box
+    assert set(sim.host()) == set(sim.p.keys())
+    np.testing.assert_array_equal(sim.host("x"), sim.p["x"])
+    e = sim.kinetic_energy()
+    v = sim.p["v"]
+    assert e == pytest.approx(0.5 * float(np.sum(sim.p["m"] * (v * v).sum(1))))
+
+
 def test_the_family_and_the_engine_take_the_same_arguments_and_gravity(small_box):
     """One way to make grains: the family's constructor and the engine's take the world first
     and the same keywords, and Gravity()'s default is the engine's: the two routes step the

@@ -33,7 +33,7 @@ def test_piston_pushes_a_resting_particle_at_its_speed(cr, factor):
     u, r = 0.6, 0.05
     x = np.array([[-1.0 + r + 0.1, 0.0], [-1.0 + r + 0.3, 0.5]])
     sim = _sim(PISTON, x, np.zeros((2, 2)), r, cr, params={"u": u, "x0": -1.0})
-    assert sim._moving and sim.params == {"u": u, "x0": -1.0}
+    assert sim.engine.moving and sim.params == {"u": u, "x0": -1.0}
     sim.run(120)  # 2 s: the piston has moved 1.2, past both starting points
     v = np.asarray(sim.p["v"])
     np.testing.assert_allclose(v[:, 0], factor * u, rtol=1e-9)
@@ -110,8 +110,8 @@ def test_parameters_in_the_simulation_never_recompile():
     sim = _sim(world, x, np.array([[0.0, 0.0], [-1.0, 0.0]]), r, 0.0, dt=1 / 60)
     assert sim.params == {"speed": 0.5, "cx": 0.5}
     sim.run(30)
-    mod = sim._module
-    count = sum(len(getattr(mod, k).overloads) for k in ("run_ser", "_block"))
+    mod = sim.engine.kernel()[0]
+    count = sum(len(getattr(mod, k).overloads) for k in ("step_ser", "_block"))
     sim.params["speed"] = 1.5
     sim.params["cx"] = -5.0  # the circle leaves
     sim.run(30)
@@ -120,7 +120,7 @@ def test_parameters_in_the_simulation_never_recompile():
     np.testing.assert_allclose(d[0], r, atol=1e-9)  # riding on the piston
     # the circle has gone: only the piston is left
     np.testing.assert_allclose(d[1], sim.p["x"][1, 0] - (-1.0 + 1.5 * sim.t), atol=1e-12)
-    assert sum(len(getattr(mod, k).overloads) for k in ("run_ser", "_block")) == count
+    assert sum(len(getattr(mod, k).overloads) for k in ("step_ser", "_block")) == count
     with pytest.raises(KeyError, match="unknown parameter 'angle'"):
         sim.params["angle"] = 1.0
     with pytest.raises(ValueError, match="finite"):

@@ -572,7 +572,7 @@ def test_world_without_a_known_lipschitz_bound_warns():
     bare = Function(sym_abs(x) - 0.1, [x, y])
     with pytest.warns(RuntimeWarning, match="not known to be a distance bound"):
         sim = phys.ParticleSimulation(bare, n=10)
-    assert not sim._skip
+    assert not sim.engine.skip
     rough = sdf.SDF(sym_abs(x) * 3.0 - 0.1)  # steeper than a distance
     assert rough.exactness == "none"
     with pytest.warns(RuntimeWarning, match="exactness 'none'"):
@@ -583,7 +583,7 @@ def test_world_without_a_known_lipschitz_bound_warns():
         warnings.simplefilter("error")
         sim = phys.ParticleSimulation(rough, n=10, lipschitz=3.0)
         phys.ParticleSimulation(rough, n=10, prevent_tunnelling=False)
-    assert sim._skip and sim.lipschitz == 3.0
+    assert sim.engine.skip and sim.lipschitz == 3.0
 
 
 def test_bad_world():

@@ -49,7 +49,7 @@ def _pair(world, pos, vel, steps, forces=(), sweep=False, **kw):
         sim.force_generators += [Gravity(), *forces]
         sims.append(sim)
     if not sweep:
-        sims[0]._skip = False  # every step queries, as the GPU's
+        sims[0].engine.skip = False  # every step queries, as the GPU's
     for sim in sims:
         sim.run(steps)
     sims[1].check()
@@ -132,6 +132,33 @@ def test_state_lives_on_the_device():
     np.testing.assert_array_equal(sim.host("cr"), [0.25, 0.25])
     sim.p["v"] = device.as_device(np.array([[1.0, 2.0], [3.0, 4.0]]))  # device to device
     np.testing.assert_array_equal(sim.host()["v"], [[1.0, 2.0], [3.0, 4.0]])
+
+
+def test_every_state_has_the_one_mapping_surface():
+    """The particles' state on the host and on the device and the grains' window share one
+    mapping surface (FieldState): the same names, checks and messages."""
+    from fastsdf.particles import ContactLaw
+    from fastsdf.particles.state import FieldState
+
+    pos = [[0.0, 1.0], [0.5, 2.0]]
+    states = [ParticleSimulation(FLOOR, positions=pos, device=dev).p for dev in ("cpu", "cuda")] + [
+        ParticleSimulation(FLOOR, positions=pos, radius=0.1, contacts=ContactLaw()).p
+    ]
+    for p in states:
+        assert isinstance(p, FieldState) and len(p) == 2 and p.dtype == np.float64
+        assert tuple(p.keys()) == p.FIELDS and "x" in p and "w" not in p
+        assert p.x is p["x"] and p.nbytes >= 0
+        with pytest.raises(KeyError, match=r"no (particle|grain) field 'w'; fields are"):
+            p["w"]
+        with pytest.raises(AttributeError):
+            p.w  # noqa: B018
+        with pytest.raises(TypeError, match=r"p\['v'\] must hold real numbers"):
+            p["v"] = "fast"
+        with pytest.raises(ValueError, match=r"p\['v'\] has shape \(2, 2\); cannot assign"):
+            p["v"] = np.zeros(3)
+        p["v"] = [1.5, -2.0]  # broadcast to every particle
+        np.testing.assert_array_equal(p.host()["v"], [[1.5, -2.0], [1.5, -2.0]])
+        np.testing.assert_array_equal(device.to_host(p["x"]), pos)
 
 
 @pytest.mark.parametrize("integrator", ["symplectic", "euler"])

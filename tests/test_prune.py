@@ -191,8 +191,8 @@ def _particle_run(world, prune, n=3000, steps=30):
 def test_particle_step_on_an_exact_sdf_pruned_gives_identical_trajectories():
     f = _scene(5, 60, kinds=("box",), extra=True)
     on, off = _particle_run(f, True), _particle_run(f, False)
-    assert on._hdr_plan is not None and on._hdr_plan.fraction < 0.5  # the plan was used
-    assert off._hdr_plan is None and len(off._data) == 1  # the scene's inline function
+    assert on.engine.plan is not None and on.engine.plan.fraction < 0.5  # the plan was used
+    assert off.engine.plan is None and len(off.engine.data) == 1  # the scene's inline function
     assert _bits(on.p.x, off.p.x) and _bits(on.p.v, off.p.v)
     assert np.abs(on.p.x - off.p.x).max() == 0 and on.t == off.t
     # some particles hit boxes: their velocity is not that of free fall (gravity 1 for 1 s)
@@ -205,8 +205,8 @@ def test_grid_exact_fallback_pruned_gives_identical_trajectories():
     f = _scene(6, 60, kinds=("box",), extra=True)
     g = sdf.GridSDF(f, bounds=[(-1, 1), (-1, 1)], samples=[81j, 81j], mode="exact")
     on, off = _particle_run(g, True, steps=40), _particle_run(g, False, steps=40)
-    assert on._hdr_plan is not None  # particles outside the grid used a plan
-    assert off._hdr_plan is None
+    assert on.engine.plan is not None  # particles outside the grid used a plan
+    assert off.engine.plan is None
     assert _bits(on.p.x, off.p.x) and _bits(on.p.v, off.p.v)
     # the pruned C function equals the scene's kernel at points outside the grid
     p = np.random.default_rng(2).uniform(-2.4, 2.4, (2, 2000))

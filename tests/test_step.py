@@ -17,7 +17,22 @@ import fastsdf as sdf
 import fastsdf.particles as phys
 from fastsdf import GridSDF
 from fastsdf.particles import kernels as _step
+from fastsdf.particles.forces import fuse
+from fastsdf.particles.kernels import constants as C
 from fastsdf.shapes.scenes import seed_world
+
+#: The kernel variants by their switches (simd, plain): see fastsdf.particles.kernels.step.
+VARIANTS = {(None, None): "general", (None, True): "plain", (True, None): "simd"}
+VARIANTS[True, True] = "simd_plain"
+
+
+def compiled_variants(module, entry="step_ser"):
+    """The variants of ``module``'s entry point compiled (or loaded) in this process."""
+    done = set()
+    for sig in getattr(module, entry).signatures:
+        simd, plain = (None if isinstance(t, numba.types.NoneType) else True for t in sig[-2:])
+        done.add(VARIANTS[simd, plain])
+    return done
 
 
 def world(planes=(), discs=()):
@@ -88,7 +103,7 @@ def test_march_stops_at_the_first_contact_along_the_segment():
     assert hit == 1
     contact = 0.9 / 2.0  # x + r = 1
     assert contact - 1e-3 <= t <= contact + 1e-9
-    assert abs(s) <= _step.CONTACT_TOL * 2.0
+    assert abs(s) <= C.CONTACT_TOL * 2.0
     assert (nx, ny) == (-1.0, 0.0)
 
 
@@ -170,7 +185,7 @@ def run_kernel(
         rest=0.0,
     )
     budget = _step.Budget(trace=trace, lip=1.0, margin=0.0, eps=2.2e-16, skip=skip)
-    bad = _step.run_ser(data, state, physics, budget, steps, block)
+    bad = _step.step_ser(data, state, physics, budget, steps, block, None, None)
     return bad, flags
 
 
@@ -228,11 +243,11 @@ def test_kernel_flags_invalid_particles_and_non_finite_steps():
     X[1, 0] = math.nan
     CR[2] = 2.0
     bad, flags = run_kernel(FLOOR, 3, X, V, M, R, CR, CF)
-    assert bad == 2 and flags.tolist() == [0, _step.FLAG_INPUT, _step.FLAG_INPUT, 0]
+    assert bad == 2 and flags.tolist() == [0, C.FLAG_INPUT, C.FLAG_INPUT, 0]
     # A step that overflows is not stored: the particle keeps its last finite state.
     X, V, M, R, CR, CF = kernel_args(1, [[0, 1]], [[1e300, 0]])
     bad, flags = run_kernel(FLOOR, 2, X, V, M, R, CR, CF, dt=1e10, g=(0.0, 0.0))
-    assert bad == 1 and flags[0] == _step.FLAG_NONFINITE
+    assert bad == 1 and flags[0] == C.FLAG_NONFINITE
     assert X.tolist() == [[0.0, 1.0]] and V.tolist() == [[1e300, 0.0]]
 
 
@@ -263,7 +278,7 @@ def _mixed_state(seed, n=96):
 )
 @pytest.mark.parametrize("block", [5, 64])
 def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, ext, block):
-    # Without skipping and the tunnelling check, calls go to plain_ser (a straight
+    # Without skipping and the tunnelling check, calls take the plain variant (a straight
     # and a batched step chosen by the contact count): bit-identical states, flags and counts.
     data = world(
         planes=[(0.0, 1.0, 0.0), (0.7071067811865476, 0.7071067811865476, -0.5)],
@@ -273,7 +288,7 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
     n = base[0].shape[0]
     E = np.random.default_rng(2).normal(size=(n, 2)) if ext else np.zeros((0, 2))
     out = []
-    for kernel in (_step.run_ser, _step.plain_ser):
+    for plain in (None, True):
         X, V, M, R, CR, CF = [a.copy() for a in base]
         flags = np.zeros(n, np.int32)
         # check_all off: cr, cf are checked at contacts
@@ -291,10 +306,10 @@ def test_plain_kernel_gives_the_general_kernels_results(explicit, always, drag, 
             rest=0.0,
         )
         budget = _step.Budget(trace=False, lip=1.0, margin=0.0, eps=2.2e-16, skip=False)
-        bad = kernel(data, state, physics, budget, 40, block)
+        bad = _step.step_ser(data, state, physics, budget, 40, block, None, plain)
         out.append((X, V, flags, bad))
     ref = out[0]
-    assert ref[2][5] == _step.FLAG_INPUT and ref[2][7] == _step.FLAG_COEFF
+    assert ref[2][5] == C.FLAG_INPUT and ref[2][7] == C.FLAG_COEFF
     assert ref[3] == np.count_nonzero(ref[2])
     assert np.all(ref[1][: n // 3 - 1, 1] ** 2 < 1.0)  # the resting third stays in contact
     for X, V, flags, bad in out[1:]:
@@ -310,19 +325,22 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
     for tunnelling in (False, True):
         sim = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=tunnelling)
         sim.force_generators.append(phys.Gravity())
-        sim._skip = False
-        sim._simd = False  # (a grid world would take the block kernel, tested below)
+        sim.engine.skip = False
+        sim.engine.simd = False  # (a grid world would take the block kernel, tested below)
         sims.append(sim)
     sims[0].run(60)
-    assert sims[0]._module.plain_ser.signatures  # compiled and called
-    assert not sims[1]._module.plain_ser.signatures or sims[1]._module is sims[0]._module
+    module = sims[0].engine.kernel()[0]
+    assert "plain" in compiled_variants(module)  # compiled and called
+    assert "plain" not in compiled_variants(sims[1].engine.kernel()[0]) or (
+        sims[1].engine.kernel()[0] is module
+    )
     # the general kernel with the same switches gives the same state
     ref = phys.ParticleSimulation(g, n=300, seed=1, prevent_tunnelling=False)
     ref.force_generators.append(phys.Gravity())
     a = ref.p._arrays
     flags = np.zeros(300, np.int32)
-    ax, ay, drag, _, _ = ref._fused_params()
-    ref._bind_fallback()  # no particle stops to bind it
+    ax, ay, drag, _, _ = fuse(ref.force_generators)
+    ref.engine.bind_fallback()  # no particle stops to bind it
     state = _step.State(*[a[k] for k in phys.Particles.FIELDS], np.zeros((0, 2)), flags, True)
     physics = _step.Physics(
         dt=ref.dt,
@@ -337,9 +355,9 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
         rest=0.0,
     )
     budget = _step.Budget(
-        trace=False, lip=ref.lipschitz, margin=ref._margin, eps=2.2e-16, skip=False
+        trace=False, lip=ref.lipschitz, margin=ref.engine.margin, eps=2.2e-16, skip=False
     )
-    ref._module.run_ser(ref._bind(ref._data), state, physics, budget, 60, 512)
+    ref.engine.kernel()[0].step_ser(ref.engine.data, state, physics, budget, 60, 512, None, None)
     assert not flags.any()
     np.testing.assert_array_equal(sims[0].p["x"], ref.p["x"])
     np.testing.assert_array_equal(sims[0].p["v"], ref.p["v"])
@@ -352,7 +370,7 @@ def test_plain_kernel_is_used_without_skipping_and_tunnelling_check():
 def test_generated_kernel_is_the_step_module_with_one_scene_block():
     head, tail = phys._step_source()
     sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
-    with open(sim._module.__file__) as fh:
+    with open(sim.engine.kernel()[0].__file__) as fh:
         src = fh.read()
     assert src.startswith(head) and src.endswith(tail)
     assert "# >>> SCENE BLOCK" not in src and "_CACHE = True" in src
@@ -363,7 +381,7 @@ def test_grid_kernel_does_not_depend_on_the_scene():
     b = GridSDF(sdf.Box([-1, -1], [1, 0.5]), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     sa = phys.ParticleSimulation(a, n=3, seed=0)
     sb = phys.ParticleSimulation(b, n=3, seed=0)
-    assert sa._module is sb._module
+    assert sa.engine.kernel()[0] is sb.engine.kernel()[0]
     # ...and each still answers with its own scene, inside and outside the grid.
     pts = np.array([[0.0, 0.0], [1.5, 0.3], [3.0, -4.0], [-7.0, 0.2]])
     for sim, grid in ((sa, a), (sb, b)):
@@ -415,7 +433,7 @@ def test_fused_njit_forces_equal_the_python_path(n):
 def test_force_many_sums_the_fused_forces():
     sim = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=3, seed=0)
     sim.force_generators += [_wind, _spring]
-    module, _ = sim._kernel(tuple(sim.force_generators))
+    module, _ = sim.engine.kernel(tuple(sim.force_generators))
     xs, ys, vx, vy, m = np.random.default_rng(6).normal(size=(5, 10))
     out = np.empty((10, 2))
     module.force_many(xs, ys, vx, vy, m, 0.7, out)
@@ -511,8 +529,8 @@ def test_lazy_exact_fallback_gives_the_same_trajectories(n):
     grid = GridSDF(w, bounds=[(-1, 1), (-1, 1)], samples=[60j, 60j])
     lazy = phys.ParticleSimulation(grid, n=n, seed=9)
     eager = phys.ParticleSimulation(grid, n=n, seed=9)
-    eager._bind_fallback()
-    assert lazy._exact_ptr is None and eager._exact_ptr
+    eager.engine.bind_fallback()
+    assert not lazy.engine.fallback_bound and eager.engine.fallback_bound
     x = np.c_[np.random.default_rng(9).uniform(-0.5, 0.5, n), np.linspace(0.4, 0.9, n)]
     for s in (lazy, eager):
         s.force_generators.append(phys.Gravity())
@@ -520,12 +538,12 @@ def test_lazy_exact_fallback_gives_the_same_trajectories(n):
         s.p["v"] = 0.0
     lazy.run(3)  # nobody comes near the edge yet: nothing compiled
     eager.run(3)
-    assert lazy._exact_ptr is None
+    assert not lazy.engine.fallback_bound
     for s in (lazy, eager):
         s.p["v"] = np.c_[np.linspace(-3, 3, n), np.zeros(n)]
     lazy.run(40)
     eager.run(40)
-    assert lazy._exact_ptr is not None
+    assert lazy.engine.fallback_bound
     assert np.any(np.abs(eager.p["x"]) > 1.0)  # some did leave the grid
     np.testing.assert_array_equal(lazy.p["x"], eager.p["x"])
     np.testing.assert_array_equal(lazy.p["v"], eager.p["v"])
@@ -557,8 +575,8 @@ def test_fields_evaluated_ahead_give_the_results_of_inline_forces():
     plain.force_generators += [phys.Gravity(), inline]
     for sim in (ahead, plain):
         sim.run(100)
-    assert ahead._kernel((field.dispatcher,))[0].FORCE_AHEAD
-    assert not plain._kernel((inline,))[0].FORCE_AHEAD
+    assert ahead.engine.kernel((field.dispatcher,))[0].FORCE_AHEAD
+    assert not plain.engine.kernel((inline,))[0].FORCE_AHEAD
     # free fall for 100 steps would reach a speed of about 3.3: slower particles have hit walls
     assert (np.hypot(*ahead.p["v"].T) < 1.0).sum() > n // 4
     np.testing.assert_array_equal(ahead.p["x"], plain.p["x"])
@@ -651,7 +669,7 @@ def test_rest_speed_is_validated(bad):
 
 
 # ---------------------------------------------------------------------------------------------
-# The block kernel of grid worlds (simd_ser) against the particle-by-particle kernels.
+# The block kernel of grid worlds (the simd variant) against the particle-by-particle kernels.
 
 
 @njit(cache=True)
@@ -668,7 +686,7 @@ def _block_pair(grid, n, seed, block, forces=(), **kw):
     for simd in (True, False):
         sim = phys.ParticleSimulation(grid, n=n, seed=seed, block=block, **kw)
         sim.force_generators += [phys.Gravity()] + list(forces)
-        sim._simd = simd
+        sim.engine.simd = simd
         sims.append(sim)
     k = n // 4
     # resting on the floor of the seed world's funnel, falling, fast across the scene, and
@@ -720,7 +738,7 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
     sims = _block_pair(g, 1000, 3, block, prevent_tunnelling=tunnelling, **extra)
     for sim in sims:
-        sim._skip = skip
+        sim.engine.skip = skip
         sim.p["x"][7] = math.nan  # invalid input: frozen, flagged, left as it is
         sim.p["v"][8] = math.inf
         sim.p["cr"][:40] = 1.5  # invalid cr, found at a contact
@@ -728,8 +746,8 @@ def test_block_kernel_gives_the_particle_kernels_results(tunnelling, skip, extra
     sims[1].force_generators.append(phys.Drag(0.2))
     _run_pair(sims, 3, 30)
     # the block kernel ran: the entry point compiled for calls with or without skipping
-    module = sims[0]._module
-    assert (module.simd_ser if skip else module.simd_plain_ser).signatures
+    module = sims[0].engine.kernel()[0]
+    assert ("simd" if skip else "simd_plain") in compiled_variants(module)
     # some particles touched surfaces, some left the grid, some were frozen
     assert np.any(np.abs(sims[0].p["x"]) > 2.0)
     assert np.isnan(sims[0].p["x"][7, 0]) and np.isinf(sims[0].p["v"][8, 0])
@@ -743,29 +761,29 @@ def test_block_kernel_with_a_fused_force_and_in_parallel(mode):
     n = phys.PARALLEL_MIN_PARTICLES + 77
     sims = _block_pair(g, n, 5, 700, forces=[_gust])
     _run_pair(sims, 2, 25)
-    sims[0]._skip = sims[1]._skip = False
+    sims[0].engine.skip = sims[1].engine.skip = False
     _run_pair(sims, 1, 25)
-    module = sims[0]._kernel((_gust,))[0]
-    assert module.simd_ser.signatures and module.simd_plain_ser.signatures
-    assert sims[0]._exact_ptr is not None or mode == "nearest"
+    module = sims[0].engine.kernel((_gust,))[0]
+    assert {"simd", "simd_plain"} <= compiled_variants(module)
+    assert sims[0].engine.fallback_bound or mode == "nearest"
 
 
 def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
     picked = []
-    pick = phys.ParticleSimulation._pick_kernel
+    pick = phys.engine.ParticleEngine._variant
 
     def spy(self, *args):
-        kernel = pick(self, *args)
-        picked.append(kernel.py_func.__name__)
-        return kernel
+        variant = pick(self, *args)
+        picked.append(VARIANTS[variant])
+        return variant
 
-    monkeypatch.setattr(phys.ParticleSimulation, "_pick_kernel", spy)
+    monkeypatch.setattr(phys.engine.ParticleEngine, "_variant", spy)
     cases = [
-        ({}, "simd_ser"),
-        ({"prevent_tunnelling": False}, "simd_ser"),
-        ({"rest_speed": 0.1}, "run_ser"),
-        ({"dtype": np.float32}, "run_ser"),
+        ({}, "simd"),
+        ({"prevent_tunnelling": False}, "simd"),
+        ({"rest_speed": 0.1}, "general"),
+        ({"dtype": np.float32}, "general"),
     ]
     for kw, name in cases:
         picked.clear()
@@ -775,15 +793,53 @@ def test_block_kernel_is_used_only_where_it_applies(monkeypatch):
         assert set(picked) == {name}  # (twice where particles resume at the edge)
     picked.clear()
     plain = phys.ParticleSimulation(g, n=200, seed=2)
-    plain._skip = False  # (as for a world without a known Lipschitz bound)
+    plain.engine.skip = False  # (as for a world without a known Lipschitz bound)
     plain.run(2)
-    assert set(picked) == {"simd_plain_ser"}
+    assert set(picked) == {"simd_plain"}
     picked.clear()
     sim.force_generators.append(lambda p, t: np.zeros((len(p), 2)))  # a Python force
     sim.run(1)
-    assert set(picked) == {"run_ser"}
+    assert set(picked) == {"general"}
     # an exact-SDF world has no block kernel
-    assert not phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)._module.GRID_SIMD
+    circle = phys.ParticleSimulation(sdf.Circle([0, 0], 1.0), n=5, seed=2)
+    assert not circle.engine.kernel()[0].GRID_SIMD
+
+
+@pytest.mark.parametrize("grid", [True, False])
+def test_switching_skip_trace_and_rest_per_call_compiles_each_variant_once(grid):
+    """The tunnelling check, query skipping and resting contact are chosen per call: each
+    choice takes one of the kernel family's variants, compiled the first time it is needed;
+    switching back and forth compiles nothing more (the variants' specializations, and the
+    functions they call, keep their counts)."""
+    world = seed_world()
+    if grid:
+        world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[40j, 40j])
+    sim = phys.ParticleSimulation(world, n=300, seed=2)
+    sim.force_generators.append(phys.Gravity())
+    module = sim.engine.kernel()[0]
+    settings = [(True, True, 0.0), (False, True, 0.0), (True, False, 0.0), (False, False, 0.0)]
+    settings.append((True, True, 0.1))
+
+    def cycle():
+        for trace, skip, rest in settings:
+            sim.prevent_tunnelling, sim.engine.skip, sim.rest_speed = trace, skip, rest
+            sim.run(3)
+
+    def counts():
+        names = ("step_ser", "_block_of", "_block", "_block_plain", "_block_simd")
+        return [len(getattr(module, k).overloads) for k in names]
+
+    cycle()
+    first = counts()
+    used = compiled_variants(module)
+    # the grid world's calls without resting contact take the block step, with or without
+    # skipping; the exact world's take the plain step without skipping and tunnelling check
+    # (other tests of this process may have compiled more variants of the shared grid kernel)
+    assert used >= ({"simd", "simd_plain", "general"} if grid else {"general", "plain"})
+    assert first[0] == len(used)
+    cycle()
+    cycle()
+    assert counts() == first
 
 
 def test_block_kernel_on_a_float32_grid():
@@ -791,7 +847,7 @@ def test_block_kernel_on_a_float32_grid():
     g = GridSDF(seed_world(), bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j], dtype=np.float32)
     sims = _block_pair(g, 600, 8, 256)
     _run_pair(sims, 2, 30)
-    assert sims[0]._module.simd_ser.signatures
+    assert "simd" in compiled_variants(sims[0].engine.kernel()[0])
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two threads")
@@ -803,7 +859,7 @@ def test_threads_give_the_results_of_one_thread(grid, long, monkeypatch):
     # (the block kernel of a grid world, the general kernel of an exact SDF with its
     # tunnelling sweep), frozen particles and error included.
     if long:
-        monkeypatch.setattr(phys.simulation, "LONG_CALL", 1000)
+        monkeypatch.setattr(phys.engine, "LONG_CALL", 1000)
     world = seed_world()
     if grid:
         world = GridSDF(world, bounds=[(-2, 2), (-2, 2)], samples=[80j, 80j])
@@ -845,6 +901,6 @@ def test_python_forces_near_the_grids_edge():
         sim.p["x"][:50, 1] = np.linspace(1.3, 1.6, 50)  # near and beyond the top edge
         sim.run(3)
         sims.append(sim)
-    assert sims[0]._exact_ptr is not None
+    assert sims[0].engine.fallback_bound
     np.testing.assert_array_equal(sims[0].p["x"], sims[1].p["x"])
     np.testing.assert_array_equal(sims[0].p["v"], sims[1].p["v"])

@@ -603,7 +603,7 @@ def warm_readme_kernels(stream: IO[str] | None = None) -> float:
     from fastsdf.geometry import from_image
     from fastsdf.granular.params import ContactLaw
     from fastsdf.particles import Gravity, ParticleSimulation
-    from fastsdf.particles.simulation import LONG_CALL, PARALLEL_MIN_PARTICLES
+    from fastsdf.particles.engine import LONG_CALL, PARALLEL_MIN_PARTICLES
 
     err = stream if stream is not None else sys.stderr
     err.write(

@@ -74,15 +74,17 @@ Grains: ``ParticleSimulation(world, positions=..., radius=..., contacts=ContactL
 particles that also collide with each other (a :class:`GrainSimulation`, stepped by the
 granular engine :mod:`fastsdf.granular`); the names and tools above are the same.
 
-Modules: :mod:`.grains` (grains), :mod:`.state` (the particles' arrays), :mod:`.forces`,
-:mod:`.world` (what a step queries), :mod:`.simulation`, :mod:`.reference` (the notebook's
-step in NumPy) and :mod:`.kernels`.
+Modules: :mod:`.family` (what every simulation of the family shares), :mod:`.simulation`
+(particles), :mod:`.grains` (grains), :mod:`.engine` (the particles' fused step, the engine a
+ParticleSimulation holds), :mod:`.state` (the states' arrays), :mod:`.forces`, :mod:`.world`
+(what a step queries), :mod:`.reference` (the notebook's step in NumPy), :mod:`.kernels` and
+:mod:`.cuda` (the GPU step).
 """
 
 from fastsdf.granular.params import ContactLaw
 from fastsdf.particles.forces import Drag, FieldForce, Gravity
 from fastsdf.particles.grains import GrainSimulation, GrainState
-from fastsdf.particles.kernels import TRACE_FRACTION
+from fastsdf.particles.kernels.constants import TRACE_FRACTION
 from fastsdf.particles.reference import reference_step
 from fastsdf.particles.simulation import (
     DEFAULT_BLOCK,

@@ -35,7 +35,6 @@ take without a copy (``__cuda_array_interface__``); ``sim.host('x')`` copies to 
 from __future__ import annotations
 
 import contextlib
-import math
 import warnings
 from collections.abc import Iterator
 from typing import Any
@@ -43,20 +42,18 @@ from typing import Any
 import numpy as np
 
 from fastsdf import device as _device
-from fastsdf.fields import grid as _grid
-from fastsdf.function import Function
-from fastsdf.particles.kernels.config import Disc, Motion, Window
-from fastsdf.particles.kernels.constants import (
-    FLAG_COEFF,
-    FLAG_INPUT,
-    FLAG_NONFINITE,
-    TRACE_FRACTION,
-)
-from fastsdf.particles.kernels.contact import _respond
-from fastsdf.particles.kernels.step import _finite4, _integrate, _valid_input
-from fastsdf.particles.state import Particles
+from fastsdf.particles.kernels.config import Budget, Physics, State
+from fastsdf.particles.kernels.constants import FLAG_INPUT
+from fastsdf.particles.scene_blocks import _is_grid, block_source, device_scene, generated_module
+from fastsdf.particles.state import FieldState, Particles
 
-__all__ = ["DeviceParticles", "CudaStep", "THREADS_PER_BLOCK", "ieee_compile"]
+__all__ = [
+    "DeviceParticles",
+    "CudaStep",
+    "THREADS_PER_BLOCK",
+    "ieee_compile",
+    "kernel_signature",
+]
 
 #: Threads per block of the step kernel (under the simulator: fewer, its threads are slow).
 THREADS_PER_BLOCK = 256
@@ -91,9 +88,10 @@ def ieee_compile() -> Iterator[None]:
 # The state on the device.
 
 
-class DeviceParticles:
+class DeviceParticles(FieldState):
     """The particles' state on the GPU: the fields of :class:`.Particles` (``x``, ``v``:
-    (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,); float64) as numba device arrays.
+    (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,); float64) as numba device arrays, with the
+    family's mapping surface (:class:`.FieldState`).
 
     ``p['x']`` is the device array itself (CuPy: ``cupy.asarray(p['x'])``, PyTorch:
     ``torch.as_tensor(p['x'], device='cuda')``, both without a copy; write it in place freely
@@ -113,59 +111,20 @@ class DeviceParticles:
         self._n = len(host)
         self._arrays = {k: cu.to_device(np.ascontiguousarray(host[k])) for k in self.FIELDS}
 
-    def __getitem__(self, name: str) -> Any:
-        try:
-            return self._arrays[name]
-        except (KeyError, TypeError):
-            raise KeyError(f"no particle field {name!r}; fields are {self.FIELDS}") from None
-
-    def __setitem__(self, name: str, value: Any) -> None:
-        arr = self[name]
-        if _device.is_device_array(value):
-            src = _device.as_device(value, f"p[{name!r}]")
-            if tuple(src.shape) != tuple(arr.shape):
-                raise ValueError(
-                    f"p[{name!r}] has shape {arr.shape}; cannot assign a device array of "
-                    f"shape {src.shape}"
-                )
-            arr.copy_to_device(src)
-            return
-        host = np.asarray(value)
-        if host.dtype.kind not in "iuf":
-            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {host.dtype}")
-        try:
-            full = np.ascontiguousarray(np.broadcast_to(host, arr.shape), dtype=np.float64)
-        except ValueError:
+    def _assign_device(self, name: str, arr: Any, value: Any) -> bool:
+        if not _device.is_device_array(value):
+            return False
+        src = _device.as_device(value, f"p[{name!r}]")
+        if tuple(src.shape) != tuple(arr.shape):
             raise ValueError(
-                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {host.shape}"
-            ) from None
-        arr.copy_to_device(full)
+                f"p[{name!r}] has shape {arr.shape}; cannot assign a device array of "
+                f"shape {src.shape}"
+            )
+        arr.copy_to_device(src)
+        return True
 
-    def __getattr__(self, name: str) -> Any:
-        arrays = self.__dict__.get("_arrays")
-        if arrays is not None and name in arrays:
-            return arrays[name]
-        raise AttributeError(name)
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __contains__(self, name: object) -> bool:
-        return name in self._arrays
-
-    def keys(self) -> tuple[str, ...]:
-        """The field names."""
-        return self.FIELDS
-
-    @property
-    def dtype(self) -> np.dtype:
-        """float64: the device state's dtype."""
-        return np.dtype(np.float64)
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held on the device (8 floats per particle)."""
-        return sum(int(a.nbytes) for a in self._arrays.values())
+    def _write(self, arr: Any, full: np.ndarray) -> None:
+        arr.copy_to_device(np.ascontiguousarray(full, dtype=np.float64))
 
     def host(self) -> Particles:
         """A NumPy copy of the state (a :class:`.Particles`)."""
@@ -186,115 +145,40 @@ class DeviceParticles:
             out._arrays[name] = new
         return out
 
-    def __repr__(self) -> str:
-        return f"DeviceParticles(n={self._n}, dtype=float64)"
-
 
 # ---------------------------------------------------------------------------------------------
 # The world's query on the device.
-
-
-def _is_grid(f: Any) -> bool:
-    return all(hasattr(f, a) for a in ("sampler", "sampler_data", "exact", "mode"))
 
 
 def _unsupported(what: str) -> NotImplementedError:
     return NotImplementedError(f"device='cuda' does not support {what}; use device='cpu'")
 
 
+# Device kernel modules by world and forces (the entry keeps the forces alive, so their ids
+# are not reused meanwhile).
 _DEVICE_MODULES: dict = {}
 
 
 def device_module(f: Any, forces: tuple = ()) -> tuple:
     """The kernel module of the world ``f`` and the fused user forces for the device:
-    :mod:`fastsdf.particles.kernels`' bodies (the response, the march and sweep, the
-    integration) after a scene block whose query numba-cuda can compile (the CPU's block of a
-    grid world calls its exact fallback through a C function address, and a pruned scene's
-    through a plan header; here a grid calls its sampler and the scene's point function, an
-    SDF its point function without pruning: the same values), generated and cached like the
-    CPU's (:func:`fastsdf.particles.world._kernel_module`).
+    :mod:`fastsdf.particles.kernels`' bodies after the GPU's scene block
+    (:func:`fastsdf.particles.scene_blocks.device_scene`: a query numba-cuda can compile),
+    generated and cached like the CPU's (:func:`fastsdf.particles.world._kernel_module`).
 
     Returns ``(module, key, arrays)``: the module's ``_query_t(world, x, y, t) -> (d, dd/dx,
     dd/dy, dd/dt)`` takes the launch argument ``world`` (see :meth:`CudaStep.world_arg`);
     ``key`` names the compiled kernel; ``arrays``: the host arrays the query reads (copied to
     the device once). Raises :class:`NotImplementedError` naming a world the GPU step does not
     handle."""
-    from fastsdf.backends.kernel.cache import load_module
-    from fastsdf.particles import kernels as _kernels
-    from fastsdf.particles import world as _world
-
-    arrays: list = []
-    moving = False
-    if _is_grid(f):
-        sampler = f.sampler
-        if sampler is not _grid.sample_stored and sampler is not _grid.sample_fd:
-            raise _unsupported(
-                f"the world {type(f).__name__} (sampler {getattr(sampler, '__name__', sampler)}): "
-                "only a dense GridSDF or an exact SDF"
-            )
-        lines = [f"from {sampler.__module__} import {sampler.__name__} as _sampler"]
-        query = ["    d, gx, gy, inside = _sampler(data, x, y)"]
-        if f.mode == "exact":
-            if f.exact.compiled.parametric:
-                raise _unsupported("a grid whose exact SDF has runtime parameters")
-            lines.append(f"from {f.exact.compiled.module.__name__} import point_vg as _exact")
-            query += ["    if not inside:", "        return _exact(x, y)"]
-        query.append("    return d, gx, gy")
-        arrays = [a for a in f.sampler_data if isinstance(a, np.ndarray)]
-        scene = f.exact.compiled.module.__name__ if f.mode == "exact" else None
-        key: tuple = ("grid", sampler.__name__, f.mode, scene)
-    elif isinstance(f, Function):
-        comp = f.compiled
-        scene = comp.module.__name__
-        lines = [f"from {scene} import point_vg as _exact"]
-        # a parametric world's launch argument is the tuple of its parameters' values
-        query = [
-            "    return _exact(x, y, 0.0, data)" if comp.parametric else "    return _exact(x, y)"
-        ]
-        moving = comp.parametric and f.time_dependent
-        key = ("sdf", scene)
-    else:
-        raise TypeError(
-            f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type {type(f).__name__}"
-        )
-    deco = _world._DECORATOR
-    lines += ["", "", deco, "def _query(data, x, y):", *query]
-    lines += ["", "", deco, "def _fallback_missing(data, x, y, dx, dy):", "    return False"]
-    if moving:
-        # evaluated at the step's end with dd/dt; no wall speed bound (the sweep and skipping
-        # of moving worlds do not run on the device)
-        lines += [f"from {scene} import point_vgt as _exact_t", "", "", "MOVING = True"]
-        lines += ["", "", deco, "def _query_t(data, x, y, t):"]
-        lines += ["    return _exact_t(x, y, t, data)"]
-        lines += ["", "", deco, "def _wall_speed(data):", "    return 0.0"]
-        lines += ["", "", deco, "def _wall_speed_at(data, x, y, dx, dy):", "    return 0.0"]
-    else:
-        lines += _world._STATIC_TIME_LINES
-    force_lines, _, late = _world._force_parts(forces)
-    block = "\n".join(
-        [
-            "# Scene block of the CUDA step (fastsdf.particles.cuda).",
-            f"_CACHE = {not late}",
-            "GRID_SIMD = False",
-            "GRID_EXACT = False",
-            "",
-            *lines,
-            "",
-            *force_lines,
-        ]
-    )
-    full_key = key + tuple(id(fn) for fn in forces)
+    scene = device_scene(f, _unsupported)
+    full_key = scene.key + tuple(id(fn) for fn in forces)
     entry = _DEVICE_MODULES.get(full_key)
     if entry is None:
-        source = _kernels.kernel_source(block + "\n")
-        if late:  # forces not importable by name: a module of its own, bound here
-            source += f"\n# uncached instance {len(_DEVICE_MODULES)}\n"
-        module = load_module(source, prefix="fastsdf_cuda_particles")
-        for name, obj in late:
-            setattr(module, name, obj)
-        # (the entry keeps the forces alive, so their ids are not reused meanwhile)
+        title = "# Scene block of the CUDA step (fastsdf.particles.cuda)."
+        source, late = block_source(scene, tuple(forces), ahead=False, title=title)
+        module, _ = generated_module(source, late, scene.key, "fastsdf_cuda_particles")
         entry = _DEVICE_MODULES[full_key] = (module, tuple(forces))
-    return entry[0], full_key, arrays
+    return entry[0], full_key, list(scene.data)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -311,121 +195,55 @@ def step_kernel(module: Any, trace: bool, key: tuple) -> Any:
     and the fused user forces), with the tunnelling sweep when ``trace`` (built once per
     ``key``).
 
-    Launch arguments: the state ``X, V, M, R, CR, CF`` (float64 device arrays, ``X``, ``V``
-    of shape (n, 2)), ``FLAGS`` (int32, (n,)) and ``BAD`` (int64, (1,): frozen particles are
-    counted there), ``steps``, the time of the first step ``t0``, ``dt``, gravity ``(ax,
-    ay)``, ``drag``, ``use_m`` (drag or user forces read the mass), ``explicit`` (explicit
-    Euler), ``always`` (the notebook's collision rule), the world's Lipschitz bound ``lip``
-    (for the sweep) and its query data ``world``.
+    Launch arguments (:func:`kernel_signature`): the state (a :class:`.kernels.State` of device
+    arrays, ``check_all`` True), ``BAD`` (int64, (1,): frozen particles are counted there),
+    ``steps``, the call's :class:`.kernels.Physics` and :class:`.kernels.Budget` (its
+    ``lip`` for the sweep), and the world's query data ``world`` (:meth:`CudaStep.world_arg`).
 
-    Each step is the CPU's (:func:`fastsdf.particles.kernels.step._block` with query skipping
-    off, which changes no result): integrate, query the end point, sweep a step longer than
-    ``TRACE_FRACTION r`` whose end is not provably clear (``trace``), respond."""
+    One thread per particle: its checks (:func:`.kernels.phases.input_ok`, every field, as the
+    CPU's first call checks them), then each step :func:`.kernels.phases.particle_step`, the
+    CPU's step, with query skipping off (which changes no result) and the sweep as compiled
+    (``trace``)."""
     global cuda
     kernel = _KERNELS.get(key)
     if kernel is not None:
         return kernel
     cuda = _device.cuda()
-    query_t = module._query_t
-    sweep = module.sweep
-    force = module._force
+    input_ok = module.input_ok
+    particle_step = module.particle_step
+    switched = module.switched
     use_force = bool(module.USE_FORCE)
-    moving = bool(module.MOVING)
-    if trace and moving:
+    if trace and module.MOVING:
         raise _unsupported("the tunnelling sweep in a moving world; pass prevent_tunnelling=False")
+    sweeps = bool(trace)
 
-    def step(
-        X,
-        V,
-        M,
-        R,
-        CR,
-        CF,
-        FLAGS,
-        BAD,
-        steps,
-        t0,
-        dt,
-        ax,
-        ay,
-        drag,
-        use_m,
-        explicit,
-        always,
-        lip,
-        world,
-    ):
+    def step(state, BAD, steps, physics, budget, world):
         i = cuda.grid(1)
-        if i >= X.shape[0]:
+        if i >= state.X.shape[0]:
+            return
+        X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
+        ok, m = input_ok(state, i, True)
+        if not ok:
+            FLAGS[i] = FLAG_INPUT
+            cuda.atomic.add(BAD, 0, 1)
             return
         x = X[i, 0]
         y = X[i, 1]
         vx = V[i, 0]
         vy = V[i, 1]
         r = R[i]
-        m = M[i]
-        cr = CR[i]
-        cf = CF[i]
-        coeffs_ok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
-        # every field is checked before the first step (as the CPU's first call checks them)
-        if not (_valid_input(x, y, vx, vy, r, m, True) and coeffs_ok):
-            FLAGS[i] = FLAG_INPUT
-            cuda.atomic.add(BAD, 0, 1)
-            return
-        inv_m = 1.0 / m if use_m else 0.0
-        short = TRACE_FRACTION * r
+        inv_m = 1.0 / m
+        # what the thread knows as constants: no Python forces, resting contact or skipping
+        own = switched(physics, physics.use_m or use_force, False, 0.0)
+        thread = Budget(sweeps, budget.lip, 0.0, 0.0, False)
         flag = 0
         for k in range(steps):
-            t = t0 + k * dt
-            bx = ax
-            by = ay
-            if use_m:
-                fx = -drag * vx
-                fy = -drag * vy
-                if use_force:
-                    ux, uy = force(x, y, vx, vy, m, t)
-                    fx += ux
-                    fy += uy
-                bx += fx * inv_m
-                by += fy * inv_m
-            dx, dy, nvx, nvy = _integrate(vx, vy, bx, by, dt, explicit)
-            # the world at the step's end (a world that does not move ignores the time)
-            d, gx, gy, gt = query_t(world, x + dx, y + dy, t + dt)
-            s = d - r
-            sx = x
-            sy = y
-            bounced = False
-            if trace:
-                dd = dx * dx + dy * dy
-                if dd > short * short and not (s * s >= lip * lip * dd and s > 0.0):
-                    if not coeffs_ok:
-                        flag = FLAG_COEFF
-                        break
-                    t1 = 1.0
-                    if s > 0.0:
-                        t1 = 1.0 - s / (lip * math.sqrt(dd))
-                    sx, sy, dx, dy, nvx, nvy, bounced = sweep(
-                        world,
-                        Motion(x, y, dx, dy, nvx, nvy),
-                        Disc(r, cr, cf),
-                        lip,
-                        always,
-                        Window(0.0, t1, t, dt, 0.0),
-                    )
-                    if bounced:
-                        d, gx, gy, gt = query_t(world, sx + dx, sy + dy, t + dt)
-                        s = d - r
-            nx = sx + dx
-            ny = sy + dy
-            if s <= 0.0:
-                if not coeffs_ok:
-                    flag = FLAG_COEFF
-                    break
-                nx, ny, nvx, nvy = _respond(
-                    nx, ny, nvx, nvy, s, (gx, gy, gt), cr, cf, always and not bounced
-                )
-            if not _finite4(nx, ny, nvx, nvy):
-                flag = FLAG_NONFINITE
+            here = (x, y, vx, vy, r, m, inv_m)
+            nx, ny, nvx, nvy, c, code, touched = particle_step(
+                world, here, (CR, CF, i), 0.0, (0.0, 0.0, 0.0, 0.0), k, own, thread, steps
+            )
+            if code > 0:
+                flag = code
                 break
             x = nx
             y = ny
@@ -443,6 +261,35 @@ def step_kernel(module: Any, trace: bool, key: tuple) -> Any:
     return kernel
 
 
+def kernel_signature(world_arg: tuple) -> tuple:
+    """The argument types of the step kernel for the world's launch argument ``world_arg``
+    (see :func:`step_kernel`), e.g. to compile it ahead of a launch."""
+    import numba
+
+    one = np.zeros(1)
+    state = State(
+        np.zeros((1, 2)),
+        np.zeros((1, 2)),
+        one,
+        one,
+        one,
+        one,
+        np.zeros((0, 2)),
+        np.zeros(1, dtype=np.int32),
+        True,
+    )
+    physics = Physics(1.0, 0.0, 0.0, 0.0, 0.0, True, False, False, False, 0.0)
+    budget = Budget(True, 1.0, 0.0, 0.0, False)
+    return (
+        numba.typeof(state),
+        numba.int64[::1],
+        numba.int64,
+        numba.typeof(physics),
+        numba.typeof(budget),
+        numba.typeof(world_arg),
+    )
+
+
 class CudaStep:
     """The GPU step of one :class:`fastsdf.particles.ParticleSimulation` (``device='cuda'``):
     the world's query data on the device, the flags and frozen count, the compiled kernels."""
@@ -455,6 +302,7 @@ class CudaStep:
         self._device_arrays = {id(a): cu.to_device(a) for a in arrays}
         self.flags: Any = None
         self.bad = cu.to_device(np.zeros(1, dtype=np.int64))
+        self._no_ext = cu.to_device(np.zeros((0, 2)))
         #: Steps run since the frozen count was last read (for the error's message).
         self.steps_unchecked = 0
 
@@ -473,51 +321,36 @@ class CudaStep:
         self,
         p: DeviceParticles,
         steps: int,
-        t0: float,
-        dt: float,
-        forces: tuple,
-        integrator: str,
-        collision: str,
+        physics: Physics,
+        user: tuple,
+        budget: Budget,
         params: tuple,
-        lip: float,
-        trace: bool,
     ) -> None:
         """Launch ``steps`` steps of every particle of ``p`` (asynchronous: no wait for the
-        GPU). ``forces``: ``(ax, ay, drag, user)``, gravity, drag and the fused user forces
-        (numba dispatchers); ``lip``: the world's Lipschitz bound, ``trace``: whether the
-        tunnelling sweep runs (``prevent_tunnelling``)."""
+        GPU) with ``physics`` (:class:`.kernels.Physics`), the fused user forces ``user``
+        (numba dispatchers), ``budget`` (:class:`.kernels.Budget`: the tunnelling sweep
+        ``trace`` with the world's Lipschitz bound ``lip``) and the values of the world's
+        parameters."""
         cu = _device.cuda()
-        ax, ay, drag, user = forces
         module, key, _ = device_module(self._world, tuple(user))
-        kernel = step_kernel(module, bool(trace), key + (bool(trace),))
+        kernel = step_kernel(module, budget.trace, key + (bool(budget.trace),))
         n = len(p)
         if self.flags is None or self.flags.shape[0] != n:
             self.flags = cu.to_device(np.zeros(n, dtype=np.int32))
         tpb = 32 if _device.simulated() else THREADS_PER_BLOCK
         blocks = (n + tpb - 1) // tpb
         a = p._arrays
-        args = (
-            *(a[k] for k in Particles.FIELDS),
-            self.flags,
-            self.bad,
-            int(steps),
-            float(t0),
-            float(dt),
-            float(ax),
-            float(ay),
-            float(drag),
-            bool(drag != 0.0 or module.USE_FORCE),
-            integrator == "euler",
-            collision == "notebook",
-            float(lip),
-            self.world_arg(params),
-        )
+        X, V, M, R, CR, CF = (_kernel_array(a[k]) for k in Particles.FIELDS)
+        ext, flags = _kernel_array(self._no_ext), _kernel_array(self.flags)
+        state = State(X, V, M, R, CR, CF, ext, flags, True)
         with ieee_compile(), warnings.catch_warnings():
             # (compiles on the first launch only; a small launch is not a performance problem
             # worth numba-cuda's under-utilisation warning here)
             for category in _performance_warnings():
                 warnings.simplefilter("ignore", category)
-            kernel[blocks, tpb](*args)
+            kernel[blocks, tpb](
+                state, self.bad, int(steps), physics, budget, self.world_arg(params)
+            )
         self.steps_unchecked += int(steps)
 
     def frozen(self) -> tuple[int, np.ndarray | None]:

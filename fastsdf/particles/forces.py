@@ -14,7 +14,7 @@ import numpy as np
 from numba.core.dispatcher import Dispatcher
 from numpy.typing import ArrayLike
 
-from fastsdf.backends.kernel.cache import load_module
+from fastsdf.backends import load_module
 from fastsdf.expr.validate import vec2 as _vec2
 from fastsdf.function import Function
 from fastsdf.particles.state import Particles, _real

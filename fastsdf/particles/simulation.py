@@ -1,6 +1,8 @@
-"""The simulation: :class:`ParticleSimulation` (physics only: state, clock, forces, the world and
-the choice of compiled step; the notebook's ``reset(ax)``/``update(ax)`` and
-:func:`create_animation` delegate their drawing to :mod:`fastsdf.viz.render`)."""
+"""The simulation of particles that meet only the world: :class:`ParticleSimulation` (the
+family's front door and its non-interacting member: state, clock, forces, settings; its fused
+step is the engine it holds, :class:`fastsdf.particles.engine.ParticleEngine`; the notebook's
+``reset(ax)``/``update(ax)`` and :func:`create_animation` delegate their drawing to
+:mod:`fastsdf.viz.render`)."""
 
 from __future__ import annotations
 
@@ -10,35 +12,19 @@ import numbers
 import os
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from fastsdf.backends import prune as _prune
-from fastsdf.device import to_host
-from fastsdf.function import Function
-from fastsdf.introspect import show_init_signature
-from fastsdf.notice import RunProgress, compiling
-from fastsdf.particles import kernels as _kernels
-from fastsdf.particles.checkpoint import load_simulation, register_simulation, save_simulation
-from fastsdf.particles.forces import Gravity, fuse, python_forces
-from fastsdf.particles.kernels import NO_EXT, Budget, Physics, State
+from fastsdf.notice import RunProgress
+from fastsdf.particles.engine import DEFAULT_BLOCK, PARALLEL_MIN_PARTICLES, ParticleEngine
+from fastsdf.particles.family import DEFAULT_COUNT, Simulation
+from fastsdf.particles.forces import FusedForces, Gravity, fuse, python_forces
+from fastsdf.particles.kernels import Budget, Physics
+from fastsdf.particles.kernels.constants import FLAG_COEFF, FLAG_NONFINITE
 from fastsdf.particles.state import Particles, _invalid_state_error, _real, _unit_interval
-from fastsdf.particles.world import (
-    _NO_PARAMS,
-    _NO_TABLE,
-    SimulationParams,
-    _exact_address,
-    _exactness,
-    _grid_margin,
-    _is_distance_bound,
-    _is_grid,
-    _kernel_module,
-    wall_speed_table,
-)
+from fastsdf.particles.world import SimulationParams, _exactness
 
 __all__ = ["ParticleSimulation", "create_animation", "PARALLEL_MIN_PARTICLES", "DEFAULT_BLOCK"]
 
@@ -52,26 +38,9 @@ __all__ = ["ParticleSimulation", "create_animation", "PARALLEL_MIN_PARTICLES", "
 #: stops where it is (a point the march has shown to be free), losing the rest of that step's
 #: displacement. MAX_BOUNCES: at most this many contacts per step; at the last one the particle
 #: stops at the contact.
-#: Fewer particles than this run on one thread (thread start-up costs more than it saves).
-PARALLEL_MIN_PARTICLES = 4096
-# Threads that run slices of the particles through a kernel (which releases the GIL); made on
-# first use, grown when numba's thread count is raised.
-_POOL: list = [None]
-#: A call of at least this many particle-steps (about 0.05 s) runs numba's parallel entry point.
-LONG_CALL = 1 << 22
-# (kernel, state dtype, Python forces) combinations a kernel has been compiled for.
-_READY: set = set()
+#: (PARALLEL_MIN_PARTICLES: fewer particles run on one thread; DEFAULT_BLOCK: particles per
+#: block of a call; see :mod:`fastsdf.particles.engine`.)
 
-
-def _pool(workers: int) -> ThreadPoolExecutor:
-    pool = _POOL[0]
-    if pool is None or pool._max_workers < workers:
-        pool = _POOL[0] = ThreadPoolExecutor(workers, thread_name_prefix="fastsdf-step")
-    return pool
-
-
-#: Particles per block in :meth:`ParticleSimulation.run` (block state fits in the L1/L2 cache).
-DEFAULT_BLOCK = 512
 #: A run of at least this many particle-steps (a second or so of compiled work) goes in
 #: pieces, so that it can show its progress once it is seen to take longer than
 #: :data:`fastsdf.notice.PROGRESS_AFTER_S` (the same bits: particles do not interact).
@@ -84,42 +53,26 @@ _PROGRESS_PIECE_S = 0.5
 _INTEGRATORS = ("symplectic", "euler")
 
 
-class _DefaultCount(int):
-    """The default ``n`` (100), told apart from an ``n`` given: with ``positions`` the count
-    comes from them."""
-
-
-_DEFAULT_N = _DefaultCount(100)
 _COLLISIONS = ("approaching", "notebook")
 _DEVICES = ("cpu", "cuda")
+#: Options only grains take (``contacts=ContactLaw(...)``).
+_GRAIN_OPTIONS = (
+    "wall_contacts",
+    "substeps_per_contact",
+    "substep",
+    "skin",
+    "periodic_x",
+    "chunks",
+)
+#: Attributes of an earlier version's saved state that the engine now derives from the world.
+_DERIVED = ("_parametric", "_moving", "_margin", "lipschitz", "_skip", "_module", "_data")
 
 
 # ---------------------------------------------------------------------------------------------
 # The simulation.
 
 
-def _recorded(sim: Any, steps: Any, record: Any) -> bool:
-    """Check ``run``'s arguments; hand the run to ``record`` (which steps ``sim`` itself and
-    records it) and say so, or return False for the caller to step."""
-    if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, numbers.Integral):
-        raise TypeError(f"steps must be an integer, got steps={steps!r}")
-    if steps < 0:
-        raise ValueError(f"steps must be >= 0, got steps={steps!r}")
-    if record is None:
-        return False
-    if not callable(getattr(record, "run", None)):
-        raise TypeError(
-            f"record must be a recorder with a run(sim, steps) method, such as "
-            f"fastsdf.io.TrajectoryRecorder, got record={record!r}"
-        )
-    kind = "grains" if hasattr(sim, "engine") else "particles"
-    with RunProgress(int(steps), f"{sim.n:,} {kind}, run({steps}, record=...)", "steps"):
-        record.run(sim, int(steps))  # (the runs it makes report to this progress)
-    return True
-
-
-@register_simulation
-class ParticleSimulation:
+class ParticleSimulation(Simulation):
     """Particles moving under forces and colliding with an SDF (the notebook's interface).
 
     Parameters
@@ -223,7 +176,7 @@ class ParticleSimulation:
     Kernels (all give the same results, bit for bit; the choice is automatic, per call): a
     GridSDF world with stored gradients (the default ``gradient='stored'``, any grid dtype,
     either ``mode``) and float64 state, without ``rest_speed`` and Python force generators,
-    runs the block kernel (``simd_ser``, :mod:`fastsdf.particles.kernels.block`): 64
+    runs the block kernel (the ``simd`` variant, :mod:`fastsdf.particles.kernels.block`): 64
     particles at a time held in scratch rows through all steps of a :meth:`run` call, each
     step in passes that the
     compiler turns into 4-wide vector code (forces, fused ``@njit`` forces and
@@ -231,8 +184,8 @@ class ParticleSimulation:
     pass loading the cells' grid values, and a scalar fix-up only for particles that need a
     tunnelling sweep or a query outside the grid. Everything else runs particle by particle:
     exact-SDF and moving worlds, ``gradient='fd'`` and band grids, float32 state, resting
-    contact, Python forces (the ``plain`` kernel without skipping and tunnelling check, the
-    general one otherwise).
+    contact, Python forces (the plain variant without skipping and tunnelling check, the
+    general one otherwise); see :mod:`fastsdf.particles.kernels`.
 
     Attributes
     ----------
@@ -257,30 +210,29 @@ class ParticleSimulation:
     block: int | None
     force_generators: list
     t: float
+    engine: ParticleEngine
     _ext: Any
-    _flags: Any
-    _wall: Any
     # The state: Particles, or fastsdf.particles.cuda.DeviceParticles with device='cuda' (the
     # class docstring's attributes describe it).
     p: Any
-    #: The GPU step (:class:`fastsdf.particles.cuda.CudaStep`), None on the CPU (class
-    #: defaults: members of the family that do not run this constructor are on the CPU).
-    _gpu: Any = None
     device: str = "cpu"
 
-    #: The member of the family that grains with contacts are (set by the subclass that
-    #: declares ``class ...(ParticleSimulation, steps_contacts=True)``: the grains' module).
+    #: The member of the family that grains with contacts are (see :meth:`_admit_grains`).
     _contact_member: type | None = None
 
-    def __init_subclass__(cls, steps_contacts: bool = False, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        show_init_signature(cls)
-        if steps_contacts:
-            ParticleSimulation._contact_member = cls
+    @classmethod
+    def _admit_grains(cls, member: type) -> type:
+        """Make ``member`` the family's simulation of grains (``contacts=...``): this class's
+        constructor builds it, and it counts as a ParticleSimulation (``isinstance``) while it
+        shares only the family's tools (:class:`fastsdf.particles.family.Simulation`), not
+        this class's step."""
+        cls.register(member)
+        cls._contact_member = member
+        return member
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> ParticleSimulation:
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
         # Grains (contacts=ContactLaw(...)) are the member that steps with the granular engine.
-        # (The signature shown for the class is __init__'s: see _show_init_signature.)
+        # (The signature shown for the class is __init__'s: see show_init_signature.)
         member = ParticleSimulation._contact_member
         if cls is ParticleSimulation and kwargs.get("contacts") is not None and member:
             particles_only = sorted(set(kwargs) - set(inspect.signature(member).parameters))
@@ -290,13 +242,13 @@ class ParticleSimulation:
                     f"restitution and friction are the contact law's (ContactLaw(restitution="
                     f"..., friction=...)), and they step by the granular engine's substeps"
                 )
-            return object.__new__(member)
-        return object.__new__(cls)
+            return member(*args, **kwargs)  # (not a subclass: its __init__ runs here only)
+        return super().__new__(cls)
 
     def __init__(
         self,
         world: Any,
-        n: int = _DEFAULT_N,
+        n: int = DEFAULT_COUNT,
         timestep: float = 1 / 30,
         *,
         positions: ArrayLike | None = None,
@@ -323,54 +275,25 @@ class ParticleSimulation:
         rest_speed: float = 0.0,
         device: str = "cpu",
     ) -> None:
-        grains_only = {
-            "wall_contacts": wall_contacts,
-            "substeps_per_contact": substeps_per_contact,
-            "substep": substep,
-            "skin": skin,
-            "periodic_x": periodic_x,
-            "chunks": chunks,
-        }
-        for name, value in grains_only.items():
+        given = (wall_contacts, substeps_per_contact, substep, skin, periodic_x, chunks)
+        for name, value in zip(_GRAIN_OPTIONS, given, strict=True):
             if value is not None:
                 raise TypeError(
                     f"{name}= applies to grains only (contacts=ContactLaw(...)), got "
                     f"{name}={value!r} without contacts"
                 )
-        if device not in _DEVICES:
-            raise ValueError(f"device must be one of {_DEVICES}, got device={device!r}")
         #: Where the particles are stepped: 'cpu' or 'cuda' (see :mod:`fastsdf.particles.cuda`).
-        self.device = device
-        rest = _real(rest_speed, "rest_speed")
-        if not (math.isfinite(rest) and rest >= 0.0):
-            raise ValueError(f"rest_speed must be finite and >= 0, got rest_speed={rest_speed!r}")
+        self.device = _choice(device, _DEVICES, "device")
         #: Resting contact below this speed (length/s); 0: off (see the class docs).
-        self.rest_speed = rest
+        self.rest_speed = _non_negative(rest_speed, "rest_speed")
         if wall_speed is not None:
-            w = _real(wall_speed, "wall_speed")
-            if not (math.isfinite(w) and w >= 0.0):
-                raise ValueError(
-                    f"wall_speed must be finite and >= 0, got wall_speed={wall_speed!r}"
-                )
+            _non_negative(wall_speed, "wall_speed")
         self._wall_speed_arg = wall_speed
         self._given = _start_state(n, positions, velocities, radius, density)
-        if self._given is not None and self._given[0] is not None:
-            n = self._given[0].shape[0]
-        if isinstance(n, float) and math.isfinite(n) and n == int(n):
-            n = int(n)  # n=1e5, as the command line accepts it
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
-            raise TypeError(f"n must be an integer, got n={n!r}")
-        if n <= 0:
-            raise ValueError(f"n must be > 0, got n={n!r}")
-        dt = _real(timestep, "timestep")
-        if not (math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"timestep must be finite and > 0, got timestep={timestep!r}")
-        if integrator not in _INTEGRATORS:
-            raise ValueError(
-                f"integrator must be one of {_INTEGRATORS}, got integrator={integrator!r}"
-            )
-        if collision not in _COLLISIONS:
-            raise ValueError(f"collision must be one of {_COLLISIONS}, got collision={collision!r}")
+        self.n = _count(n if self._given is None or self._given[0] is None else len(self._given[0]))
+        self.dt = timestep
+        _choice(integrator, _INTEGRATORS, "integrator")
+        _choice(collision, _COLLISIONS, "collision")
         dtype = np.dtype(dtype)
         if dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
             raise ValueError(f"dtype must be float64 or float32, got dtype={dtype}")
@@ -378,14 +301,7 @@ class ParticleSimulation:
             lip = _real(lipschitz, "lipschitz")
             if not (math.isfinite(lip) and lip > 0.0):
                 raise ValueError(f"lipschitz must be finite and > 0, got lipschitz={lipschitz!r}")
-        if block is not None and (
-            isinstance(block, (bool, np.bool_))
-            or not isinstance(block, numbers.Integral)
-            or block <= 0
-        ):
-            raise ValueError(f"block must be a positive integer or None, got block={block!r}")
-        self.n = int(n)
-        self.dt = dt
+        block = _block_size(block)
         self._lipschitz_arg = lipschitz
         self.seed = seed
         self.integrator = integrator
@@ -395,15 +311,10 @@ class ParticleSimulation:
         self.cr = _unit_interval(cr, "cr")
         self.cf = _unit_interval(cf, "cf")
         self.sdf = world
-        self.block = None if block is None else int(block)
+        self.block = block
         self.force_generators = []
         self.t = 0.0
         self._ext = None
-        self._flags = None
-        self._wall = None
-        self._gpu = None
-        if device == "cuda":
-            self._gpu = _cuda_step(self)
         self.reset()
 
     @property
@@ -413,48 +324,43 @@ class ParticleSimulation:
 
     @sdf.setter
     def sdf(self, f):
-        module, data, keep = _kernel_module(f)  # raises TypeError for anything else
-        self._sdf = f
-        self._module, self._data, self._keep = module, data, keep
-        self._kernels = {(): (module, data, keep, ())}
-        # A grid in mode 'exact' binds its exact fallback when a particle first needs it; a
-        # pruned SDF (see _prunes) binds its C function at once. Both read the plan header.
-        pruned = isinstance(f, Function) and not _is_grid(f) and len(data) == 2
-        self._hdr = np.zeros(_prune.HEADER_SIZE)
-        self._hdr_plan = None  # the plan the header points into (kept alive here)
-        self._exact_ptr = None if (_is_grid(f) and f.mode == "exact") or pruned else 0
-        if self._exact_ptr is None and (pruned or getattr(f, "bounds", None) is None):
-            self._bind_fallback()
-        self._parametric = isinstance(f, Function) and not _is_grid(f) and f.compiled.parametric
-        self._moving = self._parametric and f.time_dependent
-        #: Values of the world's runtime parameters (see :class:`SimulationParams`).
-        self.params = SimulationParams(f) if self._parametric else SimulationParams(_NO_PARAMS)
-        self._margin = _grid_margin(f)
-        #: The Lipschitz bound the tunnelling check and the free-flight budget use.
-        self.lipschitz = (
-            float(self._lipschitz_arg)
-            if self._lipschitz_arg is not None
-            else (math.sqrt(2.0) if _is_grid(f) else 1.0)
-        )
-        # Skipping queries is exact only if the bound holds; without a known bound (an SDF
-        # whose exactness is 'none', or a bare expression) every step queries.
-        known = self._lipschitz_arg is not None or _is_distance_bound(f)
-        self._skip = known
-        if not known and self.prevent_tunnelling:
+        engine = ParticleEngine(f, lipschitz=self._lipschitz_arg, wall_speed=self._wall_speed_arg)
+        if not engine.skip and self.prevent_tunnelling:
             warnings.warn(
                 f"the world's value is not known to be a distance bound (exactness "
                 f"{_exactness(f)!r}): the tunnelling check assumes |grad d| <= "
-                f"{self.lipschitz:g}; pass lipschitz= (a bound on |grad d|) if that is wrong",
+                f"{engine.lipschitz:g}; pass lipschitz= (a bound on |grad d|) if that is wrong",
                 RuntimeWarning,
                 stacklevel=3,
             )
-        if getattr(self, "_gpu", None) is not None:
-            self._gpu = _cuda_step(self)  # the new world's query data on the device
+        if self.device == "cuda":
+            _check_cuda(self, engine.moving)
+            engine.use_device()  # the new world's query data on the device
+        self._sdf = f
+        #: The fused step of this world (see :class:`fastsdf.particles.engine.ParticleEngine`).
+        self.engine = engine
 
     @property
-    def world(self) -> Any:
-        """The world (the same as :attr:`sdf`)."""
-        return self.sdf
+    def params(self) -> SimulationParams:
+        """Values of the world's runtime parameters (see :class:`SimulationParams`)."""
+        return self.engine.params
+
+    @property
+    def lipschitz(self) -> float:
+        """The Lipschitz bound the tunnelling check and the free-flight budget use."""
+        return self.engine.lipschitz
+
+    @property
+    def dt(self) -> float:
+        """The timestep in seconds (finite, > 0); assigning checks the value."""
+        return self._dt
+
+    @dt.setter
+    def dt(self, value):
+        dt = _real(value, "timestep")
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"timestep must be finite and > 0, got timestep={value!r}")
+        self._dt = dt
 
     # -- notebook interface ----------------------------------------------------------------
     def reset(self, ax: Any = None) -> tuple:
@@ -493,7 +399,7 @@ class ParticleSimulation:
                 p["r"] = rad
                 p["m"] = density * math.pi * np.asarray(p["r"], dtype=np.float64) ** 2
         self.p = p
-        if getattr(self, "_gpu", None) is not None:
+        if self.engine.gpu is not None:
             from fastsdf.particles.cuda import DeviceParticles
 
             self.p = DeviceParticles(p)  # copied to the device once
@@ -501,85 +407,7 @@ class ParticleSimulation:
         self._wall = None
         return self._draw(ax, new=True)
 
-    def update(self, ax: Any = None, use_wall_time: bool = False) -> tuple:
-        """Advance one frame and refresh the drawing; returns the drawables.
-
-        One step of ``timestep`` seconds; with ``use_wall_time``, as many fixed steps as fit in
-        the wall-clock time since the previous update (at least one, at most 10), so the
-        animation keeps real time while the physics keeps its fixed step.
-        """
-        steps = 1
-        if use_wall_time:
-            now = time.perf_counter()
-            if self._wall is not None:
-                steps = int(min(10, max(1, round((now - self._wall) / self.dt))))
-            self._wall = now
-        self.run(steps)
-        return self._draw(ax, new=False)
-
-    def advance(self) -> None:
-        """Advance the simulation by one step of ``timestep`` seconds."""
-        self.run(1)
-
-    # -- the compiled loop -------------------------------------------------------------------
-    def _fused_params(self):
-        return fuse(self.force_generators)
-
-    def _kernel(self, user):
-        """The compiled step for these fused user forces (generated on first use)."""
-        key = tuple(id(u) for u in user)
-        entry = self._kernels.get(key)
-        if entry is None or entry[3] != user:
-            module, data, keep = _kernel_module(self._sdf, user)
-            entry = self._kernels[key] = (module, data, keep, user)
-        return entry[0], self._bind(entry[1])
-
-    def _bind(self, data):
-        """The query data with the exact fallback's address, once compiled (0 before), and
-        that of the plan header (the last entry)."""
-        ptr = self._exact_ptr
-        return data if not ptr else (ptr[0],) + data[1:-1] + (int(self._hdr.ctypes.data),)
-
-    def _bind_fallback(self):
-        """Compile (or load) the grid's exact fallback (a pruned SDF's C function) and bind it
-        from now on."""
-        if self._exact_ptr is None:
-            f = self._sdf
-            with compiling("the exact SDF behind the grid, for particles near its edge"):
-                self._exact_ptr = _exact_address(f.exact if _is_grid(f) else f)
-            self._data = self._bind(self._data)
-
-    def _update_plan(self, x: np.ndarray, steps: int) -> None:
-        """Point the plan header at a pruning plan over the particles that query the exact SDF
-        per point (all of them for an SDF world, those outside the grid for a grid's exact
-        fallback), or at none where pruning does not pay (see ``CompiledSDF.pruned_plan``).
-        Particles that leave the plan's rectangle during the steps use every row."""
-        if not self._exact_ptr:
-            return
-        f = self._sdf
-        exact = f.exact if _is_grid(f) else f
-        if not exact.compiled.groups:
-            return
-        xs = np.asarray(x[:, 0], dtype=np.float64)
-        ys = np.asarray(x[:, 1], dtype=np.float64)
-        if _is_grid(f):
-            (x0, x1), (y0, y1) = f.bounds
-            out = ~((xs >= x0) & (xs <= x1) & (ys >= y0) & (ys <= y1))
-            if not out.any():
-                return  # nobody outside now: keep the header as it is
-            xs, ys = xs[out], ys[out]
-        plan = exact.compiled.pruned_plan(
-            xs, ys, None, getattr(exact, "prune_tol", None), count=xs.shape[0] * max(1, int(steps))
-        )
-        if plan is not self._hdr_plan:
-            _prune.plan_header(plan, self._hdr)
-            self._hdr_plan = plan
-
-    def _python_forces(self, gens: Any) -> np.ndarray:
-        if self._ext is None or self._ext.shape != (self.n, 2):
-            self._ext = np.empty((self.n, 2))
-        return python_forces(gens, self.p, self.t, self._ext)
-
+    # -- stepping ----------------------------------------------------------------------------
     def run(self, steps: int = 1, record: Any = None) -> None:
         """Advance ``steps`` steps (``steps * timestep`` seconds) in compiled code.
 
@@ -602,59 +430,76 @@ class ParticleSimulation:
         advances by ``steps * timestep`` (clock and state agree), and then a ``ValueError``
         names the first such particle and what was wrong.
         """
-        if _recorded(self, steps, record):
-            return
+        super().run(steps, record)
+
+    def _run(self, steps: int) -> None:
         if steps == 0:
             return
-        if self._gpu is not None:
-            self._run_cuda(int(steps))
+        if self.engine.gpu is not None:
+            self._run_cuda(steps, fuse(self.force_generators))
             return
         self._check_state_shape()
-        ax, ay, drag, python, user = self._fused_params()
-        module, data = self._kernel(user)
+        forces = fuse(self.force_generators)
         what = f"{self.n:,} particles, run({steps})"
-        if not python and self.n * steps < PROGRESS_MIN_PARTICLE_STEPS:
-            with RunProgress(steps, what, "steps") as bar:  # (shown only inside a recorded run)
-                bad = self._launch(module, data, int(steps), ax, ay, drag, None)
-                self.t += steps * self.dt
+        bad = 0
+        with RunProgress(steps, what, "steps") as bar:  # (shown only inside a recorded run)
+            if forces.python:
+                for i in range(steps):
+                    ext = self._python_forces(forces.python)
+                    bad += self._step(1, forces, ext)
+                    bar.update(i + 1)
+            elif self.n * steps < PROGRESS_MIN_PARTICLE_STEPS:
+                bad = self._step(steps, forces)
                 bar.update(steps)
-        elif not python:  # in pieces, with progress
-            bad = done = 0
-            piece = max(1, _PROGRESS_FIRST_PIECE // self.n)
-            with RunProgress(steps, what, "steps") as bar:
+            else:  # in pieces, with progress
+                done = 0
+                piece = max(1, _PROGRESS_FIRST_PIECE // self.n)
                 while done < steps:
                     k = min(piece, steps - done)
                     t0 = time.perf_counter()
-                    bad += self._launch(module, data, k, ax, ay, drag, None)
+                    bad += self._step(k, forces)
                     per_step = (time.perf_counter() - t0) / k
-                    self.t += k * self.dt
                     done += k
                     bar.update(done)
                     piece = max(1, int(_PROGRESS_PIECE_S / max(per_step, 1e-9)))
-                    module, data = self._kernel(user)  # (the fallback may have been bound)
-        else:
-            bad = 0
-            with RunProgress(steps, what, "steps") as bar:
-                for i in range(int(steps)):
-                    ext = self._python_forces(python)
-                    bad += self._launch(module, data, 1, ax, ay, drag, ext)
-                    self.t += self.dt
-                    bar.update(i + 1)
-                    # (a step may have bound the grid's exact fallback: the next uses its
-                    # address)
-                    module, data = self._kernel(user)
-        if bad:
-            raise self._frozen_error(bad, int(steps))
+        flags = self.engine.flags
+        if bad and flags is not None:
+            raise self._frozen_error(bad, steps, flags)
 
-    def _run_cuda(self, steps: int) -> None:
+    def _physics(self, forces: FusedForces, use_ext: bool) -> Physics:
+        """The physics of a call from now (:class:`fastsdf.particles.kernels.Physics`)."""
+        return Physics(
+            dt=self.dt,
+            t0=self.t,
+            ax=forces.ax,
+            ay=forces.ay,
+            drag=forces.drag,
+            use_m=use_ext or forces.drag != 0.0,
+            use_ext=use_ext,
+            explicit=self.integrator == "euler",
+            always=self.collision == "notebook",
+            rest=float(self.rest_speed),
+        )
+
+    def _step(self, steps: int, forces: FusedForces, ext: np.ndarray | None = None) -> int:
+        """One call of the engine's step (``ext``: the Python forces of a one-step call);
+        advances the clock. Returns the frozen count."""
+        physics = self._physics(forces, ext is not None)
+        bad = self.engine.step(
+            self.p, steps, physics, forces.user, ext, self.prevent_tunnelling, self.block
+        )
+        self.t += steps * self.dt
+        return bad
+
+    def _run_cuda(self, steps: int, forces: FusedForces) -> None:
         """:meth:`run` on the GPU (:mod:`fastsdf.particles.cuda`): launched, not waited for."""
         from fastsdf.particles.cuda import DeviceParticles
 
-        ax, ay, drag, python, user = self._fused_params()
-        if python:
+        if forces.python:
+            python = forces.python[0]
             raise TypeError(
                 f"device='cuda' cannot run the Python force generator "
-                f"{getattr(python[0], '__name__', python[0])!r} (it runs on the CPU only): "
+                f"{getattr(python, '__name__', python)!r} (it runs on the CPU only): "
                 "write it as a numba @njit function (x, y, vx, vy, m, t) -> (fx, fy), or "
                 "use device='cpu'"
             )
@@ -665,85 +510,32 @@ class ParticleSimulation:
                 f"sim.p must hold the {self.n} particles of this simulation (DeviceParticles "
                 f"or Particles), got {self.p!r}"
             )
-        self._gpu.run(
-            self.p,
-            steps,
-            self.t,
-            self.dt,
-            (ax, ay, drag, user),
-            self.integrator,
-            self.collision,
-            self.params.as_tuple(),
-            self.lipschitz,
-            self.prevent_tunnelling,
-        )
+        budget = Budget(self.prevent_tunnelling, self.lipschitz, 0.0, 0.0, False)
+        physics = self._physics(forces, False)
+        self.engine.gpu.run(self.p, steps, physics, forces.user, budget, self.params.as_tuple())
         self.t += steps * self.dt
 
     def check(self) -> None:
         """With ``device='cuda'``: wait for the GPU and raise the :class:`ValueError` of
         :meth:`run` if particles were frozen since the last check (on the GPU, :meth:`run`
         does not wait for the steps to finish). Nothing to do on the CPU (:meth:`run` raises)."""
-        if self._gpu is None:
+        gpu = self.engine.gpu
+        if gpu is None:
             return
-        count, flags = self._gpu.frozen()
-        steps, self._gpu.steps_unchecked = self._gpu.steps_unchecked, 0
+        count, flags = gpu.frozen()
+        steps, gpu.steps_unchecked = gpu.steps_unchecked, 0
         if count:
             p, self.p = self.p, self.p.host()
-            self._flags = flags
             try:
-                err = self._frozen_error(count, steps)
+                err = self._frozen_error(count, steps, flags)
             finally:
-                self.p, self._flags = p, None
+                self.p = p
             raise err
 
-    def host(self, name: str | None = None) -> Any:
-        """A NumPy copy of the state's field ``name`` (``'x'``, ``'v'``, ``'m'``, ...), or of
-        the whole state (a :class:`Particles`) without a name; with ``device='cuda'`` copied
-        from the device (which waits for the GPU)."""
-        if name is None:
-            return self.p.host() if self._gpu is not None else self.p.copy()
-        return np.array(to_host(self.p[name]))
-
-    def save(self, path: str | os.PathLike, *, allow_pickle: bool = False) -> str:
-        """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
-        bit: arrays and data only (the world's expression graph or grid, parameters, forces by
-        name and numbers, the random generator's state), so loading runs no code from the file.
-        A force or world that is not data (a numba ``@njit`` or Python force, a world class of
-        your own) is a ``ValueError`` naming it, unless ``allow_pickle=True`` (then it is stored
-        pickled and :meth:`load` needs ``allow_pickle=True`` too); see
-        :func:`fastsdf.particles.checkpoint.save_simulation`. Returns the path. With
-        ``device='cuda'`` the state's host copy is written (and :meth:`load` puts it back on
-        the device)."""
-        if self._gpu is None:
-            return save_simulation(self, path, allow_pickle=allow_pickle)
-        on_device, self.p = self.p, self.p.host()
-        try:
-            return save_simulation(self, path, allow_pickle=allow_pickle)
-        finally:
-            self.p = on_device
-
-    @classmethod
-    def load(cls, path: str | os.PathLike, *, allow_pickle: bool = False) -> ParticleSimulation:
-        """The simulation saved by :meth:`save` at ``path``, continuing bit for bit. Runs no
-        code from the file; a file holding pickled objects (saved with ``allow_pickle=True``, or
-        by an older fastsdf) is refused with a ``ValueError`` unless ``allow_pickle=True``,
-        which unpickles them (running code named in the file: only for files you trust)."""
-        sim = load_simulation(path, allow_pickle=allow_pickle)
-        if not isinstance(sim, cls):
-            raise TypeError(f"{path!r} holds a {type(sim).__name__}, not a {cls.__name__}")
-        return sim
-
-    @property
-    def dt(self) -> float:
-        """The timestep in seconds (finite, > 0); assigning checks the value."""
-        return self._dt
-
-    @dt.setter
-    def dt(self, value):
-        dt = _real(value, "timestep")
-        if not (math.isfinite(dt) and dt > 0.0):
-            raise ValueError(f"timestep must be finite and > 0, got timestep={value!r}")
-        self._dt = dt
+    def _python_forces(self, gens: Any) -> np.ndarray:
+        if self._ext is None or self._ext.shape != (self.n, 2):
+            self._ext = np.empty((self.n, 2))
+        return python_forces(gens, self.p, self.t, self._ext)
 
     def _check_state_shape(self):
         p = self.p
@@ -755,150 +547,20 @@ class ParticleSimulation:
                 f"has n={self.n} of {self.dtype}"
             )
 
-    def _launch(self, module, data, steps, ax, ay, drag, ext):
-        p = self.p
-        n = self.n
-        use_ext = ext is not None
-        if ext is None:
-            ext = NO_EXT
-        if self._flags is None or self._flags.shape[0] != n:
-            self._flags = np.zeros(n, dtype=np.int32)
-        if self._parametric:
-            data = self._scene_data(steps)
-        a = p._arrays
-        check_all = p._dirty
-        state = State(*(a[k] for k in Particles.FIELDS), ext, self._flags, check_all)
-        physics = Physics(
-            dt=self.dt,
-            t0=self.t,
-            ax=ax,
-            ay=ay,
-            drag=drag,
-            use_m=use_ext or drag != 0.0,
-            use_ext=use_ext,
-            explicit=self.integrator == "euler",
-            always=self.collision == "notebook",
-            rest=float(self.rest_speed),
-        )
-        budget = Budget(
-            trace=self.prevent_tunnelling,
-            lip=self.lipschitz,
-            margin=self._margin,
-            eps=float(np.finfo(self.dtype).eps),
-            skip=self._skip,
-        )
-        self._update_plan(a["x"], steps)
-        bad = self._call(module, data, steps, state, physics, budget)
-        if bad and self._exact_ptr is None:
-            bad = self._resume(module, steps, state, physics, budget, bad)
-        if check_all and not bad:
-            p._dirty = False
-        return bad
-
-    def _call(self, module, data, steps, state, physics, budget):
-        """Run the call's kernel on ``numba.get_num_threads()`` threads from
-        ``PARALLEL_MIN_PARTICLES`` particles on: a short call as one slice of whole blocks per
-        thread, a long one (``LONG_CALL`` particle-steps) through the kernel's parallel entry
-        point. Returns the frozen count."""
-        kernel = self._pick_kernel(module, state, physics, budget)
-        block = self.block or DEFAULT_BLOCK
-        n = state.X.shape[0]
-        threads = numba.get_num_threads() if n >= PARALLEL_MIN_PARTICLES else 1
-        if threads > 1 and n * steps >= LONG_CALL:
-            # numba's parallel entry point: a few percent faster on long calls, and twice
-            # the compile time, so compiled only when a long call first needs it
-            kernel = getattr(module, kernel.py_func.__name__[: -len("_ser")] + "_par")
-            if kernel.signatures:
-                return kernel(data, state, physics, budget, steps, block)
-            with compiling("the particle step kernel for long calls"):
-                return kernel(data, state, physics, budget, steps, block)
-        if not kernel.signatures:  # compile (or load) it here, with a notice, before threads
-            with compiling("the particle step kernel"):
-                kernel(data, _part(state, 0, 0), physics, budget, steps, block)
-        elif threads > 1 and (kernel, state.X.dtype, state.EXT.shape[0] > 0) not in _READY:
-            # (types new to it, e.g. float32, compile here, not in two threads at once)
-            kernel(data, _part(state, 0, 0), physics, budget, steps, block)
-        _READY.add((kernel, state.X.dtype, state.EXT.shape[0] > 0))
-        if threads <= 1:
-            return kernel(data, state, physics, budget, steps, block)
-        # one slice of whole blocks per thread, the first on this thread
-        blocks = -(-n // block)
-        per = -(-blocks // threads) * block
-
-        def run(lo: int) -> int:
-            return kernel(data, _part(state, lo, lo + per), physics, budget, steps, block)
-
-        rest = [_pool(threads).submit(run, lo) for lo in range(per, n, per)]
-        return run(0) + sum(job.result() for job in rest)
-
-    def _pick_kernel(self, module, state, physics, budget):
-        """The kernel of ``module`` for a call: the block kernel of a static grid world
-        (``simd_*``: float64 state, no resting contact, no Python forces), else the
-        particle-by-particle kernel without skipping and tunnelling check (``plain_*``), else
-        the general one (``run_*``). All give the same results."""
-        simd = (
-            getattr(self, "_simd", True)
-            and module.GRID_SIMD
-            and not module.MOVING
-            and physics.rest == 0.0
-            and not physics.use_ext
-            and state.X.dtype == np.float64
-        )
-        plain = not (budget.trace or budget.skip or physics.rest > 0.0 or module.MOVING)
-        if simd and budget.skip:
-            return module.simd_ser
-        if simd:
-            return module.simd_plain_ser
-        if plain:
-            return module.plain_ser
-        return module.run_ser
-
-    def _resume(self, module, steps, state, physics, budget, bad):
-        """Particles that stopped near the grid's edge before its exact fallback was bound
-        (FLAG_RESUME + step): bind it, run each the rest of its steps from where it stopped
-        (particles are independent, so the result is that of an uninterrupted call)."""
-        flags = self._flags
-        idx = np.flatnonzero(flags >= _kernels.FLAG_RESUME)
-        if not idx.size:
-            return bad
-        self._bind_fallback()
-        self._update_plan(self.p._arrays["x"], steps)
-        data = next(self._bind(e[1]) for e in self._kernels.values() if e[0] is module)
-        at = flags[idx] - _kernels.FLAG_RESUME
-        flags[idx] = 0
-        bad -= idx.size
-        ext = state.EXT
-        arrays = self.p._arrays
-        for j in np.unique(at):
-            sel = idx[at == j]
-            sub = State(
-                *(np.ascontiguousarray(arrays[k][sel]) for k in Particles.FIELDS),
-                ext[sel] if ext.shape[0] else ext,
-                np.zeros(sel.size, dtype=np.int32),
-                False,
-            )
-            sub_physics = physics._replace(t0=physics.t0 + int(j) * physics.dt)
-            bad += self._call(module, data, steps - int(j), sub, sub_physics, budget)
-            arrays["x"][sel] = sub.X
-            arrays["v"][sel] = sub.V
-            flags[sel] = sub.FLAGS
-        return bad
-
-    def _frozen_error(self, count: int, steps: int) -> ValueError:
-        """The error after a call that froze ``count`` particles (clears the flags)."""
-        flags = self._flags
+    def _frozen_error(self, count: int, steps: int, flags: np.ndarray) -> ValueError:
+        """The error after a call that froze ``count`` particles (clears their ``flags``)."""
         idx = np.flatnonzero(flags)
         first, why = int(idx[0]), int(flags[idx[0]])
         flags[idx] = 0
         p = self.p
-        if why == _kernels.FLAG_NONFINITE:
+        if why == FLAG_NONFINITE:
             x = np.asarray(p["x"][first], np.float64).tolist()
             v = np.asarray(p["v"][first], np.float64).tolist()
             what = (
                 f"a step of particle {first} produced a non-finite state (timestep="
                 f"{self.dt!r}; last finite state x={x}, v={v}); it was frozen there"
             )
-        elif why == _kernels.FLAG_COEFF:
+        elif why == FLAG_COEFF:
             what = (
                 f"invalid particle state: p['cr'][{first}] = {float(p['cr'][first])!r} or "
                 f"p['cf'][{first}] = {float(p['cf'][first])!r} is not in [0, 1] (found at "
@@ -912,32 +574,7 @@ class ParticleSimulation:
             f"the {steps} step(s) and sim.t = {self.t!r} includes them"
         )
 
-    def _scene_data(self, steps: int) -> tuple:
-        """Query data of a parametric world: (t, wall speed bound, table geometry and the
-        per-region table, *parameters); see ``_PARAMS_AT``."""
-        prm = self.params.as_tuple()
-        wall = 0.0
-        table = (0.0, 0.0, 1.0, _NO_TABLE)
-        if self._moving and steps:
-            if self._wall_speed_arg is None:
-                wall, table = self._wall_speed_table(steps, prm)
-            else:
-                wall = self._wall_speed_arg
-        self._wall_table = table  # kept alive: the kernel borrows the array
-        return (float(self.t), float(wall)) + table + prm
-
-    def _wall_speed_table(self, steps: int, prm: tuple) -> tuple:
-        """See :func:`fastsdf.particles.world.wall_speed_table`."""
-        return wall_speed_table(
-            self._sdf, self.p["x"], float(np.max(self.p["r"])), self.t, self.dt, steps, prm
-        )
-
     # -- diagnostics -------------------------------------------------------------------------
-    def kinetic_energy(self) -> float:
-        """Total kinetic energy ``sum(m |v|**2 / 2)``."""
-        v = np.asarray(self.p["v"], dtype=np.float64)
-        return float(np.sum(0.5 * np.asarray(self.p["m"], dtype=np.float64) * (v * v).sum(1)))
-
     def potential_energy(self) -> float:
         """Total potential energy of the :class:`Gravity` generators (zero at the origin);
         other forces have no potential here."""
@@ -968,63 +605,57 @@ class ParticleSimulation:
     def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
         """``(d, grad)`` of the world at points, exactly as the compiled step sees it (for a
         GridSDF: the bilinear samples, with its out-of-bounds rule)."""
-        xs = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
-        ys = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)
-        out = np.empty((xs.shape[0], 3))
-        self._bind_fallback()
-        self._update_plan(np.stack([xs, ys], axis=1), 1)
-        self._module.query_many(
-            self._scene_data(0) if self._parametric else self._data, xs, ys, out
-        )
-        return out[:, 0], out[:, 1:]
+        return self.engine.query(x, y, self.t)
 
-    def _draw(self, ax, new):
-        # The notebook's reset(ax)/update(ax) draw; the drawing and its state live in render.
-        if ax is None:
-            return ()
-        from fastsdf.viz.render import notebook_draw
-
-        return notebook_draw(self, ax, new)
+    # -- files and pickling ------------------------------------------------------------------
+    def save(self, path: str | os.PathLike, *, allow_pickle: bool = False) -> str:
+        """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
+        bit (see :meth:`fastsdf.particles.family.Simulation.save`). With ``device='cuda'`` the
+        state's host copy is written (and :meth:`load` puts it back on the device)."""
+        if self.engine.gpu is None:
+            return super().save(path, allow_pickle=allow_pickle)
+        on_device, self.p = self.p, self.p.host()
+        try:
+            return super().save(path, allow_pickle=allow_pickle)
+        finally:
+            self.p = on_device
 
     def __getstate__(self) -> dict:
-        # The world travels as its graph (and a grid's nodes), the state as arrays; the bound
-        # kernel module and scratch buffers stay behind and are rebuilt on unpickling (the
-        # simulation holds no drawing: that lives in fastsdf.viz.render).
-        # (Everything the ``sdf`` setter sets is rebuilt; per-particle arrays are kept.)
+        # The world travels as its graph (and a grid's nodes), the state as arrays, with the
+        # parameters' values; the engine (kernel modules, query data, scratch) stays behind and
+        # is rebuilt from the world on unpickling (the simulation holds no drawing: that lives
+        # in fastsdf.viz.render).
         state = self.__dict__.copy()
-        for key in (
-            "_module",
-            "_data",
-            "_keep",
-            "_kernels",
-            "_ext",
-            "_wall",
-            "_wall_table",
-            "_exact_ptr",
-            "_flags",
-            "_hdr",
-            "_hdr_plan",
-            "_gpu",
-        ):
+        for key in ("engine", "_ext", "_wall"):
             state.pop(key, None)
-        if self._gpu is not None and not isinstance(self.p, Particles):
+        state["params"] = self.params
+        if self.engine.gpu is not None and not isinstance(self.p, Particles):
             state["p"] = self.p.host()  # the device state travels as its host copy
         return state
 
     def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        saved = state.pop("params", None)
+        for key in _DERIVED:  # (an earlier version's saved state)
+            state.pop(key, None)
         self.__dict__.update(state)
-        self._ext = self._wall = self._flags = self._gpu = None
-        self.__dict__.setdefault("device", "cpu")
+        self._ext = self._wall = None
+        for key, value in (
+            ("device", "cpu"),
+            ("rest_speed", 0.0),
+            ("_wall_speed_arg", None),
+            ("_lipschitz_arg", None),
+            ("_given", None),
+        ):
+            self.__dict__.setdefault(key, value)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # warned when first built
             self.sdf = state["_sdf"]
         if self.device == "cuda":
             from fastsdf.particles.cuda import DeviceParticles
 
-            self._gpu = _cuda_step(self)
             self.p = DeviceParticles(self.p)
         # Assigning the world resets its parameters to their defaults: set the saved values.
-        saved = state.get("params")
         if saved:
             self.params.update(dict(saved))
 
@@ -1036,25 +667,51 @@ class ParticleSimulation:
         )
 
 
-show_init_signature(ParticleSimulation)
-
-
-def _cuda_step(sim: Any) -> Any:
-    """The GPU step of ``sim`` (``device='cuda'``), or a clear error for what it lacks."""
-    from fastsdf.particles.cuda import CudaStep
-
+def _check_cuda(sim: ParticleSimulation, moving: bool) -> None:
+    """A clear error for what the GPU step (``device='cuda'``) lacks."""
     if sim.dtype != np.dtype(np.float64):
         raise ValueError(f"device='cuda' steps float64 state only, got dtype={sim.dtype}")
     if sim.rest_speed > 0.0:
         raise NotImplementedError(
             "device='cuda' does not support resting contact (rest_speed > 0); use device='cpu'"
         )
-    if sim.prevent_tunnelling and sim._moving:
+    if sim.prevent_tunnelling and moving:
         raise NotImplementedError(
             "device='cuda' does not run the tunnelling sweep in a moving world; pass "
             "prevent_tunnelling=False"
         )
-    return CudaStep(sim._sdf)
+
+
+def _choice(value: Any, allowed: tuple, name: str) -> Any:
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {name}={value!r}")
+    return value
+
+
+def _non_negative(value: Any, name: str) -> float:
+    v = _real(value, name)
+    if not (math.isfinite(v) and v >= 0.0):
+        raise ValueError(f"{name} must be finite and >= 0, got {name}={value!r}")
+    return v
+
+
+def _count(n: Any) -> int:
+    """The particle count ``n`` (the rows of ``positions`` when given) as an int > 0."""
+    if isinstance(n, float) and math.isfinite(n) and n == int(n):
+        n = int(n)  # n=1e5, as the command line accepts it
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, numbers.Integral):
+        raise TypeError(f"n must be an integer, got n={n!r}")
+    if n <= 0:
+        raise ValueError(f"n must be > 0, got n={n!r}")
+    return int(n)
+
+
+def _block_size(block: Any) -> int | None:
+    if block is not None and (
+        isinstance(block, (bool, np.bool_)) or not isinstance(block, numbers.Integral) or block <= 0
+    ):
+        raise ValueError(f"block must be a positive integer or None, got block={block!r}")
+    return None if block is None else int(block)
 
 
 def _start_state(
@@ -1070,7 +727,7 @@ def _start_state(
         pos = np.array(positions, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 2 or pos.shape[0] < 1:
             raise ValueError(f"positions must have shape (n, 2), n >= 1, got shape {pos.shape}")
-        if n is not _DEFAULT_N and n != pos.shape[0]:
+        if n is not DEFAULT_COUNT and n != pos.shape[0]:
             raise ValueError(f"n={n!r} does not match positions, which hold {pos.shape[0]} rows")
     if count is None:
         count = int(n)
@@ -1091,22 +748,6 @@ def _start_state(
     if not (math.isfinite(dens) and dens > 0):
         raise ValueError(f"density must be finite and > 0, got density={density!r}")
     return pos, vel, rad, dens
-
-
-def _part(state: State, lo: int, hi: int) -> State:
-    """The particles ``lo..hi-1`` of ``state`` (views; Python forces sliced too)."""
-    X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
-    return State(
-        X[lo:hi],
-        V[lo:hi],
-        M[lo:hi],
-        R[lo:hi],
-        CR[lo:hi],
-        CF[lo:hi],
-        EXT[lo:hi] if EXT.shape[0] else EXT,
-        FLAGS[lo:hi],
-        check_all,
-    )
 
 
 def create_animation(

@@ -1,5 +1,7 @@
-"""Particle state: structure of arrays (``x``, ``v``: (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,)),
-one float dtype, and the checks of parameters and state that name what is wrong."""
+"""Particle state: the mapping surface every state of the family shares (:class:`FieldState`:
+host, device and the grains' window), the particles' structure of arrays (:class:`Particles`:
+``x``, ``v``: (n, 2); ``m``, ``r``, ``cr``, ``cf``: (n,), one float dtype), and the checks of
+parameters and state that name what is wrong."""
 
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ import numpy as np
 
 from fastsdf.expr.validate import real
 
-__all__ = ["Particles"]
+__all__ = ["FieldState", "Particles"]
 
 
 def _real(value: Any, name: str) -> float:
@@ -24,7 +26,107 @@ def _unit_interval(value: Any, name: str) -> float:
     return v
 
 
-class Particles:
+class FieldState:
+    """The mapping surface of a particle family's state, on the host or the device: fields by
+    name (``p['x']``, ``p.x``), ``len(p)``, ``'x' in p``, :meth:`keys`, :attr:`dtype`,
+    :attr:`nbytes`, :meth:`copy` and :meth:`host` (a NumPy copy).
+
+    ``p['x'] = value`` copies ``value`` into the existing array (broadcasting, e.g.
+    ``p['cr'] = 0.9``, casting to the state's dtype), so the simulation keeps seeing it. Members:
+    :class:`Particles` (NumPy arrays), :class:`fastsdf.particles.cuda.DeviceParticles` (device
+    arrays), :class:`fastsdf.particles.grains.GrainState` (a window on the granular engine's
+    arrays). A member defines ``FIELDS``, ``__len__``, ``copy``, ``host`` and where its arrays
+    are (:meth:`_fields`), and may take a device array as a value (:meth:`_assign_device`).
+    """
+
+    FIELDS: tuple[str, ...] = ()
+    #: What the error for an unknown field calls a member's items.
+    _ITEM = "particle"
+    _arrays: Any
+
+    def _fields(self) -> dict:
+        """The arrays by name (filled on first use where a member makes them on demand)."""
+        return self._arrays
+
+    def _handed_out(self, name: str) -> None:
+        """Called when the array of field ``name`` is handed out (it may be written in place)."""
+
+    def __getitem__(self, name: str) -> Any:
+        if not isinstance(name, str) or name not in self.FIELDS:
+            raise KeyError(f"no {self._ITEM} field {name!r}; fields are {self.FIELDS}")
+        arr = self._fields()[name]
+        self._handed_out(name)
+        return arr
+
+    def __setitem__(self, name: str, value: Any) -> None:
+        arr = self[name]
+        if self._assign_device(name, arr, value):
+            return
+        try:
+            host = np.asarray(value)
+        except Exception:
+            raise TypeError(
+                f"p[{name!r}] must be an array of real numbers, got {value!r}"
+            ) from None
+        if host.dtype.kind not in "iuf":
+            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {host.dtype}")
+        try:
+            full = np.broadcast_to(host, arr.shape)
+        except ValueError:
+            raise ValueError(
+                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {host.shape}"
+            ) from None
+        self._write(arr, full)
+
+    def _assign_device(self, name: str, arr: Any, value: Any) -> bool:
+        """Assign a device array ``value`` on the device and say so (host members: never)."""
+        return False
+
+    def _write(self, arr: Any, full: np.ndarray) -> None:
+        """Copy the host values ``full`` (broadcast to the field's shape) into ``arr``."""
+        np.copyto(arr, full, casting="unsafe")
+
+    def __getattr__(self, name: str) -> Any:
+        # (only for names that are not attributes: the fields; never the member's own state,
+        # which may be missing while an instance is being unpickled)
+        if not name.startswith("_") and name in type(self).FIELDS:
+            return self[name]
+        raise AttributeError(name)
+
+    def __len__(self) -> int:
+        return int(self._n)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.FIELDS
+
+    def keys(self) -> tuple[str, ...]:
+        """The field names."""
+        return self.FIELDS
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The float dtype of every field."""
+        return np.dtype(np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the state's arrays now."""
+        arrays = self.__dict__.get("_arrays") or {}
+        return sum(int(a.nbytes) for a in arrays.values())
+
+    def copy(self) -> Any:
+        """An independent copy (where the state lives)."""
+        raise NotImplementedError
+
+    def host(self) -> Any:
+        """A NumPy copy of the state."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(n={len(self)}, dtype={self.dtype.name})"
+
+
+class Particles(FieldState):
     """Particle state, structure-of-arrays, indexable like the notebook's structured array.
 
     Fields (``p['x']`` or ``p.x``; arrays you may read and write in place):
@@ -62,59 +164,14 @@ class Particles:
     #: place) marks the state for a full check at the next step.
     _CHECKED_ON_ACCESS = ("m", "cr", "cf")
 
-    def __getitem__(self, name: str) -> np.ndarray:
-        try:
-            arr = self._arrays[name]
-        except (KeyError, TypeError):
-            raise KeyError(f"no particle field {name!r}; fields are {self.FIELDS}") from None
+    def _handed_out(self, name: str) -> None:
         if name in self._CHECKED_ON_ACCESS:
             self._dirty = True
-        return arr
-
-    def __setitem__(self, name: str, value: Any) -> None:
-        arr = self[name]
-        try:
-            value = np.asarray(value)
-        except Exception:
-            raise TypeError(
-                f"p[{name!r}] must be an array of real numbers, got {value!r}"
-            ) from None
-        if value.dtype.kind not in "iuf":
-            raise TypeError(f"p[{name!r}] must hold real numbers, got dtype {value.dtype}")
-        try:
-            np.copyto(arr, np.broadcast_to(value, arr.shape), casting="unsafe")
-        except ValueError:
-            raise ValueError(
-                f"p[{name!r}] has shape {arr.shape}; cannot assign a value of shape {value.shape}"
-            ) from None
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        arrays = self.__dict__.get("_arrays")
-        if arrays is not None and name in arrays:
-            if name in self._CHECKED_ON_ACCESS:
-                self._dirty = True
-            return arrays[name]
-        raise AttributeError(name)
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __contains__(self, name: object) -> bool:
-        return name in self._arrays
-
-    def keys(self) -> tuple[str, ...]:
-        """The field names."""
-        return self.FIELDS
 
     @property
     def dtype(self) -> np.dtype:
         """The float dtype of every field."""
         return self._dtype
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the state (8 floats per particle)."""
-        return sum(a.nbytes for a in self._arrays.values())
 
     def copy(self) -> Particles:
         """An independent copy."""
@@ -122,6 +179,10 @@ class Particles:
         for name in self.FIELDS:
             out._arrays[name][...] = self._arrays[name]
         return out
+
+    def host(self) -> Particles:
+        """A copy (the state is on the host already)."""
+        return self.copy()
 
     def as_structured(self) -> np.ndarray:
         """A copy as a NumPy structured array with the same fields (the notebook's layout)."""
@@ -133,9 +194,6 @@ class Particles:
         for name in self.FIELDS:
             rec[name] = self._arrays[name]
         return rec
-
-    def __repr__(self) -> str:
-        return f"Particles(n={self._n}, dtype={self._dtype.name})"
 
 
 def _invalid_state_error(p: Particles, count: int) -> ValueError:

@@ -1,55 +1,23 @@
 """The world a simulation queries (an exact SDF, a pruned SDF, a grid or band grid, a moving
-scene): what it is, its Lipschitz bound and margins, its parameters, and the scene block of the
-generated step kernel module (see :mod:`fastsdf.particles.kernels`)."""
+scene): what it is, its Lipschitz bound and margins, its parameters, the walls' speeds of a
+moving world, and its generated step kernel module (its scene block:
+:mod:`fastsdf.particles.scene_blocks`; the kernels: :mod:`fastsdf.particles.kernels`)."""
 
 from __future__ import annotations
 
-import hashlib
-import importlib
-import inspect
 import math
-import sys
 from typing import Any
 
 import numba
 import numpy as np
 
-from fastsdf.backends import prune as _prune
-from fastsdf.backends.kernel.cache import load_module
+from fastsdf.backends import exact_source, load_module
 from fastsdf.expr.validate import real
-from fastsdf.fields import grid as _grid
-from fastsdf.function import Function
 from fastsdf.particles import kernels as _kernels
+from fastsdf.particles.scene_blocks import _is_grid, block_source, generated_module, world_scene
 from fastsdf.version import __version__
 
 __all__ = ["SimulationParams", "WALL_TABLE_CELLS", "wall_speed_table"]
-
-
-def _is_grid(f: Any) -> bool:
-    return all(hasattr(f, a) for a in ("sampler", "sampler_data", "exact", "mode"))
-
-
-def _importable(fn):
-    """``(module, name)`` if the dispatcher ``fn`` can be imported by name, else None."""
-    py = getattr(fn, "py_func", None)
-    if py is None:
-        return None
-    mod_name, name = py.__module__, py.__name__
-    try:
-        mod = sys.modules.get(mod_name) or importlib.import_module(mod_name)
-    except ImportError:
-        return None
-    if getattr(mod, name, None) is not fn:
-        return None
-    return mod_name, name
-
-
-def _module_hash(mod_name: str) -> str:
-    try:
-        src = inspect.getsource(sys.modules[mod_name])
-    except (OSError, TypeError, KeyError):
-        return "unknown"
-    return hashlib.sha256(src.encode()).hexdigest()[:16]
 
 
 def _exactness(f: Any) -> str:
@@ -81,10 +49,7 @@ def _grid_margin(f: Any) -> float:
     return float(max(abs(float(h)) for h in spacing))
 
 
-_KERNELS: dict = {}
 _EXACT_OUT: dict = {}
-
-_DECORATOR = '@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")'
 
 
 def _step_source() -> tuple:
@@ -104,99 +69,10 @@ def _exact_address(exact: Any) -> tuple:
     entry = _EXACT_OUT.get(scene)
     if entry is None:
         rows = bool(exact.compiled.groups) and not exact.compiled.parametric
-        source = _prune.exact_source(scene, rows, f"{__version__} (numba {numba.__version__})")
+        source = exact_source(scene, rows, f"{__version__} (numba {numba.__version__})")
         mod = load_module(source, prefix="fastsdf_exactptr")
         entry = _EXACT_OUT[scene] = (int(mod.exact_out.address), mod)
     return entry
-
-
-def _prunes(f: Any) -> bool:
-    """Whether the particle step on the SDF ``f`` evaluates per-tile row lists, decided when
-    the step is built (see :meth:`fastsdf.function.CompiledSDF.prunable`)."""
-    return bool(f.compiled.prunable(getattr(f, "prune_tol", None)))
-
-
-def _plan_import() -> str:
-    with open(_prune.__file__, "rb") as fh:
-        digest = hashlib.sha256(fh.read()).hexdigest()[:16]
-    return f"from {_prune.__name__} import _call_vg_plan  # prune.py sha256 {digest}"
-
-
-_PLAN_IMPORT = _plan_import()
-
-
-def _force_parts(forces: Any) -> tuple:
-    """Scene-block lines binding the fused user forces and the ``_force`` function; names of
-    forces that must be bound after import (not importable: no disk cache)."""
-    lines, deps, late = [], [], []
-    for k, fn in enumerate(forces):
-        where = _importable(fn)
-        # A function of __main__ (a script, a notebook) or without source may be redefined
-        # under the same name: never cache a kernel that names it.
-        if where is not None and (where[0] == "__main__" or _module_hash(where[0]) == "unknown"):
-            where = None
-        if where is None:
-            lines.append(f"_uf{k} = None  # bound by fastsdf.particles")
-            late.append((f"_uf{k}", fn))
-        else:
-            lines.append(f"from {where[0]} import {where[1]} as _uf{k}")
-            deps.append(f"{where[0]} (source {_module_hash(where[0])})")
-    body = [_DECORATOR, "def _force(x, y, vx, vy, m, t):"]
-    if not forces:
-        body.append("    return 0.0, 0.0")
-    else:
-        body += ["    fx = 0.0", "    fy = 0.0"]
-        for k in range(len(forces)):
-            body += [f"    ax, ay = _uf{k}(x, y, vx, vy, m, t)", "    fx += ax", "    fy += ay"]
-        body.append("    return fx, fy")
-    lines += ["", ""] + body
-    lines.append(f"USE_FORCE = {bool(forces)}")
-    batched = any(getattr(fn, "_fastsdf_batched", False) for fn in forces)
-    lines.append(f"FORCE_AHEAD = {batched}")
-    return lines, deps, late
-
-
-# A world that does not move: no time derivative, no wall speed.
-_STATIC_TIME_LINES = [
-    "",
-    "",
-    "MOVING = False",
-    "",
-    "",
-    _DECORATOR,
-    "def _query_t(data, x, y, t):",
-    "    d, gx, gy = _query(data, x, y)",
-    "    return d, gx, gy, 0.0",
-    "",
-    "",
-    _DECORATOR,
-    "def _wall_speed(data):",
-    "    return 0.0",
-    "",
-    "",
-    _DECORATOR,
-    "def _wall_speed_at(data, x, y, dx, dy):",
-    "    return 0.0",
-]
-
-# Query data of a parametric world: (t, W, x0, y0, 1/h, table, *parameters). ``W`` bounds the
-# walls' speed |dd/dt| everywhere; ``table[i, j]`` bounds it over the cell of side h at
-# (x0 + i h, y0 + j h) and its neighbours during the call (see _wall_speed_table). A step
-# longer than a cell, or one ending outside the table, uses W.
-_PARAMS_AT = 6
-_WALL_SPEED_AT_LINES = [
-    "def _wall_speed_at(data, x, y, dx, dy):",
-    "    tab = data[5]",
-    "    u = (x - data[2]) * data[4]",
-    "    v = (y - data[3]) * data[4]",
-    "    if (u >= 0.0 and v >= 0.0 and u < tab.shape[0] and v < tab.shape[1]",
-    "            and (dx * dx + dy * dy) * (data[4] * data[4]) <= 1.0):",
-    "        return tab[int(u), int(v)]",
-    "    return data[1]",
-]
-_NO_TABLE = np.zeros((0, 0))
-# The table's resolution: at most this many cells a side over the particles' bounding box.
-WALL_TABLE_CELLS = 64
 
 
 class SimulationParams(dict):
@@ -238,201 +114,23 @@ def _rebuild_params(values: dict, names: tuple) -> SimulationParams:
     return params
 
 
-def _kernel_module(f, forces=()):
+def _kernel_module(f: Any, forces: tuple = ()) -> tuple:
     """The generated kernel module for the world ``f`` (an SDF or a grid, see the sampler
     protocol in :mod:`fastsdf.particles.kernels`) and the fused user forces, and its query
     data.
 
     Returns ``(module, data, keepalive)``. The kernel's source is the kernels' bodies after
-    this world's scene block; a grid world's block names only the sampler, so its kernel is
-    shared by every scene.
+    this world's scene block (:mod:`fastsdf.particles.scene_blocks`); a grid world's block
+    names only the sampler, so its kernel is shared by every scene.
     """
-    late = []
-    keep = None
-    # The vector block step (simd_ser) is written for the dense grid's stored-gradient sampler.
-    grid_simd = False
-    grid_exact = False
-    if _is_grid(f):
-        exact = f.exact
-        if f.mode == "exact" and not isinstance(exact, Function):
-            raise TypeError(f"grid.exact must be a fastsdf Function, got {exact!r}")
-        mode = f.mode
-        if mode not in ("exact", "nearest"):
-            raise ValueError(f"grid mode must be 'exact' or 'nearest', got mode={mode!r}")
-        sampler = f.sampler
-        grid_simd = sampler is _grid.sample_stored and len(f.sampler_data) == 9
-        grid_exact = mode == "exact"
-        where = _importable(sampler)
-        if where is None:
-            lines = ["_sampler = None  # bound by fastsdf.particles"]
-            late.append(("_sampler", sampler))
-            deps = []
-        else:
-            lines = [f"from {where[0]} import {where[1]} as _sampler"]
-            deps = [f"{where[0]} (source {_module_hash(where[0])})"]
-        # data: (fallback address, bounds x4, *sampler_data, plan header address); the
-        # sampler's data length is fixed by its kind (dense grid, band grid), as is the kernel.
-        hdr = 5 + len(f.sampler_data)
-        lines += [
-            "",
-            "",
-            _DECORATOR,
-            "def _query(data, x, y):",
-            f"    d, gx, gy, inside = _sampler(data[5:{hdr}], x, y)",
-        ]
-        if mode == "exact":
-            lines = [_PLAN_IMPORT] + lines
-            lines += [
-                "    if not inside:",
-                "        if data[0] == 0:  # never reached: see _fallback_missing",
-                "            return math.nan, math.nan, math.nan",
-                f"        return _call_vg_plan(data[0], x, y, data[{hdr}])",
-            ]
-        lines.append("    return d, gx, gy")
-        lines += ["", "", _DECORATOR, "def _fallback_missing(data, x, y, dx, dy):"]
-        if mode == "exact":
-            # Every query of a step (its sweep and bounces included) lies within
-            # 2 (MAX_BOUNCES + 1) |D| of its start.
-            lines += [
-                "    if data[0] != 0:",
-                "        return False",
-                "    reach = 2.0 * (MAX_BOUNCES + 1) * math.sqrt(dx * dx + dy * dy) + 1e-9",
-                "    return not (x - reach >= data[1] and x + reach <= data[2]",
-                "                and y - reach >= data[3] and y + reach <= data[4])",
-            ]
-        else:
-            lines.append("    return False")
-        address = 0
-        # Without bounds (optional in the protocol) the fallback is bound at once.
-        (bx0, bx1), (by0, by1) = getattr(f, "bounds", None) or ((0.0, 0.0), (0.0, 0.0))
-        # the last entry: the address of the fallback's plan header (bound with the fallback)
-        data = (
-            (address, float(bx0), float(bx1), float(by0), float(by1)) + tuple(f.sampler_data) + (0,)
-        )
-        desc = f"a grid world (mode {mode!r}); the scene is bound at run time"
-        key = ("grid", id(sampler), mode)
-    elif isinstance(f, Function) and f.compiled.parametric:
-        # Parameters and time are data, set per call: (t, wall speed bound, *parameters), one
-        # flat tuple of floats (the parallel kernel cannot take nested tuples).
-        scene = f.compiled.module.__name__
-        k = _PARAMS_AT
-        lines = [
-            f"from {scene} import point_vg as _exact",
-            "",
-            "",
-            _DECORATOR,
-            "def _query(data, x, y):",
-            f"    return _exact(x, y, data[0], data[{k}:])",
-            "",
-            "",
-            _DECORATOR,
-            "def _fallback_missing(data, x, y, dx, dy):",
-            "    return False",
-        ]
-        if f.time_dependent:
-            lines += (
-                [
-                    f"from {scene} import point_vgt as _exact_t",
-                    "",
-                    "",
-                    _DECORATOR,
-                    "def _query_t(data, x, y, t):",
-                    f"    return _exact_t(x, y, t, data[{k}:])",
-                    "",
-                    "",
-                    _DECORATOR,
-                    "def _wall_speed(data):",
-                    "    return data[1]",
-                    "",
-                    "",
-                    _DECORATOR,
-                ]
-                + _WALL_SPEED_AT_LINES
-                + ["", "", "MOVING = True"]
-            )
-        deps = [scene]
-        data = (0.0, 0.0, 0.0, 0.0, 1.0, _NO_TABLE) + f.param_tuple()
-        desc = repr(f)[:300]
-        key = ("sdf", id(f.compiled.module))
-    elif isinstance(f, Function) and _prunes(f):
-        # Many operands in loops over tables: the step calls the scene's C function with the
-        # plan header (data[1]), which evaluates only the rows of the query point's tile.
-        scene = f.compiled.module.__name__
-        lines = [
-            _PLAN_IMPORT,
-            "",
-            "",
-            _DECORATOR,
-            "def _query(data, x, y):",
-            "    return _call_vg_plan(data[0], x, y, data[1])",
-            "",
-            "",
-            _DECORATOR,
-            "def _fallback_missing(data, x, y, dx, dy):",
-            "    return False",
-        ]
-        deps = [scene]
-        data = (0, 0)  # (address of the C function, of the plan header): bound at once
-        desc = repr(f)[:300] + " (pruned)"
-        key = ("sdf-pruned", id(f.compiled.module))
-    elif isinstance(f, Function):
-        scene = f.compiled.module.__name__
-        lines = [
-            f"from {scene} import point_vg as _exact",
-            "",
-            "",
-            _DECORATOR,
-            "def _query(data, x, y):",
-            "    return _exact(x, y)",
-            "",
-            "",
-            _DECORATOR,
-            "def _fallback_missing(data, x, y, dx, dy):",
-            "    return False",
-        ]
-        deps = [scene]
-        data = (0.0,)
-        desc = repr(f)[:300]
-        key = ("sdf", id(f.compiled.module))
-    else:
-        raise TypeError(
-            f"f must be a fastsdf SDF (Function) or GridSDF, got f={f!r} of type {type(f).__name__}"
-        )
-    if "MOVING = True" not in lines:
-        lines += _STATIC_TIME_LINES
-    force_lines, force_deps, force_late = _force_parts(forces)
-    late += force_late
-    deps += force_deps
-    desc = desc.replace("\n", " ")
-    block = (
-        [
-            f"# Scene block generated by fastsdf {__version__} (numba {numba.__version__}).",
-            f"# World: {desc}",
-            f"# Dependencies: {'; '.join(deps) or 'none'}",
-            f"_CACHE = {not late}",
-            f"GRID_SIMD = {grid_simd}",
-            f"GRID_EXACT = {grid_exact}",
-            "",
-        ]
-        + lines
-        + [""]
-        + force_lines
-    )
-    source = _kernels.kernel_source("\n".join(block) + "\n")
-    if late:
-        # One module per set of objects; the entry keeps them alive, so their ids are not
-        # reused while the entry exists.
-        key = key + tuple(id(obj) for _, obj in late)
-        entry = _KERNELS.get(key)
-        if entry is None:
-            mod = load_module(
-                source + f"\n# uncached instance {len(_KERNELS)}\n", prefix="fastsdf_particles"
-            )
-            for name, obj in late:
-                setattr(mod, name, obj)
-            entry = _KERNELS[key] = (mod, [obj for _, obj in late])
-        return entry[0], data, (keep, entry[1])
-    return load_module(source, prefix="fastsdf_particles"), data, keep
+    scene = world_scene(f)
+    source, late = block_source(scene, tuple(forces))
+    module, keep = generated_module(source, late, scene.key, "fastsdf_particles")
+    return module, scene.data, keep
+
+
+# The table's resolution: at most this many cells a side over the particles' bounding box.
+WALL_TABLE_CELLS = 64
 
 
 class _NoParams:

@@ -1,16 +1,21 @@
 """The fused particle step: integrate, query the world, sweep, respond (numba).
 
-The kernels are written once, by concept:
+The step is written once, as phases, and every kernel is built from them:
 
 - :mod:`.contact`: the collision response, the conservative-advancement march and the
   tunnelling sweep of one particle;
-- :mod:`.step`: the particle-by-particle step (``run_*``, ``plain_*``);
-- :mod:`.block`: the block step of grid worlds (``simd_*``);
-- :mod:`.constants` and :mod:`.intrinsics`: what they share and what needs no scene.
+- :mod:`.phases`: the phases of one particle's step (checks, integration, free-flight
+  budgets, the tunnelling check and sweep, the response) and their composition
+  :func:`.phases.particle_step`, the step of one particle (the CPU's particle-by-particle
+  kernels and the CUDA thread of :mod:`fastsdf.particles.cuda` call it);
+- :mod:`.step`: the particle-by-particle loops on the CPU and the entry points;
+- :mod:`.block`: the block step of grid worlds, the same phases in passes over 64 particles;
+- :mod:`.config`, :mod:`.constants` and :mod:`.intrinsics`: the named structures the kernels
+  take, the constants and the intrinsics they share (no scene in them).
 
 They are real modules: importable and tested directly (``tests/test_step.py``) against the
 small analytic world of :mod:`.scene`, the *scene block* they import. A simulation does not
-call them from there: :mod:`fastsdf.particles.world` writes a scene block of its own (the
+call them from there: :mod:`fastsdf.particles.scene_blocks` writes a scene block of its own (the
 world's query and the fused forces), :func:`kernel_source` puts it in front of the kernels'
 bodies (each part's text below its ``KERNEL BODY`` marker), and the result is written to a
 content-hashed file in the kernel cache (:mod:`fastsdf.backends.kernel.cache`) and imported.
@@ -93,38 +98,46 @@ compiled once per installation and every later scene loads it from the cache.
 
 One step, per particle (the physics is described in :mod:`fastsdf.particles`)
 -------------------------------------------------------------------------------
-1. acceleration ``a = g + (F_user + ext - drag v) / m``;
-2. integrate (semi-implicit or explicit Euler); the displacement is ``D``;
-3. free-flight skipping: while the budget from an earlier query exceeds ``|D|``, no query;
+The phases of :func:`.phases.particle_step`, in order:
+
+1. acceleration ``a = g + (F_user + ext - drag v) / m`` (:func:`.phases.accelerate`);
+2. integrate (semi-implicit or explicit Euler, :func:`.phases.euler`); the displacement is
+   ``D``;
+3. free-flight skipping: while the budget from an earlier query exceeds ``|D|``, no query
+   (:func:`.phases.spend`);
 4. query the end point, ``s = d - r``;
-5. tunnelling sweep (:func:`_sweep`) when ``|D| > TRACE_FRACTION r`` and the end is not
-   clear by ``lip |D|``;
+5. tunnelling sweep (:func:`.phases.swept`) when ``|D| > TRACE_FRACTION r`` and the end is
+   not clear by ``lip |D|`` (:func:`.phases.needs_sweep`);
 6. respond where ``s <= 0`` (:func:`_respond`), or, with ``rest > 0`` (``rest_speed``),
    hold a slow particle that :func:`_rests` where it was with zero velocity; else refill the
-   skipping budget;
-7. a particle whose step left its state bit-identical sleeps for the rest of the call
-   (``SLEEP``: a static world and no user force, so every later step would repeat it).
+   skipping budget (:func:`.phases.refill`);
+7. with resting contact, a particle whose step left its state bit-identical sleeps for the
+   rest of the call (``SLEEP``: a static world and no user force, so every later step would
+   repeat it).
 
-Calls without query skipping, tunnelling check, moving world or resting contact (the peers'
-work: ``skip`` and ``trace`` off, ``rest`` 0) go to :func:`plain_ser`, a
-separate entry point compiled only when first used: the same results from a shorter loop (no
-budgets, no sweep), which runs a step particle after particle while few particles of a block
-touch a surface and in two passes over batches of ``PLAIN_BATCH`` (integrate and query all,
-then respond) after a step where many did, so that mispredicted contact branches do not
-discard the next particles' queries.
-
-A static grid world with stored gradients (``GRID_SIMD``, set in the scene block; float64
-state, ``rest`` 0, no Python forces) goes to :func:`simd_ser` instead: the
-same results from :func:`_block_simd`, which keeps ``LANES`` particles in the rows of one
-scratch array through all steps of a call and runs each step as passes over them: a vector
-pass of forces, integration, free-flight budgets and the grid cell (:func:`_simd_move`), a
-scalar pass loading the cells (:func:`_simd_gather`, each cell's three channels blended in one
-vector), a scalar fix-up of only the particles that need a tunnelling sweep or a query outside
-the grid (:func:`_simd_fix`), and a vector pass of the response with selects instead of
-branches (:func:`_simd_respond`). A step in which no particle of the block needs a query is
-the first pass alone. Sleeping is not needed there (it changes no result). Calls without
-query skipping go to :func:`simd_plain_ser`: the same kernel compiled
-with the passes of that case only (each entry point compiles only what it runs).
+One kernel family, its variants compiled specializations of one entry point (see
+:func:`.step.step_ser`; each compiled when first used, then cached): the general
+particle-by-particle step (``simd=None, plain=None``); the plain step (``plain=True``): calls
+without query skipping, tunnelling check, moving world or resting contact (the peers' work:
+``skip`` and ``trace`` off, ``rest`` 0), the same results from a shorter loop (the same phases
+with those switches as constants), which runs a step particle after particle while few
+particles of a block touch a surface and in two passes over batches of ``PLAIN_BATCH``
+(integrate and query all, then respond) after a step where many did, so that mispredicted
+contact branches do not discard the next particles' queries; and the block step (``simd=True``)
+of a static grid world with stored gradients (``GRID_SIMD``, set in the scene block; float64
+state, ``rest`` 0, no Python forces): the same results from :func:`.block._block_simd`, which
+keeps ``LANES`` particles in the rows of one scratch array through all steps of a call and
+runs each step as passes over them: a vector pass of forces, integration, free-flight budgets
+and the grid cell (:func:`.block._simd_move`), a scalar pass loading the cells
+(:func:`.block._simd_gather`, each cell's three channels blended in one vector), a scalar
+fix-up of only the particles that need a tunnelling sweep or a query outside the grid
+(:func:`.block._simd_fix`), and a vector pass of the response with selects instead of branches
+(:func:`.block._simd_respond`). A step in which no particle of the block needs a query is the
+first pass alone. Sleeping is not needed there (it changes no result). With ``plain=True``
+the block step compiles the passes of calls without query skipping only. The tunnelling check
+and resting contact are values of a call (``budget.trace``, ``physics.rest``), not
+specializations: switching them recompiles nothing (resting contact takes the general
+variant).
 
 Checks (no separate pass over memory): before a call's first step every particle of a block
 is checked on values the step loads anyway (``x``, ``v`` finite, ``r`` finite and >= 0, ``m``
@@ -138,15 +151,16 @@ frozen.
 
 Entry points
 ------------
-Every entry point is ``kernel(data, state, physics, budget, steps, block) -> frozen count``:
-the world's query data, the particles' arrays (:class:`.config.State`), the physics of the
-call (:class:`.config.Physics`), the safety and skipping settings (:class:`.config.Budget`),
-the number of steps and the particles per block. The ``*_ser`` ones release the GIL: the
-caller (:meth:`fastsdf.particles.ParticleSimulation.run`) runs a short call as slices of the
-particles on several threads (particles are independent, so the results do not depend on the
-slicing), and a long one through the ``*_par`` entry point of the family (numba's
-``parallel=True``, compiled when first needed: its parfor passes double the compile time,
-and it runs long calls a few percent faster).
+``step_ser(data, state, physics, budget, steps, block, simd, plain) -> frozen count`` and
+``step_par`` (the same): the world's query data, the particles' arrays
+(:class:`.config.State`), the physics of the call (:class:`.config.Physics`), the safety and
+skipping settings (:class:`.config.Budget`), the number of steps, the particles per block and
+the variant. ``step_ser`` releases the GIL: the caller (:mod:`fastsdf.particles.engine`) runs
+a short call as slices of the particles on several threads (particles are independent, so the
+results do not depend on the slicing), and a long one through ``step_par`` (numba's
+``parallel=True``, compiled when first needed: its parfor passes double the compile time, and
+it runs long calls a few percent faster). The third entry point is the GPU's, one thread per
+particle (:mod:`fastsdf.particles.cuda`).
 """
 
 from __future__ import annotations
@@ -155,51 +169,33 @@ import hashlib
 import inspect
 from types import ModuleType
 
-from fastsdf.particles.kernels import block, config, constants, contact, intrinsics, step
-from fastsdf.particles.kernels.block import (
-    LANES,
-    simd_par,
-    simd_plain_par,
-    simd_plain_ser,
-    simd_ser,
+from fastsdf import intrinsics as _intrinsics
+from fastsdf.particles.kernels import (
+    block,
+    config,
+    constants,
+    contact,
+    intrinsics,
+    phases,
+    step,
 )
-from fastsdf.particles.kernels.config import (
-    NO_EXT,
-    Budget,
-    Disc,
-    Motion,
-    Physics,
-    State,
-    Window,
-)
-from fastsdf.particles.kernels.constants import (
-    ASLEEP,
-    CONTACT_TOL,
-    FLAG_COEFF,
-    FLAG_INPUT,
-    FLAG_NONFINITE,
-    FLAG_RESUME,
-    FORCE_BATCH,
-    MAX_BOUNCES,
-    MAX_MARCH,
-    MIN_STEP,
-    TRACE_FRACTION,
-)
+from fastsdf.particles.kernels.block import LANES
+from fastsdf.particles.kernels.config import NO_EXT, Budget, Disc, Motion, Physics, State, Window
 from fastsdf.particles.kernels.contact import _march, _respond, _rests, _sweep, march, sweep
 from fastsdf.particles.kernels.intrinsics import borrow_all, call_vg
+from fastsdf.particles.kernels.phases import particle_step
 from fastsdf.particles.kernels.step import (
     PLAIN_BATCH,
     force_many,
-    plain_par,
-    plain_ser,
     query_many,
-    run_par,
-    run_ser,
+    step_par,
+    step_ser,
 )
 
 __all__ = [
     "kernel_source",
     "PARTS",
+    "constants",
     "State",
     "Physics",
     "Budget",
@@ -209,27 +205,11 @@ __all__ = [
     "NO_EXT",
     "LANES",
     "PLAIN_BATCH",
-    "TRACE_FRACTION",
-    "MIN_STEP",
-    "CONTACT_TOL",
-    "MAX_MARCH",
-    "MAX_BOUNCES",
-    "FORCE_BATCH",
-    "ASLEEP",
-    "FLAG_INPUT",
-    "FLAG_NONFINITE",
-    "FLAG_COEFF",
-    "FLAG_RESUME",
     "borrow_all",
     "call_vg",
-    "run_ser",
-    "run_par",
-    "plain_par",
-    "plain_ser",
-    "simd_ser",
-    "simd_par",
-    "simd_plain_par",
-    "simd_plain_ser",
+    "step_ser",
+    "step_par",
+    "particle_step",
     "query_many",
     "force_many",
     "march",
@@ -241,7 +221,7 @@ __all__ = [
 ]
 
 #: The kernels' modules whose bodies a generated module holds, in order.
-PARTS: tuple = (contact, step, block)
+PARTS: tuple = (contact, phases, block, step)
 #: The line after which a part's text is the kernel body (above it: its imports when used
 #: directly, against the test world).
 BODY_MARK = "# >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>"
@@ -252,14 +232,18 @@ def _digest(module: ModuleType) -> str:
 
 
 def _shared_imports() -> str:
-    """Import lines of the scene-independent modules, each with its file's hash (so that an
-    edit there changes every generated module's hash)."""
+    """Import lines of the scene-independent modules (the bottom layer's intrinsics, this
+    package's constants, structures and intrinsics), each with its file's hash (so that an edit
+    there changes every generated module's hash)."""
     names = sorted(
         n
         for n, obj in vars(intrinsics).items()
         if getattr(obj, "__module__", "") == intrinsics.__name__ and not inspect.isfunction(obj)
     )
     return (
+        f"from {_intrinsics.__name__} import (  # noqa: F401  sha256 {_digest(_intrinsics)}\n"
+        + "".join(f"    {n},\n" for n in _intrinsics.__all__)
+        + ")\n"
         f"from {constants.__name__} import *  # noqa: F403  sha256 {_digest(constants)}\n"
         f"from {config.__name__} import (  # noqa: F401  sha256 {_digest(config)}\n"
         "    Budget, Disc, Motion, Physics, State, Window,\n"
@@ -281,7 +265,7 @@ def _bodies() -> str:
 # Read once, when the package is imported: a kernel must match the modules this process runs
 # with, even if the files change on disk later (an upgrade, an edit).
 HEAD = (
-    '"""A particle step kernel module generated by fastsdf.particles.world from the modules '
+    '"""A particle step kernel module generated by fastsdf.particles.scene_blocks from the modules '
     "of\nfastsdf.particles.kernels and one world's scene block; do not edit: the file name "
     'is the\nhash of this content."""\n\nimport math\n\nimport numpy as np\n'
     "from numba import njit, prange\n\n" + _shared_imports() + "\n"

@@ -1,34 +1,39 @@
 """The block step of grid worlds: ``LANES`` particles in scratch rows through all steps of a
-call, each step in passes that LLVM turns into vector code (``simd_*`` entry points)."""
+call, each step in passes over them that LLVM turns into vector code, built from the phases of
+:mod:`.phases` (the ``simd`` variant of the entry points of :mod:`.step`)."""
 
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from fastsdf.particles.kernels.config import Disc, Motion, Physics
+from fastsdf.intrinsics import bits_f64, f64_bits, select
+from fastsdf.particles.kernels.config import Disc, Motion, Window
 from fastsdf.particles.kernels.constants import (
-    CONTACT_TOL,
     FLAG_COEFF,
     FLAG_INPUT,
     FLAG_NONFINITE,
     FLAG_RESUME,
-    MAX_BOUNCES,
-    TRACE_FRACTION,
 )
-from fastsdf.particles.kernels.contact import _sweep
-from fastsdf.particles.kernels.intrinsics import (
-    _cell_vg,
-    _f64_as_i64,
-    _gather4,
-    _i64_as_f64,
-    _sel,
-    borrow_all,
+from fastsdf.particles.kernels.contact import _respond
+from fastsdf.particles.kernels.intrinsics import _cell_vg, _gather4, borrow_all
+from fastsdf.particles.kernels.phases import (
+    _coeffs_ok,
+    _finite4,
+    accelerate,
+    euler,
+    input_ok,
+    needs_sweep,
+    outside_reach,
+    refill,
+    spend,
+    swept,
+    switched,
+    with_user_forces,
 )
-from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _force, _query
-from fastsdf.particles.kernels.step import _coeffs, _finite4, _valid_input
+from fastsdf.particles.kernels.scene import _CACHE, GRID_EXACT, USE_FORCE, _query
 
-__all__ = ["LANES", "simd_ser", "simd_plain_ser", "simd_par", "simd_plain_par"]
+__all__ = ["LANES"]
 
 # >>> KERNEL BODY (from here on, copied into every generated kernel module) >>>
 
@@ -58,42 +63,10 @@ _ROWS = 35
 _STRIDE = LANES + 8
 
 
-@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _lerp(tx, ty, a, b, c, e):
-    """The bilinear blend of ``fastsdf.fields.grid`` (same operations, same order)."""
-    lo = a + ty * (b - a)
-    hi = c + ty * (e - c)
-    return lo + tx * (hi - lo)
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _respond_sel(x, y, vx, vy, s, gx, gy, cr, cf, always):
-    """:func:`_respond` of a static world with selects for every condition (the same
-    operations in the same order, so the same bits), for the vector passes."""
-    gt = 0.0
-    gl2 = gx * gx + gy * gy
-    ok = (gl2 > 0.0) & (gl2 < math.inf)
-    inv = _sel(ok, 1.0 / math.sqrt(gl2), 0.0)
-    nx = _sel(ok, gx * inv, 0.0)
-    ny = _sel(ok, gy * inv, 0.0)
-    k = (1.0 + cr) * s
-    x -= k * nx
-    y -= k * ny
-    vn = vx * nx + vy * ny
-    wn = -gt * inv
-    vr = vn - wn
-    resp = ok & ((vr < 0.0) | always)
-    w = _sel(resp, 1.0 - cf, 1.0)
-    c = _sel(resp, cr, -1.0)
-    vx = w * (vx - vn * nx) + (wn - c * vr) * nx
-    vy = w * (vy - vn * ny) + (wn - c * vr) * ny
-    return x, y, vx, vy
-
-
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_load(S, state, b0, nb, use_m):
     """A block's state into the scratch rows (lanes past ``nb`` idle), with the checks of
-    :func:`_check_block` (a particle that fails is flagged and idle). Returns how many
+    :func:`.phases.input_ok` (a particle that fails is flagged and idle). Returns how many
     failed."""
     X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
     Xf = X.reshape(X.size)
@@ -105,23 +78,15 @@ def _simd_load(S, state, b0, nb, use_m):
         if k < nb:
             i = np.uint64(b0 + k)
             ix = np.uint64(2) * i
-            x = float(Xf[ix])
-            y = float(Xf[ix + np.uint64(1)])
-            vx = float(Vf[ix])
-            vy = float(Vf[ix + np.uint64(1)])
-            r = float(R[i])
-            m = float(M[i]) if use_m or check_all else 1.0
-            ok = _valid_input(x, y, vx, vy, r, m, use_m or check_all)
-            if check_all:
-                ok = ok and _coeffs(CR, CF, i)[2]
+            ok, m = input_ok(state, i, use_m)
             if not ok:
                 FLAGS[i] = FLAG_INPUT
                 bad += 1
-            S[_X * W + k] = x
-            S[_Y * W + k] = y
-            S[_VX * W + k] = vx
-            S[_VY * W + k] = vy
-            S[_R * W + k] = r
+            S[_X * W + k] = Xf[ix]
+            S[_Y * W + k] = Xf[ix + np.uint64(1)]
+            S[_VX * W + k] = Vf[ix]
+            S[_VY * W + k] = Vf[ix + np.uint64(1)]
+            S[_R * W + k] = R[i]
             S[_CR * W + k] = CR[i]
             S[_CF * W + k] = CF[i]
             S[_IM * W + k] = 1.0 / m if use_m else 1.0
@@ -147,26 +112,22 @@ def _simd_store(S, Xf, Vf, b0, nb):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
-def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
-    """Pass 1 of a step (vector): forces, integration, the free-flight budget (a particle
-    whose budget covers the step moves here and needs no query), the check for a grid
-    fallback not bound yet, and the cell of the end point (index and bilinear fractions, the
-    operations of ``fastsdf.fields.grid``'s sampler). ``b``: the bounds of
-    :func:`_fallback_missing`;
-    ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats.
-    Returns how many particles need a query, how many were frozen, and how many of those
-    that query end outside the grid. ``budgets``, ``skipping``: constants in the compiled
-    versions; ``budgets`` False when neither budgets nor the fallback check (``fbchk``) are
-    used, ``skipping`` False without budgets (``budget.skip``)."""
-    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
-    lip = budget.lip
-    eps = budget.eps
-    t = t0 + step * dt
+def _simd_move(S, step, physics, budget, fbchk, b, g, skipping):
+    """Pass 1 of a step (vector): forces and integration (:func:`.phases.accelerate`,
+    :func:`.phases.euler`), the free-flight budget (:func:`.phases.spend`: a particle whose
+    budget covers the step moves here and needs no query), the check for a grid fallback not
+    bound yet (:func:`.phases.outside_reach` of the bounds ``b``), and the cell of the end point
+    (index and bilinear fractions, the operations of ``fastsdf.fields.grid``'s sampler;
+    ``g``: ``(x0, x1, y0, y1, 1/hx, 1/hy, nx - 2, ny - 2, ny)`` of the grid, floats). Returns
+    how many particles need a query, how many were frozen, and how many of those that query
+    end outside the grid. ``fbchk``, ``skipping``: constants in the compiled versions (without
+    them, the budget's and the reach's square roots are left out)."""
+    dt = physics.dt
+    t = physics.t0 + step * dt
+    own = switched(physics, physics.use_m, False, 0.0)  # (no Python forces here)
     L = LANES
     W = _STRIDE
-    bx0, bx1, by0, by1 = b
     x0, x1, y0, y1, ihx, ihy, nxm2, nym2, nyf = g
-    tol = 1.0 + CONTACT_TOL / lip
     resume = float(FLAG_RESUME + step)
     nonfinite = float(FLAG_NONFINITE)
     nneed = 0
@@ -178,46 +139,32 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
         y = S[_Y * W + q]
         vx = S[_VX * W + q]
         vy = S[_VY * W + q]
-        fx = -drag * vx
-        fy = -drag * vy
-        if USE_FORCE:
-            ux, uy = _force(x, y, vx, vy, S[_M * W + q], t)
-            fx += ux
-            fy += uy
-        im = S[_IM * W + q]
-        bx = _sel(use_m, ax + fx * im, ax)
-        by = _sel(use_m, ay + fy * im, ay)
-        nvx = vx + bx * dt
-        nvy = vy + by * dt
-        dx = _sel(explicit, vx, nvx) * dt
-        dy = _sel(explicit, vy, nvy) * dt
-        # the step's length (a square root: only for budgets and the fallback check)
-        ln = math.sqrt(dx * dx + dy * dy) if budgets else 0.0
+        push = with_user_forces((0.0, 0.0, 0.0, 0.0), x, y, vx, vy, S[_M * W + q], t, True)
+        bx, by = accelerate(vx, vy, S[_IM * W + q], push, own)
+        dx, dy, nvx, nvy = euler(vx, vy, bx, by, own)
         c = S[_CLR * W + q] if skipping else 0.0
-        c2 = c - (ln * tol + eps * (abs(x) + abs(y) + 1.0))
+        c2 = spend(c, x, y, dx, dy, 0.0, budget)
         skip = (c > 0.0) & (c2 > 0.0)
         xe = x + dx
         ye = y + dy
         fin = _finite4(xe, ye, nvx, nvy)
         moved = live & skip
         keep = moved & fin
-        S[_X1 * W + q] = _sel(keep, xe, x)
-        S[_Y1 * W + q] = _sel(keep, ye, y)
-        S[_VX1 * W + q] = _sel(keep, nvx, vx)
-        S[_VY1 * W + q] = _sel(keep, nvy, vy)
+        S[_X1 * W + q] = select(keep, xe, x)
+        S[_Y1 * W + q] = select(keep, ye, y)
+        S[_VX1 * W + q] = select(keep, nvx, vx)
+        S[_VY1 * W + q] = select(keep, nvy, vy)
         if skipping:
-            S[_CLR1 * W + q] = _sel(skip, c2, 0.0)
-        reach = 2.0 * (MAX_BOUNCES + 1) * ln + 1e-9
-        away = (x - reach >= bx0) & (x + reach <= bx1) & (y - reach >= by0) & (y + reach <= by1)
+            S[_CLR1 * W + q] = select(skip, c2, 0.0)
         need = live & (not skip)
-        miss = need & fbchk & (not away)
+        miss = need & fbchk & outside_reach(x, y, dx, dy, b)
         need = need & (not miss)
-        code = _sel(miss, resume, _sel(moved & (not fin), nonfinite, 0.0))
+        code = select(miss, resume, select(moved & (not fin), nonfinite, 0.0))
         # the sampler's _locate, branch-free
         inside = (xe >= x0) & (xe <= x1) & (ye >= y0) & (ye <= y1)
         ok = inside | ((abs(xe) < math.inf) & (abs(ye) < math.inf))
-        xq = _sel(inside, xe, min(max(_sel(ok, xe, x0), x0), x1))
-        yq = _sel(inside, ye, min(max(_sel(ok, ye, y0), y0), y1))
+        xq = select(inside, xe, min(max(select(ok, xe, x0), x0), x1))
+        yq = select(inside, ye, min(max(select(ok, ye, y0), y0), y1))
         u = (xq - x0) * ihx
         v = (yq - y0) * ihy
         fi = min(np.floor(u), nxm2)
@@ -226,14 +173,14 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
         S[_TY * W + q] = v - fj
         # the flat index as an integer (converted here, in vector registers: a scalar
         # conversion in the gather would lengthen each particle's dependent chain)
-        S[_IDX * W + q] = _i64_as_f64(np.int64(np.int32(3.0 * (fi * nyf + fj))))
-        S[_INS * W + q] = _sel(inside, 1.0, 0.0)
-        S[_OK * W + q] = _sel(ok, 1.0, 0.0)
+        S[_IDX * W + q] = bits_f64(np.int64(np.int32(3.0 * (fi * nyf + fj))))
+        S[_INS * W + q] = select(inside, 1.0, 0.0)
+        S[_OK * W + q] = select(ok, 1.0, 0.0)
         S[_DX * W + q] = dx
         S[_DY * W + q] = dy
         S[_NVX * W + q] = nvx
         S[_NVY * W + q] = nvy
-        S[_NEED * W + q] = _sel(need, 1.0, 0.0)
+        S[_NEED * W + q] = select(need, 1.0, 0.0)
         S[_CODE1 * W + q] = code
         nneed += need
         nfrz += code != 0.0
@@ -245,13 +192,31 @@ def _simd_move(S, step, physics, budget, fbchk, b, g, budgets, skipping):
 def _simd_move_budget(S, step, physics, budget, fbchk, b, g):
     """:func:`_simd_move` with budgets (``skip``) or the fallback check (without budgets
     their row stays 0)."""
-    return _simd_move(S, step, physics, budget, fbchk, b, g, True, True)
+    return _simd_move(S, step, physics, budget, fbchk, b, g, True)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_move_plain(S, step, physics, budget, fbchk, b, g):
     """:func:`_simd_move` without budgets or the fallback check (``skip``, ``fbchk`` False)."""
-    return _simd_move(S, step, physics, budget, False, b, g, False, False)
+    return _simd_move(S, step, physics, budget, False, b, g, False)
+
+
+@njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
+def _fix_mark(S, q, trace, lip):
+    """Whether lane ``q`` needs the scalar fix-up (:func:`_simd_fix`): a particle that queries
+    and needs a tunnelling sweep (``trace``, :func:`.phases.needs_sweep`), or whose end point
+    is outside an 'exact' grid. Marks it (and clears its bounce)."""
+    W = _STRIDE
+    need = S[_NEED * W + q] != 0.0
+    r = S[_R * W + q]
+    s = select(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
+    dx = S[_DX * W + q]
+    dy = S[_DY * W + q]
+    sweep = trace & needs_sweep(dx * dx + dy * dy, s, r, lip, 0.0)
+    fix = need & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
+    S[_FIX * W + q] = select(fix, 1.0, 0.0)
+    S[_BNC * W + q] = 0.0
+    return fix
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
@@ -263,36 +228,23 @@ def _simd_gather(S, grid, row, lip, trace, every, marks):
     values are used, from the ``_OK`` row). Returns how many may touch a surface (a hint:
     ``d <= r`` before that NaN). ``every``: a constant in the two compiled versions, True
     when every particle queries (no test per particle; the others' cells are valid ones).
-    ``marks`` (constant too): also mark the particles that need the scalar fix-up, as
-    :func:`_simd_blend` does (here, for a tunnelling check: one pass less). Returns the
-    count of those as well."""
+    ``marks`` (constant too): also mark the particles that need the scalar fix-up
+    (:func:`_fix_mark`; here, for a tunnelling check: one pass less). Returns the count of
+    those as well."""
     L = LANES
     W = _STRIDE
     ncon = 0
     nfix = 0
     for q in range(L):
         if every or S[_NEED * W + q] != 0.0:
-            a = np.uint64(_f64_as_i64(S[_IDX * W + q]))
+            a = np.uint64(f64_bits(S[_IDX * W + q]))
             d, gx, gy = _cell_vg(grid, a, a + row, S[_TX * W + q], S[_TY * W + q])
             S[_D * W + q] = d
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
-            r = S[_R * W + q]
-            ncon += d <= r
+            ncon += d <= S[_R * W + q]
             if marks:
-                s = _sel(S[_OK * W + q] != 0.0, d, math.nan) - r
-                dx = S[_DX * W + q]
-                dy = S[_DY * W + q]
-                dd = dx * dx + dy * dy
-                sweep = (
-                    trace
-                    & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r))
-                    & (not ((s * s >= lip * lip * dd) & (s > 0.0)))
-                )
-                fix = (S[_NEED * W + q] != 0.0) & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
-                S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
-                S[_BNC * W + q] = 0.0
-                nfix += fix
+                nfix += _fix_mark(S, q, trace, lip)
     return ncon, nfix
 
 
@@ -317,48 +269,27 @@ def _simd_gather_all(S, grid, row, lip):
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_blend(S, trace, lip):
-    """Pass 3 (vector): which particles need the scalar fix-up (a tunnelling sweep, or a
-    query outside an 'exact' grid). Returns their count. (No row is rewritten here from its
-    own value under a condition: LLVM makes that a masked store, microcoded and slow.)"""
-    L = LANES
-    W = _STRIDE
+    """Pass 3 (vector): which particles need the scalar fix-up (:func:`_fix_mark`). Returns
+    their count. (No row is rewritten here from its own value under a condition: LLVM makes
+    that a masked store, microcoded and slow.)"""
     nfix = 0
-    for q in range(L):
-        need = S[_NEED * W + q] != 0.0
-        r = S[_R * W + q]
-        s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
-        dx = S[_DX * W + q]
-        dy = S[_DY * W + q]
-        dd = dx * dx + dy * dy
-        sweep = (
-            trace
-            & (dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r))
-            & (not ((s * s >= lip * lip * dd) & (s > 0.0)))
-        )
-        fix = need & (sweep | (GRID_EXACT & (S[_INS * W + q] == 0.0)))
-        S[_FIX * W + q] = _sel(fix, 1.0, 0.0)
-        S[_BNC * W + q] = 0.0
-        nfix += fix
+    for q in range(LANES):
+        nfix += _fix_mark(S, q, trace, lip)
     return nfix
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_query(data, x, y):
-    """:func:`_query`, compiled once for the fix-up's two call sites (compile time)."""
+    """:func:`_query` outside the grid, compiled on its own for the fix-up (compile time)."""
     return _query(data, x, y)
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _simd_sweep(data, motion, disc, lip, always, t1):
-    """:func:`_sweep` compiled once on its own for :func:`_simd_fix` (compile time)."""
-    return _sweep(data, motion, disc, lip, always, 0.0, t1)
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
 def _simd_fix(data, S, lip, always, trace):
     """The scalar fix-up of the marked particles: the exact query outside the grid, and the
-    tunnelling sweep (:func:`_sweep`) with the end point's query after a bounce, as in
-    :func:`_block`. Returns how many were frozen (invalid ``cr``/``cf`` at a sweep)."""
+    tunnelling sweep (:func:`.phases.swept`, with the end point's query after a bounce), as
+    in :func:`.phases.particle_step`. Returns how many were frozen (invalid ``cr``/``cf`` at
+    a sweep)."""
     L = LANES
     W = _STRIDE
     nfrz = 0
@@ -370,58 +301,52 @@ def _simd_fix(data, S, lip, always, trace):
         dx = S[_DX * W + q]
         dy = S[_DY * W + q]
         r = S[_R * W + q]
-        dd = dx * dx + dy * dy
         if GRID_EXACT and S[_INS * W + q] == 0.0:
             d, gx, gy = _simd_query(data, x + dx, y + dy)
             S[_D * W + q] = d
             S[_GX * W + q] = gx
             S[_GY * W + q] = gy
             S[_OK * W + q] = 1.0  # these values stand as they are
-        s = _sel(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan) - r
-        if not (
-            trace
-            and dd > (TRACE_FRACTION * r) * (TRACE_FRACTION * r)
-            and not (s * s >= lip * lip * dd and s > 0.0)
-        ):
+        d = select(S[_OK * W + q] != 0.0, S[_D * W + q], math.nan)
+        if not (trace and needs_sweep(dx * dx + dy * dy, d - r, r, lip, 0.0)):
             continue
         cr = S[_CR * W + q]
         cf = S[_CF * W + q]
-        if not ((cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)):
+        if not _coeffs_ok(cr, cf):
             S[_CODE1 * W + q] = float(FLAG_COEFF)
             nfrz += 1
             continue
-        t1 = 1.0 - s / (lip * math.sqrt(dd)) if s > 0.0 else 1.0
-        x, y, dx, dy, vx, vy, bounced = _simd_sweep(
+        motion, bounced, found = swept(
             data,
             Motion(x, y, dx, dy, S[_NVX * W + q], S[_NVY * W + q]),
             Disc(r, cr, cf),
+            (d, S[_GX * W + q], S[_GY * W + q], 0.0),
             lip,
             always,
-            t1,
+            Window(0.0, 1.0, 0.0, 0.0, 0.0),
         )
         if bounced:
-            d, gx, gy = _simd_query(data, x + dx, y + dy)
-            S[_D * W + q] = d
-            S[_GX * W + q] = gx
-            S[_GY * W + q] = gy
+            S[_D * W + q] = found[0]
+            S[_GX * W + q] = found[1]
+            S[_GY * W + q] = found[2]
             S[_OK * W + q] = 1.0
             S[_BNC * W + q] = 1.0
-        S[_XS * W + q] = x
-        S[_YS * W + q] = y
-        S[_DX * W + q] = dx
-        S[_DY * W + q] = dy
-        S[_NVX * W + q] = vx
-        S[_NVY * W + q] = vy
+        S[_XS * W + q] = motion.x
+        S[_YS * W + q] = motion.y
+        S[_DX * W + q] = motion.dx
+        S[_DY * W + q] = motion.dy
+        S[_NVX * W + q] = motion.vx
+        S[_NVY * W + q] = motion.vy
     return nfrz
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy", inline="always")
 def _simd_respond(S, always, skip, lip, margin, contacts):
     """Pass 4 (vector): the end point, the collision response where ``s <= 0``
-    (:func:`_respond_sel`), the checks, the free-flight budget, and the new state of every
-    particle that queried and was not frozen. Returns how many were frozen. ``contacts``: a
-    constant in the two compiled versions; False when no particle of the block touches a
-    surface (then the response's square root and division are left out)."""
+    (:func:`.contact._respond`), the checks, the free-flight budget (:func:`.phases.refill`),
+    and the new state of every particle that queried and was not frozen. Returns how many were
+    frozen. ``contacts``: a constant in the two compiled versions; False when no particle of
+    the block touches a surface (then the response's square root and division are left out)."""
     L = LANES
     W = _STRIDE
     coeff = float(FLAG_COEFF)
@@ -434,41 +359,41 @@ def _simd_respond(S, always, skip, lip, margin, contacts):
         bounced = S[_BNC * W + q] != 0.0
         x1 = S[_X1 * W + q]
         y1 = S[_Y1 * W + q]
-        x = _sel(bounced, S[_XS * W + q], x1) + S[_DX * W + q]
-        y = _sel(bounced, S[_YS * W + q], y1) + S[_DY * W + q]
+        x = select(bounced, S[_XS * W + q], x1) + S[_DX * W + q]
+        y = select(bounced, S[_YS * W + q], y1) + S[_DY * W + q]
         vx = S[_NVX * W + q]
         vy = S[_NVY * W + q]
         ok = S[_OK * W + q] != 0.0  # False: a non-finite end point (the sampler's NaN)
-        s = _sel(ok, S[_D * W + q], math.nan) - S[_R * W + q]
+        s = select(ok, S[_D * W + q], math.nan) - S[_R * W + q]
         cr = S[_CR * W + q]
         cf = S[_CF * W + q]
-        cok = (cr >= 0.0) & (cr <= 1.0) & (cf >= 0.0) & (cf <= 1.0)
         contact = (s <= 0.0) & contacts
         # (where not ok, s is NaN: no contact, so the gradient's value does not matter)
-        rx, ry, rvx, rvy = _respond_sel(
-            x, y, vx, vy, s, S[_GX * W + q], S[_GY * W + q], cr, cf, always & (not bounced)
-        )
-        x = _sel(contact, rx, x)
-        y = _sel(contact, ry, y)
-        vx = _sel(contact, rvx, vx)
-        vy = _sel(contact, rvy, vy)
+        grad = (S[_GX * W + q], S[_GY * W + q], 0.0)
+        rx, ry, rvx, rvy = _respond(x, y, vx, vy, s, grad, cr, cf, always & (not bounced))
+        x = select(contact, rx, x)
+        y = select(contact, ry, y)
+        vx = select(contact, rvx, vx)
+        vy = select(contact, rvy, vy)
         code0 = S[_CODE1 * W + q]
-        code = _sel(
+        code = select(
             code0 != 0.0,
             code0,
-            _sel(contact & (not cok), coeff, _sel(_finite4(x, y, vx, vy), 0.0, nonfinite)),
+            select(
+                contact & (not _coeffs_ok(cr, cf)),
+                coeff,
+                select(_finite4(x, y, vx, vy), 0.0, nonfinite),
+            ),
         )
         commit = need & (code == 0.0)
-        S[_X * W + q] = _sel(commit, x, x1)
-        S[_Y * W + q] = _sel(commit, y, y1)
-        S[_VX * W + q] = _sel(commit, vx, S[_VX1 * W + q])
-        S[_VY * W + q] = _sel(commit, vy, S[_VY1 * W + q])
+        S[_X * W + q] = select(commit, x, x1)
+        S[_Y * W + q] = select(commit, y, y1)
+        S[_VX * W + q] = select(commit, vx, S[_VX1 * W + q])
+        S[_VY * W + q] = select(commit, vy, S[_VY1 * W + q])
         if skip:
-            refill = (not contact) & (s > margin)
-            S[_CLR * W + q] = _sel(
-                need, _sel(refill, (s - margin) / lip * (1.0 - 1e-9), 0.0), S[_CLR1 * W + q]
-            )
-        S[_CODE * W + q] = _sel(need, code, code0)
+            budget = select((not contact) & (s > margin), refill(s, margin, lip), 0.0)
+            S[_CLR * W + q] = select(need, budget, S[_CLR1 * W + q])
+        S[_CODE * W + q] = select(need, code, code0)
         nfrz += need & (code != 0.0)
     return nfrz
 
@@ -527,20 +452,19 @@ def _simd_flags(S, FLAGS, b0, nb):
 
 
 @njit(cache=_CACHE, nogil=True, error_model="numpy")
-def _block_simd(data, lo, hi, steps, state, physics, budget, skipping):
-    """:func:`_block` for a static grid world (``GRID_SIMD``) without resting contact or
+def _block_simd(data, lo, hi, steps, state, physics, budget, plain):
+    """:func:`.step._block` for a static grid world (``GRID_SIMD``) without resting contact or
     Python forces, the same results: ``LANES`` particles at a time through all steps, each
     step in passes over the block (:func:`_simd_move`, :func:`_simd_gather`,
     :func:`_simd_blend`, :func:`_simd_fix`, :func:`_simd_respond`); a step in which no
     particle of the block needs a query is the first pass alone.
 
-    ``skipping``: a compile-time flag by type, ``True`` for calls with free-flight query
-    skipping (``budget.skip``), ``None`` for calls without (numba prunes ``skipping is None``
-    before compiling), so that each of the two entry points compiles only the passes it
-    runs."""
+    ``plain``: a compile-time switch by type, ``None`` for calls with free-flight query
+    skipping (``budget.skip``), ``True`` for calls without (numba prunes ``plain is None``
+    before compiling), so that each variant compiles only the passes it runs."""
     X, V, M, R, CR, CF, EXT, FLAGS, check_all = state
-    dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest = physics
     trace, lip, margin, eps, skip = budget
+    always = physics.always
     data = borrow_all(data)
     grid, x0, x1, y0, y1, ihx, ihy, nx, ny = data[5:14]
     b = (float(data[1]), float(data[2]), float(data[3]), float(data[4]))
@@ -557,8 +481,8 @@ def _block_simd(data, lo, hi, steps, state, physics, budget, skipping):
     )
     row = np.uint64(3 * ny)
     fbchk = GRID_EXACT and data[0] == 0
-    use_m = use_m or USE_FORCE
-    own = Physics(dt, t0, ax, ay, drag, use_m, use_ext, explicit, always, rest)
+    use_m = physics.use_m or USE_FORCE
+    own = switched(physics, use_m, physics.use_ext, physics.rest)
     Xf = X.reshape(X.size)
     Vf = V.reshape(V.size)
     S = np.zeros(_ROWS * _STRIDE)
@@ -567,89 +491,33 @@ def _block_simd(data, lo, hi, steps, state, physics, budget, skipping):
         nb = min(hi, b0 + LANES) - b0
         bad += _simd_load(S, state, b0, nb, use_m)
         for step in range(steps):
-            if skipping is None:
-                if fbchk:
-                    nneed, nfrz, nout = _simd_move_budget(S, step, own, budget, fbchk, b, g)
-                else:
-                    nneed, nfrz, nout = _simd_move_plain(S, step, own, budget, fbchk, b, g)
-            else:
+            if plain is None or fbchk:
                 nneed, nfrz, nout = _simd_move_budget(S, step, own, budget, fbchk, b, g)
+            else:
+                nneed, nfrz, nout = _simd_move_plain(S, step, own, budget, fbchk, b, g)
             if nneed > 0:
-                if skipping is None:
-                    if trace:
-                        ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
-                    else:
-                        ncon, nfix = _simd_gather_all(S, grid, row, lip)
-                        # (a query outside an 'exact' grid needs the exact value)
-                        if GRID_EXACT and nout > 0:
-                            nfix = _simd_blend(S, trace, lip)
-                else:
+                if plain is None or trace:
                     ncon, nfix = _simd_gather_some(S, grid, row, lip, trace)
+                else:
+                    ncon, nfix = _simd_gather_all(S, grid, row, lip)
+                    # (a query outside an 'exact' grid needs the exact value)
+                    if GRID_EXACT and nout > 0:
+                        nfix = _simd_blend(S, trace, lip)
                 if nfix > 0:
                     nfrz += _simd_fix(data, S, lip, always, trace)
                     ncon = 1
-                if skipping is None:
+                if plain is None:
                     if ncon > 0:
-                        nfrz += _simd_respond_all_plain(S, always, skip, lip, margin)
+                        nfrz += _simd_respond_all(S, always, skip, lip, margin)
                     else:
-                        nfrz += _simd_respond_none_plain(S, always, skip, lip, margin)
+                        nfrz += _simd_respond_none(S, always, skip, lip, margin)
                 elif ncon > 0:
-                    nfrz += _simd_respond_all(S, always, skip, lip, margin)
+                    nfrz += _simd_respond_all_plain(S, always, skip, lip, margin)
                 else:
-                    nfrz += _simd_respond_none(S, always, skip, lip, margin)
+                    nfrz += _simd_respond_none_plain(S, always, skip, lip, margin)
             else:
                 _simd_commit(S)
             if nfrz > 0:
                 bad += _simd_flags(S, FLAGS, b0, nb)
         _simd_store(S, Xf, Vf, b0, nb)
-    return bad
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def simd_ser(data, state, physics, budget, steps, block):
-    """:func:`run_ser` for a static grid world (``GRID_SIMD``), float64 state, without
-    resting contact (``physics.rest`` 0) or Python forces (``physics.use_ext`` False), with
-    free-flight query skipping (``budget.skip``): the same results through
-    :func:`_block_simd`. A separate entry point, compiled only when first used."""
-    n = state.X.shape[0]
-    bad = 0
-    for lo in range(0, n, block):
-        bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget, True)
-    return bad
-
-
-@njit(cache=_CACHE, nogil=True, error_model="numpy")
-def simd_plain_ser(data, state, physics, budget, steps, block):
-    """:func:`simd_ser` for calls without query skipping (``budget.skip`` False; the peers'
-    work): its own passes, compiled only when first used."""
-    n = state.X.shape[0]
-    bad = 0
-    for lo in range(0, n, block):
-        bad += _block_simd(data, lo, min(n, lo + block), steps, state, physics, budget, None)
-    return bad
-
-
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def simd_par(data, state, physics, budget, steps, block):
-    """:func:`simd_ser` with the blocks over numba's threads, for long calls."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block_simd(data, lo, hi, steps, state, physics, budget, True)
-    return bad
-
-
-@njit(cache=_CACHE, parallel=True, error_model="numpy")
-def simd_plain_par(data, state, physics, budget, steps, block):
-    """:func:`simd_plain_ser` with the blocks over numba's threads, for long calls."""
-    n = state.X.shape[0]
-    nblocks = (n + block - 1) // block
-    bad = 0
-    for c in prange(nblocks):
-        lo = c * block
-        hi = min(n, lo + block)
-        bad += _block_simd(data, lo, hi, steps, state, physics, budget, None)
     return bad

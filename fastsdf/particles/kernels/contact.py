@@ -5,6 +5,7 @@ import math
 
 from numba import njit
 
+from fastsdf.intrinsics import select
 from fastsdf.particles.kernels.config import Window
 from fastsdf.particles.kernels.constants import (
     CONTACT_TOL,
@@ -31,27 +32,27 @@ def _respond(x, y, vx, vy, s, grad, cr, cf, always):
     dd/dt)`` of the world at the disc, ``dd/dt`` 0 for a static world). A zero or non-finite
     gradient (a ridge of a grid) gives no direction: the state is returned unchanged.
 
-    Written with selects rather than branches, so that a block of particles can share one
-    instruction stream.
+    Written with selects rather than branches (every operand is safe to compute), so that the
+    block step runs it for several particles in the lanes of one vector instruction.
 
     A moving wall (``gt = dd/dt``) has normal speed ``w = -gt / |grad|``: the relative normal
     velocity ``v_n - w`` is what approaches and reflects (``v_n -> w - cr (v_n - w)``).
     """
     gx, gy, gt = grad
     gl2 = gx * gx + gy * gy
-    ok = gl2 > 0.0 and gl2 < math.inf
-    inv = 1.0 / math.sqrt(gl2) if ok else 0.0
-    nx = gx * inv if ok else 0.0
-    ny = gy * inv if ok else 0.0
+    ok = (gl2 > 0.0) & (gl2 < math.inf)
+    inv = select(ok, 1.0 / math.sqrt(gl2), 0.0)
+    nx = select(ok, gx * inv, 0.0)
+    ny = select(ok, gy * inv, 0.0)
     k = (1.0 + cr) * s
     x -= k * nx
     y -= k * ny
     vn = vx * nx + vy * ny
     wn = -gt * inv  # the wall's normal speed (0 for a static world)
     vr = vn - wn
-    resp = ok and (vr < 0.0 or always)
-    w = 1.0 - cf if resp else 1.0  # tangential factor
-    c = cr if resp else -1.0  # relative normal velocity becomes -c vr (same for c = -1)
+    resp = ok & ((vr < 0.0) | always)
+    w = select(resp, 1.0 - cf, 1.0)  # tangential factor
+    c = select(resp, cr, -1.0)  # relative normal velocity becomes -c vr (same for c = -1)
     vx = w * (vx - vn * nx) + (wn - c * vr) * nx
     vy = w * (vy - vn * ny) + (wn - c * vr) * ny
     return x, y, vx, vy

@@ -1,6 +1,7 @@
 """Intrinsics of the particle kernels (numba ``@intrinsic``: no Python, no scene): views of
-arrays without reference counts, calls through C function pointers, branch-free selects and bit
-casts, and the dense grid's vector cell gathers used by the block step.
+arrays without reference counts, calls through C function pointers, and the dense grid's vector
+cell gathers used by the block step (the branch-free select and bit casts are
+:mod:`fastsdf.intrinsics`').
 
 Generated kernel modules import these by name (the import line carries this file's hash, so an
 edit here invalidates every cached kernel)."""
@@ -80,49 +81,6 @@ def call_vg(typingctx, address, x, y):
         return context.make_tuple(builder, signature.return_type, vals)
 
     return sig, codegen
-
-
-@intrinsic
-def _sel(typingctx, cond, a, b):
-    """``a if cond else b`` for float64 values, compiled to a ``select`` (no branch), so that
-    a loop using it can run several particles in the lanes of one vector instruction."""
-    if not isinstance(cond, types.Boolean):
-        return None
-    sig = types.float64(cond, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        c, x, y = args
-        x = context.cast(builder, x, signature.args[1], types.float64)
-        y = context.cast(builder, y, signature.args[2], types.float64)
-        return builder.select(c, x, y)
-
-    return sig, codegen
-
-
-@intrinsic
-def _i64_as_f64(typingctx, i):
-    """The float64 with the bit pattern of the int64 ``i`` (a bit cast), so that an integer
-    can live in a row of the float scratch array."""
-    if not isinstance(i, types.Integer):
-        return None
-
-    def codegen(context, builder, signature, args):
-        v = context.cast(builder, args[0], signature.args[0], types.int64)
-        return builder.bitcast(v, ir.DoubleType())
-
-    return types.float64(i), codegen
-
-
-@intrinsic
-def _f64_as_i64(typingctx, x):
-    """The inverse of :func:`_i64_as_f64`."""
-    if not isinstance(x, types.Float):
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.IntType(64))
-
-    return types.int64(x), codegen
 
 
 @intrinsic

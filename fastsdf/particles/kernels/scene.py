@@ -16,7 +16,7 @@ __all__ = ["MOVING", "USE_FORCE", "FORCE_AHEAD", "GRID_SIMD", "GRID_EXACT"]
 _CACHE = True
 USE_FORCE = False
 FORCE_AHEAD = False
-# Not a grid world: the block kernel (simd_ser) does not apply.
+# Not a grid world: the block kernel (the simd variant) does not apply.
 GRID_SIMD = False
 GRID_EXACT = False
 
