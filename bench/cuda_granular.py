@@ -173,7 +173,8 @@ def ptx_check(cc: tuple = (9, 0)) -> list:
     import fastsdf as fs
     import fastsdf.granular.cuda as gc
 
-    gc.device_data = lambda grid: grid.sampler_data  # the types of the device copy
+    gc._load()
+    fs.GridSDF.device_sampler_data = lambda grid: grid.sampler_data  # the device copy's types
     n, slots = 64, 7
     a = {
         "st": np.zeros((12, n)),
@@ -189,8 +190,9 @@ def ptx_check(cc: tuple = (9, 0)) -> list:
 
     def ptx(kernel: Any, *args: Any) -> None:
         sig = tuple(numba.typeof(v) for v in args)
-        code, _ = nbcuda.compile_ptx(kernel.py_func, sig, cc=cc)
-        done.append((kernel.py_func.__name__, len(code)))
+        fn = getattr(kernel, "py_func", None) or kernel._fn
+        code, _ = nbcuda.compile_ptx(fn, sig, cc=cc)
+        done.append((fn.__name__, len(code)))
 
     st, i32, f32, nbr, flag = a["st"], a["i32"], a["f32"], a["nbr"], a["flag"]
     ptx(gc._fill_i32, i32, 0)
