@@ -1,7 +1,7 @@
 """Bit-identity of the granular engine against another revision's.
 
     python -m bench.grain_bits --rev 9af86bd
-    python -m bench.grain_bits --rev 9af86bd --grains 6000 --threads 1 2 --cuda-sim
+    python -m bench.grain_bits --rev 9af86bd --grains 6000 --threads 1 2 --devices cpu cuda
 
 Each bed runs on both sides, each side in its own interpreter with its own fastsdf (the
 baseline exported by ``git archive`` into a folder kept under the system's temporary folder,
@@ -24,8 +24,8 @@ velocities, the world's force, time, rebuilds, the energies, contact counts, the
 pairs and (with history) the tangential springs. With ``--threads 2`` and at least 4096
 grains (the engine's ``PARALLEL_MIN_GRAINS``) the passes run on two threads.
 
-``--cuda-sim``: also a small bed of each static world on ``device='cuda'`` under numba-cuda's
-simulator (slow: a few hundred grains, two frames).
+``--devices cuda``: a small bed of each static world on ``device='cuda'`` under numba-cuda's
+simulator (slow: ``--cuda-grains``, 200 by default, two frames).
 """
 
 from __future__ import annotations
@@ -183,12 +183,14 @@ def main(argv: list | None = None) -> int:
     parser.add_argument("--grains", type=int, default=4500)
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
-    parser.add_argument("--cuda-sim", action="store_true", help="also the CUDA engine, simulated")
+    parser.add_argument("--devices", nargs="+", choices=("cpu", "cuda"), default=["cpu"])
     parser.add_argument("--cuda-grains", type=int, default=200)
     args = parser.parse_args(argv)
     base = baseline_tree(args.rev)
-    runs = [(c, args.grains, t, "cpu") for c in args.cases for t in args.threads]
-    if args.cuda_sim:
+    runs = []
+    if "cpu" in args.devices:
+        runs += [(c, args.grains, t, "cpu") for c in args.cases for t in args.threads]
+    if "cuda" in args.devices:
         runs += [(c, args.cuda_grains, 1, "cuda") for c in args.cases if c in STATIC]
     same_all = True
     with tempfile.TemporaryDirectory(prefix="fastsdf_grain_bits_") as tmp:

@@ -63,6 +63,7 @@ from numpy.typing import ArrayLike
 from fastsdf.granular.cells import (
     INDEX_MASK,
     CellGrid,
+    SortedGrains,
     build_verlet,
     carry_springs,
     cell_keys,
@@ -74,6 +75,7 @@ from fastsdf.granular.cells import (
 from fastsdf.granular.kernels import (
     Bulk,
     Grains,
+    Near,
     kick_drift,
     kinetic_energy,
     pair_energy,
@@ -489,18 +491,8 @@ class GranularSimulation:
             self._old_start, self._nbr_start = self._nbr_start, self._old_start
             self._old_nbr, self._nbr = self._nbr, self._old_nbr
             self._old_spring, self._spring = self._spring, self._old_spring
-        self._nbr = build_verlet(
-            g.x,
-            g.y,
-            g.radius,
-            self._keys,
-            self._cell_start,
-            grid,
-            self.skin,
-            self._chunks,
-            self._nbr_start,
-            self._nbr,
-        )
+        cells = SortedGrains(g.x, g.y, g.radius, self._keys, self._cell_start, self.skin)
+        self._nbr = build_verlet(cells, grid, self._chunks, self._nbr_start, self._nbr)
         self.grid = grid
         if self._history:
             if self._spring.shape[0] < self._nbr.shape[0]:
@@ -534,7 +526,8 @@ class GranularSimulation:
         self.timings["rebuild"] += _time.perf_counter() - t0
 
     # -- forces ------------------------------------------------------------------------------
-    def _query_world(self) -> tuple:
+    def _query_world(self) -> Near:
+        """The grains the force pass asks the world about and the world there."""
         g = self.grains
         if self.moving:
             idx = np.arange(g.x.shape[0])
@@ -550,7 +543,7 @@ class GranularSimulation:
             vn = np.zeros(idx.shape[0])
         d = np.ascontiguousarray(d, dtype=np.float64).reshape(-1)
         grad = np.asarray(grad, dtype=np.float64).reshape(-1, 2)
-        return idx, d, np.ascontiguousarray(grad[:, 0]), np.ascontiguousarray(grad[:, 1]), vn
+        return Near(idx, d, np.ascontiguousarray(grad[:, 0]), np.ascontiguousarray(grad[:, 1]), vn)
 
     def _forces(self, wall_sum: np.ndarray, dt: float) -> None:
         t0 = _time.perf_counter()
@@ -569,17 +562,13 @@ class GranularSimulation:
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
-            idx, d, gx, gy, vn = self._query_world()
-            if idx.shape[0]:
+            near = self._query_world()
+            if near.idx.shape[0]:
                 # (compiled when the first grain comes near the world, often within a run)
                 with compiling_first("the granular kernels' contacts with the world", wall_forces):
                     fx, fy = wall_forces(
                         self.grains,
-                        idx,
-                        d,
-                        gx,
-                        gy,
-                        vn,
+                        near,
                         self._wall_spring if self.wall_contact.history else None,
                         self.wall_contact,
                         self.bulk,
@@ -587,8 +576,8 @@ class GranularSimulation:
                     )
                 wall_sum[0] += fx
                 wall_sum[1] += fy
-            self._wall_d = d
-            self._wall_last = idx
+            self._wall_d = near.d
+            self._wall_last = near.idx
             self.timings["walls"] += _time.perf_counter() - t1
 
     # -- time stepping ----------------------------------------------------------------------
@@ -773,9 +762,9 @@ class GranularSimulation:
             g, self._nbr_start, self._nbr, memory, self.contact, self.bulk
         )
         if self.world is not None:
-            idx, d, _, _, _ = self._query_world()
+            near = self._query_world()
             wall_memory = self._wall_spring if self.wall_contact.history else None
-            wn, wt, wr, _ = wall_energy(g, idx, d, wall_memory, self.wall_contact)
+            wn, wt, wr, _ = wall_energy(g, near.idx, near.d, wall_memory, self.wall_contact)
             normal, tangential, rolling = normal + wn, tangential + wt, rolling + wr
         parts = {
             "kinetic": float(kinetic),
@@ -796,8 +785,8 @@ class GranularSimulation:
         )
         walls = 0
         if self.world is not None:
-            idx, d, _, _, _ = self._query_world()
-            walls = wall_energy(self.grains, idx, d, None, self.wall_contact)[3]
+            near = self._query_world()
+            walls = wall_energy(self.grains, near.idx, near.d, None, self.wall_contact)[3]
         return int(pairs), int(walls)
 
     def neighbour_pairs(self) -> np.ndarray:
