@@ -64,6 +64,7 @@ from fastsdf.granular.kernels import (
     WallPair,
     grain_mass,
     half_kick,
+    image_shift,
     kick_grain,
     kinetic_energy,
     law_terms,
@@ -536,6 +537,27 @@ def _kernels(at: Any, model: Model) -> tuple:
     return _KERNELS[key]
 
 
+_NEIGHBOUR: list = []
+
+
+def _neighbour() -> Any:
+    """The device function ``(st, nbr, k, i, xi, yi, period) -> (j, dx, dy)``: grain ``i``'s
+    ``k``-th listed neighbour ``j`` and the offset ``(x_i, y_i) - (x_j, y_j)`` (the periodic
+    image applied); ``j = -1`` past the last."""
+    if not _NEIGHBOUR:
+
+        @cu.jit(device=True)
+        def neighbour(st, nbr, k, i, xi, yi, period):
+            e = nbr[k, i]
+            if e == EMPTY:
+                return -1, 0.0, 0.0
+            j = e & INDEX_MASK
+            return j, xi - st[X, j] - image_shift(e, period), yi - st[Y, j]
+
+        _NEIGHBOUR.append(neighbour)
+    return _NEIGHBOUR[0]
+
+
 class Centre(NamedTuple):
     """Grain ``i`` as its contacts see it, read once by the force pass: centre ``(x, y)``,
     radius ``r``, predicted velocity ``(vx, vy)`` and angular velocity ``w``."""
@@ -553,6 +575,8 @@ def _pair_sum(history: bool, roll: bool) -> Any:
     ``i`` (``me``, a :class:`Centre`) against its listed neighbours under ``law`` (a
     :class:`~fastsdf.granular.kernels.Law`), its springs in ``mem`` updated."""
 
+    neighbour = _neighbour()
+
     @cu.jit(device=True)
     def pair_sum(st, nbr, mem, i, me, law, period):
         ri = me.r
@@ -562,15 +586,11 @@ def _pair_sum(history: bool, roll: bool) -> Any:
         fy = 0.0
         tq = 0.0
         for k in range(nbr.shape[0]):
-            e = nbr[k, i]
-            if e == EMPTY:
+            j, dx, dy = neighbour(st, nbr, k, i, me.x, me.y, period)
+            if j < 0:
                 break
-            j = e & INDEX_MASK
-            image = e >> 30
-            shift = period * (float(image & 1) - float(image >> 1))
-            pair = Pair(me.x - st[X, j] - shift, me.y - st[Y, j], ri, st[R, j],
-                        me.vx - st[PX, j], me.vy - st[PY, j], me.w, st[PW, j],
-                        i < j)  # fmt: skip
+            pair = Pair(dx, dy, ri, st[R, j], me.vx - st[PX, j], me.vy - st[PY, j], me.w,
+                        st[PW, j], i < j)  # fmt: skip
             s = 0.0
             mr = 0.0
             if history:
@@ -669,6 +689,7 @@ def _world_kernels(at: Any) -> tuple:
     """``(mark_near, energy)`` of the world ``at`` (compiled once per world function)."""
     if at in _WORLD_KERNELS:
         return _WORLD_KERNELS[at]
+    neighbour = _neighbour()
 
     @cu.jit
     def mark_near(st, world, skin):
@@ -695,15 +716,11 @@ def _world_kernels(at: Any) -> tuple:
         e = 0.0
         c = 0.0
         for k in range(nbr.shape[0]):
-            v = nbr[k, i]
-            if v == EMPTY:
+            j, dx, dy = neighbour(st, nbr, k, i, st[X, i], st[Y, i], period)
+            if j < 0:
                 break
-            j = v & INDEX_MASK
             if j <= i:
                 continue
-            image = v >> 30
-            dx = st[X, i] - st[X, j] - period * (float(image & 1) - float(image >> 1))
-            dy = st[Y, i] - st[Y, j]
             delta = st[R, i] + st[R, j] - math.sqrt(dx * dx + dy * dy)
             if delta > 0.0:
                 e += 0.5 * kn * delta * delta

@@ -29,9 +29,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
-# The kernels take the arrays out of a Grains tuple by attribute before their parallel loop:
-# numba (0.68) drops stores made inside prange through ``g.x[i] = ...`` or through names bound
-# by unpacking (``x, y = g.x, g.y`` included): one plain assignment per array.
+# The parallel passes run each chunk of grains through a serial function, or take the arrays
+# they write out of a Grains tuple by attribute before their parallel loop: numba (0.68) drops
+# stores made inside prange through ``g.x[i] = ...`` or through names bound by unpacking
+# (``x, y = g.x, g.y`` included), not those of a function it calls.
 
 # Floating-point liberties of the force pass: fused multiply-adds, reciprocals and signed
 # zeros only (no reassociation: the two sides of a pair across chunks must compute the same
@@ -48,6 +49,7 @@ __all__ = [
     "WallPair",
     "grain_mass",
     "half_kick",
+    "image_shift",
     "kick_drift",
     "kick_grain",
     "kinetic_energy",
@@ -188,6 +190,15 @@ class Near(NamedTuple):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def image_shift(entry: int, period: float) -> float:
+    """How far a neighbour-list entry sees its grain moved by its periodic image (see
+    :mod:`fastsdf.granular.cells`): ``x_i - x_j - image_shift(entry, period)`` is the offset
+    of the pair (0, ``period`` or ``-period``, exactly)."""
+    image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
+    return period * (np.float64(image & 1) - np.float64(image >> 1))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def law_terms(law: Any, density: float, dt: float) -> Law:
     """The :class:`Law` of a :class:`~fastsdf.granular.ContactLaw` (its stiffness given) for
     grains of ``density`` stepped by ``dt``."""
@@ -204,6 +215,24 @@ def law_terms(law: Any, density: float, dt: float) -> Law:
         density,
         dt,
     )
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _recall(springs: np.ndarray, roll: bool) -> tuple:
+    """A contact's memory from its ``springs`` (a row of the list's memory, a column of the
+    world's): ``(s, m_roll)``, the tangential spring's stretch and, with ``roll``, the
+    rolling torque (else 0)."""
+    if roll:
+        return springs[0], springs[1]
+    return springs[0], 0.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _keep(springs: np.ndarray, s: float, m_roll: float, roll: bool) -> None:
+    """Store a contact's memory into its ``springs`` (see :func:`_recall`)."""
+    springs[0] = s
+    if roll:
+        springs[1] = m_roll
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
@@ -445,6 +474,77 @@ def kick_grain(grain: Grain, dt_kick: float, dt: float, density: float) -> tuple
     )
 
 
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def _start_chunk(g: Grains, lo: int, hi: int, law: Law, bulk: Bulk) -> None:
+    """The start of a force pass for grains ``lo:hi`` (see :func:`pair_forces`): their
+    velocities half-kicked by their previous force, their forces reset to gravity."""
+    for i in range(lo, hi):
+        ri = g.radius[i]
+        mi = grain_mass(ri, law.density)
+        g.vx[i], g.vy[i], g.omega[i] = half_kick(
+            g.vx[i], g.vy[i], g.omega[i], ri, g.fx[i], g.fy[i], g.torque[i], 0.5 * law.dt,
+            law.density,
+        )  # fmt: skip
+        g.fx[i] = mi * bulk.gravity_x
+        g.fy[i] = mi * bulk.gravity_y
+        g.torque[i] = 0.0
+
+
+# (The predicted velocities of grain i are read in the loop over its neighbours, as they
+# always were: which product of a sum becomes a fused multiply-add follows from what the
+# compiler hoists out of the loop, so reading them once before it changes the rounding.)
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def _chunk_pairs(
+    g: Grains,
+    lo: int,
+    hi: int,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    memory: np.ndarray | None,
+    law: Law,
+    period: float,
+) -> None:
+    """The contacts of grains ``lo:hi`` with their listed neighbours (see
+    :func:`pair_forces`), added to their forces, and to a neighbour's in the same chunk."""
+    history = memory is not None
+    roll = law.mu_r > 0.0
+    x = g.x
+    y = g.y
+    for i in range(lo, hi):
+        xi = x[i]
+        yi = y[i]
+        ri = g.radius[i]
+        mi = grain_mass(ri, law.density)
+        gamma_equal = law.damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
+        fx = 0.0
+        fy = 0.0
+        tq = 0.0
+        for k in range(nbr_start[i], nbr_start[i + 1]):
+            entry = nbr[k]
+            j = entry & 0x3FFFFFFF
+            pair = Pair(
+                xi - x[j] - image_shift(entry, period), yi - y[j], ri, g.radius[j],
+                g.px[i] - g.px[j], g.py[i] - g.py[j], g.pomega[i], g.pomega[j], i < j,
+            )  # fmt: skip
+            s, mr = _recall(memory[k], roll) if memory is not None else (0.0, 0.0)
+            touch, cfx, cfy, cross, s, mr = pair_force(
+                pair, mi, gamma_equal, law, s, mr, history, roll
+            )
+            if memory is not None:
+                _keep(memory[k], s, mr, roll)
+            if touch:
+                fx += cfx
+                fy += cfy
+                tq += mr - ri * cross
+                if j >= lo and j < hi:  # same chunk: Newton's third law here
+                    g.fx[j] -= cfx
+                    g.fy[j] -= cfy
+                    g.torque[j] -= mr + g.radius[j] * cross
+        g.fx[i] += fx
+        g.fy[i] += fy
+        g.torque[i] += tq
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
 def pair_forces(
     g: Grains,
@@ -478,74 +578,12 @@ def pair_forces(
     numba prunes the ``memory is None`` branches for the type of ``memory``, so each variant
     compiles to its own loop."""
     terms = law_terms(law, bulk.density, dt)
-    history = memory is not None
-    roll = terms.mu_r > 0.0
-    period = bulk.period
-    x = g.x
-    y = g.y
-    rad = g.radius
-    gvx = g.vx
-    gvy = g.vy
-    gw = g.omega
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    vx = g.px
-    vy = g.py
-    w = g.pomega
-    n = x.shape[0]
+    n = g.x.shape[0]
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        for i in range(lo, hi):
-            ri = rad[i]
-            mi = grain_mass(ri, terms.density)
-            gvx[i], gvy[i], gw[i] = half_kick(
-                gvx[i], gvy[i], gw[i], ri, gfx[i], gfy[i], gtq[i], 0.5 * dt, terms.density
-            )
-            gfx[i] = mi * bulk.gravity_x
-            gfy[i] = mi * bulk.gravity_y
-            gtq[i] = 0.0
-        for i in range(lo, hi):
-            ri = rad[i]
-            mi = grain_mass(ri, terms.density)
-            gamma_equal = terms.damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
-            fx = 0.0
-            fy = 0.0
-            tq = 0.0
-            for k in range(nbr_start[i], nbr_start[i + 1]):
-                entry = nbr[k]
-                j = entry & 0x3FFFFFFF
-                image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
-                shift = period * (np.float64(image & 1) - np.float64(image >> 1))
-                pair = Pair(
-                    x[i] - x[j] - shift, y[i] - y[j], ri, rad[j], vx[i] - vx[j], vy[i] - vy[j],
-                    w[i], w[j], i < j,
-                )  # fmt: skip
-                s = 0.0
-                mr = 0.0
-                if memory is not None:
-                    s = memory[k, 0]
-                    if roll:
-                        mr = memory[k, 1]
-                touch, cfx, cfy, cross, s, mr = pair_force(
-                    pair, mi, gamma_equal, terms, s, mr, history, roll
-                )
-                if memory is not None:
-                    memory[k, 0] = s
-                    if roll:
-                        memory[k, 1] = mr
-                if touch:
-                    fx += cfx
-                    fy += cfy
-                    tq += mr - ri * cross
-                    if j >= lo and j < hi:  # same chunk: Newton's third law here
-                        gfx[j] -= cfx
-                        gfy[j] -= cfy
-                        gtq[j] -= mr + rad[j] * cross
-            gfx[i] += fx
-            gfy[i] += fy
-            gtq[i] += tq
+        _start_chunk(g, lo, hi, terms, bulk)
+        _chunk_pairs(g, lo, hi, nbr_start, nbr, memory, terms, bulk.period)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -567,30 +605,19 @@ def wall_forces(
     terms = law_terms(law, bulk.density, dt)
     history = memory is not None
     roll = terms.mu_r > 0.0
-    idx = near.idx
-    vx = g.px
-    vy = g.py
-    w = g.pomega
-    rad = g.radius
     gfx = g.fx
     gfy = g.fy
     gtq = g.torque
     sx = 0.0
     sy = 0.0
-    for k in prange(idx.shape[0]):
-        i = idx[k]
-        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], rad[i], vx[i], vy[i], w[i])
-        s = 0.0
-        mr = 0.0
-        if memory is not None:
-            s = memory[0, i]
-            if roll:
-                mr = memory[1, i]
+    for k in prange(near.idx.shape[0]):
+        i = near.idx[k]
+        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], g.radius[i], g.px[i],
+                        g.py[i], g.pomega[i])  # fmt: skip
+        s, mr = _recall(memory[:, i], roll) if memory is not None else (0.0, 0.0)
         touch, cfx, cfy, tq, s, mr = wall_force(wall, terms, s, mr, history, roll)
         if memory is not None:
-            memory[0, i] = s
-            if roll:
-                memory[1, i] = mr
+            _keep(memory[:, i], s, mr, roll)
         if touch:
             gfx[i] += cfx
             gfy[i] += cfy
@@ -598,6 +625,38 @@ def wall_forces(
             sx += cfx
             sy += cfy
     return sx, sy
+
+
+@njit(cache=True, error_model="numpy")
+def _kick_chunk(
+    g: Grains,
+    lo: int,
+    hi: int,
+    dt_kick: float,
+    dt: float,
+    density: float,
+    x_ref: np.ndarray,
+    y_ref: np.ndarray,
+) -> float:
+    """The elementwise pass of grains ``lo:hi`` (see :func:`kick_drift`); returns their
+    largest squared displacement from ``(x_ref, y_ref)``."""
+    big = 0.0
+    for i in range(lo, hi):
+        grain = Grain(g.x[i], g.y[i], g.vx[i], g.vy[i], g.omega[i], g.radius[i], g.fx[i],
+                      g.fy[i], g.torque[i])  # fmt: skip
+        x, y, vx, vy, w, px, py, pw = kick_grain(grain, dt_kick, dt, density)
+        g.vx[i] = vx
+        g.vy[i] = vy
+        g.omega[i] = w
+        g.px[i] = px
+        g.py[i] = py
+        g.pomega[i] = pw
+        g.x[i] = x
+        g.y[i] = y
+        ex = x - x_ref[i]
+        ey = y - y_ref[i]
+        big = max(big, ex * ex + ey * ey)
+    return big
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -619,39 +678,12 @@ def kick_drift(
     ``dt = 0`` only completes the kick. Writes into ``chunk_max[c]`` the largest squared
     displacement from ``(x_ref, y_ref)`` among the grains of chunk ``c`` (the
     ``len(chunk_max)`` chunks split the grains evenly; per-chunk slots, no shared writes)."""
-    gx = g.x
-    gy = g.y
-    gvx = g.vx
-    gvy = g.vy
-    gw = g.omega
-    rad = g.radius
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    gpx = g.px
-    gpy = g.py
-    gpw = g.pomega
-    n = gx.shape[0]
+    n = g.x.shape[0]
     chunks = chunk_max.shape[0]
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        big = 0.0
-        for i in range(lo, hi):
-            grain = Grain(gx[i], gy[i], gvx[i], gvy[i], gw[i], rad[i], gfx[i], gfy[i], gtq[i])
-            x, y, vx, vy, w, px, py, pw = kick_grain(grain, dt_kick, dt, density)
-            gvx[i] = vx
-            gvy[i] = vy
-            gw[i] = w
-            gpx[i] = px
-            gpy[i] = py
-            gpw[i] = pw
-            gx[i] = x
-            gy[i] = y
-            ex = x - x_ref[i]
-            ey = y - y_ref[i]
-            big = max(big, ex * ex + ey * ey)
-        chunk_max[c] = big
+        chunk_max[c] = _kick_chunk(g, lo, hi, dt_kick, dt, density, x_ref, y_ref)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -660,6 +692,20 @@ def _rolling_energy(torque, kn, mu_r, r_eff):
     2.25 k_n mu_r**2 R_eff**2`` (see :func:`_rolling_spring`: its torque grows by ``-k_r``
     times the relative rotation, and the cap only truncates it)."""
     return 0.5 * torque * torque / (2.25 * kn * mu_r * mu_r * r_eff * r_eff)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _springs_held(law, springs, r_eff):
+    """``(tangential, rolling)``: the energy held by one contact's springs under ``law`` (a
+    :class:`~fastsdf.granular.ContactLaw`), ``k_t s**2 / 2`` of the stretch ``springs[0]``
+    and, with rolling friction, :func:`_rolling_energy` of the torque ``springs[1]``."""
+    kn = law.stiffness
+    s = springs[0]
+    tangential = 0.5 * (law.tangential_stiffness * kn) * s * s
+    mu_r = law.rolling_friction
+    if mu_r > 0.0:
+        return tangential, _rolling_energy(springs[1], kn, mu_r, r_eff)
+    return tangential, 0.0
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -683,9 +729,6 @@ def pair_energy(
     er = 0.0
     count = 0
     kn = law.stiffness
-    kt = law.tangential_stiffness * kn
-    mu_r = law.rolling_friction
-    roll = mu_r > 0.0
     period = bulk.period
     for i in prange(g.x.shape[0]):
         for k in range(nbr_start[i], nbr_start[i + 1]):
@@ -693,8 +736,7 @@ def pair_energy(
             j = entry & 0x3FFFFFFF
             if j <= i:  # a pair listed at both grains is counted at the lower index
                 continue
-            image = entry >> 30
-            dx = g.x[i] - g.x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
+            dx = g.x[i] - g.x[j] - image_shift(entry, period)
             dy = g.y[i] - g.y[j]
             rsum = g.radius[i] + g.radius[j]
             delta = rsum - math.sqrt(dx * dx + dy * dy)
@@ -702,10 +744,9 @@ def pair_energy(
                 en += 0.5 * kn * delta * delta
                 count += 1
             if memory is not None:
-                et += 0.5 * kt * memory[k, 0] * memory[k, 0]
-                if roll:
-                    r_eff = g.radius[i] * g.radius[j] / rsum
-                    er += _rolling_energy(memory[k, 1], kn, mu_r, r_eff)
+                held, rolling = _springs_held(law, memory[k], g.radius[i] * g.radius[j] / rsum)
+                et += held
+                er += rolling
     return en, et, er, count
 
 
@@ -722,9 +763,6 @@ def wall_energy(
     er = 0.0
     count = 0
     kn = law.stiffness
-    kt = law.tangential_stiffness * kn
-    mu_r = law.rolling_friction
-    roll = mu_r > 0.0
     for k in range(idx.shape[0]):
         i = idx[k]
         delta = g.radius[i] - d[k]
@@ -732,9 +770,9 @@ def wall_energy(
             en += 0.5 * kn * delta * delta
             count += 1
         if memory is not None:
-            et += 0.5 * kt * memory[0, i] * memory[0, i]
-            if roll:
-                er += _rolling_energy(memory[1, i], kn, mu_r, g.radius[i])
+            held, rolling = _springs_held(law, memory[:, i], g.radius[i])
+            et += held
+            er += rolling
     return en, et, er, count
 
 
