@@ -154,9 +154,9 @@ def _no_world(data: Any, x: float, y: float) -> tuple:
 
 
 def _scene_point(scene: Any, what: str) -> tuple:
-    """A static scene's value-and-gradient device function and its tables on the device
-    (:class:`fastsdf.backends.cuda.CudaKernels`: the CPU's point function emitted for the
-    GPU, tables as arguments)."""
+    """A static scene's value-and-gradient device function and its tables on the device (the
+    function layer's ``scene.compiled.cuda``: the CPU's point function emitted for the GPU,
+    ``module.point_vg``, its tables as arguments, ``table_args()``)."""
     if getattr(scene, "param_names", ()) or getattr(scene, "time_dependent", False):
         raise ValueError(
             f"the CUDA engine takes a static world (a GridSDF, or a scene without parameters "
