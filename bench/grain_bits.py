@@ -26,6 +26,12 @@ grains (the engine's ``PARALLEL_MIN_GRAINS``) the passes run on two threads.
 
 ``--devices cuda``: a small bed of each static world on ``device='cuda'`` under numba-cuda's
 simulator (slow: ``--cuda-grains``, 200 by default, two frames).
+
+``--compile-time``: instead, the cold compile of the granular kernels on each side (a fresh
+``NUMBA_CACHE_DIR``; the world's own kernel compiled first, outside the figure): the CPU
+seconds of building a 400-grain simulation on a floor, x periodic, and running two frames and
+``energy()``, for ``gran/hooke`` and then ``gran/hooke/history`` with rolling friction (the
+second reuses what the first compiled), ``--rounds`` times, alternating sides.
 """
 
 from __future__ import annotations
@@ -114,6 +120,31 @@ if law.history:
 np.savez(sys.argv[2], **out)
 """
 
+# Run in a fresh interpreter with a cold numba cache: prints the CPU seconds of each law's
+# first simulation as JSON.
+COMPILE = r"""
+import json, time
+import numpy as np
+import fastsdf as fs
+from fastsdf.granular import ContactLaw, GranularSimulation
+
+rng = np.random.default_rng(0)
+p = np.c_[rng.uniform(0, 10, 400), rng.uniform(0.3, 10, 400)]
+world = fs.Halfspace((0.0, 1.0), 0.0)
+world(np.zeros(3), np.zeros(3), compute_gradient=True)
+out = {}
+laws = {"hooke": ContactLaw(1e4), "history+rolling": ContactLaw(1e4, history=True,
+                                                                rolling_friction=0.1)}
+for name, law in laws.items():
+    t0 = time.process_time()
+    sim = GranularSimulation(world, positions=p, radius=0.2, contacts=law, timestep=0.01,
+                             periodic_x=(0.0, 10.0))
+    sim.run(2)
+    sim.energy()
+    out[name] = time.process_time() - t0
+print(json.dumps(out))
+"""
+
 CASES = (
     "hooke, grid world, periodic x",
     "history + rolling, scene world, periodic x",
@@ -163,6 +194,22 @@ def run_side(tree: str, case: str, grains: int, threads: int, device: str, out: 
         return {k: z[k] for k in z.files}
 
 
+def compile_times(trees: dict, rounds: int) -> None:
+    """Print the cold compile of each side (see ``--compile-time``), ``rounds`` times."""
+    for _ in range(rounds):
+        for side, tree in trees.items():
+            with tempfile.TemporaryDirectory(prefix="fastsdf_grain_numba_") as cache:
+                env = dict(os.environ, PYTHONPATH=tree, MPLBACKEND="Agg", NUMBA_CACHE_DIR=cache)
+                res = subprocess.run(
+                    [sys.executable, "-c", COMPILE], env=env, cwd=tree, capture_output=True,
+                    text=True,
+                )  # fmt: skip
+            if res.returncode:
+                raise RuntimeError(f"the compile run failed in {tree}:\n{res.stderr[-3000:]}")
+            times = json.loads(res.stdout.strip().splitlines()[-1])
+            print(f"{side}: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()), flush=True)
+
+
 def same_bits(a: dict, b: dict) -> list:
     """The names of the arrays that differ (in keys, shape, dtype or any bit)."""
     differ = sorted(set(a) ^ set(b))
@@ -185,8 +232,13 @@ def main(argv: list | None = None) -> int:
     parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     parser.add_argument("--devices", nargs="+", choices=("cpu", "cuda"), default=["cpu"])
     parser.add_argument("--cuda-grains", type=int, default=200)
+    parser.add_argument("--compile-time", action="store_true", help="cold compiles instead")
+    parser.add_argument("--rounds", type=int, default=2, help="with --compile-time")
     args = parser.parse_args(argv)
     base = baseline_tree(args.rev)
+    if args.compile_time:
+        compile_times({"baseline": base, "this": REPO}, args.rounds)
+        return 0
     runs = []
     if "cpu" in args.devices:
         runs += [(c, args.grains, t, "cpu") for c in args.cases for t in args.threads]
