@@ -172,8 +172,11 @@ def ptx_check(cc: tuple = (9, 0)) -> list:
 
     import fastsdf as fs
     import fastsdf.granular.cuda as gc
+    from fastsdf.granular.cells import CellGrid
+    from fastsdf.granular.kernels import Bulk, Law
 
-    gc.device_data = lambda grid: grid.sampler_data  # the types of the device copy
+    gc._load()
+    fs.GridSDF.device_sampler_data = lambda grid: grid.sampler_data  # the device copy's types
     n, slots = 64, 7
     a = {
         "st": np.zeros((12, n)),
@@ -184,19 +187,20 @@ def ptx_check(cc: tuple = (9, 0)) -> list:
         "flag": np.zeros(3, np.int32),
         "f64": np.zeros(n),
     }
-    cell = (0.0, 0.0, 1.0, 1.0, 5, 5, 0.0)
+    cell = CellGrid(0.0, 0.0, 1.0, 1.0, 5, 5, 0.0)
     done = []
 
     def ptx(kernel: Any, *args: Any) -> None:
         sig = tuple(numba.typeof(v) for v in args)
-        code, _ = nbcuda.compile_ptx(kernel.py_func, sig, cc=cc)
-        done.append((kernel.py_func.__name__, len(code)))
+        fn = getattr(kernel, "py_func", None) or kernel._fn
+        code, _ = nbcuda.compile_ptx(fn, sig, cc=cc)
+        done.append((fn.__name__, len(code)))
 
     st, i32, f32, nbr, flag = a["st"], a["i32"], a["f32"], a["nbr"], a["flag"]
     ptx(gc._fill_i32, i32, 0)
     ptx(gc._fill_u32, nbr.reshape(-1), gc.EMPTY)
     ptx(gc._bounds, st, np.zeros(5))
-    ptx(gc._keys, st, *cell, i32, i32, i32)
+    ptx(gc._keys, st, cell, i32, i32, i32)
     ptx(gc._scan_runs, i32, 5, i32, 64)
     ptx(gc._add_offsets, i32, 5, i32, 64)
     ptx(gc._scatter, i32, i32, i32, i32)
@@ -205,7 +209,7 @@ def ptx_check(cc: tuple = (9, 0)) -> list:
     ptx(gc._put_row, st, 3, a["f64"])
     ptx(gc._gather_i32, i32, i32, i32)
     ptx(gc._copy_i32, i32, i32)
-    ptx(gc._build, st, i32, *cell, 0.2, nbr, flag)
+    ptx(gc._build, st, i32, cell, 0.2, nbr, flag)
     ptx(gc._carry, i32, nbr, np.zeros((1, slots, n)), nbr, np.zeros((1, slots, n)))
     ptx(gc._set_refs, st, f32, f32)
     floor = fs.Halfspace((0.0, 1.0), 0.0)
@@ -216,17 +220,19 @@ def ptx_check(cc: tuple = (9, 0)) -> list:
         fs.GridSDF(floor, bounds=bounds, samples=[11, 7]),
         fs.GridSDF(floor, bounds=bounds, samples=[11, 7], mode="nearest"),
     ]
-    law = (1.0,) * 6
+    law = Law(*(1.0,) * 9)
+    bulk = Bulk(1.0, 0.0, -1.0, 0.0, 0.0)
+    ptx(gc._drift, 3, flag, st, f32, f32, 0.5, 1e-4, 1.0, 0.01)
     for world in worlds:
         at, data = gc._world_point(world)
         for hist, roll in ((False, False), (True, False), (True, True)):
-            drift, forces, mark_near, energy = gc._kernels(at, hist, roll, hist, roll)
+            _, forces, mark_near, energy = gc._kernels(at, gc.Model(hist, roll, hist, roll))
             mem = np.zeros((2 if roll else 1, slots if hist else 1, n if hist else 1))
             wmem = np.zeros((2 if roll else int(hist), n))
-            ptx(drift, 3, flag, st, f32, f32, 0.5, 1e-4, 1.0, 0.01)
-            ptx(forces, flag, st, nbr, mem, a["i8"], wmem, data, law, law, law[:4], 1e-4, a["f64"])
-            ptx(mark_near, st, a["i8"], wmem, data, 0.2)
-            ptx(energy, st, nbr, a["i8"], data, 1.0, 1.0, 0.0, np.zeros((4, n)))
+            dev = gc.DeviceWorld(a["i8"], wmem, data, np.zeros(2))
+            ptx(forces, flag, st, nbr, mem, dev, law, law, bulk)
+            ptx(mark_near, st, dev, 0.2)
+            ptx(energy, st, nbr, dev, 1.0, 1.0, 0.0, np.zeros((4, n)))
     return done
 
 

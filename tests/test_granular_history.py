@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 import fastsdf as fs
 from fastsdf.expr.graph import Param
 from fastsdf.granular import ContactLaw, GranularSimulation, repose_angle
-from fastsdf.granular.kernels import _contact_history
+from fastsdf.granular.kernels import Law, _contact_history
 
 
 @pytest.fixture(autouse=True)
@@ -184,9 +184,8 @@ def test_tangential_force_never_exceeds_coulomb(delta, vn, vt, wr, s, mu, angle)
     vrx = vn * nx + vt * tx
     vry = vn * ny + vt * ty
     kn, kt, gamma_n, tdamp, dt = 1e4, 1e4 * 2 / 7, 30.0, 0.5, 1e-3
-    fx, fy, ftx, fty, s_new, fn = _contact_history(
-        delta, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s
-    )
+    law = Law(kn=kn, kt=kt, zeta=0.0, damp=0.0, mu=mu, mu_r=0.0, tdamp=tdamp, density=1.0, dt=dt)
+    fx, fy, ftx, fty, s_new, fn = _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, law, s)
     ft = math.hypot(ftx, fty)
     assert ft <= abs(mu * fn) * (1 + 1e-12) + 1e-300
     vts = vt - wr

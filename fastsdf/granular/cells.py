@@ -30,6 +30,7 @@ INDEX_MASK = (1 << 30) - 1
 __all__ = [
     "INDEX_MASK",
     "CellGrid",
+    "SortedGrains",
     "brute_force_pairs",
     "build_verlet",
     "carry_springs",
@@ -161,17 +162,36 @@ def permute(arrays: tuple, perm: np.ndarray, scratch: np.ndarray) -> None:
         _gather(a, perm, scratch.view(a.dtype) if a.dtype.itemsize == 8 else scratch)
 
 
+class SortedGrains(NamedTuple):
+    """Grains sorted by cell as the neighbour search reads them: centres ``x, y`` and radii
+    ``radius`` (float64), each grain's cell ``keys`` (int32), the cells' ``cell_start``
+    (int64; cell ``c`` holds grains ``cell_start[c]:cell_start[c + 1]``) and the list's
+    ``skin``. (The grid travels beside it: numba's parallel loops take no tuple nested in a
+    tuple.)"""
+
+    x: np.ndarray
+    y: np.ndarray
+    radius: np.ndarray
+    keys: np.ndarray
+    cell_start: np.ndarray
+    skin: float
+
+
 @njit(cache=True, inline="always", error_model="numpy")
-def _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
-    """Neighbours of grain ``i`` (grains sorted by cell) in its chunk ``lo:hi`` with a larger
-    index, and all those outside its chunk: their count, written from ``out[at]`` when
-    ``fill``."""
-    c = keys[i]
+def _scan(i, lo, hi, cells, grid, out, at, fill):
+    """Neighbours of grain ``i`` of ``cells`` (a :class:`SortedGrains` in the cells of
+    ``grid``) in its chunk ``lo:hi`` with a larger index, and all those outside its chunk:
+    their count, written from ``out[at]`` when ``fill``."""
+    x = cells.x
+    y = cells.y
+    radius = cells.radius
+    cell_start = cells.cell_start
+    c = cells.keys[i]
     cx = c % grid.ncx
     cy = c // grid.ncx
     xi = x[i]
     yi = y[i]
-    ri = radius[i] + skin
+    ri = radius[i] + cells.skin
     count = 0
     for oy in range(-1, 2):
         ky = cy + oy
@@ -203,56 +223,45 @@ def _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, out, at, fill):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _count_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, counts):
-    n = x.shape[0]
+def _count_neighbours(cells, grid, chunks, counts):
+    n = cells.x.shape[0]
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
         for i in range(lo, hi):
-            counts[i] = _scan(
-                i, lo, hi, x, y, radius, keys, cell_start, grid, skin, counts, 0, False
-            )
+            counts[i] = _scan(i, lo, hi, cells, grid, counts, 0, False)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, nbr_start, nbr):
-    n = x.shape[0]
+def _fill_neighbours(cells, grid, chunks, nbr_start, nbr):
+    n = cells.x.shape[0]
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
         for i in range(lo, hi):
-            _scan(i, lo, hi, x, y, radius, keys, cell_start, grid, skin, nbr, nbr_start[i], True)
+            _scan(i, lo, hi, cells, grid, nbr, nbr_start[i], True)
 
 
 def build_verlet(
-    x: np.ndarray,
-    y: np.ndarray,
-    radius: np.ndarray,
-    keys: np.ndarray,
-    cell_start: np.ndarray,
-    grid: CellGrid,
-    skin: float,
-    chunks: int,
-    nbr_start: np.ndarray,
-    nbr: np.ndarray | None,
+    cells: SortedGrains, grid: CellGrid, chunks: int, nbr_start: np.ndarray, nbr: np.ndarray | None
 ) -> np.ndarray:
-    """The Verlet list of grains sorted by cell, for a force pass split into ``chunks``
-    contiguous chunks of grains (chunk ``c`` holds ``c n // chunks`` to ``(c + 1) n // chunks
-    - 1``): a pair inside one chunk is listed once, at its lower index (the chunk's pass
-    applies the force to both grains: Newton's third law, half the work), a pair across two
-    chunks at both grains (each chunk writes only its own grains: no races). ``nbr_start``
-    (int64, n + 1; filled here) and the entries (uint32, see the module docs), reusing ``nbr``
-    when it is large enough (grown by a quarter otherwise). Two passes (count, prefix sum,
-    fill), both parallel over chunks."""
-    n = x.shape[0]
+    """The Verlet list of grains sorted by the cells of ``grid`` (``cells``), for a force
+    pass split into ``chunks`` contiguous chunks of grains (chunk ``c`` holds ``c n // chunks``
+    to ``(c + 1) n // chunks - 1``): a pair inside one chunk is listed once, at its lower index
+    (the chunk's pass applies the force to both grains: Newton's third law, half the work), a
+    pair across two chunks at both grains (each chunk writes only its own grains: no races).
+    ``nbr_start`` (int64, n + 1; filled here) and the entries (uint32, see the module docs),
+    reusing ``nbr`` when it is large enough (grown by a quarter otherwise). Two passes (count,
+    prefix sum, fill), both parallel over chunks."""
+    n = cells.x.shape[0]
     counts = nbr_start[1:]
-    _count_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, counts)
+    _count_neighbours(cells, grid, chunks, counts)
     nbr_start[0] = 0
     np.cumsum(counts, out=counts)
     total = int(nbr_start[n])
     if nbr is None or nbr.shape[0] < total:
         nbr = np.empty(total + total // 4 + 16, np.uint32)
-    _fill_neighbours(x, y, radius, keys, cell_start, grid, skin, chunks, nbr_start, nbr)
+    _fill_neighbours(cells, grid, chunks, nbr_start, nbr)
     return nbr
 
 

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 import time as _time
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import float64, njit
@@ -58,12 +58,16 @@ from fastsdf.device import cuda, simulated
 from fastsdf.fields.grid import GridSDF
 from fastsdf.granular.cells import INDEX_MASK, make_grid
 from fastsdf.granular.kernels import (
+    Grain,
     Grains,
-    _zeta,
+    Pair,
+    WallPair,
     grain_mass,
     half_kick,
+    image_shift,
     kick_grain,
     kinetic_energy,
+    law_terms,
     pair_force,
     wall_force,
 )
@@ -150,9 +154,9 @@ def _no_world(data: Any, x: float, y: float) -> tuple:
 
 
 def _scene_point(scene: Any, what: str) -> tuple:
-    """A static scene's value-and-gradient device function and its tables on the device
-    (:class:`fastsdf.backends.cuda.CudaKernels`: the CPU's point function emitted for the
-    GPU, tables as arguments)."""
+    """A static scene's value-and-gradient device function and its tables on the device (the
+    function layer's ``scene.compiled.cuda``: the CPU's point function emitted for the GPU,
+    ``module.point_vg``, its tables as arguments, ``table_args()``)."""
     if getattr(scene, "param_names", ()) or getattr(scene, "time_dependent", False):
         raise ValueError(
             f"the CUDA engine takes a static world (a GridSDF, or a scene without parameters "
@@ -286,18 +290,19 @@ def _bounds(st, out):
 
 
 @_Kernel
-def _keys(st, x0, y0, inv_w, inv_h, ncx, ncy, period, keys, rank, counts):
-    """Each grain's cell (x wrapped into the period first, as on the CPU) and its rank among
-    its cell's grains as the atomic count hands it out."""
+def _keys(st, grid, keys, rank, counts):
+    """Each grain's cell in ``grid`` (a :class:`~fastsdf.granular.cells.CellGrid`; x wrapped
+    into the period first, as on the CPU) and its rank among its cell's grains as the atomic
+    count hands it out."""
     i = cu.grid(1)
     if i < st.shape[1]:
         xi = st[X, i]
-        if period > 0.0:
-            xi = x0 + (xi - x0) % period
+        if grid.period > 0.0:
+            xi = grid.x0 + (xi - grid.x0) % grid.period
             st[X, i] = xi
-        cx = min(max(int((xi - x0) * inv_w), 0), ncx - 1)
-        cy = min(max(int((st[Y, i] - y0) * inv_h), 0), ncy - 1)
-        k = cy * ncx + cx
+        cx = min(max(int((xi - grid.x0) * grid.inv_w), 0), grid.ncx - 1)
+        cy = min(max(int((st[Y, i] - grid.y0) * grid.inv_h), 0), grid.ncy - 1)
+        k = cy * grid.ncx + cx
         keys[i] = k
         rank[i] = cu.atomic.add(counts, k, 1)
 
@@ -378,14 +383,15 @@ def _copy_i32(src, dst):
 
 
 @_Kernel
-def _build(st, cell_start, x0, y0, inv_w, inv_h, ncx, ncy, period, skin, nbr, flag):
-    """Grain ``i``'s neighbours closer than ``R_i + R_j + skin`` in the 3 x 3 cells around its
-    own, in cell order then index order, into its slots; a grain with more than the slots
-    records its count in ``flag[1]`` (atomic max)."""
+def _build(st, cell_start, grid, skin, nbr, flag):
+    """Grain ``i``'s neighbours closer than ``R_i + R_j + skin`` in the 3 x 3 cells of ``grid``
+    around its own, in cell order then index order, into its slots; a grain with more than the
+    slots records its count in ``flag[1]`` (atomic max)."""
     i = cu.grid(1)
     n = st.shape[1]
     if i >= n:
         return
+    x0, y0, inv_w, inv_h, ncx, ncy, period = grid
     slots = nbr.shape[0]
     xi = st[X, i]
     yi = st[Y, i]
@@ -464,200 +470,244 @@ def _set_refs(st, xref, yref):
         yref[i] = np.float32(st[Y, i])
 
 
+@_Kernel
+def _drift(s, flag, st, xref, yref, dt_kick, dt, density, lim):
+    """The elementwise pass of substep ``s`` (see :func:`fastsdf.granular.kernels.kick_drift`);
+    raises ``flag[0] = s`` when a grain has moved farther than ``sqrt(lim)`` since the list was
+    built. Does nothing once an earlier substep raised it."""
+    i = cu.grid(1)
+    if i >= st.shape[1]:
+        return
+    f = flag[0]
+    if f != 0 and f != s:
+        return
+    grain = Grain(st[X, i], st[Y, i], st[VX, i], st[VY, i], st[W, i], st[R, i], st[FX, i],
+                  st[FY, i], st[TQ, i])  # fmt: skip
+    x, y, vx, vy, w, px, py, pw = kick_grain(grain, dt_kick, dt, density)
+    st[X, i] = x
+    st[Y, i] = y
+    st[VX, i] = vx
+    st[VY, i] = vy
+    st[W, i] = w
+    st[PX, i] = px
+    st[PY, i] = py
+    st[PW, i] = pw
+    ex = x - xref[i]
+    ey = y - yref[i]
+    if not ex * ex + ey * ey <= lim:
+        flag[0] = s
+
+
 # -- kernels of one world and one contact model ---------------------------------------------
+
+
+class DeviceWorld(NamedTuple):
+    """The world as the kernels take it on the device: which grains the force pass asks it
+    about (``near``, int8 per grain, set at each rebuild), the grains' springs against it
+    (``springs``, a row per kind as on the CPU), the data of its device function (``data``,
+    see :func:`_world_point`) and the total force it exerts on the grains (``force``, 2
+    float64, summed by atomics)."""
+
+    near: Any
+    springs: Any
+    data: Any
+    force: Any
+
+
+class Model(NamedTuple):
+    """The contact model's variant, constants of the compiled force pass (as ``memory is
+    None`` is on the CPU): springs between grains (``history``) and their rolling torque
+    (``roll``), and the same against the world."""
+
+    history: bool
+    roll: bool
+    wall_history: bool
+    wall_roll: bool
+
 
 _KERNELS: dict = {}
 
 
-def _kernels(at: Any, history: bool, roll: bool, wall_history: bool, wall_roll: bool) -> tuple:
-    """The kernels that call the world ``at`` and the contact model's variant (compiled once
-    per combination: the flags are constants of the code, as ``memory is None`` is on the
-    CPU)."""
-    key = (at, history, roll, wall_history, wall_roll)
-    if key in _KERNELS:
-        return _KERNELS[key]
+def _kernels(at: Any, model: Model) -> tuple:
+    """``(drift, forces, mark_near, energy)``: the kernels that call the world ``at`` and the
+    contact ``model``'s variant (each compiled once per combination)."""
+    key = (at, model)
+    if key not in _KERNELS:
+        _KERNELS[key] = (_drift, _forces_kernel(at, model), *_world_kernels(at))
+    return _KERNELS[key]
 
-    @cu.jit
-    def drift(s, flag, st, xref, yref, dt_kick, dt, density, lim):
-        """The elementwise pass of substep ``s`` (see
-        :func:`fastsdf.granular.kernels.kick_drift`); raises ``flag[0] = s`` when a grain has
-        moved farther than ``sqrt(lim)`` since the list was built. Does nothing once an
-        earlier substep raised it."""
-        i = cu.grid(1)
-        if i >= st.shape[1]:
-            return
-        f = flag[0]
-        if f != 0 and f != s:
-            return
-        x, y, vx, vy, w, px, py, pw = kick_grain(
-            st[X, i],
-            st[Y, i],
-            st[VX, i],
-            st[VY, i],
-            st[W, i],
-            st[R, i],
-            st[FX, i],
-            st[FY, i],
-            st[TQ, i],
-            dt_kick,
-            dt,
-            density,
-        )
-        st[X, i] = x
-        st[Y, i] = y
-        st[VX, i] = vx
-        st[VY, i] = vy
-        st[W, i] = w
-        st[PX, i] = px
-        st[PY, i] = py
-        st[PW, i] = pw
-        ex = x - xref[i]
-        ey = y - yref[i]
-        if not ex * ex + ey * ey <= lim:
-            flag[0] = s
 
-    @cu.jit
-    def forces(flag, st, nbr, mem, near, wmem, wdata, law, wall, bulk, dt, wsum):
-        """The force pass (see :func:`fastsdf.granular.kernels.pair_forces` and
-        :func:`~fastsdf.granular.kernels.wall_forces`): half kick, gravity, each listed pair
-        (gathered by this grain alone), the world for grains near it. ``law = (k_n, k_t,
-        damp, mu, mu_r, tangential_damping)`` with ``damp = 2 zeta sqrt(k_n)``; ``wall =
-        (k_n, k_t, zeta, mu, mu_r, tangential_damping)``; ``bulk = (density, g_x, g_y,
-        period)``. Does nothing when ``flag[0]`` is raised."""
-        i = cu.grid(1)
-        n = st.shape[1]
-        if i >= n or flag[0] != 0:
-            return
-        kn, kt, damp, mu, mu_r, tdamp = law
-        density, grav_x, grav_y, period = bulk
-        ri = st[R, i]
-        mi = grain_mass(ri, density)
-        vx, vy, w = half_kick(
-            st[VX, i], st[VY, i], st[W, i], ri, st[FX, i], st[FY, i], st[TQ, i], 0.5 * dt, density
-        )
-        st[VX, i] = vx
-        st[VY, i] = vy
-        st[W, i] = w
-        xi = st[X, i]
-        yi = st[Y, i]
-        pxi = st[PX, i]
-        pyi = st[PY, i]
-        pwi = st[PW, i]
-        gamma_equal = damp * math.sqrt(0.5 * mi)
+_NEIGHBOUR: list = []
+
+
+def _neighbour() -> Any:
+    """The device function ``(st, nbr, k, i, xi, yi, period) -> (j, dx, dy)``: grain ``i``'s
+    ``k``-th listed neighbour ``j`` and the offset ``(x_i, y_i) - (x_j, y_j)`` (the periodic
+    image applied); ``j = -1`` past the last."""
+    if not _NEIGHBOUR:
+
+        @cu.jit(device=True)
+        def neighbour(st, nbr, k, i, xi, yi, period):
+            e = nbr[k, i]
+            if e == EMPTY:
+                return -1, 0.0, 0.0
+            j = e & INDEX_MASK
+            return j, xi - st[X, j] - image_shift(e, period), yi - st[Y, j]
+
+        _NEIGHBOUR.append(neighbour)
+    return _NEIGHBOUR[0]
+
+
+class Centre(NamedTuple):
+    """Grain ``i`` as its contacts see it, read once by the force pass: centre ``(x, y)``,
+    radius ``r``, predicted velocity ``(vx, vy)`` and angular velocity ``w``."""
+
+    x: float
+    y: float
+    r: float
+    vx: float
+    vy: float
+    w: float
+
+
+def _pair_sum(history: bool, roll: bool) -> Any:
+    """The device function ``(st, nbr, mem, i, me, law, period) -> (fx, fy, torque)``: grain
+    ``i`` (``me``, a :class:`Centre`) against its listed neighbours under ``law`` (a
+    :class:`~fastsdf.granular.kernels.Law`), its springs in ``mem`` updated."""
+
+    neighbour = _neighbour()
+
+    @cu.jit(device=True)
+    def pair_sum(st, nbr, mem, i, me, law, period):
+        ri = me.r
+        mi = grain_mass(ri, law.density)
+        gamma_equal = law.damp * math.sqrt(0.5 * mi)
         fx = 0.0
         fy = 0.0
         tq = 0.0
         for k in range(nbr.shape[0]):
-            e = nbr[k, i]
-            if e == EMPTY:
+            j, dx, dy = neighbour(st, nbr, k, i, me.x, me.y, period)
+            if j < 0:
                 break
-            j = e & INDEX_MASK
-            image = e >> 30
-            dx = xi - st[X, j] - period * (float(image & 1) - float(image >> 1))
-            dy = yi - st[Y, j]
-            s_old = 0.0
-            m_old = 0.0
+            pair = Pair(dx, dy, ri, st[R, j], me.vx - st[PX, j], me.vy - st[PY, j], me.w,
+                        st[PW, j], i < j)  # fmt: skip
+            s = 0.0
+            mr = 0.0
             if history:
-                s_old = mem[0, k, i]
+                s = mem[0, k, i]
                 if roll:
-                    m_old = mem[1, k, i]
-            touch, cfx, cfy, cross, s_new, m_new = pair_force(
-                dx,
-                dy,
-                ri,
-                st[R, j],
-                mi,
-                gamma_equal,
-                i < j,
-                pxi - st[PX, j],
-                pyi - st[PY, j],
-                pwi,
-                st[PW, j],
-                damp,
-                density,
-                kn,
-                kt,
-                mu,
-                mu_r,
-                tdamp,
-                dt,
-                s_old,
-                m_old,
-                history,
-                roll,
+                    mr = mem[1, k, i]
+            touch, cfx, cfy, cross, s, mr = pair_force(
+                pair, mi, gamma_equal, law, s, mr, history, roll
             )
             if history:
-                mem[0, k, i] = s_new
+                mem[0, k, i] = s
                 if roll:
-                    mem[1, k, i] = m_new
+                    mem[1, k, i] = mr
             if touch:
                 fx += cfx
                 fy += cfy
-                tq += m_new - ri * cross
-        fx += mi * grav_x
-        fy += mi * grav_y
-        if near[i] != 0:
-            d, gx, gy = at(wdata, xi, yi)
-            wkn, wkt, wzeta, wmu, wmu_r, wtdamp = wall
-            s_old = 0.0
-            m_old = 0.0
-            if wall_history:
-                s_old = wmem[0, i]
-                if wall_roll:
-                    m_old = wmem[1, i]
-            touch, cfx, cfy, wtq, s_new, m_new = wall_force(
-                ri,
-                d,
-                gx,
-                gy,
-                0.0,
-                pxi,
-                pyi,
-                pwi,
-                density,
-                wzeta,
-                wkn,
-                wkt,
-                wmu,
-                wmu_r,
-                wtdamp,
-                dt,
-                s_old,
-                m_old,
-                wall_history,
-                wall_roll,
-            )
-            if wall_history:
-                wmem[0, i] = s_new
-                if wall_roll:
-                    wmem[1, i] = m_new
+                tq += mr - ri * cross
+        return fx, fy, tq
+
+    return pair_sum
+
+
+def _wall_touch(at: Any, history: bool, roll: bool) -> Any:
+    """The device function ``(world, i, me, law) -> (touch, fx, fy, torque)``: grain ``i``'s
+    (``me``, a :class:`Centre`) contact with the world (a :class:`DeviceWorld` whose device
+    function is ``at``), its springs against it updated and its force added to
+    ``world.force``."""
+
+    @cu.jit(device=True)
+    def wall_touch(world, i, me, law):
+        d, gx, gy = at(world.data, me.x, me.y)
+        wall = WallPair(d, gx, gy, 0.0, me.r, me.vx, me.vy, me.w)
+        springs = world.springs
+        s = 0.0
+        mr = 0.0
+        if history:
+            s = springs[0, i]
+            if roll:
+                mr = springs[1, i]
+        touch, cfx, cfy, tq, s, mr = wall_force(wall, law, s, mr, history, roll)
+        if history:
+            springs[0, i] = s
+            if roll:
+                springs[1, i] = mr
+        if touch:
+            cu.atomic.add(world.force, 0, cfx)
+            cu.atomic.add(world.force, 1, cfy)
+        return touch, cfx, cfy, tq
+
+    return wall_touch
+
+
+def _forces_kernel(at: Any, model: Model) -> Any:
+    """The force pass of the world ``at`` and the contact ``model``."""
+    pair_sum = _pair_sum(model.history, model.roll)
+    wall_touch = _wall_touch(at, model.wall_history, model.wall_roll)
+
+    @cu.jit
+    def forces(flag, st, nbr, mem, world, law, wall, bulk):
+        """The force pass (see :func:`fastsdf.granular.kernels.pair_forces` and
+        :func:`~fastsdf.granular.kernels.wall_forces`): half kick, gravity, each listed pair
+        (gathered by this grain alone), the world for grains near it. ``law`` and ``wall``:
+        the :class:`~fastsdf.granular.kernels.Law` of the pairs and of the world, ``bulk`` a
+        :class:`~fastsdf.granular.kernels.Bulk`. Does nothing when ``flag[0]`` is raised."""
+        i = cu.grid(1)
+        if i >= st.shape[1] or flag[0] != 0:
+            return
+        ri = st[R, i]
+        mi = grain_mass(ri, law.density)
+        vx, vy, w = half_kick(st[VX, i], st[VY, i], st[W, i], ri, st[FX, i], st[FY, i],
+                              st[TQ, i], 0.5 * law.dt, law.density)  # fmt: skip
+        st[VX, i] = vx
+        st[VY, i] = vy
+        st[W, i] = w
+        me = Centre(st[X, i], st[Y, i], ri, st[PX, i], st[PY, i], st[PW, i])
+        fx, fy, tq = pair_sum(st, nbr, mem, i, me, law, bulk.period)
+        fx += mi * bulk.gravity_x
+        fy += mi * bulk.gravity_y
+        if world.near[i] != 0:
+            touch, cfx, cfy, wtq = wall_touch(world, i, me, wall)
             if touch:
                 fx += cfx
                 fy += cfy
                 tq += wtq
-                cu.atomic.add(wsum, 0, cfx)
-                cu.atomic.add(wsum, 1, cfy)
         st[FX, i] = fx
         st[FY, i] = fy
         st[TQ, i] = tq
 
+    return forces
+
+
+_WORLD_KERNELS: dict = {}
+
+
+def _world_kernels(at: Any) -> tuple:
+    """``(mark_near, energy)`` of the world ``at`` (compiled once per world function)."""
+    if at in _WORLD_KERNELS:
+        return _WORLD_KERNELS[at]
+    neighbour = _neighbour()
+
     @cu.jit
-    def mark_near(st, near, wmem, wdata, skin):
+    def mark_near(st, world, skin):
         """Which grains the force pass asks the world about until the next rebuild (as the
         CPU's ``d - R < skin``, NaN included); the others forget their springs."""
         i = cu.grid(1)
         if i >= st.shape[1]:
             return
-        d, _, _ = at(wdata, st[X, i], st[Y, i])
+        d, _, _ = at(world.data, st[X, i], st[Y, i])
         if d - st[R, i] >= skin:
-            near[i] = 0
-            for c in range(wmem.shape[0]):
-                wmem[c, i] = 0.0
+            world.near[i] = 0
+            for c in range(world.springs.shape[0]):
+                world.springs[c, i] = 0.0
         else:
-            near[i] = 1
+            world.near[i] = 1
 
     @cu.jit
-    def energy(st, nbr, near, wdata, kn, wall_kn, period, out):
+    def energy(st, nbr, world, kn, wall_kn, period, out):
         """Per grain: elastic energy of its pairs with a higher index and their count, and of
         its contact with the world and whether it touches (rows 0 to 3 of ``out``)."""
         i = cu.grid(1)
@@ -666,15 +716,11 @@ def _kernels(at: Any, history: bool, roll: bool, wall_history: bool, wall_roll: 
         e = 0.0
         c = 0.0
         for k in range(nbr.shape[0]):
-            v = nbr[k, i]
-            if v == EMPTY:
+            j, dx, dy = neighbour(st, nbr, k, i, st[X, i], st[Y, i], period)
+            if j < 0:
                 break
-            j = v & INDEX_MASK
             if j <= i:
                 continue
-            image = v >> 30
-            dx = st[X, i] - st[X, j] - period * (float(image & 1) - float(image >> 1))
-            dy = st[Y, i] - st[Y, j]
             delta = st[R, i] + st[R, j] - math.sqrt(dx * dx + dy * dy)
             if delta > 0.0:
                 e += 0.5 * kn * delta * delta
@@ -683,16 +729,15 @@ def _kernels(at: Any, history: bool, roll: bool, wall_history: bool, wall_roll: 
         out[1, i] = c
         out[2, i] = 0.0
         out[3, i] = 0.0
-        if near[i] != 0:
-            d, _, _ = at(wdata, st[X, i], st[Y, i])
+        if world.near[i] != 0:
+            d, _, _ = at(world.data, st[X, i], st[Y, i])
             delta = st[R, i] - d
             if delta > 0.0:
                 out[2, i] = 0.5 * wall_kn * delta * delta
                 out[3, i] = 1.0
 
-    out = (drift, forces, mark_near, energy)
-    _KERNELS[key] = out
-    return out
+    _WORLD_KERNELS[at] = (mark_near, energy)
+    return _WORLD_KERNELS[at]
 
 
 class CudaGranularSimulation(GranularSimulation, device="cuda"):
@@ -813,17 +858,20 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
                 "runs on device='cpu'"
             )
         self._at, self._wdata = _world_point(self.world)
-        wall_cols = (2 if self.wall_contact.rolling_friction > 0 else 1) * int(
-            self.wall_contact.history
-        )
-        self._kern = _kernels(
-            self._at,
+        wall = self.wall_contact
+        model = Model(
             self._history,
             self._history and self._memory_cols == 2,
-            wall_cols > 0,
-            wall_cols == 2,
+            wall.history,
+            wall.history and wall.rolling_friction > 0,
         )
+        self._kern = _kernels(self._at, model)
         self._world_bound = self.world
+
+    def _world(self) -> DeviceWorld:
+        """The world as the kernels take it (its arrays on the device)."""
+        d = self._dev
+        return DeviceWorld(d["near"], d["wmem"], self._wdata, d["wsum"])
 
     def _restart(self) -> None:
         """Continue from the host state (after :meth:`set_state`, a new world or gravity):
@@ -899,8 +947,7 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
         scratch = self._sort_scratch()
         halves = scratch.view(np.int32)
         keys, rank = halves[:n], halves[n:]
-        cell = (grid.x0, grid.y0, grid.inv_w, grid.inv_h, grid.ncx, grid.ncy, grid.period)
-        _keys[launch](st, *cell, keys, rank, counts)
+        _keys[launch](st, grid, keys, rank, counts)
         self._scan(counts, ncells + 1)
         perm = d["xref"].view(np.int32)  # the references are written last
         _scatter[launch](keys, rank, counts, perm)
@@ -920,7 +967,7 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
             d["old_mem"], d["mem"] = d["mem"], d["old_mem"]
         flag = d["flag"]
         flag.copy_to_device(np.zeros(3, np.int32))
-        _build[launch](st, counts, *cell, self.skin, d["nbr"], flag)
+        _build[launch](st, counts, grid, self.skin, d["nbr"], flag)
         found = int(flag.copy_to_host()[1])
         if found > self.max_neighbours:
             raise RuntimeError(
@@ -937,54 +984,24 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
         box = self._box() if grid.period > 0 else (xlo, xhi, ylo, yhi)
         self._ref_margin = 2.5e-7 * max(abs(v) for v in box)
         _, _, mark_near, _ = self._kern
-        mark_near[launch](st, d["near"], wmem, self._wdata, self.skin)
+        mark_near[launch](st, self._world(), self.skin)
         self.grid = grid
         self.rebuilds += 1
         self._stale = True
         self.timings["rebuild"] += _time.perf_counter() - t0
 
-    def _laws(self) -> tuple:
-        c, w = self.contact, self.wall_contact
-        kn = float(c.stiffness)  # type: ignore[arg-type]
-        wkn = float(w.stiffness)  # type: ignore[arg-type]
-        law = (
-            kn,
-            c.tangential_stiffness * kn,
-            2.0 * _zeta(c.restitution) * math.sqrt(kn),
-            c.friction,
-            c.rolling_friction,
-            c.tangential_damping,
-        )
-        wall = (
-            wkn,
-            w.tangential_stiffness * wkn,
-            _zeta(w.restitution),
-            w.friction,
-            w.rolling_friction,
-            w.tangential_damping,
-        )
-        b = self.bulk
-        bulk = (b.density, b.gravity_x, b.gravity_y, b.period)
-        return law, wall, bulk
+    def _laws(self, dt: float) -> tuple:
+        """The :class:`~fastsdf.granular.kernels.Law` of the pairs and of the world for a
+        substep ``dt``."""
+        density = self.bulk.density
+        return law_terms(self.contact, density, dt), law_terms(self.wall_contact, density, dt)
 
     def _force_pass(self, dt: float) -> None:
         d = self._dev
-        law, wall, bulk = self._laws()
-        mem = d["mem"]
+        law, wall = self._laws(dt)
         _, forces, _, _ = self._kern
         forces[_grid(d["st"].shape[1])](
-            d["flag"],
-            d["st"],
-            d["nbr"],
-            mem,
-            d["near"],
-            d["wmem"],
-            self._wdata,
-            law,
-            wall,
-            bulk,
-            dt,
-            d["wsum"],
+            d["flag"], d["st"], d["nbr"], d["mem"], self._world(), law, wall, self.bulk
         )
 
     def _advance(self, substeps: int) -> None:
@@ -993,9 +1010,9 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
         launch = _grid(st.shape[1])
         drift, forces, _, _ = self._kern
         drift, forces = drift[launch], forces[launch]  # configured once per call
-        law, wall, bulk = self._laws()
-        mem = d["mem"]
         dt = self.substep
+        law, wall = self._laws(dt)
+        world = self._world()
         density = self.density
         zeros = np.zeros(3, np.int32)
         d["wsum"].copy_to_device(np.zeros(2))
@@ -1008,17 +1025,13 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
             for b in range(1, batch + 1):
                 kick = 0.0 if done + b == 1 else 0.5 * dt
                 drift(b, flag, st, d["xref"], d["yref"], kick, dt, density, lim)
-                forces(
-                    flag, st, d["nbr"], mem, d["near"], d["wmem"], self._wdata, law, wall,
-                    bulk, dt, d["wsum"],
-                )  # fmt: skip
+                forces(flag, st, d["nbr"], d["mem"], world, law, wall, self.bulk)
             raised = int(flag.copy_to_host()[0])
             if raised == 0:
                 done += batch
                 continue
             # substep `raised` drifted past half the skin: rebuild, then its force pass
             self._rebuild()
-            mem = d["mem"]
             flag.copy_to_device(zeros)
             self._force_pass(dt)
             done += raised
@@ -1063,8 +1076,7 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
         self._kern[3][_grid(n)](
             d["st"],
             d["nbr"],
-            d["near"],
-            self._wdata,
+            self._world(),
             float(self.contact.stiffness),  # type: ignore[arg-type]
             float(self.wall_contact.stiffness),  # type: ignore[arg-type]
             self.bulk.period,

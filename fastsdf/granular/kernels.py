@@ -29,9 +29,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
-# The kernels take the arrays out of a Grains tuple by attribute before their parallel loop:
-# numba (0.68) drops stores made inside prange through ``g.x[i] = ...`` or through names bound
-# by unpacking (``x, y = g.x, g.y`` included): one plain assignment per array.
+# The parallel passes run each chunk of grains through a serial function, or take the arrays
+# they write out of a Grains tuple by attribute before their parallel loop: numba (0.68) drops
+# stores made inside prange through ``g.x[i] = ...`` or through names bound by unpacking
+# (``x, y = g.x, g.y`` included), not those of a function it calls.
 
 # Floating-point liberties of the force pass: fused multiply-adds, reciprocals and signed
 # zeros only (no reassociation: the two sides of a pair across chunks must compute the same
@@ -40,12 +41,19 @@ _FAST = {"contract", "arcp", "nsz"}
 
 __all__ = [
     "Bulk",
+    "Grain",
     "Grains",
+    "Law",
+    "Near",
+    "Pair",
+    "WallPair",
     "grain_mass",
     "half_kick",
+    "image_shift",
     "kick_drift",
     "kick_grain",
     "kinetic_energy",
+    "law_terms",
     "pair_energy",
     "pair_force",
     "pair_forces",
@@ -102,13 +110,139 @@ def _zeta(restitution):
     return -le / math.sqrt(math.pi * math.pi + le * le)
 
 
+class Law(NamedTuple):
+    """A contact law as the per-contact arithmetic takes it (see :func:`law_terms`): the normal
+    and tangential stiffness ``kn, kt``, the dashpot's damping ratio ``zeta`` and ``damp = 2
+    zeta sqrt(kn)`` (a pair's dashpot is ``damp sqrt(m_eff)``), the friction ``mu``, the
+    rolling friction ``mu_r``, the tangential damping ``tdamp`` (relative to the normal), the
+    grains' ``density`` (a neighbour's mass) and the substep ``dt`` (the dashpot's first and
+    last step of contact, see :func:`_contact`)."""
+
+    kn: float
+    kt: float
+    zeta: float
+    damp: float
+    mu: float
+    mu_r: float
+    tdamp: float
+    density: float
+    dt: float
+
+
+class Pair(NamedTuple):
+    """Grains ``i`` and ``j`` as their contact sees them: ``(dx, dy) = x_i - x_j`` (the
+    periodic image applied), radii ``ri, rj``, relative (predicted) velocity ``(vx, vy) = v_i -
+    v_j``, angular velocities ``wi, wj``; ``lower``: ``i < j`` (the side that fixes the sums'
+    order and the normal of coincident centres, so that both sides compute the same bits)."""
+
+    dx: float
+    dy: float
+    ri: float
+    rj: float
+    vx: float
+    vy: float
+    wi: float
+    wj: float
+    lower: bool
+
+
+class WallPair(NamedTuple):
+    """A grain and the world as their contact sees them: the world's distance ``d`` at the
+    grain's centre, its gradient ``(gx, gy)`` and the wall's normal speed ``vn`` (along ``grad
+    d``; 0 for a static world); the grain's radius ``r``, (predicted) velocity ``(vx, vy)`` and
+    angular velocity ``w``."""
+
+    d: float
+    gx: float
+    gy: float
+    vn: float
+    r: float
+    vx: float
+    vy: float
+    w: float
+
+
+class Grain(NamedTuple):
+    """One grain's values as its elementwise pass takes them (:func:`kick_grain`): position,
+    velocity, angular velocity, radius, force and torque (the fields of :class:`Grains`)."""
+
+    x: float
+    y: float
+    vx: float
+    vy: float
+    omega: float
+    radius: float
+    fx: float
+    fy: float
+    torque: float
+
+
+class Near(NamedTuple):
+    """The grains a force pass asks the world about, ``idx`` (distinct storage slots), and the
+    world there: distance ``d``, gradient ``(gx, gy)`` and the wall's normal speed ``vn``
+    (arrays of ``len(idx)``)."""
+
+    idx: np.ndarray
+    d: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+    vn: np.ndarray
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def image_shift(entry: int, period: float) -> float:
+    """How far a neighbour-list entry sees its grain moved by its periodic image (see
+    :mod:`fastsdf.granular.cells`): ``x_i - x_j - image_shift(entry, period)`` is the offset
+    of the pair (0, ``period`` or ``-period``, exactly)."""
+    image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
+    return period * (np.float64(image & 1) - np.float64(image >> 1))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def law_terms(law: Any, density: float, dt: float) -> Law:
+    """The :class:`Law` of a :class:`~fastsdf.granular.ContactLaw` (its stiffness given) for
+    grains of ``density`` stepped by ``dt``."""
+    kn = law.stiffness
+    zeta = _zeta(law.restitution)
+    return Law(
+        kn,
+        law.tangential_stiffness * kn,
+        zeta,
+        2.0 * zeta * math.sqrt(kn),
+        law.friction,
+        law.rolling_friction,
+        law.tangential_damping,
+        density,
+        dt,
+    )
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _recall(springs: np.ndarray, roll: bool) -> tuple:
+    """A contact's memory from its ``springs`` (a row of the list's memory, a column of the
+    world's): ``(s, m_roll)``, the tangential spring's stretch and, with ``roll``, the
+    rolling torque (else 0)."""
+    if roll:
+        return springs[0], springs[1]
+    return springs[0], 0.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _keep(springs: np.ndarray, s: float, m_roll: float, roll: bool) -> None:
+    """Store a contact's memory into its ``springs`` (see :func:`_recall`)."""
+    springs[0] = s
+    if roll:
+        springs[1] = m_roll
+
+
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
-def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
+def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, law):
     """Force on the first body and the tangential force, for overlap ``delta`` along the unit
     normal ``n`` (pointing to the first body), relative velocity ``vr``, ``wr = R_i w_i +
-    R_j w_j`` and dashpot ``gamma_n = 2 zeta sqrt(m_eff k_n)``. Returns ``(fx, fy, ftx,
-    fty)``. The tangential force is ``-gamma_t v_t`` unless that exceeds ``mu |F_n|``
-    (compared squared: the common, viscous case needs no square root).
+    R_j w_j`` and dashpot ``gamma_n = 2 zeta sqrt(m_eff k_n)``, under ``law`` (a
+    :class:`Law`). Returns ``(fx, fy, ftx, fty)``. The tangential force is ``-gamma_t v_t``
+    unless that exceeds ``mu |F_n|`` (compared squared: the common, viscous case needs no
+    square root).
 
     The dashpot switches on at full strength the moment two grains touch, so a step that
     contains the first touch (or the last) would apply it for the whole step: a first-order
@@ -119,14 +253,14 @@ def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
     step spent in contact, ``1/2 + delta / (|v_n| dt)`` when below 1, which restores second
     order (``dt = 0``: no scaling)."""
     vn = vrx * nx + vry * ny
-    reach = abs(vn) * dt
+    reach = abs(vn) * law.dt
     if reach > 2.0 * delta:
         gamma_n *= 0.5 + delta / reach
-    fn = kn * delta - gamma_n * vn
+    fn = law.kn * delta - gamma_n * vn
     vtx = vrx - vn * nx + wr * ny
     vty = vry - vn * ny - wr * nx
-    gamma_t = tdamp * gamma_n
-    cap = mu * fn
+    gamma_t = law.tdamp * gamma_n
+    cap = law.mu * fn
     vt2 = vtx * vtx + vty * vty
     if gamma_t * gamma_t * vt2 <= cap * cap:
         ftx = -gamma_t * vtx
@@ -139,7 +273,7 @@ def _contact(delta, nx, ny, vrx, vry, wr, gamma_n, kn, mu, tdamp, dt):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
-def _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s):
+def _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, law, s):
     """:func:`_contact` with a tangential spring (Cundall-Strack, LAMMPS
     ``gran/hooke/history``). ``s`` is the spring's stretch along the tangent ``t = (-n_y,
     n_x)`` (a scalar: in 2D the tangent plane is a line, so carrying the spring along ``t``
@@ -152,20 +286,20 @@ def _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt
     ``t`` and the relative velocity change sign), so the two sides of a pair listed twice
     carry the same spring."""
     vn = vrx * nx + vry * ny
-    reach = abs(vn) * dt
+    reach = abs(vn) * law.dt
     if reach > 2.0 * delta:
         gamma_n *= 0.5 + delta / reach
-    fn = kn * delta - gamma_n * vn
+    fn = law.kn * delta - gamma_n * vn
     tx = -ny
     ty = nx
     vts = vrx * tx + vry * ty - wr
-    s += vts * dt
-    gamma_t = tdamp * gamma_n
-    ft = -(kt * s + gamma_t * vts)
-    cap = abs(mu * fn)
+    s += vts * law.dt
+    gamma_t = law.tdamp * gamma_n
+    ft = -(law.kt * s + gamma_t * vts)
+    cap = abs(law.mu * fn)
     if abs(ft) > cap:
         r = cap / abs(ft)
-        lag = gamma_t * vts / kt
+        lag = gamma_t * vts / law.kt
         s = r * (s + lag) - lag
         ft *= r
     ftx = ft * tx
@@ -189,6 +323,16 @@ def _rolling_spring(m_old, kr, cap, w_rel, dt):
     return m
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
+def _touch(delta, nx, ny, vrx, vry, wr, gamma_n, law, s, history):
+    """:func:`_contact` (``history`` False: the spring ``s`` and ``F_n`` returned as 0) or
+    :func:`_contact_history`, as ``(fx, fy, ftx, fty, s, F_n)``."""
+    if not history:
+        cfx, cfy, ftx, fty = _contact(delta, nx, ny, vrx, vry, wr, gamma_n, law)
+        return cfx, cfy, ftx, fty, 0.0, 0.0
+    return _contact_history(delta, nx, ny, vrx, vry, wr, gamma_n, law, s)
+
+
 # -- the per-pair and per-grain arithmetic, shared by the CPU kernels below and the CUDA
 # kernels of :mod:`fastsdf.granular.cuda` (numba-cuda compiles these plain ``@njit``
 # functions for the device): one body, two targets.
@@ -196,146 +340,93 @@ def _rolling_spring(m_old, kr, cap, w_rel, dt):
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
 def pair_force(
-    dx: float,
-    dy: float,
-    ri: float,
-    rj: float,
+    pair: Pair,
     mi: float,
     gamma_equal: float,
-    lower: bool,
-    vrx: float,
-    vry: float,
-    wi: float,
-    wj: float,
-    damp: float,
-    density: float,
-    kn: float,
-    kt: float,
-    mu: float,
-    mu_r: float,
-    tdamp: float,
-    dt: float,
+    law: Law,
     s: float,
     m_roll: float,
     history: bool,
     roll: bool,
 ) -> tuple:
-    """The contact of grain ``i`` with grain ``j`` at ``(dx, dy) = x_i - x_j`` (the periodic
-    image applied), radii ``ri, rj``, mass ``mi``, relative (predicted) velocity ``vr``,
-    angular velocities ``wi, wj``; ``lower``: ``i < j`` (the side that fixes the sums' order
-    and the normal of coincident centres, so both sides compute the same bits);
-    ``gamma_equal = damp sqrt(mi / 2)``, the dashpot against an equal grain. ``history``:
-    the tangential spring ``s`` (and, with ``roll``, the rolling torque ``m_roll``) is
-    updated. Returns ``(touch, fx, fy, cross, s, m_roll)``: whether they overlap, the force
-    on ``i``, ``cross = n x f_t`` (``i`` turns by ``m_roll - R_i cross``, ``j`` by
-    ``-m_roll - R_j cross``) and the memory (0 out of contact)."""
+    """The contact of grain ``i`` with grain ``j`` (a :class:`Pair`) under ``law`` (a
+    :class:`Law`); ``mi`` is the mass of ``i``, ``gamma_equal = damp sqrt(mi / 2)`` the
+    dashpot against an equal grain. ``history``: the tangential spring ``s`` (and, with
+    ``roll``, the rolling torque ``m_roll``) is updated. Returns ``(touch, fx, fy, cross, s,
+    m_roll)``: whether they overlap, the force on ``i``, ``cross = n x f_t`` (``i`` turns by
+    ``m_roll - R_i cross``, ``j`` by ``-m_roll - R_j cross``) and the memory (0 out of
+    contact)."""
+    ri = pair.ri
+    rj = pair.rj
     rsum = ri + rj
-    d2 = dx * dx + dy * dy
+    d2 = pair.dx * pair.dx + pair.dy * pair.dy
     if d2 >= rsum * rsum:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
     if d2 > 0.0:
         dist = math.sqrt(d2)
         inv = 1.0 / dist
-        nx = dx * inv
-        ny = dy * inv
+        nx = pair.dx * inv
+        ny = pair.dy * inv
     else:  # coincident centres: push apart along x, in opposite senses
         dist = 0.0
-        nx = 1.0 if lower else -1.0
+        nx = 1.0 if pair.lower else -1.0
         ny = 0.0
     if rj == ri:
         gamma_n = gamma_equal
     else:
-        mj = grain_mass(rj, density)
-        gamma_n = damp * math.sqrt(mi * mj / (mi + mj))
-    if not history:
-        cfx, cfy, ftx, fty = _contact(
-            rsum - dist, nx, ny, vrx, vry, ri * wi + rj * wj, gamma_n, kn, mu, tdamp, dt
-        )
-        return True, cfx, cfy, nx * fty - ny * ftx, 0.0, 0.0
-    # the same sum from both sides of a pair: the lower index first
-    if lower:
-        wr = ri * wi + rj * wj
+        mj = grain_mass(rj, law.density)
+        gamma_n = law.damp * math.sqrt(mi * mj / (mi + mj))
+    # with history the same sum from both sides of a pair: the lower index first
+    if pair.lower or not history:
+        wr = ri * pair.wi + rj * pair.wj
     else:
-        wr = rj * wj + ri * wi
-    cfx, cfy, ftx, fty, s, fn = _contact_history(
-        rsum - dist, nx, ny, vrx, vry, wr, gamma_n, kn, kt, mu, tdamp, dt, s
+        wr = rj * pair.wj + ri * pair.wi
+    cfx, cfy, ftx, fty, s, fn = _touch(
+        rsum - dist, nx, ny, pair.vx, pair.vy, wr, gamma_n, law, s, history
     )
     mr = 0.0
-    if roll:
+    if history and roll:
         r_eff = ri * rj / rsum
-        mr = _rolling_spring(
-            m_roll, 2.25 * kn * mu_r * mu_r * r_eff * r_eff, mu_r * r_eff * abs(fn), wi - wj, dt
-        )
+        mu_r = law.mu_r
+        kr = 2.25 * law.kn * mu_r * mu_r * r_eff * r_eff
+        mr = _rolling_spring(m_roll, kr, mu_r * r_eff * abs(fn), pair.wi - pair.wj, law.dt)
     return True, cfx, cfy, nx * fty - ny * ftx, s, mr
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def wall_force(
-    ri: float,
-    d: float,
-    gx: float,
-    gy: float,
-    wall_vn: float,
-    vx: float,
-    vy: float,
-    w: float,
-    density: float,
-    zeta: float,
-    kn: float,
-    kt: float,
-    mu: float,
-    mu_r: float,
-    tdamp: float,
-    dt: float,
-    s: float,
-    m_roll: float,
-    history: bool,
-    roll: bool,
+    wall: WallPair, law: Law, s: float, m_roll: float, history: bool, roll: bool
 ) -> tuple:
-    """The world's contact on a grain of radius ``ri`` at distance ``d`` with gradient ``(gx,
-    gy)``, the wall's normal speed ``wall_vn``, (predicted) velocity ``(vx, vy)`` and angular
-    velocity ``w``; memory as in :func:`pair_force` (``R_eff = R_i``). Returns ``(touch, fx,
-    fy, torque, s, m_roll)``; no touch (memory 0) where the gradient is zero or not finite."""
-    delta = ri - d
-    gn = math.sqrt(gx * gx + gy * gy)
+    """The world's contact on a grain (a :class:`WallPair`) under ``law``; memory as in
+    :func:`pair_force` (``R_eff = R_i``). Returns ``(touch, fx, fy, torque, s, m_roll)``; no
+    touch (memory 0) where the gradient is zero or not finite."""
+    ri = wall.r
+    delta = ri - wall.d
+    gn = math.sqrt(wall.gx * wall.gx + wall.gy * wall.gy)
     if not (delta > 0.0 and gn > 0.0 and math.isfinite(gn)):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
-    nx = gx / gn
-    ny = gy / gn
-    mi = grain_mass(ri, density)
-    if not history:
-        cfx, cfy, ftx, fty = _contact(
-            delta,
-            nx,
-            ny,
-            vx - wall_vn * nx,
-            vy - wall_vn * ny,
-            ri * w,
-            2.0 * zeta * math.sqrt(mi * kn),
-            kn,
-            mu,
-            tdamp,
-            dt,
-        )
-        return True, cfx, cfy, -(ri * (nx * fty - ny * ftx)), 0.0, 0.0
-    cfx, cfy, ftx, fty, s, fn = _contact_history(
+    nx = wall.gx / gn
+    ny = wall.gy / gn
+    mi = grain_mass(ri, law.density)
+    cfx, cfy, ftx, fty, s, fn = _touch(
         delta,
         nx,
         ny,
-        vx - wall_vn * nx,
-        vy - wall_vn * ny,
-        ri * w,
-        2.0 * zeta * math.sqrt(mi * kn),
-        kn,
-        kt,
-        mu,
-        tdamp,
-        dt,
+        wall.vx - wall.vn * nx,
+        wall.vy - wall.vn * ny,
+        ri * wall.w,
+        2.0 * law.zeta * math.sqrt(mi * law.kn),
+        law,
         s,
+        history,
     )
+    if not history:
+        return True, cfx, cfy, -(ri * (nx * fty - ny * ftx)), 0.0, 0.0
     mr = 0.0
     if roll:
-        mr = _rolling_spring(m_roll, 2.25 * kn * mu_r * mu_r * ri * ri, mu_r * ri * abs(fn), w, dt)
+        mu_r = law.mu_r
+        kr = 2.25 * law.kn * mu_r * mu_r * ri * ri
+        mr = _rolling_spring(m_roll, kr, mu_r * ri * abs(fn), wall.w, law.dt)
     return True, cfx, cfy, mr - ri * (nx * fty - ny * ftx), s, mr
 
 
@@ -359,33 +450,21 @@ def half_kick(
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def kick_grain(
-    x: float,
-    y: float,
-    vx: float,
-    vy: float,
-    w: float,
-    r: float,
-    fx: float,
-    fy: float,
-    tq: float,
-    dt_kick: float,
-    dt: float,
-    density: float,
-) -> tuple:
+def kick_grain(grain: Grain, dt_kick: float, dt: float, density: float) -> tuple:
     """One grain's elementwise pass (see :func:`kick_drift`): ``(x, y, vx, vy, w, px, py,
     pw)``, the drifted position, the completed velocities and the predicted ones."""
+    r = grain.radius
     m = grain_mass(r, density)
     inv_m = 1.0 / m
-    ax = fx * inv_m
-    ay = fy * inv_m
-    alpha = tq * (2.0 * inv_m) / (r * r)
-    vx = vx + ax * dt_kick
-    vy = vy + ay * dt_kick
-    w = w + alpha * dt_kick
+    ax = grain.fx * inv_m
+    ay = grain.fy * inv_m
+    alpha = grain.torque * (2.0 * inv_m) / (r * r)
+    vx = grain.vx + ax * dt_kick
+    vy = grain.vy + ay * dt_kick
+    w = grain.omega + alpha * dt_kick
     return (
-        x + (vx + 0.5 * ax * dt) * dt,
-        y + (vy + 0.5 * ay * dt) * dt,
+        grain.x + (vx + 0.5 * ax * dt) * dt,
+        grain.y + (vy + 0.5 * ay * dt) * dt,
         vx,
         vy,
         w,
@@ -393,6 +472,77 @@ def kick_grain(
         vy + ay * dt,
         w + alpha * dt,
     )
+
+
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def _start_chunk(g: Grains, lo: int, hi: int, law: Law, bulk: Bulk) -> None:
+    """The start of a force pass for grains ``lo:hi`` (see :func:`pair_forces`): their
+    velocities half-kicked by their previous force, their forces reset to gravity."""
+    for i in range(lo, hi):
+        ri = g.radius[i]
+        mi = grain_mass(ri, law.density)
+        g.vx[i], g.vy[i], g.omega[i] = half_kick(
+            g.vx[i], g.vy[i], g.omega[i], ri, g.fx[i], g.fy[i], g.torque[i], 0.5 * law.dt,
+            law.density,
+        )  # fmt: skip
+        g.fx[i] = mi * bulk.gravity_x
+        g.fy[i] = mi * bulk.gravity_y
+        g.torque[i] = 0.0
+
+
+# (The predicted velocities of grain i are read in the loop over its neighbours, as they
+# always were: which product of a sum becomes a fused multiply-add follows from what the
+# compiler hoists out of the loop, so reading them once before it changes the rounding.)
+@njit(cache=True, error_model="numpy", fastmath=_FAST)
+def _chunk_pairs(
+    g: Grains,
+    lo: int,
+    hi: int,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    memory: np.ndarray | None,
+    law: Law,
+    period: float,
+) -> None:
+    """The contacts of grains ``lo:hi`` with their listed neighbours (see
+    :func:`pair_forces`), added to their forces, and to a neighbour's in the same chunk."""
+    history = memory is not None
+    roll = law.mu_r > 0.0
+    x = g.x
+    y = g.y
+    for i in range(lo, hi):
+        xi = x[i]
+        yi = y[i]
+        ri = g.radius[i]
+        mi = grain_mass(ri, law.density)
+        gamma_equal = law.damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
+        fx = 0.0
+        fy = 0.0
+        tq = 0.0
+        for k in range(nbr_start[i], nbr_start[i + 1]):
+            entry = nbr[k]
+            j = entry & 0x3FFFFFFF
+            pair = Pair(
+                xi - x[j] - image_shift(entry, period), yi - y[j], ri, g.radius[j],
+                g.px[i] - g.px[j], g.py[i] - g.py[j], g.pomega[i], g.pomega[j], i < j,
+            )  # fmt: skip
+            s, mr = _recall(memory[k], roll) if memory is not None else (0.0, 0.0)
+            touch, cfx, cfy, cross, s, mr = pair_force(
+                pair, mi, gamma_equal, law, s, mr, history, roll
+            )
+            if memory is not None:
+                _keep(memory[k], s, mr, roll)
+            if touch:
+                fx += cfx
+                fy += cfy
+                tq += mr - ri * cross
+                if j >= lo and j < hi:  # same chunk: Newton's third law here
+                    g.fx[j] -= cfx
+                    g.fy[j] -= cfy
+                    g.torque[j] -= mr + g.radius[j] * cross
+        g.fx[i] += fx
+        g.fy[i] += fy
+        g.torque[i] += tq
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=_FAST)
@@ -413,8 +563,9 @@ def pair_forces(
     drifted positions and predicted velocities ``px, py, pomega`` it adds the contact force to
     its grain and, when the neighbour is in the same chunk, the opposite force to the
     neighbour. A chunk writes only its own grains and reads only positions and predicted
-    velocities, which nothing writes here: no races. ``dt`` is the substep (for the dashpot's
-    first and last step of contact, see :func:`_contact`).
+    velocities, which nothing writes here: no races. ``law`` is the
+    :class:`~fastsdf.granular.ContactLaw`, ``dt`` the substep (for the dashpot's first and
+    last step of contact, see :func:`_contact`).
 
     ``memory=None``: history-free (:func:`_contact`). Otherwise the contacts' memory
     (``law.history``): for list entry ``k``, ``memory[k, 0]`` is the tangential spring's
@@ -426,154 +577,24 @@ def pair_forces(
     number from both sides, the torque its negative). The choice is made at compile time:
     numba prunes the ``memory is None`` branches for the type of ``memory``, so each variant
     compiles to its own loop."""
-    kn = law.stiffness
-    kt = law.tangential_stiffness * kn
-    damp = 2.0 * _zeta(law.restitution) * math.sqrt(kn)  # gamma_n = damp sqrt(m_eff)
-    mu = law.friction
-    mu_r = law.rolling_friction
-    tdamp = law.tangential_damping
-    roll = mu_r > 0.0
-    period = bulk.period
-    density = bulk.density
-    dt_half = 0.5 * dt
-    x = g.x
-    y = g.y
-    rad = g.radius
-    gvx = g.vx
-    gvy = g.vy
-    gw = g.omega
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    vx = g.px
-    vy = g.py
-    w = g.pomega
-    n = x.shape[0]
+    terms = law_terms(law, bulk.density, dt)
+    n = g.x.shape[0]
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        for i in range(lo, hi):
-            ri = rad[i]
-            mi = grain_mass(ri, density)
-            gvx[i], gvy[i], gw[i] = half_kick(
-                gvx[i], gvy[i], gw[i], ri, gfx[i], gfy[i], gtq[i], dt_half, density
-            )
-            gfx[i] = mi * bulk.gravity_x
-            gfy[i] = mi * bulk.gravity_y
-            gtq[i] = 0.0
-        for i in range(lo, hi):
-            xi = x[i]
-            yi = y[i]
-            ri = rad[i]
-            mi = grain_mass(ri, density)
-            gamma_equal = damp * math.sqrt(0.5 * mi)  # the dashpot against an equal grain
-            fx = 0.0
-            fy = 0.0
-            tq = 0.0
-            for k in range(nbr_start[i], nbr_start[i + 1]):
-                entry = nbr[k]
-                j = entry & 0x3FFFFFFF
-                image = entry >> 30  # 0: none, 1: x_j + period, 2: x_j - period
-                dx = xi - x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
-                dy = yi - y[j]
-                if memory is None:
-                    touch, cfx, cfy, cross, _, _ = pair_force(
-                        dx,
-                        dy,
-                        ri,
-                        rad[j],
-                        mi,
-                        gamma_equal,
-                        i < j,
-                        vx[i] - vx[j],
-                        vy[i] - vy[j],
-                        w[i],
-                        w[j],
-                        damp,
-                        density,
-                        kn,
-                        kt,
-                        mu,
-                        mu_r,
-                        tdamp,
-                        dt,
-                        0.0,
-                        0.0,
-                        False,
-                        False,
-                    )
-                    if not touch:
-                        continue
-                    rj = rad[j]
-                    fx += cfx
-                    fy += cfy
-                    tq -= ri * cross
-                    if j >= lo and j < hi:  # same chunk: Newton's third law here
-                        gfx[j] -= cfx
-                        gfy[j] -= cfy
-                        gtq[j] -= rj * cross
-                else:
-                    touch, cfx, cfy, cross, s, mr = pair_force(
-                        dx,
-                        dy,
-                        ri,
-                        rad[j],
-                        mi,
-                        gamma_equal,
-                        i < j,
-                        vx[i] - vx[j],
-                        vy[i] - vy[j],
-                        w[i],
-                        w[j],
-                        damp,
-                        density,
-                        kn,
-                        kt,
-                        mu,
-                        mu_r,
-                        tdamp,
-                        dt,
-                        memory[k, 0],
-                        memory[k, 1] if roll else 0.0,
-                        True,
-                        roll,
-                    )
-                    memory[k, 0] = s
-                    if roll:
-                        memory[k, 1] = mr
-                    if not touch:
-                        continue
-                    rj = rad[j]
-                    fx += cfx
-                    fy += cfy
-                    tq += mr - ri * cross
-                    if j >= lo and j < hi:
-                        gfx[j] -= cfx
-                        gfy[j] -= cfy
-                        gtq[j] -= mr + rj * cross
-            gfx[i] += fx
-            gfy[i] += fy
-            gtq[i] += tq
+        _start_chunk(g, lo, hi, terms, bulk)
+        _chunk_pairs(g, lo, hi, nbr_start, nbr, memory, terms, bulk.period)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def wall_forces(
-    g: Grains,
-    idx: np.ndarray,
-    d: np.ndarray,
-    gx: np.ndarray,
-    gy: np.ndarray,
-    wall_vn: np.ndarray,
-    memory: np.ndarray | None,
-    law: Any,
-    bulk: Bulk,
-    dt: float,
+    g: Grains, near: Near, memory: np.ndarray | None, law: Any, bulk: Bulk, dt: float
 ) -> tuple:
-    """Add the world's contact forces to the grains ``idx`` (distinct indices) at distance
-    ``d`` with gradient ``(gx, gy)`` and wall normal speed ``wall_vn`` (the velocity of the
-    surface along ``grad d``; 0 for a static world), with the predicted velocities (run it
-    after :func:`pair_forces`, which resets the forces). Returns the total force the world exerts
-    on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel nothing.
+    """Add the world's contact forces to the grains ``near.idx`` (see :class:`Near`) under
+    ``law`` (a :class:`~fastsdf.granular.ContactLaw`), with the predicted velocities (run it
+    after :func:`pair_forces`, which resets the forces). Returns the total force the world
+    exerts on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel
+    nothing.
 
     ``memory=None``: history-free. Otherwise (``law.history``) one tangential spring per grain
     against the world, ``memory[0, i]`` for grain ``i`` (the world is one surface: a grain
@@ -581,81 +602,61 @@ def wall_forces(
     ``memory[1, i]`` when ``law.rolling_friction > 0`` (``R_eff = R_i``; the world does not
     turn), reset to 0 for a grain listed here but out of contact. Chosen at compile time, as
     in :func:`pair_forces`."""
-    kn = law.stiffness
-    kt = law.tangential_stiffness * kn
-    zeta = _zeta(law.restitution)
-    mu = law.friction
-    mu_r = law.rolling_friction
-    tdamp = law.tangential_damping
-    roll = mu_r > 0.0
-    vx = g.px
-    vy = g.py
-    w = g.pomega
-    rad = g.radius
+    terms = law_terms(law, bulk.density, dt)
+    history = memory is not None
+    roll = terms.mu_r > 0.0
     gfx = g.fx
     gfy = g.fy
     gtq = g.torque
     sx = 0.0
     sy = 0.0
-    for k in prange(idx.shape[0]):
-        i = idx[k]
-        if memory is None:
-            touch, cfx, cfy, tq, _, _ = wall_force(
-                rad[i],
-                d[k],
-                gx[k],
-                gy[k],
-                wall_vn[k],
-                vx[i],
-                vy[i],
-                w[i],
-                bulk.density,
-                zeta,
-                kn,
-                kt,
-                mu,
-                mu_r,
-                tdamp,
-                dt,
-                0.0,
-                0.0,
-                False,
-                False,
-            )
-        else:
-            touch, cfx, cfy, tq, s, mr = wall_force(
-                rad[i],
-                d[k],
-                gx[k],
-                gy[k],
-                wall_vn[k],
-                vx[i],
-                vy[i],
-                w[i],
-                bulk.density,
-                zeta,
-                kn,
-                kt,
-                mu,
-                mu_r,
-                tdamp,
-                dt,
-                memory[0, i],
-                memory[1, i] if roll else 0.0,
-                True,
-                roll,
-            )
-            memory[0, i] = s
-            if roll:
-                memory[1, i] = mr
-        if not touch:
-            continue
-        gfx[i] += cfx
-        gfy[i] += cfy
-        gtq[i] += tq
-        sx += cfx
-        sy += cfy
+    for k in prange(near.idx.shape[0]):
+        i = near.idx[k]
+        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], g.radius[i], g.px[i],
+                        g.py[i], g.pomega[i])  # fmt: skip
+        s, mr = _recall(memory[:, i], roll) if memory is not None else (0.0, 0.0)
+        touch, cfx, cfy, tq, s, mr = wall_force(wall, terms, s, mr, history, roll)
+        if memory is not None:
+            _keep(memory[:, i], s, mr, roll)
+        if touch:
+            gfx[i] += cfx
+            gfy[i] += cfy
+            gtq[i] += tq
+            sx += cfx
+            sy += cfy
     return sx, sy
+
+
+@njit(cache=True, error_model="numpy")
+def _kick_chunk(
+    g: Grains,
+    lo: int,
+    hi: int,
+    dt_kick: float,
+    dt: float,
+    density: float,
+    x_ref: np.ndarray,
+    y_ref: np.ndarray,
+) -> float:
+    """The elementwise pass of grains ``lo:hi`` (see :func:`kick_drift`); returns their
+    largest squared displacement from ``(x_ref, y_ref)``."""
+    big = 0.0
+    for i in range(lo, hi):
+        grain = Grain(g.x[i], g.y[i], g.vx[i], g.vy[i], g.omega[i], g.radius[i], g.fx[i],
+                      g.fy[i], g.torque[i])  # fmt: skip
+        x, y, vx, vy, w, px, py, pw = kick_grain(grain, dt_kick, dt, density)
+        g.vx[i] = vx
+        g.vy[i] = vy
+        g.omega[i] = w
+        g.px[i] = px
+        g.py[i] = py
+        g.pomega[i] = pw
+        g.x[i] = x
+        g.y[i] = y
+        ex = x - x_ref[i]
+        ey = y - y_ref[i]
+        big = max(big, ex * ex + ey * ey)
+    return big
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -677,51 +678,12 @@ def kick_drift(
     ``dt = 0`` only completes the kick. Writes into ``chunk_max[c]`` the largest squared
     displacement from ``(x_ref, y_ref)`` among the grains of chunk ``c`` (the
     ``len(chunk_max)`` chunks split the grains evenly; per-chunk slots, no shared writes)."""
-    gx = g.x
-    gy = g.y
-    gvx = g.vx
-    gvy = g.vy
-    gw = g.omega
-    rad = g.radius
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    gpx = g.px
-    gpy = g.py
-    gpw = g.pomega
-    n = gx.shape[0]
+    n = g.x.shape[0]
     chunks = chunk_max.shape[0]
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        big = 0.0
-        for i in range(lo, hi):
-            x, y, vx, vy, w, px, py, pw = kick_grain(
-                gx[i],
-                gy[i],
-                gvx[i],
-                gvy[i],
-                gw[i],
-                rad[i],
-                gfx[i],
-                gfy[i],
-                gtq[i],
-                dt_kick,
-                dt,
-                density,
-            )
-            gvx[i] = vx
-            gvy[i] = vy
-            gw[i] = w
-            gpx[i] = px
-            gpy[i] = py
-            gpw[i] = pw
-            gx[i] = x
-            gy[i] = y
-            ex = x - x_ref[i]
-            ey = y - y_ref[i]
-            big = max(big, ex * ex + ey * ey)
-        chunk_max[c] = big
+        chunk_max[c] = _kick_chunk(g, lo, hi, dt_kick, dt, density, x_ref, y_ref)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -730,6 +692,20 @@ def _rolling_energy(torque, kn, mu_r, r_eff):
     2.25 k_n mu_r**2 R_eff**2`` (see :func:`_rolling_spring`: its torque grows by ``-k_r``
     times the relative rotation, and the cap only truncates it)."""
     return 0.5 * torque * torque / (2.25 * kn * mu_r * mu_r * r_eff * r_eff)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _springs_held(law, springs, r_eff):
+    """``(tangential, rolling)``: the energy held by one contact's springs under ``law`` (a
+    :class:`~fastsdf.granular.ContactLaw`), ``k_t s**2 / 2`` of the stretch ``springs[0]``
+    and, with rolling friction, :func:`_rolling_energy` of the torque ``springs[1]``."""
+    kn = law.stiffness
+    s = springs[0]
+    tangential = 0.5 * (law.tangential_stiffness * kn) * s * s
+    mu_r = law.rolling_friction
+    if mu_r > 0.0:
+        return tangential, _rolling_energy(springs[1], kn, mu_r, r_eff)
+    return tangential, 0.0
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -753,9 +729,6 @@ def pair_energy(
     er = 0.0
     count = 0
     kn = law.stiffness
-    kt = law.tangential_stiffness * kn
-    mu_r = law.rolling_friction
-    roll = mu_r > 0.0
     period = bulk.period
     for i in prange(g.x.shape[0]):
         for k in range(nbr_start[i], nbr_start[i + 1]):
@@ -763,8 +736,7 @@ def pair_energy(
             j = entry & 0x3FFFFFFF
             if j <= i:  # a pair listed at both grains is counted at the lower index
                 continue
-            image = entry >> 30
-            dx = g.x[i] - g.x[j] - period * (np.float64(image & 1) - np.float64(image >> 1))
+            dx = g.x[i] - g.x[j] - image_shift(entry, period)
             dy = g.y[i] - g.y[j]
             rsum = g.radius[i] + g.radius[j]
             delta = rsum - math.sqrt(dx * dx + dy * dy)
@@ -772,10 +744,9 @@ def pair_energy(
                 en += 0.5 * kn * delta * delta
                 count += 1
             if memory is not None:
-                et += 0.5 * kt * memory[k, 0] * memory[k, 0]
-                if roll:
-                    r_eff = g.radius[i] * g.radius[j] / rsum
-                    er += _rolling_energy(memory[k, 1], kn, mu_r, r_eff)
+                held, rolling = _springs_held(law, memory[k], g.radius[i] * g.radius[j] / rsum)
+                et += held
+                er += rolling
     return en, et, er, count
 
 
@@ -792,9 +763,6 @@ def wall_energy(
     er = 0.0
     count = 0
     kn = law.stiffness
-    kt = law.tangential_stiffness * kn
-    mu_r = law.rolling_friction
-    roll = mu_r > 0.0
     for k in range(idx.shape[0]):
         i = idx[k]
         delta = g.radius[i] - d[k]
@@ -802,9 +770,9 @@ def wall_energy(
             en += 0.5 * kn * delta * delta
             count += 1
         if memory is not None:
-            et += 0.5 * kt * memory[0, i] * memory[0, i]
-            if roll:
-                er += _rolling_energy(memory[1, i], kn, mu_r, g.radius[i])
+            held, rolling = _springs_held(law, memory[:, i], g.radius[i])
+            et += held
+            er += rolling
     return en, et, er, count
 
 

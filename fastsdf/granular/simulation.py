@@ -63,6 +63,7 @@ from numpy.typing import ArrayLike
 from fastsdf.granular.cells import (
     INDEX_MASK,
     CellGrid,
+    SortedGrains,
     build_verlet,
     carry_springs,
     cell_keys,
@@ -74,6 +75,7 @@ from fastsdf.granular.cells import (
 from fastsdf.granular.kernels import (
     Bulk,
     Grains,
+    Near,
     kick_drift,
     kinetic_energy,
     pair_energy,
@@ -136,6 +138,48 @@ def _points(value: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
             f"{int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])}"
         )
     return a
+
+
+def _radii(radius: ArrayLike, n: int) -> np.ndarray:
+    r = np.array(np.broadcast_to(np.asarray(radius, dtype=np.float64), (n,)))
+    if not np.all(np.isfinite(r) & (r > 0)):
+        bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
+        raise ValueError(f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}")
+    return r
+
+
+def _positive(value: object, name: str) -> float:
+    out = _real(value, name)
+    if not out > 0:
+        raise ValueError(f"{name} must be > 0, got {name}={value!r}")
+    return out
+
+
+def _gravity(gravity: ArrayLike) -> np.ndarray:
+    gxy = np.asarray(gravity, dtype=np.float64)
+    if gxy.shape != (2,) or not np.all(np.isfinite(gxy)):
+        raise ValueError(f"gravity must be two finite numbers, got gravity={gravity!r}")
+    return gxy
+
+
+def _period(periodic_x: ArrayLike | None) -> tuple[float, float]:
+    """``(x0, period)`` of ``periodic_x = (x0, x1)``; ``(0, 0)`` for None (not periodic)."""
+    if periodic_x is None:
+        return 0.0, 0.0
+    px = np.asarray(periodic_x, dtype=np.float64)
+    if px.shape != (2,) or not np.all(np.isfinite(px)) or not px[1] > px[0]:
+        raise ValueError(f"periodic_x must be (x0, x1) with x0 < x1, got periodic_x={periodic_x!r}")
+    return float(px[0]), float(px[1] - px[0])
+
+
+def _chunk_count(chunks: int | None, n: int) -> int:
+    """Chunks of the force pass: by default a few per thread (balance), few enough that the
+    pairs listed twice (across chunk boundaries) stay a small share."""
+    if chunks is None:
+        chunks = max(1, min(4 * numba.get_num_threads(), n // 256))
+    if isinstance(chunks, bool) or not isinstance(chunks, (int, np.integer)) or chunks < 1:
+        raise ValueError(f"chunks must be an int >= 1, got chunks={chunks!r}")
+    return int(min(chunks, n))
 
 
 def world_height(world: Any, positions: np.ndarray, diameter: float, gravity: ArrayLike) -> float:
@@ -248,28 +292,18 @@ class GranularSimulation:
         chunks: int | None = None,
         device: str = "cpu",
     ) -> None:
-        contact, wall_contact = contacts, wall_contacts
         p = _points(positions, "positions")
         n = p.shape[0]
         if n < 1:
             raise ValueError("positions must hold at least one disc, got 0 rows")
-        r = np.array(np.broadcast_to(np.asarray(radius, dtype=np.float64), (n,)))
-        if not np.all(np.isfinite(r) & (r > 0)):
-            bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
-            raise ValueError(f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}")
+        r = _radii(radius, n)
         v = np.zeros((n, 2)) if velocities is None else _points(velocities, "velocities", n)
-        for name, law in (("contacts", contact), ("wall_contacts", wall_contact)):
+        for name, law in (("contacts", contacts), ("wall_contacts", wall_contacts)):
             if law is not None and not isinstance(law, ContactLaw):
                 raise TypeError(f"{name} must be a fastsdf.granular.ContactLaw, got {name}={law!r}")
-        self.density = _real(density, "density")
-        if not self.density > 0:
-            raise ValueError(f"density must be > 0, got density={density!r}")
-        gxy = np.asarray(gravity, dtype=np.float64)
-        if gxy.shape != (2,) or not np.all(np.isfinite(gxy)):
-            raise ValueError(f"gravity must be two finite numbers, got gravity={gravity!r}")
-        self.timestep = _real(timestep, "timestep")
-        if not self.timestep > 0:
-            raise ValueError(f"timestep must be > 0, got timestep={timestep!r}")
+        self.density = _positive(density, "density")
+        gxy = _gravity(gravity)
+        self.timestep = _positive(timestep, "timestep")
         spc = _real(substeps_per_contact, "substeps_per_contact")
         if not spc >= 10:
             raise ValueError(
@@ -277,57 +311,30 @@ class GranularSimulation:
                 f"got substeps_per_contact={substeps_per_contact!r}"
             )
         if substep is not None:
-            target = _real(substep, "substep")
-            if not target > 0:
-                raise ValueError(f"substep must be > 0, got substep={substep!r}")
+            _positive(substep, "substep")
         if world is not None and not callable(world):
             raise TypeError(
                 f"world must be a fastsdf Function or GridSDF (or None), got world={world!r}"
             )
         self.world = world
         self.moving = bool(getattr(world, "time_dependent", False))
-        period_x0, period = 0.0, 0.0
-        if periodic_x is not None:
-            px = np.asarray(periodic_x, dtype=np.float64)
-            if px.shape != (2,) or not np.all(np.isfinite(px)) or not px[1] > px[0]:
-                raise ValueError(
-                    f"periodic_x must be (x0, x1) with x0 < x1, got periodic_x={periodic_x!r}"
-                )
-            period_x0, period = float(px[0]), float(px[1] - px[0])
-        self.bulk = Bulk(self.density, float(gxy[0]), float(gxy[1]), period_x0, period)
+        self.bulk = Bulk(self.density, float(gxy[0]), float(gxy[1]), *_period(periodic_x))
         # The laws as given (a stiffness of None is derived, see ContactLaw) and what sets the
         # substep: resolved now and again when gravity changes (set_gravity).
-        self._laws_given = (ContactLaw() if contact is None else contact, wall_contact)
+        self._laws_given = (ContactLaw() if contacts is None else contacts, wall_contacts)
         self._substeps_per_contact = spc
         self._substep_given = substep
         self._r_min = float(r.min())
         self._height = world_height(world, p, 2.0 * float(r.max()), gxy)
         self._resolve_laws()
-
-        if skin is None:
-            skin = 0.4 * float(r.mean())
-        self.skin = _real(skin, "skin")
-        if not self.skin > 0:
-            raise ValueError(f"skin must be > 0, got skin={skin!r}")
+        self.skin = _positive(0.4 * float(r.mean()) if skin is None else skin, "skin")
         self._cutoff = 2 * float(r.max()) + self.skin
-
         self.grains = Grains(
-            p[:, 0].copy(),
-            p[:, 1].copy(),
-            v[:, 0].copy(),
-            v[:, 1].copy(),
-            np.zeros(n),
-            r,
+            p[:, 0].copy(), p[:, 1].copy(), v[:, 0].copy(), v[:, 1].copy(), np.zeros(n), r,
             *(np.zeros(n) for _ in range(6)),
-        )
+        )  # fmt: skip
         self.ids = np.arange(n, dtype=np.int64)  # ids[slot]: the grain's index as given
-        # chunks of the force pass: a few per thread (balance), few enough that the pairs
-        # listed twice (across chunk boundaries) stay a small share
-        if chunks is None:
-            chunks = max(1, min(4 * numba.get_num_threads(), n // 256))
-        if isinstance(chunks, bool) or not isinstance(chunks, (int, np.integer)) or chunks < 1:
-            raise ValueError(f"chunks must be an int >= 1, got chunks={chunks!r}")
-        self._chunks = int(min(chunks, n))
+        self._chunks = _chunk_count(chunks, n)
         self.grid: CellGrid | None = None
         # Contact memory (with history; see the module docs): springs per list entry (the
         # tangential stretch, and the rolling torque with rolling resistance), the list before
@@ -408,9 +415,7 @@ class GranularSimulation:
     def set_gravity(self, gravity: ArrayLike) -> None:
         """Change gravity (length / s**2) from now on: a derived stiffness and the substep
         follow it, and the forces are evaluated again at the current state."""
-        gxy = np.asarray(gravity, dtype=np.float64)
-        if gxy.shape != (2,) or not np.all(np.isfinite(gxy)):
-            raise ValueError(f"gravity must be two finite numbers, got gravity={gravity!r}")
+        gxy = _gravity(gravity)
         self.bulk = self.bulk._replace(gravity_x=float(gxy[0]), gravity_y=float(gxy[1]))
         self._resolve_laws()
         self._restart()
@@ -442,12 +447,7 @@ class GranularSimulation:
                 raise ValueError(f"angular_velocities must be {n} finite numbers")
             g.omega[:] = w[slots]
         if radius is not None:
-            r = np.array(np.broadcast_to(np.asarray(radius, dtype=np.float64), (n,)))
-            if not np.all(np.isfinite(r) & (r > 0)):
-                bad = int(np.flatnonzero(~(np.isfinite(r) & (r > 0)))[0])
-                raise ValueError(
-                    f"radius must be finite and > 0, got radius[{bad}]={float(r[bad])!r}"
-                )
+            r = _radii(radius, n)
             g.radius[:] = r[slots]
             self._r_min = float(r.min())
             self._cutoff = 2 * float(r.max()) + self.skin
@@ -489,18 +489,8 @@ class GranularSimulation:
             self._old_start, self._nbr_start = self._nbr_start, self._old_start
             self._old_nbr, self._nbr = self._nbr, self._old_nbr
             self._old_spring, self._spring = self._spring, self._old_spring
-        self._nbr = build_verlet(
-            g.x,
-            g.y,
-            g.radius,
-            self._keys,
-            self._cell_start,
-            grid,
-            self.skin,
-            self._chunks,
-            self._nbr_start,
-            self._nbr,
-        )
+        cells = SortedGrains(g.x, g.y, g.radius, self._keys, self._cell_start, self.skin)
+        self._nbr = build_verlet(cells, grid, self._chunks, self._nbr_start, self._nbr)
         self.grid = grid
         if self._history:
             if self._spring.shape[0] < self._nbr.shape[0]:
@@ -534,7 +524,8 @@ class GranularSimulation:
         self.timings["rebuild"] += _time.perf_counter() - t0
 
     # -- forces ------------------------------------------------------------------------------
-    def _query_world(self) -> tuple:
+    def _query_world(self) -> Near:
+        """The grains the force pass asks the world about and the world there."""
         g = self.grains
         if self.moving:
             idx = np.arange(g.x.shape[0])
@@ -550,7 +541,7 @@ class GranularSimulation:
             vn = np.zeros(idx.shape[0])
         d = np.ascontiguousarray(d, dtype=np.float64).reshape(-1)
         grad = np.asarray(grad, dtype=np.float64).reshape(-1, 2)
-        return idx, d, np.ascontiguousarray(grad[:, 0]), np.ascontiguousarray(grad[:, 1]), vn
+        return Near(idx, d, np.ascontiguousarray(grad[:, 0]), np.ascontiguousarray(grad[:, 1]), vn)
 
     def _forces(self, wall_sum: np.ndarray, dt: float) -> None:
         t0 = _time.perf_counter()
@@ -569,17 +560,13 @@ class GranularSimulation:
         t1 = _time.perf_counter()
         self.timings["forces"] += t1 - t0
         if self.world is not None:
-            idx, d, gx, gy, vn = self._query_world()
-            if idx.shape[0]:
+            near = self._query_world()
+            if near.idx.shape[0]:
                 # (compiled when the first grain comes near the world, often within a run)
                 with compiling_first("the granular kernels' contacts with the world", wall_forces):
                     fx, fy = wall_forces(
                         self.grains,
-                        idx,
-                        d,
-                        gx,
-                        gy,
-                        vn,
+                        near,
                         self._wall_spring if self.wall_contact.history else None,
                         self.wall_contact,
                         self.bulk,
@@ -587,8 +574,8 @@ class GranularSimulation:
                     )
                 wall_sum[0] += fx
                 wall_sum[1] += fy
-            self._wall_d = d
-            self._wall_last = idx
+            self._wall_d = near.d
+            self._wall_last = near.idx
             self.timings["walls"] += _time.perf_counter() - t1
 
     # -- time stepping ----------------------------------------------------------------------
@@ -773,9 +760,9 @@ class GranularSimulation:
             g, self._nbr_start, self._nbr, memory, self.contact, self.bulk
         )
         if self.world is not None:
-            idx, d, _, _, _ = self._query_world()
+            near = self._query_world()
             wall_memory = self._wall_spring if self.wall_contact.history else None
-            wn, wt, wr, _ = wall_energy(g, idx, d, wall_memory, self.wall_contact)
+            wn, wt, wr, _ = wall_energy(g, near.idx, near.d, wall_memory, self.wall_contact)
             normal, tangential, rolling = normal + wn, tangential + wt, rolling + wr
         parts = {
             "kinetic": float(kinetic),
@@ -796,8 +783,8 @@ class GranularSimulation:
         )
         walls = 0
         if self.world is not None:
-            idx, d, _, _, _ = self._query_world()
-            walls = wall_energy(self.grains, idx, d, None, self.wall_contact)[3]
+            near = self._query_world()
+            walls = wall_energy(self.grains, near.idx, near.d, None, self.wall_contact)[3]
         return int(pairs), int(walls)
 
     def neighbour_pairs(self) -> np.ndarray:
