@@ -227,13 +227,12 @@ def test_signatures_show_types_not_forward_references():
         "fastsdf.granular.CellGrid",
         "fastsdf.granular.ContactLaw",
         "fastsdf.granular.Grains",
-        "fastsdf.particles.forces.FusedForces",
-        "fastsdf.particles.kernels.State",
-        "fastsdf.particles.kernels.Physics",
-        "fastsdf.particles.kernels.Budget",
-        "fastsdf.particles.kernels.Motion",
-        "fastsdf.particles.kernels.Disc",
-        "fastsdf.particles.kernels.Window",
+        "fastsdf.granular.cells.SortedGrains",
+        "fastsdf.granular.kernels.Grain",
+        "fastsdf.granular.kernels.Law",
+        "fastsdf.granular.kernels.Near",
+        "fastsdf.granular.kernels.Pair",
+        "fastsdf.granular.kernels.WallPair",
     }
     shown = []
     for name, obj in public_objects():

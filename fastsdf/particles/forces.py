@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 from fastsdf.backends import load_module
 from fastsdf.expr.validate import vec2 as _vec2
 from fastsdf.function import Function
+from fastsdf.introspect import show_field_types
 from fastsdf.particles.state import Particles, _real
 from fastsdf.version import __version__
 
@@ -226,6 +227,7 @@ _WHAT = (
 _NJIT_ARGS = ("x", "y", "vx", "vy", "m", "t")
 
 
+@show_field_types
 class FusedForces(NamedTuple):
     """The forces of a step: the uniform acceleration ``(ax, ay)`` of the :class:`Gravity`
     generators, the :class:`Drag` coefficients' sum ``drag``, the Python generators

@@ -20,6 +20,7 @@ import numpy as np
 from fastsdf.backends import call_vg_plan, hashed_import, load_module
 from fastsdf.fields import grid as _grid
 from fastsdf.function import Function
+from fastsdf.introspect import show_field_types
 from fastsdf.particles import kernels as _kernels
 from fastsdf.version import __version__
 
@@ -43,6 +44,7 @@ _PLAN_IMPORT = hashed_import(call_vg_plan.__module__, [f"{call_vg_plan.__name__}
 _UNCACHED: dict = {}
 
 
+@show_field_types
 class Scene(NamedTuple):
     """A world's part of a scene block: ``lines`` (its imports and the definitions of
     ``_query``, ``_fallback_missing`` and the time functions), ``deps`` (what the kernel

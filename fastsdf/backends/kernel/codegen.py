@@ -37,6 +37,7 @@ from fastsdf.backends.kernel.combine import combine_import
 from fastsdf.backends.kernel.simd import block_source, drive_import, program_source, vmath_import
 from fastsdf.backends.lower import Program
 from fastsdf.expr.graph import Expr, dag_size, expr_to_str
+from fastsdf.introspect import show_field_types
 from fastsdf.version import __version__
 
 __all__ = [
@@ -150,6 +151,7 @@ def _point_sources(body: Body, kind: str, program: Program, vmath: bool) -> tupl
     return point, many
 
 
+@show_field_types
 class KindSource(NamedTuple):
     """The generated code of one kind (``'v'``, ``'vg'``, ``'vgt'``): the one-point function
     (``point``) and ``rows_vg`` (``rows``, or empty) for the scene's module; the block kernels
@@ -245,6 +247,7 @@ def table_source(tables: dict, groups: list) -> str:
     return "\n".join(parts)
 
 
+@show_field_types
 class Generated(NamedTuple):
     """A scene's generated code: the scene's module (``source``: its tables and one-point
     functions), the module of its structure (``blocks``: the block kernels, which read the

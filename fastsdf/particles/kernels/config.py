@@ -14,12 +14,15 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fastsdf.introspect import show_field_types
+
 __all__ = ["State", "Physics", "Budget", "Motion", "Disc", "Window", "NO_EXT"]
 
 #: ``State.EXT`` of a call without Python forces.
 NO_EXT = np.zeros((0, 2))
 
 
+@show_field_types
 class State(NamedTuple):
     """The arrays of the particles a call steps (structure of arrays, one float dtype).
 
@@ -41,6 +44,7 @@ class State(NamedTuple):
     check_all: bool
 
 
+@show_field_types
 class Physics(NamedTuple):
     """The physics of a call: timestep ``dt`` (s), time of the first step ``t0``, uniform
     acceleration ``(ax, ay)``, linear ``drag`` (mass/s), whether the mass is read (``use_m``:
@@ -60,6 +64,7 @@ class Physics(NamedTuple):
     rest: float
 
 
+@show_field_types
 class Budget(NamedTuple):
     """Safety and query skipping: the tunnelling sweep (``trace``), the world's Lipschitz bound
     ``lip``, the ``margin`` a grid may jump at its bounds, the relative rounding ``eps`` of
@@ -72,6 +77,7 @@ class Budget(NamedTuple):
     skip: bool
 
 
+@show_field_types
 class Motion(NamedTuple):
     """One particle's step: start ``(x, y)``, displacement ``(dx, dy)`` and velocity
     ``(vx, vy)``."""
@@ -84,6 +90,7 @@ class Motion(NamedTuple):
     vy: float
 
 
+@show_field_types
 class Disc(NamedTuple):
     """One particle's radius ``r`` and its restitution ``cr`` and friction ``cf``."""
 
@@ -92,6 +99,7 @@ class Disc(NamedTuple):
     cf: float
 
 
+@show_field_types
 class Window(NamedTuple):
     """The part of a step a sweep checks: the step's parameters below ``t0`` and above ``t1``
     are known to be free; meanwhile time runs from ``ts`` over ``tdt`` and the walls move at
