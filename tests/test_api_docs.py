@@ -187,6 +187,7 @@ NAMED_PARAMETERS = (
     "fastsdf.notice",
     "fastsdf.introspect",
     "fastsdf.granular.analysis",
+    "fastsdf.particles",
 )
 
 

@@ -308,7 +308,7 @@ class CudaStep:
 
     def world_arg(self, params: tuple) -> tuple:
         """The ``world`` launch argument: a grid's sampler data with its arrays on the device,
-        an SDF's parameter values (or a placeholder)."""
+        an SDF's parameter values ``params`` (or a placeholder)."""
         f = self._world
         if _is_grid(f):
             return tuple(
@@ -329,8 +329,8 @@ class CudaStep:
         """Launch ``steps`` steps of every particle of ``p`` (asynchronous: no wait for the
         GPU) with ``physics`` (:class:`.kernels.Physics`), the fused user forces ``user``
         (numba dispatchers), ``budget`` (:class:`.kernels.Budget`: the tunnelling sweep
-        ``trace`` with the world's Lipschitz bound ``lip``) and the values of the world's
-        parameters."""
+        ``trace`` with the world's Lipschitz bound ``lip``) and ``params``, the values of the
+        world's parameters."""
         cu = _device.cuda()
         module, key, _ = device_module(self._world, tuple(user))
         kernel = step_kernel(module, budget.trace, key + (bool(budget.trace),))

@@ -182,9 +182,10 @@ class ParticleEngine:
             self._data = self._bind(self._data)
 
     def update_plan(self, x: np.ndarray, steps: int) -> None:
-        """Point the plan header at a pruning plan over the particles that query the exact SDF
-        per point (all of them for an SDF world, those outside the grid for a grid's exact
-        fallback), or at none where pruning does not pay (see ``CompiledSDF.pruned_plan``).
+        """Point the plan header at a pruning plan over the particles (positions ``x``, for a
+        call of ``steps`` steps) that query the exact SDF per point (all of them for an SDF
+        world, those outside the grid for a grid's exact fallback), or at none where pruning
+        does not pay (see ``CompiledSDF.pruned_plan``).
         Particles that leave the plan's rectangle during the steps use every row."""
         if not self._exact_ptr:
             return
@@ -208,7 +209,8 @@ class ParticleEngine:
             self._hdr_plan = plan
 
     def scene_data(self, p: Any, t: float, dt: float, steps: int) -> tuple:
-        """Query data of a parametric world for a call of ``steps`` steps from time ``t``: (t,
+        """Query data of a parametric world for a call of ``steps`` steps of ``dt`` seconds from
+        time ``t`` over the particles ``p``: (t,
         wall speed bound, table geometry and the per-region table, *parameters); see
         ``PARAMS_AT`` in :mod:`fastsdf.particles.scene_blocks`."""
         prm = self.params.as_tuple()
@@ -224,7 +226,7 @@ class ParticleEngine:
         return (float(t), float(wall)) + table + prm
 
     def query(self, x: Any, y: Any, t: float = 0.0) -> tuple:
-        """``(d, grad)`` of the world at points (at time ``t``), exactly as the compiled step
+        """``(d, grad)`` of the world at points ``x``, ``y`` (at time ``t``), exactly as the step
         sees it (for a grid: the bilinear samples, with its out-of-bounds rule)."""
         xs = np.ascontiguousarray(x, dtype=np.float64).reshape(-1)
         ys = np.ascontiguousarray(y, dtype=np.float64).reshape(-1)

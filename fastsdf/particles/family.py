@@ -87,7 +87,8 @@ class Simulation(metaclass=ABCMeta):
 
     @abstractmethod
     def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
-        """``(d, grad)`` of the world at points, as the step sees it."""
+        """``(d, grad)`` of the world at points ``x``, ``y`` (arrays of one shape), as the step
+        sees it."""
 
     # -- the shared tools --------------------------------------------------------------------
     @property
@@ -106,7 +107,8 @@ class Simulation(metaclass=ABCMeta):
         self._run(int(steps))
 
     def update(self, ax: Any = None, use_wall_time: bool = False) -> tuple:
-        """Advance one frame and refresh the drawing; returns the drawables.
+        """Advance one frame and refresh the drawing on the axes ``ax`` (if given); returns the
+        drawables.
 
         One step of ``dt`` seconds; with ``use_wall_time``, as many fixed steps as fit in the
         wall-clock time since the previous update (at least one, at most 10), so the animation

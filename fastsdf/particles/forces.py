@@ -52,7 +52,8 @@ class Gravity:
         return np.asarray(p["m"], dtype=np.float64)[:, None] * self.acceleration
 
     def potential(self, p: Particles) -> np.ndarray:
-        """Potential energy of each particle, ``-m (acceleration . x)`` (zero at the origin)."""
+        """Potential energy of each particle of ``p`` (its ``'x'`` and ``'m'``),
+        ``-m (acceleration . x)`` (zero at the origin)."""
         x = np.asarray(p["x"], dtype=np.float64)
         return -np.asarray(p["m"], dtype=np.float64) * (x @ self.acceleration)
 

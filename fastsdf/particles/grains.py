@@ -59,7 +59,8 @@ class GrainState(FieldState):
     """The grains' state in their given order: ``p['x']``, ``p['v']`` (n, 2), ``p['m']``,
     ``p['r']``, ``p['omega']`` (n,) (angular velocity, rad/s, counter-clockwise), with the
     family's mapping surface (:class:`~fastsdf.particles.state.FieldState`). Arrays read here
-    may be written in place (``m`` excepted); the next step takes the changes."""
+    may be written in place (``m`` excepted); the next step takes the changes. ``engine``: the
+    granular engine whose arrays these are (kept in its spatial order)."""
 
     FIELDS = ("x", "v", "m", "r", "omega")
     _ITEM = "grain"
@@ -434,7 +435,7 @@ class GrainSimulation(Simulation):
         return float(-np.sum(m * (x[:, 0] * ax + x[:, 1] * ay)))
 
     def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
-        """``(d, grad)`` of the world at points."""
+        """``(d, grad)`` of the world at points ``x``, ``y`` (arrays of one shape)."""
         d, grad = self.engine.world(
             np.asarray(x, dtype=np.float64),
             np.asarray(y, dtype=np.float64),

@@ -13,7 +13,8 @@ __all__ = ["reference_step"]
 def reference_step(
     p: Any, f: Any, dt: float, force_generators: Sequence = (), t: float = 0.0
 ) -> None:
-    """One step of the notebook's ``ParticleSimulation.advance()``, in NumPy, in place.
+    """One step of ``dt`` seconds of the notebook's ``ParticleSimulation.advance()``, in NumPy,
+    in place.
 
     ``p`` is a :class:`Particles` (or a structured array with the same fields), ``f`` any SDF
     or GridSDF callable as ``f(x, y, compute_gradient=True)``. Forces are the sum of

@@ -351,9 +351,10 @@ def block_source(scene: Scene, forces: tuple, ahead: bool = True, title: str = "
 
 
 def generated_module(source: str, late: list, key: tuple, prefix: str) -> tuple:
-    """The module of ``source``, loaded from the kernel cache; with objects to bind after
-    import (``late``), a module of its own per set of objects (kept, with them alive, so their
-    ids are not reused meanwhile). Returns ``(module, keepalive)``."""
+    """The module of ``source``, loaded from the kernel cache (file names start with
+    ``prefix``); with objects to bind after import (``late``), a module of its own per set of
+    objects and ``key`` (kept, with them alive, so their ids are not reused meanwhile).
+    Returns ``(module, keepalive)``."""
     if not late:
         return load_module(source, prefix=prefix), None
     key = (prefix,) + key + tuple(id(obj) for _, obj in late)

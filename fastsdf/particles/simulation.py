@@ -603,15 +603,17 @@ class ParticleSimulation(Simulation):
         return parts
 
     def query(self, x: ArrayLike, y: ArrayLike) -> tuple:
-        """``(d, grad)`` of the world at points, exactly as the compiled step sees it (for a
-        GridSDF: the bilinear samples, with its out-of-bounds rule)."""
+        """``(d, grad)`` of the world at points ``x``, ``y`` (arrays of one shape), exactly as the
+        compiled step sees it (for a GridSDF: the bilinear samples, with its out-of-bounds
+        rule)."""
         return self.engine.query(x, y, self.t)
 
     # -- files and pickling ------------------------------------------------------------------
     def save(self, path: str | os.PathLike, *, allow_pickle: bool = False) -> str:
         """Write the simulation to ``path`` (``.npz``) so that :meth:`load` continues it bit for
-        bit (see :meth:`fastsdf.particles.family.Simulation.save`). With ``device='cuda'`` the
-        state's host copy is written (and :meth:`load` puts it back on the device)."""
+        bit (see :meth:`fastsdf.particles.family.Simulation.save`; ``allow_pickle``: allow
+        worlds and forces that only pickle can store). With ``device='cuda'`` the state's host
+        copy is written (and :meth:`load` puts it back on the device)."""
         if self.engine.gpu is None:
             return super().save(path, allow_pickle=allow_pickle)
         on_device, self.p = self.p, self.p.host()
@@ -759,7 +761,8 @@ def create_animation(
     use_wall_time: bool = False,
     interval: float | None = None,
 ) -> Any:
-    """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` (the notebook's helper).
+    """A matplotlib ``FuncAnimation`` of ``sim`` on ``ax`` of the figure ``fig`` (the
+    notebook's helper).
 
     Each frame calls ``sim.update(ax, use_wall_time)``; the animation's init (and every repeat)
     calls ``sim.reset(ax)``, which redraws a fresh random state. ``interval`` is the delay

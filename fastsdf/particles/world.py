@@ -78,7 +78,8 @@ def _exact_address(exact: Any) -> tuple:
 class SimulationParams(dict):
     """``sim.params``: the values of the world's runtime parameters (not time: the simulation
     sets ``t`` to its own clock). Assign ``sim.params['angle'] = 0.3`` between steps; the next
-    step uses it without recompiling. Unknown names and non-finite values are refused."""
+    step uses it without recompiling. Unknown names and non-finite values are refused.
+    ``f``: the world (an SDF with parameters), whose current values start the mapping."""
 
     def __init__(self, f: Any) -> None:
         super().__init__({k: v for k, v in f.params.items() if k != "t"})

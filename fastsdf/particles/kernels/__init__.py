@@ -274,6 +274,7 @@ TAIL = "\n\n" + _bodies()
 
 
 def kernel_source(scene_block: str, head: str | None = None, tail: str | None = None) -> str:
-    """The source of a kernel module: the shared imports, ``scene_block`` (the definitions
-    listed in this package's docs) and the kernels' bodies."""
+    """The source of a kernel module: the shared imports (``head``, default :data:`HEAD`),
+    ``scene_block`` (the definitions listed in this package's docs) and the kernels' bodies
+    (``tail``, default :data:`TAIL`)."""
     return (HEAD if head is None else head) + scene_block + (TAIL if tail is None else tail)
