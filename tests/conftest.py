@@ -53,6 +53,12 @@ def central_gradient(f, x, y, h=1e-6):
     return np.stack([gx, gy], axis=-1)
 
 
+def value_of(f):
+    """The value of ``f``'s value-and-gradient call (for finite differences of a scene whose
+    test compiled that kernel: a value-only call would compile a second kernel)."""
+    return lambda x, y: f(x, y, compute_gradient=True)[0]
+
+
 def brute_distance(points, boundary):
     """Unsigned distance from each point to the nearest of the densely sampled ``boundary``."""
     out = np.empty(len(points))

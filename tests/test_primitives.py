@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import brute_distance, central_gradient, rotate
+from conftest import brute_distance, central_gradient, rotate, value_of
 from matplotlib.path import Path
 
 import fastsdf as sdf
@@ -243,8 +243,8 @@ def test_primitive_is_exact_against_sampled_boundary(name):
     # gradients: central differences where the function is smooth at the step's scale, unit
     # length everywhere (the segment's zero-length case included)
     near = np.abs(d) < 5 * extent
-    fd1 = central_gradient(f, *world[near].T, h=1e-6)
-    fd2 = central_gradient(f, *world[near].T, h=5e-7)
+    fd1 = central_gradient(value_of(f), *world[near].T, h=1e-6)
+    fd2 = central_gradient(value_of(f), *world[near].T, h=5e-7)
     smooth = np.all(np.abs(fd1 - fd2) < 1e-6, axis=1)
     assert smooth.mean() > 0.8
     np.testing.assert_allclose(g[near][smooth], fd1[smooth], atol=2e-5)
@@ -387,8 +387,8 @@ def test_polynomial_blends_are_hard_outside_width_and_smooth_inside(kind):
         assert np.all(np.abs(d - h) <= depth * (1 + 1e-12))
         # analytic gradient = central differences (the blend is C1: no kink at |a - b| = k),
         # and a convex combination of unit gradients: |g| <= 1
-        fd = central_gradient(f, *p.T, h=1e-6)
-        fd2 = central_gradient(f, *p.T, h=5e-7)
+        fd = central_gradient(value_of(f), *p.T, h=1e-6)
+        fd2 = central_gradient(value_of(f), *p.T, h=5e-7)
         smooth = np.all(np.abs(fd - fd2) < 1e-6, axis=1)
         np.testing.assert_allclose(g[smooth], fd[smooth], atol=1e-5)
         assert np.all(np.hypot(*g.T) <= 1 + 1e-12)
