@@ -2,6 +2,7 @@
 
     python -m bench.first_answer --rev 9af86bd            # 20, 200, 2000 boxes, 3 rounds
     python -m bench.first_answer --rev HEAD~3 --sizes 20 --rounds 5
+    python -m bench.first_answer --rev 9af86bd --new-structure   # no structure seen before
 
 The scene is the notebook's world of smoothly joined rotated boxes (``box_world(n, seed)``)
 with a seed never used before, so its kernel is in no cache: each measurement is a fresh
@@ -11,6 +12,11 @@ side and size compiles what every scene shares (the drivers, and on revisions th
 the tape interpreter) into that side's caches. Each side runs its default call; a baseline
 that has the ``'tape'`` backend is also timed with ``backend='kernel'``. Rounds alternate the
 sides, so both see the same machine load; the table gives the median of each.
+
+Scenes that differ only in their numbers share their compiled block kernels, so a new seed of
+a size measured before loads them from the cache. ``--new-structure`` measures scenes of a
+structure never compiled before: round ``r`` of size ``n`` takes ``n + 2 r + 2`` boxes (the
+warm-up ``n + 1``).
 """
 
 from __future__ import annotations
@@ -65,6 +71,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rev", required=True, help="git revision of the baseline")
     parser.add_argument("--sizes", type=int, nargs="+", default=[20, 200, 2000])
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument(
+        "--new-structure",
+        action="store_true",
+        help="each measured scene has a box count never compiled before",
+    )
     args = parser.parse_args(argv)
     seed = int.from_bytes(os.urandom(3), "little") * 1000
     with tempfile.TemporaryDirectory(prefix="fastsdf_first_") as tmp:
@@ -76,18 +87,21 @@ def main(argv: list[str] | None = None) -> int:
         caches = {tree: os.path.join(tmp, f"cache{i}") for i, tree in enumerate({base, REPO})}
         times: dict = {(p, n): [] for p, *_ in paths for n in args.sizes}
         load0 = os.getloadavg()
+        new = args.new_structure
         for n in args.sizes:  # the warm installation: what every scene shares, compiled once
             for tree in caches:
-                _time(tree, caches[tree], n, seed, "" if not _has_tape(tree) else "tape")
-                _time(tree, caches[tree], n, seed + 1)
-        for _ in range(args.rounds):
+                _time(tree, caches[tree], n + new, seed, "" if not _has_tape(tree) else "tape")
+                _time(tree, caches[tree], n + new, seed + 1)
+        for r in range(args.rounds):
             for n in args.sizes:
+                count = n + 2 * r + 2 if new else n
                 for name, tree, backend in paths:
                     seed += 2
-                    times[name, n].append(_time(tree, caches[tree], n, seed, backend))
+                    times[name, n].append(_time(tree, caches[tree], count, seed, backend))
         load1 = os.getloadavg()
     print(
-        f"First answer of a new scene, 1e5 points, value and gradient: this checkout against "
+        f"First answer of a new scene{' of a new structure' if args.new_structure else ''}, "
+        f"1e5 points, value and gradient: this checkout against "
         f"{args.rev}; median of {args.rounds} rounds (seconds). Load average (1, 5, 15 min) "
         f"before {load0[0]:.2f}, {load0[1]:.2f}, {load0[2]:.2f}; after {load1[0]:.2f}, "
         f"{load1[1]:.2f}, {load1[2]:.2f}.\n"
