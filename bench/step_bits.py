@@ -3,12 +3,15 @@
     python -m bench.step_bits --rev 9af86bd                 # every case, 3000 particles
     python -m bench.step_bits --rev 9af86bd --only grid     # the cases whose name has "grid"
     python -m bench.step_bits --rev 9af86bd --list          # the cases' names
+    python -m bench.step_bits --rev 9af86bd --whole         # the revision's whole package
 
 The baseline is the revision's ``fastsdf/particles/`` package loaded beside the current one as
 ``fastsdf._ab_base`` (as in ``bench.step_ab``: the rest of fastsdf, the granular engine
 included, is the current one). Each case builds the same simulation with both engines from
 the same state and makes the same calls (by default 60 steps in 4 calls of 15), then
 compares positions, velocities (grains: and angular velocities) and the clock bit for bit.
+With ``--whole`` the baseline is the revision's whole package instead, run in a process of its
+own (for a revision whose particle package does not run on the current function layer).
 
 The cases cover every kernel a step can take:
 
@@ -34,7 +37,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import pickle
+import subprocess
 import sys
+import tempfile
 from collections.abc import Callable
 from typing import Any
 
@@ -413,6 +420,21 @@ def same_bits(a: tuple, b: tuple) -> bool:
     return True
 
 
+def _whole_baseline(args: argparse.Namespace, argv: list | None) -> dict:
+    """The cases' results with the whole package of ``args.rev``, run in another process."""
+    from .ab import _export
+
+    with tempfile.TemporaryDirectory(prefix="fastsdf_bits_") as tmp:
+        tree = _export(args.rev, tmp)
+        out = os.path.join(tmp, "baseline.pkl")
+        rest = [a for a in (sys.argv[1:] if argv is None else argv) if a != "--whole"]
+        env = dict(os.environ, PYTHONPATH=tree, MPLBACKEND="Agg")
+        cmd = [sys.executable, os.path.abspath(__file__), *rest, "--save", out]
+        subprocess.run(cmd, env=env, cwd=tree, check=True)
+        with open(out, "rb") as fh:
+            return pickle.load(fh)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m bench.step_bits",
@@ -423,22 +445,31 @@ def main(argv=None) -> int:
     parser.add_argument("--particles", type=int, default=3000)
     parser.add_argument("--only", help="run the cases whose name contains this text")
     parser.add_argument("--list", action="store_true", help="print the cases' names and exit")
+    parser.add_argument(
+        "--whole", action="store_true", help="the baseline is the revision's whole package"
+    )
+    parser.add_argument("--save", help=argparse.SUPPRESS)  # (--whole's baseline process)
     args = parser.parse_args(argv)
     chosen = [c for c in cases(args.particles) if not args.only or args.only in c.name]
     if args.list:
         print("\n".join(c.name for c in chosen))
         return 0
-    if not args.rev:
-        parser.error("--rev is required")
-
     import fastsdf.particles as phys
 
-    from .step_ab import _load_base
+    if args.save:
+        with open(args.save, "wb") as fh:
+            pickle.dump({c.name: run_case(phys, c) for c in chosen}, fh)
+        return 0
+    if not args.rev:
+        parser.error("--rev is required")
+    baseline = _whole_baseline(args, argv) if args.whole else None
+    if baseline is None:
+        from .step_ab import _load_base
 
-    base = _load_base(args.rev)
+        base = _load_base(args.rev)
     failed = []
     for case in chosen:
-        a = run_case(base, case)
+        a = baseline[case.name] if baseline is not None else run_case(base, case)
         b = run_case(phys, case)
         same = same_bits(a, b)
         if not same:
