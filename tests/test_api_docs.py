@@ -225,7 +225,6 @@ def test_signatures_show_types_not_forward_references():
     awaiting = {
         "fastsdf.granular.Bulk",
         "fastsdf.granular.CellGrid",
-        "fastsdf.granular.ContactLaw",
         "fastsdf.granular.Grains",
         "fastsdf.particles.forces.FusedForces",
         "fastsdf.particles.kernels.State",
