@@ -26,10 +26,13 @@ def _only_warning(record):
     return str(found[0].message)
 
 
-def test_three_grains_at_one_point_warn_naming_three():
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+def test_three_grains_at_one_point_warn_naming_three(device):
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
-        GranularSimulation(None, positions=[[0, 0], [0, 0], [0, 0], [5, 5]], radius=0.5)
+        GranularSimulation(
+            None, positions=[[0, 0], [0, 0], [0, 0], [5, 5]], radius=0.5, device=device
+        )
     message = _only_warning(record)
     assert message.startswith("3 grains overlap another by more than 10%")
     assert "the worst: grains 0 and 1, by 1, 200% of radius 0.5" in message
