@@ -123,7 +123,7 @@ def picture_hero(out: str, small: bool) -> str:
     nx, ny = (40, 4) if small else (110, 12)
     gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
     xy = np.column_stack([-1.9 + gx.ravel() * 3.8 / (nx - 1), 0.7 + gy.ravel() * 2.1 * r])
-    xy[:, 0] += np.random.default_rng(2).uniform(-0.2, 0.2, len(xy)) * r
+    xy[:, 0] += np.random.default_rng(2).uniform(-0.08, 0.08, len(xy)) * r  # (never overlapping)
     m = np.pi * r * r
     sim = ParticleSimulation(
         grid,

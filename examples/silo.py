@@ -55,8 +55,9 @@ def main() -> None:
     n = a.grains
     per_row = int(WIDTH // 1.25)
     i = np.arange(n)
+    x0 = (WIDTH - (per_row - 1) * 1.25) / 2  # the columns centred: clear of both walls
     pos = np.stack(
-        [0.75 + (i % per_row) * 1.25 + rng.uniform(-0.05, 0.05, n), 0.8 + (i // per_row) * 1.25], 1
+        [x0 + (i % per_row) * 1.25 + rng.uniform(-0.05, 0.05, n), 0.8 + (i // per_row) * 1.25], 1
     )
     law = ContactLaw(stiffness=1e4, restitution=0.5, friction=0.5, history=True)
     sim = ParticleSimulation(

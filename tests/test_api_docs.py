@@ -226,7 +226,6 @@ def test_signatures_show_types_not_forward_references():
     awaiting = {
         "fastsdf.granular.Bulk",
         "fastsdf.granular.CellGrid",
-        "fastsdf.granular.ContactLaw",
         "fastsdf.granular.Grains",
         "fastsdf.granular.cells.SortedGrains",
         "fastsdf.granular.kernels.Grain",

@@ -56,6 +56,8 @@ def assert_same(a, b):
     assert a.t == b.t
 
 
+# (the band is narrower than the particles' radii: see test_restart_bits)
+@pytest.mark.filterwarnings("ignore:particles of radius up to")
 @pytest.mark.parametrize("kind", ["grid", "band", "exact", "exact+user"])
 def test_resume_is_bit_exact(tmp_path, kind):
     world = {
@@ -86,11 +88,10 @@ def test_resume_is_bit_exact(tmp_path, kind):
     assert [type(g) for g in resumed.force_generators] == [type(g) for g in first.force_generators]
     resumed.run(25)
     assert_same(resumed, straight)
-    # one call of 40 steps gives the same state (the clock differs by the rounding of its sum;
-    # not so on a band grid, whose steps depend on how the calls are cut, saved or not)
+    # one call of 40 steps gives the same state (the clock differs by the rounding of its sum)
     once = make(world, user, user)
     once.run(40)
-    for name in ("x", "v") if kind != "band" else ():
+    for name in ("x", "v"):
         np.testing.assert_array_equal(once.p[name], resumed.p[name])
     # the state moved (the comparison is not between two frozen states)
     assert np.abs(straight.p["x"] - make(world).p["x"]).max() > 0.1

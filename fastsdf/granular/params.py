@@ -7,9 +7,13 @@ any consistent unit (``density`` is mass per unit *area*: the grains are discs).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from collections.abc import Iterable
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
+
+from fastsdf.expr.validate import real, shown
+from fastsdf.introspect import show_field_types
 
 __all__ = [
     "ContactLaw",
@@ -28,7 +32,23 @@ STANDARD_GRAVITY = 9.81
 DERIVED_OVERLAP = 0.01
 
 
-class ContactLaw(NamedTuple):
+_Law = TypeVar("_Law", bound="ContactLaw")
+
+
+class _ContactLawFields(NamedTuple):
+    """The fields of :class:`ContactLaw`, unchecked (build a ContactLaw, which checks them)."""
+
+    stiffness: float | None = None
+    restitution: float = 0.5
+    friction: float = 0.5
+    tangential_damping: float = 0.5
+    tangential_stiffness: float = 2.0 / 7.0
+    rolling_friction: float = 0.0
+    history: bool = False
+
+
+@show_field_types
+class ContactLaw(_ContactLawFields):
     """A linear spring-dashpot contact with Coulomb friction, viscous (LAMMPS ``gran/hooke``,
     the default) or with a tangential spring per contact (``history=True``, LAMMPS
     ``gran/hooke/history``), and optional rolling resistance; passed as it is to the compiled
@@ -82,15 +102,63 @@ class ContactLaw(NamedTuple):
         mu |F_n|`` (its stretch truncated to the cap); grains then rest on slopes below
         ``atan(mu)``. The spring is kept across neighbour-list rebuilds and the reordering of
         grains, and against the world (one per grain).
+
+    Every way of making one checks its values (the constructor, ``_replace``, ``_make``, a
+    checkpoint or a pickle loaded): a value out of range is a ValueError, a value of the wrong
+    type a TypeError, each naming the parameter and the value. Numbers are stored as Python
+    floats.
     """
 
-    stiffness: float | None = None
-    restitution: float = 0.5
-    friction: float = 0.5
-    tangential_damping: float = 0.5
-    tangential_stiffness: float = 2.0 / 7.0
-    rolling_friction: float = 0.0
-    history: bool = False
+    __slots__ = ()
+
+    def __new__(
+        cls,
+        stiffness: float | None = None,
+        restitution: float = 0.5,
+        friction: float = 0.5,
+        tangential_damping: float = 0.5,
+        tangential_stiffness: float = 2.0 / 7.0,
+        rolling_friction: float = 0.0,
+        history: bool = False,
+    ) -> ContactLaw:
+        k = None if stiffness is None else real(stiffness, "stiffness")
+        if k is not None and not k > 0:
+            raise ValueError(f"stiffness must be > 0 (or None), got stiffness={shown(stiffness)}")
+        e = real(restitution, "restitution")
+        if not 0.0 <= e <= 1.0:
+            raise ValueError(f"restitution must be in [0, 1], got restitution={shown(restitution)}")
+        mu = _at_least_zero(friction, "friction")
+        gt = _at_least_zero(tangential_damping, "tangential_damping")
+        kt = real(tangential_stiffness, "tangential_stiffness")
+        if not kt > 0:
+            raise ValueError(
+                f"tangential_stiffness must be > 0, got tangential_stiffness="
+                f"{shown(tangential_stiffness)}"
+            )
+        mu_r = _at_least_zero(rolling_friction, "rolling_friction")
+        if not isinstance(history, (bool, np.bool_)):
+            raise TypeError(f"history must be a bool, got history={shown(history)}")
+        if mu_r > 0 and not history:
+            raise ValueError(
+                f"rolling_friction needs history=True (the rolling spring is memory of the "
+                f"contact), got rolling_friction={shown(rolling_friction)} with history=False"
+            )
+        return super().__new__(cls, k, e, mu, gt, kt, mu_r, bool(history))
+
+    @classmethod
+    def _make(cls: type[_Law], iterable: Iterable[Any]) -> _Law:  # type: ignore[override]
+        """A law from a sequence of its fields, checked (``_replace`` builds through here)."""
+        return cls(*iterable)
+
+    def _replace(self: _Law, **changes: Any) -> _Law:
+        """This law with ``changes`` (field=value), checked as a new law is."""
+        unknown = sorted(set(changes) - set(self._fields))
+        if unknown:
+            raise ValueError(
+                f"ContactLaw has no field {unknown[0]} (its fields: {', '.join(self._fields)}), "
+                f"got {unknown[0]}={shown(changes[unknown[0]])}"
+            )
+        return type(self)(**{**self._asdict(), **changes})
 
 
 def derived_stiffness(density: float, gravity: float, height: float) -> float:
@@ -105,57 +173,31 @@ def derived_stiffness(density: float, gravity: float, height: float) -> float:
     return 0.25 * math.pi * density * gravity * height / DERIVED_OVERLAP
 
 
-def _real(value: object, name: str) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
-        raise TypeError(f"{name} must be a real number, got {name}={value!r}")
-    out = float(value)
-    if not math.isfinite(out):
-        raise ValueError(f"{name} must be finite, got {name}={value!r}")
-    return out
+#: A finite real number as a float (the simulation's checks of its own arguments).
+_real = real
+
+
+def _at_least_zero(value: object, name: str) -> float:
+    number = real(value, name)
+    if not number >= 0.0:
+        raise ValueError(f"{name} must be >= 0, got {name}={shown(value)}")
+    return number
 
 
 def check_contact_law(law: object, name: str = "contact") -> ContactLaw:
-    """``law`` as a :class:`ContactLaw` of Python floats, or a clear ValueError/TypeError
+    """``law`` as a :class:`ContactLaw` with a stiffness, or a clear ValueError/TypeError
     naming ``name`` and the offending field and value."""
     if not isinstance(law, ContactLaw):
-        raise TypeError(f"{name} must be a fastsdf.granular.ContactLaw, got {name}={law!r}")
+        raise TypeError(f"{name} must be a fastsdf.granular.ContactLaw, got {name}={shown(law)}")
     if law.stiffness is None:
         raise ValueError(
             f"{name}.stiffness is None (derived by a simulation from its grains, see "
             f"ContactLaw): pass it to a simulation, or give a stiffness"
         )
-    k = _real(law.stiffness, f"{name}.stiffness")
-    e = _real(law.restitution, f"{name}.restitution")
-    mu = _real(law.friction, f"{name}.friction")
-    gt = _real(law.tangential_damping, f"{name}.tangential_damping")
-    kt = _real(law.tangential_stiffness, f"{name}.tangential_stiffness")
-    mu_r = _real(law.rolling_friction, f"{name}.rolling_friction")
-    if not isinstance(law.history, (bool, np.bool_)):
-        raise TypeError(f"{name}.history must be a bool, got {name}.history={law.history!r}")
-    if not kt > 0:
-        raise ValueError(
-            f"{name}.tangential_stiffness must be > 0, got {name}.tangential_stiffness={kt!r}"
-        )
-    if mu_r < 0:
-        raise ValueError(
-            f"{name}.rolling_friction must be >= 0, got {name}.rolling_friction={mu_r!r}"
-        )
-    if mu_r > 0 and not law.history:
-        raise ValueError(
-            f"{name}.rolling_friction needs {name}.history=True (the rolling spring is memory "
-            f"of the contact), got {name}.rolling_friction={mu_r!r} with history=False"
-        )
-    if not k > 0:
-        raise ValueError(f"{name}.stiffness must be > 0, got {name}.stiffness={k!r}")
-    if not 0.0 <= e <= 1.0:
-        raise ValueError(f"{name}.restitution must be in [0, 1], got {name}.restitution={e!r}")
-    if mu < 0:
-        raise ValueError(f"{name}.friction must be >= 0, got {name}.friction={mu!r}")
-    if gt < 0:
-        raise ValueError(
-            f"{name}.tangential_damping must be >= 0, got {name}.tangential_damping={gt!r}"
-        )
-    return ContactLaw(k, e, mu, gt, kt, mu_r, bool(law.history))
+    try:  # checked again: a law built around its constructor (tuple.__new__) too
+        return ContactLaw(*law)
+    except (TypeError, ValueError) as err:
+        raise type(err)(f"{name}.{err}") from None
 
 
 def damping_ratio(restitution: float) -> float:

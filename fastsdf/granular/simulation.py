@@ -72,6 +72,7 @@ from fastsdf.granular.cells import (
     make_grid,
     permute,
 )
+from fastsdf.granular.checks import warn_starting_state
 from fastsdf.granular.kernels import (
     Bulk,
     Grains,
@@ -353,6 +354,7 @@ class GranularSimulation:
         #: predicted velocities), or None.
         self.external: Any = None
         self._start_engine()
+        warn_starting_state(self)
 
     def _start_engine(self) -> None:
         """The engine's workspace, the first neighbour list and forces (compiling the kernels
@@ -453,6 +455,8 @@ class GranularSimulation:
             self._cutoff = 2 * float(r.max()) + self.skin
             self._resolve_laws()
         self._restart()
+        if positions is not None or radius is not None:
+            warn_starting_state(self)
 
     def _restart(self) -> None:
         """Continue from the current positions and velocities as from a fresh start: rebuild

@@ -22,8 +22,9 @@ import numba
 import numpy as np
 
 from fastsdf.backends import HEADER_SIZE, plan_header
+from fastsdf.fields.band import NarrowBandGridSDF
 from fastsdf.function import Function
-from fastsdf.notice import compiling
+from fastsdf.notice import compiling, warn_caller
 from fastsdf.particles.kernels import NO_EXT, Budget, Physics, State
 from fastsdf.particles.kernels.constants import FLAG_RESUME
 from fastsdf.particles.scene_blocks import NO_TABLE
@@ -117,6 +118,8 @@ class ParticleEngine:
         self.moving = self.parametric and world.time_dependent
         self.params = SimulationParams(world) if self.parametric else SimulationParams(_NO_PARAMS)
         self.margin = _grid_margin(world)
+        self._far = _far_answers(world, self.margin)
+        self._far_warned = False
         self.lipschitz = (
             float(lipschitz) if lipschitz is not None else (math.sqrt(2.0) if grid else 1.0)
         )
@@ -263,12 +266,13 @@ class ParticleEngine:
         check_all = p._dirty
         ext = NO_EXT if ext is None else ext
         state = State(a["x"], a["v"], a["m"], a["r"], a["cr"], a["cf"], ext, self.flags, check_all)
+        margin = self._call_margin(a["r"])
         budget = Budget(
             trace=bool(trace),
             lip=self.lipschitz,
-            margin=self.margin,
+            margin=margin if math.isfinite(margin) else self.margin,
             eps=float(np.finfo(p.dtype).eps),
-            skip=self.skip,
+            skip=self.skip and math.isfinite(margin),
         )
         self.update_plan(a["x"], steps)
         block = block or DEFAULT_BLOCK
@@ -278,6 +282,29 @@ class ParticleEngine:
         if check_all and not bad:
             p._dirty = False
         return bad
+
+    def _call_margin(self, radius: np.ndarray) -> float:
+        """The free-flight margin of a call whose particles have radii ``radius``: the world's
+        (:attr:`margin`); in a band world whose far tiles' lower bounds these particles may
+        touch, one that also covers how far those bounds lie below the distance (inf: no
+        skipping), so that skipping still changes no result (see :func:`_far_answers`)."""
+        if self._far is None or radius.shape[0] == 0:
+            return self.margin
+        floor, wide = self._far
+        r_max = float(np.max(radius))
+        if r_max + self.margin < floor:  # (a NaN radius takes the wide margin)
+            return self.margin
+        if not self._far_warned:
+            self._far_warned = True
+            lo, hi = self.world.band_range
+            warn_caller(
+                f"particles of radius up to {r_max:.4g} reach beyond the band of their "
+                f"NarrowBandGridSDF world (band_range=({lo:g}, {hi:g})), where its far tiles "
+                f"answer lower bounds of the distance (from {floor:.4g} on): they bounce off "
+                f"those bounds a little away from the walls. Build the band as "
+                f"band=(-w, r_max + w), w a few spacings (see NarrowBandGridSDF)."
+            )
+        return wide
 
     def _call(self, module, data, steps, state, physics, budget, block):
         """Run the call's kernel variant on ``numba.get_num_threads()`` threads from
@@ -364,6 +391,28 @@ class ParticleEngine:
             arrays["v"][sel] = sub.V
             flags[sel] = sub.FLAGS
         return bad
+
+
+def _far_answers(world: Any, margin: float) -> tuple[float, float] | None:
+    """For a band world (:class:`fastsdf.fields.band.NarrowBandGridSDF`): ``(floor, wide)``,
+    the least distance its far tiles answer outside matter, and a free-flight margin that
+    covers how far a far tile's answer may lie below the distance (inf: unknown); else None.
+
+    Skipping a query changes no result when the skipped answer would have been clear of the
+    particle: fine tiles interpolate the distance (within ``margin``), but a far tile answers a
+    lower bound, up to a tile's diagonal (times the Lipschitz bound) below the distance. While
+    every particle's radius lies below ``floor - margin``, no far answer touches a particle and
+    the world's margin suffices; a larger particle takes ``wide``, the margin plus that gap."""
+    if not isinstance(world, NarrowBandGridSDF):
+        return None
+    hx, hy = world.spacing
+    slack = 0.5 * math.hypot(hx, hy)  # far bounds: less half a cell diagonal ...
+    quantum = float(world.sampler_data[-1])  # ... quantized downwards by up to two quanta
+    floor = world.band_range[1] - slack - 2.0 * quantum
+    if world.lipschitz is None:
+        return floor, math.inf
+    tile_diagonal = world.tile * math.hypot(hx, hy)
+    return floor, margin + world.lipschitz * tile_diagonal + slack + 2.0 * quantum
 
 
 def _part(state: State, lo: int, hi: int) -> State:
