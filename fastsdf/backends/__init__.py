@@ -16,8 +16,7 @@ submodules):
 """
 
 from fastsdf.backends.kernel.cache import hashed_import, load_module
-from fastsdf.backends.prune import HEADER_SIZE, exact_source, plan_header
-from fastsdf.backends.prune import _call_vg_plan as call_vg_plan
+from fastsdf.backends.prune import HEADER_SIZE, call_vg_plan, exact_source, plan_header
 
 __all__: list[str] = [
     "load_module",

@@ -45,7 +45,7 @@ from fastsdf.expr.graph import gc_paused
 from fastsdf.expr.interval import LIPSCHITZ_RULES, node_bounds
 from fastsdf.expr.ops import OPS
 
-__all__ = ["PrunePlan", "make_plan", "bin_points", "plan_header", "HEADER_SIZE"]
+__all__ = ["PrunePlan", "make_plan", "bin_points", "plan_header", "HEADER_SIZE", "call_vg_plan"]
 
 
 class PrunePlan:
@@ -563,7 +563,13 @@ def _iptr(typingctx, address):
 
 
 @intrinsic
-def _call_vg_plan(typingctx, address, x, y, header):
+def call_vg_plan(
+    typingctx: object,
+    address: types.Type,
+    x: types.Type,
+    y: types.Type,
+    header: types.Type,
+) -> tuple | None:
     """``(d, dd/dx, dd/dy)`` from the C function ``void f(double x, double y, double *out,
     double *h)`` at ``address`` with the plan header at integer address ``header``."""
     if not (isinstance(address, types.Integer) and isinstance(header, types.Integer)):
