@@ -100,6 +100,19 @@ x, y = np.random.default_rng(0).uniform(-2, 2, (2, 1_000_000))
 print(json.dumps({"rate": 1.0 / best(lambda: g(x, y, compute_gradient=True))}))
 """,
     ),
+    "union1000": (
+        "hard union of 1000 small boxes (pruned per tile), value + gradient, 1e6 points",
+        "M points/s",
+        """
+steady()
+r = np.random.default_rng(5)
+f = sdf.Halfspace([0, 1], -2.5)
+for c, h in zip(r.uniform(-1.9, 1.9, (1000, 2)), r.uniform(0.01, 0.05, (1000, 2))):
+    f = f | sdf.Box(c - h, c + h)
+x, y = np.random.default_rng(0).uniform(-2, 2, (2, 1_000_000))
+print(json.dumps({"rate": 1.0 / best(lambda: f(x, y, compute_gradient=True))}))
+""",
+    ),
     "particles": (
         "1e6 particles on the seed world's 400x400 grid, gravity, 60 steps after 240",
         "M particle-steps/s",
