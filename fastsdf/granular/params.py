@@ -210,7 +210,8 @@ def damping_ratio(restitution: float) -> float:
 
 
 def contact_time(m_eff: float, law: ContactLaw, damped: bool = False) -> float:
-    """Duration of a binary contact (s): ``t_c = pi sqrt(m_eff / k_n)`` (undamped); with
+    """Duration of a binary contact (s) of effective mass ``m_eff`` under ``law`` (its
+    ``stiffness`` ``k_n`` resolved): ``t_c = pi sqrt(m_eff / k_n)`` (undamped); with
     ``damped=True`` the exact duration of the damped linear contact,
     ``t_c / sqrt(1 - zeta**2)`` (infinite at critical damping, ``e = 0``)."""
     if law.stiffness is None:
@@ -224,8 +225,9 @@ def contact_time(m_eff: float, law: ContactLaw, damped: bool = False) -> float:
 
 def restitution_from_damping(gamma_per_mass: float, stiffness: float, m_eff: float) -> float:
     """The restitution of a pair of effective mass ``m_eff`` whose dashpot is ``m_eff *
-    gamma_per_mass`` (LAMMPS's ``gamma_n``, in 1/s): to state a LAMMPS ``gran/hooke`` model
-    as a :class:`ContactLaw` (exactly, for grains of one size)."""
+    gamma_per_mass`` (LAMMPS's ``gamma_n``, in 1/s) and whose spring is ``stiffness`` (N/m,
+    LAMMPS's ``k_n``): to state a LAMMPS ``gran/hooke`` model as a :class:`ContactLaw`
+    (exactly, for grains of one size)."""
     z = m_eff * gamma_per_mass / (2.0 * math.sqrt(m_eff * stiffness))
     if z >= 1.0:
         return 0.0
