@@ -586,6 +586,41 @@ def pair_forces(
         _chunk_pairs(g, lo, hi, nbr_start, nbr, memory, terms, bulk.period)
 
 
+@njit(cache=True, error_model="numpy")
+def _chunk_walls(
+    g: Grains, near: Near, lo: int, hi: int, memory: np.ndarray | None, law: Law, push: np.ndarray
+) -> None:
+    """The world's contacts with the grains ``near.idx[lo:hi]`` (see :func:`wall_forces`),
+    added to their forces; the force on each into ``push[:, k]`` (0 without contact)."""
+    history = memory is not None
+    roll = law.mu_r > 0.0
+    for k in range(lo, hi):
+        i = near.idx[k]
+        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], g.radius[i], g.px[i],
+                        g.py[i], g.pomega[i])  # fmt: skip
+        s, mr = _recall(memory[:, i], roll) if memory is not None else (0.0, 0.0)
+        touch, cfx, cfy, tq, s, mr = wall_force(wall, law, s, mr, history, roll)
+        if memory is not None:
+            _keep(memory[:, i], s, mr, roll)
+        push[0, k] = cfx
+        push[1, k] = cfy
+        if touch:
+            g.fx[i] += cfx
+            g.fy[i] += cfy
+            g.torque[i] += tq
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _total_push(push: np.ndarray) -> tuple:
+    """The sum of ``push[0]`` and of ``push[1]``, in order (the same bits on any threads)."""
+    sx = 0.0
+    sy = 0.0
+    for k in range(push.shape[1]):
+        sx += push[0, k]
+        sy += push[1, k]
+    return sx, sy
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def wall_forces(
     g: Grains, near: Near, memory: np.ndarray | None, law: Any, bulk: Bulk, dt: float
@@ -593,8 +628,8 @@ def wall_forces(
     """Add the world's contact forces to the grains ``near.idx`` (see :class:`Near`) under
     ``law`` (a :class:`~fastsdf.granular.ContactLaw`), with the predicted velocities (run it
     after :func:`pair_forces`, which resets the forces). Returns the total force the world
-    exerts on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel
-    nothing.
+    exerts on the grains, ``(Fx, Fy)``, summed in the order of ``near.idx`` (the same bits on
+    any number of threads). Points with a non-finite or zero gradient feel nothing.
 
     ``memory=None``: history-free. Otherwise (``law.history``) one tangential spring per grain
     against the world, ``memory[0, i]`` for grain ``i`` (the world is one surface: a grain
@@ -603,28 +638,12 @@ def wall_forces(
     turn), reset to 0 for a grain listed here but out of contact. Chosen at compile time, as
     in :func:`pair_forces`."""
     terms = law_terms(law, bulk.density, dt)
-    history = memory is not None
-    roll = terms.mu_r > 0.0
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    sx = 0.0
-    sy = 0.0
-    for k in prange(near.idx.shape[0]):
-        i = near.idx[k]
-        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], g.radius[i], g.px[i],
-                        g.py[i], g.pomega[i])  # fmt: skip
-        s, mr = _recall(memory[:, i], roll) if memory is not None else (0.0, 0.0)
-        touch, cfx, cfy, tq, s, mr = wall_force(wall, terms, s, mr, history, roll)
-        if memory is not None:
-            _keep(memory[:, i], s, mr, roll)
-        if touch:
-            gfx[i] += cfx
-            gfy[i] += cfy
-            gtq[i] += tq
-            sx += cfx
-            sy += cfy
-    return sx, sy
+    m = near.idx.shape[0]
+    push = np.empty((2, m))
+    chunks = (m + 255) // 256
+    for c in prange(chunks):
+        _chunk_walls(g, near, c * m // chunks, (c + 1) * m // chunks, memory, terms, push)
+    return _total_push(push)
 
 
 @njit(cache=True, error_model="numpy")
@@ -708,7 +727,7 @@ def _springs_held(law, springs, r_eff):
     return tangential, 0.0
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def pair_energy(
     g: Grains,
     nbr_start: np.ndarray,
@@ -730,7 +749,7 @@ def pair_energy(
     count = 0
     kn = law.stiffness
     period = bulk.period
-    for i in prange(g.x.shape[0]):
+    for i in range(g.x.shape[0]):  # serial: sums in one order, the same bits on any threads
         for k in range(nbr_start[i], nbr_start[i + 1]):
             entry = nbr[k]
             j = entry & 0x3FFFFFFF
@@ -776,14 +795,14 @@ def wall_energy(
     return en, et, er, count
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def kinetic_energy(g: Grains, bulk: Bulk) -> tuple:
     """Translational and rotational kinetic energy and the gravitational potential energy
     ``-m g . x`` of all grains: ``(translational, rotational, potential)``."""
     et = 0.0
     er = 0.0
     ep = 0.0
-    for i in prange(g.x.shape[0]):
+    for i in range(g.x.shape[0]):  # serial: sums in one order, the same bits on any threads
         r = g.radius[i]
         m = grain_mass(r, bulk.density)
         et += 0.5 * m * (g.vx[i] * g.vx[i] + g.vy[i] * g.vy[i])

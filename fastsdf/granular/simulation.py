@@ -173,10 +173,20 @@ def _period(periodic_x: ArrayLike | None) -> tuple[float, float]:
 
 
 def _chunk_count(chunks: int | None, n: int) -> int:
-    """Chunks of the force pass: by default a few per thread (balance), few enough that the
-    pairs listed twice (across chunk boundaries) stay a small share."""
+    """Chunks of the force pass, fixed by the number of grains (never by the threads: the
+    chunks fix which pairs are listed twice and the order of each grain's sums, so the same
+    chunks give the same bits on any number of threads). By default one chunk below
+    :data:`PARALLEL_MIN_GRAINS` (those run on one thread: no pair listed twice), else a power
+    of two (an even split among 1, 2, 4, 8 or 16 threads under numba's equal static
+    schedule) of at least 1024 grains and at most ``sqrt(n) / 16`` chunks, which keeps the
+    pairs listed twice (about one row of grains per chunk boundary) to a few percent of a
+    square bed: 4 chunks at 5,000 grains, 16 at 1e5."""
     if chunks is None:
-        chunks = max(1, min(4 * numba.get_num_threads(), n // 256))
+        chunks = 1
+        if n >= PARALLEL_MIN_GRAINS:
+            most = min(n // 1024, int(math.sqrt(n) / 16))
+            while 2 * chunks <= most:
+                chunks *= 2
     if isinstance(chunks, bool) or not isinstance(chunks, (int, np.integer)) or chunks < 1:
         raise ValueError(f"chunks must be an int >= 1, got chunks={chunks!r}")
     return int(min(chunks, n))
@@ -247,8 +257,9 @@ class GranularSimulation:
         Make x periodic with period ``x1 - x0`` (grains leaving one side enter the other).
     chunks : int or None
         Contiguous chunks of grains the force pass runs over in parallel (tuning; the results
-        do not depend on it beyond rounding). ``None``: four per thread, at least 256 grains
-        each.
+        depend on it by rounding only, and not on the number of threads or the threading
+        layer). ``None``: fixed by the number of grains (one below
+        :data:`PARALLEL_MIN_GRAINS`, 4 at 5,000 grains, 16 at 1e5).
     device : 'cpu' or 'cuda'
         Where the grains are stepped: ``'cuda'`` builds a
         :class:`fastsdf.granular.cuda.CudaGranularSimulation` (the same physics and names, its
@@ -365,7 +376,7 @@ class GranularSimulation:
         self._scratch = np.empty(n, np.float64)
         self._nbr_start = np.zeros(n + 1, np.int64)
         self._nbr: np.ndarray | None = None
-        self._chunk_max = np.zeros(max(4 * numba.get_num_threads(), 1))
+        self._chunk_max = np.zeros(self._chunks)
         self._counts = np.empty((0, 0), np.int32)
         self._cell_start = np.empty(0, np.int64)
         self._spring = np.zeros((0, self._memory_cols))
@@ -477,7 +488,7 @@ class GranularSimulation:
         g = self.grains
         grid = make_grid(g.x, g.y, self._cutoff, self.bulk.period_x0, self.bulk.period)
         ncells = grid.ncx * grid.ncy
-        chunks = min(numba.get_num_threads(), 4)  # rows of per-chunk counts: bounded memory
+        chunks = min(self._chunks, 4)  # rows of per-chunk counts: bounded memory
         if self._counts.shape[0] != chunks or self._counts.shape[1] < ncells:
             self._counts = np.empty((chunks, ncells + ncells // 4), np.int32)
             self._cell_start = np.empty(ncells + ncells // 4 + 1, np.int64)

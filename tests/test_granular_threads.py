@@ -1,0 +1,92 @@
+"""The granular engine's results do not depend on the number of threads: the chunks of its
+passes are fixed by the number of grains, and its sums run in one order."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import pytest
+
+import fastsdf as fs
+from fastsdf.granular import ContactLaw, GranularSimulation
+from fastsdf.granular.simulation import PARALLEL_MIN_GRAINS
+
+two_threads = pytest.mark.skipif(
+    numba.config.NUMBA_NUM_THREADS < 2, reason="numba has a single thread here"
+)
+
+
+def falling_bed(threads: int, n: int = 4800) -> tuple[GranularSimulation, dict]:
+    """Discs of two sizes thrown on a loose lattice onto a floor with a bump (history and
+    rolling friction, against each other and the world), stepped three frames on ``threads``
+    threads; the simulation and what it reports."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        rng = np.random.default_rng(3)
+        cols = int(math.sqrt(n) * 1.6)
+        j, i = np.divmod(np.arange(n), cols)
+        pos = np.stack([0.6 + i * 1.08 + rng.uniform(-0.03, 0.03, n), 0.55 + j * 1.08], 1)
+        radius = np.where(rng.uniform(size=n) < 0.5, 0.5, rng.uniform(0.35, 0.5, n))
+        width = cols * 1.08 + 0.2
+        world = fs.Halfspace((0.0, 1.0), 0.0) | fs.Circle(center=[0.4 * width, -1.4], radius=1.5)
+        law = ContactLaw(4e4, 0.5, 0.5, history=True, rolling_friction=0.2)
+        sim = GranularSimulation(
+            world,
+            positions=pos,
+            velocities=rng.normal(scale=3.0, size=(n, 2)),
+            radius=radius,
+            contacts=law,
+            wall_contacts=law._replace(restitution=0.3),
+            gravity=(0.0, -40.0),
+            timestep=60 * 2.5e-4,
+            substep=2.5e-4,
+            skin=0.15,
+            periodic_x=(0.0, width),
+        )
+        sim.run(3)
+        out = {
+            "positions": sim.positions,
+            "velocities": sim.velocities,
+            "angular_velocities": sim.angular_velocities,
+            "wall_force": np.asarray(sim.wall_force),
+            "energy": np.array(list(sim.energy().values())),
+            "springs": sim.tangential_springs()[1],
+        }
+    finally:
+        numba.set_num_threads(before)
+    return sim, out
+
+
+@two_threads
+def test_a_bed_gives_the_same_bits_on_one_and_two_threads():
+    """Several thousand grains (above PARALLEL_MIN_GRAINS: the passes run on every thread),
+    with history, through list rebuilds: every position, velocity, spring, the world's force
+    and the energies are the same bits on 1 and 2 threads."""
+    one, a = falling_bed(1)
+    two, b = falling_bed(2)
+    assert one.ids.shape[0] >= PARALLEL_MIN_GRAINS
+    assert one.rebuilds > 2  # the lists were rebuilt during the run
+    assert one.contact_counts()[0] > 300 and one.contact_counts()[1] > 0
+    for name in a:
+        assert a[name].tobytes() == b[name].tobytes(), name
+
+
+def test_the_default_chunks_follow_the_grains_not_the_threads():
+    """The force pass's chunks, which fix the list and the order of each grain's sums, are
+    chosen from the number of grains only: one below PARALLEL_MIN_GRAINS (serial: no pair
+    listed twice), then powers of two."""
+    from fastsdf.granular.simulation import _chunk_count
+
+    before = numba.get_num_threads()
+    counts = {}
+    for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+        numba.set_num_threads(threads)
+        try:
+            counts[threads] = [_chunk_count(None, n) for n in (10, 4095, 4096, 5000, 10**5)]
+        finally:
+            numba.set_num_threads(before)
+    assert len({tuple(c) for c in counts.values()}) == 1
+    assert counts[1] == [1, 1, 4, 4, 16]
