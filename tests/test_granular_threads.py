@@ -61,12 +61,18 @@ def falling_bed(threads: int, n: int = 4800) -> tuple[GranularSimulation, dict]:
 
 
 @two_threads
-def test_a_bed_gives_the_same_bits_on_one_and_two_threads():
+def test_a_bed_gives_the_same_bits_on_one_and_two_threads(monkeypatch):
     """Several thousand grains (above PARALLEL_MIN_GRAINS: the passes run on every thread),
     with history, through list rebuilds: every position, velocity, spring, the world's force
-    and the energies are the same bits on 1 and 2 threads."""
+    and the energies are the same bits on 1 and 2 threads, and with the thread count chosen
+    by measuring (short segments: it changes between 2 and 1 during the run)."""
+    import fastsdf.granular.threads as threads
+
     one, a = falling_bed(1)
+    assert one._tuner is None  # one thread: nothing to choose
+    monkeypatch.setattr(threads, "SEGMENT_WORK", 20 * 4800)
     two, b = falling_bed(2)
+    assert two._tuner is not None and set(two._tuner.cost) == {1, 2}
     assert one.ids.shape[0] >= PARALLEL_MIN_GRAINS
     assert one.rebuilds > 2  # the lists were rebuilt during the run
     assert one.contact_counts()[0] > 300 and one.contact_counts()[1] > 0
@@ -90,3 +96,32 @@ def test_the_default_chunks_follow_the_grains_not_the_threads():
             numba.set_num_threads(before)
     assert len({tuple(c) for c in counts.values()}) == 1
     assert counts[1] == [1, 1, 4, 4, 16]
+
+
+def test_the_thread_tuner_keeps_the_faster_choice_and_measures_the_other_rarely():
+    """Fed segment times, the tuner measures both choices, runs the faster, measures the other
+    again only after PROBE_EVERY times that one's segment cost, and follows a change: when
+    the threads start to wait for each other (a busy machine), it moves to one thread."""
+    from fastsdf.granular.threads import PROBE_EVERY, SEGMENT_WORK, ThreadTuner
+
+    tuner = ThreadTuner(most=2, grains=5000)
+    seen = []
+
+    def segment(cost_of: dict) -> None:
+        threads = tuner.next_threads()
+        seen.append(threads)
+        tuner.record(threads, SEGMENT_WORK, cost_of[threads] * SEGMENT_WORK)
+
+    quiet = {2: 1e-8, 1: 1.6e-8}  # two threads 1.6x faster
+    for _ in range(200):
+        segment(quiet)
+    assert seen[:2] == [2, 1]
+    probes = seen[2:].count(1)
+    # a probe of one thread once per PROBE_EVERY of its segment costs of run time
+    expected = 198 * quiet[2] / (PROBE_EVERY * quiet[1])
+    assert 0 < probes <= expected + 1
+    busy = {2: 2e-7, 1: 1.7e-8}  # two threads spin against other work: 12x slower
+    seen.clear()
+    for _ in range(200):
+        segment(busy)
+    assert seen[:3].count(1) >= 1 and seen[-100:].count(1) >= 95
