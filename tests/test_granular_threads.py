@@ -82,8 +82,8 @@ def test_a_bed_gives_the_same_bits_on_one_and_two_threads(monkeypatch):
 
 def test_the_default_chunks_follow_the_grains_not_the_threads():
     """The force pass's chunks, which fix the list and the order of each grain's sums, are
-    chosen from the number of grains only: one below PARALLEL_MIN_GRAINS (serial: no pair
-    listed twice), then powers of two."""
+    chosen from the number of grains only: n // 256 up to 8 (what two threads gave before),
+    more from WIDE_CHUNKS_GRAINS."""
     from fastsdf.granular.simulation import _chunk_count
 
     before = numba.get_num_threads()
@@ -91,11 +91,11 @@ def test_the_default_chunks_follow_the_grains_not_the_threads():
     for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
         numba.set_num_threads(threads)
         try:
-            counts[threads] = [_chunk_count(None, n) for n in (10, 4095, 4096, 5000, 10**5)]
+            counts[threads] = [_chunk_count(None, n) for n in (10, 700, 5000, 65535, 10**5, 10**6)]
         finally:
             numba.set_num_threads(before)
     assert len({tuple(c) for c in counts.values()}) == 1
-    assert counts[1] == [1, 1, 4, 4, 16]
+    assert counts[1] == [1, 2, 8, 8, 16, 32]
 
 
 def test_the_thread_tuner_keeps_the_faster_choice_and_measures_the_other_rarely():

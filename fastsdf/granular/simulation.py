@@ -121,6 +121,8 @@ DEFAULT_SUBSTEPS_PER_CONTACT = 40
 #: Fewer grains than this step on one thread: waking the other threads for every pass of
 #: every substep costs more than it saves (and far more on a busy machine).
 PARALLEL_MIN_GRAINS = 4096
+#: From this many grains the force pass takes more than 8 chunks (see ``chunks``).
+WIDE_CHUNKS_GRAINS = 65536
 #: :meth:`GranularSimulation.run` warns (once per simulation) when a frame takes more substeps
 #: than this (the library's default grains, radius 0.02 with a derived stiffness in its
 #: 4-high scenes under g = 9.81, take about 940) and at least
@@ -185,15 +187,15 @@ def _period(periodic_x: ArrayLike | None) -> tuple[float, float]:
 def _chunk_count(chunks: int | None, n: int) -> int:
     """Chunks of the force pass, fixed by the number of grains (never by the threads: the
     chunks fix which pairs are listed twice and the order of each grain's sums, so the same
-    chunks give the same bits on any number of threads). By default one chunk below
-    :data:`PARALLEL_MIN_GRAINS` (those run on one thread: no pair listed twice), else a power
-    of two (an even split among 1, 2, 4, 8 or 16 threads under numba's equal static
-    schedule) of at least 1024 grains and at most ``sqrt(n) / 16`` chunks, which keeps the
-    pairs listed twice (about one row of grains per chunk boundary) to a few percent of a
-    square bed: 4 chunks at 5,000 grains, 16 at 1e5."""
+    chunks give the same bits on any number of threads). By default ``n // 256``, at most 8
+    (the chunks two threads gave before they were fixed: the same bits as then), and from
+    :data:`WIDE_CHUNKS_GRAINS` the largest power of two of at most ``n // 1024`` and
+    ``sqrt(n) / 16`` chunks (16 at 1e5, for up to 16 threads), which keeps the pairs listed
+    twice (about one row of grains per chunk boundary) to a few percent of a square bed. Powers
+    of two split evenly among 1, 2, 4, 8 or 16 threads under numba's equal static schedule."""
     if chunks is None:
-        chunks = 1
-        if n >= PARALLEL_MIN_GRAINS:
+        chunks = max(1, min(8, n // 256))
+        if n >= WIDE_CHUNKS_GRAINS:
             most = min(n // 1024, int(math.sqrt(n) / 16))
             while 2 * chunks <= most:
                 chunks *= 2
@@ -268,8 +270,8 @@ class GranularSimulation:
     chunks : int or None
         Contiguous chunks of grains the force pass runs over in parallel (tuning; the results
         depend on it by rounding only, and not on the number of threads or the threading
-        layer). ``None``: fixed by the number of grains (one below
-        :data:`PARALLEL_MIN_GRAINS`, 4 at 5,000 grains, 16 at 1e5).
+        layer). ``None``: fixed by the number of grains (``n // 256``, at most 8; from
+        :data:`WIDE_CHUNKS_GRAINS`, more: 16 at 1e5).
     device : 'cpu' or 'cuda'
         Where the grains are stepped: ``'cuda'`` builds a
         :class:`fastsdf.granular.cuda.CudaGranularSimulation` (the same physics and names, its
