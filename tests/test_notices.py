@@ -199,7 +199,7 @@ def test_the_demo_warms_the_grains_and_image_kernels_of_the_readme():
     import fastsdf.particles.simulation as simulation
     from fastsdf.apps.demo import warm_readme_kernels
     from fastsdf.geometry.edt import edt_kernel
-    from fastsdf.granular.kernels import kick_drift, pair_forces, wall_forces
+    from fastsdf.granular.kernels import kick_drift, pair_forces, substep_pass, wall_forces
     from fastsdf.particles.engine import LONG_CALL
 
     long_calls = []
@@ -220,7 +220,7 @@ def test_the_demo_warms_the_grains_and_image_kernels_of_the_readme():
     assert said.getvalue().startswith("fastsdf demo: compiling the kernels of the README's")
     assert "ready in" in said.getvalue()
     assert any(long_calls)
-    for kernel in (pair_forces, kick_drift, wall_forces, edt_kernel):
+    for kernel in (pair_forces, kick_drift, substep_pass, wall_forces, edt_kernel):
         assert kernel.signatures, kernel
 
 

@@ -753,6 +753,8 @@ class CudaGranularSimulation(GranularSimulation, device="cuda"):
     _dev: dict
     _host: Grains
     _host_ids: np.ndarray
+    #: (the CPU's threads do not step these grains)
+    tune_threads = False
 
     def __init__(
         self, *args: Any, max_neighbours: int | None = None, device: str = "cuda", **kwargs: Any

@@ -57,6 +57,8 @@ __all__ = [
     "pair_energy",
     "pair_force",
     "pair_forces",
+    "Substep",
+    "substep_pass",
     "wall_energy",
     "wall_force",
     "wall_forces",
@@ -586,6 +588,41 @@ def pair_forces(
         _chunk_pairs(g, lo, hi, nbr_start, nbr, memory, terms, bulk.period)
 
 
+@njit(cache=True, error_model="numpy")
+def _chunk_walls(
+    g: Grains, near: Near, lo: int, hi: int, memory: np.ndarray | None, law: Law, push: np.ndarray
+) -> None:
+    """The world's contacts with the grains ``near.idx[lo:hi]`` (see :func:`wall_forces`),
+    added to their forces; the force on each into ``push[:, k]`` (0 without contact)."""
+    history = memory is not None
+    roll = law.mu_r > 0.0
+    for k in range(lo, hi):
+        i = near.idx[k]
+        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], g.radius[i], g.px[i],
+                        g.py[i], g.pomega[i])  # fmt: skip
+        s, mr = _recall(memory[:, i], roll) if memory is not None else (0.0, 0.0)
+        touch, cfx, cfy, tq, s, mr = wall_force(wall, law, s, mr, history, roll)
+        if memory is not None:
+            _keep(memory[:, i], s, mr, roll)
+        push[0, k] = cfx
+        push[1, k] = cfy
+        if touch:
+            g.fx[i] += cfx
+            g.fy[i] += cfy
+            g.torque[i] += tq
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _total_push(push: np.ndarray) -> tuple:
+    """The sum of ``push[0]`` and of ``push[1]``, in order (the same bits on any threads)."""
+    sx = 0.0
+    sy = 0.0
+    for k in range(push.shape[1]):
+        sx += push[0, k]
+        sy += push[1, k]
+    return sx, sy
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def wall_forces(
     g: Grains, near: Near, memory: np.ndarray | None, law: Any, bulk: Bulk, dt: float
@@ -593,8 +630,8 @@ def wall_forces(
     """Add the world's contact forces to the grains ``near.idx`` (see :class:`Near`) under
     ``law`` (a :class:`~fastsdf.granular.ContactLaw`), with the predicted velocities (run it
     after :func:`pair_forces`, which resets the forces). Returns the total force the world
-    exerts on the grains, ``(Fx, Fy)``. Points with a non-finite or zero gradient feel
-    nothing.
+    exerts on the grains, ``(Fx, Fy)``, summed in the order of ``near.idx`` (the same bits on
+    any number of threads). Points with a non-finite or zero gradient feel nothing.
 
     ``memory=None``: history-free. Otherwise (``law.history``) one tangential spring per grain
     against the world, ``memory[0, i]`` for grain ``i`` (the world is one surface: a grain
@@ -603,33 +640,18 @@ def wall_forces(
     turn), reset to 0 for a grain listed here but out of contact. Chosen at compile time, as
     in :func:`pair_forces`."""
     terms = law_terms(law, bulk.density, dt)
-    history = memory is not None
-    roll = terms.mu_r > 0.0
-    gfx = g.fx
-    gfy = g.fy
-    gtq = g.torque
-    sx = 0.0
-    sy = 0.0
-    for k in prange(near.idx.shape[0]):
-        i = near.idx[k]
-        wall = WallPair(near.d[k], near.gx[k], near.gy[k], near.vn[k], g.radius[i], g.px[i],
-                        g.py[i], g.pomega[i])  # fmt: skip
-        s, mr = _recall(memory[:, i], roll) if memory is not None else (0.0, 0.0)
-        touch, cfx, cfy, tq, s, mr = wall_force(wall, terms, s, mr, history, roll)
-        if memory is not None:
-            _keep(memory[:, i], s, mr, roll)
-        if touch:
-            gfx[i] += cfx
-            gfy[i] += cfy
-            gtq[i] += tq
-            sx += cfx
-            sy += cfy
-    return sx, sy
+    m = near.idx.shape[0]
+    push = np.empty((2, m))
+    chunks = (m + 255) // 256
+    for c in prange(chunks):
+        _chunk_walls(g, near, c * m // chunks, (c + 1) * m // chunks, memory, terms, push)
+    return _total_push(push)
 
 
 @njit(cache=True, error_model="numpy")
 def _kick_chunk(
     g: Grains,
+    out: Grains,
     lo: int,
     hi: int,
     dt_kick: float,
@@ -638,21 +660,22 @@ def _kick_chunk(
     x_ref: np.ndarray,
     y_ref: np.ndarray,
 ) -> float:
-    """The elementwise pass of grains ``lo:hi`` (see :func:`kick_drift`); returns their
-    largest squared displacement from ``(x_ref, y_ref)``."""
+    """The elementwise pass of grains ``lo:hi`` (see :func:`kick_drift`) from ``g`` into
+    ``out`` (``g`` itself, or its other buffer of positions and predicted velocities);
+    returns their largest squared displacement from ``(x_ref, y_ref)``."""
     big = 0.0
     for i in range(lo, hi):
         grain = Grain(g.x[i], g.y[i], g.vx[i], g.vy[i], g.omega[i], g.radius[i], g.fx[i],
                       g.fy[i], g.torque[i])  # fmt: skip
         x, y, vx, vy, w, px, py, pw = kick_grain(grain, dt_kick, dt, density)
-        g.vx[i] = vx
-        g.vy[i] = vy
-        g.omega[i] = w
-        g.px[i] = px
-        g.py[i] = py
-        g.pomega[i] = pw
-        g.x[i] = x
-        g.y[i] = y
+        out.vx[i] = vx
+        out.vy[i] = vy
+        out.omega[i] = w
+        out.px[i] = px
+        out.py[i] = py
+        out.pomega[i] = pw
+        out.x[i] = x
+        out.y[i] = y
         ex = x - x_ref[i]
         ey = y - y_ref[i]
         big = max(big, ex * ex + ey * ey)
@@ -683,7 +706,70 @@ def kick_drift(
     for c in prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        chunk_max[c] = _kick_chunk(g, lo, hi, dt_kick, dt, density, x_ref, y_ref)
+        chunk_max[c] = _kick_chunk(g, g, lo, hi, dt_kick, dt, density, x_ref, y_ref)
+
+
+class Substep(NamedTuple):
+    """What a fused substep (:func:`substep_pass`) takes beside the grains, the list and the
+    world: the substep ``dt``, the kick ``dt_kick`` that completes the velocities after the
+    force pass (``dt / 2``) and the drift ``dt_next`` of the next substep (``dt``; 0 at the
+    end of a frame: the velocities completed only), the number of ``chunks``, the float32
+    reference positions ``x_ref, y_ref`` of the skin test, and what the pass writes:
+    ``chunk_max`` (per chunk, the largest squared displacement from the references) and
+    ``push`` (2, len(near.idx)), the world's force on each grain it was asked about."""
+
+    dt: float
+    dt_kick: float
+    dt_next: float
+    chunks: int
+    x_ref: np.ndarray
+    y_ref: np.ndarray
+    chunk_max: np.ndarray
+    push: np.ndarray
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def substep_pass(
+    g: Grains,
+    out: Grains,
+    nbr_start: np.ndarray,
+    nbr: np.ndarray,
+    memory: np.ndarray | None,
+    near: Near,
+    wall_memory: np.ndarray | None,
+    laws: tuple,
+    bulk: Bulk,
+    step: Substep,
+) -> tuple:
+    """A substep's force pass and the next substep's elementwise pass in one parallel loop
+    over the chunks of grains (see :class:`Substep`): each chunk runs :func:`pair_forces`'s
+    work on its grains, then :func:`wall_forces`'s on those of them in ``near.idx`` (sorted),
+    then :func:`kick_drift`'s from ``g`` into ``out``. ``out`` shares ``g``'s velocities,
+    radii and forces, and holds its own positions and predicted velocities: a chunk drifts its
+    grains while the others still read the positions of the force pass (double buffering),
+    so one parallel region makes a substep, and every grain sees the same arithmetic in the
+    same order as through the three passes. ``laws``: the grain-grain and grain-world
+    :class:`~fastsdf.granular.ContactLaw`; ``memory`` and ``wall_memory`` as in
+    :func:`pair_forces` and :func:`wall_forces`. Returns the world's total force, as
+    :func:`wall_forces`."""
+    terms = law_terms(laws[0], bulk.density, step.dt)
+    wall_terms = law_terms(laws[1], bulk.density, step.dt)
+    n = g.x.shape[0]
+    chunks = step.chunks
+    chunk_max = step.chunk_max
+    push = step.push
+    for c in prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        _start_chunk(g, lo, hi, terms, bulk)
+        _chunk_pairs(g, lo, hi, nbr_start, nbr, memory, terms, bulk.period)
+        k_lo = np.searchsorted(near.idx, lo)
+        k_hi = np.searchsorted(near.idx, hi)
+        _chunk_walls(g, near, k_lo, k_hi, wall_memory, wall_terms, push)
+        chunk_max[c] = _kick_chunk(
+            g, out, lo, hi, step.dt_kick, step.dt_next, bulk.density, step.x_ref, step.y_ref
+        )
+    return _total_push(push)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -708,7 +794,7 @@ def _springs_held(law, springs, r_eff):
     return tangential, 0.0
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def pair_energy(
     g: Grains,
     nbr_start: np.ndarray,
@@ -730,7 +816,7 @@ def pair_energy(
     count = 0
     kn = law.stiffness
     period = bulk.period
-    for i in prange(g.x.shape[0]):
+    for i in range(g.x.shape[0]):  # serial: sums in one order, the same bits on any threads
         for k in range(nbr_start[i], nbr_start[i + 1]):
             entry = nbr[k]
             j = entry & 0x3FFFFFFF
@@ -776,14 +862,14 @@ def wall_energy(
     return en, et, er, count
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def kinetic_energy(g: Grains, bulk: Bulk) -> tuple:
     """Translational and rotational kinetic energy and the gravitational potential energy
     ``-m g . x`` of all grains: ``(translational, rotational, potential)``."""
     et = 0.0
     er = 0.0
     ep = 0.0
-    for i in prange(g.x.shape[0]):
+    for i in range(g.x.shape[0]):  # serial: sums in one order, the same bits on any threads
         r = g.radius[i]
         m = grain_mass(r, bulk.density)
         et += 0.5 * m * (g.vx[i] * g.vx[i] + g.vy[i] * g.vy[i])

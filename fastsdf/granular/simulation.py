@@ -3,10 +3,15 @@
 The step is velocity Verlet (as LAMMPS's ``fix nve/sphere``): ``x += (v + F/m dt/2) dt``, new
 forces ``F'`` at the new positions, ``v += (F + F')/m dt/2``. The dashpots see the velocity
 predicted for the end of the step, ``v + F/m dt`` (second order; LAMMPS uses the half-step
-velocity, which lags and biases strongly damped contacts). A substep is one elementwise pass
-(:func:`~fastsdf.granular.kernels.kick_drift`) and one force pass (each grain gathers its
-forces and updates only its own velocity). Without dashpots the step is symplectic: the energy
-oscillates, it does not drift.
+velocity, which lags and biases strongly damped contacts). A substep is one force pass (each
+grain gathers its forces and updates only its own velocity) and one elementwise pass
+(:func:`~fastsdf.granular.kernels.kick_drift`), run as one parallel loop
+(:func:`~fastsdf.granular.kernels.substep_pass`: the positions and predicted velocities are
+double-buffered), with the world's query between two such loops. Without dashpots the step is
+symplectic: the energy oscillates, it does not drift. The grains are split into chunks fixed
+by their number, so a run gives the same bits on any number of threads; above
+:data:`PARALLEL_MIN_GRAINS` the engine chooses its threads by measuring
+(:mod:`fastsdf.granular.threads`).
 
 Substeps: a soft contact lasts ``t_c = pi sqrt(m_eff / k_n)``, and the step must resolve it:
 the frame step ``timestep`` (e.g. 1/30 s) is cut into equal substeps no longer than
@@ -33,13 +38,15 @@ the old list (:func:`fastsdf.granular.cells.carry_springs`, a search over the gr
 partners), so a contact never forgets its spring while it lasts. Rolling resistance
 (``rolling_friction > 0``) adds a rolling spring per entry beside it.
 
-Memory per grain (float64): the state and forces, 12 arrays, 96 bytes; the grain's index as
-given, float32 reference positions of the skin test, sort keys, permutation and one scratch
-array, 32 bytes; the list's row starts, 8 bytes; the half list (4-byte entries, a quarter of
-slack), about 20 bytes in a dense packing of equal discs (3 pairs per grain); cell arrays
-(at most ``2 n + 64`` cells, counts for at most 4 chunks), about 11 bytes in a dense packing
-and at most 52. :meth:`GranularSimulation.memory_per_grain` reports the actual figure; about
-170 bytes in a dense bed. With history add, per list entry, 8 bytes of spring (16 with rolling
+Memory per grain (float64): the state and forces, 12 arrays, 96 bytes; the second buffer of
+positions and predicted velocities, 40 bytes, in which a rebuild sorts (its scratch, sort keys
+and permutation, and the cell arrays where they fit); the grain's index as given and float32
+reference positions of the skin test, 16 bytes; the list's row starts, 8 bytes; the half list
+(4-byte entries, a quarter of slack), about 15-20 bytes in a dense packing of equal discs (3
+pairs per grain); cell arrays of their own only where the spare buffer cannot hold them (at
+most ``2 n + 64`` cells, counts for at most 4 chunks: at most 52 bytes).
+:meth:`GranularSimulation.memory_per_grain` reports the actual figure; about 175 bytes in a
+dense bed. With history add, per list entry, 8 bytes of spring (16 with rolling
 resistance), twice over (the current list and the one before the last rebuild, whose entries,
 4 bytes each, and row starts, 8 bytes per grain, are kept too), and 8 (16) bytes per grain for
 the springs against the world.
@@ -77,10 +84,12 @@ from fastsdf.granular.kernels import (
     Bulk,
     Grains,
     Near,
+    Substep,
     kick_drift,
     kinetic_energy,
     pair_energy,
     pair_forces,
+    substep_pass,
     wall_energy,
     wall_forces,
 )
@@ -92,6 +101,7 @@ from fastsdf.granular.params import (
     contact_time,
     derived_stiffness,
 )
+from fastsdf.granular.threads import ThreadTuner
 from fastsdf.introspect import show_init_signature
 from fastsdf.notice import RunProgress, compiling, compiling_first, warn_caller
 
@@ -112,6 +122,8 @@ DEFAULT_SUBSTEPS_PER_CONTACT = 40
 #: Fewer grains than this step on one thread: waking the other threads for every pass of
 #: every substep costs more than it saves (and far more on a busy machine).
 PARALLEL_MIN_GRAINS = 4096
+#: From this many grains the force pass takes more than 8 chunks (see ``chunks``).
+WIDE_CHUNKS_GRAINS = 65536
 #: :meth:`GranularSimulation.run` warns (once per simulation) when a frame takes more substeps
 #: than this (the library's default grains, radius 0.02 with a derived stiffness in its
 #: 4-high scenes under g = 9.81, take about 940) and at least
@@ -174,10 +186,20 @@ def _period(periodic_x: ArrayLike | None) -> tuple[float, float]:
 
 
 def _chunk_count(chunks: int | None, n: int) -> int:
-    """Chunks of the force pass: by default a few per thread (balance), few enough that the
-    pairs listed twice (across chunk boundaries) stay a small share."""
+    """Chunks of the force pass, fixed by the number of grains (never by the threads: the
+    chunks fix which pairs are listed twice and the order of each grain's sums, so the same
+    chunks give the same bits on any number of threads). By default ``n // 256``, at most 8
+    (the chunks two threads gave before they were fixed: the same bits as then), and from
+    :data:`WIDE_CHUNKS_GRAINS` the largest power of two of at most ``n // 1024`` and
+    ``sqrt(n) / 16`` chunks (16 at 1e5, for up to 16 threads), which keeps the pairs listed
+    twice (about one row of grains per chunk boundary) to a few percent of a square bed. Powers
+    of two split evenly among 1, 2, 4, 8 or 16 threads under numba's equal static schedule."""
     if chunks is None:
-        chunks = max(1, min(4 * numba.get_num_threads(), n // 256))
+        chunks = max(1, min(8, n // 256))
+        if n >= WIDE_CHUNKS_GRAINS:
+            most = min(n // 1024, int(math.sqrt(n) / 16))
+            while 2 * chunks <= most:
+                chunks *= 2
     if isinstance(chunks, bool) or not isinstance(chunks, (int, np.integer)) or chunks < 1:
         raise ValueError(f"chunks must be an int >= 1, got chunks={chunks!r}")
     return int(min(chunks, n))
@@ -248,8 +270,9 @@ class GranularSimulation:
         Make x periodic with period ``x1 - x0`` (grains leaving one side enter the other).
     chunks : int or None
         Contiguous chunks of grains the force pass runs over in parallel (tuning; the results
-        do not depend on it beyond rounding). ``None``: four per thread, at least 256 grains
-        each.
+        depend on it by rounding only, and not on the number of threads or the threading
+        layer). ``None``: fixed by the number of grains (``n // 256``, at most 8; from
+        :data:`WIDE_CHUNKS_GRAINS`, more: 16 at 1e5).
     device : 'cpu' or 'cuda'
         Where the grains are stepped: ``'cuda'`` builds a
         :class:`fastsdf.granular.cuda.CudaGranularSimulation` (the same physics and names, its
@@ -362,12 +385,12 @@ class GranularSimulation:
         n = self.ids.shape[0]
         self._x_ref = np.empty(n, np.float32)  # float32 suffices for the skin test (below)
         self._y_ref = np.empty(n, np.float32)
-        self._keys = np.empty(n, np.int32)
-        self._perm = np.empty(n, np.int32)
-        self._scratch = np.empty(n, np.float64)
+        self._double_buffer()
+        self._push = np.empty((2, 0))
+        self._no_world = Near(*(np.empty(0, t) for t in (np.int64, *[np.float64] * 4)))
         self._nbr_start = np.zeros(n + 1, np.int64)
         self._nbr: np.ndarray | None = None
-        self._chunk_max = np.zeros(max(4 * numba.get_num_threads(), 1))
+        self._chunk_max = np.zeros(self._chunks)
         self._counts = np.empty((0, 0), np.int32)
         self._cell_start = np.empty(0, np.int64)
         self._spring = np.zeros((0, self._memory_cols))
@@ -381,11 +404,28 @@ class GranularSimulation:
             np.copyto(self.grains.px, self.grains.vx)
             np.copyto(self.grains.py, self.grains.vy)
             self._forces(self._wall_sum, 0.0)
-            # the first substep compiles the integration pass
+            # the first substep compiles the integration pass and the fused substep
             kick_drift(
                 self.grains, 0.0, 0.0, self.density, self._x_ref, self._y_ref, self._chunk_max
             )
+            self._pass(self._no_world, 0.0, 0.0, 0)
         self.wall_force = self._wall_sum.copy()
+
+    #: The fields of :class:`Grains` that substep_pass double-buffers.
+    _BUFFERED = ("x", "y", "px", "py", "pomega")
+
+    def _double_buffer(self) -> None:
+        """Hold the grains' positions and predicted velocities as the rows of a (5, n) block
+        and give them a second block, :attr:`_spare` (see substep_pass): the grains and the
+        spare swap after each pass. A rebuild runs between passes, when the spare is free,
+        and sorts in its rows (:meth:`_workspace`)."""
+        g = self.grains
+        n = g.x.shape[0]
+        now, spare = np.empty((5, n)), np.empty((5, n))
+        for row, k in enumerate(self._BUFFERED):
+            now[row] = getattr(g, k)
+        self.grains = g._replace(**{k: now[row] for row, k in enumerate(self._BUFFERED)})
+        self._spare = g._replace(**{k: spare[row] for row, k in enumerate(self._BUFFERED)})
 
     def _resolve_laws(self) -> None:
         """The contact laws (a stiffness of None derived from the grains, gravity and the
@@ -475,25 +515,45 @@ class GranularSimulation:
         state["external"] = None
         return state
 
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._double_buffer()  # (a pickle keeps the rows, not their blocks)
+
     # -- neighbour search -----------------------------------------------------------------
+    def _workspace(self, ncells: int) -> tuple:
+        """``(keys, perm, counts, cell_start)`` of a rebuild over ``ncells`` cells, in the
+        spare block's rows 1-4 (row 0 is the reorder's scratch) where they fit, else in
+        arrays of their own (kept, grown by a quarter)."""
+        n = self.ids.shape[0]
+        chunks = min(self._chunks, 4)  # rows of per-chunk counts: bounded memory
+        size = ncells + ncells // 4
+        block = self._spare.x.base
+        assert block is not None and block.shape == (5, n)
+        free = block[1:].reshape(-1).view(np.int32)  # 8 n int32
+        if 2 * n + 2 * (size + 1) + chunks * size <= free.shape[0]:
+            start = free[2 * n : 2 * n + 2 * (size + 1)].view(np.int64)
+            counts = free[2 * n + 2 * (size + 1) :][: chunks * size].reshape(chunks, size)
+            return free[:n], free[n : 2 * n], counts, start
+        if self._counts.shape[0] != chunks or self._counts.shape[1] < ncells:
+            self._counts = np.empty((chunks, size), np.int32)
+            self._cell_start = np.empty(size + 1, np.int64)
+        return free[:n], free[n : 2 * n], self._counts, self._cell_start
+
     def _rebuild(self) -> None:
         t0 = _time.perf_counter()
         g = self.grains
         grid = make_grid(g.x, g.y, self._cutoff, self.bulk.period_x0, self.bulk.period)
         ncells = grid.ncx * grid.ncy
-        chunks = min(numba.get_num_threads(), 4)  # rows of per-chunk counts: bounded memory
-        if self._counts.shape[0] != chunks or self._counts.shape[1] < ncells:
-            self._counts = np.empty((chunks, ncells + ncells // 4), np.int32)
-            self._cell_start = np.empty(ncells + ncells // 4 + 1, np.int64)
-        cell_keys(g.x, g.y, grid, self._keys)
-        counting_sort(self._keys, ncells, self._counts, self._perm, self._cell_start)
+        keys, perm, counts, cell_start = self._workspace(ncells)
+        cell_keys(g.x, g.y, grid, keys)
+        counting_sort(keys, ncells, counts, perm, cell_start)
         carried = tuple(self._wall_spring) if self._wall_spring.shape[1] else ()
-        permute((*g, self.ids, self._keys, *carried), self._perm, self._scratch)
+        permute((*g, self.ids, keys, *carried), perm, self._spare.x)
         if self._history:  # the current list becomes the old one, the old one's memory reused
             self._old_start, self._nbr_start = self._nbr_start, self._old_start
             self._old_nbr, self._nbr = self._nbr, self._old_nbr
             self._old_spring, self._spring = self._spring, self._old_spring
-        cells = SortedGrains(g.x, g.y, g.radius, self._keys, self._cell_start, self.skin)
+        cells = SortedGrains(g.x, g.y, g.radius, keys, cell_start, self.skin)
         self._nbr = build_verlet(cells, grid, self._chunks, self._nbr_start, self._nbr)
         self.grid = grid
         if self._history:
@@ -505,7 +565,7 @@ class GranularSimulation:
                 # (first called at the first rebuild of a run, after the constructor's)
                 with compiling_first("the granular kernels' contact memory", carry_springs):
                     carry_springs(
-                        self._perm,
+                        perm,
                         self._old_start,
                         self._old_nbr,
                         self._old_spring,
@@ -565,19 +625,17 @@ class GranularSimulation:
         self.timings["forces"] += t1 - t0
         if self.world is not None:
             near = self._query_world()
-            if near.idx.shape[0]:
-                # (compiled when the first grain comes near the world, often within a run)
-                with compiling_first("the granular kernels' contacts with the world", wall_forces):
-                    fx, fy = wall_forces(
-                        self.grains,
-                        near,
-                        self._wall_spring if self.wall_contact.history else None,
-                        self.wall_contact,
-                        self.bulk,
-                        dt,
-                    )
-                wall_sum[0] += fx
-                wall_sum[1] += fy
+            # (called with no grain near too: compiled with the engine's first forces)
+            fx, fy = wall_forces(
+                self.grains,
+                near,
+                self._wall_spring if self.wall_contact.history else None,
+                self.wall_contact,
+                self.bulk,
+                dt,
+            )
+            wall_sum[0] += fx
+            wall_sum[1] += fy
             self._wall_d = near.d
             self._wall_last = near.idx
             self.timings["walls"] += _time.perf_counter() - t1
@@ -673,18 +731,99 @@ class GranularSimulation:
     def advance(self, substeps: int) -> None:
         """Advance ``substeps`` substeps of :attr:`substep` seconds (velocities end
         synchronized with positions). Fewer grains than :data:`PARALLEL_MIN_GRAINS` run on one
-        thread (the same results: the work is split into the same chunks)."""
+        thread. Above, with :attr:`tune_threads`, the run is timed in segments on numba's
+        threads (``numba.get_num_threads()``) and on one, and the faster runs (see
+        :mod:`fastsdf.granular.threads`): the results are the same bits on any number of
+        threads."""
         threads = numba.get_num_threads()
-        serial = self.grains.x.shape[0] < PARALLEL_MIN_GRAINS and threads > 1
-        if serial:
+        n = self.grains.x.shape[0]
+        self._threads_now = None
+        if threads > 1 and n < PARALLEL_MIN_GRAINS:
             numba.set_num_threads(1)
+        elif threads > 1 and self.tune_threads:
+            tuner = self._tuner
+            if tuner is None or tuner.most != threads or tuner.grains != n:
+                tuner = self._tuner = ThreadTuner(threads, n)
+            self._threads_now = tuner
+            tuner.start()
         try:
             self._advance(substeps)
         finally:
-            if serial:
-                numba.set_num_threads(threads)
+            if self._threads_now is not None:
+                self._threads_now.stop()
+                self._threads_now = None
+            numba.set_num_threads(threads)
+
+    #: Whether :meth:`advance` chooses its threads by measuring (see
+    #: :mod:`fastsdf.granular.threads`); ``False``: numba's threads, as set.
+    tune_threads: bool = True
+    _tuner: ThreadTuner | None = None
+    #: The tuner of the running :meth:`advance`, told of every substep (None: threads fixed).
+    _threads_now: ThreadTuner | None = None
 
     def _advance(self, substeps: int) -> None:
+        if self.external is not None:  # a compiled hook runs between the passes
+            self._advance_staged(substeps)
+            return
+        if not substeps:
+            return
+        dt = self.substep
+        # The reference positions are float32: allow for their rounding in the skin test.
+        lim = max(0.5 * self.skin - self._ref_margin, 0.0) ** 2
+        wall_sum = np.zeros(2)
+        tick, every = self._tick or (None, 0)
+        t0 = _time.perf_counter()
+        kick_drift(self.grains, 0.0, dt, self.density, self._x_ref, self._y_ref, self._chunk_max)
+        self.timings["integrate"] += _time.perf_counter() - t0
+        for s in range(substeps):
+            if tick is not None and s and s % every == 0:
+                tick(s)
+            self.time += dt
+            if not self._chunk_max.max() <= lim:  # (drifted by the last pass)
+                self._rebuild()
+                lim = max(0.5 * self.skin - self._ref_margin, 0.0) ** 2
+            t0 = _time.perf_counter()
+            near = self._query_world() if self.world is not None else self._no_world
+            t1 = _time.perf_counter()
+            fx, fy = self._pass(near, dt, 0.0 if s == substeps - 1 else dt, self._chunks)
+            wall_sum[0] += fx
+            wall_sum[1] += fy
+            self.timings["walls"] += t1 - t0
+            self.timings["forces"] += _time.perf_counter() - t1
+            if self._threads_now is not None:
+                self._threads_now.substep_done()
+        self.wall_force = wall_sum / substeps
+
+    def _pass(self, near: Near, dt: float, dt_next: float, chunks: int) -> tuple:
+        """One :func:`~fastsdf.granular.kernels.substep_pass` (the forces at the current
+        positions, then the drift of ``dt_next``) over ``chunks`` chunks (0: none, which only
+        compiles it), the grains and the spare buffer swapped after; returns the world's
+        force."""
+        if self._push.shape[1] != near.idx.shape[0]:
+            self._push = np.empty((2, near.idx.shape[0]))
+        step = Substep(
+            dt, 0.5 * dt, dt_next, chunks, self._x_ref, self._y_ref, self._chunk_max, self._push
+        )
+        out = self._spare
+        fx, fy = substep_pass(
+            self.grains,
+            out,
+            self._nbr_start,
+            self._nbr,
+            self._spring if self._history else None,
+            near,
+            self._wall_spring if self.wall_contact.history else None,
+            (self.contact, self.wall_contact),
+            self.bulk,
+            step,
+        )
+        if chunks:
+            self._spare, self.grains = self.grains, out
+        return fx, fy
+
+    def _advance_staged(self, substeps: int) -> None:
+        """:meth:`_advance` in three passes per substep, with :attr:`external` between the
+        contact forces and the world's (the same arithmetic as the fused substep)."""
         g = self.grains
         dt = self.substep
         # The reference positions are float32: allow for their rounding in the skin test.
@@ -711,6 +850,8 @@ class GranularSimulation:
                 self._rebuild()
                 lim = max(0.5 * self.skin - self._ref_margin, 0.0) ** 2
             self._forces(wall_sum, dt)
+            if self._threads_now is not None:
+                self._threads_now.substep_done()
         if substeps:
             t0 = _time.perf_counter()
             kick_drift(g, 0.5 * dt, 0.0, self.density, self._x_ref, self._y_ref, self._chunk_max)
@@ -834,12 +975,10 @@ class GranularSimulation:
         """Bytes held per grain: state, neighbour list, sort and cell arrays, scratch."""
         arrays = [
             *self.grains,
+            *self._spare,
             self.ids,
             self._x_ref,
             self._y_ref,
-            self._keys,
-            self._perm,
-            self._scratch,
             self._nbr_start,
             self._counts,
             self._cell_start,
@@ -850,8 +989,10 @@ class GranularSimulation:
         ]
         if self._old_nbr is not None:
             arrays.append(self._old_nbr)
-        total = sum(a.nbytes for a in arrays) + (0 if self._nbr is None else self._nbr.nbytes)
-        return total / self.grains.x.shape[0]
+        if self._nbr is not None:
+            arrays.append(self._nbr)
+        owners = {id(a): a for a in (a if a.base is None else a.base for a in arrays)}
+        return sum(a.nbytes for a in owners.values()) / self.grains.x.shape[0]
 
     def __repr__(self) -> str:
         return (
