@@ -24,6 +24,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from fastsdf.introspect import show_field_types
+
 #: The bits of a list entry that hold the neighbour's index (at most 2**30 grains).
 INDEX_MASK = (1 << 30) - 1
 
@@ -42,9 +44,11 @@ __all__ = [
 ]
 
 
+@show_field_types
 class CellGrid(NamedTuple):
     """Square-ish cells over a rectangle: cell ``(cx, cy)`` covers ``[x0 + cx w, x0 + (cx+1) w)
-    x [y0 + cy h, ...)`` with ``w = 1 / inv_w``, ``h = 1 / inv_h``; key ``cy * ncx + cx``.
+    x [y0 + cy h, ...)`` with ``w = 1 / inv_w``, ``h = 1 / inv_h``, ``ncx`` by ``ncy`` cells;
+    key ``cy * ncx + cx``.
     ``period > 0``: x is periodic with that period (``ncx * w == period``, ``ncx >= 3``)."""
 
     x0: float
@@ -64,9 +68,10 @@ def make_grid(
     period: float = 0.0,
     max_cells: int | None = None,
 ) -> CellGrid:
-    """The cell grid over the grains' bounding box with cells at least ``cutoff`` wide (wider
-    when the box would need more than ``max_cells`` cells; default ``2 n + 64``, which bounds
-    the memory of the cell arrays per grain)."""
+    """The cell grid over the bounding box of the grains at ``x``, ``y`` with cells at least
+    ``cutoff`` wide (wider when the box would need more than ``max_cells`` cells; default
+    ``2 n + 64``, which bounds the memory of the cell arrays per grain); with ``period > 0``,
+    x is periodic over ``[period_x0, period_x0 + period)``."""
     n = x.shape[0]
     max_cells = 2 * n + 64 if max_cells is None else max_cells
     ylo, yhi = float(y.min()), float(y.max())
@@ -162,6 +167,7 @@ def permute(arrays: tuple, perm: np.ndarray, scratch: np.ndarray) -> None:
         _gather(a, perm, scratch.view(a.dtype) if a.dtype.itemsize == 8 else scratch)
 
 
+@show_field_types
 class SortedGrains(NamedTuple):
     """Grains sorted by cell as the neighbour search reads them: centres ``x, y`` and radii
     ``radius`` (float64), each grain's cell ``keys`` (int32), the cells' ``cell_start``
@@ -266,7 +272,8 @@ def build_verlet(
 
 
 def list_pairs(nbr_start: np.ndarray, nbr: np.ndarray) -> np.ndarray:
-    """The pairs ``(i, j)``, ``i < j``, of a Verlet list, as an (m, 2) array sorted by rows."""
+    """The pairs ``(i, j)``, ``i < j``, of a Verlet list (grain ``i``'s neighbours are
+    ``nbr[nbr_start[i]:nbr_start[i + 1]]``), as an (m, 2) array sorted by rows."""
     n = nbr_start.shape[0] - 1
     i = np.repeat(np.arange(n), np.diff(nbr_start))
     j = (nbr[: nbr_start[n]] & INDEX_MASK).astype(np.int64)
@@ -278,8 +285,9 @@ def list_pairs(nbr_start: np.ndarray, nbr: np.ndarray) -> np.ndarray:
 def brute_force_pairs(
     x: np.ndarray, y: np.ndarray, radius: np.ndarray, skin: float, period: float = 0.0
 ) -> np.ndarray:
-    """Every pair ``(i, j)``, ``i < j``, closer than ``R_i + R_j + skin`` (all pairs tested;
-    a reference for small n), sorted by rows."""
+    """Every pair ``(i, j)``, ``i < j``, of grains at ``x``, ``y`` with radii ``radius``
+    closer than ``R_i + R_j + skin`` (x periodic with ``period`` if > 0; all pairs tested: a
+    reference for small n), sorted by rows."""
     dx = x[:, None] - x[None, :]
     if period > 0:
         dx -= period * np.rint(dx / period)

@@ -742,7 +742,9 @@ def _world_kernels(at: Any) -> tuple:
 
 class CudaGranularSimulation(GranularSimulation, device="cuda"):
     """:class:`~fastsdf.granular.GranularSimulation` stepped on a CUDA GPU, built by
-    ``GranularSimulation(..., device='cuda')``: the same parameters, physics and accessors
+    ``GranularSimulation(..., device='cuda')``: the same parameters (``radius``, ``contacts``,
+    ``wall_contacts``, ``density``, ``timestep``, ``substeps_per_contact``, ``substep``,
+    ``skin``, ``periodic_x``, ``chunks``: see there), physics and accessors
     (``positions``, ``velocities``, ... are host copies, in the grains' given order); the state
     lives on the device (see the module docs). ``max_neighbours``: slots of the neighbour list
     per grain (``None``: :func:`default_max_neighbours`). The world must be static (a GridSDF,

@@ -29,6 +29,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from fastsdf.introspect import show_field_types
+
 # The parallel passes run each chunk of grains through a serial function, or take the arrays
 # they write out of a Grains tuple by attribute before their parallel loop: numba (0.68) drops
 # stores made inside prange through ``g.x[i] = ...`` or through names bound by unpacking
@@ -65,6 +67,7 @@ __all__ = [
 ]
 
 
+@show_field_types
 class Grains(NamedTuple):
     """Structure of arrays of ``n`` discs (float64, shape (n,) each): position ``x, y``,
     velocity ``vx, vy``, angular velocity ``omega`` (rad/s, counter-clockwise), ``radius``, and
@@ -85,6 +88,7 @@ class Grains(NamedTuple):
     pomega: np.ndarray
 
 
+@show_field_types
 class Bulk(NamedTuple):
     """What every grain shares: ``density`` (mass per area; a disc of radius R weighs
     ``density pi R**2`` and has moment of inertia ``m R**2 / 2``), gravity ``(gravity_x,
@@ -112,6 +116,7 @@ def _zeta(restitution):
     return -le / math.sqrt(math.pi * math.pi + le * le)
 
 
+@show_field_types
 class Law(NamedTuple):
     """A contact law as the per-contact arithmetic takes it (see :func:`law_terms`): the normal
     and tangential stiffness ``kn, kt``, the dashpot's damping ratio ``zeta`` and ``damp = 2
@@ -131,6 +136,7 @@ class Law(NamedTuple):
     dt: float
 
 
+@show_field_types
 class Pair(NamedTuple):
     """Grains ``i`` and ``j`` as their contact sees them: ``(dx, dy) = x_i - x_j`` (the
     periodic image applied), radii ``ri, rj``, relative (predicted) velocity ``(vx, vy) = v_i -
@@ -148,6 +154,7 @@ class Pair(NamedTuple):
     lower: bool
 
 
+@show_field_types
 class WallPair(NamedTuple):
     """A grain and the world as their contact sees them: the world's distance ``d`` at the
     grain's centre, its gradient ``(gx, gy)`` and the wall's normal speed ``vn`` (along ``grad
@@ -164,9 +171,11 @@ class WallPair(NamedTuple):
     w: float
 
 
+@show_field_types
 class Grain(NamedTuple):
-    """One grain's values as its elementwise pass takes them (:func:`kick_grain`): position,
-    velocity, angular velocity, radius, force and torque (the fields of :class:`Grains`)."""
+    """One grain's values as its elementwise pass takes them (:func:`kick_grain`): position
+    ``x``, ``y``, velocity ``vx``, ``vy``, angular velocity ``omega``, radius, force ``fx``,
+    ``fy`` and torque (the fields of :class:`Grains`)."""
 
     x: float
     y: float
@@ -179,6 +188,7 @@ class Grain(NamedTuple):
     torque: float
 
 
+@show_field_types
 class Near(NamedTuple):
     """The grains a force pass asks the world about, ``idx`` (distinct storage slots), and the
     world there: distance ``d``, gradient ``(gx, gy)`` and the wall's normal speed ``vn``
@@ -709,6 +719,7 @@ def kick_drift(
         chunk_max[c] = _kick_chunk(g, g, lo, hi, dt_kick, dt, density, x_ref, y_ref)
 
 
+@show_field_types
 class Substep(NamedTuple):
     """What a fused substep (:func:`substep_pass`) takes beside the grains, the list and the
     world: the substep ``dt``, the kick ``dt_kick`` that completes the velocities after the

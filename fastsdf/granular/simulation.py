@@ -469,7 +469,9 @@ class GranularSimulation:
         angular_velocities: ArrayLike | None = None,
         radius: ArrayLike | None = None,
     ) -> None:
-        """Replace the given fields (in the grains' given numbering) and continue from there:
+        """Replace the given fields, ``positions`` and ``velocities`` (n, 2),
+        ``angular_velocities`` and ``radius`` (n,) (in the grains' given numbering; ``None``
+        keeps a field) and continue from there:
         the neighbour list is rebuilt and the forces evaluated at the new state (a changed
         radius also changes the lightest contact, hence the substep)."""
         g = self.grains

@@ -27,7 +27,8 @@ PROBE_EVERY = 25.0
 
 
 class ThreadTuner:
-    """Chooses, segment after segment, between ``most`` threads and one.
+    """Chooses, segment after segment, between ``most`` threads and one for a simulation of
+    ``grains`` grains.
 
     :meth:`next_threads` says how many threads the next segment runs on; :meth:`record` takes
     its work (grain-substeps) and duration. The cost of each choice (seconds per
