@@ -40,6 +40,7 @@ from typing import Any, Literal, TypeGuard
 import numpy as np
 
 from fastsdf.expr.ops import OPS, chain_rule_numpy, fmt_const
+from fastsdf.expr.quote import shown
 
 __all__ = [
     "Expr",
@@ -421,8 +422,6 @@ def as_expr(value: Expr | float, name: str = "value") -> Expr:
             and not np.issubdtype(value.dtype, np.complexfloating)
         ):
             return _intern("const", (), float(value))
-        from fastsdf.expr.validate import shown  # (it builds on this module)
-
         raise TypeError(
             f"{name} must be a real number or an expression, got {shown(value)} "
             f"of type {type(value).__name__}"
