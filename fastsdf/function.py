@@ -41,6 +41,7 @@ from fastsdf.expr.graph import (
     substitute_params,
 )
 from fastsdf.expr.points import PARALLEL_MIN_POINTS, as_points
+from fastsdf.expr.quote import shown
 from fastsdf.notice import compiling
 
 __all__ = [
@@ -185,7 +186,7 @@ class CompiledSDF:
         names = self.param_names or ()
         if len(params) != len(names):
             raise ValueError(
-                f"params must hold {len(names)} values (for {list(names)}), got {params!r}"
+                f"params must hold {len(names)} values (for {list(names)}), got {shown(params)}"
             )
         out = base.copy()
         out[0] = float(t)
